@@ -1,0 +1,88 @@
+//! `robot-sim`: a robot controller simulator speaking holarchy's TCP/XML protocol.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::Context;
+use clap::Parser;
+use robot_bridge::sim::{SimConfig, Simulator};
+use tokio_util::sync::CancellationToken;
+
+/// A robot controller simulator: the TCP server a resource holon's bridge connects to.
+///
+/// Prints `listening on ADDR` on stdout once it accepts connections, and
+/// `executed N commands` when it stops (SIGTERM or Ctrl-C). Command numbers in the
+/// fault flags count every command received by the process, from 1.
+#[derive(Debug, Parser)]
+#[command(name = "robot-sim", version)]
+struct Args {
+    /// Address to listen on; port 0 picks a free port (printed on the first line).
+    #[arg(long, default_value = "127.0.0.1:7600")]
+    listen: String,
+    /// How long each action takes, in milliseconds.
+    #[arg(long, default_value_t = 0)]
+    delay_ms: u64,
+    /// Answer every Nth command with an `error` result (not executed).
+    #[arg(long, value_name = "N")]
+    error_every: Option<u64>,
+    /// Close each connection when its (N+1)th command arrives (not executed).
+    #[arg(long, value_name = "N")]
+    close_after: Option<u64>,
+    /// Stop replying after N commands (later commands are neither answered nor executed).
+    #[arg(long, value_name = "N")]
+    hang_after: Option<u64>,
+    /// Answer the (N+1)th command with malformed XML (once; not executed).
+    #[arg(long, value_name = "N")]
+    garbage_after: Option<u64>,
+    /// Answer every Nth `inspect` with `inspect_fail` instead of `inspect_pass`.
+    #[arg(long, value_name = "N")]
+    inspect_fail_every: Option<u64>,
+    /// Keep the command counts in this JSON file, rewritten after every command:
+    /// {"executed":N,"received":N,"connections":N,"by_action":{"pick":N,...}}.
+    #[arg(long, value_name = "PATH")]
+    count_file: Option<PathBuf>,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .init();
+    let config = SimConfig {
+        delay: Duration::from_millis(args.delay_ms),
+        error_every: args.error_every,
+        close_after: args.close_after,
+        hang_after: args.hang_after,
+        garbage_after: args.garbage_after,
+        inspect_fail_every: args.inspect_fail_every,
+        count_file: args.count_file,
+    };
+    let simulator = Simulator::bind(&args.listen, config)
+        .await
+        .with_context(|| format!("cannot listen on {}", args.listen))?;
+    let address = simulator.local_addr()?;
+    let stats = simulator.stats();
+    println!("listening on {address}");
+    let shutdown = CancellationToken::new();
+    tokio::spawn({
+        let shutdown = shutdown.clone();
+        async move {
+            let mut term =
+                tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+                    .expect("SIGTERM handler");
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = tokio::signal::ctrl_c() => {}
+            }
+            shutdown.cancel();
+        }
+    });
+    simulator.run(shutdown).await;
+    println!("executed {} commands", stats.executed());
+    Ok(())
+}

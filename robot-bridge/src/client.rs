@@ -1,0 +1,313 @@
+//! The controller client: one persistent TCP connection to the robot controller.
+//!
+//! The client is a task ([`run`]) with a command mailbox and an event channel, like every
+//! component of a resource holon. It connects, retries every `reconnect_interval` while
+//! the controller is away (the seed's `socket_connect`), sends each command as it arrives,
+//! and reports in order:
+//!
+//! - [`ControllerEvent::Status`] on connect, on every `ROBOT_STATUS` and on disconnect;
+//! - [`ControllerEvent::Reply`] when the controller answers a command;
+//! - [`ControllerEvent::CommandFailed`] when a command cannot have an answer: no
+//!   connection, the connection broke, the controller sent garbage, or no reply came
+//!   within `command_timeout`.
+//!
+//! A controller that misses a command's deadline or sends something that is not the
+//! protocol has its connection reset; the client then reconnects as usual.
+
+use std::collections::HashMap;
+use std::time::Duration;
+
+use futures_util::{SinkExt, StreamExt};
+use schemas::{ControllerState, RobotCommand, RobotMessage};
+use tokio::net::TcpStream;
+use tokio::sync::mpsc;
+use tokio::time::Instant;
+use tokio_util::codec::Framed;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+use crate::codec::RobotCodec;
+
+/// How to reach the controller.
+#[derive(Debug, Clone)]
+pub struct ClientConfig {
+    /// `HOST:PORT` of the controller's TCP server.
+    pub address: String,
+    /// Pause between connection attempts while the controller is away.
+    pub reconnect_interval: Duration,
+    /// Longest wait for a command's reply before the step fails.
+    pub command_timeout: Duration,
+    /// Longest wait for one TCP connect.
+    pub connect_timeout: Duration,
+}
+
+impl ClientConfig {
+    pub fn new(address: impl Into<String>) -> Self {
+        ClientConfig {
+            address: address.into(),
+            reconnect_interval: Duration::from_secs(1),
+            command_timeout: Duration::from_secs(30),
+            connect_timeout: Duration::from_secs(2),
+        }
+    }
+}
+
+/// The controller as the client sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum ControllerStatus {
+    /// No connection (yet, or any more).
+    Disconnected,
+    /// Connected, and the controller's last `ROBOT_STATUS` said this.
+    Connected(ControllerState),
+}
+
+impl ControllerStatus {
+    pub fn is_ready(self) -> bool {
+        self == ControllerStatus::Connected(ControllerState::Ready)
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ControllerStatus::Disconnected => "disconnected",
+            ControllerStatus::Connected(state) => state.as_str(),
+        }
+    }
+}
+
+/// Why a command got no reply.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CommandFailure {
+    #[error("not connected to the controller")]
+    NotConnected,
+    #[error("the connection to the controller broke")]
+    Disconnected,
+    #[error("no reply within {0:?}")]
+    Timeout(Duration),
+    #[error("the controller broke the protocol: {0}")]
+    Protocol(String),
+}
+
+/// What the client reports to its owner, in the order it happened.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ControllerEvent {
+    Status(ControllerStatus),
+    Reply {
+        id: u64,
+        result: String,
+        message: Option<String>,
+    },
+    CommandFailed {
+        id: u64,
+        failure: CommandFailure,
+    },
+}
+
+/// Runs the client until `shutdown` is cancelled or the event receiver is dropped.
+/// Commands come from `commands`; their `id` is the wire `ID` and comes back in events.
+pub async fn run(
+    config: ClientConfig,
+    commands: &mut mpsc::Receiver<RobotCommand>,
+    events: mpsc::Sender<ControllerEvent>,
+    shutdown: CancellationToken,
+) {
+    let mut reporter = Reporter {
+        events,
+        status: None,
+    };
+    let mut first_attempt = true;
+    loop {
+        if !reporter.status(ControllerStatus::Disconnected).await {
+            return;
+        }
+        let stream = match connect(&config, commands, &mut reporter, &shutdown, first_attempt).await
+        {
+            Some(stream) => stream,
+            None => return,
+        };
+        first_attempt = false;
+        info!(controller = %config.address, "connected to the controller");
+        let end = serve(&config, stream, commands, &mut reporter, &shutdown).await;
+        match end {
+            ConnectionEnd::Shutdown => {
+                info!(controller = %config.address, "closed the controller connection");
+                return;
+            }
+            ConnectionEnd::OwnerGone => return,
+            ConnectionEnd::Lost(why) => {
+                warn!(controller = %config.address, reason = %why, "controller connection lost; reconnecting");
+            }
+        }
+    }
+}
+
+struct Reporter {
+    events: mpsc::Sender<ControllerEvent>,
+    status: Option<ControllerStatus>,
+}
+
+impl Reporter {
+    /// Sends an event; false when the owner is gone.
+    async fn send(&mut self, event: ControllerEvent) -> bool {
+        self.events.send(event).await.is_ok()
+    }
+
+    async fn status(&mut self, status: ControllerStatus) -> bool {
+        if self.status == Some(status) {
+            return true;
+        }
+        self.status = Some(status);
+        self.send(ControllerEvent::Status(status)).await
+    }
+}
+
+/// Connects, retrying every `reconnect_interval`; fails commands that arrive meanwhile.
+async fn connect(
+    config: &ClientConfig,
+    commands: &mut mpsc::Receiver<RobotCommand>,
+    reporter: &mut Reporter,
+    shutdown: &CancellationToken,
+    first_attempt: bool,
+) -> Option<TcpStream> {
+    let mut logged = false;
+    let mut next_attempt = Instant::now();
+    if !first_attempt {
+        // A controller that just dropped us is given a moment before we knock again.
+        next_attempt += config.reconnect_interval.min(Duration::from_millis(100));
+    }
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => return None,
+            command = commands.recv() => {
+                let command = command?;
+                if !reporter.send(ControllerEvent::CommandFailed { id: command.id, failure: CommandFailure::NotConnected }).await {
+                    return None;
+                }
+            }
+            _ = tokio::time::sleep_until(next_attempt) => {
+                let attempt = tokio::time::timeout(config.connect_timeout, TcpStream::connect(&config.address)).await;
+                match attempt {
+                    Ok(Ok(stream)) => {
+                        let _ = stream.set_nodelay(true);
+                        return Some(stream);
+                    }
+                    Ok(Err(e)) if !logged => {
+                        warn!(controller = %config.address, error = %e, "controller unreachable; retrying every {:?}", config.reconnect_interval);
+                        logged = true;
+                    }
+                    Err(_) if !logged => {
+                        warn!(controller = %config.address, "controller connect timed out; retrying every {:?}", config.reconnect_interval);
+                        logged = true;
+                    }
+                    _ => debug!(controller = %config.address, "controller still unreachable"),
+                }
+                next_attempt = Instant::now() + config.reconnect_interval;
+            }
+        }
+    }
+}
+
+enum ConnectionEnd {
+    Shutdown,
+    OwnerGone,
+    Lost(String),
+}
+
+async fn serve(
+    config: &ClientConfig,
+    stream: TcpStream,
+    commands: &mut mpsc::Receiver<RobotCommand>,
+    reporter: &mut Reporter,
+    shutdown: &CancellationToken,
+) -> ConnectionEnd {
+    let mut framed = Framed::new(stream, RobotCodec);
+    // Wire id -> deadline of every command sent and not answered.
+    let mut pending: HashMap<u64, Instant> = HashMap::new();
+    let end = loop {
+        let next_deadline = pending.values().min().copied();
+        tokio::select! {
+            _ = shutdown.cancelled() => break ConnectionEnd::Shutdown,
+            command = commands.recv() => {
+                let Some(command) = command else { break ConnectionEnd::OwnerGone };
+                debug!(id = command.id, action = %command.action, "command to controller");
+                let id = command.id;
+                if let Err(e) = framed.send(&RobotMessage::Command(command)).await {
+                    if !reporter.send(ControllerEvent::CommandFailed { id, failure: CommandFailure::Disconnected }).await {
+                        break ConnectionEnd::OwnerGone;
+                    }
+                    break ConnectionEnd::Lost(format!("send failed: {e}"));
+                }
+                pending.insert(id, Instant::now() + config.command_timeout);
+            }
+            message = framed.next() => match message {
+                Some(Ok(RobotMessage::Reply(reply))) => {
+                    if pending.remove(&reply.id).is_none() {
+                        warn!(id = reply.id, result = %reply.result, "reply to no pending command; ignored");
+                        continue;
+                    }
+                    debug!(id = reply.id, result = %reply.result, "reply from controller");
+                    let event = ControllerEvent::Reply { id: reply.id, result: reply.result, message: reply.message };
+                    if !reporter.send(event).await {
+                        break ConnectionEnd::OwnerGone;
+                    }
+                }
+                Some(Ok(RobotMessage::Status(state))) => {
+                    info!(controller_state = %state, "controller status");
+                    if !reporter.status(ControllerStatus::Connected(state)).await {
+                        break ConnectionEnd::OwnerGone;
+                    }
+                }
+                Some(Ok(RobotMessage::Command(_))) => {
+                    let why = "the controller sent a ROBOT_CMD".to_string();
+                    if !fail_pending(&mut pending, reporter, CommandFailure::Protocol(why.clone())).await {
+                        break ConnectionEnd::OwnerGone;
+                    }
+                    break ConnectionEnd::Lost(why);
+                }
+                Some(Err(e)) => {
+                    let why = e.to_string();
+                    warn!(error = %why, "controller sent invalid data; resetting the connection");
+                    if !fail_pending(&mut pending, reporter, CommandFailure::Protocol(why.clone())).await {
+                        break ConnectionEnd::OwnerGone;
+                    }
+                    break ConnectionEnd::Lost(why);
+                }
+                None => break ConnectionEnd::Lost("the controller closed the connection".into()),
+            },
+            _ = async { tokio::time::sleep_until(next_deadline.unwrap_or_else(Instant::now)).await }, if next_deadline.is_some() => {
+                let now = Instant::now();
+                let expired: Vec<u64> = pending.iter().filter(|(_, d)| **d <= now).map(|(id, _)| *id).collect();
+                for id in &expired {
+                    pending.remove(id);
+                    warn!(id, timeout = ?config.command_timeout, "controller did not reply in time");
+                    if !reporter.send(ControllerEvent::CommandFailed { id: *id, failure: CommandFailure::Timeout(config.command_timeout) }).await {
+                        return ConnectionEnd::OwnerGone;
+                    }
+                }
+                break ConnectionEnd::Lost("a command timed out".into());
+            }
+        }
+    };
+    if !fail_pending(&mut pending, reporter, CommandFailure::Disconnected).await {
+        return ConnectionEnd::OwnerGone;
+    }
+    end
+}
+
+async fn fail_pending(
+    pending: &mut HashMap<u64, Instant>,
+    reporter: &mut Reporter,
+    failure: CommandFailure,
+) -> bool {
+    let mut ids: Vec<u64> = pending.drain().map(|(id, _)| id).collect();
+    ids.sort_unstable();
+    for id in ids {
+        let event = ControllerEvent::CommandFailed {
+            id,
+            failure: failure.clone(),
+        };
+        if !reporter.send(event).await {
+            return false;
+        }
+    }
+    true
+}

@@ -1,0 +1,780 @@
+//! The TCP/XML codec of the robot controller protocol.
+//!
+//! A stream carries one XML document after another, framed only by the end of each root
+//! element. Decoding is two steps:
+//!
+//! 1. [`find_document`] scans the bytes received so far for the end of the first complete
+//!    document. It understands just enough XML to frame (tags with quoted attributes,
+//!    comments, CDATA, processing instructions such as the XML declaration) and enforces
+//!    the limits: no DOCTYPE, at most [`MAX_DOCUMENT_BYTES`] per document and at most
+//!    [`MAX_DEPTH`] nested elements. A document cut off by the end of the buffer is
+//!    *incomplete*, never complete.
+//! 2. [`parse_document`] parses one complete document with quick-xml, which checks that it
+//!    is well-formed, and maps it to a [`RobotMessage`].
+//!
+//! [`RobotCodec`] puts both behind tokio-util's `Decoder`/`Encoder` for a framed socket.
+//! After any decode error the stream cannot be resynchronised: drop the connection.
+
+use bytes::{Buf, BytesMut};
+use quick_xml::escape::{escape, resolve_predefined_entity};
+use quick_xml::events::Event;
+use quick_xml::Reader;
+use schemas::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
+use tokio_util::codec::{Decoder, Encoder};
+
+/// The largest document accepted, in bytes (the contract's 64 KiB).
+pub const MAX_DOCUMENT_BYTES: usize = 64 * 1024;
+
+/// The deepest element nesting accepted (the protocol itself needs 2).
+pub const MAX_DEPTH: usize = 8;
+
+/// What can be wrong with the bytes a peer sent.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CodecError {
+    #[error("DOCTYPE declarations are not allowed")]
+    DoctypeRejected,
+    #[error("document exceeds {MAX_DOCUMENT_BYTES} bytes")]
+    TooLarge,
+    #[error("document nests elements deeper than {MAX_DEPTH}")]
+    TooDeep,
+    #[error("malformed XML: {0}")]
+    Malformed(String),
+    #[error("unknown document <{0}>")]
+    UnknownDocument(String),
+    #[error("<{root}> lacks <{field}>")]
+    MissingField {
+        root: &'static str,
+        field: &'static str,
+    },
+    #[error("<{root}> has an invalid {field}: {why}")]
+    InvalidField {
+        root: &'static str,
+        field: &'static str,
+        why: String,
+    },
+    #[error("connection I/O: {0}")]
+    Io(String),
+}
+
+impl From<std::io::Error> for CodecError {
+    fn from(e: std::io::Error) -> Self {
+        CodecError::Io(e.to_string())
+    }
+}
+
+/// Where the first document in a buffer lies.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Frame {
+    /// Only whitespace (or nothing) so far; `skip` bytes of it can be dropped.
+    Empty { skip: usize },
+    /// A document has begun at `start` but has not ended.
+    Incomplete { start: usize },
+    /// `buf[start..end]` is one complete document.
+    Complete { start: usize, end: usize },
+}
+
+const BOM: &[u8] = b"\xEF\xBB\xBF";
+
+fn find(buf: &[u8], from: usize, needle: &[u8]) -> Option<usize> {
+    buf.get(from..)?
+        .windows(needle.len())
+        .position(|w| w == needle)
+        .map(|p| p + from)
+}
+
+/// Finds the end of the tag that opens at `buf[from] == b'<'`, skipping quoted attribute
+/// values (which may contain `>`). Returns the index of the closing `>`.
+fn find_tag_end(buf: &[u8], from: usize) -> Option<usize> {
+    let mut quote = None;
+    for (i, &b) in buf.iter().enumerate().skip(from + 1) {
+        match quote {
+            Some(q) if b == q => quote = None,
+            Some(_) => {}
+            None if b == b'"' || b == b'\'' => quote = Some(b),
+            None if b == b'>' => return Some(i),
+            None => {}
+        }
+    }
+    None
+}
+
+/// Frames the first document of `buf` (see the module docs). Never panics.
+pub fn find_document(buf: &[u8]) -> Result<Frame, CodecError> {
+    let mut i = 0;
+    if buf.starts_with(BOM) {
+        i = BOM.len();
+    }
+    while i < buf.len() && buf[i].is_ascii_whitespace() {
+        i += 1;
+    }
+    if i == buf.len() {
+        return Ok(Frame::Empty { skip: i });
+    }
+    let start = i;
+    let mut depth = 0usize;
+    let incomplete = |i: usize| {
+        if i - start > MAX_DOCUMENT_BYTES {
+            Err(CodecError::TooLarge)
+        } else {
+            Ok(Frame::Incomplete { start })
+        }
+    };
+    loop {
+        if i - start > MAX_DOCUMENT_BYTES {
+            return Err(CodecError::TooLarge);
+        }
+        let Some(&b) = buf.get(i) else {
+            return incomplete(buf.len());
+        };
+        if b != b'<' {
+            if depth == 0 {
+                if b.is_ascii_whitespace() {
+                    i += 1;
+                    continue;
+                }
+                return Err(CodecError::Malformed(
+                    "text outside the root element".into(),
+                ));
+            }
+            // Character data: jump to the next markup.
+            match buf[i..].iter().position(|&c| c == b'<') {
+                Some(p) => i += p,
+                None => return incomplete(buf.len()),
+            }
+            continue;
+        }
+        let Some(&next) = buf.get(i + 1) else {
+            return incomplete(buf.len());
+        };
+        match next {
+            b'?' => match find(buf, i + 2, b"?>") {
+                Some(end) => i = end + 2,
+                None => return incomplete(buf.len()),
+            },
+            b'!' => {
+                let rest = &buf[i..];
+                let starts = |p: &[u8]| {
+                    let n = rest.len().min(p.len());
+                    rest[..n] == p[..n]
+                };
+                if rest.len() < 4 && starts(b"<!--") || rest.len() < 9 && starts(b"<![CDATA[") {
+                    return incomplete(buf.len());
+                }
+                if rest.starts_with(b"<!--") {
+                    match find(buf, i + 4, b"-->") {
+                        Some(end) => i = end + 3,
+                        None => return incomplete(buf.len()),
+                    }
+                } else if rest.starts_with(b"<![CDATA[") {
+                    if depth == 0 {
+                        return Err(CodecError::Malformed(
+                            "CDATA outside the root element".into(),
+                        ));
+                    }
+                    match find(buf, i + 9, b"]]>") {
+                        Some(end) => i = end + 3,
+                        None => return incomplete(buf.len()),
+                    }
+                } else if rest.len() < 9 && starts(b"<!DOCTYPE") {
+                    return incomplete(buf.len());
+                } else if rest.starts_with(b"<!DOCTYPE") {
+                    return Err(CodecError::DoctypeRejected);
+                } else {
+                    return Err(CodecError::Malformed("unexpected markup <!".into()));
+                }
+            }
+            b'/' => {
+                let Some(end) = find_tag_end(buf, i) else {
+                    return incomplete(buf.len());
+                };
+                if depth == 0 {
+                    return Err(CodecError::Malformed("end tag without start tag".into()));
+                }
+                depth -= 1;
+                i = end + 1;
+                if depth == 0 {
+                    return Ok(Frame::Complete { start, end: i });
+                }
+            }
+            _ => {
+                let Some(end) = find_tag_end(buf, i) else {
+                    return incomplete(buf.len());
+                };
+                let self_closing = buf[end - 1] == b'/' && end > i + 1;
+                i = end + 1;
+                if self_closing {
+                    if depth == 0 {
+                        return Ok(Frame::Complete { start, end: i });
+                    }
+                } else {
+                    depth += 1;
+                    if depth > MAX_DEPTH {
+                        return Err(CodecError::TooDeep);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// One parsed element: the little tree the protocol needs.
+#[derive(Debug, Default)]
+struct Element {
+    name: String,
+    attributes: Vec<(String, String)>,
+    text: String,
+    children: Vec<Element>,
+}
+
+impl Element {
+    fn child(&self, name: &str) -> Option<&Element> {
+        self.children.iter().find(|c| c.name == name)
+    }
+
+    fn attribute(&self, name: &str) -> Option<&str> {
+        self.attributes
+            .iter()
+            .find(|(k, _)| k == name)
+            .map(|(_, v)| v.as_str())
+    }
+}
+
+fn malformed(e: impl std::fmt::Display) -> CodecError {
+    CodecError::Malformed(e.to_string())
+}
+
+fn open_element(e: &quick_xml::events::BytesStart<'_>) -> Result<Element, CodecError> {
+    let name = std::str::from_utf8(e.name().as_ref())
+        .map_err(malformed)?
+        .to_string();
+    let mut attributes = Vec::new();
+    for attribute in e.attributes() {
+        let attribute = attribute.map_err(malformed)?;
+        let key = std::str::from_utf8(attribute.key.as_ref())
+            .map_err(malformed)?
+            .to_string();
+        let value = attribute.unescape_value().map_err(malformed)?.into_owned();
+        attributes.push((key, value));
+    }
+    Ok(Element {
+        name,
+        attributes,
+        ..Element::default()
+    })
+}
+
+/// Parses one complete document (as framed by [`find_document`]) into its element tree.
+fn parse_tree(doc: &[u8]) -> Result<Element, CodecError> {
+    let text = std::str::from_utf8(doc).map_err(|e| malformed(format!("not UTF-8: {e}")))?;
+    let mut reader = Reader::from_str(text);
+    reader.config_mut().check_end_names = true;
+    let mut stack: Vec<Element> = Vec::new();
+    let mut root = None;
+    loop {
+        match reader.read_event().map_err(malformed)? {
+            Event::Start(e) => {
+                if root.is_some() {
+                    return Err(malformed("content after the root element"));
+                }
+                stack.push(open_element(&e)?);
+            }
+            Event::Empty(e) => {
+                let element = open_element(&e)?;
+                match stack.last_mut() {
+                    Some(parent) => parent.children.push(element),
+                    None if root.is_none() => root = Some(element),
+                    None => return Err(malformed("content after the root element")),
+                }
+            }
+            Event::End(_) => {
+                let element = stack.pop().ok_or_else(|| malformed("unbalanced end tag"))?;
+                match stack.last_mut() {
+                    Some(parent) => parent.children.push(element),
+                    None => root = Some(element),
+                }
+            }
+            Event::Text(t) => {
+                let t = t.decode().map_err(malformed)?;
+                match stack.last_mut() {
+                    Some(element) => element.text.push_str(&t),
+                    None if t.trim().is_empty() => {}
+                    None => return Err(malformed("text outside the root element")),
+                }
+            }
+            Event::CData(t) => {
+                let t = t.decode().map_err(malformed)?;
+                match stack.last_mut() {
+                    Some(element) => element.text.push_str(&t),
+                    None => return Err(malformed("CDATA outside the root element")),
+                }
+            }
+            Event::GeneralRef(r) => {
+                let resolved = match r.resolve_char_ref().map_err(malformed)? {
+                    Some(c) => c.to_string(),
+                    None => {
+                        let name = r.decode().map_err(malformed)?;
+                        resolve_predefined_entity(&name)
+                            .ok_or_else(|| malformed(format!("unknown entity &{name};")))?
+                            .to_string()
+                    }
+                };
+                match stack.last_mut() {
+                    Some(element) => element.text.push_str(&resolved),
+                    None => return Err(malformed("entity outside the root element")),
+                }
+            }
+            Event::DocType(_) => return Err(CodecError::DoctypeRejected),
+            Event::Decl(_) | Event::PI(_) | Event::Comment(_) => {}
+            Event::Eof => break,
+        }
+    }
+    if !stack.is_empty() {
+        return Err(malformed("document ends inside an element"));
+    }
+    root.ok_or_else(|| malformed("no root element"))
+}
+
+fn text_field<'a>(
+    element: &'a Element,
+    root: &'static str,
+    field: &'static str,
+) -> Result<&'a str, CodecError> {
+    element
+        .child(field)
+        .map(|c| c.text.trim())
+        .ok_or(CodecError::MissingField { root, field })
+}
+
+fn id_field(element: &Element, root: &'static str) -> Result<u64, CodecError> {
+    let text = text_field(element, root, "ID")?;
+    text.parse().map_err(|_| CodecError::InvalidField {
+        root,
+        field: "ID",
+        why: format!("{text:?} is not an unsigned integer"),
+    })
+}
+
+fn pose(element: &Element) -> Result<Pose, CodecError> {
+    let coordinate = |name: &'static str| -> Result<f64, CodecError> {
+        let Some(text) = element.attribute(name) else {
+            return Ok(0.0);
+        };
+        let value: f64 = text.trim().parse().map_err(|_| CodecError::InvalidField {
+            root: "ROBOT_CMD",
+            field: "POS",
+            why: format!("{name}={text:?} is not a number"),
+        })?;
+        if !value.is_finite() {
+            return Err(CodecError::InvalidField {
+                root: "ROBOT_CMD",
+                field: "POS",
+                why: format!("{name} is not finite"),
+            });
+        }
+        Ok(value)
+    };
+    Ok(Pose {
+        x: coordinate("X")?,
+        y: coordinate("Y")?,
+        z: coordinate("Z")?,
+        a: coordinate("A")?,
+        b: coordinate("B")?,
+        c: coordinate("C")?,
+    })
+}
+
+/// Parses one complete document into a protocol message.
+pub fn parse_document(doc: &[u8]) -> Result<RobotMessage, CodecError> {
+    let root = parse_tree(doc)?;
+    match root.name.as_str() {
+        "ROBOT_CMD" => {
+            let action = text_field(&root, "ROBOT_CMD", "ACTION")?;
+            if action.is_empty() {
+                return Err(CodecError::InvalidField {
+                    root: "ROBOT_CMD",
+                    field: "ACTION",
+                    why: "it is empty".into(),
+                });
+            }
+            Ok(RobotMessage::Command(RobotCommand {
+                id: id_field(&root, "ROBOT_CMD")?,
+                action: action.to_string(),
+                pos: root.child("POS").map(pose).transpose()?,
+            }))
+        }
+        "ROBOT_REPLY" => {
+            let result = text_field(&root, "ROBOT_REPLY", "RESULT")?;
+            if result.is_empty() {
+                return Err(CodecError::InvalidField {
+                    root: "ROBOT_REPLY",
+                    field: "RESULT",
+                    why: "it is empty".into(),
+                });
+            }
+            Ok(RobotMessage::Reply(RobotReply {
+                id: id_field(&root, "ROBOT_REPLY")?,
+                result: result.to_string(),
+                message: root.child("MESSAGE").map(|m| m.text.trim().to_string()),
+            }))
+        }
+        "ROBOT_STATUS" => {
+            let state = text_field(&root, "ROBOT_STATUS", "STATE")?;
+            let state: ControllerState = state.parse().map_err(|_| CodecError::InvalidField {
+                root: "ROBOT_STATUS",
+                field: "STATE",
+                why: format!("{state:?} is not ready, fault or estop"),
+            })?;
+            Ok(RobotMessage::Status(state))
+        }
+        other => Err(CodecError::UnknownDocument(other.to_string())),
+    }
+}
+
+/// Writes one message as a single-line XML document.
+pub fn encode_message(message: &RobotMessage) -> String {
+    match message {
+        RobotMessage::Command(cmd) => {
+            let pos = match &cmd.pos {
+                Some(p) => format!(
+                    "<POS X=\"{:?}\" Y=\"{:?}\" Z=\"{:?}\" A=\"{:?}\" B=\"{:?}\" C=\"{:?}\"></POS>",
+                    p.x, p.y, p.z, p.a, p.b, p.c
+                ),
+                None => String::new(),
+            };
+            format!(
+                "<ROBOT_CMD><ID>{}</ID><ACTION>{}</ACTION>{pos}</ROBOT_CMD>",
+                cmd.id,
+                escape(cmd.action.as_str())
+            )
+        }
+        RobotMessage::Reply(reply) => {
+            let message = match &reply.message {
+                Some(m) => format!("<MESSAGE>{}</MESSAGE>", escape(m.as_str())),
+                None => String::new(),
+            };
+            format!(
+                "<ROBOT_REPLY><ID>{}</ID><RESULT>{}</RESULT>{message}</ROBOT_REPLY>",
+                reply.id,
+                escape(reply.result.as_str())
+            )
+        }
+        RobotMessage::Status(state) => {
+            format!("<ROBOT_STATUS><STATE>{state}</STATE></ROBOT_STATUS>")
+        }
+    }
+}
+
+/// tokio-util codec for a framed controller connection (either side).
+#[derive(Debug, Default)]
+pub struct RobotCodec;
+
+impl Decoder for RobotCodec {
+    type Item = RobotMessage;
+    type Error = CodecError;
+
+    fn decode(&mut self, buf: &mut BytesMut) -> Result<Option<RobotMessage>, CodecError> {
+        match find_document(buf)? {
+            Frame::Empty { skip } => {
+                buf.advance(skip);
+                Ok(None)
+            }
+            Frame::Incomplete { start } => {
+                buf.advance(start);
+                Ok(None)
+            }
+            Frame::Complete { start, end } => {
+                let doc = buf.split_to(end);
+                parse_document(&doc[start..]).map(Some)
+            }
+        }
+    }
+
+    fn decode_eof(&mut self, buf: &mut BytesMut) -> Result<Option<RobotMessage>, CodecError> {
+        match self.decode(buf)? {
+            Some(message) => Ok(Some(message)),
+            None if buf.iter().all(u8::is_ascii_whitespace) => Ok(None),
+            None => Err(CodecError::Malformed(
+                "connection closed inside a document".into(),
+            )),
+        }
+    }
+}
+
+impl Encoder<&RobotMessage> for RobotCodec {
+    type Error = CodecError;
+
+    fn encode(&mut self, message: &RobotMessage, buf: &mut BytesMut) -> Result<(), CodecError> {
+        buf.extend_from_slice(encode_message(message).as_bytes());
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    const REPLY: &str = "<ROBOT_REPLY><ID>42</ID><RESULT>picking_done</RESULT></ROBOT_REPLY>";
+
+    fn decode_all(chunks: &[&[u8]]) -> Vec<Result<RobotMessage, CodecError>> {
+        let mut codec = RobotCodec;
+        let mut buf = BytesMut::new();
+        let mut out = Vec::new();
+        for chunk in chunks {
+            buf.extend_from_slice(chunk);
+            loop {
+                match codec.decode(&mut buf) {
+                    Ok(Some(m)) => out.push(Ok(m)),
+                    Ok(None) => break,
+                    Err(e) => {
+                        out.push(Err(e));
+                        return out;
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    fn reply(id: u64, result: &str) -> RobotMessage {
+        RobotMessage::Reply(RobotReply {
+            id,
+            result: result.into(),
+            message: None,
+        })
+    }
+
+    #[test]
+    fn decodes_the_contract_examples() {
+        let cmd = parse_document(
+            br#"<ROBOT_CMD><ID>42</ID><ACTION>pick</ACTION><POS X="100.0" Y="20.0" Z="5.0" A="0.0" B="0.0" C="0.0"></POS></ROBOT_CMD>"#,
+        )
+        .unwrap();
+        assert_eq!(
+            cmd,
+            RobotMessage::Command(RobotCommand {
+                id: 42,
+                action: "pick".into(),
+                pos: Some(Pose {
+                    x: 100.0,
+                    y: 20.0,
+                    z: 5.0,
+                    ..Pose::default()
+                })
+            })
+        );
+        assert_eq!(
+            parse_document(REPLY.as_bytes()).unwrap(),
+            reply(42, "picking_done")
+        );
+        assert_eq!(
+            parse_document(
+                b"<ROBOT_REPLY><ID>43</ID><RESULT>error</RESULT><MESSAGE>gripper empty</MESSAGE></ROBOT_REPLY>"
+            )
+            .unwrap(),
+            RobotMessage::Reply(RobotReply {
+                id: 43,
+                result: "error".into(),
+                message: Some("gripper empty".into())
+            })
+        );
+        assert_eq!(
+            parse_document(b"<ROBOT_STATUS><STATE>estop</STATE></ROBOT_STATUS>").unwrap(),
+            RobotMessage::Status(ControllerState::Estop)
+        );
+    }
+
+    #[test]
+    fn encodes_what_it_decodes() {
+        let messages = [
+            RobotMessage::Command(RobotCommand {
+                id: 7,
+                action: "place".into(),
+                pos: Some(Pose {
+                    x: -1.5,
+                    y: 2.25,
+                    z: 1e3,
+                    a: 90.0,
+                    b: 0.0,
+                    c: -180.0,
+                }),
+            }),
+            RobotMessage::Command(RobotCommand {
+                id: 8,
+                action: "inspect".into(),
+                pos: None,
+            }),
+            RobotMessage::Reply(RobotReply {
+                id: 9,
+                result: "error".into(),
+                message: Some("a <b> & \"c\"".into()),
+            }),
+            RobotMessage::Status(ControllerState::Fault),
+        ];
+        for message in messages {
+            let text = encode_message(&message);
+            assert_eq!(parse_document(text.as_bytes()).unwrap(), message, "{text}");
+        }
+    }
+
+    #[test]
+    fn reads_documents_split_across_reads() {
+        let bytes = REPLY.as_bytes();
+        for cut in 1..bytes.len() {
+            let out = decode_all(&[&bytes[..cut], &bytes[cut..]]);
+            assert_eq!(out, vec![Ok(reply(42, "picking_done"))], "cut at {cut}");
+        }
+        let one_by_one: Vec<&[u8]> = bytes.chunks(1).collect();
+        assert_eq!(decode_all(&one_by_one), vec![Ok(reply(42, "picking_done"))]);
+    }
+
+    #[test]
+    fn reads_several_documents_in_one_read() {
+        let text = format!(
+            "<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n<ROBOT_STATUS><STATE>ready</STATE></ROBOT_STATUS>\r\n{REPLY}<ROBOT_REPLY><ID>43</ID><RESULT>placing_done</RESULT></ROBOT_REPLY>"
+        );
+        let out = decode_all(&[text.as_bytes()]);
+        assert_eq!(
+            out,
+            vec![
+                Ok(RobotMessage::Status(ControllerState::Ready)),
+                Ok(reply(42, "picking_done")),
+                Ok(reply(43, "placing_done")),
+            ]
+        );
+    }
+
+    #[test]
+    fn tolerates_declaration_comments_cdata_and_entities() {
+        let doc = "\u{FEFF}<?xml version=\"1.0\"?><!-- hi > there --><ROBOT_REPLY><ID>1</ID><RESULT><![CDATA[arr]]>ived</RESULT><MESSAGE>a &amp; b &#x41; &lt;</MESSAGE></ROBOT_REPLY>";
+        assert_eq!(
+            decode_all(&[doc.as_bytes()]),
+            vec![Ok(RobotMessage::Reply(RobotReply {
+                id: 1,
+                result: "arrived".into(),
+                message: Some("a & b A <".into())
+            }))]
+        );
+        // A quoted '>' inside an attribute does not end the tag.
+        let doc = r#"<ROBOT_CMD><ID>1</ID><ACTION>pick</ACTION><POS X="1" Y='>' /></ROBOT_CMD>"#;
+        assert!(matches!(
+            decode_all(&[doc.as_bytes()])[..],
+            [Err(CodecError::InvalidField { field: "POS", .. })]
+        ));
+    }
+
+    #[test]
+    fn never_treats_a_truncated_document_as_complete() {
+        let bytes = REPLY.as_bytes();
+        for cut in 0..bytes.len() {
+            let mut buf = BytesMut::from(&bytes[..cut]);
+            assert_eq!(RobotCodec.decode(&mut buf), Ok(None), "cut at {cut}");
+            let mut buf = BytesMut::from(&bytes[..cut]);
+            let at_eof = RobotCodec.decode_eof(&mut buf);
+            assert!(cut == 0 || at_eof.is_err(), "cut at {cut}: {at_eof:?}");
+        }
+    }
+
+    #[test]
+    fn rejects_doctype() {
+        let doc = b"<?xml version=\"1.0\"?><!DOCTYPE lol [<!ENTITY a \"aaaa\">]><ROBOT_STATUS><STATE>ready</STATE></ROBOT_STATUS>";
+        assert_eq!(decode_all(&[doc]), vec![Err(CodecError::DoctypeRejected)]);
+        // Even when the DOCTYPE arrives a byte at a time.
+        let chunks: Vec<&[u8]> = doc.chunks(1).collect();
+        assert_eq!(decode_all(&chunks), vec![Err(CodecError::DoctypeRejected)]);
+    }
+
+    #[test]
+    fn rejects_oversized_documents() {
+        let big = format!(
+            "<ROBOT_REPLY><ID>1</ID><RESULT>{}</RESULT></ROBOT_REPLY>",
+            "x".repeat(MAX_DOCUMENT_BYTES)
+        );
+        assert_eq!(
+            decode_all(&[big.as_bytes()]),
+            vec![Err(CodecError::TooLarge)]
+        );
+        // Also when it never ends: the limit applies before the end is seen.
+        let endless = format!("<ROBOT_REPLY><ID>{}", "1".repeat(MAX_DOCUMENT_BYTES + 10));
+        assert_eq!(
+            decode_all(&[endless.as_bytes()]),
+            vec![Err(CodecError::TooLarge)]
+        );
+        let unclosed_tag = format!("<ROBOT_REPLY a=\"{}", "1".repeat(MAX_DOCUMENT_BYTES + 10));
+        assert_eq!(
+            decode_all(&[unclosed_tag.as_bytes()]),
+            vec![Err(CodecError::TooLarge)]
+        );
+    }
+
+    #[test]
+    fn rejects_excessive_depth() {
+        let deep = format!(
+            "<ROBOT_REPLY>{}{}</ROBOT_REPLY>",
+            "<a>".repeat(MAX_DEPTH),
+            "</a>".repeat(MAX_DEPTH)
+        );
+        assert_eq!(
+            decode_all(&[deep.as_bytes()]),
+            vec![Err(CodecError::TooDeep)]
+        );
+    }
+
+    #[test]
+    fn rejects_malformed_documents() {
+        let cases: &[&[u8]] = &[
+            b"hello",
+            b"<ROBOT_REPLY><ID>1</ID><RESULT>x</RESULT></ROBOT_REPL>",
+            b"</ROBOT_REPLY>",
+            b"<ROBOT_REPLY><ID>x</ID><RESULT>done</RESULT></ROBOT_REPLY>",
+            b"<ROBOT_REPLY><ID>1</ID></ROBOT_REPLY>",
+            b"<ROBOT_REPLY><ID>-1</ID><RESULT>a</RESULT></ROBOT_REPLY>",
+            b"<ROBOT_STATUS><STATE>sleepy</STATE></ROBOT_STATUS>",
+            b"<HELLO/>",
+            b"<ROBOT_REPLY><ID>1</ID><RESULT>&bogus;</RESULT></ROBOT_REPLY>",
+            b"<ROBOT_REPLY><ID>1</ID><RESULT>\xff\xfe</RESULT></ROBOT_REPLY>",
+            b"<ROBOT_CMD><ID>1</ID><ACTION>pick</ACTION><POS X=\"NaN\"/></ROBOT_CMD>",
+            b"<ROBOT_CMD><ID>1</ID><ACTION></ACTION></ROBOT_CMD>",
+            b"<!ELEMENT x>",
+        ];
+        for case in cases {
+            let out = decode_all(&[case]);
+            assert!(
+                matches!(out.last(), Some(Err(_))),
+                "{:?} gave {out:?}",
+                String::from_utf8_lossy(case)
+            );
+        }
+    }
+
+    proptest! {
+        #[test]
+        fn decoding_arbitrary_bytes_never_panics(chunks in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..64), 0..8)) {
+            let refs: Vec<&[u8]> = chunks.iter().map(|c| c.as_slice()).collect();
+            let _ = decode_all(&refs);
+        }
+
+        #[test]
+        fn any_split_of_a_stream_decodes_the_same(ids in proptest::collection::vec(any::<u64>(), 1..5), cuts in proptest::collection::vec(any::<usize>(), 0..6)) {
+            let messages: Vec<RobotMessage> = ids.iter().map(|&id| reply(id, "arrived")).collect();
+            let stream: String = messages.iter().map(encode_message).collect::<Vec<_>>().join("\n");
+            let bytes = stream.as_bytes();
+            let mut points: Vec<usize> = cuts.iter().map(|c| c % (bytes.len() + 1)).collect();
+            points.sort();
+            let mut chunks = Vec::new();
+            let mut last = 0;
+            for p in points { chunks.push(&bytes[last..p]); last = p; }
+            chunks.push(&bytes[last..]);
+            let out = decode_all(&chunks);
+            prop_assert_eq!(out, messages.into_iter().map(Ok).collect::<Vec<_>>());
+        }
+
+        #[test]
+        fn mutated_documents_never_panic(pos in 0usize..80, byte in any::<u8>()) {
+            let mut doc = REPLY.as_bytes().to_vec();
+            let i = pos % doc.len();
+            doc[i] = byte;
+            let _ = decode_all(&[&doc]);
+        }
+    }
+}

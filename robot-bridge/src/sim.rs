@@ -1,0 +1,278 @@
+//! `robot-sim`: a robot controller simulator that speaks the TCP/XML protocol.
+//!
+//! It is the TCP server, as a real controller is. On every connection it sends
+//! `ROBOT_STATUS ready`, then answers each `ROBOT_CMD` after `delay`: `pick` ->
+//! `picking_done`, `place` -> `placing_done`, `inspect` -> `inspect_pass` (or
+//! `inspect_fail`), `move` -> `arrived`; any other action -> `error`.
+//!
+//! Faults, for tests (command numbers count every command received, from 1):
+//! - `error_every N`: every Nth command is answered `error` and not executed;
+//! - `close_after N`: each connection is closed when its (N+1)th command arrives (that
+//!   command is not executed);
+//! - `hang_after N`: from the (N+1)th command of the process on, commands are read but
+//!   never answered nor executed;
+//! - `garbage_after N`: the (N+1)th command of the process gets malformed XML instead of
+//!   a reply and is not executed; later commands are served normally.
+//!
+//! The simulator counts the commands it executed (answered with their success result);
+//! [`SimStats`] can be written to a JSON file after every command so tests can check that
+//! nothing ran twice.
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use futures_util::{SinkExt, StreamExt};
+use schemas::{ControllerState, RobotCommand, RobotMessage, RobotReply};
+use tokio::io::AsyncWriteExt;
+use tokio::net::{TcpListener, TcpStream};
+use tokio_util::codec::Framed;
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use crate::codec::RobotCodec;
+
+/// How the simulator behaves.
+#[derive(Debug, Clone, Default)]
+pub struct SimConfig {
+    /// How long each action takes.
+    pub delay: Duration,
+    pub error_every: Option<u64>,
+    pub close_after: Option<u64>,
+    pub hang_after: Option<u64>,
+    pub garbage_after: Option<u64>,
+    /// Every Nth `inspect` is answered `inspect_fail`.
+    pub inspect_fail_every: Option<u64>,
+    /// Rewritten (atomically) with [`SimStats`] as JSON after every command.
+    pub count_file: Option<PathBuf>,
+}
+
+/// What the simulator did.
+#[derive(Debug, Default)]
+pub struct SimStats {
+    received: AtomicU64,
+    executed: AtomicU64,
+    inspections: AtomicU64,
+    by_action: Mutex<BTreeMap<String, u64>>,
+    connections: AtomicU64,
+}
+
+impl SimStats {
+    /// Commands executed (answered with their success result).
+    pub fn executed(&self) -> u64 {
+        self.executed.load(Ordering::SeqCst)
+    }
+
+    /// Commands received, executed or not.
+    pub fn received(&self) -> u64 {
+        self.received.load(Ordering::SeqCst)
+    }
+
+    /// Connections accepted.
+    pub fn connections(&self) -> u64 {
+        self.connections.load(Ordering::SeqCst)
+    }
+
+    /// Executed commands per action.
+    pub fn by_action(&self) -> BTreeMap<String, u64> {
+        self.by_action
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// `{"executed": N, "received": N, "connections": N, "by_action": {"pick": N, ...}}`.
+    pub fn to_json(&self) -> String {
+        let by_action: Vec<String> = self
+            .by_action()
+            .iter()
+            .map(|(k, v)| format!("\"{k}\":{v}"))
+            .collect();
+        format!(
+            "{{\"executed\":{},\"received\":{},\"connections\":{},\"by_action\":{{{}}}}}",
+            self.executed(),
+            self.received(),
+            self.connections(),
+            by_action.join(",")
+        )
+    }
+}
+
+/// A bound simulator, ready to [`Simulator::run`].
+pub struct Simulator {
+    listener: TcpListener,
+    config: Arc<SimConfig>,
+    stats: Arc<SimStats>,
+}
+
+impl Simulator {
+    pub async fn bind(address: &str, config: SimConfig) -> std::io::Result<Simulator> {
+        let listener = TcpListener::bind(address).await?;
+        Ok(Simulator {
+            listener,
+            config: Arc::new(config),
+            stats: Arc::default(),
+        })
+    }
+
+    pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        self.listener.local_addr()
+    }
+
+    pub fn stats(&self) -> Arc<SimStats> {
+        self.stats.clone()
+    }
+
+    /// Serves connections until `shutdown` is cancelled.
+    pub async fn run(self, shutdown: CancellationToken) {
+        write_count_file(&self.config, &self.stats).await;
+        let connections = tokio_util::task::TaskTracker::new();
+        loop {
+            tokio::select! {
+                _ = shutdown.cancelled() => break,
+                accepted = self.listener.accept() => match accepted {
+                    Ok((stream, peer)) => {
+                        let _ = stream.set_nodelay(true);
+                        self.stats.connections.fetch_add(1, Ordering::SeqCst);
+                        info!(%peer, "bridge connected");
+                        let config = self.config.clone();
+                        let stats = self.stats.clone();
+                        let shutdown = shutdown.clone();
+                        connections.spawn(async move {
+                            if let Err(e) = serve(stream, &config, &stats, shutdown).await {
+                                warn!(%peer, error = %e, "connection ended with an error");
+                            } else {
+                                info!(%peer, "bridge disconnected");
+                            }
+                        });
+                    }
+                    Err(e) => {
+                        warn!(error = %e, "accept failed");
+                        tokio::time::sleep(Duration::from_millis(50)).await;
+                    }
+                }
+            }
+        }
+        connections.close();
+        connections.wait().await;
+    }
+}
+
+fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<&'static str> {
+    match action {
+        "pick" => Some("picking_done"),
+        "place" => Some("placing_done"),
+        "move" => Some("arrived"),
+        "inspect" => {
+            let n = stats.inspections.fetch_add(1, Ordering::SeqCst) + 1;
+            match config.inspect_fail_every {
+                Some(every) if every > 0 && n % every == 0 => Some("inspect_fail"),
+                _ => Some("inspect_pass"),
+            }
+        }
+        _ => None,
+    }
+}
+
+async fn write_count_file(config: &SimConfig, stats: &SimStats) {
+    let Some(path) = &config.count_file else {
+        return;
+    };
+    let tmp = path.with_extension("tmp");
+    let write = async {
+        tokio::fs::write(&tmp, stats.to_json()).await?;
+        tokio::fs::rename(&tmp, path).await
+    };
+    if let Err(e) = write.await {
+        warn!(path = %path.display(), error = %e, "cannot write the count file");
+    }
+}
+
+async fn serve(
+    stream: TcpStream,
+    config: &SimConfig,
+    stats: &SimStats,
+    shutdown: CancellationToken,
+) -> Result<(), crate::codec::CodecError> {
+    let mut framed = Framed::new(stream, RobotCodec);
+    framed
+        .send(&RobotMessage::Status(ControllerState::Ready))
+        .await?;
+    let mut on_this_connection = 0u64;
+    loop {
+        let message = tokio::select! {
+            _ = shutdown.cancelled() => return Ok(()),
+            message = framed.next() => message,
+        };
+        let command: RobotCommand = match message {
+            None => return Ok(()),
+            Some(Err(e)) => return Err(e),
+            Some(Ok(RobotMessage::Command(command))) => command,
+            Some(Ok(other)) => {
+                warn!(?other, "ignored: not a ROBOT_CMD");
+                continue;
+            }
+        };
+        let n = stats.received.fetch_add(1, Ordering::SeqCst) + 1;
+        on_this_connection += 1;
+        info!(id = command.id, action = %command.action, n, "command");
+        if matches!(config.close_after, Some(limit) if on_this_connection > limit) {
+            info!(id = command.id, "closing the connection (--close-after)");
+            write_count_file(config, stats).await;
+            return Ok(());
+        }
+        if matches!(config.hang_after, Some(limit) if n > limit) {
+            info!(id = command.id, "not answering (--hang-after)");
+            write_count_file(config, stats).await;
+            continue;
+        }
+        if config.garbage_after.is_some_and(|limit| n == limit + 1) {
+            info!(id = command.id, "answering garbage (--garbage-after)");
+            let stream = framed.get_mut();
+            stream
+                .write_all(b"<ROBOT_REPLY><ID>oops</RESULT></ROBOT_REPLY>\n")
+                .await?;
+            write_count_file(config, stats).await;
+            continue;
+        }
+        if !config.delay.is_zero() {
+            tokio::select! {
+                _ = shutdown.cancelled() => return Ok(()),
+                _ = tokio::time::sleep(config.delay) => {}
+            }
+        }
+        let simulated_error =
+            matches!(config.error_every, Some(every) if every > 0 && n % every == 0);
+        let reply = match success_result(&command.action, config, stats) {
+            Some(result) if !simulated_error => {
+                stats.executed.fetch_add(1, Ordering::SeqCst);
+                *stats
+                    .by_action
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .entry(command.action.clone())
+                    .or_default() += 1;
+                RobotReply {
+                    id: command.id,
+                    result: result.into(),
+                    message: None,
+                }
+            }
+            Some(_) => RobotReply {
+                id: command.id,
+                result: schemas::robot::RESULT_ERROR.into(),
+                message: Some("simulated error (--error-every)".into()),
+            },
+            None => RobotReply {
+                id: command.id,
+                result: schemas::robot::RESULT_ERROR.into(),
+                message: Some(format!("unknown action {:?}", command.action)),
+            },
+        };
+        write_count_file(config, stats).await;
+        framed.send(&RobotMessage::Reply(reply)).await?;
+    }
+}

@@ -1,0 +1,293 @@
+//! The controller client against the simulator, over real TCP sockets on loopback.
+
+use std::time::Duration;
+
+use robot_bridge::client::{self, ClientConfig, CommandFailure, ControllerEvent, ControllerStatus};
+use robot_bridge::sim::{SimConfig, SimStats, Simulator};
+use schemas::{ControllerState, Pose, RobotCommand};
+use std::sync::Arc;
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+
+const WAIT: Duration = Duration::from_secs(10);
+
+struct Harness {
+    commands: mpsc::Sender<RobotCommand>,
+    events: mpsc::Receiver<ControllerEvent>,
+    shutdown: CancellationToken,
+    client: tokio::task::JoinHandle<()>,
+}
+
+impl Harness {
+    fn start(address: String, command_timeout: Duration) -> Harness {
+        let (commands, mut command_rx) = mpsc::channel(16);
+        let (event_tx, events) = mpsc::channel(16);
+        let shutdown = CancellationToken::new();
+        let config = ClientConfig {
+            address,
+            reconnect_interval: Duration::from_millis(100),
+            command_timeout,
+            connect_timeout: Duration::from_secs(1),
+        };
+        let client = tokio::spawn({
+            let shutdown = shutdown.clone();
+            async move { client::run(config, &mut command_rx, event_tx, shutdown).await }
+        });
+        Harness {
+            commands,
+            events,
+            shutdown,
+            client,
+        }
+    }
+
+    async fn next(&mut self) -> ControllerEvent {
+        tokio::time::timeout(WAIT, self.events.recv())
+            .await
+            .expect("no event in time")
+            .expect("client gone")
+    }
+
+    async fn wait_ready(&mut self) {
+        loop {
+            if self.next().await
+                == ControllerEvent::Status(ControllerStatus::Connected(ControllerState::Ready))
+            {
+                return;
+            }
+        }
+    }
+
+    async fn send(&self, id: u64, action: &str) {
+        let pos = Some(Pose {
+            x: 1.0,
+            y: 2.0,
+            z: 3.0,
+            ..Pose::default()
+        });
+        self.commands
+            .send(RobotCommand {
+                id,
+                action: action.into(),
+                pos,
+            })
+            .await
+            .unwrap();
+    }
+
+    async fn stop(self) {
+        self.shutdown.cancel();
+        tokio::time::timeout(WAIT, self.client)
+            .await
+            .unwrap()
+            .unwrap();
+    }
+}
+
+async fn start_sim(address: &str, config: SimConfig) -> (String, Arc<SimStats>, CancellationToken) {
+    let sim = Simulator::bind(address, config).await.unwrap();
+    let address = sim.local_addr().unwrap().to_string();
+    let stats = sim.stats();
+    let shutdown = CancellationToken::new();
+    tokio::spawn(sim.run(shutdown.clone()));
+    (address, stats, shutdown)
+}
+
+fn reply(id: u64, result: &str) -> ControllerEvent {
+    ControllerEvent::Reply {
+        id,
+        result: result.into(),
+        message: None,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn executes_commands_and_tracks_status() {
+    let (address, stats, _sim) = start_sim("127.0.0.1:0", SimConfig::default()).await;
+    let mut h = Harness::start(address, Duration::from_secs(5));
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::Status(ControllerStatus::Disconnected)
+    );
+    h.wait_ready().await;
+    h.send(1, "pick").await;
+    assert_eq!(h.next().await, reply(1, "picking_done"));
+    h.send(2, "place").await;
+    assert_eq!(h.next().await, reply(2, "placing_done"));
+    h.send(3, "weld").await;
+    match h.next().await {
+        ControllerEvent::Reply {
+            id: 3,
+            result,
+            message,
+        } => {
+            assert_eq!(result, "error");
+            assert!(message.unwrap().contains("weld"));
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(stats.executed(), 2);
+    h.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn reconnects_when_the_controller_comes_back() {
+    // Find a free port, then leave it closed: the controller is away.
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let address = format!("127.0.0.1:{port}");
+    let mut h = Harness::start(address.clone(), Duration::from_secs(5));
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::Status(ControllerStatus::Disconnected)
+    );
+    h.send(1, "pick").await;
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::CommandFailed {
+            id: 1,
+            failure: CommandFailure::NotConnected
+        }
+    );
+    let (_, _, sim) = start_sim(&address, SimConfig::default()).await;
+    h.wait_ready().await;
+    h.send(2, "pick").await;
+    assert_eq!(h.next().await, reply(2, "picking_done"));
+    // The controller goes away mid-command: the command fails, the client reconnects.
+    sim.cancel();
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let (_, _, _sim2) = start_sim(
+        &address,
+        SimConfig {
+            delay: Duration::from_millis(10),
+            ..SimConfig::default()
+        },
+    )
+    .await;
+    // The first server's connection is closed, so the client sees a disconnect...
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::Status(ControllerStatus::Disconnected)
+    );
+    // ...and comes back to the second one.
+    h.wait_ready().await;
+    h.send(3, "place").await;
+    assert_eq!(h.next().await, reply(3, "placing_done"));
+    h.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_dropped_connection_fails_the_command_in_progress() {
+    let config = SimConfig {
+        close_after: Some(1),
+        ..SimConfig::default()
+    };
+    let (address, stats, _sim) = start_sim("127.0.0.1:0", config).await;
+    let mut h = Harness::start(address, Duration::from_secs(5));
+    h.wait_ready().await;
+    h.send(1, "pick").await;
+    assert_eq!(h.next().await, reply(1, "picking_done"));
+    h.send(2, "place").await;
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::CommandFailed {
+            id: 2,
+            failure: CommandFailure::Disconnected
+        }
+    );
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::Status(ControllerStatus::Disconnected)
+    );
+    h.wait_ready().await;
+    h.send(3, "place").await;
+    assert_eq!(h.next().await, reply(3, "placing_done"));
+    assert_eq!(stats.executed(), 2);
+    assert_eq!(stats.connections(), 2);
+    h.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_silent_controller_times_out_and_is_reset() {
+    let config = SimConfig {
+        hang_after: Some(1),
+        ..SimConfig::default()
+    };
+    let (address, stats, _sim) = start_sim("127.0.0.1:0", config).await;
+    let mut h = Harness::start(address, Duration::from_millis(300));
+    h.wait_ready().await;
+    h.send(1, "pick").await;
+    assert_eq!(h.next().await, reply(1, "picking_done"));
+    h.send(2, "place").await;
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::CommandFailed {
+            id: 2,
+            failure: CommandFailure::Timeout(Duration::from_millis(300))
+        }
+    );
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::Status(ControllerStatus::Disconnected)
+    );
+    h.wait_ready().await;
+    assert_eq!(stats.executed(), 1);
+    h.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn garbage_from_the_controller_resets_the_connection() {
+    let config = SimConfig {
+        garbage_after: Some(0),
+        ..SimConfig::default()
+    };
+    let (address, stats, _sim) = start_sim("127.0.0.1:0", config).await;
+    let mut h = Harness::start(address, Duration::from_secs(5));
+    h.wait_ready().await;
+    h.send(1, "pick").await;
+    match h.next().await {
+        ControllerEvent::CommandFailed {
+            id: 1,
+            failure: CommandFailure::Protocol(why),
+        } => {
+            assert!(why.contains("malformed"), "{why}")
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::Status(ControllerStatus::Disconnected)
+    );
+    h.wait_ready().await;
+    h.send(2, "pick").await;
+    assert_eq!(h.next().await, reply(2, "picking_done"));
+    assert_eq!(stats.executed(), 1);
+    h.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn error_results_are_reported_with_their_message() {
+    let config = SimConfig {
+        error_every: Some(2),
+        ..SimConfig::default()
+    };
+    let (address, stats, _sim) = start_sim("127.0.0.1:0", config).await;
+    let mut h = Harness::start(address, Duration::from_secs(5));
+    h.wait_ready().await;
+    h.send(1, "pick").await;
+    assert_eq!(h.next().await, reply(1, "picking_done"));
+    h.send(2, "place").await;
+    match h.next().await {
+        ControllerEvent::Reply {
+            id: 2,
+            result,
+            message: Some(_),
+        } => assert_eq!(result, "error"),
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(stats.executed(), 1);
+    h.stop().await;
+}

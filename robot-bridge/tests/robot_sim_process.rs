@@ -1,0 +1,55 @@
+//! `robot-sim` as a real process: the ready line, the protocol, the count file, SIGTERM.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+#[test]
+fn robot_sim_serves_counts_and_stops_on_sigterm() {
+    let dir = tempfile::tempdir().unwrap();
+    let counts = dir.path().join("counts.json");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_robot-sim"))
+        .args(["--listen", "127.0.0.1:0", "--count-file"])
+        .arg(&counts)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let mut stdout = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    stdout.read_line(&mut line).unwrap();
+    let address = line
+        .trim()
+        .strip_prefix("listening on ")
+        .expect(&line)
+        .to_string();
+
+    let mut socket = TcpStream::connect(&address).unwrap();
+    socket
+        .set_read_timeout(Some(Duration::from_secs(5)))
+        .unwrap();
+    socket
+        .write_all(b"<?xml version=\"1.0\"?><ROBOT_CMD><ID>42</ID><ACTION>pick</ACTION><POS X=\"100.0\" Y=\"20.0\" Z=\"5.0\" A=\"0.0\" B=\"0.0\" C=\"0.0\"></POS></ROBOT_CMD>")
+        .unwrap();
+    let expected = "<ROBOT_STATUS><STATE>ready</STATE></ROBOT_STATUS><ROBOT_REPLY><ID>42</ID><RESULT>picking_done</RESULT></ROBOT_REPLY>";
+    let mut got = vec![0u8; expected.len()];
+    socket.read_exact(&mut got).unwrap();
+    assert_eq!(String::from_utf8(got).unwrap(), expected);
+
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&counts).unwrap()).unwrap();
+    assert_eq!(json["executed"], 1);
+    assert_eq!(json["by_action"]["pick"], 1);
+
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(child.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    let status = child.wait().unwrap();
+    assert!(status.success(), "{status}");
+    let mut rest = String::new();
+    stdout.read_to_string(&mut rest).unwrap();
+    assert_eq!(rest.trim(), "executed 1 commands");
+}

@@ -1,0 +1,193 @@
+//! The key space of a cell: every zenoh key expression holarchy uses is built here.
+
+use crate::id::{validate_name, HolonId, HolonKind};
+use crate::SchemaError;
+
+/// The root of every holarchy key.
+pub const ROOT: &str = "holarchy";
+
+/// The longest key expression we accept in a message (`reply_to`).
+pub const MAX_KEY_LEN: usize = 512;
+
+/// Checks that `key` is a concrete zenoh key expression (no wildcards, no empty chunk,
+/// no leading or trailing `/`) under `holarchy/`, as `reply_to` must be.
+pub fn validate_reply_key(key: &str) -> Result<(), SchemaError> {
+    let invalid = |why: &str| SchemaError::InvalidKeyExpr {
+        key: key.to_string(),
+        why: why.to_string(),
+    };
+    if key.len() > MAX_KEY_LEN {
+        return Err(invalid("it is longer than 512 bytes"));
+    }
+    if !key.starts_with("holarchy/") {
+        return Err(invalid("it must start with holarchy/"));
+    }
+    for chunk in key.split('/') {
+        if chunk.is_empty() {
+            return Err(invalid("it has an empty chunk"));
+        }
+        if chunk.contains(['*', '$', '?', '#']) {
+            return Err(invalid(
+                "wildcards and the characters $ ? # are not allowed",
+            ));
+        }
+        if chunk.chars().any(|c| c.is_control() || c.is_whitespace()) {
+            return Err(invalid("control and whitespace characters are not allowed"));
+        }
+    }
+    Ok(())
+}
+
+/// Builds the keys of one cell (`holarchy/<cell>/...`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CellKeys {
+    cell: String,
+}
+
+impl CellKeys {
+    pub fn new(cell: &str) -> Result<Self, SchemaError> {
+        validate_name("cell name", cell)?;
+        Ok(CellKeys {
+            cell: cell.to_string(),
+        })
+    }
+
+    pub fn cell(&self) -> &str {
+        &self.cell
+    }
+
+    fn prefix(&self) -> String {
+        format!("{ROOT}/{}", self.cell)
+    }
+
+    /// `holarchy/<cell>/alive/<kind>/<name>`: the holon's liveliness token.
+    pub fn alive(&self, holon: &HolonId) -> String {
+        format!("{}/alive/{holon}", self.prefix())
+    }
+
+    /// `holarchy/<cell>/alive/**`: every holon of the cell.
+    pub fn alive_all(&self) -> String {
+        format!("{}/alive/**", self.prefix())
+    }
+
+    /// `holarchy/<cell>/alive/<kind>/*`: every holon of one kind.
+    pub fn alive_kind(&self, kind: HolonKind) -> String {
+        format!("{}/alive/{kind}/*", self.prefix())
+    }
+
+    /// Recovers the holon id from a liveliness key of this cell.
+    pub fn holon_from_alive(&self, key: &str) -> Option<HolonId> {
+        let rest = key.strip_prefix(&format!("{}/alive/", self.prefix()))?;
+        rest.parse().ok()
+    }
+
+    /// `holarchy/<cell>/resource/<name>/service`: Service requests to one resource.
+    pub fn service(&self, resource: &str) -> String {
+        format!("{}/resource/{resource}/service", self.prefix())
+    }
+
+    /// `holarchy/<cell>/offer/<service_type>/<name>`: one resource's offer of a service type.
+    pub fn offer(&self, service_type: &str, resource: &str) -> String {
+        format!("{}/offer/{service_type}/{resource}", self.prefix())
+    }
+
+    /// `holarchy/<cell>/offer/<service_type>/*`: all offers of a service type (contract net).
+    pub fn offers(&self, service_type: &str) -> String {
+        format!("{}/offer/{service_type}/*", self.prefix())
+    }
+
+    /// `holarchy/<cell>/product/<product>/plan`.
+    pub fn plan(&self, product: &str) -> String {
+        format!("{}/product/{product}/plan", self.prefix())
+    }
+
+    /// `holarchy/<cell>/order/<name>/inbox`: where `done` / `failed` reach an order.
+    pub fn inbox(&self, order: &str) -> String {
+        format!("{}/order/{order}/inbox", self.prefix())
+    }
+
+    /// `holarchy/<cell>/orders/submit`.
+    pub fn orders_submit(&self) -> String {
+        format!("{}/orders/submit", self.prefix())
+    }
+
+    /// `holarchy/<cell>/<kind>/<name>/state`: the holon's state snapshots.
+    pub fn state(&self, holon: &HolonId) -> String {
+        format!("{}/{}/{}/state", self.prefix(), holon.kind(), holon.name())
+    }
+
+    /// `holarchy/<cell>/*/*/state`: the state of every holon.
+    pub fn state_all(&self) -> String {
+        format!("{}/*/*/state", self.prefix())
+    }
+
+    /// `holarchy/<cell>/resource/<name>/debug/crash`: fault injection, declared only when a
+    /// holon is started with `--allow-fault-injection` (tests and demonstrations).
+    pub fn debug_crash(&self, resource: &str) -> String {
+        format!("{}/resource/{resource}/debug/crash", self.prefix())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builds_the_key_space() {
+        let keys = CellKeys::new("demo").unwrap();
+        let robot = HolonId::resource("robot1").unwrap();
+        assert_eq!(keys.alive(&robot), "holarchy/demo/alive/resource/robot1");
+        assert_eq!(keys.alive_all(), "holarchy/demo/alive/**");
+        assert_eq!(
+            keys.alive_kind(HolonKind::Resource),
+            "holarchy/demo/alive/resource/*"
+        );
+        assert_eq!(
+            keys.holon_from_alive("holarchy/demo/alive/resource/robot1"),
+            Some(robot.clone())
+        );
+        assert_eq!(
+            keys.holon_from_alive("holarchy/other/alive/resource/r"),
+            None
+        );
+        assert_eq!(
+            keys.service("robot1"),
+            "holarchy/demo/resource/robot1/service"
+        );
+        assert_eq!(
+            keys.offer("pick_n_place", "robot1"),
+            "holarchy/demo/offer/pick_n_place/robot1"
+        );
+        assert_eq!(
+            keys.offers("pick_n_place"),
+            "holarchy/demo/offer/pick_n_place/*"
+        );
+        assert_eq!(keys.plan("breaker"), "holarchy/demo/product/breaker/plan");
+        assert_eq!(keys.inbox("o-17"), "holarchy/demo/order/o-17/inbox");
+        assert_eq!(keys.orders_submit(), "holarchy/demo/orders/submit");
+        assert_eq!(keys.state(&robot), "holarchy/demo/resource/robot1/state");
+        assert_eq!(keys.state_all(), "holarchy/demo/*/*/state");
+        assert!(CellKeys::new("Demo").is_err());
+        assert!(CellKeys::new("a/b").is_err());
+    }
+
+    #[test]
+    fn reply_keys_are_concrete_holarchy_keys() {
+        validate_reply_key("holarchy/demo/order/o-17/inbox").unwrap();
+        for bad in [
+            "",
+            "demo/order/o-17/inbox",
+            "holarchy/demo/order/*/inbox",
+            "holarchy/demo/**",
+            "holarchy//x",
+            "holarchy/demo/",
+            "/holarchy/demo",
+            "holarchy/de mo",
+            "holarchy/$*",
+            "holarchy/a?b",
+        ] {
+            assert!(validate_reply_key(bad).is_err(), "{bad:?} was accepted");
+        }
+        assert!(validate_reply_key(&format!("holarchy/{}", "a".repeat(600))).is_err());
+    }
+}

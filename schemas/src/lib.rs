@@ -1,0 +1,48 @@
+//! The language-neutral contract of holarchy: the Service message, holon ids, the key
+//! space, state snapshots and the robot controller protocol's messages.
+//!
+//! JSON Schema for the Service message is exported to `schemas/json/service.schema.json`
+//! (see [`service_json_schema`]); a test fails when that file is stale.
+
+pub mod id;
+pub mod keys;
+pub mod robot;
+pub mod service;
+pub mod state;
+
+pub use id::{validate_name, HolonId, HolonKind};
+pub use keys::{validate_reply_key, CellKeys};
+pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
+pub use service::{reason, ErrorReply, MessageType, Service, SERVICE_VERSION};
+pub use state::{unix_ms, BookingView, CurrentJobView, ResourceSnapshot};
+
+/// Everything that can be wrong with a message, an id or a key.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SchemaError {
+    #[error("invalid {what} {name:?}: {why}")]
+    InvalidName {
+        what: &'static str,
+        name: String,
+        why: String,
+    },
+    #[error("invalid holon id {id:?}: {why}")]
+    InvalidHolonId { id: String, why: String },
+    #[error("invalid key expression {key:?}: {why}")]
+    InvalidKeyExpr { key: String, why: String },
+    #[error("invalid {field}: {why}")]
+    InvalidField { field: &'static str, why: String },
+    #[error("unsupported schema version {0} (this holon speaks version 1)")]
+    UnsupportedVersion(u32),
+    #[error("payload of {size} bytes is over the {limit}-byte limit")]
+    TooLarge { size: usize, limit: usize },
+    #[error("not a valid message: {0}")]
+    Json(String),
+}
+
+/// The JSON Schema of the Service message, as checked in at `schemas/json/service.schema.json`.
+pub fn service_json_schema() -> String {
+    let schema = schemars::schema_for!(Service);
+    let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
+    text.push('\n');
+    text
+}

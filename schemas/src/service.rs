@@ -1,0 +1,339 @@
+//! The Service message (the seed's `#service{}` record) and the error reply.
+
+use std::fmt;
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use crate::id::{validate_name, HolonId};
+use crate::keys::validate_reply_key;
+use crate::SchemaError;
+
+/// The schema version this crate reads and writes.
+pub const SERVICE_VERSION: u32 = 1;
+
+/// The largest Service payload a holon accepts.
+pub const MAX_SERVICE_BYTES: usize = 64 * 1024;
+
+/// The longest `conversation_id` we accept.
+pub const MAX_CONVERSATION_ID_LEN: usize = 128;
+
+/// What a Service message asks or answers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum MessageType {
+    /// Contract net: asks a resource for a proposal (sent to `offer/<type>/*`).
+    ProposalReq,
+    /// A resource's answer to `proposal_req`: `info` holds its expected wait.
+    Proposal,
+    /// Asks a resource to add a booking to its agenda.
+    BookingReq,
+    /// Removes the requester's booking.
+    BookingCancel,
+    /// Asks a resource to execute a booked service now.
+    Start,
+    /// The service was executed: sent to `reply_to` until acknowledged.
+    Done,
+    /// The service failed (`reason` says why): sent to `reply_to` until acknowledged.
+    Failed,
+    /// Asks a resource for its state; the reply's `info` holds the snapshot.
+    Status,
+}
+
+impl MessageType {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            MessageType::ProposalReq => "proposal_req",
+            MessageType::Proposal => "proposal",
+            MessageType::BookingReq => "booking_req",
+            MessageType::BookingCancel => "booking_cancel",
+            MessageType::Start => "start",
+            MessageType::Done => "done",
+            MessageType::Failed => "failed",
+            MessageType::Status => "status",
+        }
+    }
+}
+
+impl fmt::Display for MessageType {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// The reasons a holon gives when `result` is false (free text is allowed beyond these,
+/// but holarchy's own holons only use these codes; details go in `info.detail`).
+pub mod reason {
+    /// `start` or `booking_cancel` from a requester that holds no such booking.
+    pub const NOT_BOOKED: &str = "not_booked";
+    /// `start` while the resource executes another service.
+    pub const BUSY: &str = "busy";
+    /// The resource cannot execute now: its controller is disconnected, in fault or estop.
+    pub const UNAVAILABLE: &str = "unavailable";
+    /// The resource does not offer this service type.
+    pub const UNKNOWN_SERVICE: &str = "unknown_service";
+    /// The agenda is full (`agenda_capacity`).
+    pub const AGENDA_FULL: &str = "agenda_full";
+    /// `info` lacks what the service's steps need (e.g. a pose).
+    pub const INVALID_INFO: &str = "invalid_info";
+    /// The controller answered a command with `error` (its message is in `info.detail`).
+    pub const CONTROLLER_ERROR: &str = "controller_error";
+    /// The connection to the controller broke during the step.
+    pub const CONTROLLER_DISCONNECTED: &str = "controller_disconnected";
+    /// The controller did not answer a command within its timeout.
+    pub const CONTROLLER_TIMEOUT: &str = "controller_timeout";
+    /// The controller sent something that is not the protocol.
+    pub const CONTROLLER_PROTOCOL: &str = "controller_protocol_error";
+    /// The controller answered with a result the step does not expect.
+    pub const UNEXPECTED_RESULT: &str = "unexpected_result";
+    /// The controller reported `fault` or `estop` during the step.
+    pub const CONTROLLER_FAULT: &str = "controller_fault";
+}
+
+/// The Service message: one per zenoh payload, JSON, UTF-8.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+#[schemars(
+    title = "Service",
+    description = "holarchy's Service message (the seed's #service{} record), schema version 1."
+)]
+pub struct Service {
+    /// Schema version, 1.
+    pub v: u32,
+    pub message_type: MessageType,
+    /// The service type, e.g. `pick_n_place`, `inspect`, `transport`.
+    #[schemars(regex(pattern = r"^[a-z0-9][a-z0-9_-]*$"), length(max = 64))]
+    pub service_type: String,
+    /// One per order step and attempt, e.g. `o-17/2/1`; replies carry it back.
+    #[schemars(length(min = 1, max = 128))]
+    pub conversation_id: String,
+    /// The holon that asks (the seed's requester_pid), e.g. `order/o-17`.
+    pub requester: HolonId,
+    /// The holon that provides (the seed's provider_pid), e.g. `resource/robot1`.
+    #[serde(default)]
+    pub provider: Option<HolonId>,
+    /// Where later results (`done`, `failed`) go: the requester's inbox key expression.
+    #[serde(default)]
+    #[schemars(regex(pattern = r"^holarchy/[^*$?#\s]+$"), length(max = 512))]
+    pub reply_to: Option<String>,
+    /// The seed's Boolean result; null in requests.
+    #[serde(default)]
+    pub result: Option<bool>,
+    /// Why `result` is false: `not_booked`, `busy`, `unavailable`, `unknown_service`, ...
+    #[serde(default)]
+    pub reason: Option<String>,
+    /// Service data, e.g. `{"pick": {"x":..}, "place": {..}}`; on replies, e.g. queue position.
+    #[serde(default)]
+    pub info: serde_json::Map<String, serde_json::Value>,
+}
+
+impl Service {
+    /// A request with the fields every request has; the rest defaults to null / `{}`.
+    pub fn request(
+        message_type: MessageType,
+        service_type: &str,
+        conversation_id: &str,
+        requester: HolonId,
+    ) -> Service {
+        Service {
+            v: SERVICE_VERSION,
+            message_type,
+            service_type: service_type.to_string(),
+            conversation_id: conversation_id.to_string(),
+            requester,
+            provider: None,
+            reply_to: None,
+            result: None,
+            reason: None,
+            info: serde_json::Map::new(),
+        }
+    }
+
+    pub fn with_reply_to(mut self, reply_to: impl Into<String>) -> Self {
+        self.reply_to = Some(reply_to.into());
+        self
+    }
+
+    pub fn with_info(mut self, info: serde_json::Map<String, serde_json::Value>) -> Self {
+        self.info = info;
+        self
+    }
+
+    /// The answer to this message: same conversation, `provider` set, `result` true.
+    pub fn accepted(&self, provider: &HolonId) -> Service {
+        let mut reply = self.clone();
+        reply.provider = Some(provider.clone());
+        reply.result = Some(true);
+        reply.reason = None;
+        reply
+    }
+
+    /// The answer to this message with `result` false and a reason.
+    pub fn refused(&self, provider: &HolonId, reason: &str) -> Service {
+        let mut reply = self.accepted(provider);
+        reply.result = Some(false);
+        reply.reason = Some(reason.to_string());
+        reply
+    }
+
+    /// Decodes and validates a payload. Errors say what is wrong, for the error reply.
+    pub fn from_json(payload: &[u8]) -> Result<Service, SchemaError> {
+        if payload.len() > MAX_SERVICE_BYTES {
+            return Err(SchemaError::TooLarge {
+                size: payload.len(),
+                limit: MAX_SERVICE_BYTES,
+            });
+        }
+        let service: Service =
+            serde_json::from_slice(payload).map_err(|e| SchemaError::Json(e.to_string()))?;
+        service.validate()?;
+        Ok(service)
+    }
+
+    pub fn to_json(&self) -> Vec<u8> {
+        serde_json::to_vec(self).expect("a Service always serializes")
+    }
+
+    /// Checks what serde cannot: version, names, lengths, the reply key.
+    pub fn validate(&self) -> Result<(), SchemaError> {
+        if self.v != SERVICE_VERSION {
+            return Err(SchemaError::UnsupportedVersion(self.v));
+        }
+        validate_name("service type", &self.service_type)?;
+        let id = &self.conversation_id;
+        if id.is_empty() || id.len() > MAX_CONVERSATION_ID_LEN {
+            return Err(SchemaError::InvalidField {
+                field: "conversation_id",
+                why: "must be 1 to 128 bytes".into(),
+            });
+        }
+        if id.chars().any(|c| c.is_control()) {
+            return Err(SchemaError::InvalidField {
+                field: "conversation_id",
+                why: "control characters are not allowed".into(),
+            });
+        }
+        if let Some(key) = &self.reply_to {
+            validate_reply_key(key)?;
+        }
+        Ok(())
+    }
+}
+
+/// The body of an error reply (`reply_err`): a request that could not be decoded or is
+/// not allowed. The holon changes nothing.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct ErrorReply {
+    /// A stable code: `malformed`, `invalid`, `wrong_key`, `internal`, `unavailable`.
+    pub code: String,
+    /// What was wrong, for a person.
+    pub message: String,
+}
+
+impl ErrorReply {
+    pub fn new(code: &str, message: impl Into<String>) -> Self {
+        ErrorReply {
+            code: code.to_string(),
+            message: message.into(),
+        }
+    }
+
+    pub fn to_json(&self) -> Vec<u8> {
+        serde_json::to_vec(self).expect("an ErrorReply always serializes")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn booking() -> Service {
+        Service::request(
+            MessageType::BookingReq,
+            "pick_n_place",
+            "o-17/2/1",
+            HolonId::order("o-17").unwrap(),
+        )
+        .with_reply_to("holarchy/demo/order/o-17/inbox")
+    }
+
+    #[test]
+    fn round_trips_through_json() {
+        let msg = booking();
+        let bytes = msg.to_json();
+        assert_eq!(Service::from_json(&bytes).unwrap(), msg);
+        let value: serde_json::Value = serde_json::from_slice(&bytes).unwrap();
+        assert_eq!(value["message_type"], "booking_req");
+        assert_eq!(value["requester"], "order/o-17");
+        assert_eq!(value["provider"], serde_json::Value::Null);
+        assert_eq!(value["result"], serde_json::Value::Null);
+    }
+
+    #[test]
+    fn optional_fields_may_be_left_out() {
+        let msg = Service::from_json(
+            br#"{"v":1,"message_type":"status","service_type":"pick_n_place",
+                 "conversation_id":"c1","requester":"staff/ops"}"#,
+        )
+        .unwrap();
+        assert_eq!(msg.message_type, MessageType::Status);
+        assert!(msg.info.is_empty());
+    }
+
+    #[test]
+    fn rejects_invalid_messages() {
+        let good = serde_json::to_value(booking()).unwrap();
+        let cases: Vec<(&str, serde_json::Value)> = vec![
+            ("v", json!(2)),
+            ("message_type", json!("book")),
+            ("service_type", json!("Pick")),
+            ("conversation_id", json!("")),
+            ("conversation_id", json!("x".repeat(129))),
+            ("conversation_id", json!("a\nb")),
+            ("requester", json!("o-17")),
+            ("provider", json!("robot")),
+            ("reply_to", json!("holarchy/demo/order/*/inbox")),
+            ("reply_to", json!("elsewhere/inbox")),
+            ("result", json!("yes")),
+            ("info", json!([1, 2])),
+            ("extra", json!(1)),
+        ];
+        for (field, value) in cases {
+            let mut msg = good.clone();
+            msg[field] = value.clone();
+            let bytes = serde_json::to_vec(&msg).unwrap();
+            assert!(
+                Service::from_json(&bytes).is_err(),
+                "{field} = {value} was accepted"
+            );
+        }
+        for missing in [
+            "v",
+            "message_type",
+            "service_type",
+            "conversation_id",
+            "requester",
+        ] {
+            let mut msg = good.clone();
+            msg.as_object_mut().unwrap().remove(missing);
+            let bytes = serde_json::to_vec(&msg).unwrap();
+            assert!(Service::from_json(&bytes).is_err(), "without {missing}");
+        }
+        assert!(Service::from_json(b"not json").is_err());
+        assert!(Service::from_json(&vec![b' '; MAX_SERVICE_BYTES + 1]).is_err());
+    }
+
+    #[test]
+    fn replies_keep_the_conversation() {
+        let robot = HolonId::resource("robot1").unwrap();
+        let msg = booking();
+        let yes = msg.accepted(&robot);
+        assert_eq!(yes.result, Some(true));
+        assert_eq!(yes.provider.as_ref(), Some(&robot));
+        assert_eq!(yes.conversation_id, msg.conversation_id);
+        let no = msg.refused(&robot, reason::BUSY);
+        assert_eq!(no.result, Some(false));
+        assert_eq!(no.reason.as_deref(), Some("busy"));
+    }
+}

@@ -1,0 +1,39 @@
+//! The checked-in JSON Schema must match the Rust types. To refresh it after a change:
+//! `HOLARCHY_BLESS=1 cargo test -p schemas --test json_schema`.
+
+use std::path::PathBuf;
+
+#[test]
+fn service_schema_file_is_current() {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("json/service.schema.json");
+    let generated = schemas::service_json_schema();
+    if std::env::var_os("HOLARCHY_BLESS").is_some() {
+        std::fs::write(&path, &generated).unwrap();
+    }
+    let on_disk = std::fs::read_to_string(&path).unwrap_or_default();
+    assert!(
+        on_disk == generated,
+        "{} is stale; regenerate it with HOLARCHY_BLESS=1 cargo test -p schemas --test json_schema",
+        path.display()
+    );
+}
+
+#[test]
+fn schema_describes_every_field() {
+    let schema: serde_json::Value = serde_json::from_str(&schemas::service_json_schema()).unwrap();
+    let props = schema["properties"].as_object().unwrap();
+    for field in [
+        "v",
+        "message_type",
+        "service_type",
+        "conversation_id",
+        "requester",
+        "provider",
+        "reply_to",
+        "result",
+        "reason",
+        "info",
+    ] {
+        assert!(props.contains_key(field), "schema lacks {field}");
+    }
+}
