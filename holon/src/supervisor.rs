@@ -1,0 +1,553 @@
+//! A small supervisor after Erlang/OTP's: child specs started in order and stopped in
+//! reverse, the restart strategies `one_for_one`, `one_for_all` and `rest_for_one`, and a
+//! restart intensity (at most `max_restarts` restarts within `period`; past it the
+//! supervisor stops every child and returns an error, so the process exits non-zero and
+//! its launcher or service manager restarts it).
+//!
+//! Children are permanent: any exit while the supervisor runs, an error, a panic or even
+//! a normal return, counts as a failure and triggers a restart. Each child gets its own
+//! [`CancellationToken`] and must return soon after it is cancelled; one that does not
+//! return within its `shutdown_timeout` is aborted.
+
+use std::collections::VecDeque;
+use std::fmt;
+use std::future::Future;
+use std::pin::Pin;
+use std::str::FromStr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use serde::{Deserialize, Serialize};
+use tokio::task::{AbortHandle, Id, JoinSet};
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+use tracing::{error, info, warn};
+
+/// What a child returns when it fails.
+pub type ChildError = Box<dyn std::error::Error + Send + Sync>;
+
+/// A running child: the future its start function returned.
+pub type ChildFuture = Pin<Box<dyn Future<Output = Result<(), ChildError>> + Send>>;
+
+type StartFn = Arc<dyn Fn(CancellationToken) -> ChildFuture + Send + Sync>;
+
+/// How one child is started (again).
+#[derive(Clone)]
+pub struct ChildSpec {
+    name: String,
+    start: StartFn,
+    shutdown_timeout: Duration,
+}
+
+impl ChildSpec {
+    /// `start` is called with the child's cancellation token every time the child (re)starts.
+    pub fn new<F, Fut>(name: impl Into<String>, start: F) -> ChildSpec
+    where
+        F: Fn(CancellationToken) -> Fut + Send + Sync + 'static,
+        Fut: Future<Output = Result<(), ChildError>> + Send + 'static,
+    {
+        ChildSpec {
+            name: name.into(),
+            start: Arc::new(move |token| Box::pin(start(token))),
+            shutdown_timeout: Duration::from_secs(5),
+        }
+    }
+
+    pub fn shutdown_timeout(mut self, timeout: Duration) -> ChildSpec {
+        self.shutdown_timeout = timeout;
+        self
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+}
+
+impl fmt::Debug for ChildSpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("ChildSpec")
+            .field("name", &self.name)
+            .finish()
+    }
+}
+
+/// Which children a failure restarts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Strategy {
+    /// Only the child that failed.
+    #[default]
+    OneForOne,
+    /// Every child: the others are stopped (in reverse order) and all restarted in order.
+    OneForAll,
+    /// The failed child and every child started after it.
+    RestForOne,
+}
+
+impl FromStr for Strategy {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "one_for_one" => Ok(Strategy::OneForOne),
+            "one_for_all" => Ok(Strategy::OneForAll),
+            "rest_for_one" => Ok(Strategy::RestForOne),
+            other => Err(format!(
+                "unknown strategy {other:?} (one_for_one, one_for_all, rest_for_one)"
+            )),
+        }
+    }
+}
+
+/// At most `max_restarts` restarts within any `period`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Intensity {
+    pub max_restarts: u32,
+    pub period: Duration,
+}
+
+impl Default for Intensity {
+    /// OTP's default: 1 restart in 5 s is strict; a holon's components get 5 in 10 s.
+    fn default() -> Self {
+        Intensity {
+            max_restarts: 5,
+            period: Duration::from_secs(10),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SupervisorError {
+    #[error("restart intensity exceeded: more than {max_restarts} restarts within {period:?} (last failure: {last_child}: {last_failure})")]
+    IntensityExceeded {
+        max_restarts: u32,
+        period: Duration,
+        last_child: String,
+        last_failure: String,
+    },
+}
+
+struct Running {
+    token: CancellationToken,
+    abort: AbortHandle,
+}
+
+/// The supervisor of one holon's components.
+pub struct Supervisor {
+    name: String,
+    strategy: Strategy,
+    intensity: Intensity,
+    children: Vec<ChildSpec>,
+}
+
+impl Supervisor {
+    pub fn new(name: impl Into<String>, strategy: Strategy, intensity: Intensity) -> Supervisor {
+        Supervisor {
+            name: name.into(),
+            strategy,
+            intensity,
+            children: Vec::new(),
+        }
+    }
+
+    /// Adds a child; children start in the order they are added.
+    pub fn child(mut self, spec: ChildSpec) -> Supervisor {
+        self.children.push(spec);
+        self
+    }
+
+    /// Starts the children in order and supervises them until `shutdown` is cancelled
+    /// (then stops them in reverse order and returns `Ok`) or the restart intensity is
+    /// exceeded (then stops them likewise and returns the error).
+    pub async fn run(self, shutdown: CancellationToken) -> Result<(), SupervisorError> {
+        let mut state = State {
+            supervisor: &self,
+            set: JoinSet::new(),
+            running: (0..self.children.len()).map(|_| None).collect(),
+            exited: VecDeque::new(),
+        };
+        for index in 0..self.children.len() {
+            state.start(index);
+        }
+        let mut restarts: VecDeque<Instant> = VecDeque::new();
+        loop {
+            let (index, failure) = match state.exited.pop_front() {
+                Some(exit) => exit,
+                None => tokio::select! {
+                    _ = shutdown.cancelled() => {
+                        state.stop_from(0).await;
+                        info!(supervisor = %self.name, "all components stopped");
+                        return Ok(());
+                    }
+                    joined = state.set.join_next_with_id() => match joined {
+                        Some(joined) => match state.record_exit(joined) {
+                            Some(exit) => exit,
+                            None => continue,
+                        },
+                        None => {
+                            // No children at all: wait for shutdown.
+                            shutdown.cancelled().await;
+                            return Ok(());
+                        }
+                    },
+                },
+            };
+            let child = self.children[index].name.clone();
+            error!(supervisor = %self.name, component = %child, failure = %failure, "component failed");
+
+            let now = Instant::now();
+            restarts.push_back(now);
+            while restarts
+                .front()
+                .is_some_and(|t| now.duration_since(*t) > self.intensity.period)
+            {
+                restarts.pop_front();
+            }
+            if restarts.len() > self.intensity.max_restarts as usize {
+                error!(supervisor = %self.name, component = %child, max_restarts = self.intensity.max_restarts, period = ?self.intensity.period, "restart intensity exceeded; stopping");
+                state.stop_from(0).await;
+                return Err(SupervisorError::IntensityExceeded {
+                    max_restarts: self.intensity.max_restarts,
+                    period: self.intensity.period,
+                    last_child: child,
+                    last_failure: failure,
+                });
+            }
+
+            let first = match self.strategy {
+                Strategy::OneForOne => index,
+                Strategy::OneForAll => 0,
+                Strategy::RestForOne => index,
+            };
+            if self.strategy != Strategy::OneForOne {
+                state.stop_from(first).await;
+                // Exits collected while stopping that the restart below covers are moot.
+                state.exited.retain(|(i, _)| *i < first);
+            }
+            for i in first..self.children.len() {
+                if self.strategy == Strategy::OneForOne && i != index {
+                    continue;
+                }
+                if state.running[i].is_none() {
+                    warn!(supervisor = %self.name, component = %self.children[i].name, strategy = ?self.strategy, "restarting component");
+                    state.start(i);
+                }
+            }
+        }
+    }
+}
+
+struct State<'a> {
+    supervisor: &'a Supervisor,
+    set: JoinSet<Result<(), ChildError>>,
+    running: Vec<Option<Running>>,
+    /// Children that exited and still await the strategy's decision.
+    exited: VecDeque<(usize, String)>,
+}
+
+impl State<'_> {
+    fn start(&mut self, index: usize) {
+        let spec = &self.supervisor.children[index];
+        let token = CancellationToken::new();
+        let abort = self.set.spawn((spec.start)(token.clone()));
+        info!(supervisor = %self.supervisor.name, component = %spec.name, "component started");
+        self.running[index] = Some(Running { token, abort });
+    }
+
+    fn index_of(&self, id: Id) -> Option<usize> {
+        self.running
+            .iter()
+            .position(|r| r.as_ref().is_some_and(|r| r.abort.id() == id))
+    }
+
+    /// Marks the child of a joined task as exited; returns its index and why it ended.
+    fn record_exit(
+        &mut self,
+        joined: Result<(Id, Result<(), ChildError>), tokio::task::JoinError>,
+    ) -> Option<(usize, String)> {
+        let (id, failure) = match joined {
+            Ok((id, Ok(()))) => (id, "returned while the holon runs".to_string()),
+            Ok((id, Err(e))) => (id, e.to_string()),
+            Err(e) if e.is_panic() => {
+                let id = e.id();
+                let payload = e.into_panic();
+                let message = payload
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| payload.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "(no message)".into());
+                (id, format!("panicked: {message}"))
+            }
+            Err(e) => (e.id(), "aborted".to_string()),
+        };
+        let index = self.index_of(id)?;
+        self.running[index] = None;
+        Some((index, failure))
+    }
+
+    /// Stops every running child from `first` on, last first, each within its timeout.
+    async fn stop_from(&mut self, first: usize) {
+        for index in (first..self.running.len()).rev() {
+            let Some(running) = self.running[index].take() else {
+                continue;
+            };
+            let spec = &self.supervisor.children[index];
+            running.token.cancel();
+            let id = running.abort.id();
+            let deadline = Instant::now() + spec.shutdown_timeout;
+            loop {
+                match tokio::time::timeout_at(deadline, self.set.join_next_with_id()).await {
+                    Ok(Some(joined)) => {
+                        let joined_id = match &joined {
+                            Ok((joined_id, _)) => *joined_id,
+                            Err(e) => e.id(),
+                        };
+                        if joined_id == id {
+                            info!(supervisor = %self.supervisor.name, component = %spec.name, "component stopped");
+                            break;
+                        }
+                        // Another child ended meanwhile: its exit is handled afterwards.
+                        if let Some(exit) = self.record_exit(joined) {
+                            self.exited.push_back(exit);
+                        }
+                    }
+                    Ok(None) => break,
+                    Err(_) => {
+                        warn!(supervisor = %self.supervisor.name, component = %spec.name, timeout = ?spec.shutdown_timeout, "component did not stop in time; aborted");
+                        running.abort.abort();
+                        break;
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Mutex;
+    use tokio::sync::mpsc;
+
+    /// A child that logs "start name" / "stop name" and fails when told to.
+    fn child(
+        name: &'static str,
+        log: Arc<Mutex<Vec<String>>>,
+        fail: Arc<tokio::sync::Mutex<mpsc::UnboundedReceiver<()>>>,
+    ) -> ChildSpec {
+        ChildSpec::new(name, move |token: CancellationToken| {
+            let log = log.clone();
+            let fail = fail.clone();
+            async move {
+                log.lock().unwrap().push(format!("start {name}"));
+                let mut fail = fail.lock().await;
+                tokio::select! {
+                    _ = token.cancelled() => {
+                        log.lock().unwrap().push(format!("stop {name}"));
+                        Ok(())
+                    }
+                    _ = fail.recv() => Err(format!("{name} told to fail").into()),
+                }
+            }
+        })
+    }
+
+    struct Harness {
+        log: Arc<Mutex<Vec<String>>>,
+        fail: Vec<mpsc::UnboundedSender<()>>,
+        shutdown: CancellationToken,
+        task: tokio::task::JoinHandle<Result<(), SupervisorError>>,
+    }
+
+    fn start(strategy: Strategy, intensity: Intensity) -> Harness {
+        let log = Arc::new(Mutex::new(Vec::new()));
+        let mut supervisor = Supervisor::new("test", strategy, intensity);
+        let mut fail = Vec::new();
+        for name in ["a", "b", "c"] {
+            let (tx, rx) = mpsc::unbounded_channel();
+            fail.push(tx);
+            supervisor = supervisor.child(child(
+                name,
+                log.clone(),
+                Arc::new(tokio::sync::Mutex::new(rx)),
+            ));
+        }
+        let shutdown = CancellationToken::new();
+        let task = tokio::spawn(supervisor.run(shutdown.clone()));
+        Harness {
+            log,
+            fail,
+            shutdown,
+            task,
+        }
+    }
+
+    impl Harness {
+        async fn settle(&self, entries: usize) -> Vec<String> {
+            for _ in 0..200 {
+                if self.log.lock().unwrap().len() >= entries {
+                    break;
+                }
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            self.log.lock().unwrap().drain(..).collect()
+        }
+    }
+
+    fn strings(items: &[&str]) -> Vec<String> {
+        items.iter().map(|s| s.to_string()).collect()
+    }
+
+    #[tokio::test]
+    async fn starts_in_order_and_stops_in_reverse() {
+        let mut h = start(Strategy::OneForOne, Intensity::default());
+        assert_eq!(
+            h.settle(3).await,
+            strings(&["start a", "start b", "start c"])
+        );
+        h.shutdown.cancel();
+        (&mut h.task).await.unwrap().unwrap();
+        assert_eq!(h.settle(3).await, strings(&["stop c", "stop b", "stop a"]));
+    }
+
+    #[tokio::test]
+    async fn one_for_one_restarts_only_the_failed_child() {
+        let h = start(Strategy::OneForOne, Intensity::default());
+        h.settle(3).await;
+        h.fail[1].send(()).unwrap();
+        assert_eq!(h.settle(1).await, strings(&["start b"]));
+    }
+
+    #[tokio::test]
+    async fn one_for_all_restarts_every_child() {
+        let h = start(Strategy::OneForAll, Intensity::default());
+        h.settle(3).await;
+        h.fail[1].send(()).unwrap();
+        assert_eq!(
+            h.settle(5).await,
+            strings(&["stop c", "stop a", "start a", "start b", "start c"])
+        );
+    }
+
+    #[tokio::test]
+    async fn rest_for_one_restarts_the_failed_child_and_those_after_it() {
+        let h = start(Strategy::RestForOne, Intensity::default());
+        h.settle(3).await;
+        h.fail[1].send(()).unwrap();
+        assert_eq!(
+            h.settle(3).await,
+            strings(&["stop c", "start b", "start c"])
+        );
+        h.fail[0].send(()).unwrap();
+        assert_eq!(
+            h.settle(5).await,
+            strings(&["stop c", "stop b", "start a", "start b", "start c"])
+        );
+    }
+
+    #[tokio::test]
+    async fn exceeding_the_intensity_stops_everything_with_an_error() {
+        let intensity = Intensity {
+            max_restarts: 2,
+            period: Duration::from_secs(60),
+        };
+        let h = start(Strategy::OneForOne, intensity);
+        h.settle(3).await;
+        for _ in 0..2 {
+            h.fail[2].send(()).unwrap();
+            assert_eq!(h.settle(1).await, strings(&["start c"]));
+        }
+        h.fail[2].send(()).unwrap();
+        let result = tokio::time::timeout(Duration::from_secs(5), h.task)
+            .await
+            .unwrap()
+            .unwrap();
+        assert!(matches!(
+            result,
+            Err(SupervisorError::IntensityExceeded {
+                max_restarts: 2,
+                ..
+            })
+        ));
+        assert_eq!(
+            h.log.lock().unwrap().clone(),
+            strings(&["stop b", "stop a"])
+        );
+    }
+
+    #[tokio::test]
+    async fn restarts_outside_the_period_are_forgotten() {
+        let intensity = Intensity {
+            max_restarts: 1,
+            period: Duration::from_millis(100),
+        };
+        let h = start(Strategy::OneForOne, intensity);
+        h.settle(3).await;
+        for _ in 0..3 {
+            h.fail[0].send(()).unwrap();
+            assert_eq!(h.settle(1).await, strings(&["start a"]));
+            tokio::time::sleep(Duration::from_millis(150)).await;
+        }
+        assert!(!h.task.is_finished());
+    }
+
+    #[tokio::test]
+    async fn a_panicking_child_is_restarted() {
+        let count = Arc::new(Mutex::new(0));
+        let spec = ChildSpec::new("panicky", {
+            let count = count.clone();
+            move |token: CancellationToken| {
+                let count = count.clone();
+                async move {
+                    let n = {
+                        let mut c = count.lock().unwrap();
+                        *c += 1;
+                        *c
+                    };
+                    if n == 1 {
+                        panic!("first run panics");
+                    }
+                    token.cancelled().await;
+                    Ok(())
+                }
+            }
+        });
+        let shutdown = CancellationToken::new();
+        let task = tokio::spawn(
+            Supervisor::new("t", Strategy::OneForOne, Intensity::default())
+                .child(spec)
+                .run(shutdown.clone()),
+        );
+        for _ in 0..100 {
+            if *count.lock().unwrap() == 2 {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        assert_eq!(*count.lock().unwrap(), 2);
+        shutdown.cancel();
+        task.await.unwrap().unwrap();
+    }
+
+    #[tokio::test]
+    async fn a_child_that_ignores_cancellation_is_aborted() {
+        let spec = ChildSpec::new("stubborn", |_token: CancellationToken| async {
+            std::future::pending::<()>().await;
+            Ok(())
+        })
+        .shutdown_timeout(Duration::from_millis(50));
+        let shutdown = CancellationToken::new();
+        let task = tokio::spawn(
+            Supervisor::new("t", Strategy::OneForOne, Intensity::default())
+                .child(spec)
+                .run(shutdown.clone()),
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        shutdown.cancel();
+        tokio::time::timeout(Duration::from_secs(2), task)
+            .await
+            .unwrap()
+            .unwrap()
+            .unwrap();
+    }
+}
