@@ -1,0 +1,846 @@
+//! The Agenda Manager: the seed's Figure 4 as a pure state machine.
+//!
+//! Its state is the execution status and the list of bookings. The status is `init`
+//! until the execution component reports `ready` (the controller is connected and
+//! ready), then `free` or `busy`; it goes back to `init` when the execution component
+//! reports the controller unavailable. Transitions:
+//!
+//! | event | state | outcome |
+//! |---|---|---|
+//! | `booking_req` | free / busy | booked (appended), `result` true with the queue position |
+//! | `booking_req` | init | refused `unavailable` (no new commitments without hardware) |
+//! | `booking_cancel` from a booked requester | any | booking removed |
+//! | `start` from a booked requester | free | busy: the booking becomes the job, execution starts |
+//! | `start` | busy | refused `busy` (the booking stays) |
+//! | `start` | init | refused `unavailable` (the booking stays) |
+//! | `done` / `failed` from execution | busy | free (or init): the result is delivered |
+//! | `ready` / `unavailable` from execution | any | the status follows |
+//!
+//! Refusals: `unknown_service` (type not offered), `not_booked` (start or cancel without a
+//! booking), `agenda_full`, `invalid_info` (start without what the steps need). A booking
+//! is identified by its requester and `conversation_id`. Requests are idempotent: a
+//! repeated `booking_req` or a repeated `start` of the running job is answered `true`
+//! again without a second booking or a second execution.
+
+use std::sync::Arc;
+
+use schemas::{
+    reason, unix_ms, BookingView, CurrentJobView, HolonId, MessageType, ResourceSnapshot, Service,
+};
+use serde_json::{json, Map, Value};
+
+use crate::catalog::ServiceCatalog;
+
+/// A commitment on the agenda.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Booking {
+    pub requester: HolonId,
+    pub conversation_id: String,
+    pub service_type: String,
+    pub reply_to: Option<String>,
+    /// The booking's `info`, used when `start` carries none.
+    pub info: Map<String, Value>,
+}
+
+/// A booking being executed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Job {
+    pub requester: HolonId,
+    pub conversation_id: String,
+    pub service_type: String,
+    /// Where `done` / `failed` goes.
+    pub reply_to: String,
+    pub info: Map<String, Value>,
+}
+
+/// How an execution ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    /// Every step completed; `results` maps each action to the controller's result.
+    Done { results: Map<String, Value> },
+    /// A step failed; `reason` is one of [`schemas::reason`], `detail` is for people.
+    Failed { reason: String, detail: String },
+}
+
+/// What the agenda manager reacts to.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AgendaEvent {
+    /// A Service request from another holon, via the communication component.
+    Request(Service),
+    /// Execution is ready: the controller is connected and ready, nothing runs.
+    ExecutionReady,
+    /// Execution cannot run services: the controller is away, in fault or estop.
+    ExecutionUnavailable,
+    /// Execution finished the job of `conversation_id`.
+    ExecutionFinished {
+        conversation_id: String,
+        outcome: Outcome,
+    },
+    /// The requester acknowledged the result of `conversation_id`.
+    ResultAcknowledged { conversation_id: String },
+}
+
+/// What the task around the agenda manager must do.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AgendaAction {
+    /// Answer the request being handled.
+    Reply(Service),
+    /// Have the execution component execute this job.
+    Execute(Job),
+    /// Deliver this `done` / `failed` to its `reply_to` until acknowledged.
+    Deliver(Service),
+    /// The state changed: publish a snapshot.
+    StateChanged,
+}
+
+/// The execution status in Figure 4 (plus `init`).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Status {
+    Init,
+    Free,
+    Busy(Job),
+}
+
+/// The Agenda Manager's state.
+#[derive(Debug, Clone)]
+pub struct AgendaManager {
+    holon: HolonId,
+    catalog: Arc<ServiceCatalog>,
+    capacity: usize,
+    execution_ready: bool,
+    current: Option<Job>,
+    bookings: Vec<Booking>,
+    /// `done` / `failed` not yet acknowledged, oldest first.
+    undelivered: Vec<Service>,
+}
+
+impl AgendaManager {
+    pub fn new(holon: HolonId, catalog: Arc<ServiceCatalog>, capacity: usize) -> Self {
+        AgendaManager {
+            holon,
+            catalog,
+            capacity,
+            execution_ready: false,
+            current: None,
+            bookings: Vec::new(),
+            undelivered: Vec::new(),
+        }
+    }
+
+    pub fn status(&self) -> Status {
+        match (&self.current, self.execution_ready) {
+            (Some(job), _) => Status::Busy(job.clone()),
+            (None, true) => Status::Free,
+            (None, false) => Status::Init,
+        }
+    }
+
+    pub fn status_name(&self) -> &'static str {
+        match self.status() {
+            Status::Init => "init",
+            Status::Free => "free",
+            Status::Busy(_) => "busy",
+        }
+    }
+
+    pub fn bookings(&self) -> &[Booking] {
+        &self.bookings
+    }
+
+    pub fn undelivered(&self) -> &[Service] {
+        &self.undelivered
+    }
+
+    pub fn current(&self) -> Option<&Job> {
+        self.current.as_ref()
+    }
+
+    /// The seed's FSM: one event in, the actions out. No I/O.
+    pub fn handle(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
+        match event {
+            AgendaEvent::Request(request) => self.request(request),
+            AgendaEvent::ExecutionReady => self.set_ready(true),
+            AgendaEvent::ExecutionUnavailable => self.set_ready(false),
+            AgendaEvent::ExecutionFinished {
+                conversation_id,
+                outcome,
+            } => self.finished(&conversation_id, outcome),
+            AgendaEvent::ResultAcknowledged { conversation_id } => {
+                let before = self.undelivered.len();
+                self.undelivered
+                    .retain(|r| r.conversation_id != conversation_id);
+                if self.undelivered.len() == before {
+                    vec![]
+                } else {
+                    vec![AgendaAction::StateChanged]
+                }
+            }
+        }
+    }
+
+    fn set_ready(&mut self, ready: bool) -> Vec<AgendaAction> {
+        if self.execution_ready == ready {
+            return vec![];
+        }
+        self.execution_ready = ready;
+        vec![AgendaAction::StateChanged]
+    }
+
+    fn booking_index(&self, request: &Service) -> Option<usize> {
+        self.bookings.iter().position(|b| {
+            b.requester == request.requester && b.conversation_id == request.conversation_id
+        })
+    }
+
+    fn is_current(&self, request: &Service) -> bool {
+        self.current.as_ref().is_some_and(|job| {
+            job.requester == request.requester && job.conversation_id == request.conversation_id
+        })
+    }
+
+    fn request(&mut self, request: Service) -> Vec<AgendaAction> {
+        let refuse = |why: &str| vec![AgendaAction::Reply(request.refused(&self.holon, why))];
+        let offered = self.catalog.offers(&request.service_type);
+        match request.message_type {
+            MessageType::Status => {
+                let mut reply = request.accepted(&self.holon);
+                reply.info = self.snapshot_info();
+                vec![AgendaAction::Reply(reply)]
+            }
+            MessageType::ProposalReq => {
+                let mut reply = request.accepted(&self.holon);
+                reply.message_type = MessageType::Proposal;
+                let why = if !offered {
+                    Some(reason::UNKNOWN_SERVICE)
+                } else if !self.execution_ready {
+                    Some(reason::UNAVAILABLE)
+                } else if self.bookings.len() >= self.capacity {
+                    Some(reason::AGENDA_FULL)
+                } else {
+                    None
+                };
+                if let Some(why) = why {
+                    reply.result = Some(false);
+                    reply.reason = Some(why.to_string());
+                }
+                reply.info = self.proposal_info(&request.service_type);
+                vec![AgendaAction::Reply(reply)]
+            }
+            MessageType::BookingReq => {
+                if !offered {
+                    return refuse(reason::UNKNOWN_SERVICE);
+                }
+                if let Some(position) = self.booking_index(&request) {
+                    // A repeated request: already booked.
+                    return vec![AgendaAction::Reply(self.booked_reply(&request, position))];
+                }
+                if self.is_current(&request) {
+                    return refuse(reason::BUSY);
+                }
+                if !self.execution_ready {
+                    return refuse(reason::UNAVAILABLE);
+                }
+                if self.bookings.len() >= self.capacity {
+                    return refuse(reason::AGENDA_FULL);
+                }
+                self.bookings.push(Booking {
+                    requester: request.requester.clone(),
+                    conversation_id: request.conversation_id.clone(),
+                    service_type: request.service_type.clone(),
+                    reply_to: request.reply_to.clone(),
+                    info: request.info.clone(),
+                });
+                let reply = self.booked_reply(&request, self.bookings.len() - 1);
+                vec![AgendaAction::Reply(reply), AgendaAction::StateChanged]
+            }
+            MessageType::BookingCancel => match self.booking_index(&request) {
+                Some(index) => {
+                    self.bookings.remove(index);
+                    vec![
+                        AgendaAction::Reply(request.accepted(&self.holon)),
+                        AgendaAction::StateChanged,
+                    ]
+                }
+                None => refuse(reason::NOT_BOOKED),
+            },
+            MessageType::Start => self.start(request),
+            MessageType::Proposal | MessageType::Done | MessageType::Failed => {
+                // The communication component rejects these before they get here.
+                refuse(reason::UNKNOWN_SERVICE)
+            }
+        }
+    }
+
+    fn start(&mut self, request: Service) -> Vec<AgendaAction> {
+        let refuse = |why: &str, detail: Option<String>| {
+            let mut reply = request.refused(&self.holon, why);
+            if let Some(detail) = detail {
+                reply.info.insert("detail".into(), Value::String(detail));
+            }
+            vec![AgendaAction::Reply(reply)]
+        };
+        if !self.catalog.offers(&request.service_type) {
+            return refuse(reason::UNKNOWN_SERVICE, None);
+        }
+        if self.is_current(&request) {
+            // A repeated start of the running job: it has begun.
+            return vec![AgendaAction::Reply(request.accepted(&self.holon))];
+        }
+        let Some(index) = self.booking_index(&request) else {
+            return refuse(reason::NOT_BOOKED, None);
+        };
+        let booking = &self.bookings[index];
+        if booking.service_type != request.service_type {
+            return refuse(
+                reason::NOT_BOOKED,
+                Some(format!("the booking is for {}", booking.service_type)),
+            );
+        }
+        if self.current.is_some() {
+            return refuse(reason::BUSY, None);
+        }
+        if !self.execution_ready {
+            return refuse(reason::UNAVAILABLE, None);
+        }
+        let info = if request.info.is_empty() {
+            booking.info.clone()
+        } else {
+            request.info.clone()
+        };
+        if let Err(detail) = self.catalog.poses(&request.service_type, &info) {
+            return refuse(reason::INVALID_INFO, Some(detail));
+        }
+        let Some(reply_to) = request.reply_to.clone().or_else(|| booking.reply_to.clone()) else {
+            return refuse(
+                reason::INVALID_INFO,
+                Some("neither the start nor the booking has reply_to".into()),
+            );
+        };
+        let booking = self.bookings.remove(index);
+        let job = Job {
+            requester: booking.requester,
+            conversation_id: booking.conversation_id,
+            service_type: booking.service_type,
+            reply_to,
+            info,
+        };
+        self.current = Some(job.clone());
+        vec![
+            AgendaAction::Reply(request.accepted(&self.holon)),
+            AgendaAction::Execute(job),
+            AgendaAction::StateChanged,
+        ]
+    }
+
+    fn finished(&mut self, conversation_id: &str, outcome: Outcome) -> Vec<AgendaAction> {
+        let Some(job) = self
+            .current
+            .take_if(|job| job.conversation_id == conversation_id)
+        else {
+            // Not the running job (a stale report): nothing changes.
+            return vec![];
+        };
+        let (message_type, result, why, info) = match outcome {
+            Outcome::Done { results } => {
+                (MessageType::Done, true, None, json!({ "results": results }))
+            }
+            Outcome::Failed { reason, detail } => (
+                MessageType::Failed,
+                false,
+                Some(reason),
+                json!({ "detail": detail }),
+            ),
+        };
+        let message = Service {
+            v: schemas::SERVICE_VERSION,
+            message_type,
+            service_type: job.service_type,
+            conversation_id: job.conversation_id,
+            requester: job.requester,
+            provider: Some(self.holon.clone()),
+            reply_to: Some(job.reply_to),
+            result: Some(result),
+            reason: why,
+            info: match info {
+                Value::Object(map) => map,
+                _ => Map::new(),
+            },
+        };
+        self.undelivered.push(message.clone());
+        vec![AgendaAction::Deliver(message), AgendaAction::StateChanged]
+    }
+
+    fn booked_reply(&self, request: &Service, position: usize) -> Service {
+        let mut reply = request.accepted(&self.holon);
+        reply.info = self.proposal_info(&request.service_type);
+        reply
+            .info
+            .insert("queue_position".into(), json!(position + 1 + self.current.is_some() as usize));
+        reply
+    }
+
+    /// What a proposal says: the queue ahead and the expected wait before this service
+    /// could start, from the nominal durations of the jobs ahead.
+    fn proposal_info(&self, service_type: &str) -> Map<String, Value> {
+        let nominal = |t: &str| {
+            self.catalog
+                .get(t)
+                .map(|d| d.nominal_duration.as_millis() as u64)
+                .unwrap_or(0)
+        };
+        let ahead: u64 = self
+            .bookings
+            .iter()
+            .map(|b| nominal(&b.service_type))
+            .chain(self.current.iter().map(|j| nominal(&j.service_type)))
+            .sum();
+        let mut info = Map::new();
+        info.insert("state".into(), json!(self.status_name()));
+        info.insert(
+            "queue_position".into(),
+            json!(self.bookings.len() + self.current.is_some() as usize),
+        );
+        info.insert("agenda_length".into(), json!(self.bookings.len()));
+        info.insert("expected_wait_ms".into(), json!(ahead));
+        info.insert("duration_ms".into(), json!(nominal(service_type)));
+        info
+    }
+
+    fn snapshot_info(&self) -> Map<String, Value> {
+        match serde_json::to_value(self.snapshot("unknown", None)) {
+            Ok(Value::Object(map)) => map,
+            _ => Map::new(),
+        }
+    }
+
+    /// The state snapshot published on `resource/<name>/state`.
+    pub fn snapshot(&self, controller: &str, step: Option<String>) -> ResourceSnapshot {
+        ResourceSnapshot {
+            holon: self.holon.clone(),
+            state: self.status_name().to_string(),
+            controller: controller.to_string(),
+            agenda: self
+                .bookings
+                .iter()
+                .map(|b| BookingView {
+                    requester: b.requester.clone(),
+                    conversation_id: b.conversation_id.clone(),
+                    service_type: b.service_type.clone(),
+                })
+                .collect(),
+            current: self.current.as_ref().map(|j| CurrentJobView {
+                requester: j.requester.clone(),
+                conversation_id: j.conversation_id.clone(),
+                service_type: j.service_type.clone(),
+                step,
+            }),
+            undelivered: self.undelivered.len(),
+            services: self.catalog.service_types().map(String::from).collect(),
+            at: unix_ms(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::catalog::pick_n_place;
+
+    const INBOX: &str = "holarchy/t/order/o-1/inbox";
+
+    fn manager() -> AgendaManager {
+        let mut m = AgendaManager::new(
+            HolonId::resource("robot1").unwrap(),
+            Arc::new(pick_n_place()),
+            3,
+        );
+        m.handle(AgendaEvent::ExecutionReady);
+        m
+    }
+
+    fn poses() -> Map<String, Value> {
+        json!({"pick": {"x": 1, "y": 2, "z": 3}, "place": {"x": 4, "y": 5, "z": 6}})
+            .as_object()
+            .unwrap()
+            .clone()
+    }
+
+    fn msg(kind: MessageType, order: &str, conversation: &str) -> Service {
+        Service::request(
+            kind,
+            "pick_n_place",
+            conversation,
+            HolonId::order(order).unwrap(),
+        )
+        .with_reply_to(INBOX)
+    }
+
+    fn book(order: &str, conversation: &str) -> Service {
+        msg(MessageType::BookingReq, order, conversation)
+    }
+
+    fn start(order: &str, conversation: &str) -> Service {
+        msg(MessageType::Start, order, conversation).with_info(poses())
+    }
+
+    fn reply(actions: &[AgendaAction]) -> &Service {
+        match actions.first() {
+            Some(AgendaAction::Reply(r)) => r,
+            other => panic!("expected a reply first, got {other:?}"),
+        }
+    }
+
+    fn assert_refused(actions: &[AgendaAction], why: &str) {
+        let r = reply(actions);
+        assert_eq!(r.result, Some(false), "{r:?}");
+        assert_eq!(r.reason.as_deref(), Some(why));
+        assert_eq!(actions.len(), 1, "a refusal changes nothing: {actions:?}");
+    }
+
+    fn assert_accepted(actions: &[AgendaAction]) {
+        let r = reply(actions);
+        assert_eq!(r.result, Some(true), "{r:?}");
+        assert_eq!(r.provider, Some(HolonId::resource("robot1").unwrap()));
+    }
+
+    fn done(conversation: &str) -> AgendaEvent {
+        AgendaEvent::ExecutionFinished {
+            conversation_id: conversation.into(),
+            outcome: Outcome::Done {
+                results: Map::new(),
+            },
+        }
+    }
+
+    #[test]
+    fn starts_in_init_until_execution_is_ready() {
+        let mut m = AgendaManager::new(
+            HolonId::resource("robot1").unwrap(),
+            Arc::new(pick_n_place()),
+            3,
+        );
+        assert_eq!(m.status(), Status::Init);
+        assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "unavailable");
+        assert_eq!(
+            m.handle(AgendaEvent::ExecutionReady),
+            vec![AgendaAction::StateChanged]
+        );
+        assert_eq!(m.status(), Status::Free);
+        assert_eq!(m.handle(AgendaEvent::ExecutionReady), vec![]);
+    }
+
+    #[test]
+    fn free_empty_to_free_booked_on_booking_request() {
+        let mut m = manager();
+        let actions = m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        assert_accepted(&actions);
+        assert_eq!(reply(&actions).info["queue_position"], 1);
+        assert_eq!(actions[1], AgendaAction::StateChanged);
+        assert_eq!(m.bookings().len(), 1);
+        let actions = m.handle(AgendaEvent::Request(book("o-2", "c2")));
+        assert_eq!(reply(&actions).info["queue_position"], 2);
+        assert_eq!(m.status(), Status::Free);
+    }
+
+    #[test]
+    fn a_repeated_booking_request_books_once() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        let again = m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        assert_accepted(&again);
+        assert_eq!(again.len(), 1);
+        assert_eq!(m.bookings().len(), 1);
+    }
+
+    #[test]
+    fn free_booked_to_busy_on_start_from_a_booked_requester() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book("o-2", "c2")));
+        let actions = m.handle(AgendaEvent::Request(start("o-2", "c2")));
+        assert_accepted(&actions);
+        match &actions[1] {
+            AgendaAction::Execute(job) => {
+                assert_eq!(job.conversation_id, "c2");
+                assert_eq!(job.reply_to, INBOX);
+                assert_eq!(job.info, poses());
+            }
+            other => panic!("{other:?}"),
+        }
+        assert_eq!(actions[2], AgendaAction::StateChanged);
+        assert!(matches!(m.status(), Status::Busy(ref j) if j.conversation_id == "c2"));
+        assert_eq!(m.bookings().len(), 1, "the started booking left the list");
+    }
+
+    #[test]
+    fn start_by_the_last_booked_client_leaves_busy_with_no_bookings() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        assert!(matches!(m.status(), Status::Busy(_)));
+        assert!(m.bookings().is_empty());
+    }
+
+    #[test]
+    fn start_uses_the_booking_info_when_it_has_none() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1").with_info(poses())));
+        let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
+        assert!(matches!(&actions[1], AgendaAction::Execute(job) if job.info == poses()));
+    }
+
+    #[test]
+    fn start_while_busy_is_refused_and_keeps_the_booking() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book("o-2", "c2")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        assert_refused(&m.handle(AgendaEvent::Request(start("o-2", "c2"))), "busy");
+        assert_eq!(m.bookings().len(), 1);
+    }
+
+    #[test]
+    fn start_without_a_booking_is_refused() {
+        let mut m = manager();
+        assert_refused(&m.handle(AgendaEvent::Request(start("o-1", "c1"))), "not_booked");
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        // Another requester, or another conversation of the same requester.
+        assert_refused(&m.handle(AgendaEvent::Request(start("o-2", "c1"))), "not_booked");
+        assert_refused(&m.handle(AgendaEvent::Request(start("o-1", "c9"))), "not_booked");
+        // Not booked beats busy: a stranger is told it holds no booking.
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        assert_refused(&m.handle(AgendaEvent::Request(start("o-3", "c3"))), "not_booked");
+    }
+
+    #[test]
+    fn start_while_unavailable_is_refused_and_keeps_the_booking() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::ExecutionUnavailable);
+        assert_eq!(m.status(), Status::Init);
+        assert_refused(&m.handle(AgendaEvent::Request(start("o-1", "c1"))), "unavailable");
+        assert_eq!(m.bookings().len(), 1);
+        m.handle(AgendaEvent::ExecutionReady);
+        assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+    }
+
+    #[test]
+    fn start_without_what_the_steps_need_is_refused() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
+        assert_refused(&actions, "invalid_info");
+        assert!(reply(&actions).info["detail"].as_str().unwrap().contains("info.pick"));
+        let mut booking_without_reply_to = book("o-2", "c2");
+        booking_without_reply_to.reply_to = None;
+        m.handle(AgendaEvent::Request(booking_without_reply_to));
+        let mut no_reply_to = start("o-2", "c2");
+        no_reply_to.reply_to = None;
+        assert_refused(&m.handle(AgendaEvent::Request(no_reply_to)), "invalid_info");
+        assert_eq!(m.bookings().len(), 2);
+        assert_eq!(m.status(), Status::Free);
+    }
+
+    #[test]
+    fn a_repeated_start_of_the_running_job_is_accepted_without_a_second_execution() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        let again = m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        assert_accepted(&again);
+        assert_eq!(again.len(), 1);
+    }
+
+    #[test]
+    fn unknown_service_types_are_refused() {
+        let mut m = manager();
+        let mut weld = book("o-1", "c1");
+        weld.service_type = "weld".into();
+        assert_refused(&m.handle(AgendaEvent::Request(weld.clone())), "unknown_service");
+        weld.message_type = MessageType::Start;
+        assert_refused(&m.handle(AgendaEvent::Request(weld.clone())), "unknown_service");
+        weld.message_type = MessageType::ProposalReq;
+        let proposal = m.handle(AgendaEvent::Request(weld));
+        assert_eq!(reply(&proposal).message_type, MessageType::Proposal);
+        assert_eq!(reply(&proposal).reason.as_deref(), Some("unknown_service"));
+        assert!(m.bookings().is_empty());
+    }
+
+    #[test]
+    fn start_for_a_booking_of_another_service_type_is_refused() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        let mut inspect = start("o-1", "c1");
+        inspect.service_type = "inspect".into();
+        assert_refused(&m.handle(AgendaEvent::Request(inspect)), "not_booked");
+    }
+
+    #[test]
+    fn booking_cancel_removes_the_booking() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book("o-2", "c2")));
+        let actions = m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-1", "c1")));
+        assert_accepted(&actions);
+        assert_eq!(actions[1], AgendaAction::StateChanged);
+        assert_eq!(m.bookings().len(), 1);
+        assert_eq!(m.bookings()[0].conversation_id, "c2");
+        // Cancel by the last booked client leaves an empty agenda.
+        m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c2")));
+        assert!(m.bookings().is_empty());
+        assert_eq!(m.status(), Status::Free);
+    }
+
+    #[test]
+    fn booking_cancel_without_a_booking_is_refused() {
+        let mut m = manager();
+        assert_refused(
+            &m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-1", "c1"))),
+            "not_booked",
+        );
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        assert_refused(
+            &m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c1"))),
+            "not_booked",
+        );
+        assert_eq!(m.bookings().len(), 1);
+    }
+
+    #[test]
+    fn bookings_and_cancels_while_busy_keep_it_busy() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2"))));
+        assert!(matches!(m.status(), Status::Busy(_)));
+        assert_accepted(&m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c2"))));
+        assert!(matches!(m.status(), Status::Busy(_)));
+        // The running job cannot be booked again.
+        assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "busy");
+    }
+
+    #[test]
+    fn done_from_execution_frees_the_resource_and_delivers_the_result() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book("o-2", "c2")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        let actions = m.handle(done("c1"));
+        let AgendaAction::Deliver(result) = &actions[0] else {
+            panic!("{actions:?}")
+        };
+        assert_eq!(result.message_type, MessageType::Done);
+        assert_eq!(result.result, Some(true));
+        assert_eq!(result.conversation_id, "c1");
+        assert_eq!(result.reply_to.as_deref(), Some(INBOX));
+        assert_eq!(result.provider, Some(HolonId::resource("robot1").unwrap()));
+        assert_eq!(actions[1], AgendaAction::StateChanged);
+        assert_eq!(m.status(), Status::Free);
+        assert_eq!(m.bookings().len(), 1, "busy_booked goes to free_booked");
+        assert_eq!(m.undelivered().len(), 1);
+    }
+
+    #[test]
+    fn failed_from_execution_carries_the_reason() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        let actions = m.handle(AgendaEvent::ExecutionFinished {
+            conversation_id: "c1".into(),
+            outcome: Outcome::Failed {
+                reason: reason::CONTROLLER_DISCONNECTED.into(),
+                detail: "the connection broke".into(),
+            },
+        });
+        let AgendaAction::Deliver(result) = &actions[0] else {
+            panic!("{actions:?}")
+        };
+        assert_eq!(result.message_type, MessageType::Failed);
+        assert_eq!(result.result, Some(false));
+        assert_eq!(result.reason.as_deref(), Some("controller_disconnected"));
+        assert_eq!(result.info["detail"], "the connection broke");
+    }
+
+    #[test]
+    fn a_stale_finish_changes_nothing() {
+        let mut m = manager();
+        assert_eq!(m.handle(done("c1")), vec![]);
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        assert_eq!(m.handle(done("c9")), vec![]);
+        assert!(matches!(m.status(), Status::Busy(_)));
+    }
+
+    #[test]
+    fn unavailable_while_busy_returns_to_init_after_the_job_ends() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        m.handle(AgendaEvent::ExecutionUnavailable);
+        assert!(matches!(m.status(), Status::Busy(_)));
+        m.handle(done("c1"));
+        assert_eq!(m.status(), Status::Init);
+    }
+
+    #[test]
+    fn acknowledgement_removes_the_undelivered_result() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        m.handle(done("c1"));
+        let ack = |c: &str| AgendaEvent::ResultAcknowledged {
+            conversation_id: c.into(),
+        };
+        assert_eq!(m.handle(ack("c9")), vec![]);
+        assert_eq!(m.handle(ack("c1")), vec![AgendaAction::StateChanged]);
+        assert!(m.undelivered().is_empty());
+        assert_eq!(m.handle(ack("c1")), vec![]);
+    }
+
+    #[test]
+    fn the_agenda_has_a_capacity() {
+        let mut m = manager();
+        for i in 0..3 {
+            assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", &format!("c{i}")))));
+        }
+        assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c3"))), "agenda_full");
+        let mut proposal = book("o-2", "p");
+        proposal.message_type = MessageType::ProposalReq;
+        let actions = m.handle(AgendaEvent::Request(proposal));
+        assert_eq!(reply(&actions).reason.as_deref(), Some("agenda_full"));
+    }
+
+    #[test]
+    fn proposals_report_the_expected_wait() {
+        let mut m = manager();
+        let mut proposal = book("o-9", "p1");
+        proposal.message_type = MessageType::ProposalReq;
+        let actions = m.handle(AgendaEvent::Request(proposal.clone()));
+        let r = reply(&actions);
+        assert_eq!(r.message_type, MessageType::Proposal);
+        assert_eq!(r.result, Some(true));
+        assert_eq!(r.info["expected_wait_ms"], 0);
+        assert_eq!(r.info["state"], "free");
+        assert_eq!(actions.len(), 1, "a proposal books nothing");
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book("o-2", "c2")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        let actions = m.handle(AgendaEvent::Request(proposal.clone()));
+        assert_eq!(reply(&actions).info["expected_wait_ms"], 2000);
+        assert_eq!(reply(&actions).info["queue_position"], 2);
+        m.handle(AgendaEvent::ExecutionUnavailable);
+        let actions = m.handle(AgendaEvent::Request(proposal));
+        assert_eq!(reply(&actions).reason.as_deref(), Some("unavailable"));
+    }
+
+    #[test]
+    fn status_reports_the_snapshot() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        let actions = m.handle(AgendaEvent::Request(msg(MessageType::Status, "o-1", "s")));
+        let r = reply(&actions);
+        assert_eq!(r.info["state"], "free");
+        assert_eq!(r.info["agenda"][0]["conversation_id"], "c1");
+        assert_eq!(actions.len(), 1);
+    }
+}

@@ -1,0 +1,149 @@
+//! The services a resource offers and the steps each one takes, from its config.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use schemas::Pose;
+use serde_json::{Map, Value};
+
+/// One step of a service: send `action` to the controller, wait for one of `until`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Step {
+    /// The controller action, e.g. `pick`.
+    pub action: String,
+    /// The results that complete the step, e.g. `picking_done`.
+    pub until: Vec<String>,
+    /// The key in the Service `info` whose pose goes with the command (`POS`), if any.
+    pub position: Option<String>,
+}
+
+/// A service type: its steps and how long it usually takes (for proposals).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ServiceDefinition {
+    pub steps: Vec<Step>,
+    pub nominal_duration: Duration,
+}
+
+/// Every service type a resource offers.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ServiceCatalog {
+    services: BTreeMap<String, ServiceDefinition>,
+}
+
+impl ServiceCatalog {
+    pub fn new(services: BTreeMap<String, ServiceDefinition>) -> Self {
+        ServiceCatalog { services }
+    }
+
+    pub fn get(&self, service_type: &str) -> Option<&ServiceDefinition> {
+        self.services.get(service_type)
+    }
+
+    pub fn offers(&self, service_type: &str) -> bool {
+        self.services.contains_key(service_type)
+    }
+
+    pub fn service_types(&self) -> impl Iterator<Item = &str> {
+        self.services.keys().map(String::as_str)
+    }
+
+    /// The pose each step needs, from `info`; an error names what is missing or wrong.
+    pub fn poses(
+        &self,
+        service_type: &str,
+        info: &Map<String, Value>,
+    ) -> Result<Vec<Option<Pose>>, String> {
+        let definition = self
+            .get(service_type)
+            .ok_or_else(|| format!("service type {service_type:?} is not offered"))?;
+        definition
+            .steps
+            .iter()
+            .map(|step| {
+                let Some(key) = &step.position else {
+                    return Ok(None);
+                };
+                let value = info
+                    .get(key)
+                    .ok_or_else(|| format!("info.{key} (a pose for {}) is missing", step.action))?;
+                let pose: Pose = serde_json::from_value(value.clone()).map_err(|e| {
+                    format!("info.{key} is not a pose {{x,y,z[,a,b,c]}}: {e}")
+                })?;
+                if !pose.is_finite() {
+                    return Err(format!("info.{key} has a coordinate that is not finite"));
+                }
+                Ok(Some(pose))
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
+pub(crate) fn pick_n_place() -> ServiceCatalog {
+    let step = |action: &str, until: &str, position: &str| Step {
+        action: action.into(),
+        until: vec![until.into()],
+        position: Some(position.into()),
+    };
+    let mut services = BTreeMap::new();
+    services.insert(
+        "pick_n_place".to_string(),
+        ServiceDefinition {
+            steps: vec![
+                step("pick", "picking_done", "pick"),
+                step("place", "placing_done", "place"),
+            ],
+            nominal_duration: Duration::from_millis(1000),
+        },
+    );
+    services.insert(
+        "inspect".to_string(),
+        ServiceDefinition {
+            steps: vec![Step {
+                action: "inspect".into(),
+                until: vec!["inspect_pass".into(), "inspect_fail".into()],
+                position: None,
+            }],
+            nominal_duration: Duration::from_millis(500),
+        },
+    );
+    ServiceCatalog::new(services)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn info(v: Value) -> Map<String, Value> {
+        v.as_object().unwrap().clone()
+    }
+
+    #[test]
+    fn extracts_the_poses_of_each_step() {
+        let catalog = pick_n_place();
+        let poses = catalog
+            .poses(
+                "pick_n_place",
+                &info(json!({"pick": {"x": 1, "y": 2, "z": 3}, "place": {"x": 4, "y": 5, "z": 6, "c": 90}})),
+            )
+            .unwrap();
+        assert_eq!(poses.len(), 2);
+        assert_eq!(poses[1].unwrap().c, 90.0);
+        assert_eq!(catalog.poses("inspect", &Map::new()).unwrap(), vec![None]);
+    }
+
+    #[test]
+    fn says_what_is_wrong_with_info() {
+        let catalog = pick_n_place();
+        let err = catalog
+            .poses("pick_n_place", &info(json!({"pick": {"x": 1, "y": 2, "z": 3}})))
+            .unwrap_err();
+        assert!(err.contains("info.place"), "{err}");
+        let err = catalog
+            .poses("pick_n_place", &info(json!({"pick": {"x": "a"}, "place": {}})))
+            .unwrap_err();
+        assert!(err.contains("info.pick"), "{err}");
+        assert!(catalog.poses("weld", &Map::new()).is_err());
+    }
+}

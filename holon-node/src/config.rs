@@ -1,0 +1,413 @@
+//! The resource holon's config file (TOML). `deploy/cells/demo/robot1.toml` documents
+//! every field. Unknown fields are errors, so a typo cannot silently change behaviour.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::Duration;
+
+use holon::{Intensity, Strategy, ZenohSettings};
+use schemas::{validate_name, CellKeys, HolonId};
+use serde::Deserialize;
+
+use crate::catalog::{ServiceCatalog, ServiceDefinition, Step};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Parse { path: String, message: String },
+    #[error("{path}: {message}")]
+    Invalid { path: String, message: String },
+}
+
+/// The file as written.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConfigFile {
+    pub cell: String,
+    pub name: String,
+    #[serde(default = "default_kind")]
+    pub kind: String,
+    #[serde(default)]
+    pub zenoh: ZenohSettings,
+    pub controller: ControllerSection,
+    #[serde(default)]
+    pub supervisor: SupervisorSection,
+    #[serde(default)]
+    pub agenda: AgendaSection,
+    #[serde(default)]
+    pub delivery: DeliverySection,
+    pub services: BTreeMap<String, ServiceSection>,
+}
+
+fn default_kind() -> String {
+    "resource".into()
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ControllerSection {
+    pub address: String,
+    #[serde(default = "default_reconnect_ms")]
+    pub reconnect_interval_ms: u64,
+    #[serde(default = "default_command_timeout_ms")]
+    pub command_timeout_ms: u64,
+    #[serde(default = "default_connect_timeout_ms")]
+    pub connect_timeout_ms: u64,
+}
+
+fn default_reconnect_ms() -> u64 {
+    1000
+}
+fn default_command_timeout_ms() -> u64 {
+    30_000
+}
+fn default_connect_timeout_ms() -> u64 {
+    2000
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SupervisorSection {
+    #[serde(default)]
+    pub strategy: Strategy,
+    #[serde(default = "default_max_restarts")]
+    pub max_restarts: u32,
+    #[serde(default = "default_period_ms")]
+    pub period_ms: u64,
+}
+
+fn default_max_restarts() -> u32 {
+    5
+}
+fn default_period_ms() -> u64 {
+    10_000
+}
+
+impl Default for SupervisorSection {
+    fn default() -> Self {
+        SupervisorSection {
+            strategy: Strategy::default(),
+            max_restarts: default_max_restarts(),
+            period_ms: default_period_ms(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgendaSection {
+    #[serde(default = "default_capacity")]
+    pub capacity: usize,
+}
+
+fn default_capacity() -> usize {
+    64
+}
+
+impl Default for AgendaSection {
+    fn default() -> Self {
+        AgendaSection {
+            capacity: default_capacity(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DeliverySection {
+    #[serde(default = "default_retry_initial_ms")]
+    pub retry_initial_ms: u64,
+    #[serde(default = "default_retry_max_ms")]
+    pub retry_max_ms: u64,
+    #[serde(default = "default_attempt_timeout_ms")]
+    pub attempt_timeout_ms: u64,
+}
+
+fn default_retry_initial_ms() -> u64 {
+    200
+}
+fn default_retry_max_ms() -> u64 {
+    5000
+}
+fn default_attempt_timeout_ms() -> u64 {
+    2000
+}
+
+impl Default for DeliverySection {
+    fn default() -> Self {
+        DeliverySection {
+            retry_initial_ms: default_retry_initial_ms(),
+            retry_max_ms: default_retry_max_ms(),
+            attempt_timeout_ms: default_attempt_timeout_ms(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServiceSection {
+    #[serde(default = "default_nominal_ms")]
+    pub nominal_duration_ms: u64,
+    pub steps: Vec<StepSection>,
+}
+
+fn default_nominal_ms() -> u64 {
+    1000
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StepSection {
+    pub action: String,
+    pub until: Vec<String>,
+    #[serde(default)]
+    pub position: Option<String>,
+}
+
+/// How results are delivered to `reply_to`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DeliverySettings {
+    pub retry_initial: Duration,
+    pub retry_max: Duration,
+    pub attempt_timeout: Duration,
+}
+
+/// The validated config of one resource holon, command-line overrides applied.
+#[derive(Debug, Clone)]
+pub struct ResourceConfig {
+    pub keys: CellKeys,
+    pub holon: HolonId,
+    pub zenoh: ZenohSettings,
+    pub controller: robot_bridge::client::ClientConfig,
+    pub strategy: Strategy,
+    pub intensity: Intensity,
+    pub agenda_capacity: usize,
+    pub delivery: DeliverySettings,
+    pub catalog: Arc<ServiceCatalog>,
+    /// Declare `resource/<name>/debug/crash` (tests and demonstrations only).
+    pub allow_fault_injection: bool,
+}
+
+/// What the command line may override.
+#[derive(Debug, Clone, Default)]
+pub struct Overrides {
+    pub cell: Option<String>,
+    pub name: Option<String>,
+    pub connect: Vec<String>,
+    pub listen: Vec<String>,
+    pub controller: Option<String>,
+    pub allow_fault_injection: bool,
+}
+
+impl ResourceConfig {
+    pub fn load(path: &Path, overrides: Overrides) -> Result<ResourceConfig, ConfigError> {
+        let display = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: display.clone(),
+            source,
+        })?;
+        Self::parse(&text, &display, overrides)
+    }
+
+    pub fn parse(text: &str, path: &str, overrides: Overrides) -> Result<ResourceConfig, ConfigError> {
+        let mut file: ConfigFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_string(),
+            message: e.to_string(),
+        })?;
+        if let Some(cell) = overrides.cell {
+            file.cell = cell;
+        }
+        if let Some(name) = overrides.name {
+            file.name = name;
+        }
+        if !overrides.connect.is_empty() {
+            file.zenoh.connect = overrides.connect;
+        }
+        if !overrides.listen.is_empty() {
+            file.zenoh.listen = overrides.listen;
+        }
+        if let Some(controller) = overrides.controller {
+            file.controller.address = controller;
+        }
+        Self::validate(file, overrides.allow_fault_injection).map_err(|message| {
+            ConfigError::Invalid {
+                path: path.to_string(),
+                message,
+            }
+        })
+    }
+
+    fn validate(file: ConfigFile, allow_fault_injection: bool) -> Result<ResourceConfig, String> {
+        let keys = CellKeys::new(&file.cell).map_err(|e| format!("cell: {e}"))?;
+        if file.kind != "resource" {
+            return Err(format!(
+                "kind: {:?} is not supported by this holon-node (resource)",
+                file.kind
+            ));
+        }
+        let holon = HolonId::resource(&file.name).map_err(|e| format!("name: {e}"))?;
+        file.zenoh
+            .validate()
+            .map_err(|e| format!("zenoh: {e}"))?;
+        let c = &file.controller;
+        if c.address.trim().is_empty() || !c.address.contains(':') {
+            return Err(format!(
+                "controller.address: {:?} is not HOST:PORT",
+                c.address
+            ));
+        }
+        for (field, value) in [
+            ("controller.reconnect_interval_ms", c.reconnect_interval_ms),
+            ("controller.command_timeout_ms", c.command_timeout_ms),
+            ("controller.connect_timeout_ms", c.connect_timeout_ms),
+            ("supervisor.period_ms", file.supervisor.period_ms),
+            ("delivery.retry_initial_ms", file.delivery.retry_initial_ms),
+            ("delivery.retry_max_ms", file.delivery.retry_max_ms),
+            ("delivery.attempt_timeout_ms", file.delivery.attempt_timeout_ms),
+        ] {
+            if value == 0 {
+                return Err(format!("{field} must be greater than 0"));
+            }
+        }
+        if file.delivery.retry_max_ms < file.delivery.retry_initial_ms {
+            return Err("delivery.retry_max_ms must be at least retry_initial_ms".into());
+        }
+        if file.agenda.capacity == 0 {
+            return Err("agenda.capacity must be greater than 0".into());
+        }
+        if file.services.is_empty() {
+            return Err("services: a resource must offer at least one service type".into());
+        }
+        let mut services = BTreeMap::new();
+        for (service_type, section) in file.services {
+            validate_name("service type", &service_type)
+                .map_err(|e| format!("services.{service_type}: {e}"))?;
+            if section.steps.is_empty() {
+                return Err(format!("services.{service_type}.steps: at least one step"));
+            }
+            let mut steps = Vec::new();
+            for (i, step) in section.steps.into_iter().enumerate() {
+                let at = format!("services.{service_type}.steps[{i}]");
+                validate_name("action", &step.action).map_err(|e| format!("{at}.action: {e}"))?;
+                if step.until.is_empty() {
+                    return Err(format!("{at}.until: at least one result"));
+                }
+                for result in &step.until {
+                    validate_name("result", result).map_err(|e| format!("{at}.until: {e}"))?;
+                    if result == schemas::robot::RESULT_ERROR {
+                        return Err(format!("{at}.until: \"error\" always fails a step"));
+                    }
+                }
+                if let Some(position) = &step.position {
+                    validate_name("position", position)
+                        .map_err(|e| format!("{at}.position: {e}"))?;
+                }
+                steps.push(Step {
+                    action: step.action,
+                    until: step.until,
+                    position: step.position,
+                });
+            }
+            services.insert(
+                service_type,
+                ServiceDefinition {
+                    steps,
+                    nominal_duration: Duration::from_millis(section.nominal_duration_ms),
+                },
+            );
+        }
+        Ok(ResourceConfig {
+            keys,
+            holon,
+            zenoh: file.zenoh,
+            controller: robot_bridge::client::ClientConfig {
+                address: c.address.clone(),
+                reconnect_interval: Duration::from_millis(c.reconnect_interval_ms),
+                command_timeout: Duration::from_millis(c.command_timeout_ms),
+                connect_timeout: Duration::from_millis(c.connect_timeout_ms),
+            },
+            strategy: file.supervisor.strategy,
+            intensity: Intensity {
+                max_restarts: file.supervisor.max_restarts,
+                period: Duration::from_millis(file.supervisor.period_ms),
+            },
+            agenda_capacity: file.agenda.capacity,
+            delivery: DeliverySettings {
+                retry_initial: Duration::from_millis(file.delivery.retry_initial_ms),
+                retry_max: Duration::from_millis(file.delivery.retry_max_ms),
+                attempt_timeout: Duration::from_millis(file.delivery.attempt_timeout_ms),
+            },
+            catalog: Arc::new(ServiceCatalog::new(services)),
+            allow_fault_injection,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const DEMO: &str = include_str!("../../deploy/cells/demo/robot1.toml");
+
+    #[test]
+    fn the_demo_config_loads() {
+        let config = ResourceConfig::parse(DEMO, "robot1.toml", Overrides::default()).unwrap();
+        assert_eq!(config.holon.to_string(), "resource/robot1");
+        assert_eq!(config.keys.cell(), "demo");
+        let pnp = config.catalog.get("pick_n_place").unwrap();
+        assert_eq!(pnp.steps.len(), 2);
+        assert_eq!(pnp.steps[0].action, "pick");
+        assert_eq!(pnp.steps[0].until, vec!["picking_done".to_string()]);
+        assert!(!config.zenoh.multicast_scouting);
+    }
+
+    #[test]
+    fn the_command_line_overrides_the_file() {
+        let overrides = Overrides {
+            cell: Some("line2".into()),
+            name: Some("robot7".into()),
+            connect: vec!["tcp/127.0.0.1:9000".into()],
+            controller: Some("127.0.0.1:9100".into()),
+            ..Overrides::default()
+        };
+        let config = ResourceConfig::parse(DEMO, "robot1.toml", overrides).unwrap();
+        assert_eq!(config.holon.to_string(), "resource/robot7");
+        assert_eq!(config.keys.cell(), "line2");
+        assert_eq!(config.zenoh.connect, vec!["tcp/127.0.0.1:9000".to_string()]);
+        assert_eq!(config.controller.address, "127.0.0.1:9100");
+    }
+
+    #[test]
+    fn bad_configs_say_what_is_wrong() {
+        let cases = [
+            ("name = \"robot1\"", "name = \"Robot 1\"", "name"),
+            ("cell = \"demo\"", "cell = \"\"", "cell"),
+            ("strategy = \"one_for_one\"", "strategy = \"one_for_some\"", "strategy"),
+            ("capacity = 64", "capacity = 0", "agenda.capacity"),
+            ("command_timeout_ms = 30000", "command_timeout_ms = 0", "command_timeout_ms"),
+            ("until = [\"picking_done\"]", "until = []", "until"),
+            ("until = [\"picking_done\"]", "until = [\"error\"]", "error"),
+            ("action = \"pick\"", "action = \"\"", "action"),
+            ("[agenda]", "[agenda]\ncolour = \"red\"", "colour"),
+            ("address = \"127.0.0.1:7601\"", "address = \"nowhere\"", "controller.address"),
+        ];
+        for (from, to, expect) in cases {
+            assert!(DEMO.contains(from), "the demo config lacks {from:?}");
+            let text = DEMO.replacen(from, to, 1);
+            let err = ResourceConfig::parse(&text, "robot1.toml", Overrides::default())
+                .expect_err(to)
+                .to_string();
+            assert!(err.contains(expect), "{to}: {err}");
+        }
+        let err = ResourceConfig::load(Path::new("/nonexistent.toml"), Overrides::default())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("/nonexistent.toml"), "{err}");
+    }
+}

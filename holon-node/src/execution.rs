@@ -1,0 +1,546 @@
+//! The Execution component: the seed's Figure 5 as a pure state machine.
+//!
+//! `init` until the controller reports `ready`; then `ready -> step 1 -> ... -> ready`,
+//! the steps of each service type coming from the holon's config (pick_n_place: `pick`
+//! until `picking_done`, then `place` until `placing_done`). Each step sends one command
+//! through the Interfacing component and waits for one of its results.
+//!
+//! A step fails, and so the job, when the controller answers `error`
+//! (`controller_error`), answers a result the step does not expect
+//! (`unexpected_result`), does not answer in time (`controller_timeout`), drops the
+//! connection (`controller_disconnected`), breaks the protocol
+//! (`controller_protocol_error`) or reports `fault` / `estop` (`controller_fault`). A
+//! failed step is never retried here: the order decides (the step may have moved the part).
+
+use std::sync::Arc;
+
+use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
+use schemas::{reason, RobotCommand};
+use serde_json::{Map, Value};
+
+use crate::agenda::{Job, Outcome};
+use crate::catalog::ServiceCatalog;
+
+/// What the execution component reacts to.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExecutionEvent {
+    /// From the agenda manager: execute this job.
+    Start(Job),
+    /// From the interfacing component.
+    Controller(ControllerEvent),
+}
+
+/// What the task around the execution FSM must do.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExecutionAction {
+    /// Send this command to the controller.
+    Command(RobotCommand),
+    /// Tell the agenda manager: ready to execute.
+    Ready,
+    /// Tell the agenda manager: cannot execute (controller away, fault or estop).
+    Unavailable,
+    /// Tell the agenda manager how the job ended.
+    Finished {
+        conversation_id: String,
+        outcome: Outcome,
+    },
+    /// The state changed (a step began or ended): publish a snapshot.
+    StateChanged,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExecutionState {
+    /// Waiting for the controller to be connected and ready.
+    Init,
+    Ready,
+    /// Executing `job`: step `step` is waiting for the reply to `command_id`.
+    Running {
+        job: Job,
+        step: usize,
+        command_id: u64,
+        results: Map<String, Value>,
+    },
+}
+
+#[derive(Debug, Clone)]
+pub struct Execution {
+    catalog: Arc<ServiceCatalog>,
+    state: ExecutionState,
+    controller: ControllerStatus,
+    next_command_id: u64,
+}
+
+impl Execution {
+    pub fn new(catalog: Arc<ServiceCatalog>) -> Self {
+        Execution {
+            catalog,
+            state: ExecutionState::Init,
+            controller: ControllerStatus::Disconnected,
+            next_command_id: 1,
+        }
+    }
+
+    pub fn state(&self) -> &ExecutionState {
+        &self.state
+    }
+
+    pub fn controller(&self) -> ControllerStatus {
+        self.controller
+    }
+
+    /// The action of the step in progress, e.g. `pick`.
+    pub fn current_step(&self) -> Option<String> {
+        match &self.state {
+            ExecutionState::Running { job, step, .. } => self
+                .catalog
+                .get(&job.service_type)
+                .and_then(|d| d.steps.get(*step))
+                .map(|s| s.action.clone()),
+            _ => None,
+        }
+    }
+
+    pub fn handle(&mut self, event: ExecutionEvent) -> Vec<ExecutionAction> {
+        match event {
+            ExecutionEvent::Start(job) => self.start(job),
+            ExecutionEvent::Controller(ControllerEvent::Status(status)) => self.status(status),
+            ExecutionEvent::Controller(ControllerEvent::Reply {
+                id,
+                result,
+                message,
+            }) => self.reply(id, result, message),
+            ExecutionEvent::Controller(ControllerEvent::CommandFailed { id, failure }) => {
+                if !self.is_waiting_for(id) {
+                    return vec![];
+                }
+                let why = match failure {
+                    CommandFailure::Timeout(_) => reason::CONTROLLER_TIMEOUT,
+                    CommandFailure::Disconnected | CommandFailure::NotConnected => {
+                        reason::CONTROLLER_DISCONNECTED
+                    }
+                    CommandFailure::Protocol(_) => reason::CONTROLLER_PROTOCOL,
+                };
+                self.fail(why, failure.to_string())
+            }
+        }
+    }
+
+    fn is_waiting_for(&self, id: u64) -> bool {
+        matches!(&self.state, ExecutionState::Running { command_id, .. } if *command_id == id)
+    }
+
+    fn idle_state(&self) -> ExecutionState {
+        if self.controller.is_ready() {
+            ExecutionState::Ready
+        } else {
+            ExecutionState::Init
+        }
+    }
+
+    fn start(&mut self, job: Job) -> Vec<ExecutionAction> {
+        if !matches!(self.state, ExecutionState::Ready) {
+            // The agenda manager only starts a ready execution; a race with a controller
+            // status change ends here.
+            let (why, detail) = match self.state {
+                ExecutionState::Running { .. } => (reason::BUSY, "another job is running"),
+                _ => (reason::UNAVAILABLE, "the controller is not ready"),
+            };
+            return vec![ExecutionAction::Finished {
+                conversation_id: job.conversation_id,
+                outcome: Outcome::Failed {
+                    reason: why.into(),
+                    detail: detail.into(),
+                },
+            }];
+        }
+        self.state = ExecutionState::Running {
+            job,
+            step: 0,
+            command_id: 0,
+            results: Map::new(),
+        };
+        self.send_step()
+    }
+
+    /// Sends the command of the current step (or fails the job if it cannot be built).
+    fn send_step(&mut self) -> Vec<ExecutionAction> {
+        let ExecutionState::Running {
+            job,
+            step,
+            command_id,
+            ..
+        } = &mut self.state
+        else {
+            return vec![];
+        };
+        let definition = self.catalog.get(&job.service_type);
+        let poses = self.catalog.poses(&job.service_type, &job.info);
+        let (Some(definition), Ok(poses)) = (definition, poses) else {
+            return self.fail(reason::INVALID_INFO, "the job's info does not fit its steps".into());
+        };
+        let Some(current) = definition.steps.get(*step) else {
+            return self.fail(reason::INVALID_INFO, "the service has no such step".into());
+        };
+        *command_id = self.next_command_id;
+        self.next_command_id += 1;
+        vec![
+            ExecutionAction::Command(RobotCommand {
+                id: *command_id,
+                action: current.action.clone(),
+                pos: poses[*step],
+            }),
+            ExecutionAction::StateChanged,
+        ]
+    }
+
+    fn reply(&mut self, id: u64, result: String, message: Option<String>) -> Vec<ExecutionAction> {
+        if !self.is_waiting_for(id) {
+            // A late reply to a command whose step already failed: ignored.
+            return vec![];
+        }
+        let ExecutionState::Running {
+            job, step, results, ..
+        } = &mut self.state
+        else {
+            return vec![];
+        };
+        let Some(current) = self
+            .catalog
+            .get(&job.service_type)
+            .and_then(|d| d.steps.get(*step))
+            .cloned()
+        else {
+            return self.fail(reason::INVALID_INFO, "the service has no such step".into());
+        };
+        if result == schemas::robot::RESULT_ERROR {
+            let detail = format!(
+                "{} failed: {}",
+                current.action,
+                message.unwrap_or_else(|| "no message".into())
+            );
+            return self.fail(reason::CONTROLLER_ERROR, detail);
+        }
+        if !current.until.contains(&result) {
+            let detail = format!(
+                "{} answered {result:?}, expected {}",
+                current.action,
+                current.until.join(" or ")
+            );
+            return self.fail(reason::UNEXPECTED_RESULT, detail);
+        }
+        results.insert(current.action.clone(), Value::String(result));
+        *step += 1;
+        let steps = self
+            .catalog
+            .get(&job.service_type)
+            .map_or(0, |d| d.steps.len());
+        if *step < steps {
+            return self.send_step();
+        }
+        let ExecutionState::Running { job, results, .. } =
+            std::mem::replace(&mut self.state, ExecutionState::Init)
+        else {
+            unreachable!("checked above");
+        };
+        self.state = self.idle_state();
+        vec![ExecutionAction::Finished {
+            conversation_id: job.conversation_id,
+            outcome: Outcome::Done { results },
+        }]
+    }
+
+    fn fail(&mut self, why: &str, detail: String) -> Vec<ExecutionAction> {
+        let previous = std::mem::replace(&mut self.state, ExecutionState::Init);
+        self.state = self.idle_state();
+        let mut actions = Vec::new();
+        if let ExecutionState::Running { job, .. } = previous {
+            actions.push(ExecutionAction::Finished {
+                conversation_id: job.conversation_id,
+                outcome: Outcome::Failed {
+                    reason: why.into(),
+                    detail,
+                },
+            });
+        }
+        actions
+    }
+
+    fn status(&mut self, status: ControllerStatus) -> Vec<ExecutionAction> {
+        let was_ready = self.controller.is_ready();
+        self.controller = status;
+        let mut actions = Vec::new();
+        if !status.is_ready() && matches!(self.state, ExecutionState::Running { .. }) {
+            let (why, detail) = match status {
+                ControllerStatus::Disconnected => (
+                    reason::CONTROLLER_DISCONNECTED,
+                    "the connection to the controller broke".to_string(),
+                ),
+                ControllerStatus::Connected(state) => (
+                    reason::CONTROLLER_FAULT,
+                    format!("the controller reported {state}"),
+                ),
+            };
+            actions.extend(self.fail(why, detail));
+        }
+        match (&self.state, status.is_ready()) {
+            (ExecutionState::Init, true) => {
+                self.state = ExecutionState::Ready;
+                actions.push(ExecutionAction::Ready);
+            }
+            (ExecutionState::Ready, false) => {
+                self.state = ExecutionState::Init;
+                actions.push(ExecutionAction::Unavailable);
+            }
+            (ExecutionState::Init, false) if was_ready => {
+                actions.push(ExecutionAction::Unavailable);
+            }
+            _ => {}
+        }
+        if actions.is_empty() {
+            actions.push(ExecutionAction::StateChanged);
+        }
+        actions
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::catalog::pick_n_place;
+    use schemas::{ControllerState, HolonId, Pose};
+    use serde_json::json;
+
+    fn job(service_type: &str) -> Job {
+        Job {
+            requester: HolonId::order("o-1").unwrap(),
+            conversation_id: "c1".into(),
+            service_type: service_type.into(),
+            reply_to: "holarchy/t/order/o-1/inbox".into(),
+            info: json!({"pick": {"x": 1, "y": 2, "z": 3}, "place": {"x": 4, "y": 5, "z": 6}})
+                .as_object()
+                .unwrap()
+                .clone(),
+        }
+    }
+
+    fn ready() -> ExecutionEvent {
+        ExecutionEvent::Controller(ControllerEvent::Status(ControllerStatus::Connected(
+            ControllerState::Ready,
+        )))
+    }
+
+    fn status(s: ControllerStatus) -> ExecutionEvent {
+        ExecutionEvent::Controller(ControllerEvent::Status(s))
+    }
+
+    fn reply(id: u64, result: &str) -> ExecutionEvent {
+        ExecutionEvent::Controller(ControllerEvent::Reply {
+            id,
+            result: result.into(),
+            message: None,
+        })
+    }
+
+    fn ready_execution() -> Execution {
+        let mut e = Execution::new(Arc::new(pick_n_place()));
+        assert_eq!(e.handle(ready()), vec![ExecutionAction::Ready]);
+        e
+    }
+
+    fn command(actions: &[ExecutionAction]) -> RobotCommand {
+        match actions.first() {
+            Some(ExecutionAction::Command(c)) => c.clone(),
+            other => panic!("expected a command, got {other:?}"),
+        }
+    }
+
+    fn failed_with(actions: &[ExecutionAction], why: &str) {
+        match actions.first() {
+            Some(ExecutionAction::Finished {
+                outcome: Outcome::Failed { reason, .. },
+                ..
+            }) => assert_eq!(reason, why),
+            other => panic!("expected failed {why}, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn init_to_ready_when_the_controller_is_ready() {
+        let mut e = Execution::new(Arc::new(pick_n_place()));
+        assert_eq!(e.state(), &ExecutionState::Init);
+        assert_eq!(
+            e.handle(status(ControllerStatus::Disconnected)),
+            vec![ExecutionAction::StateChanged]
+        );
+        assert_eq!(
+            e.handle(status(ControllerStatus::Connected(ControllerState::Fault))),
+            vec![ExecutionAction::StateChanged]
+        );
+        assert_eq!(e.handle(ready()), vec![ExecutionAction::Ready]);
+        assert_eq!(e.state(), &ExecutionState::Ready);
+    }
+
+    #[test]
+    fn pick_n_place_runs_picking_then_placing_then_ready() {
+        let mut e = ready_execution();
+        let actions = e.handle(ExecutionEvent::Start(job("pick_n_place")));
+        let pick = command(&actions);
+        assert_eq!(pick.action, "pick");
+        assert_eq!(
+            pick.pos,
+            Some(Pose {
+                x: 1.0,
+                y: 2.0,
+                z: 3.0,
+                ..Pose::default()
+            })
+        );
+        assert_eq!(actions[1], ExecutionAction::StateChanged);
+        assert_eq!(e.current_step().as_deref(), Some("pick"));
+        let place = command(&e.handle(reply(pick.id, "picking_done")));
+        assert_eq!(place.action, "place");
+        assert_eq!(place.pos.unwrap().x, 4.0);
+        assert_ne!(place.id, pick.id);
+        assert_eq!(e.current_step().as_deref(), Some("place"));
+        let actions = e.handle(reply(place.id, "placing_done"));
+        assert_eq!(
+            actions,
+            vec![ExecutionAction::Finished {
+                conversation_id: "c1".into(),
+                outcome: Outcome::Done {
+                    results: json!({"pick": "picking_done", "place": "placing_done"})
+                        .as_object()
+                        .unwrap()
+                        .clone()
+                }
+            }]
+        );
+        assert_eq!(e.state(), &ExecutionState::Ready);
+    }
+
+    #[test]
+    fn a_step_may_end_with_any_of_its_results() {
+        let mut e = ready_execution();
+        let inspect = command(&e.handle(ExecutionEvent::Start(job("inspect"))));
+        assert_eq!(inspect.pos, None);
+        let actions = e.handle(reply(inspect.id, "inspect_fail"));
+        assert!(matches!(
+            &actions[0],
+            ExecutionAction::Finished { outcome: Outcome::Done { results }, .. } if results["inspect"] == "inspect_fail"
+        ));
+    }
+
+    #[test]
+    fn an_error_result_fails_the_job() {
+        let mut e = ready_execution();
+        let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+        let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::Reply {
+            id: pick.id,
+            result: "error".into(),
+            message: Some("gripper empty".into()),
+        }));
+        failed_with(&actions, "controller_error");
+        assert!(matches!(&actions[0], ExecutionAction::Finished { outcome: Outcome::Failed { detail, .. }, .. } if detail.contains("gripper empty")));
+        assert_eq!(e.state(), &ExecutionState::Ready);
+    }
+
+    #[test]
+    fn an_unexpected_result_fails_the_job() {
+        let mut e = ready_execution();
+        let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+        failed_with(&e.handle(reply(pick.id, "placing_done")), "unexpected_result");
+    }
+
+    #[test]
+    fn command_failures_fail_the_job_with_their_reason() {
+        let cases = [
+            (
+                CommandFailure::Timeout(std::time::Duration::from_secs(1)),
+                "controller_timeout",
+            ),
+            (CommandFailure::Disconnected, "controller_disconnected"),
+            (CommandFailure::NotConnected, "controller_disconnected"),
+            (CommandFailure::Protocol("x".into()), "controller_protocol_error"),
+        ];
+        for (failure, why) in cases {
+            let mut e = ready_execution();
+            let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+            let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::CommandFailed {
+                id: pick.id,
+                failure,
+            }));
+            failed_with(&actions, why);
+        }
+    }
+
+    #[test]
+    fn losing_the_controller_mid_step_fails_the_job_and_goes_to_init() {
+        let mut e = ready_execution();
+        let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+        let actions = e.handle(status(ControllerStatus::Disconnected));
+        failed_with(&actions, "controller_disconnected");
+        assert_eq!(actions[1], ExecutionAction::Unavailable);
+        assert_eq!(e.state(), &ExecutionState::Init);
+        // The command's own failure, arriving after, changes nothing.
+        assert_eq!(
+            e.handle(ExecutionEvent::Controller(ControllerEvent::CommandFailed {
+                id: pick.id,
+                failure: CommandFailure::Disconnected
+            })),
+            vec![]
+        );
+        assert_eq!(e.handle(ready()), vec![ExecutionAction::Ready]);
+    }
+
+    #[test]
+    fn a_fault_or_estop_mid_step_fails_the_job() {
+        for state in [ControllerState::Fault, ControllerState::Estop] {
+            let mut e = ready_execution();
+            e.handle(ExecutionEvent::Start(job("pick_n_place")));
+            let actions = e.handle(status(ControllerStatus::Connected(state)));
+            failed_with(&actions, "controller_fault");
+            assert_eq!(actions[1], ExecutionAction::Unavailable);
+        }
+    }
+
+    #[test]
+    fn a_fault_while_ready_makes_it_unavailable() {
+        let mut e = ready_execution();
+        assert_eq!(
+            e.handle(status(ControllerStatus::Connected(ControllerState::Estop))),
+            vec![ExecutionAction::Unavailable]
+        );
+        let actions = e.handle(ExecutionEvent::Start(job("pick_n_place")));
+        failed_with(&actions, "unavailable");
+    }
+
+    #[test]
+    fn start_while_running_is_refused_without_disturbing_the_job() {
+        let mut e = ready_execution();
+        let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+        let mut other = job("pick_n_place");
+        other.conversation_id = "c2".into();
+        let actions = e.handle(ExecutionEvent::Start(other));
+        assert!(matches!(&actions[0], ExecutionAction::Finished { conversation_id, .. } if conversation_id == "c2"));
+        failed_with(&actions, "busy");
+        assert_eq!(command(&e.handle(reply(pick.id, "picking_done"))).action, "place");
+    }
+
+    #[test]
+    fn stale_and_unknown_replies_are_ignored() {
+        let mut e = ready_execution();
+        assert_eq!(e.handle(reply(99, "picking_done")), vec![]);
+        let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+        assert_eq!(e.handle(reply(pick.id + 100, "picking_done")), vec![]);
+        assert_eq!(e.current_step().as_deref(), Some("pick"));
+    }
+
+    #[test]
+    fn a_job_whose_info_does_not_fit_fails_without_a_command() {
+        let mut e = ready_execution();
+        let mut bad = job("pick_n_place");
+        bad.info.remove("place");
+        failed_with(&e.handle(ExecutionEvent::Start(bad)), "invalid_info");
+        assert_eq!(e.state(), &ExecutionState::Ready);
+    }
+}
