@@ -202,11 +202,6 @@ impl AgendaManager {
         let refuse = |why: &str| vec![AgendaAction::Reply(request.refused(&self.holon, why))];
         let offered = self.catalog.offers(&request.service_type);
         match request.message_type {
-            MessageType::Status => {
-                let mut reply = request.accepted(&self.holon);
-                reply.info = self.snapshot_info();
-                vec![AgendaAction::Reply(reply)]
-            }
             MessageType::ProposalReq => {
                 let mut reply = request.accepted(&self.holon);
                 reply.message_type = MessageType::Proposal;
@@ -264,8 +259,12 @@ impl AgendaManager {
                 None => refuse(reason::NOT_BOOKED),
             },
             MessageType::Start => self.start(request),
-            MessageType::Proposal | MessageType::Done | MessageType::Failed => {
-                // The communication component rejects these before they get here.
+            MessageType::Proposal
+            | MessageType::Done
+            | MessageType::Failed
+            | MessageType::Status => {
+                // Not agenda requests: the communication component answers `status`
+                // itself (a read of the state) and rejects the others.
                 refuse(reason::UNKNOWN_SERVICE)
             }
         }
@@ -404,13 +403,6 @@ impl AgendaManager {
         info.insert("expected_wait_ms".into(), json!(ahead));
         info.insert("duration_ms".into(), json!(nominal(service_type)));
         info
-    }
-
-    fn snapshot_info(&self) -> Map<String, Value> {
-        match serde_json::to_value(self.snapshot("unknown", None)) {
-            Ok(Value::Object(map)) => map,
-            _ => Map::new(),
-        }
     }
 
     /// The state snapshot published on `resource/<name>/state`.
@@ -831,16 +823,5 @@ mod tests {
         m.handle(AgendaEvent::ExecutionUnavailable);
         let actions = m.handle(AgendaEvent::Request(proposal));
         assert_eq!(reply(&actions).reason.as_deref(), Some("unavailable"));
-    }
-
-    #[test]
-    fn status_reports_the_snapshot() {
-        let mut m = manager();
-        m.handle(AgendaEvent::Request(book("o-1", "c1")));
-        let actions = m.handle(AgendaEvent::Request(msg(MessageType::Status, "o-1", "s")));
-        let r = reply(&actions);
-        assert_eq!(r.info["state"], "free");
-        assert_eq!(r.info["agenda"][0]["conversation_id"], "c1");
-        assert_eq!(actions.len(), 1);
     }
 }

@@ -8,3 +8,5 @@ pub mod agenda;
 pub mod catalog;
 pub mod config;
 pub mod execution;
+pub mod communication;
+pub mod node;

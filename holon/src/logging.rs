@@ -7,6 +7,7 @@
 //! `RUST_LOG` (default `info`).
 
 use std::fs::OpenOptions;
+use std::io::IsTerminal;
 use std::path::Path;
 use std::str::FromStr;
 use std::sync::Mutex;
@@ -53,6 +54,7 @@ pub fn init(format: LogFormat, file: Option<&Path>) -> Result<(), LoggingError> 
     let terminal: BoxedLayer = match format {
         LogFormat::Text => tracing_subscriber::fmt::layer()
             .with_writer(std::io::stderr)
+            .with_ansi(std::io::stderr().is_terminal())
             .with_target(false)
             .boxed(),
         LogFormat::Json => tracing_subscriber::fmt::layer()

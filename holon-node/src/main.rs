@@ -1,0 +1,95 @@
+//! `holon-node`: runs one resource holon as its own process.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::Parser;
+use holon::LogFormat;
+use holon_node::config::{Overrides, ResourceConfig};
+
+/// Runs one resource holon (a robot, an inspection station, a conveyor): it takes
+/// Service requests over zenoh and drives its controller over TCP/XML.
+///
+/// The holon is ready when its liveliness token holarchy/<cell>/alive/resource/<name>
+/// appears. SIGTERM or Ctrl-C stops it cleanly (token withdrawn, components stopped in
+/// reverse order, controller connection closed) with exit code 0. It exits 1 when its
+/// config is invalid or its components fail more often than the restart intensity allows.
+#[derive(Debug, Parser)]
+#[command(name = "holon-node", version)]
+struct Args {
+    /// The holon's config file (TOML); deploy/cells/demo/robot1.toml documents every field.
+    #[arg(long, value_name = "FILE")]
+    config: PathBuf,
+    /// The cell, overriding `cell` in the config.
+    #[arg(long, value_name = "C")]
+    cell: Option<String>,
+    /// The holon's name, overriding `name` in the config.
+    #[arg(long, value_name = "N")]
+    name: Option<String>,
+    /// A zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; replaces
+    /// zenoh.connect in the config).
+    #[arg(long, value_name = "ENDPOINT")]
+    connect: Vec<String>,
+    /// A zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7448 (repeatable; replaces
+    /// zenoh.listen in the config).
+    #[arg(long, value_name = "ENDPOINT")]
+    listen: Vec<String>,
+    /// The robot controller's HOST:PORT, overriding controller.address in the config.
+    #[arg(long, value_name = "HOST:PORT")]
+    controller: Option<String>,
+    /// Terminal log format: text (human-readable) or json (one object per line).
+    #[arg(long, default_value = "text", value_name = "text|json")]
+    log_format: LogFormat,
+    /// Also append JSON log lines to this file.
+    #[arg(long, value_name = "PATH")]
+    log_file: Option<PathBuf>,
+    /// Declare holarchy/<cell>/resource/<name>/debug/crash, which makes a component
+    /// panic on request (for tests and demonstrations of supervision; never in production).
+    #[arg(long)]
+    allow_fault_injection: bool,
+    /// Check the config and exit without starting.
+    #[arg(long)]
+    check: bool,
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    if let Err(e) = holon::logging::init(args.log_format, args.log_file.as_deref()) {
+        eprintln!("holon-node: {e}");
+        return ExitCode::FAILURE;
+    }
+    match run(args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!(error = format!("{e:#}"), "holon-node failed");
+            eprintln!("holon-node: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(args: Args) -> anyhow::Result<()> {
+    let overrides = Overrides {
+        cell: args.cell,
+        name: args.name,
+        connect: args.connect,
+        listen: args.listen,
+        controller: args.controller,
+        allow_fault_injection: args.allow_fault_injection,
+    };
+    let config = ResourceConfig::load(&args.config, overrides)?;
+    if args.check {
+        println!("{}: ok ({})", args.config.display(), config.holon);
+        return Ok(());
+    }
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the tokio runtime")?;
+    runtime.block_on(async {
+        let shutdown = holon::shutdown_on_signals();
+        holon_node::node::run(config, shutdown).await
+    })?;
+    Ok(())
+}

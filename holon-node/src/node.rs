@@ -1,0 +1,386 @@
+//! The resource holon process: four components under one supervisor.
+//!
+//! Start order: interfacing, execution, agenda manager, communication (stop order is the
+//! reverse, so the holon stops taking requests first and closes the controller
+//! connection last). The components talk through mailboxes that outlive them, and the
+//! FSM states (agenda, execution) live beside the supervisor, so restarting a component
+//! loses neither the agenda nor a message in flight.
+
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+
+use holon::{ChildError, ChildSpec, Supervisor};
+use robot_bridge::client::{self, ControllerEvent};
+use schemas::{ResourceSnapshot, RobotCommand, Service};
+use tokio::sync::{mpsc, oneshot, Notify};
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, error, info};
+
+use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager};
+use crate::config::ResourceConfig;
+use crate::execution::{Execution, ExecutionAction, ExecutionEvent};
+
+/// How long a holon waits for zenoh to open and for its components to come up.
+pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
+
+const MAILBOX: usize = 256;
+
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    #[error(transparent)]
+    Session(#[from] holon::session::SessionError),
+    #[error("zenoh: {0}")]
+    Zenoh(String),
+    #[error("the components did not come up within {0:?}")]
+    Startup(Duration),
+    #[error(transparent)]
+    Supervisor(#[from] holon::supervisor::SupervisorError),
+}
+
+/// A message to the agenda manager.
+#[derive(Debug)]
+pub enum AgendaMessage {
+    /// A request from another holon; the reply goes back on `reply`.
+    Request {
+        service: Service,
+        reply: oneshot::Sender<Service>,
+    },
+    /// An event from the execution or communication component.
+    Event(AgendaEvent),
+}
+
+/// A message to the communication component.
+#[derive(Debug)]
+pub enum CommunicationMessage {
+    /// Deliver this result to its `reply_to` until acknowledged.
+    Deliver(Service),
+    /// Publish a state snapshot.
+    StateChanged,
+}
+
+/// A mailbox: the sender is cloned freely; the receiver is held by the running
+/// component and taken over by its successor after a restart.
+pub struct Mailbox<T> {
+    pub sender: mpsc::Sender<T>,
+    receiver: Arc<tokio::sync::Mutex<mpsc::Receiver<T>>>,
+}
+
+impl<T> Mailbox<T> {
+    fn new() -> Self {
+        let (sender, receiver) = mpsc::channel(MAILBOX);
+        Mailbox {
+            sender,
+            receiver: Arc::new(tokio::sync::Mutex::new(receiver)),
+        }
+    }
+
+    pub async fn take(&self) -> tokio::sync::OwnedMutexGuard<mpsc::Receiver<T>> {
+        self.receiver.clone().lock_owned().await
+    }
+}
+
+/// Fault injection: makes a component panic, as `exit(Pid, kill)` would in Erlang.
+/// Reachable only through `debug/crash`, declared with `--allow-fault-injection`.
+#[derive(Default)]
+pub struct Faults {
+    pub interfacing: Notify,
+    pub execution: Notify,
+    pub agenda: Notify,
+    pub communication: Notify,
+}
+
+impl Faults {
+    pub fn get(&self, component: &str) -> Option<&Notify> {
+        match component {
+            "interfacing" => Some(&self.interfacing),
+            "execution" => Some(&self.execution),
+            "agenda" => Some(&self.agenda),
+            "communication" => Some(&self.communication),
+            _ => None,
+        }
+    }
+}
+
+/// Everything the components share; it outlives their restarts.
+pub struct Node {
+    pub config: ResourceConfig,
+    pub session: zenoh::Session,
+    agenda: Mutex<AgendaManager>,
+    execution: Mutex<Execution>,
+    pub agenda_mail: Mailbox<AgendaMessage>,
+    pub execution_mail: Mailbox<ExecutionEvent>,
+    pub controller_mail: Mailbox<ControllerEvent>,
+    pub command_mail: Mailbox<RobotCommand>,
+    pub communication_mail: Mailbox<CommunicationMessage>,
+    pub faults: Faults,
+    /// Notified each time the communication component has declared its queryables.
+    pub serving: Notify,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    // A component that panicked while holding the lock left a complete state behind:
+    // the FSMs change their state only in `handle`, which does no I/O and cannot await.
+    mutex.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl Node {
+    pub fn new(config: ResourceConfig, session: zenoh::Session) -> Node {
+        let agenda = AgendaManager::new(
+            config.holon.clone(),
+            config.catalog.clone(),
+            config.agenda_capacity,
+        );
+        let execution = Execution::new(config.catalog.clone());
+        Node {
+            config,
+            session,
+            agenda: Mutex::new(agenda),
+            execution: Mutex::new(execution),
+            agenda_mail: Mailbox::new(),
+            execution_mail: Mailbox::new(),
+            controller_mail: Mailbox::new(),
+            command_mail: Mailbox::new(),
+            communication_mail: Mailbox::new(),
+            faults: Faults::default(),
+            serving: Notify::new(),
+        }
+    }
+
+    /// The snapshot published on `resource/<name>/state`.
+    pub fn snapshot(&self) -> ResourceSnapshot {
+        let (controller, step) = {
+            let execution = lock(&self.execution);
+            (execution.controller().as_str(), execution.current_step())
+        };
+        lock(&self.agenda).snapshot(controller, step)
+    }
+
+    /// Results not yet acknowledged (for a restarted communication component).
+    pub fn undelivered(&self) -> Vec<Service> {
+        lock(&self.agenda).undelivered().to_vec()
+    }
+
+    async fn state_changed(&self) {
+        let _ = self
+            .communication_mail
+            .sender
+            .send(CommunicationMessage::StateChanged)
+            .await;
+    }
+}
+
+/// The interfacing component: robot-bridge's controller client.
+async fn interfacing(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildError> {
+    let mut commands = node.command_mail.take().await;
+    tokio::select! {
+        _ = client::run(node.config.controller.clone(), &mut commands, node.controller_mail.sender.clone(), token.clone()) => {
+            if token.is_cancelled() { Ok(()) } else { Err("the controller client stopped".into()) }
+        }
+        _ = node.faults.interfacing.notified() => panic!("fault injection: interfacing crashed"),
+    }
+}
+
+/// The execution component: runs the execution FSM.
+async fn execution(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildError> {
+    let holon = node.config.holon.to_string();
+    let mut starts = node.execution_mail.take().await;
+    let mut controller = node.controller_mail.take().await;
+    loop {
+        let event = tokio::select! {
+            _ = token.cancelled() => return Ok(()),
+            _ = node.faults.execution.notified() => panic!("fault injection: execution crashed"),
+            event = starts.recv() => event.ok_or("execution mailbox closed")?,
+            event = controller.recv() => ExecutionEvent::Controller(event.ok_or("controller mailbox closed")?),
+        };
+        let (before, actions, after) = {
+            let mut execution = lock(&node.execution);
+            let before = format!("{:?}", state_name(execution.state()));
+            let actions = execution.handle(event.clone());
+            (before, actions, state_name(execution.state()))
+        };
+        debug!(%holon, component = "execution", event = ?event, "event");
+        if before != format!("{after:?}") {
+            info!(%holon, component = "execution", from = %before.trim_matches('"'), to = %after, "transition");
+        }
+        for action in actions {
+            match action {
+                ExecutionAction::Command(command) => {
+                    info!(%holon, component = "execution", command_id = command.id, action = %command.action, "command to controller");
+                    node.command_mail
+                        .sender
+                        .send(command)
+                        .await
+                        .map_err(|_| "command mailbox closed")?;
+                }
+                ExecutionAction::Ready => {
+                    send_agenda(&node, AgendaEvent::ExecutionReady).await?
+                }
+                ExecutionAction::Unavailable => {
+                    send_agenda(&node, AgendaEvent::ExecutionUnavailable).await?
+                }
+                ExecutionAction::Finished {
+                    conversation_id,
+                    outcome,
+                } => {
+                    info!(%holon, component = "execution", %conversation_id, outcome = ?outcome, "job finished");
+                    send_agenda(
+                        &node,
+                        AgendaEvent::ExecutionFinished {
+                            conversation_id,
+                            outcome,
+                        },
+                    )
+                    .await?
+                }
+                ExecutionAction::StateChanged => node.state_changed().await,
+            }
+        }
+    }
+}
+
+fn state_name(state: &crate::execution::ExecutionState) -> String {
+    match state {
+        crate::execution::ExecutionState::Init => "init".into(),
+        crate::execution::ExecutionState::Ready => "ready".into(),
+        crate::execution::ExecutionState::Running { step, .. } => format!("step {}", step + 1),
+    }
+}
+
+async fn send_agenda(node: &Node, event: AgendaEvent) -> Result<(), ChildError> {
+    node.agenda_mail
+        .sender
+        .send(AgendaMessage::Event(event))
+        .await
+        .map_err(|_| "agenda mailbox closed".into())
+}
+
+/// The agenda manager component: runs the agenda FSM.
+async fn agenda(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildError> {
+    let holon = node.config.holon.to_string();
+    let mut mailbox = node.agenda_mail.take().await;
+    loop {
+        let message = tokio::select! {
+            _ = token.cancelled() => return Ok(()),
+            _ = node.faults.agenda.notified() => panic!("fault injection: agenda manager crashed"),
+            message = mailbox.recv() => message.ok_or("agenda mailbox closed")?,
+        };
+        let (event, mut reply) = match message {
+            AgendaMessage::Request { service, reply } => (AgendaEvent::Request(service), Some(reply)),
+            AgendaMessage::Event(event) => (event, None),
+        };
+        let (before, actions, after) = {
+            let mut agenda = lock(&node.agenda);
+            let before = agenda.status_name();
+            let actions = agenda.handle(event);
+            (before, actions, agenda.status_name())
+        };
+        if before != after {
+            info!(%holon, component = "agenda", from = before, to = after, "transition");
+        }
+        for action in actions {
+            match action {
+                AgendaAction::Reply(service) => {
+                    if let Some(reply) = reply.take() {
+                        let _ = reply.send(service);
+                    }
+                }
+                AgendaAction::Execute(job) => {
+                    info!(%holon, component = "agenda", conversation_id = %job.conversation_id, requester = %job.requester, "starting execution");
+                    node.execution_mail
+                        .sender
+                        .send(ExecutionEvent::Start(job))
+                        .await
+                        .map_err(|_| "execution mailbox closed")?;
+                }
+                AgendaAction::Deliver(result) => {
+                    node.communication_mail
+                        .sender
+                        .send(CommunicationMessage::Deliver(result))
+                        .await
+                        .map_err(|_| "communication mailbox closed")?;
+                }
+                AgendaAction::StateChanged => node.state_changed().await,
+            }
+        }
+    }
+}
+
+/// Runs a resource holon until `shutdown` is cancelled (then it withdraws its token,
+/// stops its components in reverse order, closes the session and returns `Ok`) or its
+/// supervisor gives up (then it returns the error, for a non-zero exit).
+pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
+    let holon = config.holon.clone();
+    let alive_key = config.keys.alive(&holon);
+    let session = config.zenoh.open(STARTUP_TIMEOUT).await?;
+    info!(holon = %holon, zid = %session.zid(), "zenoh session open");
+    let node = Arc::new(Node::new(config, session.clone()));
+
+    let supervisor = Supervisor::new(
+        holon.to_string(),
+        node.config.strategy,
+        node.config.intensity,
+    )
+    .child(ChildSpec::new("interfacing", {
+        let node = node.clone();
+        move |token| interfacing(node.clone(), token)
+    }))
+    .child(ChildSpec::new("execution", {
+        let node = node.clone();
+        move |token| execution(node.clone(), token)
+    }))
+    .child(ChildSpec::new("agenda", {
+        let node = node.clone();
+        move |token| agenda(node.clone(), token)
+    }))
+    .child(ChildSpec::new("communication", {
+        let node = node.clone();
+        move |token| crate::communication::run(node.clone(), token)
+    }));
+
+    let serving = node.serving.notified();
+    let components = CancellationToken::new();
+    let mut supervision = tokio::spawn(supervisor.run(components.clone()));
+    let started = tokio::select! {
+        _ = serving => Ok(()),
+        _ = tokio::time::sleep(STARTUP_TIMEOUT) => Err(NodeError::Startup(STARTUP_TIMEOUT)),
+        result = &mut supervision => match result {
+            Ok(Ok(())) => Err(NodeError::Startup(STARTUP_TIMEOUT)),
+            Ok(Err(e)) => Err(e.into()),
+            Err(e) => Err(NodeError::Zenoh(e.to_string())),
+        },
+    };
+    if let Err(e) = started {
+        components.cancel();
+        let _ = supervision.await;
+        let _ = session.close().await;
+        return Err(e);
+    }
+    let token = session
+        .liveliness()
+        .declare_token(&alive_key)
+        .await
+        .map_err(|e| NodeError::Zenoh(e.to_string()))?;
+    info!(holon = %holon, key = %alive_key, "holon ready");
+
+    let outcome = tokio::select! {
+        _ = shutdown.cancelled() => Ok(()),
+        result = &mut supervision => match result {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => Err(NodeError::Supervisor(e)),
+            Err(e) => Err(NodeError::Zenoh(format!("supervisor task: {e}"))),
+        },
+    };
+    // Withdraw presence first: no one should book a holon that is going away.
+    if let Err(e) = token.undeclare().await {
+        error!(holon = %holon, error = %e, "cannot withdraw the liveliness token");
+    }
+    if outcome.is_ok() {
+        components.cancel();
+        let _ = supervision.await;
+    }
+    if let Err(e) = session.close().await {
+        error!(holon = %holon, error = %e, "cannot close the zenoh session");
+    }
+    info!(holon = %holon, "holon stopped");
+    outcome
+}
