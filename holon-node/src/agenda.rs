@@ -309,7 +309,11 @@ impl AgendaManager {
         if let Err(detail) = self.catalog.poses(&request.service_type, &info) {
             return refuse(reason::INVALID_INFO, Some(detail));
         }
-        let Some(reply_to) = request.reply_to.clone().or_else(|| booking.reply_to.clone()) else {
+        let Some(reply_to) = request
+            .reply_to
+            .clone()
+            .or_else(|| booking.reply_to.clone())
+        else {
             return refuse(
                 reason::INVALID_INFO,
                 Some("neither the start nor the booking has reply_to".into()),
@@ -372,9 +376,10 @@ impl AgendaManager {
     fn booked_reply(&self, request: &Service, position: usize) -> Service {
         let mut reply = request.accepted(&self.holon);
         reply.info = self.proposal_info(&request.service_type);
-        reply
-            .info
-            .insert("queue_position".into(), json!(position + 1 + self.current.is_some() as usize));
+        reply.info.insert(
+            "queue_position".into(),
+            json!(position + 1 + self.current.is_some() as usize),
+        );
         reply
     }
 
@@ -512,7 +517,10 @@ mod tests {
             3,
         );
         assert_eq!(m.status(), Status::Init);
-        assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "unavailable");
+        assert_refused(
+            &m.handle(AgendaEvent::Request(book("o-1", "c1"))),
+            "unavailable",
+        );
         assert_eq!(
             m.handle(AgendaEvent::ExecutionReady),
             vec![AgendaAction::StateChanged]
@@ -594,14 +602,26 @@ mod tests {
     #[test]
     fn start_without_a_booking_is_refused() {
         let mut m = manager();
-        assert_refused(&m.handle(AgendaEvent::Request(start("o-1", "c1"))), "not_booked");
+        assert_refused(
+            &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+            "not_booked",
+        );
         m.handle(AgendaEvent::Request(book("o-1", "c1")));
         // Another requester, or another conversation of the same requester.
-        assert_refused(&m.handle(AgendaEvent::Request(start("o-2", "c1"))), "not_booked");
-        assert_refused(&m.handle(AgendaEvent::Request(start("o-1", "c9"))), "not_booked");
+        assert_refused(
+            &m.handle(AgendaEvent::Request(start("o-2", "c1"))),
+            "not_booked",
+        );
+        assert_refused(
+            &m.handle(AgendaEvent::Request(start("o-1", "c9"))),
+            "not_booked",
+        );
         // Not booked beats busy: a stranger is told it holds no booking.
         m.handle(AgendaEvent::Request(start("o-1", "c1")));
-        assert_refused(&m.handle(AgendaEvent::Request(start("o-3", "c3"))), "not_booked");
+        assert_refused(
+            &m.handle(AgendaEvent::Request(start("o-3", "c3"))),
+            "not_booked",
+        );
     }
 
     #[test]
@@ -610,7 +630,10 @@ mod tests {
         m.handle(AgendaEvent::Request(book("o-1", "c1")));
         m.handle(AgendaEvent::ExecutionUnavailable);
         assert_eq!(m.status(), Status::Init);
-        assert_refused(&m.handle(AgendaEvent::Request(start("o-1", "c1"))), "unavailable");
+        assert_refused(
+            &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+            "unavailable",
+        );
         assert_eq!(m.bookings().len(), 1);
         m.handle(AgendaEvent::ExecutionReady);
         assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
@@ -622,7 +645,10 @@ mod tests {
         m.handle(AgendaEvent::Request(book("o-1", "c1")));
         let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
         assert_refused(&actions, "invalid_info");
-        assert!(reply(&actions).info["detail"].as_str().unwrap().contains("info.pick"));
+        assert!(reply(&actions).info["detail"]
+            .as_str()
+            .unwrap()
+            .contains("info.pick"));
         let mut booking_without_reply_to = book("o-2", "c2");
         booking_without_reply_to.reply_to = None;
         m.handle(AgendaEvent::Request(booking_without_reply_to));
@@ -648,9 +674,15 @@ mod tests {
         let mut m = manager();
         let mut weld = book("o-1", "c1");
         weld.service_type = "weld".into();
-        assert_refused(&m.handle(AgendaEvent::Request(weld.clone())), "unknown_service");
+        assert_refused(
+            &m.handle(AgendaEvent::Request(weld.clone())),
+            "unknown_service",
+        );
         weld.message_type = MessageType::Start;
-        assert_refused(&m.handle(AgendaEvent::Request(weld.clone())), "unknown_service");
+        assert_refused(
+            &m.handle(AgendaEvent::Request(weld.clone())),
+            "unknown_service",
+        );
         weld.message_type = MessageType::ProposalReq;
         let proposal = m.handle(AgendaEvent::Request(weld));
         assert_eq!(reply(&proposal).message_type, MessageType::Proposal);
@@ -672,13 +704,21 @@ mod tests {
         let mut m = manager();
         m.handle(AgendaEvent::Request(book("o-1", "c1")));
         m.handle(AgendaEvent::Request(book("o-2", "c2")));
-        let actions = m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-1", "c1")));
+        let actions = m.handle(AgendaEvent::Request(msg(
+            MessageType::BookingCancel,
+            "o-1",
+            "c1",
+        )));
         assert_accepted(&actions);
         assert_eq!(actions[1], AgendaAction::StateChanged);
         assert_eq!(m.bookings().len(), 1);
         assert_eq!(m.bookings()[0].conversation_id, "c2");
         // Cancel by the last booked client leaves an empty agenda.
-        m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c2")));
+        m.handle(AgendaEvent::Request(msg(
+            MessageType::BookingCancel,
+            "o-2",
+            "c2",
+        )));
         assert!(m.bookings().is_empty());
         assert_eq!(m.status(), Status::Free);
     }
@@ -687,12 +727,20 @@ mod tests {
     fn booking_cancel_without_a_booking_is_refused() {
         let mut m = manager();
         assert_refused(
-            &m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-1", "c1"))),
+            &m.handle(AgendaEvent::Request(msg(
+                MessageType::BookingCancel,
+                "o-1",
+                "c1",
+            ))),
             "not_booked",
         );
         m.handle(AgendaEvent::Request(book("o-1", "c1")));
         assert_refused(
-            &m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c1"))),
+            &m.handle(AgendaEvent::Request(msg(
+                MessageType::BookingCancel,
+                "o-2",
+                "c1",
+            ))),
             "not_booked",
         );
         assert_eq!(m.bookings().len(), 1);
@@ -705,7 +753,11 @@ mod tests {
         m.handle(AgendaEvent::Request(start("o-1", "c1")));
         assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2"))));
         assert!(matches!(m.status(), Status::Busy(_)));
-        assert_accepted(&m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c2"))));
+        assert_accepted(&m.handle(AgendaEvent::Request(msg(
+            MessageType::BookingCancel,
+            "o-2",
+            "c2",
+        ))));
         assert!(matches!(m.status(), Status::Busy(_)));
         // The running job cannot be booked again.
         assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "busy");
@@ -795,7 +847,10 @@ mod tests {
         for i in 0..3 {
             assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", &format!("c{i}")))));
         }
-        assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c3"))), "agenda_full");
+        assert_refused(
+            &m.handle(AgendaEvent::Request(book("o-1", "c3"))),
+            "agenda_full",
+        );
         let mut proposal = book("o-2", "p");
         proposal.message_type = MessageType::ProposalReq;
         let actions = m.handle(AgendaEvent::Request(proposal));

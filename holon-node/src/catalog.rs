@@ -66,9 +66,8 @@ impl ServiceCatalog {
                 let value = info
                     .get(key)
                     .ok_or_else(|| format!("info.{key} (a pose for {}) is missing", step.action))?;
-                let pose: Pose = serde_json::from_value(value.clone()).map_err(|e| {
-                    format!("info.{key} is not a pose {{x,y,z[,a,b,c]}}: {e}")
-                })?;
+                let pose: Pose = serde_json::from_value(value.clone())
+                    .map_err(|e| format!("info.{key} is not a pose {{x,y,z[,a,b,c]}}: {e}"))?;
                 if !pose.is_finite() {
                     return Err(format!("info.{key} has a coordinate that is not finite"));
                 }
@@ -137,11 +136,17 @@ mod tests {
     fn says_what_is_wrong_with_info() {
         let catalog = pick_n_place();
         let err = catalog
-            .poses("pick_n_place", &info(json!({"pick": {"x": 1, "y": 2, "z": 3}})))
+            .poses(
+                "pick_n_place",
+                &info(json!({"pick": {"x": 1, "y": 2, "z": 3}})),
+            )
             .unwrap_err();
         assert!(err.contains("info.place"), "{err}");
         let err = catalog
-            .poses("pick_n_place", &info(json!({"pick": {"x": "a"}, "place": {}})))
+            .poses(
+                "pick_n_place",
+                &info(json!({"pick": {"x": "a"}, "place": {}})),
+            )
             .unwrap_err();
         assert!(err.contains("info.pick"), "{err}");
         assert!(catalog.poses("weld", &Map::new()).is_err());

@@ -68,7 +68,10 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
     }
     endpoints.push((config.keys.state(&config.holon), Endpoint::State));
     if config.allow_fault_injection {
-        endpoints.push((config.keys.debug_crash(config.holon.name()), Endpoint::Crash));
+        endpoints.push((
+            config.keys.debug_crash(config.holon.name()),
+            Endpoint::Crash,
+        ));
     }
     // Dropping a queryable undeclares it: they live exactly as long as this component.
     let mut queryables = Vec::new();
@@ -166,7 +169,11 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
     Ok(())
 }
 
-fn schedule(deliveries: &mut BTreeMap<String, Delivery>, message: Service, first_interval: Duration) {
+fn schedule(
+    deliveries: &mut BTreeMap<String, Delivery>,
+    message: Service,
+    first_interval: Duration,
+) {
     deliveries
         .entry(message.conversation_id.clone())
         .or_insert(Delivery {
@@ -179,7 +186,11 @@ fn schedule(deliveries: &mut BTreeMap<String, Delivery>, message: Service, first
 }
 
 /// One delivery attempt: true when the requester acknowledged.
-async fn deliver(session: &zenoh::Session, message: &Service, timeout: Duration) -> Result<bool, String> {
+async fn deliver(
+    session: &zenoh::Session,
+    message: &Service,
+    timeout: Duration,
+) -> Result<bool, String> {
     let key = message.reply_to.as_deref().ok_or("no reply_to")?;
     let replies = session
         .get(key)
@@ -198,11 +209,19 @@ async fn deliver(session: &zenoh::Session, message: &Service, timeout: Duration)
                 {
                     return Ok(true)
                 }
-                Ok(other) => debug!(conversation_id = %message.conversation_id, ?other, "reply is not an acknowledgement"),
-                Err(e) => debug!(conversation_id = %message.conversation_id, error = %e, "undecodable reply to a result"),
+                Ok(other) => {
+                    debug!(conversation_id = %message.conversation_id, ?other, "reply is not an acknowledgement")
+                }
+                Err(e) => {
+                    debug!(conversation_id = %message.conversation_id, error = %e, "undecodable reply to a result")
+                }
             },
             Err(err) => {
-                let text = err.payload().try_to_string().map(|s| s.into_owned()).unwrap_or_default();
+                let text = err
+                    .payload()
+                    .try_to_string()
+                    .map(|s| s.into_owned())
+                    .unwrap_or_default();
                 debug!(conversation_id = %message.conversation_id, error = %text, "error reply to a result");
             }
         }
@@ -220,7 +239,10 @@ async fn publish(node: &Node, publisher: &zenoh::pubsub::Publisher<'_>) {
 
 async fn reply_error(node: &Node, query: &Query, code: &str, message: String) {
     warn!(holon = %node.config.holon, key = %query.key_expr(), code, error = %message, "request rejected");
-    if let Err(e) = query.reply_err(ErrorReply::new(code, message).to_json()).await {
+    if let Err(e) = query
+        .reply_err(ErrorReply::new(code, message).to_json())
+        .await
+    {
         warn!(holon = %node.config.holon, error = %e, "cannot send the error reply");
     }
 }
@@ -235,7 +257,10 @@ async fn reply(node: &Node, query: &Query, message: &Service) {
         reason = message.reason.as_deref().unwrap_or(""),
         "sent"
     );
-    if let Err(e) = query.reply(query.key_expr().clone(), message.to_json()).await {
+    if let Err(e) = query
+        .reply(query.key_expr().clone(), message.to_json())
+        .await
+    {
         warn!(holon = %node.config.holon, conversation_id = %message.conversation_id, error = %e, "cannot send the reply");
     }
 }
@@ -291,7 +316,8 @@ async fn handle_query(node: &Node, incoming: Incoming) {
     );
     let allowed = match &endpoint {
         Endpoint::Offer(service_type) => {
-            request.message_type == MessageType::ProposalReq && &request.service_type == service_type
+            request.message_type == MessageType::ProposalReq
+                && &request.service_type == service_type
         }
         _ => matches!(
             request.message_type,
@@ -311,7 +337,13 @@ async fn handle_query(node: &Node, incoming: Incoming) {
     }
     if let Some(provider) = &request.provider {
         if provider != &node.config.holon {
-            return reply_error(node, &query, "invalid", format!("addressed to {provider}, this is {}", node.config.holon)).await;
+            return reply_error(
+                node,
+                &query,
+                "invalid",
+                format!("addressed to {provider}, this is {}", node.config.holon),
+            )
+            .await;
         }
     }
     if request.message_type == MessageType::Status {
@@ -326,14 +358,39 @@ async fn handle_query(node: &Node, incoming: Incoming) {
     let sent = node
         .agenda_mail
         .sender
-        .send(AgendaMessage::Request { service: request, reply: tx })
+        .send(AgendaMessage::Request {
+            service: request,
+            reply: tx,
+        })
         .await;
     if sent.is_err() {
-        return reply_error(node, &query, "unavailable", "the agenda manager is not running".into()).await;
+        return reply_error(
+            node,
+            &query,
+            "unavailable",
+            "the agenda manager is not running".into(),
+        )
+        .await;
     }
     match tokio::time::timeout(AGENDA_REPLY_TIMEOUT, rx).await {
         Ok(Ok(answer)) => reply(node, &query, &answer).await,
-        Ok(Err(_)) => reply_error(node, &query, "unavailable", "the agenda manager stopped while handling the request".into()).await,
-        Err(_) => reply_error(node, &query, "unavailable", "the agenda manager did not answer in time".into()).await,
+        Ok(Err(_)) => {
+            reply_error(
+                node,
+                &query,
+                "unavailable",
+                "the agenda manager stopped while handling the request".into(),
+            )
+            .await
+        }
+        Err(_) => {
+            reply_error(
+                node,
+                &query,
+                "unavailable",
+                "the agenda manager did not answer in time".into(),
+            )
+            .await
+        }
     }
 }

@@ -215,7 +215,11 @@ impl ResourceConfig {
         Self::parse(&text, &display, overrides)
     }
 
-    pub fn parse(text: &str, path: &str, overrides: Overrides) -> Result<ResourceConfig, ConfigError> {
+    pub fn parse(
+        text: &str,
+        path: &str,
+        overrides: Overrides,
+    ) -> Result<ResourceConfig, ConfigError> {
         let mut file: ConfigFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: path.to_string(),
             message: e.to_string(),
@@ -252,9 +256,7 @@ impl ResourceConfig {
             ));
         }
         let holon = HolonId::resource(&file.name).map_err(|e| format!("name: {e}"))?;
-        file.zenoh
-            .validate()
-            .map_err(|e| format!("zenoh: {e}"))?;
+        file.zenoh.validate().map_err(|e| format!("zenoh: {e}"))?;
         let c = &file.controller;
         if c.address.trim().is_empty() || !c.address.contains(':') {
             return Err(format!(
@@ -269,7 +271,10 @@ impl ResourceConfig {
             ("supervisor.period_ms", file.supervisor.period_ms),
             ("delivery.retry_initial_ms", file.delivery.retry_initial_ms),
             ("delivery.retry_max_ms", file.delivery.retry_max_ms),
-            ("delivery.attempt_timeout_ms", file.delivery.attempt_timeout_ms),
+            (
+                "delivery.attempt_timeout_ms",
+                file.delivery.attempt_timeout_ms,
+            ),
         ] {
             if value == 0 {
                 return Err(format!("{field} must be greater than 0"));
@@ -388,14 +393,26 @@ mod tests {
         let cases = [
             ("name = \"robot1\"", "name = \"Robot 1\"", "name"),
             ("cell = \"demo\"", "cell = \"\"", "cell"),
-            ("strategy = \"one_for_one\"", "strategy = \"one_for_some\"", "strategy"),
+            (
+                "strategy = \"one_for_one\"",
+                "strategy = \"one_for_some\"",
+                "strategy",
+            ),
             ("capacity = 64", "capacity = 0", "agenda.capacity"),
-            ("command_timeout_ms = 30000", "command_timeout_ms = 0", "command_timeout_ms"),
+            (
+                "command_timeout_ms = 30000",
+                "command_timeout_ms = 0",
+                "command_timeout_ms",
+            ),
             ("until = [\"picking_done\"]", "until = []", "until"),
             ("until = [\"picking_done\"]", "until = [\"error\"]", "error"),
             ("action = \"pick\"", "action = \"\"", "action"),
             ("[agenda]", "[agenda]\ncolour = \"red\"", "colour"),
-            ("address = \"127.0.0.1:7601\"", "address = \"nowhere\"", "controller.address"),
+            (
+                "address = \"127.0.0.1:7601\"",
+                "address = \"nowhere\"",
+                "controller.address",
+            ),
         ];
         for (from, to, expect) in cases {
             assert!(DEMO.contains(from), "the demo config lacks {from:?}");

@@ -176,7 +176,10 @@ impl Execution {
         let definition = self.catalog.get(&job.service_type);
         let poses = self.catalog.poses(&job.service_type, &job.info);
         let (Some(definition), Ok(poses)) = (definition, poses) else {
-            return self.fail(reason::INVALID_INFO, "the job's info does not fit its steps".into());
+            return self.fail(
+                reason::INVALID_INFO,
+                "the job's info does not fit its steps".into(),
+            );
         };
         let Some(current) = definition.steps.get(*step) else {
             return self.fail(reason::INVALID_INFO, "the service has no such step".into());
@@ -440,7 +443,9 @@ mod tests {
             message: Some("gripper empty".into()),
         }));
         failed_with(&actions, "controller_error");
-        assert!(matches!(&actions[0], ExecutionAction::Finished { outcome: Outcome::Failed { detail, .. }, .. } if detail.contains("gripper empty")));
+        assert!(
+            matches!(&actions[0], ExecutionAction::Finished { outcome: Outcome::Failed { detail, .. }, .. } if detail.contains("gripper empty"))
+        );
         assert_eq!(e.state(), &ExecutionState::Ready);
     }
 
@@ -448,7 +453,10 @@ mod tests {
     fn an_unexpected_result_fails_the_job() {
         let mut e = ready_execution();
         let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
-        failed_with(&e.handle(reply(pick.id, "placing_done")), "unexpected_result");
+        failed_with(
+            &e.handle(reply(pick.id, "placing_done")),
+            "unexpected_result",
+        );
     }
 
     #[test]
@@ -460,7 +468,10 @@ mod tests {
             ),
             (CommandFailure::Disconnected, "controller_disconnected"),
             (CommandFailure::NotConnected, "controller_disconnected"),
-            (CommandFailure::Protocol("x".into()), "controller_protocol_error"),
+            (
+                CommandFailure::Protocol("x".into()),
+                "controller_protocol_error",
+            ),
         ];
         for (failure, why) in cases {
             let mut e = ready_execution();
@@ -521,9 +532,14 @@ mod tests {
         let mut other = job("pick_n_place");
         other.conversation_id = "c2".into();
         let actions = e.handle(ExecutionEvent::Start(other));
-        assert!(matches!(&actions[0], ExecutionAction::Finished { conversation_id, .. } if conversation_id == "c2"));
+        assert!(
+            matches!(&actions[0], ExecutionAction::Finished { conversation_id, .. } if conversation_id == "c2")
+        );
         failed_with(&actions, "busy");
-        assert_eq!(command(&e.handle(reply(pick.id, "picking_done"))).action, "place");
+        assert_eq!(
+            command(&e.handle(reply(pick.id, "picking_done"))).action,
+            "place"
+        );
     }
 
     #[test]

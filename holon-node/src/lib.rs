@@ -6,7 +6,7 @@
 
 pub mod agenda;
 pub mod catalog;
+pub mod communication;
 pub mod config;
 pub mod execution;
-pub mod communication;
 pub mod node;

@@ -212,9 +212,7 @@ async fn execution(node: Arc<Node>, token: CancellationToken) -> Result<(), Chil
                         .await
                         .map_err(|_| "command mailbox closed")?;
                 }
-                ExecutionAction::Ready => {
-                    send_agenda(&node, AgendaEvent::ExecutionReady).await?
-                }
+                ExecutionAction::Ready => send_agenda(&node, AgendaEvent::ExecutionReady).await?,
                 ExecutionAction::Unavailable => {
                     send_agenda(&node, AgendaEvent::ExecutionUnavailable).await?
                 }
@@ -265,7 +263,9 @@ async fn agenda(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildEr
             message = mailbox.recv() => message.ok_or("agenda mailbox closed")?,
         };
         let (event, mut reply) = match message {
-            AgendaMessage::Request { service, reply } => (AgendaEvent::Request(service), Some(reply)),
+            AgendaMessage::Request { service, reply } => {
+                (AgendaEvent::Request(service), Some(reply))
+            }
             AgendaMessage::Event(event) => (event, None),
         };
         let (before, actions, after) = {

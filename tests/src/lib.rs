@@ -1,1 +1,516 @@
+//! The harness of holarchy's multi-process tests: it starts the real binaries
+//! (`robot-sim`, `holon-node`) on loopback with unique ports, talks zenoh to them with
+//! multicast scouting off and explicit endpoints, waits on presence rather than sleeps,
+//! bounds every wait, and kills its children when a test ends.
 
+use std::fs;
+use std::io::{BufRead, BufReader};
+use std::net::TcpListener;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::sync::{Mutex, OnceLock};
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Context, Result};
+use schemas::{CellKeys, ErrorReply, HolonId, MessageType, Service};
+use tokio::sync::mpsc;
+use zenoh::query::ConsolidationMode;
+use zenoh::sample::SampleKind;
+
+/// The longest any single wait in a test may take.
+pub const WAIT: Duration = Duration::from_secs(20);
+
+/// The directory holding the workspace's binaries (`target/debug` next to the tests).
+pub fn bin_dir() -> PathBuf {
+    if let Some(dir) = std::env::var_os("HOLARCHY_BIN_DIR") {
+        return PathBuf::from(dir);
+    }
+    let exe = std::env::current_exe().expect("current exe");
+    // target/<profile>/deps/<test> -> target/<profile>
+    exe.parent()
+        .and_then(Path::parent)
+        .expect("test binary lives in target/<profile>/deps")
+        .to_path_buf()
+}
+
+/// The path of a workspace binary, built on first use if `cargo test` did not build it.
+pub fn bin(name: &str) -> PathBuf {
+    static BUILT: OnceLock<()> = OnceLock::new();
+    let path = bin_dir().join(name);
+    BUILT.get_or_init(|| {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let mut build = Command::new(cargo);
+        build.args(["build", "--bins", "--quiet"]);
+        if bin_dir().ends_with("release") {
+            build.arg("--release");
+        }
+        let status = build
+            .current_dir(workspace_root())
+            .status()
+            .expect("cannot run cargo build");
+        assert!(status.success(), "cargo build --bins failed");
+    });
+    assert!(path.exists(), "{} was not built", path.display());
+    path
+}
+
+/// The workspace's root directory.
+pub fn workspace_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ is in the workspace")
+        .to_path_buf()
+}
+
+/// A free TCP port on loopback (closed again; used at once by the caller).
+pub fn free_port() -> u16 {
+    static USED: Mutex<Vec<u16>> = Mutex::new(Vec::new());
+    loop {
+        let port = TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("bind an ephemeral port")
+            .port();
+        let mut used = USED.lock().unwrap();
+        if !used.contains(&port) {
+            used.push(port);
+            return port;
+        }
+    }
+}
+
+/// A child process killed (SIGKILL) when dropped, with its output in files.
+pub struct Process {
+    pub name: String,
+    child: Option<Child>,
+    pub stderr_path: PathBuf,
+}
+
+impl Process {
+    pub fn pid(&self) -> i32 {
+        self.child.as_ref().map(|c| c.id() as i32).unwrap_or(0)
+    }
+
+    /// Sends a signal (e.g. SIGTERM) to the process.
+    pub fn signal(&self, signal: nix::sys::signal::Signal) -> Result<()> {
+        nix::sys::signal::kill(nix::unistd::Pid::from_raw(self.pid()), signal)?;
+        Ok(())
+    }
+
+    /// Kills the process (SIGKILL) and reaps it.
+    pub fn kill(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+
+    /// Waits for the process to exit by itself, at most `timeout`.
+    pub fn wait_exit(&mut self, timeout: Duration) -> Result<std::process::ExitStatus> {
+        let deadline = std::time::Instant::now() + timeout;
+        let child = self
+            .child
+            .as_mut()
+            .ok_or_else(|| anyhow!("already reaped"))?;
+        loop {
+            if let Some(status) = child.try_wait()? {
+                self.child = None;
+                return Ok(status);
+            }
+            if std::time::Instant::now() > deadline {
+                bail!("{} did not exit within {timeout:?}", self.name);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// What the process wrote to stderr so far.
+    pub fn stderr(&self) -> String {
+        fs::read_to_string(&self.stderr_path).unwrap_or_default()
+    }
+}
+
+impl Drop for Process {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// A `robot-sim` process.
+pub struct Sim {
+    pub process: Process,
+    pub address: String,
+    pub count_file: PathBuf,
+}
+
+impl Sim {
+    /// Starts `robot-sim --listen ADDRESS` with extra flags and waits for its ready line.
+    pub fn start(dir: &Path, name: &str, address: &str, flags: &[&str]) -> Result<Sim> {
+        let count_file = dir.join(format!("{name}.counts.json"));
+        let stderr_path = dir.join(format!("{name}.stderr"));
+        let mut child = Command::new(bin("robot-sim"))
+            .args(["--listen", address, "--count-file"])
+            .arg(&count_file)
+            .args(flags)
+            .stdout(Stdio::piped())
+            .stderr(fs::File::create(&stderr_path)?)
+            .spawn()
+            .context("start robot-sim")?;
+        let stdout = child.stdout.take().expect("piped stdout");
+        let process = Process {
+            name: name.to_string(),
+            child: Some(child),
+            stderr_path,
+        };
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut line = String::new();
+            let _ = BufReader::new(stdout).read_line(&mut line);
+            let _ = tx.send(line);
+        });
+        let line = rx
+            .recv_timeout(WAIT)
+            .map_err(|_| anyhow!("robot-sim printed no ready line"))?;
+        let address = line
+            .trim()
+            .strip_prefix("listening on ")
+            .ok_or_else(|| anyhow!("unexpected robot-sim line {line:?}"))?
+            .to_string();
+        Ok(Sim {
+            process,
+            address,
+            count_file,
+        })
+    }
+
+    /// The simulator's counts: `{"executed": N, "by_action": {...}, ...}`.
+    pub fn counts(&self) -> serde_json::Value {
+        fs::read_to_string(&self.count_file)
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .unwrap_or(serde_json::Value::Null)
+    }
+
+    pub fn executed(&self, action: &str) -> u64 {
+        self.counts()["by_action"][action].as_u64().unwrap_or(0)
+    }
+}
+
+/// Writes a resource config for tests: short timeouts, one pick_n_place robot.
+pub fn resource_config(dir: &Path, name: &str, command_timeout_ms: u64) -> Result<PathBuf> {
+    let path = dir.join(format!("{name}.toml"));
+    fs::write(
+        &path,
+        format!(
+            r#"
+cell = "unset"
+name = "{name}"
+
+[controller]
+address = "127.0.0.1:1"
+reconnect_interval_ms = 100
+command_timeout_ms = {command_timeout_ms}
+connect_timeout_ms = 500
+
+[supervisor]
+strategy = "one_for_one"
+max_restarts = 5
+period_ms = 10000
+
+[delivery]
+retry_initial_ms = 100
+retry_max_ms = 400
+attempt_timeout_ms = 500
+
+[services.pick_n_place]
+nominal_duration_ms = 1000
+steps = [
+  {{ action = "pick", until = ["picking_done"], position = "pick" }},
+  {{ action = "place", until = ["placing_done"], position = "place" }},
+]
+"#
+        ),
+    )?;
+    Ok(path)
+}
+
+/// Starts `holon-node` with `--config FILE --cell CELL --connect ROUTER --controller ADDR`
+/// and extra flags. Wait for it with [`Cell::wait_alive`].
+pub fn start_node(
+    dir: &Path,
+    config: &Path,
+    cell: &str,
+    connect: &str,
+    controller: &str,
+    extra: &[&str],
+) -> Result<Process> {
+    let name = config
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let stderr_path = dir.join(format!("{name}.node.stderr"));
+    let child = Command::new(bin("holon-node"))
+        .arg("--config")
+        .arg(config)
+        .args([
+            "--cell",
+            cell,
+            "--connect",
+            connect,
+            "--controller",
+            controller,
+        ])
+        .arg("--log-file")
+        .arg(dir.join(format!("{name}.log.json")))
+        .args(extra)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(fs::File::create(&stderr_path)?)
+        .spawn()
+        .context("start holon-node")?;
+    Ok(Process {
+        name,
+        child: Some(child),
+        stderr_path,
+    })
+}
+
+/// The test's own zenoh session, listening on a unique port that every process joins.
+pub struct Cell {
+    pub session: zenoh::Session,
+    pub keys: CellKeys,
+    /// The endpoint processes connect to, e.g. `tcp/127.0.0.1:PORT`.
+    pub endpoint: String,
+}
+
+impl Cell {
+    pub async fn open(cell: &str) -> Result<Cell> {
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let settings = holon::ZenohSettings {
+            listen: vec![endpoint.clone()],
+            ..holon::ZenohSettings::default()
+        };
+        let session = settings
+            .open(WAIT)
+            .await
+            .map_err(|e| anyhow!("open zenoh: {e}"))?;
+        Ok(Cell {
+            session,
+            keys: CellKeys::new(cell)?,
+            endpoint,
+        })
+    }
+
+    /// Waits until `holon`'s liveliness token appears.
+    pub async fn wait_alive(&self, holon: &HolonId) -> Result<()> {
+        let found = holon::presence::wait_alive(&self.session, &self.keys, holon, WAIT)
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        if !found {
+            bail!("{holon} did not appear within {WAIT:?}");
+        }
+        Ok(())
+    }
+
+    /// Waits until `holon`'s liveliness token is gone.
+    pub async fn wait_gone(&self, holon: &HolonId) -> Result<()> {
+        let subscriber = self
+            .session
+            .liveliness()
+            .declare_subscriber(self.keys.alive(holon))
+            .history(true)
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let deadline = tokio::time::Instant::now() + WAIT;
+        let mut alive = false;
+        // History tells whether it is there now; then wait for its Delete.
+        loop {
+            match tokio::time::timeout_at(deadline, subscriber.recv_async()).await {
+                Ok(Ok(sample)) => match sample.kind() {
+                    SampleKind::Put => alive = true,
+                    SampleKind::Delete => return Ok(()),
+                },
+                Ok(Err(e)) => bail!("{e}"),
+                Err(_) if !alive => return Ok(()),
+                Err(_) => bail!("{holon} still alive after {WAIT:?}"),
+            }
+        }
+    }
+
+    /// Sends a request to `key` and returns the single answer: a Service, or an error reply.
+    pub async fn request(
+        &self,
+        key: &str,
+        payload: Vec<u8>,
+    ) -> Result<std::result::Result<Service, ErrorReply>> {
+        let replies = self
+            .session
+            .get(key)
+            .payload(payload)
+            .consolidation(ConsolidationMode::None)
+            .timeout(Duration::from_secs(5))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let reply = replies
+            .recv_async()
+            .await
+            .map_err(|_| anyhow!("no reply from {key}"))?;
+        Ok(match reply.result() {
+            Ok(sample) => Ok(Service::from_json(&sample.payload().to_bytes())?),
+            Err(err) => Err(serde_json::from_slice(&err.payload().to_bytes())?),
+        })
+    }
+
+    /// Sends a Service request to `resource/<name>/service` and expects a Service answer.
+    pub async fn service(&self, resource: &str, message: &Service) -> Result<Service> {
+        self.request(&self.keys.service(resource), message.to_json())
+            .await?
+            .map_err(|e| anyhow!("error reply {}: {}", e.code, e.message))
+    }
+
+    /// Every proposal for `service_type` (contract net in one `get`).
+    pub async fn proposals(&self, message: &Service) -> Result<Vec<Service>> {
+        let replies = self
+            .session
+            .get(self.keys.offers(&message.service_type))
+            .payload(message.to_json())
+            .consolidation(ConsolidationMode::None)
+            .timeout(Duration::from_secs(2))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let mut proposals = Vec::new();
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result() {
+                proposals.push(Service::from_json(&sample.payload().to_bytes())?);
+            }
+        }
+        Ok(proposals)
+    }
+
+    /// The resource's state, asked with a `status` request.
+    pub async fn status(&self, resource: &str) -> Result<serde_json::Value> {
+        let ask = Service::request(
+            MessageType::Status,
+            "pick_n_place",
+            "status",
+            test_requester(),
+        );
+        let answer = self.service(resource, &ask).await?;
+        Ok(serde_json::Value::Object(answer.info))
+    }
+
+    /// Polls the resource's state until `check` holds.
+    pub async fn wait_state(
+        &self,
+        resource: &str,
+        what: &str,
+        check: impl Fn(&serde_json::Value) -> bool,
+    ) -> Result<serde_json::Value> {
+        let deadline = tokio::time::Instant::now() + WAIT;
+        loop {
+            if let Ok(state) = self.status(resource).await {
+                if check(&state) {
+                    return Ok(state);
+                }
+                if tokio::time::Instant::now() > deadline {
+                    bail!("{resource} never reached {what}; last state {state}");
+                }
+            } else if tokio::time::Instant::now() > deadline {
+                bail!("{resource} never answered status");
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    /// Declares an order's inbox. The first `refuse_first` results are answered with an
+    /// error reply (no acknowledgement); every later one is acknowledged.
+    pub async fn inbox(&self, order: &str, refuse_first: usize) -> Result<Inbox> {
+        let key = self.keys.inbox(order);
+        let (tx, rx) = mpsc::unbounded_channel();
+        let seen = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        let queryable = self
+            .session
+            .declare_queryable(&key)
+            .callback({
+                let seen = seen.clone();
+                move |query| {
+                    use zenoh::Wait;
+                    let payload = query
+                        .payload()
+                        .map(|p| p.to_bytes().into_owned())
+                        .unwrap_or_default();
+                    let Ok(message) = Service::from_json(&payload) else {
+                        let _ = query.reply_err(b"undecodable".to_vec()).wait();
+                        return;
+                    };
+                    let n = seen.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                    if n < refuse_first {
+                        let _ = query
+                            .reply_err(ErrorReply::new("not_yet", "test refuses").to_json())
+                            .wait();
+                    } else {
+                        let mut ack = message.clone();
+                        ack.result = Some(true);
+                        let _ = query.reply(query.key_expr().clone(), ack.to_json()).wait();
+                    }
+                    let _ = tx.send(message);
+                }
+            })
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        Ok(Inbox {
+            key,
+            received: rx,
+            _queryable: queryable,
+        })
+    }
+}
+
+/// An order's inbox as the tests see it: every delivery attempt received.
+pub struct Inbox {
+    pub key: String,
+    pub received: mpsc::UnboundedReceiver<Service>,
+    _queryable: zenoh::query::Queryable<()>,
+}
+
+impl Inbox {
+    /// The next delivery attempt, within `WAIT`.
+    pub async fn next(&mut self) -> Result<Service> {
+        tokio::time::timeout(WAIT, self.received.recv())
+            .await
+            .map_err(|_| anyhow!("nothing reached the inbox within {WAIT:?}"))?
+            .ok_or_else(|| anyhow!("inbox closed"))
+    }
+
+    /// Whether anything arrives within `quiet`.
+    pub async fn silent_for(&mut self, quiet: Duration) -> bool {
+        tokio::time::timeout(quiet, self.received.recv())
+            .await
+            .is_err()
+    }
+}
+
+/// The requester the tests act as.
+pub fn test_requester() -> HolonId {
+    HolonId::order("tester").expect("valid id")
+}
+
+/// A `pick_n_place` request from `order/<order>`, with poses and the order's inbox.
+pub fn pick_n_place(
+    keys: &CellKeys,
+    kind: MessageType,
+    order: &str,
+    conversation: &str,
+) -> Service {
+    let info = serde_json::json!({
+        "pick": {"x": 100.0, "y": 20.0, "z": 5.0, "a": 0.0, "b": 0.0, "c": 0.0},
+        "place": {"x": 300.0, "y": 40.0, "z": 5.0, "a": 0.0, "b": 0.0, "c": 90.0}
+    });
+    Service::request(
+        kind,
+        "pick_n_place",
+        conversation,
+        HolonId::order(order).expect("valid order name"),
+    )
+    .with_reply_to(keys.inbox(order))
+    .with_info(info.as_object().expect("object").clone())
+}

@@ -1,0 +1,389 @@
+//! The resource holon end to end: `robot-sim` and `holon-node` as real processes, a
+//! zenoh client that knows only the contract.
+
+use std::time::Duration;
+
+use holarchy_tests::*;
+use nix::sys::signal::Signal;
+use schemas::{HolonId, MessageType, Service};
+use zenoh::sample::SampleKind;
+
+struct Robot {
+    cell: Cell,
+    sim: Sim,
+    node: Process,
+    dir: tempfile::TempDir,
+    holon: HolonId,
+}
+
+async fn robot(
+    cell: &str,
+    sim_flags: &[&str],
+    node_flags: &[&str],
+    command_timeout_ms: u64,
+) -> Robot {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open(cell).await.unwrap();
+    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", sim_flags).unwrap();
+    let config = resource_config(dir.path(), "robot1", command_timeout_ms).unwrap();
+    let node = start_node(
+        dir.path(),
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        node_flags,
+    )
+    .unwrap();
+    let holon = HolonId::resource("robot1").unwrap();
+    cell.wait_alive(&holon).await.unwrap();
+    // Alive means serving; wait for the controller too before booking.
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    Robot {
+        cell,
+        sim,
+        node,
+        dir,
+        holon,
+    }
+}
+
+impl Robot {
+    fn msg(&self, kind: MessageType, order: &str, conversation: &str) -> Service {
+        pick_n_place(&self.cell.keys, kind, order, conversation)
+    }
+
+    async fn send(&self, kind: MessageType, order: &str, conversation: &str) -> Service {
+        self.cell
+            .service("robot1", &self.msg(kind, order, conversation))
+            .await
+            .unwrap()
+    }
+}
+
+fn assert_refused(answer: &Service, why: &str) {
+    assert_eq!(answer.result, Some(false), "{answer:?}");
+    assert_eq!(answer.reason.as_deref(), Some(why), "{answer:?}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn books_starts_and_delivers_done_until_acknowledged() {
+    let r = robot("t-cycle", &[], &[], 5000).await;
+    let states = r
+        .cell
+        .session
+        .declare_subscriber(r.cell.keys.state(&r.holon))
+        .await
+        .unwrap();
+
+    // Contract net: one proposal from the one live capable resource.
+    let proposals = r
+        .cell
+        .proposals(&r.msg(MessageType::ProposalReq, "o-1", "o-1/1/1"))
+        .await
+        .unwrap();
+    assert_eq!(proposals.len(), 1, "{proposals:?}");
+    assert_eq!(proposals[0].message_type, MessageType::Proposal);
+    assert_eq!(proposals[0].result, Some(true));
+    assert_eq!(proposals[0].provider, Some(r.holon.clone()));
+    assert_eq!(proposals[0].info["expected_wait_ms"], 0);
+
+    // The inbox refuses the first two deliveries: `done` must come again.
+    let mut inbox = r.cell.inbox("o-1", 2).await.unwrap();
+    let booked = r.send(MessageType::BookingReq, "o-1", "o-1/1/1").await;
+    assert_eq!(booked.result, Some(true), "{booked:?}");
+    assert_eq!(booked.info["queue_position"], 1);
+    let started = r.send(MessageType::Start, "o-1", "o-1/1/1").await;
+    assert_eq!(started.result, Some(true), "{started:?}");
+
+    for attempt in 1..=3 {
+        let done = inbox.next().await.unwrap();
+        assert_eq!(done.message_type, MessageType::Done, "attempt {attempt}");
+        assert_eq!(done.conversation_id, "o-1/1/1");
+        assert_eq!(done.result, Some(true));
+        assert_eq!(done.provider, Some(r.holon.clone()));
+        assert_eq!(done.info["results"]["pick"], "picking_done");
+        assert_eq!(done.info["results"]["place"], "placing_done");
+    }
+    // Acknowledged on the third attempt: no more deliveries.
+    assert!(inbox.silent_for(Duration::from_millis(1500)).await);
+    let state = r
+        .cell
+        .wait_state("robot1", "free with nothing undelivered", |s| {
+            s["state"] == "free" && s["undelivered"] == 0
+        })
+        .await
+        .unwrap();
+    assert_eq!(state["agenda"].as_array().unwrap().len(), 0);
+    assert_eq!(r.sim.executed("pick"), 1);
+    assert_eq!(r.sim.executed("place"), 1);
+
+    // Snapshots were published on every change: booked, busy, steps, free.
+    let mut seen = Vec::new();
+    while let Ok(Some(sample)) = states.try_recv() {
+        let snapshot: serde_json::Value =
+            serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
+        seen.push(snapshot["state"].as_str().unwrap_or("").to_string());
+    }
+    assert!(seen.contains(&"busy".to_string()), "{seen:?}");
+    assert!(seen.contains(&"free".to_string()), "{seen:?}");
+    let log = std::fs::read_to_string(r.dir.path().join("robot1.log.json")).unwrap();
+    let first: serde_json::Value = serde_json::from_str(log.lines().next().unwrap()).unwrap();
+    assert!(first["timestamp"].is_string(), "{first}");
+    assert!(
+        log.lines()
+            .any(|l| l.contains("\"conversation_id\":\"o-1/1/1\"")
+                && l.contains("\"message_type\":\"start\"")),
+        "the JSON log lacks the start message"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn cancel_removes_the_booking() {
+    let r = robot("t-cancel", &[], &[], 5000).await;
+    assert_eq!(
+        r.send(MessageType::BookingReq, "o-1", "c1").await.result,
+        Some(true)
+    );
+    assert_eq!(
+        r.send(MessageType::BookingReq, "o-2", "c2").await.result,
+        Some(true)
+    );
+    let cancelled = r.send(MessageType::BookingCancel, "o-1", "c1").await;
+    assert_eq!(cancelled.result, Some(true));
+    let state = r.cell.status("robot1").await.unwrap();
+    assert_eq!(state["agenda"].as_array().unwrap().len(), 1);
+    assert_eq!(state["agenda"][0]["conversation_id"], "c2");
+    assert_refused(&r.send(MessageType::Start, "o-1", "c1").await, "not_booked");
+    assert_refused(
+        &r.send(MessageType::BookingCancel, "o-1", "c1").await,
+        "not_booked",
+    );
+    assert_eq!(r.sim.executed("pick"), 0);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn starts_that_are_not_allowed_are_refused() {
+    let r = robot("t-reject", &["--delay-ms", "400"], &[], 5000).await;
+    let _inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    // Start by a requester that holds no booking.
+    assert_refused(&r.send(MessageType::Start, "o-9", "c9").await, "not_booked");
+    // Start while busy.
+    r.send(MessageType::BookingReq, "o-1", "c1").await;
+    r.send(MessageType::BookingReq, "o-2", "c2").await;
+    assert_eq!(
+        r.send(MessageType::Start, "o-1", "c1").await.result,
+        Some(true)
+    );
+    assert_refused(&r.send(MessageType::Start, "o-2", "c2").await, "busy");
+    // An unknown service type.
+    let mut weld = r.msg(MessageType::BookingReq, "o-3", "c3");
+    weld.service_type = "weld".into();
+    assert_refused(
+        &r.cell.service("robot1", &weld).await.unwrap(),
+        "unknown_service",
+    );
+    // A start without the poses its steps need.
+    r.cell
+        .wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    let mut no_poses = r.msg(MessageType::BookingReq, "o-5", "c5");
+    no_poses.info.clear();
+    assert_eq!(
+        r.cell.service("robot1", &no_poses).await.unwrap().result,
+        Some(true)
+    );
+    no_poses.message_type = MessageType::Start;
+    let answer = r.cell.service("robot1", &no_poses).await.unwrap();
+    assert_refused(&answer, "invalid_info");
+    assert!(answer.info["detail"]
+        .as_str()
+        .unwrap()
+        .contains("info.pick"));
+    // The refused bookings are still there.
+    let state = r.cell.status("robot1").await.unwrap();
+    assert_eq!(state["agenda"][0]["conversation_id"], "c2");
+    assert_eq!(state["agenda"][1]["conversation_id"], "c5");
+    assert_eq!(r.sim.executed("pick"), 1, "only the accepted start ran");
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn malformed_requests_get_an_error_and_change_nothing() {
+    let r = robot("t-malformed", &[], &[], 5000).await;
+    r.send(MessageType::BookingReq, "o-1", "c1").await;
+    let service_key = r.cell.keys.service("robot1");
+    let done = r.msg(MessageType::Done, "o-1", "c1").to_json();
+    let mut bad_version =
+        serde_json::to_value(r.msg(MessageType::BookingReq, "o-2", "c2")).unwrap();
+    bad_version["v"] = serde_json::json!(9);
+    let cases: Vec<(&str, Vec<u8>, &str)> = vec![
+        (&service_key, b"this is not json".to_vec(), "malformed"),
+        (&service_key, b"{\"v\":1}".to_vec(), "malformed"),
+        (&service_key, vec![], "malformed"),
+        (
+            &service_key,
+            serde_json::to_vec(&bad_version).unwrap(),
+            "invalid",
+        ),
+        (&service_key, done, "wrong_key"),
+    ];
+    for (key, payload, code) in cases {
+        let answer = r.cell.request(key, payload).await.unwrap();
+        let error = answer.expect_err("an error reply");
+        assert_eq!(error.code, code, "{error:?}");
+        assert!(!error.message.is_empty());
+    }
+    // A booking sent to the offer key is not a proposal request.
+    let offer_key = r.cell.keys.offer("pick_n_place", "robot1");
+    let booking = r.msg(MessageType::BookingReq, "o-3", "c3").to_json();
+    let error = r
+        .cell
+        .request(&offer_key, booking)
+        .await
+        .unwrap()
+        .unwrap_err();
+    assert_eq!(error.code, "wrong_key");
+    // Nothing changed, and the holon still serves.
+    let state = r.cell.status("robot1").await.unwrap();
+    assert_eq!(state["agenda"].as_array().unwrap().len(), 1);
+    assert_eq!(
+        r.send(MessageType::BookingReq, "o-4", "c4").await.result,
+        Some(true)
+    );
+    assert!(r.node.stderr().contains("request rejected"));
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_controller_killed_mid_step_fails_the_step_and_the_next_job_succeeds() {
+    let mut r = robot("t-kill-ctl", &["--delay-ms", "1500"], &[], 10_000).await;
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    r.send(MessageType::BookingReq, "o-1", "c1").await;
+    assert_eq!(
+        r.send(MessageType::Start, "o-1", "c1").await.result,
+        Some(true)
+    );
+    r.cell
+        .wait_state("robot1", "picking", |s| s["current"]["step"] == "pick")
+        .await
+        .unwrap();
+    let address = r.sim.address.clone();
+    r.sim.process.kill();
+
+    let failed = inbox.next().await.unwrap();
+    assert_eq!(failed.message_type, MessageType::Failed);
+    assert_eq!(failed.conversation_id, "c1");
+    assert_eq!(failed.result, Some(false));
+    assert_eq!(failed.reason.as_deref(), Some("controller_disconnected"));
+    r.cell
+        .wait_state("robot1", "init without a controller", |s| {
+            s["state"] == "init" && s["controller"] == "disconnected"
+        })
+        .await
+        .unwrap();
+    // While the controller is away, no new commitments are made.
+    assert_refused(
+        &r.send(MessageType::BookingReq, "o-1", "c2").await,
+        "unavailable",
+    );
+
+    // The controller comes back on the same address: the bridge reconnects.
+    let sim = Sim::start(r.dir.path(), "sim1-again", &address, &[]).unwrap();
+    r.cell
+        .wait_state("robot1", "free again", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    assert_eq!(
+        r.send(MessageType::BookingReq, "o-1", "c3").await.result,
+        Some(true)
+    );
+    assert_eq!(
+        r.send(MessageType::Start, "o-1", "c3").await.result,
+        Some(true)
+    );
+    let done = inbox.next().await.unwrap();
+    assert_eq!(done.message_type, MessageType::Done);
+    assert_eq!(done.conversation_id, "c3");
+    assert_eq!(sim.executed("pick"), 1);
+    assert_eq!(sim.executed("place"), 1);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_crashed_component_is_restarted_with_the_bookings_intact() {
+    let r = robot("t-crash", &[], &["--allow-fault-injection"], 5000).await;
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    r.send(MessageType::BookingReq, "o-1", "c1").await;
+    r.send(MessageType::BookingReq, "o-2", "c2").await;
+    let crash_key = r.cell.keys.debug_crash("robot1");
+    let mut restarts = 0;
+    for component in ["agenda", "execution", "communication", "interfacing"] {
+        let replies = r
+            .cell
+            .session
+            .get(&crash_key)
+            .payload(component)
+            .timeout(Duration::from_secs(5))
+            .await
+            .unwrap();
+        let reply = replies.recv_async().await.unwrap();
+        assert!(reply.result().is_ok(), "crash {component}");
+        let deadline = std::time::Instant::now() + WAIT;
+        while r.node.stderr().matches("restarting component").count() < restarts + 1 {
+            assert!(
+                std::time::Instant::now() < deadline,
+                "{component} was not restarted"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        restarts += 1;
+        // The supervisor restarts it; the holon serves again with both bookings.
+        let state = r
+            .cell
+            .wait_state("robot1", "free after the restart", |s| s["state"] == "free")
+            .await
+            .unwrap();
+        assert_eq!(
+            state["agenda"].as_array().unwrap().len(),
+            2,
+            "after {component}: {state}"
+        );
+    }
+    let log = r.node.stderr();
+    for component in ["agenda", "execution", "communication", "interfacing"] {
+        assert!(
+            log.contains(&format!("fault injection: {component}")),
+            "no crash of {component} in the log"
+        );
+    }
+    assert_eq!(log.matches("restarting component").count(), 4, "{log}");
+    // The bookings still work.
+    let started = r.send(MessageType::Start, "o-1", "c1").await;
+    assert_eq!(started.result, Some(true), "{started:?}");
+    assert_eq!(inbox.next().await.unwrap().message_type, MessageType::Done);
+    assert_eq!(r.sim.executed("pick"), 1);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn sigterm_withdraws_the_token_and_exits_zero() {
+    let mut r = robot("t-sigterm", &[], &[], 5000).await;
+    let presence = r
+        .cell
+        .session
+        .liveliness()
+        .declare_subscriber(r.cell.keys.alive(&r.holon))
+        .await
+        .unwrap();
+    r.node.signal(Signal::SIGTERM).unwrap();
+    let status = r.node.wait_exit(WAIT).unwrap();
+    assert!(status.success(), "{status}");
+    let sample = tokio::time::timeout(WAIT, presence.recv_async())
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(sample.kind(), SampleKind::Delete);
+    assert!(r.node.stderr().contains("holon stopped"));
+    // The controller saw its connection closed: a new one is accepted by the sim later.
+    assert!(r.cell.wait_gone(&r.holon).await.is_ok());
+}
