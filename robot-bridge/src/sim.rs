@@ -169,7 +169,7 @@ fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<
         "inspect" => {
             let n = stats.inspections.fetch_add(1, Ordering::SeqCst) + 1;
             match config.inspect_fail_every {
-                Some(every) if every > 0 && n % every == 0 => Some("inspect_fail"),
+                Some(every) if every > 0 && n.is_multiple_of(every) => Some("inspect_fail"),
                 _ => Some("inspect_pass"),
             }
         }
@@ -245,7 +245,7 @@ async fn serve(
             }
         }
         let simulated_error =
-            matches!(config.error_every, Some(every) if every > 0 && n % every == 0);
+            matches!(config.error_every, Some(every) if every > 0 && n.is_multiple_of(every));
         let reply = match success_result(&command.action, config, stats) {
             Some(result) if !simulated_error => {
                 stats.executed.fetch_add(1, Ordering::SeqCst);

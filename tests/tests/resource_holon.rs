@@ -317,8 +317,10 @@ async fn a_crashed_component_is_restarted_with_the_bookings_intact() {
     r.send(MessageType::BookingReq, "o-1", "c1").await;
     r.send(MessageType::BookingReq, "o-2", "c2").await;
     let crash_key = r.cell.keys.debug_crash("robot1");
-    let mut restarts = 0;
-    for component in ["agenda", "execution", "communication", "interfacing"] {
+    for (restarts, component) in ["agenda", "execution", "communication", "interfacing"]
+        .into_iter()
+        .enumerate()
+    {
         let replies = r
             .cell
             .session
@@ -337,7 +339,6 @@ async fn a_crashed_component_is_restarted_with_the_bookings_intact() {
             );
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
-        restarts += 1;
         // The supervisor restarts it; the holon serves again with both bookings.
         let state = r
             .cell
