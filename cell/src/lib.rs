@@ -1,1 +1,5 @@
+//! `cell`: the operator's command. `cell demo` runs a demo cell on this machine;
+//! `cell status` lists the live holons of a running cell.
 
+pub mod demo;
+pub mod status;

@@ -9,7 +9,8 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ZenohSettings {
-    /// `peer` (default) or `client` (talks only through the routers it connects to).
+    /// `peer` (default), `client` (talks only through the routers it connects to) or
+    /// `router` (also routes for the peers and clients that connect to it).
     #[serde(default = "default_mode")]
     pub mode: String,
     /// Endpoints to connect to, e.g. `tcp/127.0.0.1:7447` (a router or another peer).
@@ -66,10 +67,10 @@ impl ZenohSettings {
                     message: e.to_string(),
                 })
         };
-        if !matches!(self.mode.as_str(), "peer" | "client") {
+        if !matches!(self.mode.as_str(), "peer" | "client" | "router") {
             return Err(SessionError::Config {
                 key: "mode",
-                message: format!("{:?} is not peer or client", self.mode),
+                message: format!("{:?} is not peer, client or router", self.mode),
             });
         }
         let json = |v: &serde_json::Value| v.to_string();
@@ -125,5 +126,21 @@ mod tests {
             ..ZenohSettings::default()
         };
         assert!(bad_endpoint.validate().is_err());
+    }
+}
+
+/// Waits until the session is connected to at least one router or peer; false if it
+/// is still alone after `timeout` (e.g. nothing listens on its connect endpoints).
+pub async fn wait_connected(session: &zenoh::Session, timeout: Duration) -> bool {
+    let deadline = tokio::time::Instant::now() + timeout;
+    loop {
+        let info = session.info();
+        if info.routers_zid().await.next().is_some() || info.peers_zid().await.next().is_some() {
+            return true;
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return false;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }

@@ -259,6 +259,8 @@ pub fn start_node(
             "--controller",
             controller,
         ])
+        // Peers mesh through gossip: each must listen on an address the others reach.
+        .args(["--listen", "tcp/127.0.0.1:0"])
         .arg("--log-file")
         .arg(dir.join(format!("{name}.log.json")))
         .args(extra)
@@ -286,6 +288,7 @@ impl Cell {
     pub async fn open(cell: &str) -> Result<Cell> {
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let settings = holon::ZenohSettings {
+            mode: "router".into(),
             listen: vec![endpoint.clone()],
             ..holon::ZenohSettings::default()
         };

@@ -1,5 +1,6 @@
 //! `robot-sim`: a robot controller simulator speaking holarchy's TCP/XML protocol.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -83,6 +84,7 @@ async fn main() -> anyhow::Result<()> {
         }
     });
     simulator.run(shutdown).await;
-    println!("executed {} commands", stats.executed());
+    // The reader of our stdout may be gone (a launcher that only read the first line).
+    let _ = writeln!(std::io::stdout(), "executed {} commands", stats.executed());
     Ok(())
 }

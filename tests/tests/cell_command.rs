@@ -1,0 +1,79 @@
+//! The operator's command, as a user runs it.
+
+use std::process::Command;
+
+use holarchy_tests::*;
+use schemas::HolonId;
+
+#[test]
+fn cell_demo_runs_every_job_and_exits_zero() {
+    let output = Command::new(bin("cell"))
+        .args([
+            "demo",
+            "--jobs",
+            "3",
+            "--delay-ms",
+            "10",
+            "--cell",
+            "t-demo",
+        ])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(
+        stdout.contains("[3/3] demo/3/1: done by resource/robot1"),
+        "{stdout}"
+    );
+    assert!(stdout.contains("jobs done      3"), "{stdout}");
+    assert!(stdout.contains("jobs failed    0"), "{stdout}");
+    assert!(stdout.contains("\"pick\":3"), "{stdout}");
+    assert!(
+        stdout.contains("holon-node     exited with exit status: 0"),
+        "{stdout}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn cell_status_lists_the_live_holons() {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-status").await.unwrap();
+    let sim = Sim::start(dir.path(), "sim", "127.0.0.1:0", &[]).unwrap();
+    let config = resource_config(dir.path(), "robot7", 5000).unwrap();
+    let _node = start_node(
+        dir.path(),
+        &config,
+        "t-status",
+        &cell.endpoint,
+        &sim.address,
+        &[],
+    )
+    .unwrap();
+    cell.wait_alive(&HolonId::resource("robot7").unwrap())
+        .await
+        .unwrap();
+    cell.wait_state("robot7", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    let output = tokio::process::Command::new(bin("cell"))
+        .args(["status", "--cell", "t-status", "--connect", &cell.endpoint])
+        .output()
+        .await
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{stdout}");
+    assert!(stdout.contains("cell t-status: 1 live holon"), "{stdout}");
+    let line = stdout
+        .lines()
+        .find(|l| l.starts_with("resource/robot7"))
+        .unwrap_or_else(|| panic!("{stdout}"));
+    let columns: Vec<&str> = line.split_whitespace().collect();
+    assert_eq!(
+        columns,
+        ["resource/robot7", "resource", "free", "ready", "0", "0"]
+    );
+}
