@@ -98,6 +98,22 @@ impl ZenohSettings {
     }
 }
 
+/// Waits until the session is connected to at least one router or peer; false if it
+/// is still alone after `timeout` (e.g. nothing listens on its connect endpoints).
+pub async fn wait_connected(session: &zenoh::Session, timeout: Duration) -> bool {
+    let deadline = tokio::time::Instant::now() + timeout;
+    loop {
+        let info = session.info();
+        if info.routers_zid().await.next().is_some() || info.peers_zid().await.next().is_some() {
+            return true;
+        }
+        if tokio::time::Instant::now() >= deadline {
+            return false;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -126,21 +142,5 @@ mod tests {
             ..ZenohSettings::default()
         };
         assert!(bad_endpoint.validate().is_err());
-    }
-}
-
-/// Waits until the session is connected to at least one router or peer; false if it
-/// is still alone after `timeout` (e.g. nothing listens on its connect endpoints).
-pub async fn wait_connected(session: &zenoh::Session, timeout: Duration) -> bool {
-    let deadline = tokio::time::Instant::now() + timeout;
-    loop {
-        let info = session.info();
-        if info.routers_zid().await.next().is_some() || info.peers_zid().await.next().is_some() {
-            return true;
-        }
-        if tokio::time::Instant::now() >= deadline {
-            return false;
-        }
-        tokio::time::sleep(Duration::from_millis(10)).await;
     }
 }
