@@ -78,6 +78,9 @@ pub enum AgendaEvent {
     },
     /// The requester acknowledged the result of `conversation_id`.
     ResultAcknowledged { conversation_id: String },
+    /// The holon is shutting down: take no new work, hand every booking back (a
+    /// `failed` with reason `withdrawn` to its `reply_to`), let the running job finish.
+    Withdraw,
 }
 
 /// What the task around the agenda manager must do.
@@ -112,6 +115,8 @@ pub struct AgendaManager {
     bookings: Vec<Booking>,
     /// `done` / `failed` not yet acknowledged, oldest first.
     undelivered: Vec<Service>,
+    /// Shutting down: no new bookings or starts.
+    withdrawing: bool,
 }
 
 impl AgendaManager {
@@ -124,7 +129,13 @@ impl AgendaManager {
             current: None,
             bookings: Vec::new(),
             undelivered: Vec::new(),
+            withdrawing: false,
         }
+    }
+
+    /// True once withdrawing and nothing is left to finish or deliver.
+    pub fn is_drained(&self) -> bool {
+        self.withdrawing && self.current.is_none() && self.undelivered.is_empty()
     }
 
     pub fn status(&self) -> Status {
@@ -165,6 +176,7 @@ impl AgendaManager {
                 conversation_id,
                 outcome,
             } => self.finished(&conversation_id, outcome),
+            AgendaEvent::Withdraw => self.withdraw(),
             AgendaEvent::ResultAcknowledged { conversation_id } => {
                 let before = self.undelivered.len();
                 self.undelivered
@@ -176,6 +188,37 @@ impl AgendaManager {
                 }
             }
         }
+    }
+
+    fn withdraw(&mut self) -> Vec<AgendaAction> {
+        if self.withdrawing {
+            return vec![];
+        }
+        self.withdrawing = true;
+        let mut actions = Vec::new();
+        for booking in std::mem::take(&mut self.bookings) {
+            let Some(reply_to) = booking.reply_to else {
+                // Nowhere to tell: the requester finds out when its start is refused.
+                continue;
+            };
+            let message = self.result_message(
+                Job {
+                    requester: booking.requester,
+                    conversation_id: booking.conversation_id,
+                    service_type: booking.service_type,
+                    reply_to,
+                    info: Map::new(),
+                },
+                Outcome::Failed {
+                    reason: reason::WITHDRAWN.into(),
+                    detail: "the resource is shutting down; book elsewhere".into(),
+                },
+            );
+            self.undelivered.push(message.clone());
+            actions.push(AgendaAction::Deliver(message));
+        }
+        actions.push(AgendaAction::StateChanged);
+        actions
     }
 
     fn set_ready(&mut self, ready: bool) -> Vec<AgendaAction> {
@@ -207,7 +250,7 @@ impl AgendaManager {
                 reply.message_type = MessageType::Proposal;
                 let why = if !offered {
                     Some(reason::UNKNOWN_SERVICE)
-                } else if !self.execution_ready {
+                } else if !self.execution_ready || self.withdrawing {
                     Some(reason::UNAVAILABLE)
                 } else if self.bookings.len() >= self.capacity {
                     Some(reason::AGENDA_FULL)
@@ -232,7 +275,7 @@ impl AgendaManager {
                 if self.is_current(&request) {
                     return refuse(reason::BUSY);
                 }
-                if !self.execution_ready {
+                if !self.execution_ready || self.withdrawing {
                     return refuse(reason::UNAVAILABLE);
                 }
                 if self.bookings.len() >= self.capacity {
@@ -288,6 +331,9 @@ impl AgendaManager {
         let Some(index) = self.booking_index(&request) else {
             return refuse(reason::NOT_BOOKED, None);
         };
+        if self.withdrawing {
+            return refuse(reason::UNAVAILABLE, None);
+        }
         let booking = &self.bookings[index];
         if booking.service_type != request.service_type {
             return refuse(
@@ -343,6 +389,13 @@ impl AgendaManager {
             // Not the running job (a stale report): nothing changes.
             return vec![];
         };
+        let message = self.result_message(job, outcome);
+        self.undelivered.push(message.clone());
+        vec![AgendaAction::Deliver(message), AgendaAction::StateChanged]
+    }
+
+    /// The `done` / `failed` message that reports `outcome` of `job` to its requester.
+    fn result_message(&self, job: Job, outcome: Outcome) -> Service {
         let (message_type, result, why, info) = match outcome {
             Outcome::Done { results } => {
                 (MessageType::Done, true, None, json!({ "results": results }))
@@ -354,7 +407,7 @@ impl AgendaManager {
                 json!({ "detail": detail }),
             ),
         };
-        let message = Service {
+        Service {
             v: schemas::SERVICE_VERSION,
             message_type,
             service_type: job.service_type,
@@ -368,9 +421,7 @@ impl AgendaManager {
                 Value::Object(map) => map,
                 _ => Map::new(),
             },
-        };
-        self.undelivered.push(message.clone());
-        vec![AgendaAction::Deliver(message), AgendaAction::StateChanged]
+        }
     }
 
     fn booked_reply(&self, request: &Service, position: usize) -> Service {
@@ -839,6 +890,60 @@ mod tests {
         assert_eq!(m.handle(ack("c1")), vec![AgendaAction::StateChanged]);
         assert!(m.undelivered().is_empty());
         assert_eq!(m.handle(ack("c1")), vec![]);
+    }
+
+    #[test]
+    fn withdraw_hands_every_booking_back_and_lets_the_running_job_finish() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book("o-2", "c2")));
+        let mut silent = book("o-3", "c3");
+        silent.reply_to = None;
+        m.handle(AgendaEvent::Request(silent));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        let actions = m.handle(AgendaEvent::Withdraw);
+        let handed_back: Vec<&Service> = actions
+            .iter()
+            .filter_map(|a| match a {
+                AgendaAction::Deliver(s) => Some(s),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            handed_back.len(),
+            1,
+            "only bookings with a reply_to can be told"
+        );
+        assert_eq!(handed_back[0].conversation_id, "c2");
+        assert_eq!(handed_back[0].message_type, MessageType::Failed);
+        assert_eq!(handed_back[0].reason.as_deref(), Some("withdrawn"));
+        assert!(m.bookings().is_empty());
+        assert!(
+            !m.is_drained(),
+            "the running job and the hand-back are pending"
+        );
+        assert_eq!(m.handle(AgendaEvent::Withdraw), vec![]);
+        // No new work.
+        assert_refused(
+            &m.handle(AgendaEvent::Request(book("o-4", "c4"))),
+            "unavailable",
+        );
+        let mut proposal = book("o-4", "p");
+        proposal.message_type = MessageType::ProposalReq;
+        assert_eq!(
+            reply(&m.handle(AgendaEvent::Request(proposal)))
+                .reason
+                .as_deref(),
+            Some("unavailable")
+        );
+        // The running job finishes and is delivered.
+        m.handle(done("c1"));
+        for c in ["c1", "c2"] {
+            m.handle(AgendaEvent::ResultAcknowledged {
+                conversation_id: c.into(),
+            });
+        }
+        assert!(m.is_drained());
     }
 
     #[test]

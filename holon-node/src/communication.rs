@@ -60,12 +60,6 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
     let (incoming_tx, mut incoming) = mpsc::unbounded_channel::<Incoming>();
 
     let mut endpoints = vec![(config.keys.service(config.holon.name()), Endpoint::Service)];
-    for service_type in config.catalog.service_types() {
-        endpoints.push((
-            config.keys.offer(service_type, config.holon.name()),
-            Endpoint::Offer(service_type.to_string()),
-        ));
-    }
     endpoints.push((config.keys.state(&config.holon), Endpoint::State));
     if config.allow_fault_injection {
         endpoints.push((
@@ -76,18 +70,16 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
     // Dropping a queryable undeclares it: they live exactly as long as this component.
     let mut queryables = Vec::new();
     for (key, endpoint) in endpoints {
-        let tx = incoming_tx.clone();
-        let queryable = session
-            .declare_queryable(&key)
-            .callback(move |query| {
-                let _ = tx.send(Incoming {
-                    endpoint: endpoint.clone(),
-                    query,
-                });
-            })
-            .await?;
-        debug!(%holon, %key, "queryable declared");
-        queryables.push(queryable);
+        queryables.push(declare(session, &key, endpoint, &incoming_tx).await?);
+    }
+    // Offers go first when the holon withdraws.
+    let mut offers = Vec::new();
+    if !node.withdrawing.load(std::sync::atomic::Ordering::SeqCst) {
+        for service_type in config.catalog.service_types() {
+            let key = config.keys.offer(service_type, config.holon.name());
+            let endpoint = Endpoint::Offer(service_type.to_string());
+            offers.push(declare(session, &key, endpoint, &incoming_tx).await?);
+        }
     }
     let publisher = session
         .declare_publisher(config.keys.state(&config.holon))
@@ -120,6 +112,10 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
                     schedule(&mut deliveries, message, config.delivery.retry_initial);
                 }
                 CommunicationMessage::StateChanged => publish(&node, &publisher).await,
+                CommunicationMessage::StopOffering => {
+                    info!(%holon, offers = offers.len(), "no longer offering");
+                    offers.clear();
+                }
             },
             _ = async { tokio::time::sleep_until(next_attempt.unwrap_or_else(Instant::now)).await }, if next_attempt.is_some() => {
                 let now = Instant::now();
@@ -165,8 +161,29 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
         }
     }
     attempts.shutdown().await;
+    drop(offers);
     drop(queryables);
     Ok(())
+}
+
+async fn declare(
+    session: &zenoh::Session,
+    key: &str,
+    endpoint: Endpoint,
+    incoming: &mpsc::UnboundedSender<Incoming>,
+) -> Result<zenoh::query::Queryable<()>, ChildError> {
+    let tx = incoming.clone();
+    let queryable = session
+        .declare_queryable(key)
+        .callback(move |query| {
+            let _ = tx.send(Incoming {
+                endpoint: endpoint.clone(),
+                query,
+            });
+        })
+        .await?;
+    debug!(%key, "queryable declared");
+    Ok(queryable)
 }
 
 fn schedule(

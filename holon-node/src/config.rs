@@ -42,7 +42,28 @@ pub struct ConfigFile {
     pub agenda: AgendaSection,
     #[serde(default)]
     pub delivery: DeliverySection,
+    #[serde(default)]
+    pub shutdown: ShutdownSection,
     pub services: BTreeMap<String, ServiceSection>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ShutdownSection {
+    #[serde(default = "default_grace_ms")]
+    pub grace_ms: u64,
+}
+
+fn default_grace_ms() -> u64 {
+    30_000
+}
+
+impl Default for ShutdownSection {
+    fn default() -> Self {
+        ShutdownSection {
+            grace_ms: default_grace_ms(),
+        }
+    }
 }
 
 fn default_kind() -> String {
@@ -178,6 +199,50 @@ pub struct DeliverySettings {
     pub attempt_timeout: Duration,
 }
 
+/// The config of whichever holon a file describes (its `kind`).
+#[derive(Debug, Clone)]
+pub enum HolonConfig {
+    Resource(ResourceConfig),
+    Product(crate::product::ProductConfig),
+}
+
+impl HolonConfig {
+    /// Reads `kind` (default `resource`) and loads the file as that kind of holon.
+    pub fn load(path: &Path, overrides: Overrides) -> Result<HolonConfig, ConfigError> {
+        let display = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: display.clone(),
+            source,
+        })?;
+        let table: toml::Table = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+            path: display.clone(),
+            message: e.to_string(),
+        })?;
+        match table
+            .get("kind")
+            .and_then(|k| k.as_str())
+            .unwrap_or("resource")
+        {
+            "resource" => {
+                ResourceConfig::parse(&text, &display, overrides).map(HolonConfig::Resource)
+            }
+            "product" => crate::product::ProductConfig::parse(&text, &display, overrides)
+                .map(HolonConfig::Product),
+            other => Err(ConfigError::Invalid {
+                path: display,
+                message: format!("kind: {other:?} is not resource or product"),
+            }),
+        }
+    }
+
+    pub fn holon(&self) -> &HolonId {
+        match self {
+            HolonConfig::Resource(c) => &c.holon,
+            HolonConfig::Product(c) => &c.holon,
+        }
+    }
+}
+
 /// The validated config of one resource holon, command-line overrides applied.
 #[derive(Debug, Clone)]
 pub struct ResourceConfig {
@@ -190,6 +255,8 @@ pub struct ResourceConfig {
     pub agenda_capacity: usize,
     pub delivery: DeliverySettings,
     pub catalog: Arc<ServiceCatalog>,
+    /// On SIGTERM, how long to wait for the running job and the hand-back of bookings.
+    pub shutdown_grace: Duration,
     /// Declare `resource/<name>/debug/crash` (tests and demonstrations only).
     pub allow_fault_injection: bool,
 }
@@ -349,6 +416,7 @@ impl ResourceConfig {
                 attempt_timeout: Duration::from_millis(file.delivery.attempt_timeout_ms),
             },
             catalog: Arc::new(ServiceCatalog::new(services)),
+            shutdown_grace: Duration::from_millis(file.shutdown.grace_ms),
             allow_fault_injection,
         })
     }
@@ -426,5 +494,34 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("/nonexistent.toml"), "{err}");
+    }
+}
+
+#[cfg(test)]
+mod demo_cell_tests {
+    use super::*;
+
+    #[test]
+    fn every_demo_config_loads() {
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/cells/demo");
+        let mut kinds = Vec::new();
+        for entry in std::fs::read_dir(dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                let config = HolonConfig::load(&path, Overrides::default())
+                    .unwrap_or_else(|e| panic!("{e}"));
+                kinds.push(config.holon().to_string());
+            }
+        }
+        kinds.sort();
+        assert!(
+            kinds.contains(&"resource/conveyor1".to_string()),
+            "{kinds:?}"
+        );
+        assert!(
+            kinds.contains(&"resource/inspect1".to_string()),
+            "{kinds:?}"
+        );
+        assert!(kinds.contains(&"product/breaker".to_string()), "{kinds:?}");
     }
 }

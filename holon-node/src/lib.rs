@@ -10,3 +10,4 @@ pub mod communication;
 pub mod config;
 pub mod execution;
 pub mod node;
+pub mod product;

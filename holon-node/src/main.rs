@@ -6,10 +6,11 @@ use std::process::ExitCode;
 use anyhow::Context;
 use clap::Parser;
 use holon::LogFormat;
-use holon_node::config::{Overrides, ResourceConfig};
+use holon_node::config::{HolonConfig, Overrides};
 
-/// Runs one resource holon (a robot, an inspection station, a conveyor): it takes
-/// Service requests over zenoh and drives its controller over TCP/XML.
+/// Runs one holon: a resource (a robot, an inspection station, a conveyor) that takes
+/// Service requests over zenoh and drives its controller over TCP/XML, or a product
+/// that answers with its process plan. The config's `kind` says which.
 ///
 /// The holon is ready when its liveliness token holarchy/<cell>/alive/resource/<name>
 /// appears. SIGTERM or Ctrl-C stops it cleanly (token withdrawn, components stopped in
@@ -18,7 +19,8 @@ use holon_node::config::{Overrides, ResourceConfig};
 #[derive(Debug, Parser)]
 #[command(name = "holon-node", version)]
 struct Args {
-    /// The holon's config file (TOML); deploy/cells/demo/robot1.toml documents every field.
+    /// The holon's config file (TOML); deploy/cells/demo/robot1.toml (resource) and
+    /// breaker.toml (product) document every field.
     #[arg(long, value_name = "FILE")]
     config: PathBuf,
     /// The cell, overriding `cell` in the config.
@@ -78,9 +80,9 @@ fn run(args: Args) -> anyhow::Result<()> {
         controller: args.controller,
         allow_fault_injection: args.allow_fault_injection,
     };
-    let config = ResourceConfig::load(&args.config, overrides)?;
+    let config = HolonConfig::load(&args.config, overrides)?;
     if args.check {
-        println!("{}: ok ({})", args.config.display(), config.holon);
+        println!("{}: ok ({})", args.config.display(), config.holon());
         return Ok(());
     }
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -89,7 +91,10 @@ fn run(args: Args) -> anyhow::Result<()> {
         .context("cannot start the tokio runtime")?;
     runtime.block_on(async {
         let shutdown = holon::shutdown_on_signals();
-        holon_node::node::run(config, shutdown).await
+        match config {
+            HolonConfig::Resource(config) => holon_node::node::run(config, shutdown).await,
+            HolonConfig::Product(config) => holon_node::product::run(config, shutdown).await,
+        }
     })?;
     Ok(())
 }

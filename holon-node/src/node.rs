@@ -6,6 +6,7 @@
 //! FSM states (agenda, execution) live beside the supervisor, so restarting a component
 //! loses neither the agenda nor a message in flight.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
@@ -14,7 +15,7 @@ use robot_bridge::client::{self, ControllerEvent};
 use schemas::{ResourceSnapshot, RobotCommand, Service};
 use tokio::sync::{mpsc, oneshot, Notify};
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, error, info};
+use tracing::{debug, error, info, warn};
 
 use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager};
 use crate::config::ResourceConfig;
@@ -56,6 +57,8 @@ pub enum CommunicationMessage {
     Deliver(Service),
     /// Publish a state snapshot.
     StateChanged,
+    /// The holon is shutting down: undeclare the offer queryables.
+    StopOffering,
 }
 
 /// A mailbox: the sender is cloned freely; the receiver is held by the running
@@ -115,6 +118,8 @@ pub struct Node {
     pub faults: Faults,
     /// Notified each time the communication component has declared its queryables.
     pub serving: Notify,
+    /// Set when the holon starts shutting down: offers stay undeclared.
+    pub withdrawing: AtomicBool,
 }
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -143,6 +148,7 @@ impl Node {
             communication_mail: Mailbox::new(),
             faults: Faults::default(),
             serving: Notify::new(),
+            withdrawing: AtomicBool::new(false),
         }
     }
 
@@ -153,6 +159,38 @@ impl Node {
             (execution.controller().as_str(), execution.current_step())
         };
         lock(&self.agenda).snapshot(controller, step)
+    }
+
+    /// Stops offering, hands every booking back, and waits (at most the configured
+    /// grace) until the running job has finished and every result is acknowledged.
+    async fn withdraw(&self) {
+        let holon = &self.config.holon;
+        self.withdrawing.store(true, Ordering::SeqCst);
+        let _ = self
+            .communication_mail
+            .sender
+            .send(CommunicationMessage::StopOffering)
+            .await;
+        let bookings = lock(&self.agenda).bookings().len();
+        info!(holon = %holon, bookings, "withdrawing: no new work, handing bookings back");
+        let _ = self
+            .agenda_mail
+            .sender
+            .send(AgendaMessage::Event(AgendaEvent::Withdraw))
+            .await;
+        let deadline = tokio::time::Instant::now() + self.config.shutdown_grace;
+        loop {
+            if lock(&self.agenda).is_drained() {
+                info!(holon = %holon, "withdrawn: the running job finished and every result was acknowledged");
+                return;
+            }
+            if tokio::time::Instant::now() >= deadline {
+                let agenda = lock(&self.agenda);
+                warn!(holon = %holon, running = agenda.current().is_some(), undelivered = agenda.undelivered().len(), grace = ?self.config.shutdown_grace, "shutdown grace elapsed; stopping anyway");
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
     }
 
     /// Results not yet acknowledged (for a restarted communication component).
@@ -363,7 +401,10 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
     info!(holon = %holon, key = %alive_key, "holon ready");
 
     let outcome = tokio::select! {
-        _ = shutdown.cancelled() => Ok(()),
+        _ = shutdown.cancelled() => {
+            node.withdraw().await;
+            Ok(())
+        }
         result = &mut supervision => match result {
             Ok(Ok(())) => Ok(()),
             Ok(Err(e)) => Err(NodeError::Supervisor(e)),

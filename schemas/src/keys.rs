@@ -121,6 +121,17 @@ impl CellKeys {
         format!("{}/*/*/state", self.prefix())
     }
 
+    /// `holarchy/<cell>/order/*/state`: every order's state.
+    pub fn order_states(&self) -> String {
+        format!("{}/order/*/state", self.prefix())
+    }
+
+    /// `holarchy/<cell>/host/<program>/<name>`: liveliness of a process that hosts holons
+    /// but is not one (an order-node), so launchers can wait for it.
+    pub fn host(&self, program: &str, name: &str) -> String {
+        format!("{}/host/{program}/{name}", self.prefix())
+    }
+
     /// `holarchy/<cell>/resource/<name>/debug/crash`: fault injection, declared only when a
     /// holon is started with `--allow-fault-injection` (tests and demonstrations).
     pub fn debug_crash(&self, resource: &str) -> String {

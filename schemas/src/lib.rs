@@ -6,12 +6,14 @@
 
 pub mod id;
 pub mod keys;
+pub mod plan;
 pub mod robot;
 pub mod service;
 pub mod state;
 
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
+pub use plan::{OnReject, OrderSnapshot, OrderStatus, Plan, PlanStep, SubmitReply, WorkOrder};
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{reason, ErrorReply, MessageType, Service, SERVICE_VERSION};
 pub use state::{unix_ms, BookingView, CurrentJobView, ResourceSnapshot};

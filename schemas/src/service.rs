@@ -88,6 +88,9 @@ pub mod reason {
     pub const UNEXPECTED_RESULT: &str = "unexpected_result";
     /// The controller reported `fault` or `estop` during the step.
     pub const CONTROLLER_FAULT: &str = "controller_fault";
+    /// The resource is shutting down and hands the booking back (sent as `failed` for a
+    /// booking that never started): book elsewhere.
+    pub const WITHDRAWN: &str = "withdrawn";
 }
 
 /// The Service message: one per zenoh payload, JSON, UTF-8.

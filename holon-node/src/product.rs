@@ -1,0 +1,199 @@
+//! The product holon: knows how its product is made and answers
+//! `product/<product>/plan` with the process plan from its config.
+
+use std::path::Path;
+use std::time::Duration;
+
+use holon::ZenohSettings;
+use schemas::{unix_ms, CellKeys, HolonId, HolonKind, Plan, PlanStep};
+use serde::Deserialize;
+use tokio_util::sync::CancellationToken;
+use tracing::{error, info};
+
+use crate::config::{ConfigError, Overrides};
+use crate::node::{NodeError, STARTUP_TIMEOUT};
+
+/// The product config file as written (`deploy/cells/demo/breaker.toml` documents it).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ProductFile {
+    cell: String,
+    name: String,
+    kind: String,
+    #[serde(default)]
+    zenoh: ZenohSettings,
+    steps: Vec<PlanStep>,
+}
+
+/// A validated product config.
+#[derive(Debug, Clone)]
+pub struct ProductConfig {
+    pub keys: CellKeys,
+    pub holon: HolonId,
+    pub zenoh: ZenohSettings,
+    pub plan: Plan,
+}
+
+impl ProductConfig {
+    pub fn parse(
+        text: &str,
+        path: &str,
+        overrides: Overrides,
+    ) -> Result<ProductConfig, ConfigError> {
+        let invalid = |message: String| ConfigError::Invalid {
+            path: path.to_string(),
+            message,
+        };
+        let mut file: ProductFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            path: path.to_string(),
+            message: e.to_string(),
+        })?;
+        if let Some(cell) = overrides.cell {
+            file.cell = cell;
+        }
+        if let Some(name) = overrides.name {
+            file.name = name;
+        }
+        if !overrides.connect.is_empty() {
+            file.zenoh.connect = overrides.connect;
+        }
+        if !overrides.listen.is_empty() {
+            file.zenoh.listen = overrides.listen;
+        }
+        if file.kind != "product" {
+            return Err(invalid(format!("kind: {:?} is not product", file.kind)));
+        }
+        let keys = CellKeys::new(&file.cell).map_err(|e| invalid(format!("cell: {e}")))?;
+        let holon = HolonId::new(HolonKind::Product, &file.name)
+            .map_err(|e| invalid(format!("name: {e}")))?;
+        file.zenoh
+            .validate()
+            .map_err(|e| invalid(format!("zenoh: {e}")))?;
+        let plan = Plan {
+            product: file.name,
+            steps: file.steps,
+        };
+        plan.validate()
+            .map_err(|e| invalid(format!("steps: {e}")))?;
+        Ok(ProductConfig {
+            keys,
+            holon,
+            zenoh: file.zenoh,
+            plan,
+        })
+    }
+
+    pub fn load(path: &Path, overrides: Overrides) -> Result<ProductConfig, ConfigError> {
+        let display = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: display.clone(),
+            source,
+        })?;
+        Self::parse(&text, &display, overrides)
+    }
+}
+
+/// Serves the plan until `shutdown` is cancelled.
+pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
+    let holon = config.holon.clone();
+    let session = config.zenoh.open(STARTUP_TIMEOUT).await?;
+    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(e.to_string());
+    let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
+    let snapshot = serde_json::json!({
+        "holon": holon,
+        "state": "serving",
+        "product": config.plan.product,
+        "steps": config.plan.steps.len(),
+        "at": unix_ms(),
+    });
+    let snapshot = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
+    let plan_key = config.keys.plan(holon.name());
+    let _plan_queryable = session
+        .declare_queryable(&plan_key)
+        .callback({
+            let holon = holon.clone();
+            move |query| {
+                use zenoh::Wait;
+                info!(holon = %holon, message_type = "plan", "plan requested");
+                if let Err(e) = query.reply(query.key_expr().clone(), plan.clone()).wait() {
+                    error!(holon = %holon, error = %e, "cannot send the plan");
+                }
+            }
+        })
+        .await
+        .map_err(zenoh_error)?;
+    let state_key = config.keys.state(&holon);
+    let _state_queryable = session
+        .declare_queryable(&state_key)
+        .callback({
+            let snapshot = snapshot.clone();
+            move |query| {
+                use zenoh::Wait;
+                let _ = query
+                    .reply(query.key_expr().clone(), snapshot.clone())
+                    .wait();
+            }
+        })
+        .await
+        .map_err(zenoh_error)?;
+    session
+        .put(&state_key, snapshot)
+        .await
+        .map_err(zenoh_error)?;
+    let token = session
+        .liveliness()
+        .declare_token(config.keys.alive(&holon))
+        .await
+        .map_err(zenoh_error)?;
+    info!(holon = %holon, key = %plan_key, steps = config.plan.steps.len(), "holon ready");
+    shutdown.cancelled().await;
+    if let Err(e) = token.undeclare().await {
+        error!(holon = %holon, error = %e, "cannot withdraw the liveliness token");
+    }
+    let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+    info!(holon = %holon, "holon stopped");
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const DEMO: &str = include_str!("../../deploy/cells/demo/breaker.toml");
+
+    #[test]
+    fn the_demo_product_loads() {
+        let config = ProductConfig::parse(DEMO, "breaker.toml", Overrides::default()).unwrap();
+        assert_eq!(config.holon.to_string(), "product/breaker");
+        assert_eq!(config.plan.product, "breaker");
+        let types: Vec<&str> = config
+            .plan
+            .steps
+            .iter()
+            .map(|s| s.service_type.as_str())
+            .collect();
+        assert_eq!(types, ["transport", "pick_n_place", "inspect"]);
+        assert!(config.plan.steps[1].info.contains_key("pick"));
+    }
+
+    #[test]
+    fn bad_plans_are_refused_when_loaded() {
+        let cases = [
+            ("from_step = 2", "from_step = 9", "from_step"),
+            (
+                "service_type = \"inspect\"",
+                "service_type = \"Inspect\"",
+                "service type",
+            ),
+            ("kind = \"product\"", "kind = \"products\"", "kind"),
+        ];
+        for (from, to, expect) in cases {
+            assert!(DEMO.contains(from), "{from}");
+            let err =
+                ProductConfig::parse(&DEMO.replacen(from, to, 1), "b.toml", Overrides::default())
+                    .unwrap_err()
+                    .to_string();
+            assert!(err.contains(expect), "{to}: {err}");
+        }
+    }
+}

@@ -1,0 +1,205 @@
+//! Process plans (from product holons), work orders and order snapshots.
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use crate::id::{validate_name, HolonId};
+use crate::SchemaError;
+
+/// What an order does when a step's result says the part is rejected.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum OnReject {
+    /// Go back to step `from_step` (1-based) and redo the steps from there, at most
+    /// `max_reworks` times for this order; past that, scrap the part.
+    Rework { from_step: usize, max_reworks: u32 },
+    /// Scrap the part: the order ends `scrapped` with `reason`.
+    Scrap { reason: String },
+}
+
+/// One step of a process plan.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PlanStep {
+    /// The service the step needs, e.g. `pick_n_place`.
+    pub service_type: String,
+    /// The Service message's `info` for the step: coordinates, an inspection program,
+    /// a transport destination.
+    #[serde(default)]
+    pub info: serde_json::Map<String, serde_json::Value>,
+    /// Controller results (in `done`'s `info.results`) that mean the part is rejected,
+    /// e.g. `["inspect_fail"]`.
+    #[serde(default)]
+    pub reject_results: Vec<String>,
+    /// What to do with a rejected part (required when `reject_results` is not empty).
+    #[serde(default)]
+    pub on_reject: Option<OnReject>,
+}
+
+/// A product's process plan, answered on `product/<product>/plan`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Plan {
+    pub product: String,
+    pub steps: Vec<PlanStep>,
+}
+
+impl Plan {
+    /// Checks the plan: names, at least one step, rework targets inside the plan.
+    pub fn validate(&self) -> Result<(), SchemaError> {
+        validate_name("product", &self.product)?;
+        if self.steps.is_empty() {
+            return Err(SchemaError::InvalidField {
+                field: "steps",
+                why: "a plan needs at least one step".into(),
+            });
+        }
+        for (i, step) in self.steps.iter().enumerate() {
+            validate_name("service type", &step.service_type)?;
+            if !step.reject_results.is_empty() && step.on_reject.is_none() {
+                return Err(SchemaError::InvalidField {
+                    field: "on_reject",
+                    why: format!("step {} has reject_results but no on_reject", i + 1),
+                });
+            }
+            if let Some(OnReject::Rework { from_step, .. }) = &step.on_reject {
+                if *from_step == 0 || *from_step > i + 1 {
+                    return Err(SchemaError::InvalidField {
+                        field: "on_reject",
+                        why: format!(
+                            "step {}: rework from_step must be between 1 and {}",
+                            i + 1,
+                            i + 1
+                        ),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A work order, sent to `orders/submit`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct WorkOrder {
+    pub product: String,
+    #[serde(default = "one")]
+    pub count: u32,
+    #[serde(default)]
+    pub priority: i32,
+}
+
+fn one() -> u32 {
+    1
+}
+
+/// The most orders one work order may create.
+pub const MAX_ORDERS_PER_SUBMIT: u32 = 10_000;
+
+impl WorkOrder {
+    pub fn validate(&self) -> Result<(), SchemaError> {
+        validate_name("product", &self.product)?;
+        if self.count == 0 || self.count > MAX_ORDERS_PER_SUBMIT {
+            return Err(SchemaError::InvalidField {
+                field: "count",
+                why: format!("must be 1 to {MAX_ORDERS_PER_SUBMIT}"),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// The answer to a work order: the new orders' names.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct SubmitReply {
+    pub orders: Vec<String>,
+}
+
+/// An order's status.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum OrderStatus {
+    Running,
+    /// The product was made.
+    Done,
+    /// The part was rejected and scrapped (`reason` says why).
+    Scrapped,
+    /// The order could not be completed (`reason` says why).
+    Failed,
+}
+
+impl OrderStatus {
+    pub fn is_final(self) -> bool {
+        self != OrderStatus::Running
+    }
+}
+
+/// An order's state, published on `order/<name>/state` after every change.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct OrderSnapshot {
+    pub holon: HolonId,
+    pub product: String,
+    pub status: OrderStatus,
+    pub reason: Option<String>,
+    /// The current step, 1-based (0 before the plan is known).
+    pub step: usize,
+    pub steps: usize,
+    pub service_type: Option<String>,
+    /// The resource the current step is booked on.
+    pub resource: Option<HolonId>,
+    /// The current step's attempt, from 1.
+    pub attempt: u32,
+    /// Steps completed, with the resource that executed each: `[["transport", "resource/conveyor1"], ...]`.
+    pub completed: Vec<(String, HolonId)>,
+    pub reworks: u32,
+    pub rebooks: u32,
+    pub at: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn plan(v: serde_json::Value) -> Result<Plan, String> {
+        let plan: Plan = serde_json::from_value(v).map_err(|e| e.to_string())?;
+        plan.validate().map_err(|e| e.to_string())?;
+        Ok(plan)
+    }
+
+    #[test]
+    fn plans_validate() {
+        plan(json!({"product": "breaker", "steps": [
+            {"service_type": "transport", "info": {"destination": {"x": 1, "y": 2, "z": 0}}},
+            {"service_type": "inspect", "reject_results": ["inspect_fail"],
+             "on_reject": {"rework": {"from_step": 1, "max_reworks": 2}}}
+        ]}))
+        .unwrap();
+        assert!(plan(json!({"product": "breaker", "steps": []})).is_err());
+        assert!(plan(json!({"product": "Breaker", "steps": [{"service_type": "x"}]})).is_err());
+        assert!(plan(json!({"product": "b", "steps": [{"service_type": "inspect", "reject_results": ["inspect_fail"]}]})).is_err());
+        assert!(plan(
+            json!({"product": "b", "steps": [{"service_type": "inspect", "reject_results": ["f"],
+            "on_reject": {"rework": {"from_step": 2, "max_reworks": 1}}}]})
+        )
+        .is_err());
+        assert!(
+            plan(json!({"product": "b", "steps": [{"service_type": "x", "colour": 1}]})).is_err()
+        );
+    }
+
+    #[test]
+    fn work_orders_validate() {
+        let order: WorkOrder =
+            serde_json::from_value(json!({"product": "breaker", "count": 3, "priority": 0}))
+                .unwrap();
+        order.validate().unwrap();
+        let order: WorkOrder = serde_json::from_value(json!({"product": "breaker"})).unwrap();
+        assert_eq!(order.count, 1);
+        let zero: WorkOrder =
+            serde_json::from_value(json!({"product": "breaker", "count": 0})).unwrap();
+        assert!(zero.validate().is_err());
+        assert!(serde_json::from_value::<WorkOrder>(json!({"product": "b", "count": -1})).is_err());
+    }
+}
