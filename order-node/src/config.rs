@@ -1,0 +1,200 @@
+//! The order-node's config file (TOML); `deploy/cells/demo/orders1.toml` documents it.
+
+use std::path::Path;
+use std::time::Duration;
+
+use holon::ZenohSettings;
+use schemas::{validate_name, CellKeys};
+use serde::Deserialize;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("cannot read {path}: {source}")]
+    Read {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("{path}: {message}")]
+    Invalid { path: String, message: String },
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct File {
+    cell: String,
+    name: String,
+    #[serde(default)]
+    zenoh: ZenohSettings,
+    #[serde(default)]
+    orders: OrdersSection,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct OrdersSection {
+    #[serde(default = "d_proposal")]
+    proposal_timeout_ms: u64,
+    #[serde(default = "d_attempts")]
+    max_attempts: u32,
+    #[serde(default = "d_no_resource")]
+    no_resource_timeout_ms: u64,
+    #[serde(default = "d_retry")]
+    retry_interval_ms: u64,
+    #[serde(default = "d_step")]
+    step_timeout_ms: u64,
+}
+
+fn d_proposal() -> u64 {
+    1000
+}
+fn d_attempts() -> u32 {
+    3
+}
+fn d_no_resource() -> u64 {
+    60_000
+}
+fn d_retry() -> u64 {
+    50
+}
+fn d_step() -> u64 {
+    600_000
+}
+
+impl Default for OrdersSection {
+    fn default() -> Self {
+        OrdersSection {
+            proposal_timeout_ms: d_proposal(),
+            max_attempts: d_attempts(),
+            no_resource_timeout_ms: d_no_resource(),
+            retry_interval_ms: d_retry(),
+            step_timeout_ms: d_step(),
+        }
+    }
+}
+
+/// How orders negotiate and retry.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OrderSettings {
+    /// How long a proposal round waits for replies.
+    pub proposal_timeout: Duration,
+    /// Failed attempts of one step (on different resources) before the order fails.
+    pub max_attempts: u32,
+    /// How long a step may find no resource to book before the order fails.
+    pub no_resource_timeout: Duration,
+    /// Pause between retries (a `start` refused as busy, an empty proposal round).
+    pub retry_interval: Duration,
+    /// Longest wait for a started step's result before the attempt counts as failed.
+    pub step_timeout: Duration,
+}
+
+#[derive(Debug, Clone)]
+pub struct OrderNodeConfig {
+    pub keys: CellKeys,
+    pub name: String,
+    pub zenoh: ZenohSettings,
+    pub orders: OrderSettings,
+}
+
+/// What the command line may override.
+#[derive(Debug, Clone, Default)]
+pub struct Overrides {
+    pub cell: Option<String>,
+    pub name: Option<String>,
+    pub connect: Vec<String>,
+    pub listen: Vec<String>,
+}
+
+impl OrderNodeConfig {
+    pub fn load(path: &Path, overrides: Overrides) -> Result<Self, ConfigError> {
+        let display = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: display.clone(),
+            source,
+        })?;
+        Self::parse(&text, &display, overrides)
+    }
+
+    pub fn parse(text: &str, path: &str, overrides: Overrides) -> Result<Self, ConfigError> {
+        let invalid = |message: String| ConfigError::Invalid {
+            path: path.to_string(),
+            message,
+        };
+        let mut file: File = toml::from_str(text).map_err(|e| invalid(e.to_string()))?;
+        if let Some(cell) = overrides.cell {
+            file.cell = cell;
+        }
+        if let Some(name) = overrides.name {
+            file.name = name;
+        }
+        if !overrides.connect.is_empty() {
+            file.zenoh.connect = overrides.connect;
+        }
+        if !overrides.listen.is_empty() {
+            file.zenoh.listen = overrides.listen;
+        }
+        let keys = CellKeys::new(&file.cell).map_err(|e| invalid(format!("cell: {e}")))?;
+        validate_name("order-node name", &file.name).map_err(|e| invalid(format!("name: {e}")))?;
+        if file.name.len() > 40 {
+            return Err(invalid(
+                "name: at most 40 bytes (order names append a number)".into(),
+            ));
+        }
+        file.zenoh
+            .validate()
+            .map_err(|e| invalid(format!("zenoh: {e}")))?;
+        let o = &file.orders;
+        for (field, value) in [
+            ("orders.proposal_timeout_ms", o.proposal_timeout_ms),
+            ("orders.max_attempts", o.max_attempts as u64),
+            ("orders.no_resource_timeout_ms", o.no_resource_timeout_ms),
+            ("orders.retry_interval_ms", o.retry_interval_ms),
+            ("orders.step_timeout_ms", o.step_timeout_ms),
+        ] {
+            if value == 0 {
+                return Err(invalid(format!("{field} must be greater than 0")));
+            }
+        }
+        Ok(OrderNodeConfig {
+            keys,
+            name: file.name,
+            zenoh: file.zenoh,
+            orders: OrderSettings {
+                proposal_timeout: Duration::from_millis(o.proposal_timeout_ms),
+                max_attempts: o.max_attempts,
+                no_resource_timeout: Duration::from_millis(o.no_resource_timeout_ms),
+                retry_interval: Duration::from_millis(o.retry_interval_ms),
+                step_timeout: Duration::from_millis(o.step_timeout_ms),
+            },
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const DEMO: &str = include_str!("../../deploy/cells/demo/orders1.toml");
+
+    #[test]
+    fn the_demo_config_loads() {
+        let c = OrderNodeConfig::parse(DEMO, "orders1.toml", Overrides::default()).unwrap();
+        assert_eq!(c.name, "orders1");
+        assert_eq!(c.orders.max_attempts, 3);
+    }
+
+    #[test]
+    fn bad_configs_are_refused() {
+        for (from, to) in [
+            ("name = \"orders1\"", "name = \"Orders\""),
+            ("max_attempts = 3", "max_attempts = 0"),
+            ("[orders]", "[orders]\nspeed = 1"),
+        ] {
+            assert!(DEMO.contains(from), "{from}");
+            assert!(
+                OrderNodeConfig::parse(&DEMO.replacen(from, to, 1), "x", Overrides::default())
+                    .is_err(),
+                "{to}"
+            );
+        }
+    }
+}

@@ -1,0 +1,85 @@
+//! `order-node`: hosts order holons.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use anyhow::Context;
+use clap::Parser;
+use holon::LogFormat;
+use order_node::config::{OrderNodeConfig, Overrides};
+
+/// Hosts order holons: each work order becomes one order holon per unit, which fetches
+/// its product's plan and gets every step done by the resources alive in the cell.
+///
+/// Work orders come from --submit and from holarchy/<cell>/orders/submit
+/// ({"product": "breaker", "count": 3}; the reply lists the new orders). The node is
+/// ready when its token holarchy/<cell>/host/order-node/<name> appears. SIGTERM or
+/// Ctrl-C stops it (exit 0); orders in progress stop where they stand.
+#[derive(Debug, Parser)]
+#[command(name = "order-node", version)]
+struct Args {
+    /// The node's config file (TOML); deploy/cells/demo/orders1.toml documents every field.
+    #[arg(long, value_name = "FILE")]
+    config: PathBuf,
+    /// The cell, overriding `cell` in the config.
+    #[arg(long, value_name = "C")]
+    cell: Option<String>,
+    /// The node's name, overriding `name` in the config (orders are named <name>-<n>).
+    #[arg(long, value_name = "N")]
+    name: Option<String>,
+    /// A zenoh endpoint to connect to (repeatable; replaces zenoh.connect).
+    #[arg(long, value_name = "ENDPOINT")]
+    connect: Vec<String>,
+    /// A zenoh endpoint to listen on (repeatable; replaces zenoh.listen).
+    #[arg(long, value_name = "ENDPOINT")]
+    listen: Vec<String>,
+    /// Submit a work order at start: PRODUCT:COUNT (repeatable).
+    #[arg(long, value_name = "PRODUCT:COUNT")]
+    submit: Vec<String>,
+    /// Terminal log format: text or json.
+    #[arg(long, default_value = "text", value_name = "text|json")]
+    log_format: LogFormat,
+    /// Also append JSON log lines to this file.
+    #[arg(long, value_name = "PATH")]
+    log_file: Option<PathBuf>,
+}
+
+fn main() -> ExitCode {
+    let args = Args::parse();
+    if let Err(e) = holon::logging::init(args.log_format, args.log_file.as_deref()) {
+        eprintln!("order-node: {e}");
+        return ExitCode::FAILURE;
+    }
+    match run(args) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!(error = format!("{e:#}"), "order-node failed");
+            eprintln!("order-node: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(args: Args) -> anyhow::Result<()> {
+    let overrides = Overrides {
+        cell: args.cell,
+        name: args.name,
+        connect: args.connect,
+        listen: args.listen,
+    };
+    let config = OrderNodeConfig::load(&args.config, overrides)?;
+    let submits = args
+        .submit
+        .iter()
+        .map(|s| order_node::node::parse_submit(s))
+        .collect::<Result<Vec<_>, _>>()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the tokio runtime")?;
+    runtime.block_on(async {
+        let shutdown = holon::shutdown_on_signals();
+        order_node::node::run(config, submits, shutdown).await
+    })?;
+    Ok(())
+}

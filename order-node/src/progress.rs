@@ -1,0 +1,325 @@
+//! An order's progress through its product's plan: the pure part of an order holon.
+//! It decides what comes next after each step's outcome; the task around it talks.
+
+use std::collections::BTreeSet;
+
+use schemas::{unix_ms, HolonId, OnReject, OrderSnapshot, OrderStatus, Plan};
+use serde_json::{Map, Value};
+
+/// How a step attempt ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum StepOutcome {
+    /// The resource reported `done` with these controller results.
+    Done {
+        provider: HolonId,
+        results: Map<String, Value>,
+    },
+    /// The resource reported `failed` (it may have moved the part: counts as a failure).
+    Failed { provider: HolonId, reason: String },
+    /// The booking ended without the step being attempted to completion: the resource
+    /// handed the booking back (`withdrawn`), vanished, or lost the booking. Book
+    /// elsewhere; does not count as a failure.
+    Lost { provider: HolonId, why: String },
+    /// No resource could be booked within the allowed time.
+    NoResource,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct OrderProgress {
+    pub holon: HolonId,
+    pub product: String,
+    pub plan: Option<Plan>,
+    /// Index of the current step (0-based).
+    pub step: usize,
+    /// Attempt of the current step, from 1; a new conversation each attempt.
+    pub attempt: u32,
+    /// Failed attempts of the current step.
+    pub failures: u32,
+    /// Resources that failed the current step (avoided when others propose).
+    pub avoid: BTreeSet<HolonId>,
+    pub reworks: u32,
+    pub rebooks: u32,
+    pub status: OrderStatus,
+    pub reason: Option<String>,
+    pub completed: Vec<(String, HolonId)>,
+    /// The resource the current attempt is booked on.
+    pub resource: Option<HolonId>,
+    /// Failed attempts of one step before the order fails.
+    pub max_attempts: u32,
+}
+
+impl OrderProgress {
+    pub fn new(holon: HolonId, product: &str, max_attempts: u32) -> Self {
+        OrderProgress {
+            holon,
+            product: product.to_string(),
+            plan: None,
+            step: 0,
+            attempt: 1,
+            failures: 0,
+            avoid: BTreeSet::new(),
+            reworks: 0,
+            rebooks: 0,
+            status: OrderStatus::Running,
+            reason: None,
+            completed: Vec::new(),
+            resource: None,
+            max_attempts: max_attempts.max(1),
+        }
+    }
+
+    /// The conversation of the current step's attempt: `<order>/<step>/<attempt>`.
+    pub fn conversation_id(&self) -> String {
+        format!("{}/{}/{}", self.holon.name(), self.step + 1, self.attempt)
+    }
+
+    /// The step to work on, if the order is still running and has its plan.
+    pub fn current_step(&self) -> Option<&schemas::PlanStep> {
+        if self.status != OrderStatus::Running {
+            return None;
+        }
+        self.plan.as_ref()?.steps.get(self.step)
+    }
+
+    pub fn fail(&mut self, reason: String) {
+        self.status = OrderStatus::Failed;
+        self.reason = Some(reason);
+        self.resource = None;
+    }
+
+    fn next_attempt(&mut self) {
+        self.attempt += 1;
+        self.resource = None;
+    }
+
+    fn next_step(&mut self, step: usize) {
+        self.step = step;
+        self.attempt = 1;
+        self.failures = 0;
+        self.avoid.clear();
+        self.resource = None;
+    }
+
+    /// Applies a step's outcome and moves on.
+    pub fn record(&mut self, outcome: StepOutcome) {
+        let Some(current) = self.current_step().cloned() else {
+            return;
+        };
+        match outcome {
+            StepOutcome::Done { provider, results } => {
+                self.completed
+                    .push((current.service_type.clone(), provider.clone()));
+                let rejected = results.values().any(|v| {
+                    v.as_str()
+                        .is_some_and(|r| current.reject_results.iter().any(|x| x == r))
+                });
+                if rejected {
+                    match &current.on_reject {
+                        Some(OnReject::Rework {
+                            from_step,
+                            max_reworks,
+                        }) if self.reworks < *max_reworks => {
+                            self.reworks += 1;
+                            self.next_step(from_step - 1);
+                        }
+                        Some(OnReject::Rework { max_reworks, .. }) => {
+                            self.status = OrderStatus::Scrapped;
+                            self.reason = Some(format!(
+                                "rejected at step {} ({}) after {max_reworks} reworks",
+                                self.step + 1,
+                                current.service_type
+                            ));
+                            self.resource = None;
+                        }
+                        Some(OnReject::Scrap { reason }) => {
+                            self.status = OrderStatus::Scrapped;
+                            self.reason = Some(reason.clone());
+                            self.resource = None;
+                        }
+                        None => self.advance(),
+                    }
+                } else {
+                    self.advance();
+                }
+            }
+            StepOutcome::Failed { provider, reason } => {
+                self.failures += 1;
+                self.avoid.insert(provider.clone());
+                if self.failures >= self.max_attempts {
+                    self.fail(format!(
+                        "step {} ({}) failed {} times; last on {provider}: {reason}",
+                        self.step + 1,
+                        current.service_type,
+                        self.failures
+                    ));
+                } else {
+                    self.next_attempt();
+                }
+            }
+            StepOutcome::Lost { .. } => {
+                self.rebooks += 1;
+                self.next_attempt();
+            }
+            StepOutcome::NoResource => {
+                self.fail(format!(
+                    "step {} ({}): no resource could be booked",
+                    self.step + 1,
+                    current.service_type
+                ));
+            }
+        }
+    }
+
+    fn advance(&mut self) {
+        let steps = self.plan.as_ref().map_or(0, |p| p.steps.len());
+        if self.step + 1 >= steps {
+            self.status = OrderStatus::Done;
+            self.resource = None;
+        } else {
+            self.next_step(self.step + 1);
+        }
+    }
+
+    pub fn snapshot(&self) -> OrderSnapshot {
+        OrderSnapshot {
+            holon: self.holon.clone(),
+            product: self.product.clone(),
+            status: self.status,
+            reason: self.reason.clone(),
+            step: if self.plan.is_some() {
+                self.step + 1
+            } else {
+                0
+            },
+            steps: self.plan.as_ref().map_or(0, |p| p.steps.len()),
+            service_type: self.current_step().map(|s| s.service_type.clone()),
+            resource: self.resource.clone(),
+            attempt: self.attempt,
+            completed: self.completed.clone(),
+            reworks: self.reworks,
+            rebooks: self.rebooks,
+            at: unix_ms(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn order() -> OrderProgress {
+        let mut o = OrderProgress::new(HolonId::order("n1-1").unwrap(), "breaker", 2);
+        o.plan = Some(
+            serde_json::from_value(json!({"product": "breaker", "steps": [
+                {"service_type": "transport"},
+                {"service_type": "pick_n_place"},
+                {"service_type": "inspect", "reject_results": ["inspect_fail"],
+                 "on_reject": {"rework": {"from_step": 2, "max_reworks": 1}}}
+            ]}))
+            .unwrap(),
+        );
+        o
+    }
+
+    fn robot(n: &str) -> HolonId {
+        HolonId::resource(n).unwrap()
+    }
+
+    fn done(provider: &str, result: &str) -> StepOutcome {
+        StepOutcome::Done {
+            provider: robot(provider),
+            results: json!({ "x": result }).as_object().unwrap().clone(),
+        }
+    }
+
+    #[test]
+    fn walks_the_plan_to_done() {
+        let mut o = order();
+        assert_eq!(o.conversation_id(), "n1-1/1/1");
+        o.record(done("conveyor1", "arrived"));
+        assert_eq!(o.step, 1);
+        assert_eq!(o.conversation_id(), "n1-1/2/1");
+        o.record(done("robot1", "placing_done"));
+        o.record(done("inspect1", "inspect_pass"));
+        assert_eq!(o.status, OrderStatus::Done);
+        assert_eq!(o.current_step(), None);
+        assert_eq!(o.completed.len(), 3);
+        assert_eq!(o.snapshot().status, OrderStatus::Done);
+    }
+
+    #[test]
+    fn a_rejected_part_is_reworked_then_scrapped() {
+        let mut o = order();
+        o.record(done("conveyor1", "arrived"));
+        o.record(done("robot1", "placing_done"));
+        o.record(done("inspect1", "inspect_fail"));
+        assert_eq!(o.status, OrderStatus::Running);
+        assert_eq!(o.step, 1, "back to step 2");
+        assert_eq!(o.reworks, 1);
+        o.record(done("robot1", "placing_done"));
+        o.record(done("inspect1", "inspect_fail"));
+        assert_eq!(o.status, OrderStatus::Scrapped);
+        assert!(o.reason.as_deref().unwrap().contains("after 1 reworks"));
+    }
+
+    #[test]
+    fn scrap_on_reject_ends_the_order_with_the_plan_reason() {
+        let mut o = order();
+        o.plan.as_mut().unwrap().steps[2].on_reject = Some(OnReject::Scrap {
+            reason: "cracked housing".into(),
+        });
+        o.step = 2;
+        o.record(done("inspect1", "inspect_fail"));
+        assert_eq!(o.status, OrderStatus::Scrapped);
+        assert_eq!(o.reason.as_deref(), Some("cracked housing"));
+    }
+
+    #[test]
+    fn failures_retry_elsewhere_then_fail_the_order() {
+        let mut o = order();
+        o.record(StepOutcome::Failed {
+            provider: robot("conveyor1"),
+            reason: "controller_error".into(),
+        });
+        assert_eq!(o.status, OrderStatus::Running);
+        assert_eq!(o.conversation_id(), "n1-1/1/2");
+        assert!(o.avoid.contains(&robot("conveyor1")));
+        o.record(StepOutcome::Failed {
+            provider: robot("conveyor2"),
+            reason: "controller_timeout".into(),
+        });
+        assert_eq!(o.status, OrderStatus::Failed);
+        let reason = o.reason.clone().unwrap();
+        assert!(
+            reason.contains("step 1 (transport) failed 2 times"),
+            "{reason}"
+        );
+        assert!(reason.contains("controller_timeout"), "{reason}");
+    }
+
+    #[test]
+    fn lost_bookings_rebook_without_counting_as_failures() {
+        let mut o = order();
+        for _ in 0..5 {
+            o.record(StepOutcome::Lost {
+                provider: robot("robot1"),
+                why: "withdrawn".into(),
+            });
+        }
+        assert_eq!(o.status, OrderStatus::Running);
+        assert_eq!(o.rebooks, 5);
+        assert_eq!(o.attempt, 6);
+        assert_eq!(o.failures, 0);
+        o.record(done("conveyor1", "arrived"));
+        assert_eq!(o.attempt, 1, "a new step starts at attempt 1");
+    }
+
+    #[test]
+    fn no_resource_fails_the_order() {
+        let mut o = order();
+        o.record(StepOutcome::NoResource);
+        assert_eq!(o.status, OrderStatus::Failed);
+        assert!(o.reason.unwrap().contains("no resource"));
+    }
+}
