@@ -1,36 +1,43 @@
-//! `cell demo`: a demo cell on this machine, with no other install.
+//! `cell demo`: a complete demo cell on this machine, with no other install.
 //!
-//! It starts a controller simulator (`robot-sim`) and a resource holon (`holon-node`
-//! with the documented demo config) as real processes, joins them over zenoh, and acts
-//! as the requester of `--jobs` pick-'n-place jobs, each through the whole contract:
-//! proposal, booking, start, `done` delivered to its inbox and acknowledged. It shows
-//! every job as it completes, prints a summary, stops what it started and exits 0 only
-//! if every job completed.
+//! In its own process it runs the cell's zenoh router; it starts, as real processes, a
+//! controller simulator per resource, two robots, an inspection station, a conveyor
+//! (resource holons), the breaker (a product holon) and an order-node. It submits the
+//! work orders, shows every order's progress, hot-adds a third robot once half of the
+//! orders are finished, prints a summary, stops everything it started (in reverse
+//! order) and exits 0 only if every order completed (`done`, or `scrapped` by its plan).
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
-use schemas::{CellKeys, HolonId, MessageType, Service};
+use schemas::{CellKeys, HolonId, OrderSnapshot, OrderStatus, SubmitReply, WorkOrder};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
-use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
-use zenoh::query::ConsolidationMode;
 
-/// The demo's resource config: the documented example in deploy/cells/demo/.
-const ROBOT_CONFIG: &str = include_str!("../../deploy/cells/demo/robot1.toml");
+const ROBOT: &str = include_str!("../../deploy/cells/demo/robot1.toml");
+const INSPECTION: &str = include_str!("../../deploy/cells/demo/inspect1.toml");
+const CONVEYOR: &str = include_str!("../../deploy/cells/demo/conveyor1.toml");
+const PRODUCT: &str = include_str!("../../deploy/cells/demo/breaker.toml");
+const ORDERS: &str = include_str!("../../deploy/cells/demo/orders1.toml");
 
-/// The longest the demo waits for one step of a job.
-const STEP_TIMEOUT: Duration = Duration::from_secs(30);
+/// How long anything the demo starts may take to come up.
+const STARTUP: Duration = Duration::from_secs(15);
 
 #[derive(Debug, Clone)]
 pub struct DemoOptions {
     pub cell: String,
-    pub jobs: u32,
-    /// Simulated duration of each controller action.
+    pub orders: u32,
+    /// Simulated duration of a robot action (the conveyor and the inspection station
+    /// take a third of it).
     pub action_delay: Duration,
+    /// Every Nth inspection fails (the plan reworks the part); 0: none fail.
+    pub inspect_fail_every: u64,
+    /// Hot-add a third robot once half of the orders are finished.
+    pub hot_add: bool,
     /// Where configs and logs go; a temporary directory when not given.
     pub dir: Option<PathBuf>,
 }
@@ -49,17 +56,17 @@ impl Managed {
                 nix::sys::signal::Signal::SIGTERM,
             );
         }
-        match tokio::time::timeout(Duration::from_secs(10), self.child.wait()).await {
+        match tokio::time::timeout(Duration::from_secs(40), self.child.wait()).await {
             Ok(status) => Ok(status?),
             Err(_) => {
                 self.child.kill().await?;
-                bail!("{} did not stop within 10 s; killed", self.name)
+                bail!("{} did not stop within 40 s; killed", self.name)
             }
         }
     }
 }
 
-fn sibling_binary(name: &str) -> Result<PathBuf> {
+pub fn sibling_binary(name: &str) -> Result<PathBuf> {
     let exe = std::env::current_exe().context("cannot find this executable")?;
     let path = exe
         .parent()
@@ -80,40 +87,150 @@ fn free_port() -> Result<u16> {
         .port())
 }
 
-async fn start_sim(dir: &Path, delay: Duration) -> Result<(Managed, String)> {
-    let mut child = Command::new(sibling_binary("robot-sim")?)
-        .args(["--listen", "127.0.0.1:0", "--delay-ms"])
-        .arg(delay.as_millis().to_string())
-        .arg("--count-file")
-        .arg(dir.join("robot1-sim.counts.json"))
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(dir.join("robot1-sim.log"))?)
-        .kill_on_drop(true)
-        .spawn()
-        .context("cannot start robot-sim")?;
-    let stdout = child.stdout.take().expect("piped");
-    let mut line = String::new();
-    tokio::time::timeout(
-        Duration::from_secs(10),
-        BufReader::new(stdout).read_line(&mut line),
-    )
-    .await
-    .context("robot-sim did not start within 10 s")??;
-    let address = line
-        .trim()
-        .strip_prefix("listening on ")
-        .ok_or_else(|| anyhow!("robot-sim said {line:?}"))?
-        .to_string();
-    Ok((
-        Managed {
-            name: "robot-sim".into(),
-            child,
-        },
-        address,
-    ))
+/// The processes of the demo cell, in start order.
+struct Cell {
+    dir: PathBuf,
+    endpoint: String,
+    keys: CellKeys,
+    session: zenoh::Session,
+    started: Vec<Managed>,
 }
 
-/// Runs the demo; returns whether every job completed.
+impl Cell {
+    async fn sim(&mut self, name: &str, delay: Duration, extra: &[String]) -> Result<String> {
+        let mut child = Command::new(sibling_binary("robot-sim")?)
+            .args(["--listen", "127.0.0.1:0", "--delay-ms"])
+            .arg(delay.as_millis().to_string())
+            .arg("--count-file")
+            .arg(self.dir.join(format!("{name}.counts.json")))
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(self.dir.join(format!("{name}.log")))?)
+            .kill_on_drop(true)
+            .spawn()
+            .context("cannot start robot-sim")?;
+        let stdout = child.stdout.take().expect("piped");
+        let mut line = String::new();
+        tokio::time::timeout(STARTUP, BufReader::new(stdout).read_line(&mut line))
+            .await
+            .context("robot-sim did not start in time")??;
+        let address = line
+            .trim()
+            .strip_prefix("listening on ")
+            .ok_or_else(|| anyhow!("robot-sim said {line:?}"))?
+            .to_string();
+        self.started.push(Managed {
+            name: name.into(),
+            child,
+        });
+        Ok(address)
+    }
+
+    /// Starts `program --config FILE` for a holon and waits for its token.
+    async fn holon(
+        &mut self,
+        program: &str,
+        config_text: &str,
+        holon: &HolonId,
+        extra: &[String],
+        ready_key: Option<String>,
+    ) -> Result<Duration> {
+        let config = self.dir.join(format!("{}.toml", holon.name()));
+        std::fs::write(&config, config_text)?;
+        let launched = Instant::now();
+        let child = Command::new(sibling_binary(program)?)
+            .arg("--config")
+            .arg(&config)
+            .args(["--cell", self.keys.cell(), "--name", holon.name()])
+            .args(["--connect", &self.endpoint, "--listen", "tcp/127.0.0.1:0"])
+            .arg("--log-file")
+            .arg(self.dir.join(format!("{}.log.json", holon.name())))
+            .args(extra)
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(
+                self.dir.join(format!("{}.log", holon.name())),
+            )?)
+            .kill_on_drop(true)
+            .spawn()
+            .with_context(|| format!("cannot start {program}"))?;
+        self.started.push(Managed {
+            name: holon.to_string(),
+            child,
+        });
+        let key = ready_key.unwrap_or_else(|| self.keys.alive(holon));
+        if !wait_token(&self.session, &key, STARTUP).await? {
+            bail!(
+                "{holon} did not come up; see {}",
+                self.dir.join(format!("{}.log", holon.name())).display()
+            );
+        }
+        Ok(launched.elapsed())
+    }
+
+    async fn stop_all(self) {
+        for managed in self.started.into_iter().rev() {
+            let name = managed.name.clone();
+            match managed.stop().await {
+                Ok(status) if status.success() => {}
+                Ok(status) => println!("  {name} exited with {status}"),
+                Err(e) => println!("  {name}: {e}"),
+            }
+        }
+        let _ = self.session.close().await;
+    }
+}
+
+async fn wait_token(session: &zenoh::Session, key: &str, timeout: Duration) -> Result<bool> {
+    let subscriber = session
+        .liveliness()
+        .declare_subscriber(key)
+        .history(true)
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let deadline = tokio::time::Instant::now() + timeout;
+    loop {
+        match tokio::time::timeout_at(deadline, subscriber.recv_async()).await {
+            Ok(Ok(sample)) if sample.kind() == zenoh::sample::SampleKind::Put => return Ok(true),
+            Ok(Ok(_)) => continue,
+            _ => return Ok(false),
+        }
+    }
+}
+
+/// Submits a work order to the cell's order-nodes (a default `get` reaches one).
+pub async fn submit(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    work: &WorkOrder,
+    timeout: Duration,
+) -> Result<Vec<String>> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let replies = session
+            .get(keys.orders_submit())
+            .payload(serde_json::to_vec(work)?)
+            .timeout(Duration::from_secs(5))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        if let Ok(reply) = replies.recv_async().await {
+            return match reply.result() {
+                Ok(sample) => {
+                    Ok(serde_json::from_slice::<SubmitReply>(&sample.payload().to_bytes())?.orders)
+                }
+                Err(err) => bail!(
+                    "the order-node refused the work order: {}",
+                    err.payload().try_to_string().unwrap_or_default()
+                ),
+            };
+        }
+        if Instant::now() >= deadline {
+            bail!("no order-node answered on {}", keys.orders_submit());
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Runs the demo; returns whether every order completed.
 pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bool> {
     let keys = CellKeys::new(&options.cell)?;
     let mut temp = None;
@@ -135,282 +252,251 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         listen: vec![endpoint.clone()],
         ..holon::ZenohSettings::default()
     };
-    let session = settings
-        .open(Duration::from_secs(10))
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
+    let session = settings.open(STARTUP).await.map_err(|e| anyhow!("{e}"))?;
     println!(
-        "cell {}: zenoh on {endpoint}; configs and logs in {}",
+        "cell {}: zenoh router on {endpoint}; configs and logs in {}",
         options.cell,
         dir.display()
     );
-
-    let (sim, controller) = start_sim(&dir, options.action_delay).await?;
-    println!("started robot-sim (controller) on {controller}");
-    let config = dir.join("robot1.toml");
-    std::fs::write(&config, ROBOT_CONFIG)?;
-    let node = Command::new(sibling_binary("holon-node")?)
-        .arg("--config")
-        .arg(&config)
-        .args(["--cell", &options.cell, "--connect", &endpoint])
-        .args(["--listen", "tcp/127.0.0.1:0"])
-        .args(["--controller", &controller])
-        .arg("--log-file")
-        .arg(dir.join("robot1.log.json"))
-        .stdout(Stdio::null())
-        .stderr(std::fs::File::create(dir.join("robot1.log"))?)
-        .kill_on_drop(true)
-        .spawn()
-        .context("cannot start holon-node")?;
-    let node = Managed {
-        name: "holon-node".into(),
-        child: node,
+    let mut cell = Cell {
+        dir: dir.clone(),
+        endpoint,
+        keys: keys.clone(),
+        session: session.clone(),
+        started: Vec::new(),
     };
-    let robot = HolonId::resource("robot1")?;
-    let launched = Instant::now();
-    if !holon::presence::wait_alive(&session, &keys, &robot, Duration::from_secs(10))
-        .await
-        .map_err(|e| anyhow!("{e}"))?
-    {
-        bail!(
-            "robot1 did not come up; see {}",
-            dir.join("robot1.log").display()
-        );
-    }
-    println!(
-        "resource/robot1 is alive ({} ms after launch)",
-        launched.elapsed().as_millis()
-    );
-
     let outcome = tokio::select! {
-        outcome = drive(&session, &keys, &options) => outcome,
+        outcome = operate(&mut cell, &options) => outcome,
         _ = shutdown.cancelled() => Err(anyhow!("interrupted")),
     };
-
-    print!("stopping: holon-node");
-    let node_status = node.stop().await;
-    print!(", robot-sim");
-    let sim_status = sim.stop().await;
-    println!(" ... done");
-    let _ = session.close().await;
-    let counts = std::fs::read_to_string(dir.join("robot1-sim.counts.json")).unwrap_or_default();
-    let summary = outcome?;
-    println!();
-    println!("summary");
-    println!("  jobs done      {}", summary.done);
-    println!("  jobs failed    {}", summary.failed);
-    println!("  time taken     {:.2} s", summary.elapsed.as_secs_f64());
-    if !summary.cycles.is_empty() {
-        let mut cycles = summary.cycles.clone();
-        cycles.sort();
-        println!(
-            "  job cycle      p50 {} ms, max {} ms (book, start, 2 controller steps, done)",
-            cycles[cycles.len() / 2].as_millis(),
-            cycles[cycles.len() - 1].as_millis()
-        );
-    }
-    println!("  controller     {}", counts.trim());
-    if let Ok(status) = node_status {
-        println!("  holon-node     exited with {status}");
-    }
-    if let Ok(status) = sim_status {
-        println!("  robot-sim      exited with {status}");
-    }
-    let success = summary.failed == 0 && summary.done == options.jobs;
+    println!("stopping everything the demo started, in reverse order ...");
+    cell.stop_all().await;
+    let report = outcome?;
+    report.print(&dir);
+    let success = report.failed == 0 && report.completed() == options.orders as usize;
     if let (Some(temp), false) = (temp.as_mut(), success) {
         temp.keep = true;
-        println!("  logs kept in   {}", dir.display());
+        println!("  logs kept in    {}", dir.display());
     }
     Ok(success)
 }
 
-struct Summary {
-    done: u32,
-    failed: u32,
+struct Report {
+    orders: BTreeMap<HolonId, OrderSnapshot>,
+    failed: usize,
     elapsed: Duration,
-    cycles: Vec<Duration>,
+    hot_added: Option<Duration>,
 }
 
-/// Acts as the requester of every job: proposal, booking, start, wait for `done`.
-async fn drive(
-    session: &zenoh::Session,
-    keys: &CellKeys,
-    options: &DemoOptions,
-) -> Result<Summary> {
-    let requester = HolonId::order("demo")?;
-    let inbox_key = keys.inbox(requester.name());
-    let (tx, mut results) = mpsc::unbounded_channel::<Service>();
-    let _inbox = session
-        .declare_queryable(&inbox_key)
-        .callback(move |query| {
-            use zenoh::Wait;
-            let payload = query
-                .payload()
-                .map(|p| p.to_bytes().into_owned())
+impl Report {
+    fn completed(&self) -> usize {
+        self.orders
+            .values()
+            .filter(|o| matches!(o.status, OrderStatus::Done | OrderStatus::Scrapped))
+            .count()
+    }
+
+    fn print(&self, dir: &Path) {
+        let count = |s: OrderStatus| self.orders.values().filter(|o| o.status == s).count();
+        let mut steps: BTreeMap<String, usize> = BTreeMap::new();
+        for order in self.orders.values() {
+            for (_, resource) in &order.completed {
+                *steps.entry(resource.to_string()).or_default() += 1;
+            }
+        }
+        println!();
+        println!("summary");
+        println!("  orders done     {}", count(OrderStatus::Done));
+        println!("  orders scrapped {}", count(OrderStatus::Scrapped));
+        println!("  orders failed   {}", self.failed);
+        for order in self
+            .orders
+            .values()
+            .filter(|o| o.status == OrderStatus::Failed)
+        {
+            println!(
+                "    {}: {}",
+                order.holon,
+                order.reason.as_deref().unwrap_or("")
+            );
+        }
+        println!("  time taken      {:.2} s", self.elapsed.as_secs_f64());
+        if let Some(at) = self.hot_added {
+            println!("  robot3 added    at {:.2} s", at.as_secs_f64());
+        }
+        println!(
+            "  reworks         {}",
+            self.orders.values().map(|o| o.reworks).sum::<u32>()
+        );
+        println!(
+            "  rebooks         {}",
+            self.orders.values().map(|o| o.rebooks).sum::<u32>()
+        );
+        println!("  steps per resource");
+        for (resource, n) in &steps {
+            let sim = resource.trim_start_matches("resource/");
+            let counts = std::fs::read_to_string(dir.join(format!("{sim}-sim.counts.json")))
                 .unwrap_or_default();
-            match Service::from_json(&payload) {
-                Ok(message) => {
-                    let mut ack = message.clone();
-                    ack.result = Some(true);
-                    let _ = query.reply(query.key_expr().clone(), ack.to_json()).wait();
-                    let _ = tx.send(message);
-                }
-                Err(e) => {
-                    let _ = query
-                        .reply_err(schemas::ErrorReply::new("invalid", e.to_string()).to_json())
-                        .wait();
-                }
-            }
-        })
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-
-    let started = Instant::now();
-    let mut summary = Summary {
-        done: 0,
-        failed: 0,
-        elapsed: Duration::ZERO,
-        cycles: Vec::new(),
-    };
-    for job in 1..=options.jobs {
-        let conversation = format!("demo/{job}/1");
-        let info = serde_json::json!({
-            "pick": {"x": 100.0 + job as f64, "y": 20.0, "z": 5.0, "a": 0.0, "b": 0.0, "c": 0.0},
-            "place": {"x": 300.0, "y": 40.0 + job as f64, "z": 5.0, "a": 0.0, "b": 0.0, "c": 90.0}
-        });
-        let request = |kind| {
-            Service::request(kind, "pick_n_place", &conversation, requester.clone())
-                .with_reply_to(inbox_key.clone())
-                .with_info(info.as_object().expect("object").clone())
-        };
-        let t0 = Instant::now();
-        let Some(best) = best_proposal(session, keys, &request(MessageType::ProposalReq)).await?
-        else {
-            println!(
-                "[{job}/{}] no resource proposed pick_n_place within {STEP_TIMEOUT:?}",
-                options.jobs
-            );
-            summary.failed += 1;
-            continue;
-        };
-        let service_key = keys.service(best.name());
-        let booked = ask_one(session, &service_key, &request(MessageType::BookingReq)).await?;
-        let started_job = if booked.result == Some(true) {
-            ask_one(session, &service_key, &request(MessageType::Start)).await?
-        } else {
-            booked
-        };
-        if started_job.result != Some(true) {
-            println!(
-                "[{job}/{}] {best} refused: {}",
-                options.jobs,
-                started_job.reason.unwrap_or_default()
-            );
-            summary.failed += 1;
-            continue;
+            println!("    {resource:<20} {n:>4}   controller {}", counts.trim());
         }
-        let result = loop {
-            let message = tokio::time::timeout(STEP_TIMEOUT, results.recv())
-                .await
-                .map_err(|_| anyhow!("no result for {conversation} within {STEP_TIMEOUT:?}"))?
-                .ok_or_else(|| anyhow!("inbox closed"))?;
-            if message.conversation_id == conversation {
-                break message;
-            }
-        };
-        let cycle = t0.elapsed();
-        if result.message_type == MessageType::Done {
-            summary.done += 1;
-            summary.cycles.push(cycle);
-            println!(
-                "[{job}/{}] {conversation}: done by {best} in {} ms ({})",
-                options.jobs,
-                cycle.as_millis(),
-                serde_json::Value::Object(
-                    result
-                        .info
-                        .get("results")
-                        .and_then(|r| r.as_object())
-                        .cloned()
-                        .unwrap_or_default()
-                )
-            );
-        } else {
-            summary.failed += 1;
-            println!(
-                "[{job}/{}] {conversation}: failed on {best}: {}",
-                options.jobs,
-                result.reason.unwrap_or_default()
-            );
-        }
-    }
-    summary.elapsed = started.elapsed();
-    Ok(summary)
-}
-
-/// Proposal rounds until a resource proposes (one that is still connecting to its
-/// controller says `unavailable`): the provider with the shortest expected wait.
-async fn best_proposal(
-    session: &zenoh::Session,
-    keys: &CellKeys,
-    request: &Service,
-) -> Result<Option<HolonId>> {
-    let deadline = Instant::now() + STEP_TIMEOUT;
-    loop {
-        let proposals = ask_all(session, &keys.offers(&request.service_type), request).await?;
-        let best = proposals
-            .iter()
-            .filter(|p| p.result == Some(true))
-            .min_by_key(|p| {
-                p.info
-                    .get("expected_wait_ms")
-                    .and_then(|v| v.as_u64())
-                    .unwrap_or(u64::MAX)
-            })
-            .and_then(|p| p.provider.clone());
-        if best.is_some() || Instant::now() > deadline {
-            return Ok(best);
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }
 
-async fn ask_all(session: &zenoh::Session, key: &str, message: &Service) -> Result<Vec<Service>> {
-    let replies = session
-        .get(key)
-        .payload(message.to_json())
-        .consolidation(ConsolidationMode::None)
-        .timeout(Duration::from_secs(2))
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let mut answers = Vec::new();
-    while let Ok(reply) = replies.recv_async().await {
-        if let Ok(sample) = reply.result() {
-            answers.push(Service::from_json(&sample.payload().to_bytes())?);
-        }
-    }
-    Ok(answers)
-}
-
-async fn ask_one(session: &zenoh::Session, key: &str, message: &Service) -> Result<Service> {
-    let replies = session
-        .get(key)
-        .payload(message.to_json())
-        .consolidation(ConsolidationMode::None)
-        .timeout(Duration::from_secs(5))
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let reply = replies
-        .recv_async()
-        .await
-        .map_err(|_| anyhow!("no answer from {key}"))?;
-    match reply.result() {
-        Ok(sample) => Ok(Service::from_json(&sample.payload().to_bytes())?),
-        Err(err) => bail!(
-            "{key} answered with an error: {}",
-            err.payload().try_to_string().unwrap_or_default()
+async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
+    let robot_delay = options.action_delay;
+    let short_delay = options.action_delay / 3;
+    // Resources: a simulator each, then the holon.
+    let resources: Vec<(&str, &str, Duration, Vec<String>)> = vec![
+        ("robot1", ROBOT, robot_delay, vec![]),
+        ("robot2", ROBOT, robot_delay, vec![]),
+        (
+            "inspect1",
+            INSPECTION,
+            short_delay,
+            if options.inspect_fail_every > 0 {
+                vec![
+                    "--inspect-fail-every".into(),
+                    options.inspect_fail_every.to_string(),
+                ]
+            } else {
+                vec![]
+            },
         ),
+        ("conveyor1", CONVEYOR, short_delay, vec![]),
+    ];
+    for (name, config, delay, sim_flags) in &resources {
+        let controller = cell.sim(&format!("{name}-sim"), *delay, sim_flags).await?;
+        let holon = HolonId::resource(name)?;
+        let took = cell
+            .holon(
+                "holon-node",
+                config,
+                &holon,
+                &["--controller".into(), controller.clone()],
+                None,
+            )
+            .await?;
+        println!(
+            "  {holon:<22} alive after {:>4} ms (controller {controller})",
+            took.as_millis()
+        );
     }
+    let product = HolonId::new(schemas::HolonKind::Product, "breaker")?;
+    let took = cell
+        .holon("holon-node", PRODUCT, &product, &[], None)
+        .await?;
+    println!("  {product:<22} alive after {:>4} ms", took.as_millis());
+    let orders_key = cell.keys.host("order-node", "orders1");
+    let took = cell
+        .holon(
+            "order-node",
+            ORDERS,
+            &HolonId::order("orders1")?,
+            &[],
+            Some(orders_key),
+        )
+        .await?;
+    println!(
+        "  {:<22} alive after {:>4} ms",
+        "order-node orders1",
+        took.as_millis()
+    );
+
+    // Watch every order's state before submitting.
+    let states = cell
+        .session
+        .declare_subscriber(cell.keys.order_states())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let started = Instant::now();
+    let work = WorkOrder {
+        product: "breaker".into(),
+        count: options.orders,
+        priority: 0,
+    };
+    let ids = submit(&cell.session, &cell.keys, &work, STARTUP).await?;
+    println!(
+        "submitted {} orders of breaker: {} .. {}",
+        ids.len(),
+        ids.first().map(String::as_str).unwrap_or(""),
+        ids.last().map(String::as_str).unwrap_or("")
+    );
+
+    let mut orders: BTreeMap<HolonId, OrderSnapshot> = BTreeMap::new();
+    let mut hot_added = None;
+    let deadline =
+        Instant::now() + Duration::from_secs(60) + options.action_delay * 10 * options.orders;
+    loop {
+        let finished = orders.values().filter(|o| o.status.is_final()).count();
+        if finished == ids.len() {
+            break;
+        }
+        if options.hot_add && hot_added.is_none() && finished * 2 >= ids.len() {
+            let controller = cell.sim("robot3-sim", robot_delay, &[]).await?;
+            let robot3 = HolonId::resource("robot3")?;
+            let took = cell
+                .holon(
+                    "holon-node",
+                    ROBOT,
+                    &robot3,
+                    &["--controller".into(), controller],
+                    None,
+                )
+                .await?;
+            hot_added = Some(started.elapsed());
+            println!(
+                "+ hot-added {robot3} while {} orders run (alive after {} ms)",
+                ids.len() - finished,
+                took.as_millis()
+            );
+        }
+        let sample = match tokio::time::timeout_at(deadline.into(), states.recv_async()).await {
+            Ok(Ok(sample)) => sample,
+            Ok(Err(e)) => bail!("order states: {e}"),
+            Err(_) => bail!("orders still running after {:?}", deadline - started),
+        };
+        let Ok(snapshot) = serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
+        else {
+            continue;
+        };
+        let previous = orders.get(&snapshot.holon);
+        let progressed = previous.is_none_or(|p| {
+            p.status != snapshot.status || p.completed.len() != snapshot.completed.len()
+        });
+        if progressed {
+            let elapsed = started.elapsed().as_secs_f64();
+            match snapshot.status {
+                OrderStatus::Running => {
+                    if let Some((service, resource)) = snapshot.completed.last() {
+                        println!(
+                            "{elapsed:7.2}s  {:<14} {service:<13} done by {resource}",
+                            snapshot.holon.name()
+                        );
+                    }
+                }
+                status => println!(
+                    "{elapsed:7.2}s  {:<14} {status:?}{}",
+                    snapshot.holon.name(),
+                    snapshot
+                        .reason
+                        .as_deref()
+                        .map(|r| format!(": {r}"))
+                        .unwrap_or_default()
+                ),
+            }
+        }
+        orders.insert(snapshot.holon.clone(), snapshot);
+    }
+    let failed = orders
+        .values()
+        .filter(|o| o.status == OrderStatus::Failed)
+        .count();
+    Ok(Report {
+        orders,
+        failed,
+        elapsed: started.elapsed(),
+        hot_added,
+    })
 }
 
 /// A temporary directory removed when dropped, unless kept for its logs.

@@ -18,23 +18,52 @@ struct Args {
 
 #[derive(Debug, Subcommand)]
 enum Commands {
-    /// Run a demo cell on this machine: a controller simulator and a pick-'n-place
-    /// resource holon as real processes, and `--jobs` jobs through the whole contract
-    /// (proposal, booking, start, done). Exits 0 only if every job completed.
+    /// Run a complete demo cell on this machine: an embedded zenoh router, two robots,
+    /// an inspection station and a conveyor (each with its controller simulator), the
+    /// breaker product and an order-node, all as real processes; submit the orders, show
+    /// their progress, hot-add a third robot midway, print a summary and stop
+    /// everything. Exits 0 only if every order completed (done, or scrapped by its plan).
     Demo {
         /// The cell's name (all keys live under holarchy/<cell>/).
         #[arg(long, default_value = "demo")]
         cell: String,
-        /// How many pick-'n-place jobs to run.
+        /// How many breakers to order.
         #[arg(long, default_value_t = 10)]
-        jobs: u32,
-        /// Simulated duration of each controller action, in milliseconds.
-        #[arg(long, default_value_t = 100)]
+        orders: u32,
+        /// Simulated duration of a robot action in milliseconds (the conveyor and the
+        /// inspection station take a third of it).
+        #[arg(long, default_value_t = 300)]
         delay_ms: u64,
+        /// Every Nth inspection fails and the plan reworks the part (0: none fail).
+        #[arg(long, default_value_t = 7)]
+        inspect_fail_every: u64,
+        /// Do not hot-add the third robot.
+        #[arg(long)]
+        no_hot_add: bool,
         /// Keep configs and logs in this directory (default: a temporary directory,
         /// removed after a successful run and kept after a failed one).
         #[arg(long, value_name = "DIR")]
         dir: Option<PathBuf>,
+    },
+    /// Submit work orders to a running cell and print the new orders' ids.
+    Submit {
+        /// The product to make, e.g. breaker.
+        product: String,
+        /// How many.
+        #[arg(long, default_value_t = 1)]
+        count: u32,
+        /// Priority (kept with the order; scheduling by priority is not implemented yet).
+        #[arg(long, default_value_t = 0)]
+        priority: i32,
+        /// The cell's name.
+        #[arg(long, default_value = "demo")]
+        cell: String,
+        /// The endpoint of a zenoh router of the cell (repeatable).
+        #[arg(long, value_name = "ENDPOINT", required = true)]
+        connect: Vec<String>,
+        /// How long to wait for an order-node to answer, in milliseconds.
+        #[arg(long, default_value_t = 5000)]
+        timeout_ms: u64,
     },
     /// List the live holons of a cell with their kind, state and agenda length.
     Status {
@@ -85,18 +114,44 @@ async fn run(args: Args) -> Result<bool> {
     match args.command {
         Commands::Demo {
             cell,
-            jobs,
+            orders,
             delay_ms,
+            inspect_fail_every,
+            no_hot_add,
             dir,
         } => {
             let shutdown = holon::shutdown_on_signals();
             let options = cell::demo::DemoOptions {
                 cell,
-                jobs,
+                orders,
                 action_delay: Duration::from_millis(delay_ms),
+                inspect_fail_every,
+                hot_add: !no_hot_add,
                 dir,
             };
             cell::demo::run(options, shutdown).await
+        }
+        Commands::Submit {
+            product,
+            count,
+            priority,
+            cell,
+            connect,
+            timeout_ms,
+        } => {
+            let keys = schemas::CellKeys::new(&cell)?;
+            let work = schemas::WorkOrder {
+                product,
+                count,
+                priority,
+            };
+            work.validate()?;
+            let session = client_session(&connect, Duration::from_millis(timeout_ms)).await?;
+            let ids = cell::demo::submit(&session, &keys, &work, Duration::from_millis(timeout_ms))
+                .await?;
+            println!("{}", ids.join("\n"));
+            let _ = session.close().await;
+            Ok(true)
         }
         Commands::Status {
             cell,
@@ -104,24 +159,29 @@ async fn run(args: Args) -> Result<bool> {
             timeout_ms,
         } => {
             let keys = schemas::CellKeys::new(&cell)?;
-            // A client: everything it asks is routed by the router it connects to.
-            let settings = holon::ZenohSettings {
-                mode: "client".into(),
-                connect: connect.clone(),
-                ..holon::ZenohSettings::default()
-            };
-            let session = settings
-                .open(Duration::from_secs(10))
-                .await
-                .map_err(|e| anyhow!("{e}"))?;
             let timeout = Duration::from_millis(timeout_ms);
-            if !holon::session::wait_connected(&session, timeout).await {
-                return Err(anyhow!("cannot reach the cell at {}", connect.join(", ")));
-            }
+            let session = client_session(&connect, timeout).await?;
             let rows = cell::status::collect(&session, &keys, timeout).await?;
             print!("{}", cell::status::render(&cell, &rows));
             let _ = session.close().await;
             Ok(true)
         }
     }
+}
+
+/// A zenoh client of the cell: everything it asks is routed by the router it connects to.
+async fn client_session(connect: &[String], timeout: Duration) -> Result<zenoh::Session> {
+    let settings = holon::ZenohSettings {
+        mode: "client".into(),
+        connect: connect.to_vec(),
+        ..holon::ZenohSettings::default()
+    };
+    let session = settings
+        .open(Duration::from_secs(10))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    if !holon::session::wait_connected(&session, timeout).await {
+        return Err(anyhow!("cannot reach the cell at {}", connect.join(", ")));
+    }
+    Ok(session)
 }
