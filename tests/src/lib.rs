@@ -517,3 +517,61 @@ pub fn pick_n_place(
     .with_reply_to(keys.inbox(order))
     .with_info(info.as_object().expect("object").clone())
 }
+
+/// A config shipped in `deploy/cells/demo/`.
+pub fn demo_config(file: &str) -> PathBuf {
+    workspace_root().join("deploy/cells/demo").join(file)
+}
+
+/// Starts `program` (holon-node or order-node) with `--config FILE --cell CELL --name
+/// NAME --connect ENDPOINT --listen tcp/127.0.0.1:0` and extra flags; its log goes to
+/// `DIR/NAME.log.json`.
+pub fn start_holon(
+    dir: &Path,
+    program: &str,
+    config: &Path,
+    name: &str,
+    cell: &Cell,
+    extra: &[&str],
+) -> Result<Process> {
+    let stderr_path = dir.join(format!("{name}.stderr"));
+    let child = Command::new(bin(program))
+        .arg("--config")
+        .arg(config)
+        .args(["--cell", cell.keys.cell(), "--name", name])
+        .args(["--connect", &cell.endpoint, "--listen", "tcp/127.0.0.1:0"])
+        .arg("--log-file")
+        .arg(dir.join(format!("{name}.log.json")))
+        .args(extra)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(fs::File::create(&stderr_path)?)
+        .spawn()
+        .with_context(|| format!("start {program}"))?;
+    Ok(Process {
+        name: name.to_string(),
+        child: Some(child),
+        stderr_path,
+    })
+}
+
+impl Cell {
+    /// Waits until a liveliness token on `key` appears (e.g. an order-node's host token).
+    pub async fn wait_token(&self, key: &str) -> Result<()> {
+        let subscriber = self
+            .session
+            .liveliness()
+            .declare_subscriber(key)
+            .history(true)
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let deadline = tokio::time::Instant::now() + WAIT;
+        loop {
+            match tokio::time::timeout_at(deadline, subscriber.recv_async()).await {
+                Ok(Ok(sample)) if sample.kind() == SampleKind::Put => return Ok(()),
+                Ok(Ok(_)) => continue,
+                _ => bail!("{key} did not appear within {WAIT:?}"),
+            }
+        }
+    }
+}
