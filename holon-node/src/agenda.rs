@@ -15,6 +15,7 @@
 //! | `start` | init | refused `unavailable` (the booking stays) |
 //! | `done` / `failed` from execution | busy | free (or init): the result is delivered |
 //! | `ready` / `unavailable` from execution | any | the status follows |
+//! | withdraw (SIGTERM) | any | no new bookings or starts; every booking handed back as `failed` `withdrawn` |
 //!
 //! Refusals: `unknown_service` (type not offered), `not_booked` (start or cancel without a
 //! booking), `agenda_full`, `invalid_info` (start without what the steps need). A booking
@@ -32,7 +33,7 @@ use serde_json::{json, Map, Value};
 use crate::catalog::ServiceCatalog;
 
 /// A commitment on the agenda.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Booking {
     pub requester: HolonId,
     pub conversation_id: String,
@@ -43,7 +44,7 @@ pub struct Booking {
 }
 
 /// A booking being executed.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Job {
     pub requester: HolonId,
     pub conversation_id: String,
@@ -96,6 +97,15 @@ pub enum AgendaAction {
     StateChanged,
 }
 
+/// What the journal keeps of the agenda manager: everything that must survive a crash.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct AgendaRecord {
+    pub bookings: Vec<Booking>,
+    /// The job that was executing: after a crash it is reported `interrupted`.
+    pub current: Option<Job>,
+    pub undelivered: Vec<Service>,
+}
+
 /// The execution status in Figure 4 (plus `init`).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Status {
@@ -131,6 +141,47 @@ impl AgendaManager {
             undelivered: Vec::new(),
             withdrawing: false,
         }
+    }
+
+    /// What the journal keeps.
+    pub fn record(&self) -> AgendaRecord {
+        AgendaRecord {
+            bookings: self.bookings.clone(),
+            current: self.current.clone(),
+            undelivered: self.undelivered.clone(),
+        }
+    }
+
+    /// The agenda manager after a restart of the process: the bookings and undelivered
+    /// results come back; a job that was executing is reported `failed` with reason
+    /// `interrupted` (never re-executed). The returned actions deliver the results.
+    pub fn restore(
+        holon: HolonId,
+        catalog: Arc<ServiceCatalog>,
+        capacity: usize,
+        record: AgendaRecord,
+    ) -> (AgendaManager, Vec<AgendaAction>) {
+        let mut manager = AgendaManager::new(holon, catalog, capacity);
+        manager.bookings = record.bookings;
+        manager.undelivered = record.undelivered;
+        if let Some(job) = record.current {
+            let message = manager.result_message(
+                job,
+                Outcome::Failed {
+                    reason: reason::INTERRUPTED.into(),
+                    detail: "the resource holon stopped while the step ran; it was not completed"
+                        .into(),
+                },
+            );
+            manager.undelivered.push(message);
+        }
+        let actions = manager
+            .undelivered
+            .iter()
+            .cloned()
+            .map(AgendaAction::Deliver)
+            .collect();
+        (manager, actions)
     }
 
     /// True once withdrawing and nothing is left to finish or deliver.
@@ -241,6 +292,12 @@ impl AgendaManager {
         })
     }
 
+    fn is_undelivered(&self, request: &Service) -> bool {
+        self.undelivered.iter().any(|r| {
+            r.requester == request.requester && r.conversation_id == request.conversation_id
+        })
+    }
+
     fn request(&mut self, request: Service) -> Vec<AgendaAction> {
         let refuse = |why: &str| vec![AgendaAction::Reply(request.refused(&self.holon, why))];
         let offered = self.catalog.offers(&request.service_type);
@@ -324,8 +381,9 @@ impl AgendaManager {
         if !self.catalog.offers(&request.service_type) {
             return refuse(reason::UNKNOWN_SERVICE, None);
         }
-        if self.is_current(&request) {
-            // A repeated start of the running job: it has begun.
+        if self.is_current(&request) || self.is_undelivered(&request) {
+            // A repeated start of the running job, or of one that finished and whose
+            // result is on its way: it has begun.
             return vec![AgendaAction::Reply(request.accepted(&self.holon))];
         }
         let Some(index) = self.booking_index(&request) else {
@@ -944,6 +1002,69 @@ mod tests {
             });
         }
         assert!(m.is_drained());
+    }
+
+    #[test]
+    fn a_start_of_a_finished_job_whose_result_is_undelivered_is_accepted_again() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        m.handle(done("c1"));
+        let again = m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        assert_accepted(&again);
+        assert_eq!(again.len(), 1, "no second execution");
+        m.handle(AgendaEvent::ResultAcknowledged {
+            conversation_id: "c1".into(),
+        });
+        assert_refused(
+            &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+            "not_booked",
+        );
+    }
+
+    #[test]
+    fn restore_reports_the_interrupted_job_and_redelivers_results() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book("o-2", "c2")));
+        m.handle(AgendaEvent::Request(book("o-3", "c3")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        m.handle(done("c1"));
+        m.handle(AgendaEvent::Request(start("o-2", "c2")));
+        let record = m.record();
+        let json = serde_json::to_string(&record).unwrap();
+        let record: AgendaRecord = serde_json::from_str(&json).unwrap();
+        let (restored, actions) = AgendaManager::restore(
+            HolonId::resource("robot1").unwrap(),
+            Arc::new(pick_n_place()),
+            3,
+            record,
+        );
+        assert_eq!(restored.bookings().len(), 1);
+        assert_eq!(restored.bookings()[0].conversation_id, "c3");
+        assert_eq!(
+            restored.status(),
+            Status::Init,
+            "no job runs after a restart"
+        );
+        let delivered: Vec<(&str, MessageType, Option<&str>)> = actions
+            .iter()
+            .map(|a| match a {
+                AgendaAction::Deliver(s) => (
+                    s.conversation_id.as_str(),
+                    s.message_type,
+                    s.reason.as_deref(),
+                ),
+                other => panic!("{other:?}"),
+            })
+            .collect();
+        assert_eq!(
+            delivered,
+            vec![
+                ("c1", MessageType::Done, None),
+                ("c2", MessageType::Failed, Some("interrupted"))
+            ]
+        );
     }
 
     #[test]

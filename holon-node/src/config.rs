@@ -44,7 +44,19 @@ pub struct ConfigFile {
     pub delivery: DeliverySection,
     #[serde(default)]
     pub shutdown: ShutdownSection,
+    #[serde(default)]
+    pub journal: JournalSection,
     pub services: BTreeMap<String, ServiceSection>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JournalSection {
+    /// The data directory; `--data-dir` overrides it. None: no journal.
+    #[serde(default)]
+    pub dir: Option<std::path::PathBuf>,
+    #[serde(default)]
+    pub durability: holon::journal::Durability,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -257,6 +269,9 @@ pub struct ResourceConfig {
     pub catalog: Arc<ServiceCatalog>,
     /// On SIGTERM, how long to wait for the running job and the hand-back of bookings.
     pub shutdown_grace: Duration,
+    /// Where the journal lives (`<dir>/resource-<name>.sqlite`); None: not durable.
+    pub data_dir: Option<std::path::PathBuf>,
+    pub durability: holon::journal::Durability,
     /// Declare `resource/<name>/debug/crash` (tests and demonstrations only).
     pub allow_fault_injection: bool,
 }
@@ -269,6 +284,7 @@ pub struct Overrides {
     pub connect: Vec<String>,
     pub listen: Vec<String>,
     pub controller: Option<String>,
+    pub data_dir: Option<std::path::PathBuf>,
     pub allow_fault_injection: bool,
 }
 
@@ -305,6 +321,9 @@ impl ResourceConfig {
         }
         if let Some(controller) = overrides.controller {
             file.controller.address = controller;
+        }
+        if let Some(dir) = overrides.data_dir {
+            file.journal.dir = Some(dir);
         }
         Self::validate(file, overrides.allow_fault_injection).map_err(|message| {
             ConfigError::Invalid {
@@ -417,6 +436,8 @@ impl ResourceConfig {
             },
             catalog: Arc::new(ServiceCatalog::new(services)),
             shutdown_grace: Duration::from_millis(file.shutdown.grace_ms),
+            data_dir: file.journal.dir.clone(),
+            durability: file.journal.durability,
             allow_fault_injection,
         })
     }

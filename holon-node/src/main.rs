@@ -40,6 +40,10 @@ struct Args {
     /// The robot controller's HOST:PORT, overriding controller.address in the config.
     #[arg(long, value_name = "HOST:PORT")]
     controller: Option<String>,
+    /// The data directory for the holon's journal (overrides journal.dir); without one
+    /// the holon's state is not durable.
+    #[arg(long, value_name = "DIR")]
+    data_dir: Option<PathBuf>,
     /// Terminal log format: text (human-readable) or json (one object per line).
     #[arg(long, default_value = "text", value_name = "text|json")]
     log_format: LogFormat,
@@ -78,6 +82,7 @@ fn run(args: Args) -> anyhow::Result<()> {
         connect: args.connect,
         listen: args.listen,
         controller: args.controller,
+        data_dir: args.data_dir,
         allow_fault_injection: args.allow_fault_injection,
     };
     let config = HolonConfig::load(&args.config, overrides)?;

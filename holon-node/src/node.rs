@@ -17,9 +17,10 @@ use tokio::sync::{mpsc, oneshot, Notify};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
-use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager};
+use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord};
 use crate::config::ResourceConfig;
 use crate::execution::{Execution, ExecutionAction, ExecutionEvent};
+use holon::journal::Journal;
 
 /// How long a holon waits for zenoh to open and for its components to come up.
 pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
@@ -36,6 +37,8 @@ pub enum NodeError {
     Startup(Duration),
     #[error(transparent)]
     Supervisor(#[from] holon::supervisor::SupervisorError),
+    #[error(transparent)]
+    Journal(#[from] holon::journal::JournalError),
 }
 
 /// A message to the agenda manager.
@@ -120,7 +123,12 @@ pub struct Node {
     pub serving: Notify,
     /// Set when the holon starts shutting down: offers stay undeclared.
     pub withdrawing: AtomicBool,
+    /// The durable state, if the holon has a data directory.
+    journal: Option<Journal>,
 }
+
+/// The journal record that holds the agenda.
+const AGENDA_RECORD: (&str, &str) = ("agenda", "agenda");
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     // A component that panicked while holding the lock left a complete state behind:
@@ -129,14 +137,43 @@ fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Node {
-    pub fn new(config: ResourceConfig, session: zenoh::Session) -> Node {
-        let agenda = AgendaManager::new(
+    /// The node, its agenda restored from the journal if it has one. Results not
+    /// acknowledged before a restart (and an interrupted job's `failed`) are delivered by
+    /// the communication component, which delivers every undelivered result when it starts.
+    pub fn new(config: ResourceConfig, session: zenoh::Session) -> Result<Node, NodeError> {
+        let journal = match &config.data_dir {
+            Some(dir) => {
+                let file = format!("resource-{}.sqlite", config.holon.name());
+                Some(Journal::open(dir, &file, config.durability)?)
+            }
+            None => None,
+        };
+        let record: AgendaRecord = match &journal {
+            Some(journal) => journal
+                .get(AGENDA_RECORD.0, AGENDA_RECORD.1)?
+                .unwrap_or_default(),
+            None => AgendaRecord::default(),
+        };
+        match &journal {
+            Some(journal) => {
+                info!(holon = %config.holon, journal = %journal.path().display(), bookings = record.bookings.len(), interrupted = record.current.is_some(), undelivered = record.undelivered.len(), "journal opened")
+            }
+            None => {
+                warn!(holon = %config.holon, "no data directory: the agenda is not durable (use --data-dir)")
+            }
+        }
+        let (agenda, _deliveries) = AgendaManager::restore(
             config.holon.clone(),
             config.catalog.clone(),
             config.agenda_capacity,
+            record,
         );
+        if let Some(journal) = &journal {
+            // The interrupted job became an undelivered result: record that at once.
+            journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record())?;
+        }
         let execution = Execution::new(config.catalog.clone());
-        Node {
+        let node = Node {
             config,
             session,
             agenda: Mutex::new(agenda),
@@ -149,7 +186,9 @@ impl Node {
             faults: Faults::default(),
             serving: Notify::new(),
             withdrawing: AtomicBool::new(false),
-        }
+            journal,
+        };
+        Ok(node)
     }
 
     /// The snapshot published on `resource/<name>/state`.
@@ -309,7 +348,20 @@ async fn agenda(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildEr
         let (before, actions, after) = {
             let mut agenda = lock(&node.agenda);
             let before = agenda.status_name();
-            let actions = agenda.handle(event);
+            let previous = node.journal.as_ref().map(|_| agenda.clone());
+            let mut actions = agenda.handle(event);
+            let changed = actions
+                .iter()
+                .any(|a| matches!(a, AgendaAction::StateChanged | AgendaAction::Deliver(_)));
+            if let (Some(journal), Some(previous), true) = (&node.journal, previous, changed) {
+                // Nothing is acknowledged before it is committed.
+                if let Err(e) = journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record()) {
+                    error!(%holon, component = "agenda", error = %e, "journal write failed; the event is refused");
+                    *agenda = previous;
+                    actions = Vec::new();
+                    reply.take();
+                }
+            }
             (before, actions, agenda.status_name())
         };
         if before != after {
@@ -351,7 +403,13 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
     let alive_key = config.keys.alive(&holon);
     let session = config.zenoh.open(STARTUP_TIMEOUT).await?;
     info!(holon = %holon, zid = %session.zid(), "zenoh session open");
-    let node = Arc::new(Node::new(config, session.clone()));
+    let node = match Node::new(config, session.clone()) {
+        Ok(node) => Arc::new(node),
+        Err(e) => {
+            let _ = session.close().await;
+            return Err(e);
+        }
+    };
 
     let supervisor = Supervisor::new(
         holon.to_string(),

@@ -91,6 +91,9 @@ pub mod reason {
     /// The resource is shutting down and hands the booking back (sent as `failed` for a
     /// booking that never started): book elsewhere.
     pub const WITHDRAWN: &str = "withdrawn";
+    /// The resource holon stopped (crashed, was killed) while the step ran; it was not
+    /// completed and is never re-executed by the resource: the order decides.
+    pub const INTERRUPTED: &str = "interrupted";
 }
 
 /// The Service message: one per zenoh payload, JSON, UTF-8.

@@ -388,3 +388,81 @@ async fn sigterm_withdraws_the_token_and_exits_zero() {
     // The controller saw its connection closed: a new one is accepted by the sim later.
     assert!(r.cell.wait_gone(&r.holon).await.is_ok());
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_killed_resource_comes_back_with_its_bookings_and_reports_the_interrupted_step() {
+    let data = tempfile::tempdir().unwrap();
+    let data_dir = data.path().to_str().unwrap().to_string();
+    let mut r = robot(
+        "t-recover",
+        &["--delay-ms", "800"],
+        &["--data-dir", &data_dir],
+        10_000,
+    )
+    .await;
+    // o-3's result cannot be delivered yet: its inbox refuses everything for now.
+    let mut refusing = r.cell.inbox("o-3", usize::MAX).await.unwrap();
+    r.send(MessageType::BookingReq, "o-3", "c3").await;
+    r.send(MessageType::Start, "o-3", "c3").await;
+    let first = refusing.next().await.unwrap();
+    assert_eq!(first.message_type, MessageType::Done);
+    // Now a job in progress, and a booking waiting.
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    r.send(MessageType::BookingReq, "o-1", "c1").await;
+    r.send(MessageType::BookingReq, "o-2", "c2").await;
+    assert_eq!(
+        r.send(MessageType::Start, "o-1", "c1").await.result,
+        Some(true)
+    );
+    r.cell
+        .wait_state("robot1", "picking", |s| s["current"]["step"] == "pick")
+        .await
+        .unwrap();
+
+    r.node.kill(); // SIGKILL: no chance to clean up
+    r.cell.wait_gone(&r.holon).await.unwrap();
+    drop(refusing); // o-3's inbox goes away; a new one will acknowledge
+    let mut accepting = r.cell.inbox("o-3", 0).await.unwrap();
+    let config = r.dir.path().join("robot1.toml");
+    r.node = start_node(
+        r.dir.path(),
+        &config,
+        r.cell.keys.cell(),
+        &r.cell.endpoint,
+        &r.sim.address,
+        &["--data-dir", &data_dir],
+    )
+    .unwrap();
+    r.cell.wait_alive(&r.holon).await.unwrap();
+
+    // The interrupted step is reported, never re-executed.
+    let failed = inbox.next().await.unwrap();
+    assert_eq!(failed.message_type, MessageType::Failed);
+    assert_eq!(failed.conversation_id, "c1");
+    assert_eq!(failed.reason.as_deref(), Some("interrupted"));
+    // The undelivered done is delivered again.
+    let done = accepting.next().await.unwrap();
+    assert_eq!(
+        (done.message_type, done.conversation_id.as_str()),
+        (MessageType::Done, "c3")
+    );
+    // The waiting booking is back.
+    let state = r
+        .cell
+        .wait_state("robot1", "free with nothing undelivered", |s| {
+            s["state"] == "free" && s["undelivered"] == 0
+        })
+        .await
+        .unwrap();
+    assert_eq!(state["agenda"].as_array().unwrap().len(), 1, "{state}");
+    assert_eq!(state["agenda"][0]["conversation_id"], "c2");
+    // c1's pick reached the controller once, its place never; c3 ran once.
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    assert_eq!(r.sim.executed("pick"), 2, "{}", r.sim.counts());
+    assert_eq!(r.sim.executed("place"), 1, "{}", r.sim.counts());
+    // And the holon serves the waiting booking.
+    assert_eq!(
+        r.send(MessageType::Start, "o-2", "c2").await.result,
+        Some(true)
+    );
+}
