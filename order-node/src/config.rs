@@ -27,6 +27,17 @@ struct File {
     zenoh: ZenohSettings,
     #[serde(default)]
     orders: OrdersSection,
+    #[serde(default)]
+    journal: JournalSection,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct JournalSection {
+    #[serde(default)]
+    dir: Option<std::path::PathBuf>,
+    #[serde(default)]
+    durability: holon::journal::Durability,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -42,6 +53,12 @@ struct OrdersSection {
     retry_interval_ms: u64,
     #[serde(default = "d_step")]
     step_timeout_ms: u64,
+    #[serde(default = "d_grace")]
+    vanished_grace_ms: u64,
+}
+
+fn d_grace() -> u64 {
+    2000
 }
 
 fn d_proposal() -> u64 {
@@ -68,6 +85,7 @@ impl Default for OrdersSection {
             no_resource_timeout_ms: d_no_resource(),
             retry_interval_ms: d_retry(),
             step_timeout_ms: d_step(),
+            vanished_grace_ms: d_grace(),
         }
     }
 }
@@ -85,6 +103,9 @@ pub struct OrderSettings {
     pub retry_interval: Duration,
     /// Longest wait for a started step's result before the attempt counts as failed.
     pub step_timeout: Duration,
+    /// How long a resource that vanished while running a step may take to come back
+    /// and report it before the step is booked elsewhere.
+    pub vanished_grace: Duration,
 }
 
 #[derive(Debug, Clone)]
@@ -93,6 +114,9 @@ pub struct OrderNodeConfig {
     pub name: String,
     pub zenoh: ZenohSettings,
     pub orders: OrderSettings,
+    /// Where the journal lives (`<dir>/order-node-<name>.sqlite`); None: not durable.
+    pub data_dir: Option<std::path::PathBuf>,
+    pub durability: holon::journal::Durability,
 }
 
 /// What the command line may override.
@@ -102,6 +126,7 @@ pub struct Overrides {
     pub name: Option<String>,
     pub connect: Vec<String>,
     pub listen: Vec<String>,
+    pub data_dir: Option<std::path::PathBuf>,
 }
 
 impl OrderNodeConfig {
@@ -131,6 +156,9 @@ impl OrderNodeConfig {
         }
         if !overrides.listen.is_empty() {
             file.zenoh.listen = overrides.listen;
+        }
+        if let Some(dir) = overrides.data_dir {
+            file.journal.dir = Some(dir);
         }
         let keys = CellKeys::new(&file.cell).map_err(|e| invalid(format!("cell: {e}")))?;
         validate_name("order-node name", &file.name).map_err(|e| invalid(format!("name: {e}")))?;
@@ -164,7 +192,10 @@ impl OrderNodeConfig {
                 no_resource_timeout: Duration::from_millis(o.no_resource_timeout_ms),
                 retry_interval: Duration::from_millis(o.retry_interval_ms),
                 step_timeout: Duration::from_millis(o.step_timeout_ms),
+                vanished_grace: Duration::from_millis(o.vanished_grace_ms),
             },
+            data_dir: file.journal.dir,
+            durability: file.journal.durability,
         })
     }
 }

@@ -14,7 +14,8 @@ use order_node::config::{OrderNodeConfig, Overrides};
 /// Work orders come from --submit and from holarchy/<cell>/orders/submit
 /// ({"product": "breaker", "count": 3}; the reply lists the new orders). The node is
 /// ready when its token holarchy/<cell>/host/order-node/<name> appears. SIGTERM or
-/// Ctrl-C stops it (exit 0); orders in progress stop where they stand.
+/// Ctrl-C stops it (exit 0); with --data-dir, orders in progress resume where they
+/// stood when it starts again.
 #[derive(Debug, Parser)]
 #[command(name = "order-node", version)]
 struct Args {
@@ -33,6 +34,10 @@ struct Args {
     /// A zenoh endpoint to listen on (repeatable; replaces zenoh.listen).
     #[arg(long, value_name = "ENDPOINT")]
     listen: Vec<String>,
+    /// The data directory for the node's journal (overrides journal.dir); without one
+    /// orders are not durable.
+    #[arg(long, value_name = "DIR")]
+    data_dir: Option<PathBuf>,
     /// Submit a work order at start: PRODUCT:COUNT (repeatable).
     #[arg(long, value_name = "PRODUCT:COUNT")]
     submit: Vec<String>,
@@ -66,6 +71,7 @@ fn run(args: Args) -> anyhow::Result<()> {
         name: args.name,
         connect: args.connect,
         listen: args.listen,
+        data_dir: args.data_dir,
     };
     let config = OrderNodeConfig::load(&args.config, overrides)?;
     let submits = args

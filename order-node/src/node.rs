@@ -19,8 +19,9 @@ use zenoh::key_expr::KeyExpr;
 use zenoh::query::Query;
 
 use crate::config::OrderNodeConfig;
-use crate::order::{self, OrderContext, Presence};
+use crate::order::{self, OrderContext, Presence, ORDER_RECORD};
 use crate::progress::OrderProgress;
+use holon::journal::Journal;
 
 /// Restarts of one order task before the order is failed.
 const MAX_ORDER_RESTARTS: u32 = 3;
@@ -33,7 +34,12 @@ pub enum NodeError {
     Zenoh(String),
     #[error("invalid work order: {0}")]
     WorkOrder(String),
+    #[error(transparent)]
+    Journal(#[from] holon::journal::JournalError),
 }
+
+/// The journal record of the next order number.
+const NEXT_RECORD: (&str, &str) = ("meta", "next_order");
 
 /// The running order tasks, and which order each one runs.
 #[derive(Default)]
@@ -55,37 +61,76 @@ struct Host {
 }
 
 impl Host {
+    /// Creates the orders of a work order, written to the journal before they start
+    /// (and before the submitter is told their names).
     fn create(
         &self,
         work: &WorkOrder,
         tasks: &mut Tasks,
         cancel: &CancellationToken,
-    ) -> Vec<String> {
-        let mut names = Vec::new();
-        for _ in 0..work.count {
-            let n = self.next.fetch_add(1, Ordering::SeqCst);
+    ) -> Result<Vec<String>, String> {
+        let first = self.next.fetch_add(work.count as u64, Ordering::SeqCst);
+        if let Some(journal) = &self.context.journal {
+            journal
+                .put(NEXT_RECORD.0, NEXT_RECORD.1, &(first + work.count as u64))
+                .map_err(|e| e.to_string())?;
+        }
+        let mut created = Vec::new();
+        for n in first..first + work.count as u64 {
             let name = format!("{}-{n}", self.config.name);
             let holon = HolonId::order(&name).expect("node names are validated");
-            let progress = Arc::new(Mutex::new(OrderProgress::new(
-                holon,
-                &work.product,
-                self.config.orders.max_attempts,
-            )));
-            self.orders
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .insert(
-                    name.clone(),
-                    Hosted {
-                        progress: progress.clone(),
-                        restarts: 0,
-                    },
-                );
-            self.spawn(&name, progress, tasks, cancel);
+            let progress =
+                OrderProgress::new(holon, &work.product, self.config.orders.max_attempts);
+            self.context.save(&progress)?;
+            created.push((name, progress));
+        }
+        let mut names = Vec::new();
+        for (name, progress) in created {
+            self.host(&name, progress, tasks, cancel);
             names.push(name);
         }
         info!(node = %self.config.name, product = %work.product, count = work.count, first = names.first().map(String::as_str).unwrap_or(""), "orders created");
-        names
+        Ok(names)
+    }
+
+    /// Hosts an order: running ones get a task.
+    fn host(
+        &self,
+        name: &str,
+        progress: OrderProgress,
+        tasks: &mut Tasks,
+        cancel: &CancellationToken,
+    ) {
+        let running = !progress.status.is_final();
+        let progress = Arc::new(Mutex::new(progress));
+        self.orders
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(
+                name.to_string(),
+                Hosted {
+                    progress: progress.clone(),
+                    restarts: 0,
+                },
+            );
+        if running {
+            self.spawn(name, progress, tasks, cancel);
+        }
+    }
+
+    /// Whether `name` is an order of this node that has finished.
+    fn is_finished(&self, name: &str) -> bool {
+        self.orders
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(name)
+            .is_some_and(|h| {
+                h.progress
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .status
+                    .is_final()
+            })
     }
 
     fn spawn(
@@ -148,6 +193,7 @@ pub fn parse_submit(text: &str) -> Result<WorkOrder, NodeError> {
 enum Incoming {
     Submit(Query),
     State(Query),
+    Inbox(Query),
 }
 
 /// Runs the order-node until `shutdown` is cancelled.
@@ -159,20 +205,42 @@ pub async fn run(
     let z = |e: zenoh::Error| NodeError::Zenoh(e.to_string());
     let session = config.zenoh.open(Duration::from_secs(10)).await?;
     let presence = Presence::watch(&session, &config.keys).await.map_err(z)?;
+    let journal = match &config.data_dir {
+        Some(dir) => Some(Arc::new(Journal::open(
+            dir,
+            &format!("order-node-{}.sqlite", config.name),
+            config.durability,
+        )?)),
+        None => {
+            warn!(node = %config.name, "no data directory: orders are not durable (use --data-dir)");
+            None
+        }
+    };
+    let (recovered, next) = match &journal {
+        Some(journal) => (
+            journal.list::<OrderProgress>(ORDER_RECORD)?,
+            journal
+                .get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?
+                .unwrap_or(1),
+        ),
+        None => (Vec::new(), 1),
+    };
     let context = Arc::new(OrderContext {
         session: session.clone(),
         keys: config.keys.clone(),
         settings: config.orders,
         presence,
+        journal,
     });
     let host = Arc::new(Host {
         config: config.clone(),
         context,
         orders: Mutex::new(BTreeMap::new()),
-        next: AtomicU64::new(1),
+        next: AtomicU64::new(next),
     });
     let (incoming_tx, mut incoming) = mpsc::unbounded_channel();
     let submit_tx = incoming_tx.clone();
+    let inbox_tx = incoming_tx.clone();
     let _submit = session
         .declare_queryable(config.keys.orders_submit())
         .complete(true)
@@ -188,6 +256,15 @@ pub async fn run(
         })
         .await
         .map_err(z)?;
+    // Results for finished orders (duplicates, late reports of abandoned attempts) are
+    // acknowledged here; running orders answer on their own inbox.
+    let _inboxes = session
+        .declare_queryable(config.keys.inbox("*"))
+        .callback(move |query| {
+            let _ = inbox_tx.send(Incoming::Inbox(query));
+        })
+        .await
+        .map_err(z)?;
     let token = session
         .liveliness()
         .declare_token(config.keys.host("order-node", &config.name))
@@ -197,14 +274,27 @@ pub async fn run(
 
     let orders_cancel = CancellationToken::new();
     let mut tasks = Tasks::default();
+    let resumed = recovered
+        .iter()
+        .filter(|(_, p)| !p.status.is_final())
+        .count();
+    if !recovered.is_empty() {
+        info!(node = %config.name, orders = recovered.len(), resumed, "orders recovered from the journal");
+    }
+    for (name, progress) in recovered {
+        host.host(&name, progress, &mut tasks, &orders_cancel);
+    }
     for work in &submits {
-        host.create(work, &mut tasks, &orders_cancel);
+        if let Err(e) = host.create(work, &mut tasks, &orders_cancel) {
+            error!(node = %config.name, error = %e, "cannot create the orders of --submit");
+        }
     }
     loop {
         tokio::select! {
             _ = shutdown.cancelled() => break,
             Some(query) = incoming.recv() => match query {
                 Incoming::Submit(query) => submit(&host, query, &mut tasks, &orders_cancel).await,
+                Incoming::Inbox(query) => acknowledge_finished(&host, query).await,
                 Incoming::State(query) => {
                     for (key, payload) in host.snapshots_matching(query.key_expr()) {
                         let _ = query.reply(key, payload).await;
@@ -293,10 +383,48 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
             return;
         }
     };
-    let orders = host.create(&work, tasks, cancel);
+    let orders = match host.create(&work, tasks, cancel) {
+        Ok(orders) => orders,
+        Err(e) => {
+            error!(node = %host.config.name, error = %e, "cannot record the work order");
+            let _ = query
+                .reply_err(
+                    ErrorReply::new("unavailable", format!("cannot record the orders: {e}"))
+                        .to_json(),
+                )
+                .await;
+            return;
+        }
+    };
     let reply = serde_json::to_vec(&SubmitReply { orders }).expect("serializes");
     if let Err(e) = query.reply(query.key_expr().clone(), reply).await {
         warn!(node = %host.config.name, error = %e, "cannot answer the work order");
+    }
+}
+
+/// Acknowledges a result sent to a finished order of this node (it was recorded, or
+/// belongs to an attempt the order abandoned); anything else is left to the order.
+async fn acknowledge_finished(host: &Host, query: Query) {
+    let key = query.key_expr().as_str().to_string();
+    let Some(name) = key
+        .strip_suffix("/inbox")
+        .and_then(|k| k.rsplit('/').next())
+        .map(str::to_string)
+    else {
+        return;
+    };
+    if !host.is_finished(&name) {
+        return; // dropped without a reply: the order's own inbox answers
+    }
+    let payload = query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default();
+    if let Ok(message) = schemas::Service::from_json(&payload) {
+        info!(order = %name, conversation_id = %message.conversation_id, message_type = %message.message_type, "result for a finished order acknowledged");
+        let mut ack = message;
+        ack.result = Some(true);
+        let _ = query.reply(query.key_expr().clone(), ack.to_json()).await;
     }
 }
 

@@ -2,30 +2,34 @@
 //!
 //! For each step of the plan: a proposal round on `offer/<type>/*`; book the best
 //! proposal (the shortest expected wait, then the shortest queue, then the name; a
-//! resource that failed this step is passed over while others propose); `start` it
-//! when the resource is free (retrying while it is busy); wait for `done` in the
-//! inbox. A resource that vanishes or hands its booking back is rebooked elsewhere; a
-//! step that fails is retried on another resource up to `max_attempts`, then the order
-//! fails with the reason.
+//! resource that failed this step is tried last); `start` it when the resource is free
+//! (retrying while it is busy); wait for `done` in the inbox. A resource that vanishes or
+//! hands its booking back is rebooked elsewhere; a step that fails is retried on another
+//! resource up to `max_attempts`, then the order fails with the reason.
+//!
+//! Every change of the order's progress is written to the journal before the order acts
+//! on it, and a result is acknowledged only after its outcome is written: a restarted
+//! order-node resumes each order where it stood (see [`Phase`]).
 
-use std::collections::HashSet;
+use std::collections::{BTreeSet, HashSet};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use holon::journal::Journal;
 use schemas::{reason, HolonId, MessageType, Plan, PlanStep, Service};
 use tokio::sync::{broadcast, mpsc};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
-use zenoh::query::ConsolidationMode;
+use zenoh::query::{ConsolidationMode, Query};
 
 use crate::config::OrderSettings;
-use crate::progress::{OrderProgress, StepOutcome};
+use crate::progress::{OrderProgress, Phase, StepOutcome};
 
-/// Which resources are alive, and who just left.
+/// Which resources are alive, and who just left or came.
 pub struct Presence {
     alive: Mutex<HashSet<HolonId>>,
-    departures: broadcast::Sender<HolonId>,
+    changes: broadcast::Sender<(HolonId, bool)>,
 }
 
 impl Presence {
@@ -34,10 +38,10 @@ impl Presence {
         session: &zenoh::Session,
         keys: &schemas::CellKeys,
     ) -> Result<Arc<Presence>, zenoh::Error> {
-        let (departures, _) = broadcast::channel(1024);
+        let (changes, _) = broadcast::channel(4096);
         let presence = Arc::new(Presence {
             alive: Mutex::new(HashSet::new()),
-            departures,
+            changes,
         });
         let keys_for_callback = keys.clone();
         let weak = Arc::downgrade(&presence);
@@ -58,12 +62,13 @@ impl Presence {
                     zenoh::sample::SampleKind::Put => {
                         if alive.insert(holon.clone()) {
                             info!(holon = %holon, "resource appeared");
+                            let _ = presence.changes.send((holon, true));
                         }
                     }
                     zenoh::sample::SampleKind::Delete => {
                         alive.remove(&holon);
                         warn!(holon = %holon, "resource vanished");
-                        let _ = presence.departures.send(holon);
+                        let _ = presence.changes.send((holon, false));
                     }
                 }
             })
@@ -79,8 +84,9 @@ impl Presence {
             .contains(holon)
     }
 
-    pub fn departures(&self) -> broadcast::Receiver<HolonId> {
-        self.departures.subscribe()
+    /// Appearances (true) and departures (false) from now on.
+    pub fn changes(&self) -> broadcast::Receiver<(HolonId, bool)> {
+        self.changes.subscribe()
     }
 }
 
@@ -90,12 +96,45 @@ pub struct OrderContext {
     pub keys: schemas::CellKeys,
     pub settings: OrderSettings,
     pub presence: Arc<Presence>,
+    pub journal: Option<Arc<Journal>>,
+}
+
+/// The journal kind of order records.
+pub const ORDER_RECORD: &str = "order";
+
+impl OrderContext {
+    /// Writes the order's progress; the order acts on a change only once it is written.
+    pub fn save(&self, progress: &OrderProgress) -> Result<(), String> {
+        match &self.journal {
+            Some(journal) => journal
+                .put(ORDER_RECORD, progress.holon.name(), progress)
+                .map_err(|e| e.to_string()),
+            None => Ok(()),
+        }
+    }
 }
 
 type Shared = Arc<Mutex<OrderProgress>>;
 
 fn lock(progress: &Shared) -> std::sync::MutexGuard<'_, OrderProgress> {
     progress.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// A result in the inbox, with the query to acknowledge once it is recorded.
+pub struct Delivery {
+    pub message: Service,
+    pub query: Query,
+}
+
+impl Delivery {
+    async fn acknowledge(self) {
+        let mut ack = self.message.clone();
+        ack.result = Some(true);
+        let _ = self
+            .query
+            .reply(self.query.key_expr().clone(), ack.to_json())
+            .await;
+    }
 }
 
 /// Runs one order until it is done, scrapped or failed, or `cancel` is cancelled.
@@ -107,8 +146,7 @@ pub async fn run(
     let holon = lock(&progress).holon.clone();
     let session = &ctx.session;
     let e = |e: zenoh::Error| e.to_string();
-    // The inbox: every result is acknowledged on receipt and handed to the order.
-    let (inbox_tx, mut inbox) = mpsc::unbounded_channel::<Service>();
+    let (inbox_tx, mut inbox) = mpsc::unbounded_channel::<Delivery>();
     let me = holon.clone();
     let _inbox = session
         .declare_queryable(ctx.keys.inbox(holon.name()))
@@ -124,10 +162,7 @@ pub async fn run(
                         && matches!(message.message_type, MessageType::Done | MessageType::Failed) =>
                 {
                     info!(holon = %me, conversation_id = %message.conversation_id, message_type = %message.message_type, provider = ?message.provider.as_ref().map(|p| p.to_string()), reason = message.reason.as_deref().unwrap_or(""), "received");
-                    let mut ack = message.clone();
-                    ack.result = Some(true);
-                    let _ = query.reply(query.key_expr().clone(), ack.to_json()).wait();
-                    let _ = inbox_tx.send(message);
+                    let _ = inbox_tx.send(Delivery { message, query });
                 }
                 Ok(other) => {
                     let _ = query
@@ -171,13 +206,18 @@ pub async fn run(
     let work = async {
         if lock(&progress).plan.is_none() {
             let product = lock(&progress).product.clone();
-            match fetch_plan(&ctx, &product).await {
-                Some(plan) => lock(&progress).plan = Some(plan),
-                None => lock(&progress).fail(format!("no plan for product {product:?}")),
+            let plan = fetch_plan(&ctx, &product).await;
+            {
+                let mut p = lock(&progress);
+                match plan {
+                    Some(plan) => p.plan = Some(plan),
+                    None => p.fail(format!("no plan for product {product:?}")),
+                }
+                ctx.save(&p)?;
             }
             publish(&progress).await;
         }
-        let mut departures = ctx.presence.departures();
+        let mut changes = ctx.presence.changes();
         loop {
             let (step, conversation_id) = {
                 let p = lock(&progress);
@@ -186,30 +226,41 @@ pub async fn run(
                     None => break,
                 }
             };
-            let outcome = attempt_step(
+            let (outcome, delivery) = attempt_step(
                 &ctx,
                 &progress,
                 &step,
                 &conversation_id,
                 &mut inbox,
-                &mut departures,
+                &mut changes,
                 &publish,
             )
-            .await;
+            .await?;
             info!(holon = %holon, %conversation_id, outcome = ?outcome, "step attempt ended");
-            lock(&progress).record(outcome);
+            {
+                let mut p = lock(&progress);
+                p.record(outcome);
+                ctx.save(&p)?;
+            }
+            // Recorded: now the result may be acknowledged.
+            if let Some(delivery) = delivery {
+                delivery.acknowledge().await;
+            }
             publish(&progress).await;
         }
+        Ok::<(), String>(())
     };
     tokio::select! {
-        _ = work => {}
+        result = work => result?,
         _ = cancel.cancelled() => {
-            info!(holon = %holon, "order stopped with its node");
+            info!(holon = %holon, "order stopped with its node; it resumes from the journal");
             return Ok(());
         }
     }
     let p = lock(&progress).snapshot();
     info!(holon = %holon, status = ?p.status, reason = p.reason.as_deref().unwrap_or(""), reworks = p.reworks, rebooks = p.rebooks, "order finished");
+    // Results still arriving for this order (duplicates, late reports of abandoned
+    // attempts) are acknowledged by the node from now on.
     let _ = token.undeclare().await;
     Ok(())
 }
@@ -275,7 +326,7 @@ async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Service
 async fn proposals(
     ctx: &OrderContext,
     message: &Service,
-    avoid: &std::collections::BTreeSet<HolonId>,
+    avoid: &BTreeSet<HolonId>,
 ) -> Vec<HolonId> {
     let Ok(replies) = ctx
         .session
@@ -317,42 +368,74 @@ async fn proposals(
 enum Wait {
     /// The pause is over.
     Elapsed,
-    /// Something ended the attempt.
-    Ended(StepOutcome),
+    /// Something ended the attempt; a result to acknowledge once recorded.
+    Ended(StepOutcome, Option<Delivery>),
 }
 
 /// Pauses `pause`, watching the inbox (results of this conversation) and the provider's
-/// presence.
+/// presence. A provider that vanishes after `started` gets `vanished_grace` to come back
+/// and report before the attempt counts as lost.
+#[allow(clippy::too_many_arguments)]
 async fn watch(
     ctx: &OrderContext,
     provider: &HolonId,
     conversation_id: &str,
     pause: Duration,
-    inbox: &mut mpsc::UnboundedReceiver<Service>,
-    departures: &mut broadcast::Receiver<HolonId>,
+    started: bool,
+    inbox: &mut mpsc::UnboundedReceiver<Delivery>,
+    changes: &mut broadcast::Receiver<(HolonId, bool)>,
 ) -> Wait {
     let until = Instant::now() + pause;
+    let lost = |why: &str| {
+        Wait::Ended(
+            StepOutcome::Lost {
+                provider: provider.clone(),
+                why: why.into(),
+            },
+            None,
+        )
+    };
+    let grace = if started {
+        ctx.settings.vanished_grace
+    } else {
+        Duration::ZERO
+    };
+    // When the provider is gone: the moment its grace ends.
+    let mut gone_until = (!ctx.presence.is_alive(provider)).then(|| Instant::now() + grace);
     loop {
+        let gone_deadline = gone_until.unwrap_or(until);
         tokio::select! {
-            _ = tokio::time::sleep_until(until) => return Wait::Elapsed,
-            message = inbox.recv() => {
-                let Some(message) = message else { return Wait::Ended(StepOutcome::Lost { provider: provider.clone(), why: "inbox closed".into() }) };
-                if message.conversation_id != conversation_id {
-                    continue; // a duplicate of an earlier conversation
+            _ = tokio::time::sleep_until(until.min(gone_deadline)) => {
+                if gone_until.is_some_and(|g| Instant::now() >= g) {
+                    return lost("the resource vanished");
                 }
+                return Wait::Elapsed;
+            }
+            delivery = inbox.recv() => {
+                let Some(delivery) = delivery else { return lost("inbox closed") };
+                if delivery.message.conversation_id != conversation_id {
+                    // A duplicate of a recorded result, or a late report of an abandoned attempt.
+                    info!(conversation_id = %delivery.message.conversation_id, current = %conversation_id, "result of an earlier conversation acknowledged and ignored");
+                    delivery.acknowledge().await;
+                    continue;
+                }
+                let message = &delivery.message;
                 let from = message.provider.clone().unwrap_or_else(|| provider.clone());
-                return Wait::Ended(match message.message_type {
+                let outcome = match message.message_type {
                     MessageType::Done => StepOutcome::Done { provider: from, results: message.info.get("results").and_then(|r| r.as_object()).cloned().unwrap_or_default() },
                     _ if message.reason.as_deref() == Some(reason::WITHDRAWN) => StepOutcome::Lost { provider: from, why: reason::WITHDRAWN.into() },
-                    _ => StepOutcome::Failed { provider: from, reason: message.reason.unwrap_or_else(|| "failed".into()) },
-                });
+                    _ => StepOutcome::Failed { provider: from, reason: message.reason.clone().unwrap_or_else(|| "failed".into()) },
+                };
+                return Wait::Ended(outcome, Some(delivery));
             }
-            gone = departures.recv() => match gone {
-                Ok(holon) if &holon == provider => return Wait::Ended(StepOutcome::Lost { provider: provider.clone(), why: "the resource vanished".into() }),
+            change = changes.recv() => match change {
+                Ok((holon, alive)) if &holon == provider => {
+                    gone_until = if alive { None } else { Some(Instant::now() + grace) };
+                }
                 Ok(_) => {}
                 Err(broadcast::error::RecvError::Lagged(_)) => {
-                    if !ctx.presence.is_alive(provider) {
-                        return Wait::Ended(StepOutcome::Lost { provider: provider.clone(), why: "the resource vanished".into() });
+                    if !ctx.presence.is_alive(provider) && gone_until.is_none() {
+                        gone_until = Some(Instant::now() + grace);
                     }
                 }
                 Err(broadcast::error::RecvError::Closed) => return Wait::Elapsed,
@@ -361,118 +444,157 @@ async fn watch(
     }
 }
 
+/// Works on one attempt of a step from wherever its phase stands; returns how it ended
+/// and the result to acknowledge once the outcome is recorded.
 async fn attempt_step<F, Fut>(
     ctx: &OrderContext,
     progress: &Shared,
     step: &PlanStep,
     conversation_id: &str,
-    inbox: &mut mpsc::UnboundedReceiver<Service>,
-    departures: &mut broadcast::Receiver<HolonId>,
+    inbox: &mut mpsc::UnboundedReceiver<Delivery>,
+    changes: &mut broadcast::Receiver<(HolonId, bool)>,
     publish: &F,
-) -> StepOutcome
+) -> Result<(StepOutcome, Option<Delivery>), String>
 where
     F: Fn(&Shared) -> Fut,
     Fut: std::future::Future<Output = ()>,
 {
-    let (holon, avoid) = {
-        let p = lock(progress);
-        (p.holon.clone(), p.avoid.clone())
-    };
     let settings = &ctx.settings;
-    // 1. Proposals and booking.
-    let give_up = Instant::now() + settings.no_resource_timeout;
-    let provider = 'book: loop {
-        let ask_proposals = request(ctx, &holon, MessageType::ProposalReq, step, conversation_id);
-        for candidate in proposals(ctx, &ask_proposals, &avoid).await {
-            let booking = request(ctx, &holon, MessageType::BookingReq, step, conversation_id);
-            match ask(ctx, &ctx.keys.service(candidate.name()), &booking).await {
-                Some(answer) if answer.result == Some(true) => break 'book candidate,
-                Some(answer) => {
-                    info!(holon = %holon, %conversation_id, resource = %candidate, reason = answer.reason.as_deref().unwrap_or(""), "booking refused")
-                }
-                None => {}
-            }
-        }
-        if Instant::now() >= give_up {
-            return StepOutcome::NoResource;
-        }
-        tokio::time::sleep(settings.retry_interval).await;
+    let holon = lock(progress).holon.clone();
+    let set_phase = |phase: Phase| -> Result<(), String> {
+        let mut p = lock(progress);
+        p.phase = phase;
+        ctx.save(&p)
     };
-    info!(holon = %holon, %conversation_id, resource = %provider, service_type = %step.service_type, "booked");
-    lock(progress).resource = Some(provider.clone());
-    publish(progress).await;
-
-    // 2. Start when the resource is free.
-    let service_key = ctx.keys.service(provider.name());
+    let give_up = Instant::now() + settings.no_resource_timeout;
     let unavailable_since = Instant::now();
     loop {
-        if !ctx.presence.is_alive(&provider) {
-            return StepOutcome::Lost {
-                provider,
-                why: "the resource vanished".into(),
-            };
-        }
-        let start = request(ctx, &holon, MessageType::Start, step, conversation_id);
-        match ask(ctx, &service_key, &start).await {
-            Some(answer) if answer.result == Some(true) => break,
-            Some(answer) => match answer.reason.as_deref() {
-                Some(reason::BUSY) => {}
-                Some(reason::UNAVAILABLE)
-                    if unavailable_since.elapsed() < settings.no_resource_timeout => {}
-                Some(reason::NOT_BOOKED) => {
-                    return StepOutcome::Lost {
-                        provider,
-                        why: "the booking was lost".into(),
+        let phase = lock(progress).phase.clone();
+        match phase {
+            Phase::Proposing => {
+                let avoid = lock(progress).avoid.clone();
+                let ask_proposals =
+                    request(ctx, &holon, MessageType::ProposalReq, step, conversation_id);
+                let mut booked = false;
+                for candidate in proposals(ctx, &ask_proposals, &avoid).await {
+                    set_phase(Phase::Booking(candidate.clone()))?;
+                    let booking =
+                        request(ctx, &holon, MessageType::BookingReq, step, conversation_id);
+                    match ask(ctx, &ctx.keys.service(candidate.name()), &booking).await {
+                        Some(answer) if answer.result == Some(true) => {
+                            set_phase(Phase::Booked(candidate.clone()))?;
+                            info!(holon = %holon, %conversation_id, resource = %candidate, service_type = %step.service_type, "booked");
+                            booked = true;
+                            break;
+                        }
+                        Some(answer) => {
+                            info!(holon = %holon, %conversation_id, resource = %candidate, reason = answer.reason.as_deref().unwrap_or(""), "booking refused")
+                        }
+                        None => {}
                     }
+                    set_phase(Phase::Proposing)?;
                 }
-                other => {
-                    let why = other.unwrap_or("refused").to_string();
-                    let cancel = request(
+                if booked {
+                    publish(progress).await;
+                    continue;
+                }
+                if Instant::now() >= give_up {
+                    return Ok((StepOutcome::NoResource, None));
+                }
+                tokio::time::sleep(settings.retry_interval).await;
+            }
+            Phase::Booking(candidate) => {
+                // Resumed: the booking request may or may not have reached it. Booking is
+                // idempotent per conversation, so ask again.
+                let booking = request(ctx, &holon, MessageType::BookingReq, step, conversation_id);
+                match ask(ctx, &ctx.keys.service(candidate.name()), &booking).await {
+                    Some(answer) if answer.result == Some(true) => {
+                        set_phase(Phase::Booked(candidate))?
+                    }
+                    _ => set_phase(Phase::Proposing)?,
+                }
+            }
+            Phase::Booked(provider) => {
+                let start = request(ctx, &holon, MessageType::Start, step, conversation_id);
+                match ask(ctx, &ctx.keys.service(provider.name()), &start).await {
+                    Some(answer) if answer.result == Some(true) => {
+                        set_phase(Phase::Started(provider.clone()))?;
+                        info!(holon = %holon, %conversation_id, resource = %provider, "started");
+                        publish(progress).await;
+                        continue;
+                    }
+                    Some(answer) => match answer.reason.as_deref() {
+                        Some(reason::BUSY) => {}
+                        Some(reason::UNAVAILABLE)
+                            if unavailable_since.elapsed() < settings.no_resource_timeout => {}
+                        Some(reason::NOT_BOOKED) => {
+                            return Ok((
+                                StepOutcome::Lost {
+                                    provider,
+                                    why: "the booking was lost".into(),
+                                },
+                                None,
+                            ));
+                        }
+                        other => {
+                            let why = other.unwrap_or("refused").to_string();
+                            let cancel = request(
+                                ctx,
+                                &holon,
+                                MessageType::BookingCancel,
+                                step,
+                                conversation_id,
+                            );
+                            let _ = ask(ctx, &ctx.keys.service(provider.name()), &cancel).await;
+                            return Ok((
+                                StepOutcome::Failed {
+                                    provider,
+                                    reason: format!("start refused: {why}"),
+                                },
+                                None,
+                            ));
+                        }
+                    },
+                    None => {}
+                }
+                if let Wait::Ended(outcome, delivery) = watch(
+                    ctx,
+                    &provider,
+                    conversation_id,
+                    settings.retry_interval,
+                    false,
+                    inbox,
+                    changes,
+                )
+                .await
+                {
+                    return Ok((outcome, delivery));
+                }
+            }
+            Phase::Started(provider) => {
+                return Ok(
+                    match watch(
                         ctx,
-                        &holon,
-                        MessageType::BookingCancel,
-                        step,
+                        &provider,
                         conversation_id,
-                    );
-                    let _ = ask(ctx, &service_key, &cancel).await;
-                    return StepOutcome::Failed {
-                        provider,
-                        reason: format!("start refused: {why}"),
-                    };
-                }
-            },
-            None => {}
+                        settings.step_timeout,
+                        true,
+                        inbox,
+                        changes,
+                    )
+                    .await
+                    {
+                        Wait::Ended(outcome, delivery) => (outcome, delivery),
+                        Wait::Elapsed => (
+                            StepOutcome::Failed {
+                                provider,
+                                reason: format!("no result within {:?}", settings.step_timeout),
+                            },
+                            None,
+                        ),
+                    },
+                );
+            }
         }
-        if let Wait::Ended(outcome) = watch(
-            ctx,
-            &provider,
-            conversation_id,
-            settings.retry_interval,
-            inbox,
-            departures,
-        )
-        .await
-        {
-            return outcome;
-        }
-    }
-    info!(holon = %holon, %conversation_id, resource = %provider, "started");
-
-    // 3. The result.
-    match watch(
-        ctx,
-        &provider,
-        conversation_id,
-        settings.step_timeout,
-        inbox,
-        departures,
-    )
-    .await
-    {
-        Wait::Ended(outcome) => outcome,
-        Wait::Elapsed => StepOutcome::Failed {
-            provider,
-            reason: format!("no result within {:?}", settings.step_timeout),
-        },
     }
 }

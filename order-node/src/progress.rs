@@ -6,6 +6,32 @@ use std::collections::BTreeSet;
 use schemas::{unix_ms, HolonId, OnReject, OrderSnapshot, OrderStatus, Plan};
 use serde_json::{Map, Value};
 
+/// Where the current attempt stands with its resource. Recorded in the journal before
+/// each request that depends on it, so a restarted order-node resumes the conversation
+/// instead of starting it again (booking and start are idempotent per conversation).
+#[derive(Debug, Clone, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Phase {
+    /// Looking for a resource.
+    #[default]
+    Proposing,
+    /// A booking request to this resource may have been sent.
+    Booking(HolonId),
+    /// Booked on this resource, not started.
+    Booked(HolonId),
+    /// Started on this resource: waiting for its result.
+    Started(HolonId),
+}
+
+impl Phase {
+    pub fn resource(&self) -> Option<&HolonId> {
+        match self {
+            Phase::Proposing => None,
+            Phase::Booking(r) | Phase::Booked(r) | Phase::Started(r) => Some(r),
+        }
+    }
+}
+
 /// How a step attempt ended.
 #[derive(Debug, Clone, PartialEq)]
 pub enum StepOutcome {
@@ -24,7 +50,7 @@ pub enum StepOutcome {
     NoResource,
 }
 
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct OrderProgress {
     pub holon: HolonId,
     pub product: String,
@@ -42,8 +68,8 @@ pub struct OrderProgress {
     pub status: OrderStatus,
     pub reason: Option<String>,
     pub completed: Vec<(String, HolonId)>,
-    /// The resource the current attempt is booked on.
-    pub resource: Option<HolonId>,
+    /// Where the current attempt stands.
+    pub phase: Phase,
     /// Failed attempts of one step before the order fails.
     pub max_attempts: u32,
 }
@@ -63,7 +89,7 @@ impl OrderProgress {
             status: OrderStatus::Running,
             reason: None,
             completed: Vec::new(),
-            resource: None,
+            phase: Phase::Proposing,
             max_attempts: max_attempts.max(1),
         }
     }
@@ -84,12 +110,12 @@ impl OrderProgress {
     pub fn fail(&mut self, reason: String) {
         self.status = OrderStatus::Failed;
         self.reason = Some(reason);
-        self.resource = None;
+        self.phase = Phase::Proposing;
     }
 
     fn next_attempt(&mut self) {
         self.attempt += 1;
-        self.resource = None;
+        self.phase = Phase::Proposing;
     }
 
     fn next_step(&mut self, step: usize) {
@@ -97,7 +123,7 @@ impl OrderProgress {
         self.attempt = 1;
         self.failures = 0;
         self.avoid.clear();
-        self.resource = None;
+        self.phase = Phase::Proposing;
     }
 
     /// Applies a step's outcome and moves on.
@@ -129,12 +155,12 @@ impl OrderProgress {
                                 self.step + 1,
                                 current.service_type
                             ));
-                            self.resource = None;
+                            self.phase = Phase::Proposing;
                         }
                         Some(OnReject::Scrap { reason }) => {
                             self.status = OrderStatus::Scrapped;
                             self.reason = Some(reason.clone());
-                            self.resource = None;
+                            self.phase = Phase::Proposing;
                         }
                         None => self.advance(),
                     }
@@ -174,7 +200,7 @@ impl OrderProgress {
         let steps = self.plan.as_ref().map_or(0, |p| p.steps.len());
         if self.step + 1 >= steps {
             self.status = OrderStatus::Done;
-            self.resource = None;
+            self.phase = Phase::Proposing;
         } else {
             self.next_step(self.step + 1);
         }
@@ -193,7 +219,7 @@ impl OrderProgress {
             },
             steps: self.plan.as_ref().map_or(0, |p| p.steps.len()),
             service_type: self.current_step().map(|s| s.service_type.clone()),
-            resource: self.resource.clone(),
+            resource: self.phase.resource().cloned(),
             attempt: self.attempt,
             completed: self.completed.clone(),
             reworks: self.reworks,
