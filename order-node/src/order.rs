@@ -369,7 +369,7 @@ enum Wait {
     /// The pause is over.
     Elapsed,
     /// Something ended the attempt; a result to acknowledge once recorded.
-    Ended(StepOutcome, Option<Delivery>),
+    Ended(StepOutcome, Option<Box<Delivery>>),
 }
 
 /// Pauses `pause`, watching the inbox (results of this conversation) and the provider's
@@ -426,7 +426,7 @@ async fn watch(
                     _ if message.reason.as_deref() == Some(reason::WITHDRAWN) => StepOutcome::Lost { provider: from, why: reason::WITHDRAWN.into() },
                     _ => StepOutcome::Failed { provider: from, reason: message.reason.clone().unwrap_or_else(|| "failed".into()) },
                 };
-                return Wait::Ended(outcome, Some(delivery));
+                return Wait::Ended(outcome, Some(Box::new(delivery)));
             }
             change = changes.recv() => match change {
                 Ok((holon, alive)) if &holon == provider => {
@@ -454,7 +454,7 @@ async fn attempt_step<F, Fut>(
     inbox: &mut mpsc::UnboundedReceiver<Delivery>,
     changes: &mut broadcast::Receiver<(HolonId, bool)>,
     publish: &F,
-) -> Result<(StepOutcome, Option<Delivery>), String>
+) -> Result<(StepOutcome, Option<Box<Delivery>>), String>
 where
     F: Fn(&Shared) -> Fut,
     Fut: std::future::Future<Output = ()>,
