@@ -74,6 +74,24 @@ impl Presence {
             })
             .background()
             .await?;
+        // Seed the set before any order looks at it: the subscriber's history arrives
+        // asynchronously, and a resource missing from the set counts as vanished.
+        let replies = session
+            .liveliness()
+            .get(keys.alive_kind(schemas::HolonKind::Resource))
+            .timeout(Duration::from_secs(2))
+            .await?;
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result() {
+                if let Some(holon) = keys.holon_from_alive(sample.key_expr().as_str()) {
+                    presence
+                        .alive
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .insert(holon);
+                }
+            }
+        }
         Ok(presence)
     }
 
@@ -568,6 +586,22 @@ where
                 )
                 .await
                 {
+                    if matches!(outcome, StepOutcome::Lost { .. }) {
+                        // The resource vanished with our booking: if it comes back with
+                        // it (from its journal), take the booking back off its agenda.
+                        let cancel = request(
+                            ctx,
+                            &holon,
+                            MessageType::BookingCancel,
+                            step,
+                            conversation_id,
+                        );
+                        tokio::spawn(cancel_when_back(
+                            ctx.session.clone(),
+                            ctx.keys.service(provider.name()),
+                            cancel,
+                        ));
+                    }
                     return Ok((outcome, delivery));
                 }
             }
@@ -596,5 +630,27 @@ where
                 );
             }
         }
+    }
+}
+
+/// Sends `booking_cancel` until the resource answers (it may be restarting), for a minute.
+async fn cancel_when_back(session: zenoh::Session, key: String, cancel: Service) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while Instant::now() < deadline {
+        if let Ok(replies) = session
+            .get(&key)
+            .payload(cancel.to_json())
+            .consolidation(ConsolidationMode::None)
+            .timeout(Duration::from_secs(2))
+            .await
+        {
+            if let Ok(reply) = replies.recv_async().await {
+                if reply.result().is_ok() {
+                    info!(conversation_id = %cancel.conversation_id, key, "abandoned booking cancelled");
+                    return;
+                }
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
     }
 }

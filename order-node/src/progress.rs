@@ -65,6 +65,9 @@ pub struct OrderProgress {
     pub avoid: BTreeSet<HolonId>,
     pub reworks: u32,
     pub rebooks: u32,
+    /// Failed attempts over all steps.
+    #[serde(default)]
+    pub failed_attempts: u32,
     pub status: OrderStatus,
     pub reason: Option<String>,
     pub completed: Vec<(String, HolonId)>,
@@ -86,6 +89,7 @@ impl OrderProgress {
             avoid: BTreeSet::new(),
             reworks: 0,
             rebooks: 0,
+            failed_attempts: 0,
             status: OrderStatus::Running,
             reason: None,
             completed: Vec::new(),
@@ -170,6 +174,7 @@ impl OrderProgress {
             }
             StepOutcome::Failed { provider, reason } => {
                 self.failures += 1;
+                self.failed_attempts += 1;
                 self.avoid.insert(provider.clone());
                 if self.failures >= self.max_attempts {
                     self.fail(format!(
@@ -224,6 +229,7 @@ impl OrderProgress {
             completed: self.completed.clone(),
             reworks: self.reworks,
             rebooks: self.rebooks,
+            failed_attempts: self.failed_attempts,
             at: unix_ms(),
         }
     }

@@ -153,7 +153,12 @@ pub struct OrderSnapshot {
     /// Steps completed, with the resource that executed each: `[["transport", "resource/conveyor1"], ...]`.
     pub completed: Vec<(String, HolonId)>,
     pub reworks: u32,
+    /// Attempts that ended without the step being done or failed (the resource vanished
+    /// or handed the booking back) and were booked again.
     pub rebooks: u32,
+    /// Attempts that failed (all steps).
+    #[serde(default)]
+    pub failed_attempts: u32,
     pub at: u64,
 }
 
