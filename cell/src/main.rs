@@ -45,6 +45,15 @@ enum Commands {
         #[arg(long, value_name = "DIR")]
         dir: Option<PathBuf>,
     },
+    /// Launch and supervise the processes of a cell from the manifest DIR/cell.toml
+    /// (deploy/cells/demo/cell.toml documents it): restart a process that dies, with a
+    /// backoff and a restart intensity; Ctrl-C or SIGTERM stops them in reverse order.
+    /// Each process's output goes to DIR/logs/<name>.log. Exits 1 when the restart
+    /// intensity is exceeded.
+    Up {
+        /// The directory holding cell.toml; processes run with it as working directory.
+        dir: PathBuf,
+    },
     /// Submit work orders to a running cell and print the new orders' ids.
     Submit {
         /// The product to make, e.g. breaker.
@@ -130,6 +139,10 @@ async fn run(args: Args) -> Result<bool> {
                 dir,
             };
             cell::demo::run(options, shutdown).await
+        }
+        Commands::Up { dir } => {
+            let shutdown = holon::shutdown_on_signals();
+            cell::up::run(&dir, shutdown).await
         }
         Commands::Submit {
             product,

@@ -66,7 +66,11 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
             "{:<28} {:<9} {:<8} {:<13} {:>6} {:>11}\n",
             row.holon.to_string(),
             row.holon.kind().to_string(),
-            field("state"),
+            if row.holon.kind() == schemas::HolonKind::Order {
+                field("status")
+            } else {
+                field("state")
+            },
             field("controller"),
             field("agenda"),
             field("undelivered"),

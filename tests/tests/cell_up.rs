@@ -1,0 +1,169 @@
+//! `cell up`: launches a cell from a manifest, restarts what dies, stops in reverse order.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use holarchy_tests::*;
+use nix::sys::signal::Signal;
+use schemas::HolonId;
+
+/// Reads `cell up`'s output lines on a thread.
+fn lines(child: &mut std::process::Child) -> mpsc::Receiver<String> {
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    rx
+}
+
+fn wait_line(rx: &mpsc::Receiver<String>, seen: &mut Vec<String>, what: &str) -> String {
+    let deadline = std::time::Instant::now() + WAIT;
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(line) => {
+                seen.push(line.clone());
+                if line.contains(what) {
+                    return line;
+                }
+            }
+            Err(_) => panic!("no line with {what:?}; saw {seen:#?}"),
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn cell_up_restarts_a_killed_holon_and_stops_in_reverse_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = format!("tcp/127.0.0.1:{}", free_port());
+    let sim_port = free_port();
+    std::fs::copy(demo_config("robot1.toml"), dir.path().join("robot1.toml")).unwrap();
+    std::fs::write(
+        dir.path().join("cell.toml"),
+        format!(
+            r#"
+cell = "t-up"
+[router]
+listen = ["{router}"]
+[restart]
+max_restarts = 3
+period_ms = 60000
+backoff_initial_ms = 100
+[[process]]
+name = "robot1-sim"
+program = "robot-sim"
+args = ["--listen", "127.0.0.1:{sim_port}"]
+[[process]]
+name = "robot1"
+program = "holon-node"
+args = ["--config", "robot1.toml", "--cell", "t-up", "--controller", "127.0.0.1:{sim_port}", "--connect", "{router}", "--data-dir", "data"]
+"#
+        ),
+    )
+    .unwrap();
+    let mut up = Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir.path())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let rx = lines(&mut up);
+    let mut seen = Vec::new();
+    let started = wait_line(&rx, &mut seen, "started robot1 (pid");
+    let pid: i32 = started
+        .rsplit("pid ")
+        .next()
+        .unwrap()
+        .trim_end_matches(')')
+        .parse()
+        .unwrap();
+
+    // A client of the router sees the holon.
+    let session = holon::ZenohSettings {
+        mode: "client".into(),
+        connect: vec![router.clone()],
+        ..Default::default()
+    }
+    .open(WAIT)
+    .await
+    .unwrap();
+    let keys = schemas::CellKeys::new("t-up").unwrap();
+    let robot = HolonId::resource("robot1").unwrap();
+    assert!(holon::presence::wait_alive(&session, &keys, &robot, WAIT)
+        .await
+        .unwrap());
+
+    // kill -9: cell up restarts it, on the same data directory.
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid), Signal::SIGKILL).unwrap();
+    wait_line(&rx, &mut seen, "robot1 exited (signal: 9");
+    let again = wait_line(&rx, &mut seen, "started robot1 (pid");
+    assert_ne!(again, started);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(holon::presence::wait_alive(&session, &keys, &robot, WAIT)
+        .await
+        .unwrap());
+    assert!(dir.path().join("data/resource-robot1.sqlite").exists());
+    assert!(dir.path().join("logs/robot1.log").exists());
+
+    // SIGTERM: reverse order, exit 0.
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(up.id() as i32), Signal::SIGTERM).unwrap();
+    wait_line(&rx, &mut seen, "stopping the cell, in reverse order");
+    let first = wait_line(&rx, &mut seen, "stopped ");
+    assert!(first.contains("stopped robot1"), "{first}");
+    let second = wait_line(&rx, &mut seen, "stopped ");
+    assert!(second.contains("stopped robot1-sim"), "{second}");
+    wait_line(&rx, &mut seen, "cell stopped");
+    assert!(up.wait().unwrap().success());
+}
+
+#[test]
+fn cell_up_gives_up_past_the_restart_intensity() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("cell.toml"),
+        r#"
+cell = "t-up2"
+[restart]
+max_restarts = 2
+period_ms = 60000
+backoff_initial_ms = 50
+[[process]]
+name = "crasher"
+program = "sh"
+args = ["-c", "exit 3"]
+"#,
+    )
+    .unwrap();
+    let output = Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert_eq!(output.status.code(), Some(1), "{stdout}");
+    assert_eq!(stdout.matches("started crasher").count(), 3, "{stdout}");
+    assert!(stdout.contains("more than 2 restarts"), "{stdout}");
+}
+
+#[test]
+fn cell_up_refuses_a_bad_manifest() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("cell.toml"),
+        "cell = \"x\"\n[[process]]\nname = \"a\"\nprogram = \"true\"\nhost = \"far\"\n",
+    )
+    .unwrap();
+    let output = Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("local processes only"));
+}
