@@ -72,15 +72,10 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
     for (key, endpoint) in endpoints {
         queryables.push(declare(session, &key, endpoint, &incoming_tx).await?);
     }
-    // Offers go first when the holon withdraws.
+    // The offers exist only while the resource can take work: not before its controller
+    // is ready, not while it is in fault or estop, not once the holon withdraws.
     let mut offers = Vec::new();
-    if !node.withdrawing.load(std::sync::atomic::Ordering::SeqCst) {
-        for service_type in config.catalog.service_types() {
-            let key = config.keys.offer(service_type, config.holon.name());
-            let endpoint = Endpoint::Offer(service_type.to_string());
-            offers.push(declare(session, &key, endpoint, &incoming_tx).await?);
-        }
-    }
+    sync_offers(&node, &mut offers, &incoming_tx).await?;
     let publisher = session
         .declare_publisher(config.keys.state(&config.holon))
         .await?;
@@ -111,11 +106,11 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
                     // The first attempt goes out at once.
                     schedule(&mut deliveries, message, config.delivery.retry_initial);
                 }
-                CommunicationMessage::StateChanged => publish(&node, &publisher).await,
-                CommunicationMessage::StopOffering => {
-                    info!(%holon, offers = offers.len(), "no longer offering");
-                    offers.clear();
+                CommunicationMessage::StateChanged => {
+                    sync_offers(&node, &mut offers, &incoming_tx).await?;
+                    publish(&node, &publisher).await;
                 }
+                CommunicationMessage::StopOffering => sync_offers(&node, &mut offers, &incoming_tx).await?,
             },
             _ = async { tokio::time::sleep_until(next_attempt.unwrap_or_else(Instant::now)).await }, if next_attempt.is_some() => {
                 let now = Instant::now();
@@ -163,6 +158,29 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
     attempts.shutdown().await;
     drop(offers);
     drop(queryables);
+    Ok(())
+}
+
+/// Declares the offer queryables when the resource can take work, undeclares them when
+/// it cannot (controller not ready, fault, estop, withdrawing).
+async fn sync_offers(
+    node: &Node,
+    offers: &mut Vec<zenoh::query::Queryable<()>>,
+    incoming: &mpsc::UnboundedSender<Incoming>,
+) -> Result<(), ChildError> {
+    let config = &node.config;
+    let able = node.can_take_work();
+    if able && offers.is_empty() {
+        for service_type in config.catalog.service_types() {
+            let key = config.keys.offer(service_type, config.holon.name());
+            let endpoint = Endpoint::Offer(service_type.to_string());
+            offers.push(declare(&node.session, &key, endpoint, incoming).await?);
+        }
+        info!(holon = %config.holon, "offering");
+    } else if !able && !offers.is_empty() {
+        offers.clear();
+        info!(holon = %config.holon, "no longer offering");
+    }
     Ok(())
 }
 

@@ -232,6 +232,12 @@ impl Node {
         }
     }
 
+    /// Whether the resource can take new work: its controller is ready and it is not
+    /// withdrawing.
+    pub fn can_take_work(&self) -> bool {
+        !self.withdrawing.load(Ordering::SeqCst) && lock(&self.agenda).status_name() != "init"
+    }
+
     /// Results not yet acknowledged (for a restarted communication component).
     pub fn undelivered(&self) -> Vec<Service> {
         lock(&self.agenda).undelivered().to_vec()

@@ -12,7 +12,9 @@
 //! - `hang_after N`: from the (N+1)th command of the process on, commands are read but
 //!   never answered nor executed;
 //! - `garbage_after N`: the (N+1)th command of the process gets malformed XML instead of
-//!   a reply and is not executed; later commands are served normally.
+//!   a reply and is not executed; later commands are served normally;
+//! - `fault_after N`: the (N+1)th command of the process is not answered nor executed:
+//!   the controller reports `fault` (or `estop`) instead, and `ready` after `fault_for`.
 //!
 //! The simulator counts the commands it executed (answered with their success result);
 //! [`SimStats`] can be written to a JSON file after every command so tests can check that
@@ -46,6 +48,11 @@ pub struct SimConfig {
     pub garbage_after: Option<u64>,
     /// Every Nth `inspect` is answered `inspect_fail`.
     pub inspect_fail_every: Option<u64>,
+    /// When the (N+1)th command of the process arrives, report `fault_state` instead of
+    /// answering it (it is not executed), then `ready` again after `fault_for`.
+    pub fault_after: Option<u64>,
+    pub fault_state: Option<ControllerState>,
+    pub fault_for: Duration,
     /// Rewritten (atomically) with [`SimStats`] as JSON after every command.
     pub count_file: Option<PathBuf>,
 }
@@ -236,6 +243,21 @@ async fn serve(
                 .write_all(b"<ROBOT_REPLY><ID>oops</RESULT></ROBOT_REPLY>\n")
                 .await?;
             write_count_file(config, stats).await;
+            continue;
+        }
+        if config.fault_after.is_some_and(|limit| n == limit + 1) {
+            let state = config.fault_state.unwrap_or(ControllerState::Fault);
+            info!(id = command.id, %state, "reporting a fault (--fault-after)");
+            framed.send(&RobotMessage::Status(state)).await?;
+            write_count_file(config, stats).await;
+            tokio::select! {
+                _ = shutdown.cancelled() => return Ok(()),
+                _ = tokio::time::sleep(config.fault_for) => {}
+            }
+            info!("ready again");
+            framed
+                .send(&RobotMessage::Status(ControllerState::Ready))
+                .await?;
             continue;
         }
         if !config.delay.is_zero() {

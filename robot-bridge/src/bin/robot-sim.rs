@@ -38,6 +38,15 @@ struct Args {
     /// Answer every Nth `inspect` with `inspect_fail` instead of `inspect_pass`.
     #[arg(long, value_name = "N")]
     inspect_fail_every: Option<u64>,
+    /// When the (N+1)th command arrives, report a fault instead of executing it.
+    #[arg(long, value_name = "N")]
+    fault_after: Option<u64>,
+    /// The state reported by --fault-after: fault or estop.
+    #[arg(long, default_value = "fault", value_name = "fault|estop")]
+    fault_state: schemas::ControllerState,
+    /// How long the fault lasts before the controller reports ready again, in ms.
+    #[arg(long, default_value_t = 2000)]
+    fault_for_ms: u64,
     /// Keep the command counts in this JSON file, rewritten after every command:
     /// {"executed":N,"received":N,"connections":N,"by_action":{"pick":N,...}}.
     #[arg(long, value_name = "PATH")]
@@ -61,6 +70,9 @@ async fn main() -> anyhow::Result<()> {
         hang_after: args.hang_after,
         garbage_after: args.garbage_after,
         inspect_fail_every: args.inspect_fail_every,
+        fault_after: args.fault_after,
+        fault_state: Some(args.fault_state),
+        fault_for: Duration::from_millis(args.fault_for_ms),
         count_file: args.count_file,
     };
     let simulator = Simulator::bind(&args.listen, config)

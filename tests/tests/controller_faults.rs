@@ -1,0 +1,214 @@
+//! Controller faults, each through a real resource holon: the step fails with a clear
+//! reason delivered to the order, and the holon keeps serving.
+
+use std::time::Duration;
+
+use holarchy_tests::*;
+use schemas::{HolonId, MessageType, Service};
+
+struct Robot {
+    cell: Cell,
+    sim: Sim,
+    _node: Process,
+    _dir: tempfile::TempDir,
+}
+
+async fn robot(cell: &str, sim_flags: &[&str]) -> Robot {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open(cell).await.unwrap();
+    let sim = Sim::start(dir.path(), "sim", "127.0.0.1:0", sim_flags).unwrap();
+    let config = resource_config(dir.path(), "robot1", 600).unwrap();
+    let node = start_node(
+        dir.path(),
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &[],
+    )
+    .unwrap();
+    cell.wait_alive(&HolonId::resource("robot1").unwrap())
+        .await
+        .unwrap();
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    Robot {
+        cell,
+        sim,
+        _node: node,
+        _dir: dir,
+    }
+}
+
+impl Robot {
+    /// Books and starts one job for `order`, and returns the result its inbox gets.
+    async fn job(&self, inbox: &mut Inbox, order: &str, conversation: &str) -> Service {
+        let book = pick_n_place(
+            &self.cell.keys,
+            MessageType::BookingReq,
+            order,
+            conversation,
+        );
+        assert_eq!(
+            self.cell.service("robot1", &book).await.unwrap().result,
+            Some(true)
+        );
+        let start = pick_n_place(&self.cell.keys, MessageType::Start, order, conversation);
+        assert_eq!(
+            self.cell.service("robot1", &start).await.unwrap().result,
+            Some(true)
+        );
+        inbox.next().await.unwrap()
+    }
+
+    async fn free(&self) {
+        self.cell
+            .wait_state("robot1", "free again", |s| s["state"] == "free")
+            .await
+            .unwrap();
+    }
+}
+
+fn assert_failed(result: &Service, reason: &str) {
+    assert_eq!(result.message_type, MessageType::Failed, "{result:?}");
+    assert_eq!(result.reason.as_deref(), Some(reason), "{result:?}");
+    assert!(
+        result.info["detail"]
+            .as_str()
+            .is_some_and(|d| !d.is_empty()),
+        "{result:?}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_controller_that_stops_replying_times_the_step_out() {
+    let r = robot("t-f-hang", &["--hang-after", "1"]).await;
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    let result = r.job(&mut inbox, "o-1", "c1").await;
+    assert_failed(&result, "controller_timeout");
+    // The holon serves on: its state answers, the connection was reset and re-made.
+    r.cell
+        .wait_state("robot1", "ready controller", |s| s["controller"] == "ready")
+        .await
+        .unwrap();
+    assert!(r.sim.process.stderr().matches("bridge connected").count() >= 2);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_error_result_fails_the_step_with_the_controllers_message() {
+    // Every third command fails: job 1 (commands 1, 2) is done, job 2 fails at its pick
+    // (command 3), job 3 (commands 4, 5) is done.
+    let r = robot("t-f-error", &["--error-every", "3"]).await;
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    assert_eq!(
+        r.job(&mut inbox, "o-1", "c1").await.message_type,
+        MessageType::Done
+    );
+    r.free().await;
+    let result = r.job(&mut inbox, "o-1", "c2").await;
+    assert_failed(&result, "controller_error");
+    assert!(
+        result.info["detail"]
+            .as_str()
+            .unwrap()
+            .contains("pick failed: simulated error"),
+        "{result:?}"
+    );
+    r.free().await;
+    assert_eq!(
+        r.job(&mut inbox, "o-1", "c3").await.message_type,
+        MessageType::Done
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn malformed_xml_resets_the_connection_and_the_next_job_succeeds() {
+    let r = robot("t-f-garbage", &["--garbage-after", "1"]).await;
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    let result = r.job(&mut inbox, "o-1", "c1").await;
+    assert_failed(&result, "controller_protocol_error");
+    assert!(
+        result.info["detail"]
+            .as_str()
+            .unwrap()
+            .contains("malformed"),
+        "{result:?}"
+    );
+    r.free().await;
+    assert_eq!(
+        r.job(&mut inbox, "o-1", "c2").await.message_type,
+        MessageType::Done
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_dropped_connection_fails_the_step_and_reconnects() {
+    let r = robot("t-f-close", &["--close-after", "1"]).await;
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    assert_failed(
+        &r.job(&mut inbox, "o-1", "c1").await,
+        "controller_disconnected",
+    );
+    r.free().await;
+    // Each connection takes one command: the next job's pick works, its place fails again.
+    let result = r.job(&mut inbox, "o-1", "c2").await;
+    assert_failed(&result, "controller_disconnected");
+    assert_eq!(r.sim.executed("pick"), 2);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_fault_stops_the_offers_until_the_controller_is_ready() {
+    for state in ["fault", "estop"] {
+        let r = robot(
+            &format!("t-f-{state}"),
+            &[
+                "--fault-after",
+                "1",
+                "--fault-state",
+                state,
+                "--fault-for-ms",
+                "1500",
+            ],
+        )
+        .await;
+        let ask = pick_n_place(&r.cell.keys, MessageType::ProposalReq, "o-9", "p");
+        assert_eq!(r.cell.proposals(&ask).await.unwrap().len(), 1);
+        let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+        let result = r.job(&mut inbox, "o-1", "c1").await;
+        assert_failed(&result, "controller_fault");
+        assert!(
+            result.info["detail"].as_str().unwrap().contains(state),
+            "{result:?}"
+        );
+        // While in fault: no offers, no bookings.
+        let state_now = r
+            .cell
+            .wait_state("robot1", state, |s| s["controller"] == state)
+            .await
+            .unwrap();
+        assert_eq!(state_now["state"], "init");
+        assert!(
+            r.cell.proposals(&ask).await.unwrap().is_empty(),
+            "a resource in {state} still offers"
+        );
+        let book = pick_n_place(&r.cell.keys, MessageType::BookingReq, "o-2", "c2");
+        assert_eq!(
+            r.cell
+                .service("robot1", &book)
+                .await
+                .unwrap()
+                .reason
+                .as_deref(),
+            Some("unavailable")
+        );
+        // Ready again: it offers again.
+        r.free().await;
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        assert_eq!(r.cell.proposals(&ask).await.unwrap().len(), 1);
+        assert_eq!(
+            r.job(&mut inbox, "o-1", "c3").await.message_type,
+            MessageType::Done
+        );
+    }
+}
