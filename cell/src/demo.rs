@@ -145,6 +145,8 @@ impl Cell {
             .args(["--connect", &self.endpoint, "--listen", "tcp/127.0.0.1:0"])
             .arg("--log-file")
             .arg(self.dir.join(format!("{}.log.json", holon.name())))
+            .arg("--data-dir")
+            .arg(self.dir.join("data"))
             .args(extra)
             .stdout(Stdio::null())
             .stderr(std::fs::File::create(
