@@ -183,20 +183,9 @@ impl Cell {
 }
 
 async fn wait_token(session: &zenoh::Session, key: &str, timeout: Duration) -> Result<bool> {
-    let subscriber = session
-        .liveliness()
-        .declare_subscriber(key)
-        .history(true)
+    holon::presence::wait_token(session, key, timeout)
         .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let deadline = tokio::time::Instant::now() + timeout;
-    loop {
-        match tokio::time::timeout_at(deadline, subscriber.recv_async()).await {
-            Ok(Ok(sample)) if sample.kind() == zenoh::sample::SampleKind::Put => return Ok(true),
-            Ok(Ok(_)) => continue,
-            _ => return Ok(false),
-        }
-    }
+        .map_err(|e| anyhow!("{e}"))
 }
 
 /// Submits a work order to the cell's order-nodes (a default `get` reaches one).

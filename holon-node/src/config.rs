@@ -279,12 +279,9 @@ pub struct ResourceConfig {
 /// What the command line may override.
 #[derive(Debug, Clone, Default)]
 pub struct Overrides {
-    pub cell: Option<String>,
-    pub name: Option<String>,
-    pub connect: Vec<String>,
-    pub listen: Vec<String>,
+    /// Cell, name, zenoh endpoints, data directory.
+    pub common: holon::session::CommandLine,
     pub controller: Option<String>,
-    pub data_dir: Option<std::path::PathBuf>,
     pub allow_fault_injection: bool,
 }
 
@@ -307,23 +304,14 @@ impl ResourceConfig {
             path: path.to_string(),
             message: e.to_string(),
         })?;
-        if let Some(cell) = overrides.cell {
-            file.cell = cell;
-        }
-        if let Some(name) = overrides.name {
-            file.name = name;
-        }
-        if !overrides.connect.is_empty() {
-            file.zenoh.connect = overrides.connect;
-        }
-        if !overrides.listen.is_empty() {
-            file.zenoh.listen = overrides.listen;
-        }
+        overrides.common.apply(
+            &mut file.cell,
+            &mut file.name,
+            &mut file.zenoh,
+            &mut file.journal.dir,
+        );
         if let Some(controller) = overrides.controller {
             file.controller.address = controller;
-        }
-        if let Some(dir) = overrides.data_dir {
-            file.journal.dir = Some(dir);
         }
         Self::validate(file, overrides.allow_fault_injection).map_err(|message| {
             ConfigError::Invalid {
@@ -464,9 +452,12 @@ mod tests {
     #[test]
     fn the_command_line_overrides_the_file() {
         let overrides = Overrides {
-            cell: Some("line2".into()),
-            name: Some("robot7".into()),
-            connect: vec!["tcp/127.0.0.1:9000".into()],
+            common: holon::session::CommandLine {
+                cell: Some("line2".into()),
+                name: Some("robot7".into()),
+                connect: vec!["tcp/127.0.0.1:9000".into()],
+                ..Default::default()
+            },
             controller: Some("127.0.0.1:9100".into()),
             ..Overrides::default()
         };

@@ -3,7 +3,6 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Context;
 use clap::Parser;
 use holon::LogFormat;
 use holon_node::config::{HolonConfig, Overrides};
@@ -61,28 +60,22 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    if let Err(e) = holon::logging::init(args.log_format, args.log_file.as_deref()) {
-        eprintln!("holon-node: {e}");
-        return ExitCode::FAILURE;
-    }
-    match run(args) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            tracing::error!(error = format!("{e:#}"), "holon-node failed");
-            eprintln!("holon-node: {e:#}");
-            ExitCode::FAILURE
-        }
-    }
+    let (format, log_file) = (args.log_format, args.log_file.clone());
+    holon::process_main("holon-node", format, log_file.as_deref(), |shutdown| {
+        run(args, shutdown)
+    })
 }
 
-fn run(args: Args) -> anyhow::Result<()> {
+async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyhow::Result<()> {
     let overrides = Overrides {
-        cell: args.cell,
-        name: args.name,
-        connect: args.connect,
-        listen: args.listen,
+        common: holon::session::CommandLine {
+            cell: args.cell,
+            name: args.name,
+            connect: args.connect,
+            listen: args.listen,
+            data_dir: args.data_dir,
+        },
         controller: args.controller,
-        data_dir: args.data_dir,
         allow_fault_injection: args.allow_fault_injection,
     };
     let config = HolonConfig::load(&args.config, overrides)?;
@@ -90,16 +83,9 @@ fn run(args: Args) -> anyhow::Result<()> {
         println!("{}: ok ({})", args.config.display(), config.holon());
         return Ok(());
     }
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .context("cannot start the tokio runtime")?;
-    runtime.block_on(async {
-        let shutdown = holon::shutdown_on_signals();
-        match config {
-            HolonConfig::Resource(config) => holon_node::node::run(config, shutdown).await,
-            HolonConfig::Product(config) => holon_node::product::run(config, shutdown).await,
-        }
-    })?;
+    match config {
+        HolonConfig::Resource(config) => holon_node::node::run(config, shutdown).await?,
+        HolonConfig::Product(config) => holon_node::product::run(config, shutdown).await?,
+    }
     Ok(())
 }

@@ -48,18 +48,14 @@ impl ProductConfig {
             path: path.to_string(),
             message: e.to_string(),
         })?;
-        if let Some(cell) = overrides.cell {
-            file.cell = cell;
-        }
-        if let Some(name) = overrides.name {
-            file.name = name;
-        }
-        if !overrides.connect.is_empty() {
-            file.zenoh.connect = overrides.connect;
-        }
-        if !overrides.listen.is_empty() {
-            file.zenoh.listen = overrides.listen;
-        }
+        // A product keeps no state: a data directory, if given, is not used.
+        let mut no_data_dir = None;
+        overrides.common.apply(
+            &mut file.cell,
+            &mut file.name,
+            &mut file.zenoh,
+            &mut no_data_dir,
+        );
         if file.kind != "product" {
             return Err(invalid(format!("kind: {:?} is not product", file.kind)));
         }

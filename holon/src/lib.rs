@@ -34,3 +34,42 @@ pub fn shutdown_on_signals() -> CancellationToken {
     });
     token
 }
+
+/// The edge of a holon binary: sets up logging, runs `run` on a multi-thread tokio
+/// runtime with a shutdown token cancelled by SIGTERM / Ctrl-C, and turns its result into
+/// the exit code (errors are logged and printed as `program: error`).
+pub fn process_main<F, Fut, E>(
+    program: &str,
+    format: LogFormat,
+    log_file: Option<&std::path::Path>,
+    run: F,
+) -> std::process::ExitCode
+where
+    F: FnOnce(CancellationToken) -> Fut,
+    Fut: std::future::Future<Output = Result<(), E>>,
+    E: std::fmt::Display,
+{
+    if let Err(e) = logging::init(format, log_file) {
+        eprintln!("{program}: {e}");
+        return std::process::ExitCode::FAILURE;
+    }
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(runtime) => runtime,
+        Err(e) => {
+            eprintln!("{program}: cannot start the tokio runtime: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
+    let result = runtime.block_on(async { run(shutdown_on_signals()).await });
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            tracing::error!(error = %e, "{program} failed");
+            eprintln!("{program}: {e}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}

@@ -35,10 +35,18 @@ pub async fn wait_alive(
     holon: &HolonId,
     timeout: Duration,
 ) -> Result<bool, zenoh::Error> {
-    let key = keys.alive(holon);
+    wait_token(session, &keys.alive(holon), timeout).await
+}
+
+/// Waits until a liveliness token on `key` is visible; false if none appeared in time.
+pub async fn wait_token(
+    session: &zenoh::Session,
+    key: &str,
+    timeout: Duration,
+) -> Result<bool, zenoh::Error> {
     let subscriber = session
         .liveliness()
-        .declare_subscriber(&key)
+        .declare_subscriber(key)
         .history(true)
         .await?;
     let deadline = tokio::time::Instant::now() + timeout;

@@ -114,6 +114,45 @@ pub async fn wait_connected(session: &zenoh::Session, timeout: Duration) -> bool
     }
 }
 
+/// What the command line of every holon binary may override in its config file.
+#[derive(Debug, Clone, Default)]
+pub struct CommandLine {
+    pub cell: Option<String>,
+    pub name: Option<String>,
+    /// Replaces `zenoh.connect` when not empty.
+    pub connect: Vec<String>,
+    /// Replaces `zenoh.listen` when not empty.
+    pub listen: Vec<String>,
+    pub data_dir: Option<std::path::PathBuf>,
+}
+
+impl CommandLine {
+    /// Applies the overrides to the fields read from a config file.
+    pub fn apply(
+        &self,
+        cell: &mut String,
+        name: &mut String,
+        zenoh: &mut ZenohSettings,
+        data_dir: &mut Option<std::path::PathBuf>,
+    ) {
+        if let Some(c) = &self.cell {
+            *cell = c.clone();
+        }
+        if let Some(n) = &self.name {
+            *name = n.clone();
+        }
+        if !self.connect.is_empty() {
+            zenoh.connect = self.connect.clone();
+        }
+        if !self.listen.is_empty() {
+            zenoh.listen = self.listen.clone();
+        }
+        if let Some(dir) = &self.data_dir {
+            *data_dir = Some(dir.clone());
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

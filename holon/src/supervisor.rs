@@ -126,6 +126,15 @@ pub enum SupervisorError {
     },
 }
 
+/// The message a panic carried (`panic!("...")`), for logs.
+pub fn panic_message(payload: Box<dyn std::any::Any + Send>) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "(no message)".into())
+}
+
 struct Running {
     token: CancellationToken,
     abort: AbortHandle,
@@ -269,13 +278,7 @@ impl State<'_> {
             Ok((id, Err(e))) => (id, e.to_string()),
             Err(e) if e.is_panic() => {
                 let id = e.id();
-                let payload = e.into_panic();
-                let message = payload
-                    .downcast_ref::<&str>()
-                    .map(|s| s.to_string())
-                    .or_else(|| payload.downcast_ref::<String>().cloned())
-                    .unwrap_or_else(|| "(no message)".into());
-                (id, format!("panicked: {message}"))
+                (id, format!("panicked: {}", panic_message(e.into_panic())))
             }
             Err(e) => (e.id(), "aborted".to_string()),
         };

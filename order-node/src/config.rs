@@ -119,15 +119,8 @@ pub struct OrderNodeConfig {
     pub durability: holon::journal::Durability,
 }
 
-/// What the command line may override.
-#[derive(Debug, Clone, Default)]
-pub struct Overrides {
-    pub cell: Option<String>,
-    pub name: Option<String>,
-    pub connect: Vec<String>,
-    pub listen: Vec<String>,
-    pub data_dir: Option<std::path::PathBuf>,
-}
+/// What the command line may override: cell, name, zenoh endpoints, data directory.
+pub type Overrides = holon::session::CommandLine;
 
 impl OrderNodeConfig {
     pub fn load(path: &Path, overrides: Overrides) -> Result<Self, ConfigError> {
@@ -145,21 +138,12 @@ impl OrderNodeConfig {
             message,
         };
         let mut file: File = toml::from_str(text).map_err(|e| invalid(e.to_string()))?;
-        if let Some(cell) = overrides.cell {
-            file.cell = cell;
-        }
-        if let Some(name) = overrides.name {
-            file.name = name;
-        }
-        if !overrides.connect.is_empty() {
-            file.zenoh.connect = overrides.connect;
-        }
-        if !overrides.listen.is_empty() {
-            file.zenoh.listen = overrides.listen;
-        }
-        if let Some(dir) = overrides.data_dir {
-            file.journal.dir = Some(dir);
-        }
+        overrides.apply(
+            &mut file.cell,
+            &mut file.name,
+            &mut file.zenoh,
+            &mut file.journal.dir,
+        );
         let keys = CellKeys::new(&file.cell).map_err(|e| invalid(format!("cell: {e}")))?;
         validate_name("order-node name", &file.name).map_err(|e| invalid(format!("name: {e}")))?;
         if file.name.len() > 40 {

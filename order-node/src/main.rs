@@ -3,7 +3,6 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Context;
 use clap::Parser;
 use holon::LogFormat;
 use order_node::config::{OrderNodeConfig, Overrides};
@@ -51,21 +50,13 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    if let Err(e) = holon::logging::init(args.log_format, args.log_file.as_deref()) {
-        eprintln!("order-node: {e}");
-        return ExitCode::FAILURE;
-    }
-    match run(args) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            tracing::error!(error = format!("{e:#}"), "order-node failed");
-            eprintln!("order-node: {e:#}");
-            ExitCode::FAILURE
-        }
-    }
+    let (format, log_file) = (args.log_format, args.log_file.clone());
+    holon::process_main("order-node", format, log_file.as_deref(), |shutdown| {
+        run(args, shutdown)
+    })
 }
 
-fn run(args: Args) -> anyhow::Result<()> {
+async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyhow::Result<()> {
     let overrides = Overrides {
         cell: args.cell,
         name: args.name,
@@ -79,13 +70,6 @@ fn run(args: Args) -> anyhow::Result<()> {
         .iter()
         .map(|s| order_node::node::parse_submit(s))
         .collect::<Result<Vec<_>, _>>()?;
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-        .context("cannot start the tokio runtime")?;
-    runtime.block_on(async {
-        let shutdown = holon::shutdown_on_signals();
-        order_node::node::run(config, submits, shutdown).await
-    })?;
+    order_node::node::run(config, submits, shutdown).await?;
     Ok(())
 }

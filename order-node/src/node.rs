@@ -310,13 +310,7 @@ pub async fn run(
                     Ok((id, Err(e))) => (id, e),
                     Err(e) if e.is_panic() => {
                         let id = e.id();
-                        let payload = e.into_panic();
-                        let message = payload
-                            .downcast_ref::<&str>()
-                            .map(|s| s.to_string())
-                            .or_else(|| payload.downcast_ref::<String>().cloned())
-                            .unwrap_or_default();
-                        (id, format!("panicked: {message}"))
+                        (id, format!("panicked: {}", holon::supervisor::panic_message(e.into_panic())))
                     }
                     Err(e) => {
                         tasks.names.remove(&e.id());

@@ -558,20 +558,36 @@ pub fn start_holon(
 impl Cell {
     /// Waits until a liveliness token on `key` appears (e.g. an order-node's host token).
     pub async fn wait_token(&self, key: &str) -> Result<()> {
-        let subscriber = self
-            .session
-            .liveliness()
-            .declare_subscriber(key)
-            .history(true)
+        let found = holon::presence::wait_token(&self.session, key, WAIT)
             .await
             .map_err(|e| anyhow!("{e}"))?;
-        let deadline = tokio::time::Instant::now() + WAIT;
-        loop {
-            match tokio::time::timeout_at(deadline, subscriber.recv_async()).await {
-                Ok(Ok(sample)) if sample.kind() == SampleKind::Put => return Ok(()),
-                Ok(Ok(_)) => continue,
-                _ => bail!("{key} did not appear within {WAIT:?}"),
-            }
+        if !found {
+            bail!("{key} did not appear within {WAIT:?}");
         }
+        Ok(())
+    }
+
+    /// Submits a work order on `orders/submit` and returns the new orders' names.
+    pub async fn submit(&self, product: &str, count: u32) -> Result<Vec<String>> {
+        let work = schemas::WorkOrder {
+            product: product.into(),
+            count,
+            priority: 0,
+        };
+        let replies = self
+            .session
+            .get(self.keys.orders_submit())
+            .payload(serde_json::to_vec(&work)?)
+            .timeout(Duration::from_secs(5))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let reply = replies
+            .recv_async()
+            .await
+            .map_err(|_| anyhow!("no order-node answered"))?;
+        let sample = reply
+            .result()
+            .map_err(|e| anyhow!("work order refused: {:?}", e.payload().try_to_string()))?;
+        Ok(serde_json::from_slice::<schemas::SubmitReply>(&sample.payload().to_bytes())?.orders)
     }
 }

@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use holarchy_tests::*;
-use schemas::{HolonId, HolonKind, OrderSnapshot, OrderStatus, SubmitReply, WorkOrder};
+use schemas::{HolonId, HolonKind, OrderSnapshot, OrderStatus};
 
 const ORDERS: u32 = 100;
 const KILLS: usize = 12;
@@ -198,22 +198,7 @@ async fn orders_survive_random_kills() {
         cell.wait_token(&victim.ready_key).await.unwrap();
     }
 
-    let work = WorkOrder {
-        product: "breaker".into(),
-        count: ORDERS,
-        priority: 0,
-    };
-    let replies = cell
-        .session
-        .get(cell.keys.orders_submit())
-        .payload(serde_json::to_vec(&work).unwrap())
-        .timeout(Duration::from_secs(5))
-        .await
-        .unwrap();
-    let reply = replies.recv_async().await.unwrap();
-    let ids = serde_json::from_slice::<SubmitReply>(&reply.result().unwrap().payload().to_bytes())
-        .unwrap()
-        .orders;
+    let ids = cell.submit("breaker", ORDERS).await.unwrap();
     assert_eq!(ids.len(), ORDERS as usize);
 
     // The driver: kill a random holon at a random moment, start it again.

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use holarchy_tests::*;
 use nix::sys::signal::Signal;
-use schemas::{HolonId, OrderSnapshot, OrderStatus, Plan, SubmitReply, WorkOrder};
+use schemas::{HolonId, OrderSnapshot, OrderStatus, Plan};
 
 struct Resource {
     sim: Sim,
@@ -35,26 +35,6 @@ async fn resource(
         .await
         .unwrap();
     Resource { sim, node }
-}
-
-async fn submit(cell: &Cell, product: &str, count: u32) -> Vec<String> {
-    let work = WorkOrder {
-        product: product.into(),
-        count,
-        priority: 0,
-    };
-    let replies = cell
-        .session
-        .get(cell.keys.orders_submit())
-        .payload(serde_json::to_vec(&work).unwrap())
-        .timeout(Duration::from_secs(5))
-        .await
-        .unwrap();
-    let reply = replies.recv_async().await.expect("an order-node answers");
-    let sample = reply.result().expect("the work order is accepted");
-    serde_json::from_slice::<SubmitReply>(&sample.payload().to_bytes())
-        .unwrap()
-        .orders
 }
 
 /// Every order's latest snapshot, as published.
@@ -167,7 +147,7 @@ async fn twenty_orders_while_a_robot_is_hot_added_and_another_stopped() {
         .unwrap();
 
     let mut orders = Orders::watch(&cell).await;
-    let ids = submit(&cell, "breaker", 20).await;
+    let ids = cell.submit("breaker", 20).await.unwrap();
     assert_eq!(ids.len(), 20);
     assert_eq!(ids[0], "orders1-1");
 
@@ -305,7 +285,7 @@ async fn a_rejected_part_is_reworked_and_the_product_serves_its_plan() {
         .await
         .unwrap();
     let mut orders = Orders::watch(&cell).await;
-    submit(&cell, "breaker", 1).await;
+    cell.submit("breaker", 1).await.unwrap();
     orders.until_finished(1, Duration::from_secs(60)).await;
     let order = orders.latest.values().next().unwrap();
     assert_eq!(order.status, OrderStatus::Scrapped, "{order:#?}");
