@@ -2,5 +2,6 @@
 //! `cell status` lists the live holons of a running cell.
 
 pub mod demo;
+pub mod router;
 pub mod status;
 pub mod up;

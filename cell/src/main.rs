@@ -53,6 +53,38 @@ enum Commands {
     Up {
         /// The directory holding cell.toml; processes run with it as working directory.
         dir: PathBuf,
+        /// Start only what the manifest assigns to this host (its router and processes).
+        #[arg(long, default_value = "local")]
+        host: String,
+    },
+    /// Run a zenoh router (for hosts without zenohd): from a zenohd config file, or from
+    /// the endpoints given here. Prints `router ZID listening on ...` when ready; runs
+    /// until SIGTERM or Ctrl-C.
+    Router {
+        /// A zenohd config file (JSON5), e.g. deploy/routers/router-a.json5.
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// An endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable; replaces the file's).
+        #[arg(long, value_name = "ENDPOINT")]
+        listen: Vec<String>,
+        /// Another router to connect to (repeatable; replaces the file's).
+        #[arg(long, value_name = "ENDPOINT")]
+        connect: Vec<String>,
+        /// The link lease in ms (how long a silent peer keeps its tokens).
+        #[arg(long, value_name = "MS")]
+        lease_ms: Option<u64>,
+    },
+    /// List every order of a cell with its status, step and resource (from any host).
+    Orders {
+        /// The cell's name.
+        #[arg(long, default_value = "demo")]
+        cell: String,
+        /// The endpoint of a zenoh router of the cell (repeatable).
+        #[arg(long, value_name = "ENDPOINT", required = true)]
+        connect: Vec<String>,
+        /// How long to wait for answers, in milliseconds.
+        #[arg(long, default_value_t = 2000)]
+        timeout_ms: u64,
     },
     /// Submit work orders to a running cell and print the new orders' ids.
     Submit {
@@ -140,9 +172,38 @@ async fn run(args: Args) -> Result<bool> {
             };
             cell::demo::run(options, shutdown).await
         }
-        Commands::Up { dir } => {
+        Commands::Up { dir, host } => {
             let shutdown = holon::shutdown_on_signals();
-            cell::up::run(&dir, shutdown).await
+            cell::up::run(&dir, &host, shutdown).await
+        }
+        Commands::Router {
+            config,
+            listen,
+            connect,
+            lease_ms,
+        } => {
+            let shutdown = holon::shutdown_on_signals();
+            let options = cell::router::RouterOptions {
+                config,
+                listen,
+                connect,
+                lease_ms,
+            };
+            cell::router::run(options, shutdown).await?;
+            Ok(true)
+        }
+        Commands::Orders {
+            cell,
+            connect,
+            timeout_ms,
+        } => {
+            let keys = schemas::CellKeys::new(&cell)?;
+            let timeout = Duration::from_millis(timeout_ms);
+            let session = client_session(&connect, timeout).await?;
+            let orders = cell::status::orders(&session, &keys, timeout).await?;
+            print!("{}", cell::status::render_orders(&cell, &orders));
+            let _ = session.close().await;
+            Ok(true)
         }
         Commands::Submit {
             product,

@@ -78,3 +78,61 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
     }
     out
 }
+
+/// Every order of the cell, as the order-nodes report them (`order/*/state`).
+pub async fn orders(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    timeout: Duration,
+) -> Result<Vec<schemas::OrderSnapshot>> {
+    let replies = session
+        .get(keys.order_states())
+        .timeout(timeout)
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let mut orders = std::collections::BTreeMap::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result() {
+            if let Ok(order) =
+                serde_json::from_slice::<schemas::OrderSnapshot>(&sample.payload().to_bytes())
+            {
+                orders.insert(order.holon.clone(), order);
+            }
+        }
+    }
+    Ok(orders.into_values().collect())
+}
+
+/// The table `cell orders` prints, with a summary line first.
+pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot]) -> String {
+    use schemas::OrderStatus;
+    let count = |s: OrderStatus| orders.iter().filter(|o| o.status == s).count();
+    let mut out = format!(
+        "cell {cell}: {} orders: {} done, {} running, {} scrapped, {} failed\n",
+        orders.len(),
+        count(OrderStatus::Done),
+        count(OrderStatus::Running),
+        count(OrderStatus::Scrapped),
+        count(OrderStatus::Failed)
+    );
+    out.push_str(&format!(
+        "{:<22} {:<10} {:<9} {:>5} {:<22} {:>7}  REASON\n",
+        "ORDER", "PRODUCT", "STATUS", "STEP", "RESOURCE", "REBOOKS"
+    ));
+    for o in orders {
+        out.push_str(&format!(
+            "{:<22} {:<10} {:<9} {:>5} {:<22} {:>7}  {}\n",
+            o.holon.name(),
+            o.product,
+            format!("{:?}", o.status).to_lowercase(),
+            format!("{}/{}", o.step, o.steps),
+            o.resource
+                .as_ref()
+                .map(|r| r.to_string())
+                .unwrap_or_else(|| "-".into()),
+            o.rebooks,
+            o.reason.as_deref().unwrap_or("")
+        ));
+    }
+    out
+}

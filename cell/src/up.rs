@@ -24,8 +24,12 @@ use tokio_util::sync::CancellationToken;
 #[serde(deny_unknown_fields)]
 pub struct Manifest {
     pub cell: String,
+    /// The router of host `local` (the manifests of one-host cells).
     #[serde(default)]
     pub router: Option<RouterSection>,
+    /// Per host: its router (`[hosts.<name>.router]`).
+    #[serde(default)]
+    pub hosts: std::collections::BTreeMap<String, HostSection>,
     #[serde(default)]
     pub restart: RestartSection,
     #[serde(rename = "process")]
@@ -36,6 +40,19 @@ pub struct Manifest {
 #[serde(deny_unknown_fields)]
 pub struct RouterSection {
     pub listen: Vec<String>,
+    /// Other hosts' routers.
+    #[serde(default)]
+    pub connect: Vec<String>,
+    /// The link lease in ms.
+    #[serde(default)]
+    pub lease_ms: Option<u64>,
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HostSection {
+    #[serde(default)]
+    pub router: Option<RouterSection>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -88,7 +105,8 @@ pub struct ProcessSection {
     pub program: String,
     #[serde(default)]
     pub args: Vec<String>,
-    /// Which host runs it; only `local` (the default) is supported by `cell up` today.
+    /// Which host runs it (default `local`): `cell up --host NAME` starts the
+    /// processes of host NAME.
     #[serde(default = "d_host")]
     pub host: String,
 }
@@ -109,6 +127,10 @@ impl Manifest {
         if manifest.processes.is_empty() {
             bail!("{}: no [[process]]", path.display());
         }
+        for host in manifest.hosts.keys() {
+            schemas::validate_name("host name", host)
+                .with_context(|| format!("{}: hosts", path.display()))?;
+        }
         let mut names = std::collections::HashSet::new();
         for p in &manifest.processes {
             schemas::validate_name("process name", &p.name)
@@ -116,11 +138,12 @@ impl Manifest {
             if !names.insert(&p.name) {
                 bail!("{}: process {} appears twice", path.display(), p.name);
             }
-            if p.host != "local" {
+            if p.host != "local" && !manifest.hosts.contains_key(&p.host) {
                 bail!(
-                    "{}: process {} runs on host {:?}; cell up starts local processes only",
+                    "{}: process {} runs on host {:?}, which has no [hosts.{}] section",
                     path.display(),
                     p.name,
+                    p.host,
                     p.host
                 );
             }
@@ -161,16 +184,30 @@ struct Slot {
 }
 
 /// Runs the cell until `shutdown`; Ok(false) when the restart intensity was exceeded.
-pub async fn run(dir: &Path, shutdown: CancellationToken) -> Result<bool> {
-    let manifest = Manifest::load(dir)?;
+pub async fn run(dir: &Path, host: &str, shutdown: CancellationToken) -> Result<bool> {
+    let mut manifest = Manifest::load(dir)?;
+    let router = if host == "local" {
+        manifest.router.clone()
+    } else {
+        match manifest.hosts.get(host) {
+            Some(section) => section.router.clone(),
+            None => bail!("the manifest has no host {host:?}"),
+        }
+    };
+    manifest.processes.retain(|p| p.host == host);
+    if manifest.processes.is_empty() && router.is_none() {
+        bail!("the manifest gives host {host:?} nothing to run");
+    }
     let clock = Instant::now();
     let logs = dir.join("logs");
     std::fs::create_dir_all(&logs)?;
-    let _router = match &manifest.router {
+    let _router = match &router {
         Some(router) => {
             let settings = holon::ZenohSettings {
                 mode: "router".into(),
                 listen: router.listen.clone(),
+                connect: router.connect.clone(),
+                lease_ms: router.lease_ms,
                 ..holon::ZenohSettings::default()
             };
             let session = settings

@@ -23,6 +23,11 @@ pub struct ZenohSettings {
     /// endpoints are predictable on a factory network).
     #[serde(default)]
     pub multicast_scouting: bool,
+    /// The link lease in ms: how long a silent peer (a frozen process, a cut network)
+    /// keeps its tokens before the others consider it gone. Short detects failures fast;
+    /// too short raises false alarms on a loaded host. Default: zenoh's 10000.
+    #[serde(default)]
+    pub lease_ms: Option<u64>,
 }
 
 fn default_mode() -> String {
@@ -36,6 +41,7 @@ impl Default for ZenohSettings {
             connect: Vec::new(),
             listen: Vec::new(),
             multicast_scouting: false,
+            lease_ms: None,
         }
     }
 }
@@ -81,6 +87,15 @@ impl ZenohSettings {
             "scouting/multicast/enabled",
             self.multicast_scouting.to_string(),
         )?;
+        if let Some(lease) = self.lease_ms {
+            if lease < 100 {
+                return Err(SessionError::Config {
+                    key: "lease_ms",
+                    message: "must be at least 100".into(),
+                });
+            }
+            set("transport/link/tx/lease", lease.to_string())?;
+        }
         // A peer keeps retrying its connect endpoints rather than failing to start.
         set("connect/timeout_ms", "-1".into())?;
         set("connect/exit_on_failure", "false".into())?;

@@ -55,6 +55,12 @@ struct OrdersSection {
     step_timeout_ms: u64,
     #[serde(default = "d_grace")]
     vanished_grace_ms: u64,
+    #[serde(default = "d_request")]
+    request_timeout_ms: u64,
+}
+
+fn d_request() -> u64 {
+    1000
 }
 
 fn d_grace() -> u64 {
@@ -86,6 +92,7 @@ impl Default for OrdersSection {
             retry_interval_ms: d_retry(),
             step_timeout_ms: d_step(),
             vanished_grace_ms: d_grace(),
+            request_timeout_ms: d_request(),
         }
     }
 }
@@ -106,6 +113,8 @@ pub struct OrderSettings {
     /// How long a resource that vanished while running a step may take to come back
     /// and report it before the step is booked elsewhere.
     pub vanished_grace: Duration,
+    /// Longest wait for a resource's answer to one request (booking, start, cancel).
+    pub request_timeout: Duration,
 }
 
 #[derive(Debug, Clone)]
@@ -161,6 +170,7 @@ impl OrderNodeConfig {
             ("orders.no_resource_timeout_ms", o.no_resource_timeout_ms),
             ("orders.retry_interval_ms", o.retry_interval_ms),
             ("orders.step_timeout_ms", o.step_timeout_ms),
+            ("orders.request_timeout_ms", o.request_timeout_ms),
         ] {
             if value == 0 {
                 return Err(invalid(format!("{field} must be greater than 0")));
@@ -177,6 +187,7 @@ impl OrderNodeConfig {
                 retry_interval: Duration::from_millis(o.retry_interval_ms),
                 step_timeout: Duration::from_millis(o.step_timeout_ms),
                 vanished_grace: Duration::from_millis(o.vanished_grace_ms),
+                request_timeout: Duration::from_millis(o.request_timeout_ms),
             },
             data_dir: file.journal.dir,
             durability: file.journal.durability,

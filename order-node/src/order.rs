@@ -327,7 +327,7 @@ async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Service
         .get(key)
         .payload(message.to_json())
         .consolidation(ConsolidationMode::None)
-        .timeout(Duration::from_secs(5))
+        .timeout(ctx.settings.request_timeout)
         .await
         .ok()?;
     let reply = replies.recv_async().await.ok()?;

@@ -165,5 +165,5 @@ fn cell_up_refuses_a_bad_manifest() {
         .output()
         .unwrap();
     assert!(!output.status.success());
-    assert!(String::from_utf8_lossy(&output.stderr).contains("local processes only"));
+    assert!(String::from_utf8_lossy(&output.stderr).contains("no [hosts.far] section"));
 }
