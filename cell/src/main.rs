@@ -125,7 +125,8 @@ fn main() -> ExitCode {
     let args = Args::parse();
     // The demo's own output is its progress; logs go to stderr at warn unless RUST_LOG says otherwise.
     if std::env::var_os("RUST_LOG").is_none() {
-        std::env::set_var("RUST_LOG", "warn");
+        // zenoh's own warnings (a query to a host that was cut off) are not the operator's.
+        std::env::set_var("RUST_LOG", "warn,zenoh=error");
     }
     if let Err(e) = holon::logging::init(LogFormat::Text, None) {
         eprintln!("cell: {e}");

@@ -32,6 +32,10 @@ struct Args {
     /// zenoh.connect in the config).
     #[arg(long, value_name = "ENDPOINT")]
     connect: Vec<String>,
+    /// The zenoh link lease in ms (replaces zenoh.lease_ms): how long a silent peer
+    /// keeps its tokens. Use the same value cell-wide.
+    #[arg(long, value_name = "MS")]
+    lease_ms: Option<u64>,
     /// A zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7448 (repeatable; replaces
     /// zenoh.listen in the config).
     #[arg(long, value_name = "ENDPOINT")]
@@ -74,6 +78,7 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
             connect: args.connect,
             listen: args.listen,
             data_dir: args.data_dir,
+            lease_ms: args.lease_ms,
         },
         controller: args.controller,
         allow_fault_injection: args.allow_fault_injection,

@@ -139,6 +139,8 @@ pub struct CommandLine {
     /// Replaces `zenoh.listen` when not empty.
     pub listen: Vec<String>,
     pub data_dir: Option<std::path::PathBuf>,
+    /// Replaces `zenoh.lease_ms`.
+    pub lease_ms: Option<u64>,
 }
 
 impl CommandLine {
@@ -164,6 +166,9 @@ impl CommandLine {
         }
         if let Some(dir) = &self.data_dir {
             *data_dir = Some(dir.clone());
+        }
+        if self.lease_ms.is_some() {
+            zenoh.lease_ms = self.lease_ms;
         }
     }
 }

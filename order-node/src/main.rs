@@ -30,6 +30,10 @@ struct Args {
     /// A zenoh endpoint to connect to (repeatable; replaces zenoh.connect).
     #[arg(long, value_name = "ENDPOINT")]
     connect: Vec<String>,
+    /// The zenoh link lease in ms (replaces zenoh.lease_ms): how long a silent peer
+    /// keeps its tokens. Use the same value cell-wide.
+    #[arg(long, value_name = "MS")]
+    lease_ms: Option<u64>,
     /// A zenoh endpoint to listen on (repeatable; replaces zenoh.listen).
     #[arg(long, value_name = "ENDPOINT")]
     listen: Vec<String>,
@@ -63,6 +67,7 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
         connect: args.connect,
         listen: args.listen,
         data_dir: args.data_dir,
+        lease_ms: args.lease_ms,
     };
     let config = OrderNodeConfig::load(&args.config, overrides)?;
     let submits = args
