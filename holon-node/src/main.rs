@@ -1,10 +1,8 @@
 //! `holon-node`: runs one resource holon as its own process.
 
-use std::path::PathBuf;
 use std::process::ExitCode;
 
 use clap::Parser;
-use holon::LogFormat;
 use holon_node::config::{HolonConfig, Overrides};
 
 /// Runs one holon: a resource (a robot, an inspection station, a conveyor) that takes
@@ -18,41 +16,11 @@ use holon_node::config::{HolonConfig, Overrides};
 #[derive(Debug, Parser)]
 #[command(name = "holon-node", version)]
 struct Args {
-    /// The holon's config file (TOML); deploy/cells/demo/robot1.toml (resource) and
-    /// breaker.toml (product) document every field.
-    #[arg(long, value_name = "FILE")]
-    config: PathBuf,
-    /// The cell, overriding `cell` in the config.
-    #[arg(long, value_name = "C")]
-    cell: Option<String>,
-    /// The holon's name, overriding `name` in the config.
-    #[arg(long, value_name = "N")]
-    name: Option<String>,
-    /// A zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; replaces
-    /// zenoh.connect in the config).
-    #[arg(long, value_name = "ENDPOINT")]
-    connect: Vec<String>,
-    /// The zenoh link lease in ms (replaces zenoh.lease_ms): how long a silent peer
-    /// keeps its tokens. Use the same value cell-wide.
-    #[arg(long, value_name = "MS")]
-    lease_ms: Option<u64>,
-    /// A zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7448 (repeatable; replaces
-    /// zenoh.listen in the config).
-    #[arg(long, value_name = "ENDPOINT")]
-    listen: Vec<String>,
-    /// The robot controller's HOST:PORT, overriding controller.address in the config.
+    #[command(flatten)]
+    common: holon::cli::CommonArgs,
+    /// The robot controller's HOST:PORT, overriding controller.address (resources).
     #[arg(long, value_name = "HOST:PORT")]
     controller: Option<String>,
-    /// The data directory for the holon's journal (overrides journal.dir); without one
-    /// the holon's state is not durable.
-    #[arg(long, value_name = "DIR")]
-    data_dir: Option<PathBuf>,
-    /// Terminal log format: text (human-readable) or json (one object per line).
-    #[arg(long, default_value = "text", value_name = "text|json")]
-    log_format: LogFormat,
-    /// Also append JSON log lines to this file.
-    #[arg(long, value_name = "PATH")]
-    log_file: Option<PathBuf>,
     /// Declare holarchy/<cell>/resource/<name>/debug/crash, which makes a component
     /// panic on request (for tests and demonstrations of supervision; never in production).
     #[arg(long)]
@@ -64,7 +32,7 @@ struct Args {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    let (format, log_file) = (args.log_format, args.log_file.clone());
+    let (format, log_file) = (args.common.log_format, args.common.log_file.clone());
     holon::process_main("holon-node", format, log_file.as_deref(), |shutdown| {
         run(args, shutdown)
     })
@@ -72,20 +40,13 @@ fn main() -> ExitCode {
 
 async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyhow::Result<()> {
     let overrides = Overrides {
-        common: holon::session::CommandLine {
-            cell: args.cell,
-            name: args.name,
-            connect: args.connect,
-            listen: args.listen,
-            data_dir: args.data_dir,
-            lease_ms: args.lease_ms,
-        },
+        common: args.common.overrides(),
         controller: args.controller,
         allow_fault_injection: args.allow_fault_injection,
     };
-    let config = HolonConfig::load(&args.config, overrides)?;
+    let config = HolonConfig::load(&args.common.config, overrides)?;
     if args.check {
-        println!("{}: ok ({})", args.config.display(), config.holon());
+        println!("{}: ok ({})", args.common.config.display(), config.holon());
         return Ok(());
     }
     match config {

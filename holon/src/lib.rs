@@ -1,6 +1,7 @@
 //! What every holarchy holon process shares: the zenoh session from its config, presence
 //! (liveliness), the supervisor of its components, logging and shutdown signals.
 
+pub mod cli;
 pub mod journal;
 pub mod logging;
 pub mod presence;

@@ -1,0 +1,56 @@
+//! The command-line flags every holon binary shares (`holon-node`, `order-node`).
+
+use std::path::PathBuf;
+
+use crate::session::CommandLine;
+use crate::LogFormat;
+
+/// Flattened into each binary's arguments with `#[command(flatten)]`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct CommonArgs {
+    /// The config file (TOML); deploy/cells/demo/ documents every field of each kind.
+    #[arg(long, value_name = "FILE")]
+    pub config: PathBuf,
+    /// The cell, overriding `cell` in the config.
+    #[arg(long, value_name = "C")]
+    pub cell: Option<String>,
+    /// The name, overriding `name` in the config.
+    #[arg(long, value_name = "N")]
+    pub name: Option<String>,
+    /// A zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; replaces
+    /// zenoh.connect in the config).
+    #[arg(long, value_name = "ENDPOINT")]
+    pub connect: Vec<String>,
+    /// A zenoh endpoint to listen on, e.g. tcp/127.0.0.1:0 (repeatable; replaces
+    /// zenoh.listen in the config).
+    #[arg(long, value_name = "ENDPOINT")]
+    pub listen: Vec<String>,
+    /// The zenoh link lease in ms (replaces zenoh.lease_ms): how long a silent peer
+    /// keeps its tokens. Use the same value cell-wide.
+    #[arg(long, value_name = "MS")]
+    pub lease_ms: Option<u64>,
+    /// The journal's directory (replaces journal.dir); without one the state is not
+    /// durable.
+    #[arg(long, value_name = "DIR")]
+    pub data_dir: Option<PathBuf>,
+    /// Terminal log format: text (human-readable) or json (one object per line).
+    #[arg(long, default_value = "text", value_name = "text|json")]
+    pub log_format: LogFormat,
+    /// Also append JSON log lines to this file.
+    #[arg(long, value_name = "PATH")]
+    pub log_file: Option<PathBuf>,
+}
+
+impl CommonArgs {
+    /// What these flags override in the config file.
+    pub fn overrides(&self) -> CommandLine {
+        CommandLine {
+            cell: self.cell.clone(),
+            name: self.name.clone(),
+            connect: self.connect.clone(),
+            listen: self.listen.clone(),
+            data_dir: self.data_dir.clone(),
+            lease_ms: self.lease_ms,
+        }
+    }
+}
