@@ -389,6 +389,25 @@ impl Cell {
         Ok(proposals)
     }
 
+    /// Proposal rounds until exactly `n` resources propose (offers appear a moment after
+    /// a resource's state turns free: they are declared, then reach the others).
+    pub async fn wait_proposals(&self, message: &Service, n: usize) -> Result<Vec<Service>> {
+        let deadline = tokio::time::Instant::now() + WAIT;
+        loop {
+            let proposals = self.proposals(message).await?;
+            if proposals.len() == n {
+                return Ok(proposals);
+            }
+            if tokio::time::Instant::now() > deadline {
+                bail!(
+                    "{} proposals instead of {n}: {proposals:?}",
+                    proposals.len()
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
     /// The resource's state, asked with a `status` request.
     pub async fn status(&self, resource: &str) -> Result<serde_json::Value> {
         let ask = Service::request(

@@ -1,8 +1,6 @@
 //! Controller faults, each through a real resource holon: the step fails with a clear
 //! reason delivered to the order, and the holon keeps serving.
 
-use std::time::Duration;
-
 use holarchy_tests::*;
 use schemas::{HolonId, MessageType, Service};
 
@@ -173,7 +171,7 @@ async fn a_fault_stops_the_offers_until_the_controller_is_ready() {
         )
         .await;
         let ask = pick_n_place(&r.cell.keys, MessageType::ProposalReq, "o-9", "p");
-        assert_eq!(r.cell.proposals(&ask).await.unwrap().len(), 1);
+        r.cell.wait_proposals(&ask, 1).await.unwrap();
         let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
         let result = r.job(&mut inbox, "o-1", "c1").await;
         assert_failed(&result, "controller_fault");
@@ -188,10 +186,7 @@ async fn a_fault_stops_the_offers_until_the_controller_is_ready() {
             .await
             .unwrap();
         assert_eq!(state_now["state"], "init");
-        assert!(
-            r.cell.proposals(&ask).await.unwrap().is_empty(),
-            "a resource in {state} still offers"
-        );
+        r.cell.wait_proposals(&ask, 0).await.unwrap();
         let book = pick_n_place(&r.cell.keys, MessageType::BookingReq, "o-2", "c2");
         assert_eq!(
             r.cell
@@ -204,8 +199,7 @@ async fn a_fault_stops_the_offers_until_the_controller_is_ready() {
         );
         // Ready again: it offers again.
         r.free().await;
-        tokio::time::sleep(Duration::from_millis(200)).await;
-        assert_eq!(r.cell.proposals(&ask).await.unwrap().len(), 1);
+        r.cell.wait_proposals(&ask, 1).await.unwrap();
         assert_eq!(
             r.job(&mut inbox, "o-1", "c3").await.message_type,
             MessageType::Done

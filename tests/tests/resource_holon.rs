@@ -81,10 +81,9 @@ async fn books_starts_and_delivers_done_until_acknowledged() {
     // Contract net: one proposal from the one live capable resource.
     let proposals = r
         .cell
-        .proposals(&r.msg(MessageType::ProposalReq, "o-1", "o-1/1/1"))
+        .wait_proposals(&r.msg(MessageType::ProposalReq, "o-1", "o-1/1/1"), 1)
         .await
         .unwrap();
-    assert_eq!(proposals.len(), 1, "{proposals:?}");
     assert_eq!(proposals[0].message_type, MessageType::Proposal);
     assert_eq!(proposals[0].result, Some(true));
     assert_eq!(proposals[0].provider, Some(r.holon.clone()));
