@@ -103,8 +103,9 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
             Some(incoming) = incoming.recv() => handle_query(&node, incoming).await,
             message = mailbox.recv() => match message.ok_or("communication mailbox closed")? {
                 CommunicationMessage::Deliver(message) => {
-                    // The first attempt goes out at once.
+                    // The first attempt goes out at once (not at the timer's next tick).
                     schedule(&mut deliveries, message, config.delivery.retry_initial);
+                    send_due(&holon, session, config.delivery.attempt_timeout, &mut deliveries, &mut attempts);
                 }
                 CommunicationMessage::StateChanged => {
                     sync_offers(&node, &mut offers, &incoming_tx).await?;
@@ -113,23 +114,7 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
                 CommunicationMessage::StopOffering => sync_offers(&node, &mut offers, &incoming_tx).await?,
             },
             _ = async { tokio::time::sleep_until(next_attempt.unwrap_or_else(Instant::now)).await }, if next_attempt.is_some() => {
-                let now = Instant::now();
-                for (conversation_id, delivery) in deliveries.iter_mut() {
-                    if delivery.in_flight || delivery.next_attempt > now {
-                        continue;
-                    }
-                    delivery.in_flight = true;
-                    delivery.attempts += 1;
-                    info!(%holon, conversation_id = %conversation_id, message_type = %delivery.message.message_type, reply_to = delivery.message.reply_to.as_deref().unwrap_or(""), attempt = delivery.attempts, "sending result");
-                    let session = session.clone();
-                    let message = delivery.message.clone();
-                    let timeout = config.delivery.attempt_timeout;
-                    let conversation_id = conversation_id.clone();
-                    attempts.spawn(async move {
-                        let acked = deliver(&session, &message, timeout).await;
-                        (conversation_id, acked)
-                    });
-                }
+                send_due(&holon, session, config.delivery.attempt_timeout, &mut deliveries, &mut attempts);
             }
             Some(joined) = attempts.join_next(), if !attempts.is_empty() => {
                 let Ok((conversation_id, acked)) = joined else { continue };
@@ -202,6 +187,32 @@ async fn declare(
         .await?;
     debug!(%key, "queryable declared");
     Ok(queryable)
+}
+
+/// Starts an attempt for every result whose time has come.
+fn send_due(
+    holon: &str,
+    session: &zenoh::Session,
+    timeout: Duration,
+    deliveries: &mut BTreeMap<String, Delivery>,
+    attempts: &mut JoinSet<(String, Result<bool, String>)>,
+) {
+    let now = Instant::now();
+    for (conversation_id, delivery) in deliveries.iter_mut() {
+        if delivery.in_flight || delivery.next_attempt > now {
+            continue;
+        }
+        delivery.in_flight = true;
+        delivery.attempts += 1;
+        info!(%holon, conversation_id = %conversation_id, message_type = %delivery.message.message_type, reply_to = delivery.message.reply_to.as_deref().unwrap_or(""), attempt = delivery.attempts, "sending result");
+        let session = session.clone();
+        let message = delivery.message.clone();
+        let conversation_id = conversation_id.clone();
+        attempts.spawn(async move {
+            let acked = deliver(&session, &message, timeout).await;
+            (conversation_id, acked)
+        });
+    }
 }
 
 fn schedule(

@@ -355,10 +355,14 @@ async fn agenda(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildEr
             let mut agenda = lock(&node.agenda);
             let before = agenda.status_name();
             let previous = node.journal.as_ref().map(|_| agenda.clone());
+            // An acknowledgement is recorded with the next write, not on its own: if the
+            // process dies first, the result is delivered once more and the order, which
+            // ignores duplicates, acknowledges it again. That saves an fsync per job.
+            let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
             let mut actions = agenda.handle(event);
-            let changed = actions
-                .iter()
-                .any(|a| matches!(a, AgendaAction::StateChanged | AgendaAction::Deliver(_)));
+            let changed = previous
+                .as_ref()
+                .is_some_and(|p| !lazily && p.record() != agenda.record());
             if let (Some(journal), Some(previous), true) = (&node.journal, previous, changed) {
                 // Nothing is acknowledged before it is committed.
                 if let Err(e) = journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record()) {

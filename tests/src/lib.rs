@@ -26,11 +26,13 @@ pub fn bin_dir() -> PathBuf {
         return PathBuf::from(dir);
     }
     let exe = std::env::current_exe().expect("current exe");
-    // target/<profile>/deps/<test> -> target/<profile>
-    exe.parent()
-        .and_then(Path::parent)
-        .expect("test binary lives in target/<profile>/deps")
-        .to_path_buf()
+    // A test: target/<profile>/deps/<test>; a binary (bench): target/<profile>/<bin>.
+    let dir = exe.parent().expect("the executable has a directory");
+    if dir.ends_with("deps") {
+        dir.parent().expect("target/<profile>").to_path_buf()
+    } else {
+        dir.to_path_buf()
+    }
 }
 
 /// The path of a workspace binary, built on first use if `cargo test` did not build it.
@@ -60,6 +62,12 @@ pub fn workspace_root() -> PathBuf {
         .parent()
         .expect("tests/ is in the workspace")
         .to_path_buf()
+}
+
+/// The log level of the holons the harness starts: `HOLARCHY_HOLON_LOG`, default `info`
+/// (the tests read the logs; the benchmarks also measure with `warn`).
+pub fn holon_log_level() -> String {
+    std::env::var("HOLARCHY_HOLON_LOG").unwrap_or_else(|_| "info".into())
 }
 
 /// A free TCP port on loopback (closed again; used at once by the caller).
@@ -264,7 +272,7 @@ pub fn start_node(
         .arg("--log-file")
         .arg(dir.join(format!("{name}.log.json")))
         .args(extra)
-        .env("RUST_LOG", "info")
+        .env("RUST_LOG", holon_log_level())
         .stdout(Stdio::null())
         .stderr(fs::File::create(&stderr_path)?)
         .spawn()
@@ -562,7 +570,7 @@ pub fn start_holon(
         .arg("--log-file")
         .arg(dir.join(format!("{name}.log.json")))
         .args(extra)
-        .env("RUST_LOG", "info")
+        .env("RUST_LOG", holon_log_level())
         .stdout(Stdio::null())
         .stderr(fs::File::create(&stderr_path)?)
         .spawn()

@@ -1,0 +1,807 @@
+//! `bench`: how fast a holarchy books, executes, reconfigures and recovers, against the
+//! middleware floor measured in the same run. Every figure comes from real processes on
+//! loopback (robot-sim, holon-node, order-node, and two echo helpers of this binary).
+//!
+//!     cargo run --release -p bench -- all            # the whole table, JSON in bench-results.json
+//!
+//! Topology, as in a cell: this process runs the zenoh router; every other process is a
+//! peer that connects to it. The floors use the same path as the holons.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use clap::{Parser, Subcommand};
+use holarchy_tests::{free_port, pick_n_place, resource_config, Cell, Process, Sim};
+use nix::sys::signal::{kill, Signal};
+use nix::unistd::Pid;
+use schemas::{CellKeys, HolonId, MessageType, Service};
+use serde_json::{json, Value};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use zenoh::query::ConsolidationMode;
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "bench",
+    version,
+    about = "holarchy's benchmarks (see docs/benchmarks.md)"
+)]
+struct Args {
+    #[command(subcommand)]
+    command: Commands,
+}
+
+#[derive(Debug, Subcommand)]
+enum Commands {
+    /// Run every benchmark, print the table and write it as JSON.
+    All {
+        /// Where the JSON goes.
+        #[arg(long, default_value = "bench-results.json")]
+        out: PathBuf,
+        /// Round trips per latency figure.
+        #[arg(long, default_value_t = 2000)]
+        samples: usize,
+        /// Resource holon processes for the scale figure.
+        #[arg(long, default_value_t = 100)]
+        scale: usize,
+    },
+    /// (helper) A TCP echo server: prints `listening on ADDR`.
+    EchoTcp {
+        #[arg(long, default_value = "127.0.0.1:0")]
+        listen: String,
+    },
+    /// (helper) A zenoh peer with a queryable that answers every query with its payload.
+    EchoZenoh {
+        #[arg(long)]
+        connect: String,
+        #[arg(long)]
+        key: String,
+    },
+}
+
+#[tokio::main(flavor = "multi_thread")]
+async fn main() -> Result<()> {
+    match Args::parse().command {
+        Commands::All {
+            out,
+            samples,
+            scale,
+        } => all(&out, samples, scale).await,
+        Commands::EchoTcp { listen } => echo_tcp(&listen).await,
+        Commands::EchoZenoh { connect, key } => echo_zenoh(&connect, &key).await,
+    }
+}
+
+async fn echo_tcp(listen: &str) -> Result<()> {
+    let listener = tokio::net::TcpListener::bind(listen).await?;
+    println!("listening on {}", listener.local_addr()?);
+    loop {
+        let (mut socket, _) = listener.accept().await?;
+        socket.set_nodelay(true)?;
+        tokio::spawn(async move {
+            let mut buf = vec![0u8; 65536];
+            while let Ok(n) = socket.read(&mut buf).await {
+                if n == 0 || socket.write_all(&buf[..n]).await.is_err() {
+                    break;
+                }
+            }
+        });
+    }
+}
+
+async fn echo_zenoh(connect: &str, key: &str) -> Result<()> {
+    let settings = holon::ZenohSettings {
+        connect: vec![connect.to_string()],
+        listen: vec!["tcp/127.0.0.1:0".into()],
+        ..Default::default()
+    };
+    let session = settings
+        .open(Duration::from_secs(10))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let queryable = session
+        .declare_queryable(key)
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let _token = session
+        .liveliness()
+        .declare_token(format!("{key}/alive"))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    println!("ready");
+    while let Ok(query) = queryable.recv_async().await {
+        let payload = query
+            .payload()
+            .map(|p| p.to_bytes().into_owned())
+            .unwrap_or_default();
+        let _ = query.reply(query.key_expr().clone(), payload).await;
+    }
+    Ok(())
+}
+
+/// Latency distribution of a series of round trips.
+#[derive(Debug, Clone)]
+struct Latency {
+    samples: Vec<Duration>,
+    total: Duration,
+}
+
+impl Latency {
+    fn new(mut samples: Vec<Duration>, total: Duration) -> Self {
+        samples.sort();
+        Latency { samples, total }
+    }
+
+    fn pct(&self, p: f64) -> f64 {
+        if self.samples.is_empty() {
+            return f64::NAN;
+        }
+        let i = ((self.samples.len() as f64 - 1.0) * p).round() as usize;
+        self.samples[i].as_secs_f64() * 1e6
+    }
+
+    fn rate(&self) -> f64 {
+        self.samples.len() as f64 / self.total.as_secs_f64()
+    }
+
+    fn json(&self) -> Value {
+        json!({"n": self.samples.len(), "p50_us": self.pct(0.5), "p99_us": self.pct(0.99), "rate_per_s": self.rate()})
+    }
+}
+
+struct Table {
+    rows: Vec<(String, String, String)>,
+    json: serde_json::Map<String, Value>,
+}
+
+impl Table {
+    fn add(&mut self, name: &str, figure: String, baseline: String, data: Value) {
+        println!("{name:<46} {figure:<40} {baseline}");
+        self.rows.push((name.into(), figure, baseline));
+        self.json.insert(name.into(), data);
+    }
+}
+
+fn spawn_helper(args: &[&str]) -> Result<(Child, String)> {
+    use std::io::BufRead;
+    let mut child = Command::new(std::env::current_exe()?)
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()?;
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().expect("piped")).read_line(&mut line)?;
+    Ok((child, line.trim().to_string()))
+}
+
+/// Resident memory (KiB) and threads of a process, from /proc.
+fn footprint(pid: i32) -> Result<(u64, u64)> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))?;
+    let field = |name: &str| -> Result<u64> {
+        status
+            .lines()
+            .find(|l| l.starts_with(name))
+            .and_then(|l| l.split_whitespace().nth(1))
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| anyhow!("no {name} in /proc/{pid}/status"))
+    };
+    Ok((field("VmRSS:")?, field("Threads:")?))
+}
+
+async fn router(cell: &str, lease_ms: Option<u64>) -> Result<Cell> {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let settings = holon::ZenohSettings {
+        mode: "router".into(),
+        listen: vec![endpoint.clone()],
+        lease_ms,
+        ..Default::default()
+    };
+    let session = settings
+        .open(Duration::from_secs(10))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    Ok(Cell {
+        session,
+        keys: CellKeys::new(cell)?,
+        endpoint,
+    })
+}
+
+async fn get_once(session: &zenoh::Session, key: &str, payload: Vec<u8>) -> Result<Vec<u8>> {
+    let replies = session
+        .get(key)
+        .payload(payload)
+        .consolidation(ConsolidationMode::None)
+        .timeout(Duration::from_secs(5))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let reply = replies
+        .recv_async()
+        .await
+        .map_err(|_| anyhow!("no reply from {key}"))?;
+    let sample = reply
+        .result()
+        .map_err(|_| anyhow!("error reply from {key}"))?;
+    Ok(sample.payload().to_bytes().into_owned())
+}
+
+async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
+    let dir = tempfile::tempdir()?;
+    let dir = dir.path();
+    let mut table = Table {
+        rows: Vec::new(),
+        json: serde_json::Map::new(),
+    };
+    println!("{:<46} {:<40} BASELINE (same run)", "FIGURE", "VALUE");
+    let cell = router("bench", None).await?;
+    let service_size = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", "bench/1/1")
+        .to_json()
+        .len();
+
+    // Floors: raw TCP and raw zenoh round trips, a Service-sized payload.
+    let (mut tcp_child, line) = spawn_helper(&["echo-tcp"])?;
+    let address = line
+        .strip_prefix("listening on ")
+        .ok_or_else(|| anyhow!("echo-tcp: {line}"))?
+        .to_string();
+    let mut socket = tokio::net::TcpStream::connect(&address).await?;
+    socket.set_nodelay(true)?;
+    let payload = vec![b'x'; service_size];
+    let mut buf = vec![0u8; service_size];
+    let mut times = Vec::with_capacity(samples);
+    let started = Instant::now();
+    for _ in 0..samples {
+        let t = Instant::now();
+        socket.write_all(&payload).await?;
+        socket.read_exact(&mut buf).await?;
+        times.push(t.elapsed());
+    }
+    let tcp = Latency::new(times, started.elapsed());
+    let _ = tcp_child.kill();
+    table.add(
+        "floor: TCP round trip (loopback)",
+        format!("p50 {:.0} us, p99 {:.0} us", tcp.pct(0.5), tcp.pct(0.99)),
+        format!("{service_size} B payload"),
+        tcp.json(),
+    );
+
+    let echo_key = "holarchy/bench/echo";
+    let (mut zenoh_child, _) =
+        spawn_helper(&["echo-zenoh", "--connect", &cell.endpoint, "--key", echo_key])?;
+    cell.wait_token(&format!("{echo_key}/alive")).await?;
+    for _ in 0..100 {
+        get_once(&cell.session, echo_key, payload.clone()).await?;
+    }
+    let mut times = Vec::with_capacity(samples);
+    let started = Instant::now();
+    for _ in 0..samples {
+        let t = Instant::now();
+        get_once(&cell.session, echo_key, payload.clone()).await?;
+        times.push(t.elapsed());
+    }
+    let floor = Latency::new(times, started.elapsed());
+    let _ = zenoh_child.kill();
+    table.add(
+        "floor: zenoh get round trip (2 processes)",
+        format!(
+            "p50 {:.0} us, p99 {:.0} us",
+            floor.pct(0.5),
+            floor.pct(0.99)
+        ),
+        format!("TCP p50 {:.0} us", tcp.pct(0.5)),
+        floor.json(),
+    );
+
+    // One robot: booking round trip and service cycle.
+    let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &[])?;
+    let controller = controller_floor(&sim.address, samples).await?;
+    table.add(
+        "floor: controller command (robot-bridge <-> robot-sim)",
+        format!(
+            "p50 {:.0} us, p99 {:.0} us",
+            controller.pct(0.5),
+            controller.pct(0.99)
+        ),
+        format!("TCP p50 {:.0} us", tcp.pct(0.5)),
+        controller.json(),
+    );
+    let config = resource_config(dir, "robot1", 5000)?;
+    let launched = Instant::now();
+    let mut node = holarchy_tests::start_node(
+        dir,
+        &config,
+        "bench",
+        &cell.endpoint,
+        &sim.address,
+        &["--data-dir", dir.join("data").to_str().unwrap()],
+    )?;
+    cell.wait_alive(&HolonId::resource("robot1")?).await?;
+    let ready = launched.elapsed();
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await?;
+    let booking_key = cell.keys.service("robot1");
+    let (mut book_times, mut pair_times) = (Vec::new(), Vec::new());
+    let started = Instant::now();
+    for i in 0..samples + 100 {
+        let conversation = format!("bench/{i}/1");
+        let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
+        let cancel = pick_n_place(
+            &cell.keys,
+            MessageType::BookingCancel,
+            "bench",
+            &conversation,
+        );
+        let t = Instant::now();
+        let answer =
+            Service::from_json(&get_once(&cell.session, &booking_key, book.to_json()).await?)?;
+        let booked = t.elapsed();
+        if answer.result != Some(true) {
+            bail!("booking refused: {answer:?}");
+        }
+        get_once(&cell.session, &booking_key, cancel.to_json()).await?;
+        if i >= 100 {
+            book_times.push(booked);
+            pair_times.push(t.elapsed());
+        }
+    }
+    let booking = Latency::new(book_times, started.elapsed());
+    let pairs = Latency::new(pair_times, started.elapsed());
+    table.add(
+        "booking round trip (booking_req, journalled)",
+        format!("p50 {:.0} us, p99 {:.0} us, {:.0} pairs/s", booking.pct(0.5), booking.pct(0.99), pairs.rate()),
+        format!("{:.2}x zenoh floor p50", booking.pct(0.5) / floor.pct(0.5)),
+        json!({"booking": booking.json(), "book_and_cancel": pairs.json(), "ratio_to_floor_p50": booking.pct(0.5) / floor.pct(0.5), "durability": "power_loss"}),
+    );
+
+    // The same with the journal's `process_crash` durability (no fsync per commit): the
+    // difference is what the fsyncs of `power_loss` cost.
+    let fast_config = resource_config(dir, "robot9", 5000)?;
+    let text = std::fs::read_to_string(&fast_config)?;
+    std::fs::write(
+        &fast_config,
+        format!("{text}\n[journal]\ndurability = \"process_crash\"\n"),
+    )?;
+    let mut fast = holarchy_tests::start_node(
+        dir,
+        &fast_config,
+        "bench",
+        &cell.endpoint,
+        &sim.address,
+        &["--data-dir", dir.join("data").to_str().unwrap()],
+    )?;
+    cell.wait_state("robot9", "free", |s| s["state"] == "free")
+        .await?;
+    let fast_key = cell.keys.service("robot9");
+    let mut times = Vec::new();
+    let started = Instant::now();
+    for i in 0..samples + 100 {
+        let conversation = format!("fast/{i}/1");
+        let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
+        let cancel = pick_n_place(
+            &cell.keys,
+            MessageType::BookingCancel,
+            "bench",
+            &conversation,
+        );
+        let t = Instant::now();
+        get_once(&cell.session, &fast_key, book.to_json()).await?;
+        if i >= 100 {
+            times.push(t.elapsed());
+        }
+        get_once(&cell.session, &fast_key, cancel.to_json()).await?;
+    }
+    let fast_booking = Latency::new(times, started.elapsed());
+    fast.kill();
+    table.add(
+        "booking round trip, durability process_crash",
+        format!("p50 {:.0} us, p99 {:.0} us", fast_booking.pct(0.5), fast_booking.pct(0.99)),
+        format!("{:.2}x zenoh floor p50", fast_booking.pct(0.5) / floor.pct(0.5)),
+        json!({"booking": fast_booking.json(), "ratio_to_floor_p50": fast_booking.pct(0.5) / floor.pct(0.5), "durability": "process_crash"}),
+    );
+
+    let mut inbox = cell.inbox("bench", 0).await?;
+    let cycles = samples / 4;
+    let mut times = Vec::new();
+    // Where a cycle's time goes: booking, start, then until `done` reaches the inbox.
+    let mut phases: [Vec<Duration>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+    let started = Instant::now();
+    for i in 0..cycles + 20 {
+        let conversation = format!("cycle/{i}/1");
+        let t = Instant::now();
+        let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
+        get_once(&cell.session, &booking_key, book.to_json()).await?;
+        let booked = t.elapsed();
+        let start = pick_n_place(&cell.keys, MessageType::Start, "bench", &conversation);
+        let answer =
+            Service::from_json(&get_once(&cell.session, &booking_key, start.to_json()).await?)?;
+        if answer.result != Some(true) {
+            bail!("start refused: {answer:?}");
+        }
+        let started_at = t.elapsed();
+        loop {
+            let done = inbox.next().await?;
+            if done.conversation_id == conversation {
+                break;
+            }
+        }
+        if i >= 20 {
+            let total = t.elapsed();
+            times.push(total);
+            phases[0].push(booked);
+            phases[1].push(started_at - booked);
+            phases[2].push(total - started_at);
+        }
+    }
+    let cycle = Latency::new(times, started.elapsed());
+    let breakdown: Vec<Latency> = phases
+        .into_iter()
+        .map(|p| Latency::new(p, Duration::from_secs(1)))
+        .collect();
+    table.add(
+        "service cycle (book, start, 2 TCP/XML steps, done acked)",
+        format!(
+            "p50 {:.0} us, p99 {:.0} us, {:.0} cycles/s",
+            cycle.pct(0.5),
+            cycle.pct(0.99),
+            cycle.rate()
+        ),
+        format!(
+            "{:.1}x zenoh floor p50 (4 gets + 2 TCP)",
+            cycle.pct(0.5) / floor.pct(0.5)
+        ),
+        cycle.json(),
+    );
+    table.add(
+        "  where a cycle goes: book | start | until done",
+        format!("p50 {:.0} | {:.0} | {:.0} us", breakdown[0].pct(0.5), breakdown[1].pct(0.5), breakdown[2].pct(0.5)),
+        "the last: 2 controller steps + result delivery".into(),
+        json!({"book": breakdown[0].json(), "start": breakdown[1].json(), "until_done": breakdown[2].json()}),
+    );
+
+    let (rss, threads) = footprint(node.pid())?;
+    table.add(
+        "footprint: idle resource holon",
+        format!("{:.1} MiB resident, {threads} threads", rss as f64 / 1024.0),
+        "-".into(),
+        json!({"rss_kib": rss, "threads": threads}),
+    );
+    table.add(
+        "start to ready: resource holon (token visible)",
+        format!("{:.1} ms", ready.as_secs_f64() * 1e3),
+        "-".into(),
+        json!({"ms": ready.as_secs_f64() * 1e3}),
+    );
+
+    // Hot-add: from spawning a resource process to its first accepted booking; then
+    // failure detection: SIGKILL to its token vanishing.
+    let (mut hot, mut killed) = (Vec::new(), Vec::new());
+    for i in 0..5 {
+        let name = format!("hot{i}");
+        let config = resource_config(dir, &name, 5000)?;
+        let t = Instant::now();
+        let mut process =
+            holarchy_tests::start_node(dir, &config, "bench", &cell.endpoint, &sim.address, &[])?;
+        let key = cell.keys.service(&name);
+        loop {
+            let book = pick_n_place(
+                &cell.keys,
+                MessageType::BookingReq,
+                "bench",
+                &format!("hot/{i}/1"),
+            );
+            if let Ok(reply) = get_once(&cell.session, &key, book.to_json()).await {
+                if Service::from_json(&reply)?.result == Some(true) {
+                    break;
+                }
+            }
+            if t.elapsed() > Duration::from_secs(20) {
+                bail!("{name} never accepted a booking");
+            }
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+        hot.push(t.elapsed());
+        killed.push(
+            detect_kill(
+                &cell,
+                &mut process,
+                &HolonId::resource(&name)?,
+                Signal::SIGKILL,
+            )
+            .await?,
+        );
+    }
+    let hot = Latency::new(hot, Duration::from_secs(1));
+    let killed = Latency::new(killed, Duration::from_secs(1));
+    table.add(
+        "hot-add: spawn to first accepted booking",
+        format!("median {:.1} ms (5 runs)", hot.pct(0.5) / 1e3),
+        "-".into(),
+        hot.json(),
+    );
+    table.add(
+        "failure detection: SIGKILL to token gone",
+        format!("median {:.1} ms (5 runs)", killed.pct(0.5) / 1e3),
+        "-".into(),
+        killed.json(),
+    );
+
+    // A frozen process: only the lease detects it.
+    let lease_cell = router("bench-lease", Some(1000)).await?;
+    let config = resource_config(dir, "frozen", 5000)?;
+    let mut frozen = holarchy_tests::start_node(
+        dir,
+        &config,
+        "bench-lease",
+        &lease_cell.endpoint,
+        &sim.address,
+        &["--lease-ms", "1000"],
+    )?;
+    lease_cell.wait_alive(&HolonId::resource("frozen")?).await?;
+    let stopped = detect_kill(
+        &lease_cell,
+        &mut frozen,
+        &HolonId::resource("frozen")?,
+        Signal::SIGSTOP,
+    )
+    .await?;
+    let _ = kill(Pid::from_raw(frozen.pid()), Signal::SIGKILL);
+    frozen.kill();
+    table.add(
+        "failure detection: SIGSTOP to token gone",
+        format!("{:.0} ms", stopped.as_secs_f64() * 1e3),
+        "lease 1000 ms".into(),
+        json!({"ms": stopped.as_secs_f64() * 1e3, "lease_ms": 1000}),
+    );
+
+    // Cell throughput: K robots, 40 concurrent one-step orders.
+    node.kill();
+    for robots in [1usize, 2, 4] {
+        let figure = throughput(dir, robots, 40).await?;
+        table.add(
+            &format!("cell throughput: {robots} robot(s), 40 concurrent orders"),
+            format!("{:.1} orders/s", figure),
+            "one pick_n_place step each, 0 ms actions".into(),
+            json!({"robots": robots, "orders": 40, "orders_per_s": figure}),
+        );
+    }
+
+    // Scale: many resource holons on one host.
+    if scale > 0 {
+        let (visible, round, rss) = scale_out(dir, scale).await?;
+        table.add(
+            &format!("scale: {scale} resource holons, all visible"),
+            format!("{:.2} s after the first spawn", visible.as_secs_f64()),
+            format!("{:.0} MiB resident in all", rss as f64 / 1024.0),
+            json!({"holons": scale, "all_visible_s": visible.as_secs_f64(), "rss_total_kib": rss}),
+        );
+        table.add(
+            &format!("scale: proposal round with {scale} repliers"),
+            format!(
+                "p50 {:.1} ms, p99 {:.1} ms",
+                round.pct(0.5) / 1e3,
+                round.pct(0.99) / 1e3
+            ),
+            format!("{:.0}x zenoh floor p50", round.pct(0.5) / floor.pct(0.5)),
+            round.json(),
+        );
+    }
+
+    let machine = json!({
+        "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0),
+        "profile": if holarchy_tests::bin_dir().ends_with("release") { "release" } else { "debug" },
+    });
+    table.json.insert("machine".into(), machine);
+    std::fs::write(
+        out,
+        serde_json::to_string_pretty(&Value::Object(table.json))?,
+    )
+    .with_context(|| format!("cannot write {}", out.display()))?;
+    println!("\nJSON written to {}", out.display());
+    drop(sim);
+    Ok(())
+}
+
+async fn detect_kill(
+    cell: &Cell,
+    process: &mut Process,
+    holon: &HolonId,
+    signal: Signal,
+) -> Result<Duration> {
+    let subscriber = cell
+        .session
+        .liveliness()
+        .declare_subscriber(cell.keys.alive(holon))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let t = Instant::now();
+    kill(Pid::from_raw(process.pid()), signal)?;
+    loop {
+        let sample = tokio::time::timeout(Duration::from_secs(30), subscriber.recv_async())
+            .await
+            .map_err(|_| anyhow!("{holon} never vanished"))?
+            .map_err(|e| anyhow!("{e}"))?;
+        if sample.kind() == zenoh::sample::SampleKind::Delete {
+            let elapsed = t.elapsed();
+            if signal == Signal::SIGKILL {
+                process.kill();
+            }
+            return Ok(elapsed);
+        }
+    }
+}
+
+/// Orders per second through a cell of `robots` robots with one-step orders.
+async fn throughput(dir: &Path, robots: usize, orders: u32) -> Result<f64> {
+    let cell_name = format!("bench-t{robots}");
+    let cell = router(&cell_name, None).await?;
+    let dir = dir.join(&cell_name);
+    std::fs::create_dir_all(&dir)?;
+    let mut keep = Vec::new();
+    for i in 0..robots {
+        let name = format!("robot{i}");
+        let sim = Sim::start(&dir, &format!("{name}-sim"), "127.0.0.1:0", &[])?;
+        let config = resource_config(&dir, &name, 5000)?;
+        let node = holarchy_tests::start_node(
+            &dir,
+            &config,
+            &cell_name,
+            &cell.endpoint,
+            &sim.address,
+            &[],
+        )?;
+        cell.wait_alive(&HolonId::resource(&name)?).await?;
+        keep.push((sim, node));
+    }
+    let product = dir.join("one-step.toml");
+    std::fs::write(
+        &product,
+        format!("cell = \"{cell_name}\"\nname = \"part\"\nkind = \"product\"\n[zenoh]\nlisten = [\"tcp/127.0.0.1:0\"]\n[[steps]]\nservice_type = \"pick_n_place\"\ninfo = {{ pick = {{ x = 1.0, y = 2.0, z = 3.0 }}, place = {{ x = 4.0, y = 5.0, z = 6.0 }} }}\n"),
+    )?;
+    let _product = holarchy_tests::start_holon(&dir, "holon-node", &product, "part", &cell, &[])?;
+    let _orders = holarchy_tests::start_holon(
+        &dir,
+        "order-node",
+        &holarchy_tests::demo_config("orders1.toml"),
+        "orders1",
+        &cell,
+        &["--data-dir", dir.join("data").to_str().unwrap()],
+    )?;
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await?;
+    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
+        .await?;
+    let t = Instant::now();
+    cell.submit("part", orders).await?;
+    loop {
+        let replies = cell
+            .session
+            .get(cell.keys.order_states())
+            .timeout(Duration::from_secs(2))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let mut done = 0;
+        while let Ok(reply) = replies.recv_async().await {
+            if let Ok(sample) = reply.result() {
+                let snapshot: schemas::OrderSnapshot =
+                    serde_json::from_slice(&sample.payload().to_bytes())?;
+                if snapshot.status == schemas::OrderStatus::Done {
+                    done += 1;
+                }
+            }
+        }
+        if done == orders {
+            return Ok(orders as f64 / t.elapsed().as_secs_f64());
+        }
+        if t.elapsed() > Duration::from_secs(120) {
+            bail!("{done} of {orders} orders done after 120 s");
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
+/// Starts `n` resource holons (sharing 4 controllers): time until all are visible, a
+/// proposal round's latency with all of them replying, and their total memory.
+async fn scale_out(dir: &Path, n: usize) -> Result<(Duration, Latency, u64)> {
+    let cell = router("bench-scale", None).await?;
+    let dir = dir.join("scale");
+    std::fs::create_dir_all(&dir)?;
+    let sims: Vec<Sim> = (0..4)
+        .map(|i| Sim::start(&dir, &format!("sim{i}"), "127.0.0.1:0", &[]))
+        .collect::<Result<_>>()?;
+    let subscriber = cell
+        .session
+        .liveliness()
+        .declare_subscriber(cell.keys.alive_kind(schemas::HolonKind::Resource))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let t = Instant::now();
+    let mut nodes = Vec::new();
+    for i in 0..n {
+        let name = format!("r{i}");
+        let config = resource_config(&dir, &name, 5000)?;
+        nodes.push(holarchy_tests::start_node(
+            &dir,
+            &config,
+            "bench-scale",
+            &cell.endpoint,
+            &sims[i % 4].address,
+            &[],
+        )?);
+    }
+    let mut seen = std::collections::HashSet::new();
+    while seen.len() < n {
+        let sample = tokio::time::timeout(Duration::from_secs(120), subscriber.recv_async())
+            .await
+            .map_err(|_| anyhow!("only {} of {n} holons visible after 120 s", seen.len()))?
+            .map_err(|e| anyhow!("{e}"))?;
+        seen.insert(sample.key_expr().to_string());
+    }
+    let visible = t.elapsed();
+    // Wait until all offer (their controllers ready), then time proposal rounds.
+    let ask = pick_n_place(&cell.keys, MessageType::ProposalReq, "bench", "scale/1/1");
+    cell.wait_proposals(&ask, n).await?;
+    let mut times = Vec::new();
+    let started = Instant::now();
+    for _ in 0..50 {
+        let t = Instant::now();
+        let count = cell.proposals(&ask).await?.len();
+        if count == n {
+            times.push(t.elapsed());
+        }
+    }
+    let round = Latency::new(times, started.elapsed());
+    let rss: u64 = nodes
+        .iter()
+        .filter_map(|p| footprint(p.pid()).ok())
+        .map(|(r, _)| r)
+        .sum();
+    drop(nodes);
+    drop(sims);
+    Ok((visible, round, rss))
+}
+
+/// One controller command's round trip through the controller client and robot-sim,
+/// without a holon: the floor of an execution step.
+async fn controller_floor(address: &str, samples: usize) -> Result<Latency> {
+    use robot_bridge::client::{self, ClientConfig, ControllerEvent};
+    let (commands, mut command_rx) = tokio::sync::mpsc::channel(16);
+    let (event_tx, mut events) = tokio::sync::mpsc::channel(16);
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let config = ClientConfig::new(address);
+    let task = tokio::spawn({
+        let shutdown = shutdown.clone();
+        async move { client::run(config, &mut command_rx, event_tx, shutdown).await }
+    });
+    loop {
+        match events.recv().await {
+            Some(ControllerEvent::Status(s)) if s.is_ready() => break,
+            Some(_) => continue,
+            None => bail!("controller client stopped"),
+        }
+    }
+    let mut times = Vec::new();
+    let started = Instant::now();
+    for id in 0..samples as u64 {
+        let t = Instant::now();
+        commands
+            .send(schemas::RobotCommand {
+                id,
+                action: "pick".into(),
+                pos: Some(schemas::Pose {
+                    x: 1.0,
+                    y: 2.0,
+                    z: 3.0,
+                    ..Default::default()
+                }),
+            })
+            .await?;
+        match events.recv().await {
+            Some(ControllerEvent::Reply { .. }) => times.push(t.elapsed()),
+            other => bail!("unexpected {other:?}"),
+        }
+    }
+    shutdown.cancel();
+    let _ = task.await;
+    Ok(Latency::new(times, started.elapsed()))
+}
