@@ -19,7 +19,6 @@ use nix::unistd::Pid;
 use schemas::{CellKeys, HolonId, MessageType, Service};
 use serde_json::{json, Value};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use zenoh::query::ConsolidationMode;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -208,22 +207,45 @@ async fn router(cell: &str, lease_ms: Option<u64>) -> Result<Cell> {
     })
 }
 
-async fn get_once(session: &zenoh::Session, key: &str, payload: Vec<u8>) -> Result<Vec<u8>> {
-    let replies = session
-        .get(key)
-        .payload(payload)
-        .consolidation(ConsolidationMode::None)
-        .timeout(Duration::from_secs(5))
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let reply = replies
-        .recv_async()
-        .await
-        .map_err(|_| anyhow!("no reply from {key}"))?;
-    let sample = reply
-        .result()
-        .map_err(|_| anyhow!("error reply from {key}"))?;
-    Ok(sample.payload().to_bytes().into_owned())
+/// One round trip: the reply's payload (an error reply is an error).
+async fn get_once(cell: &Cell, key: &str, payload: Vec<u8>) -> Result<Vec<u8>> {
+    cell.ask(key, payload)
+        .await?
+        .map_err(|_| anyhow!("error reply from {key}"))
+}
+
+/// `booking_req` then `booking_cancel` to `resource`, `samples` times after 100 warm-up
+/// pairs: the booking's latency and the pair's.
+async fn booking_series(cell: &Cell, resource: &str, samples: usize) -> Result<(Latency, Latency)> {
+    let key = cell.keys.service(resource);
+    let (mut book_times, mut pair_times) = (Vec::new(), Vec::new());
+    let started = Instant::now();
+    for i in 0..samples + 100 {
+        let conversation = format!("{resource}/{i}/1");
+        let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
+        let cancel = pick_n_place(
+            &cell.keys,
+            MessageType::BookingCancel,
+            "bench",
+            &conversation,
+        );
+        let t = Instant::now();
+        let answer = Service::from_json(&get_once(cell, &key, book.to_json()).await?)?;
+        let booked = t.elapsed();
+        if answer.result != Some(true) {
+            bail!("booking refused: {answer:?}");
+        }
+        get_once(cell, &key, cancel.to_json()).await?;
+        if i >= 100 {
+            book_times.push(booked);
+            pair_times.push(t.elapsed());
+        }
+    }
+    let total = started.elapsed();
+    Ok((
+        Latency::new(book_times, total),
+        Latency::new(pair_times, total),
+    ))
 }
 
 async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
@@ -271,13 +293,13 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         spawn_helper(&["echo-zenoh", "--connect", &cell.endpoint, "--key", echo_key])?;
     cell.wait_token(&format!("{echo_key}/alive")).await?;
     for _ in 0..100 {
-        get_once(&cell.session, echo_key, payload.clone()).await?;
+        get_once(&cell, echo_key, payload.clone()).await?;
     }
     let mut times = Vec::with_capacity(samples);
     let started = Instant::now();
     for _ in 0..samples {
         let t = Instant::now();
-        get_once(&cell.session, echo_key, payload.clone()).await?;
+        get_once(&cell, echo_key, payload.clone()).await?;
         times.push(t.elapsed());
     }
     let floor = Latency::new(times, started.elapsed());
@@ -321,32 +343,7 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
     cell.wait_state("robot1", "free", |s| s["state"] == "free")
         .await?;
     let booking_key = cell.keys.service("robot1");
-    let (mut book_times, mut pair_times) = (Vec::new(), Vec::new());
-    let started = Instant::now();
-    for i in 0..samples + 100 {
-        let conversation = format!("bench/{i}/1");
-        let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
-        let cancel = pick_n_place(
-            &cell.keys,
-            MessageType::BookingCancel,
-            "bench",
-            &conversation,
-        );
-        let t = Instant::now();
-        let answer =
-            Service::from_json(&get_once(&cell.session, &booking_key, book.to_json()).await?)?;
-        let booked = t.elapsed();
-        if answer.result != Some(true) {
-            bail!("booking refused: {answer:?}");
-        }
-        get_once(&cell.session, &booking_key, cancel.to_json()).await?;
-        if i >= 100 {
-            book_times.push(booked);
-            pair_times.push(t.elapsed());
-        }
-    }
-    let booking = Latency::new(book_times, started.elapsed());
-    let pairs = Latency::new(pair_times, started.elapsed());
+    let (booking, pairs) = booking_series(&cell, "robot1", samples).await?;
     table.add(
         "booking round trip (booking_req, journalled)",
         format!("p50 {:.0} us, p99 {:.0} us, {:.0} pairs/s", booking.pct(0.5), booking.pct(0.99), pairs.rate()),
@@ -372,26 +369,7 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
     )?;
     cell.wait_state("robot9", "free", |s| s["state"] == "free")
         .await?;
-    let fast_key = cell.keys.service("robot9");
-    let mut times = Vec::new();
-    let started = Instant::now();
-    for i in 0..samples + 100 {
-        let conversation = format!("fast/{i}/1");
-        let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
-        let cancel = pick_n_place(
-            &cell.keys,
-            MessageType::BookingCancel,
-            "bench",
-            &conversation,
-        );
-        let t = Instant::now();
-        get_once(&cell.session, &fast_key, book.to_json()).await?;
-        if i >= 100 {
-            times.push(t.elapsed());
-        }
-        get_once(&cell.session, &fast_key, cancel.to_json()).await?;
-    }
-    let fast_booking = Latency::new(times, started.elapsed());
+    let (fast_booking, _) = booking_series(&cell, "robot9", samples).await?;
     fast.kill();
     table.add(
         "booking round trip, durability process_crash",
@@ -410,11 +388,10 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         let conversation = format!("cycle/{i}/1");
         let t = Instant::now();
         let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
-        get_once(&cell.session, &booking_key, book.to_json()).await?;
+        get_once(&cell, &booking_key, book.to_json()).await?;
         let booked = t.elapsed();
         let start = pick_n_place(&cell.keys, MessageType::Start, "bench", &conversation);
-        let answer =
-            Service::from_json(&get_once(&cell.session, &booking_key, start.to_json()).await?)?;
+        let answer = Service::from_json(&get_once(&cell, &booking_key, start.to_json()).await?)?;
         if answer.result != Some(true) {
             bail!("start refused: {answer:?}");
         }
@@ -447,7 +424,7 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
             cycle.rate()
         ),
         format!(
-            "{:.1}x zenoh floor p50 (4 gets + 2 TCP)",
+            "{:.1}x zenoh floor p50 (3 gets + 2 controller commands)",
             cycle.pct(0.5) / floor.pct(0.5)
         ),
         cycle.json(),
@@ -490,7 +467,7 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
                 "bench",
                 &format!("hot/{i}/1"),
             );
-            if let Ok(reply) = get_once(&cell.session, &key, book.to_json()).await {
+            if let Ok(reply) = get_once(&cell, &key, book.to_json()).await {
                 if Service::from_json(&reply)?.result == Some(true) {
                     break;
                 }

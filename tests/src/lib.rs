@@ -347,12 +347,13 @@ impl Cell {
         }
     }
 
-    /// Sends a request to `key` and returns the single answer: a Service, or an error reply.
-    pub async fn request(
+    /// Sends `payload` to `key` and returns the single answer's payload: `Ok` for a
+    /// reply, `Err` for an error reply.
+    pub async fn ask(
         &self,
         key: &str,
         payload: Vec<u8>,
-    ) -> Result<std::result::Result<Service, ErrorReply>> {
+    ) -> Result<std::result::Result<Vec<u8>, Vec<u8>>> {
         let replies = self
             .session
             .get(key)
@@ -366,8 +367,20 @@ impl Cell {
             .await
             .map_err(|_| anyhow!("no reply from {key}"))?;
         Ok(match reply.result() {
-            Ok(sample) => Ok(Service::from_json(&sample.payload().to_bytes())?),
-            Err(err) => Err(serde_json::from_slice(&err.payload().to_bytes())?),
+            Ok(sample) => Ok(sample.payload().to_bytes().into_owned()),
+            Err(err) => Err(err.payload().to_bytes().into_owned()),
+        })
+    }
+
+    /// Sends a request to `key` and returns the single answer: a Service, or an error reply.
+    pub async fn request(
+        &self,
+        key: &str,
+        payload: Vec<u8>,
+    ) -> Result<std::result::Result<Service, ErrorReply>> {
+        Ok(match self.ask(key, payload).await? {
+            Ok(answer) => Ok(Service::from_json(&answer)?),
+            Err(error) => Err(serde_json::from_slice(&error)?),
         })
     }
 
