@@ -154,13 +154,13 @@ impl AgendaManager {
 
     /// The agenda manager after a restart of the process: the bookings and undelivered
     /// results come back; a job that was executing is reported `failed` with reason
-    /// `interrupted` (never re-executed). The returned actions deliver the results.
+    /// `interrupted` (never re-executed), as one more undelivered result.
     pub fn restore(
         holon: HolonId,
         catalog: Arc<ServiceCatalog>,
         capacity: usize,
         record: AgendaRecord,
-    ) -> (AgendaManager, Vec<AgendaAction>) {
+    ) -> AgendaManager {
         let mut manager = AgendaManager::new(holon, catalog, capacity);
         manager.bookings = record.bookings;
         manager.undelivered = record.undelivered;
@@ -175,13 +175,7 @@ impl AgendaManager {
             );
             manager.undelivered.push(message);
         }
-        let actions = manager
-            .undelivered
-            .iter()
-            .cloned()
-            .map(AgendaAction::Deliver)
-            .collect();
-        (manager, actions)
+        manager
     }
 
     /// True once withdrawing and nothing is left to finish or deliver.
@@ -1034,7 +1028,7 @@ mod tests {
         let record = m.record();
         let json = serde_json::to_string(&record).unwrap();
         let record: AgendaRecord = serde_json::from_str(&json).unwrap();
-        let (restored, actions) = AgendaManager::restore(
+        let restored = AgendaManager::restore(
             HolonId::resource("robot1").unwrap(),
             Arc::new(pick_n_place()),
             3,
@@ -1047,15 +1041,15 @@ mod tests {
             Status::Init,
             "no job runs after a restart"
         );
-        let delivered: Vec<(&str, MessageType, Option<&str>)> = actions
+        let delivered: Vec<(&str, MessageType, Option<&str>)> = restored
+            .undelivered()
             .iter()
-            .map(|a| match a {
-                AgendaAction::Deliver(s) => (
+            .map(|s| {
+                (
                     s.conversation_id.as_str(),
                     s.message_type,
                     s.reason.as_deref(),
-                ),
-                other => panic!("{other:?}"),
+                )
             })
             .collect();
         assert_eq!(

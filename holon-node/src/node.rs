@@ -162,7 +162,7 @@ impl Node {
                 warn!(holon = %config.holon, "no data directory: the agenda is not durable (use --data-dir)")
             }
         }
-        let (agenda, _deliveries) = AgendaManager::restore(
+        let agenda = AgendaManager::restore(
             config.holon.clone(),
             config.catalog.clone(),
             config.agenda_capacity,
