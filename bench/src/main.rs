@@ -41,9 +41,13 @@ enum Commands {
         /// Round trips per latency figure.
         #[arg(long, default_value_t = 2000)]
         samples: usize,
-        /// Resource holon processes for the scale figure.
+        /// Resource holon processes for the scale figure (0 skips it).
         #[arg(long, default_value_t = 100)]
         scale: usize,
+        /// Run only these sections (comma-separated; the floors always run): booking,
+        /// cycle, holon, rebook, lease, throughput, orders, scale.
+        #[arg(long, value_delimiter = ',')]
+        only: Vec<String>,
     },
     /// (helper) A TCP echo server: prints `listening on ADDR`.
     EchoTcp {
@@ -66,7 +70,8 @@ async fn main() -> Result<()> {
             out,
             samples,
             scale,
-        } => all(&out, samples, scale).await,
+            only,
+        } => all(&out, samples, scale, &only).await,
         Commands::EchoTcp { listen } => echo_tcp(&listen).await,
         Commands::EchoZenoh { connect, key } => echo_zenoh(&connect, &key).await,
     }
@@ -214,13 +219,37 @@ async fn get_once(cell: &Cell, key: &str, payload: Vec<u8>) -> Result<Vec<u8>> {
         .map_err(|_| anyhow!("error reply from {key}"))
 }
 
+/// What a booking series measured.
+struct BookingSeries {
+    booking: Latency,
+    book_and_cancel: Latency,
+    /// A raw zenoh `get` to the echo helper just before each booking: the floor under
+    /// the same load at the same moment, so the ratio survives a noisy machine.
+    floor: Latency,
+}
+
+impl BookingSeries {
+    fn ratio(&self) -> f64 {
+        self.booking.pct(0.5) / self.floor.pct(0.5)
+    }
+}
+
 /// `booking_req` then `booking_cancel` to `resource`, `samples` times after 100 warm-up
-/// pairs: the booking's latency and the pair's.
-async fn booking_series(cell: &Cell, resource: &str, samples: usize) -> Result<(Latency, Latency)> {
+/// pairs, each after a raw `get` to the echo helper (the interleaved floor).
+async fn booking_series(cell: &Cell, resource: &str, samples: usize) -> Result<BookingSeries> {
     let key = cell.keys.service(resource);
-    let (mut book_times, mut pair_times) = (Vec::new(), Vec::new());
+    let echo = vec![
+        b'x';
+        pick_n_place(&cell.keys, MessageType::BookingReq, "bench", "bench/1/1")
+            .to_json()
+            .len()
+    ];
+    let (mut book_times, mut pair_times, mut floor_times) = (Vec::new(), Vec::new(), Vec::new());
     let started = Instant::now();
     for i in 0..samples + 100 {
+        let t = Instant::now();
+        get_once(cell, ECHO_KEY, echo.clone()).await?;
+        let floor = t.elapsed();
         let conversation = format!("{resource}/{i}/1");
         let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
         let cancel = pick_n_place(
@@ -239,18 +268,137 @@ async fn booking_series(cell: &Cell, resource: &str, samples: usize) -> Result<(
         if i >= 100 {
             book_times.push(booked);
             pair_times.push(t.elapsed());
+            floor_times.push(floor);
         }
     }
     let total = started.elapsed();
-    Ok((
-        Latency::new(book_times, total),
-        Latency::new(pair_times, total),
-    ))
+    Ok(BookingSeries {
+        booking: Latency::new(book_times, total),
+        book_and_cancel: Latency::new(pair_times, total),
+        floor: Latency::new(floor_times, total),
+    })
 }
 
-async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
-    let dir = tempfile::tempdir()?;
-    let dir = dir.path();
+/// The echo helper's key: a queryable that answers with the query's payload.
+const ECHO_KEY: &str = "holarchy/bench/echo";
+
+/// The sections `--only` can pick; the floors always run (every figure's baseline).
+const SECTIONS: &[&str] = &[
+    "booking",
+    "cycle",
+    "holon",
+    "rebook",
+    "lease",
+    "throughput",
+    "orders",
+    "scale",
+];
+
+/// What every section shares: the run's directory, the cell (this process is its
+/// router), the floors measured first, a controller simulator and `robot1`.
+struct Run {
+    dir: PathBuf,
+    cell: Cell,
+    table: Table,
+    floor: Latency,
+    journal_floor: (Latency, Latency),
+    sim: Sim,
+    robot1: Process,
+    robot1_ready: Duration,
+    samples: usize,
+    echo: Child,
+}
+
+impl Drop for Run {
+    fn drop(&mut self) {
+        let _ = self.echo.kill();
+        let _ = self.echo.wait();
+    }
+}
+
+impl Run {
+    fn ratio(&self, latency: &Latency) -> f64 {
+        latency.pct(0.5) / self.floor.pct(0.5)
+    }
+}
+
+async fn all(out: &Path, samples: usize, scale: usize, only: &[String]) -> Result<()> {
+    for section in only {
+        if !SECTIONS.contains(&section.as_str()) {
+            bail!(
+                "unknown section {section:?} (one of {})",
+                SECTIONS.join(", ")
+            );
+        }
+    }
+    let wants = |section: &str| only.is_empty() || only.iter().any(|s| s == section);
+    let tempdir = tempfile::tempdir()?;
+    let mut run = floors(tempdir.path(), samples).await?;
+    if wants("booking") {
+        booking(&mut run).await?;
+    }
+    if wants("cycle") {
+        cycle(&mut run).await?;
+    }
+    if wants("holon") {
+        holon_figures(&mut run).await?;
+    }
+    if wants("rebook") {
+        rebook(&mut run).await?;
+    }
+    if wants("lease") {
+        lease(&mut run).await?;
+    }
+    if wants("throughput") {
+        for robots in [1usize, 2, 4] {
+            let figure = throughput(&run.dir, robots, 40).await?;
+            run.table.add(
+                &format!("cell throughput: {robots} robot(s), 40 concurrent orders"),
+                format!("{:.1} orders/s", figure),
+                "one pick_n_place step each, 0 ms actions".into(),
+                json!({"robots": robots, "orders": 40, "orders_per_s": figure}),
+            );
+        }
+    }
+    if wants("orders") {
+        order_node_footprint(&mut run, 1000).await?;
+    }
+    if wants("scale") && scale > 0 {
+        let (visible, round, rss) = scale_out(&run.dir, scale).await?;
+        run.table.add(
+            &format!("scale: {scale} resource holons, all visible"),
+            format!("{:.2} s after the first spawn", visible.as_secs_f64()),
+            format!("{:.0} MiB resident in all", rss as f64 / 1024.0),
+            json!({"holons": scale, "all_visible_s": visible.as_secs_f64(), "rss_total_kib": rss}),
+        );
+        run.table.add(
+            &format!("scale: proposal round with {scale} repliers"),
+            format!(
+                "p50 {:.1} ms, p99 {:.1} ms",
+                round.pct(0.5) / 1e3,
+                round.pct(0.99) / 1e3
+            ),
+            format!("{:.0}x zenoh floor p50", run.ratio(&round)),
+            round.json(),
+        );
+    }
+
+    let machine = json!({
+        "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0),
+        "profile": if holarchy_tests::bin_dir().ends_with("release") { "release" } else { "debug" },
+        "sections": if only.is_empty() { SECTIONS.to_vec() } else { only.iter().map(String::as_str).collect() },
+    });
+    let mut json = std::mem::take(&mut run.table.json);
+    json.insert("machine".into(), machine);
+    std::fs::write(out, serde_json::to_string_pretty(&Value::Object(json))?)
+        .with_context(|| format!("cannot write {}", out.display()))?;
+    println!("\nJSON written to {}", out.display());
+    Ok(())
+}
+
+/// The baselines: raw TCP, raw zenoh `get`, a controller command, a journal commit;
+/// then starts the simulator and `robot1` the sections share.
+async fn floors(dir: &Path, samples: usize) -> Result<Run> {
     let mut table = Table {
         rows: Vec::new(),
         json: serde_json::Map::new(),
@@ -288,22 +436,20 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         tcp.json(),
     );
 
-    let echo_key = "holarchy/bench/echo";
-    let (mut zenoh_child, _) =
-        spawn_helper(&["echo-zenoh", "--connect", &cell.endpoint, "--key", echo_key])?;
-    cell.wait_token(&format!("{echo_key}/alive")).await?;
+    // The echo helper stays up for the whole run: booking series interleave with it.
+    let (echo, _) = spawn_helper(&["echo-zenoh", "--connect", &cell.endpoint, "--key", ECHO_KEY])?;
+    cell.wait_token(&format!("{ECHO_KEY}/alive")).await?;
     for _ in 0..100 {
-        get_once(&cell, echo_key, payload.clone()).await?;
+        get_once(&cell, ECHO_KEY, payload.clone()).await?;
     }
     let mut times = Vec::with_capacity(samples);
     let started = Instant::now();
     for _ in 0..samples {
         let t = Instant::now();
-        get_once(&cell, echo_key, payload.clone()).await?;
+        get_once(&cell, ECHO_KEY, payload.clone()).await?;
         times.push(t.elapsed());
     }
     let floor = Latency::new(times, started.elapsed());
-    let _ = zenoh_child.kill();
     table.add(
         "floor: zenoh get round trip (2 processes)",
         format!(
@@ -315,7 +461,25 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         floor.json(),
     );
 
-    // One robot: booking round trip and service cycle.
+    // A journal commit of a booking-sized record, both durabilities, on the disk the
+    // holons write to: what a journalled answer cannot go below.
+    let journal_floor = (
+        journal_commits(dir, holon::journal::Durability::PowerLoss, samples)?,
+        journal_commits(dir, holon::journal::Durability::ProcessCrash, samples)?,
+    );
+    table.add(
+        "floor: journal commit (power_loss | process_crash)",
+        format!(
+            "p50 {:.0} | {:.0} us, p99 {:.0} | {:.0} us",
+            journal_floor.0.pct(0.5),
+            journal_floor.1.pct(0.5),
+            journal_floor.0.pct(0.99),
+            journal_floor.1.pct(0.99)
+        ),
+        format!("{service_size} B record, SQLite WAL"),
+        json!({"power_loss": journal_floor.0.json(), "process_crash": journal_floor.1.json()}),
+    );
+
     let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &[])?;
     let controller = controller_floor(&sim.address, samples).await?;
     table.add(
@@ -328,9 +492,10 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         format!("TCP p50 {:.0} us", tcp.pct(0.5)),
         controller.json(),
     );
+
     let config = resource_config(dir, "robot1", 5000)?;
     let launched = Instant::now();
-    let mut node = holarchy_tests::start_node(
+    let robot1 = holarchy_tests::start_node(
         dir,
         &config,
         "bench",
@@ -339,47 +504,131 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         &["--data-dir", dir.join("data").to_str().unwrap()],
     )?;
     cell.wait_alive(&HolonId::resource("robot1")?).await?;
-    let ready = launched.elapsed();
+    let robot1_ready = launched.elapsed();
     cell.wait_state("robot1", "free", |s| s["state"] == "free")
         .await?;
-    let booking_key = cell.keys.service("robot1");
-    let (booking, pairs) = booking_series(&cell, "robot1", samples).await?;
-    table.add(
-        "booking round trip (booking_req, journalled)",
-        format!("p50 {:.0} us, p99 {:.0} us, {:.0} pairs/s", booking.pct(0.5), booking.pct(0.99), pairs.rate()),
-        format!("{:.2}x zenoh floor p50", booking.pct(0.5) / floor.pct(0.5)),
-        json!({"booking": booking.json(), "book_and_cancel": pairs.json(), "ratio_to_floor_p50": booking.pct(0.5) / floor.pct(0.5), "durability": "power_loss"}),
+    Ok(Run {
+        dir: dir.to_path_buf(),
+        cell,
+        table,
+        floor,
+        journal_floor,
+        sim,
+        robot1,
+        robot1_ready,
+        samples,
+        echo,
+    })
+}
+
+/// `samples` commits of one booking-sized record through the holons' journal.
+fn journal_commits(
+    dir: &Path,
+    durability: holon::journal::Durability,
+    samples: usize,
+) -> Result<Latency> {
+    let journal = holon::journal::Journal::open(
+        &dir.join("journal-floor"),
+        &format!("{durability:?}.sqlite"),
+        durability,
+    )?;
+    let keys = CellKeys::new("bench")?;
+    let mut times = Vec::with_capacity(samples);
+    let started = Instant::now();
+    for i in 0..samples {
+        // A record that differs from the one it replaces: SQLite writes nothing (and
+        // syncs nothing) when an update leaves the page as it was.
+        let record = pick_n_place(
+            &keys,
+            MessageType::BookingReq,
+            "bench",
+            &format!("bench/{i}/1"),
+        );
+        let t = Instant::now();
+        journal.put("booking", &format!("b{}", i % 64), &record)?;
+        times.push(t.elapsed());
+    }
+    Ok(Latency::new(times, started.elapsed()))
+}
+
+/// Booking round trips to `robot1` (journal `power_loss`) and to a second holon with
+/// `process_crash`.
+async fn booking(run: &mut Run) -> Result<()> {
+    let series = booking_series(&run.cell, "robot1", run.samples).await?;
+    booking_row(
+        run,
+        "booking round trip (booking_req, journal power_loss)",
+        &series,
+        0,
     );
 
     // The same with the journal's `process_crash` durability (no fsync per commit): the
     // difference is what the fsyncs of `power_loss` cost.
-    let fast_config = resource_config(dir, "robot9", 5000)?;
+    let fast_config = resource_config(&run.dir, "robot9", 5000)?;
     let text = std::fs::read_to_string(&fast_config)?;
     std::fs::write(
         &fast_config,
         format!("{text}\n[journal]\ndurability = \"process_crash\"\n"),
     )?;
     let mut fast = holarchy_tests::start_node(
-        dir,
+        &run.dir,
         &fast_config,
         "bench",
-        &cell.endpoint,
-        &sim.address,
-        &["--data-dir", dir.join("data").to_str().unwrap()],
+        &run.cell.endpoint,
+        &run.sim.address,
+        &["--data-dir", run.dir.join("data").to_str().unwrap()],
     )?;
-    cell.wait_state("robot9", "free", |s| s["state"] == "free")
+    run.cell
+        .wait_state("robot9", "free", |s| s["state"] == "free")
         .await?;
-    let (fast_booking, _) = booking_series(&cell, "robot9", samples).await?;
+    let series = booking_series(&run.cell, "robot9", run.samples).await?;
     fast.kill();
-    table.add(
-        "booking round trip, durability process_crash",
-        format!("p50 {:.0} us, p99 {:.0} us", fast_booking.pct(0.5), fast_booking.pct(0.99)),
-        format!("{:.2}x zenoh floor p50", fast_booking.pct(0.5) / floor.pct(0.5)),
-        json!({"booking": fast_booking.json(), "ratio_to_floor_p50": fast_booking.pct(0.5) / floor.pct(0.5), "durability": "process_crash"}),
+    booking_row(
+        run,
+        "booking round trip (journal process_crash)",
+        &series,
+        1,
     );
+    Ok(())
+}
 
+/// A booking figure against the floors: `journal` 0 for power_loss, 1 for process_crash.
+fn booking_row(run: &mut Run, name: &str, series: &BookingSeries, journal: usize) {
+    let journal_floor = if journal == 0 {
+        &run.journal_floor.0
+    } else {
+        &run.journal_floor.1
+    };
+    let above = series.booking.pct(0.5) - series.floor.pct(0.5) - journal_floor.pct(0.5);
+    run.table.add(
+        name,
+        format!(
+            "p50 {:.0} us, p99 {:.0} us, {:.0} book+cancel/s",
+            series.booking.pct(0.5),
+            series.booking.pct(0.99),
+            series.book_and_cancel.rate()
+        ),
+        format!(
+            "{:.2}x interleaved zenoh floor (p50 {:.0} us); {above:.0} us above it + journal commit",
+            series.ratio(),
+            series.floor.pct(0.5)
+        ),
+        json!({
+            "booking": series.booking.json(),
+            "book_and_cancel": series.book_and_cancel.json(),
+            "interleaved_floor": series.floor.json(),
+            "ratio_to_floor_p50": series.ratio(),
+            "above_floors_us": above,
+        }),
+    );
+}
+
+/// Service cycles on `robot1`: book, start, two controller steps, `done` acknowledged.
+async fn cycle(run: &mut Run) -> Result<()> {
+    let cell = &run.cell;
+    let key = cell.keys.service("robot1");
     let mut inbox = cell.inbox("bench", 0).await?;
-    let cycles = samples / 4;
+    let cycles = run.samples / 4;
     let mut times = Vec::new();
     // Where a cycle's time goes: booking, start, then until `done` reaches the inbox.
     let mut phases: [Vec<Duration>; 3] = [Vec::new(), Vec::new(), Vec::new()];
@@ -388,10 +637,10 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         let conversation = format!("cycle/{i}/1");
         let t = Instant::now();
         let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
-        get_once(&cell, &booking_key, book.to_json()).await?;
+        get_once(cell, &key, book.to_json()).await?;
         let booked = t.elapsed();
         let start = pick_n_place(&cell.keys, MessageType::Start, "bench", &conversation);
-        let answer = Service::from_json(&get_once(&cell, &booking_key, start.to_json()).await?)?;
+        let answer = Service::from_json(&get_once(cell, &key, start.to_json()).await?)?;
         if answer.result != Some(true) {
             bail!("start refused: {answer:?}");
         }
@@ -415,7 +664,8 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         .into_iter()
         .map(|p| Latency::new(p, Duration::from_secs(1)))
         .collect();
-    table.add(
+    let ratio = run.ratio(&cycle);
+    run.table.add(
         "service cycle (book, start, 2 TCP/XML steps, done acked)",
         format!(
             "p50 {:.0} us, p99 {:.0} us, {:.0} cycles/s",
@@ -423,42 +673,50 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
             cycle.pct(0.99),
             cycle.rate()
         ),
-        format!(
-            "{:.1}x zenoh floor p50 (3 gets + 2 controller commands)",
-            cycle.pct(0.5) / floor.pct(0.5)
-        ),
+        format!("{ratio:.1}x zenoh floor p50 (3 gets + 2 controller commands)"),
         cycle.json(),
     );
-    table.add(
+    run.table.add(
         "  where a cycle goes: book | start | until done",
         format!("p50 {:.0} | {:.0} | {:.0} us", breakdown[0].pct(0.5), breakdown[1].pct(0.5), breakdown[2].pct(0.5)),
         "the last: 2 controller steps + result delivery".into(),
         json!({"book": breakdown[0].json(), "start": breakdown[1].json(), "until_done": breakdown[2].json()}),
     );
+    Ok(())
+}
 
-    let (rss, threads) = footprint(node.pid())?;
-    table.add(
+/// Footprint and start of `robot1`; hot-add and SIGKILL detection of fresh holons.
+async fn holon_figures(run: &mut Run) -> Result<()> {
+    let (rss, threads) = footprint(run.robot1.pid())?;
+    run.table.add(
         "footprint: idle resource holon",
         format!("{:.1} MiB resident, {threads} threads", rss as f64 / 1024.0),
         "-".into(),
         json!({"rss_kib": rss, "threads": threads}),
     );
-    table.add(
+    run.table.add(
         "start to ready: resource holon (token visible)",
-        format!("{:.1} ms", ready.as_secs_f64() * 1e3),
+        format!("{:.1} ms", run.robot1_ready.as_secs_f64() * 1e3),
         "-".into(),
-        json!({"ms": ready.as_secs_f64() * 1e3}),
+        json!({"ms": run.robot1_ready.as_secs_f64() * 1e3}),
     );
 
     // Hot-add: from spawning a resource process to its first accepted booking; then
     // failure detection: SIGKILL to its token vanishing.
+    let cell = &run.cell;
     let (mut hot, mut killed) = (Vec::new(), Vec::new());
     for i in 0..5 {
         let name = format!("hot{i}");
-        let config = resource_config(dir, &name, 5000)?;
+        let config = resource_config(&run.dir, &name, 5000)?;
         let t = Instant::now();
-        let mut process =
-            holarchy_tests::start_node(dir, &config, "bench", &cell.endpoint, &sim.address, &[])?;
+        let mut process = holarchy_tests::start_node(
+            &run.dir,
+            &config,
+            "bench",
+            &cell.endpoint,
+            &run.sim.address,
+            &[],
+        )?;
         let key = cell.keys.service(&name);
         loop {
             let book = pick_n_place(
@@ -467,7 +725,7 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
                 "bench",
                 &format!("hot/{i}/1"),
             );
-            if let Ok(reply) = get_once(&cell, &key, book.to_json()).await {
+            if let Ok(reply) = get_once(cell, &key, book.to_json()).await {
                 if Service::from_json(&reply)?.result == Some(true) {
                     break;
                 }
@@ -480,7 +738,7 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
         hot.push(t.elapsed());
         killed.push(
             detect_kill(
-                &cell,
+                cell,
                 &mut process,
                 &HolonId::resource(&name)?,
                 Signal::SIGKILL,
@@ -490,28 +748,137 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
     }
     let hot = Latency::new(hot, Duration::from_secs(1));
     let killed = Latency::new(killed, Duration::from_secs(1));
-    table.add(
+    run.table.add(
         "hot-add: spawn to first accepted booking",
         format!("median {:.1} ms (5 runs)", hot.pct(0.5) / 1e3),
         "-".into(),
         hot.json(),
     );
-    table.add(
+    run.table.add(
         "failure detection: SIGKILL to token gone",
         format!("median {:.1} ms (5 runs)", killed.pct(0.5) / 1e3),
         "-".into(),
         killed.json(),
     );
+    Ok(())
+}
 
-    // A frozen process: only the lease detects it.
+/// From SIGKILL of the resource an order is booked on (waiting behind another job) to
+/// that order's booking on another resource, through a real order-node: 5 runs.
+async fn rebook(run: &mut Run) -> Result<()> {
+    let cell = router("bench-rebook", None).await?;
+    let dir = run.dir.join("rebook");
+    std::fs::create_dir_all(&dir)?;
+    // `held` robots run one job for as long as the run lasts.
+    let slow = Sim::start(&dir, "slow", "127.0.0.1:0", &["--delay-ms", "600000"])?;
+    let _product = start_one_step_product(&dir, &cell)?;
+    let _orders = holarchy_tests::start_holon(
+        &dir,
+        "order-node",
+        &holarchy_tests::demo_config("orders1.toml"),
+        "orders1",
+        &cell,
+        &["--data-dir", dir.join("data").to_str().unwrap()],
+    )?;
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await?;
+    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
+        .await?;
+    let mut times = Vec::new();
+    for i in 0..5 {
+        let held = format!("held{i}");
+        let config = resource_config(&dir, &held, 600_000)?;
+        let mut held_node = holarchy_tests::start_node(
+            &dir,
+            &config,
+            "bench-rebook",
+            &cell.endpoint,
+            &slow.address,
+            &[],
+        )?;
+        cell.wait_state(&held, "free", |s| s["state"] == "free")
+            .await?;
+        // Keep it busy with a job of ours, then let an order book it (behind that job).
+        let conversation = format!("held/{i}/1");
+        let key = cell.keys.service(&held);
+        for kind in [MessageType::BookingReq, MessageType::Start] {
+            let message = pick_n_place(&cell.keys, kind, "bench", &conversation);
+            let answer = Service::from_json(&get_once(&cell, &key, message.to_json()).await?)?;
+            if answer.result != Some(true) {
+                bail!("{held} refused {kind}: {answer:?}");
+            }
+        }
+        cell.submit("part", 1).await?;
+        cell.wait_state(&held, "an order's booking", |s| {
+            s["agenda"].as_array().is_some_and(|a| a.len() == 1)
+        })
+        .await?;
+        // The spare comes up; the order stays where it is booked.
+        let spare = format!("spare{i}");
+        let config = resource_config(&dir, &spare, 5000)?;
+        let mut spare_node = holarchy_tests::start_node(
+            &dir,
+            &config,
+            "bench-rebook",
+            &cell.endpoint,
+            &run.sim.address,
+            &[],
+        )?;
+        cell.wait_state(&spare, "free", |s| s["state"] == "free")
+            .await?;
+        let states = cell
+            .session
+            .declare_subscriber(cell.keys.state(&HolonId::resource(&spare)?))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let t = Instant::now();
+        kill(Pid::from_raw(held_node.pid()), Signal::SIGKILL)?;
+        loop {
+            let sample = tokio::time::timeout(Duration::from_secs(30), states.recv_async())
+                .await
+                .map_err(|_| anyhow!("the order was not rebooked on {spare} within 30 s"))?
+                .map_err(|e| anyhow!("{e}"))?;
+            let snapshot: schemas::ResourceSnapshot =
+                serde_json::from_slice(&sample.payload().to_bytes())?;
+            if !snapshot.agenda.is_empty() || snapshot.current.is_some() {
+                times.push(t.elapsed());
+                break;
+            }
+        }
+        held_node.kill();
+        // Let the order finish on the spare before the next run.
+        cell.wait_state(&spare, "idle", |s| {
+            s["state"] == "free"
+                && s["undelivered"] == 0
+                && s["agenda"].as_array().is_some_and(|a| a.is_empty())
+        })
+        .await?;
+        spare_node.kill();
+    }
+    let times = Latency::new(times, Duration::from_secs(1));
+    run.table.add(
+        "rebooking: SIGKILL of the booked resource to the booking elsewhere",
+        format!(
+            "median {:.1} ms, max {:.1} ms (5 runs)",
+            times.pct(0.5) / 1e3,
+            times.pct(1.0) / 1e3
+        ),
+        "through order-node; a started step waits vanished_grace_ms first".into(),
+        times.json(),
+    );
+    Ok(())
+}
+
+/// A frozen process: only the lease detects it.
+async fn lease(run: &mut Run) -> Result<()> {
     let lease_cell = router("bench-lease", Some(1000)).await?;
-    let config = resource_config(dir, "frozen", 5000)?;
+    let config = resource_config(&run.dir, "frozen", 5000)?;
     let mut frozen = holarchy_tests::start_node(
-        dir,
+        &run.dir,
         &config,
         "bench-lease",
         &lease_cell.endpoint,
-        &sim.address,
+        &run.sim.address,
         &["--lease-ms", "1000"],
     )?;
     lease_cell.wait_alive(&HolonId::resource("frozen")?).await?;
@@ -524,59 +891,115 @@ async fn all(out: &Path, samples: usize, scale: usize) -> Result<()> {
     .await?;
     let _ = kill(Pid::from_raw(frozen.pid()), Signal::SIGKILL);
     frozen.kill();
-    table.add(
+    run.table.add(
         "failure detection: SIGSTOP to token gone",
         format!("{:.0} ms", stopped.as_secs_f64() * 1e3),
         "lease 1000 ms".into(),
         json!({"ms": stopped.as_secs_f64() * 1e3, "lease_ms": 1000}),
     );
-
-    // Cell throughput: K robots, 40 concurrent one-step orders.
-    node.kill();
-    for robots in [1usize, 2, 4] {
-        let figure = throughput(dir, robots, 40).await?;
-        table.add(
-            &format!("cell throughput: {robots} robot(s), 40 concurrent orders"),
-            format!("{:.1} orders/s", figure),
-            "one pick_n_place step each, 0 ms actions".into(),
-            json!({"robots": robots, "orders": 40, "orders_per_s": figure}),
-        );
-    }
-
-    // Scale: many resource holons on one host.
-    if scale > 0 {
-        let (visible, round, rss) = scale_out(dir, scale).await?;
-        table.add(
-            &format!("scale: {scale} resource holons, all visible"),
-            format!("{:.2} s after the first spawn", visible.as_secs_f64()),
-            format!("{:.0} MiB resident in all", rss as f64 / 1024.0),
-            json!({"holons": scale, "all_visible_s": visible.as_secs_f64(), "rss_total_kib": rss}),
-        );
-        table.add(
-            &format!("scale: proposal round with {scale} repliers"),
-            format!(
-                "p50 {:.1} ms, p99 {:.1} ms",
-                round.pct(0.5) / 1e3,
-                round.pct(0.99) / 1e3
-            ),
-            format!("{:.0}x zenoh floor p50", round.pct(0.5) / floor.pct(0.5)),
-            round.json(),
-        );
-    }
-
-    let machine = json!({
-        "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0),
-        "profile": if holarchy_tests::bin_dir().ends_with("release") { "release" } else { "debug" },
-    });
-    table.json.insert("machine".into(), machine);
-    std::fs::write(
-        out,
-        serde_json::to_string_pretty(&Value::Object(table.json))?,
-    )
-    .with_context(|| format!("cannot write {}", out.display()))?;
-    println!("\nJSON written to {}", out.display());
-    drop(sim);
     Ok(())
+}
+
+/// An order-node hosting `orders` orders that wait for a robot (one robot, busy with a
+/// long job, agenda full): its memory, threads and CPU, against the same node idle.
+async fn order_node_footprint(run: &mut Run, orders: u32) -> Result<()> {
+    let cell = router("bench-orders", None).await?;
+    let dir = run.dir.join("orders");
+    std::fs::create_dir_all(&dir)?;
+    let slow = Sim::start(&dir, "slow", "127.0.0.1:0", &["--delay-ms", "600000"])?;
+    let config = resource_config(&dir, "robot1", 600_000)?;
+    let _robot = holarchy_tests::start_node(
+        &dir,
+        &config,
+        "bench-orders",
+        &cell.endpoint,
+        &slow.address,
+        &[],
+    )?;
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await?;
+    let _product = start_one_step_product(&dir, &cell)?;
+    // The demo's order-node, with orders that wait for a resource for up to 10 minutes.
+    let config = dir.join("orders1.toml");
+    let demo = std::fs::read_to_string(holarchy_tests::demo_config("orders1.toml"))?;
+    std::fs::write(
+        &config,
+        demo.replace(
+            "no_resource_timeout_ms = 60000",
+            "no_resource_timeout_ms = 600000",
+        ),
+    )?;
+    let node = holarchy_tests::start_holon(
+        &dir,
+        "order-node",
+        &config,
+        "orders1",
+        &cell,
+        &["--data-dir", dir.join("data").to_str().unwrap()],
+    )?;
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await?;
+    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
+        .await?;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    let (idle_rss, idle_threads) = footprint(node.pid())?;
+    cell.submit("part", orders).await?;
+    // Until every order has a liveliness token, then let them settle into waiting.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let alive =
+            holon::presence::alive_holons(&cell.session, &cell.keys, Duration::from_secs(5))
+                .await
+                .map_err(|e| anyhow!("{e}"))?;
+        let alive = alive
+            .iter()
+            .filter(|h| h.kind() == schemas::HolonKind::Order)
+            .count();
+        if alive >= orders as usize {
+            break;
+        }
+        if Instant::now() > deadline {
+            bail!("only {alive} of {orders} orders alive after 60 s");
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let window = Duration::from_secs(5);
+    let cpu_before = cpu_time(node.pid())?;
+    tokio::time::sleep(window).await;
+    let cpu = (cpu_time(node.pid())? - cpu_before).as_secs_f64() / window.as_secs_f64();
+    let (rss, threads) = footprint(node.pid())?;
+    run.table.add(
+        &format!("footprint: order-node hosting {orders} waiting orders"),
+        format!("{:.1} MiB resident, {threads} threads, {:.0}% of a core", rss as f64 / 1024.0, cpu * 100.0),
+        format!("idle node {:.1} MiB, {idle_threads} threads", idle_rss as f64 / 1024.0),
+        json!({"orders": orders, "rss_kib": rss, "threads": threads, "cpu_share": cpu, "idle_rss_kib": idle_rss, "idle_threads": idle_threads}),
+    );
+    Ok(())
+}
+
+/// CPU time (user + system) a process has used, from /proc.
+fn cpu_time(pid: i32) -> Result<Duration> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat"))?;
+    // Fields after the command name (which may hold spaces) start at ") ".
+    let rest = stat
+        .rsplit_once(") ")
+        .map(|(_, r)| r)
+        .ok_or_else(|| anyhow!("unreadable /proc/{pid}/stat"))?;
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks: u64 = fields[11].parse::<u64>()? + fields[12].parse::<u64>()?;
+    let per_second = nix::unistd::sysconf(nix::unistd::SysconfVar::CLK_TCK)?.unwrap_or(100) as u64;
+    Ok(Duration::from_secs_f64(ticks as f64 / per_second as f64))
+}
+
+/// The product holon `part`: one `pick_n_place` step.
+fn start_one_step_product(dir: &Path, cell: &Cell) -> Result<Process> {
+    let product = dir.join("one-step.toml");
+    std::fs::write(
+        &product,
+        format!("cell = \"{}\"\nname = \"part\"\nkind = \"product\"\n[zenoh]\nlisten = [\"tcp/127.0.0.1:0\"]\n[[steps]]\nservice_type = \"pick_n_place\"\ninfo = {{ pick = {{ x = 1.0, y = 2.0, z = 3.0 }}, place = {{ x = 4.0, y = 5.0, z = 6.0 }} }}\n", cell.keys.cell()),
+    )?;
+    holarchy_tests::start_holon(dir, "holon-node", &product, "part", cell, &[])
 }
 
 async fn detect_kill(
@@ -630,12 +1053,7 @@ async fn throughput(dir: &Path, robots: usize, orders: u32) -> Result<f64> {
         cell.wait_alive(&HolonId::resource(&name)?).await?;
         keep.push((sim, node));
     }
-    let product = dir.join("one-step.toml");
-    std::fs::write(
-        &product,
-        format!("cell = \"{cell_name}\"\nname = \"part\"\nkind = \"product\"\n[zenoh]\nlisten = [\"tcp/127.0.0.1:0\"]\n[[steps]]\nservice_type = \"pick_n_place\"\ninfo = {{ pick = {{ x = 1.0, y = 2.0, z = 3.0 }}, place = {{ x = 4.0, y = 5.0, z = 6.0 }} }}\n"),
-    )?;
-    let _product = holarchy_tests::start_holon(&dir, "holon-node", &product, "part", &cell, &[])?;
+    let _product = start_one_step_product(&dir, &cell)?;
     let _orders = holarchy_tests::start_holon(
         &dir,
         "order-node",

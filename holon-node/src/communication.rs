@@ -3,7 +3,8 @@
 //! It declares the holon's queryables (`resource/<name>/service`, one
 //! `offer/<type>/<name>` per service type, `resource/<name>/state`, and
 //! `resource/<name>/debug/crash` with `--allow-fault-injection`), decodes and validates
-//! every request, forwards it to the agenda manager and replies with its answer. A
+//! every request, runs it through the agenda manager's state machine in place and
+//! replies with its answer. A
 //! request that cannot be decoded, or is not allowed on the key it came to, gets an
 //! error reply (`{"code", "message"}`) and never reaches the agenda.
 //!
@@ -17,18 +18,15 @@ use std::time::Duration;
 
 use holon::ChildError;
 use schemas::{ErrorReply, MessageType, SchemaError, Service};
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 use zenoh::query::{ConsolidationMode, Query};
 
-use crate::agenda::AgendaEvent;
-use crate::node::{AgendaMessage, CommunicationMessage, Node};
-
-/// The longest the communication component waits for the agenda manager's answer.
-const AGENDA_REPLY_TIMEOUT: Duration = Duration::from_secs(5);
+use crate::agenda::{AgendaAction, AgendaEvent};
+use crate::node::{agenda_transition, start_execution, CommunicationMessage, Node};
 
 /// Which of the holon's queryables a query came to.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -100,7 +98,25 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
         tokio::select! {
             _ = token.cancelled() => break,
             _ = node.faults.communication.notified() => panic!("fault injection: communication crashed"),
-            Some(incoming) = incoming.recv() => handle_query(&node, incoming).await,
+            Some(incoming) = incoming.recv() => {
+                let mut followups = Vec::new();
+                handle_query(&node, incoming, &mut followups).await;
+                // After the reply: what the agenda's transition asks for besides.
+                for action in followups {
+                    match action {
+                        AgendaAction::Reply(_) => {}
+                        AgendaAction::Execute(job) => start_execution(&node, job).await?,
+                        AgendaAction::Deliver(message) => {
+                            schedule(&mut deliveries, message, config.delivery.retry_initial);
+                            send_due(&holon, session, config.delivery.attempt_timeout, &mut deliveries, &mut attempts);
+                        }
+                        AgendaAction::StateChanged => {
+                            sync_offers(&node, &mut offers, &incoming_tx).await?;
+                            publish(&node, &publisher).await;
+                        }
+                    }
+                }
+            }
             message = mailbox.recv() => match message.ok_or("communication mailbox closed")? {
                 CommunicationMessage::Deliver(message) => {
                     // The first attempt goes out at once (not at the timer's next tick).
@@ -126,7 +142,7 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
                         deliveries.remove(&conversation_id);
                         node.agenda_mail
                             .sender
-                            .send(AgendaMessage::Event(AgendaEvent::ResultAcknowledged { conversation_id }))
+                            .send(AgendaEvent::ResultAcknowledged { conversation_id })
                             .await
                             .map_err(|_| "agenda mailbox closed")?;
                     }
@@ -294,15 +310,32 @@ async fn reply_error(node: &Node, query: &Query, code: &str, message: String) {
 }
 
 async fn reply(node: &Node, query: &Query, message: &Service) {
-    info!(
-        holon = %node.config.holon,
-        conversation_id = %message.conversation_id,
-        message_type = %message.message_type,
-        requester = %message.requester,
-        result = ?message.result,
-        reason = message.reason.as_deref().unwrap_or(""),
-        "sent"
-    );
+    // One line at `info` per commitment (a booking made or cancelled, a job started);
+    // proposals, refusals and status reads are many and go at `debug`. Logging every
+    // request at `info` cost about a tenth of a booking's CPU (profiled).
+    let commitment = message.result == Some(true)
+        && matches!(
+            message.message_type,
+            MessageType::BookingReq | MessageType::BookingCancel | MessageType::Start
+        );
+    macro_rules! sent {
+        ($level:ident) => {
+            $level!(
+                holon = %node.config.holon,
+                conversation_id = %message.conversation_id,
+                message_type = %message.message_type,
+                requester = %message.requester,
+                result = ?message.result,
+                reason = message.reason.as_deref().unwrap_or(""),
+                "sent"
+            )
+        };
+    }
+    if commitment {
+        sent!(info);
+    } else {
+        sent!(debug);
+    }
     if let Err(e) = query
         .reply(query.key_expr().clone(), message.to_json())
         .await
@@ -311,7 +344,9 @@ async fn reply(node: &Node, query: &Query, message: &Service) {
     }
 }
 
-async fn handle_query(node: &Node, incoming: Incoming) {
+/// Answers one query; what the agenda's transition asks for besides the reply goes to
+/// `followups`.
+async fn handle_query(node: &Node, incoming: Incoming, followups: &mut Vec<AgendaAction>) {
     let Incoming { endpoint, query } = incoming;
     let payload = query
         .payload()
@@ -352,7 +387,7 @@ async fn handle_query(node: &Node, incoming: Incoming) {
             return reply_error(node, &query, code, e.to_string()).await;
         }
     };
-    info!(
+    debug!(
         holon = %node.config.holon,
         conversation_id = %request.conversation_id,
         message_type = %request.message_type,
@@ -400,43 +435,20 @@ async fn handle_query(node: &Node, incoming: Incoming) {
         }
         return reply(node, &query, &answer).await;
     }
-    let (tx, rx) = oneshot::channel();
-    let sent = node
-        .agenda_mail
-        .sender
-        .send(AgendaMessage::Request {
-            service: request,
-            reply: tx,
-        })
-        .await;
-    if sent.is_err() {
+    // The agenda manager's state machine, called in place (see `node::agenda`).
+    let Some(actions) = agenda_transition(node, AgendaEvent::Request(request)) else {
         return reply_error(
             node,
             &query,
             "unavailable",
-            "the agenda manager is not running".into(),
+            "the journal could not record the request; nothing changed".into(),
         )
         .await;
-    }
-    match tokio::time::timeout(AGENDA_REPLY_TIMEOUT, rx).await {
-        Ok(Ok(answer)) => reply(node, &query, &answer).await,
-        Ok(Err(_)) => {
-            reply_error(
-                node,
-                &query,
-                "unavailable",
-                "the agenda manager stopped while handling the request".into(),
-            )
-            .await
-        }
-        Err(_) => {
-            reply_error(
-                node,
-                &query,
-                "unavailable",
-                "the agenda manager did not answer in time".into(),
-            )
-            .await
+    };
+    for action in actions {
+        match action {
+            AgendaAction::Reply(answer) => reply(node, &query, &answer).await,
+            other => followups.push(other),
         }
     }
 }

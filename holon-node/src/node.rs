@@ -13,7 +13,7 @@ use std::time::Duration;
 use holon::{ChildError, ChildSpec, Supervisor};
 use robot_bridge::client::{self, ControllerEvent};
 use schemas::{ResourceSnapshot, RobotCommand, Service};
-use tokio::sync::{mpsc, oneshot, Notify};
+use tokio::sync::{mpsc, Notify};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
@@ -39,18 +39,6 @@ pub enum NodeError {
     Supervisor(#[from] holon::supervisor::SupervisorError),
     #[error(transparent)]
     Journal(#[from] holon::journal::JournalError),
-}
-
-/// A message to the agenda manager.
-#[derive(Debug)]
-pub enum AgendaMessage {
-    /// A request from another holon; the reply goes back on `reply`.
-    Request {
-        service: Service,
-        reply: oneshot::Sender<Service>,
-    },
-    /// An event from the execution or communication component.
-    Event(AgendaEvent),
 }
 
 /// A message to the communication component.
@@ -113,7 +101,7 @@ pub struct Node {
     pub session: zenoh::Session,
     agenda: Mutex<AgendaManager>,
     execution: Mutex<Execution>,
-    pub agenda_mail: Mailbox<AgendaMessage>,
+    pub agenda_mail: Mailbox<AgendaEvent>,
     pub execution_mail: Mailbox<ExecutionEvent>,
     pub controller_mail: Mailbox<ControllerEvent>,
     pub command_mail: Mailbox<RobotCommand>,
@@ -212,11 +200,7 @@ impl Node {
             .await;
         let bookings = lock(&self.agenda).bookings().len();
         info!(holon = %holon, bookings, "withdrawing: no new work, handing bookings back");
-        let _ = self
-            .agenda_mail
-            .sender
-            .send(AgendaMessage::Event(AgendaEvent::Withdraw))
-            .await;
+        let _ = self.agenda_mail.sender.send(AgendaEvent::Withdraw).await;
         let deadline = tokio::time::Instant::now() + self.config.shutdown_grace;
         loop {
             if lock(&self.agenda).is_drained() {
@@ -330,79 +314,86 @@ fn state_name(state: &crate::execution::ExecutionState) -> String {
 async fn send_agenda(node: &Node, event: AgendaEvent) -> Result<(), ChildError> {
     node.agenda_mail
         .sender
-        .send(AgendaMessage::Event(event))
+        .send(event)
         .await
         .map_err(|_| "agenda mailbox closed".into())
 }
 
-/// The agenda manager component: runs the agenda FSM.
+/// The agenda manager component: runs the agenda FSM on the events of the execution
+/// and communication components (job finished, result acknowledged, withdraw, ...).
+/// Requests from other holons do not pass through its mailbox: the communication
+/// component runs them through [`agenda_transition`] in place, which saves two task
+/// hops per request (profiled: about a fifth of a booking above the zenoh floor).
 async fn agenda(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildError> {
-    let holon = node.config.holon.to_string();
     let mut mailbox = node.agenda_mail.take().await;
     loop {
-        let message = tokio::select! {
+        let event = tokio::select! {
             _ = token.cancelled() => return Ok(()),
             _ = node.faults.agenda.notified() => panic!("fault injection: agenda manager crashed"),
-            message = mailbox.recv() => message.ok_or("agenda mailbox closed")?,
+            event = mailbox.recv() => event.ok_or("agenda mailbox closed")?,
         };
-        let (event, mut reply) = match message {
-            AgendaMessage::Request { service, reply } => {
-                (AgendaEvent::Request(service), Some(reply))
-            }
-            AgendaMessage::Event(event) => (event, None),
+        let Some(actions) = agenda_transition(&node, event) else {
+            continue;
         };
-        let (before, actions, after) = {
-            let mut agenda = lock(&node.agenda);
-            let before = agenda.status_name();
-            let previous = node.journal.as_ref().map(|_| agenda.clone());
-            // An acknowledgement is recorded with the next write, not on its own: if the
-            // process dies first, the result is delivered once more and the order, which
-            // ignores duplicates, acknowledges it again. That saves an fsync per job.
-            let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
-            let mut actions = agenda.handle(event);
-            let changed = previous
-                .as_ref()
-                .is_some_and(|p| !lazily && p.record() != agenda.record());
-            if let (Some(journal), Some(previous), true) = (&node.journal, previous, changed) {
-                // Nothing is acknowledged before it is committed.
-                if let Err(e) = journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record()) {
-                    error!(%holon, component = "agenda", error = %e, "journal write failed; the event is refused");
-                    *agenda = previous;
-                    actions = Vec::new();
-                    reply.take();
-                }
-            }
-            (before, actions, agenda.status_name())
-        };
-        if before != after {
-            info!(%holon, component = "agenda", from = before, to = after, "transition");
-        }
         for action in actions {
             match action {
-                AgendaAction::Reply(service) => {
-                    if let Some(reply) = reply.take() {
-                        let _ = reply.send(service);
-                    }
-                }
-                AgendaAction::Execute(job) => {
-                    info!(%holon, component = "agenda", conversation_id = %job.conversation_id, requester = %job.requester, "starting execution");
-                    node.execution_mail
-                        .sender
-                        .send(ExecutionEvent::Start(job))
-                        .await
-                        .map_err(|_| "execution mailbox closed")?;
-                }
-                AgendaAction::Deliver(result) => {
-                    node.communication_mail
-                        .sender
-                        .send(CommunicationMessage::Deliver(result))
-                        .await
-                        .map_err(|_| "communication mailbox closed")?;
-                }
+                // Events have nobody to answer.
+                AgendaAction::Reply(_) => {}
+                AgendaAction::Execute(job) => start_execution(&node, job).await?,
+                AgendaAction::Deliver(result) => node
+                    .communication_mail
+                    .sender
+                    .send(CommunicationMessage::Deliver(result))
+                    .await
+                    .map_err(|_| "communication mailbox closed")?,
                 AgendaAction::StateChanged => node.state_changed().await,
             }
         }
     }
+}
+
+/// One event through the agenda FSM, under its lock, and the journal write of what
+/// changed: the actions for the caller to perform, or `None` when the write failed
+/// (then the agenda is as it was and nothing is answered or done).
+pub(crate) fn agenda_transition(node: &Node, event: AgendaEvent) -> Option<Vec<AgendaAction>> {
+    let holon = &node.config.holon;
+    let mut agenda = lock(&node.agenda);
+    let before = agenda.status_name();
+    let previous = node.journal.as_ref().map(|_| agenda.clone());
+    // An acknowledgement is recorded with the next write, not on its own: if the
+    // process dies first, the result is delivered once more and the order, which
+    // ignores duplicates, acknowledges it again. That saves an fsync per job.
+    let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
+    let actions = agenda.handle(event);
+    let changed = previous
+        .as_ref()
+        .is_some_and(|p| !lazily && p.record() != agenda.record());
+    if let (Some(journal), Some(previous), true) = (&node.journal, previous, changed) {
+        // Nothing is acknowledged before it is committed.
+        if let Err(e) = journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record()) {
+            error!(%holon, component = "agenda", error = %e, "journal write failed; the event is refused");
+            *agenda = previous;
+            return None;
+        }
+    }
+    let after = agenda.status_name();
+    if before != after {
+        info!(%holon, component = "agenda", from = before, to = after, "transition");
+    }
+    Some(actions)
+}
+
+/// Hands a job the agenda accepted to the execution component.
+pub(crate) async fn start_execution(
+    node: &Node,
+    job: crate::agenda::Job,
+) -> Result<(), ChildError> {
+    info!(holon = %node.config.holon, component = "agenda", conversation_id = %job.conversation_id, requester = %job.requester, "starting execution");
+    node.execution_mail
+        .sender
+        .send(ExecutionEvent::Start(job))
+        .await
+        .map_err(|_| "execution mailbox closed".into())
 }
 
 /// Runs a resource holon until `shutdown` is cancelled (then it withdraws its token,

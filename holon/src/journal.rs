@@ -162,12 +162,14 @@ impl Journal {
     /// Writes one record, committed (durable as configured) when this returns.
     pub fn put<T: Serialize>(&self, kind: &str, id: &str, value: &T) -> Result<(), JournalError> {
         let body = serde_json::to_string(value).expect("journal records serialize");
+        // Statements are prepared once per connection and cached: parsing the SQL
+        // again cost about as much as executing it (profiled on the booking path).
         self.connection()
-            .execute(
+            .prepare_cached(
                 "INSERT INTO records (kind, id, body) VALUES (?1, ?2, ?3)
                  ON CONFLICT (kind, id) DO UPDATE SET body = excluded.body",
-                params![kind, id, body],
             )
+            .and_then(|mut statement| statement.execute(params![kind, id, body]))
             .map_err(|e| self.error(e))?;
         Ok(())
     }
@@ -175,10 +177,8 @@ impl Journal {
     /// Removes one record (no error if it is absent).
     pub fn delete(&self, kind: &str, id: &str) -> Result<(), JournalError> {
         self.connection()
-            .execute(
-                "DELETE FROM records WHERE kind = ?1 AND id = ?2",
-                params![kind, id],
-            )
+            .prepare_cached("DELETE FROM records WHERE kind = ?1 AND id = ?2")
+            .and_then(|mut statement| statement.execute(params![kind, id]))
             .map_err(|e| self.error(e))?;
         Ok(())
     }

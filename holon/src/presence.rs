@@ -12,20 +12,41 @@ pub async fn alive_holons(
     keys: &CellKeys,
     timeout: Duration,
 ) -> Result<BTreeSet<HolonId>, zenoh::Error> {
-    let replies = session
+    Ok(tokens(session, &keys.alive_all(), timeout)
+        .await?
+        .iter()
+        .filter_map(|key| keys.holon_from_alive(key))
+        .collect())
+}
+
+/// The keys of every liveliness token matching `key` now.
+///
+/// The replies go to an unbounded queue: a session that knows the tokens itself (a
+/// router, and often a peer) answers inside the `get` call, before it returns, so a
+/// bounded channel (zenoh's default holds 256) would fill with nobody draining it and
+/// the call would never return, in a cell of more than 256 holons.
+pub async fn tokens(
+    session: &zenoh::Session,
+    key: &str,
+    timeout: Duration,
+) -> Result<Vec<String>, zenoh::Error> {
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    session
         .liveliness()
-        .get(keys.alive_all())
+        .get(key)
         .timeout(timeout)
-        .await?;
-    let mut holons = BTreeSet::new();
-    while let Ok(reply) = replies.recv_async().await {
-        if let Ok(sample) = reply.result() {
-            if let Some(id) = keys.holon_from_alive(sample.key_expr().as_str()) {
-                holons.insert(id);
+        .callback(move |reply| {
+            if let Ok(sample) = reply.result() {
+                let _ = tx.send(sample.key_expr().to_string());
             }
-        }
+        })
+        .await?;
+    // The callback (and with it the sender) is dropped when the query ends.
+    let mut keys = Vec::new();
+    while let Some(key) = rx.recv().await {
+        keys.push(key);
     }
-    Ok(holons)
+    Ok(keys)
 }
 
 /// Waits until `holon`'s token is visible; false if it did not appear within `timeout`.

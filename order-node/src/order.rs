@@ -76,22 +76,17 @@ impl Presence {
             .await?;
         // Seed the set before any order looks at it: the subscriber's history arrives
         // asynchronously, and a resource missing from the set counts as vanished.
-        let replies = session
-            .liveliness()
-            .get(keys.alive_kind(schemas::HolonKind::Resource))
-            .timeout(Duration::from_secs(2))
-            .await?;
-        while let Ok(reply) = replies.recv_async().await {
-            if let Ok(sample) = reply.result() {
-                if let Some(holon) = keys.holon_from_alive(sample.key_expr().as_str()) {
-                    presence
-                        .alive
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .insert(holon);
-                }
-            }
-        }
+        let alive = holon::presence::tokens(
+            session,
+            &keys.alive_kind(schemas::HolonKind::Resource),
+            Duration::from_secs(2),
+        )
+        .await?;
+        presence
+            .alive
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .extend(alive.iter().filter_map(|key| keys.holon_from_alive(key)));
         Ok(presence)
     }
 
