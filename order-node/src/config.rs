@@ -51,6 +51,8 @@ struct OrdersSection {
     no_resource_timeout_ms: u64,
     #[serde(default = "d_retry")]
     retry_interval_ms: u64,
+    #[serde(default = "d_retry_max")]
+    retry_max_ms: u64,
     #[serde(default = "d_step")]
     step_timeout_ms: u64,
     #[serde(default = "d_grace")]
@@ -79,6 +81,9 @@ fn d_no_resource() -> u64 {
 fn d_retry() -> u64 {
     50
 }
+fn d_retry_max() -> u64 {
+    2000
+}
 fn d_step() -> u64 {
     600_000
 }
@@ -90,6 +95,7 @@ impl Default for OrdersSection {
             max_attempts: d_attempts(),
             no_resource_timeout_ms: d_no_resource(),
             retry_interval_ms: d_retry(),
+            retry_max_ms: d_retry_max(),
             step_timeout_ms: d_step(),
             vanished_grace_ms: d_grace(),
             request_timeout_ms: d_request(),
@@ -106,8 +112,14 @@ pub struct OrderSettings {
     pub max_attempts: u32,
     /// How long a step may find no resource to book before the order fails.
     pub no_resource_timeout: Duration,
-    /// Pause between retries (a `start` refused as busy, an empty proposal round).
+    /// First pause before a retry (a `start` refused as busy, an empty proposal round);
+    /// it doubles while the retry keeps failing, up to `retry_max`.
     pub retry_interval: Duration,
+    /// Longest pause between retries. An order waiting for a busy resource is woken at
+    /// once when that resource publishes that it is free and the order is first on its
+    /// agenda, and a waiting order is woken when a resource appears: the pauses are the
+    /// fallback, not the way work normally resumes.
+    pub retry_max: Duration,
     /// Longest wait for a started step's result before the attempt counts as failed.
     pub step_timeout: Duration,
     /// How long a resource that vanished while running a step may take to come back
@@ -169,12 +181,19 @@ impl OrderNodeConfig {
             ("orders.max_attempts", o.max_attempts as u64),
             ("orders.no_resource_timeout_ms", o.no_resource_timeout_ms),
             ("orders.retry_interval_ms", o.retry_interval_ms),
+            ("orders.retry_max_ms", o.retry_max_ms),
             ("orders.step_timeout_ms", o.step_timeout_ms),
             ("orders.request_timeout_ms", o.request_timeout_ms),
         ] {
             if value == 0 {
                 return Err(invalid(format!("{field} must be greater than 0")));
             }
+        }
+        if o.retry_max_ms < o.retry_interval_ms {
+            return Err(invalid(format!(
+                "orders.retry_max_ms ({}) must be at least orders.retry_interval_ms ({})",
+                o.retry_max_ms, o.retry_interval_ms
+            )));
         }
         Ok(OrderNodeConfig {
             keys,
@@ -185,6 +204,7 @@ impl OrderNodeConfig {
                 max_attempts: o.max_attempts,
                 no_resource_timeout: Duration::from_millis(o.no_resource_timeout_ms),
                 retry_interval: Duration::from_millis(o.retry_interval_ms),
+                retry_max: Duration::from_millis(o.retry_max_ms),
                 step_timeout: Duration::from_millis(o.step_timeout_ms),
                 vanished_grace: Duration::from_millis(o.vanished_grace_ms),
                 request_timeout: Duration::from_millis(o.request_timeout_ms),
@@ -214,6 +234,10 @@ mod tests {
             ("name = \"orders1\"", "name = \"Orders\""),
             ("max_attempts = 3", "max_attempts = 0"),
             ("[orders]", "[orders]\nspeed = 1"),
+            (
+                "retry_interval_ms = 50",
+                "retry_interval_ms = 50\nretry_max_ms = 10",
+            ),
         ] {
             assert!(DEMO.contains(from), "{from}");
             assert!(

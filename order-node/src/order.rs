@@ -11,13 +11,13 @@
 //! on it, and a result is acknowledged only after its outcome is written: a restarted
 //! order-node resumes each order where it stood (see [`Phase`]).
 
-use std::collections::{BTreeSet, HashSet};
+use std::collections::{BTreeSet, HashMap, HashSet};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use holon::journal::Journal;
 use schemas::{reason, HolonId, MessageType, Plan, PlanStep, Service};
-use tokio::sync::{broadcast, mpsc};
+use tokio::sync::{broadcast, mpsc, watch, Notify};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
@@ -26,14 +26,29 @@ use zenoh::query::{ConsolidationMode, Query};
 use crate::config::OrderSettings;
 use crate::progress::{OrderProgress, Phase, StepOutcome};
 
-/// Which resources are alive, and who just left or came.
+/// Which resources are alive, who just left or came, and whose turn it is on each
+/// free resource.
 pub struct Presence {
     alive: Mutex<HashSet<HolonId>>,
     changes: broadcast::Sender<(HolonId, bool)>,
+    /// Woken whenever a resource appears or becomes ready: orders that found no
+    /// resource try again.
+    appeared: Notify,
+    /// One waiting order is woken per booking that leaves an agenda (started or
+    /// cancelled), so a freed place goes to one order, not to a stampede of them.
+    room: Notify,
+    /// The agenda length and whether it could take work (state not `init`), as each
+    /// resource last published.
+    published: Mutex<HashMap<HolonId, (usize, bool)>>,
+    /// Per resource, from its state publications: the conversation first on its agenda
+    /// while it is free (`None` while it is busy or has no booking). An order booked
+    /// there waits on its own resource's channel only, so a state change wakes the
+    /// orders it concerns, not all of them.
+    turns: Mutex<HashMap<HolonId, watch::Sender<Option<String>>>>,
 }
 
 impl Presence {
-    /// Watches `alive/resource/*` for as long as the session lives.
+    /// Watches `alive/resource/*` and `resource/*/state` for as long as the session lives.
     pub async fn watch(
         session: &zenoh::Session,
         keys: &schemas::CellKeys,
@@ -42,6 +57,10 @@ impl Presence {
         let presence = Arc::new(Presence {
             alive: Mutex::new(HashSet::new()),
             changes,
+            appeared: Notify::new(),
+            room: Notify::new(),
+            published: Mutex::new(HashMap::new()),
+            turns: Mutex::new(HashMap::new()),
         });
         let keys_for_callback = keys.clone();
         let weak = Arc::downgrade(&presence);
@@ -63,6 +82,7 @@ impl Presence {
                         if alive.insert(holon.clone()) {
                             info!(holon = %holon, "resource appeared");
                             let _ = presence.changes.send((holon, true));
+                            presence.appeared.notify_waiters();
                         }
                     }
                     zenoh::sample::SampleKind::Delete => {
@@ -70,6 +90,39 @@ impl Presence {
                         warn!(holon = %holon, "resource vanished");
                         let _ = presence.changes.send((holon, false));
                     }
+                }
+            })
+            .background()
+            .await?;
+        let weak = Arc::downgrade(&presence);
+        session
+            .declare_subscriber(keys.resource_states())
+            .callback(move |sample| {
+                let Some(presence) = weak.upgrade() else {
+                    return;
+                };
+                let Ok(snapshot) = serde_json::from_slice::<schemas::ResourceSnapshot>(
+                    &sample.payload().to_bytes(),
+                ) else {
+                    return;
+                };
+                let turn = (snapshot.state == "free")
+                    .then(|| snapshot.agenda.first().map(|b| b.conversation_id.clone()))
+                    .flatten();
+                presence.turn_channel(&snapshot.holon).send_replace(turn);
+                let ready = snapshot.state != "init" && snapshot.controller == "ready";
+                let (length_before, ready_before) = presence
+                    .published
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .insert(snapshot.holon.clone(), (snapshot.agenda.len(), ready))
+                    .unwrap_or((0, false));
+                if ready && !ready_before {
+                    // Back from a fault or first ready: as good as a new resource.
+                    presence.appeared.notify_waiters();
+                }
+                for _ in snapshot.agenda.len()..length_before {
+                    presence.room.notify_one();
                 }
             })
             .background()
@@ -100,6 +153,37 @@ impl Presence {
     /// Appearances (true) and departures (false) from now on.
     pub fn changes(&self) -> broadcast::Receiver<(HolonId, bool)> {
         self.changes.subscribe()
+    }
+
+    fn turn_channel(&self, resource: &HolonId) -> watch::Sender<Option<String>> {
+        self.turns
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(resource.clone())
+            .or_insert_with(|| watch::channel(None).0)
+            .clone()
+    }
+
+    /// Completes when `resource` next publishes that it is free with `conversation_id`
+    /// first on its agenda (publications from before this call do not count).
+    pub async fn turn(&self, resource: &HolonId, conversation_id: &str) {
+        let mut turns = self.turn_channel(resource).subscribe();
+        turns.mark_unchanged();
+        while turns.changed().await.is_ok() {
+            if turns.borrow_and_update().as_deref() == Some(conversation_id) {
+                return;
+            }
+        }
+        std::future::pending::<()>().await
+    }
+
+    /// Completes when a resource appears (after this call), or when a booking left an
+    /// agenda and this is the order woken for the place.
+    pub async fn appeared_or_room(&self) {
+        tokio::select! {
+            _ = self.appeared.notified() => {}
+            _ = self.room.notified() => {}
+        }
     }
 }
 
@@ -387,7 +471,8 @@ enum Wait {
 
 /// Pauses `pause`, watching the inbox (results of this conversation) and the provider's
 /// presence. A provider that vanishes after `started` gets `vanished_grace` to come back
-/// and report before the attempt counts as lost.
+/// and report before the attempt counts as lost. Before `started`, the pause also ends
+/// when the provider publishes that it is free with this conversation first.
 #[allow(clippy::too_many_arguments)]
 async fn watch(
     ctx: &OrderContext,
@@ -399,6 +484,15 @@ async fn watch(
     changes: &mut broadcast::Receiver<(HolonId, bool)>,
 ) -> Wait {
     let until = Instant::now() + pause;
+    // Booked, not started: the pause ends early when the resource says it is our turn.
+    let turn = async {
+        if started {
+            std::future::pending::<()>().await
+        } else {
+            ctx.presence.turn(provider, conversation_id).await
+        }
+    };
+    tokio::pin!(turn);
     let lost = |why: &str| {
         Wait::Ended(
             StepOutcome::Lost {
@@ -418,6 +512,7 @@ async fn watch(
     loop {
         let gone_deadline = gone_until.unwrap_or(until);
         tokio::select! {
+            _ = &mut turn => return Wait::Elapsed,
             _ = tokio::time::sleep_until(until.min(gone_deadline)) => {
                 if gone_until.is_some_and(|g| Instant::now() >= g) {
                     return lost("the resource vanished");
@@ -481,6 +576,13 @@ where
     };
     let give_up = Instant::now() + settings.no_resource_timeout;
     let unavailable_since = Instant::now();
+    // The pause before the next retry: doubles while retries fail (see `retry_max`).
+    let mut backoff = settings.retry_interval;
+    let back_off = |backoff: &mut Duration| {
+        let pause = jittered(*backoff);
+        *backoff = (*backoff * 2).min(settings.retry_max);
+        pause
+    };
     loop {
         let phase = lock(progress).phase.clone();
         match phase {
@@ -508,13 +610,20 @@ where
                     set_phase(Phase::Proposing)?;
                 }
                 if booked {
+                    backoff = settings.retry_interval;
                     publish(progress).await;
                     continue;
                 }
                 if Instant::now() >= give_up {
                     return Ok((StepOutcome::NoResource, None));
                 }
-                tokio::time::sleep(settings.retry_interval).await;
+                // Nothing bookable: try again after the pause, or as soon as a resource
+                // appears or a place on an agenda frees up for this order.
+                let pause = back_off(&mut backoff).min(give_up - Instant::now());
+                tokio::select! {
+                    _ = tokio::time::sleep(pause) => {}
+                    _ = ctx.presence.appeared_or_room() => {}
+                }
             }
             Phase::Booking(candidate) => {
                 // Resumed: the booking request may or may not have reached it. Booking is
@@ -574,7 +683,7 @@ where
                     ctx,
                     &provider,
                     conversation_id,
-                    settings.retry_interval,
+                    back_off(&mut backoff),
                     false,
                     inbox,
                     changes,
@@ -648,4 +757,12 @@ async fn cancel_when_back(session: zenoh::Session, key: String, cancel: Service)
         }
         tokio::time::sleep(Duration::from_millis(500)).await;
     }
+}
+
+/// `pause` less up to a quarter, at random: orders that wait together do not retry in
+/// lockstep.
+fn jittered(pause: Duration) -> Duration {
+    use std::hash::BuildHasher;
+    let random = std::collections::hash_map::RandomState::new().hash_one(std::time::Instant::now());
+    pause.mul_f64(1.0 - (random % 1000) as f64 / 4000.0)
 }

@@ -121,6 +121,11 @@ impl CellKeys {
         format!("{}/*/*/state", self.prefix())
     }
 
+    /// `holarchy/<cell>/resource/*/state`: every resource's state.
+    pub fn resource_states(&self) -> String {
+        format!("{}/resource/*/state", self.prefix())
+    }
+
     /// `holarchy/<cell>/order/*/state`: every order's state.
     pub fn order_states(&self) -> String {
         format!("{}/order/*/state", self.prefix())
