@@ -106,22 +106,22 @@ impl Presence {
                 ) else {
                     return;
                 };
-                let turn = (snapshot.state == "free")
-                    .then(|| snapshot.agenda.first().map(|b| b.conversation_id.clone()))
-                    .flatten();
-                presence.turn_channel(&snapshot.holon).send_replace(turn);
-                let ready = snapshot.state != "init" && snapshot.controller == "ready";
-                let (length_before, ready_before) = presence
-                    .published
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .insert(snapshot.holon.clone(), (snapshot.agenda.len(), ready))
-                    .unwrap_or((0, false));
-                if ready && !ready_before {
+                let news = {
+                    let mut published =
+                        presence.published.lock().unwrap_or_else(|e| e.into_inner());
+                    let previous = published.get(&snapshot.holon).copied();
+                    let (news, now) = read_state(previous, &snapshot);
+                    published.insert(snapshot.holon.clone(), now);
+                    news
+                };
+                presence
+                    .turn_channel(&snapshot.holon)
+                    .send_replace(news.turn);
+                if news.became_ready {
                     // Back from a fault or first ready: as good as a new resource.
                     presence.appeared.notify_waiters();
                 }
-                for _ in snapshot.agenda.len()..length_before {
+                for _ in 0..news.places_freed {
                     presence.room.notify_one();
                 }
             })
@@ -185,6 +185,36 @@ impl Presence {
             _ = self.room.notified() => {}
         }
     }
+}
+
+/// What one state publication of a resource tells the orders waiting on it.
+#[derive(Debug, PartialEq, Eq)]
+struct StateNews {
+    /// The conversation whose turn it is: the resource is free and it is first on the
+    /// agenda.
+    turn: Option<String>,
+    /// The resource has just become able to take work (or is seen ready the first time).
+    became_ready: bool,
+    /// Places freed on its agenda since its previous publication.
+    places_freed: usize,
+}
+
+/// Reads a snapshot against what the resource published before (its agenda length and
+/// whether it was ready): the news, and what to remember for the next one.
+fn read_state(
+    previous: Option<(usize, bool)>,
+    snapshot: &schemas::ResourceSnapshot,
+) -> (StateNews, (usize, bool)) {
+    let (length_before, ready_before) = previous.unwrap_or((0, false));
+    let ready = snapshot.state != "init" && snapshot.controller == "ready";
+    let news = StateNews {
+        turn: (snapshot.state == "free")
+            .then(|| snapshot.agenda.first().map(|b| b.conversation_id.clone()))
+            .flatten(),
+        became_ready: ready && !ready_before,
+        places_freed: length_before.saturating_sub(snapshot.agenda.len()),
+    };
+    (news, (snapshot.agenda.len(), ready))
 }
 
 /// What every order of a node shares.
@@ -765,4 +795,86 @@ fn jittered(pause: Duration) -> Duration {
     use std::hash::BuildHasher;
     let random = std::collections::hash_map::RandomState::new().hash_one(std::time::Instant::now());
     pause.mul_f64(1.0 - (random % 1000) as f64 / 4000.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use schemas::{BookingView, ResourceSnapshot};
+
+    fn snapshot(state: &str, controller: &str, agenda: &[&str]) -> ResourceSnapshot {
+        ResourceSnapshot {
+            holon: HolonId::resource("robot1").unwrap(),
+            state: state.into(),
+            controller: controller.into(),
+            agenda: agenda
+                .iter()
+                .map(|c| BookingView {
+                    requester: HolonId::new(schemas::HolonKind::Order, "o-1").unwrap(),
+                    conversation_id: c.to_string(),
+                    service_type: "pick_n_place".into(),
+                })
+                .collect(),
+            current: None,
+            undelivered: 0,
+            services: vec!["pick_n_place".into()],
+            at: 0,
+        }
+    }
+
+    #[test]
+    fn a_free_resource_gives_the_turn_to_the_first_booking() {
+        let (news, now) = read_state(
+            Some((2, true)),
+            &snapshot("free", "ready", &["a/1/1", "b/1/1"]),
+        );
+        assert_eq!(news.turn.as_deref(), Some("a/1/1"));
+        assert!(!news.became_ready);
+        assert_eq!(news.places_freed, 0);
+        assert_eq!(now, (2, true));
+    }
+
+    #[test]
+    fn a_busy_or_empty_resource_gives_no_turn() {
+        let (busy, _) = read_state(Some((1, true)), &snapshot("busy", "ready", &["a/1/1"]));
+        assert_eq!(busy.turn, None);
+        let (empty, _) = read_state(Some((0, true)), &snapshot("free", "ready", &[]));
+        assert_eq!(empty.turn, None);
+    }
+
+    #[test]
+    fn bookings_leaving_the_agenda_free_places() {
+        let (news, now) = read_state(Some((3, true)), &snapshot("busy", "ready", &["c/1/1"]));
+        assert_eq!(news.places_freed, 2);
+        assert_eq!(now, (1, true));
+        let (grew, _) = read_state(
+            Some((1, true)),
+            &snapshot("busy", "ready", &["c/1/1", "d/1/1"]),
+        );
+        assert_eq!(grew.places_freed, 0);
+    }
+
+    #[test]
+    fn readiness_is_news_once() {
+        let (first, now) = read_state(None, &snapshot("free", "ready", &[]));
+        assert!(first.became_ready, "a resource seen ready the first time");
+        let (again, _) = read_state(Some(now), &snapshot("free", "ready", &[]));
+        assert!(!again.became_ready);
+        let (fault, now) = read_state(Some(now), &snapshot("init", "fault", &[]));
+        assert!(!fault.became_ready);
+        assert_eq!(fault.turn, None);
+        let (back, _) = read_state(Some(now), &snapshot("free", "ready", &[]));
+        assert!(back.became_ready, "back from a fault");
+    }
+
+    #[test]
+    fn jitter_shortens_by_at_most_a_quarter() {
+        for _ in 0..1000 {
+            let pause = jittered(Duration::from_millis(1000));
+            assert!(
+                pause <= Duration::from_millis(1000) && pause >= Duration::from_millis(750),
+                "{pause:?}"
+            );
+        }
+    }
 }
