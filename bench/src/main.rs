@@ -771,19 +771,8 @@ async fn rebook(run: &mut Run) -> Result<()> {
     std::fs::create_dir_all(&dir)?;
     // `held` robots run one job for as long as the run lasts.
     let slow = Sim::start(&dir, "slow", "127.0.0.1:0", &["--delay-ms", "600000"])?;
-    let _product = start_one_step_product(&dir, &cell)?;
-    let _orders = holarchy_tests::start_holon(
-        &dir,
-        "order-node",
-        &holarchy_tests::demo_config("orders1.toml"),
-        "orders1",
-        &cell,
-        &["--data-dir", dir.join("data").to_str().unwrap()],
-    )?;
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await?;
-    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
-        .await?;
+    let (_product, _orders) =
+        start_product_and_orders(&dir, &cell, &holarchy_tests::demo_config("orders1.toml")).await?;
     let mut times = Vec::new();
     for i in 0..5 {
         let held = format!("held{i}");
@@ -918,7 +907,6 @@ async fn order_node_footprint(run: &mut Run, orders: u32) -> Result<()> {
     )?;
     cell.wait_state("robot1", "free", |s| s["state"] == "free")
         .await?;
-    let _product = start_one_step_product(&dir, &cell)?;
     // The demo's order-node, with orders that wait for a resource for up to 10 minutes.
     let config = dir.join("orders1.toml");
     let demo = std::fs::read_to_string(holarchy_tests::demo_config("orders1.toml"))?;
@@ -929,18 +917,7 @@ async fn order_node_footprint(run: &mut Run, orders: u32) -> Result<()> {
             "no_resource_timeout_ms = 600000",
         ),
     )?;
-    let node = holarchy_tests::start_holon(
-        &dir,
-        "order-node",
-        &config,
-        "orders1",
-        &cell,
-        &["--data-dir", dir.join("data").to_str().unwrap()],
-    )?;
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await?;
-    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
-        .await?;
+    let (_product, node) = start_product_and_orders(&dir, &cell, &config).await?;
     tokio::time::sleep(Duration::from_secs(1)).await;
     let (idle_rss, idle_threads) = footprint(node.pid())?;
     cell.submit("part", orders).await?;
@@ -990,6 +967,28 @@ fn cpu_time(pid: i32) -> Result<Duration> {
     let ticks: u64 = fields[11].parse::<u64>()? + fields[12].parse::<u64>()?;
     let per_second = nix::unistd::sysconf(nix::unistd::SysconfVar::CLK_TCK)?.unwrap_or(100) as u64;
     Ok(Duration::from_secs_f64(ticks as f64 / per_second as f64))
+}
+
+/// The product `part` and an order-node `orders1` (journal in `DIR/data`), both ready.
+async fn start_product_and_orders(
+    dir: &Path,
+    cell: &Cell,
+    config: &Path,
+) -> Result<(Process, Process)> {
+    let product = start_one_step_product(dir, cell)?;
+    let orders = holarchy_tests::start_holon(
+        dir,
+        "order-node",
+        config,
+        "orders1",
+        cell,
+        &["--data-dir", dir.join("data").to_str().unwrap()],
+    )?;
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await?;
+    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
+        .await?;
+    Ok((product, orders))
 }
 
 /// The product holon `part`: one `pick_n_place` step.
@@ -1053,19 +1052,8 @@ async fn throughput(dir: &Path, robots: usize, orders: u32) -> Result<f64> {
         cell.wait_alive(&HolonId::resource(&name)?).await?;
         keep.push((sim, node));
     }
-    let _product = start_one_step_product(&dir, &cell)?;
-    let _orders = holarchy_tests::start_holon(
-        &dir,
-        "order-node",
-        &holarchy_tests::demo_config("orders1.toml"),
-        "orders1",
-        &cell,
-        &["--data-dir", dir.join("data").to_str().unwrap()],
-    )?;
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await?;
-    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
-        .await?;
+    let (_product, _orders) =
+        start_product_and_orders(&dir, &cell, &holarchy_tests::demo_config("orders1.toml")).await?;
     let t = Instant::now();
     cell.submit("part", orders).await?;
     loop {
