@@ -101,7 +101,7 @@ async fn echo_zenoh(connect: &str, key: &str) -> Result<()> {
         ..Default::default()
     };
     let session = settings
-        .open(Duration::from_secs(10))
+        .open("router.local", Duration::from_secs(10))
         .await
         .map_err(|e| anyhow!("{e}"))?;
     let queryable = session
@@ -202,7 +202,7 @@ async fn router(cell: &str, lease_ms: Option<u64>) -> Result<Cell> {
         ..Default::default()
     };
     let session = settings
-        .open(Duration::from_secs(10))
+        .open("router.local", Duration::from_secs(10))
         .await
         .map_err(|e| anyhow!("{e}"))?;
     Ok(Cell {

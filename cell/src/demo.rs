@@ -40,6 +40,30 @@ pub struct DemoOptions {
     pub hot_add: bool,
     /// Where configs and logs go; a temporary directory when not given.
     pub dir: Option<PathBuf>,
+    /// Mutual TLS and access control: a PKI is issued into `<dir>/pki` and every
+    /// process, the router included, uses its own identity.
+    pub secure: bool,
+}
+
+/// The manifest `cell certs` issues the secure demo's identities from.
+fn secure_manifest(cell: &str, endpoint: &str) -> String {
+    let mut text = format!(
+        "cell = \"{cell}\"\n[router]\nlisten = [\"{endpoint}\"]\n[pki]\nspares = [\"resource.robot3\"]\n"
+    );
+    for identity in [
+        "resource.robot1",
+        "resource.robot2",
+        "resource.inspect1",
+        "resource.conveyor1",
+        "product.breaker",
+        "order-node.orders1",
+    ] {
+        let name = identity.split_once('.').map_or(identity, |(_, n)| n);
+        text.push_str(&format!(
+            "[[process]]\nname = \"{name}\"\nprogram = \"holon-node\"\nidentity = \"{identity}\"\n"
+        ));
+    }
+    text
 }
 
 /// A child process stopped with SIGTERM (then killed) when the demo ends.
@@ -91,6 +115,8 @@ fn free_port() -> Result<u16> {
 struct Cell {
     dir: PathBuf,
     endpoint: String,
+    /// The PKI directory of a secure demo.
+    pki: Option<PathBuf>,
     keys: CellKeys,
     session: zenoh::Session,
     started: Vec<Managed>,
@@ -142,7 +168,17 @@ impl Cell {
             .arg("--config")
             .arg(&config)
             .args(["--cell", self.keys.cell(), "--name", holon.name()])
-            .args(["--connect", &self.endpoint, "--listen", "tcp/127.0.0.1:0"])
+            .args(["--connect", &self.endpoint, "--listen"])
+            .arg(if self.pki.is_some() {
+                "tls/127.0.0.1:0"
+            } else {
+                "tcp/127.0.0.1:0"
+            })
+            .args(
+                self.pki
+                    .iter()
+                    .flat_map(|p| [std::ffi::OsStr::new("--pki"), p.as_os_str()]),
+            )
             .arg("--log-file")
             .arg(self.dir.join(format!("{}.log.json", holon.name())))
             .arg("--data-dir")
@@ -237,21 +273,46 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
             path
         }
     };
-    let endpoint = format!("tcp/127.0.0.1:{}", free_port()?);
+    let scheme = if options.secure { "tls" } else { "tcp" };
+    let endpoint = format!("{scheme}/127.0.0.1:{}", free_port()?);
+    let pki = if options.secure {
+        std::fs::write(
+            dir.join("cell.toml"),
+            secure_manifest(&options.cell, &endpoint),
+        )?;
+        crate::certs::run(&dir, &crate::certs::CertsOptions::default())?;
+        Some(dir.join("pki"))
+    } else {
+        None
+    };
     let settings = holon::ZenohSettings {
         mode: "router".into(),
         listen: vec![endpoint.clone()],
+        tls: pki.as_ref().map(|pki| holon::tls::TlsSettings {
+            pki: Some(pki.clone()),
+            ..holon::tls::TlsSettings::default()
+        }),
         ..holon::ZenohSettings::default()
     };
-    let session = settings.open(STARTUP).await.map_err(|e| anyhow!("{e}"))?;
+    let session = settings
+        .open(&holon::tls::identity("router", "local"), STARTUP)
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
     println!(
         "cell {}: zenoh router on {endpoint}; configs and logs in {}",
         options.cell,
         dir.display()
     );
+    if options.secure {
+        println!(
+            "mutual TLS and access control on: identities in {}",
+            dir.join("pki").display()
+        );
+    }
     let mut cell = Cell {
         dir: dir.clone(),
         endpoint,
+        pki,
         keys: keys.clone(),
         session: session.clone(),
         started: Vec::new(),

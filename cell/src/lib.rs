@@ -1,6 +1,8 @@
 //! `cell`: the operator's command. `cell demo` runs a demo cell on this machine;
 //! `cell status` lists the live holons of a running cell.
 
+pub mod access;
+pub mod certs;
 pub mod demo;
 pub mod router;
 pub mod status;

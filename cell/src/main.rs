@@ -44,6 +44,10 @@ enum Commands {
         /// removed after a successful run and kept after a failed one).
         #[arg(long, value_name = "DIR")]
         dir: Option<PathBuf>,
+        /// Run the cell with mutual TLS and access control: a cell CA and one identity
+        /// per process are issued into DIR/pki (see docs/security.md).
+        #[arg(long)]
+        secure: bool,
     },
     /// Launch and supervise the processes of a cell from the manifest DIR/cell.toml
     /// (deploy/cells/demo/cell.toml documents it): restart a process that dies, with a
@@ -73,18 +77,18 @@ enum Commands {
         /// The link lease in ms (how long a silent peer keeps its tokens).
         #[arg(long, value_name = "MS")]
         lease_ms: Option<u64>,
+        /// Without --config: mutual TLS and the cell's access control from this PKI
+        /// directory (`cell certs`); endpoints must then be tls/...
+        #[arg(long, value_name = "DIR")]
+        pki: Option<PathBuf>,
+        /// The router's identity with --pki (default router.local).
+        #[arg(long, value_name = "ROLE.NAME")]
+        identity: Option<String>,
     },
     /// List every order of a cell with its status, step and resource (from any host).
     Orders {
-        /// The cell's name.
-        #[arg(long, default_value = "demo")]
-        cell: String,
-        /// The endpoint of a zenoh router of the cell (repeatable).
-        #[arg(long, value_name = "ENDPOINT", required = true)]
-        connect: Vec<String>,
-        /// How long to wait for answers, in milliseconds.
-        #[arg(long, default_value_t = 2000)]
-        timeout_ms: u64,
+        #[command(flatten)]
+        client: ClientArgs,
     },
     /// Submit work orders to a running cell and print the new orders' ids.
     Submit {
@@ -96,29 +100,107 @@ enum Commands {
         /// Priority (kept with the order; scheduling by priority is not implemented yet).
         #[arg(long, default_value_t = 0)]
         priority: i32,
-        /// The cell's name.
-        #[arg(long, default_value = "demo")]
-        cell: String,
-        /// The endpoint of a zenoh router of the cell (repeatable).
-        #[arg(long, value_name = "ENDPOINT", required = true)]
-        connect: Vec<String>,
-        /// How long to wait for an order-node to answer, in milliseconds.
-        #[arg(long, default_value_t = 5000)]
-        timeout_ms: u64,
+        #[command(flatten)]
+        client: ClientArgs,
+    },
+    /// Cancel an order (operators only): its bookings are cancelled, a step already
+    /// running is let finish, then it ends as `cancelled`.
+    Cancel {
+        /// The order, e.g. orders1-17.
+        order: String,
+        #[command(flatten)]
+        client: ClientArgs,
     },
     /// List the live holons of a cell with their kind, state and agenda length.
     Status {
-        /// The cell's name.
-        #[arg(long, default_value = "demo")]
-        cell: String,
-        /// The endpoint of a zenoh router of the cell, e.g. tcp/127.0.0.1:7447 (repeatable);
-        /// `cell status` joins as a client, so the router answers for the whole cell.
-        #[arg(long, value_name = "ENDPOINT", required = true)]
-        connect: Vec<String>,
-        /// How long to wait for answers, in milliseconds.
-        #[arg(long, default_value_t = 2000)]
-        timeout_ms: u64,
+        #[command(flatten)]
+        client: ClientArgs,
     },
+    /// Issue the cell's identities for mutual TLS from the manifest DIR/cell.toml: a cell
+    /// CA (made once), a certificate and key per process with an `identity`, per router,
+    /// per operator, observer and spare of [pki]; the cell's access control
+    /// (access_control.json5) and a zenohd config per router (router-<host>.json5), all
+    /// in the PKI directory (default DIR/pki). Issues only what is missing, expiring
+    /// within 30 days or named by --renew; see docs/security.md.
+    Certs {
+        /// The directory holding cell.toml.
+        dir: PathBuf,
+        /// Make a new CA and reissue every identity (the old ones stop working once
+        /// every process has the new CA).
+        #[arg(long)]
+        force: bool,
+        /// Reissue this identity, e.g. resource.robot1 (repeatable): rotation.
+        #[arg(long, value_name = "IDENTITY")]
+        renew: Vec<String>,
+    },
+}
+
+/// How an operator's command reaches a cell.
+#[derive(Debug, clap::Args)]
+struct ClientArgs {
+    /// The cell's name.
+    #[arg(long, default_value = "demo")]
+    cell: String,
+    /// The endpoint of a zenoh router of the cell, e.g. tcp/127.0.0.1:7447 or
+    /// tls/127.0.0.1:7447 (repeatable); the command joins as a client.
+    #[arg(long, value_name = "ENDPOINT", required = true)]
+    connect: Vec<String>,
+    /// How long to wait for answers, in milliseconds.
+    #[arg(long, default_value_t = 5000)]
+    timeout_ms: u64,
+    /// A secure cell's PKI directory (written by `cell certs`): connect with mutual
+    /// TLS as --identity.
+    #[arg(long, value_name = "DIR")]
+    pki: Option<PathBuf>,
+    /// The identity to use with --pki (default operator.default for submit and
+    /// cancel, observer.default for status and orders).
+    #[arg(long, value_name = "ROLE.NAME")]
+    identity: Option<String>,
+}
+
+impl ClientArgs {
+    fn keys(&self) -> Result<schemas::CellKeys> {
+        Ok(schemas::CellKeys::new(&self.cell)?)
+    }
+
+    fn timeout(&self) -> Duration {
+        Duration::from_millis(self.timeout_ms)
+    }
+
+    /// A zenoh client of the cell: everything it asks is routed by the router it
+    /// connects to.
+    async fn session(&self, default_identity: &str) -> Result<zenoh::Session> {
+        let settings = holon::ZenohSettings {
+            mode: "client".into(),
+            connect: self.connect.clone(),
+            tls: self.pki.as_ref().map(|pki| holon::tls::TlsSettings {
+                pki: Some(pki.clone()),
+                ..holon::tls::TlsSettings::default()
+            }),
+            ..holon::ZenohSettings::default()
+        };
+        let identity = self.identity.as_deref().unwrap_or(default_identity);
+        let session = settings
+            .open(identity, self.timeout().max(Duration::from_secs(1)))
+            .await
+            .map_err(|e| anyhow!("cannot reach the cell at {}: {e}", self.connect.join(", ")))?;
+        if !holon::session::wait_connected(&session, self.timeout()).await {
+            return Err(anyhow!(
+                "cannot reach the cell at {}",
+                self.connect.join(", ")
+            ));
+        }
+        Ok(session)
+    }
+}
+
+const OPERATOR: &str = "operator.default";
+const OBSERVER: &str = "observer.default";
+
+async fn close(session: zenoh::Session) {
+    if let Err(e) = session.close().await {
+        tracing::debug!(error = %e, "closing the client session");
+    }
 }
 
 fn main() -> ExitCode {
@@ -161,6 +243,7 @@ async fn run(args: Args) -> Result<bool> {
             inspect_fail_every,
             no_hot_add,
             dir,
+            secure,
         } => {
             let shutdown = holon::shutdown_on_signals();
             let options = cell::demo::DemoOptions {
@@ -170,6 +253,7 @@ async fn run(args: Args) -> Result<bool> {
                 inspect_fail_every,
                 hot_add: !no_hot_add,
                 dir,
+                secure,
             };
             cell::demo::run(options, shutdown).await
         }
@@ -182,6 +266,8 @@ async fn run(args: Args) -> Result<bool> {
             listen,
             connect,
             lease_ms,
+            pki,
+            identity,
         } => {
             let shutdown = holon::shutdown_on_signals();
             let options = cell::router::RouterOptions {
@@ -189,74 +275,63 @@ async fn run(args: Args) -> Result<bool> {
                 listen,
                 connect,
                 lease_ms,
+                pki,
+                identity,
             };
             cell::router::run(options, shutdown).await?;
             Ok(true)
         }
-        Commands::Orders {
-            cell,
-            connect,
-            timeout_ms,
-        } => {
-            let keys = schemas::CellKeys::new(&cell)?;
-            let timeout = Duration::from_millis(timeout_ms);
-            let session = client_session(&connect, timeout).await?;
-            let orders = cell::status::orders(&session, &keys, timeout).await?;
-            print!("{}", cell::status::render_orders(&cell, &orders));
-            let _ = session.close().await;
+        Commands::Orders { client } => {
+            let keys = client.keys()?;
+            let session = client.session(OBSERVER).await?;
+            let orders = cell::status::orders(&session, &keys, client.timeout()).await?;
+            print!("{}", cell::status::render_orders(&client.cell, &orders));
+            close(session).await;
             Ok(true)
         }
         Commands::Submit {
             product,
             count,
             priority,
-            cell,
-            connect,
-            timeout_ms,
+            client,
         } => {
-            let keys = schemas::CellKeys::new(&cell)?;
+            let keys = client.keys()?;
             let work = schemas::WorkOrder {
                 product,
                 count,
                 priority,
             };
             work.validate()?;
-            let session = client_session(&connect, Duration::from_millis(timeout_ms)).await?;
-            let ids = cell::demo::submit(&session, &keys, &work, Duration::from_millis(timeout_ms))
-                .await?;
+            let session = client.session(OPERATOR).await?;
+            let ids = cell::demo::submit(&session, &keys, &work, client.timeout()).await?;
             println!("{}", ids.join("\n"));
-            let _ = session.close().await;
+            close(session).await;
             Ok(true)
         }
-        Commands::Status {
-            cell,
-            connect,
-            timeout_ms,
-        } => {
-            let keys = schemas::CellKeys::new(&cell)?;
-            let timeout = Duration::from_millis(timeout_ms);
-            let session = client_session(&connect, timeout).await?;
-            let rows = cell::status::collect(&session, &keys, timeout).await?;
-            print!("{}", cell::status::render(&cell, &rows));
-            let _ = session.close().await;
+        Commands::Cancel { order, client } => {
+            let keys = client.keys()?;
+            schemas::HolonId::order(&order)?;
+            let session = client.session(OPERATOR).await?;
+            let reply = cell::status::cancel(&session, &keys, &order, client.timeout()).await;
+            close(session).await;
+            let reply = reply?;
+            println!("{}: {}", reply.order, reply.detail);
+            Ok(true)
+        }
+        Commands::Status { client } => {
+            let keys = client.keys()?;
+            let session = client.session(OBSERVER).await?;
+            let rows = cell::status::collect(&session, &keys, client.timeout()).await?;
+            print!("{}", cell::status::render(&client.cell, &rows));
+            close(session).await;
+            Ok(true)
+        }
+        Commands::Certs { dir, force, renew } => {
+            let options = cell::certs::CertsOptions { force, renew };
+            for line in cell::certs::run(&dir, &options)? {
+                println!("{line}");
+            }
             Ok(true)
         }
     }
-}
-
-/// A zenoh client of the cell: everything it asks is routed by the router it connects to.
-async fn client_session(connect: &[String], timeout: Duration) -> Result<zenoh::Session> {
-    let settings = holon::ZenohSettings {
-        mode: "client".into(),
-        connect: connect.to_vec(),
-        ..holon::ZenohSettings::default()
-    };
-    let session = settings
-        .open(Duration::from_secs(10))
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    if !holon::session::wait_connected(&session, timeout).await {
-        return Err(anyhow!("cannot reach the cell at {}", connect.join(", ")));
-    }
-    Ok(session)
 }

@@ -17,6 +17,11 @@ pub struct RouterOptions {
     /// Other routers to connect to (replace the file's, if any).
     pub connect: Vec<String>,
     pub lease_ms: Option<u64>,
+    /// Without a config file: mutual TLS and access control from this PKI directory
+    /// (`cell certs`), as `identity`.
+    pub pki: Option<PathBuf>,
+    /// The router's identity (default `router.local`).
+    pub identity: Option<String>,
 }
 
 fn json(value: &[String]) -> String {
@@ -33,9 +38,19 @@ pub fn config(options: &RouterOptions) -> Result<zenoh::Config> {
             let settings = holon::ZenohSettings {
                 mode: "router".into(),
                 multicast_scouting: false,
+                listen: options.listen.clone(),
+                connect: options.connect.clone(),
+                tls: options.pki.as_ref().map(|pki| holon::tls::TlsSettings {
+                    pki: Some(pki.clone()),
+                    ..holon::tls::TlsSettings::default()
+                }),
                 ..holon::ZenohSettings::default()
             };
-            settings.to_config().map_err(|e| anyhow!("{e}"))?
+            let identity = options
+                .identity
+                .clone()
+                .unwrap_or_else(|| holon::tls::identity("router", "local"));
+            settings.to_config(&identity).map_err(|e| anyhow!("{e}"))?
         }
     };
     let mut set = |key: &str, value: String| {
@@ -59,19 +74,13 @@ pub fn config(options: &RouterOptions) -> Result<zenoh::Config> {
 /// Runs the router until `shutdown` is cancelled.
 pub async fn run(options: RouterOptions, shutdown: CancellationToken) -> Result<()> {
     let config = config(&options)?;
+    let endpoints = config
+        .get_json("listen/endpoints")
+        .unwrap_or_else(|_| "zenoh's default endpoints".into());
     let session = tokio::time::timeout(Duration::from_secs(10), zenoh::open(config))
         .await
         .map_err(|_| anyhow!("the router did not start within 10 s"))?
         .map_err(|e| anyhow!("cannot start the router: {e}"))?;
-    let endpoints = if options.listen.is_empty() {
-        options
-            .config
-            .as_ref()
-            .map(|p| format!("the endpoints of {}", p.display()))
-            .unwrap_or_else(|| "zenoh's default endpoint".into())
-    } else {
-        options.listen.join(", ")
-    };
     println!("router {} listening on {endpoints}", session.zid());
     shutdown.cancelled().await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;

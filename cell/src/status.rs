@@ -103,17 +103,44 @@ pub async fn orders(
     Ok(orders.into_values().collect())
 }
 
+/// Asks the order-node hosting `order` to cancel it.
+pub async fn cancel(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    order: &str,
+    timeout: Duration,
+) -> Result<schemas::CancelReply> {
+    let replies = session
+        .get(keys.cancel(order))
+        .timeout(timeout)
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    match replies.recv_async().await {
+        Ok(reply) => match reply.result() {
+            Ok(sample) => Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
+            Err(err) => Err(anyhow!(
+                "the order-node refused: {}",
+                err.payload().try_to_string().unwrap_or_default()
+            )),
+        },
+        Err(_) => Err(anyhow!(
+            "no order-node answered for {order} (unknown order, its order-node is down, or this identity may not cancel)"
+        )),
+    }
+}
+
 /// The table `cell orders` prints, with a summary line first.
 pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot]) -> String {
     use schemas::OrderStatus;
     let count = |s: OrderStatus| orders.iter().filter(|o| o.status == s).count();
     let mut out = format!(
-        "cell {cell}: {} orders: {} done, {} running, {} scrapped, {} failed\n",
+        "cell {cell}: {} orders: {} done, {} running, {} scrapped, {} failed, {} cancelled\n",
         orders.len(),
         count(OrderStatus::Done),
         count(OrderStatus::Running),
         count(OrderStatus::Scrapped),
-        count(OrderStatus::Failed)
+        count(OrderStatus::Failed),
+        count(OrderStatus::Cancelled)
     );
     out.push_str(&format!(
         "{:<22} {:<10} {:<9} {:>5} {:<22} {:>7}  REASON\n",

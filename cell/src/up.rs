@@ -32,6 +32,9 @@ pub struct Manifest {
     pub hosts: std::collections::BTreeMap<String, HostSection>,
     #[serde(default)]
     pub restart: RestartSection,
+    /// The cell's identities for mutual TLS (`cell certs`); see docs/security.md.
+    #[serde(default)]
+    pub pki: PkiSection,
     #[serde(rename = "process")]
     pub processes: Vec<ProcessSection>,
 }
@@ -48,11 +51,84 @@ pub struct RouterSection {
     pub lease_ms: Option<u64>,
 }
 
+impl RouterSection {
+    /// The router's zenoh settings; with `tls/` endpoints, mutual TLS and the cell's
+    /// access control from the PKI directory `pki` (identity `router.<host>`).
+    pub fn settings(&self, pki: &Path) -> holon::ZenohSettings {
+        let secure = self
+            .listen
+            .iter()
+            .chain(&self.connect)
+            .any(|e| e.starts_with("tls/"));
+        holon::ZenohSettings {
+            mode: "router".into(),
+            listen: self.listen.clone(),
+            connect: self.connect.clone(),
+            lease_ms: self.lease_ms,
+            tls: secure.then(|| holon::tls::TlsSettings {
+                pki: Some(pki.to_path_buf()),
+                ..holon::tls::TlsSettings::default()
+            }),
+            ..holon::ZenohSettings::default()
+        }
+    }
+}
+
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HostSection {
     #[serde(default)]
     pub router: Option<RouterSection>,
+    /// The host's addresses (IPs or DNS names) other processes reach it by; they go
+    /// into the certificates of its processes (besides its router's listen addresses).
+    #[serde(default)]
+    pub addresses: Vec<String>,
+}
+
+/// `[pki]`: where `cell certs` writes the identities, and which identities exist
+/// besides the processes' (`identity` of each `[[process]]`, `router.<host>` for each
+/// router).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PkiSection {
+    /// The PKI directory, relative to the manifest's (default "pki").
+    #[serde(default = "d_pki_dir")]
+    pub dir: PathBuf,
+    /// Operators (`operator.<name>`): submit and cancel orders, read everything.
+    #[serde(default = "d_default_name")]
+    pub operators: Vec<String>,
+    /// Observers (`observer.<name>`): read states, plans and presence only.
+    #[serde(default = "d_default_name")]
+    pub observers: Vec<String>,
+    /// Identities provisioned ahead for holons not started yet (hot-add), e.g.
+    /// `resource.robot3`: the running processes' access control knows them already.
+    #[serde(default)]
+    pub spares: Vec<String>,
+    /// Validity of each issued certificate, in days (default 365).
+    #[serde(default = "d_days")]
+    pub days: u32,
+}
+
+fn d_pki_dir() -> PathBuf {
+    PathBuf::from("pki")
+}
+fn d_default_name() -> Vec<String> {
+    vec!["default".into()]
+}
+fn d_days() -> u32 {
+    365
+}
+
+impl Default for PkiSection {
+    fn default() -> Self {
+        PkiSection {
+            dir: d_pki_dir(),
+            operators: d_default_name(),
+            observers: d_default_name(),
+            spares: Vec::new(),
+            days: d_days(),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -109,6 +185,10 @@ pub struct ProcessSection {
     /// processes of host NAME.
     #[serde(default = "d_host")]
     pub host: String,
+    /// Its TLS identity, `<role>.<name>` (e.g. `resource.robot1`): `cell certs` issues
+    /// its certificate. Controllers' simulators have none.
+    #[serde(default)]
+    pub identity: Option<String>,
 }
 
 fn d_host() -> String {
@@ -135,6 +215,10 @@ impl Manifest {
         for p in &manifest.processes {
             schemas::validate_name("process name", &p.name)
                 .with_context(|| format!("{}: process", path.display()))?;
+            if let Some(identity) = &p.identity {
+                crate::access::parse_identity(identity)
+                    .with_context(|| format!("{}: process {}", path.display(), p.name))?;
+            }
             if !names.insert(&p.name) {
                 bail!("{}: process {} appears twice", path.display(), p.name);
             }
@@ -203,15 +287,12 @@ pub async fn run(dir: &Path, host: &str, shutdown: CancellationToken) -> Result<
     std::fs::create_dir_all(&logs)?;
     let _router = match &router {
         Some(router) => {
-            let settings = holon::ZenohSettings {
-                mode: "router".into(),
-                listen: router.listen.clone(),
-                connect: router.connect.clone(),
-                lease_ms: router.lease_ms,
-                ..holon::ZenohSettings::default()
-            };
+            let settings = router.settings(&crate::certs::pki_dir(dir, &manifest));
             let session = settings
-                .open(Duration::from_secs(10))
+                .open(
+                    &holon::tls::identity("router", host),
+                    Duration::from_secs(10),
+                )
                 .await
                 .map_err(|e| anyhow!("router: {e}"))?;
             say(

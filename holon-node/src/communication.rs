@@ -37,6 +37,21 @@ enum Endpoint {
     Crash,
 }
 
+impl Endpoint {
+    /// The queryable's own concrete key: replies go out on it, so a client with zenoh's
+    /// default consolidation keeps one reply per resource, and access control can
+    /// check that a reply comes from the resource whose key it carries.
+    fn key(&self, config: &crate::config::ResourceConfig) -> String {
+        let name = config.holon.name();
+        match self {
+            Endpoint::Service => config.keys.service(name),
+            Endpoint::Offer(service_type) => config.keys.offer(service_type, name),
+            Endpoint::State => config.keys.state(&config.holon),
+            Endpoint::Crash => config.keys.debug_crash(name),
+        }
+    }
+}
+
 struct Incoming {
     endpoint: Endpoint,
     query: Query,
@@ -263,6 +278,9 @@ async fn deliver(
         .map_err(|e| e.to_string())?;
     while let Ok(reply) = replies.recv_async().await {
         match reply.result() {
+            Ok(sample) if sample.key_expr().as_str() != key => {
+                warn!(conversation_id = %message.conversation_id, reply_to = key, from = %sample.key_expr(), "an acknowledgement from another key than reply_to is ignored");
+            }
             Ok(sample) => match Service::from_json(&sample.payload().to_bytes()) {
                 Ok(ack)
                     if ack.conversation_id == message.conversation_id
@@ -309,7 +327,7 @@ async fn reply_error(node: &Node, query: &Query, code: &str, message: String) {
     }
 }
 
-async fn reply(node: &Node, query: &Query, message: &Service) {
+async fn reply(node: &Node, endpoint: &Endpoint, query: &Query, message: &Service) {
     // One line at `info` per commitment (a booking made or cancelled, a job started);
     // proposals, refusals and status reads are many and go at `debug`. Logging every
     // request at `info` cost about a tenth of a booking's CPU (profiled).
@@ -337,7 +355,7 @@ async fn reply(node: &Node, query: &Query, message: &Service) {
         sent!(debug);
     }
     if let Err(e) = query
-        .reply(query.key_expr().clone(), message.to_json())
+        .reply(endpoint.key(&node.config), message.to_json())
         .await
     {
         warn!(holon = %node.config.holon, conversation_id = %message.conversation_id, error = %e, "cannot send the reply");
@@ -355,7 +373,7 @@ async fn handle_query(node: &Node, incoming: Incoming, followups: &mut Vec<Agend
     match &endpoint {
         Endpoint::State => {
             let snapshot = serde_json::to_vec(&node.snapshot()).expect("a snapshot serializes");
-            if let Err(e) = query.reply(query.key_expr().clone(), snapshot).await {
+            if let Err(e) = query.reply(endpoint.key(&node.config), snapshot).await {
                 warn!(holon = %node.config.holon, error = %e, "cannot reply with the state");
             }
             return;
@@ -365,7 +383,7 @@ async fn handle_query(node: &Node, incoming: Incoming, followups: &mut Vec<Agend
             match node.faults.get(&component) {
                 Some(fault) => {
                     warn!(holon = %node.config.holon, %component, "fault injection requested");
-                    let _ = query.reply(query.key_expr().clone(), format!("crashing {component}")).await;
+                    let _ = query.reply(endpoint.key(&node.config), format!("crashing {component}")).await;
                     fault.notify_one();
                 }
                 None => {
@@ -433,7 +451,7 @@ async fn handle_query(node: &Node, incoming: Incoming, followups: &mut Vec<Agend
         if let Ok(serde_json::Value::Object(info)) = serde_json::to_value(node.snapshot()) {
             answer.info = info;
         }
-        return reply(node, &query, &answer).await;
+        return reply(node, &endpoint, &query, &answer).await;
     }
     // The agenda manager's state machine, called in place (see `node::agenda`).
     let Some(actions) = agenda_transition(node, AgendaEvent::Request(request)) else {
@@ -447,7 +465,7 @@ async fn handle_query(node: &Node, incoming: Incoming, followups: &mut Vec<Agend
     };
     for action in actions {
         match action {
-            AgendaAction::Reply(answer) => reply(node, &query, &answer).await,
+            AgendaAction::Reply(answer) => reply(node, &endpoint, &query, &answer).await,
             other => followups.push(other),
         }
     }

@@ -304,6 +304,9 @@ impl ResourceConfig {
             path: path.to_string(),
             message: e.to_string(),
         })?;
+        if let Some(base) = Path::new(path).parent() {
+            file.zenoh.resolve_paths(base);
+        }
         overrides.common.apply(
             &mut file.cell,
             &mut file.name,
@@ -330,7 +333,9 @@ impl ResourceConfig {
             ));
         }
         let holon = HolonId::resource(&file.name).map_err(|e| format!("name: {e}"))?;
-        file.zenoh.validate().map_err(|e| format!("zenoh: {e}"))?;
+        file.zenoh
+            .validate(&holon::tls::identity("resource", holon.name()))
+            .map_err(|e| format!("zenoh: {e}"))?;
         let c = &file.controller;
         if c.address.trim().is_empty() || !c.address.contains(':') {
             return Err(format!(

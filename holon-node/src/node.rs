@@ -402,7 +402,13 @@ pub(crate) async fn start_execution(
 pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.holon.clone();
     let alive_key = config.keys.alive(&holon);
-    let session = config.zenoh.open(STARTUP_TIMEOUT).await?;
+    let session = config
+        .zenoh
+        .open(
+            &holon::tls::identity("resource", config.holon.name()),
+            STARTUP_TIMEOUT,
+        )
+        .await?;
     info!(holon = %holon, zid = %session.zid(), "zenoh session open");
     let node = match Node::new(config, session.clone()) {
         Ok(node) => Arc::new(node),

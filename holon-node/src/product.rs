@@ -8,7 +8,7 @@ use holon::ZenohSettings;
 use schemas::{unix_ms, CellKeys, HolonId, HolonKind, Plan, PlanStep};
 use serde::Deserialize;
 use tokio_util::sync::CancellationToken;
-use tracing::{error, info};
+use tracing::{error, info, warn};
 
 use crate::config::{ConfigError, Overrides};
 use crate::node::{NodeError, STARTUP_TIMEOUT};
@@ -50,6 +50,9 @@ impl ProductConfig {
         })?;
         // A product keeps no state: a data directory, if given, is not used.
         let mut no_data_dir = None;
+        if let Some(base) = Path::new(path).parent() {
+            file.zenoh.resolve_paths(base);
+        }
         overrides.common.apply(
             &mut file.cell,
             &mut file.name,
@@ -63,7 +66,7 @@ impl ProductConfig {
         let holon = HolonId::new(HolonKind::Product, &file.name)
             .map_err(|e| invalid(format!("name: {e}")))?;
         file.zenoh
-            .validate()
+            .validate(&holon::tls::identity("product", holon.name()))
             .map_err(|e| invalid(format!("zenoh: {e}")))?;
         let plan = Plan {
             product: file.name,
@@ -92,7 +95,13 @@ impl ProductConfig {
 /// Serves the plan until `shutdown` is cancelled.
 pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.holon.clone();
-    let session = config.zenoh.open(STARTUP_TIMEOUT).await?;
+    let session = config
+        .zenoh
+        .open(
+            &holon::tls::identity("product", config.holon.name()),
+            STARTUP_TIMEOUT,
+        )
+        .await?;
     let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(e.to_string());
     let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
     let snapshot = serde_json::json!({
@@ -108,10 +117,11 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         .declare_queryable(&plan_key)
         .callback({
             let holon = holon.clone();
+            let plan_key = plan_key.clone();
             move |query| {
                 use zenoh::Wait;
                 info!(holon = %holon, message_type = "plan", "plan requested");
-                if let Err(e) = query.reply(query.key_expr().clone(), plan.clone()).wait() {
+                if let Err(e) = query.reply(&plan_key, plan.clone()).wait() {
                     error!(holon = %holon, error = %e, "cannot send the plan");
                 }
             }
@@ -123,11 +133,14 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         .declare_queryable(&state_key)
         .callback({
             let snapshot = snapshot.clone();
+            let state_key = state_key.clone();
+            let holon = holon.clone();
             move |query| {
                 use zenoh::Wait;
-                let _ = query
-                    .reply(query.key_expr().clone(), snapshot.clone())
-                    .wait();
+                // Replied on the concrete key, whatever wildcard the query used.
+                if let Err(e) = query.reply(&state_key, snapshot.clone()).wait() {
+                    warn!(holon = %holon, error = %e, "cannot reply with the state");
+                }
             }
         })
         .await

@@ -33,6 +33,10 @@ pub struct CommonArgs {
     /// durable.
     #[arg(long, value_name = "DIR")]
     pub data_dir: Option<PathBuf>,
+    /// Mutual TLS and access control with the identity files `cell certs` wrote into
+    /// DIR (replaces [zenoh.tls]); every endpoint must then be tls/...
+    #[arg(long, value_name = "DIR")]
+    pub pki: Option<PathBuf>,
     /// Terminal log format: text (human-readable) or json (one object per line).
     #[arg(long, default_value = "text", value_name = "text|json")]
     pub log_format: LogFormat,
@@ -51,6 +55,7 @@ impl CommonArgs {
             listen: self.listen.clone(),
             data_dir: self.data_dir.clone(),
             lease_ms: self.lease_ms,
+            pki: self.pki.clone(),
         }
     }
 }

@@ -7,6 +7,7 @@ pub mod logging;
 pub mod presence;
 pub mod session;
 pub mod supervisor;
+pub mod tls;
 
 pub use logging::LogFormat;
 pub use session::ZenohSettings;

@@ -1,9 +1,14 @@
 //! The zenoh session of a holon process, from the `[zenoh]` section of its config and
-//! the command line. Multicast scouting is off unless the config turns it on.
+//! the command line. Multicast scouting is off unless the config turns it on. With
+//! `[zenoh.tls]` every link is mutual TLS and, on holons and routers, the cell's access
+//! control is enforced (see `crate::tls` and docs/security.md).
 
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use serde::{Deserialize, Serialize};
+
+use crate::tls::{IdentityFiles, TlsError, TlsSettings};
 
 /// How a holon joins the zenoh network (`[zenoh]` in every holon config).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -28,6 +33,14 @@ pub struct ZenohSettings {
     /// too short raises false alarms on a loaded host. Default: zenoh's 10000.
     #[serde(default)]
     pub lease_ms: Option<u64>,
+    /// A standard zenoh JSON5 config file loaded first; the fields above (and `tls`)
+    /// override what it says. For settings holarchy does not expose. Relative to the
+    /// config file's directory.
+    #[serde(default)]
+    pub config_file: Option<PathBuf>,
+    /// Mutual TLS and access control (`[zenoh.tls]`); off when absent.
+    #[serde(default)]
+    pub tls: Option<TlsSettings>,
 }
 
 fn default_mode() -> String {
@@ -42,6 +55,8 @@ impl Default for ZenohSettings {
             listen: Vec::new(),
             multicast_scouting: false,
             lease_ms: None,
+            config_file: None,
+            tls: None,
         }
     }
 }
@@ -54,17 +69,74 @@ pub enum SessionError {
     Open(String),
     #[error("opening the zenoh session took longer than {0:?}")]
     Timeout(Duration),
+    #[error("TLS identity {identity}: {source}")]
+    Tls { identity: String, source: TlsError },
+    #[error("cannot load the zenoh config file {path}: {message}")]
+    ConfigFile { path: String, message: String },
 }
 
 impl ZenohSettings {
-    /// Checks the settings without opening anything.
-    pub fn validate(&self) -> Result<(), SessionError> {
-        self.to_config().map(|_| ())
+    /// Checks the settings without opening anything (with TLS: reads and checks the
+    /// identity files of `identity`).
+    pub fn validate(&self, identity: &str) -> Result<(), SessionError> {
+        self.to_config(identity).map(|_| ())
     }
 
-    /// The zenoh configuration these settings describe.
-    pub fn to_config(&self) -> Result<zenoh::Config, SessionError> {
-        let mut config = zenoh::Config::default();
+    /// Makes the relative paths of `config_file` and `[zenoh.tls]` relative to `base`,
+    /// the directory of the config file they were read from.
+    pub fn resolve_paths(&mut self, base: &Path) {
+        if let Some(path) = self.config_file.as_mut().filter(|p| p.is_relative()) {
+            *path = base.join(&*path);
+        }
+        if let Some(tls) = self.tls.as_mut() {
+            tls.resolve_paths(base);
+        }
+    }
+
+    /// The checked identity files when TLS is on; a client (`mode = "client"`) links
+    /// only to routers and does not load the access control.
+    pub fn identity_files(&self, identity: &str) -> Result<Option<IdentityFiles>, SessionError> {
+        let Some(tls) = &self.tls else {
+            return Ok(None);
+        };
+        tls.identity_files(identity, self.mode != "client")
+            .map(Some)
+            .map_err(|source| SessionError::Tls {
+                identity: identity.to_string(),
+                source,
+            })
+    }
+
+    /// The zenoh configuration these settings describe, for the process whose TLS
+    /// identity is `identity` (`<role>.<name>`; unused without TLS).
+    pub fn to_config(&self, identity: &str) -> Result<zenoh::Config, SessionError> {
+        let tls = self.identity_files(identity)?;
+        let mut config = match (&self.config_file, &tls) {
+            (Some(path), _) => load_file(path)?,
+            (None, Some(files)) => match &files.access_control {
+                Some(path) => load_file(path)?,
+                None => zenoh::Config::default(),
+            },
+            (None, None) => zenoh::Config::default(),
+        };
+        if let (Some(_), Some(files)) = (&self.config_file, &tls) {
+            if let Some(path) = &files.access_control {
+                let access = load_file(path)?;
+                let value =
+                    access
+                        .get_json("access_control")
+                        .map_err(|e| SessionError::ConfigFile {
+                            path: path.display().to_string(),
+                            message: e.to_string(),
+                        })?;
+                config.insert_json5("access_control", &value).map_err(|e| {
+                    SessionError::ConfigFile {
+                        path: path.display().to_string(),
+                        message: e.to_string(),
+                    }
+                })?;
+            }
+        }
         let mut set = |key: &'static str, value: String| {
             config
                 .insert_json5(key, &value)
@@ -99,18 +171,71 @@ impl ZenohSettings {
         // A peer keeps retrying its connect endpoints rather than failing to start.
         set("connect/timeout_ms", "-1".into())?;
         set("connect/exit_on_failure", "false".into())?;
+        if let Some(files) = &tls {
+            for endpoint in self.connect.iter().chain(&self.listen) {
+                if !endpoint.starts_with("tls/") {
+                    return Err(SessionError::Config {
+                        key: "tls",
+                        message: format!(
+                            "with [zenoh.tls] every endpoint must be tls/..., not {endpoint}"
+                        ),
+                    });
+                }
+            }
+            let path = |p: &Path| json(&p.display().to_string().into());
+            set("transport/link/tls/root_ca_certificate", path(&files.ca))?;
+            set(
+                "transport/link/tls/listen_certificate",
+                path(&files.certificate),
+            )?;
+            set("transport/link/tls/listen_private_key", path(&files.key))?;
+            set(
+                "transport/link/tls/connect_certificate",
+                path(&files.certificate),
+            )?;
+            set("transport/link/tls/connect_private_key", path(&files.key))?;
+            set("transport/link/tls/enable_mtls", "true".into())?;
+            set("transport/link/tls/verify_name_on_connect", "true".into())?;
+            set("transport/link/tls/close_link_on_expiration", "true".into())?;
+        }
         Ok(config)
     }
 
-    /// Opens the session, bounded by `timeout`.
-    pub async fn open(&self, timeout: Duration) -> Result<zenoh::Session, SessionError> {
-        let config = self.to_config()?;
+    /// Opens the session of `identity` (see `to_config`), bounded by `timeout`.
+    pub async fn open(
+        &self,
+        identity: &str,
+        timeout: Duration,
+    ) -> Result<zenoh::Session, SessionError> {
+        let mut config = self.to_config(identity)?;
+        if self.mode == "client" {
+            // A client (an operator's command) gives up instead of retrying for ever:
+            // zenoh's open does not return while it retries its connect endpoints.
+            for (key, value) in [
+                ("connect/timeout_ms", timeout.as_millis().max(1).to_string()),
+                ("connect/exit_on_failure", "true".to_string()),
+            ] {
+                config
+                    .insert_json5(key, &value)
+                    .map_err(|e| SessionError::Config {
+                        key: "connect",
+                        message: e.to_string(),
+                    })?;
+            }
+        }
         match tokio::time::timeout(timeout, zenoh::open(config)).await {
             Ok(Ok(session)) => Ok(session),
             Ok(Err(e)) => Err(SessionError::Open(e.to_string())),
             Err(_) => Err(SessionError::Timeout(timeout)),
         }
     }
+}
+
+fn load_file(path: &Path) -> Result<zenoh::Config, SessionError> {
+    zenoh::Config::from_file(path).map_err(|e| SessionError::ConfigFile {
+        path: path.display().to_string(),
+        message: e.to_string(),
+    })
 }
 
 /// Waits until the session is connected to at least one router or peer; false if it
@@ -141,6 +266,9 @@ pub struct CommandLine {
     pub data_dir: Option<std::path::PathBuf>,
     /// Replaces `zenoh.lease_ms`.
     pub lease_ms: Option<u64>,
+    /// Turns on mutual TLS with the identity files in this PKI directory (replaces
+    /// `[zenoh.tls]`).
+    pub pki: Option<PathBuf>,
 }
 
 impl CommandLine {
@@ -170,6 +298,12 @@ impl CommandLine {
         if self.lease_ms.is_some() {
             zenoh.lease_ms = self.lease_ms;
         }
+        if let Some(pki) = &self.pki {
+            zenoh.tls = Some(TlsSettings {
+                pki: Some(pki.clone()),
+                ..TlsSettings::default()
+            });
+        }
     }
 }
 
@@ -183,8 +317,8 @@ mod tests {
             connect: vec!["tcp/127.0.0.1:7447".into()],
             ..ZenohSettings::default()
         };
-        settings.validate().unwrap();
-        let config = settings.to_config().unwrap();
+        settings.validate("resource.robot1").unwrap();
+        let config = settings.to_config("resource.robot1").unwrap();
         let text = format!("{config}");
         assert!(text.contains("tcp/127.0.0.1:7447"), "{text}");
     }
@@ -195,11 +329,11 @@ mod tests {
             mode: "router-ish".into(),
             ..ZenohSettings::default()
         };
-        assert!(bad_mode.validate().is_err());
+        assert!(bad_mode.validate("x").is_err());
         let bad_endpoint = ZenohSettings {
             connect: vec!["nonsense".into()],
             ..ZenohSettings::default()
         };
-        assert!(bad_endpoint.validate().is_err());
+        assert!(bad_endpoint.validate("x").is_err());
     }
 }

@@ -59,6 +59,18 @@ struct OrdersSection {
     vanished_grace_ms: u64,
     #[serde(default = "d_request")]
     request_timeout_ms: u64,
+    #[serde(default = "d_max_per_submit")]
+    max_orders_per_submit: u32,
+    #[serde(default = "d_max_unfinished")]
+    max_unfinished_orders: usize,
+}
+
+fn d_max_per_submit() -> u32 {
+    1000
+}
+
+fn d_max_unfinished() -> usize {
+    5000
 }
 
 fn d_request() -> u64 {
@@ -99,6 +111,8 @@ impl Default for OrdersSection {
             step_timeout_ms: d_step(),
             vanished_grace_ms: d_grace(),
             request_timeout_ms: d_request(),
+            max_orders_per_submit: d_max_per_submit(),
+            max_unfinished_orders: d_max_unfinished(),
         }
     }
 }
@@ -127,6 +141,11 @@ pub struct OrderSettings {
     pub vanished_grace: Duration,
     /// Longest wait for a resource's answer to one request (booking, start, cancel).
     pub request_timeout: Duration,
+    /// The most orders one work order may create; a larger `count` is refused (`quota`).
+    pub max_orders_per_submit: u32,
+    /// The most unfinished orders this node hosts; a work order that would pass it is
+    /// refused whole (`quota`).
+    pub max_unfinished_orders: usize,
 }
 
 #[derive(Debug, Clone)]
@@ -159,6 +178,9 @@ impl OrderNodeConfig {
             message,
         };
         let mut file: File = toml::from_str(text).map_err(|e| invalid(e.to_string()))?;
+        if let Some(base) = Path::new(path).parent() {
+            file.zenoh.resolve_paths(base);
+        }
         overrides.apply(
             &mut file.cell,
             &mut file.name,
@@ -173,7 +195,7 @@ impl OrderNodeConfig {
             ));
         }
         file.zenoh
-            .validate()
+            .validate(&holon::tls::identity("order-node", &file.name))
             .map_err(|e| invalid(format!("zenoh: {e}")))?;
         let o = &file.orders;
         for (field, value) in [
@@ -184,6 +206,14 @@ impl OrderNodeConfig {
             ("orders.retry_max_ms", o.retry_max_ms),
             ("orders.step_timeout_ms", o.step_timeout_ms),
             ("orders.request_timeout_ms", o.request_timeout_ms),
+            (
+                "orders.max_orders_per_submit",
+                o.max_orders_per_submit as u64,
+            ),
+            (
+                "orders.max_unfinished_orders",
+                o.max_unfinished_orders as u64,
+            ),
         ] {
             if value == 0 {
                 return Err(invalid(format!("{field} must be greater than 0")));
@@ -208,6 +238,8 @@ impl OrderNodeConfig {
                 step_timeout: Duration::from_millis(o.step_timeout_ms),
                 vanished_grace: Duration::from_millis(o.vanished_grace_ms),
                 request_timeout: Duration::from_millis(o.request_timeout_ms),
+                max_orders_per_submit: o.max_orders_per_submit,
+                max_unfinished_orders: o.max_unfinished_orders,
             },
             data_dir: file.journal.dir,
             durability: file.journal.durability,

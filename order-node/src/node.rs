@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use schemas::{ErrorReply, HolonId, SubmitReply, WorkOrder};
+use schemas::{CancelReply, ErrorReply, HolonId, SubmitReply, WorkOrder};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
@@ -51,6 +51,8 @@ struct Tasks {
 struct Hosted {
     progress: Arc<Mutex<OrderProgress>>,
     restarts: u32,
+    /// Cancelled when an operator cancels the order (`cell cancel`).
+    operator_cancel: CancellationToken,
 }
 
 struct Host {
@@ -102,6 +104,10 @@ impl Host {
         cancel: &CancellationToken,
     ) {
         let running = !progress.status.is_final();
+        let operator_cancel = CancellationToken::new();
+        if progress.cancel_requested {
+            operator_cancel.cancel();
+        }
         let progress = Arc::new(Mutex::new(progress));
         self.orders
             .lock()
@@ -111,6 +117,7 @@ impl Host {
                 Hosted {
                     progress: progress.clone(),
                     restarts: 0,
+                    operator_cancel,
                 },
             );
         if running {
@@ -142,8 +149,66 @@ impl Host {
     ) {
         let context = self.context.clone();
         let cancel = cancel.child_token();
-        let handle = tasks.set.spawn(order::run(context, progress, cancel));
+        let operator_cancel = self
+            .orders
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(name)
+            .map(|h| h.operator_cancel.clone())
+            .unwrap_or_default();
+        let handle = tasks
+            .set
+            .spawn(order::run(context, progress, cancel, operator_cancel));
         tasks.names.insert(handle.id(), name.to_string());
+    }
+
+    /// Unfinished orders hosted here.
+    fn unfinished(&self) -> usize {
+        let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+        orders
+            .values()
+            .filter(|h| {
+                !h.progress
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .status
+                    .is_final()
+            })
+            .count()
+    }
+
+    /// Records an operator's cancel of `name` and tells its task; what to answer.
+    fn cancel(&self, name: &str) -> Result<CancelReply, String> {
+        let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+        let hosted = orders
+            .get(name)
+            .ok_or_else(|| format!("{name} is not an order of {}", self.config.name))?;
+        let mut progress = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
+        if progress.status.is_final() {
+            return Ok(CancelReply {
+                order: name.to_string(),
+                cancelled: false,
+                status: progress.status,
+                detail: format!("the order has already ended ({:?})", progress.status),
+            });
+        }
+        if !progress.cancel_requested {
+            progress.cancel_requested = true;
+            self.context.save(&progress)?;
+        }
+        hosted.operator_cancel.cancel();
+        info!(node = %self.config.name, order = %name, "cancel requested by an operator");
+        Ok(CancelReply {
+            order: name.to_string(),
+            cancelled: true,
+            status: progress.status,
+            detail: match progress.phase {
+                crate::progress::Phase::Started(_) => {
+                    "its running step finishes first, then it ends as cancelled".into()
+                }
+                _ => "its bookings are cancelled and it ends as cancelled".into(),
+            },
+        })
     }
 
     fn snapshots_matching(&self, key: &KeyExpr<'_>) -> Vec<(String, Vec<u8>)> {
@@ -191,6 +256,7 @@ pub fn parse_submit(text: &str) -> Result<WorkOrder, NodeError> {
 }
 
 enum Incoming {
+    Cancel(Query),
     Submit(Query),
     State(Query),
     Inbox(Query),
@@ -203,7 +269,13 @@ pub async fn run(
     shutdown: CancellationToken,
 ) -> Result<(), NodeError> {
     let z = |e: zenoh::Error| NodeError::Zenoh(e.to_string());
-    let session = config.zenoh.open(Duration::from_secs(10)).await?;
+    let session = config
+        .zenoh
+        .open(
+            &holon::tls::identity("order-node", &config.name),
+            Duration::from_secs(10),
+        )
+        .await?;
     let presence = Presence::watch(&session, &config.keys).await.map_err(z)?;
     let journal = match &config.data_dir {
         Some(dir) => Some(Arc::new(Journal::open(
@@ -241,6 +313,7 @@ pub async fn run(
     let (incoming_tx, mut incoming) = mpsc::unbounded_channel();
     let submit_tx = incoming_tx.clone();
     let inbox_tx = incoming_tx.clone();
+    let cancel_tx = incoming_tx.clone();
     let _submit = session
         .declare_queryable(config.keys.orders_submit())
         .complete(true)
@@ -250,7 +323,7 @@ pub async fn run(
         .await
         .map_err(z)?;
     let _states = session
-        .declare_queryable(config.keys.order_states())
+        .declare_queryable(config.keys.node_orders(&config.name, "state"))
         .callback(move |query| {
             let _ = incoming_tx.send(Incoming::State(query));
         })
@@ -259,9 +332,16 @@ pub async fn run(
     // Results for finished orders (duplicates, late reports of abandoned attempts) are
     // acknowledged here; running orders answer on their own inbox.
     let _inboxes = session
-        .declare_queryable(config.keys.inbox("*"))
+        .declare_queryable(config.keys.node_orders(&config.name, "inbox"))
         .callback(move |query| {
             let _ = inbox_tx.send(Incoming::Inbox(query));
+        })
+        .await
+        .map_err(z)?;
+    let _cancels = session
+        .declare_queryable(config.keys.node_orders(&config.name, "cancel"))
+        .callback(move |query| {
+            let _ = cancel_tx.send(Incoming::Cancel(query));
         })
         .await
         .map_err(z)?;
@@ -295,6 +375,7 @@ pub async fn run(
             Some(query) = incoming.recv() => match query {
                 Incoming::Submit(query) => submit(&host, query, &mut tasks, &orders_cancel).await,
                 Incoming::Inbox(query) => acknowledge_finished(&host, query).await,
+                Incoming::Cancel(query) => cancel(&host, query).await,
                 Incoming::State(query) => {
                     for (key, payload) in host.snapshots_matching(query.key_expr()) {
                         let _ = query.reply(key, payload).await;
@@ -377,6 +458,31 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
             return;
         }
     };
+    let limits = &host.config.orders;
+    let unfinished = host.unfinished();
+    let refusal = if work.count > limits.max_orders_per_submit {
+        Some(format!(
+            "count {} is over this node's limit of {} orders per work order (orders.max_orders_per_submit)",
+            work.count, limits.max_orders_per_submit
+        ))
+    } else if unfinished + work.count as usize > limits.max_unfinished_orders {
+        Some(format!(
+            "{unfinished} orders are unfinished; {} more would pass this node's limit of {} (orders.max_unfinished_orders)",
+            work.count, limits.max_unfinished_orders
+        ))
+    } else {
+        None
+    };
+    if let Some(why) = refusal {
+        warn!(node = %host.config.name, product = %work.product, count = work.count, "work order refused: {why}");
+        if let Err(e) = query
+            .reply_err(ErrorReply::new("quota", why).to_json())
+            .await
+        {
+            warn!(node = %host.config.name, error = %e, "cannot refuse the work order");
+        }
+        return;
+    }
     let orders = match host.create(&work, tasks, cancel) {
         Ok(orders) => orders,
         Err(e) => {
@@ -393,6 +499,30 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
     let reply = serde_json::to_vec(&SubmitReply { orders }).expect("serializes");
     if let Err(e) = query.reply(query.key_expr().clone(), reply).await {
         warn!(node = %host.config.name, error = %e, "cannot answer the work order");
+    }
+}
+
+/// An operator's cancel of one order (`order/<name>/cancel`).
+async fn cancel(host: &Host, query: Query) {
+    let key = query.key_expr().as_str().to_string();
+    let name = key
+        .strip_suffix("/cancel")
+        .and_then(|k| k.rsplit('/').next())
+        .unwrap_or_default();
+    let answer = match host.cancel(name) {
+        Ok(reply) => {
+            let payload = serde_json::to_vec(&reply).expect("serializes");
+            query.reply(host.config.keys.cancel(name), payload).await
+        }
+        Err(why) => {
+            warn!(node = %host.config.name, order = %name, "cancel refused: {why}");
+            query
+                .reply_err(ErrorReply::new("unknown_order", why).to_json())
+                .await
+        }
+    };
+    if let Err(e) = answer {
+        warn!(node = %host.config.name, order = %name, error = %e, "cannot answer a cancel");
     }
 }
 

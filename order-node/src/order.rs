@@ -254,6 +254,17 @@ pub struct Delivery {
 }
 
 impl Delivery {
+    /// Refuses a result with an error reply (the resource logs it and retries).
+    async fn refuse(self, code: &str, message: String) {
+        if let Err(e) = self
+            .query
+            .reply_err(schemas::ErrorReply::new(code, message).to_json())
+            .await
+        {
+            warn!(conversation_id = %self.message.conversation_id, error = %e, "cannot refuse a result");
+        }
+    }
+
     async fn acknowledge(self) {
         let mut ack = self.message.clone();
         ack.result = Some(true);
@@ -264,11 +275,13 @@ impl Delivery {
     }
 }
 
-/// Runs one order until it is done, scrapped or failed, or `cancel` is cancelled.
+/// Runs one order until it is done, scrapped, failed or cancelled by an operator
+/// (`operator_cancel`), or its node stops (`cancel`).
 pub async fn run(
     ctx: Arc<OrderContext>,
     progress: Shared,
     cancel: CancellationToken,
+    operator_cancel: CancellationToken,
 ) -> Result<(), String> {
     let holon = lock(&progress).holon.clone();
     let session = &ctx.session;
@@ -353,7 +366,12 @@ pub async fn run(
                     None => break,
                 }
             };
-            let (outcome, delivery) = attempt_step(
+            if operator_cancel.is_cancelled() {
+                cancel_order(&ctx, &progress, &holon, &step, &conversation_id).await?;
+                publish(&progress).await;
+                break;
+            }
+            let attempt = attempt_step(
                 &ctx,
                 &progress,
                 &step,
@@ -361,12 +379,36 @@ pub async fn run(
                 &mut inbox,
                 &mut changes,
                 &publish,
-            )
-            .await?;
+            );
+            tokio::pin!(attempt);
+            // An operator's cancel stops the attempt unless its step runs: a running
+            // step is let finish and its result recorded.
+            let mut finishing = false;
+            let (outcome, delivery) = loop {
+                tokio::select! {
+                    ended = &mut attempt => break ended?,
+                    _ = operator_cancel.cancelled(), if !finishing => {
+                        if matches!(lock(&progress).phase, Phase::Started(_)) {
+                            info!(holon = %holon, %conversation_id, "cancel requested: the running step finishes first");
+                            finishing = true;
+                        } else {
+                            break (StepOutcome::Cancelled, None);
+                        }
+                    }
+                }
+            };
+            if outcome == StepOutcome::Cancelled {
+                cancel_order(&ctx, &progress, &holon, &step, &conversation_id).await?;
+                publish(&progress).await;
+                break;
+            }
             info!(holon = %holon, %conversation_id, outcome = ?outcome, "step attempt ended");
             {
                 let mut p = lock(&progress);
                 p.record(outcome);
+                if finishing {
+                    p.cancel();
+                }
                 ctx.save(&p)?;
             }
             // Recorded: now the result may be acknowledged.
@@ -389,6 +431,44 @@ pub async fn run(
     // Results still arriving for this order (duplicates, late reports of abandoned
     // attempts) are acknowledged by the node from now on.
     let _ = token.undeclare().await;
+    Ok(())
+}
+
+/// Ends the order as cancelled: a booking it holds (or may hold) is cancelled first.
+async fn cancel_order(
+    ctx: &OrderContext,
+    progress: &Shared,
+    holon: &HolonId,
+    step: &PlanStep,
+    conversation_id: &str,
+) -> Result<(), String> {
+    let phase = lock(progress).phase.clone();
+    if let Phase::Booking(resource) | Phase::Booked(resource) = &phase {
+        let cancel = request(
+            ctx,
+            holon,
+            MessageType::BookingCancel,
+            step,
+            conversation_id,
+        );
+        match ask(ctx, &ctx.keys.service(resource.name()), &cancel).await {
+            Some(answer) if answer.result == Some(true) => {
+                info!(holon = %holon, %conversation_id, resource = %resource, "booking cancelled with the order")
+            }
+            _ => {
+                // Not reachable now: cancel it when it is back (from its journal).
+                tokio::spawn(cancel_when_back(
+                    ctx.session.clone(),
+                    ctx.keys.service(resource.name()),
+                    cancel,
+                ));
+            }
+        }
+    }
+    let mut p = lock(progress);
+    p.cancel();
+    ctx.save(&p)?;
+    info!(holon = %holon, "order cancelled by an operator");
     Ok(())
 }
 
@@ -557,8 +637,15 @@ async fn watch(
                     delivery.acknowledge().await;
                     continue;
                 }
+                if delivery.message.provider.as_ref() != Some(provider) {
+                    // Only the resource this attempt booked reports its result.
+                    let from = delivery.message.provider.as_ref().map(|p| p.to_string()).unwrap_or_default();
+                    warn!(%conversation_id, booked = %provider, from = %from, "result from a resource this attempt did not book refused");
+                    delivery.refuse("not_booked", format!("{conversation_id} is booked on {provider}, not {from:?}")).await;
+                    continue;
+                }
                 let message = &delivery.message;
-                let from = message.provider.clone().unwrap_or_else(|| provider.clone());
+                let from = provider.clone();
                 let outcome = match message.message_type {
                     MessageType::Done => StepOutcome::Done { provider: from, results: message.info.get("results").and_then(|r| r.as_object()).cloned().unwrap_or_default() },
                     _ if message.reason.as_deref() == Some(reason::WITHDRAWN) => StepOutcome::Lost { provider: from, why: reason::WITHDRAWN.into() },

@@ -48,6 +48,8 @@ pub enum StepOutcome {
     Lost { provider: HolonId, why: String },
     /// No resource could be booked within the allowed time.
     NoResource,
+    /// An operator cancelled the order before the step started.
+    Cancelled,
 }
 
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -75,6 +77,10 @@ pub struct OrderProgress {
     pub phase: Phase,
     /// Failed attempts of one step before the order fails.
     pub max_attempts: u32,
+    /// An operator asked to cancel the order (recorded before the request is
+    /// acknowledged; a restarted node carries it out).
+    #[serde(default)]
+    pub cancel_requested: bool,
 }
 
 impl OrderProgress {
@@ -95,6 +101,16 @@ impl OrderProgress {
             completed: Vec::new(),
             phase: Phase::Proposing,
             max_attempts: max_attempts.max(1),
+            cancel_requested: false,
+        }
+    }
+
+    /// Ends a running order as cancelled by an operator.
+    pub fn cancel(&mut self) {
+        if self.status == OrderStatus::Running {
+            self.status = OrderStatus::Cancelled;
+            self.reason = Some("cancelled by an operator".into());
+            self.phase = Phase::Proposing;
         }
     }
 
@@ -191,6 +207,7 @@ impl OrderProgress {
                 self.rebooks += 1;
                 self.next_attempt();
             }
+            StepOutcome::Cancelled => self.cancel(),
             StepOutcome::NoResource => {
                 self.fail(format!(
                     "step {} ({}): no resource could be booked",

@@ -106,6 +106,19 @@ impl CellKeys {
         format!("{}/order/{order}/inbox", self.prefix())
     }
 
+    /// `holarchy/<cell>/order/<name>/cancel`: an operator cancels an order.
+    pub fn cancel(&self, order: &str) -> String {
+        format!("{}/order/{order}/cancel", self.prefix())
+    }
+
+    /// `holarchy/<cell>/order/<node>-$*/<leaf>`: `leaf` (`inbox`, `state`, `cancel`) of
+    /// every order an order-node hosts (its orders are named `<node>-<n>`). The node
+    /// declares its queryables on these, so it never answers for another node's orders
+    /// and access control can grant each node its own orders' keys.
+    pub fn node_orders(&self, node: &str, leaf: &str) -> String {
+        format!("{}/order/{node}-$*/{leaf}", self.prefix())
+    }
+
     /// `holarchy/<cell>/orders/submit`.
     pub fn orders_submit(&self) -> String {
         format!("{}/orders/submit", self.prefix())

@@ -13,7 +13,9 @@ pub mod state;
 
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
-pub use plan::{OnReject, OrderSnapshot, OrderStatus, Plan, PlanStep, SubmitReply, WorkOrder};
+pub use plan::{
+    CancelReply, OnReject, OrderSnapshot, OrderStatus, Plan, PlanStep, SubmitReply, WorkOrder,
+};
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{reason, ErrorReply, MessageType, Service, SERVICE_VERSION};
 pub use state::{unix_ms, BookingView, CurrentJobView, ResourceSnapshot};

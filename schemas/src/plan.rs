@@ -116,6 +116,18 @@ pub struct SubmitReply {
     pub orders: Vec<String>,
 }
 
+/// The answer to `order/<name>/cancel` (an operator's `cell cancel`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct CancelReply {
+    pub order: String,
+    /// True when the order was running and will end as `cancelled`.
+    pub cancelled: bool,
+    /// Its status when the request arrived.
+    pub status: OrderStatus,
+    /// What happens next, for the operator.
+    pub detail: String,
+}
+
 /// An order's status.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
@@ -127,6 +139,9 @@ pub enum OrderStatus {
     Scrapped,
     /// The order could not be completed (`reason` says why).
     Failed,
+    /// An operator cancelled the order (`cell cancel`): its bookings were cancelled; a
+    /// step already running was let finish.
+    Cancelled,
 }
 
 impl OrderStatus {

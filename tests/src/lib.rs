@@ -301,7 +301,7 @@ impl Cell {
             ..holon::ZenohSettings::default()
         };
         let session = settings
-            .open(WAIT)
+            .open("router.local", WAIT)
             .await
             .map_err(|e| anyhow!("open zenoh: {e}"))?;
         Ok(Cell {

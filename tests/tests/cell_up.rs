@@ -90,7 +90,7 @@ args = ["--config", "robot1.toml", "--cell", "t-up", "--controller", "127.0.0.1:
         connect: vec![router.clone()],
         ..Default::default()
     }
-    .open(WAIT)
+    .open("router.local", WAIT)
     .await
     .unwrap();
     let keys = schemas::CellKeys::new("t-up").unwrap();

@@ -1,0 +1,250 @@
+//! The cell's zenoh access control, generated from its identities (never written by
+//! hand per host): what each role may send into the cell, keyed by the common name of
+//! the certificate on the link. Every holon and router loads the same file and enforces
+//! it on its own links (zenoh guards only a node's own links; peers link directly).
+//!
+//! | role | may declare (queryable, token, publication) | may query / subscribe |
+//! |---|---|---|
+//! | `resource.<r>` | `resource/<r>/{service,state,debug/crash}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results) |
+//! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | nothing |
+//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, states, liveliness |
+//! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, states, plans, liveliness |
+//! | `observer.<o>` | nothing | states, plans, liveliness |
+//! | `router.<h>` | everything (routers forward for others; trusted) | everything |
+//!
+//! Every rule is an ingress rule: it limits what a link may bring in. Anything may go
+//! out to a known identity (egress), since what reaches a link is only what it asked
+//! for. An identity not listed (a certificate of the cell CA issued after the running
+//! processes loaded the file) matches no subject and is denied everything.
+
+use serde_json::{json, Value};
+
+/// A role: what the first part of an identity says.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Role {
+    Resource,
+    Product,
+    OrderNode,
+    Operator,
+    Observer,
+    Router,
+}
+
+impl Role {
+    pub fn parse(text: &str) -> Option<Role> {
+        Some(match text {
+            "resource" => Role::Resource,
+            "product" => Role::Product,
+            "order-node" => Role::OrderNode,
+            "operator" => Role::Operator,
+            "observer" => Role::Observer,
+            "router" => Role::Router,
+            _ => return None,
+        })
+    }
+}
+
+/// Splits `<role>.<name>` and checks both parts.
+pub fn parse_identity(identity: &str) -> anyhow::Result<(Role, &str)> {
+    let (role, name) = identity.split_once('.').ok_or_else(|| {
+        anyhow::anyhow!("identity {identity:?} is not <role>.<name> (e.g. resource.robot1)")
+    })?;
+    let role = Role::parse(role).ok_or_else(|| {
+        anyhow::anyhow!(
+            "identity {identity:?}: the role {role:?} is not resource, product, order-node, operator, observer or router"
+        )
+    })?;
+    schemas::validate_name("identity name", name)?;
+    Ok((role, name))
+}
+
+const DECLARE: &[&str] = &["declare_queryable", "reply"];
+const READ: &[&str] = &[
+    "query",
+    "declare_subscriber",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+];
+const ALL: &[&str] = &[
+    "put",
+    "delete",
+    "declare_subscriber",
+    "query",
+    "declare_queryable",
+    "reply",
+    "liveliness_token",
+    "declare_liveliness_subscriber",
+    "liveliness_query",
+];
+
+/// The rules of one identity: (messages, key expressions under `holarchy/<cell>/`).
+fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)> {
+    // What every reader may read: states, plans, presence.
+    let reading = || {
+        vec![
+            "*/*/state".to_string(),
+            "product/*/plan".to_string(),
+            "alive/**".to_string(),
+            "host/**".to_string(),
+        ]
+    };
+    match role {
+        Role::Resource => vec![
+            (
+                DECLARE,
+                vec![
+                    format!("resource/{name}/service"),
+                    format!("resource/{name}/state"),
+                    format!("resource/{name}/debug/crash"),
+                    format!("offer/*/{name}"),
+                ],
+            ),
+            (&["put"], vec![format!("resource/{name}/state")]),
+            (
+                &["liveliness_token"],
+                vec![format!("alive/resource/{name}")],
+            ),
+            (&["query"], vec!["order/*/inbox".to_string()]),
+        ],
+        Role::Product => vec![
+            (
+                DECLARE,
+                vec![
+                    format!("product/{name}/plan"),
+                    format!("product/{name}/state"),
+                ],
+            ),
+            (&["put"], vec![format!("product/{name}/state")]),
+            (&["liveliness_token"], vec![format!("alive/product/{name}")]),
+        ],
+        Role::OrderNode => vec![
+            (
+                DECLARE,
+                vec![
+                    "orders/submit".to_string(),
+                    format!("order/{name}-$*/inbox"),
+                    format!("order/{name}-$*/state"),
+                    format!("order/{name}-$*/cancel"),
+                ],
+            ),
+            (&["put"], vec![format!("order/{name}-$*/state")]),
+            (
+                &["liveliness_token"],
+                vec![
+                    format!("alive/order/{name}-$*"),
+                    format!("host/order-node/{name}"),
+                ],
+            ),
+            (READ, {
+                let mut keys = reading();
+                keys.extend(["resource/*/service".to_string(), "offer/**".to_string()]);
+                keys
+            }),
+        ],
+        Role::Operator => vec![(READ, {
+            let mut keys = reading();
+            keys.extend(["orders/submit".to_string(), "order/*/cancel".to_string()]);
+            keys
+        })],
+        Role::Observer => vec![(READ, reading())],
+        Role::Router => vec![(ALL, vec!["**".to_string()])],
+    }
+}
+
+/// The `access_control` section for a cell and its identities, as a zenoh config
+/// (`{"access_control": {...}}`): default deny, one subject per identity.
+pub fn access_control(cell: &str, identities: &[String]) -> anyhow::Result<Value> {
+    let mut rules = vec![json!({
+        "id": "egress",
+        "messages": ALL,
+        "flows": ["egress"],
+        "permission": "allow",
+        "key_exprs": ["**"],
+    })];
+    let mut subjects = Vec::new();
+    let mut policies = Vec::new();
+    for identity in identities {
+        let (role, name) = parse_identity(identity)?;
+        subjects.push(json!({ "id": identity, "cert_common_names": [identity] }));
+        let mut rule_ids = vec!["egress".to_string()];
+        for (index, (messages, keys)) in grants(role, name).into_iter().enumerate() {
+            let id = format!("{identity}/{index}");
+            let keys: Vec<String> = keys
+                .into_iter()
+                .map(|k| {
+                    if k == "**" {
+                        k
+                    } else {
+                        format!("{}/{cell}/{k}", schemas::keys::ROOT)
+                    }
+                })
+                .collect();
+            rules.push(json!({
+                "id": id,
+                "messages": messages,
+                "flows": ["ingress"],
+                "permission": "allow",
+                "key_exprs": keys,
+            }));
+            rule_ids.push(id);
+        }
+        policies.push(json!({ "id": identity, "rules": rule_ids, "subjects": [identity] }));
+    }
+    Ok(json!({
+        "access_control": {
+            "enabled": true,
+            "default_permission": "deny",
+            "rules": rules,
+            "subjects": subjects,
+            "policies": policies,
+        }
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn identities_are_role_dot_name() {
+        assert_eq!(
+            parse_identity("resource.robot1").unwrap(),
+            (Role::Resource, "robot1")
+        );
+        assert_eq!(
+            parse_identity("order-node.orders1").unwrap().0,
+            Role::OrderNode
+        );
+        for bad in ["robot1", "robot.robot1", "resource.", "resource.Robot1"] {
+            assert!(parse_identity(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn the_generated_access_control_is_a_valid_zenoh_config() {
+        let identities: Vec<String> = [
+            "router.local",
+            "resource.robot1",
+            "product.breaker",
+            "order-node.orders1",
+            "operator.default",
+            "observer.default",
+        ]
+        .map(String::from)
+        .to_vec();
+        let value = access_control("demo", &identities).unwrap();
+        let mut config = zenoh::Config::default();
+        config
+            .insert_json5("access_control", &value["access_control"].to_string())
+            .unwrap();
+        let text = value.to_string();
+        assert!(
+            text.contains("holarchy/demo/resource/robot1/service"),
+            "{text}"
+        );
+        assert!(
+            text.contains("holarchy/demo/order/orders1-$*/inbox"),
+            "{text}"
+        );
+    }
+}
