@@ -125,19 +125,16 @@ impl Host {
         }
     }
 
-    /// Whether `name` is an order of this node that has finished.
-    fn is_finished(&self, name: &str) -> bool {
-        self.orders
+    /// The progress of `name` if it is an order of this node that has finished.
+    fn finished(&self, name: &str) -> Option<OrderProgress> {
+        let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+        let progress = orders
+            .get(name)?
+            .progress
             .lock()
             .unwrap_or_else(|e| e.into_inner())
-            .get(name)
-            .is_some_and(|h| {
-                h.progress
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .status
-                    .is_final()
-            })
+            .clone();
+        progress.status.is_final().then_some(progress)
     }
 
     fn spawn(
@@ -537,14 +534,27 @@ async fn acknowledge_finished(host: &Host, query: Query) {
     else {
         return;
     };
-    if !host.is_finished(&name) {
+    let Some(progress) = host.finished(&name) else {
         return; // dropped without a reply: the order's own inbox answers
-    }
+    };
     let payload = query
         .payload()
         .map(|p| p.to_bytes().into_owned())
         .unwrap_or_default();
     if let Ok(message) = schemas::Service::from_json(&payload) {
+        if !progress.knows(message.provider.as_ref()) {
+            warn!(order = %name, conversation_id = %message.conversation_id, "result for a finished order from a resource it never booked refused");
+            if let Err(e) = query
+                .reply_err(
+                    ErrorReply::new("not_booked", "this order never booked that resource")
+                        .to_json(),
+                )
+                .await
+            {
+                warn!(order = %name, error = %e, "cannot refuse a result");
+            }
+            return;
+        }
         info!(order = %name, conversation_id = %message.conversation_id, message_type = %message.message_type, "result for a finished order acknowledged");
         let mut ack = message;
         ack.result = Some(true);

@@ -584,9 +584,11 @@ enum Wait {
 /// and report before the attempt counts as lost. Before `started`, the pause also ends
 /// when the provider publishes that it is free with this conversation first.
 #[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments)]
 async fn watch(
     ctx: &OrderContext,
     provider: &HolonId,
+    worked_with: &BTreeSet<HolonId>,
     conversation_id: &str,
     pause: Duration,
     started: bool,
@@ -632,9 +634,16 @@ async fn watch(
             delivery = inbox.recv() => {
                 let Some(delivery) = delivery else { return lost("inbox closed") };
                 if delivery.message.conversation_id != conversation_id {
-                    // A duplicate of a recorded result, or a late report of an abandoned attempt.
-                    info!(conversation_id = %delivery.message.conversation_id, current = %conversation_id, "result of an earlier conversation acknowledged and ignored");
-                    delivery.acknowledge().await;
+                    // A duplicate of a recorded result, or a late report of an abandoned
+                    // attempt: acknowledged (no effect) if it comes from a resource this
+                    // order booked, refused otherwise.
+                    if delivery.message.provider.as_ref().is_some_and(|p| worked_with.contains(p)) {
+                        info!(conversation_id = %delivery.message.conversation_id, current = %conversation_id, "result of an earlier conversation acknowledged and ignored");
+                        delivery.acknowledge().await;
+                    } else {
+                        warn!(conversation_id = %delivery.message.conversation_id, current = %conversation_id, "result from a resource this order never booked refused");
+                        delivery.refuse("not_booked", "this order never booked that resource".into()).await;
+                    }
                     continue;
                 }
                 if delivery.message.provider.as_ref() != Some(provider) {
@@ -688,7 +697,7 @@ where
     let holon = lock(progress).holon.clone();
     let set_phase = |phase: Phase| -> Result<(), String> {
         let mut p = lock(progress);
-        p.phase = phase;
+        p.set_phase(phase);
         ctx.save(&p)
     };
     let give_up = Instant::now() + settings.no_resource_timeout;
@@ -796,9 +805,11 @@ where
                     },
                     None => {}
                 }
+                let worked_with = lock(progress).worked_with.clone();
                 if let Wait::Ended(outcome, delivery) = watch(
                     ctx,
                     &provider,
+                    &worked_with,
                     conversation_id,
                     back_off(&mut backoff),
                     false,
@@ -827,10 +838,12 @@ where
                 }
             }
             Phase::Started(provider) => {
+                let worked_with = lock(progress).worked_with.clone();
                 return Ok(
                     match watch(
                         ctx,
                         &provider,
+                        &worked_with,
                         conversation_id,
                         settings.step_timeout,
                         true,

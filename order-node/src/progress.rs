@@ -81,6 +81,10 @@ pub struct OrderProgress {
     /// acknowledged; a restarted node carries it out).
     #[serde(default)]
     pub cancel_requested: bool,
+    /// Every resource an attempt of this order was booked on: the only ones whose
+    /// results of earlier conversations (duplicates, late reports) are acknowledged.
+    #[serde(default)]
+    pub worked_with: BTreeSet<HolonId>,
 }
 
 impl OrderProgress {
@@ -102,7 +106,22 @@ impl OrderProgress {
             phase: Phase::Proposing,
             max_attempts: max_attempts.max(1),
             cancel_requested: false,
+            worked_with: BTreeSet::new(),
         }
+    }
+
+    /// Moves the current attempt to `phase`, remembering the resource it names.
+    pub fn set_phase(&mut self, phase: Phase) {
+        if let Some(resource) = phase.resource() {
+            self.worked_with.insert(resource.clone());
+        }
+        self.phase = phase;
+    }
+
+    /// Whether a result of an earlier conversation from `provider` is one to
+    /// acknowledge (a duplicate or a late report from a resource this order booked).
+    pub fn knows(&self, provider: Option<&HolonId>) -> bool {
+        provider.is_some_and(|p| self.worked_with.contains(p))
     }
 
     /// Ends a running order as cancelled by an operator.

@@ -1,0 +1,596 @@
+//! The secure cell: mutual TLS and access control, with the real binaries (`cell certs`,
+//! `cell up`, `holon-node`, `order-node`, `robot-sim`, `cell submit`/`cancel`).
+//!
+//! Scenario: issue a PKI, bring the cell up, then try what each identity may and may
+//! not do, as a new user and an attacker on the plant network would, checking the
+//! effects on the holons' states and the controllers' counts.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use holarchy_tests::*;
+use schemas::{CellKeys, HolonId, MessageType, OrderSnapshot, OrderStatus, Service};
+use zenoh::query::ConsolidationMode;
+
+const CELL: &str = "sec";
+
+/// `cell up` of the secure cell, stopped (SIGTERM, then SIGKILL) when dropped.
+struct Up(Child);
+
+impl Drop for Up {
+    fn drop(&mut self) {
+        let pid = nix::unistd::Pid::from_raw(self.0.id() as i32);
+        let _ = nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM);
+        let deadline = std::time::Instant::now() + Duration::from_secs(45);
+        while std::time::Instant::now() < deadline {
+            if let Ok(Some(_)) = self.0.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+struct SecureCell {
+    dir: PathBuf,
+    endpoint: String,
+    keys: CellKeys,
+    _up: Up,
+}
+
+/// Writes the manifest, issues its PKI with `cell certs` and starts `cell up`.
+fn secure_cell(dir: &Path) -> SecureCell {
+    let port = free_port();
+    let endpoint = format!("tls/127.0.0.1:{port}");
+    let sims: Vec<(&str, u16)> = ["robot1", "robot2", "inspect1", "conveyor1"]
+        .into_iter()
+        .map(|n| (n, free_port()))
+        .collect();
+    let mut manifest = format!(
+        r#"cell = "{CELL}"
+[router]
+listen = ["{endpoint}"]
+[pki]
+spares = ["resource.robot9", "order-node.probe"]
+[restart]
+backoff_initial_ms = 100
+stop_timeout_ms = 10000
+"#
+    );
+    let demo = workspace_root().join("deploy/cells/demo");
+    for (name, sim_port) in &sims {
+        manifest.push_str(&format!(
+            r#"[[process]]
+name = "{name}-sim"
+program = "robot-sim"
+args = ["--listen", "127.0.0.1:{sim_port}", "--delay-ms", "20", "--count-file", "{name}.counts.json"]
+"#
+        ));
+    }
+    for (name, sim_port) in &sims {
+        let config = if name.starts_with("robot") {
+            "robot1.toml".to_string()
+        } else {
+            format!("{name}.toml")
+        };
+        manifest.push_str(&format!(
+            r#"[[process]]
+name = "{name}"
+identity = "resource.{name}"
+program = "holon-node"
+args = ["--config", "{}", "--cell", "{CELL}", "--name", "{name}", "--controller", "127.0.0.1:{sim_port}", "--connect", "{endpoint}", "--listen", "tls/127.0.0.1:0", "--pki", "pki", "--data-dir", "data"]
+"#,
+            demo.join(config).display()
+        ));
+    }
+    manifest.push_str(&format!(
+        r#"[[process]]
+name = "breaker"
+identity = "product.breaker"
+program = "holon-node"
+args = ["--config", "{}", "--cell", "{CELL}", "--connect", "{endpoint}", "--listen", "tls/127.0.0.1:0", "--pki", "pki"]
+[[process]]
+name = "orders1"
+identity = "order-node.orders1"
+program = "order-node"
+args = ["--config", "{}", "--cell", "{CELL}", "--connect", "{endpoint}", "--listen", "tls/127.0.0.1:0", "--pki", "pki", "--data-dir", "data"]
+"#,
+        demo.join("breaker.toml").display(),
+        demo.join("orders1.toml").display()
+    ));
+    std::fs::write(dir.join("cell.toml"), manifest).unwrap();
+    let certs = Command::new(bin("cell"))
+        .arg("certs")
+        .arg(dir)
+        .output()
+        .unwrap();
+    assert!(
+        certs.status.success(),
+        "cell certs: {}",
+        String::from_utf8_lossy(&certs.stderr)
+    );
+    let up = Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir)
+        .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    SecureCell {
+        dir: dir.to_path_buf(),
+        endpoint,
+        keys: CellKeys::new(CELL).unwrap(),
+        _up: Up(up),
+    }
+}
+
+impl SecureCell {
+    fn pki(&self) -> PathBuf {
+        self.dir.join("pki")
+    }
+
+    /// A zenoh session with the identity `identity` of `pki`, as a client (operators,
+    /// observers) or a peer that listens (holons).
+    async fn session_as(
+        &self,
+        pki: &Path,
+        identity: &str,
+        mode: &str,
+    ) -> zenoh::Result<zenoh::Session> {
+        let settings = holon::ZenohSettings {
+            mode: mode.into(),
+            connect: vec![self.endpoint.clone()],
+            listen: if mode == "peer" {
+                vec!["tls/127.0.0.1:0".into()]
+            } else {
+                vec![]
+            },
+            tls: Some(holon::tls::TlsSettings {
+                pki: Some(pki.to_path_buf()),
+                ..Default::default()
+            }),
+            ..Default::default()
+        };
+        let session = settings
+            .open(identity, Duration::from_secs(5))
+            .await
+            .map_err(|e| zenoh::Error::from(e.to_string()))?;
+        if !holon::session::wait_connected(&session, Duration::from_secs(5)).await {
+            return Err("not connected".into());
+        }
+        Ok(session)
+    }
+
+    fn cell_command(&self, args: &[&str]) -> std::process::Output {
+        Command::new(bin("cell"))
+            .args(args)
+            .args([
+                "--cell",
+                CELL,
+                "--connect",
+                &self.endpoint,
+                "--timeout-ms",
+                "3000",
+            ])
+            .arg("--pki")
+            .arg(self.pki())
+            .output()
+            .unwrap()
+    }
+
+    fn executed(&self, sim: &str) -> u64 {
+        std::fs::read_to_string(self.dir.join(format!("{sim}.counts.json")))
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+            .and_then(|v| v["executed"].as_u64())
+            .unwrap_or(0)
+    }
+
+    fn total_executed(&self) -> u64 {
+        ["robot1", "robot2", "inspect1", "conveyor1"]
+            .iter()
+            .map(|s| self.executed(s))
+            .sum()
+    }
+}
+
+/// Every reply to a get (no consolidation), errors as `Err(text)`.
+async fn ask(
+    session: &zenoh::Session,
+    key: &str,
+    payload: Vec<u8>,
+) -> Vec<Result<Vec<u8>, String>> {
+    let replies = session
+        .get(key)
+        .payload(payload)
+        .consolidation(ConsolidationMode::None)
+        .timeout(Duration::from_secs(2))
+        .await
+        .unwrap();
+    let mut out = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        out.push(match reply.result() {
+            Ok(sample) => Ok(sample.payload().to_bytes().into_owned()),
+            Err(err) => Err(err
+                .payload()
+                .try_to_string()
+                .unwrap_or_default()
+                .into_owned()),
+        });
+    }
+    out
+}
+
+async fn orders(session: &zenoh::Session, keys: &CellKeys) -> Vec<OrderSnapshot> {
+    ask(session, &keys.order_states(), Vec::new())
+        .await
+        .into_iter()
+        .filter_map(|r| r.ok())
+        .filter_map(|p| serde_json::from_slice(&p).ok())
+        .collect()
+}
+
+async fn wait_orders_final(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    names: &[String],
+) -> Vec<OrderSnapshot> {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    loop {
+        let all = orders(session, keys).await;
+        let mine: Vec<OrderSnapshot> = all
+            .into_iter()
+            .filter(|o| names.contains(&o.holon.name().to_string()))
+            .collect();
+        if mine.len() == names.len() && mine.iter().all(|o| o.status.is_final()) {
+            return mine;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "orders not finished: {mine:#?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn submitted(output: &std::process::Output) -> Vec<String> {
+    assert!(
+        output.status.success(),
+        "cell submit: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8_lossy(&output.stdout)
+        .lines()
+        .map(str::to_string)
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = secure_cell(dir.path());
+    let keys = cell.keys.clone();
+
+    // An observer sees the whole cell come up.
+    let observer = cell
+        .session_as(&cell.pki(), "observer.default", "client")
+        .await
+        .expect("the observer connects with its certificate");
+    for name in ["robot1", "robot2", "inspect1", "conveyor1"] {
+        let robot = HolonId::resource(name).unwrap();
+        assert!(
+            holon::presence::wait_alive(&observer, &keys, &robot, WAIT)
+                .await
+                .unwrap(),
+            "{robot} did not come up; see {}",
+            dir.path().join("logs").display()
+        );
+    }
+    assert!(
+        holon::presence::wait_token(&observer, &keys.host("order-node", "orders1"), WAIT)
+            .await
+            .unwrap()
+    );
+    let state = ask(
+        &observer,
+        &keys.state(&HolonId::resource("robot1").unwrap()),
+        Vec::new(),
+    )
+    .await;
+    assert!(
+        matches!(state.first(), Some(Ok(_))),
+        "observer reads states: {state:?}"
+    );
+
+    // Orders complete under mutual TLS and access control, submitted by the operator.
+    let first = submitted(&cell.cell_command(&["submit", "breaker", "--count", "3"]));
+    assert_eq!(first.len(), 3);
+    let done = wait_orders_final(&observer, &keys, &first).await;
+    assert!(
+        done.iter().all(|o| o.status == OrderStatus::Done),
+        "{done:#?}"
+    );
+    let executed_after_orders = cell.total_executed();
+    assert_eq!(
+        executed_after_orders,
+        3 * 4,
+        "3 breakers: move, pick, place, inspect each"
+    );
+
+    // Without TLS, or with a certificate of another CA, nothing connects.
+    let plain = holon::ZenohSettings {
+        mode: "client".into(),
+        connect: vec![cell.endpoint.replace("tls/", "tcp/")],
+        ..Default::default()
+    }
+    .open("x", Duration::from_secs(3))
+    .await;
+    assert!(plain.is_err(), "a client without TLS connected");
+    let other = tempfile::tempdir().unwrap();
+    std::fs::write(
+        other.path().join("cell.toml"),
+        format!("cell = \"{CELL}\"\n[[process]]\nname = \"x\"\nprogram = \"x\"\n"),
+    )
+    .unwrap();
+    assert!(Command::new(bin("cell"))
+        .arg("certs")
+        .arg(other.path())
+        .status()
+        .unwrap()
+        .success());
+    let foreign = cell
+        .session_as(&other.path().join("pki"), "operator.default", "client")
+        .await;
+    assert!(foreign.is_err(), "a certificate of another CA was accepted");
+    let refused = Command::new(bin("cell"))
+        .args([
+            "submit",
+            "breaker",
+            "--cell",
+            CELL,
+            "--connect",
+            &cell.endpoint,
+            "--timeout-ms",
+            "2000",
+        ])
+        .arg("--pki")
+        .arg(other.path().join("pki"))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+
+    // A running order to attack: robot1 and robot2 are booked by orders of their own.
+    let victims = submitted(&cell.cell_command(&["submit", "breaker", "--count", "2"]));
+    let robot1 = HolonId::resource("robot1").unwrap();
+    let victim = &victims[0];
+    let executed_before_attacks = cell.total_executed();
+
+    // The observer may not submit, cancel, book, start or reach an inbox.
+    let as_observer = cell.cell_command(&["submit", "breaker", "--identity", "observer.default"]);
+    assert!(
+        !as_observer.status.success(),
+        "an observer submitted orders"
+    );
+    let cancel_as_observer =
+        cell.cell_command(&["cancel", victim, "--identity", "observer.default"]);
+    assert!(
+        !cancel_as_observer.status.success(),
+        "an observer cancelled an order"
+    );
+    let intruder = HolonId::order("intruder-1").unwrap();
+    let booking = Service::request(
+        MessageType::BookingReq,
+        "pick_n_place",
+        "intruder-1/1/1",
+        intruder.clone(),
+    )
+    .with_reply_to(keys.inbox("intruder-1"));
+    let start = Service::request(
+        MessageType::Start,
+        "pick_n_place",
+        "intruder-1/1/1",
+        intruder.clone(),
+    )
+    .with_reply_to(keys.inbox("intruder-1"));
+    for message in [&booking, &start] {
+        let replies = ask(&observer, &keys.service("robot1"), message.to_json()).await;
+        assert!(
+            replies.is_empty(),
+            "the observer reached robot1's service: {replies:?}"
+        );
+    }
+    let fake_done = |provider: &str, conversation: &str| {
+        let mut done = Service::request(
+            MessageType::Done,
+            "inspect",
+            conversation,
+            HolonId::order(victim).unwrap(),
+        );
+        done.provider = Some(HolonId::resource(provider).unwrap());
+        done.info = serde_json::json!({"results": {"inspect": "inspect_pass"}})
+            .as_object()
+            .cloned()
+            .unwrap();
+        done.to_json()
+    };
+    for step in 1..=3 {
+        let replies = ask(
+            &observer,
+            &keys.inbox(victim),
+            fake_done("inspect1", &format!("{victim}/{step}/1")),
+        )
+        .await;
+        assert!(
+            replies.is_empty(),
+            "the observer reached an order's inbox: {replies:?}"
+        );
+    }
+    // Nor claim another order's booking to cancel it.
+    let snapshot = ask(&observer, &keys.state(&robot1), Vec::new()).await;
+    if let Some(Ok(payload)) = snapshot.first() {
+        let state: serde_json::Value = serde_json::from_slice(payload).unwrap();
+        for entry in state["agenda"].as_array().cloned().unwrap_or_default() {
+            let requester: HolonId = entry["requester"].as_str().unwrap().parse().unwrap();
+            let cancel = Service::request(
+                MessageType::BookingCancel,
+                entry["service_type"].as_str().unwrap(),
+                entry["conversation_id"].as_str().unwrap(),
+                requester,
+            );
+            assert!(ask(&observer, &keys.service("robot1"), cancel.to_json())
+                .await
+                .is_empty());
+        }
+    }
+
+    // A resource identity (a spare: robot9) may not submit, book another resource,
+    // declare another resource's keys or an order's inbox, or fake a result.
+    let robot9 = cell
+        .session_as(&cell.pki(), "resource.robot9", "peer")
+        .await
+        .expect("a spare resource identity connects");
+    let work = serde_json::to_vec(&schemas::WorkOrder {
+        product: "breaker".into(),
+        count: 1,
+        priority: 0,
+    })
+    .unwrap();
+    assert!(
+        ask(&robot9, &keys.orders_submit(), work).await.is_empty(),
+        "a resource submitted orders"
+    );
+    assert!(
+        ask(&robot9, &keys.service("robot2"), booking.to_json())
+            .await
+            .is_empty(),
+        "a resource booked another"
+    );
+    // A result for the victim from robot9 (which it never booked) is refused by the order.
+    for step in 1..=3 {
+        let replies = ask(
+            &robot9,
+            &keys.inbox(victim),
+            fake_done("robot9", &format!("{victim}/{step}/1")),
+        )
+        .await;
+        assert!(
+            replies.iter().all(|r| r.is_err()),
+            "an order acknowledged a result from a resource it did not book: {replies:?}"
+        );
+    }
+
+    // Squatting: queryables on others' keys and another resource's token.
+    let intercepted = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let mut squats = Vec::new();
+    for key in [
+        keys.inbox("*"),
+        keys.service("robot1"),
+        keys.offer("pick_n_place", "robot1"),
+        keys.state(&robot1),
+    ] {
+        let counter = intercepted.clone();
+        squats.push(
+            robot9
+                .declare_queryable(&key)
+                .callback(move |query| {
+                    counter.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                    use zenoh::Wait;
+                    let _ = query
+                        .reply(query.key_expr().clone(), b"squatted".to_vec())
+                        .wait();
+                })
+                .await
+                .unwrap(),
+        );
+    }
+    let _fake_token = robot9
+        .liveliness()
+        .declare_token(keys.alive(&HolonId::resource("robot8").unwrap()))
+        .await
+        .unwrap();
+    // The attacked orders and a new one run to the end with every step really executed.
+    let after = submitted(&cell.cell_command(&["submit", "breaker"]));
+    let mut all: Vec<String> = victims.clone();
+    all.extend(after);
+    let finished = wait_orders_final(&observer, &keys, &all).await;
+    assert!(
+        finished.iter().all(|o| o.status == OrderStatus::Done),
+        "{finished:#?}"
+    );
+    assert!(
+        finished.iter().all(|o| o.completed.len() == 3),
+        "{finished:#?}"
+    );
+    assert_eq!(
+        cell.total_executed() - executed_before_attacks,
+        3 * 4,
+        "each of the 3 orders executed its 4 controller commands, nothing more"
+    );
+    assert_eq!(
+        intercepted.load(std::sync::atomic::Ordering::SeqCst),
+        0,
+        "squatted queryables were reached"
+    );
+    let alive = holon::presence::alive_holons(&observer, &keys, Duration::from_secs(2))
+        .await
+        .unwrap();
+    assert!(
+        !alive
+            .iter()
+            .any(|h| h.name() == "robot8" || h.name() == "robot9"),
+        "a token of another identity was accepted: {alive:?}"
+    );
+    drop(squats);
+    robot9.close().await.unwrap();
+
+    // Quotas: a work order over the per-submit limit is refused and creates nothing.
+    let before = orders(&observer, &keys).await.len();
+    let over = cell.cell_command(&["submit", "breaker", "--count", "1001"]);
+    assert!(!over.status.success());
+    assert!(
+        String::from_utf8_lossy(&over.stderr).contains("max_orders_per_submit"),
+        "{}",
+        String::from_utf8_lossy(&over.stderr)
+    );
+    assert_eq!(orders(&observer, &keys).await.len(), before);
+
+    // The operator cancels an order: it ends as cancelled and leaves no booking behind.
+    let to_cancel = submitted(&cell.cell_command(&["submit", "breaker", "--count", "4"]));
+    let last = to_cancel.last().unwrap();
+    let cancelled = cell.cell_command(&["cancel", last]);
+    assert!(
+        cancelled.status.success(),
+        "{}",
+        String::from_utf8_lossy(&cancelled.stderr)
+    );
+    let ended = wait_orders_final(&observer, &keys, &to_cancel).await;
+    let cancelled_order = ended.iter().find(|o| o.holon.name() == last).unwrap();
+    assert_eq!(
+        cancelled_order.status,
+        OrderStatus::Cancelled,
+        "{cancelled_order:#?}"
+    );
+    for name in ["robot1", "robot2", "inspect1", "conveyor1"] {
+        let state = ask(
+            &observer,
+            &keys.state(&HolonId::resource(name).unwrap()),
+            Vec::new(),
+        )
+        .await;
+        let state: serde_json::Value = serde_json::from_slice(state[0].as_ref().unwrap()).unwrap();
+        let stale: Vec<_> = state["agenda"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|b| b["requester"].as_str() == Some(&format!("order/{last}")))
+            .collect();
+        assert!(
+            stale.is_empty(),
+            "{name} keeps a booking of the cancelled order: {stale:?}"
+        );
+    }
+    observer.close().await.unwrap();
+}
