@@ -584,7 +584,6 @@ enum Wait {
 /// and report before the attempt counts as lost. Before `started`, the pause also ends
 /// when the provider publishes that it is free with this conversation first.
 #[allow(clippy::too_many_arguments)]
-#[allow(clippy::too_many_arguments)]
 async fn watch(
     ctx: &OrderContext,
     provider: &HolonId,
