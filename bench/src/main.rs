@@ -234,10 +234,33 @@ impl BookingSeries {
     }
 }
 
+/// One `booking_req` then its `booking_cancel`: how long the booking took, and the pair.
+async fn book_and_cancel(
+    cell: &Cell,
+    resource: &str,
+    conversation: &str,
+) -> Result<(Duration, Duration)> {
+    let key = cell.keys.service(resource);
+    let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", conversation);
+    let cancel = pick_n_place(
+        &cell.keys,
+        MessageType::BookingCancel,
+        "bench",
+        conversation,
+    );
+    let t = Instant::now();
+    let answer = Service::from_json(&get_once(cell, &key, book.to_json()).await?)?;
+    let booked = t.elapsed();
+    if answer.result != Some(true) {
+        bail!("booking refused by {resource}: {answer:?}");
+    }
+    get_once(cell, &key, cancel.to_json()).await?;
+    Ok((booked, t.elapsed()))
+}
+
 /// `booking_req` then `booking_cancel` to `resource`, `samples` times after 100 warm-up
 /// pairs, each after a raw `get` to the echo helper (the interleaved floor).
 async fn booking_series(cell: &Cell, resource: &str, samples: usize) -> Result<BookingSeries> {
-    let key = cell.keys.service(resource);
     let echo = vec![
         b'x';
         pick_n_place(&cell.keys, MessageType::BookingReq, "bench", "bench/1/1")
@@ -250,24 +273,10 @@ async fn booking_series(cell: &Cell, resource: &str, samples: usize) -> Result<B
         let t = Instant::now();
         get_once(cell, ECHO_KEY, echo.clone()).await?;
         let floor = t.elapsed();
-        let conversation = format!("{resource}/{i}/1");
-        let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
-        let cancel = pick_n_place(
-            &cell.keys,
-            MessageType::BookingCancel,
-            "bench",
-            &conversation,
-        );
-        let t = Instant::now();
-        let answer = Service::from_json(&get_once(cell, &key, book.to_json()).await?)?;
-        let booked = t.elapsed();
-        if answer.result != Some(true) {
-            bail!("booking refused: {answer:?}");
-        }
-        get_once(cell, &key, cancel.to_json()).await?;
+        let (booked, pair) = book_and_cancel(cell, resource, &format!("{resource}/{i}/1")).await?;
         if i >= 100 {
             book_times.push(booked);
-            pair_times.push(t.elapsed());
+            pair_times.push(pair);
             floor_times.push(floor);
         }
     }
@@ -670,22 +679,7 @@ async fn tls_booking(run: &mut Run) -> Result<()> {
             (&tls_cell, "robot7", &mut tls_times),
             (&run.cell, "robot1", &mut tcp_times),
         ] {
-            let conversation = format!("tls/{i}/1");
-            let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
-            let cancel = pick_n_place(
-                &cell.keys,
-                MessageType::BookingCancel,
-                "bench",
-                &conversation,
-            );
-            let key = cell.keys.service(resource);
-            let t = Instant::now();
-            let answer = Service::from_json(&get_once(cell, &key, book.to_json()).await?)?;
-            let booked = t.elapsed();
-            if answer.result != Some(true) {
-                bail!("booking refused by {resource}: {answer:?}");
-            }
-            get_once(cell, &key, cancel.to_json()).await?;
+            let (booked, _) = book_and_cancel(cell, resource, &format!("tls/{i}/1")).await?;
             if i >= 100 {
                 times.push(booked);
             }

@@ -346,6 +346,52 @@ mod tests {
     }
 
     #[test]
+    fn the_secure_cell_has_an_identity_for_every_holon() {
+        let dir = Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../deploy/cells/secure"
+        ));
+        let manifest = Manifest::load(dir).unwrap();
+        let names: Vec<String> = identities(&manifest)
+            .unwrap()
+            .into_iter()
+            .map(|i| i.name)
+            .collect();
+        for expected in [
+            "router.local",
+            "resource.robot1",
+            "resource.robot2",
+            "resource.inspect1",
+            "resource.conveyor1",
+            "product.breaker",
+            "order-node.orders1",
+            "resource.robot3",
+            "operator.default",
+            "observer.default",
+        ] {
+            assert!(names.iter().any(|n| n == expected), "{expected}: {names:?}");
+        }
+        // Every holon process of the manifest has one.
+        for process in &manifest.processes {
+            let holon = matches!(process.program.as_str(), "holon-node" | "order-node");
+            assert_eq!(process.identity.is_some(), holon, "{}", process.name);
+        }
+    }
+
+    #[test]
+    fn order_node_names_must_not_overlap() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(
+            dir.path().join("cell.toml"),
+            "cell = \"t\"\n[[process]]\nname = \"a\"\nprogram = \"order-node\"\nidentity = \"order-node.orders1\"\n[[process]]\nname = \"b\"\nprogram = \"order-node\"\nidentity = \"order-node.orders1-x\"\n",
+        )
+        .unwrap();
+        let manifest = Manifest::load(dir.path()).unwrap();
+        let err = identities(&manifest).unwrap_err();
+        assert!(err.to_string().contains("rename one"), "{err}");
+    }
+
+    #[test]
     fn issues_a_pki_that_the_holons_accept() {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(

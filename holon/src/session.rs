@@ -324,6 +324,25 @@ mod tests {
     }
 
     #[test]
+    fn tls_refuses_to_start_without_its_files() {
+        let settings = ZenohSettings {
+            tls: Some(TlsSettings {
+                pki: Some("/nonexistent/pki".into()),
+                ..TlsSettings::default()
+            }),
+            ..ZenohSettings::default()
+        };
+        let err = settings
+            .validate("resource.robot1")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("resource.robot1") && err.contains("/nonexistent/pki"),
+            "{err}"
+        );
+    }
+
+    #[test]
     fn rejects_bad_settings() {
         let bad_mode = ZenohSettings {
             mode: "router-ish".into(),
