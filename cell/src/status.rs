@@ -100,7 +100,16 @@ pub async fn orders(
             }
         }
     }
-    Ok(orders.into_values().collect())
+    let mut orders: Vec<schemas::OrderSnapshot> = orders.into_values().collect();
+    orders.sort_by_key(|o| order_sort_key(o.holon.name()));
+    Ok(orders)
+}
+
+/// Orders sort by node, then by number: `orders1-2` before `orders1-10`.
+pub fn order_sort_key(name: &str) -> (String, u64) {
+    name.rsplit_once('-')
+        .and_then(|(node, n)| Some((node.to_string(), n.parse::<u64>().ok()?)))
+        .unwrap_or_else(|| (name.to_string(), 0))
 }
 
 /// Asks the order-node hosting `order` to cancel it.
@@ -162,4 +171,16 @@ pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot]) -> String {
         ));
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn orders_sort_by_number_within_their_node() {
+        let mut names = vec!["orders1-10", "orders2-1", "orders1-2", "orders1-1"];
+        names.sort_by_key(|n| order_sort_key(n));
+        assert_eq!(names, ["orders1-1", "orders1-2", "orders1-10", "orders2-1"]);
+    }
 }

@@ -267,6 +267,19 @@ struct Slot {
     restart_at: Option<Instant>,
 }
 
+/// Which hosts a manifest knows, for an operator who named another.
+fn hosts_hint(manifest: &Manifest) -> String {
+    let mut hosts: Vec<&str> = Vec::new();
+    if manifest.router.is_some() || manifest.processes.iter().any(|p| p.host == "local") {
+        hosts.push("local");
+    }
+    hosts.extend(manifest.hosts.keys().map(String::as_str));
+    format!(
+        "its hosts are {} (cell up DIR --host NAME)",
+        hosts.join(", ")
+    )
+}
+
 /// Runs the cell until `shutdown`; Ok(false) when the restart intensity was exceeded.
 pub async fn run(dir: &Path, host: &str, shutdown: CancellationToken) -> Result<bool> {
     let mut manifest = Manifest::load(dir)?;
@@ -275,12 +288,18 @@ pub async fn run(dir: &Path, host: &str, shutdown: CancellationToken) -> Result<
     } else {
         match manifest.hosts.get(host) {
             Some(section) => section.router.clone(),
-            None => bail!("the manifest has no host {host:?}"),
+            None => bail!(
+                "the manifest has no host {host:?}; {}",
+                hosts_hint(&manifest)
+            ),
         }
     };
     manifest.processes.retain(|p| p.host == host);
     if manifest.processes.is_empty() && router.is_none() {
-        bail!("the manifest gives host {host:?} nothing to run");
+        bail!(
+            "the manifest gives host {host:?} nothing to run; {}",
+            hosts_hint(&manifest)
+        );
     }
     let clock = Instant::now();
     let logs = dir.join("logs");
@@ -456,6 +475,19 @@ pub async fn run(dir: &Path, host: &str, shutdown: CancellationToken) -> Result<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[tokio::test(flavor = "multi_thread")]
+    async fn a_host_with_nothing_to_run_names_the_hosts() {
+        let dir = Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../deploy/cells/factory"
+        ));
+        let err = run(dir, "local", CancellationToken::new())
+            .await
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("its hosts are a, b, c"), "{err}");
+    }
 
     #[test]
     fn the_demo_manifest_loads() {

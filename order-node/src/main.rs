@@ -21,6 +21,9 @@ struct Args {
     /// Submit a work order at start: PRODUCT:COUNT (repeatable).
     #[arg(long, value_name = "PRODUCT:COUNT")]
     submit: Vec<String>,
+    /// Check the config (and the TLS identity files, if any) and exit without starting.
+    #[arg(long)]
+    check: bool,
 }
 
 fn main() -> ExitCode {
@@ -38,6 +41,14 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
         .iter()
         .map(|s| order_node::node::parse_submit(s))
         .collect::<Result<Vec<_>, _>>()?;
+    if args.check {
+        println!(
+            "{}: ok (order-node {})",
+            args.common.config.display(),
+            config.name
+        );
+        return Ok(());
+    }
     order_node::node::run(config, submits, shutdown).await?;
     Ok(())
 }

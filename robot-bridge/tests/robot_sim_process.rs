@@ -13,7 +13,7 @@ fn robot_sim_serves_counts_and_stops_on_sigterm() {
         .args(["--listen", "127.0.0.1:0", "--count-file"])
         .arg(&counts)
         .stdout(Stdio::piped())
-        .stderr(Stdio::null())
+        .stderr(std::fs::File::create(dir.path().join("sim.log")).unwrap())
         .spawn()
         .unwrap();
     let mut stdout = BufReader::new(child.stdout.take().unwrap());
@@ -52,4 +52,11 @@ fn robot_sim_serves_counts_and_stops_on_sigterm() {
     let mut rest = String::new();
     stdout.read_to_string(&mut rest).unwrap();
     assert_eq!(rest.trim(), "executed 1 commands");
+    // Its log, redirected to a file, is plain text: no terminal colour codes.
+    let log = std::fs::read_to_string(dir.path().join("sim.log")).unwrap();
+    assert!(!log.is_empty(), "robot-sim logged nothing");
+    assert!(
+        !log.contains('\u{1b}'),
+        "colour codes in a log file: {log:?}"
+    );
 }

@@ -6,6 +6,31 @@ use holarchy_tests::*;
 use schemas::HolonId;
 
 #[test]
+fn order_node_and_holon_node_check_their_configs() {
+    for (program, config) in [
+        ("order-node", "orders1.toml"),
+        ("holon-node", "robot1.toml"),
+    ] {
+        let output = Command::new(bin(program))
+            .arg("--config")
+            .arg(demo_config(config))
+            .arg("--check")
+            .output()
+            .unwrap();
+        let stdout = String::from_utf8_lossy(&output.stdout);
+        assert!(output.status.success(), "{program}: {stdout}");
+        assert!(stdout.contains(": ok ("), "{program}: {stdout}");
+    }
+    let bad = Command::new(bin("order-node"))
+        .arg("--config")
+        .arg(demo_config("orders1.toml"))
+        .args(["--name", "Bad Name", "--check"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+}
+
+#[test]
 fn cell_demo_completes_every_order_and_hot_adds_a_robot() {
     let output = Command::new(bin("cell"))
         .args([
