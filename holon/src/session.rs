@@ -111,31 +111,21 @@ impl ZenohSettings {
     /// identity is `identity` (`<role>.<name>`; unused without TLS).
     pub fn to_config(&self, identity: &str) -> Result<zenoh::Config, SessionError> {
         let tls = self.identity_files(identity)?;
-        let mut config = match (&self.config_file, &tls) {
-            (Some(path), _) => load_file(path)?,
-            (None, Some(files)) => match &files.access_control {
-                Some(path) => load_file(path)?,
-                None => zenoh::Config::default(),
-            },
-            (None, None) => zenoh::Config::default(),
+        let mut config = match &self.config_file {
+            Some(path) => load_file(path)?,
+            None => zenoh::Config::default(),
         };
-        if let (Some(_), Some(files)) = (&self.config_file, &tls) {
-            if let Some(path) = &files.access_control {
-                let access = load_file(path)?;
-                let value =
-                    access
-                        .get_json("access_control")
-                        .map_err(|e| SessionError::ConfigFile {
-                            path: path.display().to_string(),
-                            message: e.to_string(),
-                        })?;
-                config.insert_json5("access_control", &value).map_err(|e| {
-                    SessionError::ConfigFile {
-                        path: path.display().to_string(),
-                        message: e.to_string(),
-                    }
-                })?;
-            }
+        if let Some(path) = tls.as_ref().and_then(|f| f.access_control.as_ref()) {
+            let invalid = |e: zenoh::Error| SessionError::ConfigFile {
+                path: path.display().to_string(),
+                message: e.to_string(),
+            };
+            let access = load_file(path)?
+                .get_json("access_control")
+                .map_err(invalid)?;
+            config
+                .insert_json5("access_control", &access)
+                .map_err(invalid)?;
         }
         let mut set = |key: &'static str, value: String| {
             config

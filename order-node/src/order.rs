@@ -366,11 +366,6 @@ pub async fn run(
                     None => break,
                 }
             };
-            if operator_cancel.is_cancelled() {
-                cancel_order(&ctx, &progress, &holon, &step, &conversation_id).await?;
-                publish(&progress).await;
-                break;
-            }
             let attempt = attempt_step(
                 &ctx,
                 &progress,
@@ -381,12 +376,13 @@ pub async fn run(
                 &publish,
             );
             tokio::pin!(attempt);
-            // An operator's cancel stops the attempt unless its step runs: a running
-            // step is let finish and its result recorded.
+            // An operator's cancel (also one recorded before a restart) stops the
+            // attempt unless its step runs: a running step is let finish and its result
+            // recorded.
             let mut finishing = false;
             let (outcome, delivery) = loop {
                 tokio::select! {
-                    ended = &mut attempt => break ended?,
+                    biased;
                     _ = operator_cancel.cancelled(), if !finishing => {
                         if matches!(lock(&progress).phase, Phase::Started(_)) {
                             info!(holon = %holon, %conversation_id, "cancel requested: the running step finishes first");
@@ -395,6 +391,7 @@ pub async fn run(
                             break (StepOutcome::Cancelled, None);
                         }
                     }
+                    ended = &mut attempt => break ended?,
                 }
             };
             if outcome == StepOutcome::Cancelled {
