@@ -5,8 +5,8 @@
 //!
 //! | role | may declare (queryable, token, publication) | may query / subscribe |
 //! |---|---|---|
-//! | `resource.<r>` | `resource/<r>/{service,state,debug/crash}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results) |
-//! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | nothing |
+//! | `resource.<r>` | `resource/<r>/{service,state,debug/crash}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
+//! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
 //! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, states, liveliness |
 //! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, liveliness |
@@ -104,7 +104,18 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                 &["liveliness_token"],
                 vec![format!("alive/resource/{name}")],
             ),
+            // Who holds the name (answered on the token's key).
+            (DECLARE, vec![format!("alive/resource/{name}")]),
             (&["query"], vec!["order/*/inbox".to_string()]),
+            // Twins and requesters' presence (the bookings' lifetime).
+            (
+                &[
+                    "query",
+                    "declare_liveliness_subscriber",
+                    "liveliness_query",
+                ],
+                vec!["alive/**".to_string()],
+            ),
         ],
         Role::Product => vec![
             (
@@ -116,12 +127,15 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             ),
             (&["put"], vec![format!("product/{name}/state")]),
             (&["liveliness_token"], vec![format!("alive/product/{name}")]),
+            (DECLARE, vec![format!("alive/product/{name}")]),
+            (&["query", "liveliness_query"], vec!["alive/**".to_string()]),
         ],
         Role::OrderNode => vec![
             (
                 DECLARE,
                 vec![
                     "orders/submit".to_string(),
+                    format!("host/order-node/{name}"),
                     format!("order/{name}-$*/inbox"),
                     format!("order/{name}-$*/state"),
                     format!("order/{name}-$*/cancel"),

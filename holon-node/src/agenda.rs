@@ -16,6 +16,7 @@
 //! | `done` / `failed` from execution | busy | free (or init): the result is delivered |
 //! | `ready` / `unavailable` from execution | any | the status follows |
 //! | withdraw (SIGTERM) | any | no new bookings or starts; every booking handed back as `failed` `withdrawn` |
+//! | requester gone (its liveliness token absent longer than the grace) | any | its bookings removed (nobody is left to start or cancel them) |
 //!
 //! Refusals: `unknown_service` (type not offered), `not_booked` (start or cancel without a
 //! booking), `agenda_full`, `invalid_info` (start without what the steps need). A booking
@@ -82,6 +83,9 @@ pub enum AgendaEvent {
     /// The holon is shutting down: take no new work, hand every booking back (a
     /// `failed` with reason `withdrawn` to its `reply_to`), let the running job finish.
     Withdraw,
+    /// `requester` has been absent from the cell (no liveliness token) longer than the
+    /// booking grace: its bookings end. The running job and undelivered results stay.
+    RequesterGone { requester: HolonId },
 }
 
 /// What the task around the agenda manager must do.
@@ -222,6 +226,7 @@ impl AgendaManager {
                 outcome,
             } => self.finished(&conversation_id, outcome),
             AgendaEvent::Withdraw => self.withdraw(),
+            AgendaEvent::RequesterGone { requester } => self.release(&requester),
             AgendaEvent::ResultAcknowledged { conversation_id } => {
                 let before = self.undelivered.len();
                 self.undelivered
@@ -264,6 +269,16 @@ impl AgendaManager {
         }
         actions.push(AgendaAction::StateChanged);
         actions
+    }
+
+    fn release(&mut self, requester: &HolonId) -> Vec<AgendaAction> {
+        let before = self.bookings.len();
+        self.bookings.retain(|b| &b.requester != requester);
+        if self.bookings.len() == before {
+            vec![]
+        } else {
+            vec![AgendaAction::StateChanged]
+        }
     }
 
     fn set_ready(&mut self, ready: bool) -> Vec<AgendaAction> {
@@ -526,6 +541,7 @@ impl AgendaManager {
                     requester: b.requester.clone(),
                     conversation_id: b.conversation_id.clone(),
                     service_type: b.service_type.clone(),
+                    requester_absent_since: None,
                 })
                 .collect(),
             current: self.current.as_ref().map(|j| CurrentJobView {
@@ -1098,5 +1114,25 @@ mod tests {
         m.handle(AgendaEvent::ExecutionUnavailable);
         let actions = m.handle(AgendaEvent::Request(proposal));
         assert_eq!(reply(&actions).reason.as_deref(), Some("unavailable"));
+    }
+
+    #[test]
+    fn a_requester_gone_for_good_loses_its_bookings_not_its_running_job() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book("o-1", "c2")));
+        m.handle(AgendaEvent::Request(book("o-2", "c3")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        let actions = m.handle(AgendaEvent::RequesterGone {
+            requester: HolonId::order("o-1").unwrap(),
+        });
+        assert_eq!(actions, vec![AgendaAction::StateChanged]);
+        let left: Vec<_> = m.bookings().iter().map(|b| b.conversation_id.as_str()).collect();
+        assert_eq!(left, vec!["c3"], "o-2's booking stays");
+        assert_eq!(m.current().map(|j| j.conversation_id.as_str()), Some("c1"));
+        let again = m.handle(AgendaEvent::RequesterGone {
+            requester: HolonId::order("o-1").unwrap(),
+        });
+        assert!(again.is_empty(), "nothing left to release: {again:?}");
     }
 }

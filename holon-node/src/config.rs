@@ -137,6 +137,14 @@ impl Default for SupervisorSection {
 pub struct AgendaSection {
     #[serde(default = "default_capacity")]
     pub capacity: usize,
+    /// How long a requester may be absent from the cell (no liveliness token) before
+    /// its bookings are released.
+    #[serde(default = "default_requester_grace_ms")]
+    pub requester_grace_ms: u64,
+}
+
+fn default_requester_grace_ms() -> u64 {
+    60_000
 }
 
 fn default_capacity() -> usize {
@@ -147,6 +155,7 @@ impl Default for AgendaSection {
     fn default() -> Self {
         AgendaSection {
             capacity: default_capacity(),
+            requester_grace_ms: default_requester_grace_ms(),
         }
     }
 }
@@ -265,6 +274,8 @@ pub struct ResourceConfig {
     pub strategy: Strategy,
     pub intensity: Intensity,
     pub agenda_capacity: usize,
+    /// How long a requester may be absent before its bookings are released.
+    pub requester_grace: Duration,
     pub delivery: DeliverySettings,
     pub catalog: Arc<ServiceCatalog>,
     /// On SIGTERM, how long to wait for the running job and the hand-back of bookings.
@@ -337,11 +348,25 @@ impl ResourceConfig {
             .validate(&holon::tls::identity("resource", holon.name()))
             .map_err(|e| format!("zenoh: {e}"))?;
         let c = &file.controller;
-        if c.address.trim().is_empty() || !c.address.contains(':') {
-            return Err(format!(
-                "controller.address: {:?} is not HOST:PORT",
-                c.address
-            ));
+        let port = c
+            .address
+            .rsplit_once(':')
+            .filter(|(host, _)| !host.trim().is_empty())
+            .map(|(_, port)| port);
+        match port.map(str::parse::<u16>) {
+            Some(Ok(port)) if port > 0 => {}
+            Some(_) => {
+                return Err(format!(
+                    "controller.address: {:?}: the port must be a number from 1 to 65535",
+                    c.address
+                ))
+            }
+            None => {
+                return Err(format!(
+                    "controller.address: {:?} is not HOST:PORT",
+                    c.address
+                ))
+            }
         }
         for (field, value) in [
             ("controller.reconnect_interval_ms", c.reconnect_interval_ms),
@@ -364,6 +389,9 @@ impl ResourceConfig {
         }
         if file.agenda.capacity == 0 {
             return Err("agenda.capacity must be greater than 0".into());
+        }
+        if file.agenda.requester_grace_ms < 1000 {
+            return Err("agenda.requester_grace_ms must be at least 1000".into());
         }
         if file.services.is_empty() {
             return Err("services: a resource must offer at least one service type".into());
@@ -422,6 +450,7 @@ impl ResourceConfig {
                 period: Duration::from_millis(file.supervisor.period_ms),
             },
             agenda_capacity: file.agenda.capacity,
+            requester_grace: Duration::from_millis(file.agenda.requester_grace_ms),
             delivery: DeliverySettings {
                 retry_initial: Duration::from_millis(file.delivery.retry_initial_ms),
                 retry_max: Duration::from_millis(file.delivery.retry_max_ms),

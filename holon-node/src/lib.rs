@@ -11,3 +11,4 @@ pub mod config;
 pub mod execution;
 pub mod node;
 pub mod product;
+pub mod requesters;

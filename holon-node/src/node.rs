@@ -1,18 +1,20 @@
 //! The resource holon process: four components under one supervisor.
 //!
-//! Start order: interfacing, execution, agenda manager, communication (stop order is the
+//! Start order: interfacing, execution, agenda manager, requesters (the booking
+//! lifetime, see [`crate::requesters`]), communication (stop order is the
 //! reverse, so the holon stops taking requests first and closes the controller
 //! connection last). The components talk through mailboxes that outlive them, and the
 //! FSM states (agenda, execution) live beside the supervisor, so restarting a component
 //! loses neither the agenda nor a message in flight.
 
+use std::collections::HashSet;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
 use holon::{ChildError, ChildSpec, Supervisor};
 use robot_bridge::client::{self, ControllerEvent};
-use schemas::{ResourceSnapshot, RobotCommand, Service};
+use schemas::{HolonId, ResourceSnapshot, RobotCommand, Service};
 use tokio::sync::{mpsc, Notify};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
@@ -20,6 +22,7 @@ use tracing::{debug, error, info, warn};
 use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord};
 use crate::config::ResourceConfig;
 use crate::execution::{Execution, ExecutionAction, ExecutionEvent};
+use crate::requesters::{Absences, Moment};
 use holon::journal::Journal;
 
 /// How long a holon waits for zenoh to open and for its components to come up.
@@ -39,6 +42,8 @@ pub enum NodeError {
     Supervisor(#[from] holon::supervisor::SupervisorError),
     #[error(transparent)]
     Journal(#[from] holon::journal::JournalError),
+    #[error(transparent)]
+    Claim(#[from] holon::presence::ClaimError),
 }
 
 /// A message to the communication component.
@@ -113,6 +118,9 @@ pub struct Node {
     pub withdrawing: AtomicBool,
     /// The durable state, if the holon has a data directory.
     journal: Option<Journal>,
+    /// Which requesters are absent from the cell, kept by the requesters component
+    /// (read here for the snapshot).
+    absences: Mutex<Absences>,
 }
 
 /// The journal record that holds the agenda.
@@ -175,6 +183,7 @@ impl Node {
             serving: Notify::new(),
             withdrawing: AtomicBool::new(false),
             journal,
+            absences: Mutex::new(Absences::new(Moment::now())),
         };
         Ok(node)
     }
@@ -185,7 +194,34 @@ impl Node {
             let execution = lock(&self.execution);
             (execution.controller().as_str(), execution.current_step())
         };
-        lock(&self.agenda).snapshot(controller, step)
+        let mut snapshot = lock(&self.agenda).snapshot(controller, step);
+        let absences = lock(&self.absences);
+        for booking in &mut snapshot.agenda {
+            booking.requester_absent_since = absences
+                .absent_since(&booking.requester)
+                .map(|since| since.unix_ms);
+        }
+        snapshot
+    }
+
+    /// The requesters of the bookings on the agenda.
+    pub fn booked_requesters(&self) -> HashSet<HolonId> {
+        lock(&self.agenda)
+            .bookings()
+            .iter()
+            .map(|b| b.requester.clone())
+            .collect()
+    }
+
+    /// Replaces what is known of the requesters' presence (a requesters component
+    /// starting).
+    pub fn set_absences(&self, absences: Absences) {
+        *lock(&self.absences) = absences;
+    }
+
+    /// Changes what is known of the requesters' presence.
+    pub fn update_absences<R>(&self, change: impl FnOnce(&mut Absences) -> R) -> R {
+        change(&mut lock(&self.absences))
     }
 
     /// Stops offering, hands every booking back, and waits (at most the configured
@@ -227,7 +263,7 @@ impl Node {
         lock(&self.agenda).undelivered().to_vec()
     }
 
-    async fn state_changed(&self) {
+    pub(crate) async fn state_changed(&self) {
         let _ = self
             .communication_mail
             .sender
@@ -311,7 +347,7 @@ fn state_name(state: &crate::execution::ExecutionState) -> String {
     }
 }
 
-async fn send_agenda(node: &Node, event: AgendaEvent) -> Result<(), ChildError> {
+pub(crate) async fn send_agenda(node: &Node, event: AgendaEvent) -> Result<(), ChildError> {
     node.agenda_mail
         .sender
         .send(event)
@@ -410,6 +446,18 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
         )
         .await?;
     info!(holon = %holon, zid = %session.zid(), "zenoh session open");
+    // A twin (the same name alive elsewhere in the cell) is refused before this process
+    // answers anything.
+    let _claim =
+        match holon::presence::claim(&session, &alive_key, &holon.to_string(), STARTUP_TIMEOUT)
+            .await
+        {
+            Ok(claim) => claim,
+            Err(e) => {
+                let _ = session.close().await;
+                return Err(e.into());
+            }
+        };
     let node = match Node::new(config, session.clone()) {
         Ok(node) => Arc::new(node),
         Err(e) => {
@@ -434,6 +482,10 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
     .child(ChildSpec::new("agenda", {
         let node = node.clone();
         move |token| agenda(node.clone(), token)
+    }))
+    .child(ChildSpec::new("requesters", {
+        let node = node.clone();
+        move |token| crate::requesters::run(node.clone(), token)
     }))
     .child(ChildSpec::new("communication", {
         let node = node.clone();

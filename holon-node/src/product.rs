@@ -103,6 +103,20 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         )
         .await?;
     let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(e.to_string());
+    let _claim = match holon::presence::claim(
+        &session,
+        &config.keys.alive(&holon),
+        &holon.to_string(),
+        STARTUP_TIMEOUT,
+    )
+    .await
+    {
+        Ok(claim) => claim,
+        Err(e) => {
+            let _ = session.close().await;
+            return Err(e.into());
+        }
+    };
     let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
     let snapshot = serde_json::json!({
         "holon": holon,

@@ -79,3 +79,120 @@ pub async fn wait_token(
         }
     }
 }
+
+/// The process that holds a name in the cell, as it answers a query on its presence
+/// key (a regular query on the same key as its liveliness token).
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Holder {
+    /// The host it runs on.
+    pub host: String,
+    /// Its process id there.
+    pub pid: u32,
+    /// Its zenoh session id.
+    pub zid: String,
+    /// When it started, in Unix milliseconds.
+    pub since: u64,
+}
+
+impl Holder {
+    /// This process, on `session`.
+    pub fn this_process(session: &zenoh::Session) -> Holder {
+        Holder {
+            host: host_name(),
+            pid: std::process::id(),
+            zid: session.zid().to_string(),
+            since: schemas::unix_ms(),
+        }
+    }
+}
+
+impl std::fmt::Display for Holder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "host {}, pid {}, zenoh id {}",
+            self.host, self.pid, self.zid
+        )
+    }
+}
+
+/// The name of this host (`HOSTNAME`, else the kernel's), for messages.
+pub fn host_name() -> String {
+    std::env::var("HOSTNAME")
+        .ok()
+        .filter(|h| !h.trim().is_empty())
+        .or_else(|| {
+            std::fs::read_to_string("/proc/sys/kernel/hostname")
+                .ok()
+                .map(|h| h.trim().to_string())
+        })
+        .filter(|h| !h.is_empty())
+        .unwrap_or_else(|| "unknown".into())
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ClaimError {
+    #[error(
+        "{name} is already running in this cell ({}); stop it first or give this process another name. \
+         A process that stopped without closing its link (a host that lost power, a frozen \
+         process) holds the name until its zenoh lease expires: try again after that",
+        holder.as_ref().map(|h| h.to_string()).unwrap_or_else(|| "its host did not say who it is".into())
+    )]
+    Taken {
+        name: String,
+        holder: Option<Holder>,
+    },
+    #[error("zenoh: {0}")]
+    Zenoh(zenoh::Error),
+}
+
+/// A name claimed in the cell: answers "who holds it" on the key until dropped.
+pub struct Claim {
+    _holder: zenoh::query::Queryable<()>,
+}
+
+/// Claims `key` (a liveliness token's key) for `name`: refuses when a token on `key` is
+/// visible (another process holds the name: a twin), naming that process; otherwise
+/// declares a queryable on `key` that answers with this process's [`Holder`], so a twin
+/// started later can say who holds the name. The caller declares the token itself when
+/// it is ready. Two processes started within the same instant can both pass: the check
+/// is for the common mistake (a config copied and not renamed), not a lock.
+pub async fn claim(
+    session: &zenoh::Session,
+    key: &str,
+    name: &str,
+    timeout: Duration,
+) -> Result<Claim, ClaimError> {
+    if !tokens(session, key, timeout)
+        .await
+        .map_err(ClaimError::Zenoh)?
+        .is_empty()
+    {
+        let holder = match session.get(key).timeout(timeout).await {
+            Ok(replies) => match tokio::time::timeout(timeout, replies.recv_async()).await {
+                Ok(Ok(reply)) => reply
+                    .result()
+                    .ok()
+                    .and_then(|s| serde_json::from_slice(&s.payload().to_bytes()).ok()),
+                _ => None,
+            },
+            Err(_) => None,
+        };
+        return Err(ClaimError::Taken {
+            name: name.to_string(),
+            holder,
+        });
+    }
+    let me = serde_json::to_vec(&Holder::this_process(session)).unwrap_or_default();
+    let holder = session
+        .declare_queryable(key)
+        .callback(move |query| {
+            use zenoh::Wait;
+            if let Err(e) = query.reply(query.key_expr().clone(), me.clone()).wait() {
+                tracing::debug!(error = %e, "cannot answer who holds this name");
+            }
+        })
+        .await
+        .map_err(ClaimError::Zenoh)?;
+    Ok(Claim { _holder: holder })
+}

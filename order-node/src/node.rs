@@ -36,6 +36,8 @@ pub enum NodeError {
     WorkOrder(String),
     #[error(transparent)]
     Journal(#[from] holon::journal::JournalError),
+    #[error(transparent)]
+    Claim(#[from] holon::presence::ClaimError),
 }
 
 /// The journal record of the next order number.
@@ -273,6 +275,15 @@ pub async fn run(
             Duration::from_secs(10),
         )
         .await?;
+    // A twin (an order-node of the same name alive in the cell) would number its
+    // orders like this one: refused before anything is declared.
+    let _claim = holon::presence::claim(
+        &session,
+        &config.keys.host("order-node", &config.name),
+        &format!("order-node {}", config.name),
+        Duration::from_secs(10),
+    )
+    .await?;
     let presence = Presence::watch(&session, &config.keys).await.map_err(z)?;
     let journal = match &config.data_dir {
         Some(dir) => Some(Arc::new(Journal::open(

@@ -456,6 +456,8 @@ async fn cancel_order(
                 // Not reachable now: cancel it when it is back (from its journal).
                 tokio::spawn(cancel_when_back(
                     ctx.session.clone(),
+                    ctx.presence.clone(),
+                    resource.clone(),
                     ctx.keys.service(resource.name()),
                     cancel,
                 ));
@@ -826,6 +828,8 @@ where
                         );
                         tokio::spawn(cancel_when_back(
                             ctx.session.clone(),
+                            ctx.presence.clone(),
+                            provider.clone(),
                             ctx.keys.service(provider.name()),
                             cancel,
                         ));
@@ -863,25 +867,56 @@ where
     }
 }
 
-/// Sends `booking_cancel` until the resource answers (it may be restarting), for a minute.
-async fn cancel_when_back(session: zenoh::Session, key: String, cancel: Service) {
-    let deadline = Instant::now() + Duration::from_secs(60);
-    while Instant::now() < deadline {
-        if let Ok(replies) = session
-            .get(&key)
-            .payload(cancel.to_json())
-            .consolidation(ConsolidationMode::None)
-            .timeout(Duration::from_secs(2))
-            .await
-        {
-            if let Ok(reply) = replies.recv_async().await {
-                if reply.result().is_ok() {
-                    info!(conversation_id = %cancel.conversation_id, key, "abandoned booking cancelled");
-                    return;
+/// Sends `booking_cancel` until the resource answers: at once, then each time it is
+/// seen back (a restart from its journal, a healed network cut), for as long as the
+/// order-node runs. Without it a resource that returns would keep the abandoned booking
+/// until its requester's grace ends (or, while the order runs, for good), and offer a
+/// longer wait than it has.
+async fn cancel_when_back(
+    session: zenoh::Session,
+    presence: Arc<Presence>,
+    resource: HolonId,
+    key: String,
+    cancel: Service,
+) {
+    let mut changes = presence.changes();
+    loop {
+        if presence.is_alive(&resource) {
+            match session
+                .get(&key)
+                .payload(cancel.to_json())
+                .consolidation(ConsolidationMode::None)
+                .timeout(Duration::from_secs(2))
+                .await
+            {
+                Ok(replies) => {
+                    if let Ok(Ok(reply)) =
+                        tokio::time::timeout(Duration::from_secs(3), replies.recv_async()).await
+                    {
+                        if reply.result().is_ok() {
+                            info!(conversation_id = %cancel.conversation_id, %resource, "abandoned booking cancelled");
+                            return;
+                        }
+                    }
+                }
+                Err(e) => {
+                    warn!(conversation_id = %cancel.conversation_id, %resource, error = %e, "cannot send the cancel of an abandoned booking")
                 }
             }
         }
-        tokio::time::sleep(Duration::from_millis(500)).await;
+        // Wait for the resource to (re)appear, checking again now and then in case its
+        // appearance was missed.
+        let wait = async {
+            loop {
+                match changes.recv().await {
+                    Ok((holon, true)) if holon == resource => return,
+                    Ok(_) => {}
+                    Err(broadcast::error::RecvError::Lagged(_)) => return,
+                    Err(broadcast::error::RecvError::Closed) => std::future::pending().await,
+                }
+            }
+        };
+        let _ = tokio::time::timeout(Duration::from_secs(10), wait).await;
     }
 }
 
@@ -909,6 +944,7 @@ mod tests {
                     requester: HolonId::new(schemas::HolonKind::Order, "o-1").unwrap(),
                     conversation_id: c.to_string(),
                     service_type: "pick_n_place".into(),
+                    requester_absent_since: None,
                 })
                 .collect(),
             current: None,

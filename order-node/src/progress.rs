@@ -59,8 +59,13 @@ pub struct OrderProgress {
     pub plan: Option<Plan>,
     /// Index of the current step (0-based).
     pub step: usize,
-    /// Attempt of the current step, from 1; a new conversation each attempt.
+    /// Attempt of the current step, from 1; a new conversation each attempt. A step
+    /// worked on again after a rework continues from its last attempt, so every
+    /// execution has its own conversation id.
     pub attempt: u32,
+    /// The last attempt of each step left behind (by index), for reworks.
+    #[serde(default)]
+    pub last_attempts: std::collections::BTreeMap<usize, u32>,
     /// Failed attempts of the current step.
     pub failures: u32,
     /// Resources that failed the current step (avoided when others propose).
@@ -95,6 +100,7 @@ impl OrderProgress {
             plan: None,
             step: 0,
             attempt: 1,
+            last_attempts: Default::default(),
             failures: 0,
             avoid: BTreeSet::new(),
             reworks: 0,
@@ -158,8 +164,9 @@ impl OrderProgress {
     }
 
     fn next_step(&mut self, step: usize) {
+        self.last_attempts.insert(self.step, self.attempt);
         self.step = step;
-        self.attempt = 1;
+        self.attempt = self.last_attempts.get(&step).map_or(1, |a| a + 1);
         self.failures = 0;
         self.avoid.clear();
         self.phase = Phase::Proposing;
@@ -325,7 +332,13 @@ mod tests {
         assert_eq!(o.status, OrderStatus::Running);
         assert_eq!(o.step, 1, "back to step 2");
         assert_eq!(o.reworks, 1);
+        assert_eq!(
+            o.conversation_id(),
+            "n1-1/2/2",
+            "the reworked step is a new conversation"
+        );
         o.record(done("robot1", "placing_done"));
+        assert_eq!(o.conversation_id(), "n1-1/3/2");
         o.record(done("inspect1", "inspect_fail"));
         assert_eq!(o.status, OrderStatus::Scrapped);
         assert!(o.reason.as_deref().unwrap().contains("after 1 reworks"));

@@ -11,6 +11,11 @@ pub struct BookingView {
     pub requester: HolonId,
     pub conversation_id: String,
     pub service_type: String,
+    /// Set while the requester is absent from the cell (no liveliness token): since
+    /// when, in Unix milliseconds. The booking ends when the absence outlasts the
+    /// resource's `agenda.requester_grace_ms`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub requester_absent_since: Option<u64>,
 }
 
 /// A resource holon's state after a change.
