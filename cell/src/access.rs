@@ -109,11 +109,7 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             (&["query"], vec!["order/*/inbox".to_string()]),
             // Twins and requesters' presence (the bookings' lifetime).
             (
-                &[
-                    "query",
-                    "declare_liveliness_subscriber",
-                    "liveliness_query",
-                ],
+                &["query", "declare_liveliness_subscriber", "liveliness_query"],
                 vec!["alive/**".to_string()],
             ),
         ],

@@ -236,7 +236,11 @@ pub async fn submit(
         let replies = session
             .get(keys.orders_submit())
             .payload(serde_json::to_vec(work)?)
-            .timeout(Duration::from_secs(5))
+            .timeout(
+                deadline
+                    .saturating_duration_since(Instant::now())
+                    .clamp(Duration::from_millis(500), Duration::from_secs(5)),
+            )
             .await
             .map_err(|e| anyhow!("{e}"))?;
         if let Ok(reply) = replies.recv_async().await {
@@ -465,6 +469,7 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         product: "breaker".into(),
         count: options.orders,
         priority: 0,
+        queue: false,
     };
     let ids = submit(&cell.session, &cell.keys, &work, STARTUP).await?;
     println!(

@@ -100,6 +100,10 @@ enum Commands {
         /// Priority (kept with the order; scheduling by priority is not implemented yet).
         #[arg(long, default_value_t = 0)]
         priority: i32,
+        /// Accept the work order even when no product holon of that name is alive: its
+        /// orders wait for the plan (refused `unknown_product` otherwise).
+        #[arg(long)]
+        queue: bool,
         #[command(flatten)]
         client: ClientArgs,
     },
@@ -205,12 +209,11 @@ async fn close(session: zenoh::Session) {
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    // The demo's own output is its progress; logs go to stderr at warn unless RUST_LOG says otherwise.
-    if std::env::var_os("RUST_LOG").is_none() {
-        // zenoh's own warnings (a query to a host that was cut off) are not the operator's.
-        std::env::set_var("RUST_LOG", "warn,zenoh=error");
-    }
-    if let Err(e) = holon::logging::init(LogFormat::Text, None) {
+    // The command's own output is what it prints; its logs go to stderr at warn unless
+    // RUST_LOG says otherwise (zenoh's own warnings, e.g. a query to a host that was cut
+    // off, are not the operator's). The holons `cell up` starts keep their own default
+    // (info) in their log files: RUST_LOG is passed on only when the user set it.
+    if let Err(e) = holon::logging::init(LogFormat::Text, None, "warn,zenoh=error") {
         eprintln!("cell: {e}");
         return ExitCode::FAILURE;
     }
@@ -293,6 +296,7 @@ async fn run(args: Args) -> Result<bool> {
             product,
             count,
             priority,
+            queue,
             client,
         } => {
             let keys = client.keys()?;
@@ -300,6 +304,7 @@ async fn run(args: Args) -> Result<bool> {
                 product,
                 count,
                 priority,
+                queue,
             };
             work.validate()?;
             let session = client.session(OPERATOR).await?;

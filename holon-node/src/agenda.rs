@@ -1127,7 +1127,11 @@ mod tests {
             requester: HolonId::order("o-1").unwrap(),
         });
         assert_eq!(actions, vec![AgendaAction::StateChanged]);
-        let left: Vec<_> = m.bookings().iter().map(|b| b.conversation_id.as_str()).collect();
+        let left: Vec<_> = m
+            .bookings()
+            .iter()
+            .map(|b| b.conversation_id.as_str())
+            .collect();
         assert_eq!(left, vec!["c3"], "o-2's booking stays");
         assert_eq!(m.current().map(|j| j.conversation_id.as_str()), Some("c1"));
         let again = m.handle(AgendaEvent::RequesterGone {

@@ -162,9 +162,14 @@ pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildE
                             .map_err(|_| "agenda mailbox closed")?;
                     }
                     Ok(false) | Err(_) => {
+                        let refused = acked.is_err();
                         let why = match acked { Err(e) => e, _ => "no acknowledgement".into() };
                         delivery.next_attempt = Instant::now() + delivery.interval;
-                        debug!(%holon, %conversation_id, reason = %why, retry_in = ?delivery.interval, "result not acknowledged yet");
+                        if refused && repeat_worth_logging(delivery.attempts) {
+                            warn!(%holon, %conversation_id, attempt = delivery.attempts, reason = %why, retry_in = ?delivery.interval, "result refused; it is sent again until acknowledged");
+                        } else {
+                            debug!(%holon, %conversation_id, reason = %why, retry_in = ?delivery.interval, "result not acknowledged yet");
+                        }
                         delivery.interval = (delivery.interval * 2).min(config.delivery.retry_max);
                     }
                 }
@@ -235,7 +240,11 @@ fn send_due(
         }
         delivery.in_flight = true;
         delivery.attempts += 1;
-        info!(%holon, conversation_id = %conversation_id, message_type = %delivery.message.message_type, reply_to = delivery.message.reply_to.as_deref().unwrap_or(""), attempt = delivery.attempts, "sending result");
+        if repeat_worth_logging(delivery.attempts) {
+            info!(%holon, conversation_id = %conversation_id, message_type = %delivery.message.message_type, reply_to = delivery.message.reply_to.as_deref().unwrap_or(""), attempt = delivery.attempts, "sending result");
+        } else {
+            debug!(%holon, conversation_id = %conversation_id, attempt = delivery.attempts, "sending result again");
+        }
         let session = session.clone();
         let message = delivery.message.clone();
         let conversation_id = conversation_id.clone();
@@ -244,6 +253,12 @@ fn send_due(
             (conversation_id, acked)
         });
     }
+}
+
+/// Whether the `attempt`th try of the same delivery is logged above debug: the first,
+/// then every tenth (a requester that stays away does not fill the log).
+fn repeat_worth_logging(attempt: u32) -> bool {
+    attempt == 1 || attempt % 10 == 0
 }
 
 fn schedule(
@@ -302,7 +317,8 @@ async fn deliver(
                     .try_to_string()
                     .map(|s| s.into_owned())
                     .unwrap_or_default();
-                debug!(conversation_id = %message.conversation_id, error = %text, "error reply to a result");
+                // The requester refused it (malformed, not booked, ...): the caller logs why.
+                return Err(format!("refused by the requester: {text}"));
             }
         }
     }

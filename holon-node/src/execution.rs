@@ -261,7 +261,8 @@ impl Execution {
                 conversation_id: job.conversation_id,
                 outcome: Outcome::Failed {
                     reason: why.into(),
-                    detail,
+                    // A controller's text goes into a message: bounded.
+                    detail: schemas::bounded_detail(detail),
                 },
             });
         }

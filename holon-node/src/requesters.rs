@@ -182,16 +182,25 @@ mod tests {
         let booked = [order("o-1"), order("o-2")];
         // o-2 was never seen: absent since watching began.
         tokio::time::advance(Duration::from_secs(11)).await;
-        assert_eq!(a.expired(&booked, Instant::now(), grace), vec![order("o-2")]);
+        assert_eq!(
+            a.expired(&booked, Instant::now(), grace),
+            vec![order("o-2")]
+        );
         assert!(a.vanished(order("o-1"), Moment::now()));
         assert!(a.absent_since(&order("o-1")).is_some());
         tokio::time::advance(Duration::from_secs(5)).await;
-        assert_eq!(a.expired(&booked, Instant::now(), grace), vec![order("o-2")]);
+        assert_eq!(
+            a.expired(&booked, Instant::now(), grace),
+            vec![order("o-2")]
+        );
         // Back within the grace: kept.
         a.appeared(order("o-1"));
         tokio::time::advance(Duration::from_secs(20)).await;
         assert_eq!(a.absent_since(&order("o-1")), None);
-        assert_eq!(a.expired(&booked, Instant::now(), grace), vec![order("o-2")]);
+        assert_eq!(
+            a.expired(&booked, Instant::now(), grace),
+            vec![order("o-2")]
+        );
         // Gone for good.
         a.vanished(order("o-1"), Moment::now());
         tokio::time::advance(Duration::from_secs(11)).await;

@@ -51,7 +51,7 @@ where
     Fut: std::future::Future<Output = Result<(), E>>,
     E: std::fmt::Display,
 {
-    if let Err(e) = logging::init(format, log_file) {
+    if let Err(e) = logging::init(format, log_file, "info") {
         eprintln!("{program}: {e}");
         return std::process::ExitCode::FAILURE;
     }
@@ -69,7 +69,7 @@ where
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
-            tracing::error!(error = %e, "{program} failed");
+            tracing::error!(target: logging::FATAL, error = %e, "{program} failed");
             eprintln!("{program}: {e}");
             std::process::ExitCode::FAILURE
         }

@@ -4,7 +4,7 @@
 //!
 //! The terminal (stderr) gets human-readable text, or JSON lines with `--log-format json`;
 //! `--log-file PATH` additionally appends JSON lines to PATH. The level comes from
-//! `RUST_LOG` (default `info`).
+//! `RUST_LOG` (default `info`; set but blank counts as unset).
 
 use std::fs::OpenOptions;
 use std::io::IsTerminal;
@@ -12,9 +12,13 @@ use std::path::Path;
 use std::str::FromStr;
 use std::sync::Mutex;
 
+use tracing_subscriber::filter::filter_fn;
 use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::util::SubscriberInitExt;
 use tracing_subscriber::{EnvFilter, Layer, Registry};
+
+/// The target of a fatal error's log line (see [`init`]).
+pub const FATAL: &str = "holon::fatal";
 
 /// How log lines look on the terminal.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -49,18 +53,29 @@ pub enum LoggingError {
 type BoxedLayer = Box<dyn Layer<Registry> + Send + Sync>;
 
 /// Installs the global subscriber. Call once, at the start of `main`.
-pub fn init(format: LogFormat, file: Option<&Path>) -> Result<(), LoggingError> {
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+pub fn init(format: LogFormat, file: Option<&Path>, default: &str) -> Result<(), LoggingError> {
+    // `RUST_LOG` unset or blank: the default (a blank filter would mean errors only).
+    let filter = match std::env::var("RUST_LOG") {
+        Ok(value) if !value.trim().is_empty() => {
+            EnvFilter::try_new(&value).unwrap_or_else(|_| EnvFilter::new(default))
+        }
+        _ => EnvFilter::new(default),
+    };
+    // A fatal error is printed once on stderr by the binary's edge (as `program: error`);
+    // the terminal layer leaves it out, the log file keeps it.
+    let not_fatal = filter_fn(|meta| meta.target() != FATAL);
     let terminal: BoxedLayer = match format {
         LogFormat::Text => tracing_subscriber::fmt::layer()
             .with_writer(std::io::stderr)
             .with_ansi(std::io::stderr().is_terminal())
             .with_target(false)
+            .with_filter(not_fatal)
             .boxed(),
         LogFormat::Json => tracing_subscriber::fmt::layer()
             .json()
             .flatten_event(true)
             .with_writer(std::io::stderr)
+            .with_filter(not_fatal)
             .boxed(),
     };
     let mut layers = vec![terminal];

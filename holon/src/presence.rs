@@ -146,6 +146,9 @@ pub enum ClaimError {
     Zenoh(zenoh::Error),
 }
 
+/// How long a starting process listens for another holder of its name.
+pub const CLAIM_WINDOW: Duration = Duration::from_millis(500);
+
 /// A name claimed in the cell: answers "who holds it" on the key until dropped.
 pub struct Claim {
     _holder: zenoh::query::Queryable<()>,
@@ -163,11 +166,33 @@ pub async fn claim(
     name: &str,
     timeout: Duration,
 ) -> Result<Claim, ClaimError> {
-    if !tokens(session, key, timeout)
+    // Right after the session opens, its links may still be coming up: a query then
+    // sees no one. Wait (briefly) until it is linked to a router or a peer.
+    let linked_by = tokio::time::Instant::now() + timeout.min(Duration::from_secs(3));
+    loop {
+        let info = session.info();
+        if info.routers_zid().await.next().is_some() || info.peers_zid().await.next().is_some() {
+            break;
+        }
+        if tokio::time::Instant::now() >= linked_by {
+            // Alone (the first process of a cell): nobody to be a twin of.
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // Linked is not yet routed: the cell's declarations reach a new session a moment
+    // after its links come up, and a query before that sees nobody. A liveliness
+    // subscriber with history receives the token whenever the declarations arrive;
+    // wait a short window for it (the price of the check on every start), then ask once
+    // more.
+    let taken = wait_token(session, key, CLAIM_WINDOW)
         .await
         .map_err(ClaimError::Zenoh)?
-        .is_empty()
-    {
+        || !tokens(session, key, timeout)
+            .await
+            .map_err(ClaimError::Zenoh)?
+            .is_empty();
+    if taken {
         let holder = match session.get(key).timeout(timeout).await {
             Ok(replies) => match tokio::time::timeout(timeout, replies.recv_async()).await {
                 Ok(Ok(reply)) => reply

@@ -248,6 +248,9 @@ pub fn parse_submit(text: &str) -> Result<WorkOrder, NodeError> {
         product: product.to_string(),
         count,
         priority: 0,
+        // Given at start-up, before the cell may be complete: the orders wait for
+        // their plan.
+        queue: true,
     };
     work.validate()
         .map_err(|e| NodeError::WorkOrder(format!("{text:?}: {e}")))?;
@@ -443,6 +446,41 @@ fn restart(host: &Host, name: &str, tasks: &mut Tasks, cancel: &CancellationToke
     host.spawn(name, progress, tasks, cancel);
 }
 
+/// Why a work order for `product` cannot be planned now: no product holon of that name
+/// is alive (its liveliness token, asked for once). `None` when it is there.
+async fn product_missing(host: &Host, product: &str) -> Option<String> {
+    let keys = &host.config.keys;
+    let holon = HolonId::new(schemas::HolonKind::Product, product).ok()?;
+    let session = &host.context.session;
+    match holon::presence::tokens(session, &keys.alive(&holon), Duration::from_secs(2)).await {
+        Ok(found) if !found.is_empty() => None,
+        Ok(_) => {
+            let alive = holon::presence::tokens(
+                session,
+                &keys.alive_kind(schemas::HolonKind::Product),
+                Duration::from_secs(2),
+            )
+            .await
+            .unwrap_or_default();
+            let names: Vec<String> = alive
+                .iter()
+                .filter_map(|k| keys.holon_from_alive(k))
+                .map(|h| h.name().to_string())
+                .collect();
+            Some(format!(
+                "no product holon {product:?} is alive in cell {} (alive: {}); start it, or submit with queue (cell submit --queue) to let the orders wait for its plan",
+                keys.cell(),
+                if names.is_empty() { "none".to_string() } else { names.join(", ") }
+            ))
+        }
+        // Presence unknown: accept, the order waits for its plan as before.
+        Err(e) => {
+            warn!(node = %host.config.name, error = %e, "cannot ask which products are alive");
+            None
+        }
+    }
+}
+
 async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &CancellationToken) {
     let payload = query
         .payload()
@@ -466,6 +504,18 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
             return;
         }
     };
+    if !work.queue {
+        if let Some(why) = product_missing(host, &work.product).await {
+            warn!(node = %host.config.name, product = %work.product, "work order refused: {why}");
+            if let Err(e) = query
+                .reply_err(ErrorReply::new("unknown_product", why).to_json())
+                .await
+            {
+                warn!(node = %host.config.name, error = %e, "cannot refuse the work order");
+            }
+            return;
+        }
+    }
     let limits = &host.config.orders;
     let unfinished = host.unfinished();
     let refusal = if work.count > limits.max_orders_per_submit {
@@ -552,7 +602,20 @@ async fn acknowledge_finished(host: &Host, query: Query) {
         .payload()
         .map(|p| p.to_bytes().into_owned())
         .unwrap_or_default();
-    if let Ok(message) = schemas::Service::from_json(&payload) {
+    let message = match schemas::Service::from_json(&payload) {
+        Ok(message) => message,
+        Err(err) => {
+            warn!(order = %name, bytes = payload.len(), error = %err, "undecodable message for a finished order refused");
+            if let Err(e) = query
+                .reply_err(ErrorReply::new("malformed", err.to_string()).to_json())
+                .await
+            {
+                warn!(order = %name, error = %e, "cannot refuse an undecodable message");
+            }
+            return;
+        }
+    };
+    {
         if !progress.knows(message.provider.as_ref()) {
             warn!(order = %name, conversation_id = %message.conversation_id, "result for a finished order from a resource it never booked refused");
             if let Err(e) = query

@@ -316,9 +316,13 @@ pub async fn run(
                         .wait();
                 }
                 Err(err) => {
-                    let _ = query
+                    warn!(holon = %me, bytes = payload.len(), error = %err, "undecodable message in the inbox refused");
+                    if let Err(e) = query
                         .reply_err(schemas::ErrorReply::new("malformed", err.to_string()).to_json())
-                        .wait();
+                        .wait()
+                    {
+                        warn!(holon = %me, error = %e, "cannot refuse an undecodable message");
+                    }
                 }
             }
         })

@@ -222,6 +222,8 @@ async fn serve(
     let mut framed = Framed::new(stream, RobotCodec);
     // Wire id -> deadline of every command sent and not answered.
     let mut pending: HashMap<u64, Instant> = HashMap::new();
+    // Status messages repeating the last one, since the last change.
+    let mut repeats: u64 = 0;
     let end = loop {
         let next_deadline = pending.values().min().copied();
         tokio::select! {
@@ -251,8 +253,16 @@ async fn serve(
                     }
                 }
                 Some(Ok(RobotMessage::Status(state))) => {
-                    info!(controller_state = %state, "controller status");
-                    if !reporter.status(ControllerStatus::Connected(state)).await {
+                    // Changes are logged and reported; repeats (a chatty controller
+                    // sends the same status over and over) are only counted.
+                    let status = ControllerStatus::Connected(state);
+                    if reporter.status == Some(status) {
+                        repeats += 1;
+                        continue;
+                    }
+                    info!(controller_state = %state, repeats_before = repeats, "controller status");
+                    repeats = 0;
+                    if !reporter.status(status).await {
                         break ConnectionEnd::OwnerGone;
                     }
                 }

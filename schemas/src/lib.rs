@@ -17,7 +17,9 @@ pub use plan::{
     CancelReply, OnReject, OrderSnapshot, OrderStatus, Plan, PlanStep, SubmitReply, WorkOrder,
 };
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
-pub use service::{reason, ErrorReply, MessageType, Service, SERVICE_VERSION};
+pub use service::{
+    bounded_detail, reason, ErrorReply, MessageType, Service, MAX_DETAIL_BYTES, SERVICE_VERSION,
+};
 pub use state::{unix_ms, BookingView, CurrentJobView, ResourceSnapshot};
 
 /// Everything that can be wrong with a message, an id or a key.

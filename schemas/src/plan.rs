@@ -88,6 +88,11 @@ pub struct WorkOrder {
     pub count: u32,
     #[serde(default)]
     pub priority: i32,
+    /// Accept the work order even when no product holon of that name is alive (its
+    /// orders wait for the plan); without it such a work order is refused
+    /// `unknown_product`, since a misspelt product would otherwise fail only later.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub queue: bool,
 }
 
 fn one() -> u32 {

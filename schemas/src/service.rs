@@ -18,6 +18,25 @@ pub const MAX_SERVICE_BYTES: usize = 64 * 1024;
 /// The longest `conversation_id` we accept.
 pub const MAX_CONVERSATION_ID_LEN: usize = 128;
 
+/// The most bytes of free text (a controller's error message, in `info.detail`) a holon
+/// puts in a message; longer text is cut at a character boundary and marked.
+pub const MAX_DETAIL_BYTES: usize = 1024;
+
+/// `text` bounded to [`MAX_DETAIL_BYTES`]: unchanged when it fits, else cut and ending
+/// in `... [truncated: N bytes in all]`.
+pub fn bounded_detail(text: String) -> String {
+    if text.len() <= MAX_DETAIL_BYTES {
+        return text;
+    }
+    let total = text.len();
+    let mark = format!("... [truncated: {total} bytes in all]");
+    let mut cut = MAX_DETAIL_BYTES - mark.len();
+    while !text.is_char_boundary(cut) {
+        cut -= 1;
+    }
+    format!("{}{mark}", &text[..cut])
+}
+
 /// What a Service message asks or answers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
@@ -341,5 +360,18 @@ mod tests {
         let no = msg.refused(&robot, reason::BUSY);
         assert_eq!(no.result, Some(false));
         assert_eq!(no.reason.as_deref(), Some("busy"));
+    }
+
+    #[test]
+    fn detail_text_is_bounded_and_marked() {
+        assert_eq!(bounded_detail("gripper empty".into()), "gripper empty");
+        let long = "\"é".repeat(40_000);
+        let bounded = bounded_detail(long.clone());
+        assert!(bounded.len() <= MAX_DETAIL_BYTES, "{}", bounded.len());
+        assert!(
+            bounded.ends_with(&format!("[truncated: {} bytes in all]", long.len())),
+            "{bounded}"
+        );
+        assert!(long.starts_with(bounded.split("...").next().unwrap()));
     }
 }

@@ -609,11 +609,17 @@ impl Cell {
 
     /// Submits a work order on `orders/submit` and returns the new orders' names.
     pub async fn submit(&self, product: &str, count: u32) -> Result<Vec<String>> {
-        let work = schemas::WorkOrder {
+        self.submit_work(schemas::WorkOrder {
             product: product.into(),
             count,
             priority: 0,
-        };
+            queue: false,
+        })
+        .await
+    }
+
+    /// Submits `work` on `orders/submit` and returns the new orders' names.
+    pub async fn submit_work(&self, work: schemas::WorkOrder) -> Result<Vec<String>> {
         let replies = self
             .session
             .get(self.keys.orders_submit())
