@@ -248,10 +248,17 @@ pub async fn submit(
                 Ok(sample) => {
                     Ok(serde_json::from_slice::<SubmitReply>(&sample.payload().to_bytes())?.orders)
                 }
-                Err(err) => bail!(
-                    "the order-node refused the work order: {}",
-                    err.payload().try_to_string().unwrap_or_default()
-                ),
+                Err(err) => {
+                    let text = err.payload().try_to_string().unwrap_or_default();
+                    match serde_json::from_str::<schemas::ErrorReply>(&text) {
+                        Ok(e) => bail!(
+                            "the order-node refused the work order ({}): {}",
+                            e.code,
+                            e.message
+                        ),
+                        Err(_) => bail!("the order-node refused the work order: {text}"),
+                    }
+                }
             };
         }
         if Instant::now() >= deadline {

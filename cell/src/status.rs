@@ -62,6 +62,22 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
                 })
                 .unwrap_or_else(|| "-".into())
         };
+        // Bookings whose requester is absent (released after the resource's grace).
+        let absent = row
+            .snapshot
+            .as_ref()
+            .and_then(|s| s.get("agenda"))
+            .and_then(|a| a.as_array())
+            .map_or(0, |a| {
+                a.iter()
+                    .filter(|b| b.get("requester_absent_since").is_some())
+                    .count()
+            });
+        let agenda = if absent > 0 {
+            format!("{} ({absent} absent)", field("agenda"))
+        } else {
+            field("agenda")
+        };
         out.push_str(&format!(
             "{:<28} {:<9} {:<8} {:<13} {:>6} {:>11}\n",
             row.holon.to_string(),
@@ -72,7 +88,7 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
                 field("state")
             },
             field("controller"),
-            field("agenda"),
+            agenda,
             field("undelivered"),
         ));
     }
@@ -182,5 +198,22 @@ mod tests {
         let mut names = vec!["orders1-10", "orders2-1", "orders1-2", "orders1-1"];
         names.sort_by_key(|n| order_sort_key(n));
         assert_eq!(names, ["orders1-1", "orders1-2", "orders1-10", "orders2-1"]);
+    }
+
+    #[test]
+    fn bookings_of_absent_requesters_are_counted() {
+        let row = HolonStatus {
+            holon: HolonId::resource("robot1").unwrap(),
+            snapshot: Some(serde_json::json!({
+                "state": "free", "controller": "ready", "undelivered": 0,
+                "agenda": [
+                    {"requester": "order/o-1", "conversation_id": "o-1/1/1", "service_type": "pick_n_place"},
+                    {"requester": "order/o-2", "conversation_id": "o-2/1/1", "service_type": "pick_n_place",
+                     "requester_absent_since": 1},
+                ],
+            })),
+        };
+        let table = render("demo", &[row]);
+        assert!(table.contains("2 (1 absent)"), "{table}");
     }
 }

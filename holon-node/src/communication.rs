@@ -258,7 +258,7 @@ fn send_due(
 /// Whether the `attempt`th try of the same delivery is logged above debug: the first,
 /// then every tenth (a requester that stays away does not fill the log).
 fn repeat_worth_logging(attempt: u32) -> bool {
-    attempt == 1 || attempt % 10 == 0
+    attempt == 1 || attempt.is_multiple_of(10)
 }
 
 fn schedule(

@@ -54,10 +54,22 @@ pub enum JournalError {
         path: String,
         source: std::io::Error,
     },
+    #[error("the data directory {path} is not writable ({source}): the journal lives there")]
+    NotWritable {
+        path: String,
+        source: std::io::Error,
+    },
     #[error("journal {path}: {message}")]
     Sqlite { path: String, message: String },
     #[error("journal {path} is in use by another process (one holon per data file)")]
     InUse { path: String },
+    #[error(
+        "journal {path} exists but cannot be read: {why}. It was not replaced by an empty \
+         one (that would lose what it holds). Restore it from a backup, or move it (and \
+         its -wal file) aside to start with an empty state: see \"A damaged journal\" in \
+         docs/reliability.md"
+    )]
+    Damaged { path: String, why: String },
     #[error("journal {path}: record {kind}/{id} cannot be read: {message}")]
     Decode {
         path: String,
@@ -65,6 +77,41 @@ pub enum JournalError {
         id: String,
         message: String,
     },
+}
+
+/// SQLite's WAL magic numbers (big- and little-endian checksums).
+const WAL_MAGIC: [u32; 2] = [0x377f_0682, 0x377f_0683];
+
+/// Refuses a write-ahead log that exists but does not start with a WAL header: SQLite
+/// would ignore it, and the commits in it would be lost without a word. (An empty WAL
+/// or none is normal; a torn last frame after a crash is normal too and is handled by
+/// SQLite: only the header is checked here.)
+fn check_wal_header(wal: &Path) -> Result<(), String> {
+    use std::io::Read;
+    let mut file = match std::fs::File::open(wal) {
+        Ok(file) => file,
+        Err(_) => return Ok(()),
+    };
+    let mut header = Vec::with_capacity(32);
+    if let Err(e) = (&mut file).take(32).read_to_end(&mut header) {
+        return Err(format!(
+            "its write-ahead log {} cannot be read: {e}",
+            wal.display()
+        ));
+    }
+    if header.is_empty() {
+        return Ok(());
+    }
+    let magic = header
+        .get(..4)
+        .map(|b| u32::from_be_bytes([b[0], b[1], b[2], b[3]]));
+    if header.len() < 32 || !magic.is_some_and(|m| WAL_MAGIC.contains(&m)) {
+        return Err(format!(
+            "its write-ahead log {} is not a SQLite WAL (damaged: it may hold the last commits)",
+            wal.display()
+        ));
+    }
+    Ok(())
 }
 
 /// A holon's journal.
@@ -86,11 +133,50 @@ impl Journal {
             path: dir.display().to_string(),
             source,
         })?;
+        // A read-only directory would surface as SQLite's "disk I/O error": say it.
+        let probe = dir.join(format!(".{file}.write-test"));
+        if let Err(e) = std::fs::write(&probe, b"") {
+            return Err(JournalError::NotWritable {
+                path: dir.display().to_string(),
+                source: e,
+            });
+        }
+        if let Err(e) = std::fs::remove_file(&probe) {
+            tracing::debug!(error = %e, "cannot remove the write test file");
+        }
         let path = dir.join(file);
         let display = path.display().to_string();
-        let sqlite = |e: rusqlite::Error| JournalError::Sqlite {
+        let damaged = |why: String| JournalError::Damaged {
             path: display.clone(),
-            message: e.to_string(),
+            why,
+        };
+        // A journal that existed must come back as it was, never as an empty one: SQLite
+        // would take a zero-length file for a new database and ignore a WAL whose header
+        // is garbage (with the commits in it).
+        let existed = match std::fs::metadata(&path) {
+            Ok(meta) if meta.len() == 0 => {
+                return Err(damaged("the file is empty (zero length)".into()))
+            }
+            Ok(_) => true,
+            Err(_) => false,
+        };
+        check_wal_header(&path.with_file_name(format!("{file}-wal"))).map_err(&damaged)?;
+        let sqlite = |e: rusqlite::Error| match e.sqlite_error_code() {
+            Some(rusqlite::ErrorCode::DatabaseBusy | rusqlite::ErrorCode::DatabaseLocked) => {
+                JournalError::InUse {
+                    path: display.clone(),
+                }
+            }
+            Some(rusqlite::ErrorCode::DatabaseCorrupt | rusqlite::ErrorCode::NotADatabase) => {
+                JournalError::Damaged {
+                    path: display.clone(),
+                    why: e.to_string(),
+                }
+            }
+            _ => JournalError::Sqlite {
+                path: display.clone(),
+                message: e.to_string(),
+            },
         };
         let connection = Connection::open(&path).map_err(sqlite)?;
         connection
@@ -103,41 +189,44 @@ impl Journal {
         let setup = format!(
             "PRAGMA locking_mode = EXCLUSIVE;
              PRAGMA journal_mode = WAL;
-             PRAGMA synchronous = {synchronous};
-             CREATE TABLE IF NOT EXISTS records (
-                 kind TEXT NOT NULL,
-                 id   TEXT NOT NULL,
-                 body TEXT NOT NULL,
-                 PRIMARY KEY (kind, id)
-             );"
+             PRAGMA synchronous = {synchronous};"
         );
-        connection.execute_batch(&setup).map_err(|e| {
-            if matches!(
-                e.sqlite_error_code(),
-                Some(rusqlite::ErrorCode::DatabaseBusy)
-            ) {
-                JournalError::InUse {
-                    path: display.clone(),
-                }
-            } else {
-                sqlite(e)
+        connection.execute_batch(&setup).map_err(sqlite)?;
+        if existed {
+            // Every page read once: damage shows now, not in the middle of a job.
+            let verdict: String = connection
+                .query_row("PRAGMA quick_check", [], |row| row.get(0))
+                .map_err(sqlite)?;
+            if verdict != "ok" {
+                return Err(damaged(format!("SQLite's quick_check says: {verdict}")));
             }
-        })?;
+            let has_records: bool = connection
+                .query_row(
+                    "SELECT count(*) > 0 FROM sqlite_master WHERE type = 'table' AND name = 'records'",
+                    [],
+                    |row| row.get(0),
+                )
+                .map_err(sqlite)?;
+            if !has_records {
+                return Err(damaged(
+                    "it is not a holarchy journal (no records table)".into(),
+                ));
+            }
+        }
+        connection
+            .execute_batch(
+                "CREATE TABLE IF NOT EXISTS records (
+                     kind TEXT NOT NULL,
+                     id   TEXT NOT NULL,
+                     body TEXT NOT NULL,
+                     PRIMARY KEY (kind, id)
+                 );",
+            )
+            .map_err(sqlite)?;
         // Take the exclusive lock now, so a second process fails at start.
         connection
             .execute_batch("BEGIN IMMEDIATE; COMMIT;")
-            .map_err(|e| {
-                if matches!(
-                    e.sqlite_error_code(),
-                    Some(rusqlite::ErrorCode::DatabaseBusy)
-                ) {
-                    JournalError::InUse {
-                        path: display.clone(),
-                    }
-                } else {
-                    sqlite(e)
-                }
-            })?;
+            .map_err(sqlite)?;
         Ok(Journal {
             path,
             connection: Mutex::new(connection),
@@ -329,5 +418,96 @@ mod tests {
             Durability::ProcessCrash
         );
         assert!("sometimes".parse::<Durability>().is_err());
+    }
+
+    fn journal_with_records(dir: &Path) {
+        let journal = Journal::open(dir, "j.sqlite", Durability::PowerLoss).unwrap();
+        for n in 0..50 {
+            journal
+                .put(
+                    "order",
+                    &n.to_string(),
+                    &Record {
+                        n,
+                        text: "x".repeat(200),
+                    },
+                )
+                .unwrap();
+        }
+    }
+
+    fn assert_damaged(result: Result<Journal, JournalError>, what: &str) {
+        match result {
+            Err(e @ JournalError::Damaged { .. }) => {
+                let text = e.to_string();
+                assert!(text.contains("not replaced by an empty"), "{text}");
+            }
+            Err(other) => panic!("{what}: expected Damaged, got {other}"),
+            Ok(_) => panic!("{what}: a damaged journal was opened"),
+        }
+    }
+
+    #[test]
+    fn a_zero_length_journal_is_refused_not_made_empty() {
+        let dir = tempfile::tempdir().unwrap();
+        journal_with_records(dir.path());
+        std::fs::write(dir.path().join("j.sqlite"), b"").unwrap();
+        assert_damaged(
+            Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss),
+            "zero length",
+        );
+        assert_eq!(
+            std::fs::metadata(dir.path().join("j.sqlite"))
+                .unwrap()
+                .len(),
+            0,
+            "the file is left as it was"
+        );
+    }
+
+    #[test]
+    fn a_garbage_wal_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        journal_with_records(dir.path());
+        std::fs::write(dir.path().join("j.sqlite-wal"), vec![0x5a; 4096]).unwrap();
+        assert_damaged(
+            Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss),
+            "garbage WAL",
+        );
+    }
+
+    #[test]
+    fn damaged_pages_are_refused_at_open() {
+        let dir = tempfile::tempdir().unwrap();
+        journal_with_records(dir.path());
+        let path = dir.path().join("j.sqlite");
+        let mut bytes = std::fs::read(&path).unwrap();
+        assert!(bytes.len() > 8192, "{}", bytes.len());
+        // Scribble over the second page (the table's first page), keep the header.
+        for b in &mut bytes[4096..6000] {
+            *b = 0xa5;
+        }
+        std::fs::write(&path, bytes).unwrap();
+        assert_damaged(
+            Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss),
+            "damaged page",
+        );
+    }
+
+    #[test]
+    fn a_read_only_data_directory_is_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = dir.path().join("data");
+        std::fs::create_dir(&data).unwrap();
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&data, std::fs::Permissions::from_mode(0o555)).unwrap();
+        if std::fs::write(data.join("probe"), b"").is_ok() {
+            // Running as root: permissions do not stop writes; nothing to test here.
+            return;
+        }
+        let error = Journal::open(&data, "j.sqlite", Durability::PowerLoss)
+            .unwrap_err()
+            .to_string();
+        assert!(error.contains("is not writable"), "{error}");
     }
 }

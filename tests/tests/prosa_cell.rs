@@ -329,19 +329,22 @@ async fn bad_work_orders_get_an_error_and_create_nothing() {
             .unwrap_err();
         assert_eq!(error.code, code);
     }
-    // The next valid order is the first one created.
-    let output = tokio::process::Command::new(bin("cell"))
-        .args([
-            "submit",
-            "breaker",
-            "--count",
-            "2",
-            "--cell",
-            "t-submit",
-            "--connect",
-            &cell.endpoint,
-        ])
-        .output()
+    // No product holon runs in this cell: a product nobody serves is refused, saying so.
+    let submit = |extra: &'static [&'static str]| {
+        tokio::process::Command::new(bin("cell"))
+            .args(["submit", "--cell", "t-submit", "--connect", &cell.endpoint])
+            .args(extra)
+            .output()
+    };
+    let output = submit(&["widget"]).await.unwrap();
+    assert!(!output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        stderr.contains("unknown_product") && stderr.contains("no product holon \"widget\""),
+        "{stderr}"
+    );
+    // The next valid order is the first one created (queued: its product comes later).
+    let output = submit(&["breaker", "--count", "2", "--queue"])
         .await
         .unwrap();
     assert!(
