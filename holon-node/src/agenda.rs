@@ -552,6 +552,7 @@ impl AgendaManager {
             }),
             undelivered: self.undelivered.len(),
             services: self.catalog.service_types().map(String::from).collect(),
+            journal_fault: None,
             at: unix_ms(),
         }
     }

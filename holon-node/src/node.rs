@@ -30,6 +30,9 @@ pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
 
 const MAILBOX: usize = 256;
 
+/// How often a journal that cannot be written is tried again.
+const JOURNAL_RETRY: Duration = Duration::from_secs(1);
+
 #[derive(Debug, thiserror::Error)]
 pub enum NodeError {
     #[error(transparent)]
@@ -121,6 +124,13 @@ pub struct Node {
     /// Which requesters are absent from the cell, kept by the requesters component
     /// (read here for the snapshot).
     absences: Mutex<Absences>,
+    /// Set while the journal cannot be written (a full disk, ...): why. The resource
+    /// then stops offering, refuses requests that would change its agenda, and holds
+    /// results back until a write succeeds (the agenda component retries it).
+    journal_fault: Mutex<Option<String>>,
+    /// Results that happened while the journal could not record them, oldest first:
+    /// delivered once they are written.
+    held: Mutex<Vec<Service>>,
 }
 
 /// The journal record that holds the agenda.
@@ -184,6 +194,8 @@ impl Node {
             withdrawing: AtomicBool::new(false),
             journal,
             absences: Mutex::new(Absences::new(Moment::now())),
+            journal_fault: Mutex::new(None),
+            held: Mutex::new(Vec::new()),
         };
         Ok(node)
     }
@@ -195,6 +207,7 @@ impl Node {
             (execution.controller().as_str(), execution.current_step())
         };
         let mut snapshot = lock(&self.agenda).snapshot(controller, step);
+        snapshot.journal_fault = lock(&self.journal_fault).clone();
         let absences = lock(&self.absences);
         for booking in &mut snapshot.agenda {
             booking.requester_absent_since = absences
@@ -234,6 +247,24 @@ impl Node {
             .sender
             .send(CommunicationMessage::StopOffering)
             .await;
+        let held = std::mem::take(&mut *lock(&self.held));
+        if !held.is_empty() {
+            // Stopping with results the journal could not record: deliver them anyway,
+            // so the orders record the outcomes. After a restart this resource reports
+            // those steps `interrupted` (its journal still shows them running), which
+            // the orders acknowledge and ignore as late reports of finished conversations.
+            warn!(holon = %holon, results = held.len(), "shutting down while the journal cannot be written: delivering the held results unrecorded");
+            for result in held {
+                if let Err(e) = self
+                    .communication_mail
+                    .sender
+                    .send(CommunicationMessage::Deliver(result))
+                    .await
+                {
+                    error!(holon = %holon, error = %e, "cannot deliver a held result");
+                }
+            }
+        }
         let bookings = lock(&self.agenda).bookings().len();
         info!(holon = %holon, bookings, "withdrawing: no new work, handing bookings back");
         let _ = self.agenda_mail.sender.send(AgendaEvent::Withdraw).await;
@@ -255,7 +286,46 @@ impl Node {
     /// Whether the resource can take new work: its controller is ready and it is not
     /// withdrawing.
     pub fn can_take_work(&self) -> bool {
-        !self.withdrawing.load(Ordering::SeqCst) && lock(&self.agenda).status_name() != "init"
+        // One lock at a time (the agenda's is taken before the fault's elsewhere).
+        let journal_ok = self.journal_fault().is_none();
+        let ready = lock(&self.agenda).status_name() != "init";
+        !self.withdrawing.load(Ordering::SeqCst) && journal_ok && ready
+    }
+
+    /// Why the journal cannot be written, while it cannot.
+    pub fn journal_fault(&self) -> Option<String> {
+        lock(&self.journal_fault).clone()
+    }
+
+    /// Records that the journal write failed: the first failure is logged and the state
+    /// republished (offers stop); repeats are not logged again.
+    fn journal_failed(&self, error: &holon::journal::JournalError) {
+        let mut fault = lock(&self.journal_fault);
+        if fault.is_none() {
+            error!(holon = %self.config.holon, component = "agenda", error = %error, "the journal cannot be written: no new work is taken and results are held until a write succeeds (retried every second)");
+            if let Err(e) = self
+                .communication_mail
+                .sender
+                .try_send(CommunicationMessage::StateChanged)
+            {
+                warn!(holon = %self.config.holon, error = %e, "cannot announce the journal fault; the next state change will");
+            }
+        }
+        *fault = Some(error.to_string());
+    }
+
+    /// A journal write succeeded: if it was failing, the fault ends and the held results
+    /// are released (to deliver, after a state change).
+    fn journal_written(&self) -> Vec<AgendaAction> {
+        if lock(&self.journal_fault).take().is_none() {
+            return vec![];
+        }
+        let held = std::mem::take(&mut *lock(&self.held));
+        info!(holon = %self.config.holon, component = "agenda", results = held.len(), "the journal can be written again: held results are delivered, new work is taken");
+        held.into_iter()
+            .map(AgendaAction::Deliver)
+            .chain([AgendaAction::StateChanged])
+            .collect()
     }
 
     /// Results not yet acknowledged (for a restarted communication component).
@@ -362,14 +432,20 @@ pub(crate) async fn send_agenda(node: &Node, event: AgendaEvent) -> Result<(), C
 /// hops per request (profiled: about a fifth of a booking above the zenoh floor).
 async fn agenda(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildError> {
     let mut mailbox = node.agenda_mail.take().await;
+    let mut journal_retry = tokio::time::interval(JOURNAL_RETRY);
+    journal_retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
-        let event = tokio::select! {
+        let actions = tokio::select! {
             _ = token.cancelled() => return Ok(()),
             _ = node.faults.agenda.notified() => panic!("fault injection: agenda manager crashed"),
-            event = mailbox.recv() => event.ok_or("agenda mailbox closed")?,
-        };
-        let Some(actions) = agenda_transition(&node, event) else {
-            continue;
+            _ = journal_retry.tick() => retry_journal(&node),
+            event = mailbox.recv() => {
+                let event = event.ok_or("agenda mailbox closed")?;
+                let Some(actions) = agenda_transition(&node, event) else {
+                    continue;
+                };
+                actions
+            }
         };
         for action in actions {
             match action {
@@ -400,16 +476,35 @@ pub(crate) fn agenda_transition(node: &Node, event: AgendaEvent) -> Option<Vec<A
     // process dies first, the result is delivered once more and the order, which
     // ignores duplicates, acknowledges it again. That saves an fsync per job.
     let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
-    let actions = agenda.handle(event);
+    // A request can be refused when it cannot be recorded; the other events are facts
+    // (a job finished, a requester left) that the agenda must keep even then.
+    let refusable = matches!(event, AgendaEvent::Request(_));
+    let mut actions = agenda.handle(event);
     let changed = previous
         .as_ref()
         .is_some_and(|p| !lazily && p.record() != agenda.record());
     if let (Some(journal), Some(previous), true) = (&node.journal, previous, changed) {
         // Nothing is acknowledged before it is committed.
-        if let Err(e) = journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record()) {
-            error!(%holon, component = "agenda", error = %e, "journal write failed; the event is refused");
-            *agenda = previous;
-            return None;
+        match journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record()) {
+            Ok(()) => actions.extend(node.journal_written()),
+            Err(e) if refusable => {
+                node.journal_failed(&e);
+                warn!(%holon, component = "agenda", error = %e, "journal write failed; the request is refused");
+                *agenda = previous;
+                return None;
+            }
+            Err(e) => {
+                // Kept in memory; results wait for the write (see `retry_journal`).
+                node.journal_failed(&e);
+                let mut held = lock(&node.held);
+                actions.retain(|action| match action {
+                    AgendaAction::Deliver(result) => {
+                        held.push(result.clone());
+                        false
+                    }
+                    _ => true,
+                });
+            }
         }
     }
     let after = agenda.status_name();
@@ -417,6 +512,23 @@ pub(crate) fn agenda_transition(node: &Node, event: AgendaEvent) -> Option<Vec<A
         info!(%holon, component = "agenda", from = before, to = after, "transition");
     }
     Some(actions)
+}
+
+/// While the journal cannot be written: tries to write the agenda as it is now; on
+/// success the fault ends and the held results are released.
+fn retry_journal(node: &Node) -> Vec<AgendaAction> {
+    let (Some(journal), true) = (&node.journal, node.journal_fault().is_some()) else {
+        return vec![];
+    };
+    let agenda = lock(&node.agenda);
+    match journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record()) {
+        Ok(()) => node.journal_written(),
+        Err(e) => {
+            debug!(holon = %node.config.holon, error = %e, "the journal still cannot be written");
+            node.journal_failed(&e);
+            vec![]
+        }
+    }
 }
 
 /// Hands a job the agenda accepted to the execution component.

@@ -14,7 +14,7 @@ use schemas::{CancelReply, ErrorReply, HolonId, SubmitReply, WorkOrder};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
-use tracing::{error, info, warn};
+use tracing::{debug, error, info, warn};
 use zenoh::key_expr::KeyExpr;
 use zenoh::query::Query;
 
@@ -40,13 +40,16 @@ pub enum NodeError {
     Claim(#[from] holon::presence::ClaimError),
 }
 
+/// How long an order waits before it tries again a journal that could not write.
+const JOURNAL_RETRY: Duration = Duration::from_secs(1);
+
 /// The journal record of the next order number.
 const NEXT_RECORD: (&str, &str) = ("meta", "next_order");
 
 /// The running order tasks, and which order each one runs.
 #[derive(Default)]
 struct Tasks {
-    set: JoinSet<Result<(), String>>,
+    set: JoinSet<Result<(), order::OrderError>>,
     names: std::collections::HashMap<tokio::task::Id, String>,
 }
 
@@ -85,7 +88,7 @@ impl Host {
             let holon = HolonId::order(&name).expect("node names are validated");
             let progress =
                 OrderProgress::new(holon, &work.product, self.config.orders.max_attempts);
-            self.context.save(&progress)?;
+            self.context.save(&progress).map_err(|e| e.to_string())?;
             created.push((name, progress));
         }
         let mut names = Vec::new();
@@ -123,7 +126,7 @@ impl Host {
                 },
             );
         if running {
-            self.spawn(name, progress, tasks, cancel);
+            self.spawn(name, progress, tasks, cancel, Duration::ZERO);
         }
     }
 
@@ -145,6 +148,7 @@ impl Host {
         progress: Arc<Mutex<OrderProgress>>,
         tasks: &mut Tasks,
         cancel: &CancellationToken,
+        delay: Duration,
     ) {
         let context = self.context.clone();
         let cancel = cancel.child_token();
@@ -155,9 +159,15 @@ impl Host {
             .get(name)
             .map(|h| h.operator_cancel.clone())
             .unwrap_or_default();
-        let handle = tasks
-            .set
-            .spawn(order::run(context, progress, cancel, operator_cancel));
+        let handle = tasks.set.spawn(async move {
+            if !delay.is_zero() {
+                tokio::select! {
+                    _ = tokio::time::sleep(delay) => {}
+                    _ = cancel.cancelled() => return Ok(()),
+                }
+            }
+            order::run(context, progress, cancel, operator_cancel).await
+        });
         tasks.names.insert(handle.id(), name.to_string());
     }
 
@@ -192,8 +202,11 @@ impl Host {
             });
         }
         if !progress.cancel_requested {
-            progress.cancel_requested = true;
-            self.context.save(&progress)?;
+            // Written first: on a journal error nothing changed and the cancel is refused.
+            let mut next = progress.clone();
+            next.cancel_requested = true;
+            self.context.save(&next).map_err(|e| e.to_string())?;
+            *progress = next;
         }
         hosted.operator_cancel.cancel();
         info!(node = %self.config.name, order = %name, "cancel requested by an operator");
@@ -314,6 +327,7 @@ pub async fn run(
         settings: config.orders,
         presence,
         journal,
+        journal_failing: Default::default(),
     });
     let host = Arc::new(Host {
         config: config.clone(),
@@ -399,7 +413,19 @@ pub async fn run(
                         tasks.names.remove(&id);
                         continue;
                     }
-                    Ok((id, Err(e))) => (id, e),
+                    Ok((id, Err(order::OrderError::Journal(why)))) => {
+                        // Not the order's fault: resumed from its last written progress
+                        // once the journal can write again (tried every second), not
+                        // counted against its restarts.
+                        let Some(name) = tasks.names.remove(&id) else { continue };
+                        debug!(node = %config.name, order = %name, error = %why, "order waits for the journal");
+                        let progress = host.orders.lock().unwrap_or_else(|e| e.into_inner()).get(&name).map(|h| h.progress.clone());
+                        if let Some(progress) = progress {
+                            host.spawn(&name, progress, &mut tasks, &orders_cancel, JOURNAL_RETRY);
+                        }
+                        continue;
+                    }
+                    Ok((id, Err(e))) => (id, e.to_string()),
                     Err(e) if e.is_panic() => {
                         let id = e.id();
                         (id, format!("panicked: {}", holon::supervisor::panic_message(e.into_panic())))
@@ -443,7 +469,7 @@ fn restart(host: &Host, name: &str, tasks: &mut Tasks, cancel: &CancellationToke
     }
     warn!(order = %name, restarts = hosted.restarts, "restarting order");
     drop(orders);
-    host.spawn(name, progress, tasks, cancel);
+    host.spawn(name, progress, tasks, cancel, Duration::ZERO);
 }
 
 /// Why a work order for `product` cannot be planned now: no product holon of that name

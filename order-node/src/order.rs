@@ -12,6 +12,7 @@
 //! order-node resumes each order where it stood (see [`Phase`]).
 
 use std::collections::{BTreeSet, HashMap, HashSet};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -20,7 +21,7 @@ use schemas::{reason, HolonId, MessageType, Plan, PlanStep, Service};
 use tokio::sync::{broadcast, mpsc, watch, Notify};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 use zenoh::query::{ConsolidationMode, Query};
 
 use crate::config::OrderSettings;
@@ -224,6 +225,8 @@ pub struct OrderContext {
     pub settings: OrderSettings,
     pub presence: Arc<Presence>,
     pub journal: Option<Arc<Journal>>,
+    /// Set while journal writes fail (logged once per fault, not per order).
+    pub journal_failing: AtomicBool,
 }
 
 /// The journal kind of order records.
@@ -231,13 +234,57 @@ pub const ORDER_RECORD: &str = "order";
 
 impl OrderContext {
     /// Writes the order's progress; the order acts on a change only once it is written.
-    pub fn save(&self, progress: &OrderProgress) -> Result<(), String> {
-        match &self.journal {
-            Some(journal) => journal
-                .put(ORDER_RECORD, progress.holon.name(), progress)
-                .map_err(|e| e.to_string()),
-            None => Ok(()),
+    pub fn save(&self, progress: &OrderProgress) -> Result<(), OrderError> {
+        let Some(journal) = &self.journal else {
+            return Ok(());
+        };
+        match journal.put(ORDER_RECORD, progress.holon.name(), progress) {
+            Ok(()) => {
+                if self.journal_failing.swap(false, Ordering::SeqCst) {
+                    info!("the journal can be written again: waiting orders resume");
+                }
+                Ok(())
+            }
+            Err(e) => {
+                if !self.journal_failing.swap(true, Ordering::SeqCst) {
+                    error!(error = %e, "the journal cannot be written: orders wait where they stand (results stay unacknowledged, so resources keep them) and resume once it can (tried every second); new work orders are refused");
+                }
+                Err(OrderError::Journal(e.to_string()))
+            }
         }
+    }
+
+    /// Applies `change` to an order's progress once it is written: when the journal
+    /// cannot write, the progress in memory stays the last one written (a restarted
+    /// order task resumes from there, and an unacknowledged result comes again).
+    pub fn commit(
+        &self,
+        progress: &Shared,
+        change: impl FnOnce(&mut OrderProgress),
+    ) -> Result<(), OrderError> {
+        let mut p = lock(progress);
+        let mut next = p.clone();
+        change(&mut next);
+        self.save(&next)?;
+        *p = next;
+        Ok(())
+    }
+}
+
+/// Why an order task stopped before its order ended.
+#[derive(Debug, thiserror::Error)]
+pub enum OrderError {
+    /// The journal could not record a change: the task is restarted after a pause (not
+    /// counted as a failure) from the last written progress.
+    #[error("the journal cannot record the order's progress: {0}")]
+    Journal(String),
+    #[error("{0}")]
+    Other(String),
+}
+
+impl From<String> for OrderError {
+    fn from(why: String) -> Self {
+        OrderError::Other(why)
     }
 }
 
@@ -282,7 +329,7 @@ pub async fn run(
     progress: Shared,
     cancel: CancellationToken,
     operator_cancel: CancellationToken,
-) -> Result<(), String> {
+) -> Result<(), OrderError> {
     let holon = lock(&progress).holon.clone();
     let session = &ctx.session;
     let e = |e: zenoh::Error| e.to_string();
@@ -351,14 +398,10 @@ pub async fn run(
         if lock(&progress).plan.is_none() {
             let product = lock(&progress).product.clone();
             let plan = fetch_plan(&ctx, &product).await;
-            {
-                let mut p = lock(&progress);
-                match plan {
-                    Some(plan) => p.plan = Some(plan),
-                    None => p.fail(format!("no plan for product {product:?}")),
-                }
-                ctx.save(&p)?;
-            }
+            ctx.commit(&progress, |p| match plan {
+                Some(plan) => p.plan = Some(plan),
+                None => p.fail(format!("no plan for product {product:?}")),
+            })?;
             publish(&progress).await;
         }
         let mut changes = ctx.presence.changes();
@@ -404,21 +447,19 @@ pub async fn run(
                 break;
             }
             info!(holon = %holon, %conversation_id, outcome = ?outcome, "step attempt ended");
-            {
-                let mut p = lock(&progress);
+            ctx.commit(&progress, |p| {
                 p.record(outcome);
                 if finishing {
                     p.cancel();
                 }
-                ctx.save(&p)?;
-            }
+            })?;
             // Recorded: now the result may be acknowledged.
             if let Some(delivery) = delivery {
                 delivery.acknowledge().await;
             }
             publish(&progress).await;
         }
-        Ok::<(), String>(())
+        Ok::<(), OrderError>(())
     };
     tokio::select! {
         result = work => result?,
@@ -442,7 +483,7 @@ async fn cancel_order(
     holon: &HolonId,
     step: &PlanStep,
     conversation_id: &str,
-) -> Result<(), String> {
+) -> Result<(), OrderError> {
     let phase = lock(progress).phase.clone();
     if let Phase::Booking(resource) | Phase::Booked(resource) = &phase {
         let cancel = request(
@@ -468,9 +509,7 @@ async fn cancel_order(
             }
         }
     }
-    let mut p = lock(progress);
-    p.cancel();
-    ctx.save(&p)?;
+    ctx.commit(progress, |p| p.cancel())?;
     info!(holon = %holon, "order cancelled by an operator");
     Ok(())
 }
@@ -690,18 +729,14 @@ async fn attempt_step<F, Fut>(
     inbox: &mut mpsc::UnboundedReceiver<Delivery>,
     changes: &mut broadcast::Receiver<(HolonId, bool)>,
     publish: &F,
-) -> Result<(StepOutcome, Option<Box<Delivery>>), String>
+) -> Result<(StepOutcome, Option<Box<Delivery>>), OrderError>
 where
     F: Fn(&Shared) -> Fut,
     Fut: std::future::Future<Output = ()>,
 {
     let settings = &ctx.settings;
     let holon = lock(progress).holon.clone();
-    let set_phase = |phase: Phase| -> Result<(), String> {
-        let mut p = lock(progress);
-        p.set_phase(phase);
-        ctx.save(&p)
-    };
+    let set_phase = |phase: Phase| ctx.commit(progress, |p| p.set_phase(phase));
     let give_up = Instant::now() + settings.no_resource_timeout;
     let unavailable_since = Instant::now();
     // The pause before the next retry: doubles while retries fail (see `retry_max`).
@@ -954,6 +989,7 @@ mod tests {
             current: None,
             undelivered: 0,
             services: vec!["pick_n_place".into()],
+            journal_fault: None,
             at: 0,
         }
     }

@@ -35,6 +35,10 @@ pub struct ResourceSnapshot {
     pub undelivered: usize,
     /// Service types offered.
     pub services: Vec<String>,
+    /// Set while the resource's journal cannot be written (e.g. a full disk): why. It
+    /// takes no new work and holds its results until a write succeeds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub journal_fault: Option<String>,
     /// Unix time in milliseconds.
     pub at: u64,
 }

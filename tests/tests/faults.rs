@@ -199,3 +199,264 @@ async fn bookings_of_a_requester_gone_for_good_are_released() {
     .await
     .unwrap();
 }
+
+/// A small tmpfs mounted at a directory for the test's life (needs root, as the
+/// network-namespace tests do).
+struct SmallDisk {
+    path: std::path::PathBuf,
+}
+
+impl SmallDisk {
+    fn mount(path: &std::path::Path, size: &str) -> SmallDisk {
+        std::fs::create_dir_all(path).unwrap();
+        let status = std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+            .arg(path)
+            .status()
+            .expect("run mount");
+        assert!(
+            status.success(),
+            "this test needs root to mount a small tmpfs (a disk that can be filled)"
+        );
+        SmallDisk {
+            path: path.to_path_buf(),
+        }
+    }
+
+    /// Fills the disk with a file; returns its path.
+    fn fill(&self) -> std::path::PathBuf {
+        use std::io::Write;
+        let filler = self.path.join("filler");
+        let mut file = std::fs::File::create(&filler).unwrap();
+        let chunk = vec![0u8; 4096];
+        while file.write_all(&chunk).and_then(|_| file.flush()).is_ok() {}
+        filler
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount")
+            .arg("-l")
+            .arg(&self.path)
+            .status();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_full_disk_holds_the_result_until_it_is_recorded_and_never_makes_it_interrupted() {
+    let dir = tempfile::tempdir().unwrap();
+    let disk = SmallDisk::mount(&dir.path().join("data"), "1m");
+    let cell = Cell::open("t-disk-full").await.unwrap();
+    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &["--delay-ms", "1500"]).unwrap();
+    let config = resource_config(dir.path(), "robot1", 10_000).unwrap();
+    let start_robot = || {
+        start_node(
+            dir.path(),
+            &config,
+            cell.keys.cell(),
+            &cell.endpoint,
+            &sim.address,
+            &["--data-dir", disk.path.to_str().unwrap()],
+        )
+        .unwrap()
+    };
+    let mut node = start_robot();
+    let robot = HolonId::resource("robot1").unwrap();
+    cell.wait_alive(&robot).await.unwrap();
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+
+    let mut inbox = cell.inbox("o-1", 0).await.unwrap();
+    let book = pick_n_place(&cell.keys, MessageType::BookingReq, "o-1", "o-1/1/1");
+    assert_eq!(
+        cell.service("robot1", &book).await.unwrap().result,
+        Some(true)
+    );
+    let start = pick_n_place(&cell.keys, MessageType::Start, "o-1", "o-1/1/1");
+    assert_eq!(
+        cell.service("robot1", &start).await.unwrap().result,
+        Some(true)
+    );
+    // The disk fills while the robot works: the job's end cannot be recorded.
+    let filler = disk.fill();
+    let state = cell
+        .wait_state("robot1", "a journal fault", |s| {
+            s["journal_fault"].is_string()
+        })
+        .await
+        .unwrap();
+    assert_eq!(state["state"], "free", "the job ended: {state}");
+    assert!(
+        inbox.silent_for(Duration::from_millis(1500)).await,
+        "no result goes out before it is recorded"
+    );
+    let proposals = cell
+        .proposals(&pick_n_place(
+            &cell.keys,
+            MessageType::ProposalReq,
+            "o-2",
+            "o-2/1/1",
+        ))
+        .await
+        .unwrap();
+    assert!(
+        proposals.is_empty(),
+        "no offers while the journal cannot write: {proposals:?}"
+    );
+
+    // Space comes back: the outcome is recorded, then delivered, and offers resume.
+    std::fs::remove_file(filler).unwrap();
+    let done = inbox.next().await.unwrap();
+    assert_eq!(done.message_type, MessageType::Done, "{done:?}");
+    assert_eq!(done.conversation_id, "o-1/1/1");
+    let state = cell
+        .wait_state("robot1", "the fault cleared", |s| {
+            s.get("journal_fault").is_none() && s["undelivered"] == 0
+        })
+        .await
+        .unwrap();
+    assert_eq!(state["state"], "free");
+    cell.wait_proposals(
+        &pick_n_place(&cell.keys, MessageType::ProposalReq, "o-2", "o-2/1/1"),
+        1,
+    )
+    .await
+    .unwrap();
+
+    // A restart finds the step completed, not interrupted.
+    node.kill();
+    cell.wait_gone(&robot).await.unwrap();
+    let _node = start_robot();
+    cell.wait_alive(&robot).await.unwrap();
+    // (The acknowledgement is recorded with the next write, so the `done` may come once
+    // more: the order ignores a duplicate. What must never come is `failed`.)
+    while let Ok(message) = tokio::time::timeout(Duration::from_secs(2), inbox.next()).await {
+        let message = message.unwrap();
+        assert_eq!(
+            message.message_type,
+            MessageType::Done,
+            "a completed step is never reported interrupted: {message:?}"
+        );
+    }
+    assert_eq!(sim.executed("pick"), 1);
+}
+
+/// The state of one order, asked of its order-node.
+async fn order_state(cell: &Cell, order: &str) -> Option<serde_json::Value> {
+    let replies = cell
+        .session
+        .get(format!("holarchy/{}/order/{order}/state", cell.keys.cell()))
+        .timeout(Duration::from_secs(2))
+        .await
+        .ok()?;
+    let reply = replies.recv_async().await.ok()?;
+    serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
+}
+
+async fn wait_order(
+    cell: &Cell,
+    order: &str,
+    what: &str,
+    check: impl Fn(&serde_json::Value) -> bool,
+) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let state = order_state(cell, order).await;
+        if state.as_ref().is_some_and(&check) {
+            return;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{order} never reached {what}: {state:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_order_node_with_a_full_disk_keeps_the_result_unacknowledged_until_it_can_record_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let disk = SmallDisk::mount(&dir.path().join("orders-data"), "1m");
+    let cell = Cell::open("t-disk-orders").await.unwrap();
+    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &["--delay-ms", "1500"]).unwrap();
+    let config = resource_config(dir.path(), "robot1", 10_000).unwrap();
+    let _robot = start_node(
+        dir.path(),
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &[
+            "--data-dir",
+            dir.path().join("robot-data").to_str().unwrap(),
+        ],
+    )
+    .unwrap();
+    let product = dir.path().join("part.toml");
+    std::fs::write(
+        &product,
+        r#"
+cell = "unset"
+name = "part"
+kind = "product"
+
+[[steps]]
+service_type = "pick_n_place"
+info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6.0 } }
+"#,
+    )
+    .unwrap();
+    let _product = start_holon(dir.path(), "holon-node", &product, "part", &cell, &[]).unwrap();
+    let _orders = start_holon(
+        dir.path(),
+        "order-node",
+        &demo_config("orders1.toml"),
+        "orders1",
+        &cell,
+        &["--data-dir", disk.path.to_str().unwrap()],
+    )
+    .unwrap();
+    cell.wait_alive(&HolonId::resource("robot1").unwrap())
+        .await
+        .unwrap();
+    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part").unwrap())
+        .await
+        .unwrap();
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
+    let orders = cell.submit("part", 1).await.unwrap();
+    let order = &orders[0];
+    // Started on robot1 (the step takes 3 s: pick and place): now the disk fills.
+    cell.wait_state("robot1", "busy", |s| s["state"] == "busy")
+        .await
+        .unwrap();
+    let filler = disk.fill();
+    // The robot finishes; its `done` cannot be recorded by the order-node, so it is not
+    // acknowledged: the resource keeps it and the order stays where it was.
+    cell.wait_state("robot1", "a result waiting for its acknowledgement", |s| {
+        s["state"] == "free" && s["undelivered"] == 1
+    })
+    .await
+    .unwrap();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let state = order_state(&cell, order).await.unwrap();
+    assert_eq!(state["status"], "running", "{state}");
+    assert_eq!(
+        cell.status("robot1").await.unwrap()["undelivered"],
+        1,
+        "still unacknowledged"
+    );
+
+    // Space again: the order records the step, acknowledges it, and is done.
+    std::fs::remove_file(filler).unwrap();
+    wait_order(&cell, order, "done", |s| s["status"] == "done").await;
+    cell.wait_state("robot1", "the result acknowledged", |s| {
+        s["undelivered"] == 0
+    })
+    .await
+    .unwrap();
+    assert_eq!(sim.executed("pick"), 1, "the step ran once");
+}
