@@ -73,6 +73,12 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
                     .filter(|b| b.get("requester_absent_since").is_some())
                     .count()
             });
+        // A journal that cannot be written marks the state (and is explained below).
+        let journal_fault = row
+            .snapshot
+            .as_ref()
+            .and_then(|s| s.get("journal_fault"))
+            .and_then(|f| f.as_str());
         let agenda = if absent > 0 {
             format!("{} ({absent} absent)", field("agenda"))
         } else {
@@ -84,6 +90,8 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
             row.holon.kind().to_string(),
             if row.holon.kind() == schemas::HolonKind::Order {
                 field("status")
+            } else if journal_fault.is_some() {
+                format!("{}!", field("state"))
             } else {
                 field("state")
             },
@@ -91,6 +99,19 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
             agenda,
             field("undelivered"),
         ));
+    }
+    for row in rows {
+        if let Some(why) = row
+            .snapshot
+            .as_ref()
+            .and_then(|s| s.get("journal_fault"))
+            .and_then(|f| f.as_str())
+        {
+            out.push_str(&format!(
+                "! {}: the journal cannot be written ({why}); no new work is taken, results are held until it can\n",
+                row.holon
+            ));
+        }
     }
     out
 }
@@ -213,7 +234,17 @@ mod tests {
                 ],
             })),
         };
-        let table = render("demo", &[row]);
+        let table = render("demo", &[row.clone()]);
         assert!(table.contains("2 (1 absent)"), "{table}");
+        let mut faulty = row;
+        faulty.snapshot.as_mut().unwrap()["journal_fault"] = "No space left on device".into();
+        let table = render("demo", &[faulty]);
+        assert!(table.contains("free!"), "{table}");
+        assert!(
+            table.contains(
+                "resource/robot1: the journal cannot be written (No space left on device)"
+            ),
+            "{table}"
+        );
     }
 }

@@ -1,6 +1,7 @@
 //! Chaos: a cell processes 100 orders while a driver kills holon processes with SIGKILL
 //! at random moments (resources, the product and the order-node, several times) and
-//! restarts them on the same data directories. At the end every order has completed or
+//! restarts them on the same data directories, kills controller simulators (restarted on
+//! their addresses), and starts a twin of a resource (which must be refused). At the end every order has completed or
 //! failed with a stated reason, none is missing, and the controllers' command counts
 //! show no step acknowledged as done was executed again.
 //!
@@ -115,8 +116,18 @@ async fn orders_survive_random_kills() {
     let data = dir.join("data");
     let cell = Cell::open("t-chaos").await.unwrap();
 
-    // The controllers are the hardware: they stay up and count what they execute.
+    // The controllers are the hardware: they count what they execute. The driver also
+    // kills a simulator now and then (a controller that reboots) and starts a new one on
+    // the same address; a killed one's counts stay in its file (`retired`).
     let mut sims = BTreeMap::new();
+    let mut retired: Vec<(&str, Sim)> = Vec::new();
+    let delays: BTreeMap<&str, &str> = [
+        ("robot1", "60"),
+        ("robot2", "60"),
+        ("inspect1", "20"),
+        ("conveyor1", "30"),
+    ]
+    .into();
     for (name, delay) in [
         ("robot1", "60"),
         ("robot2", "60"),
@@ -201,8 +212,13 @@ async fn orders_survive_random_kills() {
     let ids = cell.submit("breaker", ORDERS).await.unwrap();
     assert_eq!(ids.len(), ORDERS as usize);
 
-    // The driver: kill a random holon at a random moment, start it again.
+    // The driver: kill a random holon at a random moment, start it again; every fourth
+    // round a controller simulator instead; once, start a twin of a resource (its config
+    // copied to "another host": same name, its own data dir), which must be refused.
     let mut kills = 0;
+    let mut rounds = 0;
+    let mut sim_kills = 0;
+    let mut twin: Option<(String, Process)> = None;
     while kills < KILLS && started.elapsed() < RUN_LIMIT / 2 {
         tokio::time::sleep(Duration::from_millis(200 + rng.below(600))).await;
         let finished = all_orders(&cell)
@@ -212,6 +228,65 @@ async fn orders_survive_random_kills() {
             .count();
         if finished == ORDERS as usize {
             break;
+        }
+        rounds += 1;
+        if twin.is_none() && rounds == 3 {
+            let victim = &victims[rng.below(4) as usize];
+            let twin_dir = dir.join("twin");
+            std::fs::create_dir_all(&twin_dir).unwrap();
+            let process = start_holon(
+                &twin_dir,
+                "holon-node",
+                &victim.config,
+                &victim.name,
+                &cell,
+                &[
+                    "--controller",
+                    &sims[victim.name.as_str()].address,
+                    "--data-dir",
+                    twin_dir.join("data").to_str().unwrap(),
+                ],
+            )
+            .unwrap();
+            println!(
+                "{:6.2}s twin of {} started",
+                started.elapsed().as_secs_f64(),
+                victim.name
+            );
+            twin = Some((victim.name.clone(), process));
+        }
+        if rounds % 4 == 0 {
+            let name = ["robot1", "robot2", "inspect1", "conveyor1"][rng.below(4) as usize];
+            let mut old = sims.remove(name).unwrap();
+            old.process.kill();
+            sim_kills += 1;
+            println!(
+                "{:6.2}s kill -9 the controller simulator of {name} ({finished} of {ORDERS} orders finished)",
+                started.elapsed().as_secs_f64()
+            );
+            tokio::time::sleep(Duration::from_millis(50 + rng.below(300))).await;
+            let mut restarted = None;
+            for _ in 0..50 {
+                // The same address: the holon reconnects to it.
+                match Sim::start(
+                    dir,
+                    &format!("{name}-sim.{sim_kills}"),
+                    &old.address,
+                    &["--delay-ms", delays[name]],
+                ) {
+                    Ok(sim) => {
+                        restarted = Some(sim);
+                        break;
+                    }
+                    Err(_) => tokio::time::sleep(Duration::from_millis(100)).await,
+                }
+            }
+            sims.insert(
+                name,
+                restarted.expect("the simulator restarts on its address"),
+            );
+            retired.push((name, old));
+            continue;
         }
         // Every third kill takes the order-node; the others a random holon.
         let index = if kills % 3 == 2 {
@@ -232,6 +307,14 @@ async fn orders_survive_random_kills() {
         tokio::time::sleep(Duration::from_millis(50 + rng.below(300))).await;
         victim.restart(dir, &cell);
         cell.wait_token(&victim.ready_key).await.unwrap();
+    }
+
+    // The twin was refused, and said who holds the name.
+    if let Some((name, mut process)) = twin {
+        let status = process.wait_exit(Duration::from_secs(30)).unwrap();
+        let stderr = process.stderr();
+        assert!(!status.success(), "the twin of {name} ran: {stderr}");
+        assert!(stderr.contains("already running"), "{stderr}");
     }
 
     // Every order ends: completed, or failed with a reason.
@@ -281,7 +364,13 @@ async fn orders_survive_random_kills() {
     // The controllers' counts: every step recorded as done was executed, and nothing
     // beyond the attempts the orders abandoned (interrupted, failed, rebooked) ran.
     let count = |names: &[&str], action: &str| -> u64 {
-        names.iter().map(|n| sims[n].executed(action)).sum()
+        let current: u64 = names.iter().map(|n| sims[n].executed(action)).sum();
+        let before: u64 = retired
+            .iter()
+            .filter(|(n, _)| names.contains(n))
+            .map(|(_, sim)| sim.executed(action))
+            .sum();
+        current + before
     };
     let done_steps = |service: &str| -> u64 {
         orders
@@ -324,7 +413,7 @@ async fn orders_survive_random_kills() {
         .iter()
         .map(|v| format!("{}={}", v.name, v.kills))
         .collect();
-    println!("chaos figures: orders {ORDERS}, done {}, failed {failed}, kills {kills} ({}), rebooks {rebooks}, retries {retries}, took {:.1}s", done.len(), kills_by.join(" "), started.elapsed().as_secs_f64());
+    println!("chaos figures: orders {ORDERS}, done {}, failed {failed}, kills {kills} ({}), simulator kills {sim_kills}, rebooks {rebooks}, retries {retries}, took {:.1}s", done.len(), kills_by.join(" "), started.elapsed().as_secs_f64());
     println!("controllers: moves {moves}, picks {picks}, places {places}, inspections {inspections}; recorded done steps {} per service", done.len());
     for failed in orders.values().filter(|o| o.status == OrderStatus::Failed) {
         println!(
