@@ -234,7 +234,7 @@ mod tests {
                 ],
             })),
         };
-        let table = render("demo", &[row.clone()]);
+        let table = render("demo", std::slice::from_ref(&row));
         assert!(table.contains("2 (1 absent)"), "{table}");
         let mut faulty = row;
         faulty.snapshot.as_mut().unwrap()["journal_fault"] = "No space left on device".into();
