@@ -233,7 +233,7 @@ pub async fn submit(
 ) -> Result<Vec<String>> {
     let deadline = Instant::now() + timeout;
     loop {
-        let replies = session
+        let mut replies = session
             .get(keys.orders_submit())
             .payload(serde_json::to_vec(work)?)
             .timeout(
@@ -241,9 +241,10 @@ pub async fn submit(
                     .saturating_duration_since(Instant::now())
                     .clamp(Duration::from_millis(500), Duration::from_secs(5)),
             )
+            .with(holon::query::replies())
             .await
             .map_err(|e| anyhow!("{e}"))?;
-        if let Ok(reply) = replies.recv_async().await {
+        if let Some(reply) = replies.recv().await {
             return match reply.result() {
                 Ok(sample) => {
                     Ok(serde_json::from_slice::<SubmitReply>(&sample.payload().to_bytes())?.orders)

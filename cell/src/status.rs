@@ -13,7 +13,9 @@ pub struct HolonStatus {
     pub snapshot: Option<serde_json::Value>,
 }
 
-/// Asks the cell who is alive, then each holon for its state.
+/// Asks the cell who is alive, then every holon for its state with one query (all
+/// answer at once; one that is slow or cut off does not hold up or blank the others,
+/// and is marked as not having answered).
 pub async fn collect(
     session: &zenoh::Session,
     keys: &CellKeys,
@@ -22,21 +24,41 @@ pub async fn collect(
     let holons = holon::presence::alive_holons(session, keys, timeout)
         .await
         .map_err(|e| anyhow!("{e}"))?;
-    let mut rows = Vec::new();
-    for holon in holons {
-        let snapshot = match session.get(keys.state(&holon)).timeout(timeout).await {
-            Ok(replies) => match replies.recv_async().await {
-                Ok(reply) => reply
-                    .result()
-                    .ok()
-                    .and_then(|s| serde_json::from_slice(&s.payload().to_bytes()).ok()),
-                Err(_) => None,
-            },
-            Err(_) => None,
-        };
-        rows.push(HolonStatus { holon, snapshot });
+    let mut snapshots = std::collections::HashMap::new();
+    if !holons.is_empty() {
+        let mut replies = session
+            .get(keys.state_all())
+            .consolidation(zenoh::query::ConsolidationMode::None)
+            .timeout(timeout)
+            .with(holon::query::replies())
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        while let Some(reply) = replies.recv().await {
+            let Ok(sample) = reply.result() else { continue };
+            let Ok(snapshot) =
+                serde_json::from_slice::<serde_json::Value>(&sample.payload().to_bytes())
+            else {
+                continue;
+            };
+            if let Some(holon) = snapshot
+                .get("holon")
+                .and_then(|h| h.as_str())
+                .and_then(|h| h.parse::<HolonId>().ok())
+            {
+                snapshots.insert(holon, snapshot);
+            }
+            if holons.iter().all(|h| snapshots.contains_key(h)) {
+                break;
+            }
+        }
     }
-    Ok(rows)
+    Ok(holons
+        .into_iter()
+        .map(|holon| HolonStatus {
+            snapshot: snapshots.remove(&holon),
+            holon,
+        })
+        .collect())
 }
 
 /// The table `cell status` prints.
@@ -100,6 +122,17 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
             field("undelivered"),
         ));
     }
+    let silent: Vec<String> = rows
+        .iter()
+        .filter(|r| r.snapshot.is_none())
+        .map(|r| r.holon.to_string())
+        .collect();
+    if !silent.is_empty() {
+        out.push_str(&format!(
+            "? alive but no state within the timeout (slow, or cut off from this host): {}\n",
+            silent.join(", ")
+        ));
+    }
     for row in rows {
         if let Some(why) = row
             .snapshot
@@ -156,20 +189,21 @@ pub async fn cancel(
     order: &str,
     timeout: Duration,
 ) -> Result<schemas::CancelReply> {
-    let replies = session
+    let mut replies = session
         .get(keys.cancel(order))
         .timeout(timeout)
+        .with(holon::query::replies())
         .await
         .map_err(|e| anyhow!("{e}"))?;
-    match replies.recv_async().await {
-        Ok(reply) => match reply.result() {
+    match replies.recv().await {
+        Some(reply) => match reply.result() {
             Ok(sample) => Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
             Err(err) => Err(anyhow!(
                 "the order-node refused: {}",
                 err.payload().try_to_string().unwrap_or_default()
             )),
         },
-        Err(_) => Err(anyhow!(
+        None => Err(anyhow!(
             "no order-node answered for {order} (unknown order, its order-node is down, or this identity may not cancel)"
         )),
     }

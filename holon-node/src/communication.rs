@@ -284,14 +284,15 @@ async fn deliver(
     timeout: Duration,
 ) -> Result<bool, String> {
     let key = message.reply_to.as_deref().ok_or("no reply_to")?;
-    let replies = session
+    let mut replies = session
         .get(key)
         .payload(message.to_json())
         .consolidation(ConsolidationMode::None)
         .timeout(timeout)
+        .with(holon::query::replies())
         .await
         .map_err(|e| e.to_string())?;
-    while let Ok(reply) = replies.recv_async().await {
+    while let Some(reply) = replies.recv().await {
         match reply.result() {
             Ok(sample) if sample.key_expr().as_str() != key => {
                 warn!(conversation_id = %message.conversation_id, reply_to = key, from = %sample.key_expr(), "an acknowledgement from another key than reply_to is ignored");

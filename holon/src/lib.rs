@@ -5,6 +5,7 @@ pub mod cli;
 pub mod journal;
 pub mod logging;
 pub mod presence;
+pub mod query;
 pub mod session;
 pub mod supervisor;
 pub mod tls;

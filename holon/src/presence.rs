@@ -193,9 +193,14 @@ pub async fn claim(
             .map_err(ClaimError::Zenoh)?
             .is_empty();
     if taken {
-        let holder = match session.get(key).timeout(timeout).await {
-            Ok(replies) => match tokio::time::timeout(timeout, replies.recv_async()).await {
-                Ok(Ok(reply)) => reply
+        let holder = match session
+            .get(key)
+            .timeout(timeout)
+            .with(crate::query::replies())
+            .await
+        {
+            Ok(mut replies) => match tokio::time::timeout(timeout, replies.recv()).await {
+                Ok(Some(reply)) => reply
                     .result()
                     .ok()
                     .and_then(|s| serde_json::from_slice(&s.payload().to_bytes()).ok()),

@@ -553,15 +553,16 @@ fn request(
 
 /// Sends one request and returns the resource's answer (None: no answer or an error).
 async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Service> {
-    let replies = ctx
+    let mut replies = ctx
         .session
         .get(key)
         .payload(message.to_json())
         .consolidation(ConsolidationMode::None)
         .timeout(ctx.settings.request_timeout)
+        .with(holon::query::replies())
         .await
         .ok()?;
-    let reply = replies.recv_async().await.ok()?;
+    let reply = replies.recv().await?;
     match reply.result() {
         Ok(sample) => Service::from_json(&sample.payload().to_bytes()).ok(),
         Err(err) => {
@@ -926,11 +927,12 @@ async fn cancel_when_back(
                 .payload(cancel.to_json())
                 .consolidation(ConsolidationMode::None)
                 .timeout(Duration::from_secs(2))
+                .with(holon::query::replies())
                 .await
             {
-                Ok(replies) => {
-                    if let Ok(Ok(reply)) =
-                        tokio::time::timeout(Duration::from_secs(3), replies.recv_async()).await
+                Ok(mut replies) => {
+                    if let Ok(Some(reply)) =
+                        tokio::time::timeout(Duration::from_secs(3), replies.recv()).await
                     {
                         if reply.result().is_ok() {
                             info!(conversation_id = %cancel.conversation_id, %resource, "abandoned booking cancelled");
