@@ -514,16 +514,21 @@ async fn cancel_order(
     Ok(())
 }
 
+/// Asks the product holon for its plan until it answers or `no_resource_timeout`
+/// passes; the pause between asks doubles up to `retry_max` (jittered), so orders
+/// waiting for a product that is not there cost next to nothing.
 async fn fetch_plan(ctx: &OrderContext, product: &str) -> Option<Plan> {
     let deadline = Instant::now() + ctx.settings.no_resource_timeout;
+    let mut pause = ctx.settings.retry_interval.max(Duration::from_millis(200));
     loop {
-        if let Ok(replies) = ctx
+        if let Ok(mut replies) = ctx
             .session
             .get(ctx.keys.plan(product))
             .timeout(ctx.settings.proposal_timeout)
+            .with(holon::query::replies())
             .await
         {
-            while let Ok(reply) = replies.recv_async().await {
+            while let Some(reply) = replies.recv().await {
                 if let Ok(sample) = reply.result() {
                     match serde_json::from_slice::<Plan>(&sample.payload().to_bytes()) {
                         Ok(plan) if plan.validate().is_ok() => return Some(plan),
@@ -535,7 +540,8 @@ async fn fetch_plan(ctx: &OrderContext, product: &str) -> Option<Plan> {
         if Instant::now() >= deadline {
             return None;
         }
-        tokio::time::sleep(ctx.settings.retry_interval.max(Duration::from_millis(200))).await;
+        tokio::time::sleep(jittered(pause).min(deadline - Instant::now())).await;
+        pause = (pause * 2).min(ctx.settings.retry_max.max(pause));
     }
 }
 
