@@ -32,6 +32,17 @@ async fn robot_with(cell: &Cell, dir: &std::path::Path, extra: &str) -> (Sim, Pr
     (sim, node)
 }
 
+/// Books robot1 for `order` and starts the job; the order's inbox, declared first.
+async fn book_and_start(cell: &Cell, order: &str, conversation: &str) -> Inbox {
+    let inbox = cell.inbox(order, 0).await.unwrap();
+    for kind in [MessageType::BookingReq, MessageType::Start] {
+        let request = pick_n_place(&cell.keys, kind, order, conversation);
+        let answer = cell.service("robot1", &request).await.unwrap();
+        assert_eq!(answer.result, Some(true), "{kind}: {answer:?}");
+    }
+    inbox
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_twin_resource_is_refused_and_the_first_keeps_serving() {
     let dir = tempfile::tempdir().unwrap();
@@ -73,17 +84,7 @@ async fn a_twin_resource_is_refused_and_the_first_keeps_serving() {
     );
 
     // The first one still serves, and only it moves the robot.
-    let mut inbox = cell.inbox("o-1", 0).await.unwrap();
-    let book = pick_n_place(&cell.keys, MessageType::BookingReq, "o-1", "o-1/1/1");
-    assert_eq!(
-        cell.service("robot1", &book).await.unwrap().result,
-        Some(true)
-    );
-    let start = pick_n_place(&cell.keys, MessageType::Start, "o-1", "o-1/1/1");
-    assert_eq!(
-        cell.service("robot1", &start).await.unwrap().result,
-        Some(true)
-    );
+    let mut inbox = book_and_start(&cell, "o-1", "o-1/1/1").await;
     let done = inbox.next().await.unwrap();
     assert_eq!(done.message_type, MessageType::Done);
     assert!(inbox.silent_for(Duration::from_millis(1000)).await);
@@ -268,17 +269,7 @@ async fn a_full_disk_holds_the_result_until_it_is_recorded_and_never_makes_it_in
         .await
         .unwrap();
 
-    let mut inbox = cell.inbox("o-1", 0).await.unwrap();
-    let book = pick_n_place(&cell.keys, MessageType::BookingReq, "o-1", "o-1/1/1");
-    assert_eq!(
-        cell.service("robot1", &book).await.unwrap().result,
-        Some(true)
-    );
-    let start = pick_n_place(&cell.keys, MessageType::Start, "o-1", "o-1/1/1");
-    assert_eq!(
-        cell.service("robot1", &start).await.unwrap().result,
-        Some(true)
-    );
+    let mut inbox = book_and_start(&cell, "o-1", "o-1/1/1").await;
     // The disk fills while the robot works: the job's end cannot be recorded.
     let filler = disk.fill();
     let state = cell
