@@ -493,6 +493,10 @@ async fn product_missing(host: &Host, product: &str) -> Option<String> {
                 .filter_map(|k| keys.holon_from_alive(k))
                 .map(|h| h.name().to_string())
                 .collect();
+            if names.iter().any(|n| n == product) {
+                // The first answer came too late (a busy node): it is there after all.
+                return None;
+            }
             Some(format!(
                 "no product holon {product:?} is alive in cell {} (alive: {}); start it, or submit with queue (cell submit --queue) to let the orders wait for its plan",
                 keys.cell(),

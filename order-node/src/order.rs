@@ -34,7 +34,7 @@ pub struct Presence {
     changes: broadcast::Sender<(HolonId, bool)>,
     /// Woken whenever a resource appears or becomes ready: orders that found no
     /// resource try again.
-    appeared: Notify,
+    appeared: watch::Sender<u64>,
     /// One waiting order is woken per booking that leaves an agenda (started or
     /// cancelled), so a freed place goes to one order, not to a stampede of them.
     room: Notify,
@@ -58,7 +58,7 @@ impl Presence {
         let presence = Arc::new(Presence {
             alive: Mutex::new(HashSet::new()),
             changes,
-            appeared: Notify::new(),
+            appeared: watch::channel(0).0,
             room: Notify::new(),
             published: Mutex::new(HashMap::new()),
             turns: Mutex::new(HashMap::new()),
@@ -83,7 +83,7 @@ impl Presence {
                         if alive.insert(holon.clone()) {
                             info!(holon = %holon, "resource appeared");
                             let _ = presence.changes.send((holon, true));
-                            presence.appeared.notify_waiters();
+                            presence.appeared.send_modify(|n| *n += 1);
                         }
                     }
                     zenoh::sample::SampleKind::Delete => {
@@ -120,7 +120,7 @@ impl Presence {
                     .send_replace(news.turn);
                 if news.became_ready {
                     // Back from a fault or first ready: as good as a new resource.
-                    presence.appeared.notify_waiters();
+                    presence.appeared.send_modify(|n| *n += 1);
                 }
                 for _ in 0..news.places_freed {
                     presence.room.notify_one();
@@ -178,11 +178,17 @@ impl Presence {
         std::future::pending::<()>().await
     }
 
-    /// Completes when a resource appears (after this call), or when a booking left an
-    /// agenda and this is the order woken for the place.
-    pub async fn appeared_or_room(&self) {
+    /// Appearances from now on: pass it to [`Presence::appeared_or_room`] after a look
+    /// for resources, so one that appears during the look is not missed.
+    pub fn appearances(&self) -> watch::Receiver<u64> {
+        self.appeared.subscribe()
+    }
+
+    /// Completes when a resource appeared (or became ready) since `appearances` was
+    /// taken, or when a booking left an agenda and this is the order woken for the place.
+    pub async fn appeared_or_room(&self, appearances: &mut watch::Receiver<u64>) {
         tokio::select! {
-            _ = self.appeared.notified() => {}
+            _ = appearances.changed() => {}
             _ = self.room.notified() => {}
         }
     }
@@ -238,7 +244,18 @@ impl OrderContext {
         let Some(journal) = &self.journal else {
             return Ok(());
         };
-        match journal.put(ORDER_RECORD, progress.holon.name(), progress) {
+        // A commit may wait for an fsync: with thousands of orders writing at once that
+        // would hold every worker thread, and nothing else (SIGTERM, queries) would run.
+        // On the multi-thread runtime the worker hands its other tasks over while it waits.
+        let write = || journal.put(ORDER_RECORD, progress.holon.name(), progress);
+        let multi_thread = tokio::runtime::Handle::try_current()
+            .is_ok_and(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread);
+        let written = if multi_thread {
+            tokio::task::block_in_place(write)
+        } else {
+            write()
+        };
+        match written {
             Ok(()) => {
                 if self.journal_failing.swap(false, Ordering::SeqCst) {
                     info!("the journal can be written again: waiting orders resume");
@@ -761,7 +778,10 @@ where
                 let ask_proposals =
                     request(ctx, &holon, MessageType::ProposalReq, step, conversation_id);
                 let mut booked = false;
-                for candidate in proposals(ctx, &ask_proposals, &avoid).await {
+                let mut appearances = ctx.presence.appearances();
+                let candidates = proposals(ctx, &ask_proposals, &avoid).await;
+                let nobody_proposed = candidates.is_empty();
+                for candidate in candidates {
                     set_phase(Phase::Booking(candidate.clone()))?;
                     let booking =
                         request(ctx, &holon, MessageType::BookingReq, step, conversation_id);
@@ -789,10 +809,18 @@ where
                 }
                 // Nothing bookable: try again after the pause, or as soon as a resource
                 // appears or a place on an agenda frees up for this order.
-                let pause = back_off(&mut backoff).min(give_up - Instant::now());
+                // Nobody could take it: a resource that appears, becomes ready or frees
+                // a place wakes this order, so the fallback poll can be rare (thousands
+                // of orders waiting for a missing resource then cost next to nothing).
+                let pause = if nobody_proposed {
+                    jittered(IDLE_POLL.max(settings.retry_max))
+                } else {
+                    back_off(&mut backoff)
+                }
+                .min(give_up - Instant::now());
                 tokio::select! {
                     _ = tokio::time::sleep(pause) => {}
-                    _ = ctx.presence.appeared_or_room() => {}
+                    _ = ctx.presence.appeared_or_room(&mut appearances) => {}
                 }
             }
             Phase::Booking(candidate) => {
@@ -966,6 +994,10 @@ async fn cancel_when_back(
         let _ = tokio::time::timeout(Duration::from_secs(10), wait).await;
     }
 }
+
+/// How often an order that no resource could take asks again, at most, when nothing
+/// woke it (an appearance, a resource ready again, a freed place).
+const IDLE_POLL: Duration = Duration::from_secs(10);
 
 /// `pause` less up to a quarter, at random: orders that wait together do not retry in
 /// lockstep.
