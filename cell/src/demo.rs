@@ -530,15 +530,26 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         });
         if progressed {
             let elapsed = started.elapsed().as_secs_f64();
-            match snapshot.status {
-                OrderStatus::Running => {
-                    if let Some((service, resource)) = snapshot.completed.last() {
-                        println!(
-                            "{elapsed:7.2}s  {:<14} {service:<13} done by {resource}",
-                            snapshot.holon.name()
-                        );
-                    }
+            // The step just completed, as it came out: passed, or rejected (a rework).
+            let steps_before = previous.map_or(0, |p| p.completed.len());
+            let reworked = previous.is_some_and(|p| snapshot.reworks > p.reworks);
+            if snapshot.completed.len() > steps_before {
+                if let Some((service, resource)) = snapshot.completed.last() {
+                    let outcome = if reworked {
+                        format!("rejected by {resource} -> rework {}", snapshot.reworks)
+                    } else if snapshot.status == OrderStatus::Scrapped {
+                        format!("rejected by {resource}")
+                    } else {
+                        format!("done by {resource}")
+                    };
+                    println!(
+                        "{elapsed:7.2}s  {:<14} {service:<13} {outcome}",
+                        snapshot.holon.name()
+                    );
                 }
+            }
+            match snapshot.status {
+                OrderStatus::Running => {}
                 status => println!(
                     "{elapsed:7.2}s  {:<14} {status:?}{}",
                     snapshot.holon.name(),

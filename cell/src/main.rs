@@ -327,7 +327,12 @@ async fn run(args: Args) -> Result<bool> {
             let keys = client.keys()?;
             let session = client.session(OBSERVER).await?;
             let rows = cell::status::collect(&session, &keys, client.timeout()).await?;
+            let nodes = cell::status::order_nodes(&session, &keys, client.timeout()).await;
             print!("{}", cell::status::render(&client.cell, &rows));
+            match nodes {
+                Ok(nodes) => print!("{}", cell::status::render_order_nodes(&nodes)),
+                Err(e) => println!("order-nodes: cannot ask ({e})"),
+            }
             close(session).await;
             Ok(true)
         }

@@ -182,6 +182,78 @@ pub fn order_sort_key(name: &str) -> (String, u64) {
         .unwrap_or_else(|| (name.to_string(), 0))
 }
 
+/// One order-node of the cell and how many of its orders stand where.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct OrderNodeStatus {
+    pub name: String,
+    pub running: usize,
+    pub done: usize,
+    /// Scrapped, failed or cancelled.
+    pub ended_otherwise: usize,
+}
+
+/// The live order-nodes (their `host/order-node/<name>` tokens) with their orders'
+/// counts, from the orders' snapshots.
+pub async fn order_nodes(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    timeout: Duration,
+) -> Result<Vec<OrderNodeStatus>> {
+    let prefix = keys.host("order-node", "");
+    let names: Vec<String> = holon::presence::tokens(session, &format!("{prefix}*"), timeout)
+        .await
+        .map_err(|e| anyhow!("{e}"))?
+        .into_iter()
+        .filter_map(|key| key.strip_prefix(&prefix).map(String::from))
+        .collect();
+    if names.is_empty() {
+        return Ok(Vec::new());
+    }
+    let orders = orders(session, keys, timeout).await?;
+    Ok(count_by_node(names, &orders))
+}
+
+/// Counts `orders` (named `<node>-<n>`) per node of `names`.
+fn count_by_node(names: Vec<String>, orders: &[schemas::OrderSnapshot]) -> Vec<OrderNodeStatus> {
+    let mut nodes: Vec<OrderNodeStatus> = names
+        .into_iter()
+        .map(|name| OrderNodeStatus {
+            name,
+            ..Default::default()
+        })
+        .collect();
+    nodes.sort_by(|a, b| a.name.cmp(&b.name));
+    for order in orders {
+        let (node, _) = order_sort_key(order.holon.name());
+        if let Some(counts) = nodes.iter_mut().find(|n| n.name == node) {
+            match order.status {
+                schemas::OrderStatus::Running => counts.running += 1,
+                schemas::OrderStatus::Done => counts.done += 1,
+                _ => counts.ended_otherwise += 1,
+            }
+        }
+    }
+    nodes
+}
+
+/// The order-node lines of `cell status`.
+pub fn render_order_nodes(nodes: &[OrderNodeStatus]) -> String {
+    if nodes.is_empty() {
+        return "no order-node alive\n".into();
+    }
+    let mut out = format!(
+        "{:<28} {:>8} {:>8} {:>8}\n",
+        "ORDER-NODE", "RUNNING", "DONE", "ENDED"
+    );
+    for node in nodes {
+        out.push_str(&format!(
+            "{:<28} {:>8} {:>8} {:>8}\n",
+            node.name, node.running, node.done, node.ended_otherwise
+        ));
+    }
+    out
+}
+
 /// Asks the order-node hosting `order` to cancel it.
 pub async fn cancel(
     session: &zenoh::Session,
@@ -280,5 +352,39 @@ mod tests {
             ),
             "{table}"
         );
+    }
+
+    #[test]
+    fn orders_are_counted_per_node() {
+        let order = |name: &str, status| schemas::OrderSnapshot {
+            holon: HolonId::order(name).unwrap(),
+            product: "breaker".into(),
+            status,
+            reason: None,
+            step: 1,
+            steps: 3,
+            service_type: None,
+            resource: None,
+            attempt: 1,
+            completed: vec![],
+            reworks: 0,
+            rebooks: 0,
+            failed_attempts: 0,
+            at: 0,
+        };
+        let nodes = count_by_node(
+            vec!["orders2".into(), "orders1".into()],
+            &[
+                order("orders1-1", schemas::OrderStatus::Done),
+                order("orders1-2", schemas::OrderStatus::Running),
+                order("orders2-1", schemas::OrderStatus::Failed),
+                order("orders9-1", schemas::OrderStatus::Done),
+            ],
+        );
+        assert_eq!(nodes[0].name, "orders1");
+        assert_eq!((nodes[0].running, nodes[0].done), (1, 1));
+        assert_eq!(nodes[1].ended_otherwise, 1);
+        let table = render_order_nodes(&nodes);
+        assert!(table.contains("ORDER-NODE"), "{table}");
     }
 }

@@ -52,6 +52,18 @@ fn cell_demo_completes_every_order_and_hot_adds_a_robot() {
     );
     assert!(stdout.contains("submitted 6 orders of breaker"), "{stdout}");
     assert!(stdout.contains("+ hot-added resource/robot3"), "{stdout}");
+    // Every order that passed shows its last step (the inspection) before `Done`.
+    for line in stdout.lines().filter(|l| l.trim_end().ends_with(" Done")) {
+        let order = line.split_whitespace().nth(1).unwrap();
+        assert!(
+            stdout
+                .lines()
+                .any(|l| l.split_whitespace().nth(1) == Some(order)
+                    && l.contains(" inspect ")
+                    && l.contains("done by")),
+            "{order}'s passing inspection is not shown: {stdout}"
+        );
+    }
     assert!(stdout.contains("orders failed   0"), "{stdout}");
     assert!(stdout.contains("resource/conveyor1"), "{stdout}");
     assert!(
@@ -81,6 +93,18 @@ async fn cell_status_lists_the_live_holons() {
     cell.wait_state("robot7", "free", |s| s["state"] == "free")
         .await
         .unwrap();
+    let _orders = start_holon(
+        dir.path(),
+        "order-node",
+        &demo_config("orders1.toml"),
+        "orders1",
+        &cell,
+        &[],
+    )
+    .unwrap();
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
     let output = tokio::process::Command::new(bin("cell"))
         .args(["status", "--cell", "t-status", "--connect", &cell.endpoint])
         .output()
@@ -97,5 +121,14 @@ async fn cell_status_lists_the_live_holons() {
     assert_eq!(
         columns,
         ["resource/robot7", "resource", "free", "ready", "0", "0"]
+    );
+    // Order-nodes are listed with their orders' counts.
+    let line = stdout
+        .lines()
+        .find(|l| l.starts_with("orders1 "))
+        .unwrap_or_else(|| panic!("no order-node line: {stdout}"));
+    assert_eq!(
+        line.split_whitespace().collect::<Vec<_>>(),
+        ["orders1", "0", "0", "0"]
     );
 }
