@@ -527,6 +527,21 @@ mod tests {
                 "address = \"nowhere\"",
                 "controller.address",
             ),
+            (
+                "address = \"127.0.0.1:7601\"",
+                "address = \"127.0.0.1:99999\"",
+                "port must be a number from 1 to 65535",
+            ),
+            (
+                "address = \"127.0.0.1:7601\"",
+                "address = \":7601\"",
+                "is not HOST:PORT",
+            ),
+            (
+                "requester_grace_ms = 60000",
+                "requester_grace_ms = 10",
+                "agenda.requester_grace_ms",
+            ),
         ];
         for (from, to, expect) in cases {
             assert!(DEMO.contains(from), "the demo config lacks {from:?}");
