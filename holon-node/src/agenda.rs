@@ -64,6 +64,26 @@ pub enum Outcome {
     Failed { reason: String, detail: String },
 }
 
+/// As an operator reads it in a log: `done pick=picking_done place=placing_done`, or
+/// `failed controller_error: pick failed: gripper empty`.
+impl std::fmt::Display for Outcome {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Outcome::Done { results } => {
+                f.write_str("done")?;
+                for (action, result) in results {
+                    match result.as_str() {
+                        Some(text) => write!(f, " {action}={text}")?,
+                        None => write!(f, " {action}={result}")?,
+                    }
+                }
+                Ok(())
+            }
+            Outcome::Failed { reason, detail } => write!(f, "failed {reason}: {detail}"),
+        }
+    }
+}
+
 /// What the agenda manager reacts to.
 #[derive(Debug, Clone, PartialEq)]
 pub enum AgendaEvent {

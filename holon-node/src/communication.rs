@@ -360,7 +360,7 @@ async fn reply(node: &Node, endpoint: &Endpoint, query: &Query, message: &Servic
                 conversation_id = %message.conversation_id,
                 message_type = %message.message_type,
                 requester = %message.requester,
-                result = ?message.result,
+                result = message.result.map_or("", |r| if r { "true" } else { "false" }),
                 reason = message.reason.as_deref().unwrap_or(""),
                 "sent"
             )

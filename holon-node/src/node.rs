@@ -393,7 +393,7 @@ async fn execution(node: Arc<Node>, token: CancellationToken) -> Result<(), Chil
                     conversation_id,
                     outcome,
                 } => {
-                    info!(%holon, component = "execution", %conversation_id, outcome = ?outcome, "job finished");
+                    info!(%holon, component = "execution", %conversation_id, outcome = %outcome, "job finished");
                     send_agenda(
                         &node,
                         AgendaEvent::ExecutionFinished {

@@ -365,7 +365,7 @@ pub async fn run(
                     if message.requester == me
                         && matches!(message.message_type, MessageType::Done | MessageType::Failed) =>
                 {
-                    info!(holon = %me, conversation_id = %message.conversation_id, message_type = %message.message_type, provider = ?message.provider.as_ref().map(|p| p.to_string()), reason = message.reason.as_deref().unwrap_or(""), "received");
+                    info!(holon = %me, conversation_id = %message.conversation_id, message_type = %message.message_type, provider = %message.provider.as_ref().map(|p| p.to_string()).unwrap_or_default(), reason = message.reason.as_deref().unwrap_or(""), "received");
                     let _ = inbox_tx.send(Delivery { message, query });
                 }
                 Ok(other) => {
@@ -463,7 +463,7 @@ pub async fn run(
                 publish(&progress).await;
                 break;
             }
-            info!(holon = %holon, %conversation_id, outcome = ?outcome, "step attempt ended");
+            info!(holon = %holon, %conversation_id, outcome = %outcome, "step attempt ended");
             ctx.commit(&progress, |p| {
                 p.record(outcome);
                 if finishing {
@@ -486,7 +486,7 @@ pub async fn run(
         }
     }
     let p = lock(&progress).snapshot();
-    info!(holon = %holon, status = ?p.status, reason = p.reason.as_deref().unwrap_or(""), reworks = p.reworks, rebooks = p.rebooks, "order finished");
+    info!(holon = %holon, status = %p.status, reason = p.reason.as_deref().unwrap_or(""), reworks = p.reworks, rebooks = p.rebooks, "order finished");
     // Results still arriving for this order (duplicates, late reports of abandoned
     // attempts) are acknowledged by the node from now on.
     let _ = token.undeclare().await;

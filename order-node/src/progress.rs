@@ -52,6 +52,33 @@ pub enum StepOutcome {
     Cancelled,
 }
 
+/// As an operator reads it in a log: `done by resource/robot1 (pick=picking_done ...)`,
+/// `failed on resource/robot2: controller_error`, `lost resource/robot1: withdrawn`, ...
+impl std::fmt::Display for StepOutcome {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            StepOutcome::Done { provider, results } => {
+                write!(f, "done by {provider}")?;
+                let shown: Vec<String> = results
+                    .iter()
+                    .map(|(action, result)| match result.as_str() {
+                        Some(text) => format!("{action}={text}"),
+                        None => format!("{action}={result}"),
+                    })
+                    .collect();
+                if !shown.is_empty() {
+                    write!(f, " ({})", shown.join(" "))?;
+                }
+                Ok(())
+            }
+            StepOutcome::Failed { provider, reason } => write!(f, "failed on {provider}: {reason}"),
+            StepOutcome::Lost { provider, why } => write!(f, "lost {provider}: {why}"),
+            StepOutcome::NoResource => f.write_str("no resource could be booked"),
+            StepOutcome::Cancelled => f.write_str("cancelled by an operator"),
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct OrderProgress {
     pub holon: HolonId,
@@ -402,5 +429,21 @@ mod tests {
         o.record(StepOutcome::NoResource);
         assert_eq!(o.status, OrderStatus::Failed);
         assert!(o.reason.unwrap().contains("no resource"));
+    }
+
+    #[test]
+    fn outcomes_read_as_an_operator_reads_them() {
+        assert_eq!(
+            done("inspect1", "inspect_fail").to_string(),
+            "done by resource/inspect1 (x=inspect_fail)"
+        );
+        let failed = StepOutcome::Failed {
+            provider: robot("robot2"),
+            reason: "controller_error".into(),
+        };
+        assert_eq!(
+            failed.to_string(),
+            "failed on resource/robot2: controller_error"
+        );
     }
 }

@@ -153,6 +153,23 @@ impl OrderStatus {
     pub fn is_final(self) -> bool {
         self != OrderStatus::Running
     }
+
+    /// The name on the wire (`running`, `done`, ...).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            OrderStatus::Running => "running",
+            OrderStatus::Done => "done",
+            OrderStatus::Scrapped => "scrapped",
+            OrderStatus::Failed => "failed",
+            OrderStatus::Cancelled => "cancelled",
+        }
+    }
+}
+
+impl std::fmt::Display for OrderStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
 }
 
 /// An order's state, published on `order/<name>/state` after every change.
