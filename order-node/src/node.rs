@@ -473,42 +473,36 @@ fn restart(host: &Host, name: &str, tasks: &mut Tasks, cancel: &CancellationToke
 }
 
 /// Why a work order for `product` cannot be planned now: no product holon of that name
-/// is alive (its liveliness token, asked for once). `None` when it is there.
+/// is alive (the product tokens, asked for once). `None` when it is there.
 async fn product_missing(host: &Host, product: &str) -> Option<String> {
     let keys = &host.config.keys;
-    let holon = HolonId::new(schemas::HolonKind::Product, product).ok()?;
-    let session = &host.context.session;
-    match holon::presence::tokens(session, &keys.alive(&holon), Duration::from_secs(2)).await {
-        Ok(found) if !found.is_empty() => None,
-        Ok(_) => {
-            let alive = holon::presence::tokens(
-                session,
-                &keys.alive_kind(schemas::HolonKind::Product),
-                Duration::from_secs(2),
-            )
-            .await
-            .unwrap_or_default();
-            let names: Vec<String> = alive
-                .iter()
-                .filter_map(|k| keys.holon_from_alive(k))
-                .map(|h| h.name().to_string())
-                .collect();
-            if names.iter().any(|n| n == product) {
-                // The first answer came too late (a busy node): it is there after all.
-                return None;
-            }
-            Some(format!(
-                "no product holon {product:?} is alive in cell {} (alive: {}); start it, or submit with queue (cell submit --queue) to let the orders wait for its plan",
-                keys.cell(),
-                if names.is_empty() { "none".to_string() } else { names.join(", ") }
-            ))
-        }
-        // Presence unknown: accept, the order waits for its plan as before.
+    let alive = match holon::presence::tokens(
+        &host.context.session,
+        &keys.alive_kind(schemas::HolonKind::Product),
+        Duration::from_secs(2),
+    )
+    .await
+    {
+        Ok(alive) => alive,
+        // Presence unknown: accept, the orders wait for their plan as before.
         Err(e) => {
             warn!(node = %host.config.name, error = %e, "cannot ask which products are alive");
-            None
+            return None;
         }
+    };
+    let names: Vec<String> = alive
+        .iter()
+        .filter_map(|k| keys.holon_from_alive(k))
+        .map(|h| h.name().to_string())
+        .collect();
+    if names.iter().any(|n| n == product) {
+        return None;
     }
+    Some(format!(
+        "no product holon {product:?} is alive in cell {} (alive: {}); start it, or submit with queue (cell submit --queue) to let the orders wait for its plan",
+        keys.cell(),
+        if names.is_empty() { "none".to_string() } else { names.join(", ") }
+    ))
 }
 
 async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &CancellationToken) {

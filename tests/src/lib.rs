@@ -596,6 +596,22 @@ pub fn start_holon(
 }
 
 impl Cell {
+    /// Starts the demo's order-node `orders1` (its log and stderr in `dir`) with extra
+    /// flags, and waits until it serves.
+    pub async fn start_order_node(&self, dir: &Path, extra: &[&str]) -> Result<Process> {
+        let process = start_holon(
+            dir,
+            "order-node",
+            &demo_config("orders1.toml"),
+            "orders1",
+            self,
+            extra,
+        )?;
+        self.wait_token(&self.keys.host("order-node", "orders1"))
+            .await?;
+        Ok(process)
+    }
+
     /// Waits until a liveliness token on `key` appears (e.g. an order-node's host token).
     pub async fn wait_token(&self, key: &str) -> Result<()> {
         let found = holon::presence::wait_token(&self.session, key, WAIT)

@@ -93,18 +93,7 @@ async fn cell_status_lists_the_live_holons() {
     cell.wait_state("robot7", "free", |s| s["state"] == "free")
         .await
         .unwrap();
-    let _orders = start_holon(
-        dir.path(),
-        "order-node",
-        &demo_config("orders1.toml"),
-        "orders1",
-        &cell,
-        &[],
-    )
-    .unwrap();
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await
-        .unwrap();
+    let _orders = cell.start_order_node(dir.path(), &[]).await.unwrap();
     let output = tokio::process::Command::new(bin("cell"))
         .args(["status", "--cell", "t-status", "--connect", &cell.endpoint])
         .output()

@@ -97,16 +97,8 @@ async fn a_twin_order_node_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let cell = Cell::open("t-twin-orders").await.unwrap();
     let first_data = dir.path().join("data-a");
-    let first = start_holon(
-        dir.path(),
-        "order-node",
-        &demo_config("orders1.toml"),
-        "orders1",
-        &cell,
-        &["--data-dir", first_data.to_str().unwrap()],
-    )
-    .unwrap();
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+    let first = cell
+        .start_order_node(dir.path(), &["--data-dir", first_data.to_str().unwrap()])
         .await
         .unwrap();
     let twin_dir = dir.path().join("twin");

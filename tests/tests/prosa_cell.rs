@@ -133,18 +133,7 @@ async fn twenty_orders_while_a_robot_is_hot_added_and_another_stopped() {
     cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "breaker").unwrap())
         .await
         .unwrap();
-    let _orders_node = start_holon(
-        dir.path(),
-        "order-node",
-        &demo_config("orders1.toml"),
-        "orders1",
-        &cell,
-        &[],
-    )
-    .unwrap();
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await
-        .unwrap();
+    let _orders_node = cell.start_order_node(dir.path(), &[]).await.unwrap();
 
     let mut orders = Orders::watch(&cell).await;
     let ids = cell.submit("breaker", 20).await.unwrap();
@@ -272,18 +261,7 @@ async fn a_rejected_part_is_reworked_and_the_product_serves_its_plan() {
         &["--inspect-fail-every", "1"],
     )
     .await;
-    let _orders_node = start_holon(
-        dir.path(),
-        "order-node",
-        &demo_config("orders1.toml"),
-        "orders1",
-        &cell,
-        &[],
-    )
-    .unwrap();
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await
-        .unwrap();
+    let _orders_node = cell.start_order_node(dir.path(), &[]).await.unwrap();
     let mut orders = Orders::watch(&cell).await;
     cell.submit("breaker", 1).await.unwrap();
     orders.until_finished(1, Duration::from_secs(60)).await;
@@ -301,18 +279,7 @@ async fn a_rejected_part_is_reworked_and_the_product_serves_its_plan() {
 async fn bad_work_orders_get_an_error_and_create_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let cell = Cell::open("t-submit").await.unwrap();
-    let _orders_node = start_holon(
-        dir.path(),
-        "order-node",
-        &demo_config("orders1.toml"),
-        "orders1",
-        &cell,
-        &[],
-    )
-    .unwrap();
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await
-        .unwrap();
+    let _orders_node = cell.start_order_node(dir.path(), &[]).await.unwrap();
     for (payload, code) in [
         (b"not json".to_vec(), "malformed"),
         (br#"{"product": "breaker", "count": 0}"#.to_vec(), "invalid"),
