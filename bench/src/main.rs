@@ -1036,22 +1036,25 @@ async fn order_node_footprint(run: &mut Run, orders: u32) -> Result<()> {
     tokio::time::sleep(Duration::from_secs(1)).await;
     let (idle_rss, idle_threads) = footprint(node.pid())?;
     cell.submit("part", orders).await?;
-    // Until every order has a liveliness token, then let them settle into waiting.
+    // Until the node reports every order (an order waiting for a resource holds no
+    // token: it declares one when it books), then let them settle into waiting.
     let deadline = Instant::now() + Duration::from_secs(60);
     loop {
-        let alive =
-            holon::presence::alive_holons(&cell.session, &cell.keys, Duration::from_secs(5))
-                .await
-                .map_err(|e| anyhow!("{e}"))?;
-        let alive = alive
-            .iter()
-            .filter(|h| h.kind() == schemas::HolonKind::Order)
-            .count();
-        if alive >= orders as usize {
+        let replies = cell
+            .session
+            .get(cell.keys.order_states())
+            .timeout(Duration::from_secs(5))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let mut hosted = 0;
+        while let Ok(reply) = replies.recv_async().await {
+            hosted += usize::from(reply.result().is_ok());
+        }
+        if hosted >= orders as usize {
             break;
         }
         if Instant::now() > deadline {
-            bail!("only {alive} of {orders} orders alive after 60 s");
+            bail!("only {hosted} of {orders} orders reported after 60 s");
         }
         tokio::time::sleep(Duration::from_millis(200)).await;
     }

@@ -130,8 +130,8 @@ impl Host {
         }
     }
 
-    /// The progress of `name` if it is an order of this node that has finished.
-    fn finished(&self, name: &str) -> Option<OrderProgress> {
+    /// The progress of `name` if it is an order of this node.
+    fn progress(&self, name: &str) -> Option<OrderProgress> {
         let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
         let progress = orders
             .get(name)?
@@ -139,7 +139,7 @@ impl Host {
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .clone();
-        progress.status.is_final().then_some(progress)
+        Some(progress)
     }
 
     fn spawn(
@@ -326,6 +326,9 @@ pub async fn run(
         keys: config.keys.clone(),
         settings: config.orders,
         presence,
+        inboxes: Default::default(),
+        rounds: tokio::sync::Semaphore::new(order::MAX_CONCURRENT_ROUNDS),
+        idle: Default::default(),
         journal,
         journal_failing: Default::default(),
     });
@@ -354,12 +357,18 @@ pub async fn run(
         })
         .await
         .map_err(z)?;
-    // Results for finished orders (duplicates, late reports of abandoned attempts) are
-    // acknowledged here; running orders answer on their own inbox.
+    // Results reach running orders straight from this callback; those for orders that
+    // are not running (duplicates, late reports of abandoned attempts) are answered by
+    // the node's loop.
+    let inboxes = host.context.inboxes.clone();
     let _inboxes = session
         .declare_queryable(config.keys.node_orders(&config.name, "inbox"))
         .callback(move |query| {
-            let _ = inbox_tx.send(Incoming::Inbox(query));
+            if let Some(query) = inboxes.route(query) {
+                if inbox_tx.send(Incoming::Inbox(query)).is_err() {
+                    debug!("a result arrived while the node stops: left unanswered, the resource delivers it again");
+                }
+            }
         })
         .await
         .map_err(z)?;
@@ -612,16 +621,31 @@ async fn cancel(host: &Host, query: Query) {
 /// belongs to an attempt the order abandoned); anything else is left to the order.
 async fn acknowledge_finished(host: &Host, query: Query) {
     let key = query.key_expr().as_str().to_string();
-    let Some(name) = key
-        .strip_suffix("/inbox")
-        .and_then(|k| k.rsplit('/').next())
-        .map(str::to_string)
-    else {
+    let Some(name) = crate::inbox::order_name(&key).map(str::to_string) else {
         return;
     };
-    let Some(progress) = host.finished(&name) else {
-        return; // dropped without a reply: the order's own inbox answers
+    let Some(progress) = host.progress(&name) else {
+        warn!(order = %name, "result for an order this node does not host refused");
+        if let Err(e) = query
+            .reply_err(
+                ErrorReply::new(
+                    "unknown_order",
+                    format!("{name} is not an order of {}", host.config.name),
+                )
+                .to_json(),
+            )
+            .await
+        {
+            warn!(order = %name, error = %e, "cannot refuse a result");
+        }
+        return;
     };
+    if !progress.status.is_final() {
+        // Hosted, but its task is not running now (restarting after a journal error):
+        // unanswered, so the resource delivers the result again.
+        debug!(order = %name, "result for an order that is not running left for a later delivery");
+        return;
+    }
     let payload = query
         .payload()
         .map(|p| p.to_bytes().into_owned())

@@ -22,9 +22,10 @@ use tokio::sync::{broadcast, mpsc, watch, Notify};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
-use zenoh::query::{ConsolidationMode, Query};
+use zenoh::query::ConsolidationMode;
 
 use crate::config::OrderSettings;
+use crate::inbox::{Delivery, Inboxes};
 use crate::progress::{OrderProgress, Phase, StepOutcome};
 
 /// Which resources are alive, who just left or came, and whose turn it is on each
@@ -230,6 +231,12 @@ pub struct OrderContext {
     pub keys: schemas::CellKeys,
     pub settings: OrderSettings,
     pub presence: Arc<Presence>,
+    /// Where results reach the running orders (one queryable for the node).
+    pub inboxes: Arc<Inboxes>,
+    /// Permits for proposal rounds in flight (see [`MAX_CONCURRENT_ROUNDS`]).
+    pub rounds: tokio::sync::Semaphore,
+    /// Orders waiting after a round nobody proposed in (see [`idle_pause`]).
+    pub idle: Arc<std::sync::atomic::AtomicUsize>,
     pub journal: Option<Arc<Journal>>,
     /// Set while journal writes fail (logged once per fault, not per order).
     pub journal_failing: AtomicBool,
@@ -288,6 +295,28 @@ impl OrderContext {
     }
 }
 
+/// Counts one order among the idle ones for as long as it lives.
+struct IdleOrder {
+    idle: Arc<std::sync::atomic::AtomicUsize>,
+    /// How many others were idle when it joined them.
+    others: usize,
+}
+
+impl IdleOrder {
+    fn count(idle: &Arc<std::sync::atomic::AtomicUsize>) -> IdleOrder {
+        IdleOrder {
+            idle: idle.clone(),
+            others: idle.fetch_add(1, Ordering::SeqCst),
+        }
+    }
+}
+
+impl Drop for IdleOrder {
+    fn drop(&mut self) {
+        self.idle.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
 /// Why an order task stopped before its order ended.
 #[derive(Debug, thiserror::Error)]
 pub enum OrderError {
@@ -311,34 +340,6 @@ fn lock(progress: &Shared) -> std::sync::MutexGuard<'_, OrderProgress> {
     progress.lock().unwrap_or_else(|e| e.into_inner())
 }
 
-/// A result in the inbox, with the query to acknowledge once it is recorded.
-pub struct Delivery {
-    pub message: Service,
-    pub query: Query,
-}
-
-impl Delivery {
-    /// Refuses a result with an error reply (the resource logs it and retries).
-    async fn refuse(self, code: &str, message: String) {
-        if let Err(e) = self
-            .query
-            .reply_err(schemas::ErrorReply::new(code, message).to_json())
-            .await
-        {
-            warn!(conversation_id = %self.message.conversation_id, error = %e, "cannot refuse a result");
-        }
-    }
-
-    async fn acknowledge(self) {
-        let mut ack = self.message.clone();
-        ack.result = Some(true);
-        let _ = self
-            .query
-            .reply(self.query.key_expr().clone(), ack.to_json())
-            .await;
-    }
-}
-
 /// Runs one order until it is done, scrapped, failed or cancelled by an operator
 /// (`operator_cancel`), or its node stops (`cancel`).
 pub async fn run(
@@ -349,64 +350,16 @@ pub async fn run(
 ) -> Result<(), OrderError> {
     let holon = lock(&progress).holon.clone();
     let session = &ctx.session;
-    let e = |e: zenoh::Error| e.to_string();
-    let (inbox_tx, mut inbox) = mpsc::unbounded_channel::<Delivery>();
-    let me = holon.clone();
-    let _inbox = session
-        .declare_queryable(ctx.keys.inbox(holon.name()))
-        .callback(move |query| {
-            use zenoh::Wait;
-            let payload = query
-                .payload()
-                .map(|p| p.to_bytes().into_owned())
-                .unwrap_or_default();
-            match Service::from_json(&payload) {
-                Ok(message)
-                    if message.requester == me
-                        && matches!(message.message_type, MessageType::Done | MessageType::Failed) =>
-                {
-                    info!(holon = %me, conversation_id = %message.conversation_id, message_type = %message.message_type, provider = %message.provider.as_ref().map(|p| p.to_string()).unwrap_or_default(), reason = message.reason.as_deref().unwrap_or(""), "received");
-                    let _ = inbox_tx.send(Delivery { message, query });
-                }
-                Ok(other) => {
-                    let _ = query
-                        .reply_err(
-                            schemas::ErrorReply::new(
-                                "wrong_key",
-                                format!("{} for {} is not for this inbox", other.message_type, other.requester),
-                            )
-                            .to_json(),
-                        )
-                        .wait();
-                }
-                Err(err) => {
-                    warn!(holon = %me, bytes = payload.len(), error = %err, "undecodable message in the inbox refused");
-                    if let Err(e) = query
-                        .reply_err(schemas::ErrorReply::new("malformed", err.to_string()).to_json())
-                        .wait()
-                    {
-                        warn!(holon = %me, error = %e, "cannot refuse an undecodable message");
-                    }
-                }
-            }
-        })
-        .await
-        .map_err(e)?;
-    let publisher = session
-        .declare_publisher(ctx.keys.state(&holon))
-        .await
-        .map_err(e)?;
-    let token = session
-        .liveliness()
-        .declare_token(ctx.keys.alive(&holon))
-        .await
-        .map_err(e)?;
+    let mut inbox = ctx.inboxes.open(&holon);
+    let token = OrderToken::new(&ctx, &holon);
     let publish = |progress: &Shared| {
         let snapshot = lock(progress).snapshot();
-        let publisher = &publisher;
+        let key = ctx.keys.state(&snapshot.holon);
         async move {
             let payload = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
-            let _ = publisher.put(payload).await;
+            if let Err(e) = session.put(&key, payload).await {
+                warn!(holon = %snapshot.holon, error = %e, "cannot publish the order's state");
+            }
         }
     };
     publish(&progress).await;
@@ -435,7 +388,8 @@ pub async fn run(
                 &progress,
                 &step,
                 &conversation_id,
-                &mut inbox,
+                &mut inbox.deliveries,
+                &token,
                 &mut changes,
                 &publish,
             );
@@ -489,8 +443,54 @@ pub async fn run(
     info!(holon = %holon, status = %p.status, reason = p.reason.as_deref().unwrap_or(""), reworks = p.reworks, rebooks = p.rebooks, "order finished");
     // Results still arriving for this order (duplicates, late reports of abandoned
     // attempts) are acknowledged by the node from now on.
-    let _ = token.undeclare().await;
+    token.undeclare().await;
     Ok(())
+}
+
+/// The order's liveliness token (`alive/order/<name>`), declared the first time the
+/// order books and held until it ends: a resource keeps a booking only while its
+/// requester's token lives. An order still looking for a resource holds none, so
+/// thousands of waiting orders cost the cell no declaration.
+struct OrderToken {
+    session: zenoh::Session,
+    key: String,
+    holon: HolonId,
+    token: tokio::sync::Mutex<Option<zenoh::liveliness::LivelinessToken>>,
+}
+
+impl OrderToken {
+    fn new(ctx: &OrderContext, holon: &HolonId) -> OrderToken {
+        OrderToken {
+            session: ctx.session.clone(),
+            key: ctx.keys.alive(holon),
+            holon: holon.clone(),
+            token: tokio::sync::Mutex::new(None),
+        }
+    }
+
+    /// Declares the token unless it is already declared.
+    async fn declare(&self) -> Result<(), OrderError> {
+        let mut token = self.token.lock().await;
+        if token.is_none() {
+            let declared = self
+                .session
+                .liveliness()
+                .declare_token(&self.key)
+                .await
+                .map_err(|e| OrderError::Other(format!("cannot declare {}: {e}", self.key)))?;
+            *token = Some(declared);
+        }
+        Ok(())
+    }
+
+    /// Withdraws the token: the order wants no booking any more.
+    async fn undeclare(&self) {
+        if let Some(token) = self.token.lock().await.take() {
+            if let Err(e) = token.undeclare().await {
+                warn!(holon = %self.holon, error = %e, "cannot withdraw the order's token; it goes with the session");
+            }
+        }
+    }
 }
 
 /// Ends the order as cancelled: a booking it holds (or may hold) is cancelled first.
@@ -557,7 +557,11 @@ async fn fetch_plan(ctx: &OrderContext, product: &str) -> Option<Plan> {
         if Instant::now() >= deadline {
             return None;
         }
-        tokio::time::sleep(jittered(pause).min(deadline - Instant::now())).await;
+        // Counted among the idle orders: thousands waiting for a plan ask rarely.
+        let idle = IdleOrder::count(&ctx.idle);
+        let spaced = IDLE_POLL_SPACING * idle.others.min(100_000) as u32;
+        tokio::time::sleep(jittered(pause.max(spaced)).min(deadline - Instant::now())).await;
+        drop(idle);
         pause = (pause * 2).min(ctx.settings.retry_max.max(pause));
     }
 }
@@ -745,12 +749,14 @@ async fn watch(
 
 /// Works on one attempt of a step from wherever its phase stands; returns how it ended
 /// and the result to acknowledge once the outcome is recorded.
+#[allow(clippy::too_many_arguments)]
 async fn attempt_step<F, Fut>(
     ctx: &OrderContext,
     progress: &Shared,
     step: &PlanStep,
     conversation_id: &str,
     inbox: &mut mpsc::UnboundedReceiver<Delivery>,
+    token: &OrderToken,
     changes: &mut broadcast::Receiver<(HolonId, bool)>,
     publish: &F,
 ) -> Result<(StepOutcome, Option<Box<Delivery>>), OrderError>
@@ -772,6 +778,10 @@ where
     };
     loop {
         let phase = lock(progress).phase.clone();
+        if phase != Phase::Proposing {
+            // Resumed with a booking (or one that may exist): its requester is here.
+            token.declare().await?;
+        }
         match phase {
             Phase::Proposing => {
                 let avoid = lock(progress).avoid.clone();
@@ -779,8 +789,16 @@ where
                     request(ctx, &holon, MessageType::ProposalReq, step, conversation_id);
                 let mut booked = false;
                 let mut appearances = ctx.presence.appearances();
-                let candidates = proposals(ctx, &ask_proposals, &avoid).await;
+                let candidates = {
+                    let _turn = ctx.rounds.acquire().await.expect("never closed");
+                    proposals(ctx, &ask_proposals, &avoid).await
+                };
                 let nobody_proposed = candidates.is_empty();
+                if !nobody_proposed {
+                    // Declared before the booking request: the resource must see the
+                    // requester alive as soon as it holds the booking.
+                    token.declare().await?;
+                }
                 for candidate in candidates {
                     set_phase(Phase::Booking(candidate.clone()))?;
                     let booking =
@@ -812,16 +830,17 @@ where
                 // Nobody could take it: a resource that appears, becomes ready or frees
                 // a place wakes this order, so the fallback poll can be rare (thousands
                 // of orders waiting for a missing resource then cost next to nothing).
-                let pause = if nobody_proposed {
-                    jittered(IDLE_POLL.max(settings.retry_max))
-                } else {
-                    back_off(&mut backoff)
+                let idle = nobody_proposed.then(|| IdleOrder::count(&ctx.idle));
+                let pause = match &idle {
+                    Some(idle) => jittered(idle_pause(idle.others, settings.retry_max)),
+                    None => back_off(&mut backoff),
                 }
                 .min(give_up - Instant::now());
                 tokio::select! {
                     _ = tokio::time::sleep(pause) => {}
                     _ = ctx.presence.appeared_or_room(&mut appearances) => {}
                 }
+                drop(idle);
             }
             Phase::Booking(candidate) => {
                 // Resumed: the booking request may or may not have reached it. Booking is
@@ -998,6 +1017,22 @@ async fn cancel_when_back(
 /// How often an order that no resource could take asks again, at most, when nothing
 /// woke it (an appearance, a resource ready again, a freed place).
 const IDLE_POLL: Duration = Duration::from_secs(10);
+
+/// The fallback pause of an idle order grows with the number of idle orders, so that
+/// all of them together ask about once per this interval: 5,000 orders waiting for a
+/// missing resource ask 10 times a second in all, not 500.
+const IDLE_POLL_SPACING: Duration = Duration::from_millis(100);
+
+/// Proposal rounds in flight at once on a node: when a resource appears and wakes
+/// thousands of waiting orders, they ask in turn (oldest first), not all at once.
+pub const MAX_CONCURRENT_ROUNDS: usize = 64;
+
+/// The fallback pause of one of `idle` orders that found nothing to book.
+fn idle_pause(idle: usize, retry_max: Duration) -> Duration {
+    IDLE_POLL
+        .max(retry_max)
+        .max(IDLE_POLL_SPACING * idle.min(100_000) as u32)
+}
 
 /// `pause` less up to a quarter, at random: orders that wait together do not retry in
 /// lockstep.

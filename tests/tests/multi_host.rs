@@ -21,6 +21,8 @@ const CELL: &str = "t-multi";
 struct Hosts {
     prefix: String,
     children: Vec<Child>,
+    /// Where the started processes log (`<name>.log`); printed when the test fails.
+    logs: Option<std::path::PathBuf>,
 }
 
 impl Hosts {
@@ -45,6 +47,7 @@ impl Hosts {
         let hosts = Hosts {
             prefix,
             children: Vec::new(),
+            logs: None,
         };
         let sw = hosts.ns("s");
         run(&["ip", "netns", "add", &sw]);
@@ -84,6 +87,7 @@ impl Hosts {
 
     /// Starts a command inside host `host`'s namespace, its output to `dir/<name>.log`.
     fn spawn(&mut self, dir: &Path, host: &str, name: &str, program: &Path, args: &[&str]) {
+        self.logs = Some(dir.to_path_buf());
         let log = std::fs::File::create(dir.join(format!("{name}.log"))).unwrap();
         let child = Command::new("ip")
             .args(["netns", "exec", &self.ns(host)])
@@ -131,10 +135,37 @@ impl Drop for Hosts {
             let _ = child.kill();
             let _ = child.wait();
         }
+        if std::thread::panicking() {
+            if let Some(dir) = &self.logs {
+                print_log_tails(dir);
+            }
+        }
         for host in ["a", "b", "c", "s"] {
             let _ = Command::new("ip")
                 .args(["netns", "del", &self.ns(host)])
                 .status();
+        }
+    }
+}
+
+/// Prints the end of every process's log: what a failed run on a CI machine leaves to read.
+fn print_log_tails(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let mut logs: Vec<_> = entries
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "log"))
+        .collect();
+    logs.sort();
+    for log in logs {
+        let text = std::fs::read_to_string(&log).unwrap_or_default();
+        let lines: Vec<&str> = text.lines().collect();
+        let tail = &lines[lines.len().saturating_sub(40)..];
+        println!("---- {} (last {} lines)", log.display(), tail.len());
+        for line in tail {
+            println!("{line}");
         }
     }
 }
@@ -377,10 +408,15 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
     println!("host b back");
     // A bound, not a figure: the routers retry their links with a growing pause, and on
     // a loaded 2-core machine the rejoin once took longer than 60 s.
-    let deadline = Instant::now() + Duration::from_secs(120);
+    let healed = Instant::now();
+    let deadline = healed + Duration::from_secs(120);
     loop {
         let status = hosts.cell(&["status"]);
         if status.contains("resource/robot2") {
+            println!(
+                "host b visible again {:.2}s after the heal",
+                healed.elapsed().as_secs_f64()
+            );
             break;
         }
         assert!(
