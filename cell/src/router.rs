@@ -80,7 +80,12 @@ pub async fn run(options: RouterOptions, shutdown: CancellationToken) -> Result<
     let session = tokio::time::timeout(Duration::from_secs(10), zenoh::open(config))
         .await
         .map_err(|_| anyhow!("the router did not start within 10 s"))?
-        .map_err(|e| anyhow!("cannot start the router: {e}"))?;
+        .map_err(|e| {
+            anyhow!(
+                "cannot start the router: {}",
+                holon::zenoh_error::describe(&e)
+            )
+        })?;
     println!("router {} listening on {endpoints}", session.zid());
     shutdown.cancelled().await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;

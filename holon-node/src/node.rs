@@ -613,7 +613,7 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
         result = &mut supervision => match result {
             Ok(Ok(())) => Err(NodeError::Startup(STARTUP_TIMEOUT)),
             Ok(Err(e)) => Err(e.into()),
-            Err(e) => Err(NodeError::Zenoh(e.to_string())),
+            Err(e) => Err(NodeError::Zenoh(holon::zenoh_error::describe(&e))),
         },
     };
     if let Err(e) = started {
@@ -626,7 +626,7 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
         .liveliness()
         .declare_token(&alive_key)
         .await
-        .map_err(|e| NodeError::Zenoh(e.to_string()))?;
+        .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
     info!(holon = %holon, key = %alive_key, "holon ready");
 
     let outcome = tokio::select! {

@@ -102,7 +102,7 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
             STARTUP_TIMEOUT,
         )
         .await?;
-    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(e.to_string());
+    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let _claim = match holon::presence::claim(
         &session,
         &config.keys.alive(&holon),

@@ -9,6 +9,7 @@ pub mod query;
 pub mod session;
 pub mod supervisor;
 pub mod tls;
+pub mod zenoh_error;
 
 pub use logging::LogFormat;
 pub use session::ZenohSettings;

@@ -215,7 +215,7 @@ impl ZenohSettings {
         }
         match tokio::time::timeout(timeout, zenoh::open(config)).await {
             Ok(Ok(session)) => Ok(session),
-            Ok(Err(e)) => Err(SessionError::Open(e.to_string())),
+            Ok(Err(e)) => Err(SessionError::Open(crate::zenoh_error::describe(&e))),
             Err(_) => Err(SessionError::Timeout(timeout)),
         }
     }

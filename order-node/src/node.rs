@@ -283,7 +283,7 @@ pub async fn run(
     submits: Vec<WorkOrder>,
     shutdown: CancellationToken,
 ) -> Result<(), NodeError> {
-    let z = |e: zenoh::Error| NodeError::Zenoh(e.to_string());
+    let z = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let session = config
         .zenoh
         .open(
