@@ -43,6 +43,25 @@ pub fn bin(name: &str) -> PathBuf {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let mut build = Command::new(cargo);
         build.args(["build", "--bins", "--quiet"]);
+        // What cargo sets for a test process is not the user's build environment: a
+        // build script that watches one of these (ring's watches CARGO_MANIFEST_DIR)
+        // would rebuild half the workspace here, and again at the next plain build.
+        for (key, _) in std::env::vars_os() {
+            let key = key.to_string_lossy().into_owned();
+            if [
+                "CARGO_MANIFEST_",
+                "CARGO_PKG_",
+                "CARGO_CRATE_",
+                "CARGO_BIN_",
+                "CARGO_PRIMARY_PACKAGE",
+                "CARGO_TARGET_TMPDIR",
+            ]
+            .iter()
+            .any(|prefix| key.starts_with(prefix))
+            {
+                build.env_remove(key);
+            }
+        }
         if bin_dir().ends_with("release") {
             build.arg("--release");
         }
