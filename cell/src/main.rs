@@ -85,8 +85,13 @@ enum Commands {
         #[arg(long, value_name = "ROLE.NAME")]
         identity: Option<String>,
     },
-    /// List every order of a cell with its status, step and resource (from any host).
+    /// List every order of a cell with its status, step, resource, failed attempts,
+    /// rebooks and reworks (from any host).
     Orders {
+        /// Also list every ended attempt of each order below it: conversation id, step,
+        /// how it ended (done, rejected, failed, lost, no_resource, cancelled) and why.
+        #[arg(long)]
+        detail: bool,
         #[command(flatten)]
         client: ClientArgs,
     },
@@ -284,11 +289,14 @@ async fn run(args: Args) -> Result<bool> {
             cell::router::run(options, shutdown).await?;
             Ok(true)
         }
-        Commands::Orders { client } => {
+        Commands::Orders { detail, client } => {
             let keys = client.keys()?;
             let session = client.session(OBSERVER).await?;
             let orders = cell::status::orders(&session, &keys, client.timeout()).await?;
-            print!("{}", cell::status::render_orders(&client.cell, &orders));
+            print!(
+                "{}",
+                cell::status::render_orders(&client.cell, &orders, detail)
+            );
             close(session).await;
             Ok(true)
         }

@@ -281,8 +281,9 @@ pub async fn cancel(
     }
 }
 
-/// The table `cell orders` prints, with a summary line first.
-pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot]) -> String {
+/// The table `cell orders` prints, with a summary line first; with `detail`, each
+/// order's ended attempts below it (its audit trail).
+pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot], detail: bool) -> String {
     use schemas::OrderStatus;
     let count = |s: OrderStatus| orders.iter().filter(|o| o.status == s).count();
     let mut out = format!(
@@ -295,23 +296,36 @@ pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot]) -> String {
         count(OrderStatus::Cancelled)
     );
     out.push_str(&format!(
-        "{:<22} {:<10} {:<9} {:>5} {:<22} {:>7}  REASON\n",
-        "ORDER", "PRODUCT", "STATUS", "STEP", "RESOURCE", "REBOOKS"
+        "{:<22} {:<10} {:<9} {:>5} {:<22} {:>6} {:>7} {:>7}  REASON\n",
+        "ORDER", "PRODUCT", "STATUS", "STEP", "RESOURCE", "FAILED", "REBOOKS", "REWORKS"
     ));
     for o in orders {
         out.push_str(&format!(
-            "{:<22} {:<10} {:<9} {:>5} {:<22} {:>7}  {}\n",
+            "{:<22} {:<10} {:<9} {:>5} {:<22} {:>6} {:>7} {:>7}  {}\n",
             o.holon.name(),
             o.product,
-            format!("{:?}", o.status).to_lowercase(),
+            o.status.as_str(),
             format!("{}/{}", o.step, o.steps),
             o.resource
                 .as_ref()
                 .map(|r| r.to_string())
                 .unwrap_or_else(|| "-".into()),
+            o.failed_attempts,
             o.rebooks,
+            o.reworks,
             o.reason.as_deref().unwrap_or("")
         ));
+        if detail {
+            for a in &o.attempts {
+                out.push_str(&format!(
+                    "    {:<24} {:<14} {:<10} {}\n",
+                    a.conversation_id,
+                    a.service_type,
+                    a.end.as_str(),
+                    a.detail
+                ));
+            }
+        }
     }
     out
 }

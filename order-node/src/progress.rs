@@ -3,7 +3,10 @@
 
 use std::collections::BTreeSet;
 
-use schemas::{unix_ms, HolonId, OnReject, OrderSnapshot, OrderStatus, Plan};
+use schemas::{
+    unix_ms, AttemptEnd, AttemptRecord, HolonId, OnReject, OrderSnapshot, OrderStatus, Plan,
+    MAX_ATTEMPT_HISTORY,
+};
 use serde_json::{Map, Value};
 
 /// Where the current attempt stands with its resource. Recorded in the journal before
@@ -117,6 +120,9 @@ pub struct OrderProgress {
     /// results of earlier conversations (duplicates, late reports) are acknowledged.
     #[serde(default)]
     pub worked_with: BTreeSet<HolonId>,
+    /// Every ended attempt, oldest first (the last `MAX_ATTEMPT_HISTORY`).
+    #[serde(default)]
+    pub history: Vec<AttemptRecord>,
 }
 
 impl OrderProgress {
@@ -140,6 +146,7 @@ impl OrderProgress {
             max_attempts: max_attempts.max(1),
             cancel_requested: false,
             worked_with: BTreeSet::new(),
+            history: Vec::new(),
         }
     }
 
@@ -204,6 +211,7 @@ impl OrderProgress {
         let Some(current) = self.current_step().cloned() else {
             return;
         };
+        self.remember(&current, &outcome);
         match outcome {
             StepOutcome::Done { provider, results } => {
                 self.completed
@@ -271,6 +279,40 @@ impl OrderProgress {
         }
     }
 
+    /// Adds the attempt's end to the history.
+    fn remember(&mut self, current: &schemas::PlanStep, outcome: &StepOutcome) {
+        let (end, resource) = match outcome {
+            StepOutcome::Done { provider, results } => {
+                let rejected = results.values().any(|v| {
+                    v.as_str()
+                        .is_some_and(|r| current.reject_results.iter().any(|x| x == r))
+                });
+                let end = if rejected {
+                    AttemptEnd::Rejected
+                } else {
+                    AttemptEnd::Done
+                };
+                (end, Some(provider.clone()))
+            }
+            StepOutcome::Failed { provider, .. } => (AttemptEnd::Failed, Some(provider.clone())),
+            StepOutcome::Lost { provider, .. } => (AttemptEnd::Lost, Some(provider.clone())),
+            StepOutcome::NoResource => (AttemptEnd::NoResource, None),
+            StepOutcome::Cancelled => (AttemptEnd::Cancelled, self.phase.resource().cloned()),
+        };
+        if self.history.len() >= MAX_ATTEMPT_HISTORY {
+            self.history.remove(0);
+        }
+        self.history.push(AttemptRecord {
+            conversation_id: self.conversation_id(),
+            step: self.step + 1,
+            service_type: current.service_type.clone(),
+            resource,
+            end,
+            detail: outcome.to_string(),
+            at: unix_ms(),
+        });
+    }
+
     fn advance(&mut self) {
         let steps = self.plan.as_ref().map_or(0, |p| p.steps.len());
         if self.step + 1 >= steps {
@@ -300,6 +342,7 @@ impl OrderProgress {
             reworks: self.reworks,
             rebooks: self.rebooks,
             failed_attempts: self.failed_attempts,
+            attempts: self.history.clone(),
             at: unix_ms(),
         }
     }
@@ -348,6 +391,63 @@ mod tests {
         assert_eq!(o.current_step(), None);
         assert_eq!(o.completed.len(), 3);
         assert_eq!(o.snapshot().status, OrderStatus::Done);
+    }
+
+    #[test]
+    fn every_ended_attempt_is_in_the_history() {
+        let mut o = order();
+        o.record(StepOutcome::Lost {
+            provider: robot("conveyor1"),
+            why: "withdrawn".into(),
+        });
+        o.record(done("conveyor1", "arrived"));
+        o.record(StepOutcome::Failed {
+            provider: robot("robot1"),
+            reason: "interrupted".into(),
+        });
+        o.record(done("robot2", "placing_done"));
+        o.record(done("inspect1", "inspect_fail"));
+        let history: Vec<(String, AttemptEnd)> = o
+            .snapshot()
+            .attempts
+            .iter()
+            .map(|a| (a.conversation_id.clone(), a.end))
+            .collect();
+        assert_eq!(
+            history,
+            [
+                ("n1-1/1/1".to_string(), AttemptEnd::Lost),
+                ("n1-1/1/2".to_string(), AttemptEnd::Done),
+                ("n1-1/2/1".to_string(), AttemptEnd::Failed),
+                ("n1-1/2/2".to_string(), AttemptEnd::Done),
+                ("n1-1/3/1".to_string(), AttemptEnd::Rejected),
+            ]
+        );
+        let failed = &o.history[2];
+        assert_eq!(failed.resource, Some(robot("robot1")));
+        assert_eq!(failed.detail, "failed on resource/robot1: interrupted");
+        let snapshot = o.snapshot();
+        assert_eq!(
+            (snapshot.rebooks, snapshot.failed_attempts, snapshot.reworks),
+            (1, 1, 1)
+        );
+    }
+
+    #[test]
+    fn the_history_keeps_the_latest_attempts() {
+        let mut o = order();
+        o.max_attempts = u32::MAX;
+        for _ in 0..MAX_ATTEMPT_HISTORY + 5 {
+            o.record(StepOutcome::Lost {
+                provider: robot("conveyor1"),
+                why: "withdrawn".into(),
+            });
+        }
+        assert_eq!(o.history.len(), MAX_ATTEMPT_HISTORY);
+        assert_eq!(
+            o.history.last().unwrap().conversation_id,
+            format!("n1-1/1/{}", MAX_ATTEMPT_HISTORY + 5)
+        );
     }
 
     #[test]

@@ -14,7 +14,8 @@ pub mod state;
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
 pub use plan::{
-    CancelReply, OnReject, OrderSnapshot, OrderStatus, Plan, PlanStep, SubmitReply, WorkOrder,
+    AttemptEnd, AttemptRecord, CancelReply, OnReject, OrderSnapshot, OrderStatus, Plan, PlanStep,
+    SubmitReply, WorkOrder, MAX_ATTEMPT_HISTORY,
 };
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{

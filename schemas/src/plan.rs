@@ -172,6 +172,69 @@ impl std::fmt::Display for OrderStatus {
     }
 }
 
+/// How one attempt of a step ended, as its order recorded it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum AttemptEnd {
+    /// The resource reported `done`, and the results passed.
+    Done,
+    /// The resource reported `done` with one of the step's `reject_results`: reworked or
+    /// scrapped as the plan says.
+    Rejected,
+    /// The resource reported `failed` (controller error, interrupted, ...): counts
+    /// against `max_attempts`, tried again elsewhere.
+    Failed,
+    /// The booking ended without a result (the resource vanished or handed it back):
+    /// booked again, not counted as a failure (a rebook).
+    Lost,
+    /// No resource could be booked in time: the order failed.
+    NoResource,
+    /// An operator cancelled the order.
+    Cancelled,
+}
+
+impl AttemptEnd {
+    /// The name on the wire (`done`, `rejected`, ...).
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AttemptEnd::Done => "done",
+            AttemptEnd::Rejected => "rejected",
+            AttemptEnd::Failed => "failed",
+            AttemptEnd::Lost => "lost",
+            AttemptEnd::NoResource => "no_resource",
+            AttemptEnd::Cancelled => "cancelled",
+        }
+    }
+}
+
+impl std::fmt::Display for AttemptEnd {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// One ended attempt of a step: an order's audit trail (`cell orders --detail`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct AttemptRecord {
+    /// `<order>/<step>/<attempt>`: the conversation the resource saw.
+    pub conversation_id: String,
+    /// The step, 1-based.
+    pub step: usize,
+    pub service_type: String,
+    /// The resource the attempt was booked on (none when nothing could be booked).
+    pub resource: Option<HolonId>,
+    pub end: AttemptEnd,
+    /// As an operator reads it: `done by resource/robot1 (pick=picking_done ...)`,
+    /// `failed on resource/robot2: interrupted`, `lost resource/robot1: withdrawn`.
+    pub detail: String,
+    /// When the order recorded it (Unix ms).
+    pub at: u64,
+}
+
+/// The most attempts an order keeps in its history (the oldest go first); the counters
+/// (`failed_attempts`, `rebooks`, `reworks`) count them all.
+pub const MAX_ATTEMPT_HISTORY: usize = 100;
+
 /// An order's state, published on `order/<name>/state` after every change.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct OrderSnapshot {
@@ -196,6 +259,9 @@ pub struct OrderSnapshot {
     /// Attempts that failed (all steps).
     #[serde(default)]
     pub failed_attempts: u32,
+    /// Every ended attempt, oldest first (at most [`MAX_ATTEMPT_HISTORY`]).
+    #[serde(default)]
+    pub attempts: Vec<AttemptRecord>,
     pub at: u64,
 }
 

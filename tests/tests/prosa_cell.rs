@@ -273,6 +273,57 @@ async fn a_rejected_part_is_reworked_and_the_product_serves_its_plan() {
         "{order:#?}"
     );
     assert_eq!(failing.sim.executed("inspect"), 3);
+
+    // The audit trail: every execution with its own conversation, as `cell orders
+    // --detail` prints it.
+    let ends: Vec<(String, schemas::AttemptEnd)> = order
+        .attempts
+        .iter()
+        .map(|a| (a.conversation_id.clone(), a.end))
+        .collect();
+    let name = order.holon.name();
+    let rejected: Vec<&String> = ends
+        .iter()
+        .filter(|(_, end)| *end == schemas::AttemptEnd::Rejected)
+        .map(|(id, _)| id)
+        .collect();
+    assert_eq!(
+        rejected,
+        [
+            &format!("{name}/3/1"),
+            &format!("{name}/3/2"),
+            &format!("{name}/3/3")
+        ],
+        "{ends:?}"
+    );
+    let output = tokio::process::Command::new(bin("cell"))
+        .args([
+            "orders",
+            "--detail",
+            "--cell",
+            cell.keys.cell(),
+            "--connect",
+            cell.endpoint.as_str(),
+        ])
+        .output()
+        .await
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{stdout}");
+    let trail: Vec<&str> = stdout.lines().filter(|l| l.starts_with("    ")).collect();
+    assert_eq!(trail.len(), ends.len(), "{stdout}");
+    assert!(
+        trail.iter().any(|l| l.contains(&format!("{name}/2/3"))
+            && l.contains("pick_n_place")
+            && l.contains("done by resource/")),
+        "{stdout}"
+    );
+    assert!(
+        trail.iter().any(|l| l.contains(&format!("{name}/3/3"))
+            && l.contains("rejected")
+            && l.contains("inspect=inspect_fail")),
+        "{stdout}"
+    );
 }
 
 #[tokio::test(flavor = "multi_thread")]
