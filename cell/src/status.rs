@@ -369,6 +369,49 @@ mod tests {
     }
 
     #[test]
+    fn the_orders_table_shows_failures_and_with_detail_every_attempt() {
+        let robot = HolonId::resource("robot1").unwrap();
+        let order = schemas::OrderSnapshot {
+            holon: HolonId::order("orders1-2").unwrap(),
+            product: "breaker".into(),
+            status: schemas::OrderStatus::Done,
+            reason: None,
+            step: 3,
+            steps: 3,
+            service_type: None,
+            resource: None,
+            attempt: 1,
+            completed: vec![],
+            reworks: 0,
+            rebooks: 1,
+            failed_attempts: 1,
+            attempts: vec![schemas::AttemptRecord {
+                conversation_id: "orders1-2/2/1".into(),
+                step: 2,
+                service_type: "pick_n_place".into(),
+                resource: Some(robot),
+                end: schemas::AttemptEnd::Failed,
+                detail: "failed on resource/robot1: interrupted".into(),
+                at: 0,
+            }],
+            at: 0,
+        };
+        let table = render_orders("demo", std::slice::from_ref(&order), false);
+        let row: Vec<&str> = table.lines().nth(2).unwrap().split_whitespace().collect();
+        assert_eq!(
+            row,
+            ["orders1-2", "breaker", "done", "3/3", "-", "1", "1", "0"]
+        );
+        assert_eq!(table.lines().count(), 3, "{table}");
+        let detailed = render_orders("demo", &[order], true);
+        let trail = detailed.lines().nth(3).unwrap();
+        assert_eq!(
+            trail.split_whitespace().collect::<Vec<_>>().join(" "),
+            "orders1-2/2/1 pick_n_place failed failed on resource/robot1: interrupted"
+        );
+    }
+
+    #[test]
     fn orders_are_counted_per_node() {
         let order = |name: &str, status| schemas::OrderSnapshot {
             holon: HolonId::order(name).unwrap(),
@@ -384,6 +427,7 @@ mod tests {
             reworks: 0,
             rebooks: 0,
             failed_attempts: 0,
+            attempts: vec![],
             at: 0,
         };
         let nodes = count_by_node(
