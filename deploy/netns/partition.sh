@@ -2,55 +2,34 @@
 # A three-host cell on this machine, in network namespaces, and a partition that heals.
 # Run as root from the workspace root after `cargo build --bins`:
 #   sudo deploy/netns/partition.sh
-# It prints what happens step by step and removes everything it made when it ends.
+# Each host runs `cell up deploy/cells/factory --host <a|b|c>` on a copy of the
+# manifest (its data and logs stay in the run's directory, printed at the start). It
+# prints what happens step by step. When it ends, fails or is interrupted (Ctrl-C,
+# SIGTERM) it stops every process it started and deletes its namespaces and files
+# (see hosts.sh); the last line says so.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 BIN=${BIN:-$PWD/target/debug}
-CELL_DIR=$PWD/deploy/cells/factory
-P=hlx$$            # namespace and link prefix, unique per run
 ORDERS=${ORDERS:-10}
-
-step() { printf '\n== %s\n' "$*"; }
-ns() { ip netns exec "$P$1" "${@:2}"; }
-cellc() { ns c "$BIN/cell" "$@" --cell factory --connect tcp/10.213.77.3:7447; }
-
-cleanup() {
-  step "cleaning up"
-  for h in a b c; do [ -n "${UP[$h]:-}" ] && kill "${UP[$h]}" 2>/dev/null || true; done
-  sleep 2
-  for h in a b c s; do ip netns del "$P$h" 2>/dev/null || true; done
-  rm -rf "$CELL_DIR"/data-? "$CELL_DIR"/logs "$CELL_DIR"/*.counts.json
-  echo "done"
-}
-declare -A UP
-trap cleanup EXIT
+HOSTS="a b c"
+P=hlx$$            # namespace and link prefix, unique per run
+source deploy/netns/hosts.sh
 
 [ "$(id -u)" = 0 ] || { echo "needs root (ip netns)"; exit 1; }
 [ -x "$BIN/cell" ] || { echo "build first: cargo build --bins"; exit 1; }
 
-step "three hosts a, b, c (network namespaces) on a bridge; 10.213.77.1-3/24"
-ip netns add "${P}s"
-ns s ip link add br0 type bridge
-ns s ip link set br0 up
-i=1
-for h in a b c; do
-  ip netns add "$P$h"
-  ns "$h" ip link set lo up
-  ip link add "$P${h}0" type veth peer name "$P${h}1"
-  ip link set "$P${h}0" netns "$P$h"
-  ip link set "$P${h}1" netns "${P}s"
-  ns s ip link set "$P${h}1" master br0
-  ns s ip link set "$P${h}1" up
-  ns "$h" ip addr add "10.213.77.$i/24" dev "$P${h}0"
-  ns "$h" ip link set "$P${h}0" up
-  echo "host $h: 10.213.77.$i"
-  i=$((i + 1))
-done
+RUN=$(mktemp -d "/tmp/holarchy-$P.XXXX")
+RUN_FILES=("$RUN")
+CELL_DIR=$RUN/factory
+cp -r deploy/cells/factory deploy/cells/demo "$RUN/"
+cellc() { ns c "$BIN/cell" "$@" --cell factory --connect tcp/10.213.77.3:7447; }
 
-step "cell up on every host (its router and its holons; logs in deploy/cells/factory/logs)"
-for h in a b c; do
-  ns "$h" "$BIN/cell" up "$CELL_DIR" --host "$h" > "/tmp/$P-up-$h.log" 2>&1 &
-  UP[$h]=$!
+step "three hosts a, b, c (network namespaces) on a bridge; 10.213.77.1-3/24; files in $RUN"
+make_hosts
+
+step "cell up on every host (its router and its holons; logs in $CELL_DIR/logs)"
+for h in $HOSTS; do
+  start "$h" "$RUN/up-$h.log" "$BIN/cell" up "$CELL_DIR" --host "$h"
 done
 for _ in $(seq 60); do
   if cellc status 2>/dev/null | grep -q "5 live holons"; then break; fi

@@ -129,11 +129,39 @@ impl Hosts {
     }
 }
 
-impl Drop for Hosts {
-    fn drop(&mut self) {
+impl Hosts {
+    /// Kills every process the test started and returns the PIDs of any process still
+    /// in the test's namespaces afterwards (none, when all went).
+    fn stop_all(&mut self) -> Vec<String> {
         for child in &mut self.children {
             let _ = child.kill();
             let _ = child.wait();
+        }
+        let mut left = Vec::new();
+        for host in ["a", "b", "c", "s"] {
+            if let Ok(out) = Command::new("ip")
+                .args(["netns", "pids", &self.ns(host)])
+                .output()
+            {
+                left.extend(
+                    String::from_utf8_lossy(&out.stdout)
+                        .split_whitespace()
+                        .map(|pid| format!("{host}:{pid}")),
+                );
+            }
+        }
+        left
+    }
+}
+
+impl Drop for Hosts {
+    fn drop(&mut self) {
+        let left = self.stop_all();
+        if !left.is_empty() {
+            println!("still running in the test's namespaces, killed: {left:?}");
+            for pid in left.iter().filter_map(|p| p.split_once(':')) {
+                let _ = Command::new("kill").args(["-9", pid.1]).status();
+            }
         }
         if std::thread::panicking() {
             if let Some(dir) = &self.logs {
@@ -449,4 +477,8 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
         executed(&std::fs::read_to_string(dir.join("robot2.counts.json")).unwrap_or_default());
     println!("robot2 picks: {before} before the heal, {after} after");
     assert!(after > before, "host b received no work after rejoining");
+
+    // Stopped: no process the test started is left in its namespaces.
+    let left = hosts.stop_all();
+    assert!(left.is_empty(), "processes survived the test: {left:?}");
 }

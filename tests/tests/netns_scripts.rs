@@ -1,0 +1,194 @@
+//! The scripts in deploy/netns, run as a user runs them: they work, and whether they
+//! end, fail or are interrupted, no process they started survives them and nothing of
+//! theirs is left behind (namespaces, run directory).
+//!
+//! Needs root and iproute2; without them each test says SKIPPED and passes.
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use holarchy_tests::*;
+
+fn privileged() -> Result<(), String> {
+    if !nix::unistd::Uid::effective().is_root() {
+        return Err("not root".into());
+    }
+    let probe = format!("hlprobe{}", std::process::id() % 100_000);
+    match Command::new("ip").args(["netns", "add", &probe]).status() {
+        Ok(s) if s.success() => {
+            let _ = Command::new("ip").args(["netns", "del", &probe]).status();
+            Ok(())
+        }
+        Ok(_) => Err("ip netns add is refused".into()),
+        Err(e) => Err(format!("no iproute2: {e}")),
+    }
+}
+
+/// A script run with its own namespace prefix, its output in a file.
+struct Script {
+    prefix: String,
+    child: Child,
+    output: PathBuf,
+}
+
+impl Script {
+    fn start(dir: &Path, script: &str, prefix: &str, env: &[(&str, &str)]) -> Script {
+        // Built first, so the script finds them.
+        for program in ["cell", "holon-node", "order-node", "robot-sim"] {
+            bin(program);
+        }
+        let output = dir.join(format!("{prefix}.out"));
+        let log = std::fs::File::create(&output).unwrap();
+        let child = Command::new(workspace_root().join("deploy/netns").join(script))
+            .current_dir(workspace_root())
+            .env("NETNS_PREFIX", prefix)
+            .env("BIN", bin("cell").parent().unwrap())
+            .envs(env.iter().copied())
+            .stdin(Stdio::null())
+            .stdout(log.try_clone().unwrap())
+            .stderr(log)
+            .spawn()
+            .unwrap();
+        Script {
+            prefix: prefix.to_string(),
+            child,
+            output,
+        }
+    }
+
+    fn output(&self) -> String {
+        let mut text = String::new();
+        std::fs::File::open(&self.output)
+            .unwrap()
+            .read_to_string(&mut text)
+            .unwrap();
+        text
+    }
+
+    fn wait_for(&self, text: &str, within: Duration) {
+        let deadline = Instant::now() + within;
+        while !self.output().contains(text) {
+            assert!(
+                Instant::now() < deadline,
+                "the script never printed {text:?}:\n{}",
+                self.output()
+            );
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    fn wait(&mut self, within: Duration) -> std::process::ExitStatus {
+        let deadline = Instant::now() + within;
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return status;
+            }
+            if Instant::now() > deadline {
+                let _ = self.child.kill();
+                panic!(
+                    "the script did not end within {within:?}:\n{}",
+                    self.output()
+                );
+            }
+            std::thread::sleep(Duration::from_millis(200));
+        }
+    }
+
+    /// Asserts that nothing of the run is left: no namespace with its prefix, no run
+    /// directory, no process working in it.
+    fn assert_nothing_left(&self) {
+        let namespaces = Command::new("ip").args(["netns", "list"]).output().unwrap();
+        let namespaces = String::from_utf8_lossy(&namespaces.stdout).into_owned();
+        assert!(
+            !namespaces.contains(&self.prefix),
+            "namespaces left behind:\n{namespaces}\n{}",
+            self.output()
+        );
+        let run_dir = format!("/tmp/holarchy-{}", self.prefix);
+        let mut survivors = Vec::new();
+        for entry in std::fs::read_dir("/proc").unwrap().flatten() {
+            let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else {
+                continue;
+            };
+            let cwd = std::fs::read_link(format!("/proc/{pid}/cwd")).unwrap_or_default();
+            let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+            let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
+            if cwd.to_string_lossy().starts_with(&run_dir) || cmdline.contains(&run_dir) {
+                survivors.push(format!("{pid}: {cmdline}"));
+            }
+        }
+        assert!(
+            survivors.is_empty(),
+            "processes of the run survived it:\n{}\n{}",
+            survivors.join("\n"),
+            self.output()
+        );
+        let leftovers: Vec<_> = std::fs::read_dir("/tmp")
+            .unwrap()
+            .flatten()
+            .filter(|e| {
+                e.file_name()
+                    .to_string_lossy()
+                    .starts_with(&format!("holarchy-{}", self.prefix))
+            })
+            .collect();
+        assert!(leftovers.is_empty(), "run files left: {leftovers:?}");
+    }
+}
+
+fn prefix(tag: &str) -> String {
+    format!("hl{tag}{}", std::process::id() % 10_000)
+}
+
+#[test]
+fn the_partition_script_runs_and_leaves_nothing_behind() {
+    if let Err(why) = privileged() {
+        println!("SKIPPED: needs root and network namespaces ({why})");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut script = Script::start(dir.path(), "partition.sh", &prefix("p"), &[("ORDERS", "3")]);
+    let status = script.wait(Duration::from_secs(300));
+    let output = script.output();
+    println!("{output}");
+    assert!(status.success(), "{output}");
+    assert!(
+        output.contains("cell factory: 6 orders: 6 done"),
+        "{output}"
+    );
+    assert!(
+        output.contains("done: nothing of this run is left running"),
+        "{output}"
+    );
+    script.assert_nothing_left();
+}
+
+#[test]
+fn an_interrupted_partition_script_stops_everything_it_started() {
+    if let Err(why) = privileged() {
+        println!("SKIPPED: needs root and network namespaces ({why})");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut script = Script::start(dir.path(), "partition.sh", &prefix("i"), &[("ORDERS", "3")]);
+    // Interrupted while the cell runs and orders are in flight.
+    script.wait_for("== submit 3 orders", Duration::from_secs(120));
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(script.child.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    let status = script.wait(Duration::from_secs(120));
+    let output = script.output();
+    assert!(
+        !status.success(),
+        "an interrupted run reports failure:\n{output}"
+    );
+    assert!(
+        output.contains("done: nothing of this run is left running"),
+        "{output}"
+    );
+    script.assert_nothing_left();
+}
