@@ -1,4 +1,5 @@
-//! The scripts in deploy/netns, run as a user runs them: they work, and whether they
+//! The scripts in deploy/netns, run as a user runs them (guide.sh runs docs/deploy.md
+//! sections 3-5 as written): they work, and whether they
 //! end, fail or are interrupted, no process they started survives them and nothing of
 //! theirs is left behind (namespaces, run directory).
 //!
@@ -186,6 +187,29 @@ fn an_interrupted_partition_script_stops_everything_it_started() {
         !status.success(),
         "an interrupted run reports failure:\n{output}"
     );
+    assert!(
+        output.contains("done: nothing of this run is left running"),
+        "{output}"
+    );
+    script.assert_nothing_left();
+}
+
+#[test]
+fn the_deploy_guide_works_when_its_commands_are_copied() {
+    if let Err(why) = privileged() {
+        println!("SKIPPED: needs root and network namespaces ({why})");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let mut script = Script::start(dir.path(), "guide.sh", &prefix("g"), &[]);
+    let status = script.wait(Duration::from_secs(400));
+    let output = script.output();
+    println!("{output}");
+    assert!(status.success(), "{output}");
+    // Every command of sections 3 and 4 ran: 3 + 2 + 2 of section 3, 3 of section 4.
+    let ran = output.lines().filter(|l| l.starts_with("host ")).count();
+    assert!(ran >= 13, "{output}");
+    assert!(output.contains("the guide works as written"), "{output}");
     assert!(
         output.contains("done: nothing of this run is left running"),
         "{output}"
