@@ -368,21 +368,32 @@ mod tests {
         );
     }
 
-    #[test]
-    fn the_orders_table_shows_failures_and_with_detail_every_attempt() {
-        let robot = HolonId::resource("robot1").unwrap();
-        let order = schemas::OrderSnapshot {
-            holon: HolonId::order("orders1-2").unwrap(),
+    /// An order snapshot with everything at its start values.
+    fn order(name: &str, status: schemas::OrderStatus) -> schemas::OrderSnapshot {
+        schemas::OrderSnapshot {
+            holon: HolonId::order(name).unwrap(),
             product: "breaker".into(),
-            status: schemas::OrderStatus::Done,
+            status,
             reason: None,
-            step: 3,
+            step: 1,
             steps: 3,
             service_type: None,
             resource: None,
             attempt: 1,
             completed: vec![],
             reworks: 0,
+            rebooks: 0,
+            failed_attempts: 0,
+            attempts: vec![],
+            at: 0,
+        }
+    }
+
+    #[test]
+    fn the_orders_table_shows_failures_and_with_detail_every_attempt() {
+        let robot = HolonId::resource("robot1").unwrap();
+        let order = schemas::OrderSnapshot {
+            step: 3,
             rebooks: 1,
             failed_attempts: 1,
             attempts: vec![schemas::AttemptRecord {
@@ -394,7 +405,7 @@ mod tests {
                 detail: "failed on resource/robot1: interrupted".into(),
                 at: 0,
             }],
-            at: 0,
+            ..order("orders1-2", schemas::OrderStatus::Done)
         };
         let table = render_orders("demo", std::slice::from_ref(&order), false);
         let row: Vec<&str> = table.lines().nth(2).unwrap().split_whitespace().collect();
@@ -413,23 +424,6 @@ mod tests {
 
     #[test]
     fn orders_are_counted_per_node() {
-        let order = |name: &str, status| schemas::OrderSnapshot {
-            holon: HolonId::order(name).unwrap(),
-            product: "breaker".into(),
-            status,
-            reason: None,
-            step: 1,
-            steps: 3,
-            service_type: None,
-            resource: None,
-            attempt: 1,
-            completed: vec![],
-            reworks: 0,
-            rebooks: 0,
-            failed_attempts: 0,
-            attempts: vec![],
-            at: 0,
-        };
         let nodes = count_by_node(
             vec!["orders2".into(), "orders1".into()],
             &[

@@ -63,6 +63,24 @@ run_guide_command() {
   start "$host" "$RUN/$host-${words[0]}-${#STARTED[@]}.log" env PATH="$BIN:$PATH" "${words[@]}"
 }
 
+# Starts every command of the guide's section N on its host.
+run_section() {
+  local commands
+  commands=$(guide_commands "$1")
+  [ -n "$commands" ] || { echo "no commands found in section $1 of $GUIDE"; exit 1; }
+  while read -r host command; do run_guide_command "$host" "$command"; done <<< "$commands"
+}
+
+# Waits (60 s at most) until `cell status` says TEXT, prints it; fails with WHY otherwise.
+wait_live() {
+  for _ in $(seq 120); do
+    if cellc $status 2>/dev/null | grep -q "$1"; then break; fi
+    sleep 0.5
+  done
+  cellc $status
+  cellc $status | grep -q "$1" || { echo "FAILED: $2"; exit 1; }
+}
+
 # Section 5's commands, from host c.
 cellc() { ns c env PATH="$BIN:$PATH" "$@"; }
 section5() { guide_commands 5 | grep " cell $1 " | head -1 | cut -d' ' -f2-; }
@@ -78,19 +96,11 @@ for h in a b c; do
 done
 
 step "section 3, as written in $GUIDE"
-commands=$(guide_commands 3)
-[ -n "$commands" ] || { echo "no commands found in section 3 of $GUIDE"; exit 1; }
-while read -r host command; do run_guide_command "$host" "$command"; done <<< "$commands"
-
+run_section 3
 status=$(section5 status)
 orders=$(section5 orders)
 submit=$(section5 submit)
-for _ in $(seq 120); do
-  if cellc $status 2>/dev/null | grep -q "5 live holons"; then break; fi
-  sleep 0.5
-done
-cellc $status
-cellc $status | grep -q "5 live holons" || { echo "FAILED: the cell of section 3 did not assemble"; exit 1; }
+wait_live "5 live holons" "the cell of section 3 did not assemble"
 
 step "section 5: $submit"
 cellc $submit | tr '\n' ' '; echo
@@ -105,15 +115,8 @@ wait_all_done() {
 wait_all_done
 
 step "section 4, as written in $GUIDE: hot-add robot3 on host d"
-commands=$(guide_commands 4)
-[ -n "$commands" ] || { echo "no commands found in section 4 of $GUIDE"; exit 1; }
-while read -r host command; do run_guide_command "$host" "$command"; done <<< "$commands"
-for _ in $(seq 120); do
-  if cellc $status 2>/dev/null | grep -q "resource/robot3"; then break; fi
-  sleep 0.5
-done
-cellc $status
-cellc $status | grep -q "6 live holons" || { echo "FAILED: robot3 did not join"; exit 1; }
+run_section 4
+wait_live "6 live holons" "robot3 did not join"
 
 step "section 5 again: $submit; robot3 takes work"
 took=0

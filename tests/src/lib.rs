@@ -672,3 +672,20 @@ impl Cell {
         Ok(serde_json::from_slice::<schemas::SubmitReply>(&sample.payload().to_bytes())?.orders)
     }
 }
+
+/// Whether this machine can run the multi-host tests: root, and `ip netns` works (a
+/// namespace is made and deleted). The error says why not.
+pub fn netns_available() -> std::result::Result<(), String> {
+    if !nix::unistd::Uid::effective().is_root() {
+        return Err("not root".into());
+    }
+    let probe = format!("hlprobe{}", std::process::id() % 100_000);
+    match Command::new("ip").args(["netns", "add", &probe]).status() {
+        Ok(s) if s.success() => {
+            let _ = Command::new("ip").args(["netns", "del", &probe]).status();
+            Ok(())
+        }
+        Ok(_) => Err("ip netns add is refused".into()),
+        Err(e) => Err(format!("no iproute2: {e}")),
+    }
+}

@@ -207,21 +207,6 @@ fn run(args: &[&str]) {
     assert!(status.success(), "{args:?} failed");
 }
 
-fn privileged() -> Result<(), String> {
-    if !nix::unistd::Uid::effective().is_root() {
-        return Err("not root".into());
-    }
-    let probe = format!("hlprobe{}", std::process::id() % 100_000);
-    match Command::new("ip").args(["netns", "add", &probe]).status() {
-        Ok(s) if s.success() => {
-            let _ = Command::new("ip").args(["netns", "del", &probe]).status();
-            Ok(())
-        }
-        Ok(_) => Err("ip netns add is refused".into()),
-        Err(e) => Err(format!("no iproute2: {e}")),
-    }
-}
-
 /// Waits until `check` holds on what `cell orders` prints.
 fn wait_orders(
     hosts: &Hosts,
@@ -246,7 +231,7 @@ fn summary(out: &str) -> String {
 
 #[test]
 fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
-    if let Err(why) = privileged() {
+    if let Err(why) = netns_available() {
         println!("SKIPPED: the multi-host test needs root and network namespaces ({why})");
         return;
     }

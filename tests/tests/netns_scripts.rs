@@ -12,21 +12,6 @@ use std::time::{Duration, Instant};
 
 use holarchy_tests::*;
 
-fn privileged() -> Result<(), String> {
-    if !nix::unistd::Uid::effective().is_root() {
-        return Err("not root".into());
-    }
-    let probe = format!("hlprobe{}", std::process::id() % 100_000);
-    match Command::new("ip").args(["netns", "add", &probe]).status() {
-        Ok(s) if s.success() => {
-            let _ = Command::new("ip").args(["netns", "del", &probe]).status();
-            Ok(())
-        }
-        Ok(_) => Err("ip netns add is refused".into()),
-        Err(e) => Err(format!("no iproute2: {e}")),
-    }
-}
-
 /// A script run with its own namespace prefix, its output in a file.
 struct Script {
     prefix: String,
@@ -145,7 +130,7 @@ fn prefix(tag: &str) -> String {
 
 #[test]
 fn the_partition_script_runs_and_leaves_nothing_behind() {
-    if let Err(why) = privileged() {
+    if let Err(why) = netns_available() {
         println!("SKIPPED: needs root and network namespaces ({why})");
         return;
     }
@@ -168,7 +153,7 @@ fn the_partition_script_runs_and_leaves_nothing_behind() {
 
 #[test]
 fn an_interrupted_partition_script_stops_everything_it_started() {
-    if let Err(why) = privileged() {
+    if let Err(why) = netns_available() {
         println!("SKIPPED: needs root and network namespaces ({why})");
         return;
     }
@@ -196,7 +181,7 @@ fn an_interrupted_partition_script_stops_everything_it_started() {
 
 #[test]
 fn the_deploy_guide_works_when_its_commands_are_copied() {
-    if let Err(why) = privileged() {
+    if let Err(why) = netns_available() {
         println!("SKIPPED: needs root and network namespaces ({why})");
         return;
     }
