@@ -40,6 +40,10 @@ pub enum NodeError {
     Claim(#[from] holon::presence::ClaimError),
 }
 
+/// How long a work order waits for its product holon to be seen before it is refused
+/// `unknown_product`.
+const PRODUCT_GRACE: Duration = Duration::from_secs(2);
+
 /// How long an order waits before it tries again a journal that could not write.
 const JOURNAL_RETRY: Duration = Duration::from_secs(1);
 
@@ -506,6 +510,17 @@ async fn product_missing(host: &Host, product: &str) -> Option<String> {
         .collect();
     if names.iter().any(|n| n == product) {
         return None;
+    }
+    // A node that has just joined may not know every token yet (a peer learns the
+    // others' declarations as its links come up): a product that shows up within the
+    // grace is there.
+    if let Ok(holon) = HolonId::new(schemas::HolonKind::Product, product) {
+        if let Ok(true) =
+            holon::presence::wait_token(&host.context.session, &keys.alive(&holon), PRODUCT_GRACE)
+                .await
+        {
+            return None;
+        }
     }
     Some(format!(
         "no product holon {product:?} is alive in cell {} (alive: {}); start it, or submit with queue (cell submit --queue) to let the orders wait for its plan",
