@@ -214,6 +214,25 @@ async fn close(session: zenoh::Session) {
 
 fn main() -> ExitCode {
     let args = Args::parse();
+    if matches!(
+        args.command,
+        Commands::Status { .. }
+            | Commands::Orders { .. }
+            | Commands::Submit { .. }
+            | Commands::Cancel { .. }
+    ) {
+        // A client command piped into `head` or `grep -q` stops quietly when the reader
+        // goes, like any Unix tool, instead of panicking on a broken pipe.
+        // SAFETY: set before any thread starts; the default action needs no handler.
+        if let Err(e) = unsafe {
+            nix::sys::signal::signal(
+                nix::sys::signal::Signal::SIGPIPE,
+                nix::sys::signal::SigHandler::SigDfl,
+            )
+        } {
+            eprintln!("cell: cannot restore SIGPIPE: {e}");
+        }
+    }
     // The command's own output is what it prints; its logs go to stderr at warn unless
     // RUST_LOG says otherwise (zenoh's own warnings, e.g. a query to a host that was cut
     // off, are not the operator's). The holons `cell up` starts keep their own default

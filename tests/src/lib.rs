@@ -679,7 +679,10 @@ pub fn netns_available() -> std::result::Result<(), String> {
     if !nix::unistd::Uid::effective().is_root() {
         return Err("not root".into());
     }
-    let probe = format!("hlprobe{}", std::process::id() % 100_000);
+    // Unique per call: tests of one binary probe at the same time.
+    static PROBES: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let n = PROBES.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    let probe = format!("hlpr{}x{n}", std::process::id() % 100_000);
     match Command::new("ip").args(["netns", "add", &probe]).status() {
         Ok(s) if s.success() => {
             let _ = Command::new("ip").args(["netns", "del", &probe]).status();
