@@ -235,7 +235,8 @@ pub struct OrderContext {
     pub inboxes: Arc<Inboxes>,
     /// Permits for proposal rounds in flight (see [`MAX_CONCURRENT_ROUNDS`]).
     pub rounds: tokio::sync::Semaphore,
-    /// Orders waiting after a round nobody proposed in (see [`idle_pause`]).
+    /// Orders waiting after a round nobody proposed in, or for a plan (see
+    /// [`IDLE_POLL_SPACING`]).
     pub idle: Arc<std::sync::atomic::AtomicUsize>,
     pub journal: Option<Arc<Journal>>,
     /// Set while journal writes fail (logged once per fault, not per order).
@@ -303,6 +304,12 @@ struct IdleOrder {
 }
 
 impl IdleOrder {
+    /// The least pause of this order's next ask: [`IDLE_POLL_SPACING`] per other idle
+    /// order, so all of them together ask about once per spacing.
+    fn spacing(&self) -> Duration {
+        IDLE_POLL_SPACING * self.others.min(100_000) as u32
+    }
+
     fn count(idle: &Arc<std::sync::atomic::AtomicUsize>) -> IdleOrder {
         IdleOrder {
             idle: idle.clone(),
@@ -351,7 +358,7 @@ pub async fn run(
     let holon = lock(&progress).holon.clone();
     let session = &ctx.session;
     let mut inbox = ctx.inboxes.open(&holon);
-    let token = OrderToken::new(&ctx, &holon);
+    let mut token = OrderToken::new(&ctx, &holon);
     let publish = |progress: &Shared| {
         let snapshot = lock(progress).snapshot();
         let key = ctx.keys.state(&snapshot.holon);
@@ -389,7 +396,7 @@ pub async fn run(
                 &step,
                 &conversation_id,
                 &mut inbox.deliveries,
-                &token,
+                &mut token,
                 &mut changes,
                 &publish,
             );
@@ -455,7 +462,7 @@ struct OrderToken {
     session: zenoh::Session,
     key: String,
     holon: HolonId,
-    token: tokio::sync::Mutex<Option<zenoh::liveliness::LivelinessToken>>,
+    token: Option<zenoh::liveliness::LivelinessToken>,
 }
 
 impl OrderToken {
@@ -464,28 +471,27 @@ impl OrderToken {
             session: ctx.session.clone(),
             key: ctx.keys.alive(holon),
             holon: holon.clone(),
-            token: tokio::sync::Mutex::new(None),
+            token: None,
         }
     }
 
     /// Declares the token unless it is already declared.
-    async fn declare(&self) -> Result<(), OrderError> {
-        let mut token = self.token.lock().await;
-        if token.is_none() {
+    async fn declare(&mut self) -> Result<(), OrderError> {
+        if self.token.is_none() {
             let declared = self
                 .session
                 .liveliness()
                 .declare_token(&self.key)
                 .await
                 .map_err(|e| OrderError::Other(format!("cannot declare {}: {e}", self.key)))?;
-            *token = Some(declared);
+            self.token = Some(declared);
         }
         Ok(())
     }
 
     /// Withdraws the token: the order wants no booking any more.
-    async fn undeclare(&self) {
-        if let Some(token) = self.token.lock().await.take() {
+    async fn undeclare(&mut self) {
+        if let Some(token) = self.token.take() {
             if let Err(e) = token.undeclare().await {
                 warn!(holon = %self.holon, error = %e, "cannot withdraw the order's token; it goes with the session");
             }
@@ -559,7 +565,7 @@ async fn fetch_plan(ctx: &OrderContext, product: &str) -> Option<Plan> {
         }
         // Counted among the idle orders: thousands waiting for a plan ask rarely.
         let idle = IdleOrder::count(&ctx.idle);
-        let spaced = IDLE_POLL_SPACING * idle.others.min(100_000) as u32;
+        let spaced = idle.spacing();
         tokio::time::sleep(jittered(pause.max(spaced)).min(deadline - Instant::now())).await;
         drop(idle);
         pause = (pause * 2).min(ctx.settings.retry_max.max(pause));
@@ -756,7 +762,7 @@ async fn attempt_step<F, Fut>(
     step: &PlanStep,
     conversation_id: &str,
     inbox: &mut mpsc::UnboundedReceiver<Delivery>,
-    token: &OrderToken,
+    token: &mut OrderToken,
     changes: &mut broadcast::Receiver<(HolonId, bool)>,
     publish: &F,
 ) -> Result<(StepOutcome, Option<Box<Delivery>>), OrderError>
@@ -832,7 +838,7 @@ where
                 // of orders waiting for a missing resource then cost next to nothing).
                 let idle = nobody_proposed.then(|| IdleOrder::count(&ctx.idle));
                 let pause = match &idle {
-                    Some(idle) => jittered(idle_pause(idle.others, settings.retry_max)),
+                    Some(idle) => jittered(IDLE_POLL.max(settings.retry_max).max(idle.spacing())),
                     None => back_off(&mut backoff),
                 }
                 .min(give_up - Instant::now());
@@ -1026,13 +1032,6 @@ const IDLE_POLL_SPACING: Duration = Duration::from_millis(100);
 /// Proposal rounds in flight at once on a node: when a resource appears and wakes
 /// thousands of waiting orders, they ask in turn (oldest first), not all at once.
 pub const MAX_CONCURRENT_ROUNDS: usize = 64;
-
-/// The fallback pause of one of `idle` orders that found nothing to book.
-fn idle_pause(idle: usize, retry_max: Duration) -> Duration {
-    IDLE_POLL
-        .max(retry_max)
-        .max(IDLE_POLL_SPACING * idle.min(100_000) as u32)
-}
 
 /// `pause` less up to a quarter, at random: orders that wait together do not retry in
 /// lockstep.
