@@ -27,7 +27,8 @@
 use std::sync::Arc;
 
 use schemas::{
-    reason, unix_ms, BookingView, CurrentJobView, HolonId, MessageType, ResourceSnapshot, Service,
+    reason, unix_ms, BookingView, ControllerStatus, CurrentJobView, HolonId, MessageType,
+    ResourceSnapshot, ResourceState, Service,
 };
 use serde_json::{json, Map, Value};
 
@@ -202,6 +203,11 @@ impl AgendaManager {
         manager
     }
 
+    /// Whether the holon is shutting down (no new bookings or starts).
+    pub fn is_withdrawing(&self) -> bool {
+        self.withdrawing
+    }
+
     /// True once withdrawing and nothing is left to finish or deliver.
     pub fn is_drained(&self) -> bool {
         self.withdrawing && self.current.is_none() && self.undelivered.is_empty()
@@ -215,11 +221,12 @@ impl AgendaManager {
         }
     }
 
-    pub fn status_name(&self) -> &'static str {
-        match self.status() {
-            Status::Init => "init",
-            Status::Free => "free",
-            Status::Busy(_) => "busy",
+    /// The status as the snapshot shows it.
+    pub fn state(&self) -> ResourceState {
+        match (&self.current, self.execution_ready) {
+            (Some(_), _) => ResourceState::Busy,
+            (None, true) => ResourceState::Free,
+            (None, false) => ResourceState::Init,
         }
     }
 
@@ -537,7 +544,7 @@ impl AgendaManager {
             .chain(self.current.iter().map(|j| nominal(&j.service_type)))
             .sum();
         let mut info = Map::new();
-        info.insert("state".into(), json!(self.status_name()));
+        info.insert("state".into(), json!(self.state()));
         info.insert(
             "queue_position".into(),
             json!(self.bookings.len() + self.current.is_some() as usize),
@@ -548,12 +555,14 @@ impl AgendaManager {
         info
     }
 
-    /// The state snapshot published on `resource/<name>/state`.
-    pub fn snapshot(&self, controller: &str, step: Option<String>) -> ResourceSnapshot {
+    /// The agenda's part of the snapshot published on `resource/<name>/state`: the
+    /// controller, the step in progress and the requesters' absences are the other
+    /// components' to fill in (see [`crate::views::Views::snapshot`]).
+    pub fn snapshot(&self) -> ResourceSnapshot {
         ResourceSnapshot {
             holon: self.holon.clone(),
-            state: self.status_name().to_string(),
-            controller: controller.to_string(),
+            state: self.state(),
+            controller: ControllerStatus::Disconnected,
             agenda: self
                 .bookings
                 .iter()
@@ -568,7 +577,7 @@ impl AgendaManager {
                 requester: j.requester.clone(),
                 conversation_id: j.conversation_id.clone(),
                 service_type: j.service_type.clone(),
-                step,
+                step: None,
             }),
             undelivered: self.undelivered.len(),
             services: self.catalog.service_types().map(String::from).collect(),

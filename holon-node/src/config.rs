@@ -220,50 +220,6 @@ pub struct DeliverySettings {
     pub attempt_timeout: Duration,
 }
 
-/// The config of whichever holon a file describes (its `kind`).
-#[derive(Debug, Clone)]
-pub enum HolonConfig {
-    Resource(ResourceConfig),
-    Product(crate::product::ProductConfig),
-}
-
-impl HolonConfig {
-    /// Reads `kind` (default `resource`) and loads the file as that kind of holon.
-    pub fn load(path: &Path, overrides: Overrides) -> Result<HolonConfig, ConfigError> {
-        let display = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: display.clone(),
-            source,
-        })?;
-        let table: toml::Table = toml::from_str(&text).map_err(|e| ConfigError::Parse {
-            path: display.clone(),
-            message: e.to_string(),
-        })?;
-        match table
-            .get("kind")
-            .and_then(|k| k.as_str())
-            .unwrap_or("resource")
-        {
-            "resource" => {
-                ResourceConfig::parse(&text, &display, overrides).map(HolonConfig::Resource)
-            }
-            "product" => crate::product::ProductConfig::parse(&text, &display, overrides)
-                .map(HolonConfig::Product),
-            other => Err(ConfigError::Invalid {
-                path: display,
-                message: format!("kind: {other:?} is not resource or product"),
-            }),
-        }
-    }
-
-    pub fn holon(&self) -> &HolonId {
-        match self {
-            HolonConfig::Resource(c) => &c.holon,
-            HolonConfig::Product(c) => &c.holon,
-        }
-    }
-}
-
 /// The validated config of one resource holon, command-line overrides applied.
 #[derive(Debug, Clone)]
 pub struct ResourceConfig {
@@ -555,37 +511,5 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("/nonexistent.toml"), "{err}");
-    }
-}
-
-#[cfg(test)]
-mod demo_cell_tests {
-    use super::*;
-
-    #[test]
-    fn every_demo_config_loads() {
-        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/cells/demo");
-        let mut kinds = Vec::new();
-        for file in [
-            "robot1.toml",
-            "inspect1.toml",
-            "conveyor1.toml",
-            "breaker.toml",
-        ] {
-            let path = Path::new(dir).join(file);
-            let config =
-                HolonConfig::load(&path, Overrides::default()).unwrap_or_else(|e| panic!("{e}"));
-            kinds.push(config.holon().to_string());
-        }
-        kinds.sort();
-        assert!(
-            kinds.contains(&"resource/conveyor1".to_string()),
-            "{kinds:?}"
-        );
-        assert!(
-            kinds.contains(&"resource/inspect1".to_string()),
-            "{kinds:?}"
-        );
-        assert!(kinds.contains(&"product/breaker".to_string()), "{kinds:?}");
     }
 }

@@ -62,6 +62,17 @@ pub enum ExecutionState {
     },
 }
 
+/// As the transition log shows it: `init`, `ready`, `step 2`.
+impl std::fmt::Display for ExecutionState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ExecutionState::Init => f.write_str("init"),
+            ExecutionState::Ready => f.write_str("ready"),
+            ExecutionState::Running { step, .. } => write!(f, "step {}", step + 1),
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 pub struct Execution {
     catalog: Arc<ServiceCatalog>,
@@ -279,9 +290,9 @@ impl Execution {
                     reason::CONTROLLER_DISCONNECTED,
                     "the connection to the controller broke".to_string(),
                 ),
-                ControllerStatus::Connected(state) => (
+                ControllerStatus::Ready | ControllerStatus::Fault | ControllerStatus::Estop => (
                     reason::CONTROLLER_FAULT,
-                    format!("the controller reported {state}"),
+                    format!("the controller reported {status}"),
                 ),
             };
             actions.extend(self.fail(why, detail));
@@ -311,7 +322,7 @@ impl Execution {
 mod tests {
     use super::*;
     use crate::catalog::pick_n_place;
-    use schemas::{ControllerState, HolonId, Pose};
+    use schemas::{HolonId, Pose};
     use serde_json::json;
 
     fn job(service_type: &str) -> Job {
@@ -328,9 +339,7 @@ mod tests {
     }
 
     fn ready() -> ExecutionEvent {
-        ExecutionEvent::Controller(ControllerEvent::Status(ControllerStatus::Connected(
-            ControllerState::Ready,
-        )))
+        ExecutionEvent::Controller(ControllerEvent::Status(ControllerStatus::Ready))
     }
 
     fn status(s: ControllerStatus) -> ExecutionEvent {
@@ -377,7 +386,7 @@ mod tests {
             vec![ExecutionAction::StateChanged]
         );
         assert_eq!(
-            e.handle(status(ControllerStatus::Connected(ControllerState::Fault))),
+            e.handle(status(ControllerStatus::Fault)),
             vec![ExecutionAction::StateChanged]
         );
         assert_eq!(e.handle(ready()), vec![ExecutionAction::Ready]);
@@ -506,10 +515,10 @@ mod tests {
 
     #[test]
     fn a_fault_or_estop_mid_step_fails_the_job() {
-        for state in [ControllerState::Fault, ControllerState::Estop] {
+        for state in [ControllerStatus::Fault, ControllerStatus::Estop] {
             let mut e = ready_execution();
             e.handle(ExecutionEvent::Start(job("pick_n_place")));
-            let actions = e.handle(status(ControllerStatus::Connected(state)));
+            let actions = e.handle(status(state));
             failed_with(&actions, "controller_fault");
             assert_eq!(actions[1], ExecutionAction::Unavailable);
         }
@@ -519,7 +528,7 @@ mod tests {
     fn a_fault_while_ready_makes_it_unavailable() {
         let mut e = ready_execution();
         assert_eq!(
-            e.handle(status(ControllerStatus::Connected(ControllerState::Estop))),
+            e.handle(status(ControllerStatus::Estop)),
             vec![ExecutionAction::Unavailable]
         );
         let actions = e.handle(ExecutionEvent::Start(job("pick_n_place")));

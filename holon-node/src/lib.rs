@@ -1,14 +1,19 @@
-//! holon-node: the process of one resource holon.
+//! holon-node: the process of one resource holon (or of one product holon).
 //!
-//! Four components after the seed's Figure 3, each a task under one supervisor:
-//! communication ([`communication`]), agenda manager ([`agenda`]), execution
-//! ([`execution`]) and interfacing (`robot_bridge::client`). [`node::run`] wires them.
+//! The resource holon is five components, each a task under one supervisor
+//! ([`component`]): interfacing, execution, agenda manager, requesters and
+//! communication, after the seed's Figure 3. The state machines they own are pure:
+//! [`agenda`] (Figure 4) and [`execution`] (Figure 5). [`node::run`] wires them.
 
+pub mod absences;
 pub mod agenda;
 pub mod catalog;
-pub mod communication;
+pub mod component;
 pub mod config;
 pub mod execution;
+pub mod fault_injection;
+pub mod handover;
+pub mod holon_config;
 pub mod node;
 pub mod product;
-pub mod requesters;
+pub mod views;

@@ -3,7 +3,8 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use holon_node::config::{HolonConfig, Overrides};
+use holon_node::config::Overrides;
+use holon_node::holon_config::HolonConfig;
 
 /// Runs one holon: a resource (a robot, an inspection station, a conveyor) that takes
 /// Service requests over zenoh and drives its controller over TCP/XML, or a product

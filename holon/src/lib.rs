@@ -1,6 +1,7 @@
 //! What every holarchy holon process shares: the zenoh session from its config, presence
 //! (liveliness), the supervisor of its components, logging and shutdown signals.
 
+pub mod backoff;
 pub mod cli;
 pub mod journal;
 pub mod logging;
@@ -11,6 +12,7 @@ pub mod supervisor;
 pub mod tls;
 pub mod zenoh_error;
 
+pub use backoff::Backoff;
 pub use logging::LogFormat;
 pub use session::ZenohSettings;
 pub use supervisor::{ChildError, ChildSpec, Intensity, Strategy, Supervisor};

@@ -17,7 +17,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use holon::journal::Journal;
-use schemas::{reason, HolonId, MessageType, Plan, PlanStep, Service};
+use schemas::{reason, HolonId, MessageType, Plan, PlanStep, ResourceState, Service};
 use tokio::sync::{broadcast, mpsc, watch, Notify};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -214,9 +214,9 @@ fn read_state(
     snapshot: &schemas::ResourceSnapshot,
 ) -> (StateNews, (usize, bool)) {
     let (length_before, ready_before) = previous.unwrap_or((0, false));
-    let ready = snapshot.state != "init" && snapshot.controller == "ready";
+    let ready = snapshot.state != ResourceState::Init && snapshot.controller.is_ready();
     let news = StateNews {
-        turn: (snapshot.state == "free")
+        turn: (snapshot.state == ResourceState::Free)
             .then(|| snapshot.agenda.first().map(|b| b.conversation_id.clone()))
             .flatten(),
         became_ready: ready && !ready_before,
@@ -1049,8 +1049,8 @@ mod tests {
     fn snapshot(state: &str, controller: &str, agenda: &[&str]) -> ResourceSnapshot {
         ResourceSnapshot {
             holon: HolonId::resource("robot1").unwrap(),
-            state: state.into(),
-            controller: controller.into(),
+            state: serde_json::from_value(state.into()).expect("a resource state"),
+            controller: serde_json::from_value(controller.into()).expect("a controller status"),
             agenda: agenda
                 .iter()
                 .map(|c| BookingView {

@@ -18,7 +18,7 @@ use std::collections::HashMap;
 use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
-use schemas::{ControllerState, RobotCommand, RobotMessage};
+use schemas::{RobotCommand, RobotMessage};
 use tokio::net::TcpStream;
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -52,27 +52,8 @@ impl ClientConfig {
     }
 }
 
-/// The controller as the client sees it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum ControllerStatus {
-    /// No connection (yet, or any more).
-    Disconnected,
-    /// Connected, and the controller's last `ROBOT_STATUS` said this.
-    Connected(ControllerState),
-}
-
-impl ControllerStatus {
-    pub fn is_ready(self) -> bool {
-        self == ControllerStatus::Connected(ControllerState::Ready)
-    }
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            ControllerStatus::Disconnected => "disconnected",
-            ControllerStatus::Connected(state) => state.as_str(),
-        }
-    }
-}
+/// The controller as the client sees it (one type with the snapshot's `controller`).
+pub use schemas::ControllerStatus;
 
 /// Why a command got no reply.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -255,7 +236,7 @@ async fn serve(
                 Some(Ok(RobotMessage::Status(state))) => {
                     // Changes are logged and reported; repeats (a chatty controller
                     // sends the same status over and over) are only counted.
-                    let status = ControllerStatus::Connected(state);
+                    let status = ControllerStatus::from(state);
                     if reporter.status == Some(status) {
                         repeats += 1;
                         continue;

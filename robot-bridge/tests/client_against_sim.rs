@@ -4,7 +4,7 @@ use std::time::Duration;
 
 use robot_bridge::client::{self, ClientConfig, CommandFailure, ControllerEvent, ControllerStatus};
 use robot_bridge::sim::{SimConfig, SimStats, Simulator};
-use schemas::{ControllerState, Pose, RobotCommand};
+use schemas::{Pose, RobotCommand};
 use std::sync::Arc;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -50,9 +50,7 @@ impl Harness {
 
     async fn wait_ready(&mut self) {
         loop {
-            if self.next().await
-                == ControllerEvent::Status(ControllerStatus::Connected(ControllerState::Ready))
-            {
+            if self.next().await == ControllerEvent::Status(ControllerStatus::Ready) {
                 return;
             }
         }

@@ -21,7 +21,9 @@ pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{
     bounded_detail, reason, ErrorReply, MessageType, Service, MAX_DETAIL_BYTES, SERVICE_VERSION,
 };
-pub use state::{unix_ms, BookingView, CurrentJobView, ResourceSnapshot};
+pub use state::{
+    unix_ms, BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot, ResourceState,
+};
 
 /// Everything that can be wrong with a message, an id or a key.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

@@ -4,6 +4,79 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 use crate::id::HolonId;
+use crate::robot::ControllerState;
+
+/// A resource's execution status, as its agenda manager sees it (the seed's Figure 4,
+/// plus `init`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ResourceState {
+    /// The controller is not ready (not connected yet, in fault or estop): no new work.
+    Init,
+    /// Ready, nothing running.
+    Free,
+    /// A job is running.
+    Busy,
+}
+
+impl ResourceState {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ResourceState::Init => "init",
+            ResourceState::Free => "free",
+            ResourceState::Busy => "busy",
+        }
+    }
+}
+
+impl std::fmt::Display for ResourceState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// The controller as a resource holon sees it: the last `ROBOT_STATUS` of a connected
+/// controller, or `disconnected`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ControllerStatus {
+    /// No connection (yet, or any more).
+    Disconnected,
+    Ready,
+    Fault,
+    Estop,
+}
+
+impl ControllerStatus {
+    pub fn is_ready(self) -> bool {
+        self == ControllerStatus::Ready
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ControllerStatus::Disconnected => "disconnected",
+            ControllerStatus::Ready => "ready",
+            ControllerStatus::Fault => "fault",
+            ControllerStatus::Estop => "estop",
+        }
+    }
+}
+
+impl From<ControllerState> for ControllerStatus {
+    fn from(state: ControllerState) -> ControllerStatus {
+        match state {
+            ControllerState::Ready => ControllerStatus::Ready,
+            ControllerState::Fault => ControllerStatus::Fault,
+            ControllerState::Estop => ControllerStatus::Estop,
+        }
+    }
+}
+
+impl std::fmt::Display for ControllerStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
 
 /// One booking on a resource's agenda, as it appears in a snapshot.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
@@ -24,9 +97,9 @@ pub struct ResourceSnapshot {
     /// e.g. `resource/robot1`.
     pub holon: HolonId,
     /// The agenda manager's execution status: `init` (controller not ready), `free`, `busy`.
-    pub state: String,
+    pub state: ResourceState,
     /// The controller: `disconnected`, `ready`, `fault`, `estop`.
-    pub controller: String,
+    pub controller: ControllerStatus,
     /// Bookings in the order they were made.
     pub agenda: Vec<BookingView>,
     /// The job being executed, if any, and its step.

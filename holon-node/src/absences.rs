@@ -1,32 +1,12 @@
-//! Booking lifetime: a booking lasts while its requester is in the cell.
-//!
-//! Every holon that books (an order) holds a liveliness token at
-//! `holarchy/<cell>/alive/<kind>/<name>` while it wants its bookings. The requesters
-//! component watches those tokens; when the requester of a booking has been absent longer
-//! than `agenda.requester_grace_ms` (its order ended, was faked, or its order-node is gone
-//! for good), the agenda manager releases its bookings, so they no longer block the
-//! resource or lengthen its offers. The grace covers an order-node restart and a short
-//! network cut; the snapshot shows since when a booked requester is absent.
-//!
-//! [`Absences`] is the pure part (what is known of presence, and which requesters have
-//! outstayed the grace); [`run`] is the component that feeds it liveliness samples and
-//! a tick, and sends the agenda manager a `RequesterGone` per expired requester.
+//! Who of the cell is present, and since when each absent holon has been absent: the
+//! pure part of the booking lifetime (see [`crate::component::requesters`]). A booking
+//! lasts while its requester is in the cell, or absent no longer than the grace.
 
 use std::collections::{HashMap, HashSet};
-use std::sync::Arc;
 use std::time::Duration;
 
-use holon::ChildError;
 use schemas::HolonId;
 use tokio::time::Instant;
-use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
-
-use crate::agenda::AgendaEvent;
-use crate::node::Node;
-
-/// How often booked requesters are checked against the grace.
-const CHECK_EVERY: Duration = Duration::from_secs(1);
 
 /// A moment, both for measuring (monotonic) and for showing (Unix milliseconds).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -108,60 +88,6 @@ impl Absences {
     /// Forgets holons that left long ago and hold nothing here (keeps the map small).
     pub fn forget_except(&mut self, booked: &HashSet<HolonId>) {
         self.left.retain(|holon, _| booked.contains(holon));
-    }
-}
-
-/// The requesters component: watches every liveliness token of the cell and releases
-/// the bookings of requesters absent longer than the grace.
-pub async fn run(node: Arc<Node>, token: CancellationToken) -> Result<(), ChildError> {
-    let holon = node.config.holon.clone();
-    let keys = node.config.keys.clone();
-    let grace = node.config.requester_grace;
-    // A restarted component starts a fresh watch: absences count from now (the grace
-    // is restarted, never shortened).
-    node.set_absences(Absences::new(Moment::now()));
-    let subscriber = node
-        .session
-        .liveliness()
-        .declare_subscriber(keys.alive_all())
-        .history(true)
-        .await
-        .map_err(|e| format!("cannot watch the cell's liveliness tokens: {e}"))?;
-    let mut tick = tokio::time::interval(CHECK_EVERY);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = token.cancelled() => return Ok(()),
-            sample = subscriber.recv_async() => {
-                let sample = sample.map_err(|e| format!("liveliness subscriber closed: {e}"))?;
-                let Some(other) = keys.holon_from_alive(sample.key_expr().as_str()) else {
-                    continue;
-                };
-                let booked = node.booked_requesters().contains(&other);
-                let news = match sample.kind() {
-                    zenoh::sample::SampleKind::Put => node.update_absences(|a| a.appeared(other.clone())),
-                    zenoh::sample::SampleKind::Delete => node.update_absences(|a| a.vanished(other.clone(), Moment::now())),
-                };
-                if news && booked {
-                    match sample.kind() {
-                        zenoh::sample::SampleKind::Put => info!(%holon, requester = %other, "requester of a booking is back"),
-                        zenoh::sample::SampleKind::Delete => warn!(%holon, requester = %other, grace = ?grace, "requester of a booking left the cell; its bookings end unless it is back within the grace"),
-                    }
-                    node.state_changed().await;
-                }
-            }
-            _ = tick.tick() => {
-                let booked = node.booked_requesters();
-                let expired = node.update_absences(|a| {
-                    a.forget_except(&booked);
-                    a.expired(&booked, Instant::now(), grace)
-                });
-                for requester in expired {
-                    warn!(%holon, %requester, grace = ?grace, "requester absent longer than the grace: its bookings are released");
-                    crate::node::send_agenda(&node, AgendaEvent::RequesterGone { requester }).await?;
-                }
-            }
-        }
     }
 }
 

@@ -1,0 +1,342 @@
+//! The agenda manager component: the one owner of the agenda.
+//!
+//! Every event reaches it through its mailbox, each as an [`AgendaMessage`]: requests
+//! from the communication component (with the [`Question`] to answer), `ready`,
+//! `unavailable` and finished jobs from the execution component, acknowledgements from
+//! the communication component, requesters gone from the requesters component, and
+//! `withdraw` when the holon stops. For each event, in this order:
+//!
+//! 1. the pure state machine ([`crate::agenda`]) makes its transition;
+//! 2. the journal records what changed, before anything is answered or done (a request
+//!    that cannot be recorded is refused and changes nothing);
+//! 3. the agenda view is republished ([`crate::views`]), so a state read after the
+//!    answer sees the change;
+//! 4. the actions are carried out, here and nowhere else: `Reply` answers the question,
+//!    `Execute` goes to the execution component, `Deliver` to the communication
+//!    component, which sends the result until it is acknowledged.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use holon::journal::{Journal, JournalError};
+use holon::ChildError;
+use schemas::{HolonId, Service};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, error, info, warn};
+
+use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord, Job};
+use crate::component::question::Question;
+use crate::config::ResourceConfig;
+use crate::fault_injection::Faults;
+use crate::handover::{Handover, Mailbox};
+use crate::views::{AgendaView, Views};
+
+/// How often a journal that cannot be written is tried again.
+const JOURNAL_RETRY: Duration = Duration::from_secs(1);
+
+/// The journal record that holds the agenda.
+const AGENDA_RECORD: (&str, &str) = ("agenda", "agenda");
+
+/// One event for the agenda manager.
+pub struct AgendaMessage {
+    pub event: AgendaEvent,
+    /// For a request: the query to answer. Other events have nobody to answer.
+    pub question: Option<Question>,
+}
+
+impl From<AgendaEvent> for AgendaMessage {
+    fn from(event: AgendaEvent) -> AgendaMessage {
+        AgendaMessage {
+            event,
+            question: None,
+        }
+    }
+}
+
+/// The journal could not record a request: it is refused and nothing changed.
+#[derive(Debug)]
+struct NotRecorded;
+
+/// The agenda and what keeps it durable; owned by the running agenda manager.
+pub struct JournalledAgenda {
+    /// The state machine.
+    agenda: AgendaManager,
+    /// The durable state, if the holon has a data directory.
+    journal: Option<Journal>,
+    /// Set while the journal cannot be written (a full disk, ...): why. The resource
+    /// then stops offering, refuses requests that would change its agenda, and holds
+    /// results back until a write succeeds (retried every [`JOURNAL_RETRY`]).
+    fault: Option<String>,
+    /// Results that happened while the journal could not record them, oldest first:
+    /// delivered once they are written.
+    held: Vec<Service>,
+}
+
+impl JournalledAgenda {
+    /// The agenda, restored from the journal if the holon has a data directory. Results
+    /// not acknowledged before a restart (and an interrupted job's `failed`) are
+    /// delivered by the communication component, which asks for them when it starts.
+    pub fn open(config: &ResourceConfig) -> Result<JournalledAgenda, JournalError> {
+        let holon = &config.holon;
+        let journal = match &config.data_dir {
+            Some(dir) => {
+                let file = format!("resource-{}.sqlite", holon.name());
+                Some(Journal::open(dir, &file, config.durability)?)
+            }
+            None => None,
+        };
+        let record: AgendaRecord = match &journal {
+            Some(journal) => journal
+                .get(AGENDA_RECORD.0, AGENDA_RECORD.1)?
+                .unwrap_or_default(),
+            None => AgendaRecord::default(),
+        };
+        match &journal {
+            Some(journal) => {
+                info!(%holon, journal = %journal.path().display(), bookings = record.bookings.len(), interrupted = record.current.is_some(), undelivered = record.undelivered.len(), "journal opened")
+            }
+            None => {
+                warn!(%holon, "no data directory: the agenda is not durable (use --data-dir)")
+            }
+        }
+        let agenda = AgendaManager::restore(
+            holon.clone(),
+            config.catalog.clone(),
+            config.agenda_capacity,
+            record,
+        );
+        if let Some(journal) = &journal {
+            // The interrupted job became an undelivered result: record that at once.
+            journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record())?;
+        }
+        Ok(JournalledAgenda {
+            agenda,
+            journal,
+            fault: None,
+            held: Vec::new(),
+        })
+    }
+
+    /// What the other components see of the agenda.
+    pub fn view(&self) -> AgendaView {
+        let mut snapshot = self.agenda.snapshot();
+        snapshot.journal_fault = self.fault.clone();
+        AgendaView {
+            snapshot,
+            accepting: self.agenda.state() != schemas::ResourceState::Init
+                && !self.agenda.is_withdrawing()
+                && self.fault.is_none(),
+            drained: self.agenda.is_drained(),
+        }
+    }
+
+    /// Results not yet acknowledged (for a starting communication component).
+    pub fn undelivered(&self) -> &[Service] {
+        self.agenda.undelivered()
+    }
+
+    /// One event through the state machine, and the journal write of what changed: the
+    /// actions to carry out, or [`NotRecorded`] when a request could not be recorded
+    /// (then the agenda is as it was).
+    fn apply(
+        &mut self,
+        holon: &HolonId,
+        event: AgendaEvent,
+    ) -> Result<Vec<AgendaAction>, NotRecorded> {
+        let before = self.agenda.state();
+        let previous = self.journal.as_ref().map(|_| self.agenda.clone());
+        // An acknowledgement is recorded with the next write, not on its own: if the
+        // process dies first, the result is delivered once more and the order, which
+        // ignores duplicates, acknowledges it again. That saves an fsync per job.
+        let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
+        // A request can be refused when it cannot be recorded; the other events are facts
+        // (a job finished, a requester left) that the agenda must keep even then.
+        let refusable = matches!(event, AgendaEvent::Request(_));
+        let withdraw = matches!(event, AgendaEvent::Withdraw);
+        let mut actions = self.agenda.handle(event);
+        if withdraw {
+            actions.extend(self.release_held(holon));
+        }
+        let changed = previous
+            .as_ref()
+            .is_some_and(|p| !lazily && p.record() != self.agenda.record());
+        if let (Some(previous), true) = (previous, changed) {
+            match self.write() {
+                Ok(()) => actions.extend(self.written(holon)),
+                Err(e) if refusable => {
+                    self.failed(holon, &e);
+                    warn!(%holon, component = "agenda", error = %e, "journal write failed; the request is refused");
+                    self.agenda = previous;
+                    return Err(NotRecorded);
+                }
+                Err(e) => {
+                    // Kept in memory; results wait for the write (see `retry`).
+                    if self.failed(holon, &e) {
+                        actions.push(AgendaAction::StateChanged);
+                    }
+                    let held = &mut self.held;
+                    actions.retain(|action| match action {
+                        AgendaAction::Deliver(result) => {
+                            held.push(result.clone());
+                            false
+                        }
+                        _ => true,
+                    });
+                }
+            }
+        }
+        let after = self.agenda.state();
+        if before != after {
+            info!(%holon, component = "agenda", from = %before, to = %after, "transition");
+        }
+        Ok(actions)
+    }
+
+    fn write(&self) -> Result<(), JournalError> {
+        match &self.journal {
+            Some(journal) => journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &self.agenda.record()),
+            None => Ok(()),
+        }
+    }
+
+    /// While the journal cannot be written: tries to write the agenda as it is now; on
+    /// success the fault ends and the held results are released.
+    fn retry(&mut self, holon: &HolonId) -> Vec<AgendaAction> {
+        if self.fault.is_none() {
+            return vec![];
+        }
+        match self.write() {
+            Ok(()) => self.written(holon),
+            Err(e) => {
+                debug!(%holon, error = %e, "the journal still cannot be written");
+                self.failed(holon, &e);
+                vec![]
+            }
+        }
+    }
+
+    /// Records that a journal write failed; true when that is news (the first failure,
+    /// logged; the view then shows the fault and offers stop).
+    fn failed(&mut self, holon: &HolonId, error: &JournalError) -> bool {
+        let news = self.fault.is_none();
+        if news {
+            error!(%holon, component = "agenda", error = %error, "the journal cannot be written: no new work is taken and results are held until a write succeeds (retried every second)");
+        }
+        self.fault = Some(error.to_string());
+        news
+    }
+
+    /// A journal write succeeded: if it was failing, the fault ends and the held results
+    /// are released (to deliver, after a state change).
+    fn written(&mut self, holon: &HolonId) -> Vec<AgendaAction> {
+        if self.fault.take().is_none() {
+            return vec![];
+        }
+        let held = std::mem::take(&mut self.held);
+        info!(%holon, component = "agenda", results = held.len(), "the journal can be written again: held results are delivered, new work is taken");
+        held.into_iter()
+            .map(AgendaAction::Deliver)
+            .chain([AgendaAction::StateChanged])
+            .collect()
+    }
+
+    /// Stopping with results the journal could not record: they are delivered anyway, so
+    /// the orders record the outcomes. After a restart this resource reports those
+    /// steps `interrupted` (its journal still shows them running), which the orders
+    /// acknowledge and ignore as late reports of finished conversations.
+    fn release_held(&mut self, holon: &HolonId) -> Vec<AgendaAction> {
+        let held = std::mem::take(&mut self.held);
+        if !held.is_empty() {
+            warn!(%holon, results = held.len(), "shutting down while the journal cannot be written: delivering the held results unrecorded");
+        }
+        held.into_iter().map(AgendaAction::Deliver).collect()
+    }
+}
+
+/// What the agenda manager is linked to.
+pub struct Links {
+    pub holon: HolonId,
+    /// The agenda it owns.
+    pub agenda: Handover<JournalledAgenda>,
+    /// Every event for it.
+    pub mailbox: Mailbox<AgendaMessage>,
+    /// The execution component's job mailbox.
+    pub jobs: mpsc::Sender<Job>,
+    /// The communication component's mailbox of results to deliver.
+    pub results: mpsc::Sender<Service>,
+    /// Where it publishes its view.
+    pub views: Arc<Views>,
+    pub faults: Arc<Faults>,
+}
+
+/// The component's task: drains the mailbox, one event at a time, until cancelled.
+pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
+    let holon = &links.holon;
+    let mut agenda = links.agenda.take().await;
+    let mut mailbox = links.mailbox.take().await;
+    // A successor publishes at once: its predecessor may have died between a change and
+    // its publication.
+    links.views.agenda.send_replace(agenda.view());
+    let mut journal_retry = tokio::time::interval(JOURNAL_RETRY);
+    journal_retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        let (actions, question) = tokio::select! {
+            _ = token.cancelled() => return Ok(()),
+            _ = links.faults.agenda.notified() => panic!("fault injection: agenda manager crashed"),
+            _ = journal_retry.tick() => (agenda.retry(holon), None),
+            message = mailbox.recv() => {
+                let AgendaMessage { event, question } = message.ok_or("agenda mailbox closed")?;
+                match agenda.apply(holon, event) {
+                    Ok(actions) => (actions, question),
+                    Err(NotRecorded) => {
+                        links.views.agenda.send_replace(agenda.view());
+                        if let Some(question) = question {
+                            question.reject(holon, "unavailable", "the journal could not record the request; nothing changed".into()).await;
+                        }
+                        continue;
+                    }
+                }
+            }
+        };
+        if actions.contains(&AgendaAction::StateChanged) {
+            links.views.agenda.send_replace(agenda.view());
+        }
+        carry_out(&links, actions, question).await?;
+    }
+}
+
+/// Carries out the actions of one transition.
+async fn carry_out(
+    links: &Links,
+    actions: Vec<AgendaAction>,
+    mut question: Option<Question>,
+) -> Result<(), ChildError> {
+    let holon = &links.holon;
+    for action in actions {
+        match action {
+            AgendaAction::Reply(answer) => match question.take() {
+                Some(question) => question.answer(holon, &answer).await,
+                None => {
+                    warn!(%holon, conversation_id = %answer.conversation_id, "an answer without a question is dropped (a bug: only requests are answered)")
+                }
+            },
+            AgendaAction::Execute(job) => {
+                info!(%holon, component = "agenda", conversation_id = %job.conversation_id, requester = %job.requester, "starting execution");
+                links
+                    .jobs
+                    .send(job)
+                    .await
+                    .map_err(|_| "execution mailbox closed")?;
+            }
+            AgendaAction::Deliver(result) => links
+                .results
+                .send(result)
+                .await
+                .map_err(|_| "delivery mailbox closed")?,
+            // Published before the actions (see `run`).
+            AgendaAction::StateChanged => {}
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,363 @@
+//! The communication component: the holon's zenoh side.
+//!
+//! It declares the holon's queryables (`resource/<name>/service`, one
+//! `offer/<type>/<name>` per service type while the resource takes work,
+//! `resource/<name>/state`, and `resource/<name>/debug/crash` with
+//! `--allow-fault-injection`), decodes and checks every request, and hands each agenda
+//! request, with its query, to the agenda manager, which answers it. A request that
+//! cannot be decoded, or is not allowed on the key it came to, gets an error reply
+//! (`{"code", "message"}`) from here and never reaches the agenda; state reads and
+//! `status` are answered here from the published views.
+//!
+//! It also publishes the state snapshot on `resource/<name>/state` whenever a view
+//! changes, and delivers each `done` / `failed` to its `reply_to` until acknowledged
+//! ([`crate::component::delivery`]).
+//!
+//! Back-pressure: queries wait in a queue of [`QUERY_QUEUE`]; when it is full (the
+//! component is far behind), a new query is refused at once with `unavailable`, and the
+//! requester asks again after its pause. The agenda manager's mailbox is bounded too:
+//! while it is full this component waits, and queries queue up here.
+
+use std::sync::Arc;
+
+use holon::ChildError;
+use schemas::{HolonId, MessageType, SchemaError, Service};
+use tokio::sync::{mpsc, Notify};
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+use crate::agenda::AgendaEvent;
+use crate::component::agenda_manager::AgendaMessage;
+use crate::component::delivery::Deliveries;
+use crate::component::question::Question;
+use crate::config::ResourceConfig;
+use crate::fault_injection::Faults;
+use crate::handover::{Handover, Mailbox};
+use crate::views::Views;
+
+/// How many queries wait for this component before new ones are refused `unavailable`.
+pub const QUERY_QUEUE: usize = 1024;
+
+/// What the communication component is linked to.
+pub struct Links {
+    /// Its keys, its service types, whether fault injection is declared.
+    pub config: ResourceConfig,
+    pub session: zenoh::Session,
+    /// The results on their way, which it owns.
+    pub deliveries: Handover<Deliveries>,
+    /// Results to deliver, from the agenda manager.
+    pub results: Mailbox<Service>,
+    /// The agenda manager's mailbox.
+    pub agenda: mpsc::Sender<AgendaMessage>,
+    /// What it publishes and answers state reads from.
+    pub views: Arc<Views>,
+    pub faults: Arc<Faults>,
+    /// Notified each time it has declared its queryables.
+    pub serving: Arc<Notify>,
+}
+
+/// Which of the holon's queryables a query came to.
+#[derive(Debug, Clone, PartialEq, Eq)]
+enum Endpoint {
+    Service,
+    Offer(String),
+    State,
+    Crash,
+}
+
+impl Endpoint {
+    /// The queryable's own concrete key (see [`Question`]).
+    fn key(&self, config: &ResourceConfig) -> String {
+        let name = config.holon.name();
+        match self {
+            Endpoint::Service => config.keys.service(name),
+            Endpoint::Offer(service_type) => config.keys.offer(service_type, name),
+            Endpoint::State => config.keys.state(&config.holon),
+            Endpoint::Crash => config.keys.debug_crash(name),
+        }
+    }
+}
+
+/// A query as it arrives: the queryable it came to, and the question to answer.
+struct Arrival {
+    endpoint: Endpoint,
+    question: Question,
+}
+
+/// The holon's queryables; dropping one undeclares it.
+struct Queryables {
+    /// Service, state and (with fault injection) crash: for the component's life.
+    fixed: Vec<zenoh::query::Queryable<()>>,
+    /// One per service type, only while the resource takes work.
+    offers: Vec<zenoh::query::Queryable<()>>,
+    /// Where every queryable's callback queues its queries.
+    arrivals: mpsc::Sender<Arrival>,
+}
+
+impl Queryables {
+    async fn declare(
+        links: &Links,
+        arrivals: mpsc::Sender<Arrival>,
+    ) -> Result<Queryables, ChildError> {
+        let config = &links.config;
+        let mut endpoints = vec![Endpoint::Service, Endpoint::State];
+        if config.allow_fault_injection {
+            endpoints.push(Endpoint::Crash);
+        }
+        let mut fixed = Vec::new();
+        for endpoint in endpoints {
+            fixed.push(declare(links, endpoint, &arrivals).await?);
+        }
+        Ok(Queryables {
+            fixed,
+            offers: Vec::new(),
+            arrivals,
+        })
+    }
+
+    /// Undeclares every queryable (the component is stopping).
+    async fn undeclare(self, holon: &HolonId) {
+        for queryable in self.offers.into_iter().chain(self.fixed) {
+            if let Err(e) = queryable.undeclare().await {
+                warn!(%holon, error = %e, "cannot undeclare a queryable; it goes with the session");
+            }
+        }
+    }
+
+    /// Declares the offer queryables when the resource takes work, undeclares them when
+    /// it does not (controller not ready, fault, estop, journal fault, withdrawing).
+    async fn sync_offers(&mut self, links: &Links) -> Result<(), ChildError> {
+        let config = &links.config;
+        let accepting = links.views.accepting();
+        if accepting && self.offers.is_empty() {
+            for service_type in config.catalog.service_types() {
+                let endpoint = Endpoint::Offer(service_type.to_string());
+                self.offers
+                    .push(declare(links, endpoint, &self.arrivals).await?);
+            }
+            info!(holon = %config.holon, "offering");
+        } else if !accepting && !self.offers.is_empty() {
+            self.offers.clear();
+            info!(holon = %config.holon, "no longer offering");
+        }
+        Ok(())
+    }
+}
+
+/// Declares one queryable whose callback queues each query for this component.
+async fn declare(
+    links: &Links,
+    endpoint: Endpoint,
+    arrivals: &mpsc::Sender<Arrival>,
+) -> Result<zenoh::query::Queryable<()>, ChildError> {
+    let key = endpoint.key(&links.config);
+    let holon = links.config.holon.clone();
+    let arrivals = arrivals.clone();
+    let answer_key = key.clone();
+    let queryable = links
+        .session
+        .declare_queryable(&key)
+        .callback(move |query| {
+            let arrival = Arrival {
+                endpoint: endpoint.clone(),
+                question: Question::new(query, answer_key.clone()),
+            };
+            match arrivals.try_send(arrival) {
+                Ok(()) => {}
+                Err(mpsc::error::TrySendError::Full(arrival)) => arrival.question.reject_now(
+                    &holon,
+                    "unavailable",
+                    format!(
+                        "{QUERY_QUEUE} requests are waiting for this resource; ask again shortly"
+                    ),
+                ),
+                // The component is stopping; its successor declares the queryables anew
+                // and the requester asks again.
+                Err(mpsc::error::TrySendError::Closed(_)) => {
+                    debug!(%holon, "a query arrived while the communication component stopped")
+                }
+            }
+        })
+        .await?;
+    debug!(%key, "queryable declared");
+    Ok(queryable)
+}
+
+pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
+    let config = &links.config;
+    let holon = &config.holon;
+    let (arrivals_tx, mut arrivals) = mpsc::channel(QUERY_QUEUE);
+    let mut queryables = Queryables::declare(&links, arrivals_tx).await?;
+    queryables.sync_offers(&links).await?;
+    let publisher = links
+        .session
+        .declare_publisher(config.keys.state(holon))
+        .await?;
+    let mut agenda_view = links.views.agenda.subscribe();
+    let mut execution_view = links.views.execution.subscribe();
+    let mut absences = links.views.absences.subscribe();
+    let mut deliveries = links.deliveries.take().await;
+    let mut results = links.results.take().await;
+    // Results not yet acknowledged, from before a restart: due at once.
+    deliveries.send_due();
+    publish(&links, &publisher).await;
+    info!(%holon, component = "communication", "serving");
+    links.serving.notify_one();
+
+    loop {
+        let next_due = deliveries.next_due();
+        tokio::select! {
+            _ = token.cancelled() => break,
+            _ = links.faults.communication.notified() => panic!("fault injection: communication crashed"),
+            Some(arrival) = arrivals.recv() => answer(&links, arrival).await?,
+            result = results.recv() => deliveries.add(result.ok_or("delivery mailbox closed")?),
+            _ = async { tokio::time::sleep_until(next_due.unwrap_or_else(tokio::time::Instant::now)).await }, if next_due.is_some() => {
+                deliveries.send_due();
+            }
+            Some(end) = deliveries.attempt_ended() => {
+                if let Some(conversation_id) = deliveries.ended(end) {
+                    links
+                        .agenda
+                        .send(AgendaEvent::ResultAcknowledged { conversation_id }.into())
+                        .await
+                        .map_err(|_| "agenda mailbox closed")?;
+                }
+            }
+            changed = agenda_view.changed() => {
+                changed.map_err(|_| "the agenda view closed")?;
+                queryables.sync_offers(&links).await?;
+                publish(&links, &publisher).await;
+            }
+            changed = execution_view.changed() => {
+                changed.map_err(|_| "the execution view closed")?;
+                publish(&links, &publisher).await;
+            }
+            changed = absences.changed() => {
+                changed.map_err(|_| "the absences view closed")?;
+                publish(&links, &publisher).await;
+            }
+        }
+    }
+    deliveries.shutdown().await;
+    queryables.undeclare(holon).await;
+    Ok(())
+}
+
+async fn publish(links: &Links, publisher: &zenoh::pubsub::Publisher<'_>) {
+    let snapshot = links.views.snapshot();
+    let payload = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
+    if let Err(e) = publisher.put(payload).await {
+        warn!(holon = %links.config.holon, error = %e, "cannot publish the state; readers see it at the next change or by asking");
+    }
+}
+
+/// Answers one query here, or hands it to the agenda manager.
+async fn answer(links: &Links, arrival: Arrival) -> Result<(), ChildError> {
+    let Arrival { endpoint, question } = arrival;
+    let holon = &links.config.holon;
+    match &endpoint {
+        Endpoint::State => {
+            let snapshot =
+                serde_json::to_vec(&links.views.snapshot()).expect("a snapshot serializes");
+            question.answer_bytes(holon, "state", snapshot).await;
+            return Ok(());
+        }
+        Endpoint::Crash => {
+            let component = String::from_utf8_lossy(&question.payload())
+                .trim()
+                .to_string();
+            match links.faults.get(&component) {
+                Some(fault) => {
+                    warn!(%holon, %component, "fault injection requested");
+                    question.answer_bytes(holon, "crash", format!("crashing {component}").into_bytes()).await;
+                    fault.notify_one();
+                }
+                None => {
+                    question.reject(holon, "invalid", format!("unknown component {component:?} (interfacing, execution, agenda, communication)")).await
+                }
+            }
+            return Ok(());
+        }
+        Endpoint::Service | Endpoint::Offer(_) => {}
+    }
+    let request = match decode(holon, &endpoint, &question) {
+        Ok(request) => request,
+        Err((code, message)) => {
+            question.reject(holon, code, message).await;
+            return Ok(());
+        }
+    };
+    if request.message_type == MessageType::Status {
+        // A read of the state, not an agenda transition.
+        let mut status = request.accepted(holon);
+        if let Ok(serde_json::Value::Object(info)) = serde_json::to_value(links.views.snapshot()) {
+            status.info = info;
+        }
+        question.answer(holon, &status).await;
+        return Ok(());
+    }
+    let message = AgendaMessage {
+        event: AgendaEvent::Request(request),
+        question: Some(question),
+    };
+    links
+        .agenda
+        .send(message)
+        .await
+        .map_err(|_| ChildError::from("agenda mailbox closed"))
+}
+
+/// Decodes a request and checks that it may come to `endpoint`: the request, or the
+/// error reply's code and message.
+fn decode(
+    holon: &HolonId,
+    endpoint: &Endpoint,
+    question: &Question,
+) -> Result<Service, (&'static str, String)> {
+    let request = Service::from_json(&question.payload()).map_err(|e| {
+        let code = if matches!(e, SchemaError::Json(_) | SchemaError::TooLarge { .. }) {
+            "malformed"
+        } else {
+            "invalid"
+        };
+        (code, e.to_string())
+    })?;
+    debug!(
+        %holon,
+        conversation_id = %request.conversation_id,
+        message_type = %request.message_type,
+        requester = %request.requester,
+        service_type = %request.service_type,
+        "received"
+    );
+    let allowed = match endpoint {
+        Endpoint::Offer(service_type) => {
+            request.message_type == MessageType::ProposalReq
+                && &request.service_type == service_type
+        }
+        _ => matches!(
+            request.message_type,
+            MessageType::ProposalReq
+                | MessageType::BookingReq
+                | MessageType::BookingCancel
+                | MessageType::Start
+                | MessageType::Status
+        ),
+    };
+    if !allowed {
+        let message = match endpoint {
+            Endpoint::Offer(t) => format!("{} offers {t}: only proposal_req for {t} is answered here", question.asked_key()),
+            _ => format!("{} is not a request a resource answers (proposal_req, booking_req, booking_cancel, start, status)", request.message_type),
+        };
+        return Err(("wrong_key", message));
+    }
+    if let Some(provider) = &request.provider {
+        if provider != holon {
+            return Err((
+                "invalid",
+                format!("addressed to {provider}, this is {holon}"),
+            ));
+        }
+    }
+    Ok(request)
+}

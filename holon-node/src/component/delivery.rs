@@ -1,0 +1,228 @@
+//! Results on their way: each `done` / `failed` is sent to its `reply_to` again and
+//! again, with a doubling pause, until the requester acknowledges it.
+//!
+//! [`Deliveries`] is owned by the communication component, which feeds it new results,
+//! wakes it when an attempt is due, and hands it each attempt's end. An acknowledged
+//! result is reported to the agenda manager, which removes it from the undelivered.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use holon::Backoff;
+use schemas::{HolonId, Service};
+use tokio::task::JoinSet;
+use tokio::time::Instant;
+use tracing::{debug, info, warn};
+use zenoh::query::ConsolidationMode;
+
+use crate::config::DeliverySettings;
+
+/// How one attempt ended: acknowledged, not answered, or refused (and why).
+type AttemptEnd = (String, Result<bool, String>);
+
+/// A result waiting for its acknowledgement.
+struct Delivery {
+    /// The `done` / `failed` message.
+    message: Service,
+    /// When the next attempt may go out.
+    next_attempt: Instant,
+    /// The pauses between attempts.
+    backoff: Backoff,
+    /// Attempts made so far.
+    attempts: u32,
+    /// Whether an attempt is out and not yet ended.
+    in_flight: bool,
+}
+
+/// Every result not yet acknowledged, by `conversation_id`, and the attempts in flight.
+pub struct Deliveries {
+    holon: HolonId,
+    session: zenoh::Session,
+    settings: DeliverySettings,
+    pending: BTreeMap<String, Delivery>,
+    attempts: JoinSet<AttemptEnd>,
+}
+
+impl Deliveries {
+    /// Deliveries of `undelivered` (results not acknowledged before the holon
+    /// restarted): due at once, sent when the communication component starts.
+    pub fn new(
+        holon: HolonId,
+        session: zenoh::Session,
+        settings: DeliverySettings,
+        undelivered: &[Service],
+    ) -> Deliveries {
+        let mut deliveries = Deliveries {
+            holon,
+            session,
+            settings,
+            pending: BTreeMap::new(),
+            attempts: JoinSet::new(),
+        };
+        for message in undelivered {
+            deliveries.schedule(message.clone());
+        }
+        deliveries
+    }
+
+    /// Adds a result (a repeat of one already pending changes nothing) and sends what is
+    /// due: the first attempt goes out at once.
+    pub fn add(&mut self, message: Service) {
+        self.schedule(message);
+        self.send_due();
+    }
+
+    fn schedule(&mut self, message: Service) {
+        let backoff = Backoff::new(self.settings.retry_initial, self.settings.retry_max);
+        self.pending
+            .entry(message.conversation_id.clone())
+            .or_insert(Delivery {
+                message,
+                next_attempt: Instant::now(),
+                backoff,
+                attempts: 0,
+                in_flight: false,
+            });
+    }
+
+    /// When the next attempt is due, if any is waiting.
+    pub fn next_due(&self) -> Option<Instant> {
+        self.pending
+            .values()
+            .filter(|d| !d.in_flight)
+            .map(|d| d.next_attempt)
+            .min()
+    }
+
+    /// Starts an attempt for every result whose time has come.
+    pub fn send_due(&mut self) {
+        let now = Instant::now();
+        let holon = &self.holon;
+        for (conversation_id, delivery) in self.pending.iter_mut() {
+            if delivery.in_flight || delivery.next_attempt > now {
+                continue;
+            }
+            delivery.in_flight = true;
+            delivery.attempts += 1;
+            if repeat_worth_logging(delivery.attempts) {
+                info!(%holon, %conversation_id, message_type = %delivery.message.message_type, reply_to = delivery.message.reply_to.as_deref().unwrap_or(""), attempt = delivery.attempts, "sending result");
+            } else {
+                debug!(%holon, %conversation_id, attempt = delivery.attempts, "sending result again");
+            }
+            let session = self.session.clone();
+            let message = delivery.message.clone();
+            let conversation_id = conversation_id.clone();
+            let timeout = self.settings.attempt_timeout;
+            self.attempts.spawn(async move {
+                let acked = attempt(&session, &message, timeout).await;
+                (conversation_id, acked)
+            });
+        }
+    }
+
+    /// The next attempt to end (pending forever while none is in flight).
+    pub async fn attempt_ended(&mut self) -> Option<AttemptEnd> {
+        if self.attempts.is_empty() {
+            return std::future::pending().await;
+        }
+        match self.attempts.join_next().await? {
+            Ok(end) => Some(end),
+            Err(e) => {
+                warn!(holon = %self.holon, error = %e, "a delivery attempt did not end normally; its result is sent again when due");
+                None
+            }
+        }
+    }
+
+    /// Takes in how an attempt ended: the `conversation_id` of an acknowledged result
+    /// (now removed), or `None` when it is to be sent again after its pause.
+    pub fn ended(&mut self, (conversation_id, acked): AttemptEnd) -> Option<String> {
+        let holon = &self.holon;
+        let delivery = self.pending.get_mut(&conversation_id)?;
+        delivery.in_flight = false;
+        match acked {
+            Ok(true) => {
+                info!(%holon, %conversation_id, message_type = %delivery.message.message_type, attempts = delivery.attempts, "result acknowledged");
+                self.pending.remove(&conversation_id);
+                Some(conversation_id)
+            }
+            Ok(false) | Err(_) => {
+                let pause = delivery.backoff.next_pause();
+                delivery.next_attempt = Instant::now() + pause;
+                match acked {
+                    Err(why) if repeat_worth_logging(delivery.attempts) => {
+                        warn!(%holon, %conversation_id, attempt = delivery.attempts, reason = %why, retry_in = ?pause, "result refused; it is sent again until acknowledged");
+                    }
+                    _ => {
+                        debug!(%holon, %conversation_id, retry_in = ?pause, "result not acknowledged yet");
+                    }
+                }
+                None
+            }
+        }
+    }
+
+    /// Stops the attempts in flight; their results are due again at once for the
+    /// component's successor (they stay undelivered on the agenda).
+    pub async fn shutdown(&mut self) {
+        self.attempts.shutdown().await;
+        for delivery in self.pending.values_mut() {
+            delivery.in_flight = false;
+        }
+    }
+}
+
+/// Whether the `attempt`th try of the same delivery is logged above debug: the first,
+/// then every tenth (a requester that stays away does not fill the log).
+fn repeat_worth_logging(attempt: u32) -> bool {
+    attempt == 1 || attempt.is_multiple_of(10)
+}
+
+/// One delivery attempt: true when the requester acknowledged.
+async fn attempt(
+    session: &zenoh::Session,
+    message: &Service,
+    timeout: Duration,
+) -> Result<bool, String> {
+    let key = message.reply_to.as_deref().ok_or("no reply_to")?;
+    let mut replies = session
+        .get(key)
+        .payload(message.to_json())
+        .consolidation(ConsolidationMode::None)
+        .timeout(timeout)
+        .with(holon::query::replies())
+        .await
+        .map_err(|e| e.to_string())?;
+    while let Some(reply) = replies.recv().await {
+        match reply.result() {
+            Ok(sample) if sample.key_expr().as_str() != key => {
+                warn!(conversation_id = %message.conversation_id, reply_to = key, from = %sample.key_expr(), "an acknowledgement from another key than reply_to is ignored");
+            }
+            Ok(sample) => match Service::from_json(&sample.payload().to_bytes()) {
+                Ok(ack)
+                    if ack.conversation_id == message.conversation_id
+                        && ack.message_type == message.message_type
+                        && ack.result == Some(true) =>
+                {
+                    return Ok(true)
+                }
+                Ok(other) => {
+                    debug!(conversation_id = %message.conversation_id, ?other, "reply is not an acknowledgement")
+                }
+                Err(e) => {
+                    debug!(conversation_id = %message.conversation_id, error = %e, "undecodable reply to a result")
+                }
+            },
+            Err(err) => {
+                let text = err
+                    .payload()
+                    .try_to_string()
+                    .map(|s| s.into_owned())
+                    .unwrap_or_default();
+                // The requester refused it (malformed, not booked, ...): the caller logs why.
+                return Err(format!("refused by the requester: {text}"));
+            }
+        }
+    }
+    Ok(false)
+}

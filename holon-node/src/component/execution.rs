@@ -1,0 +1,119 @@
+//! The execution component: the one owner of the execution state machine
+//! ([`crate::execution`]).
+//!
+//! Its events come from two mailboxes: jobs from the agenda manager, and what the
+//! interfacing component reports of the controller. It carries out the machine's
+//! actions: commands go to the interfacing component, `ready`, `unavailable` and
+//! finished jobs to the agenda manager; after every event it republishes its view (the
+//! controller and the step in progress) when that changed.
+
+use std::sync::Arc;
+
+use holon::ChildError;
+use robot_bridge::client::ControllerEvent;
+use schemas::{HolonId, RobotCommand};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info};
+
+use crate::agenda::{AgendaEvent, Job};
+use crate::component::agenda_manager::AgendaMessage;
+use crate::execution::{Execution, ExecutionAction, ExecutionEvent};
+use crate::fault_injection::Faults;
+use crate::handover::{Handover, Mailbox};
+use crate::views::{ExecutionView, Views};
+
+/// What the execution component is linked to.
+pub struct Links {
+    pub holon: HolonId,
+    /// The state machine it owns.
+    pub execution: Handover<Execution>,
+    /// Jobs from the agenda manager.
+    pub jobs: Mailbox<Job>,
+    /// What the interfacing component reports.
+    pub controller: Mailbox<ControllerEvent>,
+    /// The interfacing component's command mailbox.
+    pub commands: mpsc::Sender<RobotCommand>,
+    /// The agenda manager's mailbox.
+    pub agenda: mpsc::Sender<AgendaMessage>,
+    /// Where it publishes its view.
+    pub views: Arc<Views>,
+    pub faults: Arc<Faults>,
+}
+
+pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
+    let holon = &links.holon;
+    let mut execution = links.execution.take().await;
+    let mut jobs = links.jobs.take().await;
+    let mut controller = links.controller.take().await;
+    publish(&links, &execution);
+    loop {
+        let event = tokio::select! {
+            _ = token.cancelled() => return Ok(()),
+            _ = links.faults.execution.notified() => panic!("fault injection: execution crashed"),
+            job = jobs.recv() => ExecutionEvent::Start(job.ok_or("execution mailbox closed")?),
+            event = controller.recv() => ExecutionEvent::Controller(event.ok_or("controller mailbox closed")?),
+        };
+        debug!(%holon, component = "execution", event = ?event, "event");
+        let before = execution.state().to_string();
+        let actions = execution.handle(event);
+        let after = execution.state().to_string();
+        if before != after {
+            info!(%holon, component = "execution", from = %before, to = %after, "transition");
+        }
+        publish(&links, &execution);
+        for action in actions {
+            carry_out(&links, action).await?;
+        }
+    }
+}
+
+/// Republishes the execution's view if it changed.
+fn publish(links: &Links, execution: &Execution) {
+    let view = ExecutionView {
+        controller: execution.controller(),
+        step: execution.current_step(),
+    };
+    links.views.execution.send_if_modified(|published| {
+        let changed = *published != view;
+        *published = view;
+        changed
+    });
+}
+
+async fn carry_out(links: &Links, action: ExecutionAction) -> Result<(), ChildError> {
+    let holon = &links.holon;
+    let to_agenda = |event: AgendaEvent| async {
+        links
+            .agenda
+            .send(event.into())
+            .await
+            .map_err(|_| ChildError::from("agenda mailbox closed"))
+    };
+    match action {
+        ExecutionAction::Command(command) => {
+            info!(%holon, component = "execution", command_id = command.id, action = %command.action, "command to controller");
+            links
+                .commands
+                .send(command)
+                .await
+                .map_err(|_| "command mailbox closed")?;
+        }
+        ExecutionAction::Ready => to_agenda(AgendaEvent::ExecutionReady).await?,
+        ExecutionAction::Unavailable => to_agenda(AgendaEvent::ExecutionUnavailable).await?,
+        ExecutionAction::Finished {
+            conversation_id,
+            outcome,
+        } => {
+            info!(%holon, component = "execution", %conversation_id, outcome = %outcome, "job finished");
+            to_agenda(AgendaEvent::ExecutionFinished {
+                conversation_id,
+                outcome,
+            })
+            .await?
+        }
+        // The view is republished after every event (see `run`).
+        ExecutionAction::StateChanged => {}
+    }
+    Ok(())
+}

@@ -1,0 +1,21 @@
+//! The resource holon's five components, each a task under one supervisor (the seed's
+//! Figure 3, plus the booking lifetime):
+//!
+//! | component | owns | receives |
+//! |---|---|---|
+//! | [`interfacing`] | the controller connection | commands |
+//! | [`execution`] | the execution state machine | jobs, controller events |
+//! | [`agenda_manager`] | the agenda and its journal | every agenda event, requests with their queries |
+//! | [`requesters`] | who of the cell is absent | liveliness samples, a tick |
+//! | [`communication`] | the queryables, results on their way | queries, results to deliver, view changes |
+//!
+//! Each owns its state alone and hands it to its successor when it crashes
+//! ([`crate::handover`]); the others see what it publishes ([`crate::views`]).
+
+pub mod agenda_manager;
+pub mod communication;
+pub mod delivery;
+pub mod execution;
+pub mod interfacing;
+pub mod question;
+pub mod requesters;

@@ -1,0 +1,87 @@
+//! Which kind of holon a config file describes (`kind`), and its config.
+
+use std::path::Path;
+
+use schemas::HolonId;
+
+use crate::config::{ConfigError, Overrides, ResourceConfig};
+use crate::product::ProductConfig;
+
+/// The config of whichever holon a file describes (its `kind`).
+#[derive(Debug, Clone)]
+pub enum HolonConfig {
+    Resource(ResourceConfig),
+    Product(ProductConfig),
+}
+
+impl HolonConfig {
+    /// Reads `kind` (default `resource`) and loads the file as that kind of holon.
+    ///
+    /// The text is read as a table for its `kind`, then parsed again as that kind's
+    /// file: only the second parse knows the fields, and its errors name the line.
+    pub fn load(path: &Path, overrides: Overrides) -> Result<HolonConfig, ConfigError> {
+        let display = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: display.clone(),
+            source,
+        })?;
+        let table: toml::Table = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+            path: display.clone(),
+            message: e.to_string(),
+        })?;
+        match table
+            .get("kind")
+            .and_then(|k| k.as_str())
+            .unwrap_or("resource")
+        {
+            "resource" => {
+                ResourceConfig::parse(&text, &display, overrides).map(HolonConfig::Resource)
+            }
+            "product" => ProductConfig::parse(&text, &display, overrides).map(HolonConfig::Product),
+            other => Err(ConfigError::Invalid {
+                path: display,
+                message: format!("kind: {other:?} is not resource or product"),
+            }),
+        }
+    }
+
+    pub fn holon(&self) -> &HolonId {
+        match self {
+            HolonConfig::Resource(c) => &c.holon,
+            HolonConfig::Product(c) => &c.holon,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    #[test]
+    fn every_demo_config_loads() {
+        let dir = concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/cells/demo");
+        let mut kinds = Vec::new();
+        for file in [
+            "robot1.toml",
+            "inspect1.toml",
+            "conveyor1.toml",
+            "breaker.toml",
+        ] {
+            let path = Path::new(dir).join(file);
+            let config =
+                HolonConfig::load(&path, Overrides::default()).unwrap_or_else(|e| panic!("{e}"));
+            kinds.push(config.holon().to_string());
+        }
+        kinds.sort();
+        assert!(
+            kinds.contains(&"resource/conveyor1".to_string()),
+            "{kinds:?}"
+        );
+        assert!(
+            kinds.contains(&"resource/inspect1".to_string()),
+            "{kinds:?}"
+        );
+        assert!(kinds.contains(&"product/breaker".to_string()), "{kinds:?}");
+    }
+}

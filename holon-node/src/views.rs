@@ -1,0 +1,82 @@
+//! What each component publishes of the state it owns, for the others to read.
+//!
+//! A component's state has one owner (see [`crate::handover`]); what others need of it
+//! is published on a `watch` channel after every change: the agenda manager its agenda,
+//! the execution component the controller and the step in progress, the requesters
+//! component who is absent. The communication component composes the snapshot that
+//! `resource/<name>/state` publishes from the three, and declares its offers only while
+//! the agenda says it takes work. A reader never waits for an owner, and an owner never
+//! waits for a reader.
+
+use schemas::{ControllerStatus, ResourceSnapshot};
+use tokio::sync::watch;
+
+use crate::absences::Absences;
+
+/// What the agenda manager publishes after every change of the agenda.
+#[derive(Debug, Clone)]
+pub struct AgendaView {
+    /// The agenda's part of the snapshot: its state, bookings, running job,
+    /// undelivered results and journal fault ([`Views::snapshot`] adds the rest).
+    pub snapshot: ResourceSnapshot,
+    /// Whether the resource takes new work: its controller is ready, it is not
+    /// withdrawing, and its journal can be written.
+    pub accepting: bool,
+    /// Withdrawing, and nothing is left to finish or deliver: the holon may stop.
+    pub drained: bool,
+}
+
+/// What the execution component publishes after every change.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExecutionView {
+    /// The controller as the interfacing component last reported it.
+    pub controller: ControllerStatus,
+    /// The action of the step in progress, e.g. `pick`.
+    pub step: Option<String>,
+}
+
+/// The published views, one per owner.
+pub struct Views {
+    /// Written by the agenda manager.
+    pub agenda: watch::Sender<AgendaView>,
+    /// Written by the execution component.
+    pub execution: watch::Sender<ExecutionView>,
+    /// Written by the requesters component.
+    pub absences: watch::Sender<Absences>,
+}
+
+impl Views {
+    pub fn new(agenda: AgendaView, absences: Absences) -> Views {
+        Views {
+            agenda: watch::Sender::new(agenda),
+            execution: watch::Sender::new(ExecutionView {
+                controller: ControllerStatus::Disconnected,
+                step: None,
+            }),
+            absences: watch::Sender::new(absences),
+        }
+    }
+
+    /// The snapshot published on `resource/<name>/state`, as of now.
+    pub fn snapshot(&self) -> ResourceSnapshot {
+        let mut snapshot = self.agenda.borrow().snapshot.clone();
+        let execution = self.execution.borrow();
+        snapshot.controller = execution.controller;
+        if let Some(current) = &mut snapshot.current {
+            current.step = execution.step.clone();
+        }
+        let absences = self.absences.borrow();
+        for booking in &mut snapshot.agenda {
+            booking.requester_absent_since = absences
+                .absent_since(&booking.requester)
+                .map(|since| since.unix_ms);
+        }
+        snapshot.at = schemas::unix_ms();
+        snapshot
+    }
+
+    /// Whether the resource takes new work (see [`AgendaView::accepting`]).
+    pub fn accepting(&self) -> bool {
+        self.agenda.borrow().accepting
+    }
+}
