@@ -21,7 +21,7 @@ use rcgen::{
 };
 
 use crate::access;
-use crate::up::Manifest;
+use crate::manifest::Manifest;
 
 #[derive(Debug, Clone, Default)]
 pub struct CertsOptions {

@@ -4,6 +4,7 @@
 pub mod access;
 pub mod certs;
 pub mod demo;
+pub mod manifest;
 pub mod router;
 pub mod status;
 pub mod up;

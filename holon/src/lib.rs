@@ -7,6 +7,7 @@ pub mod journal;
 pub mod logging;
 pub mod presence;
 pub mod query;
+pub mod restart;
 pub mod session;
 pub mod supervisor;
 pub mod tls;
@@ -14,8 +15,9 @@ pub mod zenoh_error;
 
 pub use backoff::Backoff;
 pub use logging::LogFormat;
+pub use restart::{Intensity, RestartType, RestartWindow};
 pub use session::ZenohSettings;
-pub use supervisor::{ChildError, ChildSpec, Intensity, Strategy, Supervisor};
+pub use supervisor::{ChildError, ChildSpec, Strategy, Supervisor};
 
 use tokio_util::sync::CancellationToken;
 

@@ -4,10 +4,12 @@
 //! supervisor stops every child and returns an error, so the process exits non-zero and
 //! its launcher or service manager restarts it).
 //!
-//! Children are permanent: any exit while the supervisor runs, an error, a panic or even
-//! a normal return, counts as a failure and triggers a restart. Each child gets its own
-//! [`CancellationToken`] and must return soon after it is cancelled; one that does not
-//! return within its `shutdown_timeout` is aborted.
+//! Each child has a restart type ([`RestartType`], permanent unless told otherwise): a
+//! permanent child that returns while the supervisor runs counts as failed and is
+//! restarted; a transient one that returns `Ok` is done and stays stopped. Restarts count
+//! against the intensity ([`crate::restart`], the one restart policy of the project).
+//! Each child gets its own [`CancellationToken`] and must return soon after it is
+//! cancelled; one that does not return within its `shutdown_timeout` is aborted.
 
 use std::collections::VecDeque;
 use std::fmt;
@@ -23,6 +25,9 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
+use crate::restart::RestartWindow;
+pub use crate::restart::{Intensity, RestartType};
+
 /// What a child returns when it fails.
 pub type ChildError = Box<dyn std::error::Error + Send + Sync>;
 
@@ -34,9 +39,14 @@ type StartFn = Arc<dyn Fn(CancellationToken) -> ChildFuture + Send + Sync>;
 /// How one child is started (again).
 #[derive(Clone)]
 pub struct ChildSpec {
+    /// The component's name in logs and errors.
     name: String,
+    /// Starts it (again).
     start: StartFn,
+    /// How long it has to return once cancelled before it is aborted.
     shutdown_timeout: Duration,
+    /// When it is restarted.
+    restart: RestartType,
 }
 
 impl ChildSpec {
@@ -50,7 +60,14 @@ impl ChildSpec {
             name: name.into(),
             start: Arc::new(move |token| Box::pin(start(token))),
             shutdown_timeout: Duration::from_secs(5),
+            restart: RestartType::Permanent,
         }
+    }
+
+    /// When the child is restarted (permanent by default).
+    pub fn restart(mut self, restart: RestartType) -> ChildSpec {
+        self.restart = restart;
+        self
     }
 
     pub fn shutdown_timeout(mut self, timeout: Duration) -> ChildSpec {
@@ -94,23 +111,6 @@ impl FromStr for Strategy {
             other => Err(format!(
                 "unknown strategy {other:?} (one_for_one, one_for_all, rest_for_one)"
             )),
-        }
-    }
-}
-
-/// At most `max_restarts` restarts within any `period`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Intensity {
-    pub max_restarts: u32,
-    pub period: Duration,
-}
-
-impl Default for Intensity {
-    /// OTP's default: 1 restart in 5 s is strict; a holon's components get 5 in 10 s.
-    fn default() -> Self {
-        Intensity {
-            max_restarts: 5,
-            period: Duration::from_secs(10),
         }
     }
 }
@@ -172,14 +172,15 @@ impl Supervisor {
             supervisor: &self,
             set: JoinSet::new(),
             running: (0..self.children.len()).map(|_| None).collect(),
+            done: vec![false; self.children.len()],
             exited: VecDeque::new(),
         };
         for index in 0..self.children.len() {
             state.start(index);
         }
-        let mut restarts: VecDeque<Instant> = VecDeque::new();
+        let mut window = RestartWindow::new(self.intensity);
         loop {
-            let (index, failure) = match state.exited.pop_front() {
+            let (index, exit) = match state.exited.pop_front() {
                 Some(exit) => exit,
                 None => tokio::select! {
                     _ = shutdown.cancelled() => {
@@ -200,18 +201,16 @@ impl Supervisor {
                     },
                 },
             };
-            let child = self.children[index].name.clone();
-            error!(supervisor = %self.name, component = %child, failure = %failure, "component failed");
-
-            let now = Instant::now();
-            restarts.push_back(now);
-            while restarts
-                .front()
-                .is_some_and(|t| now.duration_since(*t) > self.intensity.period)
-            {
-                restarts.pop_front();
+            let spec = &self.children[index];
+            let child = spec.name.clone();
+            if !spec.restart.restarts(exit.normally) {
+                state.done[index] = true;
+                info!(supervisor = %self.name, component = %child, restart = %spec.restart, how = %exit.why, "component ended; not restarted");
+                continue;
             }
-            if restarts.len() > self.intensity.max_restarts as usize {
+            let failure = exit.why;
+            error!(supervisor = %self.name, component = %child, failure = %failure, "component failed");
+            if !window.allow(Instant::now()) {
                 error!(supervisor = %self.name, component = %child, max_restarts = self.intensity.max_restarts, period = ?self.intensity.period, "restart intensity exceeded; stopping");
                 state.stop_from(0).await;
                 return Err(SupervisorError::IntensityExceeded {
@@ -236,7 +235,7 @@ impl Supervisor {
                 if self.strategy == Strategy::OneForOne && i != index {
                     continue;
                 }
-                if state.running[i].is_none() {
+                if state.running[i].is_none() && !state.done[i] {
                     warn!(supervisor = %self.name, component = %self.children[i].name, strategy = ?self.strategy, "restarting component");
                     state.start(i);
                 }
@@ -249,8 +248,18 @@ struct State<'a> {
     supervisor: &'a Supervisor,
     set: JoinSet<Result<(), ChildError>>,
     running: Vec<Option<Running>>,
+    /// Children that ended and are not to be restarted (transient or temporary).
+    done: Vec<bool>,
     /// Children that exited and still await the strategy's decision.
-    exited: VecDeque<(usize, String)>,
+    exited: VecDeque<(usize, Exit)>,
+}
+
+/// How a child ended.
+struct Exit {
+    /// It returned `Ok` (rather than an error, a panic or an abort).
+    normally: bool,
+    /// For the log.
+    why: String,
 }
 
 impl State<'_> {
@@ -272,19 +281,20 @@ impl State<'_> {
     fn record_exit(
         &mut self,
         joined: Result<(Id, Result<(), ChildError>), tokio::task::JoinError>,
-    ) -> Option<(usize, String)> {
-        let (id, failure) = match joined {
-            Ok((id, Ok(()))) => (id, "returned while the holon runs".to_string()),
-            Ok((id, Err(e))) => (id, e.to_string()),
+    ) -> Option<(usize, Exit)> {
+        let (id, normally, why) = match joined {
+            Ok((id, Ok(()))) => (id, true, "returned while the holon runs".to_string()),
+            Ok((id, Err(e))) => (id, false, e.to_string()),
             Err(e) if e.is_panic() => {
                 let id = e.id();
-                (id, format!("panicked: {}", panic_message(e.into_panic())))
+                let why = format!("panicked: {}", panic_message(e.into_panic()));
+                (id, false, why)
             }
-            Err(e) => (e.id(), "aborted".to_string()),
+            Err(e) => (e.id(), false, "aborted".to_string()),
         };
         let index = self.index_of(id)?;
         self.running[index] = None;
-        Some((index, failure))
+        Some((index, Exit { normally, why }))
     }
 
     /// Stops every running child from `first` on, last first, each within its timeout.
@@ -552,5 +562,81 @@ mod tests {
             .unwrap()
             .unwrap()
             .unwrap();
+    }
+
+    /// A child whose n-th run (1-based) fails for n in `failing`, ends normally
+    /// otherwise; counts its runs.
+    fn counted(name: &'static str, runs: Arc<Mutex<u32>>, failing: &'static [u32]) -> ChildSpec {
+        ChildSpec::new(name, move |_token: CancellationToken| {
+            let runs = runs.clone();
+            async move {
+                let n = {
+                    let mut r = runs.lock().unwrap();
+                    *r += 1;
+                    *r
+                };
+                if failing.contains(&n) {
+                    Err(format!("run {n} fails").into())
+                } else {
+                    Ok(())
+                }
+            }
+        })
+    }
+
+    #[tokio::test]
+    async fn a_transient_child_is_restarted_after_a_failure_not_after_it_is_done() {
+        let runs = Arc::new(Mutex::new(0));
+        let spec = counted("transient", runs.clone(), &[1]).restart(RestartType::Transient);
+        let shutdown = CancellationToken::new();
+        let task = tokio::spawn(
+            Supervisor::new("t", Strategy::OneForOne, Intensity::default())
+                .child(spec)
+                .run(shutdown.clone()),
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        assert_eq!(
+            *runs.lock().unwrap(),
+            2,
+            "failed once, restarted, then done"
+        );
+        assert!(
+            !task.is_finished(),
+            "a done child does not stop its supervisor"
+        );
+        shutdown.cancel();
+        task.await.unwrap().unwrap();
+    }
+
+    #[tokio::test]
+    async fn a_temporary_child_is_never_restarted_and_a_permanent_one_always() {
+        let temporary = Arc::new(Mutex::new(0));
+        let permanent = Arc::new(Mutex::new(0));
+        let shutdown = CancellationToken::new();
+        let task = tokio::spawn(
+            Supervisor::new(
+                "t",
+                Strategy::OneForOne,
+                Intensity {
+                    max_restarts: 3,
+                    period: Duration::from_secs(10),
+                },
+            )
+            .child(counted("temporary", temporary.clone(), &[1]).restart(RestartType::Temporary))
+            .child(counted("permanent", permanent.clone(), &[]))
+            .run(shutdown.clone()),
+        );
+        // The permanent child ends normally every run: restarted until the intensity
+        // (3 restarts) is exceeded on its fourth end.
+        let result = tokio::time::timeout(Duration::from_secs(2), task)
+            .await
+            .unwrap()
+            .unwrap();
+        assert!(
+            matches!(result, Err(SupervisorError::IntensityExceeded { .. })),
+            "{result:?}"
+        );
+        assert_eq!(*temporary.lock().unwrap(), 1);
+        assert_eq!(*permanent.lock().unwrap(), 4);
     }
 }

@@ -167,3 +167,55 @@ fn cell_up_refuses_a_bad_manifest() {
     assert!(!output.status.success());
     assert!(String::from_utf8_lossy(&output.stderr).contains("no [hosts.far] section"));
 }
+
+#[test]
+fn cell_up_follows_each_process_restart_type() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("cell.toml"),
+        r#"
+cell = "t-up3"
+[restart]
+max_restarts = 2
+period_ms = 60000
+backoff_initial_ms = 50
+[[process]]
+name = "one-shot"
+program = "sh"
+args = ["-c", "exit 0"]
+restart = "transient"
+[[process]]
+name = "best-effort"
+program = "sh"
+args = ["-c", "exit 4"]
+restart = "temporary"
+[[process]]
+name = "crasher"
+program = "sh"
+args = ["-c", "sleep 0.3; exit 3"]
+restart = "transient"
+"#,
+    )
+    .unwrap();
+    let output = Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    // The transient process that failed is restarted until the intensity gives up; the
+    // one whose work is done and the temporary one are never restarted.
+    assert_eq!(output.status.code(), Some(1), "{stdout}");
+    assert_eq!(stdout.matches("started crasher").count(), 3, "{stdout}");
+    assert_eq!(stdout.matches("started one-shot").count(), 1, "{stdout}");
+    assert_eq!(stdout.matches("started best-effort").count(), 1, "{stdout}");
+    assert!(
+        stdout.contains("one-shot exited (exit status: 0); transient processes are not restarted"),
+        "{stdout}"
+    );
+    assert!(
+        stdout
+            .contains("best-effort exited (exit status: 4); temporary processes are not restarted"),
+        "{stdout}"
+    );
+}

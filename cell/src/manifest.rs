@@ -1,0 +1,294 @@
+//! The manifest of a cell, `DIR/cell.toml`: its processes, routers, hosts, restart
+//! policy and PKI. `cell up` runs it, `cell certs` issues its identities; the format is
+//! documented in `deploy/cells/demo/cell.toml`.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use holon::RestartType;
+use serde::Deserialize;
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    pub cell: String,
+    /// The router of host `local` (the manifests of one-host cells).
+    #[serde(default)]
+    pub router: Option<RouterSection>,
+    /// Per host: its router (`[hosts.<name>.router]`).
+    #[serde(default)]
+    pub hosts: std::collections::BTreeMap<String, HostSection>,
+    #[serde(default)]
+    pub restart: RestartSection,
+    /// The cell's identities for mutual TLS (`cell certs`); see docs/security.md.
+    #[serde(default)]
+    pub pki: PkiSection,
+    #[serde(rename = "process")]
+    pub processes: Vec<ProcessSection>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RouterSection {
+    pub listen: Vec<String>,
+    /// Other hosts' routers.
+    #[serde(default)]
+    pub connect: Vec<String>,
+    /// The link lease in ms.
+    #[serde(default)]
+    pub lease_ms: Option<u64>,
+}
+
+impl RouterSection {
+    /// The router's zenoh settings; with `tls/` endpoints, mutual TLS and the cell's
+    /// access control from the PKI directory `pki` (identity `router.<host>`).
+    pub fn settings(&self, pki: &Path) -> holon::ZenohSettings {
+        let secure = self
+            .listen
+            .iter()
+            .chain(&self.connect)
+            .any(|e| e.starts_with("tls/"));
+        holon::ZenohSettings {
+            mode: "router".into(),
+            listen: self.listen.clone(),
+            connect: self.connect.clone(),
+            lease_ms: self.lease_ms,
+            tls: secure.then(|| holon::tls::TlsSettings {
+                pki: Some(pki.to_path_buf()),
+                ..holon::tls::TlsSettings::default()
+            }),
+            ..holon::ZenohSettings::default()
+        }
+    }
+}
+
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HostSection {
+    #[serde(default)]
+    pub router: Option<RouterSection>,
+    /// The host's addresses (IPs or DNS names) other processes reach it by; they go
+    /// into the certificates of its processes (besides its router's listen addresses).
+    #[serde(default)]
+    pub addresses: Vec<String>,
+}
+
+/// `[pki]`: where `cell certs` writes the identities, and which identities exist
+/// besides the processes' (`identity` of each `[[process]]`, `router.<host>` for each
+/// router).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PkiSection {
+    /// The PKI directory, relative to the manifest's (default "pki").
+    #[serde(default = "d_pki_dir")]
+    pub dir: PathBuf,
+    /// Operators (`operator.<name>`): submit and cancel orders, read everything.
+    #[serde(default = "d_default_name")]
+    pub operators: Vec<String>,
+    /// Observers (`observer.<name>`): read states, plans and presence only.
+    #[serde(default = "d_default_name")]
+    pub observers: Vec<String>,
+    /// Identities provisioned ahead for holons not started yet (hot-add), e.g.
+    /// `resource.robot3`: the running processes' access control knows them already.
+    #[serde(default)]
+    pub spares: Vec<String>,
+    /// Validity of each issued certificate, in days (default 365).
+    #[serde(default = "d_days")]
+    pub days: u32,
+}
+
+fn d_pki_dir() -> PathBuf {
+    PathBuf::from("pki")
+}
+fn d_default_name() -> Vec<String> {
+    vec!["default".into()]
+}
+fn d_days() -> u32 {
+    365
+}
+
+impl Default for PkiSection {
+    fn default() -> Self {
+        PkiSection {
+            dir: d_pki_dir(),
+            operators: d_default_name(),
+            observers: d_default_name(),
+            spares: Vec::new(),
+            days: d_days(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RestartSection {
+    #[serde(default = "d_max")]
+    pub max_restarts: u32,
+    #[serde(default = "d_period")]
+    pub period_ms: u64,
+    #[serde(default = "d_backoff")]
+    pub backoff_initial_ms: u64,
+    #[serde(default = "d_backoff_max")]
+    pub backoff_max_ms: u64,
+    #[serde(default = "d_stop")]
+    pub stop_timeout_ms: u64,
+}
+
+fn d_max() -> u32 {
+    10
+}
+fn d_period() -> u64 {
+    60_000
+}
+fn d_backoff() -> u64 {
+    250
+}
+fn d_backoff_max() -> u64 {
+    10_000
+}
+fn d_stop() -> u64 {
+    40_000
+}
+
+impl Default for RestartSection {
+    fn default() -> Self {
+        RestartSection {
+            max_restarts: d_max(),
+            period_ms: d_period(),
+            backoff_initial_ms: d_backoff(),
+            backoff_max_ms: d_backoff_max(),
+            stop_timeout_ms: d_stop(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProcessSection {
+    pub name: String,
+    pub program: String,
+    #[serde(default)]
+    pub args: Vec<String>,
+    /// Which host runs it (default `local`): `cell up --host NAME` starts the
+    /// processes of host NAME.
+    #[serde(default = "d_host")]
+    pub host: String,
+    /// Its TLS identity, `<role>.<name>` (e.g. `resource.robot1`): `cell certs` issues
+    /// its certificate. Controllers' simulators have none.
+    #[serde(default)]
+    pub identity: Option<String>,
+    /// When it is restarted: `permanent` (default: whenever it exits), `transient`
+    /// (only when it fails; exit status 0 means its work is done) or `temporary` (never).
+    #[serde(default)]
+    pub restart: RestartType,
+}
+
+fn d_host() -> String {
+    "local".into()
+}
+
+impl Manifest {
+    pub fn load(dir: &Path) -> Result<Manifest> {
+        let path = dir.join("cell.toml");
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("cannot read {}", path.display()))?;
+        let manifest: Manifest =
+            toml::from_str(&text).with_context(|| format!("{}", path.display()))?;
+        schemas::validate_name("cell name", &manifest.cell)
+            .with_context(|| format!("{}: cell", path.display()))?;
+        if manifest.processes.is_empty() {
+            bail!("{}: no [[process]]", path.display());
+        }
+        for host in manifest.hosts.keys() {
+            schemas::validate_name("host name", host)
+                .with_context(|| format!("{}: hosts", path.display()))?;
+        }
+        let mut names = std::collections::HashSet::new();
+        for p in &manifest.processes {
+            schemas::validate_name("process name", &p.name)
+                .with_context(|| format!("{}: process", path.display()))?;
+            if let Some(identity) = &p.identity {
+                crate::access::parse_identity(identity)
+                    .with_context(|| format!("{}: process {}", path.display(), p.name))?;
+            }
+            if !names.insert(&p.name) {
+                bail!("{}: process {} appears twice", path.display(), p.name);
+            }
+            if p.host != "local" && !manifest.hosts.contains_key(&p.host) {
+                bail!(
+                    "{}: process {} runs on host {:?}, which has no [hosts.{}] section",
+                    path.display(),
+                    p.name,
+                    p.host,
+                    p.host
+                );
+            }
+        }
+        if manifest.restart.backoff_initial_ms == 0 || manifest.restart.period_ms == 0 {
+            bail!("{}: restart periods must be greater than 0", path.display());
+        }
+        Ok(manifest)
+    }
+
+    /// The part of the manifest host `host` runs: its router, if it has one, and the
+    /// manifest with only its processes.
+    pub fn for_host(mut self, host: &str) -> Result<(Manifest, Option<RouterSection>)> {
+        let router = if host == "local" {
+            self.router.clone()
+        } else {
+            match self.hosts.get(host) {
+                Some(section) => section.router.clone(),
+                None => bail!("the manifest has no host {host:?}; {}", self.hosts_hint()),
+            }
+        };
+        self.processes.retain(|p| p.host == host);
+        if self.processes.is_empty() && router.is_none() {
+            bail!(
+                "the manifest gives host {host:?} nothing to run; {}",
+                self.hosts_hint()
+            );
+        }
+        Ok((self, router))
+    }
+
+    /// Which hosts the manifest knows, for an operator who named another.
+    fn hosts_hint(&self) -> String {
+        let mut hosts: Vec<&str> = Vec::new();
+        if self.router.is_some() || self.processes.iter().any(|p| p.host == "local") {
+            hosts.push("local");
+        }
+        hosts.extend(self.hosts.keys().map(String::as_str));
+        format!(
+            "its hosts are {} (cell up DIR --host NAME)",
+            hosts.join(", ")
+        )
+    }
+
+    /// The restart intensity of `[restart]`, all processes together.
+    pub fn intensity(&self) -> holon::Intensity {
+        holon::Intensity {
+            max_restarts: self.restart.max_restarts,
+            period: std::time::Duration::from_millis(self.restart.period_ms),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_demo_manifest_loads() {
+        let dir = Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../deploy/cells/demo"));
+        let manifest = Manifest::load(dir).unwrap();
+        assert_eq!(manifest.cell, "demo");
+        let names: Vec<&str> = manifest.processes.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(names.first(), Some(&"robot1-sim"));
+        assert_eq!(names.last(), Some(&"orders1"));
+        assert_eq!(manifest.restart.max_restarts, 10);
+        assert!(manifest
+            .processes
+            .iter()
+            .all(|p| p.restart == RestartType::Permanent));
+    }
+}
