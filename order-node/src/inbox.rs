@@ -16,13 +16,13 @@ use tokio::sync::mpsc;
 use tracing::{info, warn};
 use zenoh::query::Query;
 
-/// A result in an order's inbox, with the query to acknowledge once it is recorded.
-pub struct Delivery {
+/// A result reported to an order, with the query to acknowledge once it is recorded.
+pub struct ResultReport {
     pub message: Service,
     pub query: Query,
 }
 
-impl Delivery {
+impl ResultReport {
     /// Acknowledges the result: the resource stops delivering it.
     pub async fn acknowledge(self) {
         let mut ack = self.message.clone();
@@ -48,17 +48,22 @@ impl Delivery {
     }
 }
 
+/// How many results may wait in one order's inbox; more are refused `unavailable` (the
+/// resource sends them again after its pause).
+pub const INBOX_CAPACITY: usize = 16;
+
 /// The inboxes of the running orders, by order name.
 #[derive(Default)]
 pub struct Inboxes {
-    open: Mutex<HashMap<String, mpsc::UnboundedSender<Delivery>>>,
+    open: Mutex<HashMap<String, mpsc::Sender<ResultReport>>>,
 }
 
 /// An open inbox: results for its order arrive here until it is dropped.
 pub struct Inbox {
     name: String,
     inboxes: Arc<Inboxes>,
-    pub deliveries: mpsc::UnboundedReceiver<Delivery>,
+    /// Results for the order, at most [`INBOX_CAPACITY`] waiting.
+    pub reports: mpsc::Receiver<ResultReport>,
 }
 
 impl Drop for Inbox {
@@ -74,7 +79,7 @@ impl Drop for Inbox {
 impl Inboxes {
     /// Opens the inbox of `order` (replacing one left by an earlier task of it).
     pub fn open(self: &Arc<Self>, order: &HolonId) -> Inbox {
-        let (sender, deliveries) = mpsc::unbounded_channel();
+        let (sender, reports) = mpsc::channel(INBOX_CAPACITY);
         self.open
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -82,7 +87,7 @@ impl Inboxes {
         Inbox {
             name: order.name().to_string(),
             inboxes: self.clone(),
-            deliveries,
+            reports,
         }
     }
 
@@ -105,7 +110,7 @@ impl Inboxes {
             .payload()
             .map(|p| p.to_bytes().into_owned())
             .unwrap_or_default();
-        let refusal = match Service::from_json(&payload) {
+        let (query, refusal) = match Service::from_json(&payload) {
             Ok(message)
                 if HolonId::order(&name).ok().as_ref() == Some(&message.requester)
                     && matches!(
@@ -114,23 +119,37 @@ impl Inboxes {
                     ) =>
             {
                 info!(holon = %message.requester, conversation_id = %message.conversation_id, message_type = %message.message_type, provider = %message.provider.as_ref().map(|p| p.to_string()).unwrap_or_default(), reason = message.reason.as_deref().unwrap_or(""), "received");
-                if let Err(returned) = sender.send(Delivery { message, query }) {
+                match sender.try_send(ResultReport { message, query }) {
+                    Ok(()) => return None,
                     // The order's task ended between the lookup and the send: the node
                     // answers as for an order that is not running.
-                    return Some(returned.0.query);
+                    Err(mpsc::error::TrySendError::Closed(returned)) => {
+                        return Some(returned.query)
+                    }
+                    // The order is far behind (a resource repeating results faster than
+                    // the order records them): refused, the resource sends it again.
+                    Err(mpsc::error::TrySendError::Full(returned)) => {
+                        warn!(order = %name, conversation_id = %returned.message.conversation_id, "the order's inbox is full: result refused, the resource sends it again");
+                        (returned.query, schemas::ErrorReply::new("unavailable", format!("{INBOX_CAPACITY} results are waiting for this order; send it again later")))
+                    }
                 }
-                return None;
             }
-            Ok(other) => schemas::ErrorReply::new(
-                "wrong_key",
-                format!(
-                    "{} for {} is not for this inbox",
-                    other.message_type, other.requester
+            Ok(other) => (
+                query,
+                schemas::ErrorReply::new(
+                    "wrong_key",
+                    format!(
+                        "{} for {} is not for this inbox",
+                        other.message_type, other.requester
+                    ),
                 ),
             ),
             Err(err) => {
                 warn!(order = %name, bytes = payload.len(), error = %err, "undecodable message in the inbox refused");
-                schemas::ErrorReply::new("malformed", err.to_string())
+                (
+                    query,
+                    schemas::ErrorReply::new("malformed", err.to_string()),
+                )
             }
         };
         if let Err(e) = query.reply_err(refusal.to_json()).wait() {

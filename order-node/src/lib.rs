@@ -1,9 +1,22 @@
 //! order-node: the process that hosts order holons (work orders), one supervised task
-//! each. [`progress`] is the pure part of an order (what comes next after each step),
-//! [`order`] the conversations, [`inbox`] where results reach them, [`node`] the host.
+//! each.
+//!
+//! - [`progress`]: an order's progress through its plan, and what comes next after each
+//!   step's outcome (pure);
+//! - [`attempt`]: one attempt of one step, proposal to result (a pure state machine);
+//! - [`order`]: an order's task, which performs the attempts' actions;
+//! - [`requests`]: the order's requests over zenoh; [`order_token`]: its presence;
+//! - [`presence`]: which resources are alive and whose turn it is on each;
+//! - [`inbox`]: where results reach the running orders;
+//! - [`context`]: what the orders of a node share; [`node`]: the host process.
 
+pub mod attempt;
 pub mod config;
+pub mod context;
 pub mod inbox;
 pub mod node;
 pub mod order;
+pub mod order_token;
+pub mod presence;
 pub mod progress;
+pub mod requests;

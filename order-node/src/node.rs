@@ -19,15 +19,26 @@ use zenoh::key_expr::KeyExpr;
 use zenoh::query::Query;
 
 use crate::config::OrderNodeConfig;
-use crate::order::{self, OrderContext, Presence, ORDER_RECORD};
+use crate::context::{OrderContext, OrderError, MAX_CONCURRENT_ROUNDS, ORDER_RECORD};
+use crate::order;
+use crate::presence::Presence;
 use crate::progress::OrderProgress;
 use holon::journal::Journal;
+use holon::{Intensity, RestartWindow};
 
-/// Restarts of one order task before the order is failed.
-const MAX_ORDER_RESTARTS: u32 = 3;
+/// An order task may fail and be restarted at most this often (the project's one
+/// restart policy, [`holon::restart`]: order tasks are transient children); past it the
+/// order fails.
+const ORDER_RESTARTS: Intensity = Intensity {
+    max_restarts: 3,
+    period: Duration::from_secs(60),
+};
+
+/// How many queries wait for the node's loop before new ones are refused `unavailable`.
+const QUERY_QUEUE: usize = 1024;
 
 #[derive(Debug, thiserror::Error)]
-pub enum NodeError {
+pub enum OrderNodeError {
     #[error(transparent)]
     Session(#[from] holon::session::SessionError),
     #[error("zenoh: {0}")]
@@ -53,13 +64,14 @@ const NEXT_RECORD: (&str, &str) = ("meta", "next_order");
 /// The running order tasks, and which order each one runs.
 #[derive(Default)]
 struct Tasks {
-    set: JoinSet<Result<(), order::OrderError>>,
+    set: JoinSet<Result<(), OrderError>>,
     names: std::collections::HashMap<tokio::task::Id, String>,
 }
 
 struct Hosted {
     progress: Arc<Mutex<OrderProgress>>,
-    restarts: u32,
+    /// The task's restarts, against [`ORDER_RESTARTS`].
+    restarts: RestartWindow,
     /// Cancelled when an operator cancels the order (`cell cancel`).
     operator_cancel: CancellationToken,
 }
@@ -125,7 +137,7 @@ impl Host {
                 name.to_string(),
                 Hosted {
                     progress: progress.clone(),
-                    restarts: 0,
+                    restarts: RestartWindow::new(ORDER_RESTARTS),
                     operator_cancel,
                 },
             );
@@ -251,12 +263,12 @@ impl Host {
 }
 
 /// Parses `PRODUCT:COUNT` (or `PRODUCT`, count 1) from the command line.
-pub fn parse_submit(text: &str) -> Result<WorkOrder, NodeError> {
+pub fn parse_submit(text: &str) -> Result<WorkOrder, OrderNodeError> {
     let (product, count) = match text.split_once(':') {
         Some((p, c)) => (
             p,
             c.parse::<u32>().map_err(|_| {
-                NodeError::WorkOrder(format!("{text:?}: COUNT must be a positive number"))
+                OrderNodeError::WorkOrder(format!("{text:?}: COUNT must be a positive number"))
             })?,
         ),
         None => (text, 1),
@@ -270,15 +282,45 @@ pub fn parse_submit(text: &str) -> Result<WorkOrder, NodeError> {
         queue: true,
     };
     work.validate()
-        .map_err(|e| NodeError::WorkOrder(format!("{text:?}: {e}")))?;
+        .map_err(|e| OrderNodeError::WorkOrder(format!("{text:?}: {e}")))?;
     Ok(work)
 }
 
-enum Incoming {
+/// A query to the node, by the queryable it came to.
+enum NodeQuery {
     Cancel(Query),
     Submit(Query),
     State(Query),
     Inbox(Query),
+}
+
+/// Queues a query for the node's loop from a queryable's callback (which must not
+/// block): refused `unavailable` when [`QUERY_QUEUE`] are already waiting.
+fn enqueue(queue: &mpsc::Sender<NodeQuery>, query: NodeQuery) {
+    use zenoh::Wait;
+    match queue.try_send(query) {
+        Ok(()) => {}
+        Err(mpsc::error::TrySendError::Full(
+            NodeQuery::Cancel(query)
+            | NodeQuery::Submit(query)
+            | NodeQuery::State(query)
+            | NodeQuery::Inbox(query),
+        )) => {
+            warn!(key = %query.key_expr(), "{QUERY_QUEUE} queries are waiting for the order-node: this one is refused unavailable");
+            let busy = schemas::ErrorReply::new(
+                "unavailable",
+                format!(
+                    "{QUERY_QUEUE} requests are waiting for this order-node; ask again shortly"
+                ),
+            );
+            if let Err(e) = query.reply_err(busy.to_json()).wait() {
+                warn!(error = %e, "cannot refuse a query; the asker times out");
+            }
+        }
+        Err(mpsc::error::TrySendError::Closed(_)) => {
+            debug!("a query arrived while the order-node stops: left unanswered, the asker times out or delivers again")
+        }
+    }
 }
 
 /// Runs the order-node until `shutdown` is cancelled.
@@ -286,8 +328,8 @@ pub async fn run(
     config: OrderNodeConfig,
     submits: Vec<WorkOrder>,
     shutdown: CancellationToken,
-) -> Result<(), NodeError> {
-    let z = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
+) -> Result<(), OrderNodeError> {
+    let z = |e: zenoh::Error| OrderNodeError::Zenoh(holon::zenoh_error::describe(&e));
     let session = config
         .zenoh
         .open(
@@ -304,7 +346,7 @@ pub async fn run(
         Duration::from_secs(10),
     )
     .await?;
-    let presence = Presence::watch(&session, &config.keys).await.map_err(z)?;
+    let presence = Presence::follow(&session, &config.keys).await.map_err(z)?;
     let journal = match &config.data_dir {
         Some(dir) => Some(Arc::new(Journal::open(
             dir,
@@ -331,7 +373,7 @@ pub async fn run(
         settings: config.orders,
         presence,
         inboxes: Default::default(),
-        rounds: tokio::sync::Semaphore::new(order::MAX_CONCURRENT_ROUNDS),
+        rounds: tokio::sync::Semaphore::new(MAX_CONCURRENT_ROUNDS),
         idle: Default::default(),
         journal,
         journal_failing: Default::default(),
@@ -342,22 +384,22 @@ pub async fn run(
         orders: Mutex::new(BTreeMap::new()),
         next: AtomicU64::new(next),
     });
-    let (incoming_tx, mut incoming) = mpsc::unbounded_channel();
-    let submit_tx = incoming_tx.clone();
-    let inbox_tx = incoming_tx.clone();
-    let cancel_tx = incoming_tx.clone();
+    let (queue, mut queries) = mpsc::channel(QUERY_QUEUE);
+    let submit_tx = queue.clone();
+    let inbox_tx = queue.clone();
+    let cancel_tx = queue.clone();
     let _submit = session
         .declare_queryable(config.keys.orders_submit())
         .complete(true)
         .callback(move |query| {
-            let _ = submit_tx.send(Incoming::Submit(query));
+            enqueue(&submit_tx, NodeQuery::Submit(query));
         })
         .await
         .map_err(z)?;
     let _states = session
         .declare_queryable(config.keys.node_orders(&config.name, "state"))
         .callback(move |query| {
-            let _ = incoming_tx.send(Incoming::State(query));
+            enqueue(&queue, NodeQuery::State(query));
         })
         .await
         .map_err(z)?;
@@ -369,9 +411,7 @@ pub async fn run(
         .declare_queryable(config.keys.node_orders(&config.name, "inbox"))
         .callback(move |query| {
             if let Some(query) = inboxes.route(query) {
-                if inbox_tx.send(Incoming::Inbox(query)).is_err() {
-                    debug!("a result arrived while the node stops: left unanswered, the resource delivers it again");
-                }
+                enqueue(&inbox_tx, NodeQuery::Inbox(query));
             }
         })
         .await
@@ -379,7 +419,7 @@ pub async fn run(
     let _cancels = session
         .declare_queryable(config.keys.node_orders(&config.name, "cancel"))
         .callback(move |query| {
-            let _ = cancel_tx.send(Incoming::Cancel(query));
+            enqueue(&cancel_tx, NodeQuery::Cancel(query));
         })
         .await
         .map_err(z)?;
@@ -410,13 +450,15 @@ pub async fn run(
     loop {
         tokio::select! {
             _ = shutdown.cancelled() => break,
-            Some(query) = incoming.recv() => match query {
-                Incoming::Submit(query) => submit(&host, query, &mut tasks, &orders_cancel).await,
-                Incoming::Inbox(query) => acknowledge_finished(&host, query).await,
-                Incoming::Cancel(query) => cancel(&host, query).await,
-                Incoming::State(query) => {
+            Some(query) = queries.recv() => match query {
+                NodeQuery::Submit(query) => submit(&host, query, &mut tasks, &orders_cancel).await,
+                NodeQuery::Inbox(query) => acknowledge_finished(&host, query).await,
+                NodeQuery::Cancel(query) => cancel(&host, query).await,
+                NodeQuery::State(query) => {
                     for (key, payload) in host.snapshots_matching(query.key_expr()) {
-                        let _ = query.reply(key, payload).await;
+                        if let Err(e) = query.reply(&key, payload).await {
+                            warn!(node = %config.name, %key, error = %e, "cannot answer a state read; the reader gets fewer orders");
+                        }
                     }
                 }
             },
@@ -426,7 +468,7 @@ pub async fn run(
                         tasks.names.remove(&id);
                         continue;
                     }
-                    Ok((id, Err(order::OrderError::Journal(why)))) => {
+                    Ok((id, Err(OrderError::Journal(why)))) => {
                         // Not the order's fault: resumed from its last written progress
                         // once the journal can write again (tried every second), not
                         // counted against its restarts.
@@ -450,7 +492,7 @@ pub async fn run(
                 };
                 let Some(name) = tasks.names.remove(&id) else { continue };
                 error!(node = %config.name, order = %name, error = %why, "order task failed");
-                restart(&host, &name, &mut tasks, &orders_cancel);
+                restart(&host, &name, &mut tasks, &orders_cancel).await;
             }
         }
     }
@@ -466,23 +508,35 @@ pub async fn run(
     Ok(())
 }
 
-fn restart(host: &Host, name: &str, tasks: &mut Tasks, cancel: &CancellationToken) {
-    let mut orders = host.orders.lock().unwrap_or_else(|e| e.into_inner());
-    let Some(hosted) = orders.get_mut(name) else {
-        return;
+/// Restarts a failed order task, unless it failed more often than [`ORDER_RESTARTS`]
+/// allows: then the order fails, recorded in the journal and published, so it does not
+/// resume after a restart of the node.
+async fn restart(host: &Host, name: &str, tasks: &mut Tasks, cancel: &CancellationToken) {
+    let (progress, allowed) = {
+        let mut orders = host.orders.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(hosted) = orders.get_mut(name) else {
+            return;
+        };
+        (
+            hosted.progress.clone(),
+            hosted.restarts.allow(tokio::time::Instant::now()),
+        )
     };
-    hosted.restarts += 1;
-    let progress = hosted.progress.clone();
-    if hosted.restarts > MAX_ORDER_RESTARTS {
-        progress
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .fail(format!("the order task failed {MAX_ORDER_RESTARTS} times"));
+    if allowed {
+        warn!(order = %name, "restarting order");
+        host.spawn(name, progress, tasks, cancel, Duration::ZERO);
         return;
     }
-    warn!(order = %name, restarts = hosted.restarts, "restarting order");
-    drop(orders);
-    host.spawn(name, progress, tasks, cancel, Duration::ZERO);
+    let why = format!(
+        "the order task failed more than {} times within {:?}",
+        ORDER_RESTARTS.max_restarts, ORDER_RESTARTS.period
+    );
+    error!(order = %name, reason = %why, "order failed");
+    if let Err(e) = host.context.commit(&progress, |p| p.fail(why)) {
+        // Not recorded: the order resumes after a restart of the node, as before.
+        error!(order = %name, error = %e, "cannot record that the order failed; it stays unfinished in the journal");
+    }
+    host.context.publish(&progress).await;
 }
 
 /// Why a work order for `product` cannot be planned now: no product holon of that name

@@ -1,0 +1,589 @@
+//! One attempt of one step, as a pure state machine: `(attempt, event) -> actions`.
+//!
+//! The order's task performs the actions in order (journal writes, requests, waits)
+//! and feeds back the event the last of them produced; [`crate::order`] is that loop.
+//! The machine does no I/O and holds no clock: the caller passes `now`.
+//!
+//! | phase | event | actions | next phase |
+//! |---|---|---|---|
+//! | proposing | resumed, woken | ask proposals | proposing |
+//! | proposing | proposals: some | declare token, record booking(first), ask it | booking(first) |
+//! | proposing | proposals: none, before give-up | wait for a resource (idle) | proposing |
+//! | proposing | proposals: none, past give-up | end: no resource | — |
+//! | booking(c) | resumed | declare token, ask c again (booking is idempotent) | booking(c) |
+//! | booking(c) | accepted | record booked(c), publish, ask start | booked(c) |
+//! | booking(c) | refused or no answer, candidates left | record booking(next), ask it | booking(next) |
+//! | booking(c) | refused or no answer, resumed (no round) | record proposing, ask proposals | proposing |
+//! | booking(c) | refused or no answer, round over, before give-up | record proposing, wait (backoff) | proposing |
+//! | booking(c) | refused or no answer, round over, past give-up | record proposing, end: no resource | — |
+//! | booked(p) | resumed | declare token, ask start | booked(p) |
+//! | booked(p) | start accepted | record started(p), publish, watch (step timeout) | started(p) |
+//! | booked(p) | `busy`, no answer, `unavailable` before give-up | watch for the turn (backoff) | booked(p) |
+//! | booked(p) | `not_booked` | end: lost | — |
+//! | booked(p) | other refusal | cancel the booking, end: failed | — |
+//! | booked(p) | watched: pause over or turn | ask start | booked(p) |
+//! | booked(p) | watched: lost | cancel the booking when p is back, end: lost | — |
+//! | booked(p) | watched: another outcome | end with it | — |
+//! | started(p) | resumed | declare token, watch (step timeout) | started(p) |
+//! | started(p) | watched: an outcome | end with it | — |
+//! | started(p) | watched: pause over | end: failed, no result within the step timeout | — |
+//!
+//! Any other (phase, event) pair is a bug in the loop and changes nothing (no actions,
+//! logged by the caller). The backoff doubles with each refused round and each wait for
+//! the turn, and starts over once booked.
+
+use std::collections::VecDeque;
+use std::time::Duration;
+
+use holon::Backoff;
+use schemas::{reason, HolonId};
+use tokio::time::Instant;
+
+use crate::progress::{Phase, StepOutcome};
+
+/// How a resource answered a booking or a start.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Answer {
+    Accepted,
+    /// Refused, with its reason (one of [`schemas::reason`]).
+    Refused(Option<String>),
+    /// No answer within the request timeout, or an error reply.
+    Silent,
+}
+
+/// What the attempt reacts to.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AttemptEvent {
+    /// The attempt begins, or resumes after a restart, from its recorded phase.
+    Resumed,
+    /// A proposal round ended: these resources proposed, best first.
+    Proposals(Vec<HolonId>),
+    /// The answer to the booking request of the current phase.
+    BookingAnswer(Answer),
+    /// The answer to the start request.
+    StartAnswer(Answer),
+    /// A wait for a resource ended (its pause, an appearance, a freed place).
+    Woken,
+    /// A watch ended: `None` when its pause is over (or the resource said it is this
+    /// order's turn), else how the attempt ended.
+    Watched(Option<StepOutcome>),
+}
+
+/// What the order's task must do, in order.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AttemptAction {
+    /// Declare the order's liveliness token, if not yet: it is about to hold a booking.
+    DeclareToken,
+    /// Write this phase to the journal before going on.
+    Record(Phase),
+    /// Publish the order's state.
+    Publish,
+    /// Ask for proposals (avoiding the resources that failed this step); answers
+    /// [`AttemptEvent::Proposals`].
+    AskProposals,
+    /// Ask this resource for a booking; answers [`AttemptEvent::BookingAnswer`].
+    AskBooking(HolonId),
+    /// Ask this resource to start; answers [`AttemptEvent::StartAnswer`].
+    AskStart(HolonId),
+    /// Cancel the booking on this resource (once, whatever it answers).
+    CancelBooking(HolonId),
+    /// Cancel the booking on this resource whenever it is seen back.
+    CancelWhenBack(HolonId),
+    /// Wait `pause` (jittered; `idle`: spaced with the other idle orders), at most
+    /// until `until`, or until a resource appears or a place frees up; answers
+    /// [`AttemptEvent::Woken`].
+    Wait {
+        pause: Duration,
+        idle: bool,
+        until: Instant,
+    },
+    /// Watch the inbox and `provider`'s presence for `pause` (jittered unless
+    /// `started`); before `started` the resource's turn also ends the watch. Answers
+    /// [`AttemptEvent::Watched`].
+    Watch {
+        provider: HolonId,
+        pause: Duration,
+        started: bool,
+    },
+    /// The attempt is over.
+    End(StepOutcome),
+}
+
+/// The timing an attempt works with (from the order-node's settings).
+#[derive(Debug, Clone, Copy)]
+pub struct AttemptTiming {
+    /// The first retry pause; it doubles up to `retry_max`.
+    pub retry_interval: Duration,
+    pub retry_max: Duration,
+    /// How long an order that nobody could take waits before asking again, at most.
+    pub idle_poll: Duration,
+    /// How long the attempt may look for a resource (and accept `unavailable`).
+    pub no_resource_timeout: Duration,
+    /// How long a started step may take.
+    pub step_timeout: Duration,
+}
+
+/// One attempt's state.
+#[derive(Debug, Clone)]
+pub struct Attempt {
+    /// Where the attempt stands, as last recorded.
+    phase: Phase,
+    /// The candidates of the current round not asked yet, best first; `None` when the
+    /// booking being asked for was not chosen in a round here (resumed).
+    round: Option<VecDeque<HolonId>>,
+    /// The pause before the next retry.
+    backoff: Backoff,
+    /// When the attempt stops looking for a resource.
+    give_up: Instant,
+    timing: AttemptTiming,
+}
+
+impl Attempt {
+    /// An attempt from its recorded phase, begun (or resumed) at `now`.
+    pub fn new(phase: Phase, timing: AttemptTiming, now: Instant) -> Attempt {
+        Attempt {
+            phase,
+            round: None,
+            backoff: Backoff::new(timing.retry_interval, timing.retry_max),
+            give_up: now + timing.no_resource_timeout,
+            timing,
+        }
+    }
+
+    pub fn phase(&self) -> &Phase {
+        &self.phase
+    }
+
+    /// The machine: one event in, the actions out.
+    pub fn handle(&mut self, event: AttemptEvent, now: Instant) -> Vec<AttemptAction> {
+        use AttemptEvent as E;
+        match (self.phase.clone(), event) {
+            (Phase::Proposing, E::Resumed | E::Woken) => vec![AttemptAction::AskProposals],
+            (Phase::Proposing, E::Proposals(candidates)) => self.proposals(candidates, now),
+            (Phase::Booking(candidate), E::Resumed) => vec![
+                AttemptAction::DeclareToken,
+                AttemptAction::AskBooking(candidate),
+            ],
+            (Phase::Booking(candidate), E::BookingAnswer(Answer::Accepted)) => {
+                self.backoff.reset();
+                self.round = None;
+                self.record(Phase::Booked(candidate.clone()))
+                    .into_iter()
+                    .chain([AttemptAction::Publish, AttemptAction::AskStart(candidate)])
+                    .collect()
+            }
+            (Phase::Booking(_), E::BookingAnswer(_)) => self.next_candidate(now),
+            (Phase::Booked(provider), E::Resumed) => vec![
+                AttemptAction::DeclareToken,
+                AttemptAction::AskStart(provider),
+            ],
+            (Phase::Booked(provider), E::StartAnswer(answer)) => {
+                self.start_answer(provider, answer, now)
+            }
+            (Phase::Booked(provider), E::Watched(None)) => vec![AttemptAction::AskStart(provider)],
+            (Phase::Booked(provider), E::Watched(Some(outcome))) => {
+                let mut actions = Vec::new();
+                if matches!(outcome, StepOutcome::Lost { .. }) {
+                    // The resource vanished with the booking: if it comes back with it
+                    // (from its journal), take the booking back off its agenda.
+                    actions.push(AttemptAction::CancelWhenBack(provider));
+                }
+                actions.push(AttemptAction::End(outcome));
+                actions
+            }
+            (Phase::Started(provider), E::Resumed) => {
+                vec![AttemptAction::DeclareToken, self.watch_started(provider)]
+            }
+            (Phase::Started(_), E::Watched(Some(outcome))) => vec![AttemptAction::End(outcome)],
+            (Phase::Started(provider), E::Watched(None)) => {
+                vec![AttemptAction::End(StepOutcome::Failed {
+                    provider,
+                    reason: format!("no result within {:?}", self.timing.step_timeout),
+                })]
+            }
+            (_, _) => vec![],
+        }
+    }
+
+    /// Records `phase` (and takes it as the current one).
+    fn record(&mut self, phase: Phase) -> Vec<AttemptAction> {
+        self.phase = phase.clone();
+        vec![AttemptAction::Record(phase)]
+    }
+
+    fn proposals(&mut self, candidates: Vec<HolonId>, now: Instant) -> Vec<AttemptAction> {
+        let mut round: VecDeque<HolonId> = candidates.into();
+        let Some(first) = round.pop_front() else {
+            if now >= self.give_up {
+                return vec![AttemptAction::End(StepOutcome::NoResource)];
+            }
+            // Nobody could take it: a resource that appears, becomes ready or frees a
+            // place wakes this order, so the fallback poll can be rare.
+            return vec![AttemptAction::Wait {
+                pause: self.timing.idle_poll.max(self.timing.retry_max),
+                idle: true,
+                until: self.give_up,
+            }];
+        };
+        self.round = Some(round);
+        // Declared before the booking request: the resource must see the requester
+        // alive as soon as it holds the booking.
+        let mut actions = vec![AttemptAction::DeclareToken];
+        actions.extend(self.record(Phase::Booking(first.clone())));
+        actions.push(AttemptAction::AskBooking(first));
+        actions
+    }
+
+    /// The booking asked for was refused (or not answered): the next candidate of the
+    /// round, a new round, or a pause.
+    fn next_candidate(&mut self, now: Instant) -> Vec<AttemptAction> {
+        match self.round.as_mut().map(VecDeque::pop_front) {
+            Some(Some(next)) => {
+                let mut actions = self.record(Phase::Booking(next.clone()));
+                actions.push(AttemptAction::AskBooking(next));
+                actions
+            }
+            // Resumed with a booking that did not hold: look again at once.
+            None => {
+                let mut actions = self.record(Phase::Proposing);
+                actions.push(AttemptAction::AskProposals);
+                actions
+            }
+            Some(None) => {
+                self.round = None;
+                let mut actions = self.record(Phase::Proposing);
+                if now >= self.give_up {
+                    actions.push(AttemptAction::End(StepOutcome::NoResource));
+                } else {
+                    actions.push(AttemptAction::Wait {
+                        pause: self.backoff.next_pause(),
+                        idle: false,
+                        until: self.give_up,
+                    });
+                }
+                actions
+            }
+        }
+    }
+
+    fn start_answer(
+        &mut self,
+        provider: HolonId,
+        answer: Answer,
+        now: Instant,
+    ) -> Vec<AttemptAction> {
+        let refusal = match answer {
+            Answer::Accepted => {
+                let mut actions = self.record(Phase::Started(provider.clone()));
+                actions.push(AttemptAction::Publish);
+                actions.push(self.watch_started(provider));
+                return actions;
+            }
+            Answer::Silent => None,
+            Answer::Refused(why) => why,
+        };
+        match refusal.as_deref() {
+            None | Some(reason::BUSY) => self.watch_for_turn(provider),
+            Some(reason::UNAVAILABLE) if now < self.give_up => self.watch_for_turn(provider),
+            Some(reason::NOT_BOOKED) => vec![AttemptAction::End(StepOutcome::Lost {
+                provider,
+                why: "the booking was lost".into(),
+            })],
+            Some(other) => vec![
+                AttemptAction::CancelBooking(provider.clone()),
+                AttemptAction::End(StepOutcome::Failed {
+                    provider,
+                    reason: format!("start refused: {other}"),
+                }),
+            ],
+        }
+    }
+
+    /// Booked, not started: wait (the backoff) for the resource to say it is this
+    /// order's turn, then ask again.
+    fn watch_for_turn(&mut self, provider: HolonId) -> Vec<AttemptAction> {
+        vec![AttemptAction::Watch {
+            provider,
+            pause: self.backoff.next_pause(),
+            started: false,
+        }]
+    }
+
+    fn watch_started(&self, provider: HolonId) -> AttemptAction {
+        AttemptAction::Watch {
+            provider,
+            pause: self.timing.step_timeout,
+            started: true,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use AttemptAction as A;
+    use AttemptEvent as E;
+
+    fn robot(n: u32) -> HolonId {
+        HolonId::resource(&format!("robot{n}")).unwrap()
+    }
+
+    fn timing() -> AttemptTiming {
+        AttemptTiming {
+            retry_interval: Duration::from_millis(100),
+            retry_max: Duration::from_millis(400),
+            idle_poll: Duration::from_secs(10),
+            no_resource_timeout: Duration::from_secs(60),
+            step_timeout: Duration::from_secs(30),
+        }
+    }
+
+    fn attempt(phase: Phase) -> (Attempt, Instant) {
+        let now = Instant::now();
+        (Attempt::new(phase, timing(), now), now)
+    }
+
+    fn later(now: Instant) -> Instant {
+        now + Duration::from_secs(61)
+    }
+
+    #[test]
+    fn proposing_asks_for_proposals_when_it_begins_and_when_woken() {
+        let (mut a, now) = attempt(Phase::Proposing);
+        assert_eq!(a.handle(E::Resumed, now), vec![A::AskProposals]);
+        assert_eq!(a.handle(E::Woken, now), vec![A::AskProposals]);
+        assert_eq!(a.phase(), &Phase::Proposing);
+    }
+
+    #[test]
+    fn proposals_book_the_best_first_with_the_token_declared_before() {
+        let (mut a, now) = attempt(Phase::Proposing);
+        let actions = a.handle(E::Proposals(vec![robot(1), robot(2)]), now);
+        assert_eq!(
+            actions,
+            vec![
+                A::DeclareToken,
+                A::Record(Phase::Booking(robot(1))),
+                A::AskBooking(robot(1))
+            ]
+        );
+        assert_eq!(a.phase(), &Phase::Booking(robot(1)));
+    }
+
+    #[test]
+    fn no_proposal_waits_idle_until_give_up_then_ends_with_no_resource() {
+        let (mut a, now) = attempt(Phase::Proposing);
+        let actions = a.handle(E::Proposals(vec![]), now);
+        assert_eq!(
+            actions,
+            vec![A::Wait {
+                pause: Duration::from_secs(10),
+                idle: true,
+                until: now + Duration::from_secs(60)
+            }]
+        );
+        assert_eq!(
+            a.handle(E::Proposals(vec![]), later(now)),
+            vec![A::End(StepOutcome::NoResource)]
+        );
+    }
+
+    #[test]
+    fn an_accepted_booking_is_recorded_published_and_started() {
+        let (mut a, now) = attempt(Phase::Proposing);
+        a.handle(E::Proposals(vec![robot(1)]), now);
+        let actions = a.handle(E::BookingAnswer(Answer::Accepted), now);
+        assert_eq!(
+            actions,
+            vec![
+                A::Record(Phase::Booked(robot(1))),
+                A::Publish,
+                A::AskStart(robot(1))
+            ]
+        );
+    }
+
+    #[test]
+    fn a_refused_booking_tries_the_next_candidate_then_waits_with_a_growing_pause() {
+        let (mut a, now) = attempt(Phase::Proposing);
+        a.handle(E::Proposals(vec![robot(1), robot(2)]), now);
+        assert_eq!(
+            a.handle(
+                E::BookingAnswer(Answer::Refused(Some("agenda_full".into()))),
+                now
+            ),
+            vec![A::Record(Phase::Booking(robot(2))), A::AskBooking(robot(2))]
+        );
+        let wait = |pause| {
+            vec![
+                A::Record(Phase::Proposing),
+                A::Wait {
+                    pause,
+                    idle: false,
+                    until: now + Duration::from_secs(60),
+                },
+            ]
+        };
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Silent), now),
+            wait(Duration::from_millis(100))
+        );
+        assert_eq!(a.handle(E::Woken, now), vec![A::AskProposals]);
+        a.handle(E::Proposals(vec![robot(1)]), now);
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Silent), now),
+            wait(Duration::from_millis(200)),
+            "the pause doubles"
+        );
+        a.handle(E::Proposals(vec![robot(1)]), now);
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Silent), later(now)),
+            vec![A::Record(Phase::Proposing), A::End(StepOutcome::NoResource)]
+        );
+    }
+
+    #[test]
+    fn a_resumed_booking_is_asked_again_and_if_refused_a_new_round_starts_at_once() {
+        let (mut a, now) = attempt(Phase::Booking(robot(3)));
+        assert_eq!(
+            a.handle(E::Resumed, now),
+            vec![A::DeclareToken, A::AskBooking(robot(3))]
+        );
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Refused(None)), now),
+            vec![A::Record(Phase::Proposing), A::AskProposals]
+        );
+    }
+
+    #[test]
+    fn a_started_step_is_recorded_published_and_watched_for_the_step_timeout() {
+        let (mut a, now) = attempt(Phase::Booked(robot(1)));
+        assert_eq!(
+            a.handle(E::Resumed, now),
+            vec![A::DeclareToken, A::AskStart(robot(1))]
+        );
+        assert_eq!(
+            a.handle(E::StartAnswer(Answer::Accepted), now),
+            vec![
+                A::Record(Phase::Started(robot(1))),
+                A::Publish,
+                A::Watch {
+                    provider: robot(1),
+                    pause: Duration::from_secs(30),
+                    started: true
+                }
+            ]
+        );
+        let done = StepOutcome::Done {
+            provider: robot(1),
+            results: Default::default(),
+        };
+        assert_eq!(
+            a.handle(E::Watched(Some(done.clone())), now),
+            vec![A::End(done)]
+        );
+    }
+
+    #[test]
+    fn busy_silent_or_unavailable_waits_for_the_turn_and_asks_again() {
+        let (mut a, now) = attempt(Phase::Booked(robot(1)));
+        let watch = |ms| {
+            vec![A::Watch {
+                provider: robot(1),
+                pause: Duration::from_millis(ms),
+                started: false,
+            }]
+        };
+        assert_eq!(
+            a.handle(E::StartAnswer(Answer::Refused(Some("busy".into()))), now),
+            watch(100)
+        );
+        assert_eq!(a.handle(E::Watched(None), now), vec![A::AskStart(robot(1))]);
+        assert_eq!(a.handle(E::StartAnswer(Answer::Silent), now), watch(200));
+        assert_eq!(
+            a.handle(
+                E::StartAnswer(Answer::Refused(Some("unavailable".into()))),
+                now
+            ),
+            watch(400)
+        );
+        assert_eq!(a.phase(), &Phase::Booked(robot(1)));
+    }
+
+    #[test]
+    fn unavailable_past_give_up_cancels_and_fails() {
+        let (mut a, now) = attempt(Phase::Booked(robot(1)));
+        assert_eq!(
+            a.handle(
+                E::StartAnswer(Answer::Refused(Some("unavailable".into()))),
+                later(now)
+            ),
+            vec![
+                A::CancelBooking(robot(1)),
+                A::End(StepOutcome::Failed {
+                    provider: robot(1),
+                    reason: "start refused: unavailable".into()
+                })
+            ]
+        );
+    }
+
+    #[test]
+    fn not_booked_means_the_booking_was_lost() {
+        let (mut a, now) = attempt(Phase::Booked(robot(1)));
+        assert_eq!(
+            a.handle(
+                E::StartAnswer(Answer::Refused(Some("not_booked".into()))),
+                now
+            ),
+            vec![A::End(StepOutcome::Lost {
+                provider: robot(1),
+                why: "the booking was lost".into()
+            })]
+        );
+    }
+
+    #[test]
+    fn a_resource_lost_while_booked_gets_its_booking_cancelled_when_back() {
+        let (mut a, now) = attempt(Phase::Booked(robot(1)));
+        let lost = StepOutcome::Lost {
+            provider: robot(1),
+            why: "the resource vanished".into(),
+        };
+        assert_eq!(
+            a.handle(E::Watched(Some(lost.clone())), now),
+            vec![A::CancelWhenBack(robot(1)), A::End(lost)]
+        );
+    }
+
+    #[test]
+    fn a_started_step_without_a_result_in_time_fails() {
+        let (mut a, now) = attempt(Phase::Started(robot(2)));
+        assert_eq!(
+            a.handle(E::Resumed, now),
+            vec![
+                A::DeclareToken,
+                A::Watch {
+                    provider: robot(2),
+                    pause: Duration::from_secs(30),
+                    started: true
+                }
+            ]
+        );
+        assert_eq!(
+            a.handle(E::Watched(None), now),
+            vec![A::End(StepOutcome::Failed {
+                provider: robot(2),
+                reason: "no result within 30s".into()
+            })]
+        );
+    }
+
+    #[test]
+    fn an_event_the_phase_does_not_expect_changes_nothing() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        assert_eq!(a.handle(E::Proposals(vec![robot(2)]), now), vec![]);
+        assert_eq!(a.handle(E::BookingAnswer(Answer::Accepted), now), vec![]);
+        assert_eq!(a.phase(), &Phase::Started(robot(1)));
+    }
+}

@@ -1,0 +1,185 @@
+//! What every order of a node shares: the session, the settings, the presence of the
+//! resources, the inboxes, the journal, and the pacing of orders that wait.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use holon::journal::Journal;
+use tracing::{error, info, warn};
+
+use crate::config::OrderSettings;
+use crate::inbox::Inboxes;
+use crate::presence::Presence;
+use crate::progress::OrderProgress;
+
+/// What every order of a node shares.
+pub struct OrderContext {
+    pub session: zenoh::Session,
+    pub keys: schemas::CellKeys,
+    pub settings: OrderSettings,
+    pub presence: Arc<Presence>,
+    /// Where results reach the running orders (one queryable for the node).
+    pub inboxes: Arc<Inboxes>,
+    /// Permits for proposal rounds in flight (see [`MAX_CONCURRENT_ROUNDS`]).
+    pub rounds: tokio::sync::Semaphore,
+    /// Orders waiting after a round nobody proposed in, or for a plan (see
+    /// [`IDLE_POLL_SPACING`]).
+    pub idle: Arc<std::sync::atomic::AtomicUsize>,
+    pub journal: Option<Arc<Journal>>,
+    /// Set while journal writes fail (logged once per fault, not per order).
+    pub journal_failing: AtomicBool,
+}
+
+/// The journal kind of order records.
+pub const ORDER_RECORD: &str = "order";
+
+impl OrderContext {
+    /// Writes the order's progress; the order acts on a change only once it is written.
+    pub fn save(&self, progress: &OrderProgress) -> Result<(), OrderError> {
+        let Some(journal) = &self.journal else {
+            return Ok(());
+        };
+        // A commit may wait for an fsync: with thousands of orders writing at once that
+        // would hold every worker thread, and nothing else (SIGTERM, queries) would run.
+        // On the multi-thread runtime the worker hands its other tasks over while it waits.
+        let write = || journal.put(ORDER_RECORD, progress.holon.name(), progress);
+        let multi_thread = tokio::runtime::Handle::try_current()
+            .is_ok_and(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread);
+        let written = if multi_thread {
+            tokio::task::block_in_place(write)
+        } else {
+            write()
+        };
+        match written {
+            Ok(()) => {
+                if self.journal_failing.swap(false, Ordering::SeqCst) {
+                    info!("the journal can be written again: waiting orders resume");
+                }
+                Ok(())
+            }
+            Err(e) => {
+                if !self.journal_failing.swap(true, Ordering::SeqCst) {
+                    error!(error = %e, "the journal cannot be written: orders wait where they stand (results stay unacknowledged, so resources keep them) and resume once it can (tried every second); new work orders are refused");
+                }
+                Err(OrderError::Journal(e.to_string()))
+            }
+        }
+    }
+
+    /// Publishes an order's state on `order/<name>/state`.
+    pub async fn publish(&self, progress: &Shared) {
+        let snapshot = lock(progress).snapshot();
+        let key = self.keys.state(&snapshot.holon);
+        let payload = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
+        if let Err(e) = self.session.put(&key, payload).await {
+            warn!(holon = %snapshot.holon, error = %e, "cannot publish the order's state; it is published again at the next change");
+        }
+    }
+
+    /// Applies `change` to an order's progress once it is written: when the journal
+    /// cannot write, the progress in memory stays the last one written (a restarted
+    /// order task resumes from there, and an unacknowledged result comes again).
+    pub fn commit(
+        &self,
+        progress: &Shared,
+        change: impl FnOnce(&mut OrderProgress),
+    ) -> Result<(), OrderError> {
+        let mut p = lock(progress);
+        let mut next = p.clone();
+        change(&mut next);
+        self.save(&next)?;
+        *p = next;
+        Ok(())
+    }
+}
+
+/// Counts one order among the idle ones for as long as it lives.
+pub struct IdleOrder {
+    idle: Arc<std::sync::atomic::AtomicUsize>,
+    /// How many others were idle when it joined them.
+    others: usize,
+}
+
+impl IdleOrder {
+    /// The least pause of this order's next ask: [`IDLE_POLL_SPACING`] per other idle
+    /// order, so all of them together ask about once per spacing.
+    pub fn spacing(&self) -> Duration {
+        IDLE_POLL_SPACING * self.others.min(100_000) as u32
+    }
+
+    pub fn count(idle: &Arc<std::sync::atomic::AtomicUsize>) -> IdleOrder {
+        IdleOrder {
+            idle: idle.clone(),
+            others: idle.fetch_add(1, Ordering::SeqCst),
+        }
+    }
+}
+
+impl Drop for IdleOrder {
+    fn drop(&mut self) {
+        self.idle.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+/// Why an order task stopped before its order ended.
+#[derive(Debug, thiserror::Error)]
+pub enum OrderError {
+    /// The journal could not record a change: the task is restarted after a pause (not
+    /// counted as a failure) from the last written progress.
+    #[error("the journal cannot record the order's progress: {0}")]
+    Journal(String),
+    #[error("{0}")]
+    Other(String),
+}
+
+impl From<String> for OrderError {
+    fn from(why: String) -> Self {
+        OrderError::Other(why)
+    }
+}
+
+/// An order's progress, shared by its task and its node.
+pub type Shared = Arc<Mutex<OrderProgress>>;
+
+/// The progress, even if a task panicked while holding it (it changes only whole).
+pub fn lock(progress: &Shared) -> std::sync::MutexGuard<'_, OrderProgress> {
+    progress.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// How often an order that no resource could take asks again, at most, when nothing
+/// woke it (an appearance, a resource ready again, a freed place).
+pub const IDLE_POLL: Duration = Duration::from_secs(10);
+
+/// The fallback pause of an idle order grows with the number of idle orders, so that
+/// all of them together ask about once per this interval: 5,000 orders waiting for a
+/// missing resource ask 10 times a second in all, not 500.
+pub const IDLE_POLL_SPACING: Duration = Duration::from_millis(100);
+
+/// Proposal rounds in flight at once on a node: when a resource appears and wakes
+/// thousands of waiting orders, they ask in turn (oldest first), not all at once.
+pub const MAX_CONCURRENT_ROUNDS: usize = 64;
+
+/// `pause` less up to a quarter, at random: orders that wait together do not retry in
+/// lockstep.
+pub fn jittered(pause: Duration) -> Duration {
+    use std::hash::BuildHasher;
+    let random = std::collections::hash_map::RandomState::new().hash_one(std::time::Instant::now());
+    pause.mul_f64(1.0 - (random % 1000) as f64 / 4000.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn jitter_shortens_by_at_most_a_quarter() {
+        for _ in 0..1000 {
+            let pause = jittered(Duration::from_millis(1000));
+            assert!(
+                pause <= Duration::from_millis(1000) && pause >= Duration::from_millis(750),
+                "{pause:?}"
+            );
+        }
+    }
+}

@@ -1,0 +1,281 @@
+//! What an order-node knows of the cell's resources: which are alive, who just left or
+//! came, and whose turn it is on each free resource (from their state publications).
+//! Shared by every order of the node; fed by two subscriber callbacks.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use schemas::{HolonId, ResourceState};
+use tokio::sync::{broadcast, watch, Notify};
+use tracing::{info, warn};
+
+/// Which resources are alive, who just left or came, and whose turn it is on each
+/// free resource.
+pub struct Presence {
+    alive: Mutex<HashSet<HolonId>>,
+    changes: broadcast::Sender<(HolonId, bool)>,
+    /// Woken whenever a resource appears or becomes ready: orders that found no
+    /// resource try again.
+    appeared: watch::Sender<u64>,
+    /// One waiting order is woken per booking that leaves an agenda (started or
+    /// cancelled), so a freed place goes to one order, not to a stampede of them.
+    room: Notify,
+    /// The agenda length and whether it could take work (state not `init`), as each
+    /// resource last published.
+    published: Mutex<HashMap<HolonId, (usize, bool)>>,
+    /// Per resource, from its state publications: the conversation first on its agenda
+    /// while it is free (`None` while it is busy or has no booking). An order booked
+    /// there waits on its own resource's channel only, so a state change wakes the
+    /// orders it concerns, not all of them.
+    turns: Mutex<HashMap<HolonId, watch::Sender<Option<String>>>>,
+}
+
+impl Presence {
+    /// Follows `alive/resource/*` and `resource/*/state` for as long as the session lives.
+    pub async fn follow(
+        session: &zenoh::Session,
+        keys: &schemas::CellKeys,
+    ) -> Result<Arc<Presence>, zenoh::Error> {
+        let (changes, _) = broadcast::channel(4096);
+        let presence = Arc::new(Presence {
+            alive: Mutex::new(HashSet::new()),
+            changes,
+            appeared: watch::channel(0).0,
+            room: Notify::new(),
+            published: Mutex::new(HashMap::new()),
+            turns: Mutex::new(HashMap::new()),
+        });
+        let keys_for_callback = keys.clone();
+        let weak = Arc::downgrade(&presence);
+        session
+            .liveliness()
+            .declare_subscriber(keys.alive_kind(schemas::HolonKind::Resource))
+            .history(true)
+            .callback(move |sample| {
+                let Some(presence) = weak.upgrade() else {
+                    return;
+                };
+                let Some(holon) = keys_for_callback.holon_from_alive(sample.key_expr().as_str())
+                else {
+                    return;
+                };
+                let mut alive = presence.alive.lock().unwrap_or_else(|e| e.into_inner());
+                match sample.kind() {
+                    zenoh::sample::SampleKind::Put => {
+                        if alive.insert(holon.clone()) {
+                            info!(holon = %holon, "resource appeared");
+                            let _ = presence.changes.send((holon, true));
+                            presence.appeared.send_modify(|n| *n += 1);
+                        }
+                    }
+                    zenoh::sample::SampleKind::Delete => {
+                        alive.remove(&holon);
+                        warn!(holon = %holon, "resource vanished");
+                        let _ = presence.changes.send((holon, false));
+                    }
+                }
+            })
+            .background()
+            .await?;
+        let weak = Arc::downgrade(&presence);
+        session
+            .declare_subscriber(keys.resource_states())
+            .callback(move |sample| {
+                let Some(presence) = weak.upgrade() else {
+                    return;
+                };
+                let Ok(snapshot) = serde_json::from_slice::<schemas::ResourceSnapshot>(
+                    &sample.payload().to_bytes(),
+                ) else {
+                    return;
+                };
+                let news = {
+                    let mut published =
+                        presence.published.lock().unwrap_or_else(|e| e.into_inner());
+                    let previous = published.get(&snapshot.holon).copied();
+                    let (news, now) = read_state(previous, &snapshot);
+                    published.insert(snapshot.holon.clone(), now);
+                    news
+                };
+                presence
+                    .turn_channel(&snapshot.holon)
+                    .send_replace(news.turn);
+                if news.became_ready {
+                    // Back from a fault or first ready: as good as a new resource.
+                    presence.appeared.send_modify(|n| *n += 1);
+                }
+                for _ in 0..news.places_freed {
+                    presence.room.notify_one();
+                }
+            })
+            .background()
+            .await?;
+        // Seed the set before any order looks at it: the subscriber's history arrives
+        // asynchronously, and a resource missing from the set counts as vanished.
+        let alive = holon::presence::tokens(
+            session,
+            &keys.alive_kind(schemas::HolonKind::Resource),
+            Duration::from_secs(2),
+        )
+        .await?;
+        presence
+            .alive
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .extend(alive.iter().filter_map(|key| keys.holon_from_alive(key)));
+        Ok(presence)
+    }
+
+    pub fn is_alive(&self, holon: &HolonId) -> bool {
+        self.alive
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains(holon)
+    }
+
+    /// Appearances (true) and departures (false) from now on.
+    pub fn changes(&self) -> broadcast::Receiver<(HolonId, bool)> {
+        self.changes.subscribe()
+    }
+
+    fn turn_channel(&self, resource: &HolonId) -> watch::Sender<Option<String>> {
+        self.turns
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(resource.clone())
+            .or_insert_with(|| watch::channel(None).0)
+            .clone()
+    }
+
+    /// Completes when `resource` next publishes that it is free with `conversation_id`
+    /// first on its agenda (publications from before this call do not count).
+    pub async fn turn(&self, resource: &HolonId, conversation_id: &str) {
+        let mut turns = self.turn_channel(resource).subscribe();
+        turns.mark_unchanged();
+        while turns.changed().await.is_ok() {
+            if turns.borrow_and_update().as_deref() == Some(conversation_id) {
+                return;
+            }
+        }
+        std::future::pending::<()>().await
+    }
+
+    /// Appearances from now on: pass it to [`Presence::appeared_or_room`] after a look
+    /// for resources, so one that appears during the look is not missed.
+    pub fn appearances(&self) -> watch::Receiver<u64> {
+        self.appeared.subscribe()
+    }
+
+    /// Completes when a resource appeared (or became ready) since `appearances` was
+    /// taken, or when a booking left an agenda and this is the order woken for the place.
+    pub async fn appeared_or_room(&self, appearances: &mut watch::Receiver<u64>) {
+        tokio::select! {
+            _ = appearances.changed() => {}
+            _ = self.room.notified() => {}
+        }
+    }
+}
+
+/// What one state publication of a resource tells the orders waiting on it.
+#[derive(Debug, PartialEq, Eq)]
+struct StateNews {
+    /// The conversation whose turn it is: the resource is free and it is first on the
+    /// agenda.
+    turn: Option<String>,
+    /// The resource has just become able to take work (or is seen ready the first time).
+    became_ready: bool,
+    /// Places freed on its agenda since its previous publication.
+    places_freed: usize,
+}
+
+/// Reads a snapshot against what the resource published before (its agenda length and
+/// whether it was ready): the news, and what to remember for the next one.
+fn read_state(
+    previous: Option<(usize, bool)>,
+    snapshot: &schemas::ResourceSnapshot,
+) -> (StateNews, (usize, bool)) {
+    let (length_before, ready_before) = previous.unwrap_or((0, false));
+    let ready = snapshot.state != ResourceState::Init && snapshot.controller.is_ready();
+    let news = StateNews {
+        turn: (snapshot.state == ResourceState::Free)
+            .then(|| snapshot.agenda.first().map(|b| b.conversation_id.clone()))
+            .flatten(),
+        became_ready: ready && !ready_before,
+        places_freed: length_before.saturating_sub(snapshot.agenda.len()),
+    };
+    (news, (snapshot.agenda.len(), ready))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use schemas::{BookingView, ResourceSnapshot};
+
+    fn snapshot(state: &str, controller: &str, agenda: &[&str]) -> ResourceSnapshot {
+        ResourceSnapshot {
+            holon: HolonId::resource("robot1").unwrap(),
+            state: serde_json::from_value(state.into()).expect("a resource state"),
+            controller: serde_json::from_value(controller.into()).expect("a controller status"),
+            agenda: agenda
+                .iter()
+                .map(|c| BookingView {
+                    requester: HolonId::new(schemas::HolonKind::Order, "o-1").unwrap(),
+                    conversation_id: c.to_string(),
+                    service_type: "pick_n_place".into(),
+                    requester_absent_since: None,
+                })
+                .collect(),
+            current: None,
+            undelivered: 0,
+            services: vec!["pick_n_place".into()],
+            journal_fault: None,
+            at: 0,
+        }
+    }
+
+    #[test]
+    fn a_free_resource_gives_the_turn_to_the_first_booking() {
+        let (news, now) = read_state(
+            Some((2, true)),
+            &snapshot("free", "ready", &["a/1/1", "b/1/1"]),
+        );
+        assert_eq!(news.turn.as_deref(), Some("a/1/1"));
+        assert!(!news.became_ready);
+        assert_eq!(news.places_freed, 0);
+        assert_eq!(now, (2, true));
+    }
+
+    #[test]
+    fn a_busy_or_empty_resource_gives_no_turn() {
+        let (busy, _) = read_state(Some((1, true)), &snapshot("busy", "ready", &["a/1/1"]));
+        assert_eq!(busy.turn, None);
+        let (empty, _) = read_state(Some((0, true)), &snapshot("free", "ready", &[]));
+        assert_eq!(empty.turn, None);
+    }
+
+    #[test]
+    fn bookings_leaving_the_agenda_free_places() {
+        let (news, now) = read_state(Some((3, true)), &snapshot("busy", "ready", &["c/1/1"]));
+        assert_eq!(news.places_freed, 2);
+        assert_eq!(now, (1, true));
+        let (grew, _) = read_state(
+            Some((1, true)),
+            &snapshot("busy", "ready", &["c/1/1", "d/1/1"]),
+        );
+        assert_eq!(grew.places_freed, 0);
+    }
+
+    #[test]
+    fn readiness_is_news_once() {
+        let (first, now) = read_state(None, &snapshot("free", "ready", &[]));
+        assert!(first.became_ready, "a resource seen ready the first time");
+        let (again, _) = read_state(Some(now), &snapshot("free", "ready", &[]));
+        assert!(!again.became_ready);
+        let (fault, now) = read_state(Some(now), &snapshot("init", "fault", &[]));
+        assert!(!fault.became_ready);
+        assert_eq!(fault.turn, None);
+        let (back, _) = read_state(Some(now), &snapshot("free", "ready", &[]));
+        assert!(back.became_ready, "back from a fault");
+    }
+}
