@@ -55,3 +55,13 @@ pub fn service_json_schema() -> String {
     text.push('\n');
     text
 }
+
+/// The JSON Schema of a resource's state snapshot (`resource/<name>/state`), checked in
+/// as `schemas/json/resource-state.schema.json`: it names the values `state` and
+/// `controller` take.
+pub fn resource_state_json_schema() -> String {
+    let schema = schemars::schema_for!(ResourceSnapshot);
+    let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
+    text.push('\n');
+    text
+}
