@@ -80,41 +80,41 @@ pub struct HostSection {
 #[serde(deny_unknown_fields)]
 pub struct PkiSection {
     /// The PKI directory, relative to the manifest's (default "pki").
-    #[serde(default = "d_pki_dir")]
+    #[serde(default = "default_pki_dir")]
     pub dir: PathBuf,
     /// Operators (`operator.<name>`): submit and cancel orders, read everything.
-    #[serde(default = "d_default_name")]
+    #[serde(default = "default_default_name")]
     pub operators: Vec<String>,
     /// Observers (`observer.<name>`): read states, plans and presence only.
-    #[serde(default = "d_default_name")]
+    #[serde(default = "default_default_name")]
     pub observers: Vec<String>,
     /// Identities provisioned ahead for holons not started yet (hot-add), e.g.
     /// `resource.robot3`: the running processes' access control knows them already.
     #[serde(default)]
     pub spares: Vec<String>,
     /// Validity of each issued certificate, in days (default 365).
-    #[serde(default = "d_days")]
+    #[serde(default = "default_days")]
     pub days: u32,
 }
 
-fn d_pki_dir() -> PathBuf {
+fn default_pki_dir() -> PathBuf {
     PathBuf::from("pki")
 }
-fn d_default_name() -> Vec<String> {
+fn default_default_name() -> Vec<String> {
     vec!["default".into()]
 }
-fn d_days() -> u32 {
+fn default_days() -> u32 {
     365
 }
 
 impl Default for PkiSection {
     fn default() -> Self {
         PkiSection {
-            dir: d_pki_dir(),
-            operators: d_default_name(),
-            observers: d_default_name(),
+            dir: default_pki_dir(),
+            operators: default_default_name(),
+            observers: default_default_name(),
             spares: Vec::new(),
-            days: d_days(),
+            days: default_days(),
         }
     }
 }
@@ -122,42 +122,42 @@ impl Default for PkiSection {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RestartSection {
-    #[serde(default = "d_max")]
+    #[serde(default = "default_max")]
     pub max_restarts: u32,
-    #[serde(default = "d_period")]
+    #[serde(default = "default_period")]
     pub period_ms: u64,
-    #[serde(default = "d_backoff")]
+    #[serde(default = "default_backoff")]
     pub backoff_initial_ms: u64,
-    #[serde(default = "d_backoff_max")]
+    #[serde(default = "default_backoff_max")]
     pub backoff_max_ms: u64,
-    #[serde(default = "d_stop")]
+    #[serde(default = "default_stop")]
     pub stop_timeout_ms: u64,
 }
 
-fn d_max() -> u32 {
+fn default_max() -> u32 {
     10
 }
-fn d_period() -> u64 {
+fn default_period() -> u64 {
     60_000
 }
-fn d_backoff() -> u64 {
+fn default_backoff() -> u64 {
     250
 }
-fn d_backoff_max() -> u64 {
+fn default_backoff_max() -> u64 {
     10_000
 }
-fn d_stop() -> u64 {
+fn default_stop() -> u64 {
     40_000
 }
 
 impl Default for RestartSection {
     fn default() -> Self {
         RestartSection {
-            max_restarts: d_max(),
-            period_ms: d_period(),
-            backoff_initial_ms: d_backoff(),
-            backoff_max_ms: d_backoff_max(),
-            stop_timeout_ms: d_stop(),
+            max_restarts: default_max(),
+            period_ms: default_period(),
+            backoff_initial_ms: default_backoff(),
+            backoff_max_ms: default_backoff_max(),
+            stop_timeout_ms: default_stop(),
         }
     }
 }
@@ -171,7 +171,7 @@ pub struct ProcessSection {
     pub args: Vec<String>,
     /// Which host runs it (default `local`): `cell up --host NAME` starts the
     /// processes of host NAME.
-    #[serde(default = "d_host")]
+    #[serde(default = "default_host")]
     pub host: String,
     /// Its TLS identity, `<role>.<name>` (e.g. `resource.robot1`): `cell certs` issues
     /// its certificate. Controllers' simulators have none.
@@ -183,7 +183,7 @@ pub struct ProcessSection {
     pub restart: RestartType,
 }
 
-fn d_host() -> String {
+fn default_host() -> String {
     "local".into()
 }
 

@@ -81,15 +81,6 @@ impl ProductConfig {
             plan,
         })
     }
-
-    pub fn load(path: &Path, overrides: Overrides) -> Result<ProductConfig, ConfigError> {
-        let display = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: display.clone(),
-            source,
-        })?;
-        Self::parse(&text, &display, overrides)
-    }
 }
 
 /// Serves the plan until `shutdown` is cancelled.
@@ -113,7 +104,9 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
     {
         Ok(claim) => claim,
         Err(e) => {
-            let _ = session.close().await;
+            if let Err(close) = session.close().await {
+                warn!(holon = %holon, error = %close, "cannot close the zenoh session");
+            }
             return Err(e.into());
         }
     };
@@ -173,7 +166,11 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
     if let Err(e) = token.undeclare().await {
         error!(holon = %holon, error = %e, "cannot withdraw the liveliness token");
     }
-    let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+    match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => warn!(holon = %holon, error = %e, "cannot close the zenoh session"),
+        Err(_) => warn!(holon = %holon, "the zenoh session did not close within 5 s"),
+    }
     info!(holon = %holon, "holon stopped");
     Ok(())
 }

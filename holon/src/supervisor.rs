@@ -15,7 +15,6 @@ use std::collections::VecDeque;
 use std::fmt;
 use std::future::Future;
 use std::pin::Pin;
-use std::str::FromStr;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -99,20 +98,6 @@ pub enum Strategy {
     OneForAll,
     /// The failed child and every child started after it.
     RestForOne,
-}
-
-impl FromStr for Strategy {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "one_for_one" => Ok(Strategy::OneForOne),
-            "one_for_all" => Ok(Strategy::OneForAll),
-            "rest_for_one" => Ok(Strategy::RestForOne),
-            other => Err(format!(
-                "unknown strategy {other:?} (one_for_one, one_for_all, rest_for_one)"
-            )),
-        }
-    }
 }
 
 #[derive(Debug, thiserror::Error)]

@@ -31,88 +31,104 @@ struct File {
     journal: JournalSection,
 }
 
-#[derive(Debug, Clone, Default, Deserialize)]
+#[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct JournalSection {
     #[serde(default)]
     dir: Option<std::path::PathBuf>,
     #[serde(default)]
     durability: holon::journal::Durability,
+    #[serde(default = "default_keep_finished")]
+    keep_finished_ms: u64,
+}
+
+impl Default for JournalSection {
+    fn default() -> Self {
+        JournalSection {
+            dir: None,
+            durability: Default::default(),
+            keep_finished_ms: default_keep_finished(),
+        }
+    }
+}
+
+fn default_keep_finished() -> u64 {
+    86_400_000
 }
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct OrdersSection {
-    #[serde(default = "d_proposal")]
+    #[serde(default = "default_proposal")]
     proposal_timeout_ms: u64,
-    #[serde(default = "d_attempts")]
+    #[serde(default = "default_attempts")]
     max_attempts: u32,
-    #[serde(default = "d_no_resource")]
+    #[serde(default = "default_no_resource")]
     no_resource_timeout_ms: u64,
-    #[serde(default = "d_retry")]
+    #[serde(default = "default_retry")]
     retry_interval_ms: u64,
-    #[serde(default = "d_retry_max")]
+    #[serde(default = "default_retry_max")]
     retry_max_ms: u64,
-    #[serde(default = "d_step")]
+    #[serde(default = "default_step")]
     step_timeout_ms: u64,
-    #[serde(default = "d_grace")]
+    #[serde(default = "default_grace")]
     vanished_grace_ms: u64,
-    #[serde(default = "d_request")]
+    #[serde(default = "default_request")]
     request_timeout_ms: u64,
-    #[serde(default = "d_max_per_submit")]
+    #[serde(default = "default_max_per_submit")]
     max_orders_per_submit: u32,
-    #[serde(default = "d_max_unfinished")]
+    #[serde(default = "default_max_unfinished")]
     max_unfinished_orders: usize,
 }
 
-fn d_max_per_submit() -> u32 {
+fn default_max_per_submit() -> u32 {
     1000
 }
 
-fn d_max_unfinished() -> usize {
+fn default_max_unfinished() -> usize {
     5000
 }
 
-fn d_request() -> u64 {
+fn default_request() -> u64 {
     1000
 }
 
-fn d_grace() -> u64 {
+fn default_grace() -> u64 {
     2000
 }
 
-fn d_proposal() -> u64 {
+fn default_proposal() -> u64 {
     1000
 }
-fn d_attempts() -> u32 {
+fn default_attempts() -> u32 {
     3
 }
-fn d_no_resource() -> u64 {
+fn default_no_resource() -> u64 {
     60_000
 }
-fn d_retry() -> u64 {
+fn default_retry() -> u64 {
     50
 }
-fn d_retry_max() -> u64 {
+fn default_retry_max() -> u64 {
     2000
 }
-fn d_step() -> u64 {
+fn default_step() -> u64 {
     600_000
 }
 
 impl Default for OrdersSection {
     fn default() -> Self {
         OrdersSection {
-            proposal_timeout_ms: d_proposal(),
-            max_attempts: d_attempts(),
-            no_resource_timeout_ms: d_no_resource(),
-            retry_interval_ms: d_retry(),
-            retry_max_ms: d_retry_max(),
-            step_timeout_ms: d_step(),
-            vanished_grace_ms: d_grace(),
-            request_timeout_ms: d_request(),
-            max_orders_per_submit: d_max_per_submit(),
-            max_unfinished_orders: d_max_unfinished(),
+            proposal_timeout_ms: default_proposal(),
+            max_attempts: default_attempts(),
+            no_resource_timeout_ms: default_no_resource(),
+            retry_interval_ms: default_retry(),
+            retry_max_ms: default_retry_max(),
+            step_timeout_ms: default_step(),
+            vanished_grace_ms: default_grace(),
+            request_timeout_ms: default_request(),
+            max_orders_per_submit: default_max_per_submit(),
+            max_unfinished_orders: default_max_unfinished(),
         }
     }
 }
@@ -157,6 +173,9 @@ pub struct OrderNodeConfig {
     /// Where the journal lives (`<dir>/order-node-<name>.sqlite`); None: not durable.
     pub data_dir: Option<std::path::PathBuf>,
     pub durability: holon::journal::Durability,
+    /// How long a finished order (done, scrapped, failed, cancelled) stays in the
+    /// journal and in `cell orders` after it ended; `None`: for ever.
+    pub keep_finished: Option<Duration>,
 }
 
 /// What the command line may override: cell, name, zenoh endpoints, data directory.
@@ -243,6 +262,8 @@ impl OrderNodeConfig {
             },
             data_dir: file.journal.dir,
             durability: file.journal.durability,
+            keep_finished: (file.journal.keep_finished_ms > 0)
+                .then(|| Duration::from_millis(file.journal.keep_finished_ms)),
         })
     }
 }

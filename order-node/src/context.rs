@@ -88,6 +88,9 @@ impl OrderContext {
         let mut p = lock(progress);
         let mut next = p.clone();
         change(&mut next);
+        if next.status.is_final() && next.finished_at.is_none() {
+            next.finished_at = Some(schemas::unix_ms());
+        }
         self.save(&next)?;
         *p = next;
         Ok(())

@@ -34,6 +34,10 @@ const ORDER_RESTARTS: Intensity = Intensity {
     period: Duration::from_secs(60),
 };
 
+/// How often finished orders are checked against `journal.keep_finished_ms`, at most
+/// (a shorter retention is checked as often as it lasts).
+const RETENTION_SWEEP: Duration = Duration::from_secs(60);
+
 /// How many queries wait for the node's loop before new ones are refused `unavailable`.
 const QUERY_QUEUE: usize = 1024;
 
@@ -125,6 +129,11 @@ impl Host {
         cancel: &CancellationToken,
     ) {
         let running = !progress.status.is_final();
+        let mut progress = progress;
+        if !running && progress.finished_at.is_none() {
+            // Finished before its end was stamped (an older journal): kept from now on.
+            progress.finished_at = Some(schemas::unix_ms());
+        }
         let operator_cancel = CancellationToken::new();
         if progress.cancel_requested {
             operator_cancel.cancel();
@@ -185,6 +194,40 @@ impl Host {
             order::run(context, progress, cancel, operator_cancel).await
         });
         tasks.names.insert(handle.id(), name.to_string());
+    }
+
+    /// Forgets the orders that finished more than `keep` ago: out of the journal first,
+    /// then out of memory (an order whose delete fails stays until the next sweep).
+    /// Returns how many were forgotten.
+    fn forget_finished(&self, keep: Duration) -> usize {
+        let now = schemas::unix_ms();
+        let keep_ms = keep.as_millis() as u64;
+        let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+        let expired: Vec<String> = orders
+            .iter()
+            .filter(|(_, hosted)| {
+                let p = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
+                p.status.is_final()
+                    && p.finished_at
+                        .is_some_and(|at| now.saturating_sub(at) > keep_ms)
+            })
+            .map(|(name, _)| name.clone())
+            .collect();
+        let mut forgotten = 0;
+        for name in expired {
+            if let Some(journal) = &self.context.journal {
+                if let Err(e) = journal.delete(ORDER_RECORD, &name) {
+                    warn!(node = %self.config.name, order = %name, error = %e, "cannot remove a finished order from the journal; tried again at the next sweep");
+                    continue;
+                }
+            }
+            orders.remove(&name);
+            forgotten += 1;
+        }
+        if forgotten > 0 {
+            info!(node = %self.config.name, orders = forgotten, ?keep, "finished orders left the journal");
+        }
+        forgotten
     }
 
     /// Unfinished orders hosted here.
@@ -447,9 +490,21 @@ pub async fn run(
             error!(node = %config.name, error = %e, "cannot create the orders of --submit");
         }
     }
+    // A short retention is checked more often (at most every RETENTION_SWEEP).
+    let every = config
+        .keep_finished
+        .unwrap_or(RETENTION_SWEEP)
+        .clamp(Duration::from_millis(100), RETENTION_SWEEP);
+    let mut sweep = tokio::time::interval(every);
+    sweep.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
             _ = shutdown.cancelled() => break,
+            _ = sweep.tick(), if config.keep_finished.is_some() => {
+                if let Some(keep) = config.keep_finished {
+                    host.forget_finished(keep);
+                }
+            }
             Some(query) = queries.recv() => match query {
                 NodeQuery::Submit(query) => submit(&host, query, &mut tasks, &orders_cancel).await,
                 NodeQuery::Inbox(query) => acknowledge_finished(&host, query).await,
@@ -498,12 +553,21 @@ pub async fn run(
     }
     info!(node = %config.name, "stopping: orders in progress stop where they stand");
     orders_cancel.cancel();
-    let _ = tokio::time::timeout(Duration::from_secs(5), async {
+    let stopped = tokio::time::timeout(Duration::from_secs(5), async {
         while tasks.set.join_next().await.is_some() {}
     })
     .await;
-    let _ = token.undeclare().await;
-    let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
+    if stopped.is_err() {
+        warn!(node = %config.name, "order tasks did not stop within 5 s; they end with the process (their progress is in the journal)");
+    }
+    if let Err(e) = token.undeclare().await {
+        warn!(node = %config.name, error = %e, "cannot withdraw the order-node's token; it goes with the session");
+    }
+    match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => warn!(node = %config.name, error = %e, "cannot close the zenoh session"),
+        Err(_) => warn!(node = %config.name, "the zenoh session did not close within 5 s"),
+    }
     info!(node = %config.name, "order-node stopped");
     Ok(())
 }
@@ -583,6 +647,13 @@ async fn product_missing(host: &Host, product: &str) -> Option<String> {
     ))
 }
 
+/// Refuses a work order: nothing was created.
+async fn refuse_work(host: &Host, query: &Query, refusal: ErrorReply) {
+    if let Err(e) = query.reply_err(refusal.to_json()).await {
+        warn!(node = %host.config.name, code = %refusal.code, error = %e, "cannot refuse the work order; the submitter times out (nothing was created)");
+    }
+}
+
 async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &CancellationToken) {
     let payload = query
         .payload()
@@ -592,18 +663,12 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
         Ok(work) => match work.validate() {
             Ok(()) => work,
             Err(e) => {
-                let _ = query
-                    .reply_err(ErrorReply::new("invalid", e.to_string()).to_json())
-                    .await;
-                return;
+                return refuse_work(host, &query, ErrorReply::new("invalid", e.to_string())).await
             }
         },
         Err(e) => {
             warn!(node = %host.config.name, error = %e, "malformed work order");
-            let _ = query
-                .reply_err(ErrorReply::new("malformed", e.to_string()).to_json())
-                .await;
-            return;
+            return refuse_work(host, &query, ErrorReply::new("malformed", e.to_string())).await;
         }
     };
     if !work.queue {
@@ -647,13 +712,8 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
         Ok(orders) => orders,
         Err(e) => {
             error!(node = %host.config.name, error = %e, "cannot record the work order");
-            let _ = query
-                .reply_err(
-                    ErrorReply::new("unavailable", format!("cannot record the orders: {e}"))
-                        .to_json(),
-                )
-                .await;
-            return;
+            let refusal = ErrorReply::new("unavailable", format!("cannot record the orders: {e}"));
+            return refuse_work(host, &query, refusal).await;
         }
     };
     let reply = serde_json::to_vec(&SubmitReply { orders }).expect("serializes");
@@ -749,7 +809,9 @@ async fn acknowledge_finished(host: &Host, query: Query) {
         info!(order = %name, conversation_id = %message.conversation_id, message_type = %message.message_type, "result for a finished order acknowledged");
         let mut ack = message;
         ack.result = Some(true);
-        let _ = query.reply(query.key_expr().clone(), ack.to_json()).await;
+        if let Err(e) = query.reply(query.key_expr().clone(), ack.to_json()).await {
+            warn!(order = %name, error = %e, "cannot acknowledge a result of a finished order; the resource delivers it again");
+        }
     }
 }
 

@@ -65,14 +65,15 @@ impl Presence {
                     zenoh::sample::SampleKind::Put => {
                         if alive.insert(holon.clone()) {
                             info!(holon = %holon, "resource appeared");
-                            let _ = presence.changes.send((holon, true));
+                            // An error means no order listens: nobody to tell.
+                            presence.changes.send((holon, true)).ok();
                             presence.appeared.send_modify(|n| *n += 1);
                         }
                     }
                     zenoh::sample::SampleKind::Delete => {
                         alive.remove(&holon);
                         warn!(holon = %holon, "resource vanished");
-                        let _ = presence.changes.send((holon, false));
+                        presence.changes.send((holon, false)).ok();
                     }
                 }
             })

@@ -123,6 +123,10 @@ pub struct OrderProgress {
     /// Every ended attempt, oldest first (the last `MAX_ATTEMPT_HISTORY`).
     #[serde(default)]
     pub history: Vec<AttemptRecord>,
+    /// When the order's end was recorded (Unix ms): it leaves the journal
+    /// `journal.keep_finished_ms` later.
+    #[serde(default)]
+    pub finished_at: Option<u64>,
 }
 
 impl OrderProgress {
@@ -147,6 +151,7 @@ impl OrderProgress {
             cancel_requested: false,
             worked_with: BTreeSet::new(),
             history: Vec::new(),
+            finished_at: None,
         }
     }
 

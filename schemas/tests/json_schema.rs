@@ -12,13 +12,26 @@ fn service_schema_file_is_current() {
 fn resource_state_schema_file_is_current_and_names_the_states() {
     let generated = schemas::resource_state_json_schema();
     schema_file_is_current("resource-state.schema.json", generated.clone());
-    for value in ["init", "free", "busy", "disconnected", "ready", "fault", "estop"] {
-        assert!(generated.contains(&format!("\"{value}\"")), "the schema lacks {value}");
+    for value in [
+        "init",
+        "free",
+        "busy",
+        "disconnected",
+        "ready",
+        "fault",
+        "estop",
+    ] {
+        assert!(
+            generated.contains(&format!("\"{value}\"")),
+            "the schema lacks {value}"
+        );
     }
 }
 
 fn schema_file_is_current(file: &str, generated: String) {
-    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("json").join(file);
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("json")
+        .join(file);
     if std::env::var_os("HOLARCHY_BLESS").is_some() {
         std::fs::write(&path, &generated).unwrap();
     }

@@ -1,0 +1,131 @@
+//! The order-node's journal keeps finished orders only for `journal.keep_finished_ms`:
+//! they leave the journal and `cell orders`, and a restarted node does not bring them
+//! back.
+
+use std::time::Duration;
+
+use holarchy_tests::*;
+use nix::sys::signal::Signal;
+
+/// The state of one order, asked of its order-node.
+async fn order_state(cell: &Cell, order: &str) -> Option<serde_json::Value> {
+    let replies = cell
+        .session
+        .get(format!("holarchy/{}/order/{order}/state", cell.keys.cell()))
+        .timeout(Duration::from_secs(2))
+        .await
+        .ok()?;
+    let reply = replies.recv_async().await.ok()?;
+    serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
+}
+
+/// Waits until `check` holds for the order's state (`None`: the node does not know it).
+async fn wait_order(
+    cell: &Cell,
+    order: &str,
+    what: &str,
+    check: impl Fn(&Option<serde_json::Value>) -> bool,
+) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let state = order_state(cell, order).await;
+        if check(&state) {
+            return;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{order} never {what}: {state:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn config(dir: &std::path::Path, keep_finished_ms: u64) -> std::path::PathBuf {
+    let path = dir.join("orders.toml");
+    std::fs::write(
+        &path,
+        format!(
+            r#"
+cell = "demo"
+name = "orders1"
+[orders]
+no_resource_timeout_ms = 300
+[journal]
+durability = "process_crash"
+keep_finished_ms = {keep_finished_ms}
+"#
+        ),
+    )
+    .unwrap();
+    path
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn finished_orders_leave_the_journal_after_the_retention() {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-retention").await.unwrap();
+    let data = dir.path().join("data");
+    let data_arg = data.to_str().unwrap();
+    let node = |dir: &std::path::Path| {
+        start_holon(
+            dir,
+            "order-node",
+            &config(dir, 1500),
+            "orders1",
+            &cell,
+            &["--data-dir", data_arg],
+        )
+        .unwrap()
+    };
+    let mut first = node(dir.path());
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
+
+    // Orders for a product nobody makes fail ("no plan") once the timeout passes.
+    let failing = cell
+        .submit_work(schemas::WorkOrder {
+            product: "nothing".into(),
+            count: 3,
+            priority: 0,
+            queue: true,
+        })
+        .await
+        .unwrap();
+    for order in &failing {
+        wait_order(&cell, order, "failed", |s| {
+            s.as_ref().is_some_and(|s| s["status"] == "failed")
+        })
+        .await;
+    }
+    // Still known right after; gone once the retention has passed.
+    assert!(order_state(&cell, &failing[0]).await.is_some());
+    for order in &failing {
+        wait_order(&cell, order, "left the journal", Option::is_none).await;
+    }
+    let log = std::fs::read_to_string(dir.path().join("orders1.log.json")).unwrap();
+    assert!(log.contains("finished orders left the journal"), "{log}");
+
+    // A restarted node does not bring them back.
+    first.signal(Signal::SIGTERM).unwrap();
+    assert!(first.wait_exit(Duration::from_secs(20)).unwrap().success());
+    let second_dir = dir.path().join("second");
+    std::fs::create_dir_all(&second_dir).unwrap();
+    let mut second = node(&second_dir);
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
+    for order in &failing {
+        assert_eq!(order_state(&cell, order).await, None, "{order} came back");
+    }
+    second.signal(Signal::SIGTERM).unwrap();
+    assert!(second.wait_exit(Duration::from_secs(20)).unwrap().success());
+    let journal = holon::journal::Journal::open(
+        &data,
+        "order-node-orders1.sqlite",
+        holon::journal::Durability::ProcessCrash,
+    )
+    .unwrap();
+    let left: Vec<(String, serde_json::Value)> = journal.list("order").unwrap();
+    assert!(left.is_empty(), "{left:?}");
+}
