@@ -1,28 +1,52 @@
 //! The Agenda Manager: the seed's Figure 4 as a pure state machine.
 //!
-//! Its state is the execution status and the list of bookings. The status is `init`
-//! until the execution component reports `ready` (the controller is connected and
-//! ready), then `free` or `busy`; it goes back to `init` when the execution component
-//! reports the controller unavailable. Transitions:
+//! Its state is the execution status (`init`, `free`, `busy`), the bookings in the order
+//! they were made, the results not yet acknowledged, and whether the holon is
+//! withdrawing. The status is `init` until the execution component reports `ready` (the
+//! controller is connected and ready), `busy` while a job runs, `free` otherwise; it
+//! goes back to `init` when the execution component reports the controller unavailable.
+//! A booking (and its job) is identified by its requester and `conversation_id`.
 //!
-//! | event | state | outcome |
-//! |---|---|---|
-//! | `booking_req` | free / busy | booked (appended), `result` true with the queue position |
-//! | `booking_req` | init | refused `unavailable` (no new commitments without hardware) |
-//! | `booking_cancel` from a booked requester | any | booking removed |
-//! | `start` from a booked requester | free | busy: the booking becomes the job, execution starts |
-//! | `start` | busy | refused `busy` (the booking stays) |
-//! | `start` | init | refused `unavailable` (the booking stays) |
-//! | `done` / `failed` from execution | busy | free (or init): the result is delivered |
-//! | `ready` / `unavailable` from execution | any | the status follows |
-//! | withdraw (SIGTERM) | any | no new bookings or starts; every booking handed back as `failed` `withdrawn` |
-//! | requester gone (its liveliness token absent longer than the grace) | any | its bookings removed (nobody is left to start or cancel them) |
+//! Every event, with the checks of a request in the order they are made (the first
+//! that applies answers; "the conversation" is the request's requester and
+//! `conversation_id`):
 //!
-//! Refusals: `unknown_service` (type not offered), `not_booked` (start or cancel without a
-//! booking), `agenda_full`, `invalid_info` (start without what the steps need). A booking
-//! is identified by its requester and `conversation_id`. Requests are idempotent: a
-//! repeated `booking_req` or a repeated `start` of the running job is answered `true`
-//! again without a second booking or a second execution.
+//! | event | condition, in order | outcome | next |
+//! |---|---|---|---|
+//! | `proposal_req` | type not offered | `proposal` false `unknown_service` | same |
+//! | | controller not ready, or withdrawing | `proposal` false `unavailable` | same |
+//! | | agenda full | `proposal` false `agenda_full` | same |
+//! | | otherwise | `proposal` true with the queue and the expected wait | same |
+//! | `booking_req` | type not offered | refused `unknown_service` | same |
+//! | | the conversation is booked | true again with its queue position (no second booking) | same |
+//! | | the conversation's job is running | refused `busy` | same |
+//! | | controller not ready, or withdrawing | refused `unavailable` (no commitment without hardware) | same |
+//! | | agenda full | refused `agenda_full` | same |
+//! | | otherwise | true with the queue position; booking appended | same + booking |
+//! | `booking_cancel` | the conversation is booked | true; booking removed | same − booking |
+//! | | otherwise | refused `not_booked` | same |
+//! | `start` | type not offered | refused `unknown_service` | same |
+//! | | the conversation's job runs, or finished with its result undelivered | true again (no second execution) | same |
+//! | | the conversation is not booked ("not booked" beats "busy") | refused `not_booked` | same |
+//! | | withdrawing | refused `unavailable` | same |
+//! | | the booking is for another service type | refused `not_booked` | same |
+//! | | `busy` | refused `busy` (the booking stays) | same |
+//! | | controller not ready | refused `unavailable` (the booking stays) | same |
+//! | | the info (the start's, else the booking's) lacks what the steps need | refused `invalid_info` | same |
+//! | | neither the start nor the booking has `reply_to` | refused `invalid_info` | same |
+//! | | otherwise | true; the booking becomes the job, execution starts | `busy` |
+//! | `status`, `proposal`, `done`, `failed` | (`status` is answered by the communication component) | refused `unknown_service` | same |
+//! | execution ready | | | `free` (or `busy`) |
+//! | execution unavailable | | | `init` (a running job ends first) |
+//! | execution finished the running job | | its `done` / `failed` is delivered until acknowledged | `free` or `init` |
+//! | execution finished another job (stale) | | nothing | same |
+//! | result acknowledged | the result is undelivered | removed | same |
+//! | | otherwise | nothing | same |
+//! | withdraw (SIGTERM) | not yet withdrawing | every booking with a `reply_to` gets `failed` `withdrawn`; bookings cleared | withdrawing |
+//! | | already withdrawing | nothing | same |
+//! | requester gone (absent longer than the grace) | | its bookings removed; its running job and undelivered results stay | same − bookings |
+//!
+//! Every change of state is followed by a `StateChanged` action (a new snapshot).
 
 use std::sync::Arc;
 
@@ -137,6 +161,17 @@ pub enum Status {
     Init,
     Free,
     Busy(Job),
+}
+
+/// Where one conversation (a requester and a `conversation_id`) stands on the agenda.
+#[derive(Debug, Clone, Copy)]
+struct Conversation {
+    /// Its booking's index, if it is booked.
+    booked: Option<usize>,
+    /// Its job is running.
+    running: bool,
+    /// Its job finished and the result is not acknowledged yet.
+    finished: bool,
 }
 
 /// The Agenda Manager's state.
@@ -316,64 +351,93 @@ impl AgendaManager {
         vec![AgendaAction::StateChanged]
     }
 
-    fn booking_index(&self, request: &Service) -> Option<usize> {
-        self.bookings.iter().position(|b| {
-            b.requester == request.requester && b.conversation_id == request.conversation_id
-        })
+    /// Where the request's conversation stands on this agenda.
+    fn conversation(&self, request: &Service) -> Conversation {
+        let same = |requester: &HolonId, conversation_id: &str| {
+            requester == &request.requester && conversation_id == request.conversation_id
+        };
+        Conversation {
+            booked: self
+                .bookings
+                .iter()
+                .position(|b| same(&b.requester, &b.conversation_id)),
+            running: self
+                .current
+                .as_ref()
+                .is_some_and(|job| same(&job.requester, &job.conversation_id)),
+            finished: self
+                .undelivered
+                .iter()
+                .any(|r| same(&r.requester, &r.conversation_id)),
+        }
     }
 
-    fn is_current(&self, request: &Service) -> bool {
-        self.current.as_ref().is_some_and(|job| {
-            job.requester == request.requester && job.conversation_id == request.conversation_id
-        })
-    }
-
-    fn is_undelivered(&self, request: &Service) -> bool {
-        self.undelivered.iter().any(|r| {
-            r.requester == request.requester && r.conversation_id == request.conversation_id
-        })
-    }
-
+    /// A request from another holon: the rows of the table above, in their order.
     fn request(&mut self, request: Service) -> Vec<AgendaAction> {
-        let refuse = |why: &str| vec![AgendaAction::Reply(request.refused(&self.holon, why))];
-        let offered = self.catalog.offers(&request.service_type);
         match request.message_type {
-            MessageType::ProposalReq => {
-                let mut reply = request.accepted(&self.holon);
-                reply.message_type = MessageType::Proposal;
-                let why = if !offered {
-                    Some(reason::UNKNOWN_SERVICE)
-                } else if !self.execution_ready || self.withdrawing {
-                    Some(reason::UNAVAILABLE)
-                } else if self.bookings.len() >= self.capacity {
-                    Some(reason::AGENDA_FULL)
-                } else {
-                    None
-                };
-                if let Some(why) = why {
-                    reply.result = Some(false);
-                    reply.reason = Some(why.to_string());
-                }
-                reply.info = self.proposal_info(&request.service_type);
-                vec![AgendaAction::Reply(reply)]
+            MessageType::ProposalReq => self.proposal(&request),
+            MessageType::BookingReq => self.book(request),
+            MessageType::BookingCancel => self.cancel(&request),
+            MessageType::Start => self.start(request),
+            // Not agenda requests: the communication component answers `status` itself
+            // (a read of the state) and rejects the others.
+            MessageType::Proposal
+            | MessageType::Done
+            | MessageType::Failed
+            | MessageType::Status => self.refuse(&request, reason::UNKNOWN_SERVICE, None),
+        }
+    }
+
+    fn refuse(&self, request: &Service, why: &str, detail: Option<String>) -> Vec<AgendaAction> {
+        let mut reply = request.refused(&self.holon, why);
+        if let Some(detail) = detail {
+            reply.info.insert("detail".into(), Value::String(detail));
+        }
+        vec![AgendaAction::Reply(reply)]
+    }
+
+    fn proposal(&self, request: &Service) -> Vec<AgendaAction> {
+        let refusal = if !self.catalog.offers(&request.service_type) {
+            Some(reason::UNKNOWN_SERVICE)
+        } else if !self.execution_ready || self.withdrawing {
+            Some(reason::UNAVAILABLE)
+        } else if self.bookings.len() >= self.capacity {
+            Some(reason::AGENDA_FULL)
+        } else {
+            None
+        };
+        let mut reply = request.accepted(&self.holon);
+        reply.message_type = MessageType::Proposal;
+        if let Some(why) = refusal {
+            reply.result = Some(false);
+            reply.reason = Some(why.to_string());
+        }
+        reply.info = self.proposal_info(&request.service_type);
+        vec![AgendaAction::Reply(reply)]
+    }
+
+    fn book(&mut self, request: Service) -> Vec<AgendaAction> {
+        let conversation = self.conversation(&request);
+        let taking_work = self.execution_ready && !self.withdrawing;
+        let full = self.bookings.len() >= self.capacity;
+        match (conversation, taking_work, full) {
+            _ if !self.catalog.offers(&request.service_type) => {
+                self.refuse(&request, reason::UNKNOWN_SERVICE, None)
             }
-            MessageType::BookingReq => {
-                if !offered {
-                    return refuse(reason::UNKNOWN_SERVICE);
-                }
-                if let Some(position) = self.booking_index(&request) {
-                    // A repeated request: already booked.
-                    return vec![AgendaAction::Reply(self.booked_reply(&request, position))];
-                }
-                if self.is_current(&request) {
-                    return refuse(reason::BUSY);
-                }
-                if !self.execution_ready || self.withdrawing {
-                    return refuse(reason::UNAVAILABLE);
-                }
-                if self.bookings.len() >= self.capacity {
-                    return refuse(reason::AGENDA_FULL);
-                }
+            (
+                Conversation {
+                    booked: Some(position),
+                    ..
+                },
+                _,
+                _,
+            ) => {
+                vec![AgendaAction::Reply(self.booked_reply(&request, position))]
+            }
+            (Conversation { running: true, .. }, _, _) => self.refuse(&request, reason::BUSY, None),
+            (_, false, _) => self.refuse(&request, reason::UNAVAILABLE, None),
+            (_, true, true) => self.refuse(&request, reason::AGENDA_FULL, None),
+            (_, true, false) => {
                 self.bookings.push(Booking {
                     requester: request.requester.clone(),
                     conversation_id: request.conversation_id.clone(),
@@ -384,80 +448,68 @@ impl AgendaManager {
                 let reply = self.booked_reply(&request, self.bookings.len() - 1);
                 vec![AgendaAction::Reply(reply), AgendaAction::StateChanged]
             }
-            MessageType::BookingCancel => match self.booking_index(&request) {
-                Some(index) => {
-                    self.bookings.remove(index);
-                    vec![
-                        AgendaAction::Reply(request.accepted(&self.holon)),
-                        AgendaAction::StateChanged,
-                    ]
-                }
-                None => refuse(reason::NOT_BOOKED),
-            },
-            MessageType::Start => self.start(request),
-            MessageType::Proposal
-            | MessageType::Done
-            | MessageType::Failed
-            | MessageType::Status => {
-                // Not agenda requests: the communication component answers `status`
-                // itself (a read of the state) and rejects the others.
-                refuse(reason::UNKNOWN_SERVICE)
+        }
+    }
+
+    fn cancel(&mut self, request: &Service) -> Vec<AgendaAction> {
+        match self.conversation(request).booked {
+            Some(index) => {
+                self.bookings.remove(index);
+                vec![
+                    AgendaAction::Reply(request.accepted(&self.holon)),
+                    AgendaAction::StateChanged,
+                ]
             }
+            None => self.refuse(request, reason::NOT_BOOKED, None),
         }
     }
 
     fn start(&mut self, request: Service) -> Vec<AgendaAction> {
-        let refuse = |why: &str, detail: Option<String>| {
-            let mut reply = request.refused(&self.holon, why);
-            if let Some(detail) = detail {
-                reply.info.insert("detail".into(), Value::String(detail));
+        let conversation = self.conversation(&request);
+        let booking = conversation
+            .booked
+            .map(|index| (index, self.bookings[index].service_type.clone()));
+        match (conversation, booking, self.state(), self.withdrawing) {
+            _ if !self.catalog.offers(&request.service_type) => {
+                self.refuse(&request, reason::UNKNOWN_SERVICE, None)
             }
-            vec![AgendaAction::Reply(reply)]
-        };
-        if !self.catalog.offers(&request.service_type) {
-            return refuse(reason::UNKNOWN_SERVICE, None);
-        }
-        if self.is_current(&request) || self.is_undelivered(&request) {
             // A repeated start of the running job, or of one that finished and whose
             // result is on its way: it has begun.
-            return vec![AgendaAction::Reply(request.accepted(&self.holon))];
+            (Conversation { running: true, .. } | Conversation { finished: true, .. }, ..) => {
+                vec![AgendaAction::Reply(request.accepted(&self.holon))]
+            }
+            (_, None, _, _) => self.refuse(&request, reason::NOT_BOOKED, None),
+            (_, Some(_), _, true) => self.refuse(&request, reason::UNAVAILABLE, None),
+            (_, Some((_, booked_type)), _, _) if booked_type != request.service_type => {
+                let detail = format!("the booking is for {booked_type}");
+                self.refuse(&request, reason::NOT_BOOKED, Some(detail))
+            }
+            (_, Some(_), ResourceState::Busy, _) => self.refuse(&request, reason::BUSY, None),
+            (_, Some(_), ResourceState::Init, _) => {
+                self.refuse(&request, reason::UNAVAILABLE, None)
+            }
+            (_, Some((index, _)), ResourceState::Free, false) => self.begin(index, request),
         }
-        let Some(index) = self.booking_index(&request) else {
-            return refuse(reason::NOT_BOOKED, None);
-        };
-        if self.withdrawing {
-            return refuse(reason::UNAVAILABLE, None);
-        }
+    }
+
+    /// Makes the booking at `index` the running job, if what the steps need is there.
+    fn begin(&mut self, index: usize, request: Service) -> Vec<AgendaAction> {
         let booking = &self.bookings[index];
-        if booking.service_type != request.service_type {
-            return refuse(
-                reason::NOT_BOOKED,
-                Some(format!("the booking is for {}", booking.service_type)),
-            );
-        }
-        if self.current.is_some() {
-            return refuse(reason::BUSY, None);
-        }
-        if !self.execution_ready {
-            return refuse(reason::UNAVAILABLE, None);
-        }
         let info = if request.info.is_empty() {
             booking.info.clone()
         } else {
             request.info.clone()
         };
         if let Err(detail) = self.catalog.poses(&request.service_type, &info) {
-            return refuse(reason::INVALID_INFO, Some(detail));
+            return self.refuse(&request, reason::INVALID_INFO, Some(detail));
         }
         let Some(reply_to) = request
             .reply_to
             .clone()
             .or_else(|| booking.reply_to.clone())
         else {
-            return refuse(
-                reason::INVALID_INFO,
-                Some("neither the start nor the booking has reply_to".into()),
-            );
+            let detail = "neither the start nor the booking has reply_to".to_string();
+            return self.refuse(&request, reason::INVALID_INFO, Some(detail));
         };
         let booking = self.bookings.remove(index);
         let job = Job {
@@ -1168,5 +1220,74 @@ mod tests {
             requester: HolonId::order("o-1").unwrap(),
         });
         assert!(again.is_empty(), "nothing left to release: {again:?}");
+    }
+
+    fn proposal_req(order: &str, service_type: &str) -> Service {
+        Service::request(
+            MessageType::ProposalReq,
+            service_type,
+            "c0",
+            HolonId::order(order).unwrap(),
+        )
+    }
+
+    #[test]
+    fn proposal_refusals_come_in_the_tables_order() {
+        let mut m = AgendaManager::new(
+            HolonId::resource("robot1").unwrap(),
+            Arc::new(pick_n_place()),
+            1,
+        );
+        // Not offered beats unavailable.
+        let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "weld")));
+        assert_eq!(reply(&r).reason.as_deref(), Some("unknown_service"));
+        let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "pick_n_place")));
+        assert_eq!(reply(&r).reason.as_deref(), Some("unavailable"));
+        m.handle(AgendaEvent::ExecutionReady);
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        let r = m.handle(AgendaEvent::Request(proposal_req("o-2", "pick_n_place")));
+        assert_eq!(reply(&r).reason.as_deref(), Some("agenda_full"));
+        assert_eq!(reply(&r).message_type, MessageType::Proposal);
+        // A proposal changes nothing.
+        assert_eq!(r.len(), 1);
+    }
+
+    #[test]
+    fn a_booking_request_for_the_running_conversation_is_refused_busy() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        m.handle(AgendaEvent::Request(start("o-1", "c1")));
+        assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "busy");
+    }
+
+    #[test]
+    fn a_repeated_withdraw_and_an_unknown_acknowledgement_change_nothing() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        assert!(!m.handle(AgendaEvent::Withdraw).is_empty());
+        assert_eq!(m.handle(AgendaEvent::Withdraw), vec![]);
+        assert_eq!(
+            m.handle(AgendaEvent::ResultAcknowledged {
+                conversation_id: "nobody".into()
+            }),
+            vec![]
+        );
+        assert_eq!(
+            m.handle(AgendaEvent::RequesterGone {
+                requester: HolonId::order("o-9").unwrap()
+            }),
+            vec![]
+        );
+    }
+
+    #[test]
+    fn requests_that_are_not_for_the_agenda_are_refused() {
+        let mut m = manager();
+        for kind in [MessageType::Status, MessageType::Done, MessageType::Proposal] {
+            assert_refused(
+                &m.handle(AgendaEvent::Request(msg(kind, "o-1", "c1"))),
+                "unknown_service",
+            );
+        }
     }
 }

@@ -3,14 +3,27 @@
 //! `init` until the controller reports `ready`; then `ready -> step 1 -> ... -> ready`,
 //! the steps of each service type coming from the holon's config (pick_n_place: `pick`
 //! until `picking_done`, then `place` until `placing_done`). Each step sends one command
-//! through the Interfacing component and waits for one of its results.
+//! through the Interfacing component and waits for one of its results. A failed step is
+//! never retried here: the order decides (the step may have moved the part).
 //!
-//! A step fails, and so the job, when the controller answers `error`
-//! (`controller_error`), answers a result the step does not expect
-//! (`unexpected_result`), does not answer in time (`controller_timeout`), drops the
-//! connection (`controller_disconnected`), breaks the protocol
-//! (`controller_protocol_error`) or reports `fault` / `estop` (`controller_fault`). A
-//! failed step is never retried here: the order decides (the step may have moved the part).
+//! | state | event | actions | next |
+//! |---|---|---|---|
+//! | `init` | controller `ready` | ready | `ready` |
+//! | `init` | controller not ready (disconnected, `fault`, `estop`) | unavailable, if it was ready | `init` |
+//! | `init` | start | finished: failed `unavailable` | `init` |
+//! | `ready` | start | command of step 1 | step 1 |
+//! | `ready` | controller not ready | unavailable | `init` |
+//! | step n | start (another job) | that job finished: failed `busy` | step n |
+//! | step n | reply to its command with a result the step expects, steps left | command of step n+1 | step n+1 |
+//! | step n | the same, last step | finished: done with every step's result | `ready` (or `init`) |
+//! | step n | reply `error` | finished: failed `controller_error` | `ready` (or `init`) |
+//! | step n | reply with a result the step does not expect | finished: failed `unexpected_result` | `ready` (or `init`) |
+//! | step n | its command timed out / the connection broke / the protocol broke | finished: failed `controller_timeout` / `controller_disconnected` / `controller_protocol_error` | `ready` (or `init`) |
+//! | step n | controller disconnected | finished: failed `controller_disconnected`; unavailable | `init` |
+//! | step n | controller `fault` / `estop` | finished: failed `controller_fault`; unavailable | `init` |
+//! | any | a reply or failure of another command (late) | nothing | same |
+//!
+//! A step's command, and every change of step, is followed by a `StateChanged` action.
 
 use std::sync::Arc;
 
