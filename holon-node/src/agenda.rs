@@ -1283,7 +1283,11 @@ mod tests {
     #[test]
     fn requests_that_are_not_for_the_agenda_are_refused() {
         let mut m = manager();
-        for kind in [MessageType::Status, MessageType::Done, MessageType::Proposal] {
+        for kind in [
+            MessageType::Status,
+            MessageType::Done,
+            MessageType::Proposal,
+        ] {
             assert_refused(
                 &m.handle(AgendaEvent::Request(msg(kind, "o-1", "c1"))),
                 "unknown_service",

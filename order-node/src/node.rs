@@ -196,6 +196,33 @@ impl Host {
         tasks.names.insert(handle.id(), name.to_string());
     }
 
+    /// Hosts the orders recovered from the journal (resuming the unfinished ones) and
+    /// creates those of `--submit`.
+    fn resume(
+        &self,
+        recovered: Vec<(String, OrderProgress)>,
+        submits: &[WorkOrder],
+        tasks: &mut Tasks,
+        cancel: &CancellationToken,
+    ) {
+        let node = &self.config.name;
+        if !recovered.is_empty() {
+            let resumed = recovered
+                .iter()
+                .filter(|(_, p)| !p.status.is_final())
+                .count();
+            info!(%node, orders = recovered.len(), resumed, "orders recovered from the journal");
+        }
+        for (name, progress) in recovered {
+            self.host(&name, progress, tasks, cancel);
+        }
+        for work in submits {
+            if let Err(e) = self.create(work, tasks, cancel) {
+                error!(%node, error = %e, "cannot create the orders of --submit");
+            }
+        }
+    }
+
     /// Forgets the orders that finished more than `keep` ago: out of the journal first,
     /// then out of memory (an order whose delete fails stays until the next sweep).
     /// Returns how many were forgotten.
@@ -372,7 +399,6 @@ pub async fn run(
     submits: Vec<WorkOrder>,
     shutdown: CancellationToken,
 ) -> Result<(), OrderNodeError> {
-    let z = |e: zenoh::Error| OrderNodeError::Zenoh(holon::zenoh_error::describe(&e));
     let session = config
         .zenoh
         .open(
@@ -389,107 +415,38 @@ pub async fn run(
         Duration::from_secs(10),
     )
     .await?;
-    let presence = Presence::follow(&session, &config.keys).await.map_err(z)?;
-    let journal = match &config.data_dir {
-        Some(dir) => Some(Arc::new(Journal::open(
-            dir,
-            &format!("order-node-{}.sqlite", config.name),
-            config.durability,
-        )?)),
-        None => {
-            warn!(node = %config.name, "no data directory: orders are not durable (use --data-dir)");
-            None
-        }
-    };
-    let (recovered, next) = match &journal {
-        Some(journal) => (
-            journal.list::<OrderProgress>(ORDER_RECORD)?,
-            journal
-                .get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?
-                .unwrap_or(1),
-        ),
-        None => (Vec::new(), 1),
-    };
-    let context = Arc::new(OrderContext {
-        session: session.clone(),
-        keys: config.keys.clone(),
-        settings: config.orders,
-        presence,
-        inboxes: Default::default(),
-        rounds: tokio::sync::Semaphore::new(MAX_CONCURRENT_ROUNDS),
-        idle: Default::default(),
-        journal,
-        journal_failing: Default::default(),
-    });
+    let (journal, (recovered, next)) = open_journal(&config)?;
+    let presence = Presence::follow(&session, &config.keys)
+        .await
+        .map_err(zenoh_error)?;
     let host = Arc::new(Host {
         config: config.clone(),
-        context,
+        context: Arc::new(OrderContext {
+            session: session.clone(),
+            keys: config.keys.clone(),
+            settings: config.orders,
+            presence,
+            inboxes: Default::default(),
+            rounds: tokio::sync::Semaphore::new(MAX_CONCURRENT_ROUNDS),
+            idle: Default::default(),
+            journal,
+            journal_failing: Default::default(),
+        }),
         orders: Mutex::new(BTreeMap::new()),
         next: AtomicU64::new(next),
     });
     let (queue, mut queries) = mpsc::channel(QUERY_QUEUE);
-    let submit_tx = queue.clone();
-    let inbox_tx = queue.clone();
-    let cancel_tx = queue.clone();
-    let _submit = session
-        .declare_queryable(config.keys.orders_submit())
-        .complete(true)
-        .callback(move |query| {
-            enqueue(&submit_tx, NodeQuery::Submit(query));
-        })
-        .await
-        .map_err(z)?;
-    let _states = session
-        .declare_queryable(config.keys.node_orders(&config.name, "state"))
-        .callback(move |query| {
-            enqueue(&queue, NodeQuery::State(query));
-        })
-        .await
-        .map_err(z)?;
-    // Results reach running orders straight from this callback; those for orders that
-    // are not running (duplicates, late reports of abandoned attempts) are answered by
-    // the node's loop.
-    let inboxes = host.context.inboxes.clone();
-    let _inboxes = session
-        .declare_queryable(config.keys.node_orders(&config.name, "inbox"))
-        .callback(move |query| {
-            if let Some(query) = inboxes.route(query) {
-                enqueue(&inbox_tx, NodeQuery::Inbox(query));
-            }
-        })
-        .await
-        .map_err(z)?;
-    let _cancels = session
-        .declare_queryable(config.keys.node_orders(&config.name, "cancel"))
-        .callback(move |query| {
-            enqueue(&cancel_tx, NodeQuery::Cancel(query));
-        })
-        .await
-        .map_err(z)?;
+    let endpoints = Endpoints::declare(&session, &host, queue).await?;
     let token = session
         .liveliness()
         .declare_token(config.keys.host("order-node", &config.name))
         .await
-        .map_err(z)?;
+        .map_err(zenoh_error)?;
     info!(node = %config.name, cell = %config.keys.cell(), "order-node ready");
 
     let orders_cancel = CancellationToken::new();
     let mut tasks = Tasks::default();
-    let resumed = recovered
-        .iter()
-        .filter(|(_, p)| !p.status.is_final())
-        .count();
-    if !recovered.is_empty() {
-        info!(node = %config.name, orders = recovered.len(), resumed, "orders recovered from the journal");
-    }
-    for (name, progress) in recovered {
-        host.host(&name, progress, &mut tasks, &orders_cancel);
-    }
-    for work in &submits {
-        if let Err(e) = host.create(work, &mut tasks, &orders_cancel) {
-            error!(node = %config.name, error = %e, "cannot create the orders of --submit");
-        }
-    }
+    host.resume(recovered, &submits, &mut tasks, &orders_cancel);
     // A short retention is checked more often (at most every RETENTION_SWEEP).
     let every = config
         .keep_finished
@@ -505,49 +462,9 @@ pub async fn run(
                     host.forget_finished(keep);
                 }
             }
-            Some(query) = queries.recv() => match query {
-                NodeQuery::Submit(query) => submit(&host, query, &mut tasks, &orders_cancel).await,
-                NodeQuery::Inbox(query) => acknowledge_finished(&host, query).await,
-                NodeQuery::Cancel(query) => cancel(&host, query).await,
-                NodeQuery::State(query) => {
-                    for (key, payload) in host.snapshots_matching(query.key_expr()) {
-                        if let Err(e) = query.reply(&key, payload).await {
-                            warn!(node = %config.name, %key, error = %e, "cannot answer a state read; the reader gets fewer orders");
-                        }
-                    }
-                }
-            },
+            Some(query) = queries.recv() => answer(&host, query, &mut tasks, &orders_cancel).await,
             Some(joined) = tasks.set.join_next_with_id(), if !tasks.set.is_empty() => {
-                let (id, why) = match joined {
-                    Ok((id, Ok(()))) => {
-                        tasks.names.remove(&id);
-                        continue;
-                    }
-                    Ok((id, Err(OrderError::Journal(why)))) => {
-                        // Not the order's fault: resumed from its last written progress
-                        // once the journal can write again (tried every second), not
-                        // counted against its restarts.
-                        let Some(name) = tasks.names.remove(&id) else { continue };
-                        debug!(node = %config.name, order = %name, error = %why, "order waits for the journal");
-                        let progress = host.orders.lock().unwrap_or_else(|e| e.into_inner()).get(&name).map(|h| h.progress.clone());
-                        if let Some(progress) = progress {
-                            host.spawn(&name, progress, &mut tasks, &orders_cancel, JOURNAL_RETRY);
-                        }
-                        continue;
-                    }
-                    Ok((id, Err(e))) => (id, e.to_string()),
-                    Err(e) if e.is_panic() => {
-                        let id = e.id();
-                        (id, format!("panicked: {}", holon::supervisor::panic_message(e.into_panic())))
-                    }
-                    Err(e) => {
-                        tasks.names.remove(&e.id());
-                        continue;
-                    }
-                };
-                let Some(name) = tasks.names.remove(&id) else { continue };
-                error!(node = %config.name, order = %name, error = %why, "order task failed");
-                restart(&host, &name, &mut tasks, &orders_cancel).await;
+                task_ended(&host, joined, &mut tasks, &orders_cancel).await;
             }
         }
     }
@@ -563,6 +480,7 @@ pub async fn run(
     if let Err(e) = token.undeclare().await {
         warn!(node = %config.name, error = %e, "cannot withdraw the order-node's token; it goes with the session");
     }
+    drop(endpoints);
     match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
         Ok(Ok(())) => {}
         Ok(Err(e)) => warn!(node = %config.name, error = %e, "cannot close the zenoh session"),
@@ -570,6 +488,165 @@ pub async fn run(
     }
     info!(node = %config.name, "order-node stopped");
     Ok(())
+}
+
+fn zenoh_error(e: zenoh::Error) -> OrderNodeError {
+    OrderNodeError::Zenoh(holon::zenoh_error::describe(&e))
+}
+
+/// What the journal holds at start-up: the orders recorded in it and the number of the
+/// next order.
+type Recovered = (Vec<(String, OrderProgress)>, u64);
+
+/// The journal, if the node has a data directory, with what it holds.
+fn open_journal(
+    config: &OrderNodeConfig,
+) -> Result<(Option<Arc<Journal>>, Recovered), OrderNodeError> {
+    let Some(dir) = &config.data_dir else {
+        warn!(node = %config.name, "no data directory: orders are not durable (use --data-dir)");
+        return Ok((None, (Vec::new(), 1)));
+    };
+    let journal = Journal::open(
+        dir,
+        &format!("order-node-{}.sqlite", config.name),
+        config.durability,
+    )?;
+    let recovered = journal.list::<OrderProgress>(ORDER_RECORD)?;
+    let next = journal
+        .get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?
+        .unwrap_or(1);
+    Ok((Some(Arc::new(journal)), (recovered, next)))
+}
+
+/// The node's queryables; dropping them undeclares them.
+struct Endpoints {
+    _submit: zenoh::query::Queryable<()>,
+    _states: zenoh::query::Queryable<()>,
+    _inboxes: zenoh::query::Queryable<()>,
+    _cancels: zenoh::query::Queryable<()>,
+}
+
+impl Endpoints {
+    /// Declares `orders/submit`, and the node's orders' `state`, `inbox` and `cancel`;
+    /// every query goes to `queue` (results for running orders straight to them).
+    async fn declare(
+        session: &zenoh::Session,
+        host: &Host,
+        queue: mpsc::Sender<NodeQuery>,
+    ) -> Result<Endpoints, OrderNodeError> {
+        let keys = &host.config.keys;
+        let name = &host.config.name;
+        let to_queue = |wrap: fn(Query) -> NodeQuery| {
+            let queue = queue.clone();
+            move |query| enqueue(&queue, wrap(query))
+        };
+        let _submit = session
+            .declare_queryable(keys.orders_submit())
+            .complete(true)
+            .callback(to_queue(NodeQuery::Submit))
+            .await
+            .map_err(zenoh_error)?;
+        let _states = session
+            .declare_queryable(keys.node_orders(name, "state"))
+            .callback(to_queue(NodeQuery::State))
+            .await
+            .map_err(zenoh_error)?;
+        // Results reach running orders straight from this callback; those for orders
+        // that are not running (duplicates, late reports of abandoned attempts) are
+        // answered by the node's loop.
+        let inboxes = host.context.inboxes.clone();
+        let inbox_queue = queue.clone();
+        let _inboxes = session
+            .declare_queryable(keys.node_orders(name, "inbox"))
+            .callback(move |query| {
+                if let Some(query) = inboxes.route(query) {
+                    enqueue(&inbox_queue, NodeQuery::Inbox(query));
+                }
+            })
+            .await
+            .map_err(zenoh_error)?;
+        let _cancels = session
+            .declare_queryable(keys.node_orders(name, "cancel"))
+            .callback(to_queue(NodeQuery::Cancel))
+            .await
+            .map_err(zenoh_error)?;
+        Ok(Endpoints {
+            _submit,
+            _states,
+            _inboxes,
+            _cancels,
+        })
+    }
+}
+
+/// Answers one query to the node.
+async fn answer(host: &Host, query: NodeQuery, tasks: &mut Tasks, cancel_all: &CancellationToken) {
+    match query {
+        NodeQuery::Submit(query) => submit(host, query, tasks, cancel_all).await,
+        NodeQuery::Inbox(query) => acknowledge_finished(host, query).await,
+        NodeQuery::Cancel(query) => cancel(host, query).await,
+        NodeQuery::State(query) => {
+            for (key, payload) in host.snapshots_matching(query.key_expr()) {
+                if let Err(e) = query.reply(&key, payload).await {
+                    warn!(node = %host.config.name, %key, error = %e, "cannot answer a state read; the reader gets fewer orders");
+                }
+            }
+        }
+    }
+}
+
+/// An order task ended: done (the order ended), waiting for the journal (resumed after
+/// a pause, not counted as a failure), or failed (restarted under the restart policy).
+async fn task_ended(
+    host: &Host,
+    joined: Result<(tokio::task::Id, Result<(), OrderError>), tokio::task::JoinError>,
+    tasks: &mut Tasks,
+    cancel_all: &CancellationToken,
+) {
+    let node = &host.config.name;
+    let (id, why) = match joined {
+        Ok((id, Ok(()))) => {
+            tasks.names.remove(&id);
+            return;
+        }
+        Ok((id, Err(OrderError::Journal(why)))) => {
+            // Not the order's fault: resumed from its last written progress once the
+            // journal can write again (tried every second), not counted against its
+            // restarts.
+            let Some(name) = tasks.names.remove(&id) else {
+                return;
+            };
+            debug!(%node, order = %name, error = %why, "order waits for the journal");
+            let progress = host
+                .orders
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .get(&name)
+                .map(|h| h.progress.clone());
+            if let Some(progress) = progress {
+                host.spawn(&name, progress, tasks, cancel_all, JOURNAL_RETRY);
+            }
+            return;
+        }
+        Ok((id, Err(e))) => (id, e.to_string()),
+        Err(e) if e.is_panic() => {
+            let id = e.id();
+            let why = format!(
+                "panicked: {}",
+                holon::supervisor::panic_message(e.into_panic())
+            );
+            (id, why)
+        }
+        Err(e) => {
+            tasks.names.remove(&e.id());
+            return;
+        }
+    };
+    let Some(name) = tasks.names.remove(&id) else {
+        return;
+    };
+    error!(%node, order = %name, error = %why, "order task failed");
+    restart(host, &name, tasks, cancel_all).await;
 }
 
 /// Restarts a failed order task, unless it failed more often than [`ORDER_RESTARTS`]
