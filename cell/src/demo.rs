@@ -407,25 +407,82 @@ impl Report {
 }
 
 async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
+    start_holons(cell, options).await?;
+    // Watch every order's state before submitting.
+    let states = cell
+        .session
+        .declare_subscriber(cell.keys.order_states())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let started = Instant::now();
+    let work = WorkOrder {
+        product: "breaker".into(),
+        count: options.orders,
+        priority: 0,
+        queue: false,
+    };
+    let ids = submit(&cell.session, &cell.keys, &work, STARTUP).await?;
+    println!(
+        "submitted {} orders of breaker: {} .. {}",
+        ids.len(),
+        ids.first().map(String::as_str).unwrap_or(""),
+        ids.last().map(String::as_str).unwrap_or("")
+    );
+
+    let mut orders: BTreeMap<HolonId, OrderSnapshot> = BTreeMap::new();
+    let mut hot_added = None;
+    let deadline =
+        Instant::now() + Duration::from_secs(60) + options.action_delay * 10 * options.orders;
+    loop {
+        let finished = orders.values().filter(|o| o.status.is_final()).count();
+        if finished == ids.len() {
+            break;
+        }
+        if options.hot_add && hot_added.is_none() && finished * 2 >= ids.len() {
+            hot_add_robot3(cell, options, ids.len() - finished).await?;
+            hot_added = Some(started.elapsed());
+        }
+        let sample = match tokio::time::timeout_at(deadline.into(), states.recv_async()).await {
+            Ok(Ok(sample)) => sample,
+            Ok(Err(e)) => bail!("order states: {e}"),
+            Err(_) => bail!("orders still running after {:?}", deadline - started),
+        };
+        let Ok(snapshot) = serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
+        else {
+            continue;
+        };
+        print_progress(orders.get(&snapshot.holon), &snapshot, started.elapsed());
+        orders.insert(snapshot.holon.clone(), snapshot);
+    }
+    let failed = orders
+        .values()
+        .filter(|o| o.status == OrderStatus::Failed)
+        .count();
+    Ok(Report {
+        orders,
+        failed,
+        elapsed: started.elapsed(),
+        hot_added,
+    })
+}
+
+/// Starts the cell's holons: each resource after its simulator, the product, the
+/// order-node; prints how long each took to appear.
+async fn start_holons(cell: &mut Cell, options: &DemoOptions) -> Result<()> {
     let robot_delay = options.action_delay;
     let short_delay = options.action_delay / 3;
-    // Resources: a simulator each, then the holon.
+    let inspect_flags = if options.inspect_fail_every > 0 {
+        vec![
+            "--inspect-fail-every".into(),
+            options.inspect_fail_every.to_string(),
+        ]
+    } else {
+        vec![]
+    };
     let resources: Vec<(&str, &str, Duration, Vec<String>)> = vec![
         ("robot1", ROBOT, robot_delay, vec![]),
         ("robot2", ROBOT, robot_delay, vec![]),
-        (
-            "inspect1",
-            INSPECTION,
-            short_delay,
-            if options.inspect_fail_every > 0 {
-                vec![
-                    "--inspect-fail-every".into(),
-                    options.inspect_fail_every.to_string(),
-                ]
-            } else {
-                vec![]
-            },
-        ),
+        ("inspect1", INSPECTION, short_delay, inspect_flags),
         ("conveyor1", CONVEYOR, short_delay, vec![]),
     ];
     for (name, config, delay, sim_flags) in &resources {
@@ -465,114 +522,68 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         "order-node orders1",
         took.as_millis()
     );
+    Ok(())
+}
 
-    // Watch every order's state before submitting.
-    let states = cell
-        .session
-        .declare_subscriber(cell.keys.order_states())
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let started = Instant::now();
-    let work = WorkOrder {
-        product: "breaker".into(),
-        count: options.orders,
-        priority: 0,
-        queue: false,
-    };
-    let ids = submit(&cell.session, &cell.keys, &work, STARTUP).await?;
+/// Hot-adds robot3 (its simulator, then its holon) while `running` orders run.
+async fn hot_add_robot3(cell: &mut Cell, options: &DemoOptions, running: usize) -> Result<()> {
+    let controller = cell.sim("robot3-sim", options.action_delay, &[]).await?;
+    let robot3 = HolonId::resource("robot3")?;
+    let took = cell
+        .holon(
+            "holon-node",
+            ROBOT,
+            &robot3,
+            &["--controller".into(), controller],
+            None,
+        )
+        .await?;
     println!(
-        "submitted {} orders of breaker: {} .. {}",
-        ids.len(),
-        ids.first().map(String::as_str).unwrap_or(""),
-        ids.last().map(String::as_str).unwrap_or("")
+        "+ hot-added {robot3} while {running} orders run (alive after {} ms)",
+        took.as_millis()
     );
+    Ok(())
+}
 
-    let mut orders: BTreeMap<HolonId, OrderSnapshot> = BTreeMap::new();
-    let mut hot_added = None;
-    let deadline =
-        Instant::now() + Duration::from_secs(60) + options.action_delay * 10 * options.orders;
-    loop {
-        let finished = orders.values().filter(|o| o.status.is_final()).count();
-        if finished == ids.len() {
-            break;
-        }
-        if options.hot_add && hot_added.is_none() && finished * 2 >= ids.len() {
-            let controller = cell.sim("robot3-sim", robot_delay, &[]).await?;
-            let robot3 = HolonId::resource("robot3")?;
-            let took = cell
-                .holon(
-                    "holon-node",
-                    ROBOT,
-                    &robot3,
-                    &["--controller".into(), controller],
-                    None,
-                )
-                .await?;
-            hot_added = Some(started.elapsed());
+/// Prints what an order's new state says, if it progressed since `previous`: the step
+/// just completed (passed, or rejected: a rework or a scrap), and its end.
+fn print_progress(previous: Option<&OrderSnapshot>, snapshot: &OrderSnapshot, elapsed: Duration) {
+    let progressed = previous.is_none_or(|p| {
+        p.status != snapshot.status || p.completed.len() != snapshot.completed.len()
+    });
+    if !progressed {
+        return;
+    }
+    let elapsed = elapsed.as_secs_f64();
+    let steps_before = previous.map_or(0, |p| p.completed.len());
+    let reworked = previous.is_some_and(|p| snapshot.reworks > p.reworks);
+    if snapshot.completed.len() > steps_before {
+        if let Some((service, resource)) = snapshot.completed.last() {
+            let outcome = if reworked {
+                format!("rejected by {resource} -> rework {}", snapshot.reworks)
+            } else if snapshot.status == OrderStatus::Scrapped {
+                format!("rejected by {resource}")
+            } else {
+                format!("done by {resource}")
+            };
             println!(
-                "+ hot-added {robot3} while {} orders run (alive after {} ms)",
-                ids.len() - finished,
-                took.as_millis()
+                "{elapsed:7.2}s  {:<14} {service:<13} {outcome}",
+                snapshot.holon.name()
             );
         }
-        let sample = match tokio::time::timeout_at(deadline.into(), states.recv_async()).await {
-            Ok(Ok(sample)) => sample,
-            Ok(Err(e)) => bail!("order states: {e}"),
-            Err(_) => bail!("orders still running after {:?}", deadline - started),
-        };
-        let Ok(snapshot) = serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
-        else {
-            continue;
-        };
-        let previous = orders.get(&snapshot.holon);
-        let progressed = previous.is_none_or(|p| {
-            p.status != snapshot.status || p.completed.len() != snapshot.completed.len()
-        });
-        if progressed {
-            let elapsed = started.elapsed().as_secs_f64();
-            // The step just completed, as it came out: passed, or rejected (a rework).
-            let steps_before = previous.map_or(0, |p| p.completed.len());
-            let reworked = previous.is_some_and(|p| snapshot.reworks > p.reworks);
-            if snapshot.completed.len() > steps_before {
-                if let Some((service, resource)) = snapshot.completed.last() {
-                    let outcome = if reworked {
-                        format!("rejected by {resource} -> rework {}", snapshot.reworks)
-                    } else if snapshot.status == OrderStatus::Scrapped {
-                        format!("rejected by {resource}")
-                    } else {
-                        format!("done by {resource}")
-                    };
-                    println!(
-                        "{elapsed:7.2}s  {:<14} {service:<13} {outcome}",
-                        snapshot.holon.name()
-                    );
-                }
-            }
-            match snapshot.status {
-                OrderStatus::Running => {}
-                status => println!(
-                    "{elapsed:7.2}s  {:<14} {status:?}{}",
-                    snapshot.holon.name(),
-                    snapshot
-                        .reason
-                        .as_deref()
-                        .map(|r| format!(": {r}"))
-                        .unwrap_or_default()
-                ),
-            }
-        }
-        orders.insert(snapshot.holon.clone(), snapshot);
     }
-    let failed = orders
-        .values()
-        .filter(|o| o.status == OrderStatus::Failed)
-        .count();
-    Ok(Report {
-        orders,
-        failed,
-        elapsed: started.elapsed(),
-        hot_added,
-    })
+    if snapshot.status != OrderStatus::Running {
+        println!(
+            "{elapsed:7.2}s  {:<14} {:?}{}",
+            snapshot.holon.name(),
+            snapshot.status,
+            snapshot
+                .reason
+                .as_deref()
+                .map(|r| format!(": {r}"))
+                .unwrap_or_default()
+        );
+    }
 }
 
 /// A temporary directory removed when dropped, unless kept for its logs.
