@@ -8,15 +8,19 @@
 //! - [`requests`]: the order's requests over zenoh; [`order_token`]: its presence;
 //! - [`presence`]: which resources are alive and whose turn it is on each;
 //! - [`inbox`]: where results reach the running orders;
-//! - [`context`]: what the orders of a node share; [`node`]: the host process.
+//! - [`context`]: what the orders of a node share;
+//! - [`host`]: the orders a node hosts and their tasks; [`queries`]: its endpoints;
+//!   [`node`]: the process.
 
 pub mod attempt;
 pub mod config;
 pub mod context;
+pub mod host;
 pub mod inbox;
 pub mod node;
 pub mod order;
 pub mod order_token;
 pub mod presence;
 pub mod progress;
+pub mod queries;
 pub mod requests;

@@ -83,9 +83,13 @@ impl Plan {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct WorkOrder {
+    /// The product to make (its product holon serves the plan).
     pub product: String,
+    /// How many orders to create (default 1; at most `orders.max_orders_per_submit`).
     #[serde(default = "one")]
     pub count: u32,
+    /// Accepted and kept, not used yet: every order is negotiated alike. Reserved for
+    /// the staff holons, which will plan by it.
     #[serde(default)]
     pub priority: i32,
     /// Accept the work order even when no product holon of that name is alive (its

@@ -642,6 +642,18 @@ impl Cell {
         Ok(())
     }
 
+    /// The state of one order, asked of its order-node (`None`: no node knows it).
+    pub async fn order_state(&self, order: &str) -> Option<serde_json::Value> {
+        let replies = self
+            .session
+            .get(format!("holarchy/{}/order/{order}/state", self.keys.cell()))
+            .timeout(Duration::from_secs(2))
+            .await
+            .ok()?;
+        let reply = replies.recv_async().await.ok()?;
+        serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
+    }
+
     /// Submits a work order on `orders/submit` and returns the new orders' names.
     pub async fn submit(&self, product: &str, count: u32) -> Result<Vec<String>> {
         self.submit_work(schemas::WorkOrder {

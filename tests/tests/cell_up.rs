@@ -122,11 +122,22 @@ args = ["--config", "robot1.toml", "--cell", "t-up", "--controller", "127.0.0.1:
     assert!(up.wait().unwrap().success());
 }
 
+/// Runs `cell up` on a manifest until it exits: its exit code and output.
+fn cell_up_to_the_end(manifest: &str) -> (Option<i32>, String) {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("cell.toml"), manifest).unwrap();
+    let output = Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    (output.status.code(), stdout)
+}
+
 #[test]
 fn cell_up_gives_up_past_the_restart_intensity() {
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::write(
-        dir.path().join("cell.toml"),
+    let (code, stdout) = cell_up_to_the_end(
         r#"
 cell = "t-up2"
 [restart]
@@ -138,15 +149,8 @@ name = "crasher"
 program = "sh"
 args = ["-c", "exit 3"]
 "#,
-    )
-    .unwrap();
-    let output = Command::new(bin("cell"))
-        .arg("up")
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    assert_eq!(output.status.code(), Some(1), "{stdout}");
+    );
+    assert_eq!(code, Some(1), "{stdout}");
     assert_eq!(stdout.matches("started crasher").count(), 3, "{stdout}");
     assert!(stdout.contains("more than 2 restarts"), "{stdout}");
 }
@@ -170,9 +174,7 @@ fn cell_up_refuses_a_bad_manifest() {
 
 #[test]
 fn cell_up_follows_each_process_restart_type() {
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::write(
-        dir.path().join("cell.toml"),
+    let (code, stdout) = cell_up_to_the_end(
         r#"
 cell = "t-up3"
 [restart]
@@ -195,17 +197,10 @@ program = "sh"
 args = ["-c", "sleep 0.3; exit 3"]
 restart = "transient"
 "#,
-    )
-    .unwrap();
-    let output = Command::new(bin("cell"))
-        .arg("up")
-        .arg(dir.path())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
+    );
     // The transient process that failed is restarted until the intensity gives up; the
     // one whose work is done and the temporary one are never restarted.
-    assert_eq!(output.status.code(), Some(1), "{stdout}");
+    assert_eq!(code, Some(1), "{stdout}");
     assert_eq!(stdout.matches("started crasher").count(), 3, "{stdout}");
     assert_eq!(stdout.matches("started one-shot").count(), 1, "{stdout}");
     assert_eq!(stdout.matches("started best-effort").count(), 1, "{stdout}");

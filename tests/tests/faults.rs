@@ -326,18 +326,6 @@ async fn a_full_disk_holds_the_result_until_it_is_recorded_and_never_makes_it_in
     assert_eq!(sim.executed("pick"), 1);
 }
 
-/// The state of one order, asked of its order-node.
-async fn order_state(cell: &Cell, order: &str) -> Option<serde_json::Value> {
-    let replies = cell
-        .session
-        .get(format!("holarchy/{}/order/{order}/state", cell.keys.cell()))
-        .timeout(Duration::from_secs(2))
-        .await
-        .ok()?;
-    let reply = replies.recv_async().await.ok()?;
-    serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
-}
-
 async fn wait_order(
     cell: &Cell,
     order: &str,
@@ -346,7 +334,7 @@ async fn wait_order(
 ) {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
     loop {
-        let state = order_state(cell, order).await;
+        let state = cell.order_state(order).await;
         if state.as_ref().is_some_and(&check) {
             return;
         }
@@ -425,7 +413,7 @@ info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6
     .await
     .unwrap();
     tokio::time::sleep(Duration::from_secs(2)).await;
-    let state = order_state(&cell, order).await.unwrap();
+    let state = cell.order_state(order).await.unwrap();
     assert_eq!(state["status"], "running", "{state}");
     assert_eq!(
         cell.status("robot1").await.unwrap()["undelivered"],

@@ -7,18 +7,6 @@ use std::time::Duration;
 use holarchy_tests::*;
 use nix::sys::signal::Signal;
 
-/// The state of one order, asked of its order-node.
-async fn order_state(cell: &Cell, order: &str) -> Option<serde_json::Value> {
-    let replies = cell
-        .session
-        .get(format!("holarchy/{}/order/{order}/state", cell.keys.cell()))
-        .timeout(Duration::from_secs(2))
-        .await
-        .ok()?;
-    let reply = replies.recv_async().await.ok()?;
-    serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
-}
-
 /// Waits until `check` holds for the order's state (`None`: the node does not know it).
 async fn wait_order(
     cell: &Cell,
@@ -28,7 +16,7 @@ async fn wait_order(
 ) {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
     loop {
-        let state = order_state(cell, order).await;
+        let state = cell.order_state(order).await;
         if check(&state) {
             return;
         }
@@ -99,7 +87,7 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
         .await;
     }
     // Still known right after; gone once the retention has passed.
-    assert!(order_state(&cell, &failing[0]).await.is_some());
+    assert!(cell.order_state(&failing[0]).await.is_some());
     for order in &failing {
         wait_order(&cell, order, "left the journal", Option::is_none).await;
     }
@@ -116,7 +104,7 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
         .await
         .unwrap();
     for order in &failing {
-        assert_eq!(order_state(&cell, order).await, None, "{order} came back");
+        assert_eq!(cell.order_state(order).await, None, "{order} came back");
     }
     second.signal(Signal::SIGTERM).unwrap();
     assert!(second.wait_exit(Duration::from_secs(20)).unwrap().success());

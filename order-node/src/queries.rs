@@ -1,0 +1,347 @@
+//! The order-node's endpoints: `orders/submit`, and its orders' `state`, `cancel` and
+//! `inbox` (for results of orders that are not running). Their callbacks queue every
+//! query for the node's loop, which answers it here.
+
+use std::time::Duration;
+
+use schemas::{ErrorReply, HolonId, SubmitReply, WorkOrder};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, error, info, warn};
+use zenoh::query::Query;
+
+use crate::host::{Host, Tasks};
+
+/// How many queries wait for the node's loop before new ones are refused `unavailable`.
+pub const QUERY_QUEUE: usize = 1024;
+
+/// How long a work order waits for its product holon to be seen before it is refused
+/// `unknown_product`.
+const PRODUCT_GRACE: Duration = Duration::from_secs(2);
+
+/// A query to the node, by the queryable it came to.
+pub enum NodeQuery {
+    Cancel(Query),
+    Submit(Query),
+    State(Query),
+    Inbox(Query),
+}
+
+/// Queues a query for the node's loop from a queryable's callback (which must not
+/// block): refused `unavailable` when [`QUERY_QUEUE`] are already waiting.
+fn enqueue(queue: &mpsc::Sender<NodeQuery>, query: NodeQuery) {
+    use zenoh::Wait;
+    match queue.try_send(query) {
+        Ok(()) => {}
+        Err(mpsc::error::TrySendError::Full(
+            NodeQuery::Cancel(query)
+            | NodeQuery::Submit(query)
+            | NodeQuery::State(query)
+            | NodeQuery::Inbox(query),
+        )) => {
+            warn!(key = %query.key_expr(), "{QUERY_QUEUE} queries are waiting for the order-node: this one is refused unavailable");
+            let busy = schemas::ErrorReply::new(
+                "unavailable",
+                format!(
+                    "{QUERY_QUEUE} requests are waiting for this order-node; ask again shortly"
+                ),
+            );
+            if let Err(e) = query.reply_err(busy.to_json()).wait() {
+                warn!(error = %e, "cannot refuse a query; the asker times out");
+            }
+        }
+        Err(mpsc::error::TrySendError::Closed(_)) => {
+            debug!("a query arrived while the order-node stops: left unanswered, the asker times out or delivers again")
+        }
+    }
+}
+
+/// The node's queryables; dropping them undeclares them.
+pub struct Endpoints {
+    _submit: zenoh::query::Queryable<()>,
+    _states: zenoh::query::Queryable<()>,
+    _inboxes: zenoh::query::Queryable<()>,
+    _cancels: zenoh::query::Queryable<()>,
+}
+
+impl Endpoints {
+    /// Declares `orders/submit`, and the node's orders' `state`, `inbox` and `cancel`;
+    /// every query goes to `queue` (results for running orders straight to them).
+    pub async fn declare(
+        session: &zenoh::Session,
+        host: &Host,
+        queue: mpsc::Sender<NodeQuery>,
+    ) -> Result<Endpoints, zenoh::Error> {
+        let keys = &host.config.keys;
+        let name = &host.config.name;
+        let to_queue = |wrap: fn(Query) -> NodeQuery| {
+            let queue = queue.clone();
+            move |query| enqueue(&queue, wrap(query))
+        };
+        let _submit = session
+            .declare_queryable(keys.orders_submit())
+            .complete(true)
+            .callback(to_queue(NodeQuery::Submit))
+            .await?;
+        let _states = session
+            .declare_queryable(keys.node_orders(name, "state"))
+            .callback(to_queue(NodeQuery::State))
+            .await?;
+        // Results reach running orders straight from this callback; those for orders
+        // that are not running (duplicates, late reports of abandoned attempts) are
+        // answered by the node's loop.
+        let inboxes = host.context.inboxes.clone();
+        let inbox_queue = queue.clone();
+        let _inboxes = session
+            .declare_queryable(keys.node_orders(name, "inbox"))
+            .callback(move |query| {
+                if let Some(query) = inboxes.route(query) {
+                    enqueue(&inbox_queue, NodeQuery::Inbox(query));
+                }
+            })
+            .await?;
+        let _cancels = session
+            .declare_queryable(keys.node_orders(name, "cancel"))
+            .callback(to_queue(NodeQuery::Cancel))
+            .await?;
+        Ok(Endpoints {
+            _submit,
+            _states,
+            _inboxes,
+            _cancels,
+        })
+    }
+}
+
+/// Answers one query to the node.
+pub async fn answer(
+    host: &Host,
+    query: NodeQuery,
+    tasks: &mut Tasks,
+    cancel_all: &CancellationToken,
+) {
+    match query {
+        NodeQuery::Submit(query) => submit(host, query, tasks, cancel_all).await,
+        NodeQuery::Inbox(query) => acknowledge_finished(host, query).await,
+        NodeQuery::Cancel(query) => cancel(host, query).await,
+        NodeQuery::State(query) => {
+            for (key, payload) in host.snapshots_matching(query.key_expr()) {
+                if let Err(e) = query.reply(&key, payload).await {
+                    warn!(node = %host.config.name, %key, error = %e, "cannot answer a state read; the reader gets fewer orders");
+                }
+            }
+        }
+    }
+}
+
+/// Why a work order for `product` cannot be planned now: no product holon of that name
+/// is alive (the product tokens, asked for once). `None` when it is there.
+async fn product_missing(host: &Host, product: &str) -> Option<String> {
+    let keys = &host.config.keys;
+    let alive = match holon::presence::tokens(
+        &host.context.session,
+        &keys.alive_kind(schemas::HolonKind::Product),
+        Duration::from_secs(2),
+    )
+    .await
+    {
+        Ok(alive) => alive,
+        // Presence unknown: accept, the orders wait for their plan as before.
+        Err(e) => {
+            warn!(node = %host.config.name, error = %e, "cannot ask which products are alive");
+            return None;
+        }
+    };
+    let names: Vec<String> = alive
+        .iter()
+        .filter_map(|k| keys.holon_from_alive(k))
+        .map(|h| h.name().to_string())
+        .collect();
+    if names.iter().any(|n| n == product) {
+        return None;
+    }
+    // A node that has just joined may not know every token yet (a peer learns the
+    // others' declarations as its links come up): a product that shows up within the
+    // grace is there.
+    if let Ok(holon) = HolonId::new(schemas::HolonKind::Product, product) {
+        if let Ok(true) =
+            holon::presence::wait_token(&host.context.session, &keys.alive(&holon), PRODUCT_GRACE)
+                .await
+        {
+            return None;
+        }
+    }
+    Some(format!(
+        "no product holon {product:?} is alive in cell {} (alive: {}); start it, or submit with queue (cell submit --queue) to let the orders wait for its plan",
+        keys.cell(),
+        if names.is_empty() { "none".to_string() } else { names.join(", ") }
+    ))
+}
+
+/// Refuses a work order: nothing was created.
+async fn refuse_work(host: &Host, query: &Query, refusal: ErrorReply) {
+    if let Err(e) = query.reply_err(refusal.to_json()).await {
+        warn!(node = %host.config.name, code = %refusal.code, error = %e, "cannot refuse the work order; the submitter times out (nothing was created)");
+    }
+}
+
+async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &CancellationToken) {
+    let payload = query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default();
+    let work: WorkOrder = match serde_json::from_slice::<WorkOrder>(&payload) {
+        Ok(work) => match work.validate() {
+            Ok(()) => work,
+            Err(e) => {
+                return refuse_work(host, &query, ErrorReply::new("invalid", e.to_string())).await
+            }
+        },
+        Err(e) => {
+            warn!(node = %host.config.name, error = %e, "malformed work order");
+            return refuse_work(host, &query, ErrorReply::new("malformed", e.to_string())).await;
+        }
+    };
+    if !work.queue {
+        if let Some(why) = product_missing(host, &work.product).await {
+            warn!(node = %host.config.name, product = %work.product, "work order refused: {why}");
+            if let Err(e) = query
+                .reply_err(ErrorReply::new("unknown_product", why).to_json())
+                .await
+            {
+                warn!(node = %host.config.name, error = %e, "cannot refuse the work order");
+            }
+            return;
+        }
+    }
+    let limits = &host.config.orders;
+    let unfinished = host.unfinished();
+    let refusal = if work.count > limits.max_orders_per_submit {
+        Some(format!(
+            "count {} is over this node's limit of {} orders per work order (orders.max_orders_per_submit)",
+            work.count, limits.max_orders_per_submit
+        ))
+    } else if unfinished + work.count as usize > limits.max_unfinished_orders {
+        Some(format!(
+            "{unfinished} orders are unfinished; {} more would pass this node's limit of {} (orders.max_unfinished_orders)",
+            work.count, limits.max_unfinished_orders
+        ))
+    } else {
+        None
+    };
+    if let Some(why) = refusal {
+        warn!(node = %host.config.name, product = %work.product, count = work.count, "work order refused: {why}");
+        if let Err(e) = query
+            .reply_err(ErrorReply::new("quota", why).to_json())
+            .await
+        {
+            warn!(node = %host.config.name, error = %e, "cannot refuse the work order");
+        }
+        return;
+    }
+    let orders = match host.create(&work, tasks, cancel) {
+        Ok(orders) => orders,
+        Err(e) => {
+            error!(node = %host.config.name, error = %e, "cannot record the work order");
+            let refusal = ErrorReply::new("unavailable", format!("cannot record the orders: {e}"));
+            return refuse_work(host, &query, refusal).await;
+        }
+    };
+    let reply = serde_json::to_vec(&SubmitReply { orders }).expect("serializes");
+    if let Err(e) = query.reply(query.key_expr().clone(), reply).await {
+        warn!(node = %host.config.name, error = %e, "cannot answer the work order");
+    }
+}
+
+/// An operator's cancel of one order (`order/<name>/cancel`).
+async fn cancel(host: &Host, query: Query) {
+    let key = query.key_expr().as_str().to_string();
+    let name = key
+        .strip_suffix("/cancel")
+        .and_then(|k| k.rsplit('/').next())
+        .unwrap_or_default();
+    let answer = match host.cancel(name) {
+        Ok(reply) => {
+            let payload = serde_json::to_vec(&reply).expect("serializes");
+            query.reply(host.config.keys.cancel(name), payload).await
+        }
+        Err(why) => {
+            warn!(node = %host.config.name, order = %name, "cancel refused: {why}");
+            query
+                .reply_err(ErrorReply::new("unknown_order", why).to_json())
+                .await
+        }
+    };
+    if let Err(e) = answer {
+        warn!(node = %host.config.name, order = %name, error = %e, "cannot answer a cancel");
+    }
+}
+
+/// Acknowledges a result sent to a finished order of this node (it was recorded, or
+/// belongs to an attempt the order abandoned); anything else is left to the order.
+async fn acknowledge_finished(host: &Host, query: Query) {
+    let key = query.key_expr().as_str().to_string();
+    let Some(name) = crate::inbox::order_name(&key).map(str::to_string) else {
+        return;
+    };
+    let Some(progress) = host.progress(&name) else {
+        warn!(order = %name, "result for an order this node does not host refused");
+        if let Err(e) = query
+            .reply_err(
+                ErrorReply::new(
+                    "unknown_order",
+                    format!("{name} is not an order of {}", host.config.name),
+                )
+                .to_json(),
+            )
+            .await
+        {
+            warn!(order = %name, error = %e, "cannot refuse a result");
+        }
+        return;
+    };
+    if !progress.status.is_final() {
+        // Hosted, but its task is not running now (restarting after a journal error):
+        // unanswered, so the resource delivers the result again.
+        debug!(order = %name, "result for an order that is not running left for a later delivery");
+        return;
+    }
+    let payload = query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default();
+    let message = match schemas::Service::from_json(&payload) {
+        Ok(message) => message,
+        Err(err) => {
+            warn!(order = %name, bytes = payload.len(), error = %err, "undecodable message for a finished order refused");
+            if let Err(e) = query
+                .reply_err(ErrorReply::new("malformed", err.to_string()).to_json())
+                .await
+            {
+                warn!(order = %name, error = %e, "cannot refuse an undecodable message");
+            }
+            return;
+        }
+    };
+    {
+        if !progress.knows(message.provider.as_ref()) {
+            warn!(order = %name, conversation_id = %message.conversation_id, "result for a finished order from a resource it never booked refused");
+            if let Err(e) = query
+                .reply_err(
+                    ErrorReply::new("not_booked", "this order never booked that resource")
+                        .to_json(),
+                )
+                .await
+            {
+                warn!(order = %name, error = %e, "cannot refuse a result");
+            }
+            return;
+        }
+        info!(order = %name, conversation_id = %message.conversation_id, message_type = %message.message_type, "result for a finished order acknowledged");
+        let mut ack = message;
+        ack.result = Some(true);
+        if let Err(e) = query.reply(query.key_expr().clone(), ack.to_json()).await {
+            warn!(order = %name, error = %e, "cannot acknowledge a result of a finished order; the resource delivers it again");
+        }
+    }
+}
