@@ -91,18 +91,21 @@ pub async fn proposals(
     message: &Service,
     avoid: &BTreeSet<HolonId>,
 ) -> Vec<HolonId> {
-    let Ok(replies) = ctx
+    // A round stopped half-way (the order cancelled, the node stopping) drops its
+    // reader: late proposals are dropped quietly.
+    let Ok(mut replies) = ctx
         .session
         .get(ctx.keys.offers(&message.service_type))
         .payload(message.to_json())
         .consolidation(ConsolidationMode::None)
         .timeout(ctx.settings.proposal_timeout)
+        .with(holon::query::replies())
         .await
     else {
         return Vec::new();
     };
     let mut offers = Vec::new();
-    while let Ok(reply) = replies.recv_async().await {
+    while let Some(reply) = replies.recv().await {
         let Ok(sample) = reply.result() else { continue };
         let Ok(proposal) = Service::from_json(&sample.payload().to_bytes()) else {
             continue;
