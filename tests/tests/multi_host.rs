@@ -238,9 +238,23 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
     let dir = tempfile::tempdir().unwrap();
     let dir = dir.path();
     let mut hosts = Hosts::setup();
-    let lease = LEASE_MS.to_string();
+    start_a_router_on_every_host(&mut hosts, dir);
+    start_the_holons(&mut hosts, dir);
+    the_cell_assembles_across_hosts(&hosts);
+    orders_run_on_host_b(&hosts);
+    let cut = cut_host_b_off_and_see_its_work_rebooked(&mut hosts);
+    let healed = heal_host_b(&mut hosts, cut);
+    every_order_is_done(&hosts);
+    host_b_is_seen_again(&hosts, healed);
+    host_b_receives_work_again(&hosts, dir);
+    // Stopped: no process the test started is left in its namespaces.
+    let left = hosts.stop_all();
+    assert!(left.is_empty(), "processes survived the test: {left:?}");
+}
 
-    // A router on every host, each connected to the others.
+/// A router on every host (`cell router`), each connected to the others.
+fn start_a_router_on_every_host(hosts: &mut Hosts, dir: &Path) {
+    let lease = LEASE_MS.to_string();
     for host in ["a", "b", "c"] {
         let mut args = vec![
             "router".to_string(),
@@ -256,7 +270,11 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
         hosts.spawn(dir, host, &format!("router-{host}"), &bin("cell"), &args);
     }
-    // Holon configs with the cell's lease.
+}
+
+/// Resources (each after its simulator) on hosts a and b, the product and the
+/// order-node on host c, all with the cell's lease.
+fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
     let with_lease = |file: &str| {
         let text = std::fs::read_to_string(demo_config(file)).unwrap();
         let text = text.replacen(
@@ -356,8 +374,10 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
             data_c.to_str().unwrap(),
         ],
     );
+}
 
-    // Every holon is visible from host c.
+/// Every holon is visible from host c.
+fn the_cell_assembles_across_hosts(hosts: &Hosts) {
     let deadline = Instant::now() + Duration::from_secs(30);
     loop {
         let status = hosts.cell(&["status"]);
@@ -371,24 +391,29 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
         );
         std::thread::sleep(Duration::from_millis(300));
     }
+}
 
-    // Orders complete across hosts.
+/// Orders complete across hosts: some are booked on host b.
+fn orders_run_on_host_b(hosts: &Hosts) {
     let submitted = hosts.cell(&["submit", "breaker", "--count", "10"]);
     assert_eq!(submitted.lines().count(), 10, "{submitted}");
     let on_b = wait_orders(
-        &hosts,
+        hosts,
         "an order booked on host b",
         Duration::from_secs(60),
         |out| out.contains("resource/robot2"),
     );
     println!("{}", summary(&on_b));
+}
 
-    // Cut host b off.
+/// Cuts host b off (link down): its booked work is rebooked elsewhere within the lease.
+/// Returns when the cut began.
+fn cut_host_b_off_and_see_its_work_rebooked(hosts: &mut Hosts) -> Instant {
     let cut = Instant::now();
     hosts.link("b", "down");
     println!("host b cut off");
     let rebooked = wait_orders(
-        &hosts,
+        hosts,
         "host b's work rebooked",
         Duration::from_secs(60),
         |out| {
@@ -408,6 +433,11 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
         rebook_time < Duration::from_millis(LEASE_MS * 10),
         "rebooking took {rebook_time:?}"
     );
+    cut
+}
+
+/// Heals host b's link; returns when.
+fn heal_host_b(hosts: &mut Hosts, cut: Instant) -> Instant {
     // Heal at once: a cut of a few seconds, shorter than zenoh's former 10 s TCP linger
     // (see .cargo/config.toml), is the one that once left host b invisible for good.
     hosts.link("b", "up");
@@ -416,14 +446,22 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
         "host b back {:.2}s after the cut",
         cut.elapsed().as_secs_f64()
     );
+    healed
+}
+
+/// All 10 orders are done.
+fn every_order_is_done(hosts: &Hosts) {
     let all_done = wait_orders(
-        &hosts,
+        hosts,
         "all 10 orders done",
         Duration::from_secs(120),
         |out| summary(out).contains(": 10 orders: 10 done"),
     );
     println!("{}", summary(&all_done));
+}
 
+/// Host b is seen again from host c.
+fn host_b_is_seen_again(hosts: &Hosts, healed: Instant) {
     // A bound, not a figure: the routers retry their links at most 4 s apart, and a
     // connect sent while the link was down waits up to zenoh's open timeout (10 s).
     let deadline = healed + Duration::from_secs(60);
@@ -442,6 +480,10 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
         );
         std::thread::sleep(Duration::from_millis(300));
     }
+}
+
+/// New orders are executed on host b again.
+fn host_b_receives_work_again(hosts: &Hosts, dir: &Path) {
     let robot2_before = std::fs::read_to_string(dir.join("robot2.counts.json")).unwrap_or_default();
     let executed = |text: &str| -> u64 {
         serde_json::from_str::<serde_json::Value>(text)
@@ -452,7 +494,7 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
     let before = executed(&robot2_before);
     hosts.cell(&["submit", "breaker", "--count", "8"]);
     let finished = wait_orders(
-        &hosts,
+        hosts,
         "all 18 orders done",
         Duration::from_secs(120),
         |out| summary(out).contains(": 18 orders: 18 done"),
@@ -462,8 +504,4 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
         executed(&std::fs::read_to_string(dir.join("robot2.counts.json")).unwrap_or_default());
     println!("robot2 picks: {before} before the heal, {after} after");
     assert!(after > before, "host b received no work after rejoining");
-
-    // Stopped: no process the test started is left in its namespaces.
-    let left = hosts.stop_all();
-    assert!(left.is_empty(), "processes survived the test: {left:?}");
 }
