@@ -65,13 +65,8 @@ impl Wiring {
         let holon = config.holon.clone();
         let agenda = JournalledAgenda::open(config)?;
         // Results not acknowledged before a restart (and an interrupted job's `failed`)
-        // go out when the communication component starts.
-        let deliveries = Deliveries::new(
-            holon.clone(),
-            session.clone(),
-            config.delivery,
-            agenda.undelivered(),
-        );
+        // go out when the communication component starts (from the agenda's view).
+        let deliveries = Deliveries::new(holon.clone(), session.clone(), config.delivery);
         let views = Arc::new(Views::new(agenda.view(), Absences::new(Moment::now())));
         let faults = Arc::new(Faults::default());
         let agenda_mail: Mailbox<AgendaMessage> = Mailbox::new();

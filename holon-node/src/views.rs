@@ -8,7 +8,7 @@
 //! the agenda says it takes work. A reader never waits for an owner, and an owner never
 //! waits for a reader.
 
-use schemas::{ControllerStatus, ResourceSnapshot};
+use schemas::{ControllerStatus, ResourceSnapshot, Service};
 use tokio::sync::watch;
 
 use crate::absences::Absences;
@@ -19,6 +19,9 @@ pub struct AgendaView {
     /// The agenda's part of the snapshot: its state, bookings, running job,
     /// undelivered results and journal fault ([`Views::snapshot`] adds the rest).
     pub snapshot: ResourceSnapshot,
+    /// The results not yet acknowledged that may go out (all but those the journal
+    /// could not record yet): a starting communication component delivers them.
+    pub deliverable: Vec<Service>,
     /// Whether the resource takes new work: its controller is ready, it is not
     /// withdrawing, and its journal can be written.
     pub accepting: bool,

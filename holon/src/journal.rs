@@ -263,13 +263,27 @@ impl Journal {
         Ok(())
     }
 
-    /// Removes one record (no error if it is absent).
-    pub fn delete(&self, kind: &str, id: &str) -> Result<(), JournalError> {
-        self.connection()
-            .prepare_cached("DELETE FROM records WHERE kind = ?1 AND id = ?2")
-            .and_then(|mut statement| statement.execute(params![kind, id]))
-            .map_err(|e| self.error(e))?;
-        Ok(())
+    /// Removes records of `kind` (no error for one that is absent), all in one commit:
+    /// either every one is gone or none is. Their pages are reused by later records
+    /// (the file does not shrink).
+    pub fn delete<I, S>(&self, kind: &str, ids: I) -> Result<(), JournalError>
+    where
+        I: IntoIterator<Item = S>,
+        S: AsRef<str>,
+    {
+        let mut connection = self.connection();
+        let transaction = connection.transaction().map_err(|e| self.error(e))?;
+        {
+            let mut statement = transaction
+                .prepare_cached("DELETE FROM records WHERE kind = ?1 AND id = ?2")
+                .map_err(|e| self.error(e))?;
+            for id in ids {
+                statement
+                    .execute(params![kind, id.as_ref()])
+                    .map_err(|e| self.error(e))?;
+            }
+        }
+        transaction.commit().map_err(|e| self.error(e))
     }
 
     /// Reads one record.
@@ -371,8 +385,7 @@ mod tests {
                 )
                 .unwrap();
             journal.put("meta", "seq", &7u64).unwrap();
-            journal.delete("order", "b").unwrap();
-            journal.delete("order", "missing").unwrap();
+            journal.delete("order", ["b", "missing"]).unwrap();
         }
         let journal = Journal::open(dir.path(), "j.sqlite", Durability::ProcessCrash).unwrap();
         let orders: Vec<(String, Record)> = journal.list("order").unwrap();

@@ -280,7 +280,8 @@ impl Attempt {
                 return actions;
             }
             Answer::Silent => None,
-            Answer::Refused(why) => why,
+            // A refusal without a reason is a refusal all the same.
+            Answer::Refused(why) => Some(why.unwrap_or_else(|| "refused".into())),
         };
         match refusal.as_deref() {
             None | Some(reason::BUSY) => self.watch_for_turn(provider),
@@ -523,6 +524,21 @@ mod tests {
                 A::End(StepOutcome::Failed {
                     provider: robot(1),
                     reason: "start refused: unavailable".into()
+                })
+            ]
+        );
+    }
+
+    #[test]
+    fn a_start_refused_without_a_reason_cancels_and_fails() {
+        let (mut a, now) = attempt(Phase::Booked(robot(1)));
+        assert_eq!(
+            a.handle(E::StartAnswer(Answer::Refused(None)), now),
+            vec![
+                A::CancelBooking(robot(1)),
+                A::End(StepOutcome::Failed {
+                    provider: robot(1),
+                    reason: "start refused: refused".into()
                 })
             ]
         );

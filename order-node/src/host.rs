@@ -15,7 +15,7 @@ use tracing::{debug, error, info, warn};
 use zenoh::key_expr::KeyExpr;
 
 use crate::config::OrderNodeConfig;
-use crate::context::{OrderContext, OrderError, ORDER_RECORD};
+use crate::context::{journal_write, OrderContext, OrderError, ORDER_RECORD};
 use crate::order;
 use crate::progress::OrderProgress;
 
@@ -29,6 +29,10 @@ const ORDER_RESTARTS: Intensity = Intensity {
 
 /// How long an order waits before it tries again a journal that could not write.
 const JOURNAL_RETRY: Duration = Duration::from_secs(1);
+
+/// The most finished orders one sweep removes (one commit): a node that was down for
+/// long removes its backlog over a few sweeps, without a long pause.
+const FORGET_AT_ONCE: usize = 2000;
 
 /// The journal record of the next order number.
 pub const NEXT_RECORD: (&str, &str) = ("meta", "next_order");
@@ -105,8 +109,13 @@ impl Host {
         let running = !progress.status.is_final();
         let mut progress = progress;
         if !running && progress.finished_at.is_none() {
-            // Finished before its end was stamped (an older journal): kept from now on.
+            // Finished before ends were stamped (an older journal): kept from now on,
+            // and recorded so, or a node restarted more often than the retention would
+            // never forget it.
             progress.finished_at = Some(schemas::unix_ms());
+            if let Err(e) = self.context.save(&progress) {
+                warn!(order = %name, error = %e, "cannot record when a finished order ended; it is forgotten a retention after this start");
+            }
         }
         let operator_cancel = CancellationToken::new();
         if progress.cancel_requested {
@@ -197,14 +206,33 @@ impl Host {
         }
     }
 
-    /// Forgets the orders that finished more than `keep` ago: out of the journal first,
-    /// then out of memory (an order whose delete fails stays until the next sweep).
-    /// Returns how many were forgotten.
+    /// Whether `name` is an order this node created and has since forgotten (it finished
+    /// longer ago than the retention): numbered below the next order, and not hosted.
+    pub fn forgotten(&self, name: &str) -> bool {
+        let Some(number) = name
+            .strip_prefix(&format!("{}-", self.config.name))
+            .and_then(|n| n.parse::<u64>().ok())
+        else {
+            return false;
+        };
+        number < self.next.load(Ordering::SeqCst)
+            && !self
+                .orders
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .contains_key(name)
+    }
+
+    /// Forgets the orders that finished more than `keep` ago (at most
+    /// [`FORGET_AT_ONCE`]): out of the journal first, in one commit, then out of memory.
+    /// When the delete fails they stay until the next sweep. Returns how many went.
     pub fn forget_finished(&self, keep: Duration) -> usize {
         let now = schemas::unix_ms();
         let keep_ms = keep.as_millis() as u64;
-        let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-        let expired: Vec<String> = orders
+        let expired: Vec<String> = self
+            .orders
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
             .iter()
             .filter(|(_, hosted)| {
                 let p = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
@@ -213,22 +241,23 @@ impl Host {
                         .is_some_and(|at| now.saturating_sub(at) > keep_ms)
             })
             .map(|(name, _)| name.clone())
+            .take(FORGET_AT_ONCE)
             .collect();
-        let mut forgotten = 0;
-        for name in expired {
-            if let Some(journal) = &self.context.journal {
-                if let Err(e) = journal.delete(ORDER_RECORD, &name) {
-                    warn!(node = %self.config.name, order = %name, error = %e, "cannot remove a finished order from the journal; tried again at the next sweep");
-                    continue;
-                }
+        if expired.is_empty() {
+            return 0;
+        }
+        if let Some(journal) = &self.context.journal {
+            if let Err(e) = journal_write(|| journal.delete(ORDER_RECORD, &expired)) {
+                warn!(node = %self.config.name, orders = expired.len(), error = %e, "cannot remove finished orders from the journal; tried again at the next sweep");
+                return 0;
             }
-            orders.remove(&name);
-            forgotten += 1;
         }
-        if forgotten > 0 {
-            info!(node = %self.config.name, orders = forgotten, ?keep, "finished orders left the journal");
+        let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+        for name in &expired {
+            orders.remove(name);
         }
-        forgotten
+        info!(node = %self.config.name, orders = expired.len(), ?keep, "finished orders left the journal");
+        expired.len()
     }
 
     /// Unfinished orders hosted here.

@@ -284,6 +284,31 @@ async fn acknowledge_finished(host: &Host, query: Query) {
     let Some(name) = crate::inbox::order_name(&key).map(str::to_string) else {
         return;
     };
+    if host.forgotten(&name) {
+        // Finished longer ago than the retention: its outcome was settled then, and
+        // this is a late copy (a resource that was away for long). Acknowledged, so the
+        // resource stops sending it.
+        info!(order = %name, "result for an order finished long ago (no longer in the journal) acknowledged");
+        let payload = query
+            .payload()
+            .map(|p| p.to_bytes().into_owned())
+            .unwrap_or_default();
+        match schemas::Service::from_json(&payload) {
+            Ok(mut ack) => {
+                ack.result = Some(true);
+                if let Err(e) = query.reply(query.key_expr().clone(), ack.to_json()).await {
+                    warn!(order = %name, error = %e, "cannot acknowledge a result of a forgotten order; the resource delivers it again");
+                }
+            }
+            Err(err) => {
+                let refusal = ErrorReply::new("malformed", err.to_string());
+                if let Err(e) = query.reply_err(refusal.to_json()).await {
+                    warn!(order = %name, error = %e, "cannot refuse an undecodable message");
+                }
+            }
+        }
+        return;
+    }
     let Some(progress) = host.progress(&name) else {
         warn!(order = %name, "result for an order this node does not host refused");
         if let Err(e) = query

@@ -431,3 +431,64 @@ info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6
     .unwrap();
     assert_eq!(sim.executed("pick"), 1, "the step ran once");
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn stopping_while_the_disk_is_full_delivers_the_held_result_and_hands_the_booking_back() {
+    let dir = tempfile::tempdir().unwrap();
+    let disk = SmallDisk::mount(&dir.path().join("data"), "1m");
+    let cell = Cell::open("t-disk-stop").await.unwrap();
+    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &["--delay-ms", "1500"]).unwrap();
+    let config = resource_config(dir.path(), "robot1", 10_000).unwrap();
+    let mut node = start_node(
+        dir.path(),
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &["--data-dir", disk.path.to_str().unwrap()],
+    )
+    .unwrap();
+    let robot = HolonId::resource("robot1").unwrap();
+    cell.wait_alive(&robot).await.unwrap();
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    let mut running = book_and_start(&cell, "o-1", "o-1/1/1").await;
+    let mut waiting = cell.inbox("o-2", 0).await.unwrap();
+    let booking = pick_n_place(&cell.keys, MessageType::BookingReq, "o-2", "o-2/1/1");
+    let booked = cell.service("robot1", &booking).await.unwrap();
+    assert_eq!(booked.result, Some(true), "{booked:?}");
+
+    // The disk fills while the robot works: the job's end is held, not recorded.
+    let _filler = disk.fill();
+    cell.wait_state("robot1", "the job ended with a journal fault", |s| {
+        s["journal_fault"].is_string() && s["state"] == "free"
+    })
+    .await
+    .unwrap();
+    assert!(
+        running.silent_for(Duration::from_millis(1000)).await,
+        "no result goes out before it is recorded"
+    );
+
+    // SIGTERM while the journal still cannot write: the held result goes out unrecorded
+    // (the order records the outcome), the booking is handed back, and the holon stops
+    // once both are acknowledged, well within its shutdown grace.
+    let stopping = std::time::Instant::now();
+    node.signal(nix::sys::signal::Signal::SIGTERM).unwrap();
+    let done = running.next().await.unwrap();
+    assert_eq!(done.message_type, MessageType::Done, "{done:?}");
+    assert_eq!(done.conversation_id, "o-1/1/1");
+    let handed_back = waiting.next().await.unwrap();
+    assert_eq!(
+        handed_back.message_type,
+        MessageType::Failed,
+        "{handed_back:?}"
+    );
+    assert_eq!(handed_back.reason.as_deref(), Some("withdrawn"));
+    assert_eq!(handed_back.conversation_id, "o-2/1/1");
+    let status = node.wait_exit(Duration::from_secs(60)).unwrap();
+    assert!(status.success(), "{}", node.stderr());
+    println!("stopped {:?} after SIGTERM", stopping.elapsed());
+    assert_eq!(sim.executed("pick"), 1);
+}

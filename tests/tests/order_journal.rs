@@ -94,6 +94,46 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
     let log = std::fs::read_to_string(dir.path().join("orders1.log.json")).unwrap();
     assert!(log.contains("finished orders left the journal"), "{log}");
 
+    // A late result for a forgotten order (a resource away for longer than the
+    // retention) is acknowledged, so the resource stops sending it; one for an order the
+    // node never made is refused.
+    let late = |order: &str| {
+        let mut done = schemas::Service::request(
+            schemas::MessageType::Done,
+            "pick_n_place",
+            &format!("{order}/1/1"),
+            schemas::HolonId::order(order).unwrap(),
+        )
+        .with_reply_to(cell.keys.inbox(order));
+        done.provider = Some(schemas::HolonId::resource("robot1").unwrap());
+        done.result = Some(true);
+        done
+    };
+    let answer = |order: String| {
+        let cell = &cell;
+        let message = late(&order);
+        async move {
+            let replies = cell
+                .session
+                .get(cell.keys.inbox(&order))
+                .payload(message.to_json())
+                .timeout(Duration::from_secs(3))
+                .await
+                .unwrap();
+            let reply = replies.recv_async().await.unwrap();
+            match reply.result() {
+                Ok(sample) => {
+                    Ok(schemas::Service::from_json(&sample.payload().to_bytes()).unwrap())
+                }
+                Err(e) => Err(e.payload().try_to_string().unwrap_or_default().into_owned()),
+            }
+        }
+    };
+    let acknowledged = answer(failing[0].clone()).await.unwrap();
+    assert_eq!(acknowledged.result, Some(true), "{acknowledged:?}");
+    let refused = answer("orders1-999".into()).await.unwrap_err();
+    assert!(refused.contains("unknown_order"), "{refused}");
+
     // A restarted node does not bring them back.
     first.signal(Signal::SIGTERM).unwrap();
     assert!(first.wait_exit(Duration::from_secs(20)).unwrap().success());

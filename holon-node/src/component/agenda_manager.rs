@@ -124,16 +124,18 @@ impl JournalledAgenda {
         snapshot.journal_fault = self.fault.clone();
         AgendaView {
             snapshot,
+            deliverable: self
+                .agenda
+                .undelivered()
+                .iter()
+                .filter(|r| !self.held.contains(r))
+                .cloned()
+                .collect(),
             accepting: self.agenda.state() != schemas::ResourceState::Init
                 && !self.agenda.is_withdrawing()
                 && self.fault.is_none(),
             drained: self.agenda.is_drained(),
         }
-    }
-
-    /// Results not yet acknowledged (for a starting communication component).
-    pub fn undelivered(&self) -> &[Service] {
-        self.agenda.undelivered()
     }
 
     /// One event through the state machine, and the journal write of what changed: the
@@ -153,11 +155,15 @@ impl JournalledAgenda {
         // A request can be refused when it cannot be recorded; the other events are facts
         // (a job finished, a requester left) that the agenda must keep even then.
         let refusable = matches!(event, AgendaEvent::Request(_));
+        // Stopping: the held results go out now, and so do the bookings handed back,
+        // whether or not the journal can record the withdrawal (see `release_held`).
         let withdraw = matches!(event, AgendaEvent::Withdraw);
+        let released = if withdraw {
+            self.release_held(holon)
+        } else {
+            vec![]
+        };
         let mut actions = self.agenda.handle(event);
-        if withdraw {
-            actions.extend(self.release_held(holon));
-        }
         let changed = previous
             .as_ref()
             .is_some_and(|p| !lazily && p.record() != self.agenda.record());
@@ -175,6 +181,10 @@ impl JournalledAgenda {
                     if self.failed(holon, &e) {
                         actions.push(AgendaAction::StateChanged);
                     }
+                    if withdraw {
+                        warn!(%holon, component = "agenda", error = %e, "stopping while the journal cannot be written: the bookings are handed back unrecorded (after a restart the agenda may still list them until their orders end)");
+                        return Ok(actions.into_iter().chain(released).collect());
+                    }
                     let held = &mut self.held;
                     actions.retain(|action| match action {
                         AgendaAction::Deliver(result) => {
@@ -186,6 +196,7 @@ impl JournalledAgenda {
                 }
             }
         }
+        actions.extend(released);
         let after = self.agenda.state();
         if before != after {
             info!(%holon, component = "agenda", from = %before, to = %after, "transition");
@@ -242,7 +253,7 @@ impl JournalledAgenda {
     }
 
     /// Stopping with results the journal could not record: they are delivered anyway, so
-    /// the orders record the outcomes. After a restart this resource reports those
+    /// the orders record the outcomes (and so are the bookings handed back, see `apply`). After a restart this resource reports those
     /// steps `interrupted` (its journal still shows them running), which the orders
     /// acknowledge and ignore as late reports of finished conversations.
     fn release_held(&mut self, holon: &HolonId) -> Vec<AgendaAction> {

@@ -198,8 +198,10 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     let mut absences = links.views.absences.subscribe();
     let mut deliveries = links.deliveries.take().await;
     let mut results = links.results.take().await;
-    // Results not yet acknowledged, from before a restart: due at once.
-    deliveries.send_due();
+    // Results not yet acknowledged (from before a restart of the process or of this
+    // component): due at once.
+    let undelivered = agenda_view.borrow_and_update().deliverable.clone();
+    deliveries.resync(&undelivered);
     publish(&links, &publisher).await;
     info!(%holon, component = "communication", "serving");
     links.serving.notify_one();
@@ -209,18 +211,19 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         tokio::select! {
             _ = token.cancelled() => break,
             _ = links.faults.communication.notified() => panic!("fault injection: communication crashed"),
-            Some(arrival) = arrivals.recv() => answer(&links, arrival).await?,
+            Some(arrival) = arrivals.recv() => {
+                if let Some(message) = answer(&links, arrival).await {
+                    to_agenda(&links, message, &mut results, &mut deliveries).await?;
+                }
+            }
             result = results.recv() => deliveries.add(result.ok_or("delivery mailbox closed")?),
             _ = async { tokio::time::sleep_until(next_due.unwrap_or_else(tokio::time::Instant::now)).await }, if next_due.is_some() => {
                 deliveries.send_due();
             }
             Some(end) = deliveries.attempt_ended() => {
                 if let Some(conversation_id) = deliveries.ended(end) {
-                    links
-                        .agenda
-                        .send(AgendaEvent::ResultAcknowledged { conversation_id }.into())
-                        .await
-                        .map_err(|_| "agenda mailbox closed")?;
+                    let acknowledged = AgendaEvent::ResultAcknowledged { conversation_id };
+                    to_agenda(&links, acknowledged.into(), &mut results, &mut deliveries).await?;
                 }
             }
             changed = agenda_view.changed() => {
@@ -251,8 +254,8 @@ async fn publish(links: &Links, publisher: &zenoh::pubsub::Publisher<'_>) {
     }
 }
 
-/// Answers one query here, or hands it to the agenda manager.
-async fn answer(links: &Links, arrival: Arrival) -> Result<(), ChildError> {
+/// Answers one query here, or returns it as a message for the agenda manager.
+async fn answer(links: &Links, arrival: Arrival) -> Option<AgendaMessage> {
     let Arrival { endpoint, question } = arrival;
     let holon = &links.config.holon;
     match &endpoint {
@@ -260,7 +263,7 @@ async fn answer(links: &Links, arrival: Arrival) -> Result<(), ChildError> {
             let snapshot =
                 serde_json::to_vec(&links.views.snapshot()).expect("a snapshot serializes");
             question.answer_bytes(holon, "state", snapshot).await;
-            return Ok(());
+            return None;
         }
         Endpoint::Crash => {
             let component = String::from_utf8_lossy(&question.payload())
@@ -276,7 +279,7 @@ async fn answer(links: &Links, arrival: Arrival) -> Result<(), ChildError> {
                     question.reject(holon, "invalid", format!("unknown component {component:?} (interfacing, execution, agenda, communication)")).await
                 }
             }
-            return Ok(());
+            return None;
         }
         Endpoint::Service | Endpoint::Offer(_) => {}
     }
@@ -284,7 +287,7 @@ async fn answer(links: &Links, arrival: Arrival) -> Result<(), ChildError> {
         Ok(request) => request,
         Err((code, message)) => {
             question.reject(holon, code, message).await;
-            return Ok(());
+            return None;
         }
     };
     if request.message_type == MessageType::Status {
@@ -294,17 +297,32 @@ async fn answer(links: &Links, arrival: Arrival) -> Result<(), ChildError> {
             status.info = info;
         }
         question.answer(holon, &status).await;
-        return Ok(());
+        return None;
     }
-    let message = AgendaMessage {
+    Some(AgendaMessage {
         event: AgendaEvent::Request(request),
         question: Some(question),
-    };
-    links
-        .agenda
-        .send(message)
-        .await
-        .map_err(|_| ChildError::from("agenda mailbox closed"))
+    })
+}
+
+/// Sends `message` to the agenda manager. While its mailbox is full this component
+/// keeps taking the results the agenda manager hands over (it may be waiting to hand
+/// one over itself): neither waits for the other for ever.
+async fn to_agenda(
+    links: &Links,
+    message: AgendaMessage,
+    results: &mut mpsc::Receiver<Service>,
+    deliveries: &mut Deliveries,
+) -> Result<(), ChildError> {
+    loop {
+        tokio::select! {
+            permit = links.agenda.reserve() => {
+                permit.map_err(|_| "agenda mailbox closed")?.send(message);
+                return Ok(());
+            }
+            result = results.recv() => deliveries.add(result.ok_or("delivery mailbox closed")?),
+        }
+    }
 }
 
 /// Decodes a request and checks that it may come to `endpoint`: the request, or the

@@ -44,25 +44,24 @@ pub struct Deliveries {
 }
 
 impl Deliveries {
-    /// Deliveries of `undelivered` (results not acknowledged before the holon
-    /// restarted): due at once, sent when the communication component starts.
-    pub fn new(
-        holon: HolonId,
-        session: zenoh::Session,
-        settings: DeliverySettings,
-        undelivered: &[Service],
-    ) -> Deliveries {
-        let mut deliveries = Deliveries {
+    pub fn new(holon: HolonId, session: zenoh::Session, settings: DeliverySettings) -> Deliveries {
+        Deliveries {
             holon,
             session,
             settings,
             pending: BTreeMap::new(),
             attempts: JoinSet::new(),
-        };
-        for message in undelivered {
-            deliveries.schedule(message.clone());
         }
-        deliveries
+    }
+
+    /// Takes in every result the agenda says is not acknowledged (a starting component:
+    /// a result whose `Deliver` or acknowledgement was lost to a crash goes out again),
+    /// and sends what is due.
+    pub fn resync(&mut self, undelivered: &[Service]) {
+        for message in undelivered {
+            self.schedule(message.clone());
+        }
+        self.send_due();
     }
 
     /// Adds a result (a repeat of one already pending changes nothing) and sends what is
