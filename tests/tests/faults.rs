@@ -227,6 +227,54 @@ impl SmallDisk {
     }
 }
 
+/// robot1 (its controller takes 1.5 s a step) with its journal on a 1 MB disk.
+struct DiskRobot {
+    cell: Cell,
+    disk: SmallDisk,
+    sim: Sim,
+    config: std::path::PathBuf,
+    dir: tempfile::TempDir,
+}
+
+impl DiskRobot {
+    async fn new(cell: &str) -> DiskRobot {
+        let dir = tempfile::tempdir().unwrap();
+        let disk = SmallDisk::mount(&dir.path().join("data"), "1m");
+        let cell = Cell::open(cell).await.unwrap();
+        let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &["--delay-ms", "1500"]).unwrap();
+        let config = resource_config(dir.path(), "robot1", 10_000).unwrap();
+        DiskRobot {
+            cell,
+            disk,
+            sim,
+            config,
+            dir,
+        }
+    }
+
+    /// Starts the holon and waits until it is free.
+    async fn start(&self) -> Process {
+        let node = start_node(
+            self.dir.path(),
+            &self.config,
+            self.cell.keys.cell(),
+            &self.cell.endpoint,
+            &self.sim.address,
+            &["--data-dir", self.disk.path.to_str().unwrap()],
+        )
+        .unwrap();
+        self.cell
+            .wait_alive(&HolonId::resource("robot1").unwrap())
+            .await
+            .unwrap();
+        self.cell
+            .wait_state("robot1", "free", |s| s["state"] == "free")
+            .await
+            .unwrap();
+        node
+    }
+}
+
 impl Drop for SmallDisk {
     fn drop(&mut self) {
         let _ = std::process::Command::new("umount")
@@ -238,30 +286,14 @@ impl Drop for SmallDisk {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn a_full_disk_holds_the_result_until_it_is_recorded_and_never_makes_it_interrupted() {
-    let dir = tempfile::tempdir().unwrap();
-    let disk = SmallDisk::mount(&dir.path().join("data"), "1m");
-    let cell = Cell::open("t-disk-full").await.unwrap();
-    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &["--delay-ms", "1500"]).unwrap();
-    let config = resource_config(dir.path(), "robot1", 10_000).unwrap();
-    let start_robot = || {
-        start_node(
-            dir.path(),
-            &config,
-            cell.keys.cell(),
-            &cell.endpoint,
-            &sim.address,
-            &["--data-dir", disk.path.to_str().unwrap()],
-        )
-        .unwrap()
-    };
-    let mut node = start_robot();
+    let disk_robot = DiskRobot::new("t-disk-full").await;
+    let DiskRobot {
+        cell, disk, sim, ..
+    } = &disk_robot;
+    let mut node = disk_robot.start().await;
     let robot = HolonId::resource("robot1").unwrap();
-    cell.wait_alive(&robot).await.unwrap();
-    cell.wait_state("robot1", "free", |s| s["state"] == "free")
-        .await
-        .unwrap();
 
-    let mut inbox = book_and_start(&cell, "o-1", "o-1/1/1").await;
+    let mut inbox = book_and_start(cell, "o-1", "o-1/1/1").await;
     // The disk fills while the robot works: the job's end cannot be recorded.
     let filler = disk.fill();
     let state = cell
@@ -311,8 +343,7 @@ async fn a_full_disk_holds_the_result_until_it_is_recorded_and_never_makes_it_in
     // A restart finds the step completed, not interrupted.
     node.kill();
     cell.wait_gone(&robot).await.unwrap();
-    let _node = start_robot();
-    cell.wait_alive(&robot).await.unwrap();
+    let _node = disk_robot.start().await;
     // (The acknowledgement is recorded with the next write, so the `done` may come once
     // more: the order ignores a duplicate. What must never come is `failed`.)
     while let Ok(message) = tokio::time::timeout(Duration::from_secs(2), inbox.next()).await {
@@ -434,26 +465,12 @@ info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6
 
 #[tokio::test(flavor = "multi_thread")]
 async fn stopping_while_the_disk_is_full_delivers_the_held_result_and_hands_the_booking_back() {
-    let dir = tempfile::tempdir().unwrap();
-    let disk = SmallDisk::mount(&dir.path().join("data"), "1m");
-    let cell = Cell::open("t-disk-stop").await.unwrap();
-    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &["--delay-ms", "1500"]).unwrap();
-    let config = resource_config(dir.path(), "robot1", 10_000).unwrap();
-    let mut node = start_node(
-        dir.path(),
-        &config,
-        cell.keys.cell(),
-        &cell.endpoint,
-        &sim.address,
-        &["--data-dir", disk.path.to_str().unwrap()],
-    )
-    .unwrap();
-    let robot = HolonId::resource("robot1").unwrap();
-    cell.wait_alive(&robot).await.unwrap();
-    cell.wait_state("robot1", "free", |s| s["state"] == "free")
-        .await
-        .unwrap();
-    let mut running = book_and_start(&cell, "o-1", "o-1/1/1").await;
+    let disk_robot = DiskRobot::new("t-disk-stop").await;
+    let DiskRobot {
+        cell, disk, sim, ..
+    } = &disk_robot;
+    let mut node = disk_robot.start().await;
+    let mut running = book_and_start(cell, "o-1", "o-1/1/1").await;
     let mut waiting = cell.inbox("o-2", 0).await.unwrap();
     let booking = pick_n_place(&cell.keys, MessageType::BookingReq, "o-2", "o-2/1/1");
     let booked = cell.service("robot1", &booking).await.unwrap();
