@@ -186,6 +186,15 @@ async fn declare(
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
     let config = &links.config;
     let holon = &config.holon;
+    // The views are watched before anything is read from them: a change from now on
+    // wakes the loop below, however early it comes (the controller may become ready
+    // while the queryables are being declared).
+    let mut agenda_view = links.views.agenda.subscribe();
+    let mut execution_view = links.views.execution.subscribe();
+    let mut absences = links.views.absences.subscribe();
+    // Results not yet acknowledged (from before a restart of the process or of this
+    // component): due at once.
+    let undelivered = agenda_view.borrow_and_update().deliverable.clone();
     let (arrivals_tx, mut arrivals) = mpsc::channel(QUERY_QUEUE);
     let mut queryables = Queryables::declare(&links, arrivals_tx).await?;
     queryables.sync_offers(&links).await?;
@@ -193,14 +202,8 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         .session
         .declare_publisher(config.keys.state(holon))
         .await?;
-    let mut agenda_view = links.views.agenda.subscribe();
-    let mut execution_view = links.views.execution.subscribe();
-    let mut absences = links.views.absences.subscribe();
     let mut deliveries = links.deliveries.take().await;
     let mut results = links.results.take().await;
-    // Results not yet acknowledged (from before a restart of the process or of this
-    // component): due at once.
-    let undelivered = agenda_view.borrow_and_update().deliverable.clone();
     deliveries.resync(&undelivered);
     publish(&links, &publisher).await;
     info!(%holon, component = "communication", "serving");
