@@ -1,8 +1,10 @@
 //! `cell`: the operator's command. `cell demo` runs a demo cell on this machine;
-//! `cell status` lists the live holons of a running cell.
+//! `cell status` lists the live holons of a running cell; `cell dashboard` shows it live
+//! in a browser.
 
 pub mod access;
 pub mod certs;
+pub mod dashboard;
 pub mod demo;
 pub mod manifest;
 pub mod router;

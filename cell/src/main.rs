@@ -120,6 +120,22 @@ enum Commands {
         #[command(flatten)]
         client: ClientArgs,
     },
+    /// Serve a live web page of a running cell: its holons, orders, alarms, event log
+    /// and throughput, pushed to the page as they change; a JSON API (/api/view,
+    /// /api/holons, /api/orders, /api/alarms, /api/events) and Prometheus metrics
+    /// (/metrics). See docs/operations.md. Stops on Ctrl-C or SIGTERM.
+    Dashboard {
+        /// Where the web server listens (HOST:PORT; port 0 picks one, printed at start).
+        #[arg(long, default_value = "127.0.0.1:8080", value_name = "HOST:PORT")]
+        listen: std::net::SocketAddr,
+        /// Let the page submit work orders and acknowledge alarms (with --pki the
+        /// dashboard then connects as operator.default unless --identity says otherwise;
+        /// without --operator it is read-only and connects as observer.default).
+        #[arg(long)]
+        operator: bool,
+        #[command(flatten)]
+        client: ClientArgs,
+    },
     /// List the live holons of a cell with their kind, state and agenda length.
     Status {
         #[command(flatten)]
@@ -176,10 +192,9 @@ impl ClientArgs {
         Duration::from_millis(self.timeout_ms)
     }
 
-    /// A zenoh client of the cell: everything it asks is routed by the router it
-    /// connects to.
-    async fn session(&self, default_identity: &str) -> Result<zenoh::Session> {
-        let settings = holon::ZenohSettings {
+    /// The settings of a zenoh client of the cell.
+    fn settings(&self) -> holon::ZenohSettings {
+        holon::ZenohSettings {
             mode: "client".into(),
             connect: self.connect.clone(),
             tls: self.pki.as_ref().map(|pki| holon::tls::TlsSettings {
@@ -187,7 +202,13 @@ impl ClientArgs {
                 ..holon::tls::TlsSettings::default()
             }),
             ..holon::ZenohSettings::default()
-        };
+        }
+    }
+
+    /// A zenoh client of the cell: everything it asks is routed by the router it
+    /// connects to.
+    async fn session(&self, default_identity: &str) -> Result<zenoh::Session> {
+        let settings = self.settings();
         let identity = self.identity.as_deref().unwrap_or(default_identity);
         let session = settings
             .open(identity, self.timeout().max(Duration::from_secs(1)))
@@ -283,6 +304,25 @@ async fn run(args: Args) -> Result<bool> {
                 secure,
             };
             cell::demo::run(options, shutdown).await
+        }
+        Commands::Dashboard {
+            listen,
+            operator,
+            client,
+        } => {
+            let default_identity = if operator { OPERATOR } else { OBSERVER };
+            let config = cell::dashboard::DashboardConfig {
+                keys: client.keys()?,
+                zenoh: client.settings(),
+                identity: client
+                    .identity
+                    .clone()
+                    .unwrap_or_else(|| default_identity.to_string()),
+                listen,
+                operator,
+            };
+            cell::dashboard::run(config, holon::shutdown_on_signals()).await?;
+            Ok(true)
         }
         Commands::Up { dir, host } => {
             let shutdown = holon::shutdown_on_signals();

@@ -1,0 +1,171 @@
+//! `/metrics`: the view in the Prometheus text format (version 0.0.4).
+
+use std::collections::BTreeMap;
+
+use schemas::OrderStatus;
+
+use super::View;
+
+/// The metrics of `view`, one family after the other, each with its HELP and TYPE.
+pub fn render(view: &View) -> String {
+    let mut out = String::new();
+    let mut family = |name: &str, kind: &str, help: &str, samples: Vec<(String, f64)>| {
+        out.push_str(&format!("# HELP {name} {help}\n# TYPE {name} {kind}\n"));
+        for (labels, value) in samples {
+            out.push_str(&format!("{name}{labels} {value}\n"));
+        }
+    };
+    let mut holons: BTreeMap<(String, String), f64> = BTreeMap::new();
+    for holon in view.holons.iter().filter(|h| h.live) {
+        let state = holon
+            .resource
+            .as_ref()
+            .map_or("live".to_string(), |r| r.state.to_string());
+        *holons.entry((holon.kind.to_string(), state)).or_default() += 1.0;
+    }
+    family(
+        "holarchy_holons",
+        "gauge",
+        "Live holons by kind and state (a resource's state: init, free, busy).",
+        holons
+            .into_iter()
+            .map(|((kind, state), n)| (format!("{{kind=\"{kind}\",state=\"{state}\"}}"), n))
+            .collect(),
+    );
+    let mut orders: BTreeMap<String, f64> = [
+        OrderStatus::Running,
+        OrderStatus::Done,
+        OrderStatus::Scrapped,
+        OrderStatus::Failed,
+        OrderStatus::Cancelled,
+    ]
+    .iter()
+    .map(|s| (status_name(*s), 0.0))
+    .collect();
+    for order in &view.orders {
+        *orders.entry(status_name(order.status)).or_default() += 1.0;
+    }
+    family(
+        "holarchy_orders",
+        "gauge",
+        "Orders the cell's order-nodes host, by status.",
+        orders
+            .into_iter()
+            .map(|(status, n)| (format!("{{status=\"{status}\"}}"), n))
+            .collect(),
+    );
+    family(
+        "holarchy_alarms_active",
+        "gauge",
+        "Alarms whose condition holds.",
+        vec![(
+            String::new(),
+            view.alarms.iter().filter(|a| a.active()).count() as f64,
+        )],
+    );
+    family(
+        "holarchy_alarms_unacknowledged",
+        "gauge",
+        "Alarms no operator acknowledged yet.",
+        vec![(
+            String::new(),
+            view.alarms
+                .iter()
+                .filter(|a| a.acknowledged.is_none())
+                .count() as f64,
+        )],
+    );
+    let counters = &view.counters;
+    family(
+        "holarchy_orders_ended_total",
+        "counter",
+        "Orders seen ending since the dashboard started, by how.",
+        vec![
+            ("{how=\"done\"}".into(), counters.orders_done as f64),
+            ("{how=\"failed\"}".into(), counters.orders_failed as f64),
+            ("{how=\"scrapped\"}".into(), counters.orders_scrapped as f64),
+        ],
+    );
+    family(
+        "holarchy_resource_busy_seconds_total",
+        "counter",
+        "Seconds each resource was busy since the dashboard started.",
+        view.throughput
+            .busy_seconds
+            .iter()
+            .map(|(r, s)| (format!("{{resource=\"{r}\"}}"), *s))
+            .collect(),
+    );
+    family(
+        "holarchy_resource_undelivered",
+        "gauge",
+        "Results each resource sent and its orders have not acknowledged yet.",
+        view.holons
+            .iter()
+            .filter_map(|h| h.resource.as_ref())
+            .map(|r| {
+                (
+                    format!("{{resource=\"{}\"}}", r.holon.name()),
+                    r.undelivered as f64,
+                )
+            })
+            .collect(),
+    );
+    family(
+        "holarchy_controller_faults_total",
+        "counter",
+        "Times each resource's controller went into fault or estop since the dashboard started.",
+        counters
+            .controller_faults
+            .iter()
+            .map(|(r, n)| (format!("{{resource=\"{r}\"}}"), *n as f64))
+            .collect(),
+    );
+    family(
+        "holarchy_bookings_total",
+        "counter",
+        "Bookings seen on each resource's agenda since the dashboard started.",
+        counters
+            .bookings
+            .iter()
+            .map(|(r, n)| (format!("{{resource=\"{r}\"}}"), *n as f64))
+            .collect(),
+    );
+    family(
+        "holarchy_dashboard_dropped_samples_total",
+        "counter",
+        "Samples the dashboard dropped because its model was behind.",
+        vec![(String::new(), view.dropped as f64)],
+    );
+    out
+}
+
+fn status_name(status: OrderStatus) -> String {
+    serde_json::to_value(status)
+        .ok()
+        .and_then(|v| v.as_str().map(String::from))
+        .unwrap_or_default()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_empty_cell_has_every_family_with_help_and_type() {
+        let text = render(&View::default());
+        for family in [
+            "holarchy_holons",
+            "holarchy_orders",
+            "holarchy_alarms_active",
+            "holarchy_orders_ended_total",
+        ] {
+            assert!(text.contains(&format!("# TYPE {family} ")), "{text}");
+            assert!(text.contains(&format!("# HELP {family} ")), "{text}");
+        }
+        assert!(
+            text.contains("holarchy_orders{status=\"done\"} 0"),
+            "{text}"
+        );
+    }
+}

@@ -1,0 +1,321 @@
+//! `cell dashboard`: a live web page of a running cell, alarms, a JSON API and
+//! Prometheus metrics, from what the holons already publish.
+//!
+//! It joins the cell as a zenoh client and keeps a model of it ([`model`]) from
+//! subscriptions: the holons' liveliness tokens (`alive/**`, with their history), the
+//! resources' state (`resource/*/state`) and the orders' state (`order/*/state`), each
+//! asked for once at the start. The holons do nothing for it. One task owns the model;
+//! the zenoh callbacks queue what they hear for it (bounded; when full, a sample is
+//! dropped and counted: the next snapshot of that holon brings the model up to date),
+//! and it publishes a view of the model at most every [`PUBLISH_EVERY`] for the web
+//! server ([`http`]), which pushes it to every open page as a server-sent event.
+
+pub mod http;
+pub mod metrics;
+pub mod model;
+
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{anyhow, Context, Result};
+use schemas::{CellKeys, HolonKind, OrderSnapshot, ResourceSnapshot};
+use serde::Serialize;
+use tokio::sync::{mpsc, watch};
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use model::{Alarm, Event, HolonView, Input, Model};
+
+/// How often, at most, the view is published to the pages.
+pub const PUBLISH_EVERY: Duration = Duration::from_millis(250);
+
+/// How many inputs wait for the model's task.
+const INPUT_QUEUE: usize = 8192;
+
+/// What `cell dashboard` runs with.
+#[derive(Debug, Clone)]
+pub struct DashboardConfig {
+    pub keys: CellKeys,
+    /// The cell's zenoh session (a client of its routers).
+    pub zenoh: holon::ZenohSettings,
+    /// The identity to connect with (a secure cell).
+    pub identity: String,
+    /// Where the web server listens.
+    pub listen: SocketAddr,
+    /// Whether the page may submit work orders and acknowledge alarms.
+    pub operator: bool,
+}
+
+/// What the page shows, as of one moment.
+#[derive(Debug, Clone, Serialize, Default)]
+pub struct View {
+    pub cell: String,
+    /// Unix ms.
+    pub at: u64,
+    pub operator: bool,
+    pub holons: Vec<HolonView>,
+    pub orders: Vec<OrderSnapshot>,
+    pub alarms: Vec<Alarm>,
+    /// The newest first.
+    pub events: Vec<Event>,
+    pub throughput: Throughput,
+    /// For `/metrics`.
+    #[serde(skip)]
+    pub counters: model::Counters,
+    /// Samples dropped because the model's queue was full.
+    pub dropped: u64,
+}
+
+#[derive(Debug, Clone, Serialize, Default)]
+pub struct Throughput {
+    /// Orders done within the last hour.
+    pub done_last_hour: usize,
+    /// Per resource: the share of time busy since the dashboard started.
+    pub utilisation: Vec<(String, f64)>,
+    /// Per resource: seconds busy since the dashboard started.
+    pub busy_seconds: Vec<(String, f64)>,
+}
+
+/// Commands from the pages to the model's owner.
+#[derive(Debug)]
+pub enum Command {
+    Acknowledge(u64),
+}
+
+/// What the web server shares with the model's task.
+pub struct Shared {
+    pub view: watch::Receiver<Arc<View>>,
+    pub commands: mpsc::Sender<Command>,
+    pub session: zenoh::Session,
+    pub keys: CellKeys,
+    pub operator: bool,
+}
+
+/// Runs the dashboard until `shutdown`.
+pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result<()> {
+    let session = config
+        .zenoh
+        .open(&config.identity, Duration::from_secs(10))
+        .await
+        .map_err(|e| anyhow!("cannot join the cell: {e}"))?;
+    let (inputs, input_rx) = mpsc::channel(INPUT_QUEUE);
+    let dropped = Arc::new(AtomicU64::new(0));
+    let _subscriptions = subscribe(&session, &config.keys, &inputs, &dropped).await?;
+    ask_states(&session, &config.keys, &inputs, &dropped).await;
+    let (view_tx, view_rx) = watch::channel(Arc::new(View::default()));
+    let (commands, command_rx) = mpsc::channel(64);
+    let owner = tokio::spawn(own_the_model(
+        config.clone(),
+        input_rx,
+        command_rx,
+        view_tx,
+        dropped,
+        shutdown.clone(),
+    ));
+    let shared = Arc::new(Shared {
+        view: view_rx,
+        commands,
+        session: session.clone(),
+        keys: config.keys.clone(),
+        operator: config.operator,
+    });
+    let listener = tokio::net::TcpListener::bind(config.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", config.listen))?;
+    let address = listener.local_addr()?;
+    info!(cell = %config.keys.cell(), %address, "dashboard serving");
+    println!(
+        "dashboard of cell {} on http://{address}/",
+        config.keys.cell()
+    );
+    let served = axum::serve(listener, http::router(shared))
+        .with_graceful_shutdown(shutdown.clone().cancelled_owned())
+        .await;
+    shutdown.cancel();
+    if let Err(e) = owner.await {
+        warn!(error = %e, "the model's task ended abnormally");
+    }
+    if let Err(e) = session.close().await {
+        warn!(error = %e, "cannot close the zenoh session");
+    }
+    served.context("the web server stopped")
+}
+
+/// Queues an input for the model from a zenoh callback (which must not block).
+fn queue(inputs: &mpsc::Sender<Input>, dropped: &AtomicU64, input: Input) {
+    if inputs.try_send(input).is_err() {
+        dropped.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// What the dashboard subscribes to, declared for its life.
+struct Subscriptions {
+    _alive: zenoh::pubsub::Subscriber<()>,
+    _resources: zenoh::pubsub::Subscriber<()>,
+    _orders: zenoh::pubsub::Subscriber<()>,
+}
+
+async fn subscribe(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    inputs: &mpsc::Sender<Input>,
+    dropped: &Arc<AtomicU64>,
+) -> Result<Subscriptions> {
+    let z = |e: zenoh::Error| anyhow!("{}", holon::zenoh_error::describe(&e));
+    let alive = {
+        let (inputs, dropped, keys) = (inputs.clone(), dropped.clone(), keys.clone());
+        session
+            .liveliness()
+            .declare_subscriber(keys.alive_all())
+            .history(true)
+            .callback(move |sample| {
+                let Some(holon) = keys.holon_from_alive(sample.key_expr().as_str()) else {
+                    return;
+                };
+                // Orders hold a token only while they book: they show in the orders.
+                if holon.kind() == HolonKind::Order {
+                    return;
+                }
+                let at = schemas::unix_ms();
+                let input = match sample.kind() {
+                    zenoh::sample::SampleKind::Put => Input::Appeared { holon, at },
+                    zenoh::sample::SampleKind::Delete => Input::Vanished { holon, at },
+                };
+                queue(&inputs, &dropped, input);
+            })
+            .await
+            .map_err(z)?
+    };
+    let resources = {
+        let (inputs, dropped) = (inputs.clone(), dropped.clone());
+        session
+            .declare_subscriber(keys.resource_states())
+            .callback(move |sample| {
+                if let Ok(snapshot) =
+                    serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes())
+                {
+                    let at = schemas::unix_ms();
+                    queue(&inputs, &dropped, Input::Resource { snapshot, at });
+                }
+            })
+            .await
+            .map_err(z)?
+    };
+    let orders = {
+        let (inputs, dropped) = (inputs.clone(), dropped.clone());
+        session
+            .declare_subscriber(keys.order_states())
+            .callback(move |sample| {
+                if let Ok(snapshot) =
+                    serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
+                {
+                    let at = schemas::unix_ms();
+                    queue(&inputs, &dropped, Input::Order { snapshot, at });
+                }
+            })
+            .await
+            .map_err(z)?
+    };
+    Ok(Subscriptions {
+        _alive: alive,
+        _resources: resources,
+        _orders: orders,
+    })
+}
+
+/// Asks once for every resource's and order's state (the subscriptions bring the
+/// changes from then on).
+async fn ask_states(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    inputs: &mpsc::Sender<Input>,
+    dropped: &AtomicU64,
+) {
+    for key in [keys.resource_states(), keys.order_states()] {
+        let Ok(mut replies) = session
+            .get(&key)
+            .timeout(Duration::from_secs(3))
+            .with(holon::query::replies())
+            .await
+        else {
+            warn!(%key, "cannot ask for the states; they arrive with their next change");
+            continue;
+        };
+        while let Some(reply) = replies.recv().await {
+            let Ok(sample) = reply.result() else { continue };
+            let bytes = sample.payload().to_bytes();
+            let at = schemas::unix_ms();
+            if let Ok(snapshot) = serde_json::from_slice::<ResourceSnapshot>(&bytes) {
+                queue(inputs, dropped, Input::Resource { snapshot, at });
+            } else if let Ok(snapshot) = serde_json::from_slice::<OrderSnapshot>(&bytes) {
+                queue(inputs, dropped, Input::Order { snapshot, at });
+            }
+        }
+    }
+}
+
+/// The model's one owner: applies every input and command, and publishes the view
+/// when it changed, at most every [`PUBLISH_EVERY`].
+async fn own_the_model(
+    config: DashboardConfig,
+    mut inputs: mpsc::Receiver<Input>,
+    mut commands: mpsc::Receiver<Command>,
+    view: watch::Sender<Arc<View>>,
+    dropped: Arc<AtomicU64>,
+    shutdown: CancellationToken,
+) {
+    let mut model = Model::default();
+    let started = schemas::unix_ms();
+    let mut changed = true;
+    let mut tick = tokio::time::interval(PUBLISH_EVERY);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => return,
+            Some(input) = inputs.recv() => changed |= model.apply(input),
+            Some(command) = commands.recv() => match command {
+                Command::Acknowledge(id) => {
+                    changed |= model.apply(Input::Acknowledge { id, at: schemas::unix_ms() });
+                }
+            },
+            _ = tick.tick() => {
+                if changed {
+                    let dropped = dropped.load(Ordering::Relaxed);
+                    view.send_replace(Arc::new(view_of(&config, &model, dropped, started)));
+                    changed = false;
+                }
+            }
+        }
+    }
+}
+
+/// The page's view of the model, now (`started`: when the dashboard began watching).
+fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, started: u64) -> View {
+    let now = schemas::unix_ms();
+    let busy = model.busy_ms(now);
+    let watched = now.saturating_sub(started).max(1) as f64;
+    View {
+        cell: config.keys.cell().to_string(),
+        at: now,
+        operator: config.operator,
+        holons: model.holons().cloned().collect(),
+        orders: model.orders().cloned().collect(),
+        alarms: model.alarms().to_vec(),
+        events: model.events().rev().cloned().collect(),
+        throughput: Throughput {
+            done_last_hour: model.done_last_hour(now),
+            utilisation: busy
+                .iter()
+                .map(|(h, ms)| (h.name().to_string(), (*ms as f64 / watched).min(1.0)))
+                .collect(),
+            busy_seconds: busy
+                .iter()
+                .map(|(h, ms)| (h.name().to_string(), *ms as f64 / 1000.0))
+                .collect(),
+        },
+        counters: model.counters().clone(),
+        dropped,
+    }
+}

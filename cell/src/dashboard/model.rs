@@ -1,0 +1,724 @@
+//! The dashboard's model of the cell: what it has heard (liveliness, state snapshots)
+//! turned into what the page shows. Pure, like the holons' state machines: one input
+//! in, the model changes; no I/O and no clock (each input carries its time).
+//!
+//! | input | what changes |
+//! |---|---|
+//! | a holon's token appears | the holon is live; a `vanished` alarm of it clears; it counts towards `restarting` |
+//! | a holon's token vanishes | the holon is gone; a resource raises `vanished` |
+//! | a resource's snapshot | its state, controller, agenda and job; `controller` (fault, estop), `journal` and `undelivered` alarms raise or clear; busy time accrues |
+//! | an order's snapshot | its status and step; a failed or scrapped order raises an alarm (cleared at once, kept until acknowledged) |
+//! | an operator's acknowledgement | the alarm is acknowledged; one that is cleared and acknowledged leaves the list |
+//!
+//! Every change of a holon's presence or state, an order's status or step, and every
+//! alarm raised or cleared is one entry of the event log (the last [`EVENTS_KEPT`]).
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+
+use schemas::{
+    ControllerStatus, HolonId, HolonKind, OrderSnapshot, OrderStatus, ResourceSnapshot,
+    ResourceState,
+};
+use serde::Serialize;
+
+/// How many entries the event log keeps.
+pub const EVENTS_KEPT: usize = 500;
+
+/// Undelivered results on one resource that raise an alarm.
+pub const UNDELIVERED_ALARM: usize = 5;
+
+/// A holon whose token appears this often within [`RESTARTING_WINDOW_MS`] is restarting
+/// repeatedly.
+pub const RESTARTING_APPEARANCES: usize = 3;
+pub const RESTARTING_WINDOW_MS: u64 = 60_000;
+
+/// What the model hears.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Input {
+    /// A holon's liveliness token appeared.
+    Appeared {
+        holon: HolonId,
+        at: u64,
+    },
+    /// A holon's liveliness token vanished.
+    Vanished {
+        holon: HolonId,
+        at: u64,
+    },
+    Resource {
+        snapshot: ResourceSnapshot,
+        at: u64,
+    },
+    Order {
+        snapshot: OrderSnapshot,
+        at: u64,
+    },
+    /// An operator acknowledged alarm `id`.
+    Acknowledge {
+        id: u64,
+        at: u64,
+    },
+}
+
+/// One holon as the page shows it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct HolonView {
+    pub holon: HolonId,
+    /// `resource`, `product`, `order` or `staff`.
+    pub kind: &'static str,
+    /// Its token is visible.
+    pub live: bool,
+    /// Since when it is live or gone (Unix ms).
+    pub since: u64,
+    /// A resource's last snapshot.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub resource: Option<ResourceSnapshot>,
+}
+
+/// What an alarm is about.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AlarmKind {
+    /// A resource's controller is in fault or estop.
+    Controller,
+    /// A resource's token vanished.
+    Vanished,
+    /// A resource's journal cannot be written.
+    Journal,
+    /// Results pile up on a resource, not acknowledged.
+    Undelivered,
+    /// A holon's token keeps appearing: its process restarts repeatedly.
+    Restarting,
+    /// An order failed.
+    OrderFailed,
+    /// An order's part was scrapped.
+    OrderScrapped,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Alarm {
+    pub id: u64,
+    pub kind: AlarmKind,
+    /// The holon it is about.
+    pub source: HolonId,
+    /// For people: what is wrong.
+    pub message: String,
+    /// When it was raised (Unix ms).
+    pub raised: u64,
+    /// When its condition ended, if it did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cleared: Option<u64>,
+    /// When an operator acknowledged it, if one did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub acknowledged: Option<u64>,
+}
+
+impl Alarm {
+    pub fn active(&self) -> bool {
+        self.cleared.is_none()
+    }
+}
+
+/// One entry of the event log.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Event {
+    pub at: u64,
+    /// The holon or order it is about.
+    pub source: HolonId,
+    pub text: String,
+}
+
+/// The cell as the dashboard knows it.
+#[derive(Debug, Clone, Default)]
+pub struct Model {
+    holons: BTreeMap<HolonId, HolonView>,
+    orders: BTreeMap<HolonId, OrderSnapshot>,
+    /// Active alarms, and cleared ones not yet acknowledged, oldest first.
+    alarms: Vec<Alarm>,
+    next_alarm: u64,
+    events: VecDeque<Event>,
+    /// When each holon's token last appeared, within the restarting window.
+    appearances: HashMap<HolonId, VecDeque<u64>>,
+    /// When orders reached `done` (for the throughput).
+    completions: VecDeque<u64>,
+    /// Per resource: milliseconds it has been busy since the dashboard started, and
+    /// since when it is busy now.
+    busy: BTreeMap<HolonId, (u64, Option<u64>)>,
+    /// Counters for the metrics.
+    counters: Counters,
+}
+
+/// Totals since the dashboard started, for `/metrics`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Counters {
+    pub orders_done: u64,
+    pub orders_failed: u64,
+    pub orders_scrapped: u64,
+    /// Entries into fault or estop, per resource.
+    pub controller_faults: BTreeMap<String, u64>,
+    /// Bookings seen appear on agendas, per resource.
+    pub bookings: BTreeMap<String, u64>,
+}
+
+impl Model {
+    /// One input in; true if the page's view changed.
+    pub fn apply(&mut self, input: Input) -> bool {
+        match input {
+            Input::Appeared { holon, at } => self.appeared(holon, at),
+            Input::Vanished { holon, at } => self.vanished(holon, at),
+            Input::Resource { snapshot, at } => self.resource(snapshot, at),
+            Input::Order { snapshot, at } => self.order(snapshot, at),
+            Input::Acknowledge { id, at } => self.acknowledge(id, at),
+        }
+    }
+
+    pub fn holons(&self) -> impl Iterator<Item = &HolonView> {
+        self.holons.values()
+    }
+
+    pub fn orders(&self) -> impl Iterator<Item = &OrderSnapshot> {
+        self.orders.values()
+    }
+
+    pub fn alarms(&self) -> &[Alarm] {
+        &self.alarms
+    }
+
+    pub fn events(&self) -> impl DoubleEndedIterator<Item = &Event> {
+        self.events.iter()
+    }
+
+    pub fn counters(&self) -> &Counters {
+        &self.counters
+    }
+
+    /// Orders done within the hour before `now`.
+    pub fn done_last_hour(&self, now: u64) -> usize {
+        self.completions
+            .iter()
+            .filter(|at| now.saturating_sub(**at) <= 3_600_000)
+            .count()
+    }
+
+    /// Per resource: milliseconds busy since the dashboard started, as of `now`.
+    pub fn busy_ms(&self, now: u64) -> BTreeMap<HolonId, u64> {
+        self.busy
+            .iter()
+            .map(|(holon, (total, since))| {
+                (
+                    holon.clone(),
+                    total + since.map_or(0, |s| now.saturating_sub(s)),
+                )
+            })
+            .collect()
+    }
+
+    fn log(&mut self, at: u64, source: &HolonId, text: String) {
+        if self.events.len() == EVENTS_KEPT {
+            self.events.pop_front();
+        }
+        self.events.push_back(Event {
+            at,
+            source: source.clone(),
+            text,
+        });
+    }
+
+    /// Raises an alarm of `kind` on `source` unless one is active already.
+    fn raise(&mut self, kind: AlarmKind, source: &HolonId, message: String, at: u64) -> bool {
+        if self
+            .alarms
+            .iter()
+            .any(|a| a.kind == kind && &a.source == source && a.active())
+        {
+            return false;
+        }
+        self.next_alarm += 1;
+        self.log(at, source, format!("alarm: {message}"));
+        self.alarms.push(Alarm {
+            id: self.next_alarm,
+            kind,
+            source: source.clone(),
+            message,
+            raised: at,
+            cleared: None,
+            acknowledged: None,
+        });
+        true
+    }
+
+    /// Clears the active alarm of `kind` on `source`, if any; an acknowledged one leaves.
+    fn clear(&mut self, kind: AlarmKind, source: &HolonId, at: u64) -> bool {
+        let Some(alarm) = self
+            .alarms
+            .iter_mut()
+            .find(|a| a.kind == kind && &a.source == source && a.active())
+        else {
+            return false;
+        };
+        alarm.cleared = Some(at);
+        let message = format!("cleared: {}", alarm.message);
+        self.alarms
+            .retain(|a| a.active() || a.acknowledged.is_none());
+        self.log(at, source, message);
+        true
+    }
+
+    /// Raises or clears the alarm of `kind` on `source` after `condition`.
+    fn hold(
+        &mut self,
+        kind: AlarmKind,
+        source: &HolonId,
+        condition: Option<String>,
+        at: u64,
+    ) -> bool {
+        match condition {
+            Some(message) => self.raise(kind, source, message, at),
+            None => self.clear(kind, source, at),
+        }
+    }
+
+    fn appeared(&mut self, holon: HolonId, at: u64) -> bool {
+        let view = self.holons.entry(holon.clone()).or_insert(HolonView {
+            kind: holon.kind().as_str(),
+            holon: holon.clone(),
+            live: false,
+            since: at,
+            resource: None,
+        });
+        if view.live {
+            return false;
+        }
+        view.live = true;
+        view.since = at;
+        self.log(at, &holon, "appeared".into());
+        self.clear(AlarmKind::Vanished, &holon, at);
+        let times = self.appearances.entry(holon.clone()).or_default();
+        times.push_back(at);
+        while times
+            .front()
+            .is_some_and(|t| at.saturating_sub(*t) > RESTARTING_WINDOW_MS)
+        {
+            times.pop_front();
+        }
+        if times.len() >= RESTARTING_APPEARANCES {
+            let message = format!(
+                "{holon} appeared {} times within {} s: its process restarts repeatedly",
+                times.len(),
+                RESTARTING_WINDOW_MS / 1000
+            );
+            self.raise(AlarmKind::Restarting, &holon, message, at);
+        }
+        true
+    }
+
+    fn vanished(&mut self, holon: HolonId, at: u64) -> bool {
+        let Some(view) = self.holons.get_mut(&holon) else {
+            return false;
+        };
+        if !view.live {
+            return false;
+        }
+        view.live = false;
+        view.since = at;
+        if let Some((total, since)) = self.busy.get_mut(&holon) {
+            *total += since.take().map_or(0, |s| at.saturating_sub(s));
+        }
+        self.log(at, &holon, "vanished".into());
+        if holon.kind() == HolonKind::Resource {
+            let message = format!("{holon} vanished: its process stopped or its host is cut off");
+            self.raise(AlarmKind::Vanished, &holon, message, at);
+        }
+        true
+    }
+
+    fn resource(&mut self, snapshot: ResourceSnapshot, at: u64) -> bool {
+        let holon = snapshot.holon.clone();
+        let view = self.holons.entry(holon.clone()).or_insert(HolonView {
+            kind: HolonKind::Resource.as_str(),
+            holon: holon.clone(),
+            live: true,
+            since: at,
+            resource: None,
+        });
+        let before = view.resource.replace(snapshot.clone());
+        if before
+            .as_ref()
+            .is_some_and(|b| same_resource_state(b, &snapshot))
+        {
+            return false;
+        }
+        let (was_state, was_controller, was_agenda) =
+            before.as_ref().map_or((None, None, Vec::new()), |b| {
+                (
+                    Some(b.state),
+                    Some(b.controller),
+                    b.agenda.iter().map(|a| a.conversation_id.clone()).collect(),
+                )
+            });
+        let name = holon.name().to_string();
+        for booking in &snapshot.agenda {
+            if !was_agenda.contains(&booking.conversation_id) {
+                *self.counters.bookings.entry(name.clone()).or_default() += 1;
+            }
+        }
+        if was_state != Some(snapshot.state) || was_controller != Some(snapshot.controller) {
+            let text = match &snapshot.current {
+                Some(job) => format!(
+                    "{} (controller {}), working on {} for {}",
+                    snapshot.state, snapshot.controller, job.service_type, job.requester
+                ),
+                None => format!("{} (controller {})", snapshot.state, snapshot.controller),
+            };
+            self.log(at, &holon, text);
+        }
+        let busy = self.busy.entry(holon.clone()).or_default();
+        match (snapshot.state == ResourceState::Busy, busy.1) {
+            (true, None) => busy.1 = Some(at),
+            (false, Some(since)) => {
+                busy.0 += at.saturating_sub(since);
+                busy.1 = None;
+            }
+            _ => {}
+        }
+        let faulted = matches!(
+            snapshot.controller,
+            ControllerStatus::Fault | ControllerStatus::Estop
+        );
+        if faulted && was_controller != Some(snapshot.controller) {
+            *self.counters.controller_faults.entry(name).or_default() += 1;
+        }
+        self.hold(
+            AlarmKind::Controller,
+            &holon,
+            faulted.then(|| format!("{holon}: controller in {}", snapshot.controller)),
+            at,
+        );
+        self.hold(
+            AlarmKind::Journal,
+            &holon,
+            snapshot
+                .journal_fault
+                .as_ref()
+                .map(|why| format!("{holon}: the journal cannot be written ({why})")),
+            at,
+        );
+        self.hold(
+            AlarmKind::Undelivered,
+            &holon,
+            (snapshot.undelivered >= UNDELIVERED_ALARM).then(|| {
+                format!(
+                    "{holon}: {} results not acknowledged by their orders",
+                    snapshot.undelivered
+                )
+            }),
+            at,
+        );
+        true
+    }
+
+    fn order(&mut self, snapshot: OrderSnapshot, at: u64) -> bool {
+        let holon = snapshot.holon.clone();
+        let before = self.orders.insert(holon.clone(), snapshot.clone());
+        if before.as_ref() == Some(&snapshot) {
+            return false;
+        }
+        let progressed = before.as_ref().is_none_or(|b| {
+            b.status != snapshot.status
+                || b.step != snapshot.step
+                || b.resource != snapshot.resource
+        });
+        if progressed {
+            let text = match (&snapshot.status, &snapshot.resource) {
+                (OrderStatus::Running, Some(resource)) => format!(
+                    "step {}/{} {} on {resource}",
+                    snapshot.step,
+                    snapshot.steps,
+                    snapshot.service_type.as_deref().unwrap_or("")
+                ),
+                (OrderStatus::Running, None) => {
+                    format!("step {}/{}", snapshot.step, snapshot.steps)
+                }
+                (status, _) => format!(
+                    "{}{}",
+                    serde_json::to_value(status)
+                        .ok()
+                        .and_then(|v| v.as_str().map(String::from))
+                        .unwrap_or_default(),
+                    snapshot
+                        .reason
+                        .as_deref()
+                        .map(|r| format!(": {r}"))
+                        .unwrap_or_default()
+                ),
+            };
+            self.log(at, &holon, text);
+        }
+        let ended_now = before.as_ref().is_none_or(|b| b.status != snapshot.status);
+        if ended_now {
+            let reason = snapshot.reason.clone().unwrap_or_default();
+            match snapshot.status {
+                OrderStatus::Done => {
+                    self.counters.orders_done += 1;
+                    self.completions.push_back(at);
+                    while self
+                        .completions
+                        .front()
+                        .is_some_and(|t| at.saturating_sub(*t) > 3_600_000)
+                    {
+                        self.completions.pop_front();
+                    }
+                }
+                OrderStatus::Failed => {
+                    self.counters.orders_failed += 1;
+                    let message = format!("{holon} failed: {reason}");
+                    self.raise(AlarmKind::OrderFailed, &holon, message, at);
+                    self.clear(AlarmKind::OrderFailed, &holon, at);
+                }
+                OrderStatus::Scrapped => {
+                    self.counters.orders_scrapped += 1;
+                    let message = format!("{holon} scrapped: {reason}");
+                    self.raise(AlarmKind::OrderScrapped, &holon, message, at);
+                    self.clear(AlarmKind::OrderScrapped, &holon, at);
+                }
+                OrderStatus::Running | OrderStatus::Cancelled => {}
+            }
+        }
+        true
+    }
+
+    fn acknowledge(&mut self, id: u64, at: u64) -> bool {
+        let Some(alarm) = self.alarms.iter_mut().find(|a| a.id == id) else {
+            return false;
+        };
+        if alarm.acknowledged.is_some() {
+            return false;
+        }
+        alarm.acknowledged = Some(at);
+        let (source, message) = (alarm.source.clone(), alarm.message.clone());
+        self.alarms
+            .retain(|a| a.active() || a.acknowledged.is_none());
+        self.log(at, &source, format!("acknowledged: {message}"));
+        true
+    }
+}
+
+/// Whether two snapshots of a resource show the same (only their time differs).
+fn same_resource_state(a: &ResourceSnapshot, b: &ResourceSnapshot) -> bool {
+    ResourceSnapshot { at: 0, ..a.clone() } == ResourceSnapshot { at: 0, ..b.clone() }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use schemas::{BookingView, CurrentJobView};
+
+    fn robot() -> HolonId {
+        HolonId::resource("robot1").unwrap()
+    }
+
+    fn snapshot(
+        state: ResourceState,
+        controller: ControllerStatus,
+        agenda: &[&str],
+    ) -> ResourceSnapshot {
+        ResourceSnapshot {
+            holon: robot(),
+            state,
+            controller,
+            agenda: agenda
+                .iter()
+                .map(|c| BookingView {
+                    requester: HolonId::order("o-1").unwrap(),
+                    conversation_id: c.to_string(),
+                    service_type: "pick_n_place".into(),
+                    requester_absent_since: None,
+                })
+                .collect(),
+            current: (state == ResourceState::Busy).then(|| CurrentJobView {
+                requester: HolonId::order("o-1").unwrap(),
+                conversation_id: "o-1/1/1".into(),
+                service_type: "pick_n_place".into(),
+                step: Some("pick".into()),
+            }),
+            undelivered: 0,
+            services: vec!["pick_n_place".into()],
+            journal_fault: None,
+            at: 0,
+        }
+    }
+
+    fn order(name: &str, status: OrderStatus, reason: Option<&str>) -> OrderSnapshot {
+        serde_json::from_value(serde_json::json!({
+            "holon": format!("order/{name}"), "product": "breaker", "status": status,
+            "reason": reason, "step": 1, "steps": 3, "service_type": "transport",
+            "resource": null, "attempt": 1, "completed": [], "reworks": 0, "rebooks": 0,
+            "failed_attempts": 0, "attempts": [], "at": 0
+        }))
+        .unwrap()
+    }
+
+    fn active(model: &Model) -> Vec<AlarmKind> {
+        model
+            .alarms()
+            .iter()
+            .filter(|a| a.active())
+            .map(|a| a.kind)
+            .collect()
+    }
+
+    #[test]
+    fn a_vanished_resource_raises_an_alarm_that_its_return_clears() {
+        let mut m = Model::default();
+        assert!(m.apply(Input::Appeared {
+            holon: robot(),
+            at: 1
+        }));
+        assert!(
+            !m.apply(Input::Appeared {
+                holon: robot(),
+                at: 2
+            }),
+            "a repeat is no news"
+        );
+        assert!(m.apply(Input::Vanished {
+            holon: robot(),
+            at: 3
+        }));
+        assert_eq!(active(&m), vec![AlarmKind::Vanished]);
+        assert!(!m.holons().next().unwrap().live);
+        m.apply(Input::Appeared {
+            holon: robot(),
+            at: 4,
+        });
+        assert_eq!(active(&m), vec![]);
+        // Cleared but not acknowledged: it stays listed until an operator acknowledges.
+        let id = m.alarms()[0].id;
+        assert_eq!(m.alarms().len(), 1);
+        assert!(m.apply(Input::Acknowledge { id, at: 5 }));
+        assert!(m.alarms().is_empty());
+    }
+
+    #[test]
+    fn an_acknowledged_alarm_stays_while_its_condition_lasts() {
+        let mut m = Model::default();
+        let fault = snapshot(ResourceState::Init, ControllerStatus::Fault, &[]);
+        m.apply(Input::Resource {
+            snapshot: fault,
+            at: 1,
+        });
+        let id = m.alarms()[0].id;
+        m.apply(Input::Acknowledge { id, at: 2 });
+        assert_eq!(active(&m), vec![AlarmKind::Controller]);
+        assert!(m.alarms()[0].acknowledged.is_some());
+        let ready = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
+        m.apply(Input::Resource {
+            snapshot: ready,
+            at: 3,
+        });
+        assert!(m.alarms().is_empty(), "cleared and acknowledged: gone");
+        assert_eq!(m.counters().controller_faults["robot1"], 1);
+    }
+
+    #[test]
+    fn repeated_snapshots_change_nothing_and_busy_time_accrues() {
+        let mut m = Model::default();
+        let busy = snapshot(ResourceState::Busy, ControllerStatus::Ready, &["o-2/1/1"]);
+        assert!(m.apply(Input::Resource {
+            snapshot: busy.clone(),
+            at: 1_000
+        }));
+        let mut again = busy.clone();
+        again.at = 99;
+        assert!(!m.apply(Input::Resource {
+            snapshot: again,
+            at: 1_500
+        }));
+        let free = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
+        m.apply(Input::Resource {
+            snapshot: free,
+            at: 3_000,
+        });
+        assert_eq!(m.busy_ms(10_000)[&robot()], 2_000);
+        assert_eq!(m.counters().bookings["robot1"], 1);
+    }
+
+    #[test]
+    fn undelivered_results_piling_up_raise_an_alarm_until_they_drain() {
+        let mut m = Model::default();
+        let mut piling = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
+        piling.undelivered = UNDELIVERED_ALARM;
+        m.apply(Input::Resource {
+            snapshot: piling,
+            at: 1,
+        });
+        assert_eq!(active(&m), vec![AlarmKind::Undelivered]);
+        let drained = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
+        m.apply(Input::Resource {
+            snapshot: drained,
+            at: 2,
+        });
+        assert_eq!(active(&m), vec![]);
+    }
+
+    #[test]
+    fn a_failed_order_leaves_an_alarm_to_acknowledge_and_done_ones_count() {
+        let mut m = Model::default();
+        m.apply(Input::Order {
+            snapshot: order("o-1", OrderStatus::Running, None),
+            at: 1,
+        });
+        m.apply(Input::Order {
+            snapshot: order("o-1", OrderStatus::Failed, Some("no resource")),
+            at: 2,
+        });
+        assert_eq!(m.alarms().len(), 1);
+        assert_eq!(m.alarms()[0].kind, AlarmKind::OrderFailed);
+        assert!(
+            !m.alarms()[0].active(),
+            "an event: cleared at once, kept until acknowledged"
+        );
+        m.apply(Input::Order {
+            snapshot: order("o-2", OrderStatus::Done, None),
+            at: 3,
+        });
+        assert_eq!(m.done_last_hour(4), 1);
+        assert_eq!(m.done_last_hour(3 + 3_600_001), 0);
+        assert_eq!(m.counters().orders_failed, 1);
+        assert!(m.events().any(|e| e.text == "failed: no resource"));
+    }
+
+    #[test]
+    fn a_holon_that_keeps_reappearing_is_restarting() {
+        let mut m = Model::default();
+        for (i, at) in [0u64, 10_000, 20_000].iter().enumerate() {
+            m.apply(Input::Appeared {
+                holon: robot(),
+                at: *at,
+            });
+            if i < 2 {
+                m.apply(Input::Vanished {
+                    holon: robot(),
+                    at: at + 1,
+                });
+            }
+        }
+        assert!(active(&m).contains(&AlarmKind::Restarting));
+    }
+
+    #[test]
+    fn the_event_log_keeps_the_last_entries() {
+        let mut m = Model::default();
+        for at in 0..(EVENTS_KEPT as u64 + 10) {
+            m.apply(Input::Appeared {
+                holon: robot(),
+                at: at * 2,
+            });
+            m.apply(Input::Vanished {
+                holon: robot(),
+                at: at * 2 + 1,
+            });
+        }
+        assert_eq!(m.events().count(), EVENTS_KEPT);
+    }
+}

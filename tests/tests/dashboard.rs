@@ -1,0 +1,254 @@
+//! `cell dashboard` against a real cell: the page and its live updates, the JSON API,
+//! alarms (raised when a robot's process is killed, acknowledged by an operator),
+//! `/metrics`, and a read-only dashboard refusing what only operators may do.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use holarchy_tests::*;
+use schemas::HolonId;
+
+/// A `cell dashboard` process and the address it serves on.
+struct Dashboard {
+    child: Child,
+    address: String,
+}
+
+impl Dashboard {
+    fn start(cell: &Cell, extra: &[&str]) -> Dashboard {
+        let mut child = Command::new(bin("cell"))
+            .args([
+                "dashboard",
+                "--cell",
+                cell.keys.cell(),
+                "--connect",
+                &cell.endpoint,
+            ])
+            .args(["--listen", "127.0.0.1:0"])
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        BufReader::new(child.stdout.take().unwrap())
+            .read_line(&mut line)
+            .unwrap();
+        // "dashboard of cell C on http://127.0.0.1:PORT/"
+        let address = line
+            .trim()
+            .rsplit("http://")
+            .next()
+            .unwrap()
+            .trim_end_matches('/')
+            .to_string();
+        assert!(address.starts_with("127.0.0.1:"), "{line}");
+        Dashboard { child, address }
+    }
+
+    /// One HTTP/1.1 request: the status code and the body.
+    fn http(&self, method: &str, path: &str, body: &str) -> (u16, String) {
+        let mut stream = TcpStream::connect(&self.address).unwrap();
+        stream
+            .set_read_timeout(Some(Duration::from_secs(10)))
+            .unwrap();
+        write!(
+            stream,
+            "{method} {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\ncontent-type: application/json\r\ncontent-length: {}\r\n\r\n{body}",
+            self.address,
+            body.len()
+        )
+        .unwrap();
+        let mut response = String::new();
+        stream.read_to_string(&mut response).unwrap();
+        let status = response
+            .split_whitespace()
+            .nth(1)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(0);
+        let body = response
+            .split_once("\r\n\r\n")
+            .map(|(_, b)| b.to_string())
+            .unwrap_or_default();
+        (status, body)
+    }
+
+    fn json(&self, path: &str) -> serde_json::Value {
+        let (status, body) = self.http("GET", path, "");
+        assert_eq!(status, 200, "{path}: {body}");
+        serde_json::from_str(&body).unwrap_or_else(|e| panic!("{path}: {e}: {body}"))
+    }
+
+    /// Waits until `check` holds on `GET path` (a JSON answer).
+    fn wait(&self, path: &str, what: &str, check: impl Fn(&serde_json::Value) -> bool) -> Duration {
+        let started = Instant::now();
+        loop {
+            let value = self.json(path);
+            if check(&value) {
+                return started.elapsed();
+            }
+            assert!(
+                started.elapsed() < WAIT,
+                "{what} never showed on {path}: {value}"
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for Dashboard {
+    fn drop(&mut self) {
+        if let Err(e) = self.child.kill() {
+            eprintln!("cannot stop the dashboard: {e}");
+        }
+        if let Err(e) = self.child.wait() {
+            eprintln!("cannot reap the dashboard: {e}");
+        }
+    }
+}
+
+/// Reads the server-sent events of `/events` until a `view` event comes: its data.
+fn first_view(address: &str) -> serde_json::Value {
+    let mut stream = TcpStream::connect(address).unwrap();
+    stream
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .unwrap();
+    write!(
+        stream,
+        "GET /events HTTP/1.1\r\nHost: {address}\r\nAccept: text/event-stream\r\n\r\n"
+    )
+    .unwrap();
+    let mut reader = BufReader::new(stream);
+    let mut line = String::new();
+    let mut in_view = false;
+    loop {
+        line.clear();
+        assert!(
+            reader.read_line(&mut line).unwrap() > 0,
+            "the event stream ended"
+        );
+        let text = line.trim_end();
+        if text == "event: view" {
+            in_view = true;
+        } else if let (true, Some(data)) = (in_view, text.strip_prefix("data: ")) {
+            return serde_json::from_str(data).unwrap();
+        }
+    }
+}
+
+fn live(value: &serde_json::Value, holon: &str) -> Option<bool> {
+    value
+        .as_array()?
+        .iter()
+        .find(|h| h["holon"] == holon)
+        .map(|h| h["live"] == true)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-dashboard").await.unwrap();
+    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &[]).unwrap();
+    let config = resource_config(dir.path(), "robot1", 5_000).unwrap();
+    let mut robot = start_node(
+        dir.path(),
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &[],
+    )
+    .unwrap();
+    cell.wait_alive(&HolonId::resource("robot1").unwrap())
+        .await
+        .unwrap();
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+
+    let observer = Dashboard::start(&cell, &[]);
+    let operator = Dashboard::start(&cell, &["--operator"]);
+    // The page, its live view, and the API all know the robot.
+    let (status, page) = observer.http("GET", "/", "");
+    assert_eq!(status, 200);
+    assert!(
+        page.contains("<title>holarchy cell</title>")
+            && page.contains("new EventSource(\"/events\")")
+    );
+    observer.wait("/api/holons", "robot1, free", |h| {
+        h.as_array().is_some_and(|a| {
+            a.iter()
+                .any(|h| h["holon"] == "resource/robot1" && h["resource"]["state"] == "free")
+        })
+    });
+    let view = first_view(&observer.address);
+    assert_eq!(view["cell"], "t-dashboard");
+    assert!(
+        view["holons"].to_string().contains("resource/robot1"),
+        "{view}"
+    );
+    assert_eq!(view["operator"], false);
+
+    // Killed: the robot shows gone, with an alarm.
+    robot.kill();
+    let shown = observer.wait("/api/holons", "robot1 gone", |h| {
+        live(h, "resource/robot1") == Some(false)
+    });
+    println!("robot1 shown gone {shown:?} after its kill");
+    let alarms = observer.json("/api/alarms");
+    let alarm = alarms
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|a| a["kind"] == "vanished" && a["source"] == "resource/robot1")
+        .unwrap_or_else(|| panic!("no alarm: {alarms}"))
+        .clone();
+    assert!(alarm.get("cleared").is_none(), "{alarm}");
+    let events = observer.json("/api/events");
+    assert!(events.to_string().contains("vanished"), "{events}");
+
+    // A read-only dashboard refuses to acknowledge or submit.
+    let id = alarm["id"].as_u64().unwrap();
+    let (status, body) = observer.http("POST", &format!("/api/alarms/{id}/ack"), "");
+    assert_eq!(status, 403, "{body}");
+    let (status, body) = observer.http("POST", "/api/orders", r#"{"product":"breaker","count":1}"#);
+    assert_eq!(status, 403, "{body}");
+
+    // Metrics in the Prometheus text format.
+    let (status, metrics) = observer.http("GET", "/metrics", "");
+    assert_eq!(status, 200);
+    assert!(
+        metrics.contains("# TYPE holarchy_holons gauge"),
+        "{metrics}"
+    );
+    assert!(metrics.contains("holarchy_alarms_active 1"), "{metrics}");
+
+    // An operator's dashboard acknowledges; back, the alarm clears and leaves the list.
+    operator.wait("/api/alarms", "the alarm", |a| {
+        a.as_array().is_some_and(|a| !a.is_empty())
+    });
+    let alarms = operator.json("/api/alarms");
+    let id = alarms[0]["id"].as_u64().unwrap();
+    let (status, body) = operator.http("POST", &format!("/api/alarms/{id}/ack"), "");
+    assert_eq!(status, 204, "{body}");
+    operator.wait("/api/alarms", "acknowledged", |a| {
+        a[0]["acknowledged"].is_u64()
+    });
+    let _robot = start_node(
+        dir.path(),
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &[],
+    )
+    .unwrap();
+    operator.wait("/api/alarms", "the alarm cleared and gone", |a| {
+        a.as_array().is_some_and(|a| a.is_empty())
+    });
+    operator.wait("/api/holons", "robot1 back", |h| {
+        live(h, "resource/robot1") == Some(true)
+    });
+}
