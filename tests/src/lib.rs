@@ -3,6 +3,8 @@
 //! multicast scouting off and explicit endpoints, waits on presence rather than sleeps,
 //! bounds every wait, and kills its children when a test ends.
 
+pub mod webdriver;
+
 use std::fs;
 use std::io::{BufRead, BufReader};
 use std::net::TcpListener;

@@ -7,6 +7,7 @@ use std::net::TcpStream;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use holarchy_tests::webdriver;
 use holarchy_tests::*;
 use schemas::HolonId;
 
@@ -251,4 +252,136 @@ async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
     operator.wait("/api/holons", "robot1 back", |h| {
         live(h, "resource/robot1") == Some(true)
     });
+}
+
+/// In a real browser (headless Chromium): the page lists the cell's holons; a robot
+/// killed shows gone with an alarm without a reload; work orders submitted from the
+/// page are done. A screenshot of the page is left in `target/dashboard.png`.
+#[tokio::test(flavor = "multi_thread")]
+async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
+    if let Err(why) = webdriver::browser_available() {
+        println!("SKIPPED: the browser test needs Chromium ({why})");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-dashboard-page").await.unwrap();
+    // The breaker's cell: a conveyor, a robot, an inspection station (each with its
+    // controller), the product and an order-node.
+    let mut sims = Vec::new();
+    let mut holons = Vec::new();
+    for (name, config) in [
+        ("conveyor1", "conveyor1.toml"),
+        ("robot1", "robot1.toml"),
+        ("inspect1", "inspect1.toml"),
+    ] {
+        let sim = Sim::start(
+            dir.path(),
+            &format!("{name}-sim"),
+            "127.0.0.1:0",
+            &["--delay-ms", "50"],
+        )
+        .unwrap();
+        let process = start_holon(
+            dir.path(),
+            "holon-node",
+            &demo_config(config),
+            name,
+            &cell,
+            &["--controller", &sim.address],
+        )
+        .unwrap();
+        cell.wait_alive(&HolonId::resource(name).unwrap())
+            .await
+            .unwrap();
+        sims.push(sim);
+        holons.push(process);
+    }
+    let breaker = start_holon(
+        dir.path(),
+        "holon-node",
+        &demo_config("breaker.toml"),
+        "breaker",
+        &cell,
+        &[],
+    )
+    .unwrap();
+    let orders = cell.start_order_node(dir.path(), &[]).await.unwrap();
+    let dashboard = Dashboard::start(&cell, &["--operator"]);
+
+    let browser = webdriver::Browser::start(&dir.path().join("profile")).unwrap();
+    browser
+        .goto(&format!("http://{}/", dashboard.address))
+        .unwrap();
+    let within = Duration::from_secs(10);
+    for holon in [
+        "resource/robot1",
+        "resource/conveyor1",
+        "resource/inspect1",
+        "product/breaker",
+    ] {
+        browser
+            .wait_for(&format!("tr[data-holon=\"{holon}\"]"), within)
+            .unwrap();
+    }
+
+    // Killed: gone, with an active alarm, without a reload.
+    holons[1].kill();
+    let (alarm, took) = browser
+        .wait_for(
+            "tr.alarm-row.active[data-source=\"resource/robot1\"]",
+            within,
+        )
+        .unwrap();
+    println!("the page showed the alarm {took:?} after the kill");
+    assert!(browser.text(&alarm).unwrap().contains("vanished"));
+    browser
+        .wait_for("tr.gone[data-holon=\"resource/robot1\"]", within)
+        .unwrap();
+
+    // The robot back, two breakers ordered from the page: both done.
+    holons[1] = start_holon(
+        dir.path(),
+        "holon-node",
+        &demo_config("robot1.toml"),
+        "robot1",
+        &cell,
+        &["--controller", &sims[1].address],
+    )
+    .unwrap();
+    browser
+        .wait_for("tr[data-holon=\"resource/robot1\"]:not(.gone)", within)
+        .unwrap();
+    let product = browser.find("#product").unwrap().unwrap();
+    browser.type_into(&product, "breaker").unwrap();
+    let count = browser.find("#count").unwrap().unwrap();
+    browser.type_into(&count, "2").unwrap();
+    let submit = browser.find("#submit button").unwrap().unwrap();
+    browser.click(&submit).unwrap();
+    let (submitted, _) = browser.wait_for("#submitted", within).unwrap();
+    let deadline = std::time::Instant::now() + within;
+    let text = loop {
+        let text = browser.text(&submitted).unwrap();
+        if !text.is_empty() || std::time::Instant::now() >= deadline {
+            break text;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(text.starts_with("submitted orders1-"), "{text}");
+    let done_filter = browser
+        .find("#status-filter option:nth-child(3)")
+        .unwrap()
+        .unwrap();
+    browser.click(&done_filter).unwrap();
+    for order in text.trim_start_matches("submitted ").split(", ") {
+        browser
+            .wait_for(
+                &format!("tr[data-order=\"{order}\"][data-status=\"done\"]"),
+                Duration::from_secs(60),
+            )
+            .unwrap();
+    }
+    let screenshot = workspace_root().join("target").join("dashboard.png");
+    browser.screenshot(&screenshot).unwrap();
+    println!("screenshot: {}", screenshot.display());
+    drop((breaker, orders));
 }
