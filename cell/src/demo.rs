@@ -43,6 +43,10 @@ pub struct DemoOptions {
     /// Mutual TLS and access control: a PKI is issued into `<dir>/pki` and every
     /// process, the router included, uses its own identity.
     pub secure: bool,
+    /// Serve the cell's dashboard (operator) on this address while the demo runs.
+    pub dashboard: Option<std::net::SocketAddr>,
+    /// Keep the cell up after the summary, until Ctrl-C or SIGTERM.
+    pub keep: bool,
 }
 
 /// The manifest `cell certs` issues the secure demo's identities from.
@@ -329,20 +333,76 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         session: session.clone(),
         started: Vec::new(),
     };
+    let dashboard = match options.dashboard {
+        Some(listen) => Some(start_dashboard(&cell, listen).await?),
+        None => None,
+    };
     let outcome = tokio::select! {
         outcome = operate(&mut cell, &options) => outcome,
         _ = shutdown.cancelled() => Err(anyhow!("interrupted")),
     };
+    // With --keep the summary comes now, and the cell stays up for its user.
+    let printed = match (&outcome, options.keep) {
+        (Ok(report), true) => {
+            report.print(&dir);
+            println!();
+            println!(
+                "the cell stays up (--keep): submit more with `cell submit breaker --count 5 --cell {} --connect {}`{}; Ctrl-C stops it",
+                options.cell,
+                cell.endpoint,
+                if dashboard.is_some() { " or from the dashboard" } else { "" }
+            );
+            shutdown.cancelled().await;
+            true
+        }
+        _ => false,
+    };
     println!("stopping everything the demo started, in reverse order ...");
+    if let Some((stop, task)) = dashboard {
+        stop.cancel();
+        match task.await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => println!("the dashboard stopped with an error: {e:#}"),
+            Err(e) => println!("the dashboard's task ended abnormally: {e}"),
+        }
+    }
     cell.stop_all().await;
     let report = outcome?;
-    report.print(&dir);
+    if !printed {
+        report.print(&dir);
+    }
     let success = report.failed == 0 && report.completed() == options.orders as usize;
     if let (Some(temp), false) = (temp.as_mut(), success) {
         temp.keep = true;
         println!("  logs kept in    {}", dir.display());
     }
     Ok(success)
+}
+
+/// The cell's dashboard, in this process, as an operator (it prints its address): the
+/// token that stops it and its task.
+async fn start_dashboard(
+    cell: &Cell,
+    listen: std::net::SocketAddr,
+) -> Result<(CancellationToken, tokio::task::JoinHandle<Result<()>>)> {
+    let config = crate::dashboard::DashboardConfig {
+        keys: cell.keys.clone(),
+        zenoh: holon::ZenohSettings {
+            mode: "client".into(),
+            connect: vec![cell.endpoint.clone()],
+            tls: cell.pki.as_ref().map(|pki| holon::tls::TlsSettings {
+                pki: Some(pki.clone()),
+                ..holon::tls::TlsSettings::default()
+            }),
+            ..holon::ZenohSettings::default()
+        },
+        identity: "operator.default".into(),
+        listen,
+        operator: true,
+    };
+    let stop = CancellationToken::new();
+    let task = tokio::spawn(crate::dashboard::run(config, stop.clone()));
+    Ok((stop, task))
 }
 
 struct Report {

@@ -48,6 +48,17 @@ enum Commands {
         /// per process are issued into DIR/pki (see docs/security.md).
         #[arg(long)]
         secure: bool,
+        /// Serve the cell's dashboard (an operator's: it can submit work orders and
+        /// acknowledge alarms) while the demo runs; its address is printed.
+        #[arg(long)]
+        dashboard: bool,
+        /// Where the dashboard listens (with --dashboard).
+        #[arg(long, default_value = "127.0.0.1:8080", value_name = "HOST:PORT")]
+        listen: std::net::SocketAddr,
+        /// Keep the cell up after the summary, until Ctrl-C (to watch it on the
+        /// dashboard and submit more orders).
+        #[arg(long)]
+        keep: bool,
     },
     /// Launch and supervise the processes of a cell from the manifest DIR/cell.toml
     /// (deploy/cells/demo/cell.toml documents it): restart a process that dies, with a
@@ -292,6 +303,9 @@ async fn run(args: Args) -> Result<bool> {
             no_hot_add,
             dir,
             secure,
+            dashboard,
+            listen,
+            keep,
         } => {
             let shutdown = holon::shutdown_on_signals();
             let options = cell::demo::DemoOptions {
@@ -302,6 +316,8 @@ async fn run(args: Args) -> Result<bool> {
                 hot_add: !no_hot_add,
                 dir,
                 secure,
+                dashboard: dashboard.then_some(listen),
+                keep,
             };
             cell::demo::run(options, shutdown).await
         }

@@ -11,10 +11,22 @@ use holarchy_tests::webdriver;
 use holarchy_tests::*;
 use schemas::HolonId;
 
-/// A `cell dashboard` process and the address it serves on.
+/// A `cell dashboard` process and its web server.
 struct Dashboard {
     child: Child,
+    api: Api,
+}
+
+/// A dashboard's web server, by its address.
+struct Api {
     address: String,
+}
+
+impl std::ops::Deref for Dashboard {
+    type Target = Api;
+    fn deref(&self) -> &Api {
+        &self.api
+    }
 }
 
 impl Dashboard {
@@ -46,9 +58,14 @@ impl Dashboard {
             .trim_end_matches('/')
             .to_string();
         assert!(address.starts_with("127.0.0.1:"), "{line}");
-        Dashboard { child, address }
+        Dashboard {
+            child,
+            api: Api { address },
+        }
     }
+}
 
+impl Api {
     /// One HTTP/1.1 request: the status code and the body.
     fn http(&self, method: &str, path: &str, body: &str) -> (u16, String) {
         let mut stream = TcpStream::connect(&self.address).unwrap();
@@ -380,8 +397,67 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
             )
             .unwrap();
     }
+    // The steps were timed: two transports on the conveyor.
+    let (_, metrics) = dashboard.http("GET", "/metrics", "");
+    assert!(
+        metrics.contains(
+            "holarchy_step_duration_seconds_count{service_type=\"transport\",resource=\"conveyor1\"} 2"
+        ),
+        "{metrics}"
+    );
     let screenshot = workspace_root().join("target").join("dashboard.png");
     browser.screenshot(&screenshot).unwrap();
     println!("screenshot: {}", screenshot.display());
     drop((breaker, orders));
+}
+
+/// `cell demo --dashboard --keep`: the demo's dashboard shows its orders done, the cell
+/// stays up after the summary, and Ctrl-C (SIGTERM) stops it all with exit 0.
+#[test]
+fn the_demo_keeps_its_cell_up_with_a_dashboard() {
+    let mut demo = Command::new(bin("cell"))
+        .args(["demo", "--orders", "2", "--delay-ms", "30", "--no-hot-add"])
+        .args(["--inspect-fail-every", "0", "--cell", "t-demo-keep"])
+        .args(["--dashboard", "--listen", "127.0.0.1:0", "--keep"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let mut lines = BufReader::new(demo.stdout.take().unwrap()).lines();
+    let mut seen = Vec::new();
+    let mut address = None;
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while Instant::now() < deadline {
+        let Some(Ok(line)) = lines.next() else { break };
+        seen.push(line.clone());
+        if let Some(url) = line.split("on http://").nth(1) {
+            address = Some(url.trim_end_matches('/').to_string());
+        }
+        if line.starts_with("the cell stays up (--keep)") {
+            break;
+        }
+    }
+    let address = address.unwrap_or_else(|| panic!("no dashboard address: {seen:#?}"));
+    assert!(
+        seen.iter().any(|l| l.starts_with("the cell stays up")),
+        "{seen:#?}"
+    );
+    let dashboard = Api { address };
+    dashboard.wait("/api/orders", "both orders done", |o| {
+        o.as_array()
+            .is_some_and(|o| o.len() == 2 && o.iter().all(|o| o["status"] == "done"))
+    });
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(demo.id() as i32),
+        nix::sys::signal::Signal::SIGTERM,
+    )
+    .unwrap();
+    let rest: Vec<String> = lines.map_while(Result::ok).collect();
+    let status = demo.wait().unwrap();
+    assert!(status.success(), "{rest:#?}");
+    assert!(
+        rest.iter()
+            .any(|l| l.contains("stopping everything the demo started")),
+        "{rest:#?}"
+    );
 }

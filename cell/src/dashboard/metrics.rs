@@ -131,6 +131,29 @@ pub fn render(view: &View) -> String {
             .map(|(r, n)| (format!("{{resource=\"{r}\"}}"), *n as f64))
             .collect(),
     );
+    let mut steps = Vec::new();
+    for ((service_type, resource), histogram) in &counters.steps {
+        let labels = format!("service_type=\"{service_type}\",resource=\"{resource}\"");
+        let mut cumulative = 0;
+        for (i, count) in histogram.buckets.iter().enumerate() {
+            cumulative += count;
+            let le = super::model::STEP_BUCKETS
+                .get(i)
+                .map_or("+Inf".to_string(), |b| b.to_string());
+            steps.push((
+                format!("_bucket{{{labels},le=\"{le}\"}}"),
+                cumulative as f64,
+            ));
+        }
+        steps.push((format!("_sum{{{labels}}}"), histogram.sum_seconds));
+        steps.push((format!("_count{{{labels}}}"), histogram.count as f64));
+    }
+    family(
+        "holarchy_step_duration_seconds",
+        "histogram",
+        "How long jobs took on each resource, by service type (seen from start to end).",
+        steps,
+    );
     family(
         "holarchy_dashboard_dropped_samples_total",
         "counter",

@@ -144,12 +144,38 @@ pub struct Model {
     /// Per resource: milliseconds it has been busy since the dashboard started, and
     /// since when it is busy now.
     busy: BTreeMap<HolonId, (u64, Option<u64>)>,
+    /// Per resource: the job seen starting (conversation, service type) and when.
+    jobs: HashMap<HolonId, (String, String, u64)>,
     /// Counters for the metrics.
     counters: Counters,
 }
 
+/// The upper bounds of the step-duration histograms' buckets, in seconds.
+pub const STEP_BUCKETS: [f64; 10] = [0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0, 120.0];
+
+/// How long the jobs of one service type took on one resource.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StepHistogram {
+    /// Jobs per bucket of [`STEP_BUCKETS`] (not cumulative), and one more for longer.
+    pub buckets: [u64; STEP_BUCKETS.len() + 1],
+    pub sum_seconds: f64,
+    pub count: u64,
+}
+
+impl StepHistogram {
+    fn observe(&mut self, seconds: f64) {
+        let bucket = STEP_BUCKETS
+            .iter()
+            .position(|bound| seconds <= *bound)
+            .unwrap_or(STEP_BUCKETS.len());
+        self.buckets[bucket] += 1;
+        self.sum_seconds += seconds;
+        self.count += 1;
+    }
+}
+
 /// Totals since the dashboard started, for `/metrics`.
-#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct Counters {
     pub orders_done: u64,
     pub orders_failed: u64,
@@ -158,6 +184,9 @@ pub struct Counters {
     pub controller_faults: BTreeMap<String, u64>,
     /// Bookings seen appear on agendas, per resource.
     pub bookings: BTreeMap<String, u64>,
+    /// How long jobs took, per (service type, resource): from the snapshot that showed
+    /// the job running to the one that showed it ended (jobs seen starting only).
+    pub steps: BTreeMap<(String, String), StepHistogram>,
 }
 
 impl Model {
@@ -371,6 +400,30 @@ impl Model {
                 None => format!("{} (controller {})", snapshot.state, snapshot.controller),
             };
             self.log(at, &holon, text);
+        }
+        let running = snapshot
+            .current
+            .as_ref()
+            .map(|job| (job.conversation_id.clone(), job.service_type.clone()));
+        let seen = self
+            .jobs
+            .get(&holon)
+            .map(|(c, t, _)| (c.clone(), t.clone()));
+        if seen != running {
+            if let Some((_, service_type, started)) = self.jobs.remove(&holon) {
+                let seconds = at.saturating_sub(started) as f64 / 1000.0;
+                self.counters
+                    .steps
+                    .entry((service_type, holon.name().to_string()))
+                    .or_default()
+                    .observe(seconds);
+            }
+            // A job already running when the dashboard first saw the resource has no
+            // known start: not timed.
+            if let (Some((conversation, service_type)), true) = (running, before.is_some()) {
+                self.jobs
+                    .insert(holon.clone(), (conversation, service_type, at));
+            }
         }
         let busy = self.busy.entry(holon.clone()).or_default();
         match (snapshot.state == ResourceState::Busy, busy.1) {
@@ -641,6 +694,48 @@ mod tests {
         });
         assert_eq!(m.busy_ms(10_000)[&robot()], 2_000);
         assert_eq!(m.counters().bookings["robot1"], 1);
+    }
+
+    #[test]
+    fn a_job_seen_from_its_start_to_its_end_is_timed() {
+        let mut m = Model::default();
+        let free = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
+        let busy = snapshot(ResourceState::Busy, ControllerStatus::Ready, &[]);
+        m.apply(Input::Resource {
+            snapshot: free.clone(),
+            at: 1_000,
+        });
+        m.apply(Input::Resource {
+            snapshot: busy,
+            at: 2_000,
+        });
+        m.apply(Input::Resource {
+            snapshot: free,
+            at: 2_700,
+        });
+        let histogram = &m.counters().steps[&("pick_n_place".to_string(), "robot1".to_string())];
+        assert_eq!(histogram.count, 1);
+        assert_eq!(
+            histogram.buckets[3], 1,
+            "0.7 s falls in the (0.5, 1] bucket"
+        );
+        assert!((histogram.sum_seconds - 0.7).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_job_running_when_first_seen_is_not_timed() {
+        let mut m = Model::default();
+        let busy = snapshot(ResourceState::Busy, ControllerStatus::Ready, &[]);
+        let free = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
+        m.apply(Input::Resource {
+            snapshot: busy,
+            at: 1_000,
+        });
+        m.apply(Input::Resource {
+            snapshot: free,
+            at: 2_000,
+        });
+        assert!(m.counters().steps.is_empty());
     }
 
     #[test]
