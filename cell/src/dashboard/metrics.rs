@@ -42,8 +42,8 @@ pub fn render(view: &View) -> String {
     .iter()
     .map(|s| (status_name(*s), 0.0))
     .collect();
-    for order in &view.orders {
-        *orders.entry(status_name(order.status)).or_default() += 1.0;
+    for (status, count) in &view.order_counts {
+        *orders.entry(status.clone()).or_default() += *count as f64;
     }
     family(
         "holarchy_orders",

@@ -56,7 +56,12 @@ pub struct View {
     pub at: u64,
     pub operator: bool,
     pub holons: Vec<HolonView>,
-    pub orders: Vec<OrderSnapshot>,
+    /// Every running order, and the last [`FINISHED_SHOWN`] finished ones, as rows (the
+    /// page's memory and each update stay bounded however many orders the cell made;
+    /// `cell orders --detail` has every attempt of every order).
+    pub orders: Vec<OrderRow>,
+    /// How many orders the cell's order-nodes host, by status.
+    pub order_counts: std::collections::BTreeMap<String, usize>,
     pub alarms: Vec<Alarm>,
     /// The newest first.
     pub events: Vec<Event>,
@@ -76,6 +81,60 @@ pub struct Throughput {
     pub utilisation: Vec<(String, f64)>,
     /// Per resource: seconds busy since the dashboard started.
     pub busy_seconds: Vec<(String, f64)>,
+}
+
+/// How many finished orders the view carries (the newest).
+pub const FINISHED_SHOWN: usize = 500;
+
+/// One order as the page lists it.
+#[derive(Debug, Clone, Serialize)]
+pub struct OrderRow {
+    pub holon: schemas::HolonId,
+    pub product: String,
+    pub status: schemas::OrderStatus,
+    pub reason: Option<String>,
+    pub step: usize,
+    pub steps: usize,
+    pub service_type: Option<String>,
+    pub resource: Option<schemas::HolonId>,
+    pub rebooks: u32,
+    pub reworks: u32,
+    pub failed_attempts: u32,
+    /// When the order last changed (Unix ms).
+    pub at: u64,
+}
+
+impl From<&OrderSnapshot> for OrderRow {
+    fn from(o: &OrderSnapshot) -> OrderRow {
+        OrderRow {
+            holon: o.holon.clone(),
+            product: o.product.clone(),
+            status: o.status,
+            reason: o.reason.clone(),
+            step: o.step,
+            steps: o.steps,
+            service_type: o.service_type.clone(),
+            resource: o.resource.clone(),
+            rebooks: o.rebooks,
+            reworks: o.reworks,
+            failed_attempts: o.failed_attempts,
+            at: o.at,
+        }
+    }
+}
+
+/// The rows of the view: every running order, the newest finished ones.
+fn order_rows(model: &Model) -> Vec<OrderRow> {
+    let mut finished: Vec<&OrderSnapshot> =
+        model.orders().filter(|o| o.status.is_final()).collect();
+    finished.sort_by_key(|o| std::cmp::Reverse(o.at));
+    finished.truncate(FINISHED_SHOWN);
+    model
+        .orders()
+        .filter(|o| !o.status.is_final())
+        .chain(finished.into_iter().rev())
+        .map(OrderRow::from)
+        .collect()
 }
 
 /// Commands from the pages to the model's owner.
@@ -301,7 +360,15 @@ fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, started: u64) 
         at: now,
         operator: config.operator,
         holons: model.holons().cloned().collect(),
-        orders: model.orders().cloned().collect(),
+        orders: order_rows(model),
+        order_counts: model.orders().fold(Default::default(), |mut counts, o| {
+            let status = serde_json::to_value(o.status)
+                .ok()
+                .and_then(|v| v.as_str().map(String::from))
+                .unwrap_or_default();
+            *counts.entry(status).or_insert(0) += 1;
+            counts
+        }),
         alarms: model.alarms().to_vec(),
         events: model.events().rev().cloned().collect(),
         throughput: Throughput {
