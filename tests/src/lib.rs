@@ -656,6 +656,34 @@ impl Cell {
         serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
     }
 
+    /// Starts the resource holon of `config` (its name is the file's stem) on this
+    /// cell, driving the controller at `controller`, and waits until it is alive and
+    /// free (its controller ready).
+    pub async fn start_free_resource(
+        &self,
+        dir: &Path,
+        config: &Path,
+        controller: &str,
+        extra: &[&str],
+    ) -> Result<Process> {
+        let node = start_node(
+            dir,
+            config,
+            self.keys.cell(),
+            &self.endpoint,
+            controller,
+            extra,
+        )?;
+        let name = config
+            .file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        self.wait_alive(&HolonId::resource(&name)?).await?;
+        self.wait_state(&name, "free", |s| s["state"] == "free")
+            .await?;
+        Ok(node)
+    }
+
     /// Submits a work order on `orders/submit` and returns the new orders' names.
     pub async fn submit(&self, product: &str, count: u32) -> Result<Vec<String>> {
         self.submit_work(schemas::WorkOrder {

@@ -2,7 +2,7 @@
 //! reason delivered to the order, and the holon keeps serving.
 
 use holarchy_tests::*;
-use schemas::{HolonId, MessageType, Service};
+use schemas::{MessageType, Service};
 
 struct Robot {
     cell: Cell,
@@ -16,19 +16,8 @@ async fn robot(cell: &str, sim_flags: &[&str]) -> Robot {
     let cell = Cell::open(cell).await.unwrap();
     let sim = Sim::start(dir.path(), "sim", "127.0.0.1:0", sim_flags).unwrap();
     let config = resource_config(dir.path(), "robot1", 600).unwrap();
-    let node = start_node(
-        dir.path(),
-        &config,
-        cell.keys.cell(),
-        &cell.endpoint,
-        &sim.address,
-        &[],
-    )
-    .unwrap();
-    cell.wait_alive(&HolonId::resource("robot1").unwrap())
-        .await
-        .unwrap();
-    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+    let node = cell
+        .start_free_resource(dir.path(), &config, &sim.address, &[])
         .await
         .unwrap();
     Robot {

@@ -170,19 +170,8 @@ async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
     let cell = Cell::open("t-dashboard").await.unwrap();
     let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &[]).unwrap();
     let config = resource_config(dir.path(), "robot1", 5_000).unwrap();
-    let mut robot = start_node(
-        dir.path(),
-        &config,
-        cell.keys.cell(),
-        &cell.endpoint,
-        &sim.address,
-        &[],
-    )
-    .unwrap();
-    cell.wait_alive(&HolonId::resource("robot1").unwrap())
-        .await
-        .unwrap();
-    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+    let mut robot = cell
+        .start_free_resource(dir.path(), &config, &sim.address, &[])
         .await
         .unwrap();
 

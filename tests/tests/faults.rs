@@ -14,19 +14,13 @@ async fn robot_with(cell: &Cell, dir: &std::path::Path, extra: &str) -> (Sim, Pr
     text.push_str(extra);
     std::fs::write(&config, text).unwrap();
     let data = dir.join("data-a");
-    let node = start_node(
-        dir,
-        &config,
-        cell.keys.cell(),
-        &cell.endpoint,
-        &sim.address,
-        &["--data-dir", data.to_str().unwrap()],
-    )
-    .unwrap();
-    cell.wait_alive(&HolonId::resource("robot1").unwrap())
-        .await
-        .unwrap();
-    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+    let node = cell
+        .start_free_resource(
+            dir,
+            &config,
+            &sim.address,
+            &["--data-dir", data.to_str().unwrap()],
+        )
         .await
         .unwrap();
     (sim, node)
@@ -254,24 +248,16 @@ impl DiskRobot {
 
     /// Starts the holon and waits until it is free.
     async fn start(&self) -> Process {
-        let node = start_node(
-            self.dir.path(),
-            &self.config,
-            self.cell.keys.cell(),
-            &self.cell.endpoint,
-            &self.sim.address,
-            &["--data-dir", self.disk.path.to_str().unwrap()],
-        )
-        .unwrap();
+        let data = self.disk.path.to_str().unwrap();
         self.cell
-            .wait_alive(&HolonId::resource("robot1").unwrap())
+            .start_free_resource(
+                self.dir.path(),
+                &self.config,
+                &self.sim.address,
+                &["--data-dir", data],
+            )
             .await
-            .unwrap();
-        self.cell
-            .wait_state("robot1", "free", |s| s["state"] == "free")
-            .await
-            .unwrap();
-        node
+            .unwrap()
     }
 }
 

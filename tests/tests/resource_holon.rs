@@ -26,21 +26,12 @@ async fn robot(
     let cell = Cell::open(cell).await.unwrap();
     let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", sim_flags).unwrap();
     let config = resource_config(dir.path(), "robot1", command_timeout_ms).unwrap();
-    let node = start_node(
-        dir.path(),
-        &config,
-        cell.keys.cell(),
-        &cell.endpoint,
-        &sim.address,
-        node_flags,
-    )
-    .unwrap();
-    let holon = HolonId::resource("robot1").unwrap();
-    cell.wait_alive(&holon).await.unwrap();
-    // Alive means serving; wait for the controller too before booking.
-    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+    // Alive means serving; it waits for the controller too before booking.
+    let node = cell
+        .start_free_resource(dir.path(), &config, &sim.address, node_flags)
         .await
         .unwrap();
+    let holon = HolonId::resource("robot1").unwrap();
     Robot {
         cell,
         sim,
