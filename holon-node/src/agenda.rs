@@ -634,6 +634,8 @@ impl AgendaManager {
             undelivered: self.undelivered.len(),
             services: self.catalog.service_types().map(String::from).collect(),
             journal_fault: None,
+            delivery_retries: 0,
+            host: None,
             at: unix_ms(),
         }
     }

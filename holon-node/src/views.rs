@@ -46,6 +46,11 @@ pub struct Views {
     pub execution: watch::Sender<ExecutionView>,
     /// Written by the requesters component.
     pub absences: watch::Sender<Absences>,
+    /// Written by the communication component: how many times a result went out again
+    /// because its first attempt was not acknowledged, since the process started.
+    pub delivery_retries: watch::Sender<u64>,
+    /// The machine this process runs on, named in every snapshot.
+    host: String,
 }
 
 impl Views {
@@ -57,6 +62,8 @@ impl Views {
                 step: None,
             }),
             absences: watch::Sender::new(absences),
+            delivery_retries: watch::Sender::new(0),
+            host: holon::presence::host_name(),
         }
     }
 
@@ -74,6 +81,8 @@ impl Views {
                 .absent_since(&booking.requester)
                 .map(|since| since.unix_ms);
         }
+        snapshot.delivery_retries = *self.delivery_retries.borrow();
+        snapshot.host = Some(self.host.clone());
         snapshot.at = schemas::unix_ms();
         snapshot
     }

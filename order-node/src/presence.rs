@@ -231,6 +231,8 @@ mod tests {
             undelivered: 0,
             services: vec!["pick_n_place".into()],
             journal_fault: None,
+            delivery_retries: 0,
+            host: None,
             at: 0,
         }
     }

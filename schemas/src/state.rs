@@ -112,6 +112,13 @@ pub struct ResourceSnapshot {
     /// takes no new work and holds its results until a write succeeds.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub journal_fault: Option<String>,
+    /// How many times a result went out again because an attempt was not acknowledged,
+    /// since the process started (a requester away, slow or refusing).
+    #[serde(default)]
+    pub delivery_retries: u64,
+    /// The machine the holon's process runs on (its hostname).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host: Option<String>,
     /// Unix time in milliseconds.
     pub at: u64,
 }

@@ -231,6 +231,10 @@ async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
         "{metrics}"
     );
     assert!(metrics.contains("holarchy_alarms_active 1"), "{metrics}");
+    assert!(
+        metrics.contains("# TYPE holarchy_delivery_retries_total counter"),
+        "{metrics}"
+    );
 
     // An operator's dashboard acknowledges; back, the alarm clears and leaves the list.
     operator.wait("/api/alarms", "the alarm", |a| {

@@ -109,6 +109,10 @@ async fn books_starts_and_delivers_done_until_acknowledged() {
     assert_eq!(state["agenda"].as_array().unwrap().len(), 0);
     assert_eq!(r.sim.executed("pick"), 1);
     assert_eq!(r.sim.executed("place"), 1);
+    // The two attempts after the first are counted (the dashboard's metrics read them),
+    // and the snapshot names the machine.
+    assert_eq!(state["delivery_retries"], 2, "{state}");
+    assert_eq!(state["host"], holon::presence::host_name(), "{state}");
 
     // Snapshots were published on every change: booked, busy, steps, free.
     let mut seen = Vec::new();

@@ -112,6 +112,21 @@ pub fn render(view: &View) -> String {
             .collect(),
     );
     family(
+        "holarchy_delivery_retries_total",
+        "counter",
+        "Times each resource sent a result again because it was not acknowledged, since its process started (resets when it restarts).",
+        view.holons
+            .iter()
+            .filter_map(|h| h.resource.as_ref())
+            .map(|r| {
+                (
+                    format!("{{resource=\"{}\"}}", r.holon.name()),
+                    r.delivery_retries as f64,
+                )
+            })
+            .collect(),
+    );
+    family(
         "holarchy_controller_faults_total",
         "counter",
         "Times each resource's controller went into fault or estop since the dashboard started.",

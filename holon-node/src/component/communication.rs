@@ -222,6 +222,16 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             result = results.recv() => deliveries.add(result.ok_or("delivery mailbox closed")?),
             _ = async { tokio::time::sleep_until(next_due.unwrap_or_else(tokio::time::Instant::now)).await }, if next_due.is_some() => {
                 deliveries.send_due();
+                // Retries back off (doubling), so publishing the count with each is cheap.
+                let retries = deliveries.retries();
+                let counted = links.views.delivery_retries.send_if_modified(|count| {
+                    let changed = *count != retries;
+                    *count = retries;
+                    changed
+                });
+                if counted {
+                    publish(&links, &publisher).await;
+                }
             }
             Some(end) = deliveries.attempt_ended() => {
                 if let Some(conversation_id) = deliveries.ended(end) {

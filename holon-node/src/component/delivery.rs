@@ -41,6 +41,9 @@ pub struct Deliveries {
     settings: DeliverySettings,
     pending: BTreeMap<String, Delivery>,
     attempts: JoinSet<AttemptEnd>,
+    /// Attempts after a result's first, since the process started (a requester away or
+    /// slow to acknowledge); published in the state for the dashboard's metrics.
+    retries: u64,
 }
 
 impl Deliveries {
@@ -51,6 +54,7 @@ impl Deliveries {
             settings,
             pending: BTreeMap::new(),
             attempts: JoinSet::new(),
+            retries: 0,
         }
     }
 
@@ -84,6 +88,11 @@ impl Deliveries {
             });
     }
 
+    /// Attempts after a result's first, since the process started.
+    pub fn retries(&self) -> u64 {
+        self.retries
+    }
+
     /// When the next attempt is due, if any is waiting.
     pub fn next_due(&self) -> Option<Instant> {
         self.pending
@@ -103,6 +112,9 @@ impl Deliveries {
             }
             delivery.in_flight = true;
             delivery.attempts += 1;
+            if delivery.attempts > 1 {
+                self.retries += 1;
+            }
             if repeat_worth_logging(delivery.attempts) {
                 info!(%holon, %conversation_id, message_type = %delivery.message.message_type, reply_to = delivery.message.reply_to.as_deref().unwrap_or(""), attempt = delivery.attempts, "sending result");
             } else {
