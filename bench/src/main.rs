@@ -11,6 +11,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+mod dashboard;
+
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Parser, Subcommand};
 use holarchy_tests::{free_port, pick_n_place, resource_config, Cell, Process, Sim};
@@ -41,11 +43,11 @@ enum Commands {
         /// Round trips per latency figure.
         #[arg(long, default_value_t = 2000)]
         samples: usize,
-        /// Resource holon processes for the scale figure (0 skips it).
+        /// Resource holon processes for the scale and dashboard figures (0 skips them).
         #[arg(long, default_value_t = 100)]
         scale: usize,
         /// Run only these sections (comma-separated; the floors always run): booking,
-        /// cycle, holon, rebook, lease, throughput, orders, scale.
+        /// tls, cycle, holon, rebook, lease, throughput, orders, scale, dashboard.
         #[arg(long, value_delimiter = ',')]
         only: Vec<String>,
     },
@@ -302,6 +304,7 @@ const SECTIONS: &[&str] = &[
     "throughput",
     "orders",
     "scale",
+    "dashboard",
 ];
 
 /// What every section shares: the run's directory, the cell (this process is its
@@ -394,6 +397,9 @@ async fn all(out: &Path, samples: usize, scale: usize, only: &[String]) -> Resul
             format!("{:.0}x zenoh floor p50", run.ratio(&round)),
             round.json(),
         );
+    }
+    if wants("dashboard") && scale > 0 {
+        dashboard::section(&mut run, scale, 1000).await?;
     }
 
     let machine = json!({

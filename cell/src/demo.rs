@@ -314,6 +314,8 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         .open(&holon::tls::identity("router", "local"), STARTUP)
         .await
         .map_err(|e| anyhow!("{e}"))?;
+    let _announced =
+        crate::router::announce(&session, &keys, &holon::presence::host_name()).await?;
     println!(
         "cell {}: zenoh router on {endpoint}; configs and logs in {}",
         options.cell,

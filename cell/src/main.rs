@@ -95,6 +95,13 @@ enum Commands {
         /// The router's identity with --pki (default router.local).
         #[arg(long, value_name = "ROLE.NAME")]
         identity: Option<String>,
+        /// Announce the router in this cell (a liveliness token host/router/NAME that
+        /// dashboards show); without it the router is not named in any cell.
+        #[arg(long, value_name = "CELL")]
+        cell: Option<String>,
+        /// The name to announce it by, with --cell (default: this machine's host name).
+        #[arg(long, value_name = "NAME", requires = "cell")]
+        name: Option<String>,
     },
     /// List every order of a cell with its status, step, resource, failed attempts,
     /// rebooks and reworks (from any host).
@@ -139,9 +146,10 @@ enum Commands {
         /// Where the web server listens (HOST:PORT; port 0 picks one, printed at start).
         #[arg(long, default_value = "127.0.0.1:8080", value_name = "HOST:PORT")]
         listen: std::net::SocketAddr,
-        /// Let the page submit work orders and acknowledge alarms (with --pki the
-        /// dashboard then connects as operator.default unless --identity says otherwise;
-        /// without --operator it is read-only and connects as observer.default).
+        /// Let the page submit work orders and acknowledge alarms. With --pki the
+        /// identity's role decides instead: an operator.* identity operates, an
+        /// observer.* one only watches (--operator with it is refused); without
+        /// --identity, --operator connects as operator.default, else observer.default.
         #[arg(long)]
         operator: bool,
         #[command(flatten)]
@@ -326,14 +334,15 @@ async fn run(args: Args) -> Result<bool> {
             operator,
             client,
         } => {
-            let default_identity = if operator { OPERATOR } else { OBSERVER };
+            let (identity, operator) = cell::dashboard::connect_as(
+                client.pki.is_some(),
+                client.identity.as_deref(),
+                operator,
+            )?;
             let config = cell::dashboard::DashboardConfig {
                 keys: client.keys()?,
                 zenoh: client.settings(),
-                identity: client
-                    .identity
-                    .clone()
-                    .unwrap_or_else(|| default_identity.to_string()),
+                identity,
                 listen,
                 operator,
             };
@@ -351,6 +360,8 @@ async fn run(args: Args) -> Result<bool> {
             lease_ms,
             pki,
             identity,
+            cell,
+            name,
         } => {
             let shutdown = holon::shutdown_on_signals();
             let options = cell::router::RouterOptions {
@@ -360,6 +371,8 @@ async fn run(args: Args) -> Result<bool> {
                 lease_ms,
                 pki,
                 identity,
+                cell: cell.as_deref().map(schemas::CellKeys::new).transpose()?,
+                name,
             };
             cell::router::run(options, shutdown).await?;
             Ok(true)

@@ -22,6 +22,11 @@ pub struct RouterOptions {
     pub pki: Option<PathBuf>,
     /// The router's identity (default `router.local`).
     pub identity: Option<String>,
+    /// The cell to announce the router in (`host/router/<name>`, for dashboards), if any:
+    /// a router may serve several cells, or none by name.
+    pub cell: Option<schemas::CellKeys>,
+    /// The name it is announced by (default: this machine's host name).
+    pub name: Option<String>,
 }
 
 fn json(value: &[String]) -> String {
@@ -71,6 +76,28 @@ pub fn config(options: &RouterOptions) -> Result<zenoh::Config> {
     Ok(config)
 }
 
+/// Announces a router in a cell: a liveliness token `host/router/<name>` that
+/// dashboards show (live or gone) and launchers may wait on. It lasts as long as the
+/// token is held.
+pub async fn announce(
+    session: &zenoh::Session,
+    keys: &schemas::CellKeys,
+    name: &str,
+) -> Result<zenoh::liveliness::LivelinessToken> {
+    schemas::validate_name("router name", name)?;
+    session
+        .liveliness()
+        .declare_token(keys.host("router", name))
+        .await
+        .map_err(|e| {
+            anyhow!(
+                "cannot announce the router in cell {}: {}",
+                keys.cell(),
+                holon::zenoh_error::describe(&e)
+            )
+        })
+}
+
 /// Runs the router until `shutdown` is cancelled.
 pub async fn run(options: RouterOptions, shutdown: CancellationToken) -> Result<()> {
     let config = config(&options)?;
@@ -87,6 +114,16 @@ pub async fn run(options: RouterOptions, shutdown: CancellationToken) -> Result<
             )
         })?;
     println!("router {} listening on {endpoints}", session.zid());
+    let _announced = match &options.cell {
+        Some(keys) => {
+            let name = options
+                .name
+                .clone()
+                .unwrap_or_else(holon::presence::host_name);
+            Some(announce(&session, keys, &name).await?)
+        }
+        None => None,
+    };
     shutdown.cancelled().await;
     let _ = tokio::time::timeout(Duration::from_secs(5), session.close()).await;
     println!("router stopped");

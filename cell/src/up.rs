@@ -75,7 +75,7 @@ async fn start_router(
     manifest: &Manifest,
     router: &RouterSection,
     clock: Clock,
-) -> Result<zenoh::Session> {
+) -> Result<Router> {
     let settings = router.settings(&crate::certs::pki_dir(dir, manifest));
     let session = settings
         .open(
@@ -89,7 +89,20 @@ async fn start_router(
         manifest.cell,
         router.listen.join(", ")
     ));
-    Ok(session)
+    let keys = schemas::CellKeys::new(&manifest.cell)?;
+    let token = crate::router::announce(&session, &keys, host).await?;
+    Ok(Router {
+        _announced: token,
+        _session: session,
+    })
+}
+
+/// The cell's router in this process, announced as `host/router/<host>`.
+struct Router {
+    /// Its announcement, withdrawn when the router stops (dropped first).
+    _announced: zenoh::liveliness::LivelinessToken,
+    /// The router itself: it lives as long as the session.
+    _session: zenoh::Session,
 }
 
 /// One process of the manifest, as `cell up` tracks it.

@@ -145,9 +145,23 @@ impl CellKeys {
     }
 
     /// `holarchy/<cell>/host/<program>/<name>`: liveliness of a process that hosts holons
-    /// but is not one (an order-node), so launchers can wait for it.
+    /// or links them but is not one (an order-node; `cell up`'s router as
+    /// `host/router/<host>`), so launchers can wait for it and dashboards show it.
     pub fn host(&self, program: &str, name: &str) -> String {
         format!("{}/host/{program}/{name}", self.prefix())
+    }
+
+    /// `holarchy/<cell>/host/*/*`: every process that hosts holons or links them (a
+    /// router, an order-node).
+    pub fn host_all(&self) -> String {
+        format!("{}/host/*/*", self.prefix())
+    }
+
+    /// Recovers `(program, name)` from a `host/<program>/<name>` key of this cell.
+    pub fn process_from_host<'k>(&self, key: &'k str) -> Option<(&'k str, &'k str)> {
+        let rest = key.strip_prefix(&self.prefix())?.strip_prefix("/host/")?;
+        let (program, name) = rest.split_once('/')?;
+        (!program.is_empty() && !name.is_empty() && !name.contains('/')).then_some((program, name))
     }
 
     /// `holarchy/<cell>/resource/<name>/debug/crash`: fault injection, declared only when a
@@ -179,6 +193,17 @@ mod tests {
             keys.holon_from_alive("holarchy/other/alive/resource/r"),
             None
         );
+        assert_eq!(keys.host("router", "h1"), "holarchy/demo/host/router/h1");
+        assert_eq!(keys.host_all(), "holarchy/demo/host/*/*");
+        assert_eq!(
+            keys.process_from_host("holarchy/demo/host/order-node/orders1"),
+            Some(("order-node", "orders1"))
+        );
+        assert_eq!(
+            keys.process_from_host("holarchy/other/host/router/h1"),
+            None
+        );
+        assert_eq!(keys.process_from_host("holarchy/demo/host/router"), None);
         assert_eq!(
             keys.service("robot1"),
             "holarchy/demo/resource/robot1/service"

@@ -3,6 +3,7 @@
 //! multicast scouting off and explicit endpoints, waits on presence rather than sleeps,
 //! bounds every wait, and kills its children when a test ends.
 
+pub mod secure_cell;
 pub mod webdriver;
 
 use std::fs;

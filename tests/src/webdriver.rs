@@ -140,6 +140,15 @@ impl Browser {
         Ok(())
     }
 
+    /// Runs `script` (a function body) in the page; what it returns.
+    pub fn execute(&self, script: &str) -> Result<Value> {
+        self.session_call(
+            "POST",
+            "/execute/sync",
+            Some(json!({ "script": script, "args": [] })),
+        )
+    }
+
     /// The element that `css` selects now, if any.
     pub fn find(&self, css: &str) -> Result<Option<String>> {
         let found = self.session_call(

@@ -31,14 +31,13 @@ impl std::ops::Deref for Dashboard {
 
 impl Dashboard {
     fn start(cell: &Cell, extra: &[&str]) -> Dashboard {
+        Dashboard::start_on(cell.keys.cell(), &cell.endpoint, extra)
+    }
+
+    /// A dashboard of cell `cell` through the router at `endpoint`.
+    fn start_on(cell: &str, endpoint: &str, extra: &[&str]) -> Dashboard {
         let mut child = Command::new(bin("cell"))
-            .args([
-                "dashboard",
-                "--cell",
-                cell.keys.cell(),
-                "--connect",
-                &cell.endpoint,
-            ])
+            .args(["dashboard", "--cell", cell, "--connect", endpoint])
             .args(["--listen", "127.0.0.1:0"])
             .args(extra)
             .stdout(Stdio::piped())
@@ -262,6 +261,43 @@ async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
     operator.wait("/api/holons", "robot1 back", |h| {
         live(h, "resource/robot1") == Some(true)
     });
+    // The robot's snapshot names its machine.
+    let holons = operator.json("/api/holons");
+    assert!(
+        holons
+            .to_string()
+            .contains(&format!("\"host\":\"{}\"", holon::presence::host_name())),
+        "{holons}"
+    );
+
+    // An order-node shows in the network panel; killed, it raises `vanished`.
+    let mut node = cell.start_order_node(dir.path(), &[]).await.unwrap();
+    let process = |v: &serde_json::Value| {
+        v["processes"]
+            .as_array()
+            .and_then(|p| p.iter().find(|p| p["process"] == "order-node/orders1"))
+            .map(|p| p["live"] == true)
+    };
+    operator.wait("/api/view", "order-node/orders1 live", |v| {
+        process(v) == Some(true)
+    });
+    node.kill();
+    operator.wait("/api/view", "order-node/orders1 gone", |v| {
+        process(v) == Some(false)
+    });
+    operator.wait("/api/alarms", "order-node/orders1 vanished", |a| {
+        a.as_array().is_some_and(|a| {
+            a.iter()
+                .any(|a| a["kind"] == "vanished" && a["source"] == "order-node/orders1")
+        })
+    });
+    // Zenoh tells the dashboard which router its session is linked to.
+    let view = operator.json("/api/view");
+    assert_eq!(
+        view["linked_routers"].as_array().map(Vec::len),
+        Some(1),
+        "{view}"
+    );
 }
 
 /// In a real browser (headless Chromium): the page lists the cell's holons; a robot
@@ -404,6 +440,123 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
     drop((breaker, orders));
 }
 
+/// The secure cell: each dashboard connects with an identity of its own, and the role
+/// decides the page. An observer's page lists the cell and offers no submit form (its
+/// API refuses); an operator's page submits work orders, which are done; an observer
+/// identity asked to operate is refused at the start.
+#[tokio::test(flavor = "multi_thread")]
+async fn in_a_secure_cell_the_identity_decides_what_the_page_may_do() {
+    if let Err(why) = webdriver::browser_available() {
+        println!("SKIPPED: the browser test needs Chromium ({why})");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let cell = holarchy_tests::secure_cell::secure_cell(dir.path(), "t-dash-sec");
+    let pki = cell.pki().display().to_string();
+
+    // An observer identity may not run an operator's page: refused, with why.
+    let refused = Command::new(bin("cell"))
+        .args([
+            "dashboard",
+            "--cell",
+            cell.keys.cell(),
+            "--connect",
+            &cell.endpoint,
+        ])
+        .args(["--listen", "127.0.0.1:0", "--pki", &pki])
+        .args(["--identity", "observer.default", "--operator"])
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("--operator needs an operator identity"),
+        "{stderr}"
+    );
+
+    let observer = Dashboard::start_on(cell.keys.cell(), &cell.endpoint, &["--pki", &pki]);
+    let operator = Dashboard::start_on(
+        cell.keys.cell(),
+        &cell.endpoint,
+        &["--pki", &pki, "--identity", "operator.default"],
+    );
+    observer.wait("/api/holons", "the four resources free", |h| {
+        h.as_array().is_some_and(|a| {
+            a.iter()
+                .filter(|h| h["resource"]["state"] == "free")
+                .count()
+                == 4
+        })
+    });
+    assert_eq!(observer.json("/api/view")["operator"], false);
+    assert_eq!(operator.json("/api/view")["operator"], true);
+    let (status, body) = observer.http("POST", "/api/orders", r#"{"product":"breaker","count":1}"#);
+    assert_eq!(status, 403, "{body}");
+
+    let browser = webdriver::Browser::start(&dir.path().join("profile")).unwrap();
+    let within = Duration::from_secs(10);
+    // The observer's page: the cell, over mutual TLS, and no way to submit.
+    browser
+        .goto(&format!("http://{}/", observer.address))
+        .unwrap();
+    browser
+        .wait_for("tr[data-holon=\"resource/robot1\"]", within)
+        .unwrap();
+    browser.wait_for("#submit-panel.hidden", within).unwrap();
+    // The operator's page submits a breaker, which is done.
+    browser
+        .goto(&format!("http://{}/", operator.address))
+        .unwrap();
+    browser
+        .wait_for("#submit-panel:not(.hidden)", within)
+        .unwrap();
+    let count = browser.find("#count").unwrap().unwrap();
+    browser.type_into(&count, "1").unwrap();
+    let submit = browser.find("#submit button").unwrap().unwrap();
+    browser.click(&submit).unwrap();
+    let (submitted, _) = browser.wait_for("#submitted", within).unwrap();
+    let deadline = Instant::now() + within;
+    let text = loop {
+        let text = browser.text(&submitted).unwrap();
+        if !text.is_empty() || Instant::now() >= deadline {
+            break text;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(text.starts_with("submitted orders1-"), "{text}");
+    let order = text.trim_start_matches("submitted ").to_string();
+    operator.wait("/api/orders", "the submitted order done", |o| {
+        o.as_array().is_some_and(|o| {
+            o.iter()
+                .any(|o| o["holon"] == format!("order/{order}") && o["status"] == "done")
+        })
+    });
+    // The observer's page shows it done too.
+    observer.wait("/api/orders", "the order done, for the observer", |o| {
+        o.as_array().is_some_and(|o| {
+            o.iter()
+                .any(|o| o["holon"] == format!("order/{order}") && o["status"] == "done")
+        })
+    });
+    browser
+        .goto(&format!("http://{}/", observer.address))
+        .unwrap();
+    browser
+        .wait_for("tr[data-holon=\"resource/robot1\"]", within)
+        .unwrap();
+    let done_filter = browser
+        .find("#status-filter option:nth-child(3)")
+        .unwrap()
+        .unwrap();
+    browser.click(&done_filter).unwrap();
+    browser
+        .wait_for(
+            &format!("tr[data-order=\"{order}\"][data-status=\"done\"]"),
+            within,
+        )
+        .unwrap();
+}
+
 /// `cell demo --dashboard --keep`: the demo's dashboard shows its orders done, the cell
 /// stays up after the summary, and Ctrl-C (SIGTERM) stops it all with exit 0.
 #[test]
@@ -439,6 +592,16 @@ fn the_demo_keeps_its_cell_up_with_a_dashboard() {
     dashboard.wait("/api/orders", "both orders done", |o| {
         o.as_array()
             .is_some_and(|o| o.len() == 2 && o.iter().all(|o| o["status"] == "done"))
+    });
+    // The demo's router announces itself by this machine's name, its order-node too.
+    let router = format!("router/{}", holon::presence::host_name());
+    dashboard.wait("/api/view", "the router and the order-node", |v| {
+        let live = |name: &str| {
+            v["processes"]
+                .as_array()
+                .is_some_and(|p| p.iter().any(|p| p["process"] == name && p["live"] == true))
+        };
+        live(&router) && live("order-node/orders1")
     });
     nix::sys::signal::kill(
         nix::unistd::Pid::from_raw(demo.id() as i32),

@@ -4,7 +4,15 @@
 //! It joins the cell as a zenoh client and keeps a model of it ([`model`]) from
 //! subscriptions: the holons' liveliness tokens (`alive/**`, with their history), the
 //! resources' state (`resource/*/state`) and the orders' state (`order/*/state`), each
-//! asked for once at the start. The holons do nothing for it. One task owns the model;
+//! asked for at the start. The holons do nothing for it.
+//!
+//! A holon publishes its state only when it changes, and zenoh routes a publication
+//! only to subscribers the publisher has heard of: a holon that has just joined (or a
+//! dashboard that has just subscribed) can publish a change before the subscription
+//! reached it, and that change would never arrive (seen: a resource turning `free`
+//! 1 ms after its token appeared, shown `init` for good). So the dashboard asks again,
+//! once, [`ASK_NEWCOMER_AFTER`] after it starts and after each resource's token
+//! appears; a snapshot older than the one held changes nothing. One task owns the model;
 //! the zenoh callbacks queue what they hear for it (bounded; when full, a sample is
 //! dropped and counted: the next snapshot of that holon brings the model up to date),
 //! and it publishes a view of the model at most every [`PUBLISH_EVERY`] for the web
@@ -26,13 +34,17 @@ use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use model::{Alarm, Event, HolonView, Input, Model};
+use model::{Alarm, Event, HolonView, Input, Model, ProcessId, ProcessView};
 
 /// How often, at most, the view is published to the pages.
 pub const PUBLISH_EVERY: Duration = Duration::from_millis(250);
 
 /// How many inputs wait for the model's task.
 const INPUT_QUEUE: usize = 8192;
+
+/// After a resource's token appears (and after the dashboard starts), how long until
+/// its state is asked for once more.
+const ASK_NEWCOMER_AFTER: Duration = Duration::from_secs(1);
 
 /// What `cell dashboard` runs with.
 #[derive(Debug, Clone)]
@@ -48,6 +60,38 @@ pub struct DashboardConfig {
     pub operator: bool,
 }
 
+/// Who the dashboard connects as, and whether its page may operate (submit work
+/// orders, acknowledge alarms), from `--pki`, `--identity` and `--operator`.
+///
+/// In a secure cell (`secure`) the identity's role decides, since the cell's access
+/// control enforces it anyway: an `operator.*` identity gets an operator's page, an
+/// `observer.*` identity a read-only one (`--operator` with it is an error, not a page
+/// whose buttons the routers would refuse), and no other role may run a dashboard.
+/// Without `--identity`, `--operator` picks `operator.default`, else `observer.default`.
+/// In an open cell `--operator` alone decides.
+pub fn connect_as(secure: bool, identity: Option<&str>, operator: bool) -> Result<(String, bool)> {
+    let default = if operator {
+        "operator.default"
+    } else {
+        "observer.default"
+    };
+    let identity = identity.unwrap_or(default).to_string();
+    if !secure {
+        return Ok((identity, operator));
+    }
+    let (role, _) = crate::access::parse_identity(&identity)?;
+    match role {
+        crate::access::Role::Operator => Ok((identity, true)),
+        crate::access::Role::Observer if operator => Err(anyhow!(
+            "--operator needs an operator identity: {identity} may only watch the cell (leave out --operator for a read-only page)"
+        )),
+        crate::access::Role::Observer => Ok((identity, false)),
+        _ => Err(anyhow!(
+            "a dashboard connects as an operator or an observer, not as {identity}"
+        )),
+    }
+}
+
 /// What the page shows, as of one moment.
 #[derive(Debug, Clone, Serialize, Default)]
 pub struct View {
@@ -56,6 +100,11 @@ pub struct View {
     pub at: u64,
     pub operator: bool,
     pub holons: Vec<HolonView>,
+    /// The routers and order-nodes that announce themselves (`host/<program>/<name>`).
+    pub processes: Vec<ProcessView>,
+    /// The routers this dashboard's own session is linked to (zenoh ids), as zenoh
+    /// tells it.
+    pub linked_routers: Vec<String>,
     /// Every running order, and the last [`FINISHED_SHOWN`] finished ones, as rows (the
     /// page's memory and each update stay bounded however many orders the cell made;
     /// `cell orders --detail` has every attempt of every order).
@@ -162,11 +211,22 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
     let (inputs, input_rx) = mpsc::channel(INPUT_QUEUE);
     let dropped = Arc::new(AtomicU64::new(0));
     let _subscriptions = subscribe(&session, &config.keys, &inputs, &dropped).await?;
-    ask_states(&session, &config.keys, &inputs, &dropped).await;
+    let every_state = [config.keys.resource_states(), config.keys.order_states()];
+    ask_states(&session, &every_state, &inputs, &dropped).await;
+    // Once more when the subscriptions surely reached every holon (see the module's
+    // doc): a change published before they did is not lost.
+    {
+        let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
+        tokio::spawn(async move {
+            tokio::time::sleep(ASK_NEWCOMER_AFTER).await;
+            ask_states(&session, &every_state, &inputs, &dropped).await;
+        });
+    }
     let (view_tx, view_rx) = watch::channel(Arc::new(View::default()));
     let (commands, command_rx) = mpsc::channel(64);
     let owner = tokio::spawn(own_the_model(
         config.clone(),
+        session.clone(),
         input_rx,
         command_rx,
         view_tx,
@@ -212,6 +272,7 @@ fn queue(inputs: &mpsc::Sender<Input>, dropped: &AtomicU64, input: Input) {
 /// What the dashboard subscribes to, declared for its life.
 struct Subscriptions {
     _alive: zenoh::pubsub::Subscriber<()>,
+    _processes: zenoh::pubsub::Subscriber<()>,
     _resources: zenoh::pubsub::Subscriber<()>,
     _orders: zenoh::pubsub::Subscriber<()>,
 }
@@ -225,6 +286,7 @@ async fn subscribe(
     let z = |e: zenoh::Error| anyhow!("{}", holon::zenoh_error::describe(&e));
     let alive = {
         let (inputs, dropped, keys) = (inputs.clone(), dropped.clone(), keys.clone());
+        let (runtime, asker) = (tokio::runtime::Handle::current(), session.clone());
         session
             .liveliness()
             .declare_subscriber(keys.alive_all())
@@ -239,8 +301,44 @@ async fn subscribe(
                 }
                 let at = schemas::unix_ms();
                 let input = match sample.kind() {
-                    zenoh::sample::SampleKind::Put => Input::Appeared { holon, at },
+                    zenoh::sample::SampleKind::Put => {
+                        if holon.kind() == HolonKind::Resource {
+                            let key = keys.state(&holon);
+                            let (session, inputs, dropped) =
+                                (asker.clone(), inputs.clone(), dropped.clone());
+                            runtime.spawn(async move {
+                                tokio::time::sleep(ASK_NEWCOMER_AFTER).await;
+                                ask_states(&session, &[key], &inputs, &dropped).await;
+                            });
+                        }
+                        Input::Appeared { holon, at }
+                    }
                     zenoh::sample::SampleKind::Delete => Input::Vanished { holon, at },
+                };
+                queue(&inputs, &dropped, input);
+            })
+            .await
+            .map_err(z)?
+    };
+    let processes = {
+        let (inputs, dropped, keys) = (inputs.clone(), dropped.clone(), keys.clone());
+        session
+            .liveliness()
+            .declare_subscriber(keys.host_all())
+            .history(true)
+            .callback(move |sample| {
+                let Some((program, name)) = keys.process_from_host(sample.key_expr().as_str())
+                else {
+                    return;
+                };
+                let process = ProcessId {
+                    program: program.to_string(),
+                    name: name.to_string(),
+                };
+                let at = schemas::unix_ms();
+                let input = match sample.kind() {
+                    zenoh::sample::SampleKind::Put => Input::ProcessAppeared { process, at },
+                    zenoh::sample::SampleKind::Delete => Input::ProcessVanished { process, at },
                 };
                 queue(&inputs, &dropped, input);
             })
@@ -279,27 +377,27 @@ async fn subscribe(
     };
     Ok(Subscriptions {
         _alive: alive,
+        _processes: processes,
         _resources: resources,
         _orders: orders,
     })
 }
 
-/// Asks once for every resource's and order's state (the subscriptions bring the
-/// changes from then on).
+/// Asks for the states on `keys` (the subscriptions bring the changes from then on).
 async fn ask_states(
     session: &zenoh::Session,
-    keys: &CellKeys,
+    keys: &[String],
     inputs: &mpsc::Sender<Input>,
     dropped: &AtomicU64,
 ) {
-    for key in [keys.resource_states(), keys.order_states()] {
+    for key in keys {
         let Ok(mut replies) = session
-            .get(&key)
+            .get(key)
             .timeout(Duration::from_secs(3))
             .with(holon::query::replies())
             .await
         else {
-            warn!(%key, "cannot ask for the states; they arrive with their next change");
+            warn!(%key, "cannot ask for the state; it arrives with its next change");
             continue;
         };
         while let Some(reply) = replies.recv().await {
@@ -319,6 +417,7 @@ async fn ask_states(
 /// when it changed, at most every [`PUBLISH_EVERY`].
 async fn own_the_model(
     config: DashboardConfig,
+    session: zenoh::Session,
     mut inputs: mpsc::Receiver<Input>,
     mut commands: mpsc::Receiver<Command>,
     view: watch::Sender<Arc<View>>,
@@ -328,6 +427,7 @@ async fn own_the_model(
     let mut model = Model::default();
     let started = schemas::unix_ms();
     let mut changed = true;
+    let mut linked_routers = Vec::new();
     let mut tick = tokio::time::interval(PUBLISH_EVERY);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
@@ -340,9 +440,18 @@ async fn own_the_model(
                 }
             },
             _ = tick.tick() => {
+                // What zenoh tells of this session's own links (local, no round trip).
+                let linked: Vec<String> =
+                    session.info().routers_zid().await.map(|zid| zid.to_string()).collect();
+                if linked != linked_routers {
+                    linked_routers = linked;
+                    changed = true;
+                }
                 if changed {
                     let dropped = dropped.load(Ordering::Relaxed);
-                    view.send_replace(Arc::new(view_of(&config, &model, dropped, started)));
+                    let mut next = view_of(&config, &model, dropped, started);
+                    next.linked_routers = linked_routers.clone();
+                    view.send_replace(Arc::new(next));
                     changed = false;
                 }
             }
@@ -360,6 +469,8 @@ fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, started: u64) 
         at: now,
         operator: config.operator,
         holons: model.holons().cloned().collect(),
+        processes: model.processes().cloned().collect(),
+        linked_routers: Vec::new(),
         orders: order_rows(model),
         order_counts: model.orders().fold(Default::default(), |mut counts, o| {
             let status = serde_json::to_value(o.status)
@@ -384,5 +495,35 @@ fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, started: u64) 
         },
         counters: model.counters().clone(),
         dropped,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::connect_as;
+
+    #[test]
+    fn in_a_secure_cell_the_identity_decides_what_the_page_may_do() {
+        let is = |secure, identity, operator| connect_as(secure, identity, operator).ok();
+        let pair = |identity: &str, operator| Some((identity.to_string(), operator));
+        assert_eq!(is(true, None, false), pair("observer.default", false));
+        assert_eq!(is(true, None, true), pair("operator.default", true));
+        assert_eq!(
+            is(true, Some("operator.anna"), false),
+            pair("operator.anna", true)
+        );
+        assert_eq!(
+            is(true, Some("observer.wall"), false),
+            pair("observer.wall", false)
+        );
+        let refused = connect_as(true, Some("observer.wall"), true).unwrap_err();
+        assert!(refused
+            .to_string()
+            .contains("--operator needs an operator identity"));
+        assert!(connect_as(true, Some("resource.robot1"), false).is_err());
+        assert!(connect_as(true, Some("nonsense"), false).is_err());
+        // An open cell: the flag decides.
+        assert_eq!(is(false, None, true), pair("operator.default", true));
+        assert_eq!(is(false, None, false), pair("observer.default", false));
     }
 }

@@ -6,8 +6,11 @@
 //! |---|---|
 //! | a holon's token appears | the holon is live; a `vanished` alarm of it clears; it counts towards `restarting` |
 //! | a holon's token vanishes | the holon is gone; a resource raises `vanished` |
+//! | a snapshot older than the one held (`at`) | nothing |
 //! | a resource's snapshot | its state, controller, agenda and job; `controller` (fault, estop), `journal` and `undelivered` alarms raise or clear; busy time accrues |
 //! | an order's snapshot | its status and step; a failed or scrapped order raises an alarm (cleared at once, kept until acknowledged) |
+//! | a router's or order-node's token appears (`host/<program>/<name>`) | it is live; a `vanished` alarm of it clears |
+//! | a router's or order-node's token vanishes | it is gone; `vanished` is raised (an order-node's orders wait for it) |
 //! | an operator's acknowledgement | the alarm is acknowledged; one that is cleared and acknowledged leaves the list |
 //!
 //! Every change of a holon's presence or state, an order's status or step, and every
@@ -53,6 +56,17 @@ pub enum Input {
         snapshot: OrderSnapshot,
         at: u64,
     },
+    /// A process that serves the cell without being a holon (a router, an
+    /// order-node) announced itself.
+    ProcessAppeared {
+        process: ProcessId,
+        at: u64,
+    },
+    /// Its token vanished.
+    ProcessVanished {
+        process: ProcessId,
+        at: u64,
+    },
     /// An operator acknowledged alarm `id`.
     Acknowledge {
         id: u64,
@@ -73,6 +87,67 @@ pub struct HolonView {
     /// A resource's last snapshot.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub resource: Option<ResourceSnapshot>,
+}
+
+/// A process that serves the cell without being a holon, as its token names it:
+/// `router/<host>`, `order-node/<name>`.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct ProcessId {
+    /// `router` or `order-node`.
+    pub program: String,
+    pub name: String,
+}
+
+impl std::fmt::Display for ProcessId {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.program, self.name)
+    }
+}
+
+impl Serialize for ProcessId {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+/// One router or order-node as the page shows it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ProcessView {
+    pub process: ProcessId,
+    /// Its token is visible.
+    pub live: bool,
+    /// Since when it is live or gone (Unix ms).
+    pub since: u64,
+}
+
+/// What an alarm or an event is about: a holon or an order, or a router or order-node.
+/// Shown as `kind/name` either way.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(untagged)]
+pub enum Source {
+    Holon(HolonId),
+    Process(ProcessId),
+}
+
+impl From<&HolonId> for Source {
+    fn from(holon: &HolonId) -> Source {
+        Source::Holon(holon.clone())
+    }
+}
+
+impl From<&ProcessId> for Source {
+    fn from(process: &ProcessId) -> Source {
+        Source::Process(process.clone())
+    }
+}
+
+impl std::fmt::Display for Source {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Source::Holon(holon) => holon.fmt(f),
+            Source::Process(process) => process.fmt(f),
+        }
+    }
 }
 
 /// What an alarm is about.
@@ -99,8 +174,8 @@ pub enum AlarmKind {
 pub struct Alarm {
     pub id: u64,
     pub kind: AlarmKind,
-    /// The holon it is about.
-    pub source: HolonId,
+    /// The holon, order or process it is about.
+    pub source: Source,
     /// For people: what is wrong.
     pub message: String,
     /// When it was raised (Unix ms).
@@ -123,8 +198,8 @@ impl Alarm {
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Event {
     pub at: u64,
-    /// The holon or order it is about.
-    pub source: HolonId,
+    /// The holon, order or process it is about.
+    pub source: Source,
     pub text: String,
 }
 
@@ -132,6 +207,8 @@ pub struct Event {
 #[derive(Debug, Clone, Default)]
 pub struct Model {
     holons: BTreeMap<HolonId, HolonView>,
+    /// Routers and order-nodes.
+    processes: BTreeMap<ProcessId, ProcessView>,
     orders: BTreeMap<HolonId, OrderSnapshot>,
     /// Active alarms, and cleared ones not yet acknowledged, oldest first.
     alarms: Vec<Alarm>,
@@ -197,8 +274,14 @@ impl Model {
             Input::Vanished { holon, at } => self.vanished(holon, at),
             Input::Resource { snapshot, at } => self.resource(snapshot, at),
             Input::Order { snapshot, at } => self.order(snapshot, at),
+            Input::ProcessAppeared { process, at } => self.process(process, true, at),
+            Input::ProcessVanished { process, at } => self.process(process, false, at),
             Input::Acknowledge { id, at } => self.acknowledge(id, at),
         }
+    }
+
+    pub fn processes(&self) -> impl Iterator<Item = &ProcessView> {
+        self.processes.values()
     }
 
     pub fn holons(&self) -> impl Iterator<Item = &HolonView> {
@@ -242,32 +325,39 @@ impl Model {
             .collect()
     }
 
-    fn log(&mut self, at: u64, source: &HolonId, text: String) {
+    fn log(&mut self, at: u64, source: impl Into<Source>, text: String) {
         if self.events.len() == EVENTS_KEPT {
             self.events.pop_front();
         }
         self.events.push_back(Event {
             at,
-            source: source.clone(),
+            source: source.into(),
             text,
         });
     }
 
     /// Raises an alarm of `kind` on `source` unless one is active already.
-    fn raise(&mut self, kind: AlarmKind, source: &HolonId, message: String, at: u64) -> bool {
+    fn raise(
+        &mut self,
+        kind: AlarmKind,
+        source: impl Into<Source>,
+        message: String,
+        at: u64,
+    ) -> bool {
+        let source = source.into();
         if self
             .alarms
             .iter()
-            .any(|a| a.kind == kind && &a.source == source && a.active())
+            .any(|a| a.kind == kind && a.source == source && a.active())
         {
             return false;
         }
         self.next_alarm += 1;
-        self.log(at, source, format!("alarm: {message}"));
+        self.log(at, source.clone(), format!("alarm: {message}"));
         self.alarms.push(Alarm {
             id: self.next_alarm,
             kind,
-            source: source.clone(),
+            source,
             message,
             raised: at,
             cleared: None,
@@ -277,11 +367,12 @@ impl Model {
     }
 
     /// Clears the active alarm of `kind` on `source`, if any; an acknowledged one leaves.
-    fn clear(&mut self, kind: AlarmKind, source: &HolonId, at: u64) -> bool {
+    fn clear(&mut self, kind: AlarmKind, source: impl Into<Source>, at: u64) -> bool {
+        let source = source.into();
         let Some(alarm) = self
             .alarms
             .iter_mut()
-            .find(|a| a.kind == kind && &a.source == source && a.active())
+            .find(|a| a.kind == kind && a.source == source && a.active())
         else {
             return false;
         };
@@ -341,6 +432,37 @@ impl Model {
         true
     }
 
+    /// A router's or order-node's token appeared (`live`) or vanished.
+    fn process(&mut self, process: ProcessId, live: bool, at: u64) -> bool {
+        let view = self
+            .processes
+            .entry(process.clone())
+            .or_insert(ProcessView {
+                process: process.clone(),
+                live: !live,
+                since: at,
+            });
+        if view.live == live {
+            return false;
+        }
+        view.live = live;
+        view.since = at;
+        if live {
+            self.log(at, &process, "appeared".into());
+            self.clear(AlarmKind::Vanished, &process, at);
+        } else {
+            self.log(at, &process, "vanished".into());
+            let message = match process.program.as_str() {
+                "order-node" => format!(
+                    "{process} vanished: its orders wait until it is back (their bookings are kept for the grace)"
+                ),
+                _ => format!("{process} vanished: the holons linked through it may be cut off"),
+            };
+            self.raise(AlarmKind::Vanished, &process, message, at);
+        }
+        true
+    }
+
     fn vanished(&mut self, holon: HolonId, at: u64) -> bool {
         let Some(view) = self.holons.get_mut(&holon) else {
             return false;
@@ -370,6 +492,14 @@ impl Model {
             since: at,
             resource: None,
         });
+        // A snapshot older than the one held (a late answer to an ask) changes nothing.
+        if view
+            .resource
+            .as_ref()
+            .is_some_and(|held| snapshot.at < held.at)
+        {
+            return false;
+        }
         let before = view.resource.replace(snapshot.clone());
         if before
             .as_ref()
@@ -472,6 +602,13 @@ impl Model {
 
     fn order(&mut self, snapshot: OrderSnapshot, at: u64) -> bool {
         let holon = snapshot.holon.clone();
+        if self
+            .orders
+            .get(&holon)
+            .is_some_and(|held| snapshot.at < held.at)
+        {
+            return false;
+        }
         let before = self.orders.insert(holon.clone(), snapshot.clone());
         if before.as_ref() == Some(&snapshot) {
             return false;
@@ -551,7 +688,7 @@ impl Model {
         let (source, message) = (alarm.source.clone(), alarm.message.clone());
         self.alarms
             .retain(|a| a.active() || a.acknowledged.is_none());
-        self.log(at, &source, format!("acknowledged: {message}"));
+        self.log(at, source, format!("acknowledged: {message}"));
         true
     }
 }
@@ -689,7 +826,10 @@ mod tests {
             snapshot: again,
             at: 1_500
         }));
-        let free = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
+        let free = ResourceSnapshot {
+            at: 100,
+            ..snapshot(ResourceState::Free, ControllerStatus::Ready, &[])
+        };
         m.apply(Input::Resource {
             snapshot: free,
             at: 3_000,
@@ -738,6 +878,75 @@ mod tests {
             at: 2_000,
         });
         assert!(m.counters().steps.is_empty());
+    }
+
+    #[test]
+    fn a_snapshot_older_than_the_one_held_changes_nothing() {
+        let mut m = Model::default();
+        let free = ResourceSnapshot {
+            at: 20,
+            ..snapshot(ResourceState::Free, ControllerStatus::Ready, &[])
+        };
+        let init = ResourceSnapshot {
+            at: 10,
+            ..snapshot(ResourceState::Init, ControllerStatus::Disconnected, &[])
+        };
+        assert!(m.apply(Input::Resource {
+            snapshot: free,
+            at: 21
+        }));
+        assert!(!m.apply(Input::Resource {
+            snapshot: init,
+            at: 22
+        }));
+        let shown = m.holons().next().unwrap().resource.as_ref().unwrap();
+        assert_eq!(shown.state, ResourceState::Free);
+        let done = OrderSnapshot {
+            at: 20,
+            ..order("o-1", OrderStatus::Done, None)
+        };
+        let running = OrderSnapshot {
+            at: 10,
+            ..order("o-1", OrderStatus::Running, None)
+        };
+        assert!(m.apply(Input::Order {
+            snapshot: done,
+            at: 21
+        }));
+        assert!(!m.apply(Input::Order {
+            snapshot: running,
+            at: 22
+        }));
+        assert_eq!(m.orders().next().unwrap().status, OrderStatus::Done);
+    }
+
+    #[test]
+    fn a_router_or_order_node_shows_live_or_gone_and_raises_vanished() {
+        let mut m = Model::default();
+        let node = ProcessId {
+            program: "order-node".into(),
+            name: "orders1".into(),
+        };
+        let appeared = || Input::ProcessAppeared {
+            process: node.clone(),
+            at: 1,
+        };
+        assert!(m.apply(appeared()));
+        assert!(!m.apply(appeared()), "a repeat is no news");
+        assert!(m.processes().next().unwrap().live);
+        assert!(m.apply(Input::ProcessVanished {
+            process: node.clone(),
+            at: 2
+        }));
+        assert!(!m.processes().next().unwrap().live);
+        assert_eq!(active(&m), vec![AlarmKind::Vanished]);
+        let alarm = serde_json::to_value(&m.alarms()[0]).unwrap();
+        assert_eq!(alarm["source"], "order-node/orders1");
+        assert!(m.apply(Input::ProcessAppeared {
+            process: node,
+            at: 3
+        }));
+        assert_eq!(active(&m), vec![]);
     }
 
     #[test]
