@@ -17,7 +17,7 @@ use holarchy_tests::{pick_n_place, resource_config, webdriver};
 use schemas::MessageType;
 use serde_json::{json, Value};
 
-use super::{footprint, router, start_product_and_orders, Latency, Run};
+use super::{cpu_time, footprint, router, start_product_and_orders, Latency, Run};
 
 /// A `cell dashboard` process, killed when dropped.
 struct Dashboard {
@@ -127,9 +127,50 @@ fn follow_events(address: String, pushed: Arc<Pushed>, stop: Arc<AtomicBool>) ->
 /// The page in Chromium, while the orders run: how long a script waits for the page's
 /// main thread (sampled every 100 ms), and what the page recorded of its renders.
 struct PageFigures {
+    /// Before the orders: the baseline.
+    idle_waits: Latency,
+    /// What the page recorded of its renders before the orders.
+    idle_renders: Value,
     waits: Latency,
     renders: Value,
     heap_bytes: Option<u64>,
+}
+
+/// CPU time used so far by each of the browser's processes (Chromium's and
+/// ChromeDriver's, found by name: the bench machine runs no other).
+fn browser_cpu() -> std::collections::HashMap<i32, Duration> {
+    let Ok(entries) = std::fs::read_dir("/proc") else {
+        return Default::default();
+    };
+    entries
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<i32>().ok())
+        .filter(|pid| {
+            std::fs::read_to_string(format!("/proc/{pid}/comm"))
+                .is_ok_and(|comm| comm.starts_with("chrom"))
+        })
+        .filter_map(|pid| Some((pid, cpu_time(pid).ok()?)))
+        .collect()
+}
+
+/// The browser's CPU time since `before` (of the processes still running).
+fn browser_cpu_since(before: &std::collections::HashMap<i32, Duration>) -> Duration {
+    browser_cpu()
+        .into_iter()
+        .map(|(pid, now)| now.saturating_sub(before.get(&pid).copied().unwrap_or_default()))
+        .sum()
+}
+
+/// `n` WebDriver scripts run in the page, 100 ms apart: how long each waited.
+fn script_waits(browser: &webdriver::Browser, n: usize) -> Result<Latency> {
+    let started = Instant::now();
+    let mut waits = Vec::new();
+    for _ in 0..n {
+        let t = Instant::now();
+        browser.execute("return document.readyState")?;
+        waits.push(t.elapsed());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    Ok(Latency::new(waits, started.elapsed()))
 }
 
 pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
@@ -193,7 +234,13 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
             let browser = webdriver::Browser::start(&dir.join("profile"))?;
             browser.goto(&format!("http://{}/", dashboard.address))?;
             browser.wait_for("tr[data-holon=\"resource/r0\"]", Duration::from_secs(10))?;
-            Some(browser)
+            let idle_waits = script_waits(&browser, 30)?;
+            // The renders so far (the idle cell's views) are the baseline; count anew.
+            let idle_renders = browser.execute(
+                "const r = window.holarchyRenders; const idle = Object.assign({}, r); \
+                 r.count = 0; r.total_ms = 0; r.max_ms = 0; return idle",
+            )?;
+            Some((browser, idle_waits, idle_renders))
         }
         Err(why) => {
             println!("(the page's figures need Chromium: {why})");
@@ -219,7 +266,7 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
             peak
         })
     };
-    let page = browser.map(|browser| {
+    let page = browser.map(|(browser, idle_waits, idle_renders)| {
         let stop = stop.clone();
         std::thread::spawn(move || -> Result<PageFigures> {
             let started = Instant::now();
@@ -235,6 +282,8 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
                 .execute("return performance.memory ? performance.memory.usedJSHeapSize : null")?
                 .as_u64();
             Ok(PageFigures {
+                idle_waits,
+                idle_renders,
                 waits: Latency::new(waits, started.elapsed()),
                 renders,
                 heap_bytes,
@@ -243,6 +292,7 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
     });
 
     // The orders, in batches of 100 (one reply each).
+    let browser_cpu_before = browser_cpu();
     let t = Instant::now();
     let mut submitted = 0;
     while submitted < orders {
@@ -269,6 +319,14 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
         .join()
         .map_err(|_| anyhow!("the events reader panicked"))??;
     let (after_rss, _) = footprint(dashboard.pid())?;
+    let browser_share =
+        browser_cpu_since(&browser_cpu_before).as_secs_f64() / t.elapsed().as_secs_f64();
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    let load_1min: f64 = load
+        .split_whitespace()
+        .next()
+        .and_then(|l| l.parse().ok())
+        .unwrap_or(f64::NAN);
     let views = pushed.views.load(Ordering::Relaxed);
     let mean_kb = pushed.bytes.load(Ordering::Relaxed) as f64 / views.max(1) as f64 / 1e3;
     let largest_kb = pushed.largest.load(Ordering::Relaxed) as f64 / 1e3;
@@ -308,18 +366,24 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
             let mean_ms = renders["total_ms"].as_f64().unwrap_or(0.0) / count.max(1.0);
             let max_ms = renders["max_ms"].as_f64().unwrap_or(f64::NAN);
             let heap_mb = page.heap_bytes.map(|b| b as f64 / 1e6);
+            let idle = &page.idle_renders;
+            let idle_mean_ms = idle["total_ms"].as_f64().unwrap_or(0.0)
+                / idle["count"].as_f64().unwrap_or(0.0).max(1.0);
             run.table.add(
                 &format!("{name}: page in Chromium"),
                 format!(
-                    "render mean {mean_ms:.1} ms, max {max_ms:.1} ms; script waits p50 {:.1} ms, max {:.1} ms",
+                    "render mean {mean_ms:.0} ms, max {max_ms:.0} ms; script waits p50 {:.0} ms, p99 {:.0} ms, max {:.0} ms",
                     page.waits.pct(0.5) / 1e3,
+                    page.waits.pct(0.99) / 1e3,
                     page.waits.pct(1.0) / 1e3
                 ),
                 format!(
-                    "{count:.0} renders; JS heap {}",
+                    "idle cell: render mean {idle_mean_ms:.0} ms, script waits p50 {:.0} ms; browser {:.0}% of a core under a load average of {load_1min:.0}; {count:.0} renders; JS heap {}",
+                    page.idle_waits.pct(0.5) / 1e3,
+                    browser_share * 100.0,
                     heap_mb.map_or("unknown".into(), |mb| format!("{mb:.1} MB"))
                 ),
-                json!({"renders": count, "render_mean_ms": mean_ms, "render_max_ms": max_ms, "script_wait_p50_us": page.waits.pct(0.5), "script_wait_max_us": page.waits.pct(1.0), "heap_bytes": page.heap_bytes}),
+                json!({"renders": count, "render_mean_ms": mean_ms, "render_max_ms": max_ms, "script_wait_p50_us": page.waits.pct(0.5), "script_wait_max_us": page.waits.pct(1.0), "script_wait_p99_us": page.waits.pct(0.99), "idle_render_mean_ms": idle_mean_ms, "browser_cpu_share": browser_share, "load_average_1min": load_1min, "idle_script_wait_p50_us": page.idle_waits.pct(0.5), "heap_bytes": page.heap_bytes}),
             );
         }
         None => run.table.add(
