@@ -18,7 +18,11 @@
 //!
 //! The simulator counts the commands it executed (answered with their success result);
 //! [`SimStats`] can be written to a JSON file after every command so tests can check that
-//! nothing ran twice.
+//! nothing ran twice. A thread of its own writes the file, after the reply went out, with
+//! the latest counts (several commands in quick succession make one write): the count
+//! file is the tests' window, and a controller command's round trip should cost what a
+//! real controller's would (a write and a rename on the way cost the bridge about a
+//! hundred microseconds per command).
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -53,7 +57,8 @@ pub struct SimConfig {
     pub fault_after: Option<u64>,
     pub fault_state: Option<ControllerState>,
     pub fault_for: Duration,
-    /// Rewritten (atomically) with [`SimStats`] as JSON after every command.
+    /// Rewritten (atomically) with [`SimStats`] as JSON after every command, once its
+    /// reply is sent.
     pub count_file: Option<PathBuf>,
 }
 
@@ -115,6 +120,46 @@ pub struct Simulator {
     stats: Arc<SimStats>,
 }
 
+/// Asks the count file's writer thread to write the latest counts; never blocks (a
+/// write already asked for and not yet started takes in this command's counts too).
+#[derive(Clone)]
+struct CountFile(Option<std::sync::mpsc::SyncSender<()>>);
+
+impl CountFile {
+    /// Starts the writer thread, when the config has a count file; join it after the
+    /// last sender is dropped to have the last counts on disk.
+    fn start(
+        config: &Arc<SimConfig>,
+        stats: &Arc<SimStats>,
+    ) -> (CountFile, Option<std::thread::JoinHandle<()>>) {
+        if config.count_file.is_none() {
+            return (CountFile(None), None);
+        }
+        let (asks, asked) = std::sync::mpsc::sync_channel::<()>(1);
+        let (config, stats) = (config.clone(), stats.clone());
+        let writer = std::thread::spawn(move || {
+            // Ends when every sender is gone, after the last write asked for.
+            for () in asked {
+                write_count_file(&config, &stats);
+            }
+        });
+        let file = CountFile(Some(asks));
+        file.update();
+        (file, Some(writer))
+    }
+
+    fn update(&self) {
+        let Some(asks) = &self.0 else { return };
+        match asks.try_send(()) {
+            // Full: a write is pending and will read the counts as they are then.
+            Ok(()) | Err(std::sync::mpsc::TrySendError::Full(())) => {}
+            Err(std::sync::mpsc::TrySendError::Disconnected(())) => {
+                warn!("the count file's writer is gone: the file keeps older counts");
+            }
+        }
+    }
+}
+
 impl Simulator {
     pub async fn bind(address: &str, config: SimConfig) -> std::io::Result<Simulator> {
         let listener = TcpListener::bind(address).await?;
@@ -135,7 +180,7 @@ impl Simulator {
 
     /// Serves connections until `shutdown` is cancelled.
     pub async fn run(self, shutdown: CancellationToken) {
-        write_count_file(&self.config, &self.stats).await;
+        let (count_file, writer) = CountFile::start(&self.config, &self.stats);
         let connections = tokio_util::task::TaskTracker::new();
         loop {
             tokio::select! {
@@ -148,8 +193,9 @@ impl Simulator {
                         let config = self.config.clone();
                         let stats = self.stats.clone();
                         let shutdown = shutdown.clone();
+                        let count_file = count_file.clone();
                         connections.spawn(async move {
-                            if let Err(e) = serve(stream, &config, &stats, shutdown).await {
+                            if let Err(e) = serve(stream, &config, &stats, &count_file, shutdown).await {
                                 warn!(%peer, error = %e, "connection ended with an error");
                             } else {
                                 info!(%peer, "bridge disconnected");
@@ -165,6 +211,15 @@ impl Simulator {
         }
         connections.close();
         connections.wait().await;
+        drop(count_file);
+        if let Some(writer) = writer {
+            let joined = tokio::task::spawn_blocking(move || writer.join()).await;
+            if !matches!(joined, Ok(Ok(()))) {
+                warn!(
+                    "the count file's writer ended abnormally: the file may miss the last counts"
+                );
+            }
+        }
     }
 }
 
@@ -184,16 +239,15 @@ fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<
     }
 }
 
-async fn write_count_file(config: &SimConfig, stats: &SimStats) {
+/// Rewrites the count file, if any, in place (a write and a rename: readers see the
+/// old counts or the new, never half). Blocking: on the writer thread only.
+fn write_count_file(config: &SimConfig, stats: &SimStats) {
     let Some(path) = &config.count_file else {
         return;
     };
     let tmp = path.with_extension("tmp");
-    let write = async {
-        tokio::fs::write(&tmp, stats.to_json()).await?;
-        tokio::fs::rename(&tmp, path).await
-    };
-    if let Err(e) = write.await {
+    let written = std::fs::write(&tmp, stats.to_json()).and_then(|()| std::fs::rename(&tmp, path));
+    if let Err(e) = written {
         warn!(path = %path.display(), error = %e, "cannot write the count file");
     }
 }
@@ -202,6 +256,7 @@ async fn serve(
     stream: TcpStream,
     config: &SimConfig,
     stats: &SimStats,
+    count_file: &CountFile,
     shutdown: CancellationToken,
 ) -> Result<(), crate::codec::CodecError> {
     let mut framed = Framed::new(stream, RobotCodec);
@@ -228,12 +283,12 @@ async fn serve(
         info!(id = command.id, action = %command.action, n, "command");
         if matches!(config.close_after, Some(limit) if on_this_connection > limit) {
             info!(id = command.id, "closing the connection (--close-after)");
-            write_count_file(config, stats).await;
+            count_file.update();
             return Ok(());
         }
         if matches!(config.hang_after, Some(limit) if n > limit) {
             info!(id = command.id, "not answering (--hang-after)");
-            write_count_file(config, stats).await;
+            count_file.update();
             continue;
         }
         if config.garbage_after.is_some_and(|limit| n == limit + 1) {
@@ -242,14 +297,14 @@ async fn serve(
             stream
                 .write_all(b"<ROBOT_REPLY><ID>oops</RESULT></ROBOT_REPLY>\n")
                 .await?;
-            write_count_file(config, stats).await;
+            count_file.update();
             continue;
         }
         if config.fault_after.is_some_and(|limit| n == limit + 1) {
             let state = config.fault_state.unwrap_or(ControllerState::Fault);
             info!(id = command.id, %state, "reporting a fault (--fault-after)");
             framed.send(&RobotMessage::Status(state)).await?;
-            write_count_file(config, stats).await;
+            count_file.update();
             tokio::select! {
                 _ = shutdown.cancelled() => return Ok(()),
                 _ = tokio::time::sleep(config.fault_for) => {}
@@ -294,7 +349,7 @@ async fn serve(
                 message: Some(format!("unknown action {:?}", command.action)),
             },
         };
-        write_count_file(config, stats).await;
         framed.send(&RobotMessage::Reply(reply)).await?;
+        count_file.update();
     }
 }

@@ -37,8 +37,18 @@ fn robot_sim_serves_counts_and_stops_on_sigterm() {
     socket.read_exact(&mut got).unwrap();
     assert_eq!(String::from_utf8(got).unwrap(), expected);
 
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(&counts).unwrap()).unwrap();
+    // The count file follows the reply (written off the command's path), shortly.
+    let read = || -> serde_json::Value {
+        std::fs::read_to_string(&counts)
+            .ok()
+            .and_then(|text| serde_json::from_str(&text).ok())
+            .unwrap_or_default()
+    };
+    let deadline = std::time::Instant::now() + Duration::from_secs(2);
+    while read()["executed"] != 1 && std::time::Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let json = read();
     assert_eq!(json["executed"], 1);
     assert_eq!(json["by_action"]["pick"], 1);
 
@@ -49,6 +59,9 @@ fn robot_sim_serves_counts_and_stops_on_sigterm() {
     .unwrap();
     let status = child.wait().unwrap();
     assert!(status.success(), "{status}");
+    // Stopped, it left its last counts on disk.
+    assert_eq!(read()["executed"], 1);
+    assert_eq!(read()["received"], 1);
     let mut rest = String::new();
     stdout.read_to_string(&mut rest).unwrap();
     assert_eq!(rest.trim(), "executed 1 commands");

@@ -213,11 +213,26 @@ impl Sim {
     }
 
     /// The simulator's counts: `{"executed": N, "by_action": {...}, ...}`.
+    /// The simulator's counts, once its count file settled: the simulator rewrites the
+    /// file just after each reply goes out, so a reader that saw a reply's effects may
+    /// be a few microseconds early; two equal reads 5 ms apart are the counts.
     pub fn counts(&self) -> serde_json::Value {
-        fs::read_to_string(&self.count_file)
-            .ok()
-            .and_then(|t| serde_json::from_str(&t).ok())
-            .unwrap_or(serde_json::Value::Null)
+        let read = || {
+            fs::read_to_string(&self.count_file)
+                .ok()
+                .and_then(|t| serde_json::from_str(&t).ok())
+                .unwrap_or(serde_json::Value::Null)
+        };
+        let mut counts = read();
+        for _ in 0..20 {
+            std::thread::sleep(Duration::from_millis(5));
+            let again = read();
+            if again == counts {
+                break;
+            }
+            counts = again;
+        }
+        counts
     }
 
     pub fn executed(&self, action: &str) -> u64 {
