@@ -12,6 +12,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 mod dashboard;
+mod erlang;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Parser, Subcommand};
@@ -47,9 +48,14 @@ enum Commands {
         #[arg(long, default_value_t = 100)]
         scale: usize,
         /// Run only these sections (comma-separated; the floors always run): booking,
-        /// tls, cycle, holon, rebook, lease, throughput, orders, scale, dashboard.
+        /// tls, cycle, erlang, holon, rebook, lease, throughput, orders, scale, dashboard.
         #[arg(long, value_delimiter = ',')]
         only: Vec<String>,
+        /// The seed's resource holon in Erlang/OTP (a directory with its run.sh): run it
+        /// in the same sitting and set our booking and cycle beside it (needs `erl`;
+        /// skipped with a note otherwise).
+        #[arg(long, value_name = "DIR")]
+        erlang_peer: Option<PathBuf>,
     },
     /// (helper) A TCP echo server: prints `listening on ADDR`.
     EchoTcp {
@@ -73,7 +79,8 @@ async fn main() -> Result<()> {
             samples,
             scale,
             only,
-        } => all(&out, samples, scale, &only).await,
+            erlang_peer,
+        } => all(&out, samples, scale, &only, erlang_peer.as_deref()).await,
         Commands::EchoTcp { listen } => echo_tcp(&listen).await,
         Commands::EchoZenoh { connect, key } => echo_zenoh(&connect, &key).await,
     }
@@ -305,6 +312,7 @@ const SECTIONS: &[&str] = &[
     "orders",
     "scale",
     "dashboard",
+    "erlang",
 ];
 
 /// What every section shares: the run's directory, the cell (this process is its
@@ -320,6 +328,15 @@ struct Run {
     robot1_ready: Duration,
     samples: usize,
     echo: Child,
+    /// Our figures the Erlang peer's are set beside.
+    ours: Ours,
+}
+
+/// Our booking (`process_crash`) and cycle, p50 and p99 in µs, once measured.
+#[derive(Default)]
+struct Ours {
+    booking: Option<(f64, f64)>,
+    cycle: Option<(f64, f64)>,
 }
 
 impl Drop for Run {
@@ -335,7 +352,13 @@ impl Run {
     }
 }
 
-async fn all(out: &Path, samples: usize, scale: usize, only: &[String]) -> Result<()> {
+async fn all(
+    out: &Path,
+    samples: usize,
+    scale: usize,
+    only: &[String],
+    erlang_peer: Option<&Path>,
+) -> Result<()> {
     for section in only {
         if !SECTIONS.contains(&section.as_str()) {
             bail!(
@@ -355,6 +378,9 @@ async fn all(out: &Path, samples: usize, scale: usize, only: &[String]) -> Resul
     }
     if wants("cycle") {
         cycle(&mut run).await?;
+    }
+    if wants("erlang") {
+        erlang::section(&mut run, erlang_peer)?;
     }
     if wants("holon") {
         holon_figures(&mut run).await?;
@@ -537,6 +563,7 @@ async fn floors(dir: &Path, samples: usize) -> Result<Run> {
         robot1_ready,
         samples,
         echo,
+        ours: Ours::default(),
     })
 }
 
@@ -583,25 +610,10 @@ async fn booking(run: &mut Run) -> Result<()> {
 
     // The same with the journal's `process_crash` durability (no fsync per commit): the
     // difference is what the fsyncs of `power_loss` cost.
-    let fast_config = resource_config(&run.dir, "robot9", 5000)?;
-    let text = std::fs::read_to_string(&fast_config)?;
-    std::fs::write(
-        &fast_config,
-        format!("{text}\n[journal]\ndurability = \"process_crash\"\n"),
-    )?;
-    let mut fast = holarchy_tests::start_node(
-        &run.dir,
-        &fast_config,
-        "bench",
-        &run.cell.endpoint,
-        &run.sim.address,
-        &["--data-dir", run.dir.join("data").to_str().unwrap()],
-    )?;
-    run.cell
-        .wait_state("robot9", "free", |s| s["state"] == "free")
-        .await?;
+    let mut fast = start_process_crash_robot(run, "robot9").await?;
     let series = booking_series(&run.cell, "robot9", run.samples).await?;
     fast.kill();
+    run.ours.booking = Some((series.booking.pct(0.5), series.booking.pct(0.99)));
     booking_row(
         run,
         "booking round trip (journal process_crash)",
@@ -609,6 +621,29 @@ async fn booking(run: &mut Run) -> Result<()> {
         1,
     );
     Ok(())
+}
+
+/// A resource holon `name` on the run's controller with the journal's
+/// `process_crash` durability (no fsync per commit), free.
+async fn start_process_crash_robot(run: &Run, name: &str) -> Result<Process> {
+    let config = resource_config(&run.dir, name, 5000)?;
+    let text = std::fs::read_to_string(&config)?;
+    std::fs::write(
+        &config,
+        format!("{text}\n[journal]\ndurability = \"process_crash\"\n"),
+    )?;
+    let robot = holarchy_tests::start_node(
+        &run.dir,
+        &config,
+        "bench",
+        &run.cell.endpoint,
+        &run.sim.address,
+        &["--data-dir", run.dir.join("data").to_str().unwrap()],
+    )?;
+    run.cell
+        .wait_state(name, "free", |s| s["state"] == "free")
+        .await?;
+    Ok(robot)
 }
 
 /// Booking over mutual TLS with access control against plain TCP, in the same run: a
@@ -746,8 +781,17 @@ fn booking_row(run: &mut Run, name: &str, series: &BookingSeries, journal: usize
 
 /// Service cycles on `robot1`: book, start, two controller steps, `done` acknowledged.
 async fn cycle(run: &mut Run) -> Result<()> {
+    // `process_crash` (the target's), then `power_loss` (robot1) beside it.
+    let mut fast = start_process_crash_robot(run, "robot8").await?;
+    cycle_on(run, "robot8", "process_crash").await?;
+    fast.kill();
+    cycle_on(run, "robot1", "power_loss").await
+}
+
+/// Service cycles on `robot`, whose journal has `durability`.
+async fn cycle_on(run: &mut Run, robot: &str, durability: &str) -> Result<()> {
     let cell = &run.cell;
-    let key = cell.keys.service("robot1");
+    let key = cell.keys.service(robot);
     let mut inbox = cell.inbox("bench", 0).await?;
     let cycles = run.samples / 4;
     let mut times = Vec::new();
@@ -786,8 +830,11 @@ async fn cycle(run: &mut Run) -> Result<()> {
         .map(|p| Latency::new(p, Duration::from_secs(1)))
         .collect();
     let ratio = run.ratio(&cycle);
+    if durability == "process_crash" {
+        run.ours.cycle = Some((cycle.pct(0.5), cycle.pct(0.99)));
+    }
     run.table.add(
-        "service cycle (book, start, 2 TCP/XML steps, done acked)",
+        &format!("service cycle, {durability} (book, start, 2 TCP/XML steps, done acked)"),
         format!(
             "p50 {:.0} us, p99 {:.0} us, {:.0} cycles/s",
             cycle.pct(0.5),
@@ -798,7 +845,7 @@ async fn cycle(run: &mut Run) -> Result<()> {
         cycle.json(),
     );
     run.table.add(
-        "  where a cycle goes: book | start | until done",
+        &format!("  where a {durability} cycle goes: book | start | until done"),
         format!("p50 {:.0} | {:.0} | {:.0} us", breakdown[0].pct(0.5), breakdown[1].pct(0.5), breakdown[2].pct(0.5)),
         "the last: 2 controller steps + result delivery".into(),
         json!({"book": breakdown[0].json(), "start": breakdown[1].json(), "until_done": breakdown[2].json()}),
