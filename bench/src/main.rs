@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 
 mod dashboard;
 mod erlang;
+mod robots;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Parser, Subcommand};
@@ -48,7 +49,8 @@ enum Commands {
         #[arg(long, default_value_t = 100)]
         scale: usize,
         /// Run only these sections (comma-separated; the floors always run): booking,
-        /// tls, cycle, erlang, holon, rebook, lease, throughput, orders, scale, dashboard.
+        /// tls, cycle, erlang, holon, rebook, lease, throughput, robots, orders, scale,
+        /// dashboard.
         #[arg(long, value_delimiter = ',')]
         only: Vec<String>,
         /// The seed's resource holon in Erlang/OTP (a directory with its run.sh): run it
@@ -309,6 +311,7 @@ const SECTIONS: &[&str] = &[
     "rebook",
     "lease",
     "throughput",
+    "robots",
     "orders",
     "scale",
     "dashboard",
@@ -401,6 +404,9 @@ async fn all(
                 json!({"robots": robots, "orders": 40, "orders_per_s": figure}),
             );
         }
+    }
+    if wants("robots") {
+        robots::section(&mut run).await?;
     }
     if wants("orders") {
         order_node_footprint(&mut run, 1000).await?;

@@ -1,0 +1,136 @@
+//! Robots that take time: K robots whose actions take 20 ms (a `pick_n_place` step is a
+//! pick and a place: 40 ms), 20 one-step orders per robot submitted at once through a
+//! real order-node. The ideal is K steps per step time; what the control adds (proposal
+//! rounds, bookings, starts, deliveries, journals) shows as the distance to it, and as
+//! the CPU time the whole cell spent per completed order.
+
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Result};
+use holarchy_tests::{resource_config, Sim};
+use schemas::{HolonId, OrderSnapshot, OrderStatus};
+use serde_json::json;
+
+use super::{cpu_time, router, start_product_and_orders, Run};
+
+/// How long each robot action takes.
+const ACTION: Duration = Duration::from_millis(20);
+/// Actions per `pick_n_place` step.
+const ACTIONS_PER_STEP: u32 = 2;
+/// Orders per robot.
+const ORDERS_PER_ROBOT: u32 = 20;
+
+pub async fn section(run: &mut Run) -> Result<()> {
+    for robots in [1usize, 2, 4, 8] {
+        let figure = working_robots(run, robots).await?;
+        let ideal = robots as f64 / (ACTION * ACTIONS_PER_STEP).as_secs_f64();
+        run.table.add(
+            &format!("robots that take time: {robots} robot(s), 20 ms actions"),
+            format!(
+                "{:.1} orders/s, {:.0}% of ideal",
+                figure.orders_per_s,
+                figure.orders_per_s / ideal * 100.0
+            ),
+            format!(
+                "ideal {ideal:.1}/s (K / 40 ms step); CPU {:.1} ms per order, all processes",
+                figure.cpu_per_order.as_secs_f64() * 1e3
+            ),
+            json!({
+                "robots": robots,
+                "orders": figure.orders,
+                "orders_per_s": figure.orders_per_s,
+                "ideal_per_s": ideal,
+                "share_of_ideal": figure.orders_per_s / ideal,
+                "cpu_ms_per_order": figure.cpu_per_order.as_secs_f64() * 1e3,
+            }),
+        );
+    }
+    Ok(())
+}
+
+struct Figure {
+    orders: u32,
+    orders_per_s: f64,
+    cpu_per_order: Duration,
+}
+
+/// CPU time of the cell's processes (`pids`) and of this one (the cell's router runs
+/// here; so does the measuring, a small share).
+fn cell_cpu(pids: &[i32]) -> Duration {
+    pids.iter()
+        .chain([std::process::id() as i32].iter())
+        .filter_map(|pid| cpu_time(*pid).ok())
+        .sum()
+}
+
+async fn working_robots(run: &Run, robots: usize) -> Result<Figure> {
+    let cell_name = format!("bench-k{robots}");
+    let cell = router(&cell_name, None).await?;
+    let dir = run.dir.join(&cell_name);
+    std::fs::create_dir_all(&dir)?;
+    let delay = ACTION.as_millis().to_string();
+    let mut keep = Vec::new();
+    for i in 0..robots {
+        let name = format!("robot{i}");
+        let sim = Sim::start(
+            &dir,
+            &format!("{name}-sim"),
+            "127.0.0.1:0",
+            &["--delay-ms", &delay],
+        )?;
+        let config = resource_config(&dir, &name, 5000)?;
+        let node = holarchy_tests::start_node(
+            &dir,
+            &config,
+            &cell_name,
+            &cell.endpoint,
+            &sim.address,
+            &[],
+        )?;
+        cell.wait_alive(&HolonId::resource(&name)?).await?;
+        cell.wait_state(&name, "free", |s| s["state"] == "free")
+            .await?;
+        keep.push((sim, node));
+    }
+    let (product, order_node) =
+        start_product_and_orders(&dir, &cell, &holarchy_tests::demo_config("orders1.toml")).await?;
+    let pids: Vec<i32> = keep
+        .iter()
+        .flat_map(|(sim, node)| [sim.process.pid(), node.pid()])
+        .chain([product.pid(), order_node.pid()])
+        .collect();
+    // Every order's end, as it is published.
+    let states = cell
+        .session
+        .declare_subscriber(cell.keys.order_states())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let orders = ORDERS_PER_ROBOT * robots as u32;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let cpu_before = cell_cpu(&pids);
+    let t = Instant::now();
+    cell.submit("part", orders).await?;
+    let mut done = std::collections::HashSet::new();
+    while done.len() < orders as usize {
+        let sample = tokio::time::timeout(Duration::from_secs(120), states.recv_async())
+            .await
+            .map_err(|_| anyhow!("{} of {orders} orders done after 120 s", done.len()))?
+            .map_err(|e| anyhow!("{e}"))?;
+        let snapshot: OrderSnapshot = serde_json::from_slice(&sample.payload().to_bytes())?;
+        match snapshot.status {
+            OrderStatus::Done => {
+                done.insert(snapshot.holon);
+            }
+            OrderStatus::Running => {}
+            other => bail!("{} ended {other:?}: {:?}", snapshot.holon, snapshot.reason),
+        }
+    }
+    let elapsed = t.elapsed();
+    let cpu = cell_cpu(&pids).saturating_sub(cpu_before);
+    drop((keep, product, order_node));
+    Ok(Figure {
+        orders,
+        orders_per_s: orders as f64 / elapsed.as_secs_f64(),
+        cpu_per_order: cpu / orders,
+    })
+}
