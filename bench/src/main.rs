@@ -372,7 +372,16 @@ async fn all(
     }
     let wants = |section: &str| only.is_empty() || only.iter().any(|s| s == section);
     let tempdir = tempfile::tempdir()?;
-    let mut run = floors(tempdir.path(), samples).await?;
+    // HOLARCHY_BENCH_KEEP=1 keeps the run's directory (configs, journals, every
+    // process's log) for a look afterwards.
+    let dir = if std::env::var_os("HOLARCHY_BENCH_KEEP").is_some() {
+        let kept = tempdir.keep();
+        println!("keeping the run's files in {}", kept.display());
+        kept
+    } else {
+        tempdir.path().to_path_buf()
+    };
+    let mut run = floors(&dir, samples).await?;
     if wants("booking") {
         booking(&mut run).await?;
     }

@@ -29,6 +29,47 @@ pub struct OrderContext {
     pub journal: Option<Arc<Journal>>,
     /// Set while journal writes fail (logged once per fault, not per order).
     pub journal_failing: AtomicBool,
+    /// Bookings this node's orders asked of each resource, ever: a proposal round
+    /// counts the ones asked while it was out (see [`BookingsAsked`]).
+    pub bookings_asked: BookingsAsked,
+}
+
+/// How many bookings this node's orders asked of each resource since the node started.
+///
+/// Many orders of one node ask for proposals at once (a batch of work orders, a
+/// resource that came back): every round then hears the same waits, and without this
+/// they would all book the same resource, while others stay idle. A round notes the
+/// counts when it starts, and adds to each proposal's expected wait the bookings asked
+/// of that resource since, each at the proposal's `duration_ms`.
+#[derive(Default)]
+pub struct BookingsAsked(Mutex<std::collections::HashMap<schemas::HolonId, u64>>);
+
+impl BookingsAsked {
+    fn counts(
+        &self,
+    ) -> std::sync::MutexGuard<'_, std::collections::HashMap<schemas::HolonId, u64>> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The counts now.
+    pub fn now(&self) -> std::collections::HashMap<schemas::HolonId, u64> {
+        self.counts().clone()
+    }
+
+    /// One more booking asked of `resource`.
+    pub fn asked(&self, resource: &schemas::HolonId) {
+        *self.counts().entry(resource.clone()).or_default() += 1;
+    }
+
+    /// Bookings asked of `resource` since `then` (a [`BookingsAsked::now`]).
+    pub fn since(
+        &self,
+        then: &std::collections::HashMap<schemas::HolonId, u64>,
+        resource: &schemas::HolonId,
+    ) -> u64 {
+        let now = self.counts().get(resource).copied().unwrap_or(0);
+        now.saturating_sub(then.get(resource).copied().unwrap_or(0))
+    }
 }
 
 /// The journal kind of order records.
@@ -180,6 +221,21 @@ pub fn jittered(pause: Duration) -> Duration {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_round_counts_the_bookings_asked_while_it_was_out() {
+        let asked = BookingsAsked::default();
+        let robot1 = schemas::HolonId::resource("robot1").unwrap();
+        let robot2 = schemas::HolonId::resource("robot2").unwrap();
+        asked.asked(&robot1);
+        let round_started = asked.now();
+        asked.asked(&robot1);
+        asked.asked(&robot1);
+        assert_eq!(asked.since(&round_started, &robot1), 2);
+        assert_eq!(asked.since(&round_started, &robot2), 0);
+        asked.asked(&robot2);
+        assert_eq!(asked.since(&round_started, &robot2), 1);
+    }
 
     #[test]
     fn jitter_shortens_by_at_most_a_quarter() {

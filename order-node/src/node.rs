@@ -103,6 +103,7 @@ pub async fn run(
             idle: Default::default(),
             journal,
             journal_failing: Default::default(),
+            bookings_asked: Default::default(),
         }),
         orders: Mutex::new(BTreeMap::new()),
         next: AtomicU64::new(next),

@@ -250,6 +250,7 @@ impl OrderTask {
                 ))
             }
             AttemptAction::AskBooking(candidate) => {
+                ctx.bookings_asked.asked(&candidate);
                 let answer = requests::ask(
                     &ctx,
                     &ctx.keys.service(candidate.name()),

@@ -85,12 +85,17 @@ pub async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Ser
     }
 }
 
-/// The proposals of a round, best first (see the module docs for the rule).
+/// The proposals of a round, best first: resources in `avoid` (they failed this step)
+/// last; then the shortest expected wait, counting the bookings this node's other
+/// orders asked of the resource while the round was out (see
+/// [`crate::context::BookingsAsked`]); then the shortest queue; ties at random (orders
+/// that ask together do not all pick the same name).
 pub async fn proposals(
     ctx: &OrderContext,
     message: &Service,
     avoid: &BTreeSet<HolonId>,
 ) -> Vec<HolonId> {
+    let asked_before = ctx.bookings_asked.now();
     // A round stopped half-way (the order cancelled, the node stopping) drops its
     // reader: late proposals are dropped quietly.
     let Ok(mut replies) = ctx
@@ -120,15 +125,26 @@ pub async fn proposals(
                 .and_then(|v| v.as_u64())
                 .unwrap_or(u64::MAX)
         };
+        let asked_since = ctx.bookings_asked.since(&asked_before, &provider);
+        let expected_wait = number("expected_wait_ms")
+            .saturating_add(asked_since.saturating_mul(number("duration_ms")));
+        let queue = number("queue_position").saturating_add(asked_since);
         offers.push((
             avoid.contains(&provider),
-            number("expected_wait_ms"),
-            number("queue_position"),
+            expected_wait,
+            queue,
+            tie_break(),
             provider,
         ));
     }
     offers.sort();
-    offers.into_iter().map(|(_, _, _, p)| p).collect()
+    offers.into_iter().map(|(_, _, _, _, p)| p).collect()
+}
+
+/// A random number, to order equal proposals.
+fn tie_break() -> u64 {
+    use std::hash::BuildHasher;
+    std::collections::hash_map::RandomState::new().hash_one(std::time::Instant::now())
 }
 
 /// Sends `booking_cancel` until the resource answers: at once, then each time it is
