@@ -263,6 +263,33 @@ impl Journal {
         Ok(())
     }
 
+    /// Writes several records (`(kind, id, value)`) in one commit: either all are
+    /// written or none, and they share one sync (a batch of new orders costs one
+    /// fsync with `power_loss`, not one each).
+    pub fn put_all<'a, T, I>(&self, records: I) -> Result<(), JournalError>
+    where
+        T: Serialize + 'a,
+        I: IntoIterator<Item = (&'a str, &'a str, &'a T)>,
+    {
+        let mut connection = self.connection();
+        let transaction = connection.transaction().map_err(|e| self.error(e))?;
+        {
+            let mut statement = transaction
+                .prepare_cached(
+                    "INSERT INTO records (kind, id, body) VALUES (?1, ?2, ?3)
+                     ON CONFLICT (kind, id) DO UPDATE SET body = excluded.body",
+                )
+                .map_err(|e| self.error(e))?;
+            for (kind, id, value) in records {
+                let body = serde_json::to_string(value).expect("journal records serialize");
+                statement
+                    .execute(params![kind, id, body])
+                    .map_err(|e| self.error(e))?;
+            }
+        }
+        transaction.commit().map_err(|e| self.error(e))
+    }
+
     /// Removes records of `kind` (no error for one that is absent), all in one commit:
     /// either every one is gone or none is. Their pages are reused by later records
     /// (the file does not shrink).
@@ -401,6 +428,35 @@ mod tests {
         );
         assert_eq!(journal.get::<u64>("meta", "seq").unwrap(), Some(7));
         assert_eq!(journal.get::<u64>("meta", "other").unwrap(), None);
+    }
+
+    #[test]
+    fn a_batch_is_written_in_one_commit_or_not_at_all() {
+        let dir = tempfile::tempdir().unwrap();
+        let journal = Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap();
+        let (one, two) = (serde_json::json!(1), serde_json::json!({"n": 2}));
+        journal
+            .put_all([("meta", "next", &one), ("order", "b", &two)])
+            .unwrap();
+        assert_eq!(journal.get::<u64>("meta", "next").unwrap(), Some(1));
+        assert_eq!(
+            journal.get::<serde_json::Value>("order", "b").unwrap(),
+            Some(two.clone())
+        );
+        // A batch that fails half-way (here: a trigger refuses its second record)
+        // leaves nothing of itself.
+        journal
+            .connection()
+            .execute_batch("CREATE TRIGGER no_c BEFORE INSERT ON records WHEN NEW.id = 'c' BEGIN SELECT RAISE(ABORT, 'refused'); END;")
+            .unwrap();
+        let three = serde_json::json!(3);
+        assert!(journal
+            .put_all([("order", "a", &three), ("order", "c", &three)])
+            .is_err());
+        assert_eq!(
+            journal.get::<serde_json::Value>("order", "a").unwrap(),
+            None
+        );
     }
 
     #[test]

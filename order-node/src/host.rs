@@ -75,19 +75,33 @@ impl Host {
         cancel: &CancellationToken,
     ) -> Result<Vec<String>, String> {
         let first = self.next.fetch_add(work.count as u64, Ordering::SeqCst);
+        let next = first + work.count as u64;
+        let created: Vec<(String, OrderProgress)> = (first..next)
+            .map(|n| {
+                let name = format!("{}-{n}", self.config.name);
+                let holon = HolonId::order(&name).expect("node names are validated");
+                let progress =
+                    OrderProgress::new(holon, &work.product, self.config.orders.max_attempts);
+                (name, progress)
+            })
+            .collect();
+        // The next number and every new order in one commit: all of the work order is
+        // written, or none of it (and the submit is refused).
         if let Some(journal) = &self.context.journal {
-            journal
-                .put(NEXT_RECORD.0, NEXT_RECORD.1, &(first + work.count as u64))
+            let next = serde_json::to_value(next).expect("a number serializes");
+            let orders = created.iter().map(|(name, progress)| {
+                (
+                    ORDER_RECORD,
+                    name.as_str(),
+                    serde_json::to_value(progress).expect("progress serializes"),
+                )
+            });
+            let records: Vec<(&str, &str, serde_json::Value)> =
+                std::iter::once((NEXT_RECORD.0, NEXT_RECORD.1, next))
+                    .chain(orders)
+                    .collect();
+            journal_write(|| journal.put_all(records.iter().map(|(k, i, v)| (*k, *i, v))))
                 .map_err(|e| e.to_string())?;
-        }
-        let mut created = Vec::new();
-        for n in first..first + work.count as u64 {
-            let name = format!("{}-{n}", self.config.name);
-            let holon = HolonId::order(&name).expect("node names are validated");
-            let progress =
-                OrderProgress::new(holon, &work.product, self.config.orders.max_attempts);
-            self.context.save(&progress).map_err(|e| e.to_string())?;
-            created.push((name, progress));
         }
         let mut names = Vec::new();
         for (name, progress) in created {

@@ -103,7 +103,7 @@ pub async fn run(
             idle: Default::default(),
             journal,
             journal_failing: Default::default(),
-            bookings_asked: Default::default(),
+            bookings_in_flight: Default::default(),
         }),
         orders: Mutex::new(BTreeMap::new()),
         next: AtomicU64::new(next),

@@ -20,7 +20,9 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::attempt::{Attempt, AttemptAction, AttemptEvent, AttemptTiming};
-use crate::context::{jittered, lock, IdleOrder, OrderContext, OrderError, Shared, IDLE_POLL};
+use crate::context::{
+    jittered, lock, IdleOrder, InFlight, OrderContext, OrderError, Shared, IDLE_POLL,
+};
 use crate::inbox::{Inbox, ResultReport};
 use crate::order_token::OrderToken;
 use crate::progress::{Phase, StepOutcome};
@@ -40,6 +42,7 @@ pub async fn run(
         token: OrderToken::new(&ctx, &holon),
         changes: ctx.presence.changes(),
         appearances: ctx.presence.appearances(),
+        in_flight: None,
         ctx,
         progress,
         holon: holon.clone(),
@@ -75,6 +78,8 @@ struct OrderTask {
     /// Appearances since the last proposal round began: one that happens during the
     /// round wakes the wait after it.
     appearances: watch::Receiver<u64>,
+    /// The booking the last round's ranking counted in flight, until it is answered.
+    in_flight: Option<InFlight>,
 }
 
 /// How a watch for a result ended.
@@ -245,18 +250,24 @@ impl OrderTask {
                 let ask = request(MessageType::ProposalReq);
                 self.appearances = ctx.presence.appearances();
                 let _turn = ctx.rounds.acquire().await.expect("never closed");
-                Some(AttemptEvent::Proposals(
-                    requests::proposals(&ctx, &ask, &avoid).await,
-                ))
+                let (ranked, in_flight) = requests::proposals(&ctx, &ask, &avoid).await;
+                self.in_flight = in_flight;
+                Some(AttemptEvent::Proposals(ranked))
             }
             AttemptAction::AskBooking(candidate) => {
-                ctx.bookings_asked.asked(&candidate);
                 let answer = requests::ask(
                     &ctx,
                     &ctx.keys.service(candidate.name()),
                     &request(MessageType::BookingReq),
                 )
                 .await;
+                if self
+                    .in_flight
+                    .as_ref()
+                    .is_some_and(|counted| counted.resource == candidate)
+                {
+                    self.in_flight = None;
+                }
                 match &answer {
                     Some(a) if a.result == Some(true) => {
                         info!(holon = %self.holon, %conversation_id, resource = %candidate, service_type = %step.service_type, "booked")

@@ -24,6 +24,9 @@ pub struct Presence {
     /// The agenda length and whether it could take work (state not `init`), as each
     /// resource last published.
     published: Mutex<HashMap<HolonId, (usize, bool)>>,
+    /// Per resource, as it last published: the jobs ahead of a new booking (its
+    /// bookings and the job it runs). Fresher than a proposal heard during a round.
+    queues: Mutex<HashMap<HolonId, u64>>,
     /// Per resource, from its state publications: the conversation first on its agenda
     /// while it is free (`None` while it is busy or has no booking). An order booked
     /// there waits on its own resource's channel only, so a state change wakes the
@@ -44,6 +47,7 @@ impl Presence {
             appeared: watch::channel(0).0,
             room: Notify::new(),
             published: Mutex::new(HashMap::new()),
+            queues: Mutex::new(HashMap::new()),
             turns: Mutex::new(HashMap::new()),
         });
         let keys_for_callback = keys.clone();
@@ -100,6 +104,14 @@ impl Presence {
                     news
                 };
                 presence
+                    .queues
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .insert(
+                        snapshot.holon.clone(),
+                        (snapshot.agenda.len() + usize::from(snapshot.current.is_some())) as u64,
+                    );
+                presence
                     .turn_channel(&snapshot.holon)
                     .send_replace(news.turn);
                 if news.became_ready {
@@ -126,6 +138,15 @@ impl Presence {
             .unwrap_or_else(|e| e.into_inner())
             .extend(alive.iter().filter_map(|key| keys.holon_from_alive(key)));
         Ok(presence)
+    }
+
+    /// The jobs ahead of a new booking on `resource`, as it last published, if it did.
+    pub fn queue(&self, resource: &HolonId) -> Option<u64> {
+        self.queues
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(resource)
+            .copied()
     }
 
     pub fn is_alive(&self, holon: &HolonId) -> bool {

@@ -9,11 +9,11 @@ use std::time::Duration;
 use schemas::{HolonId, MessageType, Plan, PlanStep, Service};
 use tokio::sync::broadcast;
 use tokio::time::Instant;
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 use zenoh::query::ConsolidationMode;
 
 use crate::attempt::Answer;
-use crate::context::{jittered, IdleOrder, OrderContext};
+use crate::context::{jittered, IdleOrder, InFlight, Offer, OrderContext};
 use crate::presence::Presence;
 
 /// Asks the product holon for its plan until it answers or `no_resource_timeout`
@@ -86,16 +86,15 @@ pub async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Ser
 }
 
 /// The proposals of a round, best first: resources in `avoid` (they failed this step)
-/// last; then the shortest expected wait, counting the bookings this node's other
-/// orders asked of the resource while the round was out (see
-/// [`crate::context::BookingsAsked`]); then the shortest queue; ties at random (orders
-/// that ask together do not all pick the same name).
+/// last; then the shortest expected wait, then queue, as they are when the round ends
+/// (see [`crate::context::BookingsInFlight`]); ties at random (orders that ask together
+/// do not all pick the same name). The best counts as a booking in flight until its
+/// answer comes.
 pub async fn proposals(
     ctx: &OrderContext,
     message: &Service,
     avoid: &BTreeSet<HolonId>,
-) -> Vec<HolonId> {
-    let asked_before = ctx.bookings_asked.now();
+) -> (Vec<HolonId>, Option<InFlight>) {
     // A round stopped half-way (the order cancelled, the node stopping) drops its
     // reader: late proposals are dropped quietly.
     let Ok(mut replies) = ctx
@@ -107,7 +106,7 @@ pub async fn proposals(
         .with(holon::query::replies())
         .await
     else {
-        return Vec::new();
+        return (Vec::new(), None);
     };
     let mut offers = Vec::new();
     while let Some(reply) = replies.recv().await {
@@ -125,26 +124,19 @@ pub async fn proposals(
                 .and_then(|v| v.as_u64())
                 .unwrap_or(u64::MAX)
         };
-        let asked_since = ctx.bookings_asked.since(&asked_before, &provider);
-        let expected_wait = number("expected_wait_ms")
-            .saturating_add(asked_since.saturating_mul(number("duration_ms")));
-        let queue = number("queue_position").saturating_add(asked_since);
-        offers.push((
-            avoid.contains(&provider),
-            expected_wait,
-            queue,
-            tie_break(),
+        offers.push(Offer {
+            avoided: avoid.contains(&provider),
+            expected_wait_ms: number("expected_wait_ms"),
+            queue_position: number("queue_position"),
+            duration_ms: number("duration_ms"),
             provider,
-        ));
+        });
     }
-    offers.sort();
-    offers.into_iter().map(|(_, _, _, _, p)| p).collect()
-}
-
-/// A random number, to order equal proposals.
-fn tie_break() -> u64 {
-    use std::hash::BuildHasher;
-    std::collections::hash_map::RandomState::new().hash_one(std::time::Instant::now())
+    let (ranked, in_flight) = ctx
+        .bookings_in_flight
+        .rank(offers, |resource| ctx.presence.queue(resource));
+    debug!(conversation_id = %message.conversation_id, ranked = ?ranked.iter().map(|p| p.name()).collect::<Vec<_>>(), "proposals ranked");
+    (ranked, in_flight)
 }
 
 /// Sends `booking_cancel` until the resource answers: at once, then each time it is
