@@ -1222,22 +1222,7 @@ async fn throughput(dir: &Path, robots: usize, orders: u32) -> Result<f64> {
     let cell = router(&cell_name, None).await?;
     let dir = dir.join(&cell_name);
     std::fs::create_dir_all(&dir)?;
-    let mut keep = Vec::new();
-    for i in 0..robots {
-        let name = format!("robot{i}");
-        let sim = Sim::start(&dir, &format!("{name}-sim"), "127.0.0.1:0", &[])?;
-        let config = resource_config(&dir, &name, 5000)?;
-        let node = holarchy_tests::start_node(
-            &dir,
-            &config,
-            &cell_name,
-            &cell.endpoint,
-            &sim.address,
-            &[],
-        )?;
-        cell.wait_alive(&HolonId::resource(&name)?).await?;
-        keep.push((sim, node));
-    }
+    let _robots = start_robots(&cell, &dir, robots, &[]).await?;
     let (_product, _orders) =
         start_product_and_orders(&dir, &cell, &holarchy_tests::demo_config("orders1.toml")).await?;
     let t = Instant::now();
@@ -1267,6 +1252,35 @@ async fn throughput(dir: &Path, robots: usize, orders: u32) -> Result<f64> {
         }
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
+}
+
+/// Starts `robot0`..`robot{n-1}` on `cell`, each with its own controller simulator
+/// (started with `sim_flags`), and waits until each is alive and free.
+async fn start_robots(
+    cell: &Cell,
+    dir: &Path,
+    n: usize,
+    sim_flags: &[&str],
+) -> Result<Vec<(Sim, Process)>> {
+    let mut robots = Vec::new();
+    for i in 0..n {
+        let name = format!("robot{i}");
+        let sim = Sim::start(dir, &format!("{name}-sim"), "127.0.0.1:0", sim_flags)?;
+        let config = resource_config(dir, &name, 5000)?;
+        let node = holarchy_tests::start_node(
+            dir,
+            &config,
+            cell.keys.cell(),
+            &cell.endpoint,
+            &sim.address,
+            &[],
+        )?;
+        cell.wait_alive(&HolonId::resource(&name)?).await?;
+        cell.wait_state(&name, "free", |s| s["state"] == "free")
+            .await?;
+        robots.push((sim, node));
+    }
+    Ok(robots)
 }
 
 /// Starts `n` resource holons (sharing 4 controllers): time until all are visible, a

@@ -7,11 +7,10 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Result};
-use holarchy_tests::{resource_config, Sim};
-use schemas::{HolonId, OrderSnapshot, OrderStatus};
+use schemas::{OrderSnapshot, OrderStatus};
 use serde_json::json;
 
-use super::{cpu_time, router, start_product_and_orders, Run};
+use super::{cpu_time, router, start_product_and_orders, start_robots, Run};
 
 /// How long each robot action takes.
 const ACTION: Duration = Duration::from_millis(20);
@@ -69,29 +68,7 @@ async fn working_robots(run: &Run, robots: usize) -> Result<Figure> {
     let dir = run.dir.join(&cell_name);
     std::fs::create_dir_all(&dir)?;
     let delay = ACTION.as_millis().to_string();
-    let mut keep = Vec::new();
-    for i in 0..robots {
-        let name = format!("robot{i}");
-        let sim = Sim::start(
-            &dir,
-            &format!("{name}-sim"),
-            "127.0.0.1:0",
-            &["--delay-ms", &delay],
-        )?;
-        let config = resource_config(&dir, &name, 5000)?;
-        let node = holarchy_tests::start_node(
-            &dir,
-            &config,
-            &cell_name,
-            &cell.endpoint,
-            &sim.address,
-            &[],
-        )?;
-        cell.wait_alive(&HolonId::resource(&name)?).await?;
-        cell.wait_state(&name, "free", |s| s["state"] == "free")
-            .await?;
-        keep.push((sim, node));
-    }
+    let keep = start_robots(&cell, &dir, robots, &["--delay-ms", &delay]).await?;
     let (product, order_node) =
         start_product_and_orders(&dir, &cell, &holarchy_tests::demo_config("orders1.toml")).await?;
     let pids: Vec<i32> = keep

@@ -13,7 +13,7 @@ use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
-use schemas::{CellKeys, HolonId, OrderSnapshot, OrderStatus, SubmitReply, WorkOrder};
+use schemas::{CellKeys, HolonId, OrderSnapshot, OrderStatus, WorkOrder};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 use tokio_util::sync::CancellationToken;
@@ -228,51 +228,6 @@ async fn wait_token(session: &zenoh::Session, key: &str, timeout: Duration) -> R
         .map_err(|e| anyhow!("{e}"))
 }
 
-/// Submits a work order to the cell's order-nodes (a default `get` reaches one).
-pub async fn submit(
-    session: &zenoh::Session,
-    keys: &CellKeys,
-    work: &WorkOrder,
-    timeout: Duration,
-) -> Result<Vec<String>> {
-    let deadline = Instant::now() + timeout;
-    loop {
-        let mut replies = session
-            .get(keys.orders_submit())
-            .payload(serde_json::to_vec(work)?)
-            .timeout(
-                deadline
-                    .saturating_duration_since(Instant::now())
-                    .clamp(Duration::from_millis(500), Duration::from_secs(5)),
-            )
-            .with(holon::query::replies())
-            .await
-            .map_err(|e| anyhow!("{e}"))?;
-        if let Some(reply) = replies.recv().await {
-            return match reply.result() {
-                Ok(sample) => {
-                    Ok(serde_json::from_slice::<SubmitReply>(&sample.payload().to_bytes())?.orders)
-                }
-                Err(err) => {
-                    let text = err.payload().try_to_string().unwrap_or_default();
-                    match serde_json::from_str::<schemas::ErrorReply>(&text) {
-                        Ok(e) => bail!(
-                            "the order-node refused the work order ({}): {}",
-                            e.code,
-                            e.message
-                        ),
-                        Err(_) => bail!("the order-node refused the work order: {text}"),
-                    }
-                }
-            };
-        }
-        if Instant::now() >= deadline {
-            bail!("no order-node answered on {}", keys.orders_submit());
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
 /// Runs the demo; returns whether every order completed.
 pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bool> {
     let keys = CellKeys::new(&options.cell)?;
@@ -483,7 +438,7 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         priority: 0,
         queue: false,
     };
-    let ids = submit(&cell.session, &cell.keys, &work, STARTUP).await?;
+    let ids = crate::submit::submit(&cell.session, &cell.keys, &work, STARTUP).await?;
     println!(
         "submitted {} orders of breaker: {} .. {}",
         ids.len(),

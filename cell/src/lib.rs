@@ -9,4 +9,5 @@ pub mod demo;
 pub mod manifest;
 pub mod router;
 pub mod status;
+pub mod submit;
 pub mod up;

@@ -404,7 +404,7 @@ async fn run(args: Args) -> Result<bool> {
             };
             work.validate()?;
             let session = client.session(OPERATOR).await?;
-            let ids = cell::demo::submit(&session, &keys, &work, client.timeout()).await?;
+            let ids = cell::submit::submit(&session, &keys, &work, client.timeout()).await?;
             println!("{}", ids.join("\n"));
             close(session).await;
             Ok(true)

@@ -126,6 +126,19 @@ impl Drop for Dashboard {
     }
 }
 
+/// What the page says after its submit form was sent (waits up to `within` for it).
+fn submitted(browser: &webdriver::Browser, within: Duration) -> String {
+    let (answer, _) = browser.wait_for("#submitted", within).unwrap();
+    let deadline = Instant::now() + within;
+    loop {
+        let text = browser.text(&answer).unwrap();
+        if !text.is_empty() || Instant::now() >= deadline {
+            return text;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
 /// Reads the server-sent events of `/events` until a `view` event comes: its data.
 fn first_view(address: &str) -> serde_json::Value {
     let mut stream = TcpStream::connect(address).unwrap();
@@ -403,15 +416,7 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
     browser.type_into(&count, "2").unwrap();
     let submit = browser.find("#submit button").unwrap().unwrap();
     browser.click(&submit).unwrap();
-    let (submitted, _) = browser.wait_for("#submitted", within).unwrap();
-    let deadline = std::time::Instant::now() + within;
-    let text = loop {
-        let text = browser.text(&submitted).unwrap();
-        if !text.is_empty() || std::time::Instant::now() >= deadline {
-            break text;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
+    let text = submitted(&browser, within);
     assert!(text.starts_with("submitted orders1-"), "{text}");
     let done_filter = browser
         .find("#status-filter option:nth-child(3)")
@@ -514,15 +519,7 @@ async fn in_a_secure_cell_the_identity_decides_what_the_page_may_do() {
     browser.type_into(&count, "1").unwrap();
     let submit = browser.find("#submit button").unwrap().unwrap();
     browser.click(&submit).unwrap();
-    let (submitted, _) = browser.wait_for("#submitted", within).unwrap();
-    let deadline = Instant::now() + within;
-    let text = loop {
-        let text = browser.text(&submitted).unwrap();
-        if !text.is_empty() || Instant::now() >= deadline {
-            break text;
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    };
+    let text = submitted(&browser, within);
     assert!(text.starts_with("submitted orders1-"), "{text}");
     let order = text.trim_start_matches("submitted ").to_string();
     operator.wait("/api/orders", "the submitted order done", |o| {

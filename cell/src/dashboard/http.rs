@@ -141,7 +141,8 @@ async fn submit(State(shared): State<Arc<Shared>>, Json(form): Json<SubmitForm>)
     if let Err(e) = work.validate() {
         return refused(StatusCode::BAD_REQUEST, &e.to_string());
     }
-    match crate::demo::submit(&shared.session, &shared.keys, &work, Duration::from_secs(5)).await {
+    match crate::submit::submit(&shared.session, &shared.keys, &work, Duration::from_secs(5)).await
+    {
         Ok(orders) => Json(serde_json::json!({ "orders": orders })).into_response(),
         Err(e) => refused(StatusCode::BAD_GATEWAY, &format!("{e:#}")),
     }
