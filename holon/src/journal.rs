@@ -1,9 +1,15 @@
 //! The journal: a holon's durable state, in an embedded SQLite database (rusqlite with
 //! the bundled library) in WAL mode, one file per holon under `--data-dir`.
 //!
-//! The store is deliberately small: records of JSON, addressed by a kind and an id, each
-//! write its own transaction. Holons write the record that changed *before* they
-//! acknowledge anything that depends on it.
+//! The store is deliberately small: records of JSON, addressed by a kind and an id.
+//! Holons write the record that changed *before* they acknowledge anything that depends
+//! on it.
+//!
+//! Group commit: writers that call [`Journal::put`] at the same time (an order-node's
+//! orders, each in its own task) share one transaction and so one fsync. Each queues its
+//! record and takes the connection; whoever gets it commits every record queued so far,
+//! and the writers whose records went in that commit return with its outcome, without
+//! a commit of their own. A lone writer commits alone, as before.
 //!
 //! Durability ([`Durability`]):
 //! - `process_crash`: `synchronous = NORMAL`. A commit survives the process being killed
@@ -118,6 +124,24 @@ fn check_wal_header(wal: &Path) -> Result<(), String> {
 pub struct Journal {
     path: PathBuf,
     connection: Mutex<Connection>,
+    /// Records queued for the next commit, and how the last commits ended.
+    queue: Mutex<Queue>,
+}
+
+/// The group commit's queue (see the module's doc).
+#[derive(Default)]
+struct Queue {
+    /// Records waiting for a commit: (sequence number, kind, id, body).
+    records: Vec<(u64, String, String, String)>,
+    /// The sequence number of the next record queued.
+    next: u64,
+    /// Every record numbered below this went through a commit (or a failed one).
+    done_below: u64,
+    /// Commits that failed and still have writers to tell: the records' numbers
+    /// (first, end), the error's text, and how many writers have yet to read it.
+    failed: Vec<(u64, u64, String, usize)>,
+    /// Commits made by [`Journal::put`] so far.
+    commits: u64,
 }
 
 impl std::fmt::Debug for Journal {
@@ -230,6 +254,7 @@ impl Journal {
         Ok(Journal {
             path,
             connection: Mutex::new(connection),
+            queue: Mutex::new(Queue::default()),
         })
     }
 
@@ -248,19 +273,102 @@ impl Journal {
         self.connection.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Writes one record, committed (durable as configured) when this returns.
+    /// How many commits [`Journal::put`] made so far (fewer than its records when
+    /// writers shared them).
+    pub fn commits(&self) -> u64 {
+        self.queue().commits
+    }
+
+    fn queue(&self) -> std::sync::MutexGuard<'_, Queue> {
+        self.queue.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Writes one record, committed (durable as configured) when this returns; writers
+    /// at the same time share the commit (see the module's doc).
     pub fn put<T: Serialize>(&self, kind: &str, id: &str, value: &T) -> Result<(), JournalError> {
         let body = serde_json::to_string(value).expect("journal records serialize");
+        let mine = {
+            let mut queue = self.queue();
+            let mine = queue.next;
+            queue.next += 1;
+            queue
+                .records
+                .push((mine, kind.to_string(), id.to_string(), body));
+            mine
+        };
+        let mut connection = self.connection();
+        let (batch, first) = {
+            let mut queue = self.queue();
+            if mine < queue.done_below {
+                // Committed by the writer that had the connection before: its outcome.
+                return match queue.failed.iter_mut().find(|f| f.0 <= mine && mine < f.1) {
+                    Some(failed) => {
+                        failed.3 -= 1;
+                        let message = failed.2.clone();
+                        queue.failed.retain(|f| f.3 > 0);
+                        Err(JournalError::Sqlite {
+                            path: self.path.display().to_string(),
+                            message,
+                        })
+                    }
+                    None => Ok(()),
+                };
+            }
+            let batch = std::mem::take(&mut queue.records);
+            let first = batch.first().map_or(mine, |r| r.0);
+            (batch, first)
+        };
+        let end = batch.last().map_or(mine + 1, |r| r.0 + 1);
+        let written = self.commit(&mut connection, &batch);
+        // Told while the connection is still held: the next writer to take it must see
+        // whether its record went in this commit.
+        let mut queue = self.queue();
+        queue.done_below = end;
+        if let Err(e) = &written {
+            let others = batch.len() - 1;
+            if others > 0 {
+                let message = match e {
+                    JournalError::Sqlite { message, .. } => message.clone(),
+                    other => other.to_string(),
+                };
+                queue.failed.push((first, end, message, others));
+            }
+        }
+        queue.commits += 1;
+        drop(queue);
+        drop(connection);
+        written
+    }
+
+    /// Writes `batch` in one transaction (a single record in its own statement).
+    fn commit(
+        &self,
+        connection: &mut Connection,
+        batch: &[(u64, String, String, String)],
+    ) -> Result<(), JournalError> {
         // Statements are prepared once per connection and cached: parsing the SQL
         // again cost about as much as executing it (profiled on the booking path).
-        self.connection()
-            .prepare_cached(
-                "INSERT INTO records (kind, id, body) VALUES (?1, ?2, ?3)
-                 ON CONFLICT (kind, id) DO UPDATE SET body = excluded.body",
-            )
-            .and_then(|mut statement| statement.execute(params![kind, id, body]))
-            .map_err(|e| self.error(e))?;
-        Ok(())
+        const UPSERT: &str = "INSERT INTO records (kind, id, body) VALUES (?1, ?2, ?3)
+             ON CONFLICT (kind, id) DO UPDATE SET body = excluded.body";
+        if let [(_, kind, id, body)] = batch {
+            return connection
+                .prepare_cached(UPSERT)
+                .and_then(|mut statement| statement.execute(params![kind, id, body]))
+                .map(|_| ())
+                .map_err(|e| self.error(e));
+        }
+        let transaction = connection.transaction().map_err(|e| self.error(e))?;
+        {
+            let mut statement = transaction
+                .prepare_cached(UPSERT)
+                .map_err(|e| self.error(e))?;
+            for (_, kind, id, body) in batch {
+                statement
+                    .execute(params![kind, id, body])
+                    .map_err(|e| self.error(e))?;
+            }
+        }
+        transaction.commit().map_err(|e| self.error(e))
     }
 
     /// Writes several records (`(kind, id, value)`) in one commit: either all are
@@ -457,6 +565,75 @@ mod tests {
             journal.get::<serde_json::Value>("order", "a").unwrap(),
             None
         );
+    }
+
+    /// Writers that queue while the connection is taken (here: held by the test) share
+    /// the next commit; each returns only once its record is committed.
+    #[test]
+    fn writers_at_the_same_time_share_one_commit() {
+        let dir = tempfile::tempdir().unwrap();
+        let journal = std::sync::Arc::new(
+            Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap(),
+        );
+        let held = journal.connection();
+        let writers: Vec<_> = (0..4)
+            .map(|n| {
+                let journal = journal.clone();
+                std::thread::spawn(move || journal.put("order", &format!("o{n}"), &n))
+            })
+            .collect();
+        while journal.queue().records.len() < 4 {
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        assert_eq!(
+            journal.commits(),
+            0,
+            "nobody committed while the connection was held"
+        );
+        drop(held);
+        for writer in writers {
+            writer.join().unwrap().unwrap();
+        }
+        assert_eq!(journal.commits(), 1, "four records, one commit");
+        let records: Vec<(String, u32)> = journal.list("order").unwrap();
+        assert_eq!(records.len(), 4);
+        // A lone writer commits alone.
+        journal.put("order", "o9", &9u32).unwrap();
+        assert_eq!(journal.commits(), 2);
+    }
+
+    /// A shared commit that fails fails every writer in it, and writes none of them.
+    #[test]
+    fn a_shared_commit_that_fails_fails_all_its_writers() {
+        let dir = tempfile::tempdir().unwrap();
+        let journal = std::sync::Arc::new(
+            Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap(),
+        );
+        journal
+            .connection()
+            .execute_batch("CREATE TRIGGER no_c BEFORE INSERT ON records WHEN NEW.id = 'c' BEGIN SELECT RAISE(ABORT, 'refused'); END;")
+            .unwrap();
+        let held = journal.connection();
+        let writers: Vec<_> = ["a", "b", "c"]
+            .into_iter()
+            .map(|id| {
+                let journal = journal.clone();
+                std::thread::spawn(move || journal.put("order", id, &1u32))
+            })
+            .collect();
+        while journal.queue().records.len() < 3 {
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        drop(held);
+        for writer in writers {
+            let refused = writer.join().unwrap().unwrap_err();
+            assert!(refused.to_string().contains("refused"), "{refused}");
+        }
+        assert!(journal.list::<u32>("order").unwrap().is_empty());
+        assert!(journal.queue().failed.is_empty(), "every writer was told");
+        // The journal goes on.
+        journal.put("order", "d", &2u32).unwrap();
+        assert_eq!(journal.get::<u32>("order", "d").unwrap(), Some(2));
     }
 
     #[test]
