@@ -178,20 +178,40 @@ pub async fn claim(
             // Alone (the first process of a cell): nobody to be a twin of.
             break;
         }
-        tokio::time::sleep(Duration::from_millis(20)).await;
+        // Links come up within a few milliseconds on a LAN: look again soon.
+        tokio::time::sleep(Duration::from_millis(2)).await;
     }
     // Linked is not yet routed: the cell's declarations reach a new session a moment
-    // after its links come up, and a query before that sees nobody. A liveliness
-    // subscriber with history receives the token whenever the declarations arrive;
-    // wait a short window for it (the price of the check on every start), then ask once
-    // more.
-    let taken = wait_token(session, key, CLAIM_WINDOW)
-        .await
-        .map_err(ClaimError::Zenoh)?
-        || !tokens(session, key, timeout)
+    // after its links come up, and a query before that sees nobody. So the cell's
+    // tokens are asked for until any shows (the declarations have arrived: the answer
+    // says whether the name is taken), for at most CLAIM_WINDOW. A cell where nothing
+    // shows within it is empty, or its declarations are slow: then a liveliness
+    // subscriber with history listens one more window for the name, and it is asked
+    // once more. A hot-added holon thus starts within a few query round trips; the first
+    // process of a cell pays the window.
+    let cell_tokens = format!(
+        "{}/**",
+        key.splitn(3, '/').take(2).collect::<Vec<_>>().join("/")
+    );
+    let routed_by = tokio::time::Instant::now() + CLAIM_WINDOW;
+    let taken = loop {
+        let seen = tokens(session, &cell_tokens, timeout)
             .await
-            .map_err(ClaimError::Zenoh)?
-            .is_empty();
+            .map_err(ClaimError::Zenoh)?;
+        if !seen.is_empty() {
+            break seen.iter().any(|k| k == key);
+        }
+        if tokio::time::Instant::now() >= routed_by {
+            break wait_token(session, key, CLAIM_WINDOW)
+                .await
+                .map_err(ClaimError::Zenoh)?
+                || !tokens(session, key, timeout)
+                    .await
+                    .map_err(ClaimError::Zenoh)?
+                    .is_empty();
+        }
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    };
     if taken {
         let holder = match session
             .get(key)
