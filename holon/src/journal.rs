@@ -340,7 +340,8 @@ impl Journal {
         written
     }
 
-    /// Writes `batch` in one transaction (a single record in its own statement).
+    /// Writes `batch` in one transaction (a single record in its own statement); the
+    /// sequence numbers are the group commit's, not written.
     fn commit(
         &self,
         connection: &mut Connection,
@@ -379,23 +380,14 @@ impl Journal {
         T: Serialize + 'a,
         I: IntoIterator<Item = (&'a str, &'a str, &'a T)>,
     {
-        let mut connection = self.connection();
-        let transaction = connection.transaction().map_err(|e| self.error(e))?;
-        {
-            let mut statement = transaction
-                .prepare_cached(
-                    "INSERT INTO records (kind, id, body) VALUES (?1, ?2, ?3)
-                     ON CONFLICT (kind, id) DO UPDATE SET body = excluded.body",
-                )
-                .map_err(|e| self.error(e))?;
-            for (kind, id, value) in records {
+        let batch: Vec<(u64, String, String, String)> = records
+            .into_iter()
+            .map(|(kind, id, value)| {
                 let body = serde_json::to_string(value).expect("journal records serialize");
-                statement
-                    .execute(params![kind, id, body])
-                    .map_err(|e| self.error(e))?;
-            }
-        }
-        transaction.commit().map_err(|e| self.error(e))
+                (0, kind.to_string(), id.to_string(), body)
+            })
+            .collect();
+        self.commit(&mut self.connection(), &batch)
     }
 
     /// Removes records of `kind` (no error for one that is absent), all in one commit:

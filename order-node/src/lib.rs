@@ -5,7 +5,8 @@
 //!   step's outcome (pure);
 //! - [`attempt`]: one attempt of one step, proposal to result (a pure state machine);
 //! - [`order`]: an order's task, which performs the attempts' actions;
-//! - [`requests`]: the order's requests over zenoh; [`order_token`]: its presence;
+//! - [`requests`]: the order's requests over zenoh; [`ranking`]: how a round's offers
+//!   are ranked; [`order_token`]: its presence;
 //! - [`presence`]: which resources are alive and whose turn it is on each;
 //! - [`inbox`]: where results reach the running orders;
 //! - [`context`]: what the orders of a node share;
@@ -23,4 +24,5 @@ pub mod order_token;
 pub mod presence;
 pub mod progress;
 pub mod queries;
+pub mod ranking;
 pub mod requests;

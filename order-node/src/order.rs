@@ -20,12 +20,11 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::attempt::{Attempt, AttemptAction, AttemptEvent, AttemptTiming};
-use crate::context::{
-    jittered, lock, IdleOrder, InFlight, OrderContext, OrderError, Shared, IDLE_POLL,
-};
+use crate::context::{jittered, lock, IdleOrder, OrderContext, OrderError, Shared, IDLE_POLL};
 use crate::inbox::{Inbox, ResultReport};
 use crate::order_token::OrderToken;
 use crate::progress::{Phase, StepOutcome};
+use crate::ranking::InFlight;
 use crate::requests;
 
 /// Runs one order until it is done, scrapped, failed or cancelled by an operator

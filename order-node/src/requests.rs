@@ -13,8 +13,9 @@ use tracing::{debug, info, warn};
 use zenoh::query::ConsolidationMode;
 
 use crate::attempt::Answer;
-use crate::context::{jittered, IdleOrder, InFlight, Offer, OrderContext};
+use crate::context::{jittered, IdleOrder, OrderContext};
 use crate::presence::Presence;
+use crate::ranking::{InFlight, Offer};
 
 /// Asks the product holon for its plan until it answers or `no_resource_timeout`
 /// passes; the pause between asks doubles up to `retry_max` (jittered), so orders
@@ -87,7 +88,7 @@ pub async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Ser
 
 /// The proposals of a round, best first: resources in `avoid` (they failed this step)
 /// last; then the shortest expected wait, then queue, as they are when the round ends
-/// (see [`crate::context::BookingsInFlight`]); ties at random (orders that ask together
+/// (see [`crate::ranking::BookingsInFlight`]); ties at random (orders that ask together
 /// do not all pick the same name). The best counts as a booking in flight until its
 /// answer comes.
 pub async fn proposals(

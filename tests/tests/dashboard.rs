@@ -126,17 +126,59 @@ impl Drop for Dashboard {
     }
 }
 
-/// What the page says after its submit form was sent (waits up to `within` for it).
-fn submitted(browser: &webdriver::Browser, within: Duration) -> String {
+/// Submits `count` work orders of `product` with the page's form: the new orders'
+/// names, as the page reports them (waits up to `within` for its answer).
+fn submit_from_page(
+    browser: &webdriver::Browser,
+    product: &str,
+    count: u32,
+    within: Duration,
+) -> Vec<String> {
+    let field = browser.find("#product").unwrap().unwrap();
+    browser.type_into(&field, product).unwrap();
+    let field = browser.find("#count").unwrap().unwrap();
+    browser.type_into(&field, &count.to_string()).unwrap();
+    let submit = browser.find("#submit button").unwrap().unwrap();
+    browser.click(&submit).unwrap();
     let (answer, _) = browser.wait_for("#submitted", within).unwrap();
     let deadline = Instant::now() + within;
-    loop {
+    let text = loop {
         let text = browser.text(&answer).unwrap();
         if !text.is_empty() || Instant::now() >= deadline {
-            return text;
+            break text;
         }
         std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(text.starts_with("submitted orders1-"), "{text}");
+    text.trim_start_matches("submitted ")
+        .split(", ")
+        .map(String::from)
+        .collect()
+}
+
+/// Filters the page's orders to `done` and waits until each of `orders` is listed so.
+fn wait_done_on_page(browser: &webdriver::Browser, orders: &[String], within: Duration) {
+    let done_filter = browser
+        .find("#status-filter option:nth-child(3)")
+        .unwrap()
+        .unwrap();
+    browser.click(&done_filter).unwrap();
+    for order in orders {
+        browser
+            .wait_for(
+                &format!("tr[data-order=\"{order}\"][data-status=\"done\"]"),
+                within,
+            )
+            .unwrap();
     }
+}
+
+/// Whether a `/api/orders` answer lists `order` done.
+fn lists_done(orders: &serde_json::Value, order: &str) -> bool {
+    orders.as_array().is_some_and(|o| {
+        o.iter()
+            .any(|o| o["holon"] == format!("order/{order}") && o["status"] == "done")
+    })
 }
 
 /// Reads the server-sent events of `/events` until a `view` event comes: its data.
@@ -410,27 +452,9 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
     browser
         .wait_for("tr[data-holon=\"resource/robot1\"]:not(.gone)", within)
         .unwrap();
-    let product = browser.find("#product").unwrap().unwrap();
-    browser.type_into(&product, "breaker").unwrap();
-    let count = browser.find("#count").unwrap().unwrap();
-    browser.type_into(&count, "2").unwrap();
-    let submit = browser.find("#submit button").unwrap().unwrap();
-    browser.click(&submit).unwrap();
-    let text = submitted(&browser, within);
-    assert!(text.starts_with("submitted orders1-"), "{text}");
-    let done_filter = browser
-        .find("#status-filter option:nth-child(3)")
-        .unwrap()
-        .unwrap();
-    browser.click(&done_filter).unwrap();
-    for order in text.trim_start_matches("submitted ").split(", ") {
-        browser
-            .wait_for(
-                &format!("tr[data-order=\"{order}\"][data-status=\"done\"]"),
-                Duration::from_secs(60),
-            )
-            .unwrap();
-    }
+    let orders_submitted = submit_from_page(&browser, "breaker", 2, within);
+    assert_eq!(orders_submitted.len(), 2, "{orders_submitted:?}");
+    wait_done_on_page(&browser, &orders_submitted, Duration::from_secs(60));
     // The steps were timed: two transports on the conveyor.
     let (_, metrics) = dashboard.http("GET", "/metrics", "");
     assert!(
@@ -515,25 +539,14 @@ async fn in_a_secure_cell_the_identity_decides_what_the_page_may_do() {
     browser
         .wait_for("#submit-panel:not(.hidden)", within)
         .unwrap();
-    let count = browser.find("#count").unwrap().unwrap();
-    browser.type_into(&count, "1").unwrap();
-    let submit = browser.find("#submit button").unwrap().unwrap();
-    browser.click(&submit).unwrap();
-    let text = submitted(&browser, within);
-    assert!(text.starts_with("submitted orders1-"), "{text}");
-    let order = text.trim_start_matches("submitted ").to_string();
+    let submitted = submit_from_page(&browser, "breaker", 1, within);
+    let order = submitted[0].clone();
     operator.wait("/api/orders", "the submitted order done", |o| {
-        o.as_array().is_some_and(|o| {
-            o.iter()
-                .any(|o| o["holon"] == format!("order/{order}") && o["status"] == "done")
-        })
+        lists_done(o, &order)
     });
     // The observer's page shows it done too.
     observer.wait("/api/orders", "the order done, for the observer", |o| {
-        o.as_array().is_some_and(|o| {
-            o.iter()
-                .any(|o| o["holon"] == format!("order/{order}") && o["status"] == "done")
-        })
+        lists_done(o, &order)
     });
     browser
         .goto(&format!("http://{}/", observer.address))
@@ -541,17 +554,7 @@ async fn in_a_secure_cell_the_identity_decides_what_the_page_may_do() {
     browser
         .wait_for("tr[data-holon=\"resource/robot1\"]", within)
         .unwrap();
-    let done_filter = browser
-        .find("#status-filter option:nth-child(3)")
-        .unwrap()
-        .unwrap();
-    browser.click(&done_filter).unwrap();
-    browser
-        .wait_for(
-            &format!("tr[data-order=\"{order}\"][data-status=\"done\"]"),
-            within,
-        )
-        .unwrap();
+    wait_done_on_page(&browser, &submitted, within);
 }
 
 /// `cell demo --dashboard --keep`: the demo's dashboard shows its orders done, the cell
