@@ -4,8 +4,9 @@
 //!
 //!     cargo run --release -p bench -- all            # the whole table, JSON in bench-results.json
 //!
-//! Topology, as in a cell: this process runs the zenoh router; every other process is a
-//! peer that connects to it. The floors use the same path as the holons.
+//! Topology, as in a cell: this process runs the zenoh router; every holon is a client
+//! of it (the echo helper a peer). The floors use the same path as the holons: one link
+//! from this process's router session; `scale` measures the path across the router.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -14,6 +15,7 @@ use std::time::{Duration, Instant};
 mod dashboard;
 mod erlang;
 mod robots;
+mod scale;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Parser, Subcommand};
@@ -107,6 +109,7 @@ async fn echo_tcp(listen: &str) -> Result<()> {
 
 async fn echo_zenoh(connect: &str, key: &str) -> Result<()> {
     let settings = holon::ZenohSettings {
+        mode: holon::Mode::Peer,
         connect: vec![connect.to_string()],
         listen: vec!["tcp/127.0.0.1:0".into()],
         ..Default::default()
@@ -207,7 +210,7 @@ fn footprint(pid: i32) -> Result<(u64, u64)> {
 async fn router(cell: &str, lease_ms: Option<u64>) -> Result<Cell> {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
     let settings = holon::ZenohSettings {
-        mode: "router".into(),
+        mode: holon::Mode::Router,
         listen: vec![endpoint.clone()],
         lease_ms,
         ..Default::default()
@@ -421,23 +424,7 @@ async fn all(
         order_node_footprint(&mut run, 1000).await?;
     }
     if wants("scale") && scale > 0 {
-        let (visible, round, rss) = scale_out(&run.dir, scale).await?;
-        run.table.add(
-            &format!("scale: {scale} resource holons, all visible"),
-            format!("{:.2} s after the first spawn", visible.as_secs_f64()),
-            format!("{:.0} MiB resident in all", rss as f64 / 1024.0),
-            json!({"holons": scale, "all_visible_s": visible.as_secs_f64(), "rss_total_kib": rss}),
-        );
-        run.table.add(
-            &format!("scale: proposal round with {scale} repliers"),
-            format!(
-                "p50 {:.1} ms, p99 {:.1} ms",
-                round.pct(0.5) / 1e3,
-                round.pct(0.99) / 1e3
-            ),
-            format!("{:.0}x zenoh floor p50", run.ratio(&round)),
-            round.json(),
-        );
+        scale::section(&mut run, scale).await?;
     }
     if wants("dashboard") && scale > 0 {
         dashboard::section(&mut run, scale, 1000).await?;
@@ -683,7 +670,7 @@ async fn tls_booking(run: &mut Run) -> Result<()> {
     }
     let pki = dir.join("pki");
     let settings = holon::ZenohSettings {
-        mode: "router".into(),
+        mode: holon::Mode::Router,
         listen: vec![endpoint.clone()],
         tls: Some(holon::tls::TlsSettings {
             pki: Some(pki.clone()),
@@ -704,14 +691,7 @@ async fn tls_booking(run: &mut Run) -> Result<()> {
     let mut robot7 = std::process::Command::new(holarchy_tests::bin("holon-node"))
         .arg("--config")
         .arg(&config)
-        .args([
-            "--cell",
-            "bench",
-            "--connect",
-            &endpoint,
-            "--listen",
-            "tls/127.0.0.1:0",
-        ])
+        .args(["--cell", "bench", "--connect", &endpoint])
         .args(["--controller", &run.sim.address])
         .arg("--pki")
         .arg(&pki)
@@ -1182,7 +1162,7 @@ fn start_one_step_product(dir: &Path, cell: &Cell) -> Result<Process> {
     let product = dir.join("one-step.toml");
     std::fs::write(
         &product,
-        format!("cell = \"{}\"\nname = \"part\"\nkind = \"product\"\n[zenoh]\nlisten = [\"tcp/127.0.0.1:0\"]\n[[steps]]\nservice_type = \"pick_n_place\"\ninfo = {{ pick = {{ x = 1.0, y = 2.0, z = 3.0 }}, place = {{ x = 4.0, y = 5.0, z = 6.0 }} }}\n", cell.keys.cell()),
+        format!("cell = \"{}\"\nname = \"part\"\nkind = \"product\"\n[[steps]]\nservice_type = \"pick_n_place\"\ninfo = {{ pick = {{ x = 1.0, y = 2.0, z = 3.0 }}, place = {{ x = 4.0, y = 5.0, z = 6.0 }} }}\n", cell.keys.cell()),
     )?;
     holarchy_tests::start_holon(dir, "holon-node", &product, "part", cell, &[])
 }
@@ -1281,67 +1261,6 @@ async fn start_robots(
         robots.push((sim, node));
     }
     Ok(robots)
-}
-
-/// Starts `n` resource holons (sharing 4 controllers): time until all are visible, a
-/// proposal round's latency with all of them replying, and their total memory.
-async fn scale_out(dir: &Path, n: usize) -> Result<(Duration, Latency, u64)> {
-    let cell = router("bench-scale", None).await?;
-    let dir = dir.join("scale");
-    std::fs::create_dir_all(&dir)?;
-    let sims: Vec<Sim> = (0..4)
-        .map(|i| Sim::start(&dir, &format!("sim{i}"), "127.0.0.1:0", &[]))
-        .collect::<Result<_>>()?;
-    let subscriber = cell
-        .session
-        .liveliness()
-        .declare_subscriber(cell.keys.alive_kind(schemas::HolonKind::Resource))
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let t = Instant::now();
-    let mut nodes = Vec::new();
-    for i in 0..n {
-        let name = format!("r{i}");
-        let config = resource_config(&dir, &name, 5000)?;
-        nodes.push(holarchy_tests::start_node(
-            &dir,
-            &config,
-            "bench-scale",
-            &cell.endpoint,
-            &sims[i % 4].address,
-            &[],
-        )?);
-    }
-    let mut seen = std::collections::HashSet::new();
-    while seen.len() < n {
-        let sample = tokio::time::timeout(Duration::from_secs(120), subscriber.recv_async())
-            .await
-            .map_err(|_| anyhow!("only {} of {n} holons visible after 120 s", seen.len()))?
-            .map_err(|e| anyhow!("{e}"))?;
-        seen.insert(sample.key_expr().to_string());
-    }
-    let visible = t.elapsed();
-    // Wait until all offer (their controllers ready), then time proposal rounds.
-    let ask = pick_n_place(&cell.keys, MessageType::ProposalReq, "bench", "scale/1/1");
-    cell.wait_proposals(&ask, n).await?;
-    let mut times = Vec::new();
-    let started = Instant::now();
-    for _ in 0..50 {
-        let t = Instant::now();
-        let count = cell.proposals(&ask).await?.len();
-        if count == n {
-            times.push(t.elapsed());
-        }
-    }
-    let round = Latency::new(times, started.elapsed());
-    let rss: u64 = nodes
-        .iter()
-        .filter_map(|p| footprint(p.pid()).ok())
-        .map(|(r, _)| r)
-        .sum();
-    drop(nodes);
-    drop(sims);
-    Ok((visible, round, rss))
 }
 
 /// One controller command's round trip through the controller client and robot-sim,

@@ -172,12 +172,7 @@ impl Cell {
             .arg("--config")
             .arg(&config)
             .args(["--cell", self.keys.cell(), "--name", holon.name()])
-            .args(["--connect", &self.endpoint, "--listen"])
-            .arg(if self.pki.is_some() {
-                "tls/127.0.0.1:0"
-            } else {
-                "tcp/127.0.0.1:0"
-            })
+            .args(["--connect", &self.endpoint])
             .args(
                 self.pki
                     .iter()
@@ -257,7 +252,7 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         None
     };
     let settings = holon::ZenohSettings {
-        mode: "router".into(),
+        mode: holon::Mode::Router,
         listen: vec![endpoint.clone()],
         tls: pki.as_ref().map(|pki| holon::tls::TlsSettings {
             pki: Some(pki.clone()),
@@ -345,7 +340,7 @@ async fn start_dashboard(
     let config = crate::dashboard::DashboardConfig {
         keys: cell.keys.clone(),
         zenoh: holon::ZenohSettings {
-            mode: "client".into(),
+            mode: holon::Mode::Client,
             connect: vec![cell.endpoint.clone()],
             tls: cell.pki.as_ref().map(|pki| holon::tls::TlsSettings {
                 pki: Some(pki.clone()),

@@ -214,7 +214,7 @@ impl ClientArgs {
     /// The settings of a zenoh client of the cell.
     fn settings(&self) -> holon::ZenohSettings {
         holon::ZenohSettings {
-            mode: "client".into(),
+            mode: holon::Mode::Client,
             connect: self.connect.clone(),
             tls: self.pki.as_ref().map(|pki| holon::tls::TlsSettings {
                 pki: Some(pki.clone()),

@@ -49,7 +49,7 @@ impl RouterSection {
             .chain(&self.connect)
             .any(|e| e.starts_with("tls/"));
         holon::ZenohSettings {
-            mode: "router".into(),
+            mode: holon::Mode::Router,
             listen: self.listen.clone(),
             connect: self.connect.clone(),
             lease_ms: self.lease_ms,

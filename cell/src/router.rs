@@ -41,7 +41,7 @@ pub fn config(options: &RouterOptions) -> Result<zenoh::Config> {
             .with_context(|| format!("cannot load {}", path.display()))?,
         None => {
             let settings = holon::ZenohSettings {
-                mode: "router".into(),
+                mode: holon::Mode::Router,
                 multicast_scouting: false,
                 listen: options.listen.clone(),
                 connect: options.connect.clone(),

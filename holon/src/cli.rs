@@ -17,12 +17,16 @@ pub struct CommonArgs {
     /// The name, overriding `name` in the config.
     #[arg(long, value_name = "N")]
     pub name: Option<String>,
-    /// A zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; replaces
-    /// zenoh.connect in the config).
+    /// How this process joins zenoh (replaces zenoh.mode; default client): client
+    /// talks through its host's router only, peer links directly to other peers.
+    #[arg(long, value_enum, value_name = "client|peer")]
+    pub mode: Option<crate::Mode>,
+    /// A zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447, the host's router
+    /// (repeatable; replaces zenoh.connect in the config).
     #[arg(long, value_name = "ENDPOINT")]
     pub connect: Vec<String>,
-    /// A zenoh endpoint to listen on, e.g. tcp/127.0.0.1:0 (repeatable; replaces
-    /// zenoh.listen in the config).
+    /// A zenoh endpoint to listen on, e.g. tcp/127.0.0.1:0, for a peer (repeatable;
+    /// replaces zenoh.listen in the config; a client listens on nothing).
     #[arg(long, value_name = "ENDPOINT")]
     pub listen: Vec<String>,
     /// The zenoh link lease in ms (replaces zenoh.lease_ms): how long a silent peer
@@ -55,6 +59,7 @@ impl CommonArgs {
             listen: self.listen.clone(),
             data_dir: self.data_dir.clone(),
             lease_ms: self.lease_ms,
+            mode: self.mode,
             pki: self.pki.clone(),
         }
     }

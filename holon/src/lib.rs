@@ -16,7 +16,7 @@ pub mod zenoh_error;
 pub use backoff::Backoff;
 pub use logging::LogFormat;
 pub use restart::{Intensity, RestartType, RestartWindow};
-pub use session::ZenohSettings;
+pub use session::{Mode, ZenohSettings};
 pub use supervisor::{ChildError, ChildSpec, Strategy, Supervisor};
 
 use tokio_util::sync::CancellationToken;

@@ -1,5 +1,8 @@
 //! The zenoh session of a holon process, from the `[zenoh]` section of its config and
-//! the command line. Multicast scouting is off unless the config turns it on. With
+//! the command line. A holon is by default a client of its host's router (one link per
+//! process; the routers link the hosts); `mode = "peer"` links holons directly, one
+//! link per pair (see docs/architecture.md, "Topology"). Multicast scouting is off
+//! unless the config turns it on. With
 //! `[zenoh.tls]` every link is mutual TLS and, on holons and routers, the cell's access
 //! control is enforced (see `crate::tls` and docs/security.md).
 
@@ -10,18 +13,57 @@ use serde::{Deserialize, Serialize};
 
 use crate::tls::{IdentityFiles, TlsError, TlsSettings};
 
+/// How a process takes part in the zenoh network.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    /// Talks only through the router it connects to: one link per process, whatever
+    /// the size of the cell; the router forwards every message (one hop more than a
+    /// direct link). The default for holons.
+    #[default]
+    Client,
+    /// Links directly to every other peer it learns of (a full mesh): the shortest
+    /// path between two holons, one link per pair (memory and sockets grow with the
+    /// cell). Each peer must listen on an address the others reach.
+    Peer,
+    /// Routes for the clients and peers that connect to it, and links to other routers
+    /// (`cell router`, `cell up`; not a holon's mode).
+    #[value(skip)]
+    Router,
+}
+
+impl Mode {
+    /// The name zenoh's configuration uses.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Mode::Client => "client",
+            Mode::Peer => "peer",
+            Mode::Router => "router",
+        }
+    }
+}
+
+impl std::fmt::Display for Mode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// How a holon joins the zenoh network (`[zenoh]` in every holon config).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ZenohSettings {
-    /// `peer` (default), `client` (talks only through the routers it connects to) or
-    /// `router` (also routes for the peers and clients that connect to it).
-    #[serde(default = "default_mode")]
-    pub mode: String,
-    /// Endpoints to connect to, e.g. `tcp/127.0.0.1:7447` (a router or another peer).
+    /// `client` (default: talks only through the router it connects to), `peer` (links
+    /// directly to the other peers) or `router`. See [`Mode`].
+    #[serde(default)]
+    pub mode: Mode,
+    /// Endpoints to connect to, e.g. `tcp/127.0.0.1:7447`: the host's router (a client
+    /// takes the first that answers, and the next when it goes), or routers and
+    /// other peers (a peer).
     #[serde(default)]
     pub connect: Vec<String>,
-    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7448`; empty lets zenoh choose.
+    /// Endpoints to listen on, e.g. `tcp/0.0.0.0:7448` (peers and routers; a client
+    /// listens on nothing). Empty lets a peer's zenoh choose.
     #[serde(default)]
     pub listen: Vec<String>,
     /// Discover peers by UDP multicast on the local network (off by default: explicit
@@ -43,14 +85,10 @@ pub struct ZenohSettings {
     pub tls: Option<TlsSettings>,
 }
 
-fn default_mode() -> String {
-    "peer".into()
-}
-
 impl Default for ZenohSettings {
     fn default() -> Self {
         ZenohSettings {
-            mode: default_mode(),
+            mode: Mode::default(),
             connect: Vec::new(),
             listen: Vec::new(),
             multicast_scouting: false,
@@ -99,7 +137,7 @@ impl ZenohSettings {
         let Some(tls) = &self.tls else {
             return Ok(None);
         };
-        tls.identity_files(identity, self.mode != "client")
+        tls.identity_files(identity, self.mode != Mode::Client)
             .map(Some)
             .map_err(|source| SessionError::Tls {
                 identity: identity.to_string(),
@@ -135,14 +173,9 @@ impl ZenohSettings {
                     message: e.to_string(),
                 })
         };
-        if !matches!(self.mode.as_str(), "peer" | "client" | "router") {
-            return Err(SessionError::Config {
-                key: "mode",
-                message: format!("{:?} is not peer, client or router", self.mode),
-            });
-        }
+        self.check_client()?;
         let json = |v: &serde_json::Value| v.to_string();
-        set("mode", json(&self.mode.clone().into()))?;
+        set("mode", json(&self.mode.as_str().into()))?;
         set("connect/endpoints", json(&self.connect.clone().into()))?;
         set("listen/endpoints", json(&self.listen.clone().into()))?;
         set(
@@ -191,15 +224,42 @@ impl ZenohSettings {
         Ok(config)
     }
 
-    /// Opens the session of `identity` (see `to_config`), bounded by `timeout`.
+    /// A client needs a router to connect to and listens on nothing.
+    fn check_client(&self) -> Result<(), SessionError> {
+        if self.mode != Mode::Client {
+            return Ok(());
+        }
+        if self.connect.is_empty() && !self.multicast_scouting {
+            return Err(SessionError::Config {
+                key: "connect",
+                message: "a client needs its host's router to connect to: set zenoh.connect \
+                          or --connect (or mode = \"peer\" to link to other peers directly)"
+                    .into(),
+            });
+        }
+        if let Some(endpoint) = self.listen.first() {
+            return Err(SessionError::Config {
+                key: "listen",
+                message: format!(
+                    "a client listens on nothing (it links only to its router), so {endpoint} \
+                     would be an open port that serves no one: remove zenoh.listen and \
+                     --listen, or set mode = \"peer\" for a holon others link to"
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// Opens the session of `identity` (see `to_config`), bounded by `timeout`. A
+    /// client gives up when its router does not answer within `timeout` (zenoh's open
+    /// would retry for ever); once open, it reconnects by itself when the link drops.
     pub async fn open(
         &self,
         identity: &str,
         timeout: Duration,
     ) -> Result<zenoh::Session, SessionError> {
         let mut config = self.to_config(identity)?;
-        if self.mode == "client" {
-            // A client (an operator's command) gives up instead of retrying for ever:
+        if self.mode == Mode::Client {
             // zenoh's open does not return while it retries its connect endpoints.
             for (key, value) in [
                 ("connect/timeout_ms", timeout.as_millis().max(1).to_string()),
@@ -256,6 +316,8 @@ pub struct CommandLine {
     pub data_dir: Option<std::path::PathBuf>,
     /// Replaces `zenoh.lease_ms`.
     pub lease_ms: Option<u64>,
+    /// Replaces `zenoh.mode`.
+    pub mode: Option<Mode>,
     /// Turns on mutual TLS with the identity files in this PKI directory (replaces
     /// `[zenoh.tls]`).
     pub pki: Option<PathBuf>,
@@ -287,6 +349,9 @@ impl CommandLine {
         }
         if self.lease_ms.is_some() {
             zenoh.lease_ms = self.lease_ms;
+        }
+        if let Some(mode) = self.mode {
+            zenoh.mode = mode;
         }
         if let Some(pki) = &self.pki {
             zenoh.tls = Some(TlsSettings {
@@ -334,11 +399,26 @@ mod tests {
 
     #[test]
     fn rejects_bad_settings() {
-        let bad_mode = ZenohSettings {
-            mode: "router-ish".into(),
+        let bad_mode =
+            serde_json::from_str::<ZenohSettings>(r#"{"mode": "router-ish"}"#).unwrap_err();
+        assert!(bad_mode.to_string().contains("client"), "{bad_mode}");
+        let alone = ZenohSettings::default()
+            .validate("x")
+            .unwrap_err()
+            .to_string();
+        assert!(alone.contains("router to connect to"), "{alone}");
+        let listening_client = ZenohSettings {
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            listen: vec!["tcp/127.0.0.1:0".into()],
             ..ZenohSettings::default()
         };
-        assert!(bad_mode.validate("x").is_err());
+        let err = listening_client.validate("x").unwrap_err().to_string();
+        assert!(err.contains("listens on nothing"), "{err}");
+        let listening_peer = ZenohSettings {
+            mode: Mode::Peer,
+            ..listening_client
+        };
+        listening_peer.validate("x").unwrap();
         let bad_endpoint = ZenohSettings {
             connect: vec!["nonsense".into()],
             ..ZenohSettings::default()

@@ -304,8 +304,6 @@ pub fn start_node(
             "--controller",
             controller,
         ])
-        // Peers mesh through gossip: each must listen on an address the others reach.
-        .args(["--listen", "tcp/127.0.0.1:0"])
         .arg("--log-file")
         .arg(dir.join(format!("{name}.log.json")))
         .args(extra)
@@ -333,7 +331,7 @@ impl Cell {
     pub async fn open(cell: &str) -> Result<Cell> {
         let endpoint = format!("tcp/127.0.0.1:{}", free_port());
         let settings = holon::ZenohSettings {
-            mode: "router".into(),
+            mode: holon::Mode::Router,
             listen: vec![endpoint.clone()],
             ..holon::ZenohSettings::default()
         };
@@ -601,7 +599,7 @@ pub fn demo_config(file: &str) -> PathBuf {
 }
 
 /// Starts `program` (holon-node or order-node) with `--config FILE --cell CELL --name
-/// NAME --connect ENDPOINT --listen tcp/127.0.0.1:0` and extra flags; its log goes to
+/// NAME --connect ENDPOINT` (a client of the test's router) and extra flags; its log goes to
 /// `DIR/NAME.log.json`.
 pub fn start_holon(
     dir: &Path,
@@ -616,7 +614,7 @@ pub fn start_holon(
         .arg("--config")
         .arg(config)
         .args(["--cell", cell.keys.cell(), "--name", name])
-        .args(["--connect", &cell.endpoint, "--listen", "tcp/127.0.0.1:0"])
+        .args(["--connect", &cell.endpoint])
         .arg("--log-file")
         .arg(dir.join(format!("{name}.log.json")))
         .args(extra)

@@ -79,7 +79,7 @@ args = ["--listen", "127.0.0.1:{sim_port}", "--delay-ms", "20", "--count-file", 
 name = "{name}"
 identity = "resource.{name}"
 program = "holon-node"
-args = ["--config", "{}", "--cell", "{cell}", "--name", "{name}", "--controller", "127.0.0.1:{sim_port}", "--connect", "{endpoint}", "--listen", "tls/127.0.0.1:0", "--pki", "pki", "--data-dir", "data"]
+args = ["--config", "{}", "--cell", "{cell}", "--name", "{name}", "--controller", "127.0.0.1:{sim_port}", "--connect", "{endpoint}", "--pki", "pki", "--data-dir", "data"]
 "#,
             demo.join(config).display()
         ));
@@ -89,12 +89,12 @@ args = ["--config", "{}", "--cell", "{cell}", "--name", "{name}", "--controller"
 name = "breaker"
 identity = "product.breaker"
 program = "holon-node"
-args = ["--config", "{}", "--cell", "{cell}", "--connect", "{endpoint}", "--listen", "tls/127.0.0.1:0", "--pki", "pki"]
+args = ["--config", "{}", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki"]
 [[process]]
 name = "orders1"
 identity = "order-node.orders1"
 program = "order-node"
-args = ["--config", "{}", "--cell", "{cell}", "--connect", "{endpoint}", "--listen", "tls/127.0.0.1:0", "--pki", "pki", "--data-dir", "data"]
+args = ["--config", "{}", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", "--data-dir", "data"]
 "#,
         demo.join("breaker.toml").display(),
         demo.join("orders1.toml").display()
@@ -131,17 +131,17 @@ impl SecureCell {
     }
 
     /// A zenoh session with the identity `identity` of `pki`, as a client (operators,
-    /// observers) or a peer that listens (holons).
+    /// observers, holons) or a peer that listens (a holon that links directly).
     pub async fn session_as(
         &self,
         pki: &Path,
         identity: &str,
-        mode: &str,
+        mode: holon::Mode,
     ) -> zenoh::Result<zenoh::Session> {
         let settings = holon::ZenohSettings {
-            mode: mode.into(),
+            mode,
             connect: vec![self.endpoint.clone()],
-            listen: if mode == "peer" {
+            listen: if mode == holon::Mode::Peer {
                 vec!["tls/127.0.0.1:0".into()]
             } else {
                 vec![]

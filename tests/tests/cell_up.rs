@@ -86,7 +86,7 @@ args = ["--config", "robot1.toml", "--cell", "t-up", "--controller", "127.0.0.1:
 
     // A client of the router sees the holon.
     let session = holon::ZenohSettings {
-        mode: "client".into(),
+        mode: holon::Mode::Client,
         connect: vec![router.clone()],
         ..Default::default()
     }

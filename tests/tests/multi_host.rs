@@ -273,7 +273,7 @@ fn start_a_router_on_every_host(hosts: &mut Hosts, dir: &Path) {
 }
 
 /// Resources (each after its simulator) on hosts a and b, the product and the
-/// order-node on host c, all with the cell's lease.
+/// order-node on host c, all with the cell's lease; each a client of its host's router.
 fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
     let with_lease = |file: &str| {
         let text = std::fs::read_to_string(demo_config(file)).unwrap();
@@ -311,7 +311,6 @@ fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
             ],
         );
         let config = with_lease(config);
-        let listen = format!("tcp/{}:0", Hosts::address(host));
         let data = dir.join(format!("data-{host}"));
         hosts.spawn(
             dir,
@@ -329,14 +328,11 @@ fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
                 &controller,
                 "--connect",
                 &Hosts::router(host),
-                "--listen",
-                &listen,
                 "--data-dir",
                 data.to_str().unwrap(),
             ],
         );
     }
-    let listen_c = format!("tcp/{}:0", Hosts::address("c"));
     let breaker = with_lease("breaker.toml");
     hosts.spawn(
         dir,
@@ -350,8 +346,6 @@ fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
             CELL,
             "--connect",
             &Hosts::router("c"),
-            "--listen",
-            &listen_c,
         ],
     );
     let orders = with_lease("orders1.toml");
@@ -368,8 +362,6 @@ fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
             CELL,
             "--connect",
             &Hosts::router("c"),
-            "--listen",
-            &listen_c,
             "--data-dir",
             data_c.to_str().unwrap(),
         ],

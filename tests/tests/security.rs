@@ -94,7 +94,7 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
 
     // An observer sees the whole cell come up.
     let observer = cell
-        .session_as(&cell.pki(), "observer.default", "client")
+        .session_as(&cell.pki(), "observer.default", holon::Mode::Client)
         .await
         .expect("the observer connects with its certificate");
     for name in ["robot1", "robot2", "inspect1", "conveyor1"] {
@@ -140,7 +140,7 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
 
     // Without TLS, or with a certificate of another CA, nothing connects.
     let plain = holon::ZenohSettings {
-        mode: "client".into(),
+        mode: holon::Mode::Client,
         connect: vec![cell.endpoint.replace("tls/", "tcp/")],
         ..Default::default()
     }
@@ -160,7 +160,11 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         .unwrap()
         .success());
     let foreign = cell
-        .session_as(&other.path().join("pki"), "operator.default", "client")
+        .session_as(
+            &other.path().join("pki"),
+            "operator.default",
+            holon::Mode::Client,
+        )
         .await;
     assert!(foreign.is_err(), "a certificate of another CA was accepted");
     let refused = Command::new(bin("cell"))
@@ -267,7 +271,7 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
     // A resource identity (a spare: robot9) may not submit, book another resource,
     // declare another resource's keys or an order's inbox, or fake a result.
     let robot9 = cell
-        .session_as(&cell.pki(), "resource.robot9", "peer")
+        .session_as(&cell.pki(), "resource.robot9", holon::Mode::Peer)
         .await
         .expect("a spare resource identity connects");
     let work = serde_json::to_vec(&schemas::WorkOrder {
