@@ -50,7 +50,7 @@ impl std::fmt::Display for Mode {
 }
 
 /// How a holon joins the zenoh network (`[zenoh]` in every holon config).
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ZenohSettings {
     /// `client` (default: talks only through the router it connects to), `peer` (links
@@ -83,20 +83,6 @@ pub struct ZenohSettings {
     /// Mutual TLS and access control (`[zenoh.tls]`); off when absent.
     #[serde(default)]
     pub tls: Option<TlsSettings>,
-}
-
-impl Default for ZenohSettings {
-    fn default() -> Self {
-        ZenohSettings {
-            mode: Mode::default(),
-            connect: Vec::new(),
-            listen: Vec::new(),
-            multicast_scouting: false,
-            lease_ms: None,
-            config_file: None,
-            tls: None,
-        }
-    }
 }
 
 #[derive(Debug, thiserror::Error)]
