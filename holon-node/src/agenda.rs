@@ -18,6 +18,7 @@
 //! | | agenda full | `proposal` false `agenda_full` | same |
 //! | | otherwise | `proposal` true with the queue and the expected wait | same |
 //! | `booking_req` | type not offered | refused `unknown_service` | same |
+//! | | the requester is a resource | refused `not_a_requester` (nothing would release it) | same |
 //! | | the conversation is booked | true again with its queue position (no second booking) | same |
 //! | | the conversation's job is running | refused `busy` | same |
 //! | | controller not ready, or withdrawing | refused `unavailable` (no commitment without hardware) | same |
@@ -51,8 +52,8 @@
 use std::sync::Arc;
 
 use schemas::{
-    reason, unix_ms, BookingView, ControllerStatus, CurrentJobView, HolonId, MessageType,
-    ResourceSnapshot, ResourceState, Service,
+    reason, unix_ms, BookingView, ControllerStatus, CurrentJobView, HolonId, HolonKind,
+    MessageType, ResourceSnapshot, ResourceState, Service,
 };
 use serde_json::{json, Map, Value};
 
@@ -424,6 +425,9 @@ impl AgendaManager {
             _ if !self.catalog.offers(&request.service_type) => {
                 self.refuse(&request, reason::UNKNOWN_SERVICE, None)
             }
+            _ if request.requester.kind() == HolonKind::Resource => {
+                self.refuse(&request, reason::NOT_A_REQUESTER, None)
+            }
             (
                 Conversation {
                     booked: Some(position),
@@ -773,6 +777,21 @@ mod tests {
         assert_eq!(actions[2], AgendaAction::StateChanged);
         assert!(matches!(m.status(), Status::Busy(ref j) if j.conversation_id == "c2"));
         assert_eq!(m.bookings().len(), 1, "the started booking left the list");
+    }
+
+    #[test]
+    fn a_resource_may_not_book() {
+        let mut m = manager();
+        let by_a_resource = Service::request(
+            MessageType::BookingReq,
+            "pick_n_place",
+            "c1",
+            HolonId::resource("robot2").unwrap(),
+        )
+        .with_reply_to(INBOX);
+        let actions = m.handle(AgendaEvent::Request(by_a_resource));
+        assert_refused(&actions, reason::NOT_A_REQUESTER);
+        assert!(m.bookings().is_empty());
     }
 
     #[test]

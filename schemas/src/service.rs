@@ -95,6 +95,10 @@ pub mod reason {
     pub const AGENDA_FULL: &str = "agenda_full";
     /// `info` lacks what the service's steps need (e.g. a pose).
     pub const INVALID_INFO: &str = "invalid_info";
+    /// `booking_req` whose requester is a resource: orders, products and staff book
+    /// resources; a resource does not (its absence is not watched, so nothing would
+    /// release its bookings).
+    pub const NOT_A_REQUESTER: &str = "not_a_requester";
     /// The controller answered a command with `error` (its message is in `info.detail`).
     pub const CONTROLLER_ERROR: &str = "controller_error";
     /// The connection to the controller broke during the step.

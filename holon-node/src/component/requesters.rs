@@ -1,8 +1,10 @@
 //! Booking lifetime: a booking lasts while its requester is in the cell.
 //!
-//! Every holon that books (an order) holds a liveliness token at
-//! `holarchy/<cell>/alive/<kind>/<name>` while it wants its bookings. The requesters
-//! component watches those tokens; when the requester of a booking has been absent longer
+//! Every holon that books (an order; products and staff may too, resources never: the
+//! agenda refuses them) holds a liveliness token at `holarchy/<cell>/alive/<kind>/<name>`
+//! while it wants its bookings. The requesters component watches the tokens of those
+//! kinds, not the other resources' (in a cell of N resources, watching every token
+//! would cost each new resource N samples, N² in all); when the requester of a booking has been absent longer
 //! than `agenda.requester_grace_ms` (its order ended, was faked, or its order-node is gone
 //! for good), the agenda manager releases its bookings, so they no longer block the
 //! resource or lengthen its offers. The grace covers an order-node restart and a short
@@ -16,8 +18,9 @@ use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::Duration;
 
+use futures_util::future::select_all;
 use holon::ChildError;
-use schemas::{CellKeys, HolonId};
+use schemas::{CellKeys, HolonId, HolonKind};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -27,6 +30,21 @@ use crate::absences::{Absences, Moment};
 use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
 use crate::views::Views;
+
+/// The kinds of holon that may book a resource: every kind but resources.
+fn requester_kinds() -> impl Iterator<Item = HolonKind> {
+    HolonKind::ALL
+        .into_iter()
+        .filter(|kind| *kind != HolonKind::Resource)
+}
+
+/// A liveliness subscriber of one requester kind.
+type Watch = zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>;
+
+/// The next token change of any requester kind.
+async fn next_change(watches: &[Watch]) -> Result<zenoh::sample::Sample, zenoh::Error> {
+    select_all(watches.iter().map(|w| w.recv_async())).await.0
+}
 
 /// How often booked requesters are checked against the grace.
 const CHECK_EVERY: Duration = Duration::from_secs(1);
@@ -67,19 +85,23 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     // A restarted component starts a fresh watch: absences count from now (the grace
     // is restarted, never shortened).
     absences.send_replace(Absences::new(Moment::now()));
-    let subscriber = links
-        .session
-        .liveliness()
-        .declare_subscriber(keys.alive_all())
-        .history(true)
-        .await
-        .map_err(|e| format!("cannot watch the cell's liveliness tokens: {e}"))?;
+    let mut watches = Vec::new();
+    for kind in requester_kinds() {
+        let watch = links
+            .session
+            .liveliness()
+            .declare_subscriber(keys.alive_kind(kind))
+            .history(true)
+            .await
+            .map_err(|e| format!("cannot watch the cell's {kind} tokens: {e}"))?;
+        watches.push(watch);
+    }
     let mut tick = tokio::time::interval(CHECK_EVERY);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
             _ = token.cancelled() => return Ok(()),
-            sample = subscriber.recv_async() => {
+            sample = next_change(&watches) => {
                 let sample = sample.map_err(|e| format!("liveliness subscriber closed: {e}"))?;
                 let Some(other) = keys.holon_from_alive(sample.key_expr().as_str()) else {
                     continue;
