@@ -193,18 +193,31 @@ fn spawn_helper(args: &[&str]) -> Result<(Child, String)> {
     Ok((child, line.trim().to_string()))
 }
 
+/// Proportional memory (KiB) of a process: its private pages plus its share of the
+/// pages it shares (the binary's code, mapped by every holon process), from /proc.
+fn proportional(pid: i32) -> Result<u64> {
+    let rollup = std::fs::read_to_string(format!("/proc/{pid}/smaps_rollup"))?;
+    rollup
+        .lines()
+        .find(|l| l.starts_with("Pss:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse().ok())
+        .ok_or_else(|| anyhow!("no Pss in /proc/{pid}/smaps_rollup"))
+}
+
 /// Resident memory (KiB) and threads of a process, from /proc.
 fn footprint(pid: i32) -> Result<(u64, u64)> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))?;
-    let field = |name: &str| -> Result<u64> {
-        status
-            .lines()
-            .find(|l| l.starts_with(name))
-            .and_then(|l| l.split_whitespace().nth(1))
-            .and_then(|v| v.parse().ok())
-            .ok_or_else(|| anyhow!("no {name} in /proc/{pid}/status"))
-    };
-    Ok((field("VmRSS:")?, field("Threads:")?))
+    Ok((status_field(pid, "VmRSS:")?, status_field(pid, "Threads:")?))
+}
+
+/// One number of /proc/PID/status (`VmRSS:`, `RssAnon:`, `Threads:`...).
+fn status_field(pid: i32, name: &str) -> Result<u64> {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))?
+        .lines()
+        .find(|l| l.starts_with(name))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse().ok())
+        .ok_or_else(|| anyhow!("no {name} in /proc/{pid}/status"))
 }
 
 async fn router(cell: &str, lease_ms: Option<u64>) -> Result<Cell> {
@@ -851,11 +864,15 @@ async fn cycle_on(run: &mut Run, robot: &str, durability: &str) -> Result<()> {
 /// Footprint and start of `robot1`; hot-add and SIGKILL detection of fresh holons.
 async fn holon_figures(run: &mut Run) -> Result<()> {
     let (rss, threads) = footprint(run.robot1.pid())?;
+    let anonymous = status_field(run.robot1.pid(), "RssAnon:")?;
     run.table.add(
         "footprint: idle resource holon",
         format!("{:.1} MiB resident, {threads} threads", rss as f64 / 1024.0),
-        "-".into(),
-        json!({"rss_kib": rss, "threads": threads}),
+        format!(
+            "{:.1} MiB of it its own (anonymous); the rest the binary's pages",
+            anonymous as f64 / 1024.0
+        ),
+        json!({"rss_kib": rss, "anonymous_kib": anonymous, "threads": threads}),
     );
     run.table.add(
         "start to ready: resource holon (token visible)",

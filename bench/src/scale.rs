@@ -20,7 +20,7 @@ use holarchy_tests::{pick_n_place, resource_config, Cell, Sim};
 use schemas::{CellKeys, MessageType};
 use serde_json::json;
 
-use super::{booking_series, cpu_time, footprint, router, Latency, Run};
+use super::{booking_series, cpu_time, footprint, proportional, router, Latency, Run};
 
 /// Controller simulators the scaled-out holons share.
 const SIMULATORS: usize = 4;
@@ -33,6 +33,7 @@ pub async fn section(run: &mut Run, holons: usize) -> Result<()> {
     router_hop(run).await?;
     let scaled = scale_out(&run.dir, holons).await?;
     let per_holon_mib = scaled.rss_kib.iter().sum::<u64>() as f64 / 1024.0 / holons as f64;
+    let pss_mib = scaled.pss_kib.iter().sum::<u64>() as f64 / 1024.0 / holons as f64;
     let max_mib = scaled.rss_kib.iter().max().copied().unwrap_or(0) as f64 / 1024.0;
     run.table.add(
         &format!("scale: {holons} resource holons, all visible to an order"),
@@ -55,13 +56,13 @@ pub async fn section(run: &mut Run, holons: usize) -> Result<()> {
         &format!("scale: {holons} resource holons, memory and start"),
         format!("{per_holon_mib:.1} MiB resident each (max {max_mib:.1})"),
         format!(
-            "{:.0} MiB in all; CPU to start {:.1} ms each",
-            per_holon_mib * holons as f64,
+            "PSS {pss_mib:.1} MiB each (code shared); CPU to start {:.1} ms each",
             scaled.start_cpu.as_secs_f64() * 1e3 / holons as f64
         ),
         json!({
             "holons": holons,
             "rss_mean_mib": per_holon_mib,
+            "pss_mean_mib": pss_mib,
             "rss_max_mib": max_mib,
             "start_cpu_ms_each": scaled.start_cpu.as_secs_f64() * 1e3 / holons as f64,
         }),
@@ -138,6 +139,8 @@ struct ScaledOut {
     round: Latency,
     /// Each holon's resident memory (KiB) once all offered.
     rss_kib: Vec<u64>,
+    /// Each holon's proportional memory (KiB): the binary's pages shared out.
+    pss_kib: Vec<u64>,
     /// CPU time (user + system) all holons used until every one was visible.
     start_cpu: Duration,
 }
@@ -207,6 +210,10 @@ async fn scale_out(dir: &Path, n: usize) -> Result<ScaledOut> {
         .filter_map(|p| footprint(p.pid()).ok())
         .map(|(rss, _)| rss)
         .collect();
+    let pss_kib = nodes
+        .iter()
+        .filter_map(|p| proportional(p.pid()).ok())
+        .collect();
     drop(nodes);
     drop(sims);
     Ok(ScaledOut {
@@ -214,6 +221,7 @@ async fn scale_out(dir: &Path, n: usize) -> Result<ScaledOut> {
         visible_after_last,
         round,
         rss_kib,
+        pss_kib,
         start_cpu,
     })
 }
