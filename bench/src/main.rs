@@ -285,6 +285,58 @@ async fn book_and_cancel(
     Ok((booked, t.elapsed()))
 }
 
+/// Eight orders booking `resource` at the same moment (their bookings share a journal
+/// write), against the same eight one after another: until all eight are booked,
+/// `rounds` times each, after 5 warm-up rounds; each round's bookings are cancelled.
+async fn eight_at_once(cell: &Cell, resource: &str, rounds: usize) -> Result<(Latency, Latency)> {
+    let key = cell.keys.service(resource);
+    let (mut together, mut in_turn) = (Vec::new(), Vec::new());
+    let started = Instant::now();
+    for round in 0..rounds + 5 {
+        let requests = |how: &str, kind: MessageType| -> Vec<Vec<u8>> {
+            (0..8)
+                .map(|i| {
+                    let order = format!("eight{i}");
+                    pick_n_place(&cell.keys, kind, &order, &format!("{order}/{how}{round}/1"))
+                        .to_json()
+                })
+                .collect()
+        };
+        let t = Instant::now();
+        let answers = futures_util::future::try_join_all(
+            requests("a", MessageType::BookingReq)
+                .into_iter()
+                .map(|book| get_once(cell, &key, book)),
+        )
+        .await?;
+        let at_once = t.elapsed();
+        let t = Instant::now();
+        for book in requests("b", MessageType::BookingReq) {
+            get_once(cell, &key, book).await?;
+        }
+        let one_by_one = t.elapsed();
+        for answer in answers {
+            if Service::from_json(&answer)?.result != Some(true) {
+                bail!(
+                    "a booking of 8 at once was refused: {}",
+                    String::from_utf8_lossy(&answer)
+                );
+            }
+        }
+        for how in ["a", "b"] {
+            for cancel in requests(how, MessageType::BookingCancel) {
+                get_once(cell, &key, cancel).await?;
+            }
+        }
+        if round >= 5 {
+            together.push(at_once);
+            in_turn.push(one_by_one);
+        }
+    }
+    let total = started.elapsed();
+    Ok((Latency::new(together, total), Latency::new(in_turn, total)))
+}
+
 /// `booking_req` then `booking_cancel` to `resource`, `samples` times after 100 warm-up
 /// pairs, each after a raw `get` to the echo helper (the interleaved floor).
 async fn booking_series(cell: &Cell, resource: &str, samples: usize) -> Result<BookingSeries> {
@@ -621,6 +673,21 @@ async fn booking(run: &mut Run) -> Result<()> {
         "booking round trip (booking_req, journal power_loss)",
         &series,
         0,
+    );
+    let (together, in_turn) = eight_at_once(&run.cell, "robot1", run.samples / 20).await?;
+    run.table.add(
+        "8 orders booking at once (power_loss)",
+        format!(
+            "all 8 booked in p50 {:.0} us, p99 {:.0} us",
+            together.pct(0.5),
+            together.pct(0.99)
+        ),
+        format!(
+            "the same 8 one after another: p50 {:.0} us ({:.1}x)",
+            in_turn.pct(0.5),
+            in_turn.pct(0.5) / together.pct(0.5)
+        ),
+        json!({"at_once": together.json(), "one_after_another": in_turn.json()}),
     );
 
     // The same with the journal's `process_crash` durability (no fsync per commit): the

@@ -4,11 +4,14 @@
 //! from the communication component (with the [`Question`] to answer), `ready`,
 //! `unavailable` and finished jobs from the execution component, acknowledgements from
 //! the communication component, requesters gone from the requesters component, and
-//! `withdraw` when the holon stops. For each event, in this order:
+//! `withdraw` when the holon stops. The events waiting in the mailbox are taken together
+//! (up to [`BATCH`]), so that requests arriving at once (eight orders booking at the
+//! same moment) share one journal write and its fsync. For each batch, in this order:
 //!
-//! 1. the pure state machine ([`crate::agenda`]) makes its transition;
-//! 2. the journal records what changed, before anything is answered or done (a request
-//!    that cannot be recorded is refused and changes nothing);
+//! 1. the pure state machine ([`crate::agenda`]) makes the transition of each event;
+//! 2. the journal records what changed, once, before anything is answered or done; when
+//!    that write fails, the agenda goes back to where it was and the events are taken
+//!    one at a time (a request that cannot be recorded is refused and changes nothing);
 //! 3. the agenda view is republished ([`crate::views`]), so a state read after the
 //!    answer sees the change;
 //! 4. the actions are carried out, here and nowhere else: `Reply` answers the question,
@@ -31,6 +34,10 @@ use crate::config::ResourceConfig;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
 use crate::views::{AgendaView, Views};
+
+/// At most this many waiting events go through the state machine before one journal
+/// write (their answers wait for it).
+const BATCH: usize = 32;
 
 /// How often a journal that cannot be written is tried again.
 const JOURNAL_RETRY: Duration = Duration::from_secs(1);
@@ -204,6 +211,47 @@ impl JournalledAgenda {
         Ok(actions)
     }
 
+    /// The events that arrived together, through the state machine one after another
+    /// and into the journal with one write: the outcome of each, in order (as
+    /// [`apply`](Self::apply) gives it). When the write fails, or while the journal is
+    /// failing, or when the holon withdraws, each event is applied on its own instead.
+    fn apply_batch(
+        &mut self,
+        holon: &HolonId,
+        events: Vec<AgendaEvent>,
+    ) -> Vec<Result<Vec<AgendaAction>, NotRecorded>> {
+        let one_by_one = events.len() == 1
+            || self.journal.is_none()
+            || self.fault.is_some()
+            || events.iter().any(|e| matches!(e, AgendaEvent::Withdraw));
+        if one_by_one {
+            return events.into_iter().map(|e| self.apply(holon, e)).collect();
+        }
+        let before = self.agenda.state();
+        let previous = self.agenda.clone();
+        let mut changed = false;
+        let mut outcomes = Vec::with_capacity(events.len());
+        for event in events.iter().cloned() {
+            // Acknowledgements alone are not written (see `apply`).
+            let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
+            let record = (!lazily && !changed).then(|| self.agenda.record());
+            outcomes.push(Ok(self.agenda.handle(event)));
+            changed |= record.is_some_and(|r| r != self.agenda.record());
+        }
+        if changed {
+            if let Err(e) = self.write() {
+                debug!(%holon, error = %e, events = events.len(), "the journal could not record a batch: its events are taken one at a time");
+                self.agenda = previous;
+                return events.into_iter().map(|e| self.apply(holon, e)).collect();
+            }
+        }
+        let after = self.agenda.state();
+        if before != after {
+            info!(%holon, component = "agenda", from = %before, to = %after, "transition");
+        }
+        outcomes
+    }
+
     fn write(&self) -> Result<(), JournalError> {
         match &self.journal {
             Some(journal) => journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &self.agenda.record()),
@@ -281,7 +329,8 @@ pub struct Links {
     pub faults: Arc<Faults>,
 }
 
-/// The component's task: drains the mailbox, one event at a time, until cancelled.
+/// The component's task: drains the mailbox, the events waiting at once together, until
+/// cancelled.
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
     let holon = &links.holon;
     let mut agenda = links.agenda.take().await;
@@ -292,28 +341,57 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     let mut journal_retry = tokio::time::interval(JOURNAL_RETRY);
     journal_retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
-        let (actions, question) = tokio::select! {
+        let batch = tokio::select! {
             _ = token.cancelled() => return Ok(()),
             _ = links.faults.agenda.notified() => panic!("fault injection: agenda manager crashed"),
-            _ = journal_retry.tick() => (agenda.retry(holon), None),
+            _ = journal_retry.tick() => {
+                let actions = agenda.retry(holon);
+                if actions.contains(&AgendaAction::StateChanged) {
+                    links.views.agenda.send_replace(agenda.view());
+                }
+                carry_out(&links, actions, None).await?;
+                continue;
+            }
             message = mailbox.recv() => {
-                let AgendaMessage { event, question } = message.ok_or("agenda mailbox closed")?;
-                match agenda.apply(holon, event) {
-                    Ok(actions) => (actions, question),
-                    Err(NotRecorded) => {
-                        links.views.agenda.send_replace(agenda.view());
-                        if let Some(question) = question {
-                            question.reject(holon, "unavailable", "the journal could not record the request; nothing changed".into()).await;
-                        }
-                        continue;
+                let mut batch = vec![message.ok_or("agenda mailbox closed")?];
+                while batch.len() < BATCH {
+                    match mailbox.try_recv() {
+                        Ok(message) => batch.push(message),
+                        Err(_) => break,
+                    }
+                }
+                batch
+            }
+        };
+        let (events, questions): (Vec<_>, Vec<_>) = batch
+            .into_iter()
+            .map(|AgendaMessage { event, question }| (event, question))
+            .unzip();
+        let outcomes = agenda.apply_batch(holon, events);
+        // Published once, before any answer (a state read after an answer sees it).
+        let changed = outcomes.iter().any(|outcome| match outcome {
+            Ok(actions) => actions.contains(&AgendaAction::StateChanged),
+            Err(NotRecorded) => true,
+        });
+        if changed {
+            links.views.agenda.send_replace(agenda.view());
+        }
+        for (outcome, question) in outcomes.into_iter().zip(questions) {
+            match outcome {
+                Ok(actions) => carry_out(&links, actions, question).await?,
+                Err(NotRecorded) => {
+                    if let Some(question) = question {
+                        question
+                            .reject(
+                                holon,
+                                "unavailable",
+                                "the journal could not record the request; nothing changed".into(),
+                            )
+                            .await;
                     }
                 }
             }
-        };
-        if actions.contains(&AgendaAction::StateChanged) {
-            links.views.agenda.send_replace(agenda.view());
         }
-        carry_out(&links, actions, question).await?;
     }
 }
 
@@ -350,4 +428,102 @@ async fn carry_out(
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use schemas::MessageType;
+
+    use super::*;
+    use crate::config::{Overrides, ResourceConfig};
+
+    const DEMO: &str = include_str!("../../../deploy/cells/demo/robot1.toml");
+
+    fn config(data: &Path) -> ResourceConfig {
+        let overrides = Overrides {
+            common: holon::session::CommandLine {
+                data_dir: Some(data.to_path_buf()),
+                ..Default::default()
+            },
+            ..Overrides::default()
+        };
+        ResourceConfig::parse(DEMO, "robot1.toml", overrides).unwrap()
+    }
+
+    /// The demo's robot1 with its journal in `data`, its controller ready.
+    fn journalled(config: &ResourceConfig) -> JournalledAgenda {
+        let mut agenda = JournalledAgenda::open(config).unwrap();
+        agenda
+            .apply(&config.holon, AgendaEvent::ExecutionReady)
+            .unwrap();
+        agenda
+    }
+
+    fn booking(order: &str) -> AgendaEvent {
+        AgendaEvent::Request(
+            Service::request(
+                MessageType::BookingReq,
+                "pick_n_place",
+                &format!("{order}/1/1"),
+                HolonId::order(order).unwrap(),
+            )
+            .with_reply_to("holarchy/demo/order/x/inbox"),
+        )
+    }
+
+    fn accepted(outcome: &Result<Vec<AgendaAction>, NotRecorded>) -> bool {
+        matches!(outcome, Ok(actions) if matches!(actions.first(), Some(AgendaAction::Reply(r)) if r.result == Some(true)))
+    }
+
+    #[test]
+    fn bookings_that_arrive_together_share_one_journal_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = config(dir.path());
+        let mut agenda = journalled(&config);
+        let commits = agenda.journal.as_ref().unwrap().commits();
+        let eight = (0..8).map(|i| booking(&format!("o{i}"))).collect();
+        let outcomes = agenda.apply_batch(&config.holon, eight);
+        assert!(outcomes.iter().all(accepted), "{outcomes:?}");
+        assert_eq!(agenda.journal.as_ref().unwrap().commits(), commits + 1);
+        drop(agenda);
+        let reopened = JournalledAgenda::open(&config).unwrap();
+        assert_eq!(reopened.agenda.bookings().len(), 8, "all eight recorded");
+    }
+
+    #[test]
+    fn a_batch_the_journal_refuses_is_taken_one_request_at_a_time() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = config(dir.path());
+        drop(JournalledAgenda::open(&config).unwrap());
+        // The journal refuses any agenda that holds order o5's booking.
+        let file = dir.path().join("resource-robot1.sqlite");
+        rusqlite::Connection::open(&file)
+            .unwrap()
+            .execute_batch(
+                "CREATE TRIGGER no_o5 BEFORE UPDATE ON records WHEN NEW.body LIKE '%o5/1/1%' \
+                 BEGIN SELECT RAISE(ABORT, 'refused'); END;",
+            )
+            .unwrap();
+        let mut agenda = journalled(&config);
+        let eight = (0..8).map(|i| booking(&format!("o{i}"))).collect();
+        let outcomes = agenda.apply_batch(&config.holon, eight);
+        for (i, outcome) in outcomes.iter().enumerate() {
+            if i == 5 {
+                assert!(matches!(outcome, Err(NotRecorded)), "{outcome:?}");
+            } else {
+                assert!(accepted(outcome), "o{i}: {outcome:?}");
+            }
+        }
+        drop(agenda);
+        let reopened = JournalledAgenda::open(&config).unwrap();
+        let booked: Vec<String> = reopened
+            .agenda
+            .bookings()
+            .iter()
+            .map(|b| b.requester.name().to_string())
+            .collect();
+        assert_eq!(booked, ["o0", "o1", "o2", "o3", "o4", "o6", "o7"]);
+    }
 }
