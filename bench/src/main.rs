@@ -497,7 +497,7 @@ async fn all(
 
     let machine = json!({
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(0),
-        "profile": if holarchy_tests::bin_dir().ends_with("release") { "release" } else { "debug" },
+        "profile": holarchy_tests::bin_dir().file_name().map(|n| n.to_string_lossy().into_owned()),
         "sections": if only.is_empty() { SECTIONS.to_vec() } else { only.iter().map(String::as_str).collect() },
     });
     let mut json = std::mem::take(&mut run.table.json);

@@ -38,11 +38,15 @@ pub fn bin_dir() -> PathBuf {
     }
 }
 
-/// The path of a workspace binary, built on first use if `cargo test` did not build it.
+/// The path of a workspace binary, built on first use if `cargo test` did not build it
+/// (the binaries of `HOLARCHY_BIN_DIR` are taken as they are).
 pub fn bin(name: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     let path = bin_dir().join(name);
     BUILT.get_or_init(|| {
+        if std::env::var_os("HOLARCHY_BIN_DIR").is_some() {
+            return;
+        }
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let mut build = Command::new(cargo);
         build.args(["build", "--bins", "--quiet"]);
@@ -65,8 +69,13 @@ pub fn bin(name: &str) -> PathBuf {
                 build.env_remove(key);
             }
         }
-        if bin_dir().ends_with("release") {
-            build.arg("--release");
+        // The profile of this executable's directory: target/debug, target/release,
+        // target/release-small...
+        match bin_dir().file_name().and_then(|n| n.to_str()) {
+            Some("debug") | None => {}
+            Some(profile) => {
+                build.args(["--profile", profile]);
+            }
         }
         let status = build
             .current_dir(workspace_root())
