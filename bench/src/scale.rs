@@ -20,7 +20,7 @@ use holarchy_tests::{pick_n_place, resource_config, Cell, Sim};
 use schemas::{CellKeys, MessageType};
 use serde_json::json;
 
-use super::{booking_series, cpu_time, footprint, proportional, router, Latency, Run};
+use super::{booking_series, footprint, proportional, router, Latency, Run};
 
 /// Controller simulators the scaled-out holons share.
 const SIMULATORS: usize = 4;
@@ -129,6 +129,22 @@ async fn client_of(cell: &Cell) -> Result<Cell> {
     })
 }
 
+/// The time a process's threads have been on a CPU, in ns (`/proc/PID/task/*/schedstat`:
+/// precise, where /proc/PID/stat counts 10 ms ticks; threads that ended are not counted).
+fn on_cpu(pid: i32) -> Result<Duration> {
+    let mut total = Duration::ZERO;
+    for task in std::fs::read_dir(format!("/proc/{pid}/task"))? {
+        let schedstat = std::fs::read_to_string(task?.path().join("schedstat"))?;
+        let ns: u64 = schedstat
+            .split_whitespace()
+            .next()
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| anyhow!("unreadable schedstat of {pid}"))?;
+        total += Duration::from_nanos(ns);
+    }
+    Ok(total)
+}
+
 /// What `scale_out` measured.
 struct ScaledOut {
     /// From the first spawn to the last.
@@ -141,7 +157,7 @@ struct ScaledOut {
     rss_kib: Vec<u64>,
     /// Each holon's proportional memory (KiB): the binary's pages shared out.
     pss_kib: Vec<u64>,
-    /// CPU time (user + system) all holons used until every one was visible.
+    /// CPU time all holons used until every one was visible.
     start_cpu: Duration,
 }
 
@@ -191,7 +207,7 @@ async fn scale_out(dir: &Path, n: usize) -> Result<ScaledOut> {
         seen.insert(sample.key_expr().to_string());
     }
     let visible_after_last = last.elapsed();
-    let start_cpu = nodes.iter().filter_map(|p| cpu_time(p.pid()).ok()).sum();
+    let start_cpu = nodes.iter().filter_map(|p| on_cpu(p.pid()).ok()).sum();
     // Wait until all offer (their controllers ready), then time proposal rounds.
     let ask = pick_n_place(&cell.keys, MessageType::ProposalReq, "bench", "scale/1/1");
     order_side.wait_proposals(&ask, n).await?;
