@@ -31,6 +31,38 @@ fn order_node_and_holon_node_check_their_configs() {
 }
 
 #[test]
+fn a_holon_is_a_client_of_its_router_and_says_what_a_client_cannot_do() {
+    let check = |extra: &[&str]| {
+        let output = Command::new(bin("holon-node"))
+            .arg("--config")
+            .arg(demo_config("robot1.toml"))
+            .args(extra)
+            .arg("--check")
+            .output()
+            .unwrap();
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&output.stdout),
+            String::from_utf8_lossy(&output.stderr)
+        );
+        (output.status.success(), text)
+    };
+    // A client listens on nothing: asked to, it refuses and says why and what to do.
+    let (ok, text) = check(&["--listen", "tcp/127.0.0.1:0"]);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("listens on nothing") && text.contains("peer"),
+        "{text}"
+    );
+    // A peer may listen.
+    let (ok, text) = check(&["--mode", "peer", "--listen", "tcp/127.0.0.1:0"]);
+    assert!(ok, "{text}");
+    // A mode that is not one is refused by the command line.
+    let (ok, text) = check(&["--mode", "router"]);
+    assert!(!ok && text.contains("--mode"), "{text}");
+}
+
+#[test]
 fn cell_demo_completes_every_order_and_hot_adds_a_robot() {
     let output = Command::new(bin("cell"))
         .args([
