@@ -31,8 +31,11 @@ pub async fn section(run: &mut Run) -> Result<()> {
                 figure.orders_per_s / ideal * 100.0
             ),
             format!(
-                "ideal {ideal:.1}/s (K / 40 ms step); CPU {:.1} ms per order, all processes",
-                figure.cpu_per_order.as_secs_f64() * 1e3
+                "ideal {ideal:.1}/s (K / 40 ms step); CPU {:.1} ms per order, all processes; first done after {:.0} ms; {}-{} steps per robot",
+                figure.cpu_per_order.as_secs_f64() * 1e3,
+                figure.first_done.as_secs_f64() * 1e3,
+                figure.jobs_per_robot.0,
+                figure.jobs_per_robot.1,
             ),
             json!({
                 "robots": robots,
@@ -41,6 +44,9 @@ pub async fn section(run: &mut Run) -> Result<()> {
                 "ideal_per_s": ideal,
                 "share_of_ideal": figure.orders_per_s / ideal,
                 "cpu_ms_per_order": figure.cpu_per_order.as_secs_f64() * 1e3,
+                "first_done_ms": figure.first_done.as_secs_f64() * 1e3,
+                "steps_per_robot_min": figure.jobs_per_robot.0,
+                "steps_per_robot_max": figure.jobs_per_robot.1,
             }),
         );
     }
@@ -51,6 +57,11 @@ struct Figure {
     orders: u32,
     orders_per_s: f64,
     cpu_per_order: Duration,
+    /// From the submission to the first order done: the start, plus one step.
+    first_done: Duration,
+    /// Steps done by the robot that did the fewest, and by the one that did the most:
+    /// the busiest robot decides when the last order ends.
+    jobs_per_robot: (usize, usize),
 }
 
 /// CPU time of the cell's processes (`pids`) and of this one (the cell's router runs
@@ -88,6 +99,8 @@ async fn working_robots(run: &Run, robots: usize) -> Result<Figure> {
     let t = Instant::now();
     cell.submit("part", orders).await?;
     let mut done = std::collections::HashSet::new();
+    let mut first_done = None;
+    let mut jobs: std::collections::HashMap<schemas::HolonId, usize> = Default::default();
     while done.len() < orders as usize {
         let sample = tokio::time::timeout(Duration::from_secs(120), states.recv_async())
             .await
@@ -96,7 +109,12 @@ async fn working_robots(run: &Run, robots: usize) -> Result<Figure> {
         let snapshot: OrderSnapshot = serde_json::from_slice(&sample.payload().to_bytes())?;
         match snapshot.status {
             OrderStatus::Done => {
-                done.insert(snapshot.holon);
+                first_done.get_or_insert_with(|| t.elapsed());
+                if done.insert(snapshot.holon) {
+                    for (_, resource) in snapshot.completed {
+                        *jobs.entry(resource).or_default() += 1;
+                    }
+                }
             }
             OrderStatus::Running => {}
             other => bail!("{} ended {other:?}: {:?}", snapshot.holon, snapshot.reason),
@@ -109,5 +127,10 @@ async fn working_robots(run: &Run, robots: usize) -> Result<Figure> {
         orders,
         orders_per_s: orders as f64 / elapsed.as_secs_f64(),
         cpu_per_order: cpu / orders,
+        first_done: first_done.unwrap_or(elapsed),
+        jobs_per_robot: (
+            jobs.values().copied().min().unwrap_or(0),
+            jobs.values().copied().max().unwrap_or(0),
+        ),
     })
 }
