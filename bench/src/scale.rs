@@ -17,10 +17,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Result};
 use holarchy_tests::{pick_n_place, resource_config, Cell, Sim};
-use schemas::{CellKeys, MessageType};
+use schemas::MessageType;
 use serde_json::json;
 
-use super::{booking_series, footprint, proportional, router, Latency, Run};
+use super::{booking_series, footprint, on_cpu, open_cell, proportional, router, Latency, Run};
 
 /// Controller simulators the scaled-out holons share.
 const SIMULATORS: usize = 4;
@@ -118,31 +118,13 @@ async fn client_of(cell: &Cell) -> Result<Cell> {
         connect: vec![cell.endpoint.clone()],
         ..Default::default()
     };
-    let session = settings
-        .open("order-node.bench", Duration::from_secs(10))
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    Ok(Cell {
-        session,
-        keys: CellKeys::new(cell.keys.cell())?,
-        endpoint: cell.endpoint.clone(),
-    })
-}
-
-/// The time a process's threads have been on a CPU, in ns (`/proc/PID/task/*/schedstat`:
-/// precise, where /proc/PID/stat counts 10 ms ticks; threads that ended are not counted).
-fn on_cpu(pid: i32) -> Result<Duration> {
-    let mut total = Duration::ZERO;
-    for task in std::fs::read_dir(format!("/proc/{pid}/task"))? {
-        let schedstat = std::fs::read_to_string(task?.path().join("schedstat"))?;
-        let ns: u64 = schedstat
-            .split_whitespace()
-            .next()
-            .and_then(|v| v.parse().ok())
-            .ok_or_else(|| anyhow!("unreadable schedstat of {pid}"))?;
-        total += Duration::from_nanos(ns);
-    }
-    Ok(total)
+    open_cell(
+        &settings,
+        "order-node.bench",
+        cell.keys.cell(),
+        cell.endpoint.clone(),
+    )
+    .await
 }
 
 /// What `scale_out` measured.

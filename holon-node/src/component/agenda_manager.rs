@@ -204,10 +204,7 @@ impl JournalledAgenda {
             }
         }
         actions.extend(released);
-        let after = self.agenda.state();
-        if before != after {
-            info!(%holon, component = "agenda", from = %before, to = %after, "transition");
-        }
+        log_transition(holon, before, self.agenda.state());
         Ok(actions)
     }
 
@@ -245,10 +242,7 @@ impl JournalledAgenda {
                 return events.into_iter().map(|e| self.apply(holon, e)).collect();
             }
         }
-        let after = self.agenda.state();
-        if before != after {
-            info!(%holon, component = "agenda", from = %before, to = %after, "transition");
-        }
+        log_transition(holon, before, self.agenda.state());
         outcomes
     }
 
@@ -310,6 +304,13 @@ impl JournalledAgenda {
             warn!(%holon, results = held.len(), "shutting down while the journal cannot be written: delivering the held results unrecorded");
         }
         held.into_iter().map(AgendaAction::Deliver).collect()
+    }
+}
+
+/// Logs a change of the resource's state (not every event: most leave it as it was).
+fn log_transition(holon: &HolonId, before: schemas::ResourceState, after: schemas::ResourceState) {
+    if before != after {
+        info!(%holon, component = "agenda", from = %before, to = %after, "transition");
     }
 }
 
