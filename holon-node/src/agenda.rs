@@ -20,9 +20,12 @@
 //! | `booking_req` | type not offered | refused `unknown_service` | same |
 //! | | the requester is a resource | refused `not_a_requester` (nothing would release it) | same |
 //! | | the conversation is booked | true again with its queue position (no second booking) | same |
+//! | | start on turn asked, and the conversation's job runs or finished with its result undelivered | true, `started` again (no second execution) | same |
 //! | | the conversation's job is running | refused `busy` | same |
 //! | | controller not ready, or withdrawing | refused `unavailable` (no commitment without hardware) | same |
 //! | | agenda full | refused `agenda_full` | same |
+//! | | start on turn asked, and the info lacks what the steps need or there is no `reply_to` | refused `invalid_info` | same |
+//! | | start on turn asked, `free`, nothing booked ahead | true, `started`; the booking becomes the job, execution starts | `busy` |
 //! | | otherwise | true with the queue position; booking appended | same + booking |
 //! | `booking_cancel` | the conversation is booked | true; booking removed | same − booking |
 //! | | otherwise | refused `not_booked` | same |
@@ -46,6 +49,7 @@
 //! | withdraw (SIGTERM) | not yet withdrawing | every booking with a `reply_to` gets `failed` `withdrawn`; bookings cleared | withdrawing |
 //! | | already withdrawing | nothing | same |
 //! | requester gone (absent longer than the grace) | | its bookings removed; its running job and undelivered results stay | same − bookings |
+//! | after any event | `free`, not withdrawing, and the first booking asked to start on its turn | the booking becomes the job, execution starts | `busy` |
 //!
 //! Every change of state is followed by a `StateChanged` action (a new snapshot).
 
@@ -68,6 +72,11 @@ pub struct Booking {
     pub reply_to: Option<String>,
     /// The booking's `info`, used when `start` carries none.
     pub info: Map<String, Value>,
+    /// The requester asked for the job to start by itself on its turn
+    /// ([`schemas::info_key::START_ON_TURN`]); its `reply_to` and `info` were checked
+    /// when it was booked.
+    #[serde(default)]
+    pub start_on_turn: bool,
 }
 
 /// A booking being executed.
@@ -280,6 +289,30 @@ impl AgendaManager {
 
     /// The seed's FSM: one event in, the actions out. No I/O.
     pub fn handle(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
+        let mut actions = self.transition(event);
+        actions.extend(self.turn());
+        actions
+    }
+
+    /// The machine without its last row: no booking starts on its turn. For an event
+    /// that must be kept while the journal cannot record a job's start (the booking then
+    /// waits; its requester's `start` is refused until the journal can be written).
+    pub fn handle_holding_turns(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
+        self.transition(event)
+    }
+
+    /// The last row of the table, as actions.
+    fn turn(&mut self) -> Vec<AgendaAction> {
+        let mut actions = Vec::new();
+        if let Some(job) = self.start_on_turn() {
+            actions.push(AgendaAction::Execute(job));
+            actions.push(AgendaAction::StateChanged);
+        }
+        actions
+    }
+
+    /// The row of the table for `event`.
+    fn transition(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
         match event {
             AgendaEvent::Request(request) => self.request(request),
             AgendaEvent::ExecutionReady => self.set_ready(true),
@@ -438,21 +471,76 @@ impl AgendaManager {
             ) => {
                 vec![AgendaAction::Reply(self.booked_reply(&request, position))]
             }
+            // Asked again (a lost reply, a restarted order) after the job began on
+            // its turn: it has begun.
+            (Conversation { running: true, .. } | Conversation { finished: true, .. }, ..)
+                if request.start_on_turn() =>
+            {
+                vec![AgendaAction::Reply(self.started_reply(&request))]
+            }
             (Conversation { running: true, .. }, _, _) => self.refuse(&request, reason::BUSY, None),
             (_, false, _) => self.refuse(&request, reason::UNAVAILABLE, None),
             (_, true, true) => self.refuse(&request, reason::AGENDA_FULL, None),
-            (_, true, false) => {
-                self.bookings.push(Booking {
-                    requester: request.requester.clone(),
-                    conversation_id: request.conversation_id.clone(),
-                    service_type: request.service_type.clone(),
-                    reply_to: request.reply_to.clone(),
-                    info: request.info.clone(),
-                });
+            (_, true, false) => self.append(request),
+        }
+    }
+
+    /// Appends the booking of `request`; one that asks to start on its turn is checked
+    /// as a start would be, and begins at once when it is the next job of a free
+    /// resource.
+    fn append(&mut self, request: Service) -> Vec<AgendaAction> {
+        let start_on_turn = request.start_on_turn();
+        if start_on_turn {
+            if let Err(detail) = self.catalog.poses(&request.service_type, &request.info) {
+                return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+            }
+            if request.reply_to.is_none() {
+                let detail = "a booking that starts on its turn needs reply_to".to_string();
+                return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+            }
+        }
+        self.bookings.push(Booking {
+            requester: request.requester.clone(),
+            conversation_id: request.conversation_id.clone(),
+            service_type: request.service_type.clone(),
+            reply_to: request.reply_to.clone(),
+            info: request.info.clone(),
+            start_on_turn,
+        });
+        match self.start_on_turn() {
+            Some(job) => vec![
+                AgendaAction::Reply(self.started_reply(&request)),
+                AgendaAction::Execute(job),
+                AgendaAction::StateChanged,
+            ],
+            None => {
                 let reply = self.booked_reply(&request, self.bookings.len() - 1);
                 vec![AgendaAction::Reply(reply), AgendaAction::StateChanged]
             }
         }
+    }
+
+    /// The last row of the table: a free resource whose first booking asked to start
+    /// on its turn makes it the running job.
+    fn start_on_turn(&mut self) -> Option<Job> {
+        let first = self.bookings.first()?;
+        if self.state() != ResourceState::Free
+            || self.withdrawing
+            || !first.start_on_turn
+            || first.reply_to.is_none()
+        {
+            return None;
+        }
+        let booking = self.bookings.remove(0);
+        let job = Job {
+            requester: booking.requester,
+            conversation_id: booking.conversation_id,
+            service_type: booking.service_type,
+            reply_to: booking.reply_to?,
+            info: booking.info,
+        };
+        self.current = Some(job.clone());
+        Some(job)
     }
 
     fn cancel(&mut self, request: &Service) -> Vec<AgendaAction> {
@@ -572,6 +660,17 @@ impl AgendaManager {
                 _ => Map::new(),
             },
         }
+    }
+
+    /// The answer to a booking whose job has begun.
+    fn started_reply(&self, request: &Service) -> Service {
+        let mut reply = request.accepted(&self.holon);
+        reply.info = self.proposal_info(&request.service_type);
+        reply.info.insert("queue_position".into(), json!(0));
+        reply
+            .info
+            .insert(schemas::info_key::STARTED.into(), Value::Bool(true));
+        reply
     }
 
     fn booked_reply(&self, request: &Service, position: usize) -> Service {
@@ -777,6 +876,109 @@ mod tests {
         assert_eq!(actions[2], AgendaAction::StateChanged);
         assert!(matches!(m.status(), Status::Busy(ref j) if j.conversation_id == "c2"));
         assert_eq!(m.bookings().len(), 1, "the started booking left the list");
+    }
+
+    fn book_on_turn(order: &str, conversation: &str) -> Service {
+        book(order, conversation)
+            .with_info(poses())
+            .with_start_on_turn()
+    }
+
+    fn executed(actions: &[AgendaAction]) -> Vec<String> {
+        actions
+            .iter()
+            .filter_map(|a| match a {
+                AgendaAction::Execute(job) => Some(job.conversation_id.clone()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_booking_on_turn_starts_at_once_on_a_free_resource() {
+        let mut m = manager();
+        let actions = m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+        assert_accepted(&actions);
+        assert!(reply(&actions).started(), "{actions:?}");
+        assert_eq!(executed(&actions), ["c1"]);
+        assert_eq!(actions.last(), Some(&AgendaAction::StateChanged));
+        assert!(matches!(m.status(), Status::Busy(ref j) if j.conversation_id == "c1" && j.reply_to == INBOX));
+        assert!(m.bookings().is_empty());
+        // Asked again (a lost reply): begun, not begun twice.
+        let again = m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+        assert!(reply(&again).started());
+        assert_eq!(again.len(), 1, "{again:?}");
+        // A start (the order's fallback) finds it running.
+        assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+        // Finished, its result not yet acknowledged: still begun, never run again.
+        m.handle(done("c1"));
+        let after = m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+        assert!(reply(&after).started());
+        assert!(executed(&after).is_empty());
+        assert!(m.bookings().is_empty());
+    }
+
+    #[test]
+    fn a_booking_on_turn_waits_for_the_running_job_and_starts_when_it_ends() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+        let second = m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
+        assert_accepted(&second);
+        assert!(!reply(&second).started());
+        assert_eq!(reply(&second).info["queue_position"], 2);
+        let third = m.handle(AgendaEvent::Request(book_on_turn("o-3", "c3")));
+        assert_eq!(reply(&third).info["queue_position"], 3);
+        // The first ends: its result goes out and the next starts, in one transition.
+        let actions = m.handle(done("c1"));
+        assert!(matches!(actions[0], AgendaAction::Deliver(ref r) if r.conversation_id == "c1"));
+        assert_eq!(executed(&actions), ["c2"]);
+        assert_eq!(m.bookings().len(), 1);
+        // Not while the controller is away; again when it is back.
+        m.handle(AgendaEvent::ExecutionUnavailable);
+        assert!(executed(&m.handle(done("c2"))).is_empty());
+        assert_eq!(m.status(), Status::Init);
+        assert_eq!(executed(&m.handle(AgendaEvent::ExecutionReady)), ["c3"]);
+    }
+
+    #[test]
+    fn a_booking_on_turn_does_not_pass_one_that_waits_for_its_start() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book("o-1", "c1")));
+        let actions = m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
+        assert!(!reply(&actions).started());
+        assert!(executed(&actions).is_empty());
+        // The booking ahead is cancelled: the one on turn is first, and starts.
+        let actions = m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-1", "c1")));
+        assert_accepted(&actions);
+        assert_eq!(executed(&actions), ["c2"]);
+    }
+
+    #[test]
+    fn a_booking_on_turn_without_what_its_start_needs_is_refused() {
+        let mut m = manager();
+        let no_poses = book("o-1", "c1").with_start_on_turn();
+        assert_refused(
+            &m.handle(AgendaEvent::Request(no_poses)),
+            reason::INVALID_INFO,
+        );
+        let mut no_reply_to = book_on_turn("o-1", "c1");
+        no_reply_to.reply_to = None;
+        assert_refused(
+            &m.handle(AgendaEvent::Request(no_reply_to)),
+            reason::INVALID_INFO,
+        );
+        assert!(m.bookings().is_empty());
+        assert_eq!(m.status(), Status::Free);
+    }
+
+    #[test]
+    fn a_withdrawing_resource_starts_nothing_on_its_turn() {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
+        m.handle(AgendaEvent::Withdraw);
+        assert!(executed(&m.handle(done("c1"))).is_empty());
+        assert_eq!(m.status(), Status::Free);
     }
 
     #[test]

@@ -11,7 +11,9 @@
 //! | proposing | proposals: none, before give-up | wait for a resource (idle) | proposing |
 //! | proposing | proposals: none, past give-up | end: no resource | — |
 //! | booking(c) | resumed | declare token, ask c again (booking is idempotent) | booking(c) |
+//! | booking(c) | accepted and started (on its turn) | record started(c), publish, watch (step timeout) | started(c) |
 //! | booking(c) | accepted | record booked(c), publish, ask start | booked(c) |
+//! | booking(c) | no answer, asked to start on its turn (it may have begun) | record booked(c), ask start | booked(c) |
 //! | booking(c) | refused or no answer, candidates left | record booking(next), ask it | booking(next) |
 //! | booking(c) | refused or no answer, resumed (no round) | record proposing, ask proposals | proposing |
 //! | booking(c) | refused or no answer, round over, before give-up | record proposing, wait (backoff) | proposing |
@@ -31,6 +33,11 @@
 //! Any other (phase, event) pair is a bug in the loop and changes nothing (no actions,
 //! logged by the caller). The backoff doubles with each refused round and each wait for
 //! the turn, and starts over once booked.
+//!
+//! A booking asked to start on its turn (the node's `orders.start_on_turn`) may begin
+//! without the order's `start`: while booked, a vanished resource gets the same grace
+//! as one running the step (it may be), and the `start` the order still sends after
+//! each pause is answered true if the job began (the phase becomes started).
 
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -45,6 +52,8 @@ use crate::progress::{Phase, StepOutcome};
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Answer {
     Accepted,
+    /// Accepted, and the job has begun: a booking that asked to start on its turn.
+    Started,
     /// Refused, with its reason (one of [`schemas::reason`]).
     Refused(Option<String>),
     /// No answer within the request timeout, or an error reply.
@@ -104,6 +113,9 @@ pub enum AttemptAction {
         provider: HolonId,
         pause: Duration,
         started: bool,
+        /// The step may be running (started, or booked to start on its turn): a
+        /// provider that vanishes gets the grace to come back and report.
+        may_run: bool,
     },
     /// The attempt is over.
     End(StepOutcome),
@@ -136,6 +148,8 @@ pub struct Attempt {
     /// When the attempt stops looking for a resource.
     give_up: Instant,
     timing: AttemptTiming,
+    /// Bookings ask the resource to start on their turn.
+    start_on_turn: bool,
 }
 
 impl Attempt {
@@ -147,7 +161,14 @@ impl Attempt {
             backoff: Backoff::new(timing.retry_interval, timing.retry_max),
             give_up: now + timing.no_resource_timeout,
             timing,
+            start_on_turn: false,
         }
+    }
+
+    /// The same attempt, its bookings asking to start on their turn.
+    pub fn starting_on_turn(mut self, start_on_turn: bool) -> Attempt {
+        self.start_on_turn = start_on_turn;
+        self
     }
 
     pub fn phase(&self) -> &Phase {
@@ -164,6 +185,22 @@ impl Attempt {
                 AttemptAction::DeclareToken,
                 AttemptAction::AskBooking(candidate),
             ],
+            (Phase::Booking(candidate), E::BookingAnswer(Answer::Started)) => {
+                self.backoff.reset();
+                self.round = None;
+                self.started(candidate)
+            }
+            // Silence after asking to start on its turn: the job may run there; only
+            // the resource can say (a start is answered true if it began, `not_booked`
+            // if the booking never arrived).
+            (Phase::Booking(candidate), E::BookingAnswer(Answer::Silent))
+                if self.start_on_turn =>
+            {
+                self.round = None;
+                let mut actions = self.record(Phase::Booked(candidate.clone()));
+                actions.push(AttemptAction::AskStart(candidate));
+                actions
+            }
             (Phase::Booking(candidate), E::BookingAnswer(Answer::Accepted)) => {
                 self.backoff.reset();
                 self.round = None;
@@ -273,12 +310,7 @@ impl Attempt {
         now: Instant,
     ) -> Vec<AttemptAction> {
         let refusal = match answer {
-            Answer::Accepted => {
-                let mut actions = self.record(Phase::Started(provider.clone()));
-                actions.push(AttemptAction::Publish);
-                actions.push(self.watch_started(provider));
-                return actions;
-            }
+            Answer::Accepted | Answer::Started => return self.started(provider),
             Answer::Silent => None,
             // A refusal without a reason is a refusal all the same.
             Answer::Refused(why) => Some(why.unwrap_or_else(|| "refused".into())),
@@ -300,13 +332,22 @@ impl Attempt {
         }
     }
 
+    /// The step has begun on `provider`: recorded, published, its result awaited.
+    fn started(&mut self, provider: HolonId) -> Vec<AttemptAction> {
+        let mut actions = self.record(Phase::Started(provider.clone()));
+        actions.push(AttemptAction::Publish);
+        actions.push(self.watch_started(provider));
+        actions
+    }
+
     /// Booked, not started: wait (the backoff) for the resource to say it is this
-    /// order's turn, then ask again.
+    /// order's turn (or to start it on its turn and report), then ask again.
     fn watch_for_turn(&mut self, provider: HolonId) -> Vec<AttemptAction> {
         vec![AttemptAction::Watch {
             provider,
             pause: self.backoff.next_pause(),
             started: false,
+            may_run: self.start_on_turn,
         }]
     }
 
@@ -315,6 +356,7 @@ impl Attempt {
             provider,
             pause: self.timing.step_timeout,
             started: true,
+            may_run: true,
         }
     }
 }
@@ -471,7 +513,8 @@ mod tests {
                 A::Watch {
                     provider: robot(1),
                     pause: Duration::from_secs(30),
-                    started: true
+                    started: true,
+                    may_run: true,
                 }
             ]
         );
@@ -493,6 +536,7 @@ mod tests {
                 provider: robot(1),
                 pause: Duration::from_millis(ms),
                 started: false,
+                may_run: false,
             }]
         };
         assert_eq!(
@@ -582,7 +626,8 @@ mod tests {
                 A::Watch {
                     provider: robot(2),
                     pause: Duration::from_secs(30),
-                    started: true
+                    started: true,
+                    may_run: true,
                 }
             ]
         );
@@ -601,5 +646,88 @@ mod tests {
         assert_eq!(a.handle(E::Proposals(vec![robot(2)]), now), vec![]);
         assert_eq!(a.handle(E::BookingAnswer(Answer::Accepted), now), vec![]);
         assert_eq!(a.phase(), &Phase::Started(robot(1)));
+    }
+
+    fn on_turn(phase: Phase) -> (Attempt, Instant) {
+        let now = Instant::now();
+        (
+            Attempt::new(phase, timing(), now).starting_on_turn(true),
+            now,
+        )
+    }
+
+    #[test]
+    fn a_booking_that_started_on_its_turn_is_recorded_started_and_watched() {
+        let (mut a, now) = on_turn(Phase::Booking(robot(1)));
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Started), now),
+            vec![
+                A::Record(Phase::Started(robot(1))),
+                A::Publish,
+                A::Watch {
+                    provider: robot(1),
+                    pause: Duration::from_secs(30),
+                    started: true,
+                    may_run: true,
+                }
+            ]
+        );
+    }
+
+    #[test]
+    fn a_booking_on_turn_that_waits_is_watched_with_the_grace_of_a_running_step() {
+        let (mut a, now) = on_turn(Phase::Booking(robot(1)));
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Accepted), now),
+            vec![
+                A::Record(Phase::Booked(robot(1))),
+                A::Publish,
+                A::AskStart(robot(1))
+            ]
+        );
+        assert_eq!(
+            a.handle(E::StartAnswer(Answer::Refused(Some("busy".into()))), now),
+            vec![A::Watch {
+                provider: robot(1),
+                pause: Duration::from_millis(100),
+                started: false,
+                may_run: true,
+            }]
+        );
+        // It began on its turn: the start the order sends after the pause says so.
+        assert_eq!(a.handle(E::Watched(None), now), vec![A::AskStart(robot(1))]);
+        assert_eq!(
+            a.handle(E::StartAnswer(Answer::Accepted), now)[0],
+            A::Record(Phase::Started(robot(1)))
+        );
+    }
+
+    #[test]
+    fn silence_after_asking_to_start_on_turn_never_books_elsewhere() {
+        // The job may have begun: ask that resource, never the next candidate.
+        let (mut a, now) = on_turn(Phase::Proposing);
+        a.handle(E::Proposals(vec![robot(1), robot(2)]), now);
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Silent), now),
+            vec![A::Record(Phase::Booked(robot(1))), A::AskStart(robot(1))]
+        );
+        // The booking never arrived: lost, and a new attempt (a new conversation).
+        assert_eq!(
+            a.handle(
+                E::StartAnswer(Answer::Refused(Some(reason::NOT_BOOKED.into()))),
+                now
+            ),
+            vec![A::End(StepOutcome::Lost {
+                provider: robot(1),
+                why: "the booking was lost".into()
+            })]
+        );
+        // Without start on turn, silence moves on to the next candidate.
+        let (mut a, now) = attempt(Phase::Proposing);
+        a.handle(E::Proposals(vec![robot(1), robot(2)]), now);
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Silent), now),
+            vec![A::Record(Phase::Booking(robot(2))), A::AskBooking(robot(2))]
+        );
     }
 }

@@ -79,6 +79,12 @@ struct OrdersSection {
     max_orders_per_submit: u32,
     #[serde(default = "default_max_unfinished")]
     max_unfinished_orders: usize,
+    #[serde(default = "default_start_on_turn")]
+    start_on_turn: bool,
+}
+
+fn default_start_on_turn() -> bool {
+    true
 }
 
 fn default_max_per_submit() -> u32 {
@@ -129,6 +135,7 @@ impl Default for OrdersSection {
             request_timeout_ms: default_request(),
             max_orders_per_submit: default_max_per_submit(),
             max_unfinished_orders: default_max_unfinished(),
+            start_on_turn: default_start_on_turn(),
         }
     }
 }
@@ -162,6 +169,12 @@ pub struct OrderSettings {
     /// The most unfinished orders this node hosts; a work order that would pass it is
     /// refused whole (`quota`).
     pub max_unfinished_orders: usize,
+    /// Bookings ask the resource to start the step by itself when its turn comes
+    /// (`start_on_turn` in the `booking_req`): at once when it is free, else as soon as
+    /// the job ahead ends, without a `start` from the order. False: the order sends
+    /// `start` itself when the resource says it is its turn (for a cell where the part
+    /// must be brought to the resource first).
+    pub start_on_turn: bool,
 }
 
 #[derive(Debug, Clone)]
@@ -259,6 +272,7 @@ impl OrderNodeConfig {
                 request_timeout: Duration::from_millis(o.request_timeout_ms),
                 max_orders_per_submit: o.max_orders_per_submit,
                 max_unfinished_orders: o.max_unfinished_orders,
+                start_on_turn: o.start_on_turn,
             },
             data_dir: file.journal.dir,
             durability: file.journal.durability,

@@ -194,7 +194,8 @@ impl OrderTask {
             step_timeout: settings.step_timeout,
         };
         let phase = lock(&self.progress).phase.clone();
-        let mut attempt = Attempt::new(phase, timing, Instant::now());
+        let mut attempt = Attempt::new(phase, timing, Instant::now())
+            .starting_on_turn(settings.start_on_turn);
         let mut event = AttemptEvent::Resumed;
         // The result that ended a watch, kept for the end of the attempt.
         let mut report = None;
@@ -269,7 +270,7 @@ impl OrderTask {
                 }
                 match &answer {
                     Some(a) if a.result == Some(true) => {
-                        info!(holon = %self.holon, %conversation_id, resource = %candidate, service_type = %step.service_type, "booked")
+                        info!(holon = %self.holon, %conversation_id, resource = %candidate, service_type = %step.service_type, started = a.started(), "booked")
                     }
                     Some(a) => {
                         info!(holon = %self.holon, %conversation_id, resource = %candidate, reason = a.reason.as_deref().unwrap_or(""), "booking refused")
@@ -318,10 +319,11 @@ impl OrderTask {
                 provider,
                 pause,
                 started,
+                may_run,
             } => {
                 let pause = if started { pause } else { jittered(pause) };
                 match self
-                    .await_outcome(&provider, conversation_id, pause, started)
+                    .await_outcome(&provider, conversation_id, pause, started, may_run)
                     .await
                 {
                     Watched::Elapsed => Some(AttemptEvent::Watched(None)),
@@ -354,8 +356,9 @@ impl OrderTask {
     }
 
     /// Pauses `pause`, watching the inbox (results of this conversation) and the
-    /// provider's presence. A provider that vanishes after `started` gets
-    /// `vanished_grace` to come back and report before the attempt counts as lost.
+    /// provider's presence. A provider that vanishes while the step `may_run` (started,
+    /// or booked to start on its turn) gets `vanished_grace` to come back and report
+    /// before the attempt counts as lost.
     /// Before `started`, the pause also ends when the provider publishes that it is
     /// free with this conversation first.
     async fn await_outcome(
@@ -364,6 +367,7 @@ impl OrderTask {
         conversation_id: &str,
         pause: Duration,
         started: bool,
+        may_run: bool,
     ) -> Watched {
         let ctx = self.ctx.clone();
         let worked_with = lock(&self.progress).worked_with.clone();
@@ -386,7 +390,7 @@ impl OrderTask {
                 None,
             )
         };
-        let grace = if started {
+        let grace = if may_run {
             ctx.settings.vanished_grace
         } else {
             Duration::ZERO

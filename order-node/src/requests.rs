@@ -53,6 +53,8 @@ pub async fn fetch_plan(ctx: &OrderContext, product: &str) -> Option<Plan> {
     }
 }
 
+/// The order's request of `kind` for `step`: its inbox as `reply_to`, the step's info;
+/// a booking asks to start on its turn when the node's settings say so.
 pub fn request(
     ctx: &OrderContext,
     holon: &HolonId,
@@ -60,9 +62,14 @@ pub fn request(
     step: &PlanStep,
     conversation_id: &str,
 ) -> Service {
-    Service::request(kind, &step.service_type, conversation_id, holon.clone())
+    let request = Service::request(kind, &step.service_type, conversation_id, holon.clone())
         .with_reply_to(ctx.keys.inbox(holon.name()))
-        .with_info(step.info.clone())
+        .with_info(step.info.clone());
+    if kind == MessageType::BookingReq && ctx.settings.start_on_turn {
+        request.with_start_on_turn()
+    } else {
+        request
+    }
 }
 
 /// Sends one request and returns the resource's answer (None: no answer or an error).
@@ -197,6 +204,7 @@ pub async fn cancel_when_back(
 /// A resource's answer to a booking or a start, as the attempt reads it.
 pub fn answer(reply: Option<Service>) -> Answer {
     match reply {
+        Some(reply) if reply.started() => Answer::Started,
         Some(reply) if reply.result == Some(true) => Answer::Accepted,
         Some(reply) => Answer::Refused(reply.reason),
         None => Answer::Silent,

@@ -80,6 +80,18 @@ impl fmt::Display for MessageType {
     }
 }
 
+/// Keys of `info` with a meaning to the agenda itself (every other key is service data).
+pub mod info_key {
+    /// On a `booking_req`: `true` asks the resource to start the job by itself when its
+    /// turn comes (at once if it is free and nothing is booked ahead), so one request
+    /// books and starts. Such a booking must carry `reply_to` and the info its steps
+    /// need. A resource that does not know the key books as usual and waits for `start`.
+    pub const START_ON_TURN: &str = "start_on_turn";
+    /// On a booking reply: `true` when the job has begun (a `start` would be answered
+    /// true again); absent when it waits for its turn.
+    pub const STARTED: &str = "started";
+}
+
 /// The reasons a holon gives when `result` is false (free text is allowed beyond these,
 /// but holarchy's own holons only use these codes; details go in `info.detail`).
 pub mod reason {
@@ -186,6 +198,25 @@ impl Service {
     pub fn with_info(mut self, info: serde_json::Map<String, serde_json::Value>) -> Self {
         self.info = info;
         self
+    }
+
+    /// Asks, on a `booking_req`, for the job to start by itself on its turn
+    /// ([`info_key::START_ON_TURN`]).
+    pub fn with_start_on_turn(mut self) -> Self {
+        self.info
+            .insert(info_key::START_ON_TURN.into(), serde_json::Value::Bool(true));
+        self
+    }
+
+    /// Whether this `booking_req` asks to start on its turn.
+    pub fn start_on_turn(&self) -> bool {
+        self.info.get(info_key::START_ON_TURN) == Some(&serde_json::Value::Bool(true))
+    }
+
+    /// Whether this booking reply says the job has begun ([`info_key::STARTED`]).
+    pub fn started(&self) -> bool {
+        self.result == Some(true)
+            && self.info.get(info_key::STARTED) == Some(&serde_json::Value::Bool(true))
     }
 
     /// The answer to this message: same conversation, `provider` set, `result` true.

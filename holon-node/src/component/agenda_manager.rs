@@ -170,6 +170,8 @@ impl JournalledAgenda {
         } else {
             vec![]
         };
+        // Kept for a fact the journal cannot record (see below).
+        let fact = (!refusable).then(|| event.clone());
         let mut actions = self.agenda.handle(event);
         let changed = previous
             .as_ref()
@@ -184,7 +186,17 @@ impl JournalledAgenda {
                     return Err(NotRecorded);
                 }
                 Err(e) => {
-                    // Kept in memory; results wait for the write (see `retry`).
+                    // Kept in memory; results wait for the write (see `retry`). A job
+                    // must not begin unrecorded (a crash would run it again): the fact
+                    // is kept without a booking starting on its turn.
+                    if let Some(fact) = fact.filter(|_| {
+                        actions
+                            .iter()
+                            .any(|a| matches!(a, AgendaAction::Execute(_)))
+                    }) {
+                        self.agenda = previous;
+                        actions = self.agenda.handle_holding_turns(fact);
+                    }
                     if self.failed(holon, &e) {
                         actions.push(AgendaAction::StateChanged);
                     }
@@ -526,5 +538,50 @@ mod tests {
             .map(|b| b.requester.name().to_string())
             .collect();
         assert_eq!(booked, ["o0", "o1", "o2", "o3", "o4", "o6", "o7"]);
+    }
+
+    #[test]
+    fn a_job_whose_start_the_journal_cannot_record_does_not_begin_on_its_turn() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = config(dir.path());
+        drop(JournalledAgenda::open(&config).unwrap());
+        // The journal refuses any agenda with o2's job running.
+        rusqlite::Connection::open(dir.path().join("resource-robot1.sqlite"))
+            .unwrap()
+            .execute_batch(
+                r#"CREATE TRIGGER no_o2 BEFORE UPDATE ON records WHEN NEW.body LIKE '%"current":{"requester":"order/o2"%'
+                 BEGIN SELECT RAISE(ABORT, 'refused'); END;"#,
+            )
+            .unwrap();
+        let mut agenda = journalled(&config);
+        let on_turn = |order: &str| {
+            let AgendaEvent::Request(request) = booking(order) else {
+                unreachable!()
+            };
+            let poses = serde_json::json!({"pick": {"x": 1, "y": 2, "z": 3}, "place": {"x": 4, "y": 5, "z": 6}});
+            AgendaEvent::Request(
+                request
+                    .with_info(poses.as_object().unwrap().clone())
+                    .with_start_on_turn(),
+            )
+        };
+        let first = agenda.apply(&config.holon, on_turn("o1")).unwrap();
+        assert!(matches!(&first[0], AgendaAction::Reply(r) if r.started()), "{first:?}");
+        agenda.apply(&config.holon, on_turn("o2")).unwrap();
+        let finished = AgendaEvent::ExecutionFinished {
+            conversation_id: "o1/1/1".into(),
+            outcome: crate::agenda::Outcome::Done {
+                results: Default::default(),
+            },
+        };
+        let actions = agenda.apply(&config.holon, finished).unwrap();
+        assert!(
+            !actions.iter().any(|a| matches!(a, AgendaAction::Execute(_))),
+            "o2 must not begin unrecorded: {actions:?}"
+        );
+        // The fact is kept: o1 finished, o2 still waits on the agenda.
+        assert!(agenda.agenda.current().is_none());
+        assert_eq!(agenda.agenda.bookings().len(), 1);
+        assert_eq!(agenda.agenda.undelivered().len(), 1);
     }
 }
