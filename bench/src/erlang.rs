@@ -146,8 +146,9 @@ pub fn section(run: &mut Run, peer: Option<&Path>) -> Result<()> {
             erlang.cycle.p50_us, erlang.cycle.p99_us, erlang.cycle.rate
         ),
         format!(
-            "{}; ours also acknowledge done",
-            versus(run.ours.cycle, &erlang.cycle)
+            "starting on its turn {}; with a separate start {}; ours also acknowledge done",
+            versus(run.ours.cycle, &erlang.cycle),
+            versus(run.ours.cycle_by_request, &erlang.cycle)
         ),
         json!({"p50_us": erlang.cycle.p50_us, "p99_us": erlang.cycle.p99_us, "rate_per_s": erlang.cycle.rate}),
     );

@@ -418,7 +418,10 @@ struct Run {
 #[derive(Default)]
 struct Ours {
     booking: Option<(f64, f64)>,
+    /// Booking starting on its turn (what orders do by default).
     cycle: Option<(f64, f64)>,
+    /// Booking, then a separate `start`.
+    cycle_by_request: Option<(f64, f64)>,
 }
 
 impl Drop for Run {
@@ -865,17 +868,28 @@ fn booking_row(run: &mut Run, name: &str, series: &BookingSeries, journal: usize
     );
 }
 
-/// Service cycles on `robot1`: book, start, two controller steps, `done` acknowledged.
+/// Service cycles: book (starting on its turn, as orders do by default), two controller
+/// steps, `done` acknowledged; beside it the same with a separate `start`.
 async fn cycle(run: &mut Run) -> Result<()> {
-    // `process_crash` (the target's), then `power_loss` (robot1) beside it.
+    // `process_crash` (the target's), both ways; then `power_loss` (robot1) beside it.
     let mut fast = start_process_crash_robot(run, "robot8").await?;
-    cycle_on(run, "robot8", "process_crash").await?;
+    cycle_on(run, "robot8", "process_crash", Starting::OnTurn).await?;
+    cycle_on(run, "robot8", "process_crash", Starting::ByRequest).await?;
     fast.kill();
-    cycle_on(run, "robot1", "power_loss").await
+    cycle_on(run, "robot1", "power_loss", Starting::OnTurn).await
+}
+
+/// How a cycle's job is started.
+#[derive(Clone, Copy, PartialEq)]
+enum Starting {
+    /// The `booking_req` asks to start on its turn: one request books and starts.
+    OnTurn,
+    /// `booking_req`, then `start`: two requests.
+    ByRequest,
 }
 
 /// Service cycles on `robot`, whose journal has `durability`.
-async fn cycle_on(run: &mut Run, robot: &str, durability: &str) -> Result<()> {
+async fn cycle_on(run: &mut Run, robot: &str, durability: &str, starting: Starting) -> Result<()> {
     let cell = &run.cell;
     let key = cell.keys.service(robot);
     let mut inbox = cell.inbox("bench", 0).await?;
@@ -883,17 +897,30 @@ async fn cycle_on(run: &mut Run, robot: &str, durability: &str) -> Result<()> {
     let mut times = Vec::new();
     // Where a cycle's time goes: booking, start, then until `done` reaches the inbox.
     let mut phases: [Vec<Duration>; 3] = [Vec::new(), Vec::new(), Vec::new()];
+    let tag = match starting {
+        Starting::OnTurn => "turn",
+        Starting::ByRequest => "start",
+    };
     let started = Instant::now();
     for i in 0..cycles + 20 {
-        let conversation = format!("cycle/{i}/1");
+        let conversation = format!("cycle-{tag}/{i}/1");
         let t = Instant::now();
-        let book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
-        get_once(cell, &key, book.to_json()).await?;
+        let mut book = pick_n_place(&cell.keys, MessageType::BookingReq, "bench", &conversation);
+        if starting == Starting::OnTurn {
+            book = book.with_start_on_turn();
+        }
+        let answer = Service::from_json(&get_once(cell, &key, book.to_json()).await?)?;
         let booked = t.elapsed();
-        let start = pick_n_place(&cell.keys, MessageType::Start, "bench", &conversation);
-        let answer = Service::from_json(&get_once(cell, &key, start.to_json()).await?)?;
-        if answer.result != Some(true) {
-            bail!("start refused: {answer:?}");
+        match starting {
+            Starting::OnTurn if !answer.started() => bail!("not started on its turn: {answer:?}"),
+            Starting::OnTurn => {}
+            Starting::ByRequest => {
+                let start = pick_n_place(&cell.keys, MessageType::Start, "bench", &conversation);
+                let answer = Service::from_json(&get_once(cell, &key, start.to_json()).await?)?;
+                if answer.result != Some(true) {
+                    bail!("start refused: {answer:?}");
+                }
+            }
         }
         let started_at = t.elapsed();
         loop {
@@ -917,22 +944,51 @@ async fn cycle_on(run: &mut Run, robot: &str, durability: &str) -> Result<()> {
         .collect();
     let ratio = run.ratio(&cycle);
     if durability == "process_crash" {
-        run.ours.cycle = Some((cycle.pct(0.5), cycle.pct(0.99)));
+        let figure = Some((cycle.pct(0.5), cycle.pct(0.99)));
+        match starting {
+            Starting::OnTurn => run.ours.cycle = figure,
+            Starting::ByRequest => run.ours.cycle_by_request = figure,
+        }
     }
+    let (how, gets, split) = match starting {
+        Starting::OnTurn => (
+            "book starting on its turn",
+            2,
+            format!(
+                "p50 {:.0} | {:.0} us",
+                breakdown[0].pct(0.5),
+                breakdown[2].pct(0.5)
+            ),
+        ),
+        Starting::ByRequest => (
+            "book, start",
+            3,
+            format!(
+                "p50 {:.0} | {:.0} | {:.0} us",
+                breakdown[0].pct(0.5),
+                breakdown[1].pct(0.5),
+                breakdown[2].pct(0.5)
+            ),
+        ),
+    };
     run.table.add(
-        &format!("service cycle, {durability} (book, start, 2 TCP/XML steps, done acked)"),
+        &format!("service cycle, {durability} ({how}, 2 TCP/XML steps, done acked)"),
         format!(
             "p50 {:.0} us, p99 {:.0} us, {:.0} cycles/s",
             cycle.pct(0.5),
             cycle.pct(0.99),
             cycle.rate()
         ),
-        format!("{ratio:.1}x zenoh floor p50 (3 gets + 2 controller commands)"),
+        format!("{ratio:.1}x zenoh floor p50 ({gets} gets + 2 controller commands)"),
         cycle.json(),
     );
+    let parts = match starting {
+        Starting::OnTurn => "book and start | until done",
+        Starting::ByRequest => "book | start | until done",
+    };
     run.table.add(
-        &format!("  where a {durability} cycle goes: book | start | until done"),
-        format!("p50 {:.0} | {:.0} | {:.0} us", breakdown[0].pct(0.5), breakdown[1].pct(0.5), breakdown[2].pct(0.5)),
+        &format!("  where it goes: {parts}"),
+        split,
         "the last: 2 controller steps + result delivery".into(),
         json!({"book": breakdown[0].json(), "start": breakdown[1].json(), "until_done": breakdown[2].json()}),
     );

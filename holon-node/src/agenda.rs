@@ -902,7 +902,9 @@ mod tests {
         assert!(reply(&actions).started(), "{actions:?}");
         assert_eq!(executed(&actions), ["c1"]);
         assert_eq!(actions.last(), Some(&AgendaAction::StateChanged));
-        assert!(matches!(m.status(), Status::Busy(ref j) if j.conversation_id == "c1" && j.reply_to == INBOX));
+        assert!(
+            matches!(m.status(), Status::Busy(ref j) if j.conversation_id == "c1" && j.reply_to == INBOX)
+        );
         assert!(m.bookings().is_empty());
         // Asked again (a lost reply): begun, not begun twice.
         let again = m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
@@ -948,7 +950,11 @@ mod tests {
         assert!(!reply(&actions).started());
         assert!(executed(&actions).is_empty());
         // The booking ahead is cancelled: the one on turn is first, and starts.
-        let actions = m.handle(AgendaEvent::Request(msg(MessageType::BookingCancel, "o-1", "c1")));
+        let actions = m.handle(AgendaEvent::Request(msg(
+            MessageType::BookingCancel,
+            "o-1",
+            "c1",
+        )));
         assert_accepted(&actions);
         assert_eq!(executed(&actions), ["c2"]);
     }

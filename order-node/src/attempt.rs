@@ -193,9 +193,7 @@ impl Attempt {
             // Silence after asking to start on its turn: the job may run there; only
             // the resource can say (a start is answered true if it began, `not_booked`
             // if the booking never arrived).
-            (Phase::Booking(candidate), E::BookingAnswer(Answer::Silent))
-                if self.start_on_turn =>
-            {
+            (Phase::Booking(candidate), E::BookingAnswer(Answer::Silent)) if self.start_on_turn => {
                 self.round = None;
                 let mut actions = self.record(Phase::Booked(candidate.clone()));
                 actions.push(AttemptAction::AskStart(candidate));

@@ -194,8 +194,8 @@ impl OrderTask {
             step_timeout: settings.step_timeout,
         };
         let phase = lock(&self.progress).phase.clone();
-        let mut attempt = Attempt::new(phase, timing, Instant::now())
-            .starting_on_turn(settings.start_on_turn);
+        let mut attempt =
+            Attempt::new(phase, timing, Instant::now()).starting_on_turn(settings.start_on_turn);
         let mut event = AttemptEvent::Resumed;
         // The result that ended a watch, kept for the end of the attempt.
         let mut report = None;
@@ -398,10 +398,17 @@ impl OrderTask {
         // When the provider is gone: the moment its grace ends.
         let mut gone_until = (!ctx.presence.is_alive(provider)).then(|| Instant::now() + grace);
         loop {
-            let gone_deadline = gone_until.unwrap_or(until);
+            // While the provider is gone, asking it is pointless: a booked step waits
+            // out the grace whatever its pause (a pause that ended it would start the
+            // grace over with the next watch), a started one at most its step timeout.
+            let deadline = match gone_until {
+                None => until,
+                Some(gone) if started => gone.min(until),
+                Some(gone) => gone,
+            };
             tokio::select! {
                 _ = &mut turn => return Watched::Elapsed,
-                _ = tokio::time::sleep_until(until.min(gone_deadline)) => {
+                _ = tokio::time::sleep_until(deadline) => {
                     if gone_until.is_some_and(|g| Instant::now() >= g) {
                         return lost("the resource vanished");
                     }

@@ -19,7 +19,8 @@ pub use plan::{
 };
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{
-    bounded_detail, info_key, reason, ErrorReply, MessageType, Service, MAX_DETAIL_BYTES, SERVICE_VERSION,
+    bounded_detail, info_key, reason, ErrorReply, MessageType, Service, MAX_DETAIL_BYTES,
+    SERVICE_VERSION,
 };
 pub use state::{
     unix_ms, BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot, ResourceState,

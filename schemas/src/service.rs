@@ -203,8 +203,10 @@ impl Service {
     /// Asks, on a `booking_req`, for the job to start by itself on its turn
     /// ([`info_key::START_ON_TURN`]).
     pub fn with_start_on_turn(mut self) -> Self {
-        self.info
-            .insert(info_key::START_ON_TURN.into(), serde_json::Value::Bool(true));
+        self.info.insert(
+            info_key::START_ON_TURN.into(),
+            serde_json::Value::Bool(true),
+        );
         self
     }
 

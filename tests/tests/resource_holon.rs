@@ -135,6 +135,70 @@ async fn books_starts_and_delivers_done_until_acknowledged() {
 }
 
 #[tokio::test(flavor = "multi_thread")]
+async fn bookings_on_turn_start_by_themselves_one_after_another() {
+    let r = robot("t-on-turn", &["--delay-ms", "150"], &[], 5000).await;
+    let mut first_inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    let mut second_inbox = r.cell.inbox("o-2", 0).await.unwrap();
+    let on_turn = |order: &str, conversation: &str| {
+        r.msg(MessageType::BookingReq, order, conversation)
+            .with_start_on_turn()
+    };
+    // Free with nothing ahead: one request books and starts.
+    let first = r
+        .cell
+        .service("robot1", &on_turn("o-1", "c1"))
+        .await
+        .unwrap();
+    assert!(first.started(), "{first:?}");
+    assert_eq!(first.info["queue_position"], 0, "{first:?}");
+    // Behind the running job: booked, to start when that ends.
+    let second = r
+        .cell
+        .service("robot1", &on_turn("o-2", "c2"))
+        .await
+        .unwrap();
+    assert_eq!(second.result, Some(true), "{second:?}");
+    assert!(!second.started(), "{second:?}");
+    assert_eq!(second.info["queue_position"], 2, "{second:?}");
+    // Asked again (a lost reply): begun, and not begun twice.
+    let again = r
+        .cell
+        .service("robot1", &on_turn("o-1", "c1"))
+        .await
+        .unwrap();
+    assert!(again.started(), "{again:?}");
+    // Without it asking for anything else, each order gets its result.
+    let done = first_inbox.next().await.unwrap();
+    assert_eq!(
+        (done.message_type, done.conversation_id.as_str()),
+        (MessageType::Done, "c1")
+    );
+    let done = second_inbox.next().await.unwrap();
+    assert_eq!(
+        (done.message_type, done.conversation_id.as_str()),
+        (MessageType::Done, "c2")
+    );
+    r.cell
+        .wait_state("robot1", "free with nothing undelivered", |s| {
+            s["state"] == "free" && s["undelivered"] == 0
+        })
+        .await
+        .unwrap();
+    assert_eq!(r.sim.executed("pick"), 2, "each job once");
+    // A booking on turn without the poses its steps need is refused, nothing booked.
+    let mut no_poses = on_turn("o-3", "c3");
+    no_poses
+        .info
+        .retain(|key, _| key == schemas::info_key::START_ON_TURN);
+    assert_refused(
+        &r.cell.service("robot1", &no_poses).await.unwrap(),
+        "invalid_info",
+    );
+    let state = r.cell.status("robot1").await.unwrap();
+    assert_eq!(state["agenda"].as_array().unwrap().len(), 0, "{state}");
+}
+
+#[tokio::test(flavor = "multi_thread")]
 async fn cancel_removes_the_booking() {
     let r = robot("t-cancel", &[], &[], 5000).await;
     assert_eq!(

@@ -566,7 +566,10 @@ mod tests {
             )
         };
         let first = agenda.apply(&config.holon, on_turn("o1")).unwrap();
-        assert!(matches!(&first[0], AgendaAction::Reply(r) if r.started()), "{first:?}");
+        assert!(
+            matches!(&first[0], AgendaAction::Reply(r) if r.started()),
+            "{first:?}"
+        );
         agenda.apply(&config.holon, on_turn("o2")).unwrap();
         let finished = AgendaEvent::ExecutionFinished {
             conversation_id: "o1/1/1".into(),
@@ -576,7 +579,9 @@ mod tests {
         };
         let actions = agenda.apply(&config.holon, finished).unwrap();
         assert!(
-            !actions.iter().any(|a| matches!(a, AgendaAction::Execute(_))),
+            !actions
+                .iter()
+                .any(|a| matches!(a, AgendaAction::Execute(_))),
             "o2 must not begin unrecorded: {actions:?}"
         );
         // The fact is kept: o1 finished, o2 still waits on the agenda.
