@@ -1,0 +1,163 @@
+//! Orders that book to start on their turn (the order-node's default), against real
+//! processes: a booking that was still waiting when its resource died is booked
+//! elsewhere at once; one whose job had begun keeps the resource's grace to come back
+//! and report. The order-node here has a grace of 10 minutes, so a rebook within the
+//! test's bounds proves that no grace was given.
+
+use std::time::Duration;
+
+use holarchy_tests::*;
+use schemas::{HolonId, MessageType};
+
+/// The demo order-node's config with `vanished_grace_ms` of 10 minutes.
+fn patient_orders(dir: &std::path::Path) -> std::path::PathBuf {
+    let text = std::fs::read_to_string(demo_config("orders1.toml")).unwrap();
+    assert!(text.contains("vanished_grace_ms = 2000"));
+    let path = dir.join("orders1.toml");
+    std::fs::write(
+        &path,
+        text.replace("vanished_grace_ms = 2000", "vanished_grace_ms = 600000"),
+    )
+    .unwrap();
+    path
+}
+
+fn one_step_product(dir: &std::path::Path) -> std::path::PathBuf {
+    let path = dir.join("part.toml");
+    std::fs::write(
+        &path,
+        r#"
+cell = "unset"
+name = "part"
+kind = "product"
+
+[[steps]]
+service_type = "pick_n_place"
+info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6.0 } }
+"#,
+    )
+    .unwrap();
+    path
+}
+
+async fn wait_order(
+    cell: &Cell,
+    order: &str,
+    what: &str,
+    check: impl Fn(&serde_json::Value) -> bool,
+) {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    loop {
+        let state = cell.order_state(order).await;
+        if state.as_ref().is_some_and(&check) {
+            return;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{order} never reached {what}: {state:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_booking_still_waiting_is_rebooked_at_once_and_a_running_one_keeps_the_grace() {
+    let dir = tempfile::tempdir().unwrap();
+    let dir = dir.path();
+    let cell = Cell::open("t-on-turn-rebook").await.unwrap();
+    // A controller whose actions take 10 minutes, and one that answers at once.
+    let slow = Sim::start(dir, "slow", "127.0.0.1:0", &["--delay-ms", "600000"]).unwrap();
+    let fast = Sim::start(dir, "fast", "127.0.0.1:0", &[]).unwrap();
+    let held_config = resource_config(dir, "held", 600_000).unwrap();
+    let mut held = cell
+        .start_free_resource(dir, &held_config, &slow.address, &[])
+        .await
+        .unwrap();
+    let _product = start_holon(
+        dir,
+        "holon-node",
+        &one_step_product(dir),
+        "part",
+        &cell,
+        &[],
+    )
+    .unwrap();
+    let _orders = start_holon(
+        dir,
+        "order-node",
+        &patient_orders(dir),
+        "orders1",
+        &cell,
+        &["--data-dir", dir.join("orders-data").to_str().unwrap()],
+    )
+    .unwrap();
+    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part").unwrap())
+        .await
+        .unwrap();
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
+
+    // 1. `held` runs a job of ours; the order books it to start on its turn, behind.
+    let _inbox = cell.inbox("t", 0).await.unwrap();
+    for kind in [MessageType::BookingReq, MessageType::Start] {
+        let message = pick_n_place(&cell.keys, kind, "t", "t/1/1");
+        let answer = cell.service("held", &message).await.unwrap();
+        assert_eq!(answer.result, Some(true), "{answer:?}");
+    }
+    let first = cell.submit("part", 1).await.unwrap().remove(0);
+    cell.wait_state("held", "the order's booking waiting", |s| {
+        s["agenda"].as_array().is_some_and(|a| a.len() == 1)
+    })
+    .await
+    .unwrap();
+    // A resource that can do it comes up; the order stays where it is booked.
+    let spare_config = resource_config(dir, "spare", 5000).unwrap();
+    let mut spare = cell
+        .start_free_resource(dir, &spare_config, &fast.address, &[])
+        .await
+        .unwrap();
+    held.kill();
+    // Its booking had not begun: booked on the spare and done, no grace waited.
+    wait_order(&cell, &first, "done on the spare", |s| {
+        s["status"] == "done" && s["rebooks"] == 1
+    })
+    .await;
+    spare.kill();
+
+    // 2. The order's job begins on its turn on a free `held2` and runs: when `held2`
+    // dies, the order waits for it to come back and report (the grace), and does not
+    // book the step elsewhere.
+    let held2_config = resource_config(dir, "held2", 600_000).unwrap();
+    let mut held2 = cell
+        .start_free_resource(dir, &held2_config, &slow.address, &[])
+        .await
+        .unwrap();
+    let second = cell.submit("part", 1).await.unwrap().remove(0);
+    cell.wait_state("held2", "the order's job running", |s| {
+        s["current"]["requester"] == format!("order/{second}")
+    })
+    .await
+    .unwrap();
+    held2.kill();
+    let spare2_config = resource_config(dir, "spare2", 5000).unwrap();
+    let _spare2 = cell
+        .start_free_resource(dir, &spare2_config, &fast.address, &[])
+        .await
+        .unwrap();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let state = cell.order_state(&second).await.unwrap();
+    assert_eq!(state["status"], "running", "{state}");
+    assert_eq!(
+        state["resource"], "resource/held2",
+        "still waiting for held2: {state}"
+    );
+    assert_eq!(state["rebooks"], 0, "{state}");
+    let spare2 = cell.status("spare2").await.unwrap();
+    assert_eq!(spare2["state"], "free", "{spare2}");
+    assert_eq!(
+        spare2["agenda"].as_array().map(Vec::len),
+        Some(0),
+        "{spare2}"
+    );
+}
