@@ -277,10 +277,14 @@ fn main() -> ExitCode {
     // RUST_LOG says otherwise (zenoh's own warnings, e.g. a query to a host that was cut
     // off, are not the operator's). The holons `cell up` starts keep their own default
     // (info) in their log files: RUST_LOG is passed on only when the user set it.
-    if let Err(e) = holon::logging::init(LogFormat::Text, None, "warn,zenoh=error") {
-        eprintln!("cell: {e}");
-        return ExitCode::FAILURE;
-    }
+    // Dropped last (declared first): the last lines are written out before the exit.
+    let _logs = match holon::logging::init(LogFormat::Text, None, "warn,zenoh=error") {
+        Ok(guard) => guard,
+        Err(e) => {
+            eprintln!("cell: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

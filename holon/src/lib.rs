@@ -57,10 +57,14 @@ where
     Fut: std::future::Future<Output = Result<(), E>>,
     E: std::fmt::Display,
 {
-    if let Err(e) = logging::init(format, log_file, "info") {
-        eprintln!("{program}: {e}");
-        return std::process::ExitCode::FAILURE;
-    }
+    // Dropped last (declared first): the runtime's last lines are written out too.
+    let _logs = match logging::init(format, log_file, "info") {
+        Ok(guard) => guard,
+        Err(e) => {
+            eprintln!("{program}: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
     let runtime = match tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()

@@ -5,12 +5,18 @@
 //! The terminal (stderr) gets human-readable text, or JSON lines with `--log-format json`;
 //! `--log-file PATH` additionally appends JSON lines to PATH. The level comes from
 //! `RUST_LOG` (default `info`; set but blank counts as unset).
+//!
+//! Lines are written by a thread of their own per destination, not by the task that
+//! logs: a request's path formats its lines and hands them over, it makes no write
+//! call (at `info` a service cycle logs about a dozen lines; written in place they cost
+//! a quarter of the cycle). Nothing is dropped: when a writer falls 128k lines behind,
+//! logging waits for it. The [`LogGuard`] that [`init`] returns writes out what is left
+//! when it is dropped, at the end of `main`.
 
 use std::fs::OpenOptions;
 use std::io::IsTerminal;
 use std::path::Path;
 use std::str::FromStr;
-use std::sync::Mutex;
 
 use tracing_subscriber::filter::filter_fn;
 use tracing_subscriber::layer::SubscriberExt;
@@ -52,8 +58,33 @@ pub enum LoggingError {
 
 type BoxedLayer = Box<dyn Layer<Registry> + Send + Sync>;
 
-/// Installs the global subscriber. Call once, at the start of `main`.
-pub fn init(format: LogFormat, file: Option<&Path>, default: &str) -> Result<(), LoggingError> {
+/// Keeps the log writers' threads: dropping it writes out the lines still queued. Hold
+/// it for as long as the program runs.
+#[must_use = "dropping the guard stops the log writers"]
+pub struct LogGuard {
+    _writers: Vec<tracing_appender::non_blocking::WorkerGuard>,
+}
+
+/// A writer on its own thread that never drops a line.
+fn off_the_path<W: std::io::Write + Send + 'static>(
+    destination: W,
+    name: &str,
+    guards: &mut Vec<tracing_appender::non_blocking::WorkerGuard>,
+) -> tracing_appender::non_blocking::NonBlocking {
+    let (writer, guard) = tracing_appender::non_blocking::NonBlockingBuilder::default()
+        .lossy(false)
+        .thread_name(name)
+        .finish(destination);
+    guards.push(guard);
+    writer
+}
+
+/// Installs the global subscriber. Call once, at the start of `main`, and keep the guard.
+pub fn init(
+    format: LogFormat,
+    file: Option<&Path>,
+    default: &str,
+) -> Result<LogGuard, LoggingError> {
     // `RUST_LOG` unset or blank: the default (a blank filter would mean errors only).
     let filter = match std::env::var("RUST_LOG") {
         Ok(value) if !value.trim().is_empty() => {
@@ -64,9 +95,11 @@ pub fn init(format: LogFormat, file: Option<&Path>, default: &str) -> Result<(),
     // A fatal error is printed once on stderr by the binary's edge (as `program: error`);
     // the terminal layer leaves it out, the log file keeps it.
     let not_fatal = filter_fn(|meta| meta.target() != FATAL);
+    let mut guards = Vec::new();
+    let stderr = off_the_path(std::io::stderr(), "log-stderr", &mut guards);
     let terminal: BoxedLayer = match format {
         LogFormat::Text => tracing_subscriber::fmt::layer()
-            .with_writer(std::io::stderr)
+            .with_writer(stderr)
             .with_ansi(std::io::stderr().is_terminal())
             .with_target(false)
             .with_filter(not_fatal)
@@ -74,7 +107,7 @@ pub fn init(format: LogFormat, file: Option<&Path>, default: &str) -> Result<(),
         LogFormat::Json => tracing_subscriber::fmt::layer()
             .json()
             .flatten_event(true)
-            .with_writer(std::io::stderr)
+            .with_writer(stderr)
             .with_filter(not_fatal)
             .boxed(),
     };
@@ -93,7 +126,7 @@ pub fn init(format: LogFormat, file: Option<&Path>, default: &str) -> Result<(),
                 .json()
                 .flatten_event(true)
                 .with_ansi(false)
-                .with_writer(Mutex::new(file))
+                .with_writer(off_the_path(file, "log-file", &mut guards))
                 .boxed(),
         );
     }
@@ -101,5 +134,6 @@ pub fn init(format: LogFormat, file: Option<&Path>, default: &str) -> Result<(),
         .with(layers)
         .with(filter)
         .try_init()
-        .map_err(|e| LoggingError::AlreadySet(e.to_string()))
+        .map_err(|e| LoggingError::AlreadySet(e.to_string()))?;
+    Ok(LogGuard { _writers: guards })
 }

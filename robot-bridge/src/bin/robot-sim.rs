@@ -57,8 +57,13 @@ struct Args {
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     use std::io::IsTerminal;
+    // Lines are written by a thread of their own, off the command path; none is dropped,
+    // and the rest are written out when `_logs` drops at the end of `main`.
+    let (stderr, _logs) = tracing_appender::non_blocking::NonBlockingBuilder::default()
+        .lossy(false)
+        .finish(std::io::stderr());
     tracing_subscriber::fmt()
-        .with_writer(std::io::stderr)
+        .with_writer(stderr)
         // Colour codes only on a terminal, never in a redirected log file.
         .with_ansi(std::io::stderr().is_terminal())
         .with_env_filter(
