@@ -8,9 +8,8 @@
 //!
 //! Lines are written by a thread of their own per destination, not by the task that
 //! logs: a request's path formats its lines and hands them over, it makes no write
-//! call (at `info` a service cycle logs about a dozen lines; written in place they cost
-//! a quarter of the cycle). Nothing is dropped: when a writer falls 128k lines behind,
-//! logging waits for it. The [`LogGuard`] that [`init`] returns writes out what is left
+//! call (at `info` a service cycle logs about a dozen lines). Nothing is dropped: when a
+//! writer falls [`LINES_IN_FLIGHT`] lines behind, logging waits for it. The [`LogGuard`] that [`init`] returns writes out what is left
 //! when it is dropped, at the end of `main`.
 
 use std::fs::OpenOptions;
@@ -65,6 +64,11 @@ pub struct LogGuard {
     _writers: Vec<tracing_appender::non_blocking::WorkerGuard>,
 }
 
+/// Lines queued for one writer thread before logging waits for it. The queue is
+/// allocated whole: the library's default (128,000) took 4 MiB per destination, more
+/// than the rest of an idle holon's own memory.
+pub const LINES_IN_FLIGHT: usize = 1024;
+
 /// A writer on its own thread that never drops a line.
 fn off_the_path<W: std::io::Write + Send + 'static>(
     destination: W,
@@ -73,6 +77,7 @@ fn off_the_path<W: std::io::Write + Send + 'static>(
 ) -> tracing_appender::non_blocking::NonBlocking {
     let (writer, guard) = tracing_appender::non_blocking::NonBlockingBuilder::default()
         .lossy(false)
+        .buffered_lines_limit(LINES_IN_FLIGHT)
         .thread_name(name)
         .finish(destination);
     guards.push(guard);

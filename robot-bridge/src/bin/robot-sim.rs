@@ -61,6 +61,8 @@ async fn main() -> anyhow::Result<()> {
     // and the rest are written out when `_logs` drops at the end of `main`.
     let (stderr, _logs) = tracing_appender::non_blocking::NonBlockingBuilder::default()
         .lossy(false)
+        // The queue is allocated whole: the default (128,000 lines) is 4 MiB.
+        .buffered_lines_limit(1024)
         .finish(std::io::stderr());
     tracing_subscriber::fmt()
         .with_writer(stderr)
