@@ -1337,36 +1337,15 @@ fn cpu_time(pid: i32) -> Result<Duration> {
     Ok(Duration::from_secs_f64(ticks as f64 / per_second as f64))
 }
 
-/// The product `part` and an order-node `orders1` (journal in `DIR/data`), both ready.
+/// The product `part` and the order-node `orders1` of `config` (its journal in
+/// `DIR/data`), both in the cell.
 async fn start_product_and_orders(
     dir: &Path,
     cell: &Cell,
     config: &Path,
 ) -> Result<(Process, Process)> {
-    let product = start_one_step_product(dir, cell)?;
-    let orders = holarchy_tests::start_holon(
-        dir,
-        "order-node",
-        config,
-        "orders1",
-        cell,
-        &["--data-dir", dir.join("data").to_str().unwrap()],
-    )?;
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await?;
-    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
-        .await?;
-    Ok((product, orders))
-}
-
-/// The product holon `part`: one `pick_n_place` step.
-fn start_one_step_product(dir: &Path, cell: &Cell) -> Result<Process> {
-    let product = dir.join("one-step.toml");
-    std::fs::write(
-        &product,
-        format!("cell = \"{}\"\nname = \"part\"\nkind = \"product\"\n[[steps]]\nservice_type = \"pick_n_place\"\ninfo = {{ pick = {{ x = 1.0, y = 2.0, z = 3.0 }}, place = {{ x = 4.0, y = 5.0, z = 6.0 }} }}\n", cell.keys.cell()),
-    )?;
-    holarchy_tests::start_holon(dir, "holon-node", &product, "part", cell, &[])
+    cell.start_part_and_orders(dir, config, &dir.join("data"))
+        .await
 }
 
 async fn detect_kill(

@@ -602,6 +602,25 @@ pub fn pick_n_place(
     .with_info(info.as_object().expect("object").clone())
 }
 
+/// Writes `DIR/part.toml`: the product `part`, one `pick_n_place` step (the cell is
+/// set by the harness's `--cell`).
+pub fn one_step_product(dir: &Path) -> Result<PathBuf> {
+    let path = dir.join("part.toml");
+    fs::write(
+        &path,
+        r#"
+cell = "unset"
+name = "part"
+kind = "product"
+
+[[steps]]
+service_type = "pick_n_place"
+info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6.0 } }
+"#,
+    )?;
+    Ok(path)
+}
+
 /// A config shipped in `deploy/cells/demo/`.
 pub fn demo_config(file: &str) -> PathBuf {
     workspace_root().join("deploy/cells/demo").join(file)
@@ -677,6 +696,60 @@ impl Cell {
             .ok()?;
         let reply = replies.recv_async().await.ok()?;
         serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
+    }
+
+    /// Waits, at most 30 s, until `check` holds for the order's state as its order-node
+    /// answers it (`None`: no node knows the order). The error says what it never did.
+    pub async fn wait_order(
+        &self,
+        order: &str,
+        what: &str,
+        check: impl Fn(Option<&serde_json::Value>) -> bool,
+    ) -> Result<()> {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+        loop {
+            let state = self.order_state(order).await;
+            if check(state.as_ref()) {
+                return Ok(());
+            }
+            if tokio::time::Instant::now() >= deadline {
+                bail!("{order} never {what}: {state:?}");
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
+    /// Starts the product `part` (one `pick_n_place` step, [`one_step_product`]) and the
+    /// order-node `orders1` of `orders_config` with its journal in `data`, and waits
+    /// until both are in the cell.
+    pub async fn start_part_and_orders(
+        &self,
+        dir: &Path,
+        orders_config: &Path,
+        data: &Path,
+    ) -> Result<(Process, Process)> {
+        let product = start_holon(
+            dir,
+            "holon-node",
+            &one_step_product(dir)?,
+            "part",
+            self,
+            &[],
+        )?;
+        let data = data.to_str().context("a data directory that is UTF-8")?;
+        let orders = start_holon(
+            dir,
+            "order-node",
+            orders_config,
+            "orders1",
+            self,
+            &["--data-dir", data],
+        )?;
+        self.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part")?)
+            .await?;
+        self.wait_token(&self.keys.host("order-node", "orders1"))
+            .await?;
+        Ok((product, orders))
     }
 
     /// Starts the resource holon of `config` (its name is the file's stem) on this

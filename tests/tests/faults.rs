@@ -343,26 +343,6 @@ async fn a_full_disk_holds_the_result_until_it_is_recorded_and_never_makes_it_in
     assert_eq!(sim.executed("pick"), 1);
 }
 
-async fn wait_order(
-    cell: &Cell,
-    order: &str,
-    what: &str,
-    check: impl Fn(&serde_json::Value) -> bool,
-) {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
-    loop {
-        let state = cell.order_state(order).await;
-        if state.as_ref().is_some_and(&check) {
-            return;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "{order} never reached {what}: {state:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
 #[tokio::test(flavor = "multi_thread")]
 async fn an_order_node_with_a_full_disk_keeps_the_result_unacknowledged_until_it_can_record_it() {
     let dir = tempfile::tempdir().unwrap();
@@ -382,37 +362,11 @@ async fn an_order_node_with_a_full_disk_keeps_the_result_unacknowledged_until_it
         ],
     )
     .unwrap();
-    let product = dir.path().join("part.toml");
-    std::fs::write(
-        &product,
-        r#"
-cell = "unset"
-name = "part"
-kind = "product"
-
-[[steps]]
-service_type = "pick_n_place"
-info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6.0 } }
-"#,
-    )
-    .unwrap();
-    let _product = start_holon(dir.path(), "holon-node", &product, "part", &cell, &[]).unwrap();
-    let _orders = start_holon(
-        dir.path(),
-        "order-node",
-        &demo_config("orders1.toml"),
-        "orders1",
-        &cell,
-        &["--data-dir", disk.path.to_str().unwrap()],
-    )
-    .unwrap();
+    let _part_and_orders = cell
+        .start_part_and_orders(dir.path(), &demo_config("orders1.toml"), &disk.path)
+        .await
+        .unwrap();
     cell.wait_alive(&HolonId::resource("robot1").unwrap())
-        .await
-        .unwrap();
-    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part").unwrap())
-        .await
-        .unwrap();
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
         .await
         .unwrap();
     let orders = cell.submit("part", 1).await.unwrap();
@@ -440,7 +394,9 @@ info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6
 
     // Space again: the order records the step, acknowledges it, and is done.
     std::fs::remove_file(filler).unwrap();
-    wait_order(&cell, order, "done", |s| s["status"] == "done").await;
+    cell.wait_order(order, "done", |s| s.is_some_and(|s| s["status"] == "done"))
+        .await
+        .unwrap();
     cell.wait_state("robot1", "the result acknowledged", |s| {
         s["undelivered"] == 0
     })

@@ -7,27 +7,6 @@ use std::time::Duration;
 use holarchy_tests::*;
 use nix::sys::signal::Signal;
 
-/// Waits until `check` holds for the order's state (`None`: the node does not know it).
-async fn wait_order(
-    cell: &Cell,
-    order: &str,
-    what: &str,
-    check: impl Fn(&Option<serde_json::Value>) -> bool,
-) {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
-    loop {
-        let state = cell.order_state(order).await;
-        if check(&state) {
-            return;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "{order} never {what}: {state:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-}
-
 fn config(dir: &std::path::Path, keep_finished_ms: u64) -> std::path::PathBuf {
     let path = dir.join("orders.toml");
     std::fs::write(
@@ -81,15 +60,18 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
         .await
         .unwrap();
     for order in &failing {
-        wait_order(&cell, order, "failed", |s| {
-            s.as_ref().is_some_and(|s| s["status"] == "failed")
+        cell.wait_order(order, "failed", |s| {
+            s.is_some_and(|s| s["status"] == "failed")
         })
-        .await;
+        .await
+        .unwrap();
     }
     // Still known right after; gone once the retention has passed.
     assert!(cell.order_state(&failing[0]).await.is_some());
     for order in &failing {
-        wait_order(&cell, order, "left the journal", Option::is_none).await;
+        cell.wait_order(order, "left the journal", |s| s.is_none())
+            .await
+            .unwrap();
     }
     let log = std::fs::read_to_string(dir.path().join("orders1.log.json")).unwrap();
     assert!(log.contains("finished orders left the journal"), "{log}");

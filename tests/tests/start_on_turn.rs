@@ -7,7 +7,7 @@
 use std::time::Duration;
 
 use holarchy_tests::*;
-use schemas::{HolonId, MessageType};
+use schemas::MessageType;
 
 /// The demo order-node's config with `vanished_grace_ms` of 10 minutes.
 fn patient_orders(dir: &std::path::Path) -> std::path::PathBuf {
@@ -20,44 +20,6 @@ fn patient_orders(dir: &std::path::Path) -> std::path::PathBuf {
     )
     .unwrap();
     path
-}
-
-fn one_step_product(dir: &std::path::Path) -> std::path::PathBuf {
-    let path = dir.join("part.toml");
-    std::fs::write(
-        &path,
-        r#"
-cell = "unset"
-name = "part"
-kind = "product"
-
-[[steps]]
-service_type = "pick_n_place"
-info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6.0 } }
-"#,
-    )
-    .unwrap();
-    path
-}
-
-async fn wait_order(
-    cell: &Cell,
-    order: &str,
-    what: &str,
-    check: impl Fn(&serde_json::Value) -> bool,
-) {
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
-    loop {
-        let state = cell.order_state(order).await;
-        if state.as_ref().is_some_and(&check) {
-            return;
-        }
-        assert!(
-            tokio::time::Instant::now() < deadline,
-            "{order} never reached {what}: {state:?}"
-        );
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -73,28 +35,8 @@ async fn a_booking_still_waiting_is_rebooked_at_once_and_a_running_one_keeps_the
         .start_free_resource(dir, &held_config, &slow.address, &[])
         .await
         .unwrap();
-    let _product = start_holon(
-        dir,
-        "holon-node",
-        &one_step_product(dir),
-        "part",
-        &cell,
-        &[],
-    )
-    .unwrap();
-    let _orders = start_holon(
-        dir,
-        "order-node",
-        &patient_orders(dir),
-        "orders1",
-        &cell,
-        &["--data-dir", dir.join("orders-data").to_str().unwrap()],
-    )
-    .unwrap();
-    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part").unwrap())
-        .await
-        .unwrap();
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+    let _part_and_orders = cell
+        .start_part_and_orders(dir, &patient_orders(dir), &dir.join("orders-data"))
         .await
         .unwrap();
 
@@ -119,10 +61,11 @@ async fn a_booking_still_waiting_is_rebooked_at_once_and_a_running_one_keeps_the
         .unwrap();
     held.kill();
     // Its booking had not begun: booked on the spare and done, no grace waited.
-    wait_order(&cell, &first, "done on the spare", |s| {
-        s["status"] == "done" && s["rebooks"] == 1
+    cell.wait_order(&first, "done on the spare", |s| {
+        s.is_some_and(|s| s["status"] == "done" && s["rebooks"] == 1)
     })
-    .await;
+    .await
+    .unwrap();
     spare.kill();
 
     // 2. The order's job begins on its turn on a free `held2` and runs: when `held2`
