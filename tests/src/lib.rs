@@ -621,6 +621,28 @@ info = { pick = { x = 1.0, y = 2.0, z = 3.0 }, place = { x = 4.0, y = 5.0, z = 6
     Ok(path)
 }
 
+/// Prints the end of every process's log: what a failed run on a CI machine leaves to read.
+pub fn print_log_tails(dir: &Path) {
+    let Ok(entries) = fs::read_dir(dir) else {
+        return;
+    };
+    let mut logs: Vec<_> = entries
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "log"))
+        .collect();
+    logs.sort();
+    for log in logs {
+        let text = fs::read_to_string(&log).unwrap_or_default();
+        let lines: Vec<&str> = text.lines().collect();
+        let tail = &lines[lines.len().saturating_sub(40)..];
+        println!("---- {} (last {} lines)", log.display(), tail.len());
+        for line in tail {
+            println!("{line}");
+        }
+    }
+}
+
 /// A config shipped in `deploy/cells/demo/`.
 pub fn demo_config(file: &str) -> PathBuf {
     workspace_root().join("deploy/cells/demo").join(file)

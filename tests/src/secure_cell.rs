@@ -14,6 +14,15 @@ use crate::{bin, free_port, workspace_root};
 /// `cell up` of the secure cell, stopped (SIGTERM, then SIGKILL) when dropped.
 pub struct Up(Child);
 
+impl Drop for SecureCell {
+    fn drop(&mut self) {
+        // A failed run on a CI machine leaves only this to read (the directory goes).
+        if std::thread::panicking() {
+            crate::print_log_tails(&self.dir.join("logs"));
+        }
+    }
+}
+
 impl Drop for Up {
     fn drop(&mut self) {
         let pid = nix::unistd::Pid::from_raw(self.0.id() as i32);

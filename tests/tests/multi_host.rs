@@ -176,28 +176,6 @@ impl Drop for Hosts {
     }
 }
 
-/// Prints the end of every process's log: what a failed run on a CI machine leaves to read.
-fn print_log_tails(dir: &Path) {
-    let Ok(entries) = std::fs::read_dir(dir) else {
-        return;
-    };
-    let mut logs: Vec<_> = entries
-        .flatten()
-        .map(|e| e.path())
-        .filter(|p| p.extension().is_some_and(|e| e == "log"))
-        .collect();
-    logs.sort();
-    for log in logs {
-        let text = std::fs::read_to_string(&log).unwrap_or_default();
-        let lines: Vec<&str> = text.lines().collect();
-        let tail = &lines[lines.len().saturating_sub(40)..];
-        println!("---- {} (last {} lines)", log.display(), tail.len());
-        for line in tail {
-            println!("{line}");
-        }
-    }
-}
-
 fn run(args: &[&str]) {
     let status = Command::new(args[0])
         .args(&args[1..])
