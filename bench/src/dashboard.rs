@@ -294,26 +294,44 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
     // The orders, in batches of 100 (one reply each).
     let browser_cpu_before = browser_cpu();
     let t = Instant::now();
-    let mut submitted = 0;
-    while submitted < orders {
-        let batch = (orders - submitted).min(100);
-        cell.submit("part", batch).await?;
-        submitted += batch;
-    }
-    let done = loop {
-        let view = dashboard.json("/api/view")?;
-        let done = view["order_counts"]["done"].as_u64().unwrap_or(0);
-        if done >= orders as u64 {
-            break t.elapsed();
+    let run_orders = async {
+        let mut submitted = 0;
+        while submitted < orders {
+            let batch = (orders - submitted).min(100);
+            cell.submit("part", batch).await?;
+            submitted += batch;
         }
-        if t.elapsed() > Duration::from_secs(600) {
-            bail!("the dashboard shows {done} of {orders} orders done after 600 s");
+        loop {
+            let view = dashboard.json("/api/view")?;
+            let done = view["order_counts"]["done"].as_u64().unwrap_or(0);
+            if done >= orders as u64 {
+                return Ok(t.elapsed());
+            }
+            if t.elapsed() > Duration::from_secs(600) {
+                bail!("the dashboard shows {done} of {orders} orders done after 600 s");
+            }
+            tokio::time::sleep(Duration::from_millis(250)).await;
         }
-        tokio::time::sleep(Duration::from_millis(250)).await;
     };
-    // A last view settles; then everything stops.
-    tokio::time::sleep(Duration::from_secs(1)).await;
+    let done: Result<Duration> = run_orders.await;
+    if done.is_ok() {
+        // A last view settles; then everything stops.
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
+    // Also when the orders failed: the page's thread ends and closes the browser
+    // (left running, Chromium and its driver would outlive the bench).
     stop.store(true, Ordering::Relaxed);
+    let done = match done {
+        Ok(done) => done,
+        Err(e) => {
+            if let Some(page) = page {
+                if page.join().is_err() {
+                    eprintln!("the page's reader panicked");
+                }
+            }
+            return Err(e);
+        }
+    };
     let peak_rss = peak.join().map_err(|_| anyhow!("the sampler panicked"))?;
     events
         .join()
