@@ -4,7 +4,7 @@
 //! the spares `resource.robot9` and `order-node.probe`.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::time::Duration;
 
 use schemas::CellKeys;
@@ -18,6 +18,7 @@ impl Drop for SecureCell {
     fn drop(&mut self) {
         // A failed run on a CI machine leaves only this to read (the directory goes).
         if std::thread::panicking() {
+            crate::print_log_tails(&self.dir);
             crate::print_log_tails(&self.dir.join("logs"));
         }
     }
@@ -123,7 +124,8 @@ args = ["--config", "{}", "--cell", "{cell}", "--connect", "{endpoint}", "--pki"
         .arg("up")
         .arg(dir)
         .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
-        .stderr(Stdio::null())
+        // Its own logs (warnings, a panic's message), kept for a failed run to read.
+        .stderr(std::fs::File::create(dir.join("up.stderr.log")).unwrap())
         .spawn()
         .unwrap();
     SecureCell {
