@@ -524,23 +524,27 @@ impl AgendaManager {
     /// on its turn makes it the running job.
     fn start_on_turn(&mut self) -> Option<Job> {
         let first = self.bookings.first()?;
-        if self.state() != ResourceState::Free
-            || self.withdrawing
-            || !first.start_on_turn
-            || first.reply_to.is_none()
-        {
+        if self.state() != ResourceState::Free || self.withdrawing || !first.start_on_turn {
             return None;
         }
-        let booking = self.bookings.remove(0);
+        // Checked when it was booked; a booking without one waits for a `start`.
+        let reply_to = first.reply_to.clone()?;
+        let info = first.info.clone();
+        Some(self.run_booking(0, reply_to, info))
+    }
+
+    /// Makes the booking at `index` the running job, its results to `reply_to`.
+    fn run_booking(&mut self, index: usize, reply_to: String, info: Map<String, Value>) -> Job {
+        let booking = self.bookings.remove(index);
         let job = Job {
             requester: booking.requester,
             conversation_id: booking.conversation_id,
             service_type: booking.service_type,
-            reply_to: booking.reply_to?,
-            info: booking.info,
+            reply_to,
+            info,
         };
         self.current = Some(job.clone());
-        Some(job)
+        job
     }
 
     fn cancel(&mut self, request: &Service) -> Vec<AgendaAction> {
@@ -603,15 +607,7 @@ impl AgendaManager {
             let detail = "neither the start nor the booking has reply_to".to_string();
             return self.refuse(&request, reason::INVALID_INFO, Some(detail));
         };
-        let booking = self.bookings.remove(index);
-        let job = Job {
-            requester: booking.requester,
-            conversation_id: booking.conversation_id,
-            service_type: booking.service_type,
-            reply_to,
-            info,
-        };
-        self.current = Some(job.clone());
+        let job = self.run_booking(index, reply_to, info);
         vec![
             AgendaAction::Reply(request.accepted(&self.holon)),
             AgendaAction::Execute(job),
@@ -662,24 +658,27 @@ impl AgendaManager {
         }
     }
 
-    /// The answer to a booking whose job has begun.
+    /// The answer to a booking whose job has begun (queue position 0).
     fn started_reply(&self, request: &Service) -> Service {
-        let mut reply = request.accepted(&self.holon);
-        reply.info = self.proposal_info(&request.service_type);
-        reply.info.insert("queue_position".into(), json!(0));
+        let mut reply = self.queued_reply(request, 0);
         reply
             .info
             .insert(schemas::info_key::STARTED.into(), Value::Bool(true));
         reply
     }
 
+    /// The answer to a booking at `position` on the agenda.
     fn booked_reply(&self, request: &Service, position: usize) -> Service {
+        self.queued_reply(request, position + 1 + self.current.is_some() as usize)
+    }
+
+    /// An accepted booking: the proposal's figures and the booking's queue position.
+    fn queued_reply(&self, request: &Service, queue_position: usize) -> Service {
         let mut reply = request.accepted(&self.holon);
         reply.info = self.proposal_info(&request.service_type);
-        reply.info.insert(
-            "queue_position".into(),
-            json!(position + 1 + self.current.is_some() as usize),
-        );
+        reply
+            .info
+            .insert("queue_position".into(), json!(queue_position));
         reply
     }
 
