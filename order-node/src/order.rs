@@ -390,19 +390,13 @@ impl OrderTask {
                 None,
             )
         };
-        // How long a provider that is gone has to come back and report: only a step
-        // that may run gets the grace. A booking on turn that the provider last
-        // published as still waiting had not begun: it is booked elsewhere at once.
-        let grace = || {
-            let waiting = !started && ctx.presence.is_waiting(provider, conversation_id);
-            if may_run && !waiting {
-                ctx.settings.vanished_grace
-            } else {
-                Duration::ZERO
-            }
+        let grace = if may_run {
+            ctx.settings.vanished_grace
+        } else {
+            Duration::ZERO
         };
         // When the provider is gone: the moment its grace ends.
-        let mut gone_until = (!ctx.presence.is_alive(provider)).then(|| Instant::now() + grace());
+        let mut gone_until = (!ctx.presence.is_alive(provider)).then(|| Instant::now() + grace);
         loop {
             // While the provider is gone, asking it is pointless: a booked step waits
             // out the grace whatever its pause (a pause that ended it would start the
@@ -428,12 +422,12 @@ impl OrderTask {
                 }
                 change = self.changes.recv() => match change {
                     Ok((holon, alive)) if &holon == provider => {
-                        gone_until = if alive { None } else { Some(Instant::now() + grace()) };
+                        gone_until = if alive { None } else { Some(Instant::now() + grace) };
                     }
                     Ok(_) => {}
                     Err(broadcast::error::RecvError::Lagged(_)) => {
                         if !ctx.presence.is_alive(provider) && gone_until.is_none() {
-                            gone_until = Some(Instant::now() + grace());
+                            gone_until = Some(Instant::now() + grace);
                         }
                     }
                     Err(broadcast::error::RecvError::Closed) => return Watched::Elapsed,

@@ -32,10 +32,6 @@ pub struct Presence {
     /// there waits on its own resource's channel only, so a state change wakes the
     /// orders it concerns, not all of them.
     turns: Mutex<HashMap<HolonId, watch::Sender<Option<String>>>>,
-    /// Per resource, as it last published: the conversations booked on its agenda and
-    /// not started. A booking that asked to start on its turn and is still listed here
-    /// had not begun when the resource last spoke.
-    waiting: Mutex<HashMap<HolonId, HashSet<String>>>,
 }
 
 impl Presence {
@@ -53,7 +49,6 @@ impl Presence {
             published: Mutex::new(HashMap::new()),
             queues: Mutex::new(HashMap::new()),
             turns: Mutex::new(HashMap::new()),
-            waiting: Mutex::new(HashMap::new()),
         });
         let keys_for_callback = keys.clone();
         let weak = Arc::downgrade(&presence);
@@ -117,18 +112,6 @@ impl Presence {
                         (snapshot.agenda.len() + usize::from(snapshot.current.is_some())) as u64,
                     );
                 presence
-                    .waiting
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .insert(
-                        snapshot.holon.clone(),
-                        snapshot
-                            .agenda
-                            .iter()
-                            .map(|b| b.conversation_id.clone())
-                            .collect(),
-                    );
-                presence
                     .turn_channel(&snapshot.holon)
                     .send_replace(news.turn);
                 if news.became_ready {
@@ -164,16 +147,6 @@ impl Presence {
             .unwrap_or_else(|e| e.into_inner())
             .get(resource)
             .copied()
-    }
-
-    /// Whether `conversation_id` was booked on `resource` and not started, as the
-    /// resource last published (false when it never published).
-    pub fn is_waiting(&self, resource: &HolonId, conversation_id: &str) -> bool {
-        self.waiting
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(resource)
-            .is_some_and(|waiting| waiting.contains(conversation_id))
     }
 
     pub fn is_alive(&self, holon: &HolonId) -> bool {
