@@ -254,6 +254,12 @@ async fn serve(
                     }
                     break ConnectionEnd::Lost(why);
                 }
+                Some(Err(e)) if e.is_broken_connection() => {
+                    // A reset or a document cut short: the controller is gone
+                    // (killed, or its host down), not talking nonsense. Pending
+                    // commands fail as disconnected below.
+                    break ConnectionEnd::Lost(e.to_string());
+                }
                 Some(Err(e)) => {
                     let why = e.to_string();
                     warn!(error = %why, "controller sent invalid data; resetting the connection");

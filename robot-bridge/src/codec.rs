@@ -52,8 +52,19 @@ pub enum CodecError {
         field: &'static str,
         why: String,
     },
+    #[error("the connection closed inside a document")]
+    ClosedInsideDocument,
     #[error("connection I/O: {0}")]
     Io(String),
+}
+
+impl CodecError {
+    /// Whether the connection broke (a reset, or the peer gone in the middle of
+    /// a document) rather than the peer sending bytes that break the protocol.
+    /// A controller killed mid-message is a lost controller, not a faulty one.
+    pub fn is_broken_connection(&self) -> bool {
+        matches!(self, CodecError::ClosedInsideDocument | CodecError::Io(_))
+    }
 }
 
 impl From<std::io::Error> for CodecError {
@@ -493,9 +504,7 @@ impl Decoder for RobotCodec {
         match self.decode(buf)? {
             Some(message) => Ok(Some(message)),
             None if buf.iter().all(u8::is_ascii_whitespace) => Ok(None),
-            None => Err(CodecError::Malformed(
-                "connection closed inside a document".into(),
-            )),
+            None => Err(CodecError::ClosedInsideDocument),
         }
     }
 }

@@ -289,3 +289,70 @@ async fn error_results_are_reported_with_their_message() {
     assert_eq!(stats.executed(), 1);
     h.stop().await;
 }
+
+/// A controller that says it is ready, takes one command and then ends the
+/// connection the way `end` does: how a controller killed mid-message looks.
+async fn controller_that_breaks(end: fn(tokio::net::TcpStream) -> std::io::Result<()>) -> String {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    tokio::spawn(async move {
+        let (mut stream, _) = listener.accept().await.unwrap();
+        stream
+            .write_all(b"<ROBOT_STATUS><STATE>ready</STATE></ROBOT_STATUS>")
+            .await
+            .unwrap();
+        let mut command = [0u8; 64];
+        let read = stream.read(&mut command).await.unwrap();
+        assert!(read > 0, "the client sent its command");
+        end(stream).unwrap();
+        // Keep the port bound (and refusing nothing) until the test ends.
+        std::future::pending::<()>().await;
+    });
+    address
+}
+
+async fn command_fails_as_disconnected(address: String) {
+    let mut h = Harness::start(address, Duration::from_secs(5));
+    h.wait_ready().await;
+    h.send(1, "pick").await;
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::CommandFailed {
+            id: 1,
+            failure: CommandFailure::Disconnected
+        },
+        "a broken connection is a lost controller, not a protocol error"
+    );
+    assert_eq!(
+        h.next().await,
+        ControllerEvent::Status(ControllerStatus::Disconnected)
+    );
+    h.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_connection_reset_mid_command_is_a_disconnection() {
+    let address = controller_that_breaks(|stream| {
+        // Linger 0: closing sends RST, as a killed process with unread input does.
+        stream.set_zero_linger()?;
+        drop(stream);
+        Ok(())
+    })
+    .await;
+    command_fails_as_disconnected(address).await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_reply_cut_short_by_the_close_is_a_disconnection() {
+    let address = controller_that_breaks(|stream| {
+        let stream = stream.into_std()?;
+        stream.set_nonblocking(false)?;
+        use std::io::Write;
+        (&stream).write_all(b"<ROBOT_REPLY><ID>1</ID><RES")?;
+        drop(stream);
+        Ok(())
+    })
+    .await;
+    command_fails_as_disconnected(address).await;
+}
