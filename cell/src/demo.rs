@@ -431,6 +431,7 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         product: "breaker".into(),
         count: options.orders,
         priority: 0,
+        due: None,
         queue: false,
     };
     let ids = crate::submit::submit(&cell.session, &cell.keys, &work, STARTUP).await?;

@@ -120,9 +120,15 @@ enum Commands {
         /// How many.
         #[arg(long, default_value_t = 1)]
         count: u32,
-        /// Priority (kept with the order; scheduling by priority is not implemented yet).
-        #[arg(long, default_value_t = 0)]
+        /// Priority, -1000 to 1000 (higher first, e.g. 100 for a rush order): each
+        /// resource serves waiting bookings by it, and passes a waiting booking at
+        /// most `agenda.max_overtakes` times.
+        #[arg(long, default_value_t = 0, allow_hyphen_values = true)]
         priority: i32,
+        /// When the orders are due, from now: a number with a unit, ms, s, m or h
+        /// (e.g. 90s, 15m). Kept and shown with each order; a staff holon plans by it.
+        #[arg(long, value_name = "DURATION", value_parser = parse_due_in)]
+        due_in: Option<std::time::Duration>,
         /// Accept the work order even when no product holon of that name is alive: its
         /// orders wait for the plan (refused `unknown_product` otherwise).
         #[arg(long)]
@@ -396,6 +402,7 @@ async fn run(args: Args) -> Result<bool> {
             product,
             count,
             priority,
+            due_in,
             queue,
             client,
         } => {
@@ -404,6 +411,7 @@ async fn run(args: Args) -> Result<bool> {
                 product,
                 count,
                 priority,
+                due: due_in.map(|d| schemas::unix_ms() + d.as_millis() as u64),
                 queue,
             };
             work.validate()?;
@@ -442,6 +450,44 @@ async fn run(args: Args) -> Result<bool> {
                 println!("{line}");
             }
             Ok(true)
+        }
+    }
+}
+
+/// `--due-in`: a whole number with a unit (`500ms`, `90s`, `15m`, `2h`).
+fn parse_due_in(text: &str) -> Result<std::time::Duration, String> {
+    let split = text
+        .find(|c: char| !c.is_ascii_digit())
+        .ok_or_else(|| format!("{text:?} has no unit (ms, s, m or h)"))?;
+    let (number, unit) = text.split_at(split);
+    let number: u64 = number
+        .parse()
+        .map_err(|_| format!("{text:?} does not start with a whole number"))?;
+    let millis = match unit {
+        "ms" => Some(number),
+        "s" => number.checked_mul(1_000),
+        "m" => number.checked_mul(60_000),
+        "h" => number.checked_mul(3_600_000),
+        _ => return Err(format!("{text:?}: the unit must be ms, s, m or h")),
+    }
+    .filter(|ms| *ms <= 366 * 24 * 3_600_000)
+    .ok_or_else(|| format!("{text:?} is more than a year"))?;
+    Ok(std::time::Duration::from_millis(millis))
+}
+
+#[cfg(test)]
+mod due_in_tests {
+    use super::parse_due_in;
+    use std::time::Duration;
+
+    #[test]
+    fn durations_have_a_unit() {
+        assert_eq!(parse_due_in("90s"), Ok(Duration::from_secs(90)));
+        assert_eq!(parse_due_in("15m"), Ok(Duration::from_secs(900)));
+        assert_eq!(parse_due_in("2h"), Ok(Duration::from_secs(7200)));
+        assert_eq!(parse_due_in("500ms"), Ok(Duration::from_millis(500)));
+        for bad in ["90", "s", "1.5m", "-1s", "3d", "9999h", ""] {
+            assert!(parse_due_in(bad).is_err(), "{bad:?} was accepted");
         }
     }
 }

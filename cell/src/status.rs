@@ -284,6 +284,16 @@ pub async fn cancel(
 /// The table `cell orders` prints, with a summary line first; with `detail`, each
 /// order's ended attempts below it (its audit trail).
 pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot], detail: bool) -> String {
+    render_orders_at(cell, orders, detail, schemas::unix_ms())
+}
+
+/// The orders table as it reads at `now` (Unix ms): due times are shown from then.
+pub fn render_orders_at(
+    cell: &str,
+    orders: &[schemas::OrderSnapshot],
+    detail: bool,
+    now: u64,
+) -> String {
     use schemas::OrderStatus;
     let count = |s: OrderStatus| orders.iter().filter(|o| o.status == s).count();
     let mut out = format!(
@@ -296,15 +306,26 @@ pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot], detail: bool
         count(OrderStatus::Cancelled)
     );
     out.push_str(&format!(
-        "{:<22} {:<10} {:<9} {:>5} {:<22} {:>6} {:>7} {:>7}  REASON\n",
-        "ORDER", "PRODUCT", "STATUS", "STEP", "RESOURCE", "FAILED", "REBOOKS", "REWORKS"
+        "{:<22} {:<10} {:<9} {:>5} {:>9} {:>5} {:<22} {:>6} {:>7} {:>7}  REASON\n",
+        "ORDER",
+        "PRODUCT",
+        "STATUS",
+        "PRIO",
+        "DUE",
+        "STEP",
+        "RESOURCE",
+        "FAILED",
+        "REBOOKS",
+        "REWORKS"
     ));
     for o in orders {
         out.push_str(&format!(
-            "{:<22} {:<10} {:<9} {:>5} {:<22} {:>6} {:>7} {:>7}  {}\n",
+            "{:<22} {:<10} {:<9} {:>5} {:>9} {:>5} {:<22} {:>6} {:>7} {:>7}  {}\n",
             o.holon.name(),
             o.product,
             o.status.as_str(),
+            o.priority,
+            due_text(o.due, o.status, now),
             format!("{}/{}", o.step, o.steps),
             o.resource
                 .as_ref()
@@ -328,6 +349,30 @@ pub fn render_orders(cell: &str, orders: &[schemas::OrderSnapshot], detail: bool
         }
     }
     out
+}
+
+/// An order's due time as the table shows it: `-` without one; for a running order
+/// the time left (`4m10s`) or, past it, how late (`-30s`).
+fn due_text(due: Option<u64>, status: schemas::OrderStatus, now: u64) -> String {
+    let Some(due) = due else {
+        return "-".into();
+    };
+    if status != schemas::OrderStatus::Running {
+        return "(ended)".into();
+    }
+    let span = |ms: u64| {
+        let s = ms / 1000;
+        match s {
+            0..60 => format!("{s}s"),
+            60..3600 => format!("{}m{:02}s", s / 60, s % 60),
+            _ => format!("{}h{:02}m", s / 3600, (s % 3600) / 60),
+        }
+    };
+    if due >= now {
+        span(due - now)
+    } else {
+        format!("-{}", span(now - due))
+    }
 }
 
 #[cfg(test)]
@@ -385,6 +430,8 @@ mod tests {
             rebooks: 0,
             failed_attempts: 0,
             attempts: vec![],
+            priority: 0,
+            due: None,
             at: 0,
         }
     }
@@ -411,7 +458,18 @@ mod tests {
         let row: Vec<&str> = table.lines().nth(2).unwrap().split_whitespace().collect();
         assert_eq!(
             row,
-            ["orders1-2", "breaker", "done", "3/3", "-", "1", "1", "0"]
+            [
+                "orders1-2",
+                "breaker",
+                "done",
+                "0",
+                "-",
+                "3/3",
+                "-",
+                "1",
+                "1",
+                "0"
+            ]
         );
         assert_eq!(table.lines().count(), 3, "{table}");
         let detailed = render_orders("demo", &[order], true);
@@ -438,5 +496,35 @@ mod tests {
         assert_eq!(nodes[1].ended_otherwise, 1);
         let table = render_order_nodes(&nodes);
         assert!(table.contains("ORDER-NODE"), "{table}");
+    }
+
+    #[test]
+    fn the_orders_table_shows_priority_and_time_to_due() {
+        let now = 1_000_000_000;
+        let rush = schemas::OrderSnapshot {
+            priority: 100,
+            due: Some(now + 250_000),
+            ..order("orders1-1", schemas::OrderStatus::Running)
+        };
+        let late = schemas::OrderSnapshot {
+            priority: -5,
+            due: Some(now - 30_000),
+            ..order("orders1-2", schemas::OrderStatus::Running)
+        };
+        let table = render_orders_at("demo", &[rush, late], false, now);
+        let cells = |n: usize| -> Vec<String> {
+            let row: Vec<&str> = table.lines().nth(n).unwrap().split_whitespace().collect();
+            vec![row[3].to_string(), row[4].to_string()]
+        };
+        assert_eq!(cells(2), ["100", "4m10s"], "{table}");
+        assert_eq!(cells(3), ["-5", "-30s"], "{table}");
+        assert_eq!(
+            due_text(Some(now + 7_200_000), schemas::OrderStatus::Running, now),
+            "2h00m"
+        );
+        assert_eq!(
+            due_text(Some(now), schemas::OrderStatus::Done, now),
+            "(ended)"
+        );
     }
 }

@@ -16,7 +16,8 @@
 //! | `proposal_req` | type not offered | `proposal` false `unknown_service` | same |
 //! | | controller not ready, or withdrawing | `proposal` false `unavailable` | same |
 //! | | agenda full | `proposal` false `agenda_full` | same |
-//! | | otherwise | `proposal` true with the queue and the expected wait | same |
+//! | | `info.priority` is not an integer from -1000 to 1000 | refused `invalid_info` | same |
+//! | | otherwise | `proposal` true with the queue and the expected wait where a booking of its priority would go | same |
 //! | `booking_req` | type not offered | refused `unknown_service` | same |
 //! | | the requester is a resource | refused `not_a_requester` (nothing would release it) | same |
 //! | | the conversation is booked | true again with its queue position (no second booking) | same |
@@ -24,9 +25,10 @@
 //! | | the conversation's job is running | refused `busy` | same |
 //! | | controller not ready, or withdrawing | refused `unavailable` (no commitment without hardware) | same |
 //! | | agenda full | refused `agenda_full` | same |
+//! | | `info.priority` or `info.due` is not one | refused `invalid_info` | same |
 //! | | start on turn asked, and the info lacks what the steps need or there is no `reply_to` | refused `invalid_info` | same |
 //! | | start on turn asked, `free`, nothing booked ahead | true, `started`; the booking becomes the job, execution starts | `busy` |
-//! | | otherwise | true with the queue position; booking appended | same + booking |
+//! | | otherwise | true with the queue position; booking inserted by priority (below) | same + booking |
 //! | `booking_cancel` | the conversation is booked | true; booking removed | same − booking |
 //! | | otherwise | refused `not_booked` | same |
 //! | `start` | type not offered | refused `unknown_service` | same |
@@ -52,6 +54,12 @@
 //! | after any event | `free`, not withdrawing, and the first booking asked to start on its turn | the booking becomes the job, execution starts | `busy` |
 //!
 //! Every change of state is followed by a `StateChanged` action (a new snapshot).
+//!
+//! Bookings wait by priority ([`schemas::info_key::PRIORITY`], higher first), equal
+//! priorities in the order they came. A new booking goes ahead of the waiting bookings
+//! of lower priority at the back, but stops behind one that later bookings have passed
+//! `max_overtakes` times. So a booking starts after at most the jobs ahead of it when it
+//! was booked, plus `max_overtakes`: low priority is served later, never starved.
 
 use std::sync::Arc;
 
@@ -62,6 +70,10 @@ use schemas::{
 use serde_json::{json, Map, Value};
 
 use crate::catalog::ServiceCatalog;
+
+/// How many later bookings of higher priority may go ahead of a waiting one, unless
+/// the config says (`agenda.max_overtakes`).
+pub const DEFAULT_MAX_OVERTAKES: u32 = 4;
 
 /// A commitment on the agenda.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -77,6 +89,16 @@ pub struct Booking {
     /// when it was booked.
     #[serde(default)]
     pub start_on_turn: bool,
+    /// Its priority ([`schemas::info_key::PRIORITY`]): it went ahead of waiting
+    /// bookings of lower priority when it was made.
+    #[serde(default)]
+    pub priority: i32,
+    /// When its order is due, in Unix milliseconds, if it said (shown, not used here).
+    #[serde(default)]
+    pub due: Option<u64>,
+    /// How many later bookings went ahead of it; at `max_overtakes` none may.
+    #[serde(default)]
+    pub overtaken: u32,
 }
 
 /// A booking being executed.
@@ -190,6 +212,8 @@ pub struct AgendaManager {
     holon: HolonId,
     catalog: Arc<ServiceCatalog>,
     capacity: usize,
+    /// How many later bookings of higher priority may go ahead of a waiting one.
+    max_overtakes: u32,
     execution_ready: bool,
     current: Option<Job>,
     bookings: Vec<Booking>,
@@ -205,12 +229,20 @@ impl AgendaManager {
             holon,
             catalog,
             capacity,
+            max_overtakes: DEFAULT_MAX_OVERTAKES,
             execution_ready: false,
             current: None,
             bookings: Vec::new(),
             undelivered: Vec::new(),
             withdrawing: false,
         }
+    }
+
+    /// The same agenda, letting at most `max_overtakes` later bookings of higher
+    /// priority go ahead of a waiting one (0: first come, first served).
+    pub fn with_max_overtakes(mut self, max_overtakes: u32) -> Self {
+        self.max_overtakes = max_overtakes;
+        self
     }
 
     /// What the journal keeps.
@@ -446,7 +478,11 @@ impl AgendaManager {
             reply.result = Some(false);
             reply.reason = Some(why.to_string());
         }
-        reply.info = self.proposal_info(&request.service_type);
+        let priority = match request.priority() {
+            Ok(priority) => priority,
+            Err(detail) => return self.refuse(request, reason::INVALID_INFO, Some(detail)),
+        };
+        reply.info = self.proposal_info(&request.service_type, priority);
         vec![AgendaAction::Reply(reply)]
     }
 
@@ -489,6 +525,12 @@ impl AgendaManager {
     /// as a start would be, and begins at once when it is the next job of a free
     /// resource.
     fn append(&mut self, request: Service) -> Vec<AgendaAction> {
+        let (priority, due) = match (request.priority(), request.due()) {
+            (Ok(priority), Ok(due)) => (priority, due),
+            (Err(detail), _) | (_, Err(detail)) => {
+                return self.refuse(&request, reason::INVALID_INFO, Some(detail))
+            }
+        };
         let start_on_turn = request.start_on_turn();
         if start_on_turn {
             if let Err(detail) = self.catalog.poses(&request.service_type, &request.info) {
@@ -499,14 +541,24 @@ impl AgendaManager {
                 return self.refuse(&request, reason::INVALID_INFO, Some(detail));
             }
         }
-        self.bookings.push(Booking {
-            requester: request.requester.clone(),
-            conversation_id: request.conversation_id.clone(),
-            service_type: request.service_type.clone(),
-            reply_to: request.reply_to.clone(),
-            info: request.info.clone(),
-            start_on_turn,
-        });
+        let at = self.insertion_point(priority);
+        for passed in &mut self.bookings[at..] {
+            passed.overtaken += 1;
+        }
+        self.bookings.insert(
+            at,
+            Booking {
+                requester: request.requester.clone(),
+                conversation_id: request.conversation_id.clone(),
+                service_type: request.service_type.clone(),
+                reply_to: request.reply_to.clone(),
+                info: request.info.clone(),
+                start_on_turn,
+                priority,
+                due,
+                overtaken: 0,
+            },
+        );
         match self.start_on_turn() {
             Some(job) => vec![
                 AgendaAction::Reply(self.started_reply(&request)),
@@ -514,7 +566,7 @@ impl AgendaManager {
                 AgendaAction::StateChanged,
             ],
             None => {
-                let reply = self.booked_reply(&request, self.bookings.len() - 1);
+                let reply = self.booked_reply(&request, at);
                 vec![AgendaAction::Reply(reply), AgendaAction::StateChanged]
             }
         }
@@ -675,24 +727,42 @@ impl AgendaManager {
     /// An accepted booking: the proposal's figures and the booking's queue position.
     fn queued_reply(&self, request: &Service, queue_position: usize) -> Service {
         let mut reply = request.accepted(&self.holon);
-        reply.info = self.proposal_info(&request.service_type);
+        reply.info = self.proposal_info(&request.service_type, request.priority().unwrap_or(0));
         reply
             .info
             .insert("queue_position".into(), json!(queue_position));
         reply
     }
 
+    /// Where a new booking of `priority` goes: ahead of the waiting bookings of lower
+    /// priority at the back of the agenda, stopping at one of equal or higher
+    /// priority, or one already passed `max_overtakes` times. So equal priorities are
+    /// first come, first served, and a waiting booking starts after at most the jobs
+    /// ahead of it when it was made plus `max_overtakes` (no starvation).
+    fn insertion_point(&self, priority: i32) -> usize {
+        let mut at = self.bookings.len();
+        while at > 0 {
+            let ahead = &self.bookings[at - 1];
+            if ahead.priority >= priority || ahead.overtaken >= self.max_overtakes {
+                break;
+            }
+            at -= 1;
+        }
+        at
+    }
+
     /// What a proposal says: the queue ahead and the expected wait before this service
-    /// could start, from the nominal durations of the jobs ahead.
-    fn proposal_info(&self, service_type: &str) -> Map<String, Value> {
+    /// could start for a booking of `priority`, from the nominal durations of the jobs
+    /// ahead of where it would go.
+    fn proposal_info(&self, service_type: &str, priority: i32) -> Map<String, Value> {
         let nominal = |t: &str| {
             self.catalog
                 .get(t)
                 .map(|d| d.nominal_duration.as_millis() as u64)
                 .unwrap_or(0)
         };
-        let ahead: u64 = self
-            .bookings
+        let at = self.insertion_point(priority);
+        let ahead: u64 = self.bookings[..at]
             .iter()
             .map(|b| nominal(&b.service_type))
             .chain(self.current.iter().map(|j| nominal(&j.service_type)))
@@ -701,7 +771,7 @@ impl AgendaManager {
         info.insert("state".into(), json!(self.state()));
         info.insert(
             "queue_position".into(),
-            json!(self.bookings.len() + self.current.is_some() as usize),
+            json!(at + self.current.is_some() as usize),
         );
         info.insert("agenda_length".into(), json!(self.bookings.len()));
         info.insert("expected_wait_ms".into(), json!(ahead));
@@ -725,6 +795,9 @@ impl AgendaManager {
                     conversation_id: b.conversation_id.clone(),
                     service_type: b.service_type.clone(),
                     requester_absent_since: None,
+                    priority: b.priority,
+                    due: b.due,
+                    overtaken: b.overtaken,
                 })
                 .collect(),
             current: self.current.as_ref().map(|j| CurrentJobView {
@@ -1424,6 +1497,143 @@ mod tests {
         m.handle(AgendaEvent::ExecutionUnavailable);
         let actions = m.handle(AgendaEvent::Request(proposal));
         assert_eq!(reply(&actions).reason.as_deref(), Some("unavailable"));
+    }
+
+    /// A ready agenda of room for 16 bookings, running `c0` so the others wait.
+    fn busy_manager(max_overtakes: u32) -> AgendaManager {
+        let mut m = AgendaManager::new(
+            HolonId::resource("robot1").unwrap(),
+            Arc::new(pick_n_place()),
+            16,
+        )
+        .with_max_overtakes(max_overtakes);
+        m.handle(AgendaEvent::ExecutionReady);
+        m.handle(AgendaEvent::Request(book("o-0", "c0")));
+        assert_accepted(&m.handle(AgendaEvent::Request(start("o-0", "c0"))));
+        m
+    }
+
+    fn urgent(order: &str, conversation: &str, priority: i32) -> Service {
+        book(order, conversation).with_urgency(priority, None)
+    }
+
+    fn waiting(m: &AgendaManager) -> Vec<(&str, i32, u32)> {
+        m.bookings()
+            .iter()
+            .map(|b| (b.conversation_id.as_str(), b.priority, b.overtaken))
+            .collect()
+    }
+
+    #[test]
+    fn bookings_wait_by_priority_then_in_the_order_they_came() {
+        let mut m = busy_manager(4);
+        m.handle(AgendaEvent::Request(urgent("o-1", "c1", 0)));
+        m.handle(AgendaEvent::Request(urgent("o-2", "c2", 0)));
+        let rush = m.handle(AgendaEvent::Request(urgent("o-3", "c3", 100)));
+        assert_accepted(&rush);
+        assert_eq!(
+            reply(&rush).info["queue_position"],
+            2,
+            "behind the running job only"
+        );
+        m.handle(AgendaEvent::Request(urgent("o-4", "c4", 100)));
+        m.handle(AgendaEvent::Request(urgent("o-5", "c5", 50)));
+        m.handle(AgendaEvent::Request(urgent("o-6", "c6", -5)));
+        assert_eq!(
+            waiting(&m),
+            vec![
+                ("c3", 100, 0),
+                ("c4", 100, 0),
+                ("c5", 50, 0),
+                ("c1", 0, 3),
+                ("c2", 0, 3),
+                ("c6", -5, 0)
+            ]
+        );
+        // A proposal says where a booking of its priority would stand: a rush order
+        // waits for the running job and the two rush bookings only.
+        let mut ask = urgent("o-9", "p1", 100);
+        ask.message_type = MessageType::ProposalReq;
+        let r = m.handle(AgendaEvent::Request(ask.clone()));
+        assert_eq!(reply(&r).info["queue_position"], 3);
+        assert_eq!(reply(&r).info["expected_wait_ms"], 3000);
+        ask.info.remove(schemas::info_key::PRIORITY);
+        let r = m.handle(AgendaEvent::Request(ask));
+        assert_eq!(
+            reply(&r).info["queue_position"],
+            6,
+            "priority 0 waits behind c2"
+        );
+        // The snapshot shows each booking's priority and how often it was passed.
+        let view = m.snapshot();
+        assert_eq!(view.agenda[3].priority, 0);
+        assert_eq!(view.agenda[3].overtaken, 3);
+        assert_eq!(view.agenda[0].priority, 100);
+    }
+
+    #[test]
+    fn a_waiting_booking_is_passed_at_most_max_overtakes_times() {
+        let mut m = busy_manager(2);
+        m.handle(AgendaEvent::Request(urgent("o-1", "c1", 0)));
+        for (order, conversation) in [("o-2", "c2"), ("o-3", "c3"), ("o-4", "c4")] {
+            m.handle(AgendaEvent::Request(urgent(order, conversation, 10)));
+        }
+        // c2 and c3 passed c1; c4 may not (c1 was passed twice), nor can anything later.
+        assert_eq!(
+            waiting(&m),
+            vec![("c2", 10, 0), ("c3", 10, 0), ("c1", 0, 2), ("c4", 10, 0)]
+        );
+        m.handle(AgendaEvent::Request(urgent("o-5", "c5", 1000)));
+        assert_eq!(
+            waiting(&m)[2..],
+            [("c1", 0, 2), ("c5", 1000, 0), ("c4", 10, 1)],
+            "the bound holds for every priority"
+        );
+        // With no overtakes allowed, bookings wait in the order they came.
+        let mut fifo = busy_manager(0);
+        fifo.handle(AgendaEvent::Request(urgent("o-1", "c1", -1000)));
+        fifo.handle(AgendaEvent::Request(urgent("o-2", "c2", 1000)));
+        assert_eq!(waiting(&fifo), vec![("c1", -1000, 0), ("c2", 1000, 0)]);
+    }
+
+    #[test]
+    fn a_priority_or_due_time_that_is_not_one_is_refused_and_changes_nothing() {
+        let mut m = busy_manager(4);
+        for (key, bad) in [
+            (schemas::info_key::PRIORITY, json!("high")),
+            (schemas::info_key::PRIORITY, json!(1001)),
+            (schemas::info_key::PRIORITY, json!(1.5)),
+            (schemas::info_key::DUE, json!(-1)),
+            (schemas::info_key::DUE, json!("tomorrow")),
+        ] {
+            let mut request = book("o-1", "c1");
+            request.info.insert(key.into(), bad.clone());
+            let actions = m.handle(AgendaEvent::Request(request.clone()));
+            assert_refused(&actions, "invalid_info");
+            let detail = reply(&actions).info["detail"].as_str().unwrap().to_string();
+            assert!(detail.contains(key), "{bad}: {detail}");
+            if key == schemas::info_key::PRIORITY {
+                request.message_type = MessageType::ProposalReq;
+                assert_refused(&m.handle(AgendaEvent::Request(request)), "invalid_info");
+            }
+        }
+        assert!(m.bookings().is_empty());
+        let ok = m.handle(AgendaEvent::Request(
+            book("o-1", "c1").with_urgency(-1000, Some(1_700_000_000_000)),
+        ));
+        assert_accepted(&ok);
+        assert_eq!(m.bookings()[0].due, Some(1_700_000_000_000));
+    }
+
+    #[test]
+    fn a_booking_journalled_before_priorities_reads_as_priority_zero() {
+        let old = json!({"requester": "order/o-1", "conversation_id": "c1",
+            "service_type": "pick_n_place", "reply_to": INBOX, "info": {}});
+        let booking: Booking = serde_json::from_value(old).unwrap();
+        assert_eq!(
+            (booking.priority, booking.due, booking.overtaken),
+            (0, None, 0)
+        );
     }
 
     #[test]

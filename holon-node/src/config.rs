@@ -141,6 +141,14 @@ pub struct AgendaSection {
     /// its bookings are released.
     #[serde(default = "default_requester_grace_ms")]
     pub requester_grace_ms: u64,
+    /// How many later bookings of higher priority may go ahead of a waiting booking
+    /// (0: first come, first served whatever the priority).
+    #[serde(default = "default_max_overtakes")]
+    pub max_overtakes: u32,
+}
+
+fn default_max_overtakes() -> u32 {
+    crate::agenda::DEFAULT_MAX_OVERTAKES
 }
 
 fn default_requester_grace_ms() -> u64 {
@@ -156,6 +164,7 @@ impl Default for AgendaSection {
         AgendaSection {
             capacity: default_capacity(),
             requester_grace_ms: default_requester_grace_ms(),
+            max_overtakes: default_max_overtakes(),
         }
     }
 }
@@ -230,6 +239,8 @@ pub struct ResourceConfig {
     pub strategy: Strategy,
     pub intensity: Intensity,
     pub agenda_capacity: usize,
+    /// How many later bookings of higher priority may go ahead of a waiting one.
+    pub agenda_max_overtakes: u32,
     /// How long a requester may be absent before its bookings are released.
     pub requester_grace: Duration,
     pub delivery: DeliverySettings,
@@ -406,6 +417,7 @@ impl ResourceConfig {
                 period: Duration::from_millis(file.supervisor.period_ms),
             },
             agenda_capacity: file.agenda.capacity,
+            agenda_max_overtakes: file.agenda.max_overtakes,
             requester_grace: Duration::from_millis(file.agenda.requester_grace_ms),
             delivery: DeliverySettings {
                 retry_initial: Duration::from_millis(file.delivery.retry_initial_ms),

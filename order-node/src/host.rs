@@ -81,7 +81,8 @@ impl Host {
                 let name = format!("{}-{n}", self.config.name);
                 let holon = HolonId::order(&name).expect("node names are validated");
                 let progress =
-                    OrderProgress::new(holon, &work.product, self.config.orders.max_attempts);
+                    OrderProgress::new(holon, &work.product, self.config.orders.max_attempts)
+                        .with_urgency(work.priority, work.due);
                 (name, progress)
             })
             .collect();

@@ -9,7 +9,8 @@ use order_node::config::OrderNodeConfig;
 /// its product's plan and gets every step done by the resources alive in the cell.
 ///
 /// Work orders come from --submit and from holarchy/<cell>/orders/submit
-/// ({"product": "breaker", "count": 3}; the reply lists the new orders). The node is
+/// ({"product": "breaker", "count": 3, "priority": 0, "due": UNIX_MS}; only product
+/// is required; the reply lists the new orders). The node is
 /// ready when its token holarchy/<cell>/host/order-node/<name> appears. SIGTERM or
 /// Ctrl-C stops it (exit 0); with --data-dir, orders in progress resume where they
 /// stood when it starts again.
@@ -18,8 +19,9 @@ use order_node::config::OrderNodeConfig;
 struct Args {
     #[command(flatten)]
     common: holon::cli::CommonArgs,
-    /// Submit a work order at start: PRODUCT:COUNT (repeatable).
-    #[arg(long, value_name = "PRODUCT:COUNT")]
+    /// Submit a work order at start: PRODUCT[:COUNT[:PRIORITY]] (repeatable; count 1,
+    /// priority 0 when left out; priority -1000 to 1000, higher first).
+    #[arg(long, value_name = "PRODUCT[:COUNT[:PRIORITY]]")]
     submit: Vec<String>,
     /// Check the config (and the TLS identity files, if any) and exit without starting.
     #[arg(long)]

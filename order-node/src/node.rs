@@ -41,27 +41,37 @@ pub enum OrderNodeError {
     Claim(#[from] holon::presence::ClaimError),
 }
 
-/// Parses `PRODUCT:COUNT` (or `PRODUCT`, count 1) from the command line.
+/// Parses `PRODUCT[:COUNT[:PRIORITY]]` (count 1 and priority 0 when left out) from
+/// the command line.
 pub fn parse_submit(text: &str) -> Result<WorkOrder, OrderNodeError> {
-    let (product, count) = match text.split_once(':') {
-        Some((p, c)) => (
-            p,
-            c.parse::<u32>().map_err(|_| {
-                OrderNodeError::WorkOrder(format!("{text:?}: COUNT must be a positive number"))
-            })?,
-        ),
-        None => (text, 1),
+    let invalid = |why: &str| OrderNodeError::WorkOrder(format!("{text:?}: {why}"));
+    let mut parts = text.split(':');
+    let product = parts.next().unwrap_or_default();
+    let count = match parts.next() {
+        Some(count) => count
+            .parse::<u32>()
+            .map_err(|_| invalid("COUNT must be a positive number"))?,
+        None => 1,
     };
+    let priority = match parts.next() {
+        Some(priority) => priority
+            .parse::<i32>()
+            .map_err(|_| invalid("PRIORITY must be a whole number"))?,
+        None => 0,
+    };
+    if parts.next().is_some() {
+        return Err(invalid("expected PRODUCT[:COUNT[:PRIORITY]]"));
+    }
     let work = WorkOrder {
         product: product.to_string(),
         count,
-        priority: 0,
+        priority,
+        due: None,
         // Given at start-up, before the cell may be complete: the orders wait for
         // their plan.
         queue: true,
     };
-    work.validate()
-        .map_err(|e| OrderNodeError::WorkOrder(format!("{text:?}: {e}")))?;
+    work.validate().map_err(|e| invalid(&e.to_string()))?;
     Ok(work)
 }
 
@@ -204,5 +214,10 @@ mod tests {
         assert!(parse_submit("breaker:0").is_err());
         assert!(parse_submit("breaker:x").is_err());
         assert!(parse_submit("Breaker:1").is_err());
+        assert_eq!(parse_submit("breaker:2:100").unwrap().priority, 100);
+        assert_eq!(parse_submit("breaker:2:-5").unwrap().priority, -5);
+        assert!(parse_submit("breaker:2:1001").is_err());
+        assert!(parse_submit("breaker:2:high").is_err());
+        assert!(parse_submit("breaker:2:1:9").is_err());
     }
 }

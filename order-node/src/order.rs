@@ -231,7 +231,16 @@ impl OrderTask {
         report: &mut Option<Box<ResultReport>>,
     ) -> Result<Option<AttemptEvent>, OrderError> {
         let ctx = self.ctx.clone();
-        let request = |kind| requests::request(&ctx, &self.holon, kind, step, conversation_id);
+        // Every request of the step carries the order's priority and due time: the
+        // resource queues its booking by them (and a proposal says where it would go).
+        let (priority, due) = {
+            let progress = lock(&self.progress);
+            (progress.priority, progress.due)
+        };
+        let request = |kind| {
+            requests::request(&ctx, &self.holon, kind, step, conversation_id)
+                .with_urgency(priority, due)
+        };
         Ok(match action {
             AttemptAction::DeclareToken => {
                 self.token.declare().await?;

@@ -24,9 +24,10 @@ pub struct Presence {
     /// The agenda length and whether it could take work (state not `init`), as each
     /// resource last published.
     published: Mutex<HashMap<HolonId, (usize, bool)>>,
-    /// Per resource, as it last published: the jobs ahead of a new booking (its
-    /// bookings and the job it runs). Fresher than a proposal heard during a round.
-    queues: Mutex<HashMap<HolonId, u64>>,
+    /// Per resource, as it last published: whether it runs a job, and the priority of
+    /// each waiting booking in agenda order. Fresher than a proposal heard during a
+    /// round.
+    queues: Mutex<HashMap<HolonId, PublishedQueue>>,
     /// Per resource, from its state publications: the conversation first on its agenda
     /// while it is free (`None` while it is busy or has no booking). An order booked
     /// there waits on its own resource's channel only, so a state change wakes the
@@ -109,7 +110,10 @@ impl Presence {
                     .unwrap_or_else(|e| e.into_inner())
                     .insert(
                         snapshot.holon.clone(),
-                        (snapshot.agenda.len() + usize::from(snapshot.current.is_some())) as u64,
+                        PublishedQueue {
+                            running: snapshot.current.is_some(),
+                            waiting: snapshot.agenda.iter().map(|b| b.priority).collect(),
+                        },
                     );
                 presence
                     .turn_channel(&snapshot.holon)
@@ -140,13 +144,14 @@ impl Presence {
         Ok(presence)
     }
 
-    /// The jobs ahead of a new booking on `resource`, as it last published, if it did.
-    pub fn queue(&self, resource: &HolonId) -> Option<u64> {
+    /// The jobs ahead of a new booking of `priority` on `resource`, as it last
+    /// published, if it did.
+    pub fn queue(&self, resource: &HolonId, priority: i32) -> Option<u64> {
         self.queues
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .get(resource)
-            .copied()
+            .map(|queue| queue.ahead_of(priority))
     }
 
     pub fn is_alive(&self, holon: &HolonId) -> bool {
@@ -229,6 +234,29 @@ fn read_state(
     (news, (snapshot.agenda.len(), ready))
 }
 
+/// A resource's queue as it last published it.
+#[derive(Debug, Clone, Default, PartialEq)]
+struct PublishedQueue {
+    /// It runs a job.
+    running: bool,
+    /// The priority of each waiting booking, in agenda order.
+    waiting: Vec<i32>,
+}
+
+impl PublishedQueue {
+    /// The jobs ahead of a new booking of `priority`: the running one and the waiting
+    /// bookings up to the last of equal or higher priority (the agenda's rule; an
+    /// estimate, since the resource may also stop it behind a booking passed too often).
+    fn ahead_of(&self, priority: i32) -> u64 {
+        let waiting_ahead = self
+            .waiting
+            .iter()
+            .rposition(|p| *p >= priority)
+            .map_or(0, |last| last + 1);
+        (waiting_ahead + usize::from(self.running)) as u64
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -246,6 +274,9 @@ mod tests {
                     conversation_id: c.to_string(),
                     service_type: "pick_n_place".into(),
                     requester_absent_since: None,
+                    priority: 0,
+                    due: None,
+                    overtaken: 0,
                 })
                 .collect(),
             current: None,
@@ -301,5 +332,18 @@ mod tests {
         assert_eq!(fault.turn, None);
         let (back, _) = read_state(Some(now), &snapshot("free", "ready", &[]));
         assert!(back.became_ready, "back from a fault");
+    }
+
+    #[test]
+    fn a_new_booking_counts_the_jobs_of_its_priority_or_higher_ahead() {
+        let queue = PublishedQueue {
+            running: true,
+            waiting: vec![100, 100, 0, 0, -5],
+        };
+        assert_eq!(queue.ahead_of(0), 5, "behind the running job and c1..c4");
+        assert_eq!(queue.ahead_of(100), 3);
+        assert_eq!(queue.ahead_of(1000), 1);
+        assert_eq!(queue.ahead_of(-1000), 6);
+        assert_eq!(PublishedQueue::default().ahead_of(0), 0);
     }
 }

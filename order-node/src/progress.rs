@@ -127,6 +127,12 @@ pub struct OrderProgress {
     /// `journal.keep_finished_ms` later.
     #[serde(default)]
     pub finished_at: Option<u64>,
+    /// The work order's priority: every booking of this order carries it.
+    #[serde(default)]
+    pub priority: i32,
+    /// When the work order is due (Unix ms), if it said.
+    #[serde(default)]
+    pub due: Option<u64>,
 }
 
 impl OrderProgress {
@@ -152,7 +158,16 @@ impl OrderProgress {
             worked_with: BTreeSet::new(),
             history: Vec::new(),
             finished_at: None,
+            priority: 0,
+            due: None,
         }
+    }
+
+    /// The same new order, as urgent as its work order says.
+    pub fn with_urgency(mut self, priority: i32, due: Option<u64>) -> Self {
+        self.priority = priority;
+        self.due = due;
+        self
     }
 
     /// Moves the current attempt to `phase`, remembering the resource it names.
@@ -348,6 +363,8 @@ impl OrderProgress {
             rebooks: self.rebooks,
             failed_attempts: self.failed_attempts,
             attempts: self.history.clone(),
+            priority: self.priority,
+            due: self.due,
             at: unix_ms(),
         }
     }

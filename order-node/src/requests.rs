@@ -140,9 +140,10 @@ pub async fn proposals(
             provider,
         });
     }
-    let (ranked, in_flight) = ctx
-        .bookings_in_flight
-        .rank(offers, |resource| ctx.presence.queue(resource));
+    let (ranked, in_flight) = ctx.bookings_in_flight.rank(offers, |resource| {
+        ctx.presence
+            .queue(resource, message.priority().unwrap_or(0))
+    });
     debug!(conversation_id = %message.conversation_id, ranked = ?ranked.iter().map(|p| p.name()).collect::<Vec<_>>(), "proposals ranked");
     (ranked, in_flight)
 }

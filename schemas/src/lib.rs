@@ -20,7 +20,7 @@ pub use plan::{
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{
     bounded_detail, info_key, reason, ErrorReply, MessageType, Service, MAX_DETAIL_BYTES,
-    SERVICE_VERSION,
+    MAX_PRIORITY, MIN_PRIORITY, SERVICE_VERSION,
 };
 pub use state::{
     unix_ms, BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot, ResourceState,

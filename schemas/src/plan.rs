@@ -88,10 +88,17 @@ pub struct WorkOrder {
     /// How many orders to create (default 1; at most `orders.max_orders_per_submit`).
     #[serde(default = "one")]
     pub count: u32,
-    /// Accepted and kept, not used yet: every order is negotiated alike. Reserved for
-    /// the staff holons, which will plan by it.
+    /// How urgent the orders are, from -1000 to 1000 (default 0; higher is more
+    /// urgent, e.g. 100 for a rush order). Each booking carries it: a resource serves
+    /// waiting bookings by priority, with a bound on how often one may be passed (see
+    /// `agenda.max_overtakes`).
     #[serde(default)]
     pub priority: i32,
+    /// When the orders are due, in Unix milliseconds (optional). Kept with each order
+    /// and shown; a staff holon plans by it. A due time in the past is accepted (the
+    /// order is late already).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub due: Option<u64>,
     /// Accept the work order even when no product holon of that name is alive (its
     /// orders wait for the plan); without it such a work order is refused
     /// `unknown_product`, since a misspelt product would otherwise fail only later.
@@ -113,6 +120,12 @@ impl WorkOrder {
             return Err(SchemaError::InvalidField {
                 field: "count",
                 why: format!("must be 1 to {MAX_ORDERS_PER_SUBMIT}"),
+            });
+        }
+        if !(crate::MIN_PRIORITY..=crate::MAX_PRIORITY).contains(&self.priority) {
+            return Err(SchemaError::InvalidField {
+                field: "priority",
+                why: format!("must be {} to {}", crate::MIN_PRIORITY, crate::MAX_PRIORITY),
             });
         }
         Ok(())
@@ -266,6 +279,12 @@ pub struct OrderSnapshot {
     /// Every ended attempt, oldest first (at most [`MAX_ATTEMPT_HISTORY`]).
     #[serde(default)]
     pub attempts: Vec<AttemptRecord>,
+    /// The work order's priority (0 unless given; higher is more urgent).
+    #[serde(default)]
+    pub priority: i32,
+    /// When the order is due, in Unix milliseconds, if its work order said.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub due: Option<u64>,
     pub at: u64,
 }
 

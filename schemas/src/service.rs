@@ -90,7 +90,22 @@ pub mod info_key {
     /// On a booking reply: `true` when the job has begun (a `start` would be answered
     /// true again); absent when it waits for its turn.
     pub const STARTED: &str = "started";
+    /// On a `proposal_req` or `booking_req`: the order's priority, an integer from
+    /// [`super::MIN_PRIORITY`] to [`super::MAX_PRIORITY`] (absent: 0; higher is more
+    /// urgent). A booking not yet started goes ahead of waiting bookings of lower
+    /// priority, each of which it may pass only while it has been passed fewer than
+    /// `agenda.max_overtakes` times (no starvation); a proposal's figures say where it
+    /// would stand.
+    pub const PRIORITY: &str = "priority";
+    /// On a `proposal_req` or `booking_req`: when the order is due, in Unix
+    /// milliseconds. The agenda keeps and shows it; a staff holon plans by it.
+    pub const DUE: &str = "due";
 }
+
+/// The most urgent priority a work order may have.
+pub const MAX_PRIORITY: i32 = 1000;
+/// The least urgent priority a work order may have.
+pub const MIN_PRIORITY: i32 = -1000;
 
 /// The reasons a holon gives when `result` is false (free text is allowed beyond these,
 /// but holarchy's own holons only use these codes; details go in `info.detail`).
@@ -208,6 +223,48 @@ impl Service {
             serde_json::Value::Bool(true),
         );
         self
+    }
+
+    /// The same request carrying an order's priority (when not 0) and due time
+    /// ([`info_key::PRIORITY`], [`info_key::DUE`]).
+    pub fn with_urgency(mut self, priority: i32, due: Option<u64>) -> Self {
+        if priority != 0 {
+            self.info
+                .insert(info_key::PRIORITY.into(), serde_json::Value::from(priority));
+        }
+        if let Some(due) = due {
+            self.info
+                .insert(info_key::DUE.into(), serde_json::Value::from(due));
+        }
+        self
+    }
+
+    /// The request's priority ([`info_key::PRIORITY`]): 0 when absent, an error
+    /// saying why when it is not an integer in range.
+    pub fn priority(&self) -> Result<i32, String> {
+        match self.info.get(info_key::PRIORITY) {
+            None => Ok(0),
+            Some(value) => value
+                .as_i64()
+                .filter(|p| (MIN_PRIORITY as i64..=MAX_PRIORITY as i64).contains(p))
+                .map(|p| p as i32)
+                .ok_or_else(|| {
+                    format!(
+                        "info.priority must be an integer from {MIN_PRIORITY} to {MAX_PRIORITY}, not {value}"
+                    )
+                }),
+        }
+    }
+
+    /// The request's due time in Unix milliseconds ([`info_key::DUE`]), if it has
+    /// one; an error saying why when it is not a whole number.
+    pub fn due(&self) -> Result<Option<u64>, String> {
+        match self.info.get(info_key::DUE) {
+            None => Ok(None),
+            Some(value) => value.as_u64().map(Some).ok_or_else(|| {
+                format!("info.due must be a time in Unix milliseconds, not {value}")
+            }),
+        }
     }
 
     /// Whether this `booking_req` asks to start on its turn.

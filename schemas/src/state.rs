@@ -89,6 +89,16 @@ pub struct BookingView {
     /// resource's `agenda.requester_grace_ms`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub requester_absent_since: Option<u64>,
+    /// The booking's priority ([`crate::info_key::PRIORITY`]; 0 unless given).
+    #[serde(default)]
+    pub priority: i32,
+    /// When its order is due, in Unix milliseconds, if it said.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub due: Option<u64>,
+    /// How many later bookings of higher priority went ahead of it (at most the
+    /// resource's `agenda.max_overtakes`).
+    #[serde(default)]
+    pub overtaken: u32,
 }
 
 /// A resource holon's state after a change.
@@ -100,7 +110,7 @@ pub struct ResourceSnapshot {
     pub state: ResourceState,
     /// The controller: `disconnected`, `ready`, `fault`, `estop`.
     pub controller: ControllerStatus,
-    /// Bookings in the order they were made.
+    /// Bookings in the order they will be served (by priority, then as they came).
     pub agenda: Vec<BookingView>,
     /// The job being executed, if any, and its step.
     pub current: Option<CurrentJobView>,

@@ -808,6 +808,7 @@ impl Cell {
             product: product.into(),
             count,
             priority: 0,
+            due: None,
             queue: false,
         })
         .await

@@ -126,6 +126,7 @@ async fn a_twin_order_node_is_refused() {
             product: "breaker".into(),
             count: 1,
             priority: 0,
+            due: None,
             queue: true,
         })
         .await

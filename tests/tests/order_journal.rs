@@ -55,6 +55,7 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
             product: "nothing".into(),
             count: 3,
             priority: 0,
+            due: None,
             queue: true,
         })
         .await

@@ -278,6 +278,7 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         product: "breaker".into(),
         count: 1,
         priority: 0,
+        due: None,
         queue: false,
     })
     .unwrap();

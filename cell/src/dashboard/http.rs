@@ -122,6 +122,12 @@ struct SubmitForm {
     count: u32,
     #[serde(default)]
     queue: bool,
+    /// -1000 to 1000, higher first.
+    #[serde(default)]
+    priority: i32,
+    /// Due this many seconds from now (optional).
+    #[serde(default)]
+    due_in_s: Option<u64>,
 }
 
 fn one() -> u32 {
@@ -135,7 +141,10 @@ async fn submit(State(shared): State<Arc<Shared>>, Json(form): Json<SubmitForm>)
     let work = schemas::WorkOrder {
         product: form.product,
         count: form.count,
-        priority: 0,
+        priority: form.priority,
+        due: form
+            .due_in_s
+            .map(|s| schemas::unix_ms().saturating_add(s.saturating_mul(1000))),
         queue: form.queue,
     };
     if let Err(e) = work.validate() {

@@ -149,6 +149,10 @@ pub struct OrderRow {
     pub rebooks: u32,
     pub reworks: u32,
     pub failed_attempts: u32,
+    /// The work order's priority (higher first).
+    pub priority: i32,
+    /// When the order is due (Unix ms), if it is.
+    pub due: Option<u64>,
     /// When the order last changed (Unix ms).
     pub at: u64,
 }
@@ -167,6 +171,8 @@ impl From<&OrderSnapshot> for OrderRow {
             rebooks: o.rebooks,
             reworks: o.reworks,
             failed_attempts: o.failed_attempts,
+            priority: o.priority,
+            due: o.due,
             at: o.at,
         }
     }

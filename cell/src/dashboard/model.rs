@@ -723,6 +723,9 @@ mod tests {
                     conversation_id: c.to_string(),
                     service_type: "pick_n_place".into(),
                     requester_absent_since: None,
+                    priority: 0,
+                    due: None,
+                    overtaken: 0,
                 })
                 .collect(),
             current: (state == ResourceState::Busy).then(|| CurrentJobView {

@@ -112,7 +112,8 @@ impl JournalledAgenda {
             config.catalog.clone(),
             config.agenda_capacity,
             record,
-        );
+        )
+        .with_max_overtakes(config.agenda_max_overtakes);
         if let Some(journal) = &journal {
             // The interrupted job became an undelivered result: record that at once.
             journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record())?;
