@@ -1477,6 +1477,7 @@ async fn controller_floor(address: &str, samples: usize) -> Result<Latency> {
                     z: 3.0,
                     ..Default::default()
                 }),
+                program: None,
             })
             .await?;
         match events.recv().await {

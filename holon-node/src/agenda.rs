@@ -533,7 +533,7 @@ impl AgendaManager {
         };
         let start_on_turn = request.start_on_turn();
         if start_on_turn {
-            if let Err(detail) = self.catalog.poses(&request.service_type, &request.info) {
+            if let Err(detail) = self.catalog.check(&request.service_type, &request.info) {
                 return self.refuse(&request, reason::INVALID_INFO, Some(detail));
             }
             if request.reply_to.is_none() {
@@ -648,7 +648,7 @@ impl AgendaManager {
         } else {
             request.info.clone()
         };
-        if let Err(detail) = self.catalog.poses(&request.service_type, &info) {
+        if let Err(detail) = self.catalog.check(&request.service_type, &info) {
             return self.refuse(&request, reason::INVALID_INFO, Some(detail));
         }
         let Some(reply_to) = request
@@ -805,6 +805,8 @@ impl AgendaManager {
                 conversation_id: j.conversation_id.clone(),
                 service_type: j.service_type.clone(),
                 step: None,
+                program: crate::catalog::program(&j.info).ok().flatten(),
+                started_at: None,
             }),
             undelivered: self.undelivered.len(),
             services: self.catalog.service_types().map(String::from).collect(),

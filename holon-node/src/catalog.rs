@@ -47,6 +47,14 @@ impl ServiceCatalog {
         self.services.keys().map(String::as_str)
     }
 
+    /// Whether `info` holds what a job of `service_type` needs to run: every step's
+    /// pose, and a valid `program` if it names one. The error says what is wrong.
+    pub fn check(&self, service_type: &str, info: &Map<String, Value>) -> Result<(), String> {
+        self.poses(service_type, info)?;
+        program(info)?;
+        Ok(())
+    }
+
     /// The pose each step needs, from `info`; an error names what is missing or wrong.
     pub fn poses(
         &self,
@@ -74,6 +82,34 @@ impl ServiceCatalog {
                 Ok(Some(pose))
             })
             .collect()
+    }
+}
+
+/// The key of a job's `info` naming its program (product variant): each controller
+/// command carries it (`PROGRAM`), and a controller changes over when it differs from
+/// the last one it ran.
+pub const PROGRAM_KEY: &str = "program";
+
+/// The longest program name sent to a controller.
+pub const MAX_PROGRAM_LEN: usize = 64;
+
+/// The job's program from `info` ([`PROGRAM_KEY`]), if it names one: a non-empty
+/// string of at most [`MAX_PROGRAM_LEN`] letters, digits, `_`, `-` or `.`.
+pub fn program(info: &Map<String, Value>) -> Result<Option<String>, String> {
+    let Some(value) = info.get(PROGRAM_KEY) else {
+        return Ok(None);
+    };
+    let valid = value.as_str().filter(|p| {
+        !p.is_empty()
+            && p.len() <= MAX_PROGRAM_LEN
+            && p.chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.'))
+    });
+    match valid {
+        Some(p) => Ok(Some(p.to_string())),
+        None => Err(format!(
+            "info.{PROGRAM_KEY} must be 1 to {MAX_PROGRAM_LEN} letters, digits, _ - or ., not {value}"
+        )),
     }
 }
 
@@ -116,6 +152,29 @@ mod tests {
 
     fn info(v: Value) -> Map<String, Value> {
         v.as_object().unwrap().clone()
+    }
+
+    #[test]
+    fn a_job_may_name_its_program() {
+        let poses = json!({"pick": {"x": 1, "y": 2, "z": 3}, "place": {"x": 4, "y": 5, "z": 6}});
+        let catalog = pick_n_place();
+        let mut with = info(poses.clone());
+        assert_eq!(program(&with), Ok(None));
+        with.insert(PROGRAM_KEY.into(), json!("breaker-b2.1"));
+        assert_eq!(program(&with), Ok(Some("breaker-b2.1".into())));
+        catalog.check("pick_n_place", &with).unwrap();
+        for bad in [
+            json!(""),
+            json!(7),
+            json!("a b"),
+            json!("x".repeat(65)),
+            json!("<P>"),
+        ] {
+            let mut info = info(poses.clone());
+            info.insert(PROGRAM_KEY.into(), bad.clone());
+            let why = catalog.check("pick_n_place", &info).unwrap_err();
+            assert!(why.contains("info.program"), "{bad}: {why}");
+        }
     }
 
     #[test]

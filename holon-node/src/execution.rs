@@ -113,6 +113,14 @@ impl Execution {
     }
 
     /// The action of the step in progress, e.g. `pick`.
+    /// The conversation of the job running, if one is.
+    pub fn current_conversation(&self) -> Option<&str> {
+        match &self.state {
+            ExecutionState::Running { job, .. } => Some(&job.conversation_id),
+            _ => None,
+        }
+    }
+
     pub fn current_step(&self) -> Option<String> {
         match &self.state {
             ExecutionState::Running { job, step, .. } => self
@@ -199,7 +207,8 @@ impl Execution {
         };
         let definition = self.catalog.get(&job.service_type);
         let poses = self.catalog.poses(&job.service_type, &job.info);
-        let (Some(definition), Ok(poses)) = (definition, poses) else {
+        let program = crate::catalog::program(&job.info);
+        let (Some(definition), Ok(poses), Ok(program)) = (definition, poses, program) else {
             return self.fail(
                 reason::INVALID_INFO,
                 "the job's info does not fit its steps".into(),
@@ -215,6 +224,7 @@ impl Execution {
                 id: *command_id,
                 action: current.action.clone(),
                 pos: poses[*step],
+                program,
             }),
             ExecutionAction::StateChanged,
         ]
@@ -404,6 +414,23 @@ mod tests {
         );
         assert_eq!(e.handle(ready()), vec![ExecutionAction::Ready]);
         assert_eq!(e.state(), &ExecutionState::Ready);
+    }
+
+    #[test]
+    fn every_command_of_a_job_carries_its_program() {
+        let mut e = ready_execution();
+        let mut variant = job("pick_n_place");
+        variant
+            .info
+            .insert(crate::catalog::PROGRAM_KEY.into(), json!("b2"));
+        let pick = command(&e.handle(ExecutionEvent::Start(variant)));
+        assert_eq!(pick.program.as_deref(), Some("b2"));
+        let place = command(&e.handle(reply(pick.id, "picking_done")));
+        assert_eq!(place.program.as_deref(), Some("b2"));
+        assert_eq!(e.current_conversation(), Some("c1"));
+        let mut plain = ready_execution();
+        let pick = command(&plain.handle(ExecutionEvent::Start(job("pick_n_place"))));
+        assert_eq!(pick.program, None);
     }
 
     #[test]

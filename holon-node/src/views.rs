@@ -36,6 +36,8 @@ pub struct ExecutionView {
     pub controller: ControllerStatus,
     /// The action of the step in progress, e.g. `pick`.
     pub step: Option<String>,
+    /// The conversation of the job running and when it began (Unix ms).
+    pub running_since: Option<(String, u64)>,
 }
 
 /// The published views, one per owner.
@@ -60,6 +62,7 @@ impl Views {
             execution: watch::Sender::new(ExecutionView {
                 controller: ControllerStatus::Disconnected,
                 step: None,
+                running_since: None,
             }),
             absences: watch::Sender::new(absences),
             delivery_retries: watch::Sender::new(0),
@@ -74,6 +77,11 @@ impl Views {
         snapshot.controller = execution.controller;
         if let Some(current) = &mut snapshot.current {
             current.step = execution.step.clone();
+            current.started_at = execution
+                .running_since
+                .as_ref()
+                .filter(|(conversation, _)| *conversation == current.conversation_id)
+                .map(|(_, since)| *since);
         }
         let absences = self.absences.borrow();
         for booking in &mut snapshot.agenda {

@@ -407,10 +407,21 @@ pub fn parse_document(doc: &[u8]) -> Result<RobotMessage, CodecError> {
                     why: "it is empty".into(),
                 });
             }
+            let program = match root.child("PROGRAM").map(|p| p.text.trim()) {
+                Some("") => {
+                    return Err(CodecError::InvalidField {
+                        root: "ROBOT_CMD",
+                        field: "PROGRAM",
+                        why: "it is empty".into(),
+                    })
+                }
+                program => program.map(str::to_string),
+            };
             Ok(RobotMessage::Command(RobotCommand {
                 id: id_field(&root, "ROBOT_CMD")?,
                 action: action.to_string(),
                 pos: root.child("POS").map(pose).transpose()?,
+                program,
             }))
         }
         "ROBOT_REPLY" => {
@@ -452,8 +463,12 @@ pub fn encode_message(message: &RobotMessage) -> String {
                 ),
                 None => String::new(),
             };
+            let program = match &cmd.program {
+                Some(p) => format!("<PROGRAM>{}</PROGRAM>", escape(p.as_str())),
+                None => String::new(),
+            };
             format!(
-                "<ROBOT_CMD><ID>{}</ID><ACTION>{}</ACTION>{pos}</ROBOT_CMD>",
+                "<ROBOT_CMD><ID>{}</ID><ACTION>{}</ACTION>{program}{pos}</ROBOT_CMD>",
                 cmd.id,
                 escape(cmd.action.as_str())
             )
@@ -569,7 +584,8 @@ mod tests {
                     y: 20.0,
                     z: 5.0,
                     ..Pose::default()
-                })
+                }),
+                program: None,
             })
         );
         assert_eq!(
@@ -594,6 +610,33 @@ mod tests {
     }
 
     #[test]
+    fn a_command_names_its_program_or_none() {
+        let cmd = parse_document(
+            b"<ROBOT_CMD><ID>5</ID><ACTION>pick</ACTION><PROGRAM> b2 </PROGRAM></ROBOT_CMD>",
+        )
+        .unwrap();
+        assert_eq!(
+            cmd,
+            RobotMessage::Command(RobotCommand {
+                id: 5,
+                action: "pick".into(),
+                pos: None,
+                program: Some("b2".into()),
+            })
+        );
+        assert_eq!(
+            parse_document(
+                b"<ROBOT_CMD><ID>5</ID><ACTION>pick</ACTION><PROGRAM></PROGRAM></ROBOT_CMD>"
+            ),
+            Err(CodecError::InvalidField {
+                root: "ROBOT_CMD",
+                field: "PROGRAM",
+                why: "it is empty".into()
+            })
+        );
+    }
+
+    #[test]
     fn encodes_what_it_decodes() {
         let messages = [
             RobotMessage::Command(RobotCommand {
@@ -607,11 +650,13 @@ mod tests {
                     b: 0.0,
                     c: -180.0,
                 }),
+                program: None,
             }),
             RobotMessage::Command(RobotCommand {
                 id: 8,
                 action: "inspect".into(),
                 pos: None,
+                program: Some("variant-b.2".into()),
             }),
             RobotMessage::Reply(RobotReply {
                 id: 9,

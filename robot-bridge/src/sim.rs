@@ -1,8 +1,11 @@
 //! `robot-sim`: a robot controller simulator that speaks the TCP/XML protocol.
 //!
 //! It is the TCP server, as a real controller is. On every connection it sends
-//! `ROBOT_STATUS ready`, then answers each `ROBOT_CMD` `delay` after it arrived (to
-//! within about 0.1 ms): `pick` ->
+//! `ROBOT_STATUS ready`, then answers each `ROBOT_CMD` when its action is done (to
+//! within about 0.1 ms of the time it takes: `delay`, or the action's own time in
+//! `action_delays`, plus `changeover` when the command's `PROGRAM` differs from the
+//! last program the controller ran, as a robot's tooling or a fixture is changed
+//! for another product variant): `pick` ->
 //! `picking_done`, `place` -> `placing_done`, `inspect` -> `inspect_pass` (or
 //! `inspect_fail`), `move` -> `arrived`; any other action -> `error`.
 //!
@@ -18,9 +21,9 @@
 //!   the controller reports `fault` (or `estop`) instead, and `ready` after `fault_for`.
 //!
 //! The simulator counts the commands it executed (answered with their success result);
-//! [`SimStats`] can be written to a JSON file after every command so tests can check that
-//! nothing ran twice. A thread of its own writes the file, after the reply went out, with
-//! the latest counts (several commands in quick succession make one write): the count
+//! [`SimStats`] can be written to a JSON file when each command arrives and after it is
+//! answered, so tests can check that nothing ran twice. A thread of its own writes the
+//! file, off the command's path (after the reply went out), with the latest counts (several commands in quick succession make one write): the count
 //! file is the tests' window, and a controller command's round trip should cost what a
 //! real controller's would (a write and a rename on the way cost the bridge about a
 //! hundred microseconds per command).
@@ -45,8 +48,14 @@ use crate::codec::RobotCodec;
 /// How the simulator behaves.
 #[derive(Debug, Clone, Default)]
 pub struct SimConfig {
-    /// How long each action takes.
+    /// How long each action takes, unless `action_delays` names it.
     pub delay: Duration,
+    /// How long particular actions take (`pick` -> 300 ms): a robot that is fast at
+    /// some work and slow at other.
+    pub action_delays: BTreeMap<String, Duration>,
+    /// What a change of program costs: added to the first command whose `PROGRAM`
+    /// differs from the last program run (a command without one changes nothing).
+    pub changeover: Duration,
     pub error_every: Option<u64>,
     pub close_after: Option<u64>,
     pub hang_after: Option<u64>,
@@ -71,6 +80,9 @@ pub struct SimStats {
     inspections: AtomicU64,
     by_action: Mutex<BTreeMap<String, u64>>,
     connections: AtomicU64,
+    /// The program of the last command run that named one.
+    program: Mutex<Option<String>>,
+    changeovers: AtomicU64,
 }
 
 impl SimStats {
@@ -82,6 +94,27 @@ impl SimStats {
     /// Commands received, executed or not.
     pub fn received(&self) -> u64 {
         self.received.load(Ordering::SeqCst)
+    }
+
+    /// Changes of program (each cost the config's `changeover`).
+    pub fn changeovers(&self) -> u64 {
+        self.changeovers.load(Ordering::SeqCst)
+    }
+
+    /// Whether running `program` changes the controller over, which it then is.
+    fn change_to(&self, program: Option<&str>) -> bool {
+        let Some(program) = program else {
+            return false;
+        };
+        let mut last = self.program.lock().unwrap_or_else(|e| e.into_inner());
+        let change = last.as_deref().is_some_and(|last| last != program);
+        if last.as_deref() != Some(program) {
+            *last = Some(program.to_string());
+        }
+        if change {
+            self.changeovers.fetch_add(1, Ordering::SeqCst);
+        }
+        change
     }
 
     /// Connections accepted.
@@ -97,7 +130,8 @@ impl SimStats {
             .clone()
     }
 
-    /// `{"executed": N, "received": N, "connections": N, "by_action": {"pick": N, ...}}`.
+    /// `{"executed": N, "received": N, "connections": N, "changeovers": N,
+    /// "by_action": {"pick": N, ...}}`.
     pub fn to_json(&self) -> String {
         let by_action: Vec<String> = self
             .by_action()
@@ -105,10 +139,11 @@ impl SimStats {
             .map(|(k, v)| format!("\"{k}\":{v}"))
             .collect();
         format!(
-            "{{\"executed\":{},\"received\":{},\"connections\":{},\"by_action\":{{{}}}}}",
+            "{{\"executed\":{},\"received\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
             self.executed(),
             self.received(),
             self.connections(),
+            self.changeovers(),
             by_action.join(",")
         )
     }
@@ -297,6 +332,9 @@ async fn serve(
         };
         let received = std::time::Instant::now();
         let n = stats.received.fetch_add(1, Ordering::SeqCst) + 1;
+        // The count file shows a command as received when it arrives (its writer runs
+        // off this path), so a test can tell a command is on the controller.
+        count_file.update();
         on_this_connection += 1;
         info!(id = command.id, action = %command.action, n, "command");
         if matches!(config.close_after, Some(limit) if on_this_connection > limit) {
@@ -333,10 +371,19 @@ async fn serve(
                 .await?;
             continue;
         }
-        if !config.delay.is_zero() {
+        let mut takes = config
+            .action_delays
+            .get(&command.action)
+            .copied()
+            .unwrap_or(config.delay);
+        if stats.change_to(command.program.as_deref()) {
+            info!(id = command.id, program = command.program.as_deref().unwrap_or(""), changeover = ?config.changeover, "changing over");
+            takes += config.changeover;
+        }
+        if !takes.is_zero() {
             tokio::select! {
                 _ = shutdown.cancelled() => return Ok(()),
-                _ = act_for(received + config.delay) => {}
+                _ = act_for(received + takes) => {}
             }
         }
         let simulated_error =

@@ -57,6 +57,11 @@ impl Harness {
     }
 
     async fn send(&self, id: u64, action: &str) {
+        self.send_for(id, action, None).await
+    }
+
+    /// Sends a command of `program` (a product variant).
+    async fn send_for(&self, id: u64, action: &str, program: Option<&str>) {
         let pos = Some(Pose {
             x: 1.0,
             y: 2.0,
@@ -68,6 +73,7 @@ impl Harness {
                 id,
                 action: action.into(),
                 pos,
+                program: program.map(str::to_string),
             })
             .await
             .unwrap();
@@ -355,4 +361,47 @@ async fn a_reply_cut_short_by_the_close_is_a_disconnection() {
     })
     .await;
     command_fails_as_disconnected(address).await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn actions_take_their_own_time_and_a_new_program_costs_a_changeover() {
+    let config = SimConfig {
+        action_delays: [("pick".to_string(), Duration::from_millis(150))].into(),
+        changeover: Duration::from_millis(200),
+        ..SimConfig::default()
+    };
+    let (address, stats, _sim) = start_sim("127.0.0.1:0", config).await;
+    let mut h = Harness::start(address, Duration::from_secs(5));
+    h.wait_ready().await;
+    // (command, action, program, at least this long, changeovers after it)
+    let script = [
+        (1, "pick", Some("a"), 150, 0),
+        (2, "place", Some("a"), 0, 0),
+        (3, "place", Some("b"), 200, 1),
+        (4, "place", None, 0, 1),
+        (5, "pick", Some("b"), 150, 1),
+        (6, "pick", Some("a"), 350, 2),
+    ];
+    for (id, action, program, at_least_ms, changeovers) in script {
+        let sent = std::time::Instant::now();
+        h.send_for(id, action, program).await;
+        let result = if action == "pick" {
+            "picking_done"
+        } else {
+            "placing_done"
+        };
+        assert_eq!(h.next().await, reply(id, result));
+        assert!(
+            sent.elapsed() >= Duration::from_millis(at_least_ms),
+            "command {id} took {:?}, less than its {at_least_ms} ms",
+            sent.elapsed()
+        );
+        assert_eq!(stats.changeovers(), changeovers, "after command {id}");
+    }
+    assert!(
+        stats.to_json().contains("\"changeovers\":2"),
+        "{}",
+        stats.to_json()
+    );
+    h.stop().await;
 }

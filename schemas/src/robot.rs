@@ -32,12 +32,18 @@ impl Pose {
     }
 }
 
-/// Bridge to controller: `<ROBOT_CMD><ID>..</ID><ACTION>..</ACTION><POS .../></ROBOT_CMD>`.
+/// Bridge to controller:
+/// `<ROBOT_CMD><ID>..</ID><ACTION>..</ACTION><PROGRAM>..</PROGRAM><POS .../></ROBOT_CMD>`
+/// (`PROGRAM` and `POS` optional).
 #[derive(Debug, Clone, PartialEq)]
 pub struct RobotCommand {
     pub id: u64,
     pub action: String,
     pub pos: Option<Pose>,
+    /// The program (product variant) the command's job belongs to, from the job's
+    /// `info.program`: a controller changes over (tooling, fixtures, program) when it
+    /// differs from the last one it ran.
+    pub program: Option<String>,
 }
 
 /// Controller to bridge: the result of one command.

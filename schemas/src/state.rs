@@ -140,6 +140,12 @@ pub struct CurrentJobView {
     pub service_type: String,
     /// The action of the step in progress, e.g. `pick`.
     pub step: Option<String>,
+    /// The job's program (product variant), from its `info.program`, if it names one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub program: Option<String>,
+    /// When the job began executing (Unix ms), once the execution has it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub started_at: Option<u64>,
 }
 
 /// Milliseconds since the Unix epoch, for `at` fields.

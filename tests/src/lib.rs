@@ -221,8 +221,8 @@ impl Sim {
         })
     }
 
-    /// The simulator's counts: `{"executed": N, "by_action": {...}, ...}`.
-    /// The simulator's counts, once its count file settled: the simulator rewrites the
+    /// The simulator's counts (`{"executed": N, "by_action": {...}, ...}`), once its
+    /// count file settled: the simulator rewrites the
     /// file just after each reply goes out, so a reader that saw a reply's effects may
     /// be a few microseconds early; two equal reads 5 ms apart are the counts.
     pub fn counts(&self) -> serde_json::Value {
@@ -246,6 +246,28 @@ impl Sim {
 
     pub fn executed(&self, action: &str) -> u64 {
         self.counts()["by_action"][action].as_u64().unwrap_or(0)
+    }
+
+    /// Waits, at most 10 s, until the simulator has received `n` commands in all. A
+    /// holon's state names a step as soon as its command is handed to the bridge,
+    /// which writes it to the socket a moment later: a test that kills something
+    /// mid-step waits for this first.
+    pub async fn wait_received(&self, n: u64) -> Result<()> {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+        loop {
+            let received = fs::read_to_string(&self.count_file)
+                .ok()
+                .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+                .and_then(|c| c["received"].as_u64())
+                .unwrap_or(0);
+            if received >= n {
+                return Ok(());
+            }
+            if tokio::time::Instant::now() >= deadline {
+                bail!("the simulator received {received} commands, never {n}");
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
     }
 }
 

@@ -327,6 +327,7 @@ async fn a_controller_killed_mid_step_fails_the_step_and_the_next_job_succeeds()
         .wait_state("robot1", "picking", |s| s["current"]["step"] == "pick")
         .await
         .unwrap();
+    r.sim.wait_received(1).await.unwrap();
     let address = r.sim.address.clone();
     r.sim.process.kill();
 
@@ -476,6 +477,8 @@ async fn a_killed_resource_comes_back_with_its_bookings_and_reports_the_interrup
         .wait_state("robot1", "picking", |s| s["current"]["step"] == "pick")
         .await
         .unwrap();
+    // c3's pick and place, then c1's pick: on the controller before the holon dies.
+    r.sim.wait_received(3).await.unwrap();
 
     r.node.kill(); // SIGKILL: no chance to clean up
     r.cell.wait_gone(&r.holon).await.unwrap();

@@ -733,6 +733,8 @@ mod tests {
                 conversation_id: "o-1/1/1".into(),
                 service_type: "pick_n_place".into(),
                 step: Some("pick".into()),
+                program: None,
+                started_at: None,
             }),
             undelivered: 0,
             services: vec!["pick_n_place".into()],

@@ -68,13 +68,21 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     }
 }
 
-/// Republishes the execution's view if it changed.
+/// Republishes the execution's view if it changed. A job seen running for the first
+/// time is stamped with the time now: its measured duration is what a staff holon
+/// learns from.
 fn publish(links: &Links, execution: &Execution) {
-    let view = ExecutionView {
-        controller: execution.controller(),
-        step: execution.current_step(),
-    };
+    let running = execution.current_conversation();
     links.views.execution.send_if_modified(|published| {
+        let running_since = running.map(|conversation| match &published.running_since {
+            Some((same, since)) if same == conversation => (same.clone(), *since),
+            _ => (conversation.to_string(), schemas::unix_ms()),
+        });
+        let view = ExecutionView {
+            controller: execution.controller(),
+            step: execution.current_step(),
+            running_since,
+        };
         let changed = *published != view;
         *published = view;
         changed

@@ -20,9 +20,17 @@ struct Args {
     /// Address to listen on; port 0 picks a free port (printed on the first line).
     #[arg(long, default_value = "127.0.0.1:7600")]
     listen: String,
-    /// How long each action takes, in milliseconds.
+    /// How long each action takes, in milliseconds (unless --action-ms names it).
     #[arg(long, default_value_t = 0)]
     delay_ms: u64,
+    /// How long one action takes, in milliseconds, e.g. `pick=300` (repeatable): a
+    /// robot fast at some work and slow at other.
+    #[arg(long, value_name = "ACTION=MS", value_parser = parse_action_ms)]
+    action_ms: Vec<(String, u64)>,
+    /// What a change of program costs, in milliseconds: added to the first command
+    /// whose PROGRAM (the job's product variant) differs from the last program run.
+    #[arg(long, default_value_t = 0)]
+    changeover_ms: u64,
     /// Answer every Nth command with an `error` result (not executed).
     #[arg(long, value_name = "N")]
     error_every: Option<u64>,
@@ -75,6 +83,12 @@ async fn main() -> anyhow::Result<()> {
         .init();
     let config = SimConfig {
         delay: Duration::from_millis(args.delay_ms),
+        action_delays: args
+            .action_ms
+            .iter()
+            .map(|(action, ms)| (action.clone(), Duration::from_millis(*ms)))
+            .collect(),
+        changeover: Duration::from_millis(args.changeover_ms),
         error_every: args.error_every,
         close_after: args.close_after,
         hang_after: args.hang_after,
@@ -109,4 +123,18 @@ async fn main() -> anyhow::Result<()> {
     // The reader of our stdout may be gone (a launcher that only read the first line).
     let _ = writeln!(std::io::stdout(), "executed {} commands", stats.executed());
     Ok(())
+}
+
+/// `--action-ms`: `ACTION=MS`.
+fn parse_action_ms(text: &str) -> Result<(String, u64), String> {
+    let (action, ms) = text
+        .split_once('=')
+        .ok_or_else(|| format!("{text:?} is not ACTION=MS"))?;
+    if action.is_empty() {
+        return Err(format!("{text:?} names no action"));
+    }
+    let ms = ms
+        .parse()
+        .map_err(|_| format!("{text:?}: MS must be a whole number of milliseconds"))?;
+    Ok((action.to_string(), ms))
 }
