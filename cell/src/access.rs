@@ -7,7 +7,8 @@
 //! |---|---|---|
 //! | `resource.<r>` | `resource/<r>/{service,state,debug/crash}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
-//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, states, liveliness |
+//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
+//! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
 //! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, liveliness |
 //! | `router.<h>` | everything (routers forward for others; trusted) | everything |
@@ -25,6 +26,7 @@ pub enum Role {
     Resource,
     Product,
     OrderNode,
+    Staff,
     Operator,
     Observer,
     Router,
@@ -36,6 +38,7 @@ impl Role {
             "resource" => Role::Resource,
             "product" => Role::Product,
             "order-node" => Role::OrderNode,
+            "staff" => Role::Staff,
             "operator" => Role::Operator,
             "observer" => Role::Observer,
             "router" => Role::Router,
@@ -51,7 +54,7 @@ pub fn parse_identity(identity: &str) -> anyhow::Result<(Role, &str)> {
     })?;
     let role = Role::parse(role).ok_or_else(|| {
         anyhow::anyhow!(
-            "identity {identity:?}: the role {role:?} is not resource, product, order-node, operator, observer or router"
+            "identity {identity:?}: the role {role:?} is not resource, product, order-node, staff, operator, observer or router"
         )
     })?;
     schemas::validate_name("identity name", name)?;
@@ -147,9 +150,27 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             ),
             (READ, {
                 let mut keys = reading();
-                keys.extend(["resource/*/service".to_string(), "offer/**".to_string()]);
+                keys.extend([
+                    "resource/*/service".to_string(),
+                    "offer/**".to_string(),
+                    "staff/*/advice".to_string(),
+                ]);
                 keys
             }),
+        ],
+        Role::Staff => vec![
+            (
+                DECLARE,
+                vec![
+                    format!("staff/{name}/advice"),
+                    format!("staff/{name}/state"),
+                    // Who holds the name (answered on the token's key).
+                    format!("alive/staff/{name}"),
+                ],
+            ),
+            (&["put"], vec![format!("staff/{name}/state")]),
+            (&["liveliness_token"], vec![format!("alive/staff/{name}")]),
+            (READ, reading()),
         ],
         Role::Operator => vec![(READ, {
             let mut keys = reading();
@@ -237,6 +258,7 @@ mod tests {
             "resource.robot1",
             "product.breaker",
             "order-node.orders1",
+            "staff.planner",
             "operator.default",
             "observer.default",
         ]
@@ -256,5 +278,10 @@ mod tests {
             text.contains("holarchy/demo/order/orders1-$*/inbox"),
             "{text}"
         );
+        assert!(
+            text.contains("holarchy/demo/staff/planner/advice"),
+            "{text}"
+        );
+        assert!(text.contains("holarchy/demo/staff/*/advice"), "{text}");
     }
 }

@@ -2,7 +2,8 @@
 //!
 //! In its own process it runs the cell's zenoh router; it starts, as real processes, a
 //! controller simulator per resource, two robots, an inspection station, a conveyor
-//! (resource holons), the breaker (a product holon) and an order-node. It submits the
+//! (resource holons), the breaker (a product holon), with `--staff` a staff holon that
+//! advises the orders, and an order-node. It submits the
 //! work orders, shows every order's progress, hot-adds a third robot once half of the
 //! orders are finished, prints a summary, stops everything it started (in reverse
 //! order) and exits 0 only if every order completed (`done`, or `scrapped` by its plan).
@@ -23,6 +24,7 @@ const INSPECTION: &str = include_str!("../../deploy/cells/demo/inspect1.toml");
 const CONVEYOR: &str = include_str!("../../deploy/cells/demo/conveyor1.toml");
 const PRODUCT: &str = include_str!("../../deploy/cells/demo/breaker.toml");
 const ORDERS: &str = include_str!("../../deploy/cells/demo/orders1.toml");
+const PLANNER: &str = include_str!("../../deploy/cells/demo/planner.toml");
 
 /// How long anything the demo starts may take to come up.
 const STARTUP: Duration = Duration::from_secs(15);
@@ -47,6 +49,8 @@ pub struct DemoOptions {
     pub dashboard: Option<std::net::SocketAddr>,
     /// Keep the cell up after the summary, until Ctrl-C or SIGTERM.
     pub keep: bool,
+    /// Run a staff holon (`staff/planner`) whose advice the orders take.
+    pub staff: bool,
 }
 
 /// The manifest `cell certs` issues the secure demo's identities from.
@@ -55,6 +59,7 @@ fn secure_manifest(cell: &str, endpoint: &str) -> String {
         "cell = \"{cell}\"\n[router]\nlisten = [\"{endpoint}\"]\n[pki]\nspares = [\"resource.robot3\"]\n"
     );
     for identity in [
+        "staff.planner",
         "resource.robot1",
         "resource.robot2",
         "resource.inspect1",
@@ -362,6 +367,8 @@ struct Report {
     failed: usize,
     elapsed: Duration,
     hot_added: Option<Duration>,
+    /// A staff holon advised the orders.
+    staff: bool,
 }
 
 impl Report {
@@ -408,6 +415,13 @@ impl Report {
             "  rebooks         {}",
             self.orders.values().map(|o| o.rebooks).sum::<u32>()
         );
+        if self.staff {
+            let steps: usize = self.orders.values().map(|o| o.completed.len()).sum();
+            println!(
+                "  on advice       {} of {steps} steps booked as staff/planner advised",
+                self.orders.values().map(|o| o.advised).sum::<u32>()
+            );
+        }
         println!("  steps per resource");
         for (resource, n) in &steps {
             let sim = resource.trim_start_matches("resource/");
@@ -444,6 +458,7 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
 
     let mut orders: BTreeMap<HolonId, OrderSnapshot> = BTreeMap::new();
     let mut hot_added = None;
+    let mut advised_shown = BTreeMap::new();
     let deadline =
         Instant::now() + Duration::from_secs(60) + options.action_delay * 10 * options.orders;
     loop {
@@ -464,7 +479,12 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         else {
             continue;
         };
-        print_progress(orders.get(&snapshot.holon), &snapshot, started.elapsed());
+        print_progress(
+            orders.get(&snapshot.holon),
+            &snapshot,
+            started.elapsed(),
+            &mut advised_shown,
+        );
         orders.insert(snapshot.holon.clone(), snapshot);
     }
     let failed = orders
@@ -476,6 +496,7 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         failed,
         elapsed: started.elapsed(),
         hot_added,
+        staff: options.staff,
     })
 }
 
@@ -520,6 +541,16 @@ async fn start_holons(cell: &mut Cell, options: &DemoOptions) -> Result<()> {
         .holon("holon-node", PRODUCT, &product, &[], None)
         .await?;
     println!("  {product:<22} alive after {:>4} ms", took.as_millis());
+    if options.staff {
+        let planner = HolonId::staff("planner")?;
+        let took = cell
+            .holon("holon-node", PLANNER, &planner, &[], None)
+            .await?;
+        println!(
+            "  {planner:<22} alive after {:>4} ms (steps booked on its advice are marked *)",
+            took.as_millis()
+        );
+    }
     let orders_key = cell.keys.host("order-node", "orders1");
     let took = cell
         .holon(
@@ -560,7 +591,12 @@ async fn hot_add_robot3(cell: &mut Cell, options: &DemoOptions, running: usize) 
 
 /// Prints what an order's new state says, if it progressed since `previous`: the step
 /// just completed (passed, or rejected: a rework or a scrap), and its end.
-fn print_progress(previous: Option<&OrderSnapshot>, snapshot: &OrderSnapshot, elapsed: Duration) {
+fn print_progress(
+    previous: Option<&OrderSnapshot>,
+    snapshot: &OrderSnapshot,
+    elapsed: Duration,
+    advised_shown: &mut BTreeMap<HolonId, u32>,
+) {
     let progressed = previous.is_none_or(|p| {
         p.status != snapshot.status || p.completed.len() != snapshot.completed.len()
     });
@@ -570,6 +606,15 @@ fn print_progress(previous: Option<&OrderSnapshot>, snapshot: &OrderSnapshot, el
     let elapsed = elapsed.as_secs_f64();
     let steps_before = previous.map_or(0, |p| p.completed.len());
     let reworked = previous.is_some_and(|p| snapshot.reworks > p.reworks);
+    // The step was booked on a staff holon's advice: the count grew since the last
+    // step shown (it grows when a step is booked, before it is done).
+    let shown = advised_shown.entry(snapshot.holon.clone()).or_default();
+    let advised = if snapshot.advised > *shown && snapshot.completed.len() > steps_before {
+        *shown = snapshot.advised;
+        " *"
+    } else {
+        ""
+    };
     if snapshot.completed.len() > steps_before {
         if let Some((service, resource)) = snapshot.completed.last() {
             let outcome = if reworked {
@@ -577,7 +622,7 @@ fn print_progress(previous: Option<&OrderSnapshot>, snapshot: &OrderSnapshot, el
             } else if snapshot.status == OrderStatus::Scrapped {
                 format!("rejected by {resource}")
             } else {
-                format!("done by {resource}")
+                format!("done by {resource}{advised}")
             };
             println!(
                 "{elapsed:7.2}s  {:<14} {service:<13} {outcome}",

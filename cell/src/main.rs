@@ -59,6 +59,10 @@ enum Commands {
         /// dashboard and submit more orders).
         #[arg(long)]
         keep: bool,
+        /// Run a staff holon (staff/planner) that advises the orders where to book;
+        /// each step booked on its advice is marked, and the summary counts them.
+        #[arg(long)]
+        staff: bool,
     },
     /// Launch and supervise the processes of a cell from the manifest DIR/cell.toml
     /// (deploy/cells/demo/cell.toml documents it): restart a process that dies, with a
@@ -324,6 +328,7 @@ async fn run(args: Args) -> Result<bool> {
             dashboard,
             listen,
             keep,
+            staff,
         } => {
             let shutdown = holon::shutdown_on_signals();
             let options = cell::demo::DemoOptions {
@@ -336,6 +341,7 @@ async fn run(args: Args) -> Result<bool> {
                 secure,
                 dashboard: dashboard.then_some(listen),
                 keep,
+                staff,
             };
             cell::demo::run(options, shutdown).await
         }

@@ -432,6 +432,7 @@ mod tests {
             attempts: vec![],
             priority: 0,
             due: None,
+            advised: 0,
             at: 0,
         }
     }

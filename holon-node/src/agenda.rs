@@ -798,6 +798,7 @@ impl AgendaManager {
                     priority: b.priority,
                     due: b.due,
                     overtaken: b.overtaken,
+                    program: crate::catalog::program(&b.info).ok().flatten(),
                 })
                 .collect(),
             current: self.current.as_ref().map(|j| CurrentJobView {
@@ -810,6 +811,14 @@ impl AgendaManager {
             }),
             undelivered: self.undelivered.len(),
             services: self.catalog.service_types().map(String::from).collect(),
+            nominal_ms: self
+                .catalog
+                .service_types()
+                .filter_map(|t| {
+                    let nominal = self.catalog.get(t)?.nominal_duration.as_millis() as u64;
+                    Some((t.to_string(), nominal))
+                })
+                .collect(),
             journal_fault: None,
             delivery_retries: 0,
             host: None,

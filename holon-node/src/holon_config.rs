@@ -6,12 +6,14 @@ use schemas::HolonId;
 
 use crate::config::{ConfigError, Overrides, ResourceConfig};
 use crate::product::ProductConfig;
+use crate::staff::config::StaffConfig;
 
 /// The config of whichever holon a file describes (its `kind`).
 #[derive(Debug, Clone)]
 pub enum HolonConfig {
     Resource(ResourceConfig),
     Product(ProductConfig),
+    Staff(StaffConfig),
 }
 
 impl HolonConfig {
@@ -38,9 +40,10 @@ impl HolonConfig {
                 ResourceConfig::parse(&text, &display, overrides).map(HolonConfig::Resource)
             }
             "product" => ProductConfig::parse(&text, &display, overrides).map(HolonConfig::Product),
+            "staff" => StaffConfig::parse(&text, &display, overrides).map(HolonConfig::Staff),
             other => Err(ConfigError::Invalid {
                 path: display,
-                message: format!("kind: {other:?} is not resource or product"),
+                message: format!("kind: {other:?} is not resource, product or staff"),
             }),
         }
     }
@@ -49,6 +52,7 @@ impl HolonConfig {
         match self {
             HolonConfig::Resource(c) => &c.holon,
             HolonConfig::Product(c) => &c.holon,
+            HolonConfig::Staff(c) => &c.holon,
         }
     }
 }

@@ -1,4 +1,4 @@
-//! holon-node: the process of one resource holon (or of one product holon).
+//! holon-node: the process of one resource holon (or of one product or staff holon).
 //!
 //! The resource holon is five components, each a task under one supervisor
 //! ([`component`]): interfacing, execution, agenda manager, requesters and
@@ -16,4 +16,5 @@ pub mod handover;
 pub mod holon_config;
 pub mod node;
 pub mod product;
+pub mod staff;
 pub mod views;

@@ -7,8 +7,9 @@ use holon_node::config::Overrides;
 use holon_node::holon_config::HolonConfig;
 
 /// Runs one holon: a resource (a robot, an inspection station, a conveyor) that takes
-/// Service requests over zenoh and drives its controller over TCP/XML, or a product
-/// that answers with its process plan. The config's `kind` says which.
+/// Service requests over zenoh and drives its controller over TCP/XML, a product that
+/// answers with its process plan, or a staff holon that advises orders where to book.
+/// The config's `kind` says which.
 ///
 /// The holon is ready when its liveliness token holarchy/<cell>/alive/resource/<name>
 /// appears. SIGTERM or Ctrl-C stops it cleanly (token withdrawn, components stopped in
@@ -53,6 +54,7 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
     match config {
         HolonConfig::Resource(config) => holon_node::node::run(config, shutdown).await?,
         HolonConfig::Product(config) => holon_node::product::run(config, shutdown).await?,
+        HolonConfig::Staff(config) => holon_node::staff::node::run(config, shutdown).await?,
     }
     Ok(())
 }

@@ -81,6 +81,12 @@ struct OrdersSection {
     max_unfinished_orders: usize,
     #[serde(default = "default_start_on_turn")]
     start_on_turn: bool,
+    #[serde(default = "default_advice_timeout")]
+    advice_timeout_ms: u64,
+}
+
+fn default_advice_timeout() -> u64 {
+    20
 }
 
 fn default_start_on_turn() -> bool {
@@ -136,6 +142,7 @@ impl Default for OrdersSection {
             max_orders_per_submit: default_max_per_submit(),
             max_unfinished_orders: default_max_unfinished(),
             start_on_turn: default_start_on_turn(),
+            advice_timeout_ms: default_advice_timeout(),
         }
     }
 }
@@ -175,6 +182,9 @@ pub struct OrderSettings {
     /// `start` itself when the resource says it is its turn (for a cell where the part
     /// must be brought to the resource first).
     pub start_on_turn: bool,
+    /// How long an order waits for a staff holon's advice, asked together with the
+    /// proposals (the round usually takes longer); `ZERO`: never asks.
+    pub advice_timeout: Duration,
 }
 
 #[derive(Debug, Clone)]
@@ -251,6 +261,12 @@ impl OrderNodeConfig {
                 return Err(invalid(format!("{field} must be greater than 0")));
             }
         }
+        if o.advice_timeout_ms > 1000 {
+            return Err(invalid(format!(
+                "orders.advice_timeout_ms ({}) must be at most 1000: advice that comes later is no help",
+                o.advice_timeout_ms
+            )));
+        }
         if o.retry_max_ms < o.retry_interval_ms {
             return Err(invalid(format!(
                 "orders.retry_max_ms ({}) must be at least orders.retry_interval_ms ({})",
@@ -273,6 +289,7 @@ impl OrderNodeConfig {
                 max_orders_per_submit: o.max_orders_per_submit,
                 max_unfinished_orders: o.max_unfinished_orders,
                 start_on_turn: o.start_on_turn,
+                advice_timeout: Duration::from_millis(o.advice_timeout_ms),
             },
             data_dir: file.journal.dir,
             durability: file.journal.durability,
@@ -301,6 +318,7 @@ mod tests {
             ("name = \"orders1\"", "name = \"Orders\""),
             ("max_attempts = 3", "max_attempts = 0"),
             ("[orders]", "[orders]\nspeed = 1"),
+            ("advice_timeout_ms = 20", "advice_timeout_ms = 5000"),
             (
                 "retry_interval_ms = 50",
                 "retry_interval_ms = 50\nretry_max_ms = 10",

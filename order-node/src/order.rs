@@ -42,6 +42,7 @@ pub async fn run(
         changes: ctx.presence.changes(),
         appearances: ctx.presence.appearances(),
         in_flight: None,
+        advised: None,
         ctx,
         progress,
         holon: holon.clone(),
@@ -79,6 +80,9 @@ struct OrderTask {
     appearances: watch::Receiver<u64>,
     /// The booking the last round's ranking counted in flight, until it is answered.
     in_flight: Option<InFlight>,
+    /// The resource the last round booked first on a staff holon's advice: counted
+    /// in the order's `advised` when its booking is recorded.
+    advised: Option<HolonId>,
 }
 
 /// How a watch for a result ended.
@@ -247,7 +251,18 @@ impl OrderTask {
                 None
             }
             AttemptAction::Record(phase) => {
-                self.ctx.commit(&self.progress, |p| p.set_phase(phase))?;
+                // A booking made on advice counts once, when it is recorded.
+                let on_advice = matches!(&phase, Phase::Booked(p) | Phase::Started(p) if self.advised.as_ref() == Some(p));
+                if !matches!(&phase, Phase::Booking(p) if self.advised.as_ref() == Some(p)) {
+                    // Used up, or the booking moved on to another resource.
+                    self.advised = None;
+                }
+                self.ctx.commit(&self.progress, |p| {
+                    if on_advice {
+                        p.advised += 1;
+                    }
+                    p.set_phase(phase)
+                })?;
                 None
             }
             AttemptAction::Publish => {
@@ -259,8 +274,35 @@ impl OrderTask {
                 let ask = request(MessageType::ProposalReq);
                 self.appearances = ctx.presence.appearances();
                 let _turn = ctx.rounds.acquire().await.expect("never closed");
-                let (ranked, in_flight) = requests::proposals(&ctx, &ask, &avoid).await;
+                // The staff's advice is asked together with the round: it costs no
+                // time unless the staff is slower than the round (then at most
+                // `orders.advice_timeout_ms`), and without a staff nothing at all.
+                let (route, urgency) = {
+                    let p = lock(&self.progress);
+                    (p.route_ahead(), (p.priority, p.due))
+                };
+                let (advised, offers) = tokio::join!(
+                    requests::advice(&ctx, &self.holon, conversation_id, route, urgency, &avoid),
+                    requests::offers(&ctx, &ask, &avoid)
+                );
+                let advised = match advised {
+                    requests::Advised::Resource(resource) => Some(resource),
+                    requests::Advised::NoStaff => None,
+                    requests::Advised::Unusable(why) => {
+                        info!(holon = %self.holon, %conversation_id, why = %why, "no usable advice: contract net alone");
+                        None
+                    }
+                };
+                let (ranked, in_flight) = requests::rank(&ctx, &ask, offers, advised.as_ref());
                 self.in_flight = in_flight;
+                self.advised = match advised {
+                    Some(resource) if ranked.first() == Some(&resource) => Some(resource),
+                    Some(resource) => {
+                        info!(holon = %self.holon, %conversation_id, %resource, "advice ignored: the advised resource did not propose");
+                        None
+                    }
+                    None => None,
+                };
                 Some(AttemptEvent::Proposals(ranked))
             }
             AttemptAction::AskBooking(candidate) => {

@@ -33,6 +33,8 @@ pub struct Presence {
     /// there waits on its own resource's channel only, so a state change wakes the
     /// orders it concerns, not all of them.
     turns: Mutex<HashMap<HolonId, watch::Sender<Option<String>>>>,
+    /// The staff holons alive (advisors), by name.
+    staff: Mutex<std::collections::BTreeSet<HolonId>>,
 }
 
 impl Presence {
@@ -50,6 +52,7 @@ impl Presence {
             published: Mutex::new(HashMap::new()),
             queues: Mutex::new(HashMap::new()),
             turns: Mutex::new(HashMap::new()),
+            staff: Mutex::new(Default::default()),
         });
         let keys_for_callback = keys.clone();
         let weak = Arc::downgrade(&presence);
@@ -128,6 +131,36 @@ impl Presence {
             })
             .background()
             .await?;
+        let weak = Arc::downgrade(&presence);
+        let keys_for_staff = keys.clone();
+        session
+            .liveliness()
+            .declare_subscriber(keys.alive_kind(schemas::HolonKind::Staff))
+            .history(true)
+            .callback(move |sample| {
+                let Some(presence) = weak.upgrade() else {
+                    return;
+                };
+                let Some(holon) = keys_for_staff.holon_from_alive(sample.key_expr().as_str())
+                else {
+                    return;
+                };
+                let mut staff = presence.staff.lock().unwrap_or_else(|e| e.into_inner());
+                match sample.kind() {
+                    zenoh::sample::SampleKind::Put => {
+                        if staff.insert(holon.clone()) {
+                            info!(holon = %holon, "staff appeared: orders ask it for advice");
+                        }
+                    }
+                    zenoh::sample::SampleKind::Delete => {
+                        if staff.remove(&holon) {
+                            warn!(holon = %holon, "staff vanished: orders go by contract net alone");
+                        }
+                    }
+                }
+            })
+            .background()
+            .await?;
         // Seed the set before any order looks at it: the subscriber's history arrives
         // asynchronously, and a resource missing from the set counts as vanished.
         let alive = holon::presence::tokens(
@@ -152,6 +185,15 @@ impl Presence {
             .unwrap_or_else(|e| e.into_inner())
             .get(resource)
             .map(|queue| queue.ahead_of(priority))
+    }
+
+    /// The staff holon to ask for advice, if one is alive (the first by name).
+    pub fn staff(&self) -> Option<HolonId> {
+        self.staff
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .first()
+            .cloned()
     }
 
     pub fn is_alive(&self, holon: &HolonId) -> bool {
@@ -277,11 +319,13 @@ mod tests {
                     priority: 0,
                     due: None,
                     overtaken: 0,
+                    program: None,
                 })
                 .collect(),
             current: None,
             undelivered: 0,
             services: vec!["pick_n_place".into()],
+            nominal_ms: Default::default(),
             journal_fault: None,
             delivery_retries: 0,
             host: None,

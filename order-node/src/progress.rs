@@ -133,6 +133,9 @@ pub struct OrderProgress {
     /// When the work order is due (Unix ms), if it said.
     #[serde(default)]
     pub due: Option<u64>,
+    /// Steps booked on a staff holon's advice.
+    #[serde(default)]
+    pub advised: u32,
 }
 
 impl OrderProgress {
@@ -160,7 +163,28 @@ impl OrderProgress {
             finished_at: None,
             priority: 0,
             due: None,
+            advised: 0,
         }
+    }
+
+    /// The steps still ahead of the order (the current one first), as a staff holon
+    /// is asked to plan them: each one's service type and program.
+    pub fn route_ahead(&self) -> Vec<schemas::RouteStep> {
+        let Some(plan) = &self.plan else {
+            return Vec::new();
+        };
+        plan.steps
+            .iter()
+            .skip(self.step)
+            .map(|step| schemas::RouteStep {
+                service_type: step.service_type.clone(),
+                program: step
+                    .info
+                    .get("program")
+                    .and_then(|p| p.as_str())
+                    .map(str::to_string),
+            })
+            .collect()
     }
 
     /// The same new order, as urgent as its work order says.
@@ -365,6 +389,7 @@ impl OrderProgress {
             attempts: self.history.clone(),
             priority: self.priority,
             due: self.due,
+            advised: self.advised,
             at: unix_ms(),
         }
     }

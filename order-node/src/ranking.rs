@@ -52,17 +52,19 @@ impl BookingsInFlight {
         self.0.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// The round's offers, best first: not avoided; then the shortest expected wait,
-    /// then queue, as they are now (`published`: a resource's latest published queue,
-    /// if any); ties at random. The best is counted in flight (its order books it next)
+    /// The round's offers, best first: not avoided; then the resource a staff holon
+    /// advised (`advised`), if it proposed; then the shortest expected wait, then
+    /// queue, as they are now (`published`: a resource's latest published queue, if
+    /// any); ties at random. The best is counted in flight (its order books it next)
     /// until the returned [`InFlight`] is dropped.
     pub fn rank(
         &self,
         offers: Vec<Offer>,
         published: impl Fn(&schemas::HolonId) -> Option<u64>,
+        advised: Option<&schemas::HolonId>,
     ) -> (Vec<schemas::HolonId>, Option<InFlight>) {
         let mut in_flight = self.counts();
-        let mut ranked: Vec<(bool, u64, u64, u64, schemas::HolonId)> = offers
+        let mut ranked: Vec<(bool, bool, u64, u64, u64, schemas::HolonId)> = offers
             .into_iter()
             .map(|o| {
                 let queue = published(&o.provider)
@@ -77,11 +79,12 @@ impl BookingsInFlight {
                     o.expected_wait_ms
                         .saturating_sub((o.queue_position - queue).saturating_mul(o.duration_ms))
                 };
-                (o.avoided, wait, queue, tie_break(), o.provider)
+                let not_advised = advised != Some(&o.provider);
+                (o.avoided, not_advised, wait, queue, tie_break(), o.provider)
             })
             .collect();
         ranked.sort();
-        let counted = ranked.first().map(|(_, _, _, _, best)| {
+        let counted = ranked.first().map(|(_, _, _, _, _, best)| {
             *in_flight.entry(best.clone()).or_default() += 1;
             InFlight {
                 counts: self.0.clone(),
@@ -89,7 +92,7 @@ impl BookingsInFlight {
             }
         });
         (
-            ranked.into_iter().map(|(_, _, _, _, p)| p).collect(),
+            ranked.into_iter().map(|(_, _, _, _, _, p)| p).collect(),
             counted,
         )
     }
@@ -128,7 +131,7 @@ mod tests {
                     offer("robot2", 0, 0),
                     offer("robot3", 1000, 1),
                 ];
-                let (ranked, counted) = in_flight.rank(offers, |_| None);
+                let (ranked, counted) = in_flight.rank(offers, |_| None, None);
                 held.push(counted);
                 ranked[0].name().to_string()
             })
@@ -151,15 +154,19 @@ mod tests {
         let (ranked, counted) = in_flight.rank(
             vec![offer("robot1", 0, 0), offer("robot2", 2000, 2)],
             published,
+            None,
         );
         assert_eq!(ranked[0].name(), "robot2");
         // In flight, robot2's booking counts; answered, it does not (its queue shows it).
         let both = || vec![offer("robot1", 1000, 1), offer("robot2", 1000, 1)];
-        let (ranked, again) = in_flight.rank(both(), |_| None);
+        let (ranked, again) = in_flight.rank(both(), |_| None, None);
         assert_eq!(ranked[0], robot1);
         drop((counted, again));
-        let (ranked, _counted) =
-            in_flight.rank(both(), |r| if r == &robot1 { Some(2) } else { Some(1) });
+        let (ranked, _counted) = in_flight.rank(
+            both(),
+            |r| if r == &robot1 { Some(2) } else { Some(1) },
+            None,
+        );
         assert_eq!(ranked[0].name(), "robot2");
     }
 
@@ -168,7 +175,33 @@ mod tests {
         let in_flight = BookingsInFlight::default();
         let mut avoided = offer("robot1", 0, 0);
         avoided.avoided = true;
-        let (ranked, _) = in_flight.rank(vec![avoided, offer("robot2", 5000, 5)], |_| None);
+        let (ranked, _) = in_flight.rank(vec![avoided, offer("robot2", 5000, 5)], |_| None, None);
         assert_eq!(ranked[1].name(), "robot1");
+    }
+
+    #[test]
+    fn the_advised_resource_goes_first_if_it_proposed_and_never_before_an_avoided_one() {
+        let in_flight = BookingsInFlight::default();
+        let slow = schemas::HolonId::resource("slow").unwrap();
+        let offers = || vec![offer("fast", 0, 0), offer("slow", 3000, 3)];
+        let (ranked, counted) = in_flight.rank(offers(), |_| None, Some(&slow));
+        assert_eq!(ranked[0], slow);
+        assert_eq!(
+            counted.as_ref().map(|c| &c.resource),
+            Some(&slow),
+            "counted in flight"
+        );
+        let gone = schemas::HolonId::resource("gone").unwrap();
+        let (ranked, _) = in_flight.rank(offers(), |_| None, Some(&gone));
+        assert_eq!(
+            ranked[0].name(),
+            "fast",
+            "advice for one that did not propose"
+        );
+        let mut avoided = offer("slow", 0, 0);
+        avoided.avoided = true;
+        let (ranked, _) =
+            in_flight.rank(vec![avoided, offer("fast", 9000, 9)], |_| None, Some(&slow));
+        assert_eq!(ranked[0].name(), "fast");
     }
 }

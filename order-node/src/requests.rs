@@ -94,7 +94,8 @@ pub async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Ser
 }
 
 /// The proposals of a round, best first: resources in `avoid` (they failed this step)
-/// last; then the shortest expected wait, then queue, as they are when the round ends
+/// last; then the resource a staff holon advised, if it proposed; then the shortest
+/// expected wait, then queue, as they are when the round ends
 /// (see [`crate::ranking::BookingsInFlight`]); ties at random (orders that ask together
 /// do not all pick the same name). The best counts as a booking in flight until its
 /// answer comes.
@@ -102,7 +103,18 @@ pub async fn proposals(
     ctx: &OrderContext,
     message: &Service,
     avoid: &BTreeSet<HolonId>,
+    advised: Option<&HolonId>,
 ) -> (Vec<HolonId>, Option<InFlight>) {
+    let offers = offers(ctx, message, avoid).await;
+    rank(ctx, message, offers, advised)
+}
+
+/// The proposals a round heard (every resource that proposed, `avoid` marked).
+pub async fn offers(
+    ctx: &OrderContext,
+    message: &Service,
+    avoid: &BTreeSet<HolonId>,
+) -> Vec<Offer> {
     // A round stopped half-way (the order cancelled, the node stopping) drops its
     // reader: late proposals are dropped quietly.
     let Ok(mut replies) = ctx
@@ -114,7 +126,7 @@ pub async fn proposals(
         .with(holon::query::replies())
         .await
     else {
-        return (Vec::new(), None);
+        return Vec::new();
     };
     let mut offers = Vec::new();
     while let Some(reply) = replies.recv().await {
@@ -140,10 +152,24 @@ pub async fn proposals(
             provider,
         });
     }
-    let (ranked, in_flight) = ctx.bookings_in_flight.rank(offers, |resource| {
-        ctx.presence
-            .queue(resource, message.priority().unwrap_or(0))
-    });
+    offers
+}
+
+/// A round's offers ranked (see [`proposals`]); the best counts as in flight.
+pub fn rank(
+    ctx: &OrderContext,
+    message: &Service,
+    offers: Vec<Offer>,
+    advised: Option<&HolonId>,
+) -> (Vec<HolonId>, Option<InFlight>) {
+    let (ranked, in_flight) = ctx.bookings_in_flight.rank(
+        offers,
+        |resource| {
+            ctx.presence
+                .queue(resource, message.priority().unwrap_or(0))
+        },
+        advised,
+    );
     debug!(conversation_id = %message.conversation_id, ranked = ?ranked.iter().map(|p| p.name()).collect::<Vec<_>>(), "proposals ranked");
     (ranked, in_flight)
 }
@@ -209,5 +235,97 @@ pub fn answer(reply: Option<Service>) -> Answer {
         Some(reply) if reply.result == Some(true) => Answer::Accepted,
         Some(reply) => Answer::Refused(reply.reason),
         None => Answer::Silent,
+    }
+}
+
+/// What came of asking the staff for advice.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Advised {
+    /// No staff holon is alive (or the node never asks): contract net alone.
+    NoStaff,
+    /// This resource, if it proposed.
+    Resource(HolonId),
+    /// No usable advice: why (for the log).
+    Unusable(String),
+}
+
+/// Asks the staff holon alive, if any, which resource to book for the next of `route`
+/// (the steps still ahead of the order), waiting at most `orders.advice_timeout_ms`.
+/// Anything but an answer to this order's conversation naming a resource is unusable.
+pub async fn advice(
+    ctx: &OrderContext,
+    holon: &HolonId,
+    conversation_id: &str,
+    route: Vec<schemas::RouteStep>,
+    urgency: (i32, Option<u64>),
+    avoid: &BTreeSet<HolonId>,
+) -> Advised {
+    let Some(staff) = ctx.presence.staff() else {
+        return Advised::NoStaff;
+    };
+    if ctx.settings.advice_timeout.is_zero() || route.is_empty() {
+        return Advised::NoStaff;
+    }
+    let request = schemas::AdviceRequest {
+        v: schemas::ADVICE_VERSION,
+        order: holon.clone(),
+        conversation_id: conversation_id.to_string(),
+        priority: urgency.0,
+        due: urgency.1,
+        steps: route
+            .into_iter()
+            .take(schemas::advice::MAX_ADVICE_STEPS)
+            .collect(),
+        avoid: avoid
+            .iter()
+            .take(schemas::advice::MAX_AVOIDED)
+            .cloned()
+            .collect(),
+    };
+    let payload = serde_json::to_vec(&request).expect("a request serializes");
+    let asked = async {
+        let mut replies = ctx
+            .session
+            .get(ctx.keys.advice(staff.name()))
+            .payload(payload)
+            .consolidation(ConsolidationMode::None)
+            .timeout(ctx.settings.advice_timeout)
+            .with(holon::query::replies())
+            .await
+            .map_err(|e| format!("cannot ask {staff}: {e}"))?;
+        let reply = replies
+            .recv()
+            .await
+            .ok_or_else(|| format!("{staff} gave no advice in time"))?;
+        let sample = reply.result().map_err(|e| {
+            format!(
+                "{staff} refused: {}",
+                e.payload().try_to_string().unwrap_or_default()
+            )
+        })?;
+        serde_json::from_slice::<schemas::Advice>(&sample.payload().to_bytes())
+            .map_err(|e| format!("malformed advice from {staff}: {e}"))
+    };
+    let advice = match tokio::time::timeout(ctx.settings.advice_timeout, asked).await {
+        Ok(Ok(advice)) => advice,
+        Ok(Err(why)) => return Advised::Unusable(why),
+        Err(_) => return Advised::Unusable(format!("{staff} gave no advice in time")),
+    };
+    if advice.v != schemas::ADVICE_VERSION
+        || &advice.order != holon
+        || advice.conversation_id != conversation_id
+    {
+        return Advised::Unusable(format!(
+            "advice from {staff} for another order or conversation ({} {})",
+            advice.order, advice.conversation_id
+        ));
+    }
+    match advice.resource {
+        Some(resource) if resource.kind() == schemas::HolonKind::Resource => {
+            debug!(%holon, %conversation_id, %staff, %resource, why = %advice.why, "advice");
+            Advised::Resource(resource)
+        }
+        Some(other) => Advised::Unusable(format!("{staff} advised {other}, not a resource")),
+        None => Advised::Unusable(format!("{staff} knows no resource: {}", advice.why)),
     }
 }

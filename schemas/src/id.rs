@@ -106,6 +106,10 @@ impl HolonId {
         Self::new(HolonKind::Resource, name)
     }
 
+    pub fn staff(name: &str) -> Result<Self, SchemaError> {
+        Self::new(HolonKind::Staff, name)
+    }
+
     pub fn order(name: &str) -> Result<Self, SchemaError> {
         Self::new(HolonKind::Order, name)
     }

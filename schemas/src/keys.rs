@@ -124,6 +124,11 @@ impl CellKeys {
         format!("{}/orders/submit", self.prefix())
     }
 
+    /// `holarchy/<cell>/staff/<name>/advice`: a staff holon's advice to orders.
+    pub fn advice(&self, staff: &str) -> String {
+        format!("{}/staff/{staff}/advice", self.prefix())
+    }
+
     /// `holarchy/<cell>/<kind>/<name>/state`: the holon's state snapshots.
     pub fn state(&self, holon: &HolonId) -> String {
         format!("{}/{}/{}/state", self.prefix(), holon.kind(), holon.name())
@@ -217,6 +222,7 @@ mod tests {
             "holarchy/demo/offer/pick_n_place/*"
         );
         assert_eq!(keys.plan("breaker"), "holarchy/demo/product/breaker/plan");
+        assert_eq!(keys.advice("planner"), "holarchy/demo/staff/planner/advice");
         assert_eq!(keys.inbox("o-17"), "holarchy/demo/order/o-17/inbox");
         assert_eq!(keys.orders_submit(), "holarchy/demo/orders/submit");
         assert_eq!(keys.state(&robot), "holarchy/demo/resource/robot1/state");

@@ -4,6 +4,7 @@
 //! JSON Schema for the Service message is exported to `schemas/json/service.schema.json`
 //! (see [`service_json_schema`]); a test fails when that file is stale.
 
+pub mod advice;
 pub mod id;
 pub mod keys;
 pub mod plan;
@@ -11,6 +12,7 @@ pub mod robot;
 pub mod service;
 pub mod state;
 
+pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION};
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
 pub use plan::{
@@ -52,6 +54,23 @@ pub enum SchemaError {
 /// The JSON Schema of the Service message, as checked in at `schemas/json/service.schema.json`.
 pub fn service_json_schema() -> String {
     let schema = schemars::schema_for!(Service);
+    let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
+    text.push('\n');
+    text
+}
+
+/// The JSON Schema of a staff holon's advice request and reply
+/// (`staff/<name>/advice`), checked in as `schemas/json/advice.schema.json`.
+pub fn advice_json_schema() -> String {
+    let schema = serde_json::json!({
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "holarchy advice",
+        "description": "A staff holon's advice: the request an order sends on staff/<name>/advice, and the reply.",
+        "$defs": {
+            "AdviceRequest": schemars::schema_for!(AdviceRequest),
+            "Advice": schemars::schema_for!(Advice),
+        },
+    });
     let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
     text.push('\n');
     text

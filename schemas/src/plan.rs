@@ -285,6 +285,9 @@ pub struct OrderSnapshot {
     /// When the order is due, in Unix milliseconds, if its work order said.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub due: Option<u64>,
+    /// Steps booked on a staff holon's advice.
+    #[serde(default)]
+    pub advised: u32,
     pub at: u64,
 }
 

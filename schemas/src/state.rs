@@ -99,6 +99,9 @@ pub struct BookingView {
     /// resource's `agenda.max_overtakes`).
     #[serde(default)]
     pub overtaken: u32,
+    /// The job's program (product variant), from its `info.program`, if it names one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub program: Option<String>,
 }
 
 /// A resource holon's state after a change.
@@ -118,6 +121,11 @@ pub struct ResourceSnapshot {
     pub undelivered: usize,
     /// Service types offered.
     pub services: Vec<String>,
+    /// Each offered service type's nominal duration in ms (its config's
+    /// `nominal_duration_ms`): what proposals count with, and a staff holon's first
+    /// guess before it has measured the resource.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub nominal_ms: std::collections::BTreeMap<String, u64>,
     /// Set while the resource's journal cannot be written (e.g. a full disk): why. It
     /// takes no new work and holds its results until a write succeeds.
     #[serde(default, skip_serializing_if = "Option::is_none")]

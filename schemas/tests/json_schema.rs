@@ -9,6 +9,15 @@ fn service_schema_file_is_current() {
 }
 
 #[test]
+fn advice_schema_file_is_current() {
+    let generated = schemas::advice_json_schema();
+    schema_file_is_current("advice.schema.json", generated.clone());
+    for field in ["conversation_id", "steps", "forecast_done", "route", "why"] {
+        assert!(generated.contains(field), "the schema lacks {field}");
+    }
+}
+
+#[test]
 fn resource_state_schema_file_is_current_and_names_the_states() {
     let generated = schemas::resource_state_json_schema();
     schema_file_is_current("resource-state.schema.json", generated.clone());

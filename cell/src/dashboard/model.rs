@@ -726,6 +726,7 @@ mod tests {
                     priority: 0,
                     due: None,
                     overtaken: 0,
+                    program: None,
                 })
                 .collect(),
             current: (state == ResourceState::Busy).then(|| CurrentJobView {
@@ -738,6 +739,7 @@ mod tests {
             }),
             undelivered: 0,
             services: vec!["pick_n_place".into()],
+            nominal_ms: Default::default(),
             journal_fault: None,
             delivery_retries: 0,
             host: None,
