@@ -298,10 +298,13 @@ pub async fn advice(
             .await
             .ok_or_else(|| format!("{staff} gave no advice in time"))?;
         let sample = reply.result().map_err(|e| {
-            format!(
-                "{staff} refused: {}",
-                e.payload().try_to_string().unwrap_or_default()
-            )
+            let why = e.payload().try_to_string().unwrap_or_default();
+            // zenoh ends a query that outlived its timeout with this error reply.
+            if why == "Timeout" {
+                format!("{staff} gave no advice in time")
+            } else {
+                format!("{staff} refused: {why}")
+            }
         })?;
         serde_json::from_slice::<schemas::Advice>(&sample.payload().to_bytes())
             .map_err(|e| format!("malformed advice from {staff}: {e}"))

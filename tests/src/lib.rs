@@ -507,6 +507,22 @@ impl Cell {
         Ok(serde_json::Value::Object(answer.info))
     }
 
+    /// Any holon's state, asked on `<kind>/<name>/state`.
+    pub async fn ask_state(&self, holon: &HolonId) -> Result<serde_json::Value> {
+        let replies = self
+            .session
+            .get(self.keys.state(holon))
+            .timeout(Duration::from_secs(2))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let reply = replies
+            .recv_async()
+            .await
+            .map_err(|_| anyhow!("{holon} did not answer"))?;
+        let sample = reply.result().map_err(|e| anyhow!("{e:?}"))?;
+        Ok(serde_json::from_slice(&sample.payload().to_bytes())?)
+    }
+
     /// Polls the resource's state until `check` holds.
     pub async fn wait_state(
         &self,

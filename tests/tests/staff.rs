@@ -1,0 +1,283 @@
+//! The staff holon against real processes: orders follow its advice when the advised
+//! resource proposed, ignore advice that is of no use (a resource that did not
+//! propose, another conversation's, malformed, late), and lose nothing when the staff
+//! is killed mid-run.
+
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use holarchy_tests::*;
+use schemas::{Advice, AdviceRequest, HolonId};
+
+/// What the test's own advisor answers.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Answer {
+    /// Advice to book this resource.
+    Book(&'static str),
+    /// Advice for another conversation (an old answer).
+    Stale,
+    /// Bytes that are not advice.
+    Malformed,
+    /// Advice, after the order stopped waiting.
+    Late,
+}
+
+/// A staff holon that answers as the test says: a real zenoh participant with the
+/// staff's token and advice queryable, so orders find and ask it as they would a
+/// `holon-node` staff. Returns what it was asked.
+async fn advisor(
+    cell: &Cell,
+    answer: Arc<Mutex<Answer>>,
+) -> (
+    zenoh::liveliness::LivelinessToken,
+    zenoh::query::Queryable<()>,
+    Arc<Mutex<Vec<AdviceRequest>>>,
+) {
+    let staff = HolonId::staff("fake").unwrap();
+    let asked = Arc::new(Mutex::new(Vec::new()));
+    let queryable = cell
+        .session
+        .declare_queryable(cell.keys.advice("fake"))
+        .callback({
+            let asked = asked.clone();
+            move |query| {
+                let request: AdviceRequest =
+                    serde_json::from_slice(&query.payload().unwrap().to_bytes()).unwrap();
+                asked.lock().unwrap().push(request.clone());
+                let answer = *answer.lock().unwrap();
+                let advice = |resource: &str, conversation_id: String| Advice {
+                    v: 1,
+                    staff: staff.clone(),
+                    order: request.order.clone(),
+                    conversation_id,
+                    resource: Some(HolonId::resource(resource).unwrap()),
+                    forecast_done: None,
+                    late_by_ms: None,
+                    route: vec![],
+                    why: "the test says so".into(),
+                };
+                let payload = match answer {
+                    Answer::Book(resource) => {
+                        serde_json::to_vec(&advice(resource, request.conversation_id.clone()))
+                            .unwrap()
+                    }
+                    Answer::Late => {
+                        serde_json::to_vec(&advice("slow", request.conversation_id.clone()))
+                            .unwrap()
+                    }
+                    Answer::Stale => {
+                        serde_json::to_vec(&advice("slow", "an-old-conversation".into())).unwrap()
+                    }
+                    Answer::Malformed => b"{\"resource\": 7}".to_vec(),
+                };
+                std::thread::spawn(move || {
+                    use zenoh::Wait;
+                    if answer == Answer::Late {
+                        std::thread::sleep(Duration::from_millis(200));
+                    }
+                    // A late reply may find the query gone: that is the point.
+                    let _late_or_sent = query.reply(query.key_expr().clone(), payload).wait();
+                });
+            }
+        })
+        .await
+        .unwrap();
+    let token = cell
+        .session
+        .liveliness()
+        .declare_token(cell.keys.alive(&HolonId::staff("fake").unwrap()))
+        .await
+        .unwrap();
+    (token, queryable, asked)
+}
+
+/// Two robots offering pick_n_place (`fast` and `slow`, their simulators with the
+/// given action delays), the product `part` and the order-node `orders1`.
+struct TwoRobots {
+    cell: Cell,
+    dir: tempfile::TempDir,
+    fast: Sim,
+    slow: Sim,
+    _processes: Vec<Process>,
+}
+
+async fn two_robots(name: &str, fast_ms: u64, slow_ms: u64) -> TwoRobots {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open(name).await.unwrap();
+    let path = dir.path();
+    let fast = Sim::start(
+        path,
+        "fast-sim",
+        "127.0.0.1:0",
+        &["--delay-ms", &fast_ms.to_string()],
+    )
+    .unwrap();
+    let slow = Sim::start(
+        path,
+        "slow-sim",
+        "127.0.0.1:0",
+        &["--delay-ms", &slow_ms.to_string()],
+    )
+    .unwrap();
+    let mut processes = Vec::new();
+    for (robot, sim) in [("fast", &fast), ("slow", &slow)] {
+        let config = resource_config(path, robot, 10_000).unwrap();
+        processes.push(
+            cell.start_free_resource(path, &config, &sim.address, &[])
+                .await
+                .unwrap(),
+        );
+    }
+    let (part, orders) = cell
+        .start_part_and_orders(
+            path,
+            &demo_config("orders1.toml"),
+            &path.join("orders-data"),
+        )
+        .await
+        .unwrap();
+    processes.extend([part, orders]);
+    TwoRobots {
+        cell,
+        dir,
+        fast,
+        slow,
+        _processes: processes,
+    }
+}
+
+/// Submits `count` orders of `part` one after another, each after the last is done,
+/// and returns each one's final state.
+async fn one_by_one(cell: &Cell, count: u32) -> Vec<serde_json::Value> {
+    let mut states = Vec::new();
+    for _ in 0..count {
+        let order = cell.submit("part", 1).await.unwrap().remove(0);
+        cell.wait_order(&order, "done", |s| s.is_some_and(|s| s["status"] == "done"))
+            .await
+            .unwrap();
+        states.push(cell.order_state(&order).await.unwrap());
+    }
+    states
+}
+
+fn resources(states: &[serde_json::Value]) -> Vec<String> {
+    states
+        .iter()
+        .map(|s| s["completed"][0][1].as_str().unwrap().to_string())
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn orders_follow_usable_advice_and_go_by_contract_net_otherwise() {
+    let cell = two_robots("t-staff-advice", 0, 0).await;
+    let answer = Arc::new(Mutex::new(Answer::Book("slow")));
+    let (_token, _queryable, asked) = advisor(&cell.cell, answer.clone()).await;
+    // Let the order-node see the staff's token.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    // Advice for a resource that proposed is followed: every order books `slow`.
+    let followed = one_by_one(&cell.cell, 4).await;
+    assert_eq!(resources(&followed), vec!["resource/slow"; 4]);
+    assert!(followed.iter().all(|s| s["advised"] == 1), "{followed:?}");
+    {
+        let asked = asked.lock().unwrap();
+        assert_eq!(asked.len(), 4);
+        assert_eq!(asked[0].steps.len(), 1);
+        assert_eq!(asked[0].steps[0].service_type, "pick_n_place");
+        assert_eq!(asked[0].order.kind(), schemas::HolonKind::Order);
+    }
+
+    // Advice that is no use is ignored, and the order goes by contract net at once.
+    for useless in [
+        Answer::Book("vanished"),
+        Answer::Stale,
+        Answer::Malformed,
+        Answer::Late,
+    ] {
+        *answer.lock().unwrap() = useless;
+        let states = one_by_one(&cell.cell, 2).await;
+        for state in &states {
+            assert_eq!(state["advised"], 0, "{useless:?}: {state}");
+            assert_eq!(state["status"], "done", "{useless:?}: {state}");
+        }
+    }
+    let log = std::fs::read_to_string(cell.dir.path().join("orders1.stderr")).unwrap_or_default();
+    for why in [
+        "advice ignored: the advised resource did not propose",
+        "for another order or conversation",
+        "malformed advice",
+        "gave no advice in time",
+    ] {
+        assert!(
+            log.contains(why),
+            "the order-node's log lacks {why:?}: {log}"
+        );
+    }
+    // Every step ran once: 4 followed + 8 by contract net.
+    assert_eq!(cell.fast.executed("pick") + cell.slow.executed("pick"), 12);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_staff_learns_the_fast_robot_and_killing_it_loses_nothing() {
+    let cell = two_robots("t-staff-kill", 20, 150).await;
+    let dir = cell.dir.path();
+    let mut staff = start_holon(
+        dir,
+        "holon-node",
+        &demo_config("planner.toml"),
+        "planner",
+        &cell.cell,
+        &[],
+    )
+    .unwrap();
+    let planner = HolonId::staff("planner").unwrap();
+    cell.cell.wait_alive(&planner).await.unwrap();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+
+    // Orders one by one: both robots say 1000 ms (nominal); the staff measures the
+    // one it advised, finds it fast, and keeps sending the work there (contract net
+    // alone sees two idle robots alike and picks either).
+    let states = one_by_one(&cell.cell, 8).await;
+    assert!(states.iter().all(|s| s["advised"] == 1), "{states:?}");
+    // The staff republishes its state once a second at most: wait for this last one.
+    let mut state = cell.cell.ask_state(&planner).await.unwrap();
+    for _ in 0..30 {
+        if state["advised"].as_u64() >= Some(8) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        state = cell.cell.ask_state(&planner).await.unwrap();
+    }
+    let learned = &state["learned"];
+    let fast = &learned["resource/fast"]["services"]["pick_n_place"];
+    let measured = fast["mean_ms"].as_f64().unwrap();
+    assert!(
+        measured < 1000.0 && fast["samples"].as_u64() >= Some(4),
+        "fast measured at {measured} ms, below its nominal 1000: {state}"
+    );
+    assert_eq!(resources(&states), vec!["resource/fast"; 8]);
+    assert!(state["advised"].as_u64().unwrap() >= 8, "{state}");
+
+    // Twenty orders at once; the staff is killed while they run. None is lost, no
+    // step runs twice, and the orders after the kill go by contract net alone.
+    let orders = cell.cell.submit("part", 20).await.unwrap();
+    cell.cell
+        .wait_order(&orders[2], "done", |s| {
+            s.is_some_and(|s| s["status"] == "done")
+        })
+        .await
+        .unwrap();
+    staff.kill();
+    cell.cell.wait_gone(&planner).await.unwrap();
+    for order in &orders {
+        cell.cell
+            .wait_order(order, "done", |s| s.is_some_and(|s| s["status"] == "done"))
+            .await
+            .unwrap();
+    }
+    assert_eq!(cell.fast.executed("pick") + cell.slow.executed("pick"), 28);
+    assert_eq!(
+        cell.fast.executed("place") + cell.slow.executed("place"),
+        28
+    );
+}
