@@ -16,6 +16,7 @@ mod dashboard;
 mod erlang;
 mod robots;
 mod scale;
+mod schedule;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Parser, Subcommand};
@@ -62,6 +63,19 @@ enum Commands {
         #[arg(long, value_name = "DIR")]
         erlang_peer: Option<PathBuf>,
     },
+    /// The scheduling benchmark: each scenario's order stream run by contract net alone
+    /// and with a staff holon, for several seeds (docs/scheduling.md).
+    Schedule {
+        /// Scenario files (default: every deploy/scenarios/*.toml).
+        #[arg(long = "scenario", value_name = "FILE")]
+        scenarios: Vec<PathBuf>,
+        /// Seeds per scenario; each seed's orders run in both modes.
+        #[arg(long, default_value_t = 3)]
+        seeds: u64,
+        /// Where the JSON goes.
+        #[arg(long, default_value = "schedule-results.json")]
+        out: PathBuf,
+    },
     /// (helper) A TCP echo server: prints `listening on ADDR`.
     EchoTcp {
         #[arg(long, default_value = "127.0.0.1:0")]
@@ -86,6 +100,26 @@ async fn main() -> Result<()> {
             only,
             erlang_peer,
         } => all(&out, samples, scale, &only, erlang_peer.as_deref()).await,
+        Commands::Schedule {
+            scenarios,
+            seeds,
+            out,
+        } => {
+            let scenarios = if scenarios.is_empty() {
+                let dir = holarchy_tests::workspace_root().join("deploy/scenarios");
+                let mut found: Vec<PathBuf> = std::fs::read_dir(&dir)
+                    .with_context(|| format!("cannot list {}", dir.display()))?
+                    .flatten()
+                    .map(|e| e.path())
+                    .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+                    .collect();
+                found.sort();
+                found
+            } else {
+                scenarios
+            };
+            schedule::run(&scenarios, seeds, &out).await
+        }
         Commands::EchoTcp { listen } => echo_tcp(&listen).await,
         Commands::EchoZenoh { connect, key } => echo_zenoh(&connect, &key).await,
     }

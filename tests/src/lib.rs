@@ -854,22 +854,30 @@ impl Cell {
 
     /// Submits `work` on `orders/submit` and returns the new orders' names.
     pub async fn submit_work(&self, work: schemas::WorkOrder) -> Result<Vec<String>> {
-        let replies = self
-            .session
-            .get(self.keys.orders_submit())
-            .payload(serde_json::to_vec(&work)?)
-            .timeout(Duration::from_secs(5))
-            .await
-            .map_err(|e| anyhow!("{e}"))?;
-        let reply = replies
-            .recv_async()
-            .await
-            .map_err(|_| anyhow!("no order-node answered"))?;
-        let sample = reply
-            .result()
-            .map_err(|e| anyhow!("work order refused: {:?}", e.payload().try_to_string()))?;
-        Ok(serde_json::from_slice::<schemas::SubmitReply>(&sample.payload().to_bytes())?.orders)
+        submit_on(&self.session, &self.keys, &work).await
     }
+}
+
+/// Submits `work` on `orders/submit` from `session` and returns the new orders' names.
+pub async fn submit_on(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    work: &schemas::WorkOrder,
+) -> Result<Vec<String>> {
+    let replies = session
+        .get(keys.orders_submit())
+        .payload(serde_json::to_vec(work)?)
+        .timeout(Duration::from_secs(5))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let reply = replies
+        .recv_async()
+        .await
+        .map_err(|_| anyhow!("no order-node answered"))?;
+    let sample = reply
+        .result()
+        .map_err(|e| anyhow!("work order refused: {:?}", e.payload().try_to_string()))?;
+    Ok(serde_json::from_slice::<schemas::SubmitReply>(&sample.payload().to_bytes())?.orders)
 }
 
 /// Whether this machine can run the multi-host tests: root, and `ip netns` works (a
