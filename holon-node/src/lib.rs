@@ -14,6 +14,7 @@ pub mod execution;
 pub mod fault_injection;
 pub mod handover;
 pub mod holon_config;
+pub mod identity;
 pub mod node;
 pub mod product;
 pub mod staff;

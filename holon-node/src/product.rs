@@ -1,7 +1,6 @@
 //! The product holon: knows how its product is made and answers
 //! `product/<product>/plan` with the process plan from its config.
 
-use std::path::Path;
 use std::time::Duration;
 
 use holon::ZenohSettings;
@@ -11,7 +10,8 @@ use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
 use crate::config::{ConfigError, Overrides};
-use crate::node::{NodeError, STARTUP_TIMEOUT};
+use crate::identity::{Header, Identity};
+use crate::node::NodeError;
 
 /// The product config file as written (`deploy/cells/demo/breaker.toml` documents it).
 #[derive(Debug, Clone, Deserialize)]
@@ -44,40 +44,27 @@ impl ProductConfig {
             path: path.to_string(),
             message,
         };
-        let mut file: ProductFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
+        let file: ProductFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: path.to_string(),
             message: e.to_string(),
         })?;
-        // A product keeps no state: a data directory, if given, is not used.
-        let mut no_data_dir = None;
-        if let Some(base) = Path::new(path).parent() {
-            file.zenoh.resolve_paths(base);
-        }
-        overrides.common.apply(
-            &mut file.cell,
-            &mut file.name,
-            &mut file.zenoh,
-            &mut no_data_dir,
-        );
-        if file.kind != "product" {
-            return Err(invalid(format!("kind: {:?} is not product", file.kind)));
-        }
-        let keys = CellKeys::new(&file.cell).map_err(|e| invalid(format!("cell: {e}")))?;
-        let holon = HolonId::new(HolonKind::Product, &file.name)
-            .map_err(|e| invalid(format!("name: {e}")))?;
-        file.zenoh
-            .validate(&holon::tls::identity("product", holon.name()))
-            .map_err(|e| invalid(format!("zenoh: {e}")))?;
+        let header = Header {
+            cell: file.cell,
+            name: file.name,
+            kind: file.kind,
+            zenoh: file.zenoh,
+        };
+        let identity = Identity::from_header(header, HolonKind::Product, path, &overrides)?;
         let plan = Plan {
-            product: file.name,
+            product: identity.holon.name().to_string(),
             steps: file.steps,
         };
         plan.validate()
             .map_err(|e| invalid(format!("steps: {e}")))?;
         Ok(ProductConfig {
-            keys,
-            holon,
-            zenoh: file.zenoh,
+            keys: identity.keys,
+            holon: identity.holon,
+            zenoh: identity.zenoh,
             plan,
         })
     }
@@ -86,30 +73,13 @@ impl ProductConfig {
 /// Serves the plan until `shutdown` is cancelled.
 pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.holon.clone();
-    let session = config
-        .zenoh
-        .open(
-            &holon::tls::identity("product", config.holon.name()),
-            STARTUP_TIMEOUT,
-        )
-        .await?;
-    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
-    let _claim = match holon::presence::claim(
-        &session,
-        &config.keys.alive(&holon),
-        &holon.to_string(),
-        STARTUP_TIMEOUT,
-    )
-    .await
-    {
-        Ok(claim) => claim,
-        Err(e) => {
-            if let Err(close) = session.close().await {
-                warn!(holon = %holon, error = %close, "cannot close the zenoh session");
-            }
-            return Err(e.into());
-        }
+    let identity = Identity {
+        keys: config.keys.clone(),
+        holon: holon.clone(),
+        zenoh: config.zenoh.clone(),
     };
+    let (session, _claim) = identity.join().await?;
+    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
     let snapshot = serde_json::json!({
         "holon": holon,

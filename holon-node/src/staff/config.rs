@@ -1,6 +1,5 @@
 //! The staff holon's config file (`deploy/cells/demo/planner.toml` documents it).
 
-use std::path::Path;
 use std::time::Duration;
 
 use holon::ZenohSettings;
@@ -8,6 +7,7 @@ use schemas::{CellKeys, HolonId, HolonKind};
 use serde::Deserialize;
 
 use crate::config::{ConfigError, Overrides};
+use crate::identity::{Header, Identity};
 
 /// The file as written.
 #[derive(Debug, Clone, Deserialize)]
@@ -71,30 +71,18 @@ impl StaffConfig {
             path: path.to_string(),
             message,
         };
-        let mut file: StaffFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
+        let file: StaffFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
             path: path.to_string(),
             message: e.to_string(),
         })?;
         // A staff holon keeps no state of its own: what it knows, it learns again.
-        let mut no_data_dir = None;
-        if let Some(base) = Path::new(path).parent() {
-            file.zenoh.resolve_paths(base);
-        }
-        overrides.common.apply(
-            &mut file.cell,
-            &mut file.name,
-            &mut file.zenoh,
-            &mut no_data_dir,
-        );
-        if file.kind != "staff" {
-            return Err(invalid(format!("kind: {:?} is not staff", file.kind)));
-        }
-        let keys = CellKeys::new(&file.cell).map_err(|e| invalid(format!("cell: {e}")))?;
-        let holon = HolonId::new(HolonKind::Staff, &file.name)
-            .map_err(|e| invalid(format!("name: {e}")))?;
-        file.zenoh
-            .validate(&holon::tls::identity("staff", holon.name()))
-            .map_err(|e| invalid(format!("zenoh: {e}")))?;
+        let header = Header {
+            cell: file.cell,
+            name: file.name,
+            kind: file.kind,
+            zenoh: file.zenoh,
+        };
+        let identity = Identity::from_header(header, HolonKind::Staff, path, &overrides)?;
         if !(100..=600_000).contains(&file.advice.intention_ttl_ms) {
             return Err(invalid(
                 "advice.intention_ttl_ms must be 100 to 600000".into(),
@@ -106,9 +94,9 @@ impl StaffConfig {
             ));
         }
         Ok(StaffConfig {
-            keys,
-            holon,
-            zenoh: file.zenoh,
+            keys: identity.keys,
+            holon: identity.holon,
+            zenoh: identity.zenoh,
             intention_ttl: Duration::from_millis(file.advice.intention_ttl_ms),
             state_interval: Duration::from_millis(file.advice.state_interval_ms),
         })

@@ -27,7 +27,8 @@ use tracing::{debug, error, info, warn};
 use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 
-use crate::node::{NodeError, STARTUP_TIMEOUT};
+use crate::identity::Identity;
+use crate::node::NodeError;
 use crate::staff::config::StaffConfig;
 use crate::staff::model::CellModel;
 use crate::staff::planner;
@@ -56,25 +57,13 @@ struct Published {
 /// Runs the staff holon until `shutdown` is cancelled.
 pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.holon.clone();
-    let identity = holon::tls::identity("staff", holon.name());
-    let session = config.zenoh.open(&identity, STARTUP_TIMEOUT).await?;
-    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
-    let _claim = match holon::presence::claim(
-        &session,
-        &config.keys.alive(&holon),
-        &holon.to_string(),
-        STARTUP_TIMEOUT,
-    )
-    .await
-    {
-        Ok(claim) => claim,
-        Err(e) => {
-            if let Err(close) = session.close().await {
-                warn!(%holon, error = %close, "cannot close the zenoh session");
-            }
-            return Err(e.into());
-        }
+    let identity = Identity {
+        keys: config.keys.clone(),
+        holon: holon.clone(),
+        zenoh: config.zenoh.clone(),
     };
+    let (session, _claim) = identity.join().await?;
+    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let (events, mut mailbox) = mpsc::channel::<StaffEvent>(MAILBOX);
     let keys = &config.keys;
 

@@ -189,37 +189,29 @@ fn place(
         .chain(own.iter().filter(|i| &i.resource == holon))
         .collect();
     reserved.sort_by_key(|i| (i.start, i.end));
-    let mut start = ready.max(free);
-    let mut job = resource.duration(
-        &step.service_type,
-        step.program.as_deref(),
-        before.as_deref(),
-    );
-    for interval in reserved {
-        if interval.end <= start {
-            if interval.program.is_some() {
-                before = interval.program.clone();
-                job = resource.duration(
-                    &step.service_type,
-                    step.program.as_deref(),
-                    before.as_deref(),
-                );
-            }
-            continue;
-        }
-        if interval.start >= start + job.ms {
-            break; // fits before it
-        }
-        start = interval.end;
-        if interval.program.is_some() {
-            before = interval.program.clone();
-        }
-        job = resource.duration(
+    let job_after = |before: &Option<String>| {
+        resource.duration(
             &step.service_type,
             step.program.as_deref(),
             before.as_deref(),
-        );
+        )
+    };
+    let mut start = ready.max(free);
+    for interval in reserved {
+        // An interval that ends by then sets the program the step follows; one that
+        // the step (changeover included) would overlap pushes the step past its end.
+        let ends_before = interval.end <= start;
+        if !ends_before && interval.start >= start + job_after(&before).ms {
+            break; // fits before it
+        }
+        if !ends_before {
+            start = interval.end;
+        }
+        if interval.program.is_some() {
+            before = interval.program.clone();
+        }
     }
+    let job = job_after(&before);
     ForecastStep {
         service_type: step.service_type.clone(),
         resource: holon.clone(),
