@@ -284,4 +284,36 @@ mod tests {
         );
         assert!(text.contains("holarchy/demo/staff/*/advice"), "{text}");
     }
+
+    #[test]
+    fn only_a_staff_identity_may_answer_advice_and_only_its_own() {
+        let declares = |role, name| -> Vec<String> {
+            grants(role, name)
+                .into_iter()
+                .filter(|(messages, _)| messages.contains(&"declare_queryable"))
+                .flat_map(|(_, keys)| keys)
+                .collect()
+        };
+        for (role, name) in [
+            (Role::OrderNode, "orders1"),
+            (Role::Resource, "robot1"),
+            (Role::Product, "breaker"),
+        ] {
+            let keys = declares(role, name);
+            assert!(
+                keys.iter().all(|k| !k.starts_with("staff/")),
+                "{role:?} may answer as a staff: {keys:?}"
+            );
+        }
+        let staff = declares(Role::Staff, "planner");
+        assert!(staff.contains(&"staff/planner/advice".to_string()));
+        assert!(staff.iter().all(|k| k.contains("planner")), "{staff:?}");
+        // The staff books nothing: it may not ask a resource's service.
+        let asks: Vec<String> = grants(Role::Staff, "planner")
+            .into_iter()
+            .filter(|(messages, _)| messages.contains(&"query"))
+            .flat_map(|(_, keys)| keys)
+            .collect();
+        assert!(asks.iter().all(|k| !k.contains("service")), "{asks:?}");
+    }
 }

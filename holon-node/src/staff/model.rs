@@ -47,6 +47,9 @@ struct RunningJob {
     conversation_id: String,
     service_type: String,
     started_at: u64,
+    /// The last snapshot that still showed it running (Unix ms): it takes at least
+    /// this long since `started_at`.
+    seen_until: u64,
     /// Its program differed from the resource's last one: it began with a changeover.
     changed_over: bool,
 }
@@ -128,6 +131,9 @@ impl CellModel {
                 model.measure(&job, snapshot.at);
             }
         }
+        if let Some(job) = &mut model.running {
+            job.seen_until = job.seen_until.max(snapshot.at);
+        }
         if let (None, Some((current, started_at))) = (&model.running, now_running) {
             let changed_over = match (&current.program, &model.last_program) {
                 (Some(program), Some(last)) => program != last,
@@ -140,6 +146,7 @@ impl CellModel {
                 conversation_id: current.conversation_id.clone(),
                 service_type: current.service_type.clone(),
                 started_at,
+                seen_until: snapshot.at.max(started_at),
                 changed_over,
             });
         }
@@ -243,9 +250,12 @@ impl ResourceModel {
     }
 
     /// How long `service_type` takes here, without a changeover: measured, else the
-    /// resource's nominal duration, else [`UNKNOWN_DURATION_MS`].
+    /// resource's nominal duration, else [`UNKNOWN_DURATION_MS`]; and at least as long
+    /// as a job of it (without a changeover) has been running now: a resource slower
+    /// than believed shows it before its first job ends.
     pub fn duration_without_changeover(&self, service_type: &str) -> f64 {
-        self.learned
+        let believed = self
+            .learned
             .get(service_type)
             .and_then(Learned::known)
             .or_else(|| {
@@ -254,7 +264,13 @@ impl ResourceModel {
                     .get(service_type)
                     .map(|ms| *ms as f64)
             })
-            .unwrap_or(UNKNOWN_DURATION_MS as f64)
+            .unwrap_or(UNKNOWN_DURATION_MS as f64);
+        let running_for = self
+            .running
+            .as_ref()
+            .filter(|job| job.service_type == service_type && !job.changed_over)
+            .map_or(0, |job| job.seen_until.saturating_sub(job.started_at));
+        believed.max(running_for as f64)
     }
 
     /// What a change of program costs here, as measured (0 until one was seen).
@@ -434,6 +450,26 @@ pub(crate) mod tests {
             4
         );
         assert_eq!(learned["resource/robot1"].changeover.samples, 2);
+    }
+
+    #[test]
+    fn a_job_running_longer_than_believed_is_evidence_before_it_ends() {
+        let mut model = CellModel::default();
+        let robot = HolonId::resource("robot1").unwrap();
+        model.observe(running(snapshot("robot1", 0), "c1", None, 0));
+        let r = model.resource(&robot).unwrap();
+        assert_eq!(r.duration_without_changeover("pick_n_place"), 1000.0);
+        // Still on the job 1.6 s later (a step changed): it takes at least that.
+        model.observe(running(snapshot("robot1", 1600), "c1", None, 0));
+        let r = model.resource(&robot).unwrap();
+        assert_eq!(r.duration_without_changeover("pick_n_place"), 1600.0);
+        model.observe(snapshot("robot1", 2000));
+        let r = model.resource(&robot).unwrap();
+        assert_eq!(
+            r.duration_without_changeover("pick_n_place"),
+            2000.0,
+            "measured"
+        );
     }
 
     #[test]
