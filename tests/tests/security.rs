@@ -197,7 +197,16 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         "an observer submitted orders"
     );
     let cancel_as_observer =
-        cell.cell_command(&["cancel", victim, "--identity", "observer.default"]);
+        // Denied by access control, it reaches no order-node: asked again until the
+        // timeout, then refused.
+        cell.cell_command(&[
+            "cancel",
+            victim,
+            "--identity",
+            "observer.default",
+            "--timeout-ms",
+            "1000",
+        ]);
     assert!(
         !cancel_as_observer.status.success(),
         "an observer cancelled an order"
