@@ -8,6 +8,7 @@ use std::time::Duration;
 use holon::journal::Journal;
 use tracing::{error, info, warn};
 
+use crate::advice_pause::AdvicePause;
 use crate::config::OrderSettings;
 use crate::inbox::Inboxes;
 use crate::presence::Presence;
@@ -32,6 +33,8 @@ pub struct OrderContext {
     pub journal_failing: AtomicBool,
     /// Bookings asked and not answered yet, per resource (see [`BookingsInFlight`]).
     pub bookings_in_flight: BookingsInFlight,
+    /// Whether the staff answers: asking stops for a while when it does not.
+    pub advice_pause: AdvicePause,
 }
 
 /// The journal kind of order records.

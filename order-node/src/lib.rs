@@ -13,6 +13,7 @@
 //! - [`host`]: the orders a node hosts and their tasks; [`queries`]: its endpoints;
 //!   [`node`]: the process.
 
+pub mod advice_pause;
 pub mod attempt;
 pub mod config;
 pub mod context;

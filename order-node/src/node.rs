@@ -114,6 +114,7 @@ pub async fn run(
             journal,
             journal_failing: Default::default(),
             bookings_in_flight: Default::default(),
+            advice_pause: Default::default(),
         }),
         orders: Mutex::new(BTreeMap::new()),
         next: AtomicU64::new(next),

@@ -238,6 +238,9 @@ pub fn answer(reply: Option<Service>) -> Answer {
     }
 }
 
+/// How an ask the staff did not answer in time is logged (and told apart).
+const NO_ADVICE_IN_TIME: &str = "gave no advice in time";
+
 /// What came of asking the staff for advice.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Advised {
@@ -263,7 +266,10 @@ pub async fn advice(
     let Some(staff) = ctx.presence.staff() else {
         return Advised::NoStaff;
     };
-    if ctx.settings.advice_timeout.is_zero() || route.is_empty() {
+    if ctx.settings.advice_timeout.is_zero()
+        || route.is_empty()
+        || !ctx.advice_pause.may_ask(Instant::now())
+    {
         return Advised::NoStaff;
     }
     let request = schemas::AdviceRequest {
@@ -296,12 +302,12 @@ pub async fn advice(
         let reply = replies
             .recv()
             .await
-            .ok_or_else(|| format!("{staff} gave no advice in time"))?;
+            .ok_or_else(|| format!("{staff} {NO_ADVICE_IN_TIME}"))?;
         let sample = reply.result().map_err(|e| {
             let why = e.payload().try_to_string().unwrap_or_default();
             // zenoh ends a query that outlived its timeout with this error reply.
             if why == "Timeout" {
-                format!("{staff} gave no advice in time")
+                format!("{staff} {NO_ADVICE_IN_TIME}")
             } else {
                 format!("{staff} refused: {why}")
             }
@@ -309,11 +315,22 @@ pub async fn advice(
         serde_json::from_slice::<schemas::Advice>(&sample.payload().to_bytes())
             .map_err(|e| format!("malformed advice from {staff}: {e}"))
     };
+    let unanswered = |why: String| {
+        if ctx.advice_pause.unanswered(Instant::now()) {
+            warn!(%staff, pause = ?crate::advice_pause::PAUSE, "the staff answered none of the last asks in time: orders go by contract net without asking it for a while");
+        }
+        Advised::Unusable(why)
+    };
     let advice = match tokio::time::timeout(ctx.settings.advice_timeout, asked).await {
         Ok(Ok(advice)) => advice,
-        Ok(Err(why)) => return Advised::Unusable(why),
-        Err(_) => return Advised::Unusable(format!("{staff} gave no advice in time")),
+        Ok(Err(why)) if why.ends_with(NO_ADVICE_IN_TIME) => return unanswered(why),
+        Ok(Err(why)) => {
+            ctx.advice_pause.answered();
+            return Advised::Unusable(why);
+        }
+        Err(_) => return unanswered(format!("{staff} {NO_ADVICE_IN_TIME}")),
     };
+    ctx.advice_pause.answered();
     if advice.v != schemas::ADVICE_VERSION
         || &advice.order != holon
         || advice.conversation_id != conversation_id

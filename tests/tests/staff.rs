@@ -20,6 +20,8 @@ enum Answer {
     Malformed,
     /// Advice, after the order stopped waiting.
     Late,
+    /// Nothing: the query ends without a reply (a staff that cannot keep up).
+    Silent,
 }
 
 /// A staff holon that answers as the test says: a real zenoh participant with the
@@ -45,6 +47,9 @@ async fn advisor(
                     serde_json::from_slice(&query.payload().unwrap().to_bytes()).unwrap();
                 asked.lock().unwrap().push(request.clone());
                 let answer = *answer.lock().unwrap();
+                if answer == Answer::Silent {
+                    return; // dropped: the asker's query ends with no reply
+                }
                 let advice = |resource: &str, conversation_id: String| Advice {
                     v: 1,
                     staff: staff.clone(),
@@ -69,6 +74,7 @@ async fn advisor(
                         serde_json::to_vec(&advice("slow", "an-old-conversation".into())).unwrap()
                     }
                     Answer::Malformed => b"{\"resource\": 7}".to_vec(),
+                    Answer::Silent => unreachable!("returned above"),
                 };
                 std::thread::spawn(move || {
                     use zenoh::Wait;
@@ -213,8 +219,24 @@ async fn orders_follow_usable_advice_and_go_by_contract_net_otherwise() {
             "the order-node's log lacks {why:?}: {log}"
         );
     }
-    // Every step ran once: 4 followed + 8 by contract net.
-    assert_eq!(cell.fast.executed("pick") + cell.slow.executed("pick"), 12);
+    // A staff that answers nothing three times in a row is not asked for a while:
+    // the next orders go by contract net at once.
+    // (An answer first: it clears the two late ones from the count.)
+    *answer.lock().unwrap() = Answer::Book("slow");
+    one_by_one(&cell.cell, 1).await;
+    *answer.lock().unwrap() = Answer::Silent;
+    let asked_before = asked.lock().unwrap().len();
+    let states = one_by_one(&cell.cell, 5).await;
+    assert!(states.iter().all(|s| s["status"] == "done"), "{states:?}");
+    assert_eq!(
+        asked.lock().unwrap().len() - asked_before,
+        3,
+        "asked after the pause began"
+    );
+    let log = std::fs::read_to_string(cell.dir.path().join("orders1.stderr")).unwrap_or_default();
+    assert!(log.contains("answered none of the last asks"), "{log}");
+    // Every step ran once: 4 + 1 followed, 8 + 5 by contract net.
+    assert_eq!(cell.fast.executed("pick") + cell.slow.executed("pick"), 18);
 }
 
 #[tokio::test(flavor = "multi_thread")]
