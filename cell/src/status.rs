@@ -69,7 +69,7 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
         if rows.len() == 1 { "" } else { "s" }
     );
     out.push_str(&format!(
-        "{:<28} {:<9} {:<8} {:<13} {:>6} {:>11}\n",
+        "{:<28} {:<9} {:<8} {:<13} {:>6} {:>11}  VERSION\n",
         "HOLON", "KIND", "STATE", "CONTROLLER", "AGENDA", "UNDELIVERED"
     ));
     for row in rows {
@@ -106,8 +106,16 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
         } else {
             field("agenda")
         };
+        // The holon's release and the message version it speaks, for rolling upgrades.
+        let version = match (
+            field("version"),
+            row.snapshot.as_ref().and_then(|s| s["v"].as_u64()),
+        ) {
+            (release, Some(v)) if v > 0 => format!("{release}/v{v}"),
+            (release, _) => release,
+        };
         out.push_str(&format!(
-            "{:<28} {:<9} {:<8} {:<13} {:>6} {:>11}\n",
+            "{:<28} {:<9} {:<8} {:<13} {:>6} {:>11}  {}\n",
             row.holon.to_string(),
             row.holon.kind().to_string(),
             if row.holon.kind() == schemas::HolonKind::Order {
@@ -120,6 +128,7 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
             field("controller"),
             agenda,
             field("undelivered"),
+            version,
         ));
     }
     let silent: Vec<String> = rows
@@ -447,6 +456,7 @@ mod tests {
             priority: 0,
             due: None,
             advised: 0,
+            version: None,
             at: 0,
         }
     }

@@ -822,6 +822,8 @@ impl AgendaManager {
             journal_fault: None,
             delivery_retries: 0,
             host: None,
+            version: None,
+            v: 0,
             at: unix_ms(),
         }
     }

@@ -5,6 +5,9 @@
 //! communication, after the seed's Figure 3. The state machines they own are pure:
 //! [`agenda`] (Figure 4) and [`execution`] (Figure 5). [`node::run`] wires them.
 
+/// This build's release, published in every holon's state (`version`).
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
 pub mod absences;
 pub mod agenda;
 pub mod catalog;

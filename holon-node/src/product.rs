@@ -84,6 +84,8 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
     let snapshot = serde_json::json!({
         "holon": holon,
         "state": "serving",
+        "version": crate::VERSION,
+        "v": schemas::SERVICE_VERSION,
         "product": config.plan.product,
         "steps": config.plan.steps.len(),
         "at": unix_ms(),

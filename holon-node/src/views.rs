@@ -91,6 +91,8 @@ impl Views {
         }
         snapshot.delivery_retries = *self.delivery_retries.borrow();
         snapshot.host = Some(self.host.clone());
+        snapshot.version = Some(crate::VERSION.to_string());
+        snapshot.v = schemas::SERVICE_VERSION;
         snapshot.at = schemas::unix_ms();
         snapshot
     }

@@ -329,6 +329,8 @@ mod tests {
             journal_fault: None,
             delivery_retries: 0,
             host: None,
+            version: None,
+            v: 0,
             at: 0,
         }
     }

@@ -390,6 +390,7 @@ impl OrderProgress {
             priority: self.priority,
             due: self.due,
             advised: self.advised,
+            version: Some(env!("CARGO_PKG_VERSION").to_string()),
             at: unix_ms(),
         }
     }

@@ -288,6 +288,9 @@ pub struct OrderSnapshot {
     /// Steps booked on a staff holon's advice.
     #[serde(default)]
     pub advised: u32,
+    /// The release of the order-node hosting the order (absent from older nodes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub version: Option<String>,
     pub at: u64,
 }
 

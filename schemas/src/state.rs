@@ -137,6 +137,14 @@ pub struct ResourceSnapshot {
     /// The machine the holon's process runs on (its hostname).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub host: Option<String>,
+    /// The release of the holon's program (its package version, e.g. `0.1.0`); absent
+    /// from holons built before versions were published.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub version: Option<String>,
+    /// The Service message version the holon speaks ([`crate::SERVICE_VERSION`]); 0
+    /// from holons built before it was published.
+    #[serde(default)]
+    pub v: u32,
     /// Unix time in milliseconds.
     pub at: u64,
 }

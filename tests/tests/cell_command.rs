@@ -141,7 +141,15 @@ async fn cell_status_lists_the_live_holons() {
     let columns: Vec<&str> = line.split_whitespace().collect();
     assert_eq!(
         columns,
-        ["resource/robot7", "resource", "free", "ready", "0", "0"]
+        [
+            "resource/robot7",
+            "resource",
+            "free",
+            "ready",
+            "0",
+            "0",
+            concat!(env!("CARGO_PKG_VERSION"), "/v1")
+        ]
     );
     // Order-nodes are listed with their orders' counts.
     let line = stdout

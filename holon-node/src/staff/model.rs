@@ -354,6 +354,8 @@ pub(crate) mod tests {
             journal_fault: None,
             delivery_retries: 0,
             host: None,
+            version: None,
+            v: 0,
             at,
         }
     }

@@ -38,7 +38,8 @@ pub const MAILBOX: usize = 1024;
 
 /// What the staff's task reacts to.
 enum StaffEvent {
-    Resource(ResourceSnapshot),
+    /// Boxed: a snapshot is large, the other events are small.
+    Resource(Box<ResourceSnapshot>),
     ResourceGone(HolonId),
     ResourceBack(HolonId),
     OrderEnded(HolonId),
@@ -75,7 +76,7 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
             move |sample| {
                 match serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes()) {
                     Ok(snapshot) => {
-                        if snapshots.try_send(StaffEvent::Resource(snapshot)).is_err() {
+                        if snapshots.try_send(StaffEvent::Resource(Box::new(snapshot))).is_err() {
                             warn!(%holon, "the staff's mailbox is full: a resource's state was dropped (the next one supersedes it)");
                         }
                     }
@@ -203,7 +204,7 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
                 match event {
                     StaffEvent::Resource(snapshot) => {
                         if !departed.contains(&snapshot.holon) {
-                            model.observe(snapshot);
+                            model.observe(*snapshot);
                             published.changed = true;
                         }
                     }
@@ -308,6 +309,8 @@ fn state_json(holon: &HolonId, model: &CellModel, published: &Published) -> Vec<
     let snapshot = serde_json::json!({
         "holon": holon,
         "state": "serving",
+        "version": crate::VERSION,
+        "v": schemas::ADVICE_VERSION,
         "advised": published.advised,
         "refused": published.refused,
         "resources": model.resources().count(),
