@@ -222,9 +222,9 @@ impl Sim {
     }
 
     /// The simulator's counts (`{"executed": N, "by_action": {...}, ...}`), once its
-    /// count file settled: the simulator rewrites the
-    /// file just after each reply goes out, so a reader that saw a reply's effects may
-    /// be a few microseconds early; two equal reads 5 ms apart are the counts.
+    /// count file settled (unchanged for 25 ms): the simulator rewrites the file from a
+    /// thread of its own just after each reply goes out, so a reader that saw a reply's
+    /// effects may be early.
     pub fn counts(&self) -> serde_json::Value {
         let read = || {
             fs::read_to_string(&self.count_file)
@@ -232,9 +232,11 @@ impl Sim {
                 .and_then(|t| serde_json::from_str(&t).ok())
                 .unwrap_or(serde_json::Value::Null)
         };
+        // A write may wait for the simulator's writer thread (a loaded machine delays
+        // it by milliseconds): the counts are those that stayed the same for 25 ms.
         let mut counts = read();
-        for _ in 0..20 {
-            std::thread::sleep(Duration::from_millis(5));
+        for _ in 0..40 {
+            std::thread::sleep(Duration::from_millis(25));
             let again = read();
             if again == counts {
                 break;
@@ -246,6 +248,19 @@ impl Sim {
 
     pub fn executed(&self, action: &str) -> u64 {
         self.counts()["by_action"][action].as_u64().unwrap_or(0)
+    }
+
+    /// Waits, at most 10 s, until the simulator has executed `action` at least `n`
+    /// times, and returns the settled count (more than `n` if it ran more often).
+    pub async fn wait_executed(&self, action: &str, n: u64) -> u64 {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+        while tokio::time::Instant::now() < deadline {
+            if self.executed(action) >= n {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        self.executed(action)
     }
 
     /// Waits, at most 10 s, until the simulator has received `n` commands in all. A
