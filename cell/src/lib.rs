@@ -3,6 +3,7 @@
 //! in a browser.
 
 pub mod access;
+pub mod ask;
 pub mod certs;
 pub mod dashboard;
 pub mod demo;

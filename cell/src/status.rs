@@ -270,37 +270,19 @@ pub async fn cancel(
     order: &str,
     timeout: Duration,
 ) -> Result<schemas::CancelReply> {
-    // No answer at all means no order-node's queryable was reached: it may be
-    // restarting, or the router's routes may be settling for a moment. A cancel is
-    // idempotent (journalled before its reply; asked again it answers the order's
-    // state), so it is asked again until `timeout`.
-    let deadline = tokio::time::Instant::now() + timeout;
-    loop {
-        let mut replies = session
-            .get(keys.cancel(order))
-            .timeout(
-                deadline
-                    .saturating_duration_since(tokio::time::Instant::now())
-                    .clamp(Duration::from_millis(500), Duration::from_secs(5)),
-            )
-            .with(holon::query::replies())
-            .await
-            .map_err(|e| anyhow!("{e}"))?;
-        if let Some(reply) = replies.recv().await {
-            return match reply.result() {
-                Ok(sample) => Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
-                Err(err) => Err(anyhow!(
-                    "the order-node refused: {}",
-                    err.payload().try_to_string().unwrap_or_default()
-                )),
-            };
-        }
-        if tokio::time::Instant::now() >= deadline {
-            return Err(anyhow!(
-                "no order-node answered for {order} (unknown order, its order-node is down, or this identity may not cancel)"
-            ));
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
+    // A cancel is idempotent (journalled before its reply; asked again it answers the
+    // order's state), so it is asked until an order-node answers.
+    match crate::ask::until_answered(session, &keys.cancel(order), None, timeout).await? {
+        Some(reply) => match reply.result() {
+            Ok(sample) => Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
+            Err(err) => Err(anyhow!(
+                "the order-node refused: {}",
+                err.payload().try_to_string().unwrap_or_default()
+            )),
+        },
+        None => Err(anyhow!(
+            "no order-node answered for {order} (unknown order, its order-node is down, or this identity may not cancel)"
+        )),
     }
 }
 

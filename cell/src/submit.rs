@@ -1,9 +1,9 @@
 //! Submitting a work order to a cell, as `cell submit`, the demo and the dashboard's
 //! form do: one order-node answers with the new orders' names, or why it refused.
 
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use anyhow::{anyhow, bail, Result};
+use anyhow::{bail, Result};
 use schemas::{CellKeys, SubmitReply, WorkOrder};
 
 /// Submits a work order to the cell's order-nodes (a default `get` reaches one).
@@ -13,40 +13,26 @@ pub async fn submit(
     work: &WorkOrder,
     timeout: Duration,
 ) -> Result<Vec<String>> {
-    let deadline = Instant::now() + timeout;
-    loop {
-        let mut replies = session
-            .get(keys.orders_submit())
-            .payload(serde_json::to_vec(work)?)
-            .timeout(
-                deadline
-                    .saturating_duration_since(Instant::now())
-                    .clamp(Duration::from_millis(500), Duration::from_secs(5)),
-            )
-            .with(holon::query::replies())
-            .await
-            .map_err(|e| anyhow!("{e}"))?;
-        if let Some(reply) = replies.recv().await {
-            return match reply.result() {
-                Ok(sample) => {
-                    Ok(serde_json::from_slice::<SubmitReply>(&sample.payload().to_bytes())?.orders)
-                }
-                Err(err) => {
-                    let text = err.payload().try_to_string().unwrap_or_default();
-                    match serde_json::from_str::<schemas::ErrorReply>(&text) {
-                        Ok(e) => bail!(
-                            "the order-node refused the work order ({}): {}",
-                            e.code,
-                            e.message
-                        ),
-                        Err(_) => bail!("the order-node refused the work order: {text}"),
-                    }
-                }
-            };
+    let key = keys.orders_submit();
+    let Some(reply) =
+        crate::ask::until_answered(session, &key, Some(serde_json::to_vec(work)?), timeout).await?
+    else {
+        bail!("no order-node answered on {key}");
+    };
+    match reply.result() {
+        Ok(sample) => {
+            Ok(serde_json::from_slice::<SubmitReply>(&sample.payload().to_bytes())?.orders)
         }
-        if Instant::now() >= deadline {
-            bail!("no order-node answered on {}", keys.orders_submit());
+        Err(err) => {
+            let text = err.payload().try_to_string().unwrap_or_default();
+            match serde_json::from_str::<schemas::ErrorReply>(&text) {
+                Ok(e) => bail!(
+                    "the order-node refused the work order ({}): {}",
+                    e.code,
+                    e.message
+                ),
+                Err(_) => bail!("the order-node refused the work order: {text}"),
+            }
         }
-        tokio::time::sleep(Duration::from_millis(100)).await;
     }
 }

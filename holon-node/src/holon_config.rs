@@ -51,8 +51,8 @@ impl HolonConfig {
     pub fn holon(&self) -> &HolonId {
         match self {
             HolonConfig::Resource(c) => &c.holon,
-            HolonConfig::Product(c) => &c.holon,
-            HolonConfig::Staff(c) => &c.holon,
+            HolonConfig::Product(c) => &c.identity.holon,
+            HolonConfig::Staff(c) => &c.identity.holon,
         }
     }
 }

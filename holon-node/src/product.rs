@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use holon::ZenohSettings;
-use schemas::{unix_ms, CellKeys, HolonId, HolonKind, Plan, PlanStep};
+use schemas::{unix_ms, HolonKind, Plan, PlanStep};
 use serde::Deserialize;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
@@ -28,9 +28,8 @@ struct ProductFile {
 /// A validated product config.
 #[derive(Debug, Clone)]
 pub struct ProductConfig {
-    pub keys: CellKeys,
-    pub holon: HolonId,
-    pub zenoh: ZenohSettings,
+    /// Its cell, id (`product/<name>`) and zenoh settings.
+    pub identity: Identity,
     pub plan: Plan,
 }
 
@@ -61,24 +60,14 @@ impl ProductConfig {
         };
         plan.validate()
             .map_err(|e| invalid(format!("steps: {e}")))?;
-        Ok(ProductConfig {
-            keys: identity.keys,
-            holon: identity.holon,
-            zenoh: identity.zenoh,
-            plan,
-        })
+        Ok(ProductConfig { identity, plan })
     }
 }
 
 /// Serves the plan until `shutdown` is cancelled.
 pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
-    let holon = config.holon.clone();
-    let identity = Identity {
-        keys: config.keys.clone(),
-        holon: holon.clone(),
-        zenoh: config.zenoh.clone(),
-    };
-    let (session, _claim) = identity.join().await?;
+    let holon = config.identity.holon.clone();
+    let (session, _claim) = config.identity.join().await?;
     let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
     let snapshot = serde_json::json!({
@@ -91,7 +80,7 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         "at": unix_ms(),
     });
     let snapshot = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
-    let plan_key = config.keys.plan(holon.name());
+    let plan_key = config.identity.keys.plan(holon.name());
     let _plan_queryable = session
         .declare_queryable(&plan_key)
         .callback({
@@ -107,7 +96,7 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         })
         .await
         .map_err(zenoh_error)?;
-    let state_key = config.keys.state(&holon);
+    let state_key = config.identity.keys.state(&holon);
     let _state_queryable = session
         .declare_queryable(&state_key)
         .callback({
@@ -130,7 +119,7 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         .map_err(zenoh_error)?;
     let token = session
         .liveliness()
-        .declare_token(config.keys.alive(&holon))
+        .declare_token(config.identity.keys.alive(&holon))
         .await
         .map_err(zenoh_error)?;
     info!(holon = %holon, key = %plan_key, steps = config.plan.steps.len(), "holon ready");
@@ -156,7 +145,7 @@ mod tests {
     #[test]
     fn the_demo_product_loads() {
         let config = ProductConfig::parse(DEMO, "breaker.toml", Overrides::default()).unwrap();
-        assert_eq!(config.holon.to_string(), "product/breaker");
+        assert_eq!(config.identity.holon.to_string(), "product/breaker");
         assert_eq!(config.plan.product, "breaker");
         let types: Vec<&str> = config
             .plan

@@ -3,7 +3,7 @@
 use std::time::Duration;
 
 use holon::ZenohSettings;
-use schemas::{CellKeys, HolonId, HolonKind};
+use schemas::HolonKind;
 use serde::Deserialize;
 
 use crate::config::{ConfigError, Overrides};
@@ -55,10 +55,8 @@ impl Default for AdviceSection {
 /// A validated staff config.
 #[derive(Debug, Clone)]
 pub struct StaffConfig {
-    pub keys: CellKeys,
-    /// `staff/<name>`.
-    pub holon: HolonId,
-    pub zenoh: ZenohSettings,
+    /// Its cell, id (`staff/<name>`) and zenoh settings.
+    pub identity: Identity,
     /// How long an advised step never booked stays an intention after its forecast end.
     pub intention_ttl: Duration,
     /// How often, at most, the state is republished.
@@ -94,9 +92,7 @@ impl StaffConfig {
             ));
         }
         Ok(StaffConfig {
-            keys: identity.keys,
-            holon: identity.holon,
-            zenoh: identity.zenoh,
+            identity,
             intention_ttl: Duration::from_millis(file.advice.intention_ttl_ms),
             state_interval: Duration::from_millis(file.advice.state_interval_ms),
         })
@@ -112,7 +108,7 @@ mod tests {
     #[test]
     fn the_demo_staff_loads_and_bad_files_are_refused() {
         let config = StaffConfig::parse(DEMO, "planner.toml", Overrides::default()).unwrap();
-        assert_eq!(config.holon.to_string(), "staff/planner");
+        assert_eq!(config.identity.holon.to_string(), "staff/planner");
         assert_eq!(config.intention_ttl, Duration::from_secs(5));
         for (from, to, names) in [
             ("kind = \"staff\"", "kind = \"staf\"", "kind"),

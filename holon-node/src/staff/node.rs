@@ -27,7 +27,6 @@ use tracing::{debug, error, info, warn};
 use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 
-use crate::identity::Identity;
 use crate::node::NodeError;
 use crate::staff::config::StaffConfig;
 use crate::staff::model::CellModel;
@@ -57,16 +56,11 @@ struct Published {
 
 /// Runs the staff holon until `shutdown` is cancelled.
 pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
-    let holon = config.holon.clone();
-    let identity = Identity {
-        keys: config.keys.clone(),
-        holon: holon.clone(),
-        zenoh: config.zenoh.clone(),
-    };
-    let (session, _claim) = identity.join().await?;
+    let holon = config.identity.holon.clone();
+    let (session, _claim) = config.identity.join().await?;
     let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let (events, mut mailbox) = mpsc::channel::<StaffEvent>(MAILBOX);
-    let keys = &config.keys;
+    let keys = &config.identity.keys;
 
     let snapshots = events.clone();
     let _resource_states = session
@@ -240,13 +234,13 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
 /// Asks every resource for its state once, at start.
 async fn seed(session: &zenoh::Session, config: &StaffConfig, model: &mut CellModel) {
     let Ok(mut replies) = session
-        .get(config.keys.resource_states())
+        .get(config.identity.keys.resource_states())
         .consolidation(zenoh::query::ConsolidationMode::None)
         .timeout(Duration::from_secs(2))
         .with(holon::query::replies())
         .await
     else {
-        warn!(holon = %config.holon, "cannot ask the resources for their state; learning from their next publications");
+        warn!(holon = %config.identity.holon, "cannot ask the resources for their state; learning from their next publications");
         return;
     };
     while let Some(reply) = replies.recv().await {

@@ -1,0 +1,44 @@
+//! Asking the cell's order-nodes: a `get` asked again until one answers.
+//!
+//! No answer at all means no order-node's queryable was reached: the node may be
+//! restarting, or the router's routes may be settling for a moment. What the cell
+//! asks them (a work order, a cancel) is safe to ask again, so it is, every 100 ms,
+//! until `timeout`.
+
+use std::time::Duration;
+
+use anyhow::{anyhow, Result};
+use tokio::time::Instant;
+use zenoh::query::Reply;
+
+/// The first reply to a `get` on `key` (with `payload`), asked again until one comes or
+/// `timeout` passes (`None`).
+pub async fn until_answered(
+    session: &zenoh::Session,
+    key: &str,
+    payload: Option<Vec<u8>>,
+    timeout: Duration,
+) -> Result<Option<Reply>> {
+    let deadline = Instant::now() + timeout;
+    loop {
+        let mut get = session.get(key).timeout(
+            deadline
+                .saturating_duration_since(Instant::now())
+                .clamp(Duration::from_millis(500), Duration::from_secs(5)),
+        );
+        if let Some(payload) = &payload {
+            get = get.payload(payload.clone());
+        }
+        let mut replies = get
+            .with(holon::query::replies())
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        if let Some(reply) = replies.recv().await {
+            return Ok(Some(reply));
+        }
+        if Instant::now() >= deadline {
+            return Ok(None);
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
