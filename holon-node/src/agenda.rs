@@ -50,8 +50,16 @@
 //! | | otherwise | nothing | same |
 //! | withdraw (SIGTERM) | not yet withdrawing | every booking with a `reply_to` gets `failed` `withdrawn`; bookings cleared | withdrawing |
 //! | | already withdrawing | nothing | same |
+//! | hand over (a successor asks, `cell upgrade`) | not withdrawing | bookings kept for the successor; the running job finishes | handing over |
+//! | | withdrawing | nothing | same |
+//! | hand-over abandoned (the running job outlasted the successor's wait) | handing over | | serving again |
 //! | requester gone (absent longer than the grace) | | its bookings removed; its running job and undelivered results stay | same − bookings |
-//! | after any event | `free`, not withdrawing, and the first booking asked to start on its turn | the booking becomes the job, execution starts | `busy` |
+//! | after any event | `free`, not withdrawing or handing over, and the first booking asked to start on its turn | the booking becomes the job, execution starts | `busy` |
+//!
+//! "Withdrawing" in the rows above reads "withdrawing or handing over": both take no
+//! new work and start nothing. A refusal `unavailable` while handing over says so in
+//! `info.detail` and carries `info.retry_after_ms` ([`HANDOVER_RETRY`]): the successor
+//! answers within moments.
 //!
 //! Every change of state is followed by a `StateChanged` action (a new snapshot).
 //!
@@ -160,6 +168,13 @@ pub enum AgendaEvent {
     /// The holon is shutting down: take no new work, hand every booking back (a
     /// `failed` with reason `withdrawn` to its `reply_to`), let the running job finish.
     Withdraw,
+    /// A successor process is taking the holon over (a planned upgrade): take no new
+    /// work and start nothing, keep every booking (the successor restores them from the
+    /// journal), let the running job finish.
+    HandOver,
+    /// The hand-over did not happen (the running job outlasted the successor's wait):
+    /// serve again.
+    HandOverAbandoned,
     /// `requester` has been absent from the cell (no liveliness token) longer than the
     /// booking grace: its bookings end. The running job and undelivered results stay.
     RequesterGone { requester: HolonId },
@@ -221,6 +236,8 @@ pub struct AgendaManager {
     undelivered: Vec<Service>,
     /// Shutting down: no new bookings or starts.
     withdrawing: bool,
+    /// Being handed over to a successor process: no new bookings or starts, bookings kept.
+    handing_over: bool,
 }
 
 impl AgendaManager {
@@ -235,6 +252,7 @@ impl AgendaManager {
             bookings: Vec::new(),
             undelivered: Vec::new(),
             withdrawing: false,
+            handing_over: false,
         }
     }
 
@@ -283,6 +301,16 @@ impl AgendaManager {
     /// Whether the holon is shutting down (no new bookings or starts).
     pub fn is_withdrawing(&self) -> bool {
         self.withdrawing
+    }
+
+    /// Whether the holon is being handed over to a successor.
+    pub fn is_handing_over(&self) -> bool {
+        self.handing_over
+    }
+
+    /// Withdrawing or handing over: it takes no new work and starts nothing.
+    fn leaving(&self) -> bool {
+        self.withdrawing || self.handing_over
     }
 
     /// True once withdrawing and nothing is left to finish or deliver.
@@ -354,6 +382,8 @@ impl AgendaManager {
                 outcome,
             } => self.finished(&conversation_id, outcome),
             AgendaEvent::Withdraw => self.withdraw(),
+            AgendaEvent::HandOver => self.hand_over(true),
+            AgendaEvent::HandOverAbandoned => self.hand_over(false),
             AgendaEvent::RequesterGone { requester } => self.release(&requester),
             AgendaEvent::ResultAcknowledged { conversation_id } => {
                 let before = self.undelivered.len();
@@ -368,11 +398,20 @@ impl AgendaManager {
         }
     }
 
+    fn hand_over(&mut self, handing_over: bool) -> Vec<AgendaAction> {
+        if self.withdrawing || self.handing_over == handing_over {
+            return vec![];
+        }
+        self.handing_over = handing_over;
+        vec![AgendaAction::StateChanged]
+    }
+
     fn withdraw(&mut self) -> Vec<AgendaAction> {
         if self.withdrawing {
             return vec![];
         }
         self.withdrawing = true;
+        self.handing_over = false;
         let mut actions = Vec::new();
         for booking in std::mem::take(&mut self.bookings) {
             let Some(reply_to) = booking.reply_to else {
@@ -459,13 +498,16 @@ impl AgendaManager {
         if let Some(detail) = detail {
             reply.info.insert("detail".into(), Value::String(detail));
         }
+        if why == reason::UNAVAILABLE && self.handing_over {
+            handing_over_hint(&mut reply.info);
+        }
         vec![AgendaAction::Reply(reply)]
     }
 
     fn proposal(&self, request: &Service) -> Vec<AgendaAction> {
         let refusal = if !self.catalog.offers(&request.service_type) {
             Some(reason::UNKNOWN_SERVICE)
-        } else if !self.execution_ready || self.withdrawing {
+        } else if !self.execution_ready || self.leaving() {
             Some(reason::UNAVAILABLE)
         } else if self.bookings.len() >= self.capacity {
             Some(reason::AGENDA_FULL)
@@ -483,12 +525,15 @@ impl AgendaManager {
             Err(detail) => return self.refuse(request, reason::INVALID_INFO, Some(detail)),
         };
         reply.info = self.proposal_info(&request.service_type, priority);
+        if refusal == Some(reason::UNAVAILABLE) && self.handing_over {
+            handing_over_hint(&mut reply.info);
+        }
         vec![AgendaAction::Reply(reply)]
     }
 
     fn book(&mut self, request: Service) -> Vec<AgendaAction> {
         let conversation = self.conversation(&request);
-        let taking_work = self.execution_ready && !self.withdrawing;
+        let taking_work = self.execution_ready && !self.leaving();
         let full = self.bookings.len() >= self.capacity;
         match (conversation, taking_work, full) {
             _ if !self.catalog.offers(&request.service_type) => {
@@ -576,7 +621,7 @@ impl AgendaManager {
     /// on its turn makes it the running job.
     fn start_on_turn(&mut self) -> Option<Job> {
         let first = self.bookings.first()?;
-        if self.state() != ResourceState::Free || self.withdrawing || !first.start_on_turn {
+        if self.state() != ResourceState::Free || self.leaving() || !first.start_on_turn {
             return None;
         }
         // Checked when it was booked; a booking without one waits for a `start`.
@@ -617,7 +662,7 @@ impl AgendaManager {
         let booking = conversation
             .booked
             .map(|index| (index, self.bookings[index].service_type.clone()));
-        match (conversation, booking, self.state(), self.withdrawing) {
+        match (conversation, booking, self.state(), self.leaving()) {
             _ if !self.catalog.offers(&request.service_type) => {
                 self.refuse(&request, reason::UNKNOWN_SERVICE, None)
             }
@@ -821,12 +866,31 @@ impl AgendaManager {
                 .collect(),
             journal_fault: None,
             delivery_retries: 0,
+            handing_over: self.handing_over,
             host: None,
             version: None,
             v: 0,
             at: unix_ms(),
         }
     }
+}
+
+/// When a requester refused `unavailable` during a hand-over is told to ask again.
+pub const HANDOVER_RETRY: std::time::Duration = std::time::Duration::from_millis(100);
+
+/// Says, on a refusal `unavailable`, that the resource is being handed over.
+pub fn handing_over_hint(info: &mut Map<String, Value>) {
+    info.insert(
+        "detail".into(),
+        Value::String(
+            "the resource is being handed over to its successor (an upgrade); bookings are kept; ask again shortly"
+                .into(),
+        ),
+    );
+    info.insert(
+        schemas::info_key::RETRY_AFTER_MS.into(),
+        Value::from(HANDOVER_RETRY.as_millis() as u64),
+    );
 }
 
 #[cfg(test)]

@@ -252,6 +252,9 @@ pub struct ResourceConfig {
     pub durability: holon::journal::Durability,
     /// Declare `resource/<name>/debug/crash` (tests and demonstrations only).
     pub allow_fault_injection: bool,
+    /// Start as the successor of the running process (`--take-over`), waiting this
+    /// long at most for it to hand over.
+    pub take_over: Option<Duration>,
 }
 
 /// What the command line may override.
@@ -294,12 +297,14 @@ impl ResourceConfig {
         if let Some(controller) = overrides.controller {
             file.controller.address = controller;
         }
-        Self::validate(file, overrides.allow_fault_injection).map_err(|message| {
-            ConfigError::Invalid {
+        let mut config = Self::validate(file, overrides.allow_fault_injection).map_err(
+            |message| ConfigError::Invalid {
                 path: path.to_string(),
                 message,
-            }
-        })
+            },
+        )?;
+        config.take_over = overrides.common.take_over;
+        Ok(config)
     }
 
     fn validate(file: ConfigFile, allow_fault_injection: bool) -> Result<ResourceConfig, String> {
@@ -429,6 +434,7 @@ impl ResourceConfig {
             data_dir: file.journal.dir.clone(),
             durability: file.journal.durability,
             allow_fault_injection,
+            take_over: None,
         })
     }
 }

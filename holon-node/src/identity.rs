@@ -18,6 +18,9 @@ pub struct Identity {
     /// `<kind>/<name>`.
     pub holon: HolonId,
     pub zenoh: ZenohSettings,
+    /// Start as the successor of the running process (`--take-over`), waiting this
+    /// long at most for it to hand over.
+    pub take_over: Option<std::time::Duration>,
 }
 
 /// The fields every holon file has, as read.
@@ -65,6 +68,7 @@ impl Identity {
             keys,
             holon,
             zenoh: header.zenoh,
+            take_over: overrides.common.take_over,
         })
     }
 

@@ -46,6 +46,8 @@ pub enum NodeError {
     Journal(#[from] holon::journal::JournalError),
     #[error(transparent)]
     Claim(#[from] holon::presence::ClaimError),
+    #[error(transparent)]
+    Takeover(#[from] holon::takeover::TakeoverError),
 }
 
 /// The components' links, built once per process: they outlive the components'
@@ -178,6 +180,67 @@ impl Wiring {
             }
         }
     }
+
+    /// Prepares a hand-over to a successor: takes no new work and starts nothing, keeps
+    /// the bookings, and waits until the running job has finished (its result is in the
+    /// journal). Within `wait`: else the hand-over is abandoned (the resource serves on)
+    /// and the error says why.
+    async fn hand_over(&self, wait: Duration) -> Result<(), String> {
+        let links = &self.agenda_manager;
+        let holon = &links.holon;
+        let mut agenda = links.views.agenda.subscribe();
+        if links
+            .mailbox
+            .sender
+            .send(AgendaEvent::HandOver.into())
+            .await
+            .is_err()
+        {
+            return Err("the agenda manager is gone".into());
+        }
+        let running = links.views.agenda.borrow().snapshot.current.is_some();
+        info!(%holon, running, bookings = links.views.agenda.borrow().snapshot.agenda.len(), "handing over: no new work, bookings kept, the running step finishes");
+        let quiet = tokio::time::timeout(
+            wait,
+            agenda.wait_for(|view| view.snapshot.handing_over && view.snapshot.current.is_none()),
+        )
+        .await
+        .map(|waited| waited.map(|_| ()));
+        match quiet {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(_)) => Err("the agenda manager stopped while handing over".into()),
+            Err(_) => {
+                if links
+                    .mailbox
+                    .sender
+                    .send(AgendaEvent::HandOverAbandoned.into())
+                    .await
+                    .is_err()
+                {
+                    error!(%holon, "the agenda manager is gone: the hand-over cannot be undone");
+                }
+                Err(format!(
+                    "its running step did not finish within {wait:?}; it serves on (try again with a longer --take-over-wait-ms)"
+                ))
+            }
+        }
+    }
+}
+
+/// How a serving holon's life ended.
+enum Ending {
+    /// Shutdown (SIGTERM): bookings handed back, components stopped.
+    Stopped,
+    /// A successor asked and the holon is ready to hand over to it.
+    HandingOver(holon::takeover::Offer),
+}
+
+/// Whether the successor's data directory is this holon's: the same journal.
+fn same_data_dir(mine: Option<&std::path::Path>, theirs: Option<&std::path::Path>) -> bool {
+    let canonical = |dir: Option<&std::path::Path>| {
+        dir.map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.to_path_buf()))
+    };
+    canonical(mine) == canonical(theirs)
 }
 
 /// Runs a resource holon until `shutdown` is cancelled (then it withdraws its token,
@@ -194,6 +257,25 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
         )
         .await?;
     info!(%holon, zid = %session.zid(), "zenoh session open");
+    if let Some(wait) = config.take_over {
+        let request = holon::takeover::Request {
+            successor: holon::presence::Holder::this_process(&session),
+            version: crate::VERSION.to_string(),
+            data_dir: config
+                .data_dir
+                .as_ref()
+                .map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.clone())),
+            wait_ms: wait.as_millis() as u64,
+        };
+        let taken =
+            holon::takeover::take_over(&session, &alive_key, &holon.to_string(), &request).await;
+        if let Err(e) = taken {
+            if let Err(close) = session.close().await {
+                error!(%holon, error = %close, "cannot close the zenoh session");
+            }
+            return Err(e.into());
+        }
+    }
     let outcome = serve(&config, &session, &alive_key, shutdown).await;
     if let Err(e) = session.close().await {
         error!(%holon, error = %e, "cannot close the zenoh session");
@@ -236,24 +318,137 @@ async fn serve(
         .declare_token(alive_key)
         .await
         .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
+    let mut successors = holon::takeover::listen(session, alive_key)
+        .await
+        .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
     info!(%holon, key = %alive_key, "holon ready");
 
-    let outcome = tokio::select! {
-        _ = shutdown.cancelled() => {
-            wiring.withdraw(config.shutdown_grace).await;
-            Ok(())
+    let outcome = loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => {
+                wiring.withdraw(config.shutdown_grace).await;
+                break Ok(Ending::Stopped);
+            }
+            offer = successors.next() => {
+                let request = &offer.request;
+                info!(%holon, successor = %request.successor, version = %request.version, "a successor asks to take over");
+                if !same_data_dir(config.data_dir.as_deref(), request.data_dir.as_deref()) {
+                    let detail = format!(
+                        "its data dir {:?} is not this holon's {:?}: it would not take over the agenda",
+                        request.data_dir, config.data_dir
+                    );
+                    warn!(%holon, %detail, "hand-over refused");
+                    offer.refuse(crate::VERSION, detail).await;
+                    continue;
+                }
+                // Leaves a margin for the answer to reach the successor in time.
+                let wait = offer.wait().saturating_sub(Duration::from_millis(500));
+                let prepared = tokio::select! {
+                    prepared = wiring.hand_over(wait) => prepared,
+                    _ = shutdown.cancelled() => Err("the holon is shutting down".into()),
+                };
+                match prepared {
+                    Ok(()) => break Ok(Ending::HandingOver(offer)),
+                    Err(detail) => {
+                        warn!(%holon, %detail, "hand-over abandoned; serving on");
+                        offer.refuse(crate::VERSION, detail).await;
+                        if shutdown.is_cancelled() {
+                            wiring.withdraw(config.shutdown_grace).await;
+                            break Ok(Ending::Stopped);
+                        }
+                    }
+                }
+            }
+            result = &mut supervision => break supervisor_ended(result).map(|()| Ending::Stopped),
         }
-        result = &mut supervision => supervisor_ended(result),
     };
-    // Withdraw presence first: no one should book a holon that is going away.
+    drop(successors);
+    let offer = match outcome {
+        Ok(Ending::HandingOver(offer)) => offer,
+        Ok(Ending::Stopped) => {
+            // Withdraw presence first: no one should book a holon that is going away.
+            if let Err(e) = token.undeclare().await {
+                error!(%holon, error = %e, "cannot withdraw the liveliness token");
+            }
+            components.cancel();
+            wait_stopped(holon, supervision).await;
+            return Ok(());
+        }
+        Err(e) => {
+            if let Err(undeclare) = token.undeclare().await {
+                error!(%holon, error = %undeclare, "cannot withdraw the liveliness token");
+            }
+            return Err(e);
+        }
+    };
+    // The hand-over. Requesters learn it is planned from this last state (published
+    // here, before the token goes, so it is seen first), and requests that come while
+    // no process serves get `unavailable` with a retry hint from the stand-in.
+    let started = std::time::Instant::now();
+    let last_state = serde_json::to_vec(&wiring.communication.views.snapshot())
+        .expect("a snapshot serializes");
+    if let Err(e) = session.put(config.keys.state(holon), last_state).await {
+        warn!(%holon, error = %e, "cannot publish the hand-over state; requesters see a vanished resource");
+    }
+    let stand_in = holon::takeover::stand_in(
+        session,
+        &[(config.keys.service(holon.name()), false)],
+        stand_in_answer(holon.clone()),
+    )
+    .await;
+    if let Err(e) = &stand_in {
+        warn!(%holon, error = %e, "cannot stand in for the successor: requests in the gap go unanswered");
+    }
+    components.cancel();
+    wait_stopped(holon, supervision).await;
+    // The journal closes with the components' links: the successor opens it next.
+    drop(wiring);
     if let Err(e) = token.undeclare().await {
         error!(%holon, error = %e, "cannot withdraw the liveliness token");
     }
-    if outcome.is_ok() {
-        components.cancel();
-        wait_stopped(holon, supervision).await;
+    drop(_claim);
+    let successor = offer.request.successor.clone();
+    offer.release(crate::VERSION).await;
+    info!(%holon, %successor, released_in_ms = started.elapsed().as_millis() as u64, "handed over: journal closed, token withdrawn; standing in until the successor serves");
+    let served = holon::takeover::until_successor(
+        session,
+        alive_key,
+        holon::takeover::STAND_IN_LIMIT,
+    )
+    .await;
+    let gap_ms = started.elapsed().as_millis() as u64;
+    if served {
+        info!(%holon, gap_ms, "the successor serves; this process ends");
+    } else {
+        warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends anyway (its requesters rebook after their own bound)");
     }
-    outcome
+    drop(stand_in);
+    Ok(())
+}
+
+/// The stand-in's answer to a Service request while the resource is handed over:
+/// refused `unavailable`, with a retry hint.
+fn stand_in_answer(holon: schemas::HolonId) -> holon::takeover::Answer {
+    std::sync::Arc::new(move |query: &zenoh::query::Query| {
+        use zenoh::Wait;
+        let payload = query
+            .payload()
+            .map(|p| p.to_bytes().into_owned())
+            .unwrap_or_default();
+        let sent = match Service::from_json(&payload) {
+            Ok(request) => {
+                let mut refusal = request.refused(&holon, schemas::reason::UNAVAILABLE);
+                crate::agenda::handing_over_hint(&mut refusal.info);
+                query.reply(query.key_expr().clone(), refusal.to_json()).wait()
+            }
+            Err(e) => query
+                .reply_err(schemas::ErrorReply::for_schema_error(&e).to_json())
+                .wait(),
+        };
+        if let Err(e) = sent {
+            warn!(%holon, error = %e, "cannot answer a request while handed over; the requester asks again after its timeout");
+        }
+    })
 }
 
 /// What the supervisor's end means for the holon.

@@ -23,7 +23,7 @@ pub struct AgendaView {
     /// could not record yet): a starting communication component delivers them.
     pub deliverable: Vec<Service>,
     /// Whether the resource takes new work: its controller is ready, it is not
-    /// withdrawing, and its journal can be written.
+    /// withdrawing or being handed over, and its journal can be written.
     pub accepting: bool,
     /// Withdrawing, and nothing is left to finish or deliver: the holon may stop.
     pub drained: bool,

@@ -41,6 +41,16 @@ pub struct CommonArgs {
     /// DIR (replaces [zenoh.tls]); every endpoint must then be tls/...
     #[arg(long, value_name = "DIR")]
     pub pki: Option<PathBuf>,
+    /// Take over from the running process of this holon (an upgrade): it finishes its
+    /// running step, keeps its bookings and hands over its data dir and name; then this
+    /// process serves. The config is checked first: a bad one leaves the running
+    /// process untouched. Without a running process, it starts as usual.
+    #[arg(long)]
+    pub take_over: bool,
+    /// How long --take-over waits for the running process to finish (its running
+    /// step) and hand over; it refuses, and serves on, if it cannot within this.
+    #[arg(long, value_name = "MS", default_value_t = 60_000)]
+    pub take_over_wait_ms: u64,
     /// Terminal log format: text (human-readable) or json (one object per line).
     #[arg(long, default_value = "text", value_name = "text|json")]
     pub log_format: LogFormat,
@@ -61,6 +71,9 @@ impl CommonArgs {
             lease_ms: self.lease_ms,
             mode: self.mode,
             pki: self.pki.clone(),
+            take_over: self
+                .take_over
+                .then(|| std::time::Duration::from_millis(self.take_over_wait_ms)),
         }
     }
 }

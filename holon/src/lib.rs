@@ -10,6 +10,7 @@ pub mod query;
 pub mod restart;
 pub mod session;
 pub mod supervisor;
+pub mod takeover;
 pub mod tls;
 pub mod zenoh_error;
 

@@ -154,18 +154,13 @@ pub struct Claim {
     _holder: zenoh::query::Queryable<()>,
 }
 
-/// Claims `key` (a liveliness token's key) for `name`: refuses when a token on `key` is
-/// visible (another process holds the name: a twin), naming that process; otherwise
-/// declares a queryable on `key` that answers with this process's [`Holder`], so a twin
-/// started later can say who holds the name. The caller declares the token itself when
-/// it is ready. Two processes started within the same instant can both pass: the check
-/// is for the common mistake (a config copied and not renamed), not a lock.
-pub async fn claim(
+/// Whether a liveliness token on `key` is visible in the cell, asked as soon as the
+/// session is linked and routed (right after it opens, a query may see nobody yet).
+pub async fn held(
     session: &zenoh::Session,
     key: &str,
-    name: &str,
     timeout: Duration,
-) -> Result<Claim, ClaimError> {
+) -> Result<bool, zenoh::Error> {
     // Right after the session opens, its links may still be coming up: a query then
     // sees no one. Wait (briefly) until it is linked to a router or a peer.
     let linked_by = tokio::time::Instant::now() + timeout.min(Duration::from_secs(3));
@@ -194,24 +189,34 @@ pub async fn claim(
         key.splitn(3, '/').take(2).collect::<Vec<_>>().join("/")
     );
     let routed_by = tokio::time::Instant::now() + CLAIM_WINDOW;
-    let taken = loop {
-        let seen = tokens(session, &cell_tokens, timeout)
-            .await
-            .map_err(ClaimError::Zenoh)?;
+    loop {
+        let seen = tokens(session, &cell_tokens, timeout).await?;
         if !seen.is_empty() {
-            break seen.iter().any(|k| k == key);
+            return Ok(seen.iter().any(|k| k == key));
         }
         if tokio::time::Instant::now() >= routed_by {
-            break wait_token(session, key, CLAIM_WINDOW)
-                .await
-                .map_err(ClaimError::Zenoh)?
-                || !tokens(session, key, timeout)
-                    .await
-                    .map_err(ClaimError::Zenoh)?
-                    .is_empty();
+            return Ok(wait_token(session, key, CLAIM_WINDOW).await?
+                || !tokens(session, key, timeout).await?.is_empty());
         }
         tokio::time::sleep(Duration::from_millis(2)).await;
-    };
+    }
+}
+
+/// Claims `key` (a liveliness token's key) for `name`: refuses when a token on `key` is
+/// visible (another process holds the name: a twin), naming that process; otherwise
+/// declares a queryable on `key` that answers with this process's [`Holder`], so a twin
+/// started later can say who holds the name. The caller declares the token itself when
+/// it is ready. Two processes started within the same instant can both pass: the check
+/// is for the common mistake (a config copied and not renamed), not a lock.
+pub async fn claim(
+    session: &zenoh::Session,
+    key: &str,
+    name: &str,
+    timeout: Duration,
+) -> Result<Claim, ClaimError> {
+    let taken = held(session, key, timeout)
+        .await
+        .map_err(ClaimError::Zenoh)?;
     if taken {
         let holder = match session
             .get(key)

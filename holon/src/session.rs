@@ -307,6 +307,9 @@ pub struct CommandLine {
     /// Turns on mutual TLS with the identity files in this PKI directory (replaces
     /// `[zenoh.tls]`).
     pub pki: Option<PathBuf>,
+    /// Start as the successor of the running process of the same name (an upgrade),
+    /// waiting at most this long for it to hand over (see [`crate::takeover`]).
+    pub take_over: Option<std::time::Duration>,
 }
 
 impl CommandLine {

@@ -73,6 +73,8 @@ struct OrdersSection {
     step_timeout_ms: u64,
     #[serde(default = "default_grace")]
     vanished_grace_ms: u64,
+    #[serde(default = "default_handover_grace")]
+    handover_grace_ms: u64,
     #[serde(default = "default_request")]
     request_timeout_ms: u64,
     #[serde(default = "default_max_per_submit")]
@@ -109,6 +111,10 @@ fn default_grace() -> u64 {
     2000
 }
 
+fn default_handover_grace() -> u64 {
+    30_000
+}
+
 fn default_proposal() -> u64 {
     1000
 }
@@ -138,6 +144,7 @@ impl Default for OrdersSection {
             retry_max_ms: default_retry_max(),
             step_timeout_ms: default_step(),
             vanished_grace_ms: default_grace(),
+            handover_grace_ms: default_handover_grace(),
             request_timeout_ms: default_request(),
             max_orders_per_submit: default_max_per_submit(),
             max_unfinished_orders: default_max_unfinished(),
@@ -169,6 +176,9 @@ pub struct OrderSettings {
     /// How long a resource that vanished while running a step may take to come back
     /// and report it before the step is booked elsewhere.
     pub vanished_grace: Duration,
+    /// How long a resource that said it is being handed over to a successor (an
+    /// upgrade) may be away before its bookings are booked elsewhere.
+    pub handover_grace: Duration,
     /// Longest wait for a resource's answer to one request (booking, start, cancel).
     pub request_timeout: Duration,
     /// The most orders one work order may create; a larger `count` is refused (`quota`).
@@ -199,6 +209,9 @@ pub struct OrderNodeConfig {
     /// How long a finished order (done, scrapped, failed, cancelled) stays in the
     /// journal and in `cell orders` after it ended; `None`: for ever.
     pub keep_finished: Option<Duration>,
+    /// Start as the successor of the running order-node (`--take-over`), waiting this
+    /// long at most for it to hand over.
+    pub take_over: Option<Duration>,
 }
 
 /// What the command line may override: cell, name, zenoh endpoints, data directory.
@@ -285,6 +298,7 @@ impl OrderNodeConfig {
                 retry_max: Duration::from_millis(o.retry_max_ms),
                 step_timeout: Duration::from_millis(o.step_timeout_ms),
                 vanished_grace: Duration::from_millis(o.vanished_grace_ms),
+                handover_grace: Duration::from_millis(o.handover_grace_ms),
                 request_timeout: Duration::from_millis(o.request_timeout_ms),
                 max_orders_per_submit: o.max_orders_per_submit,
                 max_unfinished_orders: o.max_unfinished_orders,
@@ -295,6 +309,7 @@ impl OrderNodeConfig {
             durability: file.journal.durability,
             keep_finished: (file.journal.keep_finished_ms > 0)
                 .then(|| Duration::from_millis(file.journal.keep_finished_ms)),
+            take_over: overrides.take_over,
         })
     }
 }

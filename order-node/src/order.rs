@@ -441,13 +441,23 @@ impl OrderTask {
                 None,
             )
         };
-        let grace = if may_run {
-            ctx.settings.vanished_grace
-        } else {
-            Duration::ZERO
+        // How long a provider that is gone may take to come back: one that runs the
+        // step may report it; one handed over to its successor (an upgrade) keeps the
+        // booking, for the handover grace.
+        let grace = || {
+            let running = if may_run {
+                ctx.settings.vanished_grace
+            } else {
+                Duration::ZERO
+            };
+            if ctx.presence.handing_over(provider) {
+                running.max(ctx.settings.handover_grace)
+            } else {
+                running
+            }
         };
         // When the provider is gone: the moment its grace ends.
-        let mut gone_until = (!ctx.presence.is_alive(provider)).then(|| Instant::now() + grace);
+        let mut gone_until = (!ctx.presence.is_alive(provider)).then(|| Instant::now() + grace());
         loop {
             // While the provider is gone, asking it is pointless: a booked step waits
             // out the grace whatever its pause (a pause that ended it would start the
@@ -473,12 +483,12 @@ impl OrderTask {
                 }
                 change = self.changes.recv() => match change {
                     Ok((holon, alive)) if &holon == provider => {
-                        gone_until = if alive { None } else { Some(Instant::now() + grace) };
+                        gone_until = if alive { None } else { Some(Instant::now() + grace()) };
                     }
                     Ok(_) => {}
                     Err(broadcast::error::RecvError::Lagged(_)) => {
                         if !ctx.presence.is_alive(provider) && gone_until.is_none() {
-                            gone_until = Some(Instant::now() + grace);
+                            gone_until = Some(Instant::now() + grace());
                         }
                     }
                     Err(broadcast::error::RecvError::Closed) => return Watched::Elapsed,

@@ -35,6 +35,9 @@ pub struct Presence {
     turns: Mutex<HashMap<HolonId, watch::Sender<Option<String>>>>,
     /// The staff holons alive (advisors), by name.
     staff: Mutex<std::collections::BTreeSet<HolonId>>,
+    /// The resources whose last state said they are being handed over to a successor
+    /// (an upgrade): while away, their bookings are kept for `orders.handover_grace_ms`.
+    handing_over: Mutex<HashSet<HolonId>>,
 }
 
 impl Presence {
@@ -53,6 +56,7 @@ impl Presence {
             queues: Mutex::new(HashMap::new()),
             turns: Mutex::new(HashMap::new()),
             staff: Mutex::new(Default::default()),
+            handing_over: Mutex::new(HashSet::new()),
         });
         let keys_for_callback = keys.clone();
         let weak = Arc::downgrade(&presence);
@@ -71,6 +75,7 @@ impl Presence {
                 let mut alive = presence.alive.lock().unwrap_or_else(|e| e.into_inner());
                 match sample.kind() {
                     zenoh::sample::SampleKind::Put => {
+                        presence.set_handing_over(&holon, false);
                         if alive.insert(holon.clone()) {
                             info!(holon = %holon, "resource appeared");
                             // An error means no order listens: nobody to tell.
@@ -80,7 +85,11 @@ impl Presence {
                     }
                     zenoh::sample::SampleKind::Delete => {
                         alive.remove(&holon);
-                        warn!(holon = %holon, "resource vanished");
+                        if presence.handing_over(&holon) {
+                            info!(holon = %holon, "resource away for a planned hand-over (an upgrade): its bookings are kept");
+                        } else {
+                            warn!(holon = %holon, "resource vanished");
+                        }
                         presence.changes.send((holon, false)).ok();
                     }
                 }
@@ -118,6 +127,7 @@ impl Presence {
                             waiting: snapshot.agenda.iter().map(|b| b.priority).collect(),
                         },
                     );
+                presence.set_handing_over(&snapshot.holon, snapshot.handing_over);
                 presence
                     .turn_channel(&snapshot.holon)
                     .send_replace(news.turn);
@@ -194,6 +204,24 @@ impl Presence {
             .unwrap_or_else(|e| e.into_inner())
             .first()
             .cloned()
+    }
+
+    /// Whether `resource` said it is being handed over to a successor (and has not
+    /// come back since).
+    pub fn handing_over(&self, resource: &HolonId) -> bool {
+        self.handing_over
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains(resource)
+    }
+
+    fn set_handing_over(&self, resource: &HolonId, handing_over: bool) {
+        let mut set = self.handing_over.lock().unwrap_or_else(|e| e.into_inner());
+        if handing_over {
+            set.insert(resource.clone());
+        } else {
+            set.remove(resource);
+        }
     }
 
     pub fn is_alive(&self, holon: &HolonId) -> bool {
@@ -328,6 +356,7 @@ mod tests {
             nominal_ms: Default::default(),
             journal_fault: None,
             delivery_retries: 0,
+            handing_over: false,
             host: None,
             version: None,
             v: 0,

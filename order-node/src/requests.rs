@@ -6,7 +6,7 @@ use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 
-use schemas::{HolonId, MessageType, Plan, PlanStep, Service};
+use schemas::{reason, HolonId, MessageType, Plan, PlanStep, Service};
 use tokio::sync::broadcast;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -83,9 +83,34 @@ pub async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Ser
         .with(holon::query::replies())
         .await
         .ok()?;
-    let reply = replies.recv().await?;
+    // One answerer normally. Two while a resource is handed over to its successor (an
+    // upgrade): the predecessor's stand-in says `unavailable` while the successor may
+    // already answer for real, and the real answer wins (a booking it made is kept).
+    let mut answer: Option<Service> = None;
+    while let Some(reply) = replies.recv().await {
+        let Some(service) = read_answer(key, message, &reply) else {
+            continue;
+        };
+        let unavailable = service.reason.as_deref() == Some(reason::UNAVAILABLE);
+        if !unavailable {
+            return Some(service);
+        }
+        answer.get_or_insert(service);
+    }
+    answer
+}
+
+/// A reply as a Service message; an error reply or one that cannot be read is logged
+/// with what it says.
+fn read_answer(key: &str, message: &Service, reply: &zenoh::query::Reply) -> Option<Service> {
     match reply.result() {
-        Ok(sample) => Service::from_json(&sample.payload().to_bytes()).ok(),
+        Ok(sample) => match Service::from_json(&sample.payload().to_bytes()) {
+            Ok(service) => Some(service),
+            Err(e) => {
+                warn!(key, error = %e, conversation_id = %message.conversation_id, "answer refused: not a Service message this node understands");
+                None
+            }
+        },
         Err(err) => {
             warn!(key, error = %err.payload().try_to_string().unwrap_or_default(), conversation_id = %message.conversation_id, "error reply");
             None

@@ -43,7 +43,7 @@ pub enum SchemaError {
     InvalidKeyExpr { key: String, why: String },
     #[error("invalid {field}: {why}")]
     InvalidField { field: &'static str, why: String },
-    #[error("unsupported schema version {0} (this holon speaks version 1)")]
+    #[error("unsupported schema version {0} (this holon speaks version {speaks})", speaks = crate::SERVICE_VERSION)]
     UnsupportedVersion(u32),
     #[error("payload of {size} bytes is over the {limit}-byte limit")]
     TooLarge { size: usize, limit: usize },

@@ -100,6 +100,9 @@ pub mod info_key {
     /// On a `proposal_req` or `booking_req`: when the order is due, in Unix
     /// milliseconds. The agenda keeps and shows it; a staff holon plans by it.
     pub const DUE: &str = "due";
+    /// On a refusal `unavailable`: when to ask again, in ms (set while the resource is
+    /// handed over to its successor during an upgrade).
+    pub const RETRY_AFTER_MS: &str = "retry_after_ms";
 }
 
 /// The most urgent priority a work order may have.
@@ -343,10 +346,15 @@ impl Service {
 /// not allowed. The holon changes nothing.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 pub struct ErrorReply {
-    /// A stable code: `malformed`, `invalid`, `wrong_key`, `internal`, `unavailable`.
+    /// A stable code: `malformed`, `unsupported_version`, `invalid`, `wrong_key`,
+    /// `internal`, `unavailable`.
     pub code: String,
     /// What was wrong, for a person.
     pub message: String,
+    /// With `unavailable`: when to ask again, in ms (e.g. while the holon is handed over
+    /// to its successor during an upgrade).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub retry_after_ms: Option<u64>,
 }
 
 impl ErrorReply {
@@ -354,7 +362,33 @@ impl ErrorReply {
         ErrorReply {
             code: code.to_string(),
             message: message.into(),
+            retry_after_ms: None,
         }
+    }
+
+    /// `unavailable`, to be asked again after `retry_after`.
+    pub fn unavailable(message: impl Into<String>, retry_after: std::time::Duration) -> Self {
+        ErrorReply {
+            retry_after_ms: Some(retry_after.as_millis() as u64),
+            ..ErrorReply::new("unavailable", message)
+        }
+    }
+
+    /// The code for a message that `from_json` refused: `unsupported_version` when it
+    /// speaks another schema version, `malformed` when it cannot be read, `invalid`
+    /// when a field is wrong.
+    pub fn for_schema_error(error: &crate::SchemaError) -> Self {
+        let code = match error {
+            crate::SchemaError::UnsupportedVersion(_) => "unsupported_version",
+            crate::SchemaError::Json(_) | crate::SchemaError::TooLarge { .. } => "malformed",
+            _ => "invalid",
+        };
+        ErrorReply::new(code, error.to_string())
+    }
+
+    /// Reads an error reply's body (None when it is not one).
+    pub fn from_json(payload: &[u8]) -> Option<Self> {
+        serde_json::from_slice(payload).ok()
     }
 
     pub fn to_json(&self) -> Vec<u8> {

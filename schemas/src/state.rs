@@ -134,6 +134,12 @@ pub struct ResourceSnapshot {
     /// since the process started (a requester away, slow or refusing).
     #[serde(default)]
     pub delivery_retries: u64,
+    /// Set while the resource is handed over to its successor (a planned upgrade,
+    /// `cell upgrade`): it takes no new work and starts nothing, keeps its bookings for
+    /// the successor, and finishes its running step. Orders booked here keep their
+    /// bookings while it is away, for at most their node's `orders.handover_grace_ms`.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub handing_over: bool,
     /// The machine the holon's process runs on (its hostname).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub host: Option<String>,

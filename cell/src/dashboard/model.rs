@@ -742,6 +742,7 @@ mod tests {
             nominal_ms: Default::default(),
             journal_fault: None,
             delivery_retries: 0,
+            handing_over: false,
             host: None,
             version: None,
             v: 0,

@@ -141,6 +141,7 @@ impl JournalledAgenda {
                 .collect(),
             accepting: self.agenda.state() != schemas::ResourceState::Init
                 && !self.agenda.is_withdrawing()
+                && !self.agenda.is_handing_over()
                 && self.fault.is_none(),
             drained: self.agenda.is_drained(),
         }

@@ -353,6 +353,7 @@ pub(crate) mod tests {
             nominal_ms: [("pick_n_place".to_string(), 1000)].into(),
             journal_fault: None,
             delivery_retries: 0,
+            handing_over: false,
             host: None,
             version: None,
             v: 0,
