@@ -13,6 +13,10 @@
 //! | `observer.<o>` | nothing | states, plans, liveliness |
 //! | `router.<h>` | everything (routers forward for others; trusted) | everything |
 //!
+//! Every holon role also declares and queries its own `takeover/<role>/<name>`: a
+//! successor holding the same identity asks the running process to hand over (an
+//! upgrade, [`holon::takeover`]); no other identity can replace it.
+//!
 //! Every rule is an ingress rule: it limits what a link may bring in. Anything may go
 //! out to a known identity (egress), since what reaches a link is only what it asked
 //! for. An identity not listed (a certificate of the cell CA issued after the running
@@ -91,7 +95,14 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             "host/**".to_string(),
         ]
     };
-    match role {
+    // A successor (the same identity) asks the running process to hand over.
+    let takeover = |role: &str| {
+        (
+            &["declare_queryable", "reply", "query"][..],
+            vec![format!("takeover/{role}/{name}")],
+        )
+    };
+    let mut rules = match role {
         Role::Resource => vec![
             (
                 DECLARE,
@@ -127,7 +138,10 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             (&["put"], vec![format!("product/{name}/state")]),
             (&["liveliness_token"], vec![format!("alive/product/{name}")]),
             (DECLARE, vec![format!("alive/product/{name}")]),
-            (&["query", "liveliness_query"], vec!["alive/**".to_string()]),
+            (
+                &["query", "liveliness_query", "declare_liveliness_subscriber"],
+                vec!["alive/**".to_string()],
+            ),
         ],
         Role::OrderNode => vec![
             (
@@ -179,7 +193,15 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
         })],
         Role::Observer => vec![(READ, reading())],
         Role::Router => vec![(ALL, vec!["**".to_string()])],
+    };
+    match role {
+        Role::Resource => rules.push(takeover("resource")),
+        Role::Product => rules.push(takeover("product")),
+        Role::OrderNode => rules.push(takeover("order-node")),
+        Role::Staff => rules.push(takeover("staff")),
+        Role::Operator | Role::Observer | Role::Router => {}
     }
+    rules
 }
 
 /// The `access_control` section for a cell and its identities, as a zenoh config

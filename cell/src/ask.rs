@@ -1,9 +1,11 @@
 //! Asking the cell's order-nodes: a `get` asked again until one answers.
 //!
 //! No answer at all means no order-node's queryable was reached: the node may be
-//! restarting, or the router's routes may be settling for a moment. What the cell
-//! asks them (a work order, a cancel) is safe to ask again, so it is, every 100 ms,
-//! until `timeout`.
+//! restarting, or the router's routes may be settling for a moment; an `unavailable`
+//! answer means the node is being handed over to its successor (an upgrade) and
+//! nothing was done. What the cell asks them (a work order, a cancel) is safe to ask
+//! again, so it is, every 100 ms (or after the answer's `retry_after_ms`), until
+//! `timeout`.
 
 use std::time::Duration;
 
@@ -33,12 +35,27 @@ pub async fn until_answered(
             .with(holon::query::replies())
             .await
             .map_err(|e| anyhow!("{e}"))?;
+        let mut pause = Duration::from_millis(100);
         if let Some(reply) = replies.recv().await {
-            return Ok(Some(reply));
+            match unavailable(&reply) {
+                Some(retry_after) if Instant::now() + retry_after < deadline => {
+                    pause = retry_after;
+                }
+                _ => return Ok(Some(reply)),
+            }
         }
         if Instant::now() >= deadline {
             return Ok(None);
         }
-        tokio::time::sleep(Duration::from_millis(100)).await;
+        tokio::time::sleep(pause).await;
     }
+}
+
+/// When a reply says `unavailable` (nothing was done), how long to wait before asking
+/// again.
+fn unavailable(reply: &Reply) -> Option<Duration> {
+    let error = reply.result().err()?;
+    let body = schemas::ErrorReply::from_json(&error.payload().to_bytes())?;
+    (body.code == "unavailable")
+        .then(|| Duration::from_millis(body.retry_after_ms.unwrap_or(100).clamp(10, 5000)))
 }

@@ -12,3 +12,4 @@ pub mod router;
 pub mod status;
 pub mod submit;
 pub mod up;
+pub mod upgrade;

@@ -76,6 +76,34 @@ enum Commands {
         #[arg(long, default_value = "local")]
         host: String,
     },
+    /// Upgrade one process of a running `cell up DIR` (on this host) to a new build or
+    /// config while the cell runs: the running holon finishes its step, keeps its
+    /// bookings (orders do not rebook) and hands its name and journal to its successor,
+    /// which cell up then supervises in its place. The successor's config is checked
+    /// first: if it fails, the running process is left alone. Exits 0 when the
+    /// successor serves; 1 with the reason (and the successor's last log lines) when
+    /// not. See docs/operations.md for rolling out a cell host by host.
+    Upgrade {
+        /// The process's name in the manifest (e.g. robot1, orders1, breaker).
+        name: String,
+        /// The manifest's directory, as given to `cell up`.
+        #[arg(long, default_value = ".", value_name = "DIR")]
+        dir: PathBuf,
+        /// The host `cell up --host` runs (default local).
+        #[arg(long, default_value = "local")]
+        host: String,
+        /// The new program (default: the one running).
+        #[arg(long, value_name = "PATH")]
+        binary: Option<PathBuf>,
+        /// The new config file, replacing the value of the process's --config
+        /// (relative paths are relative to DIR, as in the manifest).
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// How long the running process may take to finish its running step and hand
+        /// over; it refuses, and runs on, if it cannot within this.
+        #[arg(long, default_value_t = 60_000, value_name = "MS")]
+        wait_ms: u64,
+    },
     /// Run a zenoh router (for hosts without zenohd): from a zenohd config file, or from
     /// the endpoints given here. Prints `router ZID listening on ...` when ready; runs
     /// until SIGTERM or Ctrl-C.
@@ -368,6 +396,37 @@ async fn run(args: Args) -> Result<bool> {
         Commands::Up { dir, host } => {
             let shutdown = holon::shutdown_on_signals();
             cell::up::run(&dir, &host, shutdown).await
+        }
+        Commands::Upgrade {
+            name,
+            dir,
+            host,
+            binary,
+            config,
+            wait_ms,
+        } => {
+            // A binary given relative to here means here; cell up runs elsewhere.
+            let binary = binary
+                .map(|b| {
+                    if b.components().count() > 1 {
+                        std::path::absolute(&b)
+                    } else {
+                        Ok(b)
+                    }
+                })
+                .transpose()?;
+            let request = cell::upgrade::UpgradeRequest {
+                name,
+                binary,
+                config,
+                wait_ms,
+            };
+            let outcome = cell::upgrade::ask(&dir, &host, &request).await?;
+            if !outcome.ok {
+                return Err(anyhow!("{}", outcome.message));
+            }
+            println!("{}", outcome.message);
+            Ok(true)
         }
         Commands::Router {
             config,

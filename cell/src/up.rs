@@ -9,6 +9,10 @@
 //! cell's zenoh router in its own process when the manifest has a `[router]`.
 //!
 //! The manifest format is documented in `deploy/cells/demo/cell.toml`.
+//!
+//! It also listens on `DIR/run/<host>.sock` for `cell upgrade` ([`crate::upgrade`]):
+//! one process at a time is replaced by its successor through a planned hand-over,
+//! and the successor is supervised in its place.
 
 use std::path::{Path, PathBuf};
 use std::process::{ExitStatus, Stdio};
@@ -17,11 +21,16 @@ use std::time::Duration;
 use anyhow::{anyhow, Context, Result};
 use holon::{Backoff, RestartWindow};
 use tokio::process::Command;
+use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use crate::manifest::{Manifest, ProcessSection, RouterSection};
+use crate::upgrade::{UpgradeOutcome, UpgradeRequest};
+
+/// An upgrade asked on the control socket, and where its outcome goes.
+type Upgrade = (UpgradeRequest, oneshot::Sender<UpgradeOutcome>);
 
 /// A program named in a manifest: a binary next to `cell` if there is one, else as given.
 fn resolve(program: &str) -> PathBuf {
@@ -59,13 +68,111 @@ pub async fn run(dir: &Path, host: &str, shutdown: CancellationToken) -> Result<
         Some(router) => Some(start_router(dir, host, &manifest, router, clock).await?),
         None => None,
     };
+    let (control, upgrades) = Control::listen(dir, host)?;
     let mut processes = Processes::new(dir, logs, &manifest, clock);
     processes.start_all()?;
-    let healthy = processes.supervise(shutdown).await;
+    let healthy = processes.supervise(shutdown, upgrades).await;
     clock.say("stopping the cell, in reverse order");
     processes.stop_all().await;
+    drop(control);
     clock.say("cell stopped");
     Ok(healthy)
+}
+
+/// The control socket `cell upgrade` talks to; removed when dropped.
+struct Control {
+    path: PathBuf,
+    accept: tokio::task::JoinHandle<()>,
+}
+
+impl Control {
+    /// Listens on `DIR/run/<host>.sock` (only this user may connect): each connection
+    /// carries one upgrade request, answered with its outcome.
+    fn listen(dir: &Path, host: &str) -> Result<(Control, mpsc::Receiver<Upgrade>)> {
+        use std::os::unix::fs::PermissionsExt;
+        let path = crate::upgrade::socket_path(dir, host);
+        let run = path.parent().expect("the socket is in DIR/run");
+        std::fs::create_dir_all(run)?;
+        std::fs::set_permissions(run, std::fs::Permissions::from_mode(0o700))?;
+        if path.exists() {
+            if std::os::unix::net::UnixStream::connect(&path).is_ok() {
+                anyhow::bail!(
+                    "another cell up for host {host} runs here ({} answers)",
+                    path.display()
+                );
+            }
+            // Left by a cell up that was killed.
+            std::fs::remove_file(&path)?;
+        }
+        let listener = tokio::net::UnixListener::bind(&path)
+            .with_context(|| format!("cannot listen on {}", path.display()))?;
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600))?;
+        let (sender, upgrades) = mpsc::channel(4);
+        let accept = tokio::spawn(async move {
+            loop {
+                match listener.accept().await {
+                    Ok((stream, _)) => {
+                        tokio::spawn(serve_control(stream, sender.clone()));
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "the control socket failed; cell upgrade is unavailable");
+                        return;
+                    }
+                }
+            }
+        });
+        Ok((Control { path, accept }, upgrades))
+    }
+}
+
+impl Drop for Control {
+    fn drop(&mut self) {
+        self.accept.abort();
+        if let Err(e) = std::fs::remove_file(&self.path) {
+            tracing::warn!(path = %self.path.display(), error = %e, "cannot remove the control socket");
+        }
+    }
+}
+
+/// One `cell upgrade` connection: its request to the supervisor, the outcome back.
+async fn serve_control(stream: tokio::net::UnixStream, upgrades: mpsc::Sender<Upgrade>) {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let (read, mut write) = stream.into_split();
+    let mut line = String::new();
+    let outcome = match tokio::time::timeout(
+        Duration::from_secs(10),
+        BufReader::new(read).read_line(&mut line),
+    )
+    .await
+    {
+        Ok(Ok(_)) => match serde_json::from_str::<UpgradeRequest>(line.trim()) {
+            Ok(request) => {
+                let (reply, outcome) = oneshot::channel();
+                if upgrades.send((request, reply)).await.is_err() {
+                    failed("cell up is stopping")
+                } else {
+                    outcome
+                        .await
+                        .unwrap_or_else(|_| failed("cell up stopped before the upgrade ended"))
+                }
+            }
+            Err(e) => failed(&format!("not an upgrade request: {e}")),
+        },
+        Ok(Err(e)) => failed(&format!("cannot read the request: {e}")),
+        Err(_) => failed("no request within 10 s"),
+    };
+    let mut answer = serde_json::to_vec(&outcome).expect("an outcome serializes");
+    answer.push(b'\n');
+    if let Err(e) = write.write_all(&answer).await {
+        tracing::warn!(error = %e, ok = outcome.ok, "cannot tell cell upgrade how the upgrade went");
+    }
+}
+
+fn failed(message: &str) -> UpgradeOutcome {
+    UpgradeOutcome {
+        ok: false,
+        message: message.to_string(),
+    }
 }
 
 /// The cell's zenoh router, inside this process: it lives as long as the session.
@@ -117,6 +224,20 @@ struct Slot {
     started_at: Instant,
     /// When it is due to start again, after it exited.
     restart_at: Option<Instant>,
+    /// Its successor, started by `cell upgrade`, until the hand-over ends.
+    successor: Option<Successor>,
+}
+
+/// A successor that is taking a process over.
+struct Successor {
+    pid: Option<u32>,
+    generation: u64,
+    /// Its command line, the process's from now on.
+    program: String,
+    args: Vec<String>,
+    started_at: Instant,
+    /// Where `cell upgrade` learns how it went.
+    reply: oneshot::Sender<UpgradeOutcome>,
 }
 
 /// How one process ended: its index, generation and exit status.
@@ -128,7 +249,11 @@ struct Processes<'a> {
     dir: &'a Path,
     /// Where `<name>.log` of each process goes.
     logs: PathBuf,
-    specs: &'a [ProcessSection],
+    /// The processes' specs: the manifest's, with the command lines of upgrades.
+    specs: Vec<ProcessSection>,
+    /// Every start gets the next generation (of all processes), so an exit is matched
+    /// with the start it ends.
+    generations: u64,
     /// A process that ran for a whole period has earned a fresh backoff.
     period: Duration,
     /// How long a process has between SIGTERM and SIGKILL.
@@ -151,7 +276,8 @@ impl<'a> Processes<'a> {
         Processes {
             dir,
             logs,
-            specs: &manifest.processes,
+            specs: manifest.processes.clone(),
+            generations: 0,
             period: Duration::from_millis(restart.period_ms),
             stop_timeout: Duration::from_millis(restart.stop_timeout_ms),
             slots: manifest
@@ -163,6 +289,7 @@ impl<'a> Processes<'a> {
                     backoff: backoff.clone(),
                     started_at: clock.0,
                     restart_at: None,
+                    successor: None,
                 })
                 .collect(),
             waits: JoinSet::new(),
@@ -181,42 +308,158 @@ impl<'a> Processes<'a> {
 
     fn start(&mut self, index: usize) -> Result<()> {
         let spec = &self.specs[index];
+        let (program, args) = (spec.program.clone(), spec.args.clone());
+        let (pid, generation) = self.spawn(index, &program, &args)?;
+        let slot = &mut self.slots[index];
+        slot.generation = generation;
+        slot.pid = pid;
+        slot.started_at = Instant::now();
+        slot.restart_at = None;
+        self.clock.say(format!(
+            "started {} (pid {})",
+            self.specs[index].name,
+            pid.unwrap_or(0)
+        ));
+        Ok(())
+    }
+
+    /// Starts `program` with `args` as process `index` (its log appended to), waited
+    /// for in `waits`: its pid and generation.
+    fn spawn(
+        &mut self,
+        index: usize,
+        program: &str,
+        args: &[String],
+    ) -> Result<(Option<u32>, u64)> {
+        let name = &self.specs[index].name;
         let log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
-            .open(self.logs.join(format!("{}.log", spec.name)))?;
-        let mut child = Command::new(resolve(&spec.program))
-            .args(&spec.args)
+            .open(self.logs.join(format!("{name}.log")))?;
+        let mut child = Command::new(resolve(program))
+            .args(args)
             .current_dir(self.dir)
             .stdin(Stdio::null())
             .stdout(log.try_clone()?)
             .stderr(log)
             .kill_on_drop(true)
             .spawn()
-            .with_context(|| format!("cannot start {} ({})", spec.name, spec.program))?;
-        let slot = &mut self.slots[index];
-        slot.generation += 1;
-        slot.pid = child.id();
-        slot.started_at = Instant::now();
-        slot.restart_at = None;
-        let generation = slot.generation;
-        self.clock.say(format!(
-            "started {} (pid {})",
-            spec.name,
-            slot.pid.unwrap_or(0)
-        ));
+            .with_context(|| format!("cannot start {name} ({program})"))?;
+        self.generations += 1;
+        let generation = self.generations;
+        let pid = child.id();
         self.waits
             .spawn(async move { (index, generation, child.wait().await) });
-        Ok(())
+        Ok((pid, generation))
     }
 
-    /// Restarts what exits until `shutdown`: true, or false when the restart intensity
-    /// was exceeded.
-    async fn supervise(&mut self, shutdown: CancellationToken) -> bool {
+    /// Begins the upgrade of one process: checks the successor's command line, starts
+    /// it with `--take-over`; the outcome goes to `reply` when the hand-over ends (see
+    /// [`Processes::exited`]), or now if it cannot begin.
+    async fn upgrade(&mut self, request: UpgradeRequest, reply: oneshot::Sender<UpgradeOutcome>) {
+        let refuse = |reply: oneshot::Sender<UpgradeOutcome>, message: String| {
+            if reply.send(failed(&message)).is_err() {
+                tracing::warn!(%message, "cell upgrade went away before its answer");
+            }
+        };
+        let Some(index) = self.specs.iter().position(|s| s.name == request.name) else {
+            let names: Vec<&str> = self.specs.iter().map(|s| s.name.as_str()).collect();
+            return refuse(
+                reply,
+                format!(
+                    "no process {} runs here (this host's are: {})",
+                    request.name,
+                    names.join(", ")
+                ),
+            );
+        };
+        let spec = &self.specs[index];
+        let slot = &self.slots[index];
+        if slot.successor.is_some() {
+            return refuse(reply, format!("{} is being upgraded already", spec.name));
+        }
+        if slot.pid.is_none() {
+            return refuse(
+                reply,
+                format!(
+                    "{} is not running now (it is restarting or ended); try again when it runs",
+                    spec.name
+                ),
+            );
+        }
+        let (program, args) = match crate::upgrade::successor_command(
+            &spec.program,
+            &spec.args,
+            request.binary.as_deref(),
+            request.config.as_deref(),
+        ) {
+            Ok(command) => command,
+            Err(e) => return refuse(reply, format!("{}: {e:#}", spec.name)),
+        };
+        // A config that fails its check leaves the running process alone.
+        let check = tokio::time::timeout(
+            Duration::from_secs(30),
+            Command::new(resolve(&program))
+                .args(&args)
+                .arg("--check")
+                .current_dir(self.dir)
+                .stdin(Stdio::null())
+                .output(),
+        )
+        .await;
+        match check {
+            Ok(Ok(output)) if output.status.success() => {}
+            Ok(Ok(output)) => {
+                let why = String::from_utf8_lossy(&output.stderr).trim().to_string();
+                return refuse(
+                    reply,
+                    format!(
+                        "the successor of {} does not pass its check; {} runs on unchanged: {why}",
+                        spec.name, spec.name
+                    ),
+                );
+            }
+            Ok(Err(e)) => return refuse(reply, format!("cannot run {program}: {e}")),
+            Err(_) => return refuse(reply, format!("{program} --check did not end within 30 s")),
+        }
+        let mut successor_args = args.clone();
+        successor_args.extend([
+            "--take-over".to_string(),
+            "--take-over-wait-ms".to_string(),
+            request.wait_ms.to_string(),
+        ]);
+        let name = spec.name.clone();
+        match self.spawn(index, &program, &successor_args) {
+            Ok((pid, generation)) => {
+                self.clock.say(format!(
+                    "upgrading {name}: started its successor (pid {}), which takes over when {name} has finished its step",
+                    pid.unwrap_or(0)
+                ));
+                self.slots[index].successor = Some(Successor {
+                    pid,
+                    generation,
+                    program,
+                    args,
+                    started_at: Instant::now(),
+                    reply,
+                });
+            }
+            Err(e) => refuse(reply, format!("{e:#}")),
+        }
+    }
+
+    /// Restarts what exits until `shutdown`, and carries out upgrades: true, or false
+    /// when the restart intensity was exceeded.
+    async fn supervise(
+        &mut self,
+        shutdown: CancellationToken,
+        mut upgrades: mpsc::Receiver<Upgrade>,
+    ) -> bool {
         loop {
             let next_restart = self.slots.iter().filter_map(|s| s.restart_at).min();
             tokio::select! {
                 _ = shutdown.cancelled() => return true,
+                Some((request, reply)) = upgrades.recv() => self.upgrade(request, reply).await,
                 Some(joined) = self.waits.join_next() => {
                     let Ok(ended) = joined else { continue };
                     if !self.exited(ended) {
@@ -232,11 +475,52 @@ impl<'a> Processes<'a> {
 
     /// Decides on an exit after its restart type and the intensity: false to give up.
     fn exited(&mut self, (index, generation, status): Ended) -> bool {
-        let spec = &self.specs[index];
+        let name = self.specs[index].name.clone();
         let slot = &mut self.slots[index];
+        if slot
+            .successor
+            .as_ref()
+            .is_some_and(|s| s.generation == generation)
+        {
+            let successor = slot.successor.take().expect("checked");
+            let message = format!(
+                "the successor of {name} exited ({}) before taking over; {name} runs on unchanged. The end of logs/{name}.log:\n{}",
+                describe(status),
+                crate::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
+            );
+            self.clock
+                .say(format!("upgrade of {name} failed: its successor exited"));
+            if successor.reply.send(failed(&message)).is_err() {
+                tracing::warn!(%name, "cell upgrade went away before its answer");
+            }
+            return true;
+        }
         if slot.generation != generation {
             return true;
         }
+        if let Some(successor) = slot.successor.take() {
+            let before = slot.pid.unwrap_or(0);
+            slot.generation = successor.generation;
+            slot.pid = successor.pid;
+            slot.started_at = successor.started_at;
+            slot.backoff.reset();
+            let spec = &mut self.specs[index];
+            spec.program = successor.program;
+            spec.args = successor.args;
+            let message = format!(
+                "upgraded {name}: pid {before} ({}) handed over to pid {} in {} ms",
+                describe(status),
+                successor.pid.unwrap_or(0),
+                successor.started_at.elapsed().as_millis()
+            );
+            self.clock.say(&message);
+            let outcome = UpgradeOutcome { ok: true, message };
+            if successor.reply.send(outcome).is_err() {
+                tracing::warn!(%name, "cell upgrade went away before its answer");
+            }
+            return true;
+        }
+        let spec = &self.specs[index];
         slot.pid = None;
         let ended_normally = status.as_ref().is_ok_and(ExitStatus::success);
         let status = status
@@ -290,6 +574,23 @@ impl<'a> Processes<'a> {
     /// Stops the running processes, last first: SIGTERM, then SIGKILL after the
     /// stop timeout.
     async fn stop_all(&mut self) {
+        for index in 0..self.slots.len() {
+            if let Some(successor) = self.slots[index].successor.take() {
+                if let Some(pid) = successor.pid {
+                    let pid = nix::unistd::Pid::from_raw(pid as i32);
+                    if let Err(e) = nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM) {
+                        self.clock.say(format!("cannot signal a successor: {e}"));
+                    }
+                }
+                if successor
+                    .reply
+                    .send(failed("cell up is stopping: the upgrade was abandoned"))
+                    .is_err()
+                {
+                    tracing::warn!("cell upgrade went away before its answer");
+                }
+            }
+        }
         for index in (0..self.slots.len()).rev() {
             if let Some(pid) = self.slots[index].pid.take() {
                 self.stop(index, pid).await;

@@ -297,12 +297,13 @@ impl ResourceConfig {
         if let Some(controller) = overrides.controller {
             file.controller.address = controller;
         }
-        let mut config = Self::validate(file, overrides.allow_fault_injection).map_err(
-            |message| ConfigError::Invalid {
-                path: path.to_string(),
-                message,
-            },
-        )?;
+        let mut config =
+            Self::validate(file, overrides.allow_fault_injection).map_err(|message| {
+                ConfigError::Invalid {
+                    path: path.to_string(),
+                    message,
+                }
+            })?;
         config.take_over = overrides.common.take_over;
         Ok(config)
     }

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use holon::ZenohSettings;
 use schemas::{CellKeys, HolonId, HolonKind};
-use tracing::warn;
+use tracing::{info, warn};
 
 use crate::config::{ConfigError, Overrides};
 use crate::node::{NodeError, STARTUP_TIMEOUT};
@@ -74,11 +74,30 @@ impl Identity {
 
     /// Opens the holon's session (as `<kind>.<name>` for TLS) and claims its name: a
     /// twin (the name alive elsewhere in the cell) is refused before this process
-    /// answers anything. Keep the claim for as long as the holon serves.
+    /// answers anything. Keep the claim for as long as the holon serves. With
+    /// `--take-over`, the running process hands the name over first.
     pub async fn join(&self) -> Result<(zenoh::Session, holon::presence::Claim), NodeError> {
         let holon = &self.holon;
         let tls_identity = holon::tls::identity(&holon.kind().to_string(), holon.name());
         let session = self.zenoh.open(&tls_identity, STARTUP_TIMEOUT).await?;
+        if let Some(wait) = self.take_over {
+            let request = holon::takeover::Request {
+                successor: holon::presence::Holder::this_process(&session),
+                version: crate::VERSION.to_string(),
+                data_dir: None,
+                wait_ms: wait.as_millis() as u64,
+            };
+            let alive_key = self.keys.alive(holon);
+            let taken =
+                holon::takeover::take_over(&session, &alive_key, &holon.to_string(), &request)
+                    .await;
+            if let Err(e) = taken {
+                if let Err(close) = session.close().await {
+                    warn!(%holon, error = %close, "cannot close the zenoh session");
+                }
+                return Err(e.into());
+            }
+        }
         match holon::presence::claim(
             &session,
             &self.keys.alive(holon),
@@ -97,3 +116,60 @@ impl Identity {
         }
     }
 }
+
+/// A plain holon's hand-over to its successor (it has nothing to finish): answers on
+/// `stand_in` keys with `unavailable` and a retry hint, withdraws the token and the
+/// claim, releases the name, and stands in until the successor serves.
+pub async fn hand_over(
+    identity: &Identity,
+    session: &zenoh::Session,
+    offer: holon::takeover::Offer,
+    token: zenoh::liveliness::LivelinessToken,
+    claim: holon::presence::Claim,
+    stand_in: &[(String, bool)],
+) {
+    let holon = &identity.holon;
+    let started = std::time::Instant::now();
+    let refusal = schemas::ErrorReply::unavailable(
+        format!("{holon} is being handed over to its successor (an upgrade); ask again shortly"),
+        HANDOVER_RETRY,
+    )
+    .to_json();
+    let answer: holon::takeover::Answer = {
+        let holon = holon.clone();
+        std::sync::Arc::new(move |query: &zenoh::query::Query| {
+            use zenoh::Wait;
+            if let Err(e) = query.reply_err(refusal.clone()).wait() {
+                warn!(%holon, error = %e, "cannot answer a request while handed over");
+            }
+        })
+    };
+    let stand_in = match holon::takeover::stand_in(session, stand_in, answer).await {
+        Ok(stand_in) => Some(stand_in),
+        Err(e) => {
+            warn!(%holon, error = %e, "cannot stand in for the successor: requests in the gap go unanswered");
+            None
+        }
+    };
+    if let Err(e) = token.undeclare().await {
+        warn!(%holon, error = %e, "cannot withdraw the liveliness token");
+    }
+    drop(claim);
+    let successor = offer.request.successor.clone();
+    offer.release(crate::VERSION).await;
+    info!(%holon, %successor, "handed over; standing in until the successor serves");
+    let alive_key = identity.keys.alive(holon);
+    let served =
+        holon::takeover::until_successor(session, &alive_key, holon::takeover::STAND_IN_LIMIT)
+            .await;
+    let gap_ms = started.elapsed().as_millis() as u64;
+    if served {
+        info!(%holon, gap_ms, "the successor serves; this process ends");
+    } else {
+        warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends anyway");
+    }
+    drop(stand_in);
+}
+
+/// When a request refused during a hand-over is to be asked again.
+const HANDOVER_RETRY: std::time::Duration = std::time::Duration::from_millis(100);

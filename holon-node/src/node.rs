@@ -232,7 +232,7 @@ enum Ending {
     /// Shutdown (SIGTERM): bookings handed back, components stopped.
     Stopped,
     /// A successor asked and the holon is ready to hand over to it.
-    HandingOver(holon::takeover::Offer),
+    HandingOver(Box<holon::takeover::Offer>),
 }
 
 /// Whether the successor's data directory is this holon's: the same journal.
@@ -348,7 +348,7 @@ async fn serve(
                     _ = shutdown.cancelled() => Err("the holon is shutting down".into()),
                 };
                 match prepared {
-                    Ok(()) => break Ok(Ending::HandingOver(offer)),
+                    Ok(()) => break Ok(Ending::HandingOver(Box::new(offer))),
                     Err(detail) => {
                         warn!(%holon, %detail, "hand-over abandoned; serving on");
                         offer.refuse(crate::VERSION, detail).await;
@@ -385,8 +385,8 @@ async fn serve(
     // here, before the token goes, so it is seen first), and requests that come while
     // no process serves get `unavailable` with a retry hint from the stand-in.
     let started = std::time::Instant::now();
-    let last_state = serde_json::to_vec(&wiring.communication.views.snapshot())
-        .expect("a snapshot serializes");
+    let last_state =
+        serde_json::to_vec(&wiring.communication.views.snapshot()).expect("a snapshot serializes");
     if let Err(e) = session.put(config.keys.state(holon), last_state).await {
         warn!(%holon, error = %e, "cannot publish the hand-over state; requesters see a vanished resource");
     }
@@ -410,12 +410,8 @@ async fn serve(
     let successor = offer.request.successor.clone();
     offer.release(crate::VERSION).await;
     info!(%holon, %successor, released_in_ms = started.elapsed().as_millis() as u64, "handed over: journal closed, token withdrawn; standing in until the successor serves");
-    let served = holon::takeover::until_successor(
-        session,
-        alive_key,
-        holon::takeover::STAND_IN_LIMIT,
-    )
-    .await;
+    let served =
+        holon::takeover::until_successor(session, alive_key, holon::takeover::STAND_IN_LIMIT).await;
     let gap_ms = started.elapsed().as_millis() as u64;
     if served {
         info!(%holon, gap_ms, "the successor serves; this process ends");
@@ -439,7 +435,9 @@ fn stand_in_answer(holon: schemas::HolonId) -> holon::takeover::Answer {
             Ok(request) => {
                 let mut refusal = request.refused(&holon, schemas::reason::UNAVAILABLE);
                 crate::agenda::handing_over_hint(&mut refusal.info);
-                query.reply(query.key_expr().clone(), refusal.to_json()).wait()
+                query
+                    .reply(query.key_expr().clone(), refusal.to_json())
+                    .wait()
             }
             Err(e) => query
                 .reply_err(schemas::ErrorReply::for_schema_error(&e).to_json())

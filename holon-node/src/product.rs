@@ -67,7 +67,7 @@ impl ProductConfig {
 /// Serves the plan until `shutdown` is cancelled.
 pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.identity.holon.clone();
-    let (session, _claim) = config.identity.join().await?;
+    let (session, claim) = config.identity.join().await?;
     let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
     let snapshot = serde_json::json!({
@@ -122,10 +122,30 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         .declare_token(config.identity.keys.alive(&holon))
         .await
         .map_err(zenoh_error)?;
+    let mut successors = holon::takeover::listen(&session, &config.identity.keys.alive(&holon))
+        .await
+        .map_err(zenoh_error)?;
     info!(holon = %holon, key = %plan_key, steps = config.plan.steps.len(), "holon ready");
-    shutdown.cancelled().await;
-    if let Err(e) = token.undeclare().await {
-        error!(holon = %holon, error = %e, "cannot withdraw the liveliness token");
+    tokio::select! {
+        _ = shutdown.cancelled() => {
+            if let Err(e) = token.undeclare().await {
+                error!(holon = %holon, error = %e, "cannot withdraw the liveliness token");
+            }
+        }
+        offer = successors.next() => {
+            info!(holon = %holon, successor = %offer.request.successor, version = %offer.request.version, "a successor asks to take over");
+            drop(successors);
+            drop(_plan_queryable);
+            crate::identity::hand_over(
+                &config.identity,
+                &session,
+                offer,
+                token,
+                claim,
+                &[(plan_key.clone(), false)],
+            )
+            .await;
+        }
     }
     match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
         Ok(Ok(())) => {}

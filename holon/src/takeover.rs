@@ -85,7 +85,10 @@ pub enum TakeoverError {
     Refused { holon: String, detail: String },
     #[error("the running {holon} did not answer the hand-over within {waited:?}; it may still hand over, or serve on")]
     NoAnswer { holon: String, waited: Duration },
-    #[error("{holon} said it released its name, but its token is still visible after {0:?}", TOKEN_GONE_WITHIN)]
+    #[error(
+        "{holon} said it released its name, but its token is still visible after {0:?}",
+        TOKEN_GONE_WITHIN
+    )]
     StillHeld { holon: String },
     #[error("zenoh: {0}")]
     Zenoh(String),
@@ -209,9 +212,10 @@ pub async fn listen(session: &zenoh::Session, presence_key: &str) -> zenoh::Resu
             let refusal = match serde_json::from_slice::<Request>(&payload) {
                 Ok(request) => match sender.try_send(Offer { request, query }) {
                     Ok(()) => return,
-                    Err(mpsc::error::TrySendError::Full(offer)) => {
-                        (offer.query, "another successor is taking over already".to_string())
-                    }
+                    Err(mpsc::error::TrySendError::Full(offer)) => (
+                        offer.query,
+                        "another successor is taking over already".to_string(),
+                    ),
                     Err(mpsc::error::TrySendError::Closed(offer)) => {
                         (offer.query, "the holon is stopping".to_string())
                     }
@@ -264,7 +268,11 @@ impl Offer {
 
     async fn answer(self, reply: Reply) {
         let payload = serde_json::to_vec(&reply).expect("a take-over reply serializes");
-        if let Err(e) = self.query.reply(self.query.key_expr().clone(), payload).await {
+        if let Err(e) = self
+            .query
+            .reply(self.query.key_expr().clone(), payload)
+            .await
+        {
             warn!(error = %e, released = reply.released, "cannot answer the successor; it times out");
         }
     }

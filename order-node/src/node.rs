@@ -39,7 +39,15 @@ pub enum OrderNodeError {
     Journal(#[from] holon::journal::JournalError),
     #[error(transparent)]
     Claim(#[from] holon::presence::ClaimError),
+    #[error(transparent)]
+    Takeover(#[from] holon::takeover::TakeoverError),
 }
+
+/// This build's release, published in its orders' states and named in hand-overs.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// When a request refused during a hand-over is to be asked again.
+const HANDOVER_RETRY: Duration = Duration::from_millis(100);
 
 /// Parses `PRODUCT[:COUNT[:PRIORITY]]` (count 1 and priority 0 when left out) from
 /// the command line.
@@ -88,15 +96,24 @@ pub async fn run(
             Duration::from_secs(10),
         )
         .await?;
+    let host_key = config.keys.host("order-node", &config.name);
+    let holder = format!("order-node {}", config.name);
+    if let Some(wait) = config.take_over {
+        let request = holon::takeover::Request {
+            successor: holon::presence::Holder::this_process(&session),
+            version: VERSION.to_string(),
+            data_dir: canonical(config.data_dir.as_deref()),
+            wait_ms: wait.as_millis() as u64,
+        };
+        if let Err(e) = holon::takeover::take_over(&session, &host_key, &holder, &request).await {
+            close(&config.name, session).await;
+            return Err(e.into());
+        }
+    }
     // A twin (an order-node of the same name alive in the cell) would number its
     // orders like this one: refused before anything is declared.
-    let _claim = holon::presence::claim(
-        &session,
-        &config.keys.host("order-node", &config.name),
-        &format!("order-node {}", config.name),
-        Duration::from_secs(10),
-    )
-    .await?;
+    let claim =
+        holon::presence::claim(&session, &host_key, &holder, Duration::from_secs(10)).await?;
     let (journal, (recovered, next)) = open_journal(&config)?;
     let presence = Presence::follow(&session, &config.keys)
         .await
@@ -128,6 +145,9 @@ pub async fn run(
         .declare_token(config.keys.host("order-node", &config.name))
         .await
         .map_err(zenoh_error)?;
+    let mut successors = holon::takeover::listen(&session, &host_key)
+        .await
+        .map_err(zenoh_error)?;
     info!(node = %config.name, cell = %config.keys.cell(), "order-node ready");
 
     let orders_cancel = CancellationToken::new();
@@ -140,9 +160,23 @@ pub async fn run(
         .clamp(Duration::from_millis(100), RETENTION_SWEEP);
     let mut sweep = tokio::time::interval(every);
     sweep.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
+    let handing_over = loop {
         tokio::select! {
-            _ = shutdown.cancelled() => break,
+            _ = shutdown.cancelled() => break None,
+            offer = successors.next() => {
+                let request = &offer.request;
+                info!(node = %config.name, successor = %request.successor, version = %request.version, "a successor asks to take over");
+                if canonical(config.data_dir.as_deref()) != request.data_dir {
+                    let detail = format!(
+                        "its data dir {:?} is not this order-node's {:?}: its orders would not resume there",
+                        request.data_dir, config.data_dir
+                    );
+                    warn!(node = %config.name, %detail, "hand-over refused");
+                    offer.refuse(VERSION, detail).await;
+                    continue;
+                }
+                break Some(offer);
+            }
             _ = sweep.tick(), if config.keep_finished.is_some() => {
                 if let Some(keep) = config.keep_finished {
                     host.forget_finished(keep);
@@ -153,8 +187,10 @@ pub async fn run(
                 task_ended(&host, joined, &mut tasks, &orders_cancel).await;
             }
         }
-    }
-    info!(node = %config.name, "stopping: orders in progress stop where they stand");
+    };
+    drop(successors);
+    let started = std::time::Instant::now();
+    info!(node = %config.name, handing_over = handing_over.is_some(), "stopping: orders in progress stop where they stand");
     orders_cancel.cancel();
     let stopped = tokio::time::timeout(Duration::from_secs(5), async {
         while tasks.set.join_next().await.is_some() {}
@@ -163,10 +199,52 @@ pub async fn run(
     if stopped.is_err() {
         warn!(node = %config.name, "order tasks did not stop within 5 s; they end with the process (their progress is in the journal)");
     }
+    // While handed over, submits, cancels and results get `unavailable` with a retry
+    // hint from a stand-in (submits and cancels are asked again by `cell`, results
+    // delivered again by the resources), until the successor serves.
+    let stand_in = match &handing_over {
+        Some(_) => match holon::takeover::stand_in(
+            &session,
+            &[
+                (config.keys.orders_submit(), true),
+                (config.keys.node_orders(&config.name, "cancel"), false),
+                (config.keys.node_orders(&config.name, "inbox"), false),
+            ],
+            stand_in_answer(config.name.clone()),
+        )
+        .await
+        {
+            Ok(stand_in) => Some(stand_in),
+            Err(e) => {
+                warn!(node = %config.name, error = %e, "cannot stand in for the successor: requests in the gap go unanswered");
+                None
+            }
+        },
+        None => None,
+    };
+    drop(endpoints);
     if let Err(e) = token.undeclare().await {
         warn!(node = %config.name, error = %e, "cannot withdraw the order-node's token; it goes with the session");
     }
-    drop(endpoints);
+    if let Some(offer) = handing_over {
+        // The journal closes with the last holder of the host: the successor opens it.
+        drop(queries);
+        drop(host);
+        drop(claim);
+        let successor = offer.request.successor.clone();
+        offer.release(VERSION).await;
+        info!(node = %config.name, %successor, released_in_ms = started.elapsed().as_millis() as u64, "handed over: orders stopped where they stood, journal closed; standing in until the successor serves");
+        let served =
+            holon::takeover::until_successor(&session, &host_key, holon::takeover::STAND_IN_LIMIT)
+                .await;
+        let gap_ms = started.elapsed().as_millis() as u64;
+        if served {
+            info!(node = %config.name, gap_ms, "the successor serves; this process ends");
+        } else {
+            warn!(node = %config.name, gap_ms, "the successor did not serve within the stand-in limit; this process ends anyway (its orders resume whenever an order-node with this journal starts)");
+        }
+    }
+    drop(stand_in);
     match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
         Ok(Ok(())) => {}
         Ok(Err(e)) => warn!(node = %config.name, error = %e, "cannot close the zenoh session"),
@@ -174,6 +252,34 @@ pub async fn run(
     }
     info!(node = %config.name, "order-node stopped");
     Ok(())
+}
+
+/// A data directory as a successor names it (absolute, so two spellings of one
+/// directory compare equal).
+fn canonical(dir: Option<&std::path::Path>) -> Option<std::path::PathBuf> {
+    dir.map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.to_path_buf()))
+}
+
+/// Closes a session that never served.
+async fn close(node: &str, session: zenoh::Session) {
+    if let Err(e) = session.close().await {
+        warn!(%node, error = %e, "cannot close the zenoh session");
+    }
+}
+
+/// The stand-in's answer while the node is handed over: `unavailable`, ask again.
+fn stand_in_answer(node: String) -> holon::takeover::Answer {
+    let refusal = schemas::ErrorReply::unavailable(
+        "the order-node is being handed over to its successor (an upgrade); ask again shortly",
+        HANDOVER_RETRY,
+    )
+    .to_json();
+    Arc::new(move |query: &zenoh::query::Query| {
+        use zenoh::Wait;
+        if let Err(e) = query.reply_err(refusal.clone()).wait() {
+            warn!(%node, error = %e, "cannot answer a request while handed over; the requester asks again after its timeout");
+        }
+    })
 }
 
 fn zenoh_error(e: zenoh::Error) -> OrderNodeError {

@@ -19,11 +19,7 @@ async fn order_states(cell: &Cell, orders: &[String]) -> Vec<serde_json::Value> 
 }
 
 /// Waits (at most `limit`) until every order is done; the states as they ended.
-async fn wait_all_done(
-    cell: &Cell,
-    orders: &[String],
-    limit: Duration,
-) -> Vec<serde_json::Value> {
+async fn wait_all_done(cell: &Cell, orders: &[String], limit: Duration) -> Vec<serde_json::Value> {
     let deadline = tokio::time::Instant::now() + limit;
     loop {
         let states = order_states(cell, orders).await;
@@ -100,7 +96,10 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
     )
     .unwrap();
     let status = wrong.wait_exit(Duration::from_secs(20)).unwrap();
-    assert!(!status.success(), "a successor on another journal must fail");
+    assert!(
+        !status.success(),
+        "a successor on another journal must fail"
+    );
     assert!(wrong.stderr().contains("data dir"), "{}", wrong.stderr());
 
     // The real successor: same config, same data dir.
@@ -115,11 +114,7 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
     .unwrap();
     let status = old.wait_exit(Duration::from_secs(30)).unwrap();
     assert!(status.success(), "the predecessor ends with 0: {status:?}");
-    assert!(
-        old.stderr().contains("handed over"),
-        "{}",
-        old.stderr()
-    );
+    assert!(old.stderr().contains("handed over"), "{}", old.stderr());
     cell.wait_alive(&HolonId::resource("robot1").unwrap())
         .await
         .unwrap();
@@ -134,4 +129,201 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
         .wait_exit(Duration::from_secs(20))
         .unwrap()
         .success());
+}
+
+/// Runs `cell upgrade ARGS --dir DIR`: its success and its output (stdout, stderr).
+async fn cell_upgrade(dir: &Path, args: &[&str]) -> (bool, String) {
+    let output = tokio::process::Command::new(bin("cell"))
+        .arg("upgrade")
+        .args(args)
+        .arg("--dir")
+        .arg(dir)
+        .output()
+        .await
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    (output.status.success(), text)
+}
+
+/// A `key=value` number from the last log line of `log` that contains `what`.
+fn logged_number(log: &Path, what: &str, key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(log).ok()?;
+    let line = text.lines().rev().find(|l| l.contains(what))?;
+    let at = line.find(&format!("{key}="))? + key.len() + 1;
+    line[at..]
+        .chars()
+        .take_while(|c| c.is_ascii_digit())
+        .collect::<String>()
+        .parse()
+        .ok()
+}
+
+/// How long robot1 started no job because of its hand-over, beyond its running step:
+/// from the state that showed it handing over with its running step finished, to the
+/// first state of its successor with a job running (from the states it published).
+fn resource_gap(states: &[serde_json::Value]) -> Option<u64> {
+    let quiet = states
+        .iter()
+        .position(|s| s["handing_over"] == true && s["current"].is_null())?;
+    let quiet_at = states[quiet]["at"].as_u64()?;
+    let resumed = states[quiet..]
+        .iter()
+        .find(|s| s["handing_over"] != true && !s["current"].is_null())?;
+    Some(resumed["at"].as_u64()? - quiet_at)
+}
+
+/// Fifty orders run while robot1, the order-node and the product are upgraded one after
+/// another through `cell up` and `cell upgrade` (new binaries, and a new config for
+/// robot1): every order is done, nothing is handed back, rebooked, interrupted or run
+/// twice; a config that fails its check leaves the running process alone.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_cell_keeps_producing_while_each_holon_is_upgraded() {
+    let dir = tempfile::tempdir().unwrap();
+    let dir = dir.path();
+    let cell = Cell::open("t-upgrade").await.unwrap();
+    let sim1 = Sim::start(dir, "sim1", "127.0.0.1:0", &["--delay-ms", "250"]).unwrap();
+    let sim2 = Sim::start(dir, "sim2", "127.0.0.1:0", &["--delay-ms", "250"]).unwrap();
+    let robot1 = resource_config(dir, "robot1", 10_000).unwrap();
+    let robot2 = resource_config(dir, "robot2", 10_000).unwrap();
+    one_step_product(dir).unwrap();
+    std::fs::copy(demo_config("orders1.toml"), dir.join("orders1.toml")).unwrap();
+    // The new release: the same build, installed elsewhere.
+    let release = dir.join("release-2");
+    std::fs::create_dir_all(&release).unwrap();
+    for program in ["holon-node", "order-node"] {
+        std::fs::copy(bin(program), release.join(program)).unwrap();
+    }
+    // robot1's new config offers one more service type; a broken one fails its check.
+    let mut v2 = std::fs::read_to_string(&robot1).unwrap();
+    v2.push_str(
+        "\n[services.inspect]\nnominal_duration_ms = 500\nsteps = [{ action = \"inspect\", until = [\"inspect_pass\", \"inspect_fail\"] }]\n",
+    );
+    std::fs::write(dir.join("robot1-v2.toml"), v2).unwrap();
+    std::fs::write(dir.join("broken.toml"), "cell = \"t-upgrade\"\nname = 7\n").unwrap();
+    let router = &cell.endpoint;
+    let common = format!("\"--cell\", \"t-upgrade\", \"--connect\", \"{router}\"");
+    std::fs::write(
+        dir.join("cell.toml"),
+        format!(
+            r#"
+cell = "t-upgrade"
+[[process]]
+name = "robot1"
+program = "holon-node"
+args = ["--config", "{robot1}", "--controller", "{sim1}", "--data-dir", "data", {common}]
+[[process]]
+name = "robot2"
+program = "holon-node"
+args = ["--config", "{robot2}", "--controller", "{sim2}", "--data-dir", "data", {common}]
+[[process]]
+name = "part"
+program = "holon-node"
+args = ["--config", "part.toml", {common}]
+[[process]]
+name = "orders1"
+program = "order-node"
+args = ["--config", "orders1.toml", "--data-dir", "data", {common}]
+"#,
+            robot1 = robot1.display(),
+            robot2 = robot2.display(),
+            sim1 = sim1.address,
+            sim2 = sim2.address,
+        ),
+    )
+    .unwrap();
+    let up_log = std::fs::File::create(dir.join("cell-up.out")).unwrap();
+    let mut up = std::process::Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir)
+        .stdout(up_log.try_clone().unwrap())
+        .stderr(up_log)
+        .spawn()
+        .unwrap();
+    for robot in ["robot1", "robot2"] {
+        cell.wait_alive(&HolonId::resource(robot).unwrap())
+            .await
+            .unwrap();
+        cell.wait_state(robot, "free", |s| s["state"] == "free")
+            .await
+            .unwrap();
+    }
+    cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, "part").unwrap())
+        .await
+        .unwrap();
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
+    // robot1's states, to measure its gap.
+    let states = cell
+        .session
+        .declare_subscriber(cell.keys.state(&HolonId::resource("robot1").unwrap()))
+        .await
+        .unwrap();
+
+    let orders = cell.submit("part", 50).await.unwrap();
+    assert_eq!(orders.len(), 50);
+    sim1.wait_executed("pick", 2).await;
+
+    // A config that fails its check: nothing changes.
+    let (ok, out) = cell_upgrade(dir, &["robot1", "--config", "broken.toml"]).await;
+    assert!(!ok, "{out}");
+    assert!(out.contains("does not pass its check"), "{out}");
+
+    let binary = release.join("holon-node");
+    let binary = binary.to_str().unwrap();
+    let (ok, out) = cell_upgrade(
+        dir,
+        &["robot1", "--binary", binary, "--config", "robot1-v2.toml"],
+    )
+    .await;
+    assert!(ok, "{out}");
+    assert!(out.contains("upgraded robot1"), "{out}");
+    cell.wait_state("robot1", "offering its new service type", |s| {
+        s["services"]
+            .as_array()
+            .is_some_and(|t| t.iter().any(|t| t == "inspect"))
+    })
+    .await
+    .unwrap();
+
+    let order_node = release.join("order-node");
+    let (ok, out) = cell_upgrade(dir, &["orders1", "--binary", order_node.to_str().unwrap()]).await;
+    assert!(ok, "{out}");
+    let (ok, out) = cell_upgrade(dir, &["part", "--binary", binary]).await;
+    assert!(ok, "{out}");
+    let states_now = order_states(&cell, &orders).await;
+    assert!(
+        states_now.iter().any(|s| s["status"] != "done"),
+        "the orders were all done before the last upgrade: the test proves nothing"
+    );
+
+    let ended = wait_all_done(&cell, &orders, Duration::from_secs(120)).await;
+    assert_undisturbed(&ended);
+    // Each order's one step ran exactly once, on one of the two robots.
+    let picks = sim1.executed("pick") + sim2.executed("pick");
+    let places = sim1.executed("place") + sim2.executed("place");
+    assert_eq!((picks, places), (50, 50));
+    assert!(sim1.executed("pick") > 2, "robot1 worked after its upgrade");
+
+    // The gaps, for docs/benchmarks.md.
+    let mut published = Vec::new();
+    while let Ok(Some(sample)) = states.try_recv() {
+        if let Ok(state) = serde_json::from_slice(&sample.payload().to_bytes()) {
+            published.push(state);
+        }
+    }
+    let logs = dir.join("logs");
+    println!(
+        "upgrade gaps: robot1 idle beyond its running step {:?} ms (hand-over to successor serving {:?} ms); orders1 {:?} ms; part {:?} ms",
+        resource_gap(&published),
+        logged_number(&logs.join("robot1.log"), "the successor serves", "gap_ms"),
+        logged_number(&logs.join("orders1.log"), "the successor serves", "gap_ms"),
+        logged_number(&logs.join("part.log"), "the successor serves", "gap_ms"),
+    );
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(up.id() as i32), Signal::SIGTERM).unwrap();
+    assert!(up.wait().unwrap().success());
 }

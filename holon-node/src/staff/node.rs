@@ -57,7 +57,7 @@ struct Published {
 /// Runs the staff holon until `shutdown` is cancelled.
 pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.identity.holon.clone();
-    let (session, _claim) = config.identity.join().await?;
+    let (session, claim) = config.identity.join().await?;
     let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let (events, mut mailbox) = mpsc::channel::<StaffEvent>(MAILBOX);
     let keys = &config.identity.keys;
@@ -176,7 +176,11 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
         .declare_token(keys.alive(&holon))
         .await
         .map_err(zenoh_error)?;
+    let mut successors = holon::takeover::listen(&session, &keys.alive(&holon))
+        .await
+        .map_err(zenoh_error)?;
     info!(%holon, key = %advice_key, resources = model.resources().count(), "holon ready");
+    let mut successor = None;
 
     let mut departed: BTreeSet<HolonId> = BTreeSet::new();
     let mut republish = tokio::time::interval(config.state_interval);
@@ -184,6 +188,11 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
     loop {
         tokio::select! {
             _ = shutdown.cancelled() => break,
+            offer = successors.next() => {
+                info!(%holon, successor = %offer.request.successor, version = %offer.request.version, "a successor asks to take over");
+                successor = Some(offer);
+                break;
+            }
             _ = republish.tick() => {
                 if published.changed {
                     published.changed = false;
@@ -219,8 +228,27 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
             }
         }
     }
-    if let Err(e) = token.undeclare().await {
-        error!(%holon, error = %e, "cannot withdraw the liveliness token");
+    drop(successors);
+    match successor {
+        Some(offer) => {
+            // What it learned goes with it: the successor learns again (nominal
+            // durations until it has measured).
+            drop(_advice);
+            crate::identity::hand_over(
+                &config.identity,
+                &session,
+                offer,
+                token,
+                claim,
+                &[(advice_key.clone(), false)],
+            )
+            .await;
+        }
+        None => {
+            if let Err(e) = token.undeclare().await {
+                error!(%holon, error = %e, "cannot withdraw the liveliness token");
+            }
+        }
     }
     match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
         Ok(Ok(())) => {}
