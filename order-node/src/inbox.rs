@@ -146,10 +146,7 @@ impl Inboxes {
             ),
             Err(err) => {
                 warn!(order = %name, bytes = payload.len(), error = %err, "undecodable message in the inbox refused");
-                (
-                    query,
-                    schemas::ErrorReply::new("malformed", err.to_string()),
-                )
+                (query, schemas::ErrorReply::for_schema_error(&err))
             }
         };
         if let Err(e) = query.reply_err(refusal.to_json()).wait() {

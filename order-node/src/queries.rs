@@ -301,7 +301,7 @@ async fn acknowledge_finished(host: &Host, query: Query) {
                 }
             }
             Err(err) => {
-                let refusal = ErrorReply::new("malformed", err.to_string());
+                let refusal = ErrorReply::for_schema_error(&err);
                 if let Err(e) = query.reply_err(refusal.to_json()).await {
                     warn!(order = %name, error = %e, "cannot refuse an undecodable message");
                 }
@@ -340,7 +340,7 @@ async fn acknowledge_finished(host: &Host, query: Query) {
         Err(err) => {
             warn!(order = %name, bytes = payload.len(), error = %err, "undecodable message for a finished order refused");
             if let Err(e) = query
-                .reply_err(ErrorReply::new("malformed", err.to_string()).to_json())
+                .reply_err(ErrorReply::for_schema_error(&err).to_json())
                 .await
             {
                 warn!(order = %name, error = %e, "cannot refuse an undecodable message");

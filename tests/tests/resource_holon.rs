@@ -284,7 +284,7 @@ async fn malformed_requests_get_an_error_and_change_nothing() {
         (
             &service_key,
             serde_json::to_vec(&bad_version).unwrap(),
-            "invalid",
+            "unsupported_version",
         ),
         (&service_key, done, "wrong_key"),
     ];

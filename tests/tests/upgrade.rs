@@ -80,6 +80,26 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
         .await
         .unwrap();
     let orders = cell.submit("part", 12).await.unwrap();
+    // A result in a message version the order-node does not speak is refused, and
+    // says so (a holon of another release in a rolling upgrade).
+    let mut other_version = serde_json::to_value(schemas::Service::request(
+        schemas::MessageType::Done,
+        "pick_n_place",
+        &format!("{}/1/1", orders[0]),
+        HolonId::order(&orders[0]).unwrap(),
+    ))
+    .unwrap();
+    other_version["v"] = serde_json::json!(2);
+    let refused = cell
+        .request(
+            &cell.keys.inbox(&orders[0]),
+            serde_json::to_vec(&other_version).unwrap(),
+        )
+        .await
+        .unwrap()
+        .expect_err("another version is refused");
+    assert_eq!(refused.code, "unsupported_version", "{refused:?}");
+    assert!(refused.message.contains("speaks version 1"), "{refused:?}");
     // Mid-run: a step is running and others wait on the agenda.
     sim.wait_executed("pick", 3).await;
 
@@ -204,6 +224,10 @@ async fn a_cell_keeps_producing_while_each_holon_is_upgraded() {
     );
     std::fs::write(dir.join("robot1-v2.toml"), v2).unwrap();
     std::fs::write(dir.join("broken.toml"), "cell = \"t-upgrade\"\nname = 7\n").unwrap();
+    // The product's new plan: its one step done twice (a changed plan).
+    let plan = std::fs::read_to_string(dir.join("part.toml")).unwrap();
+    let step = &plan[plan.find("[[steps]]").unwrap()..];
+    std::fs::write(dir.join("part-v2.toml"), format!("{plan}\n{step}")).unwrap();
     let router = &cell.endpoint;
     let common = format!("\"--cell\", \"t-upgrade\", \"--connect\", \"{router}\"");
     std::fs::write(
@@ -293,20 +317,36 @@ args = ["--config", "orders1.toml", "--data-dir", "data", {common}]
     let order_node = release.join("order-node");
     let (ok, out) = cell_upgrade(dir, &["orders1", "--binary", order_node.to_str().unwrap()]).await;
     assert!(ok, "{out}");
-    let (ok, out) = cell_upgrade(dir, &["part", "--binary", binary]).await;
+    let (ok, out) = cell_upgrade(
+        dir,
+        &["part", "--binary", binary, "--config", "part-v2.toml"],
+    )
+    .await;
     assert!(ok, "{out}");
     let states_now = order_states(&cell, &orders).await;
     assert!(
         states_now.iter().any(|s| s["status"] != "done"),
         "the orders were all done before the last upgrade: the test proves nothing"
     );
+    // An order submitted now follows the new plan; those before keep theirs.
+    let mut orders = orders;
+    let late = cell.submit("part", 1).await.unwrap().remove(0);
+    orders.push(late);
 
     let ended = wait_all_done(&cell, &orders, Duration::from_secs(120)).await;
+    assert_eq!(
+        ended.last().unwrap()["steps"],
+        2,
+        "{}",
+        ended.last().unwrap()
+    );
+    assert!(ended[..50].iter().all(|s| s["steps"] == 1));
     assert_undisturbed(&ended);
-    // Each order's one step ran exactly once, on one of the two robots.
+    // Each order's steps ran exactly once, on one of the two robots: 50 of one step,
+    // the late one of two.
     let picks = sim1.executed("pick") + sim2.executed("pick");
     let places = sim1.executed("place") + sim2.executed("place");
-    assert_eq!((picks, places), (50, 50));
+    assert_eq!((picks, places), (52, 52));
     assert!(sim1.executed("pick") > 2, "robot1 worked after its upgrade");
 
     // The gaps, for docs/benchmarks.md.

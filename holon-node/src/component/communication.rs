@@ -346,10 +346,10 @@ fn decode(
     question: &Question,
 ) -> Result<Service, (&'static str, String)> {
     let request = Service::from_json(&question.payload()).map_err(|e| {
-        let code = if matches!(e, SchemaError::Json(_) | SchemaError::TooLarge { .. }) {
-            "malformed"
-        } else {
-            "invalid"
+        let code = match e {
+            SchemaError::UnsupportedVersion(_) => "unsupported_version",
+            SchemaError::Json(_) | SchemaError::TooLarge { .. } => "malformed",
+            _ => "invalid",
         };
         (code, e.to_string())
     })?;
