@@ -17,6 +17,7 @@ mod erlang;
 mod robots;
 mod scale;
 mod schedule;
+mod upgrade;
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{Parser, Subcommand};
@@ -76,6 +77,18 @@ enum Commands {
         #[arg(long, default_value = "schedule-results.json")]
         out: PathBuf,
     },
+    /// The upgrade benchmark: robot1, the order-node and the product replaced while
+    /// orders run, by a planned hand-over (--take-over) and, as the baseline, by SIGTERM
+    /// and a new start; how long each is away and robot1 starts no job
+    /// (docs/benchmarks.md, "Upgrades").
+    Upgrade {
+        /// Rounds per way.
+        #[arg(long, default_value_t = 5)]
+        rounds: usize,
+        /// Where the JSON goes.
+        #[arg(long, default_value = "upgrade-results.json")]
+        out: PathBuf,
+    },
     /// (helper) A TCP echo server: prints `listening on ADDR`.
     EchoTcp {
         #[arg(long, default_value = "127.0.0.1:0")]
@@ -120,6 +133,7 @@ async fn main() -> Result<()> {
             };
             schedule::run(&scenarios, seeds, &out).await
         }
+        Commands::Upgrade { rounds, out } => upgrade::run(rounds, &out).await,
         Commands::EchoTcp { listen } => echo_tcp(&listen).await,
         Commands::EchoZenoh { connect, key } => echo_zenoh(&connect, &key).await,
     }
