@@ -168,6 +168,20 @@ async fn serve_control(stream: tokio::net::UnixStream, upgrades: mpsc::Sender<Up
     }
 }
 
+/// How long a successor's `--check` may take.
+const CHECK_WITHIN: Duration = Duration::from_secs(30);
+
+/// Answers `cell upgrade` that the upgrade cannot be done.
+fn refuse(reply: oneshot::Sender<UpgradeOutcome>, message: String) {
+    if reply.send(failed(&message)).is_err() {
+        tracing::warn!(%message, "cell upgrade went away before its answer");
+    }
+}
+
+fn not_running(name: &str) -> String {
+    format!("{name} is not running now (it is restarting or ended); try again when it runs")
+}
+
 fn failed(message: &str) -> UpgradeOutcome {
     UpgradeOutcome {
         ok: false,
@@ -226,6 +240,19 @@ struct Slot {
     restart_at: Option<Instant>,
     /// Its successor, started by `cell upgrade`, until the hand-over ends.
     successor: Option<Successor>,
+    /// True while a successor's config is being checked (before it starts).
+    checking: bool,
+}
+
+/// A successor's command line that passed (or failed) its `--check`.
+struct Checked {
+    index: usize,
+    program: String,
+    args: Vec<String>,
+    request: UpgradeRequest,
+    reply: oneshot::Sender<UpgradeOutcome>,
+    /// Why it failed, if it did.
+    failure: Option<String>,
 }
 
 /// A successor that is taking a process over.
@@ -261,6 +288,8 @@ struct Processes<'a> {
     slots: Vec<Slot>,
     /// One waiter per running process.
     waits: JoinSet<Ended>,
+    /// Successors' `--check` runs, so that the supervision goes on while they run.
+    checks: JoinSet<Checked>,
     /// The restarts of all processes together, against the intensity.
     window: RestartWindow,
     clock: Clock,
@@ -290,9 +319,11 @@ impl<'a> Processes<'a> {
                     started_at: clock.0,
                     restart_at: None,
                     successor: None,
+                    checking: false,
                 })
                 .collect(),
             waits: JoinSet::new(),
+            checks: JoinSet::new(),
             window: RestartWindow::new(manifest.intensity()),
             clock,
         }
@@ -353,15 +384,11 @@ impl<'a> Processes<'a> {
         Ok((pid, generation))
     }
 
-    /// Begins the upgrade of one process: checks the successor's command line, starts
-    /// it with `--take-over`; the outcome goes to `reply` when the hand-over ends (see
+    /// Begins the upgrade of one process: checks the successor's command line (its
+    /// `--check` runs as a task; [`Processes::checked`] goes on), then starts it with
+    /// `--take-over`; the outcome goes to `reply` when the hand-over ends (see
     /// [`Processes::exited`]), or now if it cannot begin.
-    async fn upgrade(&mut self, request: UpgradeRequest, reply: oneshot::Sender<UpgradeOutcome>) {
-        let refuse = |reply: oneshot::Sender<UpgradeOutcome>, message: String| {
-            if reply.send(failed(&message)).is_err() {
-                tracing::warn!(%message, "cell upgrade went away before its answer");
-            }
-        };
+    fn upgrade(&mut self, request: UpgradeRequest, reply: oneshot::Sender<UpgradeOutcome>) {
         let Some(index) = self.specs.iter().position(|s| s.name == request.name) else {
             let names: Vec<&str> = self.specs.iter().map(|s| s.name.as_str()).collect();
             return refuse(
@@ -375,17 +402,11 @@ impl<'a> Processes<'a> {
         };
         let spec = &self.specs[index];
         let slot = &self.slots[index];
-        if slot.successor.is_some() {
+        if slot.successor.is_some() || slot.checking {
             return refuse(reply, format!("{} is being upgraded already", spec.name));
         }
         if slot.pid.is_none() {
-            return refuse(
-                reply,
-                format!(
-                    "{} is not running now (it is restarting or ended); try again when it runs",
-                    spec.name
-                ),
-            );
+            return refuse(reply, not_running(&spec.name));
         }
         let (program, args) = match crate::upgrade::successor_command(
             &spec.program,
@@ -396,31 +417,57 @@ impl<'a> Processes<'a> {
             Ok(command) => command,
             Err(e) => return refuse(reply, format!("{}: {e:#}", spec.name)),
         };
-        // A config that fails its check leaves the running process alone.
-        let check = tokio::time::timeout(
-            Duration::from_secs(30),
-            Command::new(resolve(&program))
-                .args(&args)
-                .arg("--check")
-                .current_dir(self.dir)
-                .stdin(Stdio::null())
-                .output(),
-        )
-        .await;
-        match check {
-            Ok(Ok(output)) if output.status.success() => {}
-            Ok(Ok(output)) => {
-                let why = String::from_utf8_lossy(&output.stderr).trim().to_string();
-                return refuse(
-                    reply,
-                    format!(
-                        "the successor of {} does not pass its check; {} runs on unchanged: {why}",
-                        spec.name, spec.name
-                    ),
-                );
+        self.slots[index].checking = true;
+        let name = spec.name.clone();
+        let mut check = Command::new(resolve(&program));
+        check
+            .args(&args)
+            .arg("--check")
+            .current_dir(self.dir)
+            .stdin(Stdio::null())
+            .kill_on_drop(true);
+        self.checks.spawn(async move {
+            let output = tokio::time::timeout(CHECK_WITHIN, check.output()).await;
+            // A config that fails its check leaves the running process alone.
+            let failure = match output {
+                Ok(Ok(output)) if output.status.success() => None,
+                Ok(Ok(output)) => Some(format!(
+                    "the successor of {name} does not pass its check; {name} runs on unchanged: {}",
+                    String::from_utf8_lossy(&output.stderr).trim()
+                )),
+                Ok(Err(e)) => Some(format!("cannot run {program}: {e}; {name} runs on unchanged")),
+                Err(_) => Some(format!(
+                    "{program} --check did not end within {CHECK_WITHIN:?}; {name} runs on unchanged"
+                )),
+            };
+            Checked {
+                index,
+                program,
+                args,
+                request,
+                reply,
+                failure,
             }
-            Ok(Err(e)) => return refuse(reply, format!("cannot run {program}: {e}")),
-            Err(_) => return refuse(reply, format!("{program} --check did not end within 30 s")),
+        });
+    }
+
+    /// Starts a successor whose check passed.
+    fn checked(&mut self, checked: Checked) {
+        let Checked {
+            index,
+            program,
+            args,
+            request,
+            reply,
+            failure,
+        } = checked;
+        self.slots[index].checking = false;
+        if let Some(failure) = failure {
+            return refuse(reply, failure);
+        }
+        let name = self.specs[index].name.clone();
+        if self.slots[index].pid.is_none() {
+            return refuse(reply, not_running(&name));
         }
         let mut successor_args = args.clone();
         successor_args.extend([
@@ -428,7 +475,6 @@ impl<'a> Processes<'a> {
             "--take-over-wait-ms".to_string(),
             request.wait_ms.to_string(),
         ]);
-        let name = spec.name.clone();
         match self.spawn(index, &program, &successor_args) {
             Ok((pid, generation)) => {
                 self.clock.say(format!(
@@ -444,7 +490,7 @@ impl<'a> Processes<'a> {
                     reply,
                 });
             }
-            Err(e) => refuse(reply, format!("{e:#}")),
+            Err(e) => refuse(reply, format!("{e:#}; {name} runs on unchanged")),
         }
     }
 
@@ -459,7 +505,13 @@ impl<'a> Processes<'a> {
             let next_restart = self.slots.iter().filter_map(|s| s.restart_at).min();
             tokio::select! {
                 _ = shutdown.cancelled() => return true,
-                Some((request, reply)) = upgrades.recv() => self.upgrade(request, reply).await,
+                Some((request, reply)) = upgrades.recv() => self.upgrade(request, reply),
+                Some(checked) = self.checks.join_next(), if !self.checks.is_empty() => {
+                    match checked {
+                        Ok(checked) => self.checked(checked),
+                        Err(e) => tracing::error!(error = %e, "a successor's check task failed; its cell upgrade gets no answer"),
+                    }
+                }
                 Some(joined) = self.waits.join_next() => {
                     let Ok(ended) = joined else { continue };
                     if !self.exited(ended) {
@@ -483,8 +535,21 @@ impl<'a> Processes<'a> {
             .is_some_and(|s| s.generation == generation)
         {
             let successor = slot.successor.take().expect("checked");
+            // Exit code 3: the running process refused (it said so, and serves on).
+            // Any other end may come after the running process let go: it then stands
+            // in for a while and exits, and is started again as before.
+            let refused = status
+                .as_ref()
+                .is_ok_and(|s| s.code() == Some(i32::from(holon::takeover::EXIT_REFUSED)));
+            let what = match refused {
+                true => format!("{name} refused to hand over and runs on unchanged"),
+                false => format!(
+                    "if {name} had already let go, it stands in for up to {:?}, exits, and is started again from its previous binary and config on its journal",
+                    holon::takeover::STAND_IN_LIMIT
+                ),
+            };
             let message = format!(
-                "the successor of {name} exited ({}) before taking over; {name} runs on unchanged. The end of logs/{name}.log:\n{}",
+                "the successor of {name} exited ({}) before {name} ended; {what}. The end of logs/{name}.log:\n{}",
                 describe(status),
                 crate::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
             );
@@ -577,10 +642,7 @@ impl<'a> Processes<'a> {
         for index in 0..self.slots.len() {
             if let Some(successor) = self.slots[index].successor.take() {
                 if let Some(pid) = successor.pid {
-                    let pid = nix::unistd::Pid::from_raw(pid as i32);
-                    if let Err(e) = nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM) {
-                        self.clock.say(format!("cannot signal a successor: {e}"));
-                    }
+                    self.stop(index, pid, successor.generation).await;
                 }
                 if successor
                     .reply
@@ -593,14 +655,16 @@ impl<'a> Processes<'a> {
         }
         for index in (0..self.slots.len()).rev() {
             if let Some(pid) = self.slots[index].pid.take() {
-                self.stop(index, pid).await;
+                let generation = self.slots[index].generation;
+                self.stop(index, pid, generation).await;
             }
         }
     }
 
-    async fn stop(&mut self, index: usize, pid: u32) {
+    /// Stops one process (`generation` of process `index`): SIGTERM, then SIGKILL after
+    /// the stop timeout.
+    async fn stop(&mut self, index: usize, pid: u32, generation: u64) {
         let name = &self.specs[index].name;
-        let generation = self.slots[index].generation;
         let pid = nix::unistd::Pid::from_raw(pid as i32);
         if let Err(e) = nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM) {
             self.clock

@@ -100,8 +100,14 @@ pub async fn ask(dir: &Path, host: &str, request: &UpgradeRequest) -> Result<Upg
     line.push(b'\n');
     write.write_all(&line).await?;
     let mut answer = String::new();
-    // The hand-over waits for the running step; then the successor starts.
-    let limit = Duration::from_millis(request.wait_ms) + Duration::from_secs(60);
+    // The successor's check, the running step, stopping the old process's components,
+    // the stand-in until the successor serves: each has its bound; the answer comes
+    // within their sum.
+    let limit = Duration::from_secs(30)
+        + Duration::from_millis(request.wait_ms)
+        + holon::takeover::RELEASE_ALLOWANCE
+        + holon::takeover::STAND_IN_LIMIT
+        + Duration::from_secs(10);
     tokio::time::timeout(limit, BufReader::new(read).read_line(&mut answer))
         .await
         .map_err(|_| anyhow!("cell up did not report the upgrade within {limit:?}"))??;

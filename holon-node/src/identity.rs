@@ -119,7 +119,8 @@ impl Identity {
 
 /// A plain holon's hand-over to its successor (it has nothing to finish): answers on
 /// `stand_in` keys with `unavailable` and a retry hint, withdraws the token and the
-/// claim, releases the name, and stands in until the successor serves.
+/// claim, releases the name, and stands in until the successor serves (or `shutdown`).
+/// An error when no successor served: the supervisor starts this holon again.
 pub async fn hand_over(
     identity: &Identity,
     session: &zenoh::Session,
@@ -127,7 +128,8 @@ pub async fn hand_over(
     token: zenoh::liveliness::LivelinessToken,
     claim: holon::presence::Claim,
     stand_in: &[(String, bool)],
-) {
+    shutdown: &tokio_util::sync::CancellationToken,
+) -> Result<(), NodeError> {
     let holon = &identity.holon;
     let started = std::time::Instant::now();
     let refusal = schemas::ErrorReply::unavailable(
@@ -159,16 +161,26 @@ pub async fn hand_over(
     offer.release(crate::VERSION).await;
     info!(%holon, %successor, "handed over; standing in until the successor serves");
     let alive_key = identity.keys.alive(holon);
-    let served =
-        holon::takeover::until_successor(session, &alive_key, holon::takeover::STAND_IN_LIMIT)
-            .await;
-    let gap_ms = started.elapsed().as_millis() as u64;
-    if served {
-        info!(%holon, gap_ms, "the successor serves; this process ends");
-    } else {
-        warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends anyway");
-    }
+    let end = holon::takeover::stand_by(session, &alive_key, shutdown).await;
     drop(stand_in);
+    let gap_ms = started.elapsed().as_millis() as u64;
+    match end {
+        holon::takeover::StandInEnd::Served => {
+            info!(%holon, gap_ms, "the successor serves; this process ends");
+            Ok(())
+        }
+        holon::takeover::StandInEnd::Shutdown => {
+            warn!(%holon, gap_ms, "told to stop while standing in for the successor");
+            Ok(())
+        }
+        holon::takeover::StandInEnd::NoSuccessor => {
+            warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends with an error, so that its supervisor starts it again");
+            Err(holon::takeover::NoSuccessor {
+                successor: successor.to_string(),
+            }
+            .into())
+        }
+    }
 }
 
 /// When a request refused during a hand-over is to be asked again.

@@ -10,6 +10,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
+use holon::takeover::StandInEnd;
 use holon::{ChildSpec, Supervisor};
 use robot_bridge::client::ControllerEvent;
 use schemas::{RobotCommand, Service};
@@ -46,8 +47,11 @@ pub enum NodeError {
     Journal(#[from] holon::journal::JournalError),
     #[error(transparent)]
     Claim(#[from] holon::presence::ClaimError),
-    #[error(transparent)]
+    /// Shown as the take-over's own error, which stays in the chain (its exit code).
+    #[error("{0}")]
     Takeover(#[from] holon::takeover::TakeoverError),
+    #[error(transparent)]
+    NoSuccessor(#[from] holon::takeover::NoSuccessor),
 }
 
 /// The components' links, built once per process: they outlive the components'
@@ -208,22 +212,45 @@ impl Wiring {
         .map(|waited| waited.map(|_| ()));
         match quiet {
             Ok(Ok(())) => Ok(()),
-            Ok(Err(_)) => Err("the agenda manager stopped while handing over".into()),
+            Ok(Err(_)) => Err("the agenda manager stopped while handing over".to_string()),
             Err(_) => {
-                if links
-                    .mailbox
-                    .sender
-                    .send(AgendaEvent::HandOverAbandoned.into())
-                    .await
-                    .is_err()
-                {
-                    error!(%holon, "the agenda manager is gone: the hand-over cannot be undone");
-                }
+                self.abandon_hand_over().await;
                 Err(format!(
                     "its running step did not finish within {wait:?}; it serves on (try again with a longer --take-over-wait-ms)"
                 ))
             }
+        }?;
+        // The running step's result must be in the journal: a successor reads only that.
+        if let Some(fault) = self.journal_fault() {
+            self.abandon_hand_over().await;
+            return Err(format!("its journal cannot be written ({fault}): what it holds in memory only would be lost; it serves on"));
         }
+        Ok(())
+    }
+
+    /// Serves on after a hand-over was prepared and not done.
+    async fn abandon_hand_over(&self) {
+        let links = &self.agenda_manager;
+        if links
+            .mailbox
+            .sender
+            .send(AgendaEvent::HandOverAbandoned.into())
+            .await
+            .is_err()
+        {
+            error!(holon = %links.holon, "the agenda manager is gone: the hand-over cannot be undone");
+        }
+    }
+
+    /// Why the journal cannot be written, while it cannot.
+    fn journal_fault(&self) -> Option<String> {
+        self.agenda_manager
+            .views
+            .agenda
+            .borrow()
+            .snapshot
+            .journal_fault
+            .clone()
     }
 }
 
@@ -267,13 +294,22 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
                 .map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.clone())),
             wait_ms: wait.as_millis() as u64,
         };
-        let taken =
-            holon::takeover::take_over(&session, &alive_key, &holon.to_string(), &request).await;
-        if let Err(e) = taken {
+        let name = holon.to_string();
+        let taken = tokio::select! {
+            taken = holon::takeover::take_over(&session, &alive_key, &name, &request) => taken.map(Some),
+            _ = shutdown.cancelled() => Ok(None),
+        };
+        if !matches!(taken, Ok(Some(_))) {
             if let Err(close) = session.close().await {
                 error!(%holon, error = %close, "cannot close the zenoh session");
             }
-            return Err(e.into());
+            return match taken {
+                Err(e) => Err(e.into()),
+                _ => {
+                    warn!(%holon, "told to stop while taking over; the running process may hand over to nobody (it then exits, and its supervisor starts it again)");
+                    Ok(())
+                }
+            };
         }
     }
     let outcome = serve(&config, &session, &alive_key, shutdown).await;
@@ -341,10 +377,16 @@ async fn serve(
                     offer.refuse(crate::VERSION, detail).await;
                     continue;
                 }
-                // Leaves a margin for the answer to reach the successor in time.
-                let wait = offer.wait().saturating_sub(Duration::from_millis(500));
+                if let Some(fault) = wiring.journal_fault() {
+                    let detail = format!("its journal cannot be written ({fault}): what it holds in memory only would be lost; it serves on");
+                    warn!(%holon, %detail, "hand-over refused");
+                    offer.refuse(crate::VERSION, detail).await;
+                    continue;
+                }
+                // The successor's wait runs from its request; stopping the components
+                // afterwards has its own allowance (holon::takeover::RELEASE_ALLOWANCE).
                 let prepared = tokio::select! {
-                    prepared = wiring.hand_over(wait) => prepared,
+                    prepared = wiring.hand_over(offer.remaining()) => prepared,
                     _ = shutdown.cancelled() => Err("the holon is shutting down".into()),
                 };
                 match prepared {
@@ -362,7 +404,11 @@ async fn serve(
             result = &mut supervision => break supervisor_ended(result).map(|()| Ending::Stopped),
         }
     };
-    drop(successors);
+    let refusal = match &outcome {
+        Ok(Ending::HandingOver(_)) => "another successor is taking over already",
+        _ => "the holon is stopping",
+    };
+    successors.close(crate::VERSION, refusal).await;
     let offer = match outcome {
         Ok(Ending::HandingOver(offer)) => offer,
         Ok(Ending::Stopped) => {
@@ -410,16 +456,26 @@ async fn serve(
     let successor = offer.request.successor.clone();
     offer.release(crate::VERSION).await;
     info!(%holon, %successor, released_in_ms = started.elapsed().as_millis() as u64, "handed over: journal closed, token withdrawn; standing in until the successor serves");
-    let served =
-        holon::takeover::until_successor(session, alive_key, holon::takeover::STAND_IN_LIMIT).await;
-    let gap_ms = started.elapsed().as_millis() as u64;
-    if served {
-        info!(%holon, gap_ms, "the successor serves; this process ends");
-    } else {
-        warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends anyway (its requesters rebook after their own bound)");
-    }
+    let end = holon::takeover::stand_by(session, alive_key, &shutdown).await;
     drop(stand_in);
-    Ok(())
+    let gap_ms = started.elapsed().as_millis() as u64;
+    match end {
+        StandInEnd::Served => {
+            info!(%holon, gap_ms, "the successor serves; this process ends");
+            Ok(())
+        }
+        StandInEnd::Shutdown => {
+            warn!(%holon, gap_ms, "told to stop while standing in for the successor");
+            Ok(())
+        }
+        StandInEnd::NoSuccessor => {
+            warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends with an error, so that its supervisor starts it again (its requesters keep their bookings for their own bound)");
+            Err(holon::takeover::NoSuccessor {
+                successor: successor.to_string(),
+            }
+            .into())
+        }
+    }
 }
 
 /// The stand-in's answer to a Service request while the resource is handed over:

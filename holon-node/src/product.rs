@@ -126,15 +126,17 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         .await
         .map_err(zenoh_error)?;
     info!(holon = %holon, key = %plan_key, steps = config.plan.steps.len(), "holon ready");
-    tokio::select! {
+    let ended = tokio::select! {
         _ = shutdown.cancelled() => {
+            successors.close(crate::VERSION, "the holon is stopping").await;
             if let Err(e) = token.undeclare().await {
                 error!(holon = %holon, error = %e, "cannot withdraw the liveliness token");
             }
+            Ok(())
         }
         offer = successors.next() => {
             info!(holon = %holon, successor = %offer.request.successor, version = %offer.request.version, "a successor asks to take over");
-            drop(successors);
+            successors.close(crate::VERSION, "another successor is taking over already").await;
             drop(_plan_queryable);
             crate::identity::hand_over(
                 &config.identity,
@@ -143,17 +145,18 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
                 token,
                 claim,
                 &[(plan_key.clone(), false)],
+                &shutdown,
             )
-            .await;
+            .await
         }
-    }
+    };
     match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
         Ok(Ok(())) => {}
         Ok(Err(e)) => warn!(holon = %holon, error = %e, "cannot close the zenoh session"),
         Err(_) => warn!(holon = %holon, "the zenoh session did not close within 5 s"),
     }
     info!(holon = %holon, "holon stopped");
-    Ok(())
+    ended
 }
 
 #[cfg(test)]

@@ -258,6 +258,30 @@ impl Journal {
         })
     }
 
+    /// Opens `dir/file` like [`Journal::open`], but waits up to `patience` for another
+    /// process to let go of it: a successor taking over a holon opens the journal its
+    /// predecessor is closing. Any other error returns at once.
+    pub fn open_when_free(
+        dir: &Path,
+        file: &str,
+        durability: Durability,
+        patience: std::time::Duration,
+    ) -> Result<Journal, JournalError> {
+        let deadline = std::time::Instant::now() + patience;
+        loop {
+            match Journal::open(dir, file, durability) {
+                Err(JournalError::InUse { path }) => {
+                    if std::time::Instant::now() >= deadline {
+                        return Err(JournalError::InUse { path });
+                    }
+                    tracing::debug!(%path, "the journal is still in use; waiting for its holder to close it");
+                    std::thread::sleep(std::time::Duration::from_millis(20));
+                }
+                opened => return opened,
+            }
+        }
+    }
+
     pub fn path(&self) -> &Path {
         &self.path
     }
@@ -634,6 +658,35 @@ mod tests {
         let _first = Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap();
         let second = Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap_err();
         assert!(matches!(second, JournalError::InUse { .. }), "{second}");
+    }
+
+    #[test]
+    fn a_successor_opens_the_journal_once_its_holder_closes_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let first = Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap();
+        first.put("order", "a", &1u32).unwrap();
+        // Still held after the patience: refused, as a twin would be.
+        let refused = Journal::open_when_free(
+            dir.path(),
+            "j.sqlite",
+            Durability::PowerLoss,
+            std::time::Duration::from_millis(100),
+        )
+        .unwrap_err();
+        assert!(matches!(refused, JournalError::InUse { .. }), "{refused}");
+        let closer = std::thread::spawn(move || {
+            std::thread::sleep(std::time::Duration::from_millis(200));
+            drop(first);
+        });
+        let second = Journal::open_when_free(
+            dir.path(),
+            "j.sqlite",
+            Durability::PowerLoss,
+            std::time::Duration::from_secs(10),
+        )
+        .unwrap();
+        assert_eq!(second.get::<u32>("order", "a").unwrap(), Some(1));
+        closer.join().unwrap();
     }
 
     #[test]

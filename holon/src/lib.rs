@@ -46,7 +46,9 @@ pub fn shutdown_on_signals() -> CancellationToken {
 
 /// The edge of a holon binary: sets up logging, runs `run` on a multi-thread tokio
 /// runtime with a shutdown token cancelled by SIGTERM / Ctrl-C, and turns its result into
-/// the exit code (errors are logged and printed as `program: error`).
+/// the exit code (errors are logged and printed as `program: error`): 0 on success,
+/// [`takeover::EXIT_REFUSED`] when the process was a successor whose predecessor
+/// refused to hand over (nothing changed), 1 on any other error.
 pub fn process_main<F, Fut, E>(
     program: &str,
     format: LogFormat,
@@ -56,7 +58,7 @@ pub fn process_main<F, Fut, E>(
 where
     F: FnOnce(CancellationToken) -> Fut,
     Fut: std::future::Future<Output = Result<(), E>>,
-    E: std::fmt::Display,
+    E: Into<anyhow::Error>,
 {
     // Dropped last (declared first): the runtime's last lines are written out too.
     let _logs = match logging::init(format, log_file, "info") {
@@ -80,9 +82,19 @@ where
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {
+            let e: anyhow::Error = e.into();
             tracing::error!(target: logging::FATAL, error = %e, "{program} failed");
             eprintln!("{program}: {e}");
-            std::process::ExitCode::FAILURE
+            let refused = e.chain().any(|cause| {
+                matches!(
+                    cause.downcast_ref::<takeover::TakeoverError>(),
+                    Some(takeover::TakeoverError::Refused { .. })
+                )
+            });
+            match refused {
+                true => std::process::ExitCode::from(takeover::EXIT_REFUSED),
+                false => std::process::ExitCode::FAILURE,
+            }
         }
     }
 }

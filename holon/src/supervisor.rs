@@ -22,6 +22,9 @@ use serde::{Deserialize, Serialize};
 use tokio::task::{AbortHandle, Id, JoinSet};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
+
+/// How long an aborted child is waited for (an abort takes effect at its next await).
+const ABORTED_WITHIN: Duration = Duration::from_secs(1);
 use tracing::{error, info, warn};
 
 use crate::restart::RestartWindow;
@@ -291,7 +294,8 @@ impl State<'_> {
             let spec = &self.supervisor.children[index];
             running.token.cancel();
             let id = running.abort.id();
-            let deadline = Instant::now() + spec.shutdown_timeout;
+            let mut deadline = Instant::now() + spec.shutdown_timeout;
+            let mut aborted = false;
             loop {
                 match tokio::time::timeout_at(deadline, self.set.join_next_with_id()).await {
                     Ok(Some(joined)) => {
@@ -300,7 +304,9 @@ impl State<'_> {
                             Err(e) => e.id(),
                         };
                         if joined_id == id {
-                            info!(supervisor = %self.supervisor.name, component = %spec.name, "component stopped");
+                            if !aborted {
+                                info!(supervisor = %self.supervisor.name, component = %spec.name, "component stopped");
+                            }
                             break;
                         }
                         // Another child ended meanwhile: its exit is handled afterwards.
@@ -309,9 +315,16 @@ impl State<'_> {
                         }
                     }
                     Ok(None) => break,
-                    Err(_) => {
+                    Err(_) if !aborted => {
                         warn!(supervisor = %self.supervisor.name, component = %spec.name, timeout = ?spec.shutdown_timeout, "component did not stop in time; aborted");
                         running.abort.abort();
+                        // Waited for, so that what it holds (a journal, a socket) is
+                        // let go of when the supervisor returns.
+                        aborted = true;
+                        deadline = Instant::now() + ABORTED_WITHIN;
+                    }
+                    Err(_) => {
+                        error!(supervisor = %self.supervisor.name, component = %spec.name, within = ?ABORTED_WITHIN, "an aborted component has not ended (blocked outside an await?); it ends with the process");
                         break;
                     }
                 }

@@ -42,6 +42,20 @@ pub const STAND_IN_LIMIT: Duration = Duration::from_secs(30);
 /// How long a successor waits, after `released`, for the predecessor's token to go.
 const TOKEN_GONE_WITHIN: Duration = Duration::from_secs(5);
 
+/// How long the predecessor may take, beyond the request's `wait_ms` (finishing what it
+/// must), to stop its components and close its journal before it answers: the
+/// successor waits `wait_ms` plus this for the answer. It covers the components'
+/// shutdown timeouts, so a predecessor does not release after its successor gave up.
+pub const RELEASE_ALLOWANCE: Duration = Duration::from_secs(30);
+
+/// How long a successor waits for its predecessor's journal to be let go of (the file
+/// lock) after `released`: a component that had to be aborted closes it a little later.
+pub const JOURNAL_PATIENCE: Duration = Duration::from_secs(10);
+
+/// The exit code of a successor whose predecessor refused to hand over: nothing
+/// changed, the predecessor serves on (a supervisor such as `cell up` reports it so).
+pub const EXIT_REFUSED: u8 = 3;
+
 /// The key a holon is taken over on, from its presence key: `holarchy/<cell>/alive/<kind>/<name>`
 /// or `holarchy/<cell>/host/<program>/<name>` gives `holarchy/<cell>/takeover/<kind>/<name>`.
 pub fn key(presence_key: &str) -> String {
@@ -62,8 +76,9 @@ pub struct Request {
     /// Its data directory: the predecessor refuses a successor that would not take over
     /// its journal.
     pub data_dir: Option<PathBuf>,
-    /// How long the successor waits for `released`: the predecessor must finish (its
-    /// running step) within this, or refuse.
+    /// How long the predecessor may take to finish what it must (a resource: its
+    /// running step), or else refuse. The successor waits this plus
+    /// [`RELEASE_ALLOWANCE`] for the answer.
     pub wait_ms: u64,
 }
 
@@ -120,8 +135,12 @@ pub async fn take_over(
         info!(holon, "nothing to take over: no process holds the name");
         return Ok(TakenOver::Nobody);
     }
-    let waited = Duration::from_millis(request.wait_ms);
-    info!(holon, ?waited, "asking the running process to hand over");
+    let waited = Duration::from_millis(request.wait_ms) + RELEASE_ALLOWANCE;
+    info!(
+        holon,
+        wait_ms = request.wait_ms,
+        "asking the running process to hand over"
+    );
     let payload = serde_json::to_vec(request).expect("a take-over request serializes");
     let mut replies = session
         .get(key(presence_key))
@@ -194,6 +213,8 @@ pub struct Listener {
 pub struct Offer {
     pub request: Request,
     query: Query,
+    /// When it arrived: the successor's wait runs from about then.
+    received: Instant,
 }
 
 /// Listens for take-over requests for the holon on `presence_key`. A request that
@@ -210,7 +231,11 @@ pub async fn listen(session: &zenoh::Session, presence_key: &str) -> zenoh::Resu
                 .map(|p| p.to_bytes().into_owned())
                 .unwrap_or_default();
             let refusal = match serde_json::from_slice::<Request>(&payload) {
-                Ok(request) => match sender.try_send(Offer { request, query }) {
+                Ok(request) => match sender.try_send(Offer {
+                    request,
+                    query,
+                    received: Instant::now(),
+                }) {
                     Ok(()) => return,
                     Err(mpsc::error::TrySendError::Full(offer)) => (
                         offer.query,
@@ -243,6 +268,16 @@ impl Listener {
             None => std::future::pending().await,
         }
     }
+
+    /// Stops listening: a request that waits (a second successor that asked while
+    /// this holon prepared its hand-over) is refused with `detail`, not left to time out.
+    pub async fn close(mut self, version: &str, detail: &str) {
+        self.offers.close();
+        while let Ok(offer) = self.offers.try_recv() {
+            warn!(successor = %offer.request.successor, %detail, "take-over request refused");
+            offer.refuse(version, detail).await;
+        }
+    }
 }
 
 impl Offer {
@@ -267,6 +302,10 @@ impl Offer {
     }
 
     async fn answer(self, reply: Reply) {
+        let age = self.received.elapsed();
+        if reply.released && age > self.wait() + RELEASE_ALLOWANCE {
+            warn!(?age, "releasing after the successor stopped waiting: nothing may take over, and this process exits after the stand-in limit (a supervisor restarts it)");
+        }
         let payload = serde_json::to_vec(&reply).expect("a take-over reply serializes");
         if let Err(e) = self
             .query
@@ -277,9 +316,14 @@ impl Offer {
         }
     }
 
-    /// How long the successor waits for the answer.
+    /// How long the predecessor may take to finish what it must, from the request.
     pub fn wait(&self) -> Duration {
         Duration::from_millis(self.request.wait_ms)
+    }
+
+    /// What is left of [`Offer::wait`] now (the request's wait runs from its arrival).
+    pub fn remaining(&self) -> Duration {
+        self.wait().saturating_sub(self.received.elapsed())
     }
 }
 
@@ -315,6 +359,40 @@ pub async fn stand_in(
     Ok(StandIn {
         _queryables: queryables,
     })
+}
+
+/// How the predecessor's stand-in ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StandInEnd {
+    /// The successor serves.
+    Served,
+    /// No successor served within [`STAND_IN_LIMIT`].
+    NoSuccessor,
+    /// The predecessor was told to stop (SIGTERM) while standing in.
+    Shutdown,
+}
+
+/// Waits, standing in, until the successor serves on `presence_key`, for at most
+/// [`STAND_IN_LIMIT`] or until `shutdown`.
+pub async fn stand_by(
+    session: &zenoh::Session,
+    presence_key: &str,
+    shutdown: &tokio_util::sync::CancellationToken,
+) -> StandInEnd {
+    tokio::select! {
+        served = until_successor(session, presence_key, STAND_IN_LIMIT) => {
+            if served { StandInEnd::Served } else { StandInEnd::NoSuccessor }
+        }
+        _ = shutdown.cancelled() => StandInEnd::Shutdown,
+    }
+}
+
+/// The error a predecessor ends with when no successor served after it let go: its
+/// supervisor starts it again (on its journal, where it left off).
+#[derive(Debug, thiserror::Error)]
+#[error("handed over to {successor}, which did not serve within {limit:?}: the name is free and the journal closed; start the holon again (a supervisor does)", limit = STAND_IN_LIMIT)]
+pub struct NoSuccessor {
+    pub successor: String,
 }
 
 /// Waits until a token appears on `presence_key` (the successor is serving), at most

@@ -11,6 +11,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use holon::journal::Journal;
+use holon::takeover::StandInEnd;
 use schemas::WorkOrder;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -39,8 +40,11 @@ pub enum OrderNodeError {
     Journal(#[from] holon::journal::JournalError),
     #[error(transparent)]
     Claim(#[from] holon::presence::ClaimError),
-    #[error(transparent)]
+    /// Shown as the take-over's own error, which stays in the chain (its exit code).
+    #[error("{0}")]
     Takeover(#[from] holon::takeover::TakeoverError),
+    #[error(transparent)]
+    NoSuccessor(#[from] holon::takeover::NoSuccessor),
 }
 
 /// This build's release, published in its orders' states and named in hand-overs.
@@ -105,9 +109,21 @@ pub async fn run(
             data_dir: canonical(config.data_dir.as_deref()),
             wait_ms: wait.as_millis() as u64,
         };
-        if let Err(e) = holon::takeover::take_over(&session, &host_key, &holder, &request).await {
-            close(&config.name, session).await;
-            return Err(e.into());
+        let taken = tokio::select! {
+            taken = holon::takeover::take_over(&session, &host_key, &holder, &request) => taken.map(Some),
+            _ = shutdown.cancelled() => Ok(None),
+        };
+        match taken {
+            Ok(Some(_)) => {}
+            Ok(None) => {
+                warn!(node = %config.name, "told to stop while taking over; the running order-node may hand over to nobody (it then exits, and its supervisor starts it again)");
+                close(&config.name, session).await;
+                return Ok(());
+            }
+            Err(e) => {
+                close(&config.name, session).await;
+                return Err(e.into());
+            }
         }
     }
     // A twin (an order-node of the same name alive in the cell) would number its
@@ -175,6 +191,12 @@ pub async fn run(
                     offer.refuse(VERSION, detail).await;
                     continue;
                 }
+                if host.context.journal_failing.load(std::sync::atomic::Ordering::SeqCst) {
+                    let detail = "its journal cannot be written: its successor could not record its orders' progress either; it serves on (its orders wait until the journal can be written)";
+                    warn!(node = %config.name, detail, "hand-over refused");
+                    offer.refuse(VERSION, detail).await;
+                    continue;
+                }
                 break Some(offer);
             }
             _ = sweep.tick(), if config.keep_finished.is_some() => {
@@ -188,7 +210,11 @@ pub async fn run(
             }
         }
     };
-    drop(successors);
+    let refusal = match &handing_over {
+        Some(_) => "another successor is taking over already",
+        None => "the order-node is stopping",
+    };
+    successors.close(VERSION, refusal).await;
     let started = std::time::Instant::now();
     info!(node = %config.name, handing_over = handing_over.is_some(), "stopping: orders in progress stop where they stand");
     orders_cancel.cancel();
@@ -197,7 +223,17 @@ pub async fn run(
     })
     .await;
     if stopped.is_err() {
-        warn!(node = %config.name, "order tasks did not stop within 5 s; they end with the process (their progress is in the journal)");
+        // Their progress is in the journal; aborted now, so that they let go of it
+        // (a successor opens it next).
+        warn!(node = %config.name, left = tasks.set.len(), "order tasks did not stop within 5 s; aborted (their progress is in the journal)");
+        tasks.set.abort_all();
+        let aborted = tokio::time::timeout(Duration::from_secs(1), async {
+            while tasks.set.join_next().await.is_some() {}
+        })
+        .await;
+        if aborted.is_err() {
+            warn!(node = %config.name, left = tasks.set.len(), "aborted order tasks have not ended within 1 s");
+        }
     }
     // While handed over, submits, cancels and results get `unavailable` with a retry
     // hint from a stand-in (submits and cancels are asked again by `cell`, results
@@ -226,6 +262,7 @@ pub async fn run(
     if let Err(e) = token.undeclare().await {
         warn!(node = %config.name, error = %e, "cannot withdraw the order-node's token; it goes with the session");
     }
+    let mut ended = Ok(());
     if let Some(offer) = handing_over {
         // The journal closes with the last holder of the host: the successor opens it.
         drop(queries);
@@ -234,14 +271,22 @@ pub async fn run(
         let successor = offer.request.successor.clone();
         offer.release(VERSION).await;
         info!(node = %config.name, %successor, released_in_ms = started.elapsed().as_millis() as u64, "handed over: orders stopped where they stood, journal closed; standing in until the successor serves");
-        let served =
-            holon::takeover::until_successor(&session, &host_key, holon::takeover::STAND_IN_LIMIT)
-                .await;
+        let end = holon::takeover::stand_by(&session, &host_key, &shutdown).await;
         let gap_ms = started.elapsed().as_millis() as u64;
-        if served {
-            info!(node = %config.name, gap_ms, "the successor serves; this process ends");
-        } else {
-            warn!(node = %config.name, gap_ms, "the successor did not serve within the stand-in limit; this process ends anyway (its orders resume whenever an order-node with this journal starts)");
+        match end {
+            StandInEnd::Served => {
+                info!(node = %config.name, gap_ms, "the successor serves; this process ends")
+            }
+            StandInEnd::Shutdown => {
+                warn!(node = %config.name, gap_ms, "told to stop while standing in for the successor")
+            }
+            StandInEnd::NoSuccessor => {
+                warn!(node = %config.name, gap_ms, "the successor did not serve within the stand-in limit; this process ends with an error, so that its supervisor starts it again (its orders resume from the journal)");
+                ended = Err(holon::takeover::NoSuccessor {
+                    successor: successor.to_string(),
+                }
+                .into());
+            }
         }
     }
     drop(stand_in);
@@ -251,7 +296,7 @@ pub async fn run(
         Err(_) => warn!(node = %config.name, "the zenoh session did not close within 5 s"),
     }
     info!(node = %config.name, "order-node stopped");
-    Ok(())
+    ended
 }
 
 /// A data directory as a successor names it (absolute, so two spellings of one
@@ -298,10 +343,16 @@ fn open_journal(
         warn!(node = %config.name, "no data directory: orders are not durable (use --data-dir)");
         return Ok((None, (Vec::new(), 1)));
     };
-    let journal = Journal::open(
+    // A successor opens the journal its predecessor is closing.
+    let patience = match config.take_over {
+        Some(_) => holon::takeover::JOURNAL_PATIENCE,
+        None => std::time::Duration::ZERO,
+    };
+    let journal = Journal::open_when_free(
         dir,
         &format!("order-node-{}.sqlite", config.name),
         config.durability,
+        patience,
     )?;
     let recovered = journal.list::<OrderProgress>(ORDER_RECORD)?;
     let next = journal

@@ -223,13 +223,32 @@ pub async fn cancel_when_back(
                 .await
             {
                 Ok(mut replies) => {
-                    if let Ok(Some(reply)) =
+                    // Every reply is read: while the resource is handed over its
+                    // stand-in refuses `unavailable` (not cancelled: asked again after
+                    // its retry hint), and may answer next to the successor.
+                    let mut retry_after = None;
+                    while let Ok(Some(reply)) =
                         tokio::time::timeout(Duration::from_secs(3), replies.recv()).await
                     {
-                        if reply.result().is_ok() {
-                            info!(conversation_id = %cancel.conversation_id, %resource, "abandoned booking cancelled");
-                            return;
+                        match read_answer(&key, &cancel, &reply) {
+                            Some(answer)
+                                if answer.reason.as_deref() == Some(reason::UNAVAILABLE) =>
+                            {
+                                retry_after = Some(
+                                    answer.retry_after().unwrap_or(Duration::from_millis(100)),
+                                );
+                            }
+                            Some(_) => {
+                                info!(conversation_id = %cancel.conversation_id, %resource, "abandoned booking cancelled");
+                                return;
+                            }
+                            None => {}
                         }
+                    }
+                    if let Some(pause) = retry_after {
+                        debug!(conversation_id = %cancel.conversation_id, %resource, "the resource is being handed over: the cancel is sent again");
+                        tokio::time::sleep(pause).await;
+                        continue;
                     }
                 }
                 Err(e) => {

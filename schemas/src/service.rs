@@ -242,6 +242,15 @@ impl Service {
         self
     }
 
+    /// When a refusal asks to be asked again ([`info_key::RETRY_AFTER_MS`], set by a
+    /// resource being handed over), clamped to 10 ms..5 s; `None` when it does not say.
+    pub fn retry_after(&self) -> Option<std::time::Duration> {
+        self.info
+            .get(info_key::RETRY_AFTER_MS)
+            .and_then(|v| v.as_u64())
+            .map(|ms| std::time::Duration::from_millis(ms.clamp(10, 5000)))
+    }
+
     /// The request's priority ([`info_key::PRIORITY`]): 0 when absent, an error
     /// saying why when it is not an integer in range.
     pub fn priority(&self) -> Result<i32, String> {

@@ -89,7 +89,17 @@ impl JournalledAgenda {
         let journal = match &config.data_dir {
             Some(dir) => {
                 let file = format!("resource-{}.sqlite", holon.name());
-                Some(Journal::open(dir, &file, config.durability)?)
+                // A successor opens the journal its predecessor is closing.
+                let patience = match config.take_over {
+                    Some(_) => holon::takeover::JOURNAL_PATIENCE,
+                    None => std::time::Duration::ZERO,
+                };
+                Some(Journal::open_when_free(
+                    dir,
+                    &file,
+                    config.durability,
+                    patience,
+                )?)
             }
             None => None,
         };

@@ -228,8 +228,12 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
             }
         }
     }
-    drop(successors);
-    match successor {
+    let refusal = match &successor {
+        Some(_) => "another successor is taking over already",
+        None => "the holon is stopping",
+    };
+    successors.close(crate::VERSION, refusal).await;
+    let ended = match successor {
         Some(offer) => {
             // What it learned goes with it: the successor learns again (nominal
             // durations until it has measured).
@@ -241,22 +245,24 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
                 token,
                 claim,
                 &[(advice_key.clone(), false)],
+                &shutdown,
             )
-            .await;
+            .await
         }
         None => {
             if let Err(e) = token.undeclare().await {
                 error!(%holon, error = %e, "cannot withdraw the liveliness token");
             }
+            Ok(())
         }
-    }
+    };
     match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
         Ok(Ok(())) => {}
         Ok(Err(e)) => warn!(%holon, error = %e, "cannot close the zenoh session"),
         Err(_) => warn!(%holon, "the zenoh session did not close within 5 s"),
     }
     info!(%holon, advised = published.advised, "holon stopped");
-    Ok(())
+    ended
 }
 
 /// Asks every resource for its state once, at start.
