@@ -153,6 +153,83 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
         .success());
 }
 
+/// A successor that is released and then never serves (it died, or hangs): the
+/// running holon has let go, so it stands in for its limit and exits 1, and its
+/// supervisor starts it again on its journal. No order is lost, nothing is
+/// interrupted, and no step is run twice.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_holon_whose_successor_never_serves_exits_to_be_started_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let dir = dir.path();
+    let cell = Cell::open("t-upgrade-no-successor").await.unwrap();
+    let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &["--delay-ms", "100"]).unwrap();
+    let config = resource_config(dir, "robot1", 10_000).unwrap();
+    let data = dir.join("robot-data");
+    let data_arg = data.to_str().unwrap();
+    let mut old = cell
+        .start_free_resource(dir, &config, &sim.address, &["--data-dir", data_arg])
+        .await
+        .unwrap();
+    let _part_and_orders = cell
+        .start_part_and_orders(dir, &demo_config("orders1.toml"), &dir.join("orders-data"))
+        .await
+        .unwrap();
+    let orders = cell.submit("part", 6).await.unwrap();
+    sim.wait_executed("pick", 2).await;
+
+    // The successor, speaking the protocol from the test's own session: it asks, is
+    // released, and then does nothing more.
+    let robot1 = HolonId::resource("robot1").unwrap();
+    let request = holon::takeover::Request {
+        successor: holon::presence::Holder::this_process(&cell.session),
+        version: "0.0.0-never-serves".into(),
+        data_dir: Some(std::fs::canonicalize(&data).unwrap()),
+        wait_ms: 10_000,
+    };
+    let taken = holon::takeover::take_over(
+        &cell.session,
+        &cell.keys.alive(&robot1),
+        "resource/robot1",
+        &request,
+    )
+    .await
+    .unwrap();
+    assert!(
+        matches!(taken, holon::takeover::TakenOver::From(ref reply) if reply.released),
+        "{taken:?}"
+    );
+    let status = old.wait_exit(Duration::from_secs(60)).unwrap();
+    assert_eq!(status.code(), Some(1), "{status:?}: {}", old.stderr());
+    assert!(old.stderr().contains("did not serve"), "{}", old.stderr());
+
+    // Its supervisor starts it again, on its journal: the bookings and the running
+    // step's result are there.
+    let again_dir = dir.join("again");
+    std::fs::create_dir_all(&again_dir).unwrap();
+    let mut again = start_node(
+        &again_dir,
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &["--data-dir", data_arg],
+    )
+    .unwrap();
+    let states = wait_all_done(&cell, &orders, Duration::from_secs(90)).await;
+    for state in &states {
+        assert_eq!(state["failed_attempts"], 0, "an attempt failed: {state}");
+        for attempt in state["attempts"].as_array().unwrap() {
+            let detail = attempt["detail"].as_str().unwrap_or_default();
+            assert!(!detail.contains("interrupted"), "{detail}");
+        }
+    }
+    // Every step ran exactly once.
+    assert_eq!(sim.wait_executed("pick", 6).await, 6);
+    assert_eq!(sim.wait_executed("place", 6).await, 6);
+    again.signal(Signal::SIGTERM).unwrap();
+    assert!(again.wait_exit(Duration::from_secs(20)).unwrap().success());
+}
+
 /// Runs `cell upgrade ARGS --dir DIR`: its success and its output (stdout, stderr).
 async fn cell_upgrade(dir: &Path, args: &[&str]) -> (bool, String) {
     let output = tokio::process::Command::new(bin("cell"))
