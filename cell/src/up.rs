@@ -14,6 +14,7 @@
 //! one process at a time is replaced by its successor through a planned hand-over,
 //! and the successor is supervised in its place.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::{ExitStatus, Stdio};
 use std::time::Duration;
@@ -255,6 +256,15 @@ struct Checked {
     failure: Option<String>,
 }
 
+/// A successor that is stopped because its predecessor exited without handing over to
+/// it (no successor served within the stand-in limit): SIGTERM, SIGKILL at `kill_at`.
+struct Retired {
+    index: usize,
+    generation: u64,
+    pid: u32,
+    kill_at: Instant,
+}
+
 /// A successor that is taking a process over.
 struct Successor {
     pid: Option<u32>,
@@ -288,8 +298,12 @@ struct Processes<'a> {
     slots: Vec<Slot>,
     /// One waiter per running process.
     waits: JoinSet<Ended>,
-    /// Successors' `--check` runs, so that the supervision goes on while they run.
+    /// Successors' `--check` runs, so that the supervision goes on while they run;
+    /// the process each is for, by task.
     checks: JoinSet<Checked>,
+    checking: HashMap<tokio::task::Id, usize>,
+    /// Successors being stopped because their predecessor gave up on them.
+    retired: Vec<Retired>,
     /// The restarts of all processes together, against the intensity.
     window: RestartWindow,
     clock: Clock,
@@ -324,6 +338,8 @@ impl<'a> Processes<'a> {
                 .collect(),
             waits: JoinSet::new(),
             checks: JoinSet::new(),
+            checking: HashMap::new(),
+            retired: Vec::new(),
             window: RestartWindow::new(manifest.intensity()),
             clock,
         }
@@ -426,7 +442,7 @@ impl<'a> Processes<'a> {
             .current_dir(self.dir)
             .stdin(Stdio::null())
             .kill_on_drop(true);
-        self.checks.spawn(async move {
+        let task = self.checks.spawn(async move {
             let output = tokio::time::timeout(CHECK_WITHIN, check.output()).await;
             // A config that fails its check leaves the running process alone.
             let failure = match output {
@@ -449,6 +465,7 @@ impl<'a> Processes<'a> {
                 failure,
             }
         });
+        self.checking.insert(task.id(), index);
     }
 
     /// Starts a successor whose check passed.
@@ -503,14 +520,26 @@ impl<'a> Processes<'a> {
     ) -> bool {
         loop {
             let next_restart = self.slots.iter().filter_map(|s| s.restart_at).min();
+            let next_kill = self.retired.iter().map(|r| r.kill_at).min();
             tokio::select! {
                 _ = shutdown.cancelled() => return true,
                 Some((request, reply)) = upgrades.recv() => self.upgrade(request, reply),
-                Some(checked) = self.checks.join_next(), if !self.checks.is_empty() => {
+                Some(checked) = self.checks.join_next_with_id(), if !self.checks.is_empty() => {
                     match checked {
-                        Ok(checked) => self.checked(checked),
-                        Err(e) => tracing::error!(error = %e, "a successor's check task failed; its cell upgrade gets no answer"),
+                        Ok((task, checked)) => {
+                            self.checking.remove(&task);
+                            self.checked(checked);
+                        }
+                        Err(e) => {
+                            if let Some(index) = self.checking.remove(&e.id()) {
+                                self.slots[index].checking = false;
+                            }
+                            tracing::error!(error = %e, "a successor's check task failed; its cell upgrade gets no answer");
+                        }
                     }
+                }
+                _ = async { tokio::time::sleep_until(next_kill.unwrap_or_else(Instant::now)).await }, if next_kill.is_some() => {
+                    self.kill_retired();
                 }
                 Some(joined) = self.waits.join_next() => {
                     let Ok(ended) = joined else { continue };
@@ -525,9 +554,72 @@ impl<'a> Processes<'a> {
         }
     }
 
+    /// Stops the successor of process `index`, whose predecessor exited (`status`)
+    /// without handing over to it, and tells `cell upgrade`.
+    fn retire(&mut self, index: usize, successor: Successor, status: &std::io::Result<ExitStatus>) {
+        let name = &self.specs[index].name;
+        let message = format!(
+            "{name} exited ({}) after handing over: its successor (pid {}) did not serve within {:?}. The successor is stopped and {name} is started again from its previous binary and config, on its journal. The end of logs/{name}.log:\n{}",
+            match status {
+                Ok(status) => status.to_string(),
+                Err(e) => e.to_string(),
+            },
+            successor.pid.unwrap_or(0),
+            holon::takeover::STAND_IN_LIMIT,
+            crate::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
+        );
+        self.clock.say(format!(
+            "upgrade of {name} failed: its successor did not serve; starting {name} again as it was"
+        ));
+        if let Some(pid) = successor.pid {
+            let target = nix::unistd::Pid::from_raw(pid as i32);
+            if let Err(e) = nix::sys::signal::kill(target, nix::sys::signal::Signal::SIGTERM) {
+                self.clock
+                    .say(format!("cannot signal the successor of {name}: {e}"));
+            }
+            self.retired.push(Retired {
+                index,
+                generation: successor.generation,
+                pid,
+                kill_at: Instant::now() + self.stop_timeout,
+            });
+        }
+        if successor.reply.send(failed(&message)).is_err() {
+            tracing::warn!(%name, "cell upgrade went away before its answer");
+        }
+    }
+
+    /// SIGKILLs the retired successors whose stop timeout has passed.
+    fn kill_retired(&mut self) {
+        let now = Instant::now();
+        for retired in self.retired.iter_mut().filter(|r| r.kill_at <= now) {
+            let name = &self.specs[retired.index].name;
+            let target = nix::unistd::Pid::from_raw(retired.pid as i32);
+            match nix::sys::signal::kill(target, nix::sys::signal::Signal::SIGKILL) {
+                Ok(()) => self.clock.say(format!(
+                    "the successor of {name} did not stop within {:?}; killed",
+                    self.stop_timeout
+                )),
+                Err(e) => self
+                    .clock
+                    .say(format!("cannot kill the successor of {name}: {e}")),
+            }
+            // Its waiter reports the end; it is not killed twice.
+            retired.kill_at = now + Duration::from_secs(3600);
+        }
+    }
+
     /// Decides on an exit after its restart type and the intensity: false to give up.
     fn exited(&mut self, (index, generation, status): Ended) -> bool {
         let name = self.specs[index].name.clone();
+        if let Some(at) = self.retired.iter().position(|r| r.generation == generation) {
+            self.retired.swap_remove(at);
+            self.clock.say(format!(
+                "stopped the successor of {name} ({})",
+                describe(status)
+            ));
+            return true;
+        }
         let slot = &mut self.slots[index];
         if slot
             .successor
@@ -563,7 +655,9 @@ impl<'a> Processes<'a> {
         if slot.generation != generation {
             return true;
         }
-        if let Some(successor) = slot.successor.take() {
+        let predecessor_ok = status.as_ref().is_ok_and(ExitStatus::success);
+        let mut successor = slot.successor.take();
+        if let Some(successor) = successor.take_if(|_| predecessor_ok) {
             let before = slot.pid.unwrap_or(0);
             slot.generation = successor.generation;
             slot.pid = successor.pid;
@@ -585,6 +679,13 @@ impl<'a> Processes<'a> {
             }
             return true;
         }
+        if let Some(successor) = successor {
+            // The predecessor let go and no successor served within its stand-in limit
+            // (it exits 1 then): the successor is stopped and the process is started
+            // again below, from its previous command line, on its journal.
+            self.retire(index, successor, &status);
+        }
+        let slot = &mut self.slots[index];
         let spec = &self.specs[index];
         slot.pid = None;
         let ended_normally = status.as_ref().is_ok_and(ExitStatus::success);

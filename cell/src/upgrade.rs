@@ -107,7 +107,7 @@ pub async fn ask(dir: &Path, host: &str, request: &UpgradeRequest) -> Result<Upg
         + Duration::from_millis(request.wait_ms)
         + holon::takeover::RELEASE_ALLOWANCE
         + holon::takeover::STAND_IN_LIMIT
-        + Duration::from_secs(10);
+        + Duration::from_secs(30);
     tokio::time::timeout(limit, BufReader::new(read).read_line(&mut answer))
         .await
         .map_err(|_| anyhow!("cell up did not report the upgrade within {limit:?}"))??;

@@ -76,7 +76,11 @@ impl Identity {
     /// twin (the name alive elsewhere in the cell) is refused before this process
     /// answers anything. Keep the claim for as long as the holon serves. With
     /// `--take-over`, the running process hands the name over first.
-    pub async fn join(&self) -> Result<(zenoh::Session, holon::presence::Claim), NodeError> {
+    /// `None` when `shutdown` came while it was taking over.
+    pub async fn join(
+        &self,
+        shutdown: &tokio_util::sync::CancellationToken,
+    ) -> Result<Option<(zenoh::Session, holon::presence::Claim)>, NodeError> {
         let holon = &self.holon;
         let tls_identity = holon::tls::identity(&holon.kind().to_string(), holon.name());
         let session = self.zenoh.open(&tls_identity, STARTUP_TIMEOUT).await?;
@@ -88,14 +92,22 @@ impl Identity {
                 wait_ms: wait.as_millis() as u64,
             };
             let alive_key = self.keys.alive(holon);
-            let taken =
-                holon::takeover::take_over(&session, &alive_key, &holon.to_string(), &request)
-                    .await;
-            if let Err(e) = taken {
+            let name = holon.to_string();
+            let taken = tokio::select! {
+                taken = holon::takeover::take_over(&session, &alive_key, &name, &request) => taken.map(Some),
+                _ = shutdown.cancelled() => Ok(None),
+            };
+            if !matches!(taken, Ok(Some(_))) {
                 if let Err(close) = session.close().await {
                     warn!(%holon, error = %close, "cannot close the zenoh session");
                 }
-                return Err(e.into());
+                return match taken {
+                    Err(e) => Err(e.into()),
+                    _ => {
+                        warn!(%holon, "told to stop while taking over; the running process may hand over to nobody (it then exits, and its supervisor starts it again)");
+                        Ok(None)
+                    }
+                };
             }
         }
         match holon::presence::claim(
@@ -106,7 +118,7 @@ impl Identity {
         )
         .await
         {
-            Ok(claim) => Ok((session, claim)),
+            Ok(claim) => Ok(Some((session, claim))),
             Err(e) => {
                 if let Err(close) = session.close().await {
                     warn!(%holon, error = %close, "cannot close the zenoh session");

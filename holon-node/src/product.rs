@@ -67,7 +67,9 @@ impl ProductConfig {
 /// Serves the plan until `shutdown` is cancelled.
 pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.identity.holon.clone();
-    let (session, claim) = config.identity.join().await?;
+    let Some((session, claim)) = config.identity.join(&shutdown).await? else {
+        return Ok(());
+    };
     let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
     let snapshot = serde_json::json!({

@@ -44,11 +44,13 @@ pub struct CommonArgs {
     /// Take over from the running process of this holon (an upgrade): it finishes its
     /// running step, keeps its bookings and hands over its data dir and name; then this
     /// process serves. The config is checked first: a bad one leaves the running
-    /// process untouched. Without a running process, it starts as usual.
+    /// process untouched. Without a running process, it starts as usual. Exit code 3:
+    /// the running process refused (it serves on, nothing changed).
     #[arg(long)]
     pub take_over: bool,
-    /// How long --take-over waits for the running process to finish (its running
-    /// step) and hand over; it refuses, and serves on, if it cannot within this.
+    /// How long the running process may take to finish what it must (its running
+    /// step) before it hands over; it refuses, and serves on, if it cannot within this.
+    /// It then has 45 s more to stop and close its journal.
     #[arg(long, value_name = "MS", default_value_t = 60_000)]
     pub take_over_wait_ms: u64,
     /// Terminal log format: text (human-readable) or json (one object per line).

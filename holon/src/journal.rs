@@ -120,6 +120,20 @@ fn check_wal_header(wal: &Path) -> Result<(), String> {
     Ok(())
 }
 
+/// Runs journal work that may block (an fsync, waiting for the file lock): on the
+/// multi-thread runtime the worker hands its other tasks over while it waits (with
+/// thousands of orders writing at once, nothing else, SIGTERM or queries, would run
+/// otherwise); elsewhere it just runs.
+pub fn blocking<R>(work: impl FnOnce() -> R) -> R {
+    let multi_thread = tokio::runtime::Handle::try_current()
+        .is_ok_and(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread);
+    if multi_thread {
+        tokio::task::block_in_place(work)
+    } else {
+        work()
+    }
+}
+
 /// A holon's journal.
 pub struct Journal {
     path: PathBuf,
@@ -260,8 +274,22 @@ impl Journal {
 
     /// Opens `dir/file` like [`Journal::open`], but waits up to `patience` for another
     /// process to let go of it: a successor taking over a holon opens the journal its
-    /// predecessor is closing. Any other error returns at once.
+    /// predecessor is closing. Any other error returns at once. The wait does not hold
+    /// a runtime worker (see [`blocking`]).
     pub fn open_when_free(
+        dir: &Path,
+        file: &str,
+        durability: Durability,
+        patience: std::time::Duration,
+    ) -> Result<Journal, JournalError> {
+        if patience.is_zero() {
+            return Journal::open(dir, file, durability);
+        }
+        blocking(|| Journal::open_waiting(dir, file, durability, patience))
+    }
+
+    /// [`Journal::open_when_free`]'s wait, on the calling thread.
+    fn open_waiting(
         dir: &Path,
         file: &str,
         durability: Durability,

@@ -44,9 +44,11 @@ const TOKEN_GONE_WITHIN: Duration = Duration::from_secs(5);
 
 /// How long the predecessor may take, beyond the request's `wait_ms` (finishing what it
 /// must), to stop its components and close its journal before it answers: the
-/// successor waits `wait_ms` plus this for the answer. It covers the components'
-/// shutdown timeouts, so a predecessor does not release after its successor gave up.
-pub const RELEASE_ALLOWANCE: Duration = Duration::from_secs(30);
+/// successor waits `wait_ms` plus this for the answer. It covers a resource's five
+/// components' shutdown timeouts (5 s each, and 1 s each for one that has to be
+/// aborted) with a margin, so a predecessor does not release after its successor gave
+/// up (if it ever does, it stands in, exits 1 and is started again).
+pub const RELEASE_ALLOWANCE: Duration = Duration::from_secs(45);
 
 /// How long a successor waits for its predecessor's journal to be let go of (the file
 /// lock) after `released`: a component that had to be aborted closes it a little later.

@@ -49,7 +49,8 @@ impl OrderContext {
         // A commit may wait for an fsync: with thousands of orders writing at once that
         // would hold every worker thread, and nothing else (SIGTERM, queries) would run.
         // On the multi-thread runtime the worker hands its other tasks over while it waits.
-        let written = journal_write(|| journal.put(ORDER_RECORD, progress.holon.name(), progress));
+        let written =
+            holon::journal::blocking(|| journal.put(ORDER_RECORD, progress.holon.name(), progress));
         match written {
             Ok(()) => {
                 if self.journal_failing.swap(false, Ordering::SeqCst) {
@@ -93,19 +94,6 @@ impl OrderContext {
         self.save(&next)?;
         *p = next;
         Ok(())
-    }
-}
-
-/// Runs a journal write, which may wait for an fsync: on the multi-thread runtime the
-/// worker hands its other tasks over while it waits (with thousands of orders writing at
-/// once, nothing else, SIGTERM or queries, would run otherwise).
-pub fn journal_write<R>(write: impl FnOnce() -> R) -> R {
-    let multi_thread = tokio::runtime::Handle::try_current()
-        .is_ok_and(|h| h.runtime_flavor() == tokio::runtime::RuntimeFlavor::MultiThread);
-    if multi_thread {
-        tokio::task::block_in_place(write)
-    } else {
-        write()
     }
 }
 

@@ -15,7 +15,7 @@ use tracing::{debug, error, info, warn};
 use zenoh::key_expr::KeyExpr;
 
 use crate::config::OrderNodeConfig;
-use crate::context::{journal_write, OrderContext, OrderError, ORDER_RECORD};
+use crate::context::{OrderContext, OrderError, ORDER_RECORD};
 use crate::order;
 use crate::progress::OrderProgress;
 
@@ -101,8 +101,10 @@ impl Host {
                 std::iter::once((NEXT_RECORD.0, NEXT_RECORD.1, next))
                     .chain(orders)
                     .collect();
-            journal_write(|| journal.put_all(records.iter().map(|(k, i, v)| (*k, *i, v))))
-                .map_err(|e| e.to_string())?;
+            holon::journal::blocking(|| {
+                journal.put_all(records.iter().map(|(k, i, v)| (*k, *i, v)))
+            })
+            .map_err(|e| e.to_string())?;
         }
         let mut names = Vec::new();
         for (name, progress) in created {
@@ -262,7 +264,7 @@ impl Host {
             return 0;
         }
         if let Some(journal) = &self.context.journal {
-            if let Err(e) = journal_write(|| journal.delete(ORDER_RECORD, &expired)) {
+            if let Err(e) = holon::journal::blocking(|| journal.delete(ORDER_RECORD, &expired)) {
                 warn!(node = %self.config.name, orders = expired.len(), error = %e, "cannot remove finished orders from the journal; tried again at the next sweep");
                 return 0;
             }

@@ -344,11 +344,22 @@ impl OrderTask {
             }
             AttemptAction::CancelBooking(provider) => {
                 let cancel = request(MessageType::BookingCancel);
-                if requests::ask(&ctx, &ctx.keys.service(provider.name()), &cancel)
-                    .await
-                    .is_none()
-                {
-                    warn!(holon = %self.holon, %conversation_id, resource = %provider, "the cancel of a booking got no answer; the booking ends with this order's token or the resource's grace");
+                let key = ctx.keys.service(provider.name());
+                let answer = requests::ask(&ctx, &key, &cancel).await;
+                let handed_over =
+                    answer.as_ref().and_then(|a| a.reason.as_deref()) == Some(reason::UNAVAILABLE);
+                if answer.is_none() || handed_over {
+                    // Not answered, or by a stand-in while the resource is handed over
+                    // (it keeps its bookings): sent again until the resource answers,
+                    // so that its successor does not run the abandoned booking.
+                    info!(holon = %self.holon, %conversation_id, resource = %provider, handed_over, "the cancel of a booking was not taken; sent again when the resource answers");
+                    tokio::spawn(requests::cancel_when_back(
+                        ctx.session.clone(),
+                        ctx.presence.clone(),
+                        provider.clone(),
+                        key,
+                        cancel,
+                    ));
                 }
                 None
             }

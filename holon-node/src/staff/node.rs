@@ -57,7 +57,9 @@ struct Published {
 /// Runs the staff holon until `shutdown` is cancelled.
 pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.identity.holon.clone();
-    let (session, claim) = config.identity.join().await?;
+    let Some((session, claim)) = config.identity.join(&shutdown).await? else {
+        return Ok(());
+    };
     let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
     let (events, mut mailbox) = mpsc::channel::<StaffEvent>(MAILBOX);
     let keys = &config.identity.keys;
