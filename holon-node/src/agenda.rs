@@ -54,6 +54,8 @@
 //! | | withdrawing | nothing | same |
 //! | hand-over abandoned (the running job outlasted the successor's wait) | handing over | | serving again |
 //! | requester gone (absent longer than the grace) | | its bookings removed; its running job and undelivered results stay | same − bookings |
+//! | restored from the journal | handed over by a predecessor just now | bookings as they were | `init` |
+//! | | otherwise (a restart) | bookings kept, none starts on its turn: each waits for its requester's `start` ([`Inheritance::Restarted`]) | `init` |
 //! | after any event | `free`, not withdrawing or handing over, and the first booking asked to start on its turn | the booking becomes the job, execution starts | `busy` |
 //!
 //! "Withdrawing" in the rows above reads "withdrawing or handing over": both take no
@@ -82,6 +84,22 @@ use crate::catalog::ServiceCatalog;
 /// How many later bookings of higher priority may go ahead of a waiting one, unless
 /// the config says (`agenda.max_overtakes`).
 pub const DEFAULT_MAX_OVERTAKES: u32 = 4;
+
+/// How the journal's bookings came to this process, which decides whether those asked
+/// to start on their turn still do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Inheritance {
+    /// A predecessor handed them over a moment ago: their requesters knew of the
+    /// hand-over and kept them, so each starts on its turn as it was booked to.
+    HandedOver,
+    /// The holon was away (it stopped, crashed, or its successor never served): a
+    /// requester may have given up on its booking and booked again, here or elsewhere,
+    /// with its cancel not yet arrived. Started on its turn, such a booking would run
+    /// the step twice; so every booking waits for its requester's `start` (an order
+    /// that still holds it sends one when its turn comes, an order that gave up sends
+    /// the cancel).
+    Restarted,
+}
 
 /// A commitment on the agenda.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -274,15 +292,23 @@ impl AgendaManager {
 
     /// The agenda manager after a restart of the process: the bookings and undelivered
     /// results come back; a job that was executing is reported `failed` with reason
-    /// `interrupted` (never re-executed), as one more undelivered result.
+    /// `interrupted` (never re-executed), as one more undelivered result. Unless a
+    /// predecessor has just handed them over, no booking starts by itself on its turn
+    /// (see [`Inheritance::Restarted`]).
     pub fn restore(
         holon: HolonId,
         catalog: Arc<ServiceCatalog>,
         capacity: usize,
         record: AgendaRecord,
+        inheritance: Inheritance,
     ) -> AgendaManager {
         let mut manager = AgendaManager::new(holon, catalog, capacity);
         manager.bookings = record.bookings;
+        if inheritance == Inheritance::Restarted {
+            for booking in &mut manager.bookings {
+                booking.start_on_turn = false;
+            }
+        }
         manager.undelivered = record.undelivered;
         if let Some(job) = record.current {
             let message = manager.result_message(
@@ -1492,6 +1518,48 @@ mod tests {
         );
     }
 
+    /// The agenda of a busy resource with two bookings on turn behind the running job,
+    /// journalled and restored as `inheritance` says, its controller ready again: the
+    /// restored agenda and the jobs that started.
+    fn restored_with_bookings_on_turn(inheritance: Inheritance) -> (AgendaManager, Vec<String>) {
+        let mut m = manager();
+        m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+        m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
+        m.handle(AgendaEvent::Request(book_on_turn("o-3", "c3")));
+        let json = serde_json::to_string(&m.record()).unwrap();
+        let mut restored = AgendaManager::restore(
+            HolonId::resource("robot1").unwrap(),
+            Arc::new(pick_n_place()),
+            3,
+            serde_json::from_str(&json).unwrap(),
+            inheritance,
+        );
+        let started = executed(&restored.handle(AgendaEvent::ExecutionReady));
+        (restored, started)
+    }
+
+    #[test]
+    fn bookings_handed_over_start_on_their_turn_in_the_successor() {
+        let (_, started) = restored_with_bookings_on_turn(Inheritance::HandedOver);
+        assert_eq!(started, ["c2"]);
+    }
+
+    #[test]
+    fn after_a_restart_a_booking_on_turn_waits_for_its_requesters_start() {
+        let (mut m, started) = restored_with_bookings_on_turn(Inheritance::Restarted);
+        assert!(started.is_empty(), "{started:?}");
+        assert_eq!(m.state(), ResourceState::Free);
+        // Its order gave up on it while the resource was away: the cancel is taken.
+        let cancel = msg(MessageType::BookingCancel, "o-2", "c2");
+        let actions = m.handle(AgendaEvent::Request(cancel));
+        assert_accepted(&actions);
+        assert!(executed(&actions).is_empty(), "{actions:?}");
+        // The other order still holds its booking and asks to start.
+        let actions = m.handle(AgendaEvent::Request(start("o-3", "c3")));
+        assert_accepted(&actions);
+        assert_eq!(executed(&actions), ["c3"]);
+    }
+
     #[test]
     fn restore_reports_the_interrupted_job_and_redelivers_results() {
         let mut m = manager();
@@ -1509,6 +1577,7 @@ mod tests {
             Arc::new(pick_n_place()),
             3,
             record,
+            Inheritance::Restarted,
         );
         assert_eq!(restored.bookings().len(), 1);
         assert_eq!(restored.bookings()[0].conversation_id, "c3");

@@ -10,7 +10,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use holon::takeover::StandInEnd;
+use holon::takeover::{StandInEnd, TakenOver};
 use holon::{ChildSpec, Supervisor};
 use robot_bridge::client::ControllerEvent;
 use schemas::{RobotCommand, Service};
@@ -19,7 +19,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
 use crate::absences::{Absences, Moment};
-use crate::agenda::{AgendaEvent, Job};
+use crate::agenda::{AgendaEvent, Inheritance, Job};
 use crate::component::agenda_manager::{self, AgendaMessage, JournalledAgenda};
 use crate::component::delivery::Deliveries;
 use crate::component::{communication, execution, interfacing, requesters};
@@ -67,9 +67,13 @@ struct Wiring {
 impl Wiring {
     /// The mailboxes, the owned states (the agenda restored from the journal if the
     /// holon has one) and the views, linked.
-    fn new(config: &ResourceConfig, session: &zenoh::Session) -> Result<Wiring, NodeError> {
+    fn new(
+        config: &ResourceConfig,
+        session: &zenoh::Session,
+        inheritance: Inheritance,
+    ) -> Result<Wiring, NodeError> {
         let holon = config.holon.clone();
-        let agenda = JournalledAgenda::open(config)?;
+        let agenda = JournalledAgenda::open(config, inheritance)?;
         // Results not acknowledged before a restart (and an interrupted job's `failed`)
         // go out when the communication component starts (from the agenda's view).
         let deliveries = Deliveries::new(holon.clone(), session.clone(), config.delivery);
@@ -284,6 +288,9 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
         )
         .await?;
     info!(%holon, zid = %session.zid(), "zenoh session open");
+    // The journal's bookings are a predecessor's hand-over only when one released
+    // them to this process just now.
+    let mut inheritance = Inheritance::Restarted;
     if let Some(wait) = config.take_over {
         let request = holon::takeover::Request {
             successor: holon::presence::Holder::this_process(&session),
@@ -299,6 +306,9 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
             taken = holon::takeover::take_over(&session, &alive_key, &name, &request) => taken.map(Some),
             _ = shutdown.cancelled() => Ok(None),
         };
+        if matches!(taken, Ok(Some(TakenOver::From(_)))) {
+            inheritance = Inheritance::HandedOver;
+        }
         if !matches!(taken, Ok(Some(_))) {
             if let Err(close) = session.close().await {
                 error!(%holon, error = %close, "cannot close the zenoh session");
@@ -312,7 +322,7 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
             };
         }
     }
-    let outcome = serve(&config, &session, &alive_key, shutdown).await;
+    let outcome = serve(&config, &session, &alive_key, inheritance, shutdown).await;
     if let Err(e) = session.close().await {
         error!(%holon, error = %e, "cannot close the zenoh session");
     }
@@ -326,6 +336,7 @@ async fn serve(
     config: &ResourceConfig,
     session: &zenoh::Session,
     alive_key: &str,
+    inheritance: Inheritance,
     shutdown: CancellationToken,
 ) -> Result<(), NodeError> {
     let holon = &config.holon;
@@ -333,7 +344,7 @@ async fn serve(
     // answers anything.
     let _claim =
         holon::presence::claim(session, alive_key, &holon.to_string(), STARTUP_TIMEOUT).await?;
-    let wiring = Wiring::new(config, session)?;
+    let wiring = Wiring::new(config, session, inheritance)?;
     let serving = wiring.communication.serving.notified();
     let components = CancellationToken::new();
     let mut supervision = tokio::spawn(wiring.supervisor(config).run(components.clone()));

@@ -446,3 +446,98 @@ args = ["--config", "orders1.toml", "--data-dir", "data", {common}]
     nix::sys::signal::kill(nix::unistd::Pid::from_raw(up.id() as i32), Signal::SIGTERM).unwrap();
     assert!(up.wait().unwrap().success());
 }
+
+/// `cell upgrade` with a successor that takes robot1 over and then hangs (a fixture that
+/// ignores SIGTERM): robot1 stands in for its limit and exits 1; `cell up` stops the
+/// successor (SIGTERM, then SIGKILL), starts robot1 again from its previous command line
+/// on its journal, and `cell upgrade` fails saying so. Every order is done, each step ran
+/// once.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_successor_that_never_serves_is_killed_and_the_process_started_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let dir = dir.path();
+    let cell = Cell::open("t-upgrade-rollback").await.unwrap();
+    let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &["--delay-ms", "100"]).unwrap();
+    let robot1 = resource_config(dir, "robot1", 10_000).unwrap();
+    let router = &cell.endpoint;
+    std::fs::write(
+        dir.join("cell.toml"),
+        format!(
+            r#"
+cell = "t-upgrade-rollback"
+[restart]
+stop_timeout_ms = 2000
+[[process]]
+name = "robot1"
+program = "holon-node"
+args = ["--config", "{robot1}", "--controller", "{sim}", "--data-dir", "data", "--cell", "t-upgrade-rollback", "--connect", "{router}"]
+"#,
+            robot1 = robot1.display(),
+            sim = sim.address,
+        ),
+    )
+    .unwrap();
+    let up_log = std::fs::File::create(dir.join("cell-up.out")).unwrap();
+    let mut up = std::process::Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir)
+        .stdout(up_log.try_clone().unwrap())
+        .stderr(up_log)
+        .spawn()
+        .unwrap();
+    let robot = HolonId::resource("robot1").unwrap();
+    cell.wait_alive(&robot).await.unwrap();
+    let _part_and_orders = cell
+        .start_part_and_orders(dir, &demo_config("orders1.toml"), &dir.join("orders-data"))
+        .await
+        .unwrap();
+    let orders = cell.submit("part", 6).await.unwrap();
+    sim.wait_executed("pick", 2).await;
+
+    // The broken release: a holon-node that hangs once it has been handed over to.
+    let release = dir.join("release-broken");
+    std::fs::create_dir_all(&release).unwrap();
+    let successor = release.join("holon-node");
+    std::fs::copy(env!("CARGO_BIN_EXE_never-serving-successor"), &successor).unwrap();
+    let (ok, out) = cell_upgrade(dir, &["robot1", "--binary", successor.to_str().unwrap()]).await;
+    assert!(!ok, "{out}");
+    assert!(out.contains("did not serve"), "{out}");
+    assert!(
+        out.contains("started again from its previous binary"),
+        "{out}"
+    );
+
+    // robot1 runs again, from holon-node, and finishes every order.
+    cell.wait_alive(&robot).await.unwrap();
+    let states = wait_all_done(&cell, &orders, Duration::from_secs(90)).await;
+    for state in &states {
+        assert_eq!(state["failed_attempts"], 0, "an attempt failed: {state}");
+        for attempt in state["attempts"].as_array().unwrap() {
+            let detail = attempt["detail"].as_str().unwrap_or_default();
+            assert!(!detail.contains("interrupted"), "{detail}");
+        }
+    }
+    assert_eq!(sim.wait_executed("pick", 6).await, 6);
+    assert_eq!(sim.wait_executed("place", 6).await, 6);
+
+    // The successor ignored SIGTERM and was killed (the stop timeout after the
+    // predecessor's exit).
+    let deadline = std::time::Instant::now() + WAIT;
+    let said = loop {
+        let said = std::fs::read_to_string(dir.join("cell-up.out")).unwrap();
+        if said.contains("stopped the successor of robot1") || std::time::Instant::now() > deadline
+        {
+            break said;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert!(
+        said.contains("the successor of robot1 did not stop within")
+            && said.contains("stopped the successor of robot1 (signal: 9"),
+        "{said}"
+    );
+    let successor_log = std::fs::read_to_string(dir.join("logs/robot1.log")).unwrap();
+    assert!(successor_log.contains("SIGTERM ignored"), "{successor_log}");
+    nix::sys::signal::kill(nix::unistd::Pid::from_raw(up.id() as i32), Signal::SIGTERM).unwrap();
+    assert!(up.wait().unwrap().success());
+}

@@ -28,7 +28,7 @@ use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
-use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord, Job};
+use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord, Inheritance, Job};
 use crate::component::question::Question;
 use crate::config::ResourceConfig;
 use crate::fault_injection::Faults;
@@ -84,7 +84,10 @@ impl JournalledAgenda {
     /// The agenda, restored from the journal if the holon has a data directory. Results
     /// not acknowledged before a restart (and an interrupted job's `failed`) are
     /// delivered by the communication component, which asks for them when it starts.
-    pub fn open(config: &ResourceConfig) -> Result<JournalledAgenda, JournalError> {
+    pub fn open(
+        config: &ResourceConfig,
+        inheritance: Inheritance,
+    ) -> Result<JournalledAgenda, JournalError> {
         let holon = &config.holon;
         let journal = match &config.data_dir {
             Some(dir) => {
@@ -111,7 +114,7 @@ impl JournalledAgenda {
         };
         match &journal {
             Some(journal) => {
-                info!(%holon, journal = %journal.path().display(), bookings = record.bookings.len(), interrupted = record.current.is_some(), undelivered = record.undelivered.len(), "journal opened")
+                info!(%holon, journal = %journal.path().display(), bookings = record.bookings.len(), interrupted = record.current.is_some(), undelivered = record.undelivered.len(), ?inheritance, "journal opened")
             }
             None => {
                 warn!(%holon, "no data directory: the agenda is not durable (use --data-dir)")
@@ -122,6 +125,7 @@ impl JournalledAgenda {
             config.catalog.clone(),
             config.agenda_capacity,
             record,
+            inheritance,
         )
         .with_max_overtakes(config.agenda_max_overtakes);
         if let Some(journal) = &journal {
@@ -479,7 +483,7 @@ mod tests {
 
     /// The demo's robot1 with its journal in `data`, its controller ready.
     fn journalled(config: &ResourceConfig) -> JournalledAgenda {
-        let mut agenda = JournalledAgenda::open(config).unwrap();
+        let mut agenda = JournalledAgenda::open(config, Inheritance::Restarted).unwrap();
         agenda
             .apply(&config.holon, AgendaEvent::ExecutionReady)
             .unwrap();
@@ -513,7 +517,7 @@ mod tests {
         assert!(outcomes.iter().all(accepted), "{outcomes:?}");
         assert_eq!(agenda.journal.as_ref().unwrap().commits(), commits + 1);
         drop(agenda);
-        let reopened = JournalledAgenda::open(&config).unwrap();
+        let reopened = JournalledAgenda::open(&config, Inheritance::Restarted).unwrap();
         assert_eq!(reopened.agenda.bookings().len(), 8, "all eight recorded");
     }
 
@@ -521,7 +525,7 @@ mod tests {
     fn a_batch_the_journal_refuses_is_taken_one_request_at_a_time() {
         let dir = tempfile::tempdir().unwrap();
         let config = config(dir.path());
-        drop(JournalledAgenda::open(&config).unwrap());
+        drop(JournalledAgenda::open(&config, Inheritance::Restarted).unwrap());
         // The journal refuses any agenda that holds order o5's booking.
         let file = dir.path().join("resource-robot1.sqlite");
         rusqlite::Connection::open(&file)
@@ -542,7 +546,7 @@ mod tests {
             }
         }
         drop(agenda);
-        let reopened = JournalledAgenda::open(&config).unwrap();
+        let reopened = JournalledAgenda::open(&config, Inheritance::Restarted).unwrap();
         let booked: Vec<String> = reopened
             .agenda
             .bookings()
@@ -556,7 +560,7 @@ mod tests {
     fn a_job_whose_start_the_journal_cannot_record_does_not_begin_on_its_turn() {
         let dir = tempfile::tempdir().unwrap();
         let config = config(dir.path());
-        drop(JournalledAgenda::open(&config).unwrap());
+        drop(JournalledAgenda::open(&config, Inheritance::Restarted).unwrap());
         // The journal refuses any agenda with o2's job running.
         rusqlite::Connection::open(dir.path().join("resource-robot1.sqlite"))
             .unwrap()
