@@ -238,8 +238,14 @@ pub async fn cancel_when_back(
                                     answer.retry_after().unwrap_or(Duration::from_millis(100)),
                                 );
                             }
-                            Some(_) => {
+                            Some(answer) if answer.result == Some(true) => {
                                 info!(conversation_id = %cancel.conversation_id, %resource, "abandoned booking cancelled");
+                                return;
+                            }
+                            // `not_booked`: it was not there, or its job began (a
+                            // restarted resource begins one only on its order's start).
+                            Some(answer) => {
+                                info!(conversation_id = %cancel.conversation_id, %resource, reason = answer.reason.as_deref().unwrap_or_default(), "abandoned booking: the resource did not hold it");
                                 return;
                             }
                             None => {}

@@ -11,6 +11,22 @@ use std::time::Duration;
 use anyhow::{anyhow, bail, Context, Result};
 use schemas::{CellKeys, HolonId};
 
+const HELP: &str = "never-serving-successor: a test fixture, not for a cell.
+
+Stands in for holon-node as the successor in `cell upgrade NAME --binary PATH` (installed
+as PATH/holon-node): it asks the running resource holon to hand over, and once released
+never serves, and ignores SIGTERM. The upgrade tests use it to prove that the running
+holon exits 1 and `cell up` kills the successor and starts the holon again.
+
+Flags (those of holon-node it reads; others are ignored):
+  --config FILE             the resource's config (its `name`)
+  --cell NAME               the cell
+  --connect ENDPOINT        the router (repeatable)
+  --data-dir DIR            the journal's directory (the running holon checks it)
+  --take-over-wait-ms MS    how long the running holon may finish its step (10000)
+  --check                   exit 0 at once
+  -h, --help                this text";
+
 /// What it needs of `holon-node`'s command line.
 #[derive(Default)]
 struct Args {
@@ -47,6 +63,10 @@ fn parse() -> Result<Args> {
             "--data-dir" => args.data_dir = Some(value()?.into()),
             "--take-over-wait-ms" => args.wait_ms = value()?.parse()?,
             "--check" => args.check = true,
+            "--help" | "-h" => {
+                println!("{HELP}");
+                std::process::exit(0);
+            }
             // holon-node's other flags (`--controller ADDR`, `--take-over`) do not matter.
             "--controller" => {
                 value()?;
