@@ -130,16 +130,21 @@ impl Identity {
 }
 
 /// A plain holon's hand-over to its successor (it has nothing to finish): answers on
-/// `stand_in` keys with `unavailable` and a retry hint, withdraws the token and the
-/// claim, releases the name, and stands in until the successor serves (or `shutdown`).
-/// An error when no successor served: the supervisor starts this holon again.
-pub async fn hand_over(
+/// `stand_in` keys with `unavailable` and a retry hint, then drops `replaced` (its own
+/// queryables on those keys: until then both answer, and a requester takes the answer
+/// that is not `unavailable`, so no request in the switch goes unanswered), withdraws
+/// the token and the claim, releases the name, and stands in until the successor serves
+/// (or `shutdown`). An error when no successor served: the supervisor starts this holon
+/// again.
+#[allow(clippy::too_many_arguments)]
+pub async fn hand_over<Replaced: Send>(
     identity: &Identity,
     session: &zenoh::Session,
     offer: holon::takeover::Offer,
     token: zenoh::liveliness::LivelinessToken,
     claim: holon::presence::Claim,
     stand_in: &[(String, bool)],
+    replaced: Replaced,
     shutdown: &tokio_util::sync::CancellationToken,
 ) -> Result<(), NodeError> {
     let holon = &identity.holon;
@@ -165,6 +170,7 @@ pub async fn hand_over(
             None
         }
     };
+    drop(replaced);
     if let Err(e) = token.undeclare().await {
         warn!(%holon, error = %e, "cannot withdraw the liveliness token");
     }

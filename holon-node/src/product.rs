@@ -139,7 +139,6 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         offer = successors.next() => {
             info!(holon = %holon, successor = %offer.request.successor, version = %offer.request.version, "a successor asks to take over");
             successors.close(crate::VERSION, "another successor is taking over already").await;
-            drop(_plan_queryable);
             crate::identity::hand_over(
                 &config.identity,
                 &session,
@@ -147,6 +146,7 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
                 token,
                 claim,
                 &[(plan_key.clone(), false)],
+                _plan_queryable,
                 &shutdown,
             )
             .await

@@ -239,7 +239,6 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
         Some(offer) => {
             // What it learned goes with it: the successor learns again (nominal
             // durations until it has measured).
-            drop(_advice);
             crate::identity::hand_over(
                 &config.identity,
                 &session,
@@ -247,6 +246,7 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
                 token,
                 claim,
                 &[(advice_key.clone(), false)],
+                _advice,
                 &shutdown,
             )
             .await
