@@ -55,6 +55,29 @@ fn assert_undisturbed(states: &[serde_json::Value]) {
     }
 }
 
+/// Asserts that no attempt failed or was interrupted (rebooks allowed).
+fn assert_none_failed_or_interrupted(states: &[serde_json::Value]) {
+    for state in states {
+        assert_eq!(state["failed_attempts"], 0, "an attempt failed: {state}");
+        for attempt in state["attempts"].as_array().unwrap() {
+            let detail = attempt["detail"].as_str().unwrap_or_default();
+            assert!(!detail.contains("interrupted"), "{detail}");
+        }
+    }
+}
+
+/// Starts `cell up DIR` (the manifest `DIR/cell.toml`), its output in `DIR/cell-up.out`.
+fn start_cell_up(dir: &Path) -> std::process::Child {
+    let up_log = std::fs::File::create(dir.join("cell-up.out")).unwrap();
+    std::process::Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir)
+        .stdout(up_log.try_clone().unwrap())
+        .stderr(up_log)
+        .spawn()
+        .unwrap()
+}
+
 /// A copy of `config` in `dir` (the successor's own log and stderr go there).
 fn successor_dir(dir: &Path) -> std::path::PathBuf {
     let next = dir.join("next");
@@ -216,13 +239,7 @@ async fn a_holon_whose_successor_never_serves_exits_to_be_started_again() {
     )
     .unwrap();
     let states = wait_all_done(&cell, &orders, Duration::from_secs(90)).await;
-    for state in &states {
-        assert_eq!(state["failed_attempts"], 0, "an attempt failed: {state}");
-        for attempt in state["attempts"].as_array().unwrap() {
-            let detail = attempt["detail"].as_str().unwrap_or_default();
-            assert!(!detail.contains("interrupted"), "{detail}");
-        }
-    }
+    assert_none_failed_or_interrupted(&states);
     // Every step ran exactly once.
     assert_eq!(sim.wait_executed("pick", 6).await, 6);
     assert_eq!(sim.wait_executed("place", 6).await, 6);
@@ -338,14 +355,7 @@ args = ["--config", "orders1.toml", "--data-dir", "data", {common}]
         ),
     )
     .unwrap();
-    let up_log = std::fs::File::create(dir.join("cell-up.out")).unwrap();
-    let mut up = std::process::Command::new(bin("cell"))
-        .arg("up")
-        .arg(dir)
-        .stdout(up_log.try_clone().unwrap())
-        .stderr(up_log)
-        .spawn()
-        .unwrap();
+    let mut up = start_cell_up(dir);
     for robot in ["robot1", "robot2"] {
         cell.wait_alive(&HolonId::resource(robot).unwrap())
             .await
@@ -477,14 +487,7 @@ args = ["--config", "{robot1}", "--controller", "{sim}", "--data-dir", "data", "
         ),
     )
     .unwrap();
-    let up_log = std::fs::File::create(dir.join("cell-up.out")).unwrap();
-    let mut up = std::process::Command::new(bin("cell"))
-        .arg("up")
-        .arg(dir)
-        .stdout(up_log.try_clone().unwrap())
-        .stderr(up_log)
-        .spawn()
-        .unwrap();
+    let mut up = start_cell_up(dir);
     let robot = HolonId::resource("robot1").unwrap();
     cell.wait_alive(&robot).await.unwrap();
     let _part_and_orders = cell
@@ -510,13 +513,7 @@ args = ["--config", "{robot1}", "--controller", "{sim}", "--data-dir", "data", "
     // robot1 runs again, from holon-node, and finishes every order.
     cell.wait_alive(&robot).await.unwrap();
     let states = wait_all_done(&cell, &orders, Duration::from_secs(90)).await;
-    for state in &states {
-        assert_eq!(state["failed_attempts"], 0, "an attempt failed: {state}");
-        for attempt in state["attempts"].as_array().unwrap() {
-            let detail = attempt["detail"].as_str().unwrap_or_default();
-            assert!(!detail.contains("interrupted"), "{detail}");
-        }
-    }
+    assert_none_failed_or_interrupted(&states);
     assert_eq!(sim.wait_executed("pick", 6).await, 6);
     assert_eq!(sim.wait_executed("place", 6).await, 6);
 
