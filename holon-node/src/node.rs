@@ -64,6 +64,10 @@ struct Wiring {
     communication: Arc<communication::Links>,
 }
 
+/// How long a resource handing over waits for its results to be acknowledged before it
+/// lets go (the successor delivers what is left).
+const RESULTS_BEFORE_RELEASE: Duration = Duration::from_secs(2);
+
 impl Wiring {
     /// The mailboxes, the owned states (the agenda restored from the journal if the
     /// holon has one) and the views, linked.
@@ -192,7 +196,8 @@ impl Wiring {
     /// Prepares a hand-over to a successor: takes no new work and starts nothing, keeps
     /// the bookings, and waits until the running job has finished (its result is in the
     /// journal). Within `wait`: else the hand-over is abandoned (the resource serves on)
-    /// and the error says why.
+    /// and the error says why. Then it waits (at most [`RESULTS_BEFORE_RELEASE`]) for
+    /// its results to be acknowledged.
     async fn hand_over(&self, wait: Duration) -> Result<(), String> {
         let links = &self.agenda_manager;
         let holon = &links.holon;
@@ -224,6 +229,19 @@ impl Wiring {
                 ))
             }
         }?;
+        // Its result (and any other not yet acknowledged) is delivered now, not after
+        // the gap: should the successor never serve, its order would otherwise wait
+        // out its grace for it and do the step again elsewhere. Bounded: a result whose
+        // order-node is away goes with the journal, and the successor delivers it.
+        let delivered = tokio::time::timeout(
+            RESULTS_BEFORE_RELEASE,
+            agenda.wait_for(|view| view.snapshot.undelivered == 0),
+        )
+        .await;
+        if delivered.is_err() {
+            let undelivered = links.views.agenda.borrow().snapshot.undelivered;
+            warn!(%holon, undelivered, within = ?RESULTS_BEFORE_RELEASE, "results not acknowledged before the hand-over; the successor delivers them from the journal");
+        }
         // The running step's result must be in the journal: a successor reads only that.
         if let Some(fault) = self.journal_fault() {
             self.abandon_hand_over().await;

@@ -104,18 +104,24 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
         .unwrap();
     let orders = cell.submit("part", 12).await.unwrap();
     // A result in a message version the order-node does not speak is refused, and
-    // says so (a holon of another release in a rolling upgrade).
+    // says so (a holon of another release in a rolling upgrade). The last order's
+    // inbox: it is still there when a loaded machine gets to ask, once the order's
+    // token says its task runs (the inbox is declared before it).
+    let last = orders.last().unwrap();
+    cell.wait_alive(&HolonId::order(last).unwrap())
+        .await
+        .unwrap();
     let mut other_version = serde_json::to_value(schemas::Service::request(
         schemas::MessageType::Done,
         "pick_n_place",
-        &format!("{}/1/1", orders[0]),
-        HolonId::order(&orders[0]).unwrap(),
+        &format!("{last}/1/1"),
+        HolonId::order(last).unwrap(),
     ))
     .unwrap();
     other_version["v"] = serde_json::json!(2);
     let refused = cell
         .request(
-            &cell.keys.inbox(&orders[0]),
+            &cell.keys.inbox(last),
             serde_json::to_vec(&other_version).unwrap(),
         )
         .await
@@ -464,8 +470,9 @@ args = ["--config", "orders1.toml", "--data-dir", "data", {common}]
 /// once.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_successor_that_never_serves_is_killed_and_the_process_started_again() {
-    let dir = tempfile::tempdir().unwrap();
-    let dir = dir.path();
+    let dir = tempfile::tempdir().unwrap().keep();
+    std::fs::write("/tmp/rollback-dir", dir.display().to_string()).unwrap();
+    let dir = dir.as_path();
     let cell = Cell::open("t-upgrade-rollback").await.unwrap();
     let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &["--delay-ms", "100"]).unwrap();
     let robot1 = resource_config(dir, "robot1", 10_000).unwrap();
