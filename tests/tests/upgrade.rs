@@ -470,9 +470,8 @@ args = ["--config", "orders1.toml", "--data-dir", "data", {common}]
 /// once.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_successor_that_never_serves_is_killed_and_the_process_started_again() {
-    let dir = tempfile::tempdir().unwrap().keep();
-    std::fs::write("/tmp/rollback-dir", dir.display().to_string()).unwrap();
-    let dir = dir.as_path();
+    let dir = tempfile::tempdir().unwrap();
+    let dir = dir.path();
     let cell = Cell::open("t-upgrade-rollback").await.unwrap();
     let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &["--delay-ms", "100"]).unwrap();
     let robot1 = resource_config(dir, "robot1", 10_000).unwrap();
