@@ -79,7 +79,7 @@ async fn advisor(
                 std::thread::spawn(move || {
                     use zenoh::Wait;
                     if answer == Answer::Late {
-                        std::thread::sleep(Duration::from_millis(200));
+                        std::thread::sleep(Duration::from_millis(3 * ADVICE_TIMEOUT_MS));
                     }
                     // A late reply may find the query gone: that is the point.
                     let _late_or_sent = query.reply(query.key_expr().clone(), payload).wait();
@@ -97,6 +97,11 @@ async fn advisor(
     (token, queryable, asked)
 }
 
+/// How long the tests' order-node waits for advice (`orders.advice_timeout_ms`): the
+/// demo's 20 ms is not a bound a loaded test machine always keeps. A late advisor
+/// answers after three times this.
+const ADVICE_TIMEOUT_MS: u64 = 500;
+
 /// Two robots offering pick_n_place (`fast` and `slow`, their simulators with the
 /// given action delays), the product `part` and the order-node `orders1`.
 struct TwoRobots {
@@ -104,7 +109,28 @@ struct TwoRobots {
     dir: tempfile::TempDir,
     fast: Sim,
     slow: Sim,
-    _processes: Vec<Process>,
+    /// The robots, the product and the order-node (last), stopped when dropped.
+    processes: Vec<Process>,
+}
+
+impl TwoRobots {
+    /// Waits (at most [`WAIT`]) until the order-node has seen a staff holon: it asks for
+    /// advice from then on.
+    async fn order_node_sees_staff(&self) {
+        let orders = self
+            .processes
+            .last()
+            .expect("the order-node is started last");
+        let deadline = tokio::time::Instant::now() + WAIT;
+        while !orders.stderr().contains("staff appeared") {
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "the order-node did not see the staff within {WAIT:?}: {}",
+                orders.stderr()
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
 }
 
 async fn two_robots(name: &str, fast_ms: u64, slow_ms: u64) -> TwoRobots {
@@ -134,12 +160,20 @@ async fn two_robots(name: &str, fast_ms: u64, slow_ms: u64) -> TwoRobots {
                 .unwrap(),
         );
     }
+    // The demo's order-node, waiting longer for advice (the tests count advised orders).
+    let demo = std::fs::read_to_string(demo_config("orders1.toml")).unwrap();
+    assert!(demo.contains("advice_timeout_ms = 20\n"));
+    let orders_config = path.join("orders1.toml");
+    std::fs::write(
+        &orders_config,
+        demo.replace(
+            "advice_timeout_ms = 20\n",
+            &format!("advice_timeout_ms = {ADVICE_TIMEOUT_MS}\n"),
+        ),
+    )
+    .unwrap();
     let (part, orders) = cell
-        .start_part_and_orders(
-            path,
-            &demo_config("orders1.toml"),
-            &path.join("orders-data"),
-        )
+        .start_part_and_orders(path, &orders_config, &path.join("orders-data"))
         .await
         .unwrap();
     processes.extend([part, orders]);
@@ -148,7 +182,7 @@ async fn two_robots(name: &str, fast_ms: u64, slow_ms: u64) -> TwoRobots {
         dir,
         fast,
         slow,
-        _processes: processes,
+        processes,
     }
 }
 
@@ -178,8 +212,7 @@ async fn orders_follow_usable_advice_and_go_by_contract_net_otherwise() {
     let cell = two_robots("t-staff-advice", 0, 0).await;
     let answer = Arc::new(Mutex::new(Answer::Book("slow")));
     let (_token, _queryable, asked) = advisor(&cell.cell, answer.clone()).await;
-    // Let the order-node see the staff's token.
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    cell.order_node_sees_staff().await;
 
     // Advice for a resource that proposed is followed: every order books `slow`.
     let followed = one_by_one(&cell.cell, 4).await;
@@ -254,7 +287,7 @@ async fn the_staff_learns_the_fast_robot_and_killing_it_loses_nothing() {
     .unwrap();
     let planner = HolonId::staff("planner").unwrap();
     cell.cell.wait_alive(&planner).await.unwrap();
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    cell.order_node_sees_staff().await;
 
     // Orders one by one: both robots say 1000 ms (nominal); the staff measures the
     // one it advised, finds it fast, and keeps sending the work there (contract net
