@@ -92,6 +92,14 @@ pub struct ControllerSection {
     pub command_timeout_ms: u64,
     #[serde(default = "default_connect_timeout_ms")]
     pub connect_timeout_ms: u64,
+    /// The controller's protocol: a shipped dialect's name or a dialect file (relative
+    /// to the config file). Default holarchy-xml.
+    #[serde(default = "default_dialect")]
+    pub dialect: String,
+}
+
+fn default_dialect() -> String {
+    robot_bridge::dialect::DEFAULT.to_string()
 }
 
 fn default_reconnect_ms() -> u64 {
@@ -287,6 +295,11 @@ impl ResourceConfig {
         })?;
         if let Some(base) = Path::new(path).parent() {
             file.zenoh.resolve_paths(base);
+            let dialect = &mut file.controller.dialect;
+            let is_file = dialect.contains('/') || dialect.ends_with(".toml");
+            if is_file && Path::new(dialect.as_str()).is_relative() {
+                *dialect = base.join(dialect.as_str()).display().to_string();
+            }
         }
         overrides.common.apply(
             &mut file.cell,
@@ -407,6 +420,18 @@ impl ResourceConfig {
                 },
             );
         }
+        let dialect = robot_bridge::dialect::Dialect::load(&c.dialect, None)
+            .map_err(|e| format!("controller.dialect: {e}"))?;
+        for (service_type, definition) in &services {
+            for step in &definition.steps {
+                dialect.check_action(&step.action).map_err(|e| {
+                    format!(
+                        "services.{service_type}: the action {:?} cannot be sent in the dialect {}: {e}",
+                        step.action, dialect.name
+                    )
+                })?;
+            }
+        }
         Ok(ResourceConfig {
             keys,
             holon,
@@ -416,6 +441,7 @@ impl ResourceConfig {
                 reconnect_interval: Duration::from_millis(c.reconnect_interval_ms),
                 command_timeout: Duration::from_millis(c.command_timeout_ms),
                 connect_timeout: Duration::from_millis(c.connect_timeout_ms),
+                dialect,
             },
             strategy: file.supervisor.strategy,
             intensity: Intensity {

@@ -151,6 +151,7 @@ impl Execution {
                         reason::CONTROLLER_DISCONNECTED
                     }
                     CommandFailure::Protocol(_) => reason::CONTROLLER_PROTOCOL,
+                    CommandFailure::Unwritable(_) => reason::INVALID_INFO,
                 };
                 self.fail(why, failure.to_string())
             }
@@ -225,6 +226,12 @@ impl Execution {
                 action: current.action.clone(),
                 pos: poses[*step],
                 program,
+                info: job
+                    .info
+                    .iter()
+                    .filter(|(_, v)| v.is_string() || v.is_number() || v.is_boolean())
+                    .map(|(k, v)| (k.clone(), v.clone()))
+                    .collect(),
             }),
             ExecutionAction::StateChanged,
         ]

@@ -1,44 +1,56 @@
-//! The controller client: one persistent TCP connection to the robot controller.
+//! The controller client: one persistent TCP connection to the robot controller, in the
+//! controller's dialect ([`crate::dialect`]).
 //!
 //! The client is a task ([`run`]) with a command mailbox and an event channel, like every
-//! component of a resource holon. It connects, retries every `reconnect_interval` while
-//! the controller is away (the seed's `socket_connect`), sends each command as it arrives,
-//! and reports in order:
+//! component of a resource holon. It connects (or, when the dialect says the controller
+//! connects, listens and accepts one connection at a time), retries every
+//! `reconnect_interval` while the controller is away (the seed's `socket_connect`), runs
+//! each command's sequence of messages as the dialect says, and reports in order:
 //!
-//! - [`ControllerEvent::Status`] on connect, on every `ROBOT_STATUS` and on disconnect;
-//! - [`ControllerEvent::Reply`] when the controller answers a command;
+//! - [`ControllerEvent::Status`] on every change of the controller's state (pushed,
+//!   polled, or ready while connected, as the dialect says) and on disconnect;
+//! - [`ControllerEvent::Reply`] when a command's step ends: its result, or `error` with
+//!   the controller's message;
 //! - [`ControllerEvent::CommandFailed`] when a command cannot have an answer: no
-//!   connection, the connection broke, the controller sent garbage, or no reply came
-//!   within `command_timeout`.
+//!   connection, the connection broke, the controller sent what the dialect does not
+//!   describe, the command cannot be written, or no answer came within
+//!   `command_timeout` (which covers a command's whole sequence).
 //!
-//! A controller that misses a command's deadline or sends something that is not the
-//! protocol has its connection reset; the client then reconnects as usual.
+//! A controller that misses a deadline or sends something the dialect does not describe
+//! has its connection reset; the client then reconnects as usual.
 
-use std::collections::HashMap;
+use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
-use schemas::{RobotCommand, RobotMessage};
-use tokio::net::TcpStream;
+use schemas::RobotCommand;
+use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::codec::Framed;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use crate::codec::RobotCodec;
+use crate::dialect::{
+    command_values, framing::FrameCodec, Correlation, Dialect, Outcome, Parsed, Role, Sending,
+    Status, Values,
+};
 
 /// How to reach the controller.
 #[derive(Debug, Clone)]
 pub struct ClientConfig {
-    /// `HOST:PORT` of the controller's TCP server.
+    /// `HOST:PORT` of the controller's TCP server, or the address the holon listens on
+    /// when the dialect's controller connects.
     pub address: String,
     /// Pause between connection attempts while the controller is away.
     pub reconnect_interval: Duration,
-    /// Longest wait for a command's reply before the step fails.
+    /// Longest wait for a command's answer (its whole sequence) before the step fails.
     pub command_timeout: Duration,
-    /// Longest wait for one TCP connect.
+    /// Longest wait for one TCP connect (and for a dialect's banner).
     pub connect_timeout: Duration,
+    /// The controller's protocol.
+    pub dialect: Arc<Dialect>,
 }
 
 impl ClientConfig {
@@ -48,6 +60,7 @@ impl ClientConfig {
             reconnect_interval: Duration::from_secs(1),
             command_timeout: Duration::from_secs(30),
             connect_timeout: Duration::from_secs(2),
+            dialect: Dialect::holarchy_xml(),
         }
     }
 }
@@ -66,6 +79,9 @@ pub enum CommandFailure {
     Timeout(Duration),
     #[error("the controller broke the protocol: {0}")]
     Protocol(String),
+    /// The dialect cannot write this command (e.g. an action its enum tables lack).
+    #[error("the command cannot be written in the controller's dialect: {0}")]
+    Unwritable(String),
 }
 
 /// What the client reports to its owner, in the order it happened.
@@ -84,7 +100,7 @@ pub enum ControllerEvent {
 }
 
 /// Runs the client until `shutdown` is cancelled or the event receiver is dropped.
-/// Commands come from `commands`; their `id` is the wire `ID` and comes back in events.
+/// Commands come from `commands`; their `id` comes back in events.
 pub async fn run(
     config: ClientConfig,
     commands: &mut mpsc::Receiver<RobotCommand>,
@@ -95,20 +111,27 @@ pub async fn run(
         events,
         status: None,
     };
+    let mut listener = None;
     let mut first_attempt = true;
     loop {
         if !reporter.status(ControllerStatus::Disconnected).await {
             return;
         }
-        let stream = match connect(&config, commands, &mut reporter, &shutdown, first_attempt).await
-        {
-            Some(stream) => stream,
-            None => return,
+        let link = Link {
+            config: &config,
+            commands,
+            reporter: &mut reporter,
+            shutdown: &shutdown,
         };
+        let stream = match config.dialect.role {
+            Role::ControllerListens => link.connect(first_attempt).await,
+            Role::ControllerConnects => link.accept(&mut listener).await,
+        };
+        let Some(stream) = stream else { return };
         first_attempt = false;
-        info!(controller = %config.address, "connected to the controller");
-        let end = serve(&config, stream, commands, &mut reporter, &shutdown).await;
-        match end {
+        info!(controller = %config.address, dialect = %config.dialect.name, "connected to the controller");
+        let connection = Connection::new(&config, commands, &mut reporter);
+        match connection.serve(stream, listener.as_ref(), &shutdown).await {
             ConnectionEnd::Shutdown => {
                 info!(controller = %config.address, "closed the controller connection");
                 return;
@@ -141,47 +164,103 @@ impl Reporter {
     }
 }
 
-/// Connects, retrying every `reconnect_interval`; fails commands that arrive meanwhile.
-async fn connect(
-    config: &ClientConfig,
-    commands: &mut mpsc::Receiver<RobotCommand>,
-    reporter: &mut Reporter,
-    shutdown: &CancellationToken,
-    first_attempt: bool,
-) -> Option<TcpStream> {
-    let mut logged = false;
-    let mut next_attempt = Instant::now();
-    if !first_attempt {
-        // A controller that just dropped us is given a moment before we knock again.
-        next_attempt += config.reconnect_interval.min(Duration::from_millis(100));
+/// Establishing a connection, while commands that arrive meanwhile fail.
+struct Link<'a> {
+    config: &'a ClientConfig,
+    commands: &'a mut mpsc::Receiver<RobotCommand>,
+    reporter: &'a mut Reporter,
+    shutdown: &'a CancellationToken,
+}
+
+impl Link<'_> {
+    async fn refuse(&mut self, command: RobotCommand) -> bool {
+        let event = ControllerEvent::CommandFailed {
+            id: command.id,
+            failure: CommandFailure::NotConnected,
+        };
+        self.reporter.send(event).await
     }
-    loop {
-        tokio::select! {
-            _ = shutdown.cancelled() => return None,
-            command = commands.recv() => {
-                let command = command?;
-                if !reporter.send(ControllerEvent::CommandFailed { id: command.id, failure: CommandFailure::NotConnected }).await {
-                    return None;
+
+    /// Connects, retrying every `reconnect_interval`.
+    async fn connect(mut self, first_attempt: bool) -> Option<TcpStream> {
+        let config = self.config;
+        let mut logged = false;
+        let mut next_attempt = Instant::now();
+        if !first_attempt {
+            // A controller that just dropped us is given a moment before we knock again.
+            next_attempt += config.reconnect_interval.min(Duration::from_millis(100));
+        }
+        loop {
+            tokio::select! {
+                _ = self.shutdown.cancelled() => return None,
+                command = self.commands.recv() => {
+                    if !self.refuse(command?).await {
+                        return None;
+                    }
+                }
+                _ = tokio::time::sleep_until(next_attempt) => {
+                    let attempt = tokio::time::timeout(config.connect_timeout, TcpStream::connect(&config.address)).await;
+                    match attempt {
+                        Ok(Ok(stream)) => {
+                            if let Err(e) = stream.set_nodelay(true) {
+                                debug!(error = %e, "cannot set TCP_NODELAY; commands may wait for Nagle");
+                            }
+                            return Some(stream);
+                        }
+                        Ok(Err(e)) if !logged => {
+                            warn!(controller = %config.address, error = %e, "controller unreachable; retrying every {:?}", config.reconnect_interval);
+                            logged = true;
+                        }
+                        Err(_) if !logged => {
+                            warn!(controller = %config.address, "controller connect timed out; retrying every {:?}", config.reconnect_interval);
+                            logged = true;
+                        }
+                        _ => debug!(controller = %config.address, "controller still unreachable"),
+                    }
+                    next_attempt = Instant::now() + config.reconnect_interval;
                 }
             }
-            _ = tokio::time::sleep_until(next_attempt) => {
-                let attempt = tokio::time::timeout(config.connect_timeout, TcpStream::connect(&config.address)).await;
-                match attempt {
-                    Ok(Ok(stream)) => {
-                        let _ = stream.set_nodelay(true);
+        }
+    }
+
+    /// Listens on the address (once) and accepts the controller's connection.
+    async fn accept(mut self, listener: &mut Option<TcpListener>) -> Option<TcpStream> {
+        let config = self.config;
+        let mut logged = false;
+        loop {
+            if listener.is_none() {
+                match TcpListener::bind(&config.address).await {
+                    Ok(bound) => {
+                        info!(address = %config.address, "waiting for the controller to connect");
+                        *listener = Some(bound);
+                    }
+                    Err(e) => {
+                        if !logged {
+                            warn!(address = %config.address, error = %e, "cannot listen for the controller; retrying every {:?}", config.reconnect_interval);
+                            logged = true;
+                        }
+                    }
+                }
+            }
+            let retry = tokio::time::sleep(config.reconnect_interval);
+            tokio::select! {
+                _ = self.shutdown.cancelled() => return None,
+                command = self.commands.recv() => {
+                    if !self.refuse(command?).await {
+                        return None;
+                    }
+                }
+                accepted = async { listener.as_ref().expect("bound").accept().await }, if listener.is_some() => match accepted {
+                    Ok((stream, peer)) => {
+                        info!(%peer, "the controller connected");
+                        if let Err(e) = stream.set_nodelay(true) {
+                            debug!(error = %e, "cannot set TCP_NODELAY");
+                        }
                         return Some(stream);
                     }
-                    Ok(Err(e)) if !logged => {
-                        warn!(controller = %config.address, error = %e, "controller unreachable; retrying every {:?}", config.reconnect_interval);
-                        logged = true;
-                    }
-                    Err(_) if !logged => {
-                        warn!(controller = %config.address, "controller connect timed out; retrying every {:?}", config.reconnect_interval);
-                        logged = true;
-                    }
-                    _ => debug!(controller = %config.address, "controller still unreachable"),
-                }
-                next_attempt = Instant::now() + config.reconnect_interval;
+                    Err(e) => warn!(error = %e, "accepting the controller's connection failed"),
+                },
+                _ = retry, if listener.is_none() => {}
             }
         }
     }
@@ -193,118 +272,548 @@ enum ConnectionEnd {
     Lost(String),
 }
 
-async fn serve(
-    config: &ClientConfig,
-    stream: TcpStream,
-    commands: &mut mpsc::Receiver<RobotCommand>,
-    reporter: &mut Reporter,
-    shutdown: &CancellationToken,
-) -> ConnectionEnd {
-    let mut framed = Framed::new(stream, RobotCodec);
-    // Wire id -> deadline of every command sent and not answered.
-    let mut pending: HashMap<u64, Instant> = HashMap::new();
-    // Status messages repeating the last one, since the last change.
-    let mut repeats: u64 = 0;
-    let end = loop {
-        let next_deadline = pending.values().min().copied();
-        tokio::select! {
-            _ = shutdown.cancelled() => break ConnectionEnd::Shutdown,
-            command = commands.recv() => {
-                let Some(command) = command else { break ConnectionEnd::OwnerGone };
-                debug!(id = command.id, action = %command.action, "command to controller");
-                let id = command.id;
-                if let Err(e) = framed.send(&RobotMessage::Command(command)).await {
-                    if !reporter.send(ControllerEvent::CommandFailed { id, failure: CommandFailure::Disconnected }).await {
-                        break ConnectionEnd::OwnerGone;
-                    }
-                    break ConnectionEnd::Lost(format!("send failed: {e}"));
-                }
-                pending.insert(id, Instant::now() + config.command_timeout);
-            }
-            message = framed.next() => match message {
-                Some(Ok(RobotMessage::Reply(reply))) => {
-                    if pending.remove(&reply.id).is_none() {
-                        warn!(id = reply.id, result = %reply.result, "reply to no pending command; ignored");
-                        continue;
-                    }
-                    debug!(id = reply.id, result = %reply.result, "reply from controller");
-                    let event = ControllerEvent::Reply { id: reply.id, result: reply.result, message: reply.message };
-                    if !reporter.send(event).await {
-                        break ConnectionEnd::OwnerGone;
-                    }
-                }
-                Some(Ok(RobotMessage::Status(state))) => {
-                    // Changes are logged and reported; repeats (a chatty controller
-                    // sends the same status over and over) are only counted.
-                    let status = ControllerStatus::from(state);
-                    if reporter.status == Some(status) {
-                        repeats += 1;
-                        continue;
-                    }
-                    info!(controller_state = %state, repeats_before = repeats, "controller status");
-                    repeats = 0;
-                    if !reporter.status(status).await {
-                        break ConnectionEnd::OwnerGone;
-                    }
-                }
-                Some(Ok(RobotMessage::Command(_))) => {
-                    let why = "the controller sent a ROBOT_CMD".to_string();
-                    if !fail_pending(&mut pending, reporter, CommandFailure::Protocol(why.clone())).await {
-                        break ConnectionEnd::OwnerGone;
-                    }
-                    break ConnectionEnd::Lost(why);
-                }
-                Some(Err(e)) if e.is_broken_connection() => {
-                    // A reset or a document cut short: the controller is gone
-                    // (killed, or its host down), not talking nonsense. Pending
-                    // commands fail as disconnected below.
-                    break ConnectionEnd::Lost(e.to_string());
-                }
-                Some(Err(e)) => {
-                    let why = e.to_string();
-                    warn!(error = %why, "controller sent invalid data; resetting the connection");
-                    if !fail_pending(&mut pending, reporter, CommandFailure::Protocol(why.clone())).await {
-                        break ConnectionEnd::OwnerGone;
-                    }
-                    break ConnectionEnd::Lost(why);
-                }
-                None => break ConnectionEnd::Lost("the controller closed the connection".into()),
-            },
-            _ = async { tokio::time::sleep_until(next_deadline.unwrap_or_else(Instant::now)).await }, if next_deadline.is_some() => {
-                let now = Instant::now();
-                let expired: Vec<u64> = pending.iter().filter(|(_, d)| **d <= now).map(|(id, _)| *id).collect();
-                for id in &expired {
-                    pending.remove(id);
-                    warn!(id, timeout = ?config.command_timeout, "controller did not reply in time");
-                    if !reporter.send(ControllerEvent::CommandFailed { id: *id, failure: CommandFailure::Timeout(config.command_timeout) }).await {
-                        return ConnectionEnd::OwnerGone;
-                    }
-                }
-                break ConnectionEnd::Lost("a command timed out".into());
-            }
-        }
-    };
-    if !fail_pending(&mut pending, reporter, CommandFailure::Disconnected).await {
-        return ConnectionEnd::OwnerGone;
-    }
-    end
+/// One command's way through the dialect's sequence.
+struct Exchange {
+    command: RobotCommand,
+    values: Values,
+    /// The element of the sequence it is at.
+    element: usize,
+    /// Whether that element's message has been sent (and not yet answered).
+    sent: bool,
+    /// When a poll is due again.
+    poll_at: Option<Instant>,
+    deadline: Instant,
 }
 
-async fn fail_pending(
-    pending: &mut HashMap<u64, Instant>,
-    reporter: &mut Reporter,
-    failure: CommandFailure,
-) -> bool {
-    let mut ids: Vec<u64> = pending.drain().map(|(id, _)| id).collect();
-    ids.sort_unstable();
-    for id in ids {
-        let event = ControllerEvent::CommandFailed {
-            id,
-            failure: failure.clone(),
-        };
-        if !reporter.send(event).await {
-            return false;
+/// What the request on the wire is waiting for (one-in-flight dialects).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Awaiting {
+    /// An exchange's element (by command id).
+    Command(u64),
+    StatusPoll {
+        deadline: Instant,
+    },
+    Keepalive {
+        deadline: Instant,
+    },
+}
+
+/// What happened on the connection that ends it or must be told.
+type Step = Result<(), ConnectionEnd>;
+
+/// The state of one connection: exchanges in flight and the wire.
+struct Connection<'a> {
+    config: &'a ClientConfig,
+    dialect: &'a Dialect,
+    commands: &'a mut mpsc::Receiver<RobotCommand>,
+    reporter: &'a mut Reporter,
+    /// Commands in flight, oldest first.
+    exchanges: VecDeque<Exchange>,
+    /// One-in-flight: what the request on the wire awaits.
+    awaiting: Option<Awaiting>,
+    /// Until the banner is read: its deadline.
+    banner_until: Option<Instant>,
+    next_status_poll: Option<Instant>,
+    /// When the link was last used (for the keep-alive).
+    last_traffic: Instant,
+    /// Status messages repeating the last one, since the last change.
+    repeats: u64,
+    /// Messages to write.
+    outbox: Vec<Vec<u8>>,
+}
+
+impl<'a> Connection<'a> {
+    fn new(
+        config: &'a ClientConfig,
+        commands: &'a mut mpsc::Receiver<RobotCommand>,
+        reporter: &'a mut Reporter,
+    ) -> Self {
+        let now = Instant::now();
+        let dialect = &*config.dialect;
+        Connection {
+            config,
+            dialect,
+            commands,
+            reporter,
+            exchanges: VecDeque::new(),
+            awaiting: None,
+            banner_until: dialect
+                .banner
+                .as_ref()
+                .map(|_| now + config.connect_timeout),
+            next_status_poll: matches!(dialect.status, Status::Polled { .. }).then_some(now),
+            last_traffic: now,
+            repeats: 0,
+            outbox: Vec::new(),
         }
     }
-    true
+
+    fn one_in_flight(&self) -> bool {
+        self.dialect.correlation == Correlation::OneInFlight
+    }
+
+    async fn serve(
+        mut self,
+        stream: TcpStream,
+        listener: Option<&TcpListener>,
+        shutdown: &CancellationToken,
+    ) -> ConnectionEnd {
+        let mut framed = Framed::new(stream, self.dialect.frame_codec());
+        if self.dialect.status == Status::Connection && self.banner_until.is_none() {
+            if !self.reporter.status(ControllerStatus::Ready).await {
+                return ConnectionEnd::OwnerGone;
+            }
+        }
+        let end = loop {
+            let step = self.pump(Instant::now()).await;
+            if let Err(end) = step {
+                break end;
+            }
+            if let Err(end) = flush(&mut framed, &mut self.outbox).await {
+                break end;
+            }
+            let wake = self.next_wake();
+            tokio::select! {
+                _ = shutdown.cancelled() => break ConnectionEnd::Shutdown,
+                command = self.commands.recv() => {
+                    let Some(command) = command else { break ConnectionEnd::OwnerGone };
+                    if let Err(end) = self.take(command).await {
+                        break end;
+                    }
+                }
+                frame = framed.next() => {
+                    let step = match frame {
+                        Some(Ok(frame)) => self.incoming(&frame).await,
+                        Some(Err(e)) if e.is_broken_connection() => {
+                            // A reset or a message cut short: the controller is gone
+                            // (killed, or its host down), not talking nonsense.
+                            Err(ConnectionEnd::Lost(e.to_string()))
+                        }
+                        Some(Err(e)) => self.protocol_error(e.to_string()).await,
+                        None => Err(ConnectionEnd::Lost("the controller closed the connection".into())),
+                    };
+                    if let Err(end) = step {
+                        break end;
+                    }
+                }
+                accepted = async { listener.expect("guarded").accept().await }, if listener.is_some() => {
+                    if let Ok((_, peer)) = accepted {
+                        warn!(%peer, "refused a second controller connection: one controller per holon");
+                    }
+                }
+                _ = async { tokio::time::sleep_until(wake.unwrap_or_else(Instant::now)).await }, if wake.is_some() => {
+                    if let Err(end) = self.timers(Instant::now()).await {
+                        break end;
+                    }
+                }
+            }
+        };
+        let failure = CommandFailure::Disconnected;
+        if !self.fail_all(failure).await {
+            return ConnectionEnd::OwnerGone;
+        }
+        end
+    }
+
+    fn next_wake(&self) -> Option<Instant> {
+        let mut wake: Vec<Instant> = self.exchanges.iter().map(|e| e.deadline).collect();
+        wake.extend(self.exchanges.iter().filter_map(|e| e.poll_at));
+        wake.extend(self.banner_until);
+        if self.banner_until.is_none() {
+            wake.extend(self.next_status_poll);
+            if let Some(k) = &self.dialect.keepalive {
+                wake.push(self.last_traffic + k.every);
+            }
+        }
+        match self.awaiting {
+            Some(Awaiting::StatusPoll { deadline }) | Some(Awaiting::Keepalive { deadline }) => {
+                wake.push(deadline)
+            }
+            _ => {}
+        }
+        wake.into_iter().min()
+    }
+
+    /// A new command: its exchange begins (or waits its turn on a one-in-flight wire).
+    async fn take(&mut self, command: RobotCommand) -> Step {
+        debug!(id = command.id, action = %command.action, "command to controller");
+        let values = command_values(&command, &self.dialect.format);
+        // Every message of the sequence must be writable before the first is sent.
+        for element in &self.dialect.sequence {
+            if let Err(why) = self.dialect.write_command(element.command, &values) {
+                let event = ControllerEvent::CommandFailed {
+                    id: command.id,
+                    failure: CommandFailure::Unwritable(why),
+                };
+                return self.report(event).await;
+            }
+        }
+        self.exchanges.push_back(Exchange {
+            command,
+            values,
+            element: 0,
+            sent: false,
+            poll_at: None,
+            deadline: Instant::now() + self.config.command_timeout,
+        });
+        Ok(())
+    }
+
+    async fn report(&mut self, event: ControllerEvent) -> Step {
+        if self.reporter.send(event).await {
+            Ok(())
+        } else {
+            Err(ConnectionEnd::OwnerGone)
+        }
+    }
+
+    /// Sends whatever may go now: exchanges' next messages, the status poll, the
+    /// keep-alive.
+    async fn pump(&mut self, now: Instant) -> Step {
+        if self.banner_until.is_some() {
+            return Ok(());
+        }
+        let one = self.one_in_flight();
+        for i in 0..self.exchanges.len() {
+            if one && self.awaiting.is_some() {
+                break;
+            }
+            let exchange = &self.exchanges[i];
+            if exchange.sent || exchange.poll_at.is_some_and(|at| at > now) {
+                continue;
+            }
+            let element = &self.dialect.sequence[exchange.element];
+            let bytes = self
+                .dialect
+                .write_command(element.command, &exchange.values)
+                .expect("checked when the command came");
+            self.outbox.push(bytes);
+            self.last_traffic = now;
+            let exchange = &mut self.exchanges[i];
+            exchange.sent = true;
+            exchange.poll_at = None;
+            if one {
+                self.awaiting = Some(Awaiting::Command(exchange.command.id));
+            }
+        }
+        if self.awaiting.is_none() || !one {
+            if let (Status::Polled { command, every }, Some(at)) =
+                (self.dialect.status, self.next_status_poll)
+            {
+                let free = !one || self.awaiting.is_none();
+                if at <= now && free {
+                    let bytes = self
+                        .dialect
+                        .write_command(command, &Values::default())
+                        .map_err(ConnectionEnd::Lost)?;
+                    self.outbox.push(bytes);
+                    self.last_traffic = now;
+                    self.next_status_poll = if one { None } else { Some(now + every) };
+                    if one {
+                        self.awaiting = Some(Awaiting::StatusPoll {
+                            deadline: now + self.config.command_timeout,
+                        });
+                    }
+                }
+            }
+        }
+        if let Some(keepalive) = &self.dialect.keepalive {
+            let free = !one || self.awaiting.is_none();
+            if free && self.last_traffic + keepalive.every <= now {
+                let bytes = self
+                    .dialect
+                    .write_command(keepalive.command, &Values::default())
+                    .map_err(ConnectionEnd::Lost)?;
+                self.outbox.push(bytes);
+                self.last_traffic = now;
+                if one && !keepalive.expect.is_empty() {
+                    self.awaiting = Some(Awaiting::Keepalive {
+                        deadline: now + self.config.command_timeout,
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    async fn timers(&mut self, now: Instant) -> Step {
+        if self.banner_until.is_some_and(|until| until <= now) {
+            return Err(ConnectionEnd::Lost(format!(
+                "no banner within {:?}",
+                self.config.connect_timeout
+            )));
+        }
+        if let Some(Awaiting::StatusPoll { deadline } | Awaiting::Keepalive { deadline }) =
+            self.awaiting
+        {
+            if deadline <= now {
+                return Err(ConnectionEnd::Lost(
+                    "the controller did not answer a status poll or keep-alive in time".into(),
+                ));
+            }
+        }
+        let expired: Vec<u64> = self
+            .exchanges
+            .iter()
+            .filter(|e| e.deadline <= now)
+            .map(|e| e.command.id)
+            .collect();
+        if expired.is_empty() {
+            return Ok(());
+        }
+        let timeout = self.config.command_timeout;
+        for id in expired {
+            self.exchanges.retain(|e| e.command.id != id);
+            warn!(id, ?timeout, "controller did not reply in time");
+            self.report(ControllerEvent::CommandFailed {
+                id,
+                failure: CommandFailure::Timeout(timeout),
+            })
+            .await?;
+        }
+        Err(ConnectionEnd::Lost("a command timed out".into()))
+    }
+
+    /// One message from the controller.
+    async fn incoming(&mut self, frame: &[u8]) -> Step {
+        self.last_traffic = Instant::now();
+        if self.banner_until.take().is_some() {
+            debug!(banner = %String::from_utf8_lossy(frame), "controller banner");
+            if self.dialect.status == Status::Connection
+                && !self.reporter.status(ControllerStatus::Ready).await
+            {
+                return Err(ConnectionEnd::OwnerGone);
+            }
+            return Ok(());
+        }
+        let parsed = match self.dialect.parse(frame) {
+            Ok(parsed) => parsed,
+            Err(e) => return self.protocol_error(e.to_string()).await,
+        };
+        match self.answer(&parsed).await {
+            Ok(true) => return Ok(()),
+            Ok(false) => {}
+            Err(Ok(why)) => return self.protocol_error(why).await,
+            Err(Err(end)) => return Err(end),
+        }
+        for reply in self.dialect.unsolicited() {
+            match self.dialect.read_reply(reply, &parsed) {
+                Ok(None) => continue,
+                Err(why) => return self.protocol_error(why).await,
+                Ok(Some(values)) => {
+                    if self.dialect.replies[reply].outcome == Outcome::Ignore {
+                        return Ok(());
+                    }
+                    let state = match self.dialect.state_of(reply, &values) {
+                        Ok(state) => state,
+                        Err(why) => return self.protocol_error(why).await,
+                    };
+                    if matches!(self.awaiting, Some(Awaiting::StatusPoll { .. })) {
+                        self.awaiting = None;
+                        if let Status::Polled { every, .. } = self.dialect.status {
+                            self.next_status_poll = Some(Instant::now() + every);
+                        }
+                    }
+                    return self.status(state).await;
+                }
+            }
+        }
+        // An answer to a keep-alive.
+        if let (Some(Awaiting::Keepalive { .. }), Some(keepalive)) =
+            (self.awaiting, &self.dialect.keepalive)
+        {
+            for &reply in &keepalive.expect {
+                if let Ok(Some(_)) = self.dialect.read_reply(reply, &parsed) {
+                    self.awaiting = None;
+                    return Ok(());
+                }
+            }
+        }
+        // A late answer to a command already failed is shaped like an answer: ignored.
+        for (i, reply) in self.dialect.replies.iter().enumerate() {
+            if matches!(reply.outcome, Outcome::Status | Outcome::Ignore) {
+                continue;
+            }
+            if let Ok(Some(values)) = self.dialect.read_reply(i, &parsed) {
+                warn!(reply = %reply.name, id = values.get("id").unwrap_or("-"), "reply to no pending command; ignored");
+                return Ok(());
+            }
+        }
+        self.protocol_error(format!(
+            "a message the dialect {} does not describe: {}",
+            self.dialect.name,
+            shown(frame)
+        ))
+        .await
+    }
+
+    /// Tries `parsed` as the answer an exchange waits for. `Ok(true)`: it was;
+    /// `Err(Ok(why))`: it was shaped like one but is wrong.
+    async fn answer(&mut self, parsed: &Parsed) -> Result<bool, Result<String, ConnectionEnd>> {
+        let one = self.one_in_flight();
+        for i in 0..self.exchanges.len() {
+            let exchange = &self.exchanges[i];
+            if one && self.awaiting != Some(Awaiting::Command(exchange.command.id)) {
+                continue;
+            }
+            if !exchange.sent {
+                continue;
+            }
+            let element = &self.dialect.sequence[exchange.element];
+            for &reply in &element.expect {
+                let values = match self.dialect.read_reply(reply, parsed) {
+                    Ok(None) => continue,
+                    Ok(Some(values)) => values,
+                    Err(why) => return Err(Ok(why)),
+                };
+                if !one && values.get("id") != Some(&exchange.command.id.to_string()) {
+                    continue;
+                }
+                self.advance(i, reply, &values).await.map_err(Err)?;
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
+    /// Exchange `i`'s element was answered by `reply`.
+    async fn advance(&mut self, i: usize, reply: usize, values: &Values) -> Step {
+        let rule = &self.dialect.replies[reply];
+        let now = Instant::now();
+        let exchange = &mut self.exchanges[i];
+        let id = exchange.command.id;
+        if self.awaiting == Some(Awaiting::Command(id)) {
+            self.awaiting = None;
+        }
+        debug!(id, reply = %rule.name, outcome = ?rule.outcome, "answer from controller");
+        let element = &self.dialect.sequence[exchange.element];
+        match rule.outcome {
+            Outcome::Accepted | Outcome::Running => {
+                let last = exchange.element + 1 == self.dialect.sequence.len();
+                match (element.sending, rule.outcome) {
+                    (Sending::Poll(every), _) => {
+                        // The action goes on: poll again later; the wire is free meanwhile.
+                        exchange.sent = false;
+                        exchange.poll_at = Some(now + every);
+                    }
+                    (Sending::Send, Outcome::Accepted) if !last => {
+                        exchange.element += 1;
+                        exchange.sent = false;
+                    }
+                    _ => {
+                        // The end of this element comes in a later message.
+                        if self.dialect.correlation == Correlation::OneInFlight {
+                            self.awaiting = Some(Awaiting::Command(id));
+                        }
+                    }
+                }
+                Ok(())
+            }
+            Outcome::Done => {
+                let result = self
+                    .dialect
+                    .evaluate(&rule.result, values, &exchange.values);
+                self.exchanges.remove(i);
+                self.report(ControllerEvent::Reply {
+                    id,
+                    result,
+                    message: None,
+                })
+                .await
+            }
+            Outcome::Failed | Outcome::Rejected => {
+                let message = self
+                    .dialect
+                    .evaluate(&rule.message, values, &exchange.values);
+                let message = match (rule.outcome, message.is_empty()) {
+                    (Outcome::Rejected, _) => Some(format!("refused the command: {message}")),
+                    (_, true) => None,
+                    (_, false) => Some(message),
+                };
+                self.exchanges.remove(i);
+                self.report(ControllerEvent::Reply {
+                    id,
+                    result: schemas::robot::RESULT_ERROR.into(),
+                    message,
+                })
+                .await
+            }
+            Outcome::Status | Outcome::Ignore => Ok(()),
+        }
+    }
+
+    async fn status(&mut self, state: schemas::ControllerState) -> Step {
+        // Changes are logged and reported; repeats (a chatty controller sends the same
+        // status over and over) are only counted.
+        let status = ControllerStatus::from(state);
+        if self.reporter.status == Some(status) {
+            self.repeats += 1;
+            return Ok(());
+        }
+        info!(controller_state = %state, repeats_before = self.repeats, "controller status");
+        self.repeats = 0;
+        if self.reporter.status(status).await {
+            Ok(())
+        } else {
+            Err(ConnectionEnd::OwnerGone)
+        }
+    }
+
+    async fn protocol_error(&mut self, why: String) -> Step {
+        warn!(error = %why, "controller sent invalid data; resetting the connection");
+        if !self.fail_all(CommandFailure::Protocol(why.clone())).await {
+            return Err(ConnectionEnd::OwnerGone);
+        }
+        Err(ConnectionEnd::Lost(why))
+    }
+
+    /// Fails every command in flight, oldest first; false when the owner is gone.
+    async fn fail_all(&mut self, failure: CommandFailure) -> bool {
+        let mut ids: Vec<u64> = self.exchanges.drain(..).map(|e| e.command.id).collect();
+        ids.sort_unstable();
+        for id in ids {
+            let event = ControllerEvent::CommandFailed {
+                id,
+                failure: failure.clone(),
+            };
+            if !self.reporter.send(event).await {
+                return false;
+            }
+        }
+        true
+    }
+}
+
+/// Writes the messages waiting in `outbox`.
+async fn flush(
+    framed: &mut Framed<TcpStream, FrameCodec>,
+    outbox: &mut Vec<Vec<u8>>,
+) -> Result<(), ConnectionEnd> {
+    if outbox.is_empty() {
+        return Ok(());
+    }
+    for message in outbox.drain(..) {
+        framed
+            .feed(message.as_slice())
+            .await
+            .map_err(|e| ConnectionEnd::Lost(format!("send failed: {e}")))?;
+    }
+    framed
+        .flush()
+        .await
+        .map_err(|e| ConnectionEnd::Lost(format!("send failed: {e}")))
+}
+
+/// A message as shown in a log or an error: text as is, bytes in hex; bounded.
+fn shown(frame: &[u8]) -> String {
+    let head = &frame[..frame.len().min(120)];
+    let text = match std::str::from_utf8(head) {
+        Ok(text) if !text.chars().any(|c| c.is_control() && c != '\t') => format!("{text:?}"),
+        _ => head.iter().map(|b| format!("{b:02x}")).collect::<String>(),
+    };
+    if frame.len() > head.len() {
+        format!("{text}... ({} bytes)", frame.len())
+    } else {
+        text
+    }
 }

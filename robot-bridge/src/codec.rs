@@ -35,6 +35,8 @@ pub enum CodecError {
     DoctypeRejected,
     #[error("document exceeds {MAX_DOCUMENT_BYTES} bytes")]
     TooLarge,
+    #[error("message exceeds {0} bytes")]
+    TooLargeFor(usize),
     #[error("document nests elements deeper than {MAX_DEPTH}")]
     TooDeep,
     #[error("malformed XML: {0}")]
@@ -111,6 +113,15 @@ fn find_tag_end(buf: &[u8], from: usize) -> Option<usize> {
 
 /// Frames the first document of `buf` (see the module docs). Never panics.
 pub fn find_document(buf: &[u8]) -> Result<Frame, CodecError> {
+    find_document_within(buf, MAX_DOCUMENT_BYTES).map_err(|e| match e {
+        CodecError::TooLargeFor(_) => CodecError::TooLarge,
+        other => other,
+    })
+}
+
+/// [`find_document`] with a limit of `max` bytes per document instead of
+/// [`MAX_DOCUMENT_BYTES`] (a dialect's `max_message_bytes`).
+pub fn find_document_within(buf: &[u8], max: usize) -> Result<Frame, CodecError> {
     let mut i = 0;
     if buf.starts_with(BOM) {
         i = BOM.len();
@@ -124,15 +135,15 @@ pub fn find_document(buf: &[u8]) -> Result<Frame, CodecError> {
     let start = i;
     let mut depth = 0usize;
     let incomplete = |i: usize| {
-        if i - start > MAX_DOCUMENT_BYTES {
-            Err(CodecError::TooLarge)
+        if i - start > max {
+            Err(CodecError::TooLargeFor(max))
         } else {
             Ok(Frame::Incomplete { start })
         }
     };
     loop {
-        if i - start > MAX_DOCUMENT_BYTES {
-            return Err(CodecError::TooLarge);
+        if i - start > max {
+            return Err(CodecError::TooLargeFor(max));
         }
         let Some(&b) = buf.get(i) else {
             return incomplete(buf.len());
@@ -228,21 +239,25 @@ pub fn find_document(buf: &[u8]) -> Result<Frame, CodecError> {
     }
 }
 
-/// One parsed element: the little tree the protocol needs.
+/// One parsed element: the little tree the protocol (and an XML dialect) needs.
 #[derive(Debug, Default)]
-struct Element {
-    name: String,
-    attributes: Vec<(String, String)>,
-    text: String,
-    children: Vec<Element>,
+pub struct Element {
+    /// The element's name, compared literally (no namespaces).
+    pub name: String,
+    /// Its attributes, unescaped, in document order.
+    pub attributes: Vec<(String, String)>,
+    /// Its text (character data, CDATA and entities resolved), untrimmed.
+    pub text: String,
+    /// Its child elements, in document order.
+    pub children: Vec<Element>,
 }
 
 impl Element {
-    fn child(&self, name: &str) -> Option<&Element> {
+    pub fn child(&self, name: &str) -> Option<&Element> {
         self.children.iter().find(|c| c.name == name)
     }
 
-    fn attribute(&self, name: &str) -> Option<&str> {
+    pub fn attribute(&self, name: &str) -> Option<&str> {
         self.attributes
             .iter()
             .find(|(k, _)| k == name)
@@ -275,7 +290,7 @@ fn open_element(e: &quick_xml::events::BytesStart<'_>) -> Result<Element, CodecE
 }
 
 /// Parses one complete document (as framed by [`find_document`]) into its element tree.
-fn parse_tree(doc: &[u8]) -> Result<Element, CodecError> {
+pub fn parse_tree(doc: &[u8]) -> Result<Element, CodecError> {
     let text = std::str::from_utf8(doc).map_err(|e| malformed(format!("not UTF-8: {e}")))?;
     let mut reader = Reader::from_str(text);
     reader.config_mut().check_end_names = true;
@@ -422,6 +437,7 @@ pub fn parse_document(doc: &[u8]) -> Result<RobotMessage, CodecError> {
                 action: action.to_string(),
                 pos: root.child("POS").map(pose).transpose()?,
                 program,
+                info: Default::default(),
             }))
         }
         "ROBOT_REPLY" => {
@@ -586,6 +602,7 @@ mod tests {
                     ..Pose::default()
                 }),
                 program: None,
+                info: Default::default(),
             })
         );
         assert_eq!(
@@ -622,6 +639,7 @@ mod tests {
                 action: "pick".into(),
                 pos: None,
                 program: Some("b2".into()),
+                info: Default::default(),
             })
         );
         assert_eq!(
@@ -651,12 +669,14 @@ mod tests {
                     c: -180.0,
                 }),
                 program: None,
+                info: Default::default(),
             }),
             RobotMessage::Command(RobotCommand {
                 id: 8,
                 action: "inspect".into(),
                 pos: None,
                 program: Some("variant-b.2".into()),
+                info: Default::default(),
             }),
             RobotMessage::Reply(RobotReply {
                 id: 9,

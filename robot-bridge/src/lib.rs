@@ -1,10 +1,13 @@
 //! robot-bridge: the Interfacing component of a resource holon.
 //!
-//! - [`codec`]: the TCP/XML codec of the robot controller protocol;
+//! - [`codec`]: the TCP/XML codec of holarchy's own controller protocol;
+//! - [`dialect`]: controller protocols described in files (framing, messages,
+//!   correlation, outcomes, status), spoken by the client and the simulator;
 //! - [`client`]: the controller client, one persistent connection with reconnection,
 //!   per-command timeouts and `ROBOT_STATUS` tracking;
 //! - [`sim`]: `robot-sim`, a controller simulator that speaks the same protocol.
 
 pub mod client;
 pub mod codec;
+pub mod dialect;
 pub mod sim;

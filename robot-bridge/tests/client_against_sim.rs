@@ -28,6 +28,7 @@ impl Harness {
             reconnect_interval: Duration::from_millis(100),
             command_timeout,
             connect_timeout: Duration::from_secs(1),
+            ..ClientConfig::new("")
         };
         let client = tokio::spawn({
             let shutdown = shutdown.clone();
@@ -74,6 +75,7 @@ impl Harness {
                 action: action.into(),
                 pos,
                 program: program.map(str::to_string),
+                info: Default::default(),
             })
             .await
             .unwrap();

@@ -44,6 +44,9 @@ pub struct RobotCommand {
     /// `info.program`: a controller changes over (tooling, fixtures, program) when it
     /// differs from the last one it ran.
     pub program: Option<String>,
+    /// The job's `info` fields, for a dialect's `{info.KEY}` placeholders (holarchy's own
+    /// XML protocol does not send them).
+    pub info: std::collections::BTreeMap<String, serde_json::Value>,
 }
 
 /// Controller to bridge: the result of one command.

@@ -1,4 +1,4 @@
-//! `robot-sim`: a robot controller simulator speaking holarchy's TCP/XML protocol.
+//! `robot-sim`: a robot controller simulator speaking any controller dialect.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -6,20 +6,36 @@ use std::time::Duration;
 
 use anyhow::Context;
 use clap::Parser;
+use robot_bridge::dialect::{Dialect, Role};
 use robot_bridge::sim::{SimConfig, Simulator};
 use tokio_util::sync::CancellationToken;
 
-/// A robot controller simulator: the TCP server a resource holon's bridge connects to.
+/// A robot controller simulator: the TCP server a resource holon's bridge connects to
+/// (or, for a dialect whose controller connects, the client that dials the holon).
 ///
-/// Prints `listening on ADDR` on stdout once it accepts connections, and
+/// Prints `listening on ADDR` (or `dialling ADDR`) on stdout once it serves, and
 /// `executed N commands` when it stops (SIGTERM or Ctrl-C). Command numbers in the
-/// fault flags count every command received by the process, from 1.
+/// fault flags count every action begun by the process, from 1.
 #[derive(Debug, Parser)]
 #[command(name = "robot-sim", version)]
 struct Args {
     /// Address to listen on; port 0 picks a free port (printed on the first line).
     #[arg(long, default_value = "127.0.0.1:7600")]
     listen: String,
+    /// The controller protocol spoken: a shipped dialect (holarchy-xml, kuka-eki,
+    /// ur-dashboard, simple-message) or a dialect file (a path with a `/` or ending in
+    /// .toml). Default holarchy-xml.
+    #[arg(long, value_name = "NAME|FILE", default_value = "holarchy-xml")]
+    dialect: String,
+    /// Check the dialect (that it is valid and that robot-sim can speak it), print
+    /// `dialect NAME is valid`, and exit: 0 if it is, 2 with the field and the problem
+    /// if not.
+    #[arg(long)]
+    check: bool,
+    /// Dial the holon at this address instead of listening (for a dialect whose
+    /// controller connects; required by such a dialect).
+    #[arg(long, value_name = "ADDR")]
+    connect: Option<String>,
     /// How long each action takes, in milliseconds (unless --action-ms names it).
     #[arg(long, default_value_t = 0)]
     delay_ms: u64,
@@ -40,9 +56,25 @@ struct Args {
     /// Stop replying after N commands (later commands are neither answered nor executed).
     #[arg(long, value_name = "N")]
     hang_after: Option<u64>,
-    /// Answer the (N+1)th command with malformed XML (once; not executed).
+    /// Answer the (N+1)th command with bytes the dialect does not describe (once; not
+    /// executed).
     #[arg(long, value_name = "N")]
     garbage_after: Option<u64>,
+    /// Answer the (N+1)th command with a message over the dialect's size limit (once;
+    /// not executed).
+    #[arg(long, value_name = "N")]
+    oversize_after: Option<u64>,
+    /// Begin the (N+1)th command and reset the connection (RST) halfway through it
+    /// (not executed).
+    #[arg(long, value_name = "N")]
+    reset_after: Option<u64>,
+    /// Write every message in pieces of 1 to 3 bytes.
+    #[arg(long)]
+    fragment: bool,
+    /// Write messages together: an acknowledgement with the result that follows it,
+    /// and (a dialect that pushes its state) a status with every reply.
+    #[arg(long)]
+    merge: bool,
     /// Answer every Nth `inspect` with `inspect_fail` instead of `inspect_pass`.
     #[arg(long, value_name = "N")]
     inspect_fail_every: Option<u64>,
@@ -64,6 +96,35 @@ struct Args {
 #[tokio::main]
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
+    let dialect = match Dialect::load(&args.dialect, None)
+        .map_err(|e| e.to_string())
+        .and_then(|d| d.check_simulatable().map(|()| d))
+    {
+        Ok(dialect) => dialect,
+        Err(why) => {
+            eprintln!("robot-sim: {why}");
+            std::process::exit(2);
+        }
+    };
+    if args.check {
+        println!("dialect {} is valid", dialect.name);
+        return Ok(());
+    }
+    let dials = dialect.role == Role::ControllerConnects;
+    if dials && args.connect.is_none() {
+        eprintln!(
+            "robot-sim: in the dialect {} the controller connects to the holon: give --connect ADDR",
+            dialect.name
+        );
+        std::process::exit(2);
+    }
+    if !dials && args.connect.is_some() {
+        eprintln!(
+            "robot-sim: in the dialect {} the controller listens: give --listen, not --connect",
+            dialect.name
+        );
+        std::process::exit(2);
+    }
     use std::io::IsTerminal;
     // Lines are written by a thread of their own, off the command path; none is dropped,
     // and the rest are written out when `_logs` drops at the end of `main`.
@@ -98,13 +159,26 @@ async fn main() -> anyhow::Result<()> {
         fault_state: Some(args.fault_state),
         fault_for: Duration::from_millis(args.fault_for_ms),
         count_file: args.count_file,
+        dialect: Some(dialect),
+        reset_after: args.reset_after,
+        oversize_after: args.oversize_after,
+        fragment: args.fragment,
+        merge: args.merge,
     };
-    let simulator = Simulator::bind(&args.listen, config)
-        .await
-        .with_context(|| format!("cannot listen on {}", args.listen))?;
-    let address = simulator.local_addr()?;
+    let simulator = match &args.connect {
+        Some(address) => {
+            println!("dialling {address}");
+            Simulator::dialing(address, config)
+        }
+        None => {
+            let simulator = Simulator::bind(&args.listen, config)
+                .await
+                .with_context(|| format!("cannot listen on {}", args.listen))?;
+            println!("listening on {}", simulator.local_addr()?);
+            simulator
+        }
+    };
     let stats = simulator.stats();
-    println!("listening on {address}");
     let shutdown = CancellationToken::new();
     tokio::spawn({
         let shutdown = shutdown.clone();

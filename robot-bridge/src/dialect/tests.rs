@@ -1,0 +1,268 @@
+//! The dialect format: the shipped dialects, holarchy-xml against the codec byte for
+//! byte, and the errors a bad file gets.
+
+use super::*;
+use crate::codec::{encode_message, parse_document};
+use proptest::prelude::*;
+use schemas::{Pose, RobotCommand, RobotMessage, RobotReply};
+
+fn command(id: u64, action: &str, pos: Option<Pose>, program: Option<&str>) -> RobotCommand {
+    RobotCommand {
+        id,
+        action: action.into(),
+        pos,
+        program: program.map(str::to_string),
+        info: Default::default(),
+    }
+}
+
+#[test]
+fn every_shipped_dialect_is_valid_and_simulatable() {
+    for (name, _) in SHIPPED {
+        let dialect = Dialect::shipped(name).unwrap();
+        assert_eq!(dialect.name, *name);
+        dialect.check_simulatable().unwrap();
+    }
+    assert!(matches!(
+        Dialect::shipped("fanuc"),
+        Err(DialectError::Unknown(_))
+    ));
+}
+
+#[test]
+fn holarchy_xml_writes_what_the_codec_writes() {
+    let dialect = Dialect::holarchy_xml();
+    let pose = Pose {
+        x: 100.0,
+        y: -0.1,
+        z: 1e16,
+        a: 1e-5,
+        b: 0.0,
+        c: -180.0,
+    };
+    for cmd in [
+        command(1, "pick", Some(pose), None),
+        command(2, "place", None, Some("b2.1")),
+        command(u64::MAX, "a&b", Some(pose), Some("x")),
+        command(3, "inspect", None, None),
+    ] {
+        let values = command_values(&cmd, &dialect.format);
+        let written = dialect.write_command(0, &values).unwrap();
+        assert_eq!(
+            String::from_utf8(written).unwrap(),
+            encode_message(&RobotMessage::Command(cmd))
+        );
+    }
+}
+
+/// What the dialect makes of a reply document, as the codec's message.
+fn read_as_codec(dialect: &Dialect, doc: &str) -> Result<RobotMessage, String> {
+    let parsed = dialect.parse(doc.as_bytes()).map_err(|e| e.to_string())?;
+    for i in 0..dialect.replies.len() {
+        if let Some(values) = dialect.read_reply(i, &parsed)? {
+            let reply = &dialect.replies[i];
+            let id = values.get("id").map(|id| id.parse().unwrap());
+            return Ok(match reply.outcome {
+                Outcome::Status => RobotMessage::Status(dialect.state_of(i, &values)?),
+                Outcome::Done => RobotMessage::Reply(RobotReply {
+                    id: id.unwrap(),
+                    result: dialect.evaluate(&reply.result, &values, &Values::default()),
+                    message: None,
+                }),
+                _ => {
+                    let message = dialect.evaluate(&reply.message, &values, &Values::default());
+                    RobotMessage::Reply(RobotReply {
+                        id: id.unwrap(),
+                        result: "error".into(),
+                        message: (!message.is_empty()).then_some(message),
+                    })
+                }
+            });
+        }
+    }
+    Err("no rule".into())
+}
+
+#[test]
+fn holarchy_xml_reads_what_the_codec_reads() {
+    let dialect = Dialect::holarchy_xml();
+    for doc in [
+        "<ROBOT_REPLY><ID>42</ID><RESULT>picking_done</RESULT></ROBOT_REPLY>",
+        "<ROBOT_REPLY><ID>43</ID><RESULT>error</RESULT><MESSAGE>gripper &amp; empty</MESSAGE></ROBOT_REPLY>",
+        "<ROBOT_REPLY><ID>43</ID><RESULT>error</RESULT></ROBOT_REPLY>",
+        "<ROBOT_REPLY><ID> 7 </ID><RESULT> arrived </RESULT><EXTRA/></ROBOT_REPLY>",
+        "<ROBOT_STATUS><STATE>estop</STATE></ROBOT_STATUS>",
+        "<ROBOT_STATUS><STATE>ready</STATE></ROBOT_STATUS>",
+    ] {
+        let codec = parse_document(doc.as_bytes()).unwrap();
+        assert_eq!(read_as_codec(&dialect, doc), Ok(codec), "{doc}");
+    }
+    // What the codec refuses, the dialect refuses.
+    for doc in [
+        "<ROBOT_REPLY><ID>x</ID><RESULT>done</RESULT></ROBOT_REPLY>",
+        "<ROBOT_REPLY><ID>1</ID></ROBOT_REPLY>",
+        "<ROBOT_STATUS><STATE>sleepy</STATE></ROBOT_STATUS>",
+        "<HELLO/>",
+        "<ROBOT_CMD><ID>1</ID><ACTION>pick</ACTION></ROBOT_CMD>",
+    ] {
+        assert!(parse_document(doc.as_bytes()).is_err() || doc.starts_with("<ROBOT_CMD"));
+        assert!(read_as_codec(&dialect, doc).is_err(), "{doc}");
+    }
+}
+
+proptest! {
+    #[test]
+    fn holarchy_xml_matches_the_codec_for_any_command(
+        id in any::<u64>(),
+        action in "[a-z0-9_-]{1,12}",
+        coords in proptest::collection::vec(-1e7f64..1e7, 6),
+        program in proptest::option::of("[A-Za-z0-9_.-]{1,20}"),
+        with_pose in any::<bool>(),
+    ) {
+        let dialect = Dialect::holarchy_xml();
+        let pose = with_pose.then(|| Pose { x: coords[0], y: coords[1], z: coords[2], a: coords[3], b: coords[4], c: coords[5] });
+        let cmd = command(id, &action, pose, program.as_deref());
+        let values = command_values(&cmd, &dialect.format);
+        let written = dialect.write_command(0, &values).unwrap();
+        prop_assert_eq!(String::from_utf8(written.clone()).unwrap(), encode_message(&RobotMessage::Command(cmd)));
+        // And robot-sim reads back what the holon wrote.
+        let back = dialect.read_command(0, &dialect.parse(&written).unwrap()).unwrap().unwrap();
+        prop_assert_eq!(back, values);
+    }
+}
+
+const MINIMAL: &str = r#"
+name = "tiny"
+correlation = "one_in_flight"
+sequence = [ { send = "go", expect = ["ok", "no"] } ]
+[framing]
+kind = "line"
+[status]
+source = "connection"
+[[command]]
+name = "go"
+text = "GO {action}"
+[[reply]]
+name = "ok"
+outcome = "done"
+text = "OK"
+result = "{action}_done"
+[[reply]]
+name = "no"
+outcome = "failed"
+text = "NO {message}"
+"#;
+
+fn error_of(text: &str) -> String {
+    Dialect::from_toml(text, "test.toml")
+        .unwrap_err()
+        .to_string()
+}
+
+#[test]
+fn a_minimal_dialect_loads() {
+    let dialect = Dialect::from_toml(MINIMAL, "test.toml").unwrap();
+    assert_eq!(dialect.status, Status::Connection);
+    assert_eq!(
+        dialect.framing,
+        Framing::Line {
+            terminator: b"\n".to_vec()
+        }
+    );
+    assert!(dialect.sequence[0].starts);
+}
+
+#[test]
+fn a_bad_dialect_names_the_field_and_the_problem() {
+    let cases: &[(&str, &str, &str)] = &[
+        (
+            "text = \"GO {action}\"",
+            "text = \"GO {acton}\"",
+            "command[0] (go): {acton} is not a value here",
+        ),
+        (
+            "text = \"GO {action}\"",
+            "text = \"GO {action\"",
+            "command[0] (go).text: unclosed placeholder",
+        ),
+        (
+            "text = \"GO {action}\"",
+            "text = \"GO {action:codes}\"",
+            "names no [enums.codes]",
+        ),
+        (
+            "text = \"GO {action}\"",
+            "xml = \"<GO/>\"",
+            "so the message is given as `text`",
+        ),
+        (
+            "expect = [\"ok\", \"no\"]",
+            "expect = [\"ok\", \"maybe\"]",
+            "sequence[0].expect: no [[reply]] is named \"maybe\"",
+        ),
+        (
+            "expect = [\"ok\", \"no\"]",
+            "expect = [\"no\"]",
+            "must expect a `done` reply",
+        ),
+        (
+            "kind = \"line\"",
+            "kind = \"line\"\nprefix_bytes = 2",
+            "framing.prefix_bytes: only for kind = \"length_prefix\"",
+        ),
+        ("kind = \"line\"", "kind = \"lines\"", "not a dialect file"),
+        (
+            "source = \"connection\"",
+            "source = \"polled\"",
+            "status: source = \"polled\" needs poll",
+        ),
+        (
+            "source = \"connection\"",
+            "source = \"pushed\"",
+            "needs a [[reply]] with outcome = \"status\"",
+        ),
+        (
+            "result = \"{action}_done\"",
+            "result = \"{result}\"",
+            "reply[0] (ok).result: \"{result}\" uses a value the message does not carry",
+        ),
+        (
+            "correlation = \"one_in_flight\"",
+            "correlation = \"id\"",
+            "every command carries {id}",
+        ),
+        (
+            "text = \"NO {message}\"",
+            "text = \"NO {message}\"\nregex = \"(unclosed\"",
+            "reply[1] (no).regex",
+        ),
+        (
+            "text = \"NO {message}\"",
+            "regex = \"^NO (?P<why>.*)$\"",
+            "the group (?P<why>) is not a value a reply has",
+        ),
+        (
+            "name = \"tiny\"",
+            "name = \"tiny\"\nflavour = \"x\"",
+            "unknown field `flavour`",
+        ),
+    ];
+    for (from, to, expected) in cases {
+        assert!(MINIMAL.contains(from), "{from}");
+        let text = MINIMAL.replacen(from, to, 1);
+        let error = error_of(&text);
+        assert!(error.contains(expected), "{to:?}: {error}");
+        assert!(error.starts_with("test.toml"), "{error}");
+    }
+}
+
+#[test]
+fn an_action_missing_from_an_enum_cannot_be_written() {
+    let dialect = Dialect::shipped("kuka-eki").unwrap();
+    let values = command_values(&command(1, "weld", None, None), &dialect.format);
+    let why = dialect.write_command(0, &values).unwrap_err();
+    assert!(
+        why.contains("\"weld\" has no entry in [enums.eki_task]"),
+        "{why}"
+    );
+}
