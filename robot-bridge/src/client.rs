@@ -359,10 +359,11 @@ impl<'a> Connection<'a> {
         shutdown: &CancellationToken,
     ) -> ConnectionEnd {
         let mut framed = Framed::new(stream, self.dialect.frame_codec());
-        if self.dialect.status == Status::Connection && self.banner_until.is_none() {
-            if !self.reporter.status(ControllerStatus::Ready).await {
-                return ConnectionEnd::OwnerGone;
-            }
+        if self.dialect.status == Status::Connection
+            && self.banner_until.is_none()
+            && !self.reporter.status(ControllerStatus::Ready).await
+        {
+            return ConnectionEnd::OwnerGone;
         }
         let end = loop {
             let step = self.pump(Instant::now()).await;

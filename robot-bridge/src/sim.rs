@@ -862,7 +862,12 @@ impl Session<'_> {
         }
         if let Some(rule) = accepted {
             let context = self.context.clone();
-            writer.reply_or_hold(rule, &context).await?;
+            if done_here.is_some() {
+                // Its done follows in this same turn: they may go together.
+                writer.reply_or_hold(rule, &context).await?;
+            } else {
+                writer.reply(rule, &context).await?;
+            }
         }
         if done_here.is_none() {
             // Its end is polled for.

@@ -142,12 +142,12 @@ impl BinaryTemplate {
     }
 
     /// The message's length in bytes.
-    pub fn len(&self) -> usize {
+    pub fn size(&self) -> usize {
         self.fields.iter().map(|f| f.size).sum()
     }
 
     pub fn render(&self, values: &Values, enums: &Enums) -> Result<Vec<u8>, String> {
-        let mut out = Vec::with_capacity(self.len());
+        let mut out = Vec::with_capacity(self.size());
         for (i, field) in self.fields.iter().enumerate() {
             let text = match (field.value.literal(), field.value.single_value()) {
                 (Some(literal), _) => literal.to_string(),
@@ -175,8 +175,8 @@ impl BinaryTemplate {
         enums: &Enums,
         format: &ValueFormat,
     ) -> Result<Result<Values, String>, String> {
-        if message.len() != self.len() {
-            return Ok(Err(format!("{} bytes, not {}", message.len(), self.len())));
+        if message.len() != self.size() {
+            return Ok(Err(format!("{} bytes, not {}", message.len(), self.size())));
         }
         let mut values = Values::default();
         let mut at = 0;
@@ -281,7 +281,11 @@ fn decode_value(
     order: ByteOrder,
     format: &ValueFormat,
 ) -> Result<String, String> {
-    let le = get_bytes(raw, order);
+    let le = if field.kind == FieldType::Str {
+        [0u8; 8]
+    } else {
+        get_bytes(raw, order)
+    };
     Ok(match field.kind {
         FieldType::Str => {
             let end = raw.iter().position(|&b| b == 0).unwrap_or(raw.len());

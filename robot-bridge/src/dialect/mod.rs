@@ -447,14 +447,19 @@ impl Dialect {
     }
 }
 
+/// A message's body as the file gives it: `xml`, `text` or `fields`.
+type Given<'a> = (
+    Option<&'a String>,
+    Option<&'a String>,
+    Option<&'a Vec<binary::FieldSection>>,
+);
+
 fn body_of(
     origin: &str,
     at: &str,
     kind: FramingKind,
     order: ByteOrder,
-    xml: Option<&String>,
-    text: Option<&String>,
-    fields: Option<&Vec<binary::FieldSection>>,
+    (xml, text, fields): Given<'_>,
     regex_given: bool,
 ) -> Result<Option<Body>, DialectError> {
     let given = [xml.is_some(), text.is_some(), fields.is_some()]
@@ -594,9 +599,11 @@ fn compile_reply(
         &at,
         kind,
         order,
-        section.xml.as_ref(),
-        section.text.as_ref(),
-        section.fields.as_ref(),
+        (
+            section.xml.as_ref(),
+            section.text.as_ref(),
+            section.fields.as_ref(),
+        ),
         regex.is_some(),
     )?;
     if let Some(body) = &body {
@@ -1078,9 +1085,11 @@ fn compile_command(
         &at,
         kind,
         order,
-        section.xml.as_ref(),
-        section.text.as_ref(),
-        section.fields.as_ref(),
+        (
+            section.xml.as_ref(),
+            section.text.as_ref(),
+            section.fields.as_ref(),
+        ),
         false,
     )?
     .expect("a command always has a body");

@@ -1,0 +1,465 @@
+//! Every shipped dialect, the controller client against robot-sim speaking the same
+//! file, over real TCP sockets on loopback: the work, and each of the simulator's hostile
+//! modes (replies in 1-3 byte pieces and merged, garbage, an oversized message, silence,
+//! a reset mid-step, an error, a fault), each ending the step with a clear reason while
+//! the client goes on serving.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use robot_bridge::client::{self, ClientConfig, CommandFailure, ControllerEvent, ControllerStatus};
+use robot_bridge::dialect::{Dialect, SHIPPED};
+use robot_bridge::sim::{SimConfig, SimStats, Simulator};
+use schemas::{Pose, RobotCommand};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+
+const WAIT: Duration = Duration::from_secs(10);
+
+struct Harness {
+    commands: mpsc::Sender<RobotCommand>,
+    events: mpsc::Receiver<ControllerEvent>,
+    shutdown: CancellationToken,
+    client: tokio::task::JoinHandle<()>,
+    dialect: String,
+}
+
+impl Harness {
+    fn start(dialect: Arc<Dialect>, address: String, command_timeout: Duration) -> Harness {
+        let (commands, mut command_rx) = mpsc::channel(16);
+        let (event_tx, events) = mpsc::channel(64);
+        let shutdown = CancellationToken::new();
+        let name = dialect.name.clone();
+        let config = ClientConfig {
+            reconnect_interval: Duration::from_millis(100),
+            command_timeout,
+            connect_timeout: Duration::from_secs(2),
+            dialect,
+            ..ClientConfig::new(address)
+        };
+        let client = tokio::spawn({
+            let shutdown = shutdown.clone();
+            async move { client::run(config, &mut command_rx, event_tx, shutdown).await }
+        });
+        Harness {
+            commands,
+            events,
+            shutdown,
+            client,
+            dialect: name,
+        }
+    }
+
+    async fn next(&mut self) -> ControllerEvent {
+        tokio::time::timeout(WAIT, self.events.recv())
+            .await
+            .unwrap_or_else(|_| panic!("{}: no event in time", self.dialect))
+            .expect("client gone")
+    }
+
+    /// The next event that is not a status.
+    async fn answer(&mut self) -> ControllerEvent {
+        loop {
+            match self.next().await {
+                ControllerEvent::Status(_) => continue,
+                other => return other,
+            }
+        }
+    }
+
+    async fn wait_status(&mut self, status: ControllerStatus) {
+        loop {
+            if self.next().await == ControllerEvent::Status(status) {
+                return;
+            }
+        }
+    }
+
+    /// A pick from `id` on, sent again while the client is (re)connecting, served.
+    async fn serve_again(&mut self, mut id: u64, what: &str) {
+        loop {
+            self.send(id, "pick").await;
+            match self.answer().await {
+                ControllerEvent::CommandFailed {
+                    failure: CommandFailure::NotConnected | CommandFailure::Disconnected,
+                    ..
+                } => {
+                    self.wait_status(ControllerStatus::Ready).await;
+                    id += 1;
+                }
+                other => {
+                    assert_eq!(other, reply(id, "picking_done"), "{what}");
+                    return;
+                }
+            }
+        }
+    }
+
+    async fn send(&self, id: u64, action: &str) {
+        let pos = Some(Pose {
+            x: 100.0,
+            y: 20.5,
+            z: -5.0,
+            ..Pose::default()
+        });
+        self.commands
+            .send(RobotCommand {
+                id,
+                action: action.into(),
+                pos,
+                program: Some("b2".into()),
+                info: Default::default(),
+            })
+            .await
+            .unwrap();
+    }
+
+    async fn stop(self) {
+        self.shutdown.cancel();
+        tokio::time::timeout(WAIT, self.client)
+            .await
+            .unwrap()
+            .unwrap();
+    }
+}
+
+async fn start_sim(config: SimConfig) -> (String, Arc<SimStats>, CancellationToken) {
+    let sim = Simulator::bind("127.0.0.1:0", config).await.unwrap();
+    let address = sim.local_addr().unwrap().to_string();
+    let stats = sim.stats();
+    let shutdown = CancellationToken::new();
+    tokio::spawn(sim.run(shutdown.clone()));
+    (address, stats, shutdown)
+}
+
+fn reply(id: u64, result: &str) -> ControllerEvent {
+    ControllerEvent::Reply {
+        id,
+        result: result.into(),
+        message: None,
+    }
+}
+
+fn dialects() -> Vec<Arc<Dialect>> {
+    SHIPPED
+        .iter()
+        .map(|(name, _)| Dialect::shipped(name).unwrap())
+        .collect()
+}
+
+/// A client and a simulator of `dialect` with `faults`, the client ready.
+async fn ready(
+    dialect: &Arc<Dialect>,
+    faults: SimConfig,
+    command_timeout: Duration,
+) -> (Harness, Arc<SimStats>, CancellationToken) {
+    let config = SimConfig {
+        dialect: Some(dialect.clone()),
+        delay: Duration::from_millis(5),
+        ..faults
+    };
+    let (address, stats, sim) = start_sim(config).await;
+    let mut h = Harness::start(dialect.clone(), address, command_timeout);
+    h.wait_status(ControllerStatus::Ready).await;
+    (h, stats, sim)
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn every_dialect_does_the_work() {
+    for dialect in dialects() {
+        for (fragment, merge) in [(false, false), (true, false), (false, true), (true, true)] {
+            let faults = SimConfig {
+                fragment,
+                merge,
+                inspect_fail_every: Some(2),
+                ..SimConfig::default()
+            };
+            let (mut h, stats, _sim) = ready(&dialect, faults, Duration::from_secs(5)).await;
+            let what = format!("{} fragment={fragment} merge={merge}", dialect.name);
+            h.send(1, "pick").await;
+            assert_eq!(h.answer().await, reply(1, "picking_done"), "{what}");
+            h.send(2, "place").await;
+            assert_eq!(h.answer().await, reply(2, "placing_done"), "{what}");
+            h.send(3, "inspect").await;
+            assert_eq!(h.answer().await, reply(3, "inspect_pass"), "{what}");
+            h.send(4, "inspect").await;
+            // The dashboard server says only that the program stopped: the result is the
+            // action's own, whatever the inspection found.
+            let second = if dialect.name == "ur-dashboard" {
+                "inspect_pass"
+            } else {
+                "inspect_fail"
+            };
+            assert_eq!(h.answer().await, reply(4, second), "{what}");
+            h.send(5, "move").await;
+            assert_eq!(h.answer().await, reply(5, "arrived"), "{what}");
+            assert_eq!(stats.executed(), 5, "{what}");
+            assert_eq!(stats.connections(), 1, "{what}");
+            assert_eq!(stats.by_action()["inspect"], 2, "{what}");
+            h.stop().await;
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_action_the_dialect_cannot_write_fails_without_a_word_to_the_controller() {
+    for dialect in dialects() {
+        if dialect.name == "holarchy-xml" {
+            continue; // any action name can be written
+        }
+        let (mut h, stats, _sim) =
+            ready(&dialect, SimConfig::default(), Duration::from_secs(5)).await;
+        h.send(1, "weld").await;
+        match h.answer().await {
+            ControllerEvent::CommandFailed {
+                id: 1,
+                failure: CommandFailure::Unwritable(why),
+            } => assert!(why.contains("weld"), "{}: {why}", dialect.name),
+            other => panic!("{}: {other:?}", dialect.name),
+        }
+        assert_eq!(stats.received(), 0, "{}", dialect.name);
+        h.send(2, "pick").await;
+        assert_eq!(
+            h.answer().await,
+            reply(2, "picking_done"),
+            "{}",
+            dialect.name
+        );
+        h.stop().await;
+    }
+}
+
+/// The second command meets `faults`; `check` says what its failure must be; the third
+/// command is served again (on a new connection where the fault reset the old one).
+async fn second_command_meets(
+    faults: impl Fn() -> SimConfig,
+    command_timeout: Duration,
+    check: impl Fn(&str, ControllerEvent),
+) {
+    for dialect in dialects() {
+        let (mut h, stats, _sim) = ready(&dialect, faults(), command_timeout).await;
+        h.send(1, "pick").await;
+        assert_eq!(
+            h.answer().await,
+            reply(1, "picking_done"),
+            "{}",
+            dialect.name
+        );
+        h.send(2, "place").await;
+        check(&dialect.name, h.answer().await);
+        h.serve_again(3, &dialect.name).await;
+        assert_eq!(
+            stats.by_action().get("place"),
+            None,
+            "{}: place ran",
+            dialect.name
+        );
+        h.stop().await;
+    }
+}
+
+fn protocol_error(name: &str, event: ControllerEvent, contains: &str) {
+    match event {
+        ControllerEvent::CommandFailed {
+            id: 2,
+            failure: CommandFailure::Protocol(why),
+        } => assert!(why.contains(contains), "{name}: {why}"),
+        other => panic!("{name}: {other:?}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn garbage_ends_the_step_as_a_protocol_error() {
+    second_command_meets(
+        || SimConfig {
+            garbage_after: Some(1),
+            ..SimConfig::default()
+        },
+        Duration::from_secs(5),
+        |name, event| protocol_error(name, event, ""),
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_oversized_message_ends_the_step_before_it_ends() {
+    second_command_meets(
+        || SimConfig {
+            oversize_after: Some(1),
+            ..SimConfig::default()
+        },
+        Duration::from_secs(5),
+        |name, event| protocol_error(name, event, "exceeds"),
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_silent_controller_times_the_step_out() {
+    for dialect in dialects() {
+        let faults = SimConfig {
+            hang_after: Some(1),
+            ..SimConfig::default()
+        };
+        let (mut h, _stats, _sim) = ready(&dialect, faults, Duration::from_millis(400)).await;
+        h.send(1, "pick").await;
+        assert_eq!(
+            h.answer().await,
+            reply(1, "picking_done"),
+            "{}",
+            dialect.name
+        );
+        h.send(2, "place").await;
+        assert_eq!(
+            h.answer().await,
+            ControllerEvent::CommandFailed {
+                id: 2,
+                failure: CommandFailure::Timeout(Duration::from_millis(400))
+            },
+            "{}",
+            dialect.name
+        );
+        // The connection is reset and made again.
+        h.wait_status(ControllerStatus::Disconnected).await;
+        h.stop().await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_reset_mid_step_is_a_disconnection() {
+    second_command_meets(
+        || SimConfig {
+            reset_after: Some(1),
+            delay: Duration::from_millis(40),
+            ..SimConfig::default()
+        },
+        Duration::from_secs(5),
+        |name, event| {
+            assert_eq!(
+                event,
+                ControllerEvent::CommandFailed {
+                    id: 2,
+                    failure: CommandFailure::Disconnected
+                },
+                "{name}"
+            )
+        },
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_controller_error_fails_the_step_with_its_message() {
+    second_command_meets(
+        || SimConfig {
+            error_every: Some(2),
+            ..SimConfig::default()
+        },
+        Duration::from_secs(5),
+        |name, event| match event {
+            ControllerEvent::Reply {
+                id: 2,
+                result,
+                message,
+            } => {
+                assert_eq!(result, "error", "{name}");
+                assert!(message.is_some(), "{name}: an error without a message");
+            }
+            other => panic!("{name}: {other:?}"),
+        },
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_fault_is_reported_and_passes() {
+    for dialect in dialects() {
+        let faults = SimConfig {
+            fault_after: Some(1),
+            // Longer than a polled state's interval (ur-dashboard: 500 ms).
+            fault_for: Duration::from_millis(1200),
+            ..SimConfig::default()
+        };
+        let (mut h, stats, _sim) = ready(&dialect, faults, Duration::from_secs(5)).await;
+        h.send(1, "pick").await;
+        assert_eq!(
+            h.answer().await,
+            reply(1, "picking_done"),
+            "{}",
+            dialect.name
+        );
+        h.send(2, "place").await;
+        h.wait_status(ControllerStatus::Fault).await;
+        h.wait_status(ControllerStatus::Ready).await;
+        h.send(3, "pick").await;
+        // A one-in-flight dialect's command was answered with a failure too (before or
+        // after the fault): only the pick's answer counts here.
+        loop {
+            match h.answer().await {
+                ControllerEvent::Reply { id: 2, .. } => continue,
+                other => {
+                    assert_eq!(other, reply(3, "picking_done"), "{}", dialect.name);
+                    break;
+                }
+            }
+        }
+        assert_eq!(stats.by_action().get("place"), None, "{}", dialect.name);
+        h.stop().await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_controller_that_connects_to_the_holon() {
+    // holarchy-xml, but the controller dials the holon.
+    let text = SHIPPED[0].1.replace(
+        "role = \"controller_listens\"",
+        "role = \"controller_connects\"",
+    );
+    let dialect = Arc::new(Dialect::from_toml(&text, "dialing.toml").unwrap());
+    let address = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .to_string();
+    let mut h = Harness::start(dialect.clone(), address.clone(), Duration::from_secs(5));
+    let sim = Simulator::dialing(
+        &address,
+        SimConfig {
+            dialect: Some(dialect.clone()),
+            ..SimConfig::default()
+        },
+    );
+    let stats = sim.stats();
+    let shutdown = CancellationToken::new();
+    tokio::spawn(sim.run(shutdown.clone()));
+    h.wait_status(ControllerStatus::Ready).await;
+    h.send(1, "pick").await;
+    assert_eq!(h.answer().await, reply(1, "picking_done"));
+    // A second controller is refused: the first one still serves.
+    let mut intruder = tokio::net::TcpStream::connect(&address).await.unwrap();
+    let mut buf = [0u8; 16];
+    let read = tokio::time::timeout(WAIT, tokio::io::AsyncReadExt::read(&mut intruder, &mut buf))
+        .await
+        .expect("the second connection is closed at once");
+    assert!(matches!(read, Ok(0) | Err(_)), "{read:?}");
+    h.send(2, "place").await;
+    assert_eq!(h.answer().await, reply(2, "placing_done"));
+    assert_eq!(stats.connections(), 1);
+    // The controller goes and comes back: the holon takes its new connection.
+    shutdown.cancel();
+    h.wait_status(ControllerStatus::Disconnected).await;
+    let sim = Simulator::dialing(
+        &address,
+        SimConfig {
+            dialect: Some(dialect),
+            ..SimConfig::default()
+        },
+    );
+    let again = CancellationToken::new();
+    tokio::spawn(sim.run(again.clone()));
+    h.wait_status(ControllerStatus::Ready).await;
+    h.send(3, "pick").await;
+    assert_eq!(h.answer().await, reply(3, "picking_done"));
+    again.cancel();
+    h.stop().await;
+}
