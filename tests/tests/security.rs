@@ -42,6 +42,24 @@ async fn ask(
     out
 }
 
+/// Asks as an identity the access control lets through and returns its replies, at least
+/// one: the control for a check that another identity gets no reply at all on `key` (a
+/// denied query is dropped, unanswered), so that check cannot pass because nobody serves
+/// `key` or the message is misaddressed.
+async fn answered(
+    session: &zenoh::Session,
+    key: &str,
+    payload: Vec<u8>,
+    who: &str,
+) -> Vec<Result<Vec<u8>, String>> {
+    let replies = ask(session, key, payload).await;
+    assert!(
+        !replies.is_empty(),
+        "{who} got no reply on {key}, which it may query: the denials seen there prove nothing"
+    );
+    replies
+}
+
 async fn orders(session: &zenoh::Session, keys: &CellKeys) -> Vec<OrderSnapshot> {
     ask(session, &keys.order_states(), Vec::new())
         .await
@@ -226,6 +244,24 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         intruder.clone(),
     )
     .with_reply_to(keys.inbox("intruder-1"));
+    // Access control drops a denied query without an answer, so no reply at all is the
+    // outcome to check; that robot1's and robot2's services answer an identity allowed
+    // to ask (the spare order-node `probe`: a `start` of a conversation never booked,
+    // refused and without effect) shows that the silence is the denial.
+    let probe = cell
+        .session_as(&cell.pki(), "order-node.probe", holon::Mode::Client)
+        .await
+        .expect("the spare order-node identity connects");
+    for resource in ["robot1", "robot2"] {
+        answered(
+            &probe,
+            &keys.service(resource),
+            start.to_json(),
+            "the order-node probe",
+        )
+        .await;
+    }
+    probe.close().await.unwrap();
     for message in [&booking, &start] {
         let replies = ask(&observer, &keys.service("robot1"), message.to_json()).await;
         assert!(
@@ -247,6 +283,7 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
             .unwrap();
         done.to_json()
     };
+    // Unanswered because denied: the same inbox answers robot9's fake results below.
     for step in 1..=3 {
         let replies = ask(
             &observer,
@@ -259,22 +296,35 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
             "the observer reached an order's inbox: {replies:?}"
         );
     }
-    // Nor claim another order's booking to cancel it.
+    // Nor claim another order's booking to cancel it: those robot1 holds now, and the
+    // victim's first step (whether or not it is still booked, so that one is always
+    // tried).
     let snapshot = ask(&observer, &keys.state(&robot1), Vec::new()).await;
-    if let Some(Ok(payload)) = snapshot.first() {
-        let state: serde_json::Value = serde_json::from_slice(payload).unwrap();
-        for entry in state["agenda"].as_array().cloned().unwrap_or_default() {
-            let requester: HolonId = entry["requester"].as_str().unwrap().parse().unwrap();
-            let cancel = Service::request(
-                MessageType::BookingCancel,
-                entry["service_type"].as_str().unwrap(),
-                entry["conversation_id"].as_str().unwrap(),
-                requester,
-            );
-            assert!(ask(&observer, &keys.service("robot1"), cancel.to_json())
-                .await
-                .is_empty());
-        }
+    let Some(Ok(payload)) = snapshot.first() else {
+        panic!("the observer cannot read robot1's state: {snapshot:?}");
+    };
+    let state: serde_json::Value = serde_json::from_slice(payload).unwrap();
+    let mut cancels = vec![Service::request(
+        MessageType::BookingCancel,
+        "pick_n_place",
+        &format!("{victim}/1/1"),
+        HolonId::order(victim).unwrap(),
+    )];
+    for entry in state["agenda"].as_array().cloned().unwrap_or_default() {
+        let requester: HolonId = entry["requester"].as_str().unwrap().parse().unwrap();
+        cancels.push(Service::request(
+            MessageType::BookingCancel,
+            entry["service_type"].as_str().unwrap(),
+            entry["conversation_id"].as_str().unwrap(),
+            requester,
+        ));
+    }
+    for cancel in cancels {
+        let replies = ask(&observer, &keys.service("robot1"), cancel.to_json()).await;
+        assert!(
+            replies.is_empty(),
+            "the observer reached robot1's service with a cancel: {replies:?}"
+        );
     }
 
     // A resource identity (a spare: robot9) may not submit, book another resource,
@@ -291,6 +341,8 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         queue: false,
     })
     .unwrap();
+    // Denied, so unanswered (robot2's service answered the probe above; the order-node
+    // answers the operator's submits, before and after).
     assert!(
         ask(&robot9, &keys.orders_submit(), work).await.is_empty(),
         "a resource submitted orders"
@@ -301,7 +353,9 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
             .is_empty(),
         "a resource booked another"
     );
-    // A result for the victim from robot9 (which it never booked) is refused by the order.
+    // A result for the victim from robot9 (which it never booked) is allowed through (a
+    // resource delivers results to inboxes) and refused by the order, or by its node
+    // once it has finished: a refusal must arrive, and nothing else.
     for step in 1..=3 {
         let replies = ask(
             &robot9,
@@ -310,9 +364,19 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         )
         .await;
         assert!(
-            replies.iter().all(|r| r.is_err()),
-            "an order acknowledged a result from a resource it did not book: {replies:?}"
+            !replies.is_empty(),
+            "nobody answered a result from robot9 in {victim}'s inbox: no refusal to check"
         );
+        for reply in &replies {
+            let refusal = reply
+                .as_ref()
+                .err()
+                .and_then(|text| serde_json::from_str::<schemas::ErrorReply>(text).ok());
+            assert!(
+                refusal.is_some_and(|r| r.code == "not_booked"),
+                "an order did not refuse (not_booked) a result from a resource it did not book: {replies:?}"
+            );
+        }
     }
 
     // Squatting: queryables on others' keys and another resource's token.
