@@ -151,7 +151,7 @@ async fn one_round(way: Way, round: usize) -> Result<Round> {
     };
 
     let names = cell.submit("part", ORDERS).await?;
-    sim.wait_executed("pick", 3).await;
+    sim.wait_executed("pick", 3).await?;
     let next = dir.join("next");
     std::fs::create_dir_all(&next)?;
 

@@ -251,16 +251,25 @@ impl Sim {
     }
 
     /// Waits, at most 10 s, until the simulator has executed `action` at least `n`
-    /// times, and returns the settled count (more than `n` if it ran more often).
-    pub async fn wait_executed(&self, action: &str, n: u64) -> u64 {
-        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
-        while tokio::time::Instant::now() < deadline {
-            if self.executed(action) >= n {
-                break;
+    /// times, and returns the settled count (more than `n` if it ran more often). The
+    /// error, at the deadline, says how often it did. (A test that checks a count was
+    /// *not* reached settles for a while and reads [`Sim::executed`] instead.)
+    pub async fn wait_executed(&self, action: &str, n: u64) -> Result<u64> {
+        const WITHIN: Duration = Duration::from_secs(10);
+        let deadline = tokio::time::Instant::now() + WITHIN;
+        loop {
+            let executed = self.executed(action);
+            if executed >= n {
+                return Ok(executed);
+            }
+            if tokio::time::Instant::now() >= deadline {
+                bail!(
+                    "the simulator {} executed {action} {executed} times, never {n} within {WITHIN:?}",
+                    self.process.name
+                );
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
-        self.executed(action)
     }
 
     /// Waits, at most 10 s, until the simulator has received `n` commands in all. A

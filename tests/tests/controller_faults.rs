@@ -141,7 +141,7 @@ async fn a_dropped_connection_fails_the_step_and_reconnects() {
     // Each connection takes one command: the next job's pick works, its place fails again.
     let result = r.job(&mut inbox, "o-1", "c2").await;
     assert_failed(&result, "controller_disconnected");
-    assert_eq!(r.sim.wait_executed("pick", 2).await, 2);
+    assert_eq!(r.sim.wait_executed("pick", 2).await.unwrap(), 2);
 }
 
 #[tokio::test(flavor = "multi_thread")]

@@ -130,7 +130,7 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
     assert_eq!(refused.code, "unsupported_version", "{refused:?}");
     assert!(refused.message.contains("speaks version 1"), "{refused:?}");
     // Mid-run: a step is running and others wait on the agenda.
-    sim.wait_executed("pick", 3).await;
+    sim.wait_executed("pick", 3).await.unwrap();
 
     // A successor with another data dir is refused, and the running holon serves on.
     let next = successor_dir(dir);
@@ -173,8 +173,8 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
     let states = wait_all_done(&cell, &orders, Duration::from_secs(60)).await;
     assert_undisturbed(&states);
     // Every step ran exactly once, on the one controller both processes drove.
-    assert_eq!(sim.wait_executed("pick", 12).await, 12);
-    assert_eq!(sim.wait_executed("place", 12).await, 12);
+    assert_eq!(sim.wait_executed("pick", 12).await.unwrap(), 12);
+    assert_eq!(sim.wait_executed("place", 12).await.unwrap(), 12);
     successor.signal(Signal::SIGTERM).unwrap();
     assert!(successor
         .wait_exit(Duration::from_secs(20))
@@ -204,7 +204,7 @@ async fn a_holon_whose_successor_never_serves_exits_to_be_started_again() {
         .await
         .unwrap();
     let orders = cell.submit("part", 6).await.unwrap();
-    sim.wait_executed("pick", 2).await;
+    sim.wait_executed("pick", 2).await.unwrap();
 
     // The successor, speaking the protocol from the test's own session: it asks, is
     // released, and then does nothing more.
@@ -247,8 +247,8 @@ async fn a_holon_whose_successor_never_serves_exits_to_be_started_again() {
     let states = wait_all_done(&cell, &orders, Duration::from_secs(90)).await;
     assert_none_failed_or_interrupted(&states);
     // Every step ran exactly once.
-    assert_eq!(sim.wait_executed("pick", 6).await, 6);
-    assert_eq!(sim.wait_executed("place", 6).await, 6);
+    assert_eq!(sim.wait_executed("pick", 6).await.unwrap(), 6);
+    assert_eq!(sim.wait_executed("place", 6).await.unwrap(), 6);
     again.signal(Signal::SIGTERM).unwrap();
     assert!(again.wait_exit(Duration::from_secs(20)).unwrap().success());
 }
@@ -385,7 +385,7 @@ args = ["--config", "orders1.toml", "--data-dir", "data", {common}]
 
     let orders = cell.submit("part", 50).await.unwrap();
     assert_eq!(orders.len(), 50);
-    sim1.wait_executed("pick", 2).await;
+    sim1.wait_executed("pick", 2).await.unwrap();
 
     // A config that fails its check: nothing changes.
     let (ok, out) = cell_upgrade(dir, &["robot1", "--config", "broken.toml"]).await;
@@ -501,7 +501,7 @@ args = ["--config", "{robot1}", "--controller", "{sim}", "--data-dir", "data", "
         .await
         .unwrap();
     let orders = cell.submit("part", 6).await.unwrap();
-    sim.wait_executed("pick", 2).await;
+    sim.wait_executed("pick", 2).await.unwrap();
 
     // The broken release: a holon-node that hangs once it has been handed over to.
     let release = dir.join("release-broken");
@@ -520,8 +520,8 @@ args = ["--config", "{robot1}", "--controller", "{sim}", "--data-dir", "data", "
     cell.wait_alive(&robot).await.unwrap();
     let states = wait_all_done(&cell, &orders, Duration::from_secs(90)).await;
     assert_none_failed_or_interrupted(&states);
-    assert_eq!(sim.wait_executed("pick", 6).await, 6);
-    assert_eq!(sim.wait_executed("place", 6).await, 6);
+    assert_eq!(sim.wait_executed("pick", 6).await.unwrap(), 6);
+    assert_eq!(sim.wait_executed("place", 6).await.unwrap(), 6);
 
     // The successor ignored SIGTERM and was killed (the stop timeout after the
     // predecessor's exit).
