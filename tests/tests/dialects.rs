@@ -1,0 +1,227 @@
+//! A real resource holon drives robot-sim in every shipped dialect, chosen by one line
+//! of config: a job is done with each step run once, a controller that answers garbage
+//! fails the step with a clear reason and the holon serves the next job; and a dialect
+//! file that is wrong, or cannot send one of the holon's actions, stops the holon at
+//! `--check`, naming the field.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use holarchy_tests::*;
+use schemas::{MessageType, Service};
+
+const DIALECTS: &[&str] = &["holarchy-xml", "kuka-eki", "ur-dashboard", "simple-message"];
+
+/// The test resource config with `dialect = ...` in its controller section.
+fn config_with_dialect(dir: &Path, name: &str, dialect: &str) -> PathBuf {
+    let path = resource_config(dir, name, 2000).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap().replace(
+        "[controller]\n",
+        &format!("[controller]\ndialect = \"{dialect}\"\n"),
+    );
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+struct Robot {
+    cell: Cell,
+    sim: Sim,
+    _node: Process,
+    _dir: tempfile::TempDir,
+}
+
+async fn robot(cell: &str, dialect: &str, sim_flags: &[&str]) -> Robot {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open(cell).await.unwrap();
+    let mut flags = vec!["--dialect", dialect];
+    flags.extend_from_slice(sim_flags);
+    let sim = Sim::start(dir.path(), "sim", "127.0.0.1:0", &flags).unwrap();
+    let config = config_with_dialect(dir.path(), "robot1", dialect);
+    let node = cell
+        .start_free_resource(dir.path(), &config, &sim.address, &[])
+        .await
+        .unwrap();
+    Robot {
+        cell,
+        sim,
+        _node: node,
+        _dir: dir,
+    }
+}
+
+impl Robot {
+    /// Books and starts one job for `order`, and returns the result its inbox gets.
+    async fn job(&self, inbox: &mut Inbox, order: &str, conversation: &str) -> Service {
+        let book = pick_n_place(
+            &self.cell.keys,
+            MessageType::BookingReq,
+            order,
+            conversation,
+        );
+        assert_eq!(
+            self.cell.service("robot1", &book).await.unwrap().result,
+            Some(true)
+        );
+        let start = pick_n_place(&self.cell.keys, MessageType::Start, order, conversation);
+        assert_eq!(
+            self.cell.service("robot1", &start).await.unwrap().result,
+            Some(true)
+        );
+        inbox.next().await.unwrap()
+    }
+
+    async fn free(&self) {
+        self.cell
+            .wait_state("robot1", "free again", |s| s["state"] == "free")
+            .await
+            .unwrap();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_holon_drives_every_shipped_dialect() {
+    for (i, dialect) in DIALECTS.iter().enumerate() {
+        let r = robot(&format!("t-dialect-{i}"), dialect, &[]).await;
+        let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+        let result = r.job(&mut inbox, "o-1", "c1").await;
+        assert_eq!(
+            result.message_type,
+            MessageType::Done,
+            "{dialect}: {result:?}"
+        );
+        assert_eq!(result.info["results"]["pick"], "picking_done", "{dialect}");
+        assert_eq!(result.info["results"]["place"], "placing_done", "{dialect}");
+        assert_eq!(r.sim.executed("pick"), 1, "{dialect}");
+        assert_eq!(r.sim.executed("place"), 1, "{dialect}");
+        let state = r.cell.status("robot1").await.unwrap();
+        assert_eq!(state["controller"], "ready", "{dialect}: {state}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn garbage_in_any_dialect_fails_the_step_and_the_holon_serves_on() {
+    for (i, dialect) in DIALECTS.iter().enumerate() {
+        // The first command (job 1's pick) is answered with garbage.
+        let r = robot(
+            &format!("t-dialect-g{i}"),
+            dialect,
+            &["--garbage-after", "0"],
+        )
+        .await;
+        let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+        let result = r.job(&mut inbox, "o-1", "c1").await;
+        assert_eq!(
+            result.message_type,
+            MessageType::Failed,
+            "{dialect}: {result:?}"
+        );
+        assert_eq!(
+            result.reason.as_deref(),
+            Some("controller_protocol_error"),
+            "{dialect}: {result:?}"
+        );
+        r.free().await;
+        let result = r.job(&mut inbox, "o-1", "c2").await;
+        assert_eq!(
+            result.message_type,
+            MessageType::Done,
+            "{dialect}: {result:?}"
+        );
+        assert_eq!(r.sim.executed("pick"), 1, "{dialect}");
+        assert_eq!(r.sim.executed("place"), 1, "{dialect}");
+    }
+}
+
+fn check(config: &Path) -> (bool, String) {
+    let out = Command::new(bin("holon-node"))
+        .arg("--config")
+        .arg(config)
+        .args(["--connect", "tcp/127.0.0.1:1", "--check"])
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), text)
+}
+
+#[test]
+fn check_names_what_is_wrong_with_a_dialect() {
+    let dir = tempfile::tempdir().unwrap();
+    // A shipped dialect, and a dialect file beside the config.
+    let (ok, text) = check(&config_with_dialect(dir.path(), "r1", "ur-dashboard"));
+    assert!(ok, "{text}");
+    let file = dir.path().join("mine.toml");
+    std::fs::copy(
+        workspace_root().join("deploy/dialects/kuka-eki.toml"),
+        &file,
+    )
+    .unwrap();
+    let (ok, text) = check(&config_with_dialect(dir.path(), "r2", "mine.toml"));
+    assert!(ok, "{text}");
+    // A template with a placeholder that does not exist.
+    let broken = std::fs::read_to_string(&file).unwrap().replace(
+        "Task=\"{action:eki_task}\">{?program}",
+        "Task=\"{acton:eki_task}\">{?program}",
+    );
+    std::fs::write(&file, broken).unwrap();
+    let (ok, text) = check(&config_with_dialect(dir.path(), "r3", "mine.toml"));
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("controller.dialect")
+            && text.contains("command[0] (command): {acton} is not a value here"),
+        "{text}"
+    );
+    // An action the dialect's tables do not name is found at start, not at the first job.
+    let path = config_with_dialect(dir.path(), "r4", "kuka-eki");
+    let text = std::fs::read_to_string(&path)
+        .unwrap()
+        .replace("action = \"place\"", "action = \"weld\"")
+        .replace("until = [\"placing_done\"]", "until = [\"welded\"]");
+    std::fs::write(&path, text).unwrap();
+    let (ok, text) = check(&path);
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("the action \"weld\" cannot be sent in the dialect kuka-eki")
+            && text.contains("[enums.eki_task]"),
+        "{text}"
+    );
+    // No such dialect.
+    let (ok, text) = check(&config_with_dialect(dir.path(), "r5", "fanuc"));
+    assert!(
+        !ok && text.contains("no shipped dialect is called \"fanuc\""),
+        "{text}"
+    );
+}
+
+#[test]
+fn robot_sim_checks_a_dialect_file() {
+    for dialect in DIALECTS {
+        let out = Command::new(bin("robot-sim"))
+            .args(["--dialect", dialect, "--check"])
+            .output()
+            .unwrap();
+        assert!(out.status.success(), "{dialect}");
+        assert_eq!(
+            String::from_utf8_lossy(&out.stdout).trim(),
+            format!("dialect {dialect} is valid")
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("bad.toml");
+    std::fs::write(&file, "name = \"x\"\ncorrelation = \"id\"\n").unwrap();
+    let out = Command::new(bin("robot-sim"))
+        .arg("--dialect")
+        .arg(&file)
+        .arg("--check")
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("bad.toml: not a dialect file") && err.contains("sequence"),
+        "{err}"
+    );
+}
