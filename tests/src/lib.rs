@@ -864,6 +864,20 @@ impl Cell {
         Ok(node)
     }
 
+    /// A resource named `name` with its simulator, both in `dir`: configure it, then
+    /// [`ResourceBuilder::start`] it.
+    pub fn resource<'a>(&'a self, dir: &Path, name: &str) -> ResourceBuilder<'a> {
+        ResourceBuilder {
+            cell: self,
+            dir: dir.to_path_buf(),
+            name: name.to_string(),
+            sim_flags: Vec::new(),
+            command_timeout_ms: 5000,
+            config_extra: String::new(),
+            node_flags: Vec::new(),
+        }
+    }
+
     /// Submits a work order on `orders/submit` and returns the new orders' names.
     pub async fn submit(&self, product: &str, count: u32) -> Result<Vec<String>> {
         self.submit_work(schemas::WorkOrder {
@@ -880,6 +894,78 @@ impl Cell {
     pub async fn submit_work(&self, work: schemas::WorkOrder) -> Result<Vec<String>> {
         submit_on(&self.session, &self.keys, &work).await
     }
+}
+
+/// How to start a [`Resource`] (from [`Cell::resource`]): the simulator's flags, the
+/// controller's command timeout (5 s unless set), lines appended to the config written
+/// by [`resource_config`], and the holon-node's extra flags.
+pub struct ResourceBuilder<'a> {
+    cell: &'a Cell,
+    dir: PathBuf,
+    name: String,
+    sim_flags: Vec<String>,
+    command_timeout_ms: u64,
+    config_extra: String,
+    node_flags: Vec<String>,
+}
+
+impl ResourceBuilder<'_> {
+    /// Flags of `robot-sim` (e.g. `--delay-ms 100`).
+    pub fn sim_flags(mut self, flags: &[&str]) -> Self {
+        self.sim_flags = flags.iter().map(|f| f.to_string()).collect();
+        self
+    }
+
+    pub fn command_timeout_ms(mut self, timeout: u64) -> Self {
+        self.command_timeout_ms = timeout;
+        self
+    }
+
+    /// TOML appended to the resource's config (e.g. an `[agenda]` table).
+    pub fn config(mut self, extra: &str) -> Self {
+        self.config_extra.push_str(extra);
+        self
+    }
+
+    /// Extra flags of `holon-node` (e.g. `--data-dir DIR`).
+    pub fn node_flags(mut self, flags: &[&str]) -> Self {
+        self.node_flags = flags.iter().map(|f| f.to_string()).collect();
+        self
+    }
+
+    /// Starts the simulator (`<name>-sim`), writes the config (`<name>.toml`) and starts
+    /// the resource holon on it, and waits until the holon is alive and free.
+    pub async fn start(self) -> Result<Resource> {
+        let sim_flags: Vec<&str> = self.sim_flags.iter().map(String::as_str).collect();
+        let sim = Sim::start(
+            &self.dir,
+            &format!("{}-sim", self.name),
+            "127.0.0.1:0",
+            &sim_flags,
+        )?;
+        let config = resource_config(&self.dir, &self.name, self.command_timeout_ms)?;
+        if !self.config_extra.is_empty() {
+            let mut text = fs::read_to_string(&config)?;
+            text.push_str(&self.config_extra);
+            fs::write(&config, text)?;
+        }
+        let node_flags: Vec<&str> = self.node_flags.iter().map(String::as_str).collect();
+        let node = self
+            .cell
+            .start_free_resource(&self.dir, &config, &sim.address, &node_flags)
+            .await
+            .with_context(|| format!("resource {} on its simulator", self.name))?;
+        Ok(Resource { sim, node, config })
+    }
+}
+
+/// A resource with its simulator, ready: the holon is alive and free. Both processes
+/// are killed when it is dropped.
+pub struct Resource {
+    pub node: Process,
+    pub sim: Sim,
+    /// The resource's config, to start it (or a successor) again.
+    pub config: PathBuf,
 }
 
 /// Submits `work` on `orders/submit` from `session` and returns the new orders' names.

@@ -14,10 +14,11 @@ struct Robot {
 async fn robot(cell: &str, sim_flags: &[&str]) -> Robot {
     let dir = tempfile::tempdir().unwrap();
     let cell = Cell::open(cell).await.unwrap();
-    let sim = Sim::start(dir.path(), "sim", "127.0.0.1:0", sim_flags).unwrap();
-    let config = resource_config(dir.path(), "robot1", 600).unwrap();
-    let node = cell
-        .start_free_resource(dir.path(), &config, &sim.address, &[])
+    let Resource { sim, node, .. } = cell
+        .resource(dir.path(), "robot1")
+        .sim_flags(sim_flags)
+        .command_timeout_ms(600)
+        .start()
         .await
         .unwrap();
     Robot {

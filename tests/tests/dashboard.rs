@@ -222,12 +222,7 @@ fn live(value: &serde_json::Value, holon: &str) -> Option<bool> {
 async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
     let dir = tempfile::tempdir().unwrap();
     let cell = Cell::open("t-dashboard").await.unwrap();
-    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", &[]).unwrap();
-    let config = resource_config(dir.path(), "robot1", 5_000).unwrap();
-    let mut robot = cell
-        .start_free_resource(dir.path(), &config, &sim.address, &[])
-        .await
-        .unwrap();
+    let mut robot = cell.resource(dir.path(), "robot1").start().await.unwrap();
 
     let observer = Dashboard::start(&cell, &[]);
     let operator = Dashboard::start(&cell, &["--operator"]);
@@ -253,7 +248,7 @@ async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
     assert_eq!(view["operator"], false);
 
     // Killed: the robot shows gone, with an alarm.
-    robot.kill();
+    robot.node.kill();
     let shown = observer.wait("/api/holons", "robot1 gone", |h| {
         live(h, "resource/robot1") == Some(false)
     });
@@ -301,12 +296,12 @@ async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
     operator.wait("/api/alarms", "acknowledged", |a| {
         a[0]["acknowledged"].is_u64()
     });
-    let _robot = start_node(
+    robot.node = start_node(
         dir.path(),
-        &config,
+        &robot.config,
         cell.keys.cell(),
         &cell.endpoint,
-        &sim.address,
+        &robot.sim.address,
         &[],
     )
     .unwrap();

@@ -8,19 +8,12 @@ use schemas::{HolonId, MessageType};
 
 /// A robot-sim and a holon-node `robot1` with `extra` appended to its config.
 async fn robot_with(cell: &Cell, dir: &std::path::Path, extra: &str) -> (Sim, Process) {
-    let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &[]).unwrap();
-    let config = resource_config(dir, "robot1", 5000).unwrap();
-    let mut text = std::fs::read_to_string(&config).unwrap();
-    text.push_str(extra);
-    std::fs::write(&config, text).unwrap();
     let data = dir.join("data-a");
-    let node = cell
-        .start_free_resource(
-            dir,
-            &config,
-            &sim.address,
-            &["--data-dir", data.to_str().unwrap()],
-        )
+    let Resource { sim, node, .. } = cell
+        .resource(dir, "robot1")
+        .config(extra)
+        .node_flags(&["--data-dir", data.to_str().unwrap()])
+        .start()
         .await
         .unwrap();
     (sim, node)

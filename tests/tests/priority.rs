@@ -49,13 +49,12 @@ async fn rush_orders_go_first_and_a_passed_booking_is_not_passed_again() {
     let dir = dir.path();
     let cell = Cell::open("t-priority").await.unwrap();
     // Every action takes a second: a job takes two, long enough to queue behind it.
-    let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &["--delay-ms", "1000"]).unwrap();
-    let config = resource_config(dir, "robot1", 10_000).unwrap();
-    let mut text = std::fs::read_to_string(&config).unwrap();
-    text.push_str("\n[agenda]\nmax_overtakes = 1\n");
-    std::fs::write(&config, text).unwrap();
-    let _robot = cell
-        .start_free_resource(dir, &config, &sim.address, &[])
+    let robot = cell
+        .resource(dir, "robot1")
+        .sim_flags(&["--delay-ms", "1000"])
+        .command_timeout_ms(10_000)
+        .config("\n[agenda]\nmax_overtakes = 1\n")
+        .start()
         .await
         .unwrap();
     let _part_and_orders = cell
@@ -154,5 +153,5 @@ async fn rush_orders_go_first_and_a_passed_booking_is_not_passed_again() {
         .chain(waiting.iter().map(|(order, _, _)| order))
         .collect();
     assert_eq!(served, expected);
-    assert_eq!(sim.executed("pick"), 5);
+    assert_eq!(robot.sim.executed("pick"), 5);
 }

@@ -24,11 +24,13 @@ async fn robot(
 ) -> Robot {
     let dir = tempfile::tempdir().unwrap();
     let cell = Cell::open(cell).await.unwrap();
-    let sim = Sim::start(dir.path(), "sim1", "127.0.0.1:0", sim_flags).unwrap();
-    let config = resource_config(dir.path(), "robot1", command_timeout_ms).unwrap();
     // Alive means serving; it waits for the controller too before booking.
-    let node = cell
-        .start_free_resource(dir.path(), &config, &sim.address, node_flags)
+    let Resource { sim, node, .. } = cell
+        .resource(dir.path(), "robot1")
+        .sim_flags(sim_flags)
+        .command_timeout_ms(command_timeout_ms)
+        .node_flags(node_flags)
+        .start()
         .await
         .unwrap();
     let holon = HolonId::resource("robot1").unwrap();

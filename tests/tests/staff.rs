@@ -107,9 +107,9 @@ const ADVICE_TIMEOUT_MS: u64 = 500;
 struct TwoRobots {
     cell: Cell,
     dir: tempfile::TempDir,
-    fast: Sim,
-    slow: Sim,
-    /// The robots, the product and the order-node (last), stopped when dropped.
+    fast: Resource,
+    slow: Resource,
+    /// The product and the order-node (last), stopped when dropped.
     processes: Vec<Process>,
 }
 
@@ -137,29 +137,14 @@ async fn two_robots(name: &str, fast_ms: u64, slow_ms: u64) -> TwoRobots {
     let dir = tempfile::tempdir().unwrap();
     let cell = Cell::open(name).await.unwrap();
     let path = dir.path();
-    let fast = Sim::start(
-        path,
-        "fast-sim",
-        "127.0.0.1:0",
-        &["--delay-ms", &fast_ms.to_string()],
-    )
-    .unwrap();
-    let slow = Sim::start(
-        path,
-        "slow-sim",
-        "127.0.0.1:0",
-        &["--delay-ms", &slow_ms.to_string()],
-    )
-    .unwrap();
-    let mut processes = Vec::new();
-    for (robot, sim) in [("fast", &fast), ("slow", &slow)] {
-        let config = resource_config(path, robot, 10_000).unwrap();
-        processes.push(
-            cell.start_free_resource(path, &config, &sim.address, &[])
-                .await
-                .unwrap(),
-        );
-    }
+    let robot = |name: &'static str, delay_ms: u64| {
+        cell.resource(path, name)
+            .sim_flags(&["--delay-ms", &delay_ms.to_string()])
+            .command_timeout_ms(10_000)
+            .start()
+    };
+    let fast = robot("fast", fast_ms).await.unwrap();
+    let slow = robot("slow", slow_ms).await.unwrap();
     // The demo's order-node, waiting longer for advice (the tests count advised orders).
     let demo = std::fs::read_to_string(demo_config("orders1.toml")).unwrap();
     assert!(demo.contains("advice_timeout_ms = 20\n"));
@@ -176,13 +161,12 @@ async fn two_robots(name: &str, fast_ms: u64, slow_ms: u64) -> TwoRobots {
         .start_part_and_orders(path, &orders_config, &path.join("orders-data"))
         .await
         .unwrap();
-    processes.extend([part, orders]);
     TwoRobots {
         cell,
         dir,
         fast,
         slow,
-        processes,
+        processes: vec![part, orders],
     }
 }
 
@@ -269,7 +253,10 @@ async fn orders_follow_usable_advice_and_go_by_contract_net_otherwise() {
     let log = std::fs::read_to_string(cell.dir.path().join("orders1.stderr")).unwrap_or_default();
     assert!(log.contains("answered none of the last asks"), "{log}");
     // Every step ran once: 4 + 1 followed, 8 + 5 by contract net.
-    assert_eq!(cell.fast.executed("pick") + cell.slow.executed("pick"), 18);
+    assert_eq!(
+        cell.fast.sim.executed("pick") + cell.slow.sim.executed("pick"),
+        18
+    );
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -330,9 +317,12 @@ async fn the_staff_learns_the_fast_robot_and_killing_it_loses_nothing() {
             .await
             .unwrap();
     }
-    assert_eq!(cell.fast.executed("pick") + cell.slow.executed("pick"), 28);
     assert_eq!(
-        cell.fast.executed("place") + cell.slow.executed("place"),
+        cell.fast.sim.executed("pick") + cell.slow.sim.executed("pick"),
+        28
+    );
+    assert_eq!(
+        cell.fast.sim.executed("place") + cell.slow.sim.executed("place"),
         28
     );
 }

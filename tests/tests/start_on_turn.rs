@@ -24,9 +24,6 @@ async fn a_running_booking_on_turn_keeps_the_grace() {
     let dir = tempfile::tempdir().unwrap();
     let dir = dir.path();
     let cell = Cell::open("t-on-turn-rebook").await.unwrap();
-    // A controller whose actions take 10 minutes, and one that answers at once.
-    let slow = Sim::start(dir, "slow", "127.0.0.1:0", &["--delay-ms", "600000"]).unwrap();
-    let fast = Sim::start(dir, "fast", "127.0.0.1:0", &[]).unwrap();
     let _part_and_orders = cell
         .start_part_and_orders(dir, &patient_orders(dir), &dir.join("orders-data"))
         .await
@@ -35,9 +32,12 @@ async fn a_running_booking_on_turn_keeps_the_grace() {
     // 2. The order's job begins on its turn on a free `held2` and runs: when `held2`
     // dies, the order waits for it to come back and report (the grace), and does not
     // book the step elsewhere.
-    let held2_config = resource_config(dir, "held2", 600_000).unwrap();
+    // Its controller's actions take 10 minutes.
     let mut held2 = cell
-        .start_free_resource(dir, &held2_config, &slow.address, &[])
+        .resource(dir, "held2")
+        .sim_flags(&["--delay-ms", "600000"])
+        .command_timeout_ms(600_000)
+        .start()
         .await
         .unwrap();
     let second = cell.submit("part", 1).await.unwrap().remove(0);
@@ -46,12 +46,9 @@ async fn a_running_booking_on_turn_keeps_the_grace() {
     })
     .await
     .unwrap();
-    held2.kill();
-    let spare2_config = resource_config(dir, "spare2", 5000).unwrap();
-    let _spare2 = cell
-        .start_free_resource(dir, &spare2_config, &fast.address, &[])
-        .await
-        .unwrap();
+    held2.node.kill();
+    // A spare whose controller answers at once.
+    let _spare2 = cell.resource(dir, "spare2").start().await.unwrap();
     tokio::time::sleep(Duration::from_secs(2)).await;
     let state = cell.order_state(&second).await.unwrap();
     assert_eq!(state["status"], "running", "{state}");

@@ -90,12 +90,18 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
     let dir = tempfile::tempdir().unwrap();
     let dir = dir.path();
     let cell = Cell::open("t-upgrade-resource").await.unwrap();
-    let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &["--delay-ms", "100"]).unwrap();
-    let config = resource_config(dir, "robot1", 10_000).unwrap();
     let data = dir.join("robot-data");
     let data_arg = data.to_str().unwrap();
-    let mut old = cell
-        .start_free_resource(dir, &config, &sim.address, &["--data-dir", data_arg])
+    let Resource {
+        node: mut old,
+        sim,
+        config,
+    } = cell
+        .resource(dir, "robot1")
+        .sim_flags(&["--delay-ms", "100"])
+        .command_timeout_ms(10_000)
+        .node_flags(&["--data-dir", data_arg])
+        .start()
         .await
         .unwrap();
     let _part_and_orders = cell
@@ -191,12 +197,18 @@ async fn a_holon_whose_successor_never_serves_exits_to_be_started_again() {
     let dir = tempfile::tempdir().unwrap();
     let dir = dir.path();
     let cell = Cell::open("t-upgrade-no-successor").await.unwrap();
-    let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &["--delay-ms", "100"]).unwrap();
-    let config = resource_config(dir, "robot1", 10_000).unwrap();
     let data = dir.join("robot-data");
     let data_arg = data.to_str().unwrap();
-    let mut old = cell
-        .start_free_resource(dir, &config, &sim.address, &["--data-dir", data_arg])
+    let Resource {
+        node: mut old,
+        sim,
+        config,
+    } = cell
+        .resource(dir, "robot1")
+        .sim_flags(&["--delay-ms", "100"])
+        .command_timeout_ms(10_000)
+        .node_flags(&["--data-dir", data_arg])
+        .start()
         .await
         .unwrap();
     let _part_and_orders = cell
