@@ -620,12 +620,12 @@ impl<'a> Connection<'a> {
             }
         }
         // An answer to a keep-alive.
-        if let (Some(Awaiting::Keepalive { .. }), Some(keepalive)) =
-            (self.awaiting, &self.dialect.keepalive)
-        {
+        if let Some(keepalive) = &self.dialect.keepalive {
             for &reply in &keepalive.expect {
                 if let Ok(Some(_)) = self.dialect.read_reply(reply, &parsed) {
-                    self.awaiting = None;
+                    if matches!(self.awaiting, Some(Awaiting::Keepalive { .. })) {
+                        self.awaiting = None;
+                    }
                     return Ok(());
                 }
             }

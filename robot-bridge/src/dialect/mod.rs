@@ -1030,6 +1030,26 @@ fn compile(file: DialectFile, origin: &str) -> Result<Dialect, DialectError> {
                 "a banner is text, not for length_prefix framing",
             ));
         }
+        if f.kind == FramingKind::Xml && parse_tree(banner.as_bytes()).is_err() {
+            return Err(invalid(
+                origin,
+                "connection.banner",
+                "with xml framing the banner is one XML document",
+            ));
+        }
+        if let Framing::Line { terminator } = &framing {
+            if banner
+                .as_bytes()
+                .windows(terminator.len())
+                .any(|w| w == terminator.as_slice())
+            {
+                return Err(invalid(
+                    origin,
+                    "connection.banner",
+                    "one line: it holds the terminator",
+                ));
+            }
+        }
     }
     Ok(Dialect {
         name: file.name,
