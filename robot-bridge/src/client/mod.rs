@@ -1,0 +1,264 @@
+//! The controller client: one persistent TCP connection to the robot controller, in the
+//! controller's dialect ([`crate::dialect`]).
+//!
+//! The client is a task ([`run`]) with a command mailbox and an event channel, like every
+//! component of a resource holon. It connects (or, when the dialect says the controller
+//! connects, listens and accepts one connection at a time), retries every
+//! `reconnect_interval` while the controller is away (the seed's `socket_connect`), runs
+//! each command's sequence of messages as the dialect says, and reports in order:
+//!
+//! - [`ControllerEvent::Status`] on every change of the controller's state (pushed,
+//!   polled, or ready while connected, as the dialect says) and on disconnect;
+//! - [`ControllerEvent::Reply`] when a command's step ends: its result, or `error` with
+//!   the controller's message;
+//! - [`ControllerEvent::CommandFailed`] when a command cannot have an answer: no
+//!   connection, the connection broke, the controller sent what the dialect does not
+//!   describe, the command cannot be written, or no answer came within
+//!   `command_timeout` (which covers a command's whole sequence).
+//!
+//! A controller that misses a deadline or sends something the dialect does not describe
+//! has its connection reset; the client then reconnects as usual.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use schemas::RobotCommand;
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::mpsc;
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+mod connection;
+
+use crate::dialect::{Dialect, Role};
+use connection::{Connection, ConnectionEnd};
+
+/// How to reach the controller.
+#[derive(Debug, Clone)]
+pub struct ClientConfig {
+    /// `HOST:PORT` of the controller's TCP server, or the address the holon listens on
+    /// when the dialect's controller connects.
+    pub address: String,
+    /// Pause between connection attempts while the controller is away.
+    pub reconnect_interval: Duration,
+    /// Longest wait for a command's answer (its whole sequence) before the step fails.
+    pub command_timeout: Duration,
+    /// Longest wait for one TCP connect (and for a dialect's banner).
+    pub connect_timeout: Duration,
+    /// The controller's protocol.
+    pub dialect: Arc<Dialect>,
+}
+
+impl ClientConfig {
+    pub fn new(address: impl Into<String>) -> Self {
+        ClientConfig {
+            address: address.into(),
+            reconnect_interval: Duration::from_secs(1),
+            command_timeout: Duration::from_secs(30),
+            connect_timeout: Duration::from_secs(2),
+            dialect: Dialect::holarchy_xml(),
+        }
+    }
+}
+
+/// The controller as the client sees it (one type with the snapshot's `controller`).
+pub use schemas::ControllerStatus;
+
+/// Why a command got no reply.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CommandFailure {
+    #[error("not connected to the controller")]
+    NotConnected,
+    #[error("the connection to the controller broke")]
+    Disconnected,
+    #[error("no reply within {0:?}")]
+    Timeout(Duration),
+    #[error("the controller broke the protocol: {0}")]
+    Protocol(String),
+    /// The dialect cannot write this command (e.g. an action its enum tables lack).
+    #[error("the command cannot be written in the controller's dialect: {0}")]
+    Unwritable(String),
+}
+
+/// What the client reports to its owner, in the order it happened.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ControllerEvent {
+    Status(ControllerStatus),
+    Reply {
+        id: u64,
+        result: String,
+        message: Option<String>,
+    },
+    CommandFailed {
+        id: u64,
+        failure: CommandFailure,
+    },
+}
+
+/// Runs the client until `shutdown` is cancelled or the event receiver is dropped.
+/// Commands come from `commands`; their `id` comes back in events.
+pub async fn run(
+    config: ClientConfig,
+    commands: &mut mpsc::Receiver<RobotCommand>,
+    events: mpsc::Sender<ControllerEvent>,
+    shutdown: CancellationToken,
+) {
+    let mut reporter = Reporter {
+        events,
+        status: None,
+    };
+    let mut listener = None;
+    let mut first_attempt = true;
+    loop {
+        if !reporter.status(ControllerStatus::Disconnected).await {
+            return;
+        }
+        let link = Link {
+            config: &config,
+            commands,
+            reporter: &mut reporter,
+            shutdown: &shutdown,
+        };
+        let stream = match config.dialect.role {
+            Role::ControllerListens => link.connect(first_attempt).await,
+            Role::ControllerConnects => link.accept(&mut listener).await,
+        };
+        let Some(stream) = stream else { return };
+        first_attempt = false;
+        info!(controller = %config.address, dialect = %config.dialect.name, "connected to the controller");
+        let connection = Connection::new(&config, commands, &mut reporter);
+        match connection.serve(stream, listener.as_ref(), &shutdown).await {
+            ConnectionEnd::Shutdown => {
+                info!(controller = %config.address, "closed the controller connection");
+                return;
+            }
+            ConnectionEnd::OwnerGone => return,
+            ConnectionEnd::Lost(why) => {
+                warn!(controller = %config.address, reason = %why, "controller connection lost; reconnecting");
+            }
+        }
+    }
+}
+
+struct Reporter {
+    events: mpsc::Sender<ControllerEvent>,
+    status: Option<ControllerStatus>,
+}
+
+impl Reporter {
+    /// Sends an event; false when the owner is gone.
+    async fn send(&mut self, event: ControllerEvent) -> bool {
+        self.events.send(event).await.is_ok()
+    }
+
+    async fn status(&mut self, status: ControllerStatus) -> bool {
+        if self.status == Some(status) {
+            return true;
+        }
+        self.status = Some(status);
+        self.send(ControllerEvent::Status(status)).await
+    }
+}
+
+/// Establishing a connection, while commands that arrive meanwhile fail.
+struct Link<'a> {
+    config: &'a ClientConfig,
+    commands: &'a mut mpsc::Receiver<RobotCommand>,
+    reporter: &'a mut Reporter,
+    shutdown: &'a CancellationToken,
+}
+
+impl Link<'_> {
+    async fn refuse(&mut self, command: RobotCommand) -> bool {
+        let event = ControllerEvent::CommandFailed {
+            id: command.id,
+            failure: CommandFailure::NotConnected,
+        };
+        self.reporter.send(event).await
+    }
+
+    /// Connects, retrying every `reconnect_interval`.
+    async fn connect(mut self, first_attempt: bool) -> Option<TcpStream> {
+        let config = self.config;
+        let mut logged = false;
+        let mut next_attempt = Instant::now();
+        if !first_attempt {
+            // A controller that just dropped us is given a moment before we knock again.
+            next_attempt += config.reconnect_interval.min(Duration::from_millis(100));
+        }
+        loop {
+            tokio::select! {
+                _ = self.shutdown.cancelled() => return None,
+                command = self.commands.recv() => {
+                    if !self.refuse(command?).await {
+                        return None;
+                    }
+                }
+                _ = tokio::time::sleep_until(next_attempt) => {
+                    let attempt = tokio::time::timeout(config.connect_timeout, TcpStream::connect(&config.address)).await;
+                    match attempt {
+                        Ok(Ok(stream)) => {
+                            if let Err(e) = stream.set_nodelay(true) {
+                                debug!(error = %e, "cannot set TCP_NODELAY; commands may wait for Nagle");
+                            }
+                            return Some(stream);
+                        }
+                        Ok(Err(e)) if !logged => {
+                            warn!(controller = %config.address, error = %e, "controller unreachable; retrying every {:?}", config.reconnect_interval);
+                            logged = true;
+                        }
+                        Err(_) if !logged => {
+                            warn!(controller = %config.address, "controller connect timed out; retrying every {:?}", config.reconnect_interval);
+                            logged = true;
+                        }
+                        _ => debug!(controller = %config.address, "controller still unreachable"),
+                    }
+                    next_attempt = Instant::now() + config.reconnect_interval;
+                }
+            }
+        }
+    }
+
+    /// Listens on the address (once) and accepts the controller's connection.
+    async fn accept(mut self, listener: &mut Option<TcpListener>) -> Option<TcpStream> {
+        let config = self.config;
+        let mut logged = false;
+        loop {
+            if listener.is_none() {
+                match TcpListener::bind(&config.address).await {
+                    Ok(bound) => {
+                        info!(address = %config.address, "waiting for the controller to connect");
+                        *listener = Some(bound);
+                    }
+                    Err(e) => {
+                        if !logged {
+                            warn!(address = %config.address, error = %e, "cannot listen for the controller; retrying every {:?}", config.reconnect_interval);
+                            logged = true;
+                        }
+                    }
+                }
+            }
+            let retry = tokio::time::sleep(config.reconnect_interval);
+            tokio::select! {
+                _ = self.shutdown.cancelled() => return None,
+                command = self.commands.recv() => {
+                    if !self.refuse(command?).await {
+                        return None;
+                    }
+                }
+                accepted = async { listener.as_ref().expect("bound").accept().await }, if listener.is_some() => match accepted {
+                    Ok((stream, peer)) => {
+                        info!(%peer, "the controller connected");
+                        if let Err(e) = stream.set_nodelay(true) {
+                            debug!(error = %e, "cannot set TCP_NODELAY");
+                        }
+                        return Some(stream);
+                    }
+                    Err(e) => warn!(error = %e, "accepting the controller's connection failed"),
+                },
+                _ = retry, if listener.is_none() => {}
+            }
+        }
+    }
+}

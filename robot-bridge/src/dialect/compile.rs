@@ -1,0 +1,453 @@
+//! Checking a dialect file and compiling it into a [`Dialect`]: every error names the
+//! field and the problem.
+
+use super::file::{Correlation, DialectFile, FramingKind, Outcome, StatusSource};
+use super::framing::{ByteOrder, Framing};
+use super::messages::{captures, compile_command, compile_reply, templates_of};
+use super::values::{Enums, ValueFormat};
+use super::{Command, Dialect, DialectError, Element, Keepalive, Reply, Sending, Status};
+use crate::codec::parse_tree;
+use std::time::Duration;
+
+pub(super) fn invalid(
+    origin: &str,
+    field: impl Into<String>,
+    why: impl Into<String>,
+) -> DialectError {
+    DialectError::Invalid {
+        origin: origin.to_string(),
+        field: field.into(),
+        why: why.into(),
+    }
+}
+
+pub(super) fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
+
+/// Reads escapes in a terminator: `\n`, `\r`, `\t`, `\0`, `\xHH`.
+fn unescape_bytes(text: &str) -> Result<Vec<u8>, String> {
+    let mut out = Vec::new();
+    let mut chars = text.chars();
+    while let Some(c) = chars.next() {
+        if c != '\\' {
+            let mut buf = [0; 4];
+            out.extend_from_slice(c.encode_utf8(&mut buf).as_bytes());
+            continue;
+        }
+        match chars.next() {
+            Some('n') => out.push(b'\n'),
+            Some('r') => out.push(b'\r'),
+            Some('t') => out.push(b'\t'),
+            Some('0') => out.push(0),
+            Some('\\') => out.push(b'\\'),
+            Some('x') => {
+                let hex: String = chars.by_ref().take(2).collect();
+                let byte = u8::from_str_radix(&hex, 16)
+                    .map_err(|_| format!("\\x{hex} is not two hex digits"))?;
+                out.push(byte);
+            }
+            other => return Err(format!("unknown escape \\{}", other.unwrap_or(' '))),
+        }
+    }
+    Ok(out)
+}
+
+pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, DialectError> {
+    if !valid_name(&file.name) {
+        return Err(invalid(origin, "name", "1 to 64 letters, digits, _ or -"));
+    }
+    // Framing.
+    let f = &file.framing;
+    let max = f.max_message_bytes.unwrap_or(64 * 1024);
+    if !(16..=16 * 1024 * 1024).contains(&max) {
+        return Err(invalid(
+            origin,
+            "framing.max_message_bytes",
+            "from 16 to 16777216",
+        ));
+    }
+    let order = f.byte_order.unwrap_or(ByteOrder::Big);
+    let only = |field: &str, given: bool, kind: &str| -> Result<(), DialectError> {
+        if given {
+            Err(invalid(
+                origin,
+                format!("framing.{field}"),
+                format!("only for kind = \"{kind}\""),
+            ))
+        } else {
+            Ok(())
+        }
+    };
+    let framing = match f.kind {
+        FramingKind::Xml => {
+            only("terminator", f.terminator.is_some(), "line")?;
+            only("prefix_bytes", f.prefix_bytes.is_some(), "length_prefix")?;
+            only("byte_order", f.byte_order.is_some(), "length_prefix")?;
+            only(
+                "prefix_counts_itself",
+                f.prefix_counts_itself.is_some(),
+                "length_prefix",
+            )?;
+            Framing::Xml
+        }
+        FramingKind::Line => {
+            only("prefix_bytes", f.prefix_bytes.is_some(), "length_prefix")?;
+            only("byte_order", f.byte_order.is_some(), "length_prefix")?;
+            only(
+                "prefix_counts_itself",
+                f.prefix_counts_itself.is_some(),
+                "length_prefix",
+            )?;
+            let terminator = unescape_bytes(f.terminator.as_deref().unwrap_or("\n"))
+                .map_err(|e| invalid(origin, "framing.terminator", e))?;
+            if terminator.is_empty() || terminator.len() > 4 {
+                return Err(invalid(origin, "framing.terminator", "1 to 4 bytes"));
+            }
+            Framing::Line { terminator }
+        }
+        FramingKind::LengthPrefix => {
+            only("terminator", f.terminator.is_some(), "line")?;
+            let bytes = f.prefix_bytes.unwrap_or(4);
+            if bytes != 2 && bytes != 4 {
+                return Err(invalid(origin, "framing.prefix_bytes", "2 or 4"));
+            }
+            Framing::LengthPrefix {
+                bytes,
+                order,
+                counts_itself: f.prefix_counts_itself.unwrap_or(false),
+            }
+        }
+    };
+    // Values and enums.
+    let format = ValueFormat {
+        decimals: file.values.decimals,
+        true_text: file
+            .values
+            .true_text
+            .clone()
+            .unwrap_or_else(|| "true".into()),
+        false_text: file
+            .values
+            .false_text
+            .clone()
+            .unwrap_or_else(|| "false".into()),
+    };
+    if format.decimals.is_some_and(|d| d > 17) {
+        return Err(invalid(origin, "values.decimals", "at most 17"));
+    }
+    let mut enums = Enums::default();
+    for (table, entries) in file.enums {
+        if !template_name(&table) {
+            return Err(invalid(
+                origin,
+                format!("enums.{table}"),
+                "a table's name is lower-case letters, digits and _",
+            ));
+        }
+        if entries.is_empty() {
+            return Err(invalid(origin, format!("enums.{table}"), "an empty table"));
+        }
+        let mut seen = std::collections::BTreeSet::new();
+        for (value, wire) in entries {
+            let wire = wire.into_vec();
+            if wire.is_empty() || wire.iter().any(String::is_empty) {
+                return Err(invalid(
+                    origin,
+                    format!("enums.{table}.{value}"),
+                    "give one or more non-empty wire forms",
+                ));
+            }
+            for w in &wire {
+                if !seen.insert(w.clone()) {
+                    return Err(invalid(origin, format!("enums.{table}.{value}"), format!("{w:?} already stands for another value: reading it back would be ambiguous")));
+                }
+            }
+            enums.insert(&table, &value, wire);
+        }
+    }
+    // Messages.
+    let mut commands = Vec::new();
+    for (i, c) in file.command.iter().enumerate() {
+        commands.push(compile_command(
+            origin, i, c, f.kind, order, &enums, &commands,
+        )?);
+    }
+    let mut replies: Vec<Reply> = Vec::new();
+    for (i, r) in file.reply.iter().enumerate() {
+        let reply = compile_reply(origin, i, r, f.kind, order, &enums)?;
+        if replies.iter().any(|o| o.name == reply.name) {
+            return Err(invalid(
+                origin,
+                format!("reply[{i}].name"),
+                format!("{:?} is used twice", reply.name),
+            ));
+        }
+        replies.push(reply);
+    }
+    let command_named = |field: &str, name: &str| {
+        commands
+            .iter()
+            .position(|c: &Command| c.name == name)
+            .ok_or_else(|| invalid(origin, field, format!("no [[command]] is named {name:?}")))
+    };
+    let reply_named = |field: &str, name: &str| {
+        replies
+            .iter()
+            .position(|r| r.name == name)
+            .ok_or_else(|| invalid(origin, field, format!("no [[reply]] is named {name:?}")))
+    };
+    // Correlation: with ids, every answer to a command carries the id.
+    if file.correlation == Correlation::Id {
+        for (i, c) in commands.iter().enumerate() {
+            let names: Vec<String> = templates_of(&c.body)
+                .iter()
+                .flat_map(|t| t.names())
+                .map(|(n, _)| n)
+                .collect();
+            if !names.iter().any(|n| n == "id") {
+                return Err(invalid(
+                    origin,
+                    format!("command[{i}] ({})", c.name),
+                    "correlation = \"id\": every command carries {id}",
+                ));
+            }
+        }
+        for (i, r) in replies.iter().enumerate() {
+            let carries = r
+                .body
+                .as_ref()
+                .map(|b| captures(b, r.regex.as_ref()))
+                .unwrap_or_default();
+            if !matches!(r.outcome, Outcome::Status | Outcome::Ignore)
+                && !carries.iter().any(|n| n == "id")
+            {
+                return Err(invalid(
+                    origin,
+                    format!("reply[{i}] ({})", r.name),
+                    "correlation = \"id\": every answer to a command carries {id}",
+                ));
+            }
+        }
+    }
+    // The sequence.
+    if file.sequence.is_empty() {
+        return Err(invalid(origin, "sequence", "at least one element"));
+    }
+    let mut sequence = Vec::new();
+    for (i, e) in file.sequence.iter().enumerate() {
+        let at = format!("sequence[{i}]");
+        let (sending, name) = match (&e.send, &e.poll, e.every_ms) {
+            (Some(name), None, None) => (Sending::Send, name),
+            (None, Some(name), Some(ms)) if ms > 0 => {
+                (Sending::Poll(Duration::from_millis(ms)), name)
+            }
+            (None, Some(_), _) => {
+                return Err(invalid(
+                    origin,
+                    format!("{at}.every_ms"),
+                    "a poll needs every_ms > 0",
+                ))
+            }
+            (Some(_), None, Some(_)) => {
+                return Err(invalid(
+                    origin,
+                    format!("{at}.every_ms"),
+                    "only a poll repeats",
+                ))
+            }
+            _ => return Err(invalid(origin, &at, "give send or poll")),
+        };
+        let command = command_named(
+            &format!("{at}.{}", if e.send.is_some() { "send" } else { "poll" }),
+            name,
+        )?;
+        if e.expect.is_empty() {
+            return Err(invalid(
+                origin,
+                format!("{at}.expect"),
+                "at least one reply",
+            ));
+        }
+        let mut expect = Vec::new();
+        for name in &e.expect {
+            let r = reply_named(&format!("{at}.expect"), name)?;
+            if matches!(replies[r].outcome, Outcome::Status | Outcome::Ignore) {
+                return Err(invalid(
+                    origin,
+                    format!("{at}.expect"),
+                    format!(
+                        "{name:?} is a {:?} reply, which may come at any time; expect answers only",
+                        replies[r].outcome
+                    )
+                    .to_lowercase(),
+                ));
+            }
+            expect.push(r);
+        }
+        let outcomes: Vec<Outcome> = expect.iter().map(|&r| replies[r].outcome).collect();
+        if let Sending::Poll(_) = sending {
+            if !outcomes.contains(&Outcome::Running) {
+                return Err(invalid(
+                    origin,
+                    format!("{at}.expect"),
+                    "a poll expects a `running` reply (the action goes on)",
+                ));
+            }
+        }
+        sequence.push(Element {
+            sending,
+            command,
+            expect,
+            starts: e.starts,
+        });
+    }
+    let last = sequence.last().expect("not empty");
+    if !last
+        .expect
+        .iter()
+        .any(|&r| replies[r].outcome == Outcome::Done)
+    {
+        return Err(invalid(
+            origin,
+            format!("sequence[{}].expect", sequence.len() - 1),
+            "the last element must expect a `done` reply, or no step could end",
+        ));
+    }
+    match sequence.iter().filter(|e| e.starts).count() {
+        0 => {
+            // The last `send` begins the action.
+            if let Some(e) = sequence
+                .iter_mut()
+                .rev()
+                .find(|e| e.sending == Sending::Send)
+            {
+                e.starts = true;
+            } else {
+                sequence[0].starts = true;
+            }
+        }
+        1 => {}
+        _ => {
+            return Err(invalid(
+                origin,
+                "sequence",
+                "only one element starts the action",
+            ))
+        }
+    }
+    // Status.
+    let status = match (file.status.source, &file.status.poll, file.status.every_ms) {
+        (StatusSource::Pushed, None, None) => Status::Pushed,
+        (StatusSource::Connection, None, None) => Status::Connection,
+        (StatusSource::Polled, Some(name), Some(ms)) if ms > 0 => Status::Polled {
+            command: command_named("status.poll", name)?,
+            every: Duration::from_millis(ms),
+        },
+        (StatusSource::Polled, _, _) => {
+            return Err(invalid(
+                origin,
+                "status",
+                "source = \"polled\" needs poll (a command) and every_ms > 0",
+            ))
+        }
+        _ => {
+            return Err(invalid(
+                origin,
+                "status",
+                "poll and every_ms are for source = \"polled\" only",
+            ))
+        }
+    };
+    if status != Status::Connection && !replies.iter().any(|r| r.outcome == Outcome::Status) {
+        return Err(invalid(
+            origin,
+            "status",
+            "a pushed or polled state needs a [[reply]] with outcome = \"status\"",
+        ));
+    }
+    let keepalive = match &file.connection.keepalive {
+        None => None,
+        Some(k) => {
+            if k.every_ms == 0 {
+                return Err(invalid(
+                    origin,
+                    "connection.keepalive.every_ms",
+                    "more than 0",
+                ));
+            }
+            let mut expect = Vec::new();
+            for name in &k.expect {
+                expect.push(reply_named("connection.keepalive.expect", name)?);
+            }
+            Some(Keepalive {
+                command: command_named("connection.keepalive.send", &k.send)?,
+                every: Duration::from_millis(k.every_ms),
+                expect,
+            })
+        }
+    };
+    if let Some(banner) = &file.connection.banner {
+        if banner.is_empty() || banner.len() > max {
+            return Err(invalid(
+                origin,
+                "connection.banner",
+                "1 byte up to max_message_bytes",
+            ));
+        }
+        if f.kind == FramingKind::LengthPrefix {
+            return Err(invalid(
+                origin,
+                "connection.banner",
+                "a banner is text, not for length_prefix framing",
+            ));
+        }
+        if f.kind == FramingKind::Xml && parse_tree(banner.as_bytes()).is_err() {
+            return Err(invalid(
+                origin,
+                "connection.banner",
+                "with xml framing the banner is one XML document",
+            ));
+        }
+        if let Framing::Line { terminator } = &framing {
+            if banner
+                .as_bytes()
+                .windows(terminator.len())
+                .any(|w| w == terminator.as_slice())
+            {
+                return Err(invalid(
+                    origin,
+                    "connection.banner",
+                    "one line: it holds the terminator",
+                ));
+            }
+        }
+    }
+    Ok(Dialect {
+        name: file.name,
+        description: file.description,
+        role: file.connection.role,
+        framing,
+        max_message_bytes: max,
+        format,
+        correlation: file.correlation,
+        status,
+        banner: file.connection.banner,
+        keepalive,
+        enums,
+        commands,
+        replies,
+        sequence,
+    })
+}
+
+fn template_name(name: &str) -> bool {
+    name.chars().next().is_some_and(|c| c.is_ascii_lowercase())
+        && name
+            .chars()
+            .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '_')
+}

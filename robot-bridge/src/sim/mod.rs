@@ -1,0 +1,382 @@
+//! `robot-sim`: a robot controller simulator that speaks any controller dialect
+//! ([`crate::dialect`]; holarchy's own TCP/XML protocol by default).
+//!
+//! It is the TCP server, as most controllers are (or, when the dialect's controller
+//! connects, it dials the holon and dials again when the connection ends). On every
+//! connection it sends the dialect's banner, if any, and its state (`ready`) when the
+//! dialect pushes it; then it answers each message as the dialect's sequence says: the
+//! message that begins an action ([`crate::dialect::Element::starts`]) is acted on for
+//! the time the action takes (to within about 0.1 ms: `delay`, or the action's own time
+//! in `action_delays`, plus `changeover` when the command's program differs from the last
+//! program the controller ran, as a robot's tooling or a fixture is changed for another
+//! product variant), and answered with the dialect's `done` reply: `pick` ->
+//! `picking_done`, `place` -> `placing_done`, `inspect` -> `inspect_pass` (or
+//! `inspect_fail`), `move` -> `arrived`; any other action -> the `failed` reply. Messages
+//! before it are accepted; a poll is answered `running` until the action's time is up,
+//! then `done`; a status poll is answered with the state.
+//!
+//! Faults, for tests (command numbers count every action begun, from 1):
+//! - `error_every N`: every Nth command is answered with a `failed` (or `rejected`)
+//!   reply and not executed;
+//! - `close_after N`: each connection is closed when its (N+1)th command arrives (that
+//!   command is not executed);
+//! - `reset_after N`: the (N+1)th command of the process is begun and the connection is
+//!   reset (RST) halfway through the action (not executed);
+//! - `hang_after N`: from the (N+1)th command of the process on, the connection answers
+//!   nothing (commands are read, never executed);
+//! - `garbage_after N`: the (N+1)th command of the process gets bytes the dialect does not
+//!   describe instead of a reply and is not executed; later commands are served normally;
+//! - `oversize_after N`: the (N+1)th command gets a message larger than the dialect's
+//!   `max_message_bytes` and is not executed;
+//! - `fault_after N`: the (N+1)th command of the process is not executed: the controller
+//!   reports `fault` (or `estop`) instead, and `ready` after `fault_for` (a dialect with
+//!   one command in flight has the command answered with its `failed` reply too, so the
+//!   wire is free for the state);
+//! - `fragment`: every message is written in pieces of 1 to 3 bytes;
+//! - `merge`: messages are written together: an `accepted` reply with the `done` that
+//!   follows it, and (where the dialect pushes its state) a `ready` with every reply.
+//!
+//! The simulator counts the commands it executed (answered with their success result);
+//! [`SimStats`] can be written to a JSON file when each command arrives and after it is
+//! answered, so tests can check that nothing ran twice. A thread of its own writes the
+//! file, off the command's path (after the reply went out), with the latest counts
+//! (several commands in quick succession make one write): the count file is the tests'
+//! window, and a controller command's round trip should cost what a real controller's
+//! would (a write and a rename on the way cost the bridge about a hundred microseconds per
+//! command).
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use schemas::ControllerState;
+use tokio::net::{TcpListener, TcpStream};
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+mod session;
+mod writer;
+
+use crate::dialect::Dialect;
+use session::serve;
+
+/// How the simulator behaves.
+#[derive(Debug, Clone, Default)]
+pub struct SimConfig {
+    /// How long each action takes, unless `action_delays` names it.
+    pub delay: Duration,
+    /// How long particular actions take (`pick` -> 300 ms): a robot that is fast at
+    /// some work and slow at other.
+    pub action_delays: BTreeMap<String, Duration>,
+    /// What a change of program costs: added to the first command whose `PROGRAM`
+    /// differs from the last program run (a command without one changes nothing).
+    pub changeover: Duration,
+    pub error_every: Option<u64>,
+    pub close_after: Option<u64>,
+    pub hang_after: Option<u64>,
+    pub garbage_after: Option<u64>,
+    /// Every Nth `inspect` is answered `inspect_fail`.
+    pub inspect_fail_every: Option<u64>,
+    /// When the (N+1)th command of the process arrives, report `fault_state` instead of
+    /// answering it (it is not executed), then `ready` again after `fault_for`.
+    pub fault_after: Option<u64>,
+    pub fault_state: Option<ControllerState>,
+    pub fault_for: Duration,
+    /// Rewritten (atomically) with [`SimStats`] as JSON after every command, once its
+    /// reply is sent.
+    pub count_file: Option<PathBuf>,
+    /// The protocol spoken (None: holarchy-xml).
+    pub dialect: Option<Arc<Dialect>>,
+    /// Begin the (N+1)th command, then reset the connection halfway through it.
+    pub reset_after: Option<u64>,
+    /// Answer the (N+1)th command with a message over the dialect's size limit.
+    pub oversize_after: Option<u64>,
+    /// Write every message in pieces of 1 to 3 bytes.
+    pub fragment: bool,
+    /// Write messages together (see the module docs).
+    pub merge: bool,
+}
+
+impl SimConfig {
+    /// The dialect spoken.
+    pub fn dialect(&self) -> Arc<Dialect> {
+        self.dialect.clone().unwrap_or_else(Dialect::holarchy_xml)
+    }
+}
+
+/// What the simulator did.
+#[derive(Debug, Default)]
+pub struct SimStats {
+    received: AtomicU64,
+    executed: AtomicU64,
+    inspections: AtomicU64,
+    by_action: Mutex<BTreeMap<String, u64>>,
+    connections: AtomicU64,
+    /// The program of the last command run that named one.
+    program: Mutex<Option<String>>,
+    changeovers: AtomicU64,
+}
+
+impl SimStats {
+    /// Commands executed (answered with their success result).
+    pub fn executed(&self) -> u64 {
+        self.executed.load(Ordering::SeqCst)
+    }
+
+    /// Commands received, executed or not.
+    pub fn received(&self) -> u64 {
+        self.received.load(Ordering::SeqCst)
+    }
+
+    /// Changes of program (each cost the config's `changeover`).
+    pub fn changeovers(&self) -> u64 {
+        self.changeovers.load(Ordering::SeqCst)
+    }
+
+    /// Whether running `program` changes the controller over, which it then is.
+    fn change_to(&self, program: Option<&str>) -> bool {
+        let Some(program) = program else {
+            return false;
+        };
+        let mut last = self.program.lock().unwrap_or_else(|e| e.into_inner());
+        let change = last.as_deref().is_some_and(|last| last != program);
+        if last.as_deref() != Some(program) {
+            *last = Some(program.to_string());
+        }
+        if change {
+            self.changeovers.fetch_add(1, Ordering::SeqCst);
+        }
+        change
+    }
+
+    /// Connections accepted.
+    pub fn connections(&self) -> u64 {
+        self.connections.load(Ordering::SeqCst)
+    }
+
+    /// Executed commands per action.
+    pub fn by_action(&self) -> BTreeMap<String, u64> {
+        self.by_action
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// `{"executed": N, "received": N, "connections": N, "changeovers": N,
+    /// "by_action": {"pick": N, ...}}`.
+    pub fn to_json(&self) -> String {
+        let by_action: Vec<String> = self
+            .by_action()
+            .iter()
+            .map(|(k, v)| format!("\"{k}\":{v}"))
+            .collect();
+        format!(
+            "{{\"executed\":{},\"received\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
+            self.executed(),
+            self.received(),
+            self.connections(),
+            self.changeovers(),
+            by_action.join(",")
+        )
+    }
+}
+
+/// A simulator ready to [`Simulator::run`]: bound to its address, or set to dial the
+/// holon.
+pub struct Simulator {
+    /// Where connections come from.
+    link: SimLink,
+    config: Arc<SimConfig>,
+    stats: Arc<SimStats>,
+}
+
+enum SimLink {
+    /// The controller listens (most dialects).
+    Listen(TcpListener),
+    /// The controller connects to the holon at this address.
+    Dial(String),
+}
+
+/// Asks the count file's writer thread to write the latest counts; never blocks (a
+/// write already asked for and not yet started takes in this command's counts too).
+#[derive(Clone)]
+struct CountFile(Option<std::sync::mpsc::SyncSender<()>>);
+
+impl CountFile {
+    /// Starts the writer thread, when the config has a count file; join it after the
+    /// last sender is dropped to have the last counts on disk.
+    fn start(
+        config: &Arc<SimConfig>,
+        stats: &Arc<SimStats>,
+    ) -> (CountFile, Option<std::thread::JoinHandle<()>>) {
+        if config.count_file.is_none() {
+            return (CountFile(None), None);
+        }
+        let (asks, asked) = std::sync::mpsc::sync_channel::<()>(1);
+        let (config, stats) = (config.clone(), stats.clone());
+        let writer = std::thread::spawn(move || {
+            // Ends when every sender is gone, after the last write asked for.
+            for () in asked {
+                write_count_file(&config, &stats);
+            }
+        });
+        let file = CountFile(Some(asks));
+        file.update();
+        (file, Some(writer))
+    }
+
+    fn update(&self) {
+        let Some(asks) = &self.0 else { return };
+        match asks.try_send(()) {
+            // Full: a write is pending and will read the counts as they are then.
+            Ok(()) | Err(std::sync::mpsc::TrySendError::Full(())) => {}
+            Err(std::sync::mpsc::TrySendError::Disconnected(())) => {
+                warn!("the count file's writer is gone: the file keeps older counts");
+            }
+        }
+    }
+}
+
+impl Simulator {
+    /// Listens on `address`, for a dialect whose controller is the TCP server.
+    pub async fn bind(address: &str, config: SimConfig) -> std::io::Result<Simulator> {
+        let listener = TcpListener::bind(address).await?;
+        Ok(Simulator {
+            link: SimLink::Listen(listener),
+            config: Arc::new(config),
+            stats: Arc::default(),
+        })
+    }
+
+    /// Dials the holon at `address`, for a dialect whose controller connects.
+    pub fn dialing(address: &str, config: SimConfig) -> Simulator {
+        Simulator {
+            link: SimLink::Dial(address.to_string()),
+            config: Arc::new(config),
+            stats: Arc::default(),
+        }
+    }
+
+    /// The address listened on (an error when dialing).
+    pub fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        match &self.link {
+            SimLink::Listen(listener) => listener.local_addr(),
+            SimLink::Dial(_) => Err(std::io::Error::other(
+                "the simulator dials; it listens on nothing",
+            )),
+        }
+    }
+
+    pub fn stats(&self) -> Arc<SimStats> {
+        self.stats.clone()
+    }
+
+    /// Serves connections until `shutdown` is cancelled.
+    pub async fn run(self, shutdown: CancellationToken) {
+        let (count_file, writer) = CountFile::start(&self.config, &self.stats);
+        let connections = tokio_util::task::TaskTracker::new();
+        let serve_one = |stream: TcpStream, peer: String| {
+            if let Err(e) = stream.set_nodelay(true) {
+                warn!(error = %e, "cannot set TCP_NODELAY");
+            }
+            self.stats.connections.fetch_add(1, Ordering::SeqCst);
+            info!(%peer, "bridge connected");
+            let config = self.config.clone();
+            let stats = self.stats.clone();
+            let shutdown = shutdown.clone();
+            let count_file = count_file.clone();
+            connections.spawn(async move {
+                if let Err(e) = serve(stream, &config, &stats, &count_file, shutdown).await {
+                    warn!(%peer, error = %e, "connection ended with an error");
+                } else {
+                    info!(%peer, "bridge disconnected");
+                }
+            })
+        };
+        match &self.link {
+            SimLink::Listen(listener) => loop {
+                tokio::select! {
+                    _ = shutdown.cancelled() => break,
+                    accepted = listener.accept() => match accepted {
+                        Ok((stream, peer)) => {
+                            serve_one(stream, peer.to_string());
+                        }
+                        Err(e) => {
+                            warn!(error = %e, "accept failed");
+                            tokio::time::sleep(Duration::from_millis(50)).await;
+                        }
+                    }
+                }
+            },
+            SimLink::Dial(address) => {
+                let mut logged = false;
+                loop {
+                    let dialled = tokio::select! {
+                        _ = shutdown.cancelled() => break,
+                        dialled = TcpStream::connect(address) => dialled,
+                    };
+                    match dialled {
+                        Ok(stream) => {
+                            logged = false;
+                            // One connection at a time: dial again when it ends.
+                            let served = serve_one(stream, address.clone());
+                            tokio::select! {
+                                _ = shutdown.cancelled() => break,
+                                _ = served => {}
+                            }
+                        }
+                        Err(e) if !logged => {
+                            warn!(%address, error = %e, "the holon is not listening; dialling again every 100 ms");
+                            logged = true;
+                        }
+                        Err(_) => {}
+                    }
+                    tokio::select! {
+                        _ = shutdown.cancelled() => break,
+                        _ = tokio::time::sleep(Duration::from_millis(100)) => {}
+                    }
+                }
+            }
+        }
+        connections.close();
+        connections.wait().await;
+        drop(count_file);
+        if let Some(writer) = writer {
+            let joined = tokio::task::spawn_blocking(move || writer.join()).await;
+            if !matches!(joined, Ok(Ok(()))) {
+                warn!(
+                    "the count file's writer ended abnormally: the file may miss the last counts"
+                );
+            }
+        }
+    }
+}
+
+/// Rewrites the count file, if any, in place (a write and a rename: readers see the
+/// old counts or the new, never half). Blocking: on the writer thread only.
+fn write_count_file(config: &SimConfig, stats: &SimStats) {
+    let Some(path) = &config.count_file else {
+        return;
+    };
+    let tmp = path.with_extension("tmp");
+    let written = std::fs::write(&tmp, stats.to_json()).and_then(|()| std::fs::rename(&tmp, path));
+    if let Err(e) = written {
+        warn!(path = %path.display(), error = %e, "cannot write the count file");
+    }
+}
+
+/// Why a connection ended badly.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error("{0}")]
+    Codec(#[from] crate::codec::CodecError),
+    #[error("connection I/O: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("the holon sent a message the dialect does not describe: {0}")]
+    Unknown(String),
+    #[error("cannot write a reply: {0}")]
+    Write(String),
+}

@@ -1,0 +1,466 @@
+//! One simulated controller connection: each message the holon sends matched to the
+//! dialect's commands and answered as its sequence says, with the faults of the config.
+
+use std::time::Duration;
+
+use bytes::BytesMut;
+use futures_util::StreamExt;
+use schemas::ControllerState;
+use tokio::net::TcpStream;
+use tokio_util::codec::{Encoder, FramedRead};
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use super::writer::Writer;
+use super::{CountFile, SimConfig, SimError, SimStats};
+use crate::dialect::{Correlation, Dialect, Element, Outcome, Sending, Status, Values};
+use std::sync::atomic::Ordering;
+
+fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<&'static str> {
+    match action {
+        "pick" => Some("picking_done"),
+        "place" => Some("placing_done"),
+        "move" => Some("arrived"),
+        "inspect" => {
+            let n = stats.inspections.fetch_add(1, Ordering::SeqCst) + 1;
+            match config.inspect_fail_every {
+                Some(every) if every > 0 && n.is_multiple_of(every) => Some("inspect_fail"),
+                _ => Some("inspect_pass"),
+            }
+        }
+        _ => None,
+    }
+}
+
+/// Waits until `done` (an action's end) to within about a tenth of a millisecond.
+/// tokio's timer rounds a sleep up to its next millisecond tick (a 20 ms action took
+/// 21.4 ms, which a benchmark of robots that take time would charge to the control),
+/// so the last 2 ms are slept on a blocking thread.
+async fn act_for(done: std::time::Instant) {
+    if let Some(coarse) = done.checked_sub(Duration::from_millis(2)) {
+        tokio::time::sleep_until(coarse.into()).await;
+    }
+    let rest = done.saturating_duration_since(std::time::Instant::now());
+    if !rest.is_zero() {
+        if let Err(e) = tokio::task::spawn_blocking(move || std::thread::sleep(rest)).await {
+            warn!(error = %e, "the action's last moments were cut short");
+        }
+    }
+}
+
+/// The action under way on a connection whose dialect polls for its end.
+struct Running {
+    until: std::time::Instant,
+    /// The success result, or None for a simulated error.
+    result: Option<&'static str>,
+}
+
+/// One connection's state.
+struct Session<'a> {
+    config: &'a SimConfig,
+    stats: &'a SimStats,
+    count_file: &'a CountFile,
+    dialect: &'a Dialect,
+    /// The values of the action under way, from every message that named them.
+    context: Values,
+    running: Option<Running>,
+    /// Until when the controller reports a fault (polled state).
+    fault_until: Option<(std::time::Instant, ControllerState)>,
+    /// Commands begun on this connection.
+    on_this_connection: u64,
+    /// After `hang_after`: nothing more is answered.
+    hung: bool,
+}
+
+pub(super) async fn serve(
+    stream: TcpStream,
+    config: &SimConfig,
+    stats: &SimStats,
+    count_file: &CountFile,
+    shutdown: CancellationToken,
+) -> Result<(), SimError> {
+    let dialect = config.dialect();
+    let (read, half) = stream.into_split();
+    let mut reader = FramedRead::new(read, dialect.frame_codec());
+    let mut writer = Writer {
+        half,
+        codec: dialect.frame_codec(),
+        dialect: &dialect,
+        config,
+        held: BytesMut::new(),
+    };
+    if let Some(banner) = &dialect.banner {
+        let mut framed = BytesMut::new();
+        writer
+            .codec
+            .clone()
+            .encode(banner.as_bytes(), &mut framed)?;
+        writer.raw(&framed).await?;
+    }
+    if dialect.status == Status::Pushed {
+        writer.status(ControllerState::Ready).await?;
+    }
+    let mut session = Session {
+        config,
+        stats,
+        count_file,
+        dialect: &dialect,
+        context: Values::default(),
+        running: None,
+        fault_until: None,
+        on_this_connection: 0,
+        hung: false,
+    };
+    loop {
+        let frame = tokio::select! {
+            _ = shutdown.cancelled() => return Ok(()),
+            frame = reader.next() => frame,
+        };
+        let frame = match frame {
+            None => return Ok(()),
+            Some(Err(e)) => return Err(e.into()),
+            Some(Ok(frame)) => frame,
+        };
+        match session.message(&frame, &mut writer, &shutdown).await? {
+            Flow::Continue => {}
+            Flow::Close => return Ok(()),
+            Flow::Reset => {
+                let stream = reader
+                    .into_inner()
+                    .reunite(writer.half)
+                    .map_err(|e| SimError::Write(e.to_string()))?;
+                // A zero linger sends RST on close and never blocks the drop.
+                #[allow(deprecated)]
+                stream.set_linger(Some(Duration::ZERO))?;
+                drop(stream);
+                return Ok(());
+            }
+        }
+    }
+}
+
+/// What a message does to the connection.
+enum Flow {
+    Continue,
+    Close,
+    /// Reset it (RST).
+    Reset,
+}
+
+impl Session<'_> {
+    fn state_now(&self) -> ControllerState {
+        match self.fault_until {
+            Some((until, state)) if std::time::Instant::now() < until => state,
+            _ => ControllerState::Ready,
+        }
+    }
+
+    /// The first of `element`'s expected replies with one of `outcomes`.
+    fn rule(&self, element: &Element, outcomes: &[Outcome]) -> Option<usize> {
+        outcomes.iter().find_map(|o| {
+            element
+                .expect
+                .iter()
+                .copied()
+                .find(|&r| self.dialect.replies[r].outcome == *o)
+        })
+    }
+
+    async fn message(
+        &mut self,
+        frame: &[u8],
+        writer: &mut Writer<'_>,
+        shutdown: &CancellationToken,
+    ) -> Result<Flow, SimError> {
+        if self.hung {
+            return Ok(Flow::Continue);
+        }
+        let parsed = self.dialect.parse(frame)?;
+        let mut found = None;
+        for index in 0..self.dialect.commands.len() {
+            match self.dialect.read_command(index, &parsed) {
+                Ok(Some(values)) => {
+                    found = Some((index, values));
+                    break;
+                }
+                Ok(None) => {}
+                Err(why) => return Err(SimError::Unknown(why)),
+            }
+        }
+        let Some((index, values)) = found else {
+            return Err(SimError::Unknown(
+                String::from_utf8_lossy(frame).into_owned(),
+            ));
+        };
+        if let Status::Polled { command, .. } = self.dialect.status {
+            if command == index {
+                let state = self.state_now();
+                if let Some(rule) = writer.status_rule() {
+                    let mut v = Values::default();
+                    v.set("state", state.as_str().into());
+                    writer.reply(rule, &v).await?;
+                }
+                return Ok(Flow::Continue);
+            }
+        }
+        if let Some(keepalive) = &self.dialect.keepalive {
+            if keepalive.command == index {
+                if let Some(&rule) = keepalive.expect.first() {
+                    writer.reply(rule, &Values::default()).await?;
+                }
+                return Ok(Flow::Continue);
+            }
+        }
+        let Some(element) = self.dialect.sequence.iter().find(|e| e.command == index) else {
+            // A command outside the sequence (e.g. a status poll of a pushing dialect).
+            warn!(command = %self.dialect.commands[index].name, "a message the sequence does not use; not answered");
+            return Ok(Flow::Continue);
+        };
+        let element = element.clone();
+        if element.starts || values.contains("action") {
+            // A message naming an action begins a new context.
+            if values.contains("action") && !element.sending.eq(&Sending::Poll(Duration::ZERO)) {
+                self.context = Values::default();
+            }
+        }
+        self.context.fill_from(&values);
+        for (name, value) in values.iter() {
+            self.context.set(name, value.to_string());
+        }
+        if element.starts {
+            return self.begin(&element, writer, shutdown).await;
+        }
+        match element.sending {
+            Sending::Poll(_) => self.poll(&element, writer).await,
+            Sending::Send => {
+                if let Some(rule) = self.rule(&element, &[Outcome::Accepted]) {
+                    let context = self.context.clone();
+                    writer.reply(rule, &context).await?;
+                }
+                Ok(Flow::Continue)
+            }
+        }
+    }
+
+    /// The message that begins an action.
+    async fn begin(
+        &mut self,
+        element: &Element,
+        writer: &mut Writer<'_>,
+        shutdown: &CancellationToken,
+    ) -> Result<Flow, SimError> {
+        let (config, stats) = (self.config, self.stats);
+        let received = std::time::Instant::now();
+        let n = stats.received.fetch_add(1, Ordering::SeqCst) + 1;
+        // The count file shows a command as received when it arrives (its writer runs
+        // off this path), so a test can tell a command is on the controller.
+        self.count_file.update();
+        self.on_this_connection += 1;
+        let action = self.context.get("action").unwrap_or("").to_string();
+        let id = self.context.get("id").unwrap_or("-").to_string();
+        info!(%id, %action, n, "command");
+        if matches!(config.close_after, Some(limit) if self.on_this_connection > limit) {
+            info!(%id, "closing the connection (--close-after)");
+            self.count_file.update();
+            return Ok(Flow::Close);
+        }
+        if matches!(config.hang_after, Some(limit) if n > limit) {
+            info!(%id, "not answering (--hang-after)");
+            self.hung = true;
+            self.count_file.update();
+            return Ok(Flow::Continue);
+        }
+        if config.garbage_after.is_some_and(|limit| n == limit + 1) {
+            info!(%id, "answering garbage (--garbage-after)");
+            writer.garbage().await?;
+            self.count_file.update();
+            return Ok(Flow::Continue);
+        }
+        if config.oversize_after.is_some_and(|limit| n == limit + 1) {
+            info!(%id, "answering an oversized message (--oversize-after)");
+            writer.oversize().await?;
+            self.count_file.update();
+            return Ok(Flow::Continue);
+        }
+        if config.fault_after.is_some_and(|limit| n == limit + 1) {
+            let state = config.fault_state.unwrap_or(ControllerState::Fault);
+            info!(%id, %state, "reporting a fault (--fault-after)");
+            self.count_file.update();
+            let one = self.dialect.correlation == Correlation::OneInFlight;
+            match self.dialect.status {
+                Status::Pushed => {
+                    writer.status(state).await?;
+                    if one {
+                        self.answer_failed(element, writer, &format!("{state}"))
+                            .await?;
+                    }
+                    tokio::select! {
+                        _ = shutdown.cancelled() => return Ok(Flow::Close),
+                        _ = tokio::time::sleep(config.fault_for) => {}
+                    }
+                    info!("ready again");
+                    writer.status(ControllerState::Ready).await?;
+                }
+                _ => {
+                    self.fault_until = Some((std::time::Instant::now() + config.fault_for, state));
+                    self.answer_failed(element, writer, &format!("{state}"))
+                        .await?;
+                }
+            }
+            return Ok(Flow::Continue);
+        }
+        let mut takes = config
+            .action_delays
+            .get(&action)
+            .copied()
+            .unwrap_or(config.delay);
+        if stats.change_to(self.context.get("program")) {
+            info!(%id, program = self.context.get("program").unwrap_or(""), changeover = ?config.changeover, "changing over");
+            takes += config.changeover;
+        }
+        let simulated_error =
+            matches!(config.error_every, Some(every) if every > 0 && n.is_multiple_of(every));
+        let result = if simulated_error {
+            None
+        } else {
+            success_result(&action, config, stats)
+        };
+        let done_here = self.rule(element, &[Outcome::Done]);
+        let accepted = self.rule(element, &[Outcome::Accepted]);
+        if config.reset_after.is_some_and(|limit| n == limit + 1) {
+            info!(%id, "resetting the connection halfway through (--reset-after)");
+            if let Some(rule) = accepted {
+                let context = self.context.clone();
+                writer.reply(rule, &context).await?;
+            }
+            tokio::select! {
+                _ = shutdown.cancelled() => return Ok(Flow::Close),
+                _ = act_for(received + takes / 2) => {}
+            }
+            self.count_file.update();
+            return Ok(Flow::Reset);
+        }
+        if result.is_none() && (done_here.is_some() || simulated_error) {
+            // Refused or failed without acting.
+            let why = if simulated_error {
+                "simulated error (--error-every)".to_string()
+            } else {
+                format!("unknown action {action:?}")
+            };
+            self.answer_failed(element, writer, &why).await?;
+            self.count_file.update();
+            return Ok(Flow::Continue);
+        }
+        if let Some(rule) = accepted {
+            let context = self.context.clone();
+            if done_here.is_some() {
+                // Its done follows in this same turn: they may go together.
+                writer.reply_or_hold(rule, &context).await?;
+            } else {
+                writer.reply(rule, &context).await?;
+            }
+        }
+        if done_here.is_none() {
+            // Its end is polled for.
+            self.running = Some(Running {
+                until: received + takes,
+                result,
+            });
+            return Ok(Flow::Continue);
+        }
+        if !takes.is_zero() {
+            tokio::select! {
+                _ = shutdown.cancelled() => return Ok(Flow::Close),
+                _ = act_for(received + takes) => {}
+            }
+        }
+        self.finish(done_here, result, writer).await?;
+        Ok(Flow::Continue)
+    }
+
+    /// Answers with `element`'s failed (or rejected) reply.
+    async fn answer_failed(
+        &mut self,
+        element: &Element,
+        writer: &mut Writer<'_>,
+        why: &str,
+    ) -> Result<(), SimError> {
+        if let Some(rule) = self.rule(element, &[Outcome::Failed, Outcome::Rejected]) {
+            let mut values = self.context.clone();
+            values.set("message", why.to_string());
+            writer.reply(rule, &values).await?;
+        } else {
+            warn!("the dialect has no failed reply here: the command is not answered");
+        }
+        Ok(())
+    }
+
+    /// Reports an action's end with the `done` reply `rule` (the action counted as
+    /// executed), or its failure.
+    async fn finish(
+        &mut self,
+        rule: Option<usize>,
+        result: Option<&'static str>,
+        writer: &mut Writer<'_>,
+    ) -> Result<(), SimError> {
+        let Some(rule) = rule else {
+            return Ok(());
+        };
+        let mut values = self.context.clone();
+        match result {
+            Some(result) => {
+                let stats = self.stats;
+                stats.executed.fetch_add(1, Ordering::SeqCst);
+                let action = self.context.get("action").unwrap_or("").to_string();
+                *stats
+                    .by_action
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .entry(action)
+                    .or_default() += 1;
+                values.set("result", result.into());
+                writer.reply(rule, &values).await?;
+            }
+            None => {
+                let element = self.dialect.sequence.last().expect("not empty").clone();
+                self.answer_failed(&element, writer, "simulated error (--error-every)")
+                    .await?;
+            }
+        }
+        self.count_file.update();
+        Ok(())
+    }
+
+    /// A poll for the end of the action under way.
+    async fn poll(&mut self, element: &Element, writer: &mut Writer<'_>) -> Result<Flow, SimError> {
+        let done = self.rule(element, &[Outcome::Done]);
+        match &self.running {
+            Some(running) if std::time::Instant::now() < running.until => {
+                if let Some(rule) = self.rule(element, &[Outcome::Running, Outcome::Accepted]) {
+                    let context = self.context.clone();
+                    writer.reply(rule, &context).await?;
+                }
+            }
+            Some(running) => {
+                let result = running.result;
+                self.running = None;
+                if result.is_none() {
+                    self.answer_failed(element, writer, "simulated error (--error-every)")
+                        .await?;
+                    self.count_file.update();
+                } else {
+                    self.finish(done, result, writer).await?;
+                }
+            }
+            None => {
+                // Nothing under way: the last action has ended.
+                if let Some(rule) = done {
+                    let mut values = self.context.clone();
+                    values.set("result", "idle".into());
+                    writer.reply(rule, &values).await?;
+                }
+            }
+        }
+        Ok(Flow::Continue)
+    }
+}

@@ -1,0 +1,160 @@
+//! The writing side of a simulated controller's connection: frames replies and writes
+//! them, in pieces or held to go together as the faults say, and the hostile messages.
+
+use std::time::Duration;
+
+use bytes::BytesMut;
+use schemas::ControllerState;
+use tokio::io::AsyncWriteExt;
+use tokio::net::tcp::OwnedWriteHalf;
+use tokio_util::codec::Encoder;
+
+use super::{SimConfig, SimError};
+use crate::dialect::framing::{FrameCodec, Framing};
+use crate::dialect::{Dialect, Outcome, Status, Values};
+
+/// The writing side of a connection: frames messages and writes them (in pieces, or held
+/// to go together, as the faults say).
+pub(super) struct Writer<'a> {
+    pub(super) half: OwnedWriteHalf,
+    pub(super) codec: FrameCodec,
+    pub(super) dialect: &'a Dialect,
+    pub(super) config: &'a SimConfig,
+    /// Messages held to be written with the next one (`merge`).
+    pub(super) held: BytesMut,
+}
+
+impl Writer<'_> {
+    /// Frames the reply `index` with `values`.
+    fn frame(&mut self, index: usize, values: &Values) -> Result<BytesMut, SimError> {
+        let reply = &self.dialect.replies[index];
+        let body = reply
+            .body
+            .as_ref()
+            .ok_or_else(|| SimError::Write(format!("reply {} has no text to write", reply.name)))?;
+        let bytes = self
+            .dialect
+            .write(body, values)
+            .map_err(|e| SimError::Write(format!("reply {}: {e}", reply.name)))?;
+        let mut framed = BytesMut::new();
+        self.codec.encode(bytes.as_slice(), &mut framed)?;
+        Ok(framed)
+    }
+
+    /// Writes reply `index` (with anything held before it).
+    pub(super) async fn reply(&mut self, index: usize, values: &Values) -> Result<(), SimError> {
+        let mut framed = self.frame(index, values)?;
+        if self.config.merge && self.dialect.status == Status::Pushed {
+            // A state repeated in the same write as the reply.
+            if let Some(status) = self.status_rule() {
+                let mut state = Values::default();
+                state.set("state", ControllerState::Ready.as_str().into());
+                let before = self.frame(status, &state)?;
+                self.held.extend_from_slice(&before);
+            }
+        }
+        self.held.extend_from_slice(&framed);
+        framed.clear();
+        let all = std::mem::take(&mut self.held);
+        self.raw(&all).await
+    }
+
+    /// Holds reply `index` to go with the next write (`merge`), or writes it now.
+    pub(super) async fn reply_or_hold(
+        &mut self,
+        index: usize,
+        values: &Values,
+    ) -> Result<(), SimError> {
+        if self.config.merge {
+            let framed = self.frame(index, values)?;
+            self.held.extend_from_slice(&framed);
+            return Ok(());
+        }
+        self.reply(index, values).await
+    }
+
+    pub(super) fn status_rule(&self) -> Option<usize> {
+        self.dialect
+            .replies
+            .iter()
+            .position(|r| r.outcome == Outcome::Status)
+    }
+
+    pub(super) async fn status(&mut self, state: ControllerState) -> Result<(), SimError> {
+        let Some(index) = self.status_rule() else {
+            return Ok(());
+        };
+        let mut values = Values::default();
+        values.set("state", state.as_str().into());
+        let framed = self.frame(index, &values)?;
+        self.raw(&framed).await
+    }
+
+    /// Writes bytes as they are (in pieces with `fragment`).
+    pub(super) async fn raw(&mut self, bytes: &[u8]) -> Result<(), SimError> {
+        if !self.config.fragment {
+            self.half.write_all(bytes).await?;
+            return Ok(());
+        }
+        let mut at = 0;
+        let mut size = 1;
+        while at < bytes.len() {
+            let end = (at + size).min(bytes.len());
+            self.half.write_all(&bytes[at..end]).await?;
+            self.half.flush().await?;
+            tokio::time::sleep(Duration::from_micros(200)).await;
+            at = end;
+            size = size % 3 + 1;
+        }
+        Ok(())
+    }
+
+    /// Bytes no rule of the dialect describes, framed so they arrive whole.
+    pub(super) async fn garbage(&mut self) -> Result<(), SimError> {
+        let bytes: Vec<u8> = match &self.codec.framing {
+            Framing::Xml => b"<ROBOT_REPLY><ID>oops</RESULT></ROBOT_REPLY>".to_vec(),
+            Framing::Line { terminator } => {
+                let mut line = b"\x01garbage \xff\xfe".to_vec();
+                line.extend_from_slice(terminator);
+                line
+            }
+            Framing::LengthPrefix { .. } => {
+                let mut framed = BytesMut::new();
+                self.codec
+                    .encode(&b"\xde\xad\xbe\xef garbage"[..], &mut framed)?;
+                framed.to_vec()
+            }
+        };
+        self.raw(&bytes).await
+    }
+
+    /// A message one byte over the limit (its start: enough to be refused).
+    pub(super) async fn oversize(&mut self) -> Result<(), SimError> {
+        let over = self.codec.max + 1;
+        let bytes: Vec<u8> = match &self.codec.framing {
+            Framing::Xml => {
+                let mut doc = b"<X>".to_vec();
+                doc.resize(over + 3, b'x');
+                doc.extend_from_slice(b"</X>");
+                doc
+            }
+            Framing::Line { terminator } => {
+                let mut line = vec![b'x'; over];
+                line.extend_from_slice(terminator);
+                line
+            }
+            Framing::LengthPrefix { bytes, .. } => {
+                let mut framed = BytesMut::new();
+                let codec = FrameCodec {
+                    framing: self.codec.framing.clone(),
+                    max: usize::MAX,
+                };
+                let mut codec = codec;
+                codec.encode(vec![0u8; over].as_slice(), &mut framed)?;
+                framed.truncate(bytes + 16);
+                framed.to_vec()
+            }
+        };
+        self.raw(&bytes).await
+    }
+}
