@@ -17,7 +17,10 @@ use holarchy_tests::{pick_n_place, resource_config, webdriver};
 use schemas::MessageType;
 use serde_json::{json, Value};
 
-use super::{cpu_time, footprint, router, start_product_and_orders, Latency, Run};
+use crate::cells::{router, start_product_and_orders};
+use crate::process::{cpu_time, footprint};
+use crate::run::Run;
+use crate::stats::Latency;
 
 /// A `cell dashboard` process, killed when dropped.
 struct Dashboard {

@@ -12,7 +12,7 @@ use std::process::Command;
 use anyhow::{anyhow, bail, Context, Result};
 use serde_json::json;
 
-use super::Run;
+use crate::run::Run;
 
 /// One figure of the peer's: `erlang NAME p50=.. p99=.. mean=.. RATE=.. n=..`.
 #[derive(Debug, Clone, Copy, PartialEq)]

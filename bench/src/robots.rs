@@ -10,7 +10,9 @@ use anyhow::{anyhow, bail, Result};
 use schemas::{OrderSnapshot, OrderStatus};
 use serde_json::json;
 
-use super::{cpu_time, router, start_product_and_orders, start_robots, Run};
+use crate::cells::{router, start_product_and_orders, start_robots};
+use crate::process::cpu_time;
+use crate::run::Run;
 
 /// How long each robot action takes.
 const ACTION: Duration = Duration::from_millis(20);

@@ -20,7 +20,11 @@ use holarchy_tests::{pick_n_place, resource_config, Cell, Sim};
 use schemas::MessageType;
 use serde_json::json;
 
-use super::{booking_series, footprint, on_cpu, open_cell, proportional, router, Latency, Run};
+use crate::booking::booking_series;
+use crate::cells::{open_cell, router};
+use crate::process::{footprint, on_cpu, proportional};
+use crate::run::Run;
+use crate::stats::Latency;
 
 /// Controller simulators the scaled-out holons share.
 const SIMULATORS: usize = 4;

@@ -21,7 +21,7 @@ use schemas::{HolonId, HolonKind, OrderSnapshot, OrderStatus, WorkOrder};
 use serde::Deserialize;
 use serde_json::{json, Value};
 
-use super::router;
+use crate::cells::router;
 
 /// A scenario file (`deploy/scenarios/*.toml` documents the format).
 #[derive(Debug, Clone, Deserialize)]

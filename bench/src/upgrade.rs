@@ -25,7 +25,7 @@ use nix::sys::signal::Signal;
 use schemas::{HolonId, HolonKind};
 use serde_json::{json, Value};
 
-use super::router;
+use crate::cells::router;
 
 /// How a process is replaced.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
