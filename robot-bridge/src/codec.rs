@@ -37,6 +37,10 @@ pub enum CodecError {
     TooLarge,
     #[error("message exceeds {0} bytes")]
     TooLargeFor(usize),
+    /// A message that is not what its framing carries (a text line that is not UTF-8,
+    /// a length prefix that cannot be).
+    #[error("{0}")]
+    BadMessage(String),
     #[error("document nests elements deeper than {MAX_DEPTH}")]
     TooDeep,
     #[error("malformed XML: {0}")]

@@ -463,3 +463,54 @@ async fn a_controller_that_connects_to_the_holon() {
     again.cancel();
     h.stop().await;
 }
+
+/// Runs three commands through `dialect` (a variant of a shipped one) against robot-sim.
+async fn three_commands(dialect: Dialect) {
+    let dialect = Arc::new(dialect);
+    let (mut h, stats, _sim) = ready(&dialect, SimConfig::default(), Duration::from_secs(2)).await;
+    for id in 1..=3 {
+        h.send(id, "pick").await;
+        assert_eq!(
+            h.answer().await,
+            reply(id, "picking_done"),
+            "{}",
+            dialect.name
+        );
+        tokio::time::sleep(Duration::from_millis(60)).await;
+    }
+    assert_eq!(
+        stats.connections(),
+        1,
+        "{}: the connection was reset",
+        dialect.name
+    );
+    h.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_keepalive_answered_by_the_controllers_state_frees_the_wire() {
+    // ur-dashboard with a keep-alive every 20 ms, answered by a status line.
+    let text = SHIPPED[2].1.replace(
+        "banner = \"Connected: Universal Robots Dashboard Server\"",
+        "banner = \"Connected: Universal Robots Dashboard Server\"\nkeepalive = { send = \"safety_status\", every_ms = 20, expect = [\"safety\"] }",
+    );
+    assert!(text.contains("keepalive"));
+    three_commands(Dialect::from_toml(&text, "keepalive.toml").unwrap()).await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_status_poll_without_an_id_in_a_dialect_with_ids() {
+    // holarchy-xml with its state polled by a message that carries no id.
+    let text = SHIPPED[0]
+        .1
+        .replace(
+            "source = \"pushed\"",
+            "source = \"polled\"\npoll = \"status_request\"\nevery_ms = 20",
+        )
+        .replace(
+            "[[command]]\nname = \"command\"",
+            "[[command]]\nname = \"status_request\"\nxml = '<ROBOT_STATUS_REQ/>'\n\n[[command]]\nname = \"command\"",
+        );
+    assert!(text.contains("ROBOT_STATUS_REQ"));
+    three_commands(Dialect::from_toml(&text, "polled.toml").unwrap()).await;
+}

@@ -350,6 +350,20 @@ impl<'a> Connection<'a> {
             Err(Ok(why)) => return self.protocol_error(why).await,
             Err(Err(end)) => return Err(end),
         }
+        // An answer to a keep-alive, whatever its outcome, frees the wire; a status or
+        // ignore answer is acted on below as well.
+        let mut keepalive_answered = false;
+        if let Some(keepalive) = &self.dialect.keepalive {
+            for &reply in &keepalive.expect {
+                if let Ok(Some(_)) = self.dialect.read_reply(reply, &parsed) {
+                    if matches!(self.awaiting, Some(Awaiting::Keepalive { .. })) {
+                        self.awaiting = None;
+                    }
+                    keepalive_answered = true;
+                    break;
+                }
+            }
+        }
         for reply in self.dialect.unsolicited() {
             match self.dialect.read_reply(reply, &parsed) {
                 Ok(None) => continue,
@@ -372,16 +386,8 @@ impl<'a> Connection<'a> {
                 }
             }
         }
-        // An answer to a keep-alive.
-        if let Some(keepalive) = &self.dialect.keepalive {
-            for &reply in &keepalive.expect {
-                if let Ok(Some(_)) = self.dialect.read_reply(reply, &parsed) {
-                    if matches!(self.awaiting, Some(Awaiting::Keepalive { .. })) {
-                        self.awaiting = None;
-                    }
-                    return Ok(());
-                }
-            }
+        if keepalive_answered {
+            return Ok(());
         }
         // A late answer to a command already failed is shaped like an answer: ignored.
         for (i, reply) in self.dialect.replies.iter().enumerate() {

@@ -201,39 +201,6 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
             .position(|r| r.name == name)
             .ok_or_else(|| invalid(origin, field, format!("no [[reply]] is named {name:?}")))
     };
-    // Correlation: with ids, every answer to a command carries the id.
-    if file.correlation == Correlation::Id {
-        for (i, c) in commands.iter().enumerate() {
-            let names: Vec<String> = templates_of(&c.body)
-                .iter()
-                .flat_map(|t| t.names())
-                .map(|(n, _)| n)
-                .collect();
-            if !names.iter().any(|n| n == "id") {
-                return Err(invalid(
-                    origin,
-                    format!("command[{i}] ({})", c.name),
-                    "correlation = \"id\": every command carries {id}",
-                ));
-            }
-        }
-        for (i, r) in replies.iter().enumerate() {
-            let carries = r
-                .body
-                .as_ref()
-                .map(|b| captures(b, r.regex.as_ref()))
-                .unwrap_or_default();
-            if !matches!(r.outcome, Outcome::Status | Outcome::Ignore)
-                && !carries.iter().any(|n| n == "id")
-            {
-                return Err(invalid(
-                    origin,
-                    format!("reply[{i}] ({})", r.name),
-                    "correlation = \"id\": every answer to a command carries {id}",
-                ));
-            }
-        }
-    }
     // The sequence.
     if file.sequence.is_empty() {
         return Err(invalid(origin, "sequence", "at least one element"));
@@ -338,6 +305,40 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
                 "sequence",
                 "only one element starts the action",
             ))
+        }
+    }
+    // Correlation: with ids, every message of the sequence, and every answer to one,
+    // carries the id (a status poll or keep-alive need not).
+    if file.correlation == Correlation::Id {
+        for element in &sequence {
+            let c = &commands[element.command];
+            let names: Vec<String> = templates_of(&c.body)
+                .iter()
+                .flat_map(|t| t.names())
+                .map(|(n, _)| n)
+                .collect();
+            if !names.iter().any(|n| n == "id") {
+                return Err(invalid(
+                    origin,
+                    format!("command {:?}", c.name),
+                    "correlation = \"id\": every command of the sequence carries {id}",
+                ));
+            }
+            for &r in &element.expect {
+                let r = &replies[r];
+                let carries = r
+                    .body
+                    .as_ref()
+                    .map(|b| captures(b, r.regex.as_ref()))
+                    .unwrap_or_default();
+                if !carries.iter().any(|n| n == "id") {
+                    return Err(invalid(
+                        origin,
+                        format!("reply {:?}", r.name),
+                        "correlation = \"id\": every answer to a command of the sequence carries {id}",
+                    ));
+                }
+            }
         }
     }
     // Status.

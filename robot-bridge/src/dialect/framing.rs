@@ -106,7 +106,7 @@ impl Decoder for FrameCodec {
                 let length = self.prefix_value(buf, bytes, order);
                 let body = if counts_itself {
                     length.checked_sub(bytes).ok_or_else(|| {
-                        CodecError::Malformed(format!(
+                        CodecError::BadMessage(format!(
                             "a length prefix of {length} cannot count its own {bytes} bytes"
                         ))
                     })?
@@ -284,7 +284,7 @@ mod tests {
         };
         assert!(matches!(
             decode_all(&mut codec, &[&[0, 0, 0, 2]])[..],
-            [Err(CodecError::Malformed(_))]
+            [Err(CodecError::BadMessage(_))]
         ));
     }
 }

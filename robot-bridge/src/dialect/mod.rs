@@ -263,7 +263,7 @@ impl Dialect {
             Framing::Xml => parse_tree(frame).map(Parsed::Xml),
             Framing::Line { .. } => String::from_utf8(frame.to_vec())
                 .map(|line| Parsed::Text(line.trim_end_matches(['\r', '\n']).to_string()))
-                .map_err(|_| CodecError::Malformed("a line that is not UTF-8".into())),
+                .map_err(|_| CodecError::BadMessage("a line that is not UTF-8".into())),
             Framing::LengthPrefix { .. } => Ok(Parsed::Binary(Bytes::copy_from_slice(frame))),
         }
     }
@@ -387,6 +387,22 @@ impl Dialect {
         }
         for element in &self.sequence {
             self.write_command(element.command, &values)?;
+            // What an answer makes of the command's values (`result = "{action:done}"`).
+            for &r in &element.expect {
+                let reply = &self.replies[r];
+                for (field, t) in [("result", &reply.result), ("message", &reply.message)] {
+                    for (name, table) in t.names() {
+                        let (Some(table), Some(value)) = (table, values.get(&name)) else {
+                            continue;
+                        };
+                        if values::is_command_name(&name) {
+                            self.enums
+                                .encode(&table, value)
+                                .map_err(|e| format!("reply {}: its {field}: {e}", reply.name))?;
+                        }
+                    }
+                }
+            }
         }
         Ok(())
     }

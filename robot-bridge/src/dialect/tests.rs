@@ -229,7 +229,7 @@ fn a_bad_dialect_names_the_field_and_the_problem() {
         (
             "correlation = \"one_in_flight\"",
             "correlation = \"id\"",
-            "every command carries {id}",
+            "every command of the sequence carries {id}",
         ),
         (
             "text = \"NO {message}\"",

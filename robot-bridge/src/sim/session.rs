@@ -51,8 +51,8 @@ async fn act_for(done: std::time::Instant) {
 /// The action under way on a connection whose dialect polls for its end.
 struct Running {
     until: std::time::Instant,
-    /// The success result, or None for a simulated error.
-    result: Option<&'static str>,
+    /// The success result, or why the action fails.
+    result: Result<&'static str, String>,
 }
 
 /// One connection's state.
@@ -217,11 +217,9 @@ impl Session<'_> {
             return Ok(Flow::Continue);
         };
         let element = element.clone();
-        if element.starts || values.contains("action") {
-            // A message naming an action begins a new context.
-            if values.contains("action") && !element.sending.eq(&Sending::Poll(Duration::ZERO)) {
-                self.context = Values::default();
-            }
+        if values.contains("action") && !matches!(element.sending, Sending::Poll(_)) {
+            // A message naming an action (not a poll echoing it) begins a new context.
+            self.context = Values::default();
         }
         self.context.fill_from(&values);
         for (name, value) in values.iter() {
@@ -364,7 +362,7 @@ impl Session<'_> {
             // Its end is polled for.
             self.running = Some(Running {
                 until: received + takes,
-                result,
+                result: result.ok_or_else(|| format!("unknown action {action:?}")),
             });
             return Ok(Flow::Continue);
         }
@@ -374,7 +372,9 @@ impl Session<'_> {
                 _ = act_for(received + takes) => {}
             }
         }
-        self.finish(done_here, result, writer).await?;
+        if let Some(result) = result {
+            self.finish(done_here, result, writer).await?;
+        }
         Ok(Flow::Continue)
     }
 
@@ -395,38 +395,29 @@ impl Session<'_> {
         Ok(())
     }
 
-    /// Reports an action's end with the `done` reply `rule` (the action counted as
-    /// executed), or its failure.
+    /// Reports an action's end with the `done` reply `rule`: the action counted as
+    /// executed.
     async fn finish(
         &mut self,
         rule: Option<usize>,
-        result: Option<&'static str>,
+        result: &'static str,
         writer: &mut Writer<'_>,
     ) -> Result<(), SimError> {
         let Some(rule) = rule else {
             return Ok(());
         };
         let mut values = self.context.clone();
-        match result {
-            Some(result) => {
-                let stats = self.stats;
-                stats.executed.fetch_add(1, Ordering::SeqCst);
-                let action = self.context.get("action").unwrap_or("").to_string();
-                *stats
-                    .by_action
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .entry(action)
-                    .or_default() += 1;
-                values.set("result", result.into());
-                writer.reply(rule, &values).await?;
-            }
-            None => {
-                let element = self.dialect.sequence.last().expect("not empty").clone();
-                self.answer_failed(&element, writer, "simulated error (--error-every)")
-                    .await?;
-            }
-        }
+        let stats = self.stats;
+        stats.executed.fetch_add(1, Ordering::SeqCst);
+        let action = self.context.get("action").unwrap_or("").to_string();
+        *stats
+            .by_action
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(action)
+            .or_default() += 1;
+        values.set("result", result.into());
+        writer.reply(rule, &values).await?;
         self.count_file.update();
         Ok(())
     }
@@ -441,15 +432,14 @@ impl Session<'_> {
                     writer.reply(rule, &context).await?;
                 }
             }
-            Some(running) => {
-                let result = running.result;
-                self.running = None;
-                if result.is_none() {
-                    self.answer_failed(element, writer, "simulated error (--error-every)")
-                        .await?;
-                    self.count_file.update();
-                } else {
-                    self.finish(done, result, writer).await?;
+            Some(_) => {
+                let result = self.running.take().expect("matched").result;
+                match result {
+                    Ok(result) => self.finish(done, result, writer).await?,
+                    Err(why) => {
+                        self.answer_failed(element, writer, &why).await?;
+                        self.count_file.update();
+                    }
                 }
             }
             None => {
