@@ -101,7 +101,7 @@ pub async fn floors(dir: &Path, samples: usize) -> Result<Run> {
     );
 
     let sim = Sim::start(dir, "sim1", "127.0.0.1:0", &[])?;
-    controller::section(&mut table, &sim.address, samples, &tcp).await?;
+    controller::section(&mut table, dir, &sim.address, samples, &tcp).await?;
 
     let config = resource_config(dir, "robot1", 5000)?;
     let launched = Instant::now();

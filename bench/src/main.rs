@@ -11,6 +11,7 @@
 mod all;
 mod booking;
 mod cells;
+mod codec_client;
 mod controller;
 mod cycle;
 mod dashboard;
