@@ -266,3 +266,56 @@ fn an_action_missing_from_an_enum_cannot_be_written() {
         "{why}"
     );
 }
+
+/// Everything the holon and robot-sim do with bytes from the other end, in one dialect.
+fn read_everything(dialect: &Dialect, bytes: &[u8]) {
+    use bytes::BytesMut;
+    use tokio_util::codec::Decoder;
+    let mut codec = dialect.frame_codec();
+    let mut buf = BytesMut::from(bytes);
+    while let Ok(Some(frame)) = codec.decode(&mut buf) {
+        let Ok(parsed) = dialect.parse(&frame) else {
+            continue;
+        };
+        for i in 0..dialect.replies.len() {
+            if let Ok(Some(values)) = dialect.read_reply(i, &parsed) {
+                let reply = &dialect.replies[i];
+                dialect.evaluate(&reply.result, &values, &Values::default());
+                dialect.evaluate(&reply.message, &values, &Values::default());
+                if reply.outcome == Outcome::Status {
+                    let _ = dialect.state_of(i, &values);
+                }
+            }
+        }
+        for i in 0..dialect.commands.len() {
+            let _ = dialect.read_command(i, &parsed);
+        }
+    }
+}
+
+proptest! {
+    #[test]
+    fn no_dialect_panics_on_arbitrary_bytes(bytes in proptest::collection::vec(any::<u8>(), 0..512)) {
+        for (name, _) in SHIPPED {
+            read_everything(&Dialect::shipped(name).unwrap(), &bytes);
+        }
+    }
+
+    #[test]
+    fn no_dialect_panics_on_mutated_messages(pos in 0usize..400, byte in any::<u8>(), cut in 0usize..400) {
+        for (name, _) in SHIPPED {
+            let dialect = Dialect::shipped(name).unwrap();
+            let values = command_values(&command(7, "pick", Some(Pose::default()), Some("b2")), &dialect.format);
+            for element in &dialect.sequence {
+                let mut message = dialect.write_command(element.command, &values).unwrap();
+                let mut framed = bytes::BytesMut::new();
+                tokio_util::codec::Encoder::encode(&mut dialect.frame_codec(), message.as_slice(), &mut framed).unwrap();
+                message = framed.to_vec();
+                let i = pos % message.len();
+                message[i] = byte;
+                message.truncate(cut.max(1).min(message.len()));
+                read_everything(&dialect, &message);
+            }
+        }
+    }
+}
