@@ -483,6 +483,40 @@ impl Journal {
         body.map(|b| self.decode(kind, id, &b)).transpose()
     }
 
+    /// Reads the records of `kind` with these ids, in the order asked, with one hold of
+    /// the connection; absent ones are left out.
+    pub fn get_many<T, I, S>(&self, kind: &str, ids: I) -> Result<Vec<(String, T)>, JournalError>
+    where
+        T: DeserializeOwned,
+        I: IntoIterator<Item = S>,
+        S: AsRef<str>,
+    {
+        let rows: Vec<(String, String)> = {
+            let connection = self.connection();
+            let mut statement = connection
+                .prepare_cached("SELECT body FROM records WHERE kind = ?1 AND id = ?2")
+                .map_err(|e| self.error(e))?;
+            let mut rows = Vec::new();
+            for id in ids {
+                let id = id.as_ref();
+                let body: Option<String> = statement
+                    .query_row(params![kind, id], |row| row.get(0))
+                    .optional()
+                    .map_err(|e| self.error(e))?;
+                if let Some(body) = body {
+                    rows.push((id.to_string(), body));
+                }
+            }
+            rows
+        };
+        rows.into_iter()
+            .map(|(id, body)| {
+                let value = self.decode(kind, &id, &body)?;
+                Ok((id, value))
+            })
+            .collect()
+    }
+
     /// Every record of a kind, by id.
     pub fn list<T: DeserializeOwned>(&self, kind: &str) -> Result<Vec<(String, T)>, JournalError> {
         let rows: Vec<(String, String)> = {
@@ -580,6 +614,20 @@ mod tests {
         );
         assert_eq!(journal.get::<u64>("meta", "seq").unwrap(), Some(7));
         assert_eq!(journal.get::<u64>("meta", "other").unwrap(), None);
+    }
+
+    #[test]
+    fn several_records_are_read_in_the_order_asked() {
+        let dir = tempfile::tempdir().unwrap();
+        let journal = Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap();
+        for (id, n) in [("a", 1u32), ("b", 2), ("c", 3)] {
+            journal.put("order", id, &n).unwrap();
+        }
+        journal.put("meta", "b", &9u32).unwrap();
+        let read: Vec<(String, u32)> = journal.get_many("order", ["c", "missing", "b"]).unwrap();
+        assert_eq!(read, vec![("c".to_string(), 3), ("b".to_string(), 2)]);
+        let none: Vec<(String, u32)> = journal.get_many("order", Vec::<String>::new()).unwrap();
+        assert!(none.is_empty());
     }
 
     #[test]

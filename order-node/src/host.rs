@@ -1,12 +1,21 @@
 //! The orders an order-node hosts, and their tasks: created from work orders, resumed
 //! from the journal, restarted under the one restart policy when they fail, and
 //! forgotten once finished for longer than the retention.
+//!
+//! Only unfinished orders are held in memory. An order leaves memory when it finishes
+//! (its final progress was written to the journal before it was final in memory): from
+//! then on what is asked about it (its state, a cancel, a late result) is answered from
+//! the journal, until the retention sweep deletes it there. What stays in memory of a
+//! finished order is its number and when it ended (see [`Host::finished`]). Without a
+//! journal there is nowhere else to read them from: finished orders stay in memory until
+//! the retention ends, as they always did.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use holon::journal::JournalError;
 use holon::{Intensity, RestartWindow};
 use schemas::{CancelReply, HolonId, WorkOrder};
 use tokio::task::JoinSet;
@@ -46,6 +55,7 @@ pub struct Tasks {
     pub names: std::collections::HashMap<tokio::task::Id, String>,
 }
 
+/// An order held in memory: unfinished (or finished, without a journal).
 pub struct Hosted {
     /// The order's progress: written by its task, read for queries.
     pub progress: Arc<Mutex<OrderProgress>>,
@@ -55,12 +65,24 @@ pub struct Hosted {
     pub operator_cancel: CancellationToken,
 }
 
+/// The finished orders that are only in the journal: by order number, when each ended
+/// (Unix ms).
+pub type Finished = BTreeMap<u64, u64>;
+
+/// The orders of an order-node, and what they share.
 pub struct Host {
+    /// The node's configuration.
     pub config: OrderNodeConfig,
     /// What the orders share.
     pub context: Arc<OrderContext>,
-    /// Every order of this node, running or finished (until the retention ends), by name.
+    /// The orders held in memory, by name: the unfinished ones, and finished ones that
+    /// cannot be read from the journal (no journal, or their end could not be recorded)
+    /// until the retention ends.
     pub orders: Mutex<BTreeMap<String, Hosted>>,
+    /// The finished orders read from the journal when asked for, until the retention
+    /// sweep deletes them there (16 bytes each). An order is in `orders` or here, never
+    /// in both.
+    pub finished: Mutex<Finished>,
     /// The number of the next order (journalled before the orders are created).
     pub next: AtomicU64,
 }
@@ -115,7 +137,7 @@ impl Host {
         Ok(names)
     }
 
-    /// Hosts an order: running ones get a task.
+    /// Hosts an order: running ones get a task; finished ones stay in the journal.
     pub fn host(
         &self,
         name: &str,
@@ -125,6 +147,7 @@ impl Host {
     ) {
         let running = !progress.status.is_final();
         let mut progress = progress;
+        let mut recorded = true;
         if !running && progress.finished_at.is_none() {
             // Finished before ends were stamped (an older journal): kept from now on,
             // and recorded so, or a node restarted more often than the retention would
@@ -132,7 +155,12 @@ impl Host {
             progress.finished_at = Some(schemas::unix_ms());
             if let Err(e) = self.context.save(&progress) {
                 warn!(order = %name, error = %e, "cannot record when a finished order ended; it is forgotten a retention after this start");
+                // The journal's copy lacks the end: this one is answered from memory.
+                recorded = false;
             }
+        }
+        if !running && recorded && self.leave_memory(name, &progress) {
+            return;
         }
         let operator_cancel = CancellationToken::new();
         if progress.cancel_requested {
@@ -155,16 +183,97 @@ impl Host {
         }
     }
 
-    /// The progress of `name` if it is an order of this node.
-    pub fn progress(&self, name: &str) -> Option<OrderProgress> {
-        let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-        let progress = orders
-            .get(name)?
-            .progress
+    /// The number of `name` if it is the name this node gives its order of that number
+    /// (`<node>-<n>`).
+    fn number(&self, name: &str) -> Option<u64> {
+        let number = name
+            .strip_prefix(&self.config.name)?
+            .strip_prefix('-')?
+            .parse::<u64>()
+            .ok()?;
+        (format!("{}-{number}", self.config.name) == name).then_some(number)
+    }
+
+    /// Lets a finished order's progress go from memory, to be read from the journal
+    /// from now on: true when it can be (there is a journal, which holds this very
+    /// progress, and the order ended at a known time); the caller drops its copy.
+    fn leave_memory(&self, name: &str, progress: &OrderProgress) -> bool {
+        if self.context.journal.is_none() {
+            return false;
+        }
+        let (Some(number), Some(at)) = (self.number(name), progress.finished_at) else {
+            return false;
+        };
+        self.finished
             .lock()
             .unwrap_or_else(|e| e.into_inner())
-            .clone();
-        Some(progress)
+            .insert(number, at);
+        true
+    }
+
+    /// An order's task ended: when its order finished, it leaves memory (its final
+    /// progress was written to the journal before it was final in memory). An order
+    /// stopped with the node, or waiting to be restarted, stays.
+    pub fn retire(&self, name: &str) {
+        let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(hosted) = orders.get(name) else {
+            return;
+        };
+        let left = {
+            let progress = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
+            progress.status.is_final() && self.leave_memory(name, &progress)
+        };
+        if left {
+            orders.remove(name);
+            debug!(node = %self.config.name, order = %name, "finished order left memory; read from the journal from now on");
+        }
+    }
+
+    /// Whether `name` is a finished order that is only in the journal.
+    fn in_journal(&self, name: &str) -> bool {
+        self.number(name).is_some_and(|n| {
+            self.finished
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .contains_key(&n)
+        })
+    }
+
+    /// Reads finished orders from the journal, without holding a runtime worker.
+    fn read_finished(
+        &self,
+        names: &[String],
+    ) -> Result<Vec<(String, OrderProgress)>, JournalError> {
+        let Some(journal) = &self.context.journal else {
+            return Ok(Vec::new());
+        };
+        if names.is_empty() {
+            return Ok(Vec::new());
+        }
+        holon::journal::blocking(|| journal.get_many(ORDER_RECORD, names))
+    }
+
+    /// The progress of `name` if it is an order of this node: from memory while it is
+    /// unfinished, from the journal once it finished.
+    pub fn progress(&self, name: &str) -> Result<Option<OrderProgress>, JournalError> {
+        {
+            let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(hosted) = orders.get(name) {
+                let progress = hosted
+                    .progress
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .clone();
+                return Ok(Some(progress));
+            }
+        }
+        if !self.in_journal(name) {
+            return Ok(None);
+        }
+        Ok(self
+            .read_finished(&[name.to_string()])?
+            .pop()
+            .map(|(_, progress)| progress))
     }
 
     pub fn spawn(
@@ -224,7 +333,8 @@ impl Host {
     }
 
     /// Whether `name` is an order this node created and has since forgotten (it finished
-    /// longer ago than the retention): numbered below the next order, and not hosted.
+    /// longer ago than the retention): numbered below the next order, and neither in
+    /// memory nor among the finished orders of the journal.
     pub fn forgotten(&self, name: &str) -> bool {
         let Some(number) = name
             .strip_prefix(&format!("{}-", self.config.name))
@@ -238,28 +348,43 @@ impl Host {
                 .lock()
                 .unwrap_or_else(|e| e.into_inner())
                 .contains_key(name)
+            && !self.in_journal(name)
     }
 
     /// Forgets the orders that finished more than `keep` ago (at most
-    /// [`FORGET_AT_ONCE`]): out of the journal first, in one commit, then out of memory.
-    /// When the delete fails they stay until the next sweep. Returns how many went.
+    /// [`FORGET_AT_ONCE`]): out of the journal first, in one commit, then out of memory
+    /// (and out of [`Host::finished`]). When the delete fails they stay until the next
+    /// sweep. Returns how many went.
     pub fn forget_finished(&self, keep: Duration) -> usize {
         let now = schemas::unix_ms();
         let keep_ms = keep.as_millis() as u64;
-        let expired: Vec<String> = self
+        let expired_at = |at: u64| now.saturating_sub(at) > keep_ms;
+        let mut expired: Vec<String> = self
             .orders
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .iter()
             .filter(|(_, hosted)| {
                 let p = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
-                p.status.is_final()
-                    && p.finished_at
-                        .is_some_and(|at| now.saturating_sub(at) > keep_ms)
+                p.status.is_final() && p.finished_at.is_some_and(expired_at)
             })
             .map(|(name, _)| name.clone())
             .take(FORGET_AT_ONCE)
             .collect();
+        let in_journal: Vec<u64> = self
+            .finished
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .filter(|(_, at)| expired_at(**at))
+            .map(|(number, _)| *number)
+            .take(FORGET_AT_ONCE - expired.len())
+            .collect();
+        expired.extend(
+            in_journal
+                .iter()
+                .map(|number| format!("{}-{number}", self.config.name)),
+        );
         if expired.is_empty() {
             return 0;
         }
@@ -272,6 +397,10 @@ impl Host {
         let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
         for name in &expired {
             orders.remove(name);
+        }
+        let mut finished = self.finished.lock().unwrap_or_else(|e| e.into_inner());
+        for number in &in_journal {
+            finished.remove(number);
         }
         info!(node = %self.config.name, orders = expired.len(), ?keep, "finished orders left the journal");
         expired.len()
@@ -294,18 +423,20 @@ impl Host {
 
     /// Records an operator's cancel of `name` and tells its task; what to answer.
     pub fn cancel(&self, name: &str) -> Result<CancelReply, String> {
+        let unknown = || format!("{name} is not an order of {}", self.config.name);
         let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-        let hosted = orders
-            .get(name)
-            .ok_or_else(|| format!("{name} is not an order of {}", self.config.name))?;
+        let Some(hosted) = orders.get(name) else {
+            drop(orders);
+            // Finished (or unknown): refused, as it ended.
+            let progress = self
+                .progress(name)
+                .map_err(|e| format!("cannot read {name} from the journal: {e}"))?
+                .ok_or_else(unknown)?;
+            return Ok(refused_cancel(name, &progress));
+        };
         let mut progress = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
         if progress.status.is_final() {
-            return Ok(CancelReply {
-                order: name.to_string(),
-                cancelled: false,
-                status: progress.status,
-                detail: format!("the order has already ended ({:?})", progress.status),
-            });
+            return Ok(refused_cancel(name, &progress));
         }
         if !progress.cancel_requested {
             // Written first: on a journal error nothing changed and the cancel is refused.
@@ -329,26 +460,65 @@ impl Host {
         })
     }
 
+    /// The states of the orders whose `order/<name>/state` intersects `key`, by name:
+    /// (key, snapshot as JSON). Unfinished orders from memory, finished ones from the
+    /// journal (when it cannot be read, only those in memory, and a warning).
     pub fn snapshots_matching(&self, key: &KeyExpr<'_>) -> Vec<(String, Vec<u8>)> {
-        let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-        orders
-            .values()
-            .filter_map(|hosted| {
-                let snapshot = hosted
-                    .progress
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .snapshot();
-                let state_key = self.config.keys.state(&snapshot.holon);
-                let ke = KeyExpr::try_from(state_key.clone()).ok()?;
-                ke.intersects(key).then(|| {
-                    (
-                        state_key,
-                        serde_json::to_vec(&snapshot).expect("serializes"),
-                    )
+        let state = |snapshot: &schemas::OrderSnapshot| -> Option<(String, Vec<u8>)> {
+            let state_key = self.config.keys.state(&snapshot.holon);
+            let ke = KeyExpr::try_from(state_key.clone()).ok()?;
+            ke.intersects(key)
+                .then(|| (state_key, serde_json::to_vec(snapshot).expect("serializes")))
+        };
+        let mut states: Vec<(String, (String, Vec<u8>))> = {
+            let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+            orders
+                .iter()
+                .filter_map(|(name, hosted)| {
+                    let snapshot = hosted
+                        .progress
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .snapshot();
+                    Some((name.clone(), state(&snapshot)?))
                 })
-            })
-            .collect()
+                .collect()
+        };
+        let wanted: Vec<String> = {
+            let finished = self.finished.lock().unwrap_or_else(|e| e.into_inner());
+            finished
+                .keys()
+                .map(|number| format!("{}-{number}", self.config.name))
+                .filter(|name| {
+                    HolonId::order(name).is_ok_and(|holon| {
+                        KeyExpr::try_from(self.config.keys.state(&holon))
+                            .is_ok_and(|ke| ke.intersects(key))
+                    })
+                })
+                .collect()
+        };
+        match self.read_finished(&wanted) {
+            Ok(read) => states.extend(
+                read.into_iter()
+                    .filter_map(|(name, progress)| Some((name, state(&progress.snapshot())?))),
+            ),
+            Err(e) => {
+                warn!(node = %self.config.name, orders = wanted.len(), error = %e, "cannot read finished orders from the journal; the reader gets the unfinished ones only");
+            }
+        }
+        // In the order of their names, as when every order was in one map.
+        states.sort_by(|a, b| a.0.cmp(&b.0));
+        states.into_iter().map(|(_, state)| state).collect()
+    }
+}
+
+/// The answer to a cancel of an order that has ended.
+fn refused_cancel(name: &str, progress: &OrderProgress) -> CancelReply {
+    CancelReply {
+        order: name.to_string(),
+        cancelled: false,
+        status: progress.status,
+        detail: format!("the order has already ended ({:?})", progress.status),
     }
 }
 
@@ -363,7 +533,9 @@ pub async fn task_ended(
     let node = &host.config.name;
     let (id, why) = match joined {
         Ok((id, Ok(()))) => {
-            tasks.names.remove(&id);
+            if let Some(name) = tasks.names.remove(&id) {
+                host.retire(&name);
+            }
             return;
         }
         Ok((id, Err(OrderError::Journal(why)))) => {
@@ -435,4 +607,266 @@ async fn restart(host: &Host, name: &str, tasks: &mut Tasks, cancel: &Cancellati
         error!(order = %name, error = %e, "cannot record that the order failed; it stays unfinished in the journal");
     }
     host.context.publish(&progress).await;
+    host.retire(name);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::context::Shared;
+    use holon::journal::{Durability, Journal};
+    use std::path::{Path, PathBuf};
+
+    /// A directory of its own for one test, removed when it ends.
+    struct TestDir(PathBuf);
+
+    impl TestDir {
+        fn new(test: &str) -> TestDir {
+            let dir = std::env::temp_dir().join(format!(
+                "order-node-host-{test}-{}-{}",
+                std::process::id(),
+                schemas::unix_ms()
+            ));
+            std::fs::create_dir_all(&dir).unwrap();
+            TestDir(dir)
+        }
+    }
+
+    impl Drop for TestDir {
+        fn drop(&mut self) {
+            if let Err(e) = std::fs::remove_dir_all(&self.0) {
+                eprintln!("cannot remove {}: {e}", self.0.display());
+            }
+        }
+    }
+
+    /// A host of node `n1` with no task running, on a zenoh session of its own (no
+    /// links), with a journal in `dir` if given.
+    async fn host(dir: Option<&Path>) -> Host {
+        let config = OrderNodeConfig::parse(
+            "cell = \"t\"\nname = \"n1\"\n[zenoh]\nmode = \"peer\"\n",
+            "n1.toml",
+            Default::default(),
+        )
+        .unwrap();
+        let mut zenoh_config = zenoh::Config::default();
+        for (key, value) in [
+            ("scouting/multicast/enabled", "false"),
+            ("listen/endpoints", "[]"),
+        ] {
+            zenoh_config.insert_json5(key, value).unwrap();
+        }
+        let session = zenoh::open(zenoh_config).await.unwrap();
+        let presence = crate::presence::Presence::follow(&session, &config.keys)
+            .await
+            .unwrap();
+        let journal = dir.map(|dir| {
+            Arc::new(Journal::open(dir, "order-node-n1.sqlite", Durability::ProcessCrash).unwrap())
+        });
+        Host {
+            context: Arc::new(OrderContext {
+                session,
+                keys: config.keys.clone(),
+                settings: config.orders,
+                presence,
+                inboxes: Default::default(),
+                rounds: tokio::sync::Semaphore::new(1),
+                idle: Default::default(),
+                journal,
+                journal_failing: Default::default(),
+                bookings_in_flight: Default::default(),
+                advice_pause: Default::default(),
+            }),
+            config,
+            orders: Default::default(),
+            finished: Default::default(),
+            next: AtomicU64::new(1),
+        }
+    }
+
+    /// Hosts order `n1-<n>` in memory as its creation would (without its task),
+    /// journalled; returns its progress.
+    fn running(host: &Host, n: u64) -> Shared {
+        let name = format!("n1-{n}");
+        let progress = OrderProgress::new(HolonId::order(&name).unwrap(), "breaker", 3);
+        host.context.save(&progress).unwrap();
+        let progress = Arc::new(Mutex::new(progress));
+        host.orders.lock().unwrap().insert(
+            name,
+            Hosted {
+                progress: progress.clone(),
+                restarts: RestartWindow::new(ORDER_RESTARTS),
+                operator_cancel: CancellationToken::new(),
+            },
+        );
+        host.next.fetch_max(n + 1, Ordering::SeqCst);
+        progress
+    }
+
+    /// What the node answers to a read of every order's state, without the time of
+    /// the answer (`at`).
+    fn states(host: &Host) -> Vec<(String, serde_json::Value)> {
+        let all = KeyExpr::try_from(host.config.keys.node_orders("n1", "state")).unwrap();
+        host.snapshots_matching(&all)
+            .into_iter()
+            .map(|(key, payload)| {
+                let mut state: serde_json::Value = serde_json::from_slice(&payload).unwrap();
+                state.as_object_mut().unwrap().remove("at").unwrap();
+                (key, state)
+            })
+            .collect()
+    }
+
+    fn cancel_reply(host: &Host, name: &str) -> Result<Vec<u8>, String> {
+        host.cancel(name)
+            .map(|reply| serde_json::to_vec(&reply).unwrap())
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_finished_order_leaves_memory_and_is_answered_from_the_journal() {
+        let dir = TestDir::new("answered");
+        let host = host(Some(&dir.0)).await;
+        let done = running(&host, 1);
+        running(&host, 2);
+        host.context
+            .commit(&done, |p| p.fail("no plan".into()))
+            .unwrap();
+        let (states_before, cancel_before) = (states(&host), cancel_reply(&host, "n1-1"));
+        let progress_before = host.progress("n1-1").unwrap().unwrap();
+        assert_eq!(states_before.len(), 2);
+
+        host.retire("n1-1");
+        host.retire("n1-2"); // unfinished: stays
+        assert!(!host.orders.lock().unwrap().contains_key("n1-1"));
+        assert!(host.orders.lock().unwrap().contains_key("n1-2"));
+        assert!(host.finished.lock().unwrap().contains_key(&1));
+        drop(done);
+        assert_eq!(
+            states(&host),
+            states_before,
+            "the same states, in the same order"
+        );
+        assert_eq!(host.progress("n1-1").unwrap().unwrap(), progress_before);
+        assert_eq!(
+            cancel_reply(&host, "n1-1"),
+            cancel_before,
+            "refused as before"
+        );
+        let refused: CancelReply = serde_json::from_slice(cancel_before.as_ref().unwrap()).unwrap();
+        assert!(!refused.cancelled);
+        assert!(!host.forgotten("n1-1"));
+        assert_eq!(
+            cancel_reply(&host, "n1-9"),
+            Err("n1-9 is not an order of n1".to_string())
+        );
+        assert_eq!(host.unfinished(), 1);
+
+        // After a restart (the journal reopened), the same answers.
+        let recovered: Vec<(String, OrderProgress)> = host
+            .context
+            .journal
+            .as_ref()
+            .unwrap()
+            .list(crate::context::ORDER_RECORD)
+            .unwrap();
+        drop(host);
+        let host = self::host(Some(&dir.0)).await;
+        host.next.store(3, Ordering::SeqCst);
+        let mut tasks = Tasks::default();
+        let cancel = CancellationToken::new();
+        cancel.cancel(); // the unfinished order's task stops at once
+        host.resume(recovered, &[], &mut tasks, &cancel);
+        assert!(!host.orders.lock().unwrap().contains_key("n1-1"));
+        assert_eq!(states(&host), states_before);
+        assert_eq!(cancel_reply(&host, "n1-1"), cancel_before);
+        while tasks.set.join_next().await.is_some() {}
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn after_the_retention_the_journal_forgets_a_finished_order() {
+        let dir = TestDir::new("forgets");
+        let host = host(Some(&dir.0)).await;
+        let old = running(&host, 1);
+        let recent = running(&host, 2);
+        host.context
+            .commit(&old, |p| {
+                p.cancel();
+                p.finished_at = Some(schemas::unix_ms() - 10_000);
+            })
+            .unwrap();
+        host.context.commit(&recent, |p| p.cancel()).unwrap();
+        host.retire("n1-1");
+        host.retire("n1-2");
+        assert!(host.orders.lock().unwrap().is_empty());
+
+        assert_eq!(host.forget_finished(Duration::from_secs(5)), 1);
+        let journal = host.context.journal.clone().unwrap();
+        assert_eq!(
+            journal
+                .get::<OrderProgress>(crate::context::ORDER_RECORD, "n1-1")
+                .unwrap(),
+            None,
+            "out of the journal"
+        );
+        assert!(journal
+            .get::<OrderProgress>(crate::context::ORDER_RECORD, "n1-2")
+            .unwrap()
+            .is_some());
+        assert!(host.forgotten("n1-1"));
+        assert!(!host.forgotten("n1-2"));
+        assert_eq!(host.progress("n1-1").unwrap(), None);
+        assert!(cancel_reply(&host, "n1-1").is_err());
+        let states = states(&host);
+        assert_eq!(states.len(), 1);
+        assert!(states[0].0.ends_with("/order/n1-2/state"), "{states:?}");
+        assert_eq!(host.forget_finished(Duration::from_secs(5)), 0);
+    }
+
+    /// An order finished before ends were stamped (an older journal) is stamped, and
+    /// read from the journal like the others.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn an_old_journal_opens_and_answers() {
+        let dir = TestDir::new("old");
+        let mut old = OrderProgress::new(HolonId::order("n1-1").unwrap(), "breaker", 3);
+        old.fail("no plan".into());
+        old.finished_at = None;
+        {
+            let journal =
+                Journal::open(&dir.0, "order-node-n1.sqlite", Durability::ProcessCrash).unwrap();
+            journal
+                .put(crate::context::ORDER_RECORD, "n1-1", &old)
+                .unwrap();
+        }
+        let host = host(Some(&dir.0)).await;
+        host.next.store(2, Ordering::SeqCst);
+        let mut tasks = Tasks::default();
+        host.resume(
+            vec![("n1-1".to_string(), old.clone())],
+            &[],
+            &mut tasks,
+            &CancellationToken::new(),
+        );
+        assert!(tasks.set.is_empty());
+        assert!(host.orders.lock().unwrap().is_empty());
+        let read = host.progress("n1-1").unwrap().unwrap();
+        assert!(read.finished_at.is_some(), "stamped in the journal");
+        assert_eq!(read.status, old.status);
+        assert_eq!(states(&host).len(), 1);
+        assert!(!cancel_reply(&host, "n1-1").unwrap().is_empty());
+    }
+
+    /// Without a journal there is nowhere else to read a finished order from: it stays
+    /// in memory until the retention ends, as before.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn without_a_journal_finished_orders_stay_in_memory() {
+        let host = host(None).await;
+        let done = running(&host, 1);
+        host.context.commit(&done, |p| p.cancel()).unwrap();
+        let before = states(&host);
+        host.retire("n1-1");
+        assert!(host.orders.lock().unwrap().contains_key("n1-1"));
+        assert!(host.finished.lock().unwrap().is_empty());
+        assert_eq!(states(&host), before);
+        assert_eq!(host.forget_finished(Duration::ZERO), 0, "ended just now");
+    }
 }

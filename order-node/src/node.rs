@@ -150,6 +150,7 @@ pub async fn run(
             advice_pause: Default::default(),
         }),
         orders: Mutex::new(BTreeMap::new()),
+        finished: Mutex::new(BTreeMap::new()),
         next: AtomicU64::new(next),
     });
     let (queue, mut queries) = mpsc::channel(QUERY_QUEUE);

@@ -309,7 +309,15 @@ async fn acknowledge_finished(host: &Host, query: Query) {
         }
         return;
     }
-    let Some(progress) = host.progress(&name) else {
+    let progress = match host.progress(&name) {
+        Ok(progress) => progress,
+        Err(e) => {
+            // Unanswered: the resource delivers the result again.
+            warn!(order = %name, error = %e, "cannot read a finished order from the journal; its result is left for a later delivery");
+            return;
+        }
+    };
+    let Some(progress) = progress else {
         warn!(order = %name, "result for an order this node does not host refused");
         if let Err(e) = query
             .reply_err(
