@@ -517,6 +517,28 @@ impl Journal {
             .collect()
     }
 
+    /// Every record of a kind, by id, handed to `visit` one at a time as it is decoded
+    /// (a caller that keeps a few of many records never holds them all). The
+    /// connection is held until the last is visited.
+    pub fn for_each<T: DeserializeOwned>(
+        &self,
+        kind: &str,
+        mut visit: impl FnMut(String, T),
+    ) -> Result<(), JournalError> {
+        let connection = self.connection();
+        let mut statement = connection
+            .prepare("SELECT id, body FROM records WHERE kind = ?1 ORDER BY id")
+            .map_err(|e| self.error(e))?;
+        let mut rows = statement.query(params![kind]).map_err(|e| self.error(e))?;
+        while let Some(row) = rows.next().map_err(|e| self.error(e))? {
+            let id: String = row.get(0).map_err(|e| self.error(e))?;
+            let body: String = row.get(1).map_err(|e| self.error(e))?;
+            let value = self.decode(kind, &id, &body)?;
+            visit(id, value);
+        }
+        Ok(())
+    }
+
     /// Every record of a kind, by id.
     pub fn list<T: DeserializeOwned>(&self, kind: &str) -> Result<Vec<(String, T)>, JournalError> {
         let rows: Vec<(String, String)> = {
@@ -628,6 +650,11 @@ mod tests {
         assert_eq!(read, vec![("c".to_string(), 3), ("b".to_string(), 2)]);
         let none: Vec<(String, u32)> = journal.get_many("order", Vec::<String>::new()).unwrap();
         assert!(none.is_empty());
+        let mut visited = Vec::new();
+        journal
+            .for_each("order", |id, n: u32| visited.push((id, n)))
+            .unwrap();
+        assert_eq!(visited, journal.list::<u32>("order").unwrap());
     }
 
     #[test]

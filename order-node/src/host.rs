@@ -43,6 +43,9 @@ const JOURNAL_RETRY: Duration = Duration::from_secs(1);
 /// long removes its backlog over a few sweeps, without a long pause.
 const FORGET_AT_ONCE: usize = 2000;
 
+/// The most finished orders read from the journal in one go for a state read.
+const READ_AT_ONCE: usize = 256;
+
 /// The journal record of the next order number.
 pub const NEXT_RECORD: (&str, &str) = ("meta", "next_order");
 
@@ -80,8 +83,8 @@ pub struct Host {
     /// until the retention ends.
     pub orders: Mutex<BTreeMap<String, Hosted>>,
     /// The finished orders read from the journal when asked for, until the retention
-    /// sweep deletes them there (16 bytes each). An order is in `orders` or here, never
-    /// in both.
+    /// sweep deletes them there (about 20 bytes each: two numbers in a map). An order
+    /// is in `orders` or here, never in both.
     pub finished: Mutex<Finished>,
     /// The number of the next order (journalled before the orders are created).
     pub next: AtomicU64,
@@ -183,15 +186,9 @@ impl Host {
         }
     }
 
-    /// The number of `name` if it is the name this node gives its order of that number
-    /// (`<node>-<n>`).
+    /// The number of `name` if it is the name this node gives its order of that number.
     fn number(&self, name: &str) -> Option<u64> {
-        let number = name
-            .strip_prefix(&self.config.name)?
-            .strip_prefix('-')?
-            .parse::<u64>()
-            .ok()?;
-        (format!("{}-{number}", self.config.name) == name).then_some(number)
+        order_number(&self.config.name, name)
     }
 
     /// Lets a finished order's progress go from memory, to be read from the journal
@@ -315,12 +312,17 @@ impl Host {
         cancel: &CancellationToken,
     ) {
         let node = &self.config.name;
-        if !recovered.is_empty() {
+        let finished = self
+            .finished
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .len();
+        if !recovered.is_empty() || finished > 0 {
             let resumed = recovered
                 .iter()
                 .filter(|(_, p)| !p.status.is_final())
                 .count();
-            info!(%node, orders = recovered.len(), resumed, "orders recovered from the journal");
+            info!(%node, orders = recovered.len() + finished, resumed, "orders recovered from the journal");
         }
         for (name, progress) in recovered {
             self.host(&name, progress, tasks, cancel);
@@ -497,19 +499,62 @@ impl Host {
                 })
                 .collect()
         };
-        match self.read_finished(&wanted) {
-            Ok(read) => states.extend(
-                read.into_iter()
-                    .filter_map(|(name, progress)| Some((name, state(&progress.snapshot())?))),
-            ),
-            Err(e) => {
-                warn!(node = %self.config.name, orders = wanted.len(), error = %e, "cannot read finished orders from the journal; the reader gets the unfinished ones only");
+        // A few at a time: only their snapshots are held, not every progress at once.
+        for chunk in wanted.chunks(READ_AT_ONCE) {
+            match self.read_finished(chunk) {
+                Ok(read) => states.extend(
+                    read.into_iter()
+                        .filter_map(|(name, progress)| Some((name, state(&progress.snapshot())?))),
+                ),
+                Err(e) => {
+                    warn!(node = %self.config.name, orders = wanted.len(), error = %e, "cannot read finished orders from the journal; the reader gets the unfinished ones only");
+                    let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+                    states.retain(|(name, _)| orders.contains_key(name));
+                    break;
+                }
             }
         }
         // In the order of their names, as when every order was in one map.
         states.sort_by(|a, b| a.0.cmp(&b.0));
         states.into_iter().map(|(_, state)| state).collect()
     }
+}
+
+/// The number of `name` if it is the name node `node` gives its order of that number
+/// (`<node>-<n>`).
+pub fn order_number(node: &str, name: &str) -> Option<u64> {
+    let number = name
+        .strip_prefix(node)?
+        .strip_prefix('-')?
+        .parse::<u64>()
+        .ok()?;
+    (format!("{node}-{number}") == name).then_some(number)
+}
+
+/// What node `node`'s journal holds at start-up: the orders to host (the unfinished
+/// ones, and finished ones whose end was not recorded: an older journal) and the
+/// finished orders that stay in the journal. Read one record at a time: of a finished
+/// order only its number and end are kept, so a day of finished orders is never all in
+/// memory at once.
+pub fn recover(
+    journal: &holon::journal::Journal,
+    node: &str,
+) -> Result<(Vec<(String, OrderProgress)>, Finished), JournalError> {
+    let mut recovered = Vec::new();
+    let mut finished = Finished::new();
+    journal.for_each::<OrderProgress>(ORDER_RECORD, |name, progress| {
+        match (
+            progress.status.is_final(),
+            progress.finished_at,
+            order_number(node, &name),
+        ) {
+            (true, Some(at), Some(number)) => {
+                finished.insert(number, at);
+            }
+            _ => recovered.push((name, progress)),
+        }
+    })?;
+    Ok((recovered, finished))
 }
 
 /// The answer to a cancel of an order that has ended.
@@ -762,15 +807,16 @@ mod tests {
         assert_eq!(host.unfinished(), 1);
 
         // After a restart (the journal reopened), the same answers.
-        let recovered: Vec<(String, OrderProgress)> = host
-            .context
-            .journal
-            .as_ref()
-            .unwrap()
-            .list(crate::context::ORDER_RECORD)
-            .unwrap();
         drop(host);
         let host = self::host(Some(&dir.0)).await;
+        let (recovered, finished) = recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
+        assert_eq!(
+            recovered.len(),
+            1,
+            "only the unfinished order is read whole"
+        );
+        assert_eq!(finished.keys().collect::<Vec<_>>(), [&1]);
+        *host.finished.lock().unwrap() = finished;
         host.next.store(3, Ordering::SeqCst);
         let mut tasks = Tasks::default();
         let cancel = CancellationToken::new();
@@ -839,13 +885,10 @@ mod tests {
         }
         let host = host(Some(&dir.0)).await;
         host.next.store(2, Ordering::SeqCst);
+        let (recovered, finished) = recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
+        assert!(finished.is_empty(), "its end was not recorded: read whole");
         let mut tasks = Tasks::default();
-        host.resume(
-            vec![("n1-1".to_string(), old.clone())],
-            &[],
-            &mut tasks,
-            &CancellationToken::new(),
-        );
+        host.resume(recovered, &[], &mut tasks, &CancellationToken::new());
         assert!(tasks.set.is_empty());
         assert!(host.orders.lock().unwrap().is_empty());
         let read = host.progress("n1-1").unwrap().unwrap();

@@ -18,8 +18,8 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::config::OrderNodeConfig;
-use crate::context::{OrderContext, MAX_CONCURRENT_ROUNDS, ORDER_RECORD};
-use crate::host::{task_ended, Host, Tasks, NEXT_RECORD};
+use crate::context::{OrderContext, MAX_CONCURRENT_ROUNDS};
+use crate::host::{recover, task_ended, Finished, Host, Tasks, NEXT_RECORD};
 use crate::presence::Presence;
 use crate::progress::OrderProgress;
 use crate::queries::{answer, Endpoints, QUERY_QUEUE};
@@ -130,7 +130,7 @@ pub async fn run(
     // orders like this one: refused before anything is declared.
     let claim =
         holon::presence::claim(&session, &host_key, &holder, Duration::from_secs(10)).await?;
-    let (journal, (recovered, next)) = open_journal(&config)?;
+    let (journal, (recovered, finished, next)) = open_journal(&config)?;
     let presence = Presence::follow(&session, &config.keys)
         .await
         .map_err(zenoh_error)?;
@@ -150,7 +150,7 @@ pub async fn run(
             advice_pause: Default::default(),
         }),
         orders: Mutex::new(BTreeMap::new()),
-        finished: Mutex::new(BTreeMap::new()),
+        finished: Mutex::new(finished),
         next: AtomicU64::new(next),
     });
     let (queue, mut queries) = mpsc::channel(QUERY_QUEUE);
@@ -332,9 +332,10 @@ fn zenoh_error(e: zenoh::Error) -> OrderNodeError {
     OrderNodeError::Zenoh(holon::zenoh_error::describe(&e))
 }
 
-/// What the journal holds at start-up: the orders recorded in it and the number of the
-/// next order.
-type Recovered = (Vec<(String, OrderProgress)>, u64);
+/// What the journal holds at start-up: the orders to host (the unfinished ones, and
+/// finished ones whose end was not recorded), the finished orders that stay in the
+/// journal, and the number of the next order.
+type Recovered = (Vec<(String, OrderProgress)>, Finished, u64);
 
 /// The journal, if the node has a data directory, with what it holds.
 fn open_journal(
@@ -342,7 +343,7 @@ fn open_journal(
 ) -> Result<(Option<Arc<Journal>>, Recovered), OrderNodeError> {
     let Some(dir) = &config.data_dir else {
         warn!(node = %config.name, "no data directory: orders are not durable (use --data-dir)");
-        return Ok((None, (Vec::new(), 1)));
+        return Ok((None, (Vec::new(), Finished::new(), 1)));
     };
     // A successor opens the journal its predecessor is closing.
     let patience = match config.take_over {
@@ -355,11 +356,11 @@ fn open_journal(
         config.durability,
         patience,
     )?;
-    let recovered = journal.list::<OrderProgress>(ORDER_RECORD)?;
+    let (recovered, finished) = recover(&journal, &config.name)?;
     let next = journal
         .get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?
         .unwrap_or(1);
-    Ok((Some(Arc::new(journal)), (recovered, next)))
+    Ok((Some(Arc::new(journal)), (recovered, finished, next)))
 }
 
 #[cfg(test)]
