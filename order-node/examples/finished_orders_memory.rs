@@ -1,7 +1,8 @@
 //! How an order-node's resident memory grows with finished orders: starts an
 //! order-node (journal in a temporary directory), reads its VmRSS idle, has it finish N
 //! orders and reads it again, then once more after a read of every order's state (what
-//! `cell orders` and the dashboard ask).
+//! `cell orders` and the dashboard ask), and after a restart on the same journal (idle,
+//! then after a read of every order's state).
 //!
 //! The orders get a plan of the demo breaker's steps from a product answered here, find
 //! no resource and fail (`no resource could be booked`), so each finished order holds a
@@ -99,18 +100,26 @@ durability = "process_crash"
 "#
         ),
     )?;
-    let node = Node(
-        Command::new(&binary)
-            .arg("--config")
-            .arg(&config)
-            .arg("--data-dir")
-            .arg(dir.join("data"))
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(dir.join("orders1.stderr"))?)
-            .spawn()
-            .with_context(|| format!("start {binary}"))?,
-    );
+    let start = || -> anyhow::Result<Node> {
+        Ok(Node(
+            Command::new(&binary)
+                .arg("--config")
+                .arg(&config)
+                .arg("--data-dir")
+                .arg(dir.join("data"))
+                .env("RUST_LOG", "warn")
+                .stdout(Stdio::null())
+                .stderr(
+                    std::fs::OpenOptions::new()
+                        .create(true)
+                        .append(true)
+                        .open(dir.join("orders1.stderr"))?,
+                )
+                .spawn()
+                .with_context(|| format!("start {binary}"))?,
+        ))
+    };
+    let node = start()?;
     let pid = node.0.id();
 
     let keys = CellKeys::new("membench")?;
@@ -154,24 +163,7 @@ durability = "process_crash"
         .await
         .map_err(|e| anyhow::anyhow!("{e}"))?;
 
-    // Ready once it answers a state read.
-    let ready = Instant::now() + Duration::from_secs(30);
-    loop {
-        if Instant::now() > ready {
-            bail!("the order-node did not come up (see {})", dir.display());
-        }
-        let host = keys.host("order-node", "orders1");
-        let alive = session
-            .liveliness()
-            .get(&host)
-            .timeout(Duration::from_secs(1))
-            .await
-            .map_err(|e| anyhow::anyhow!("{e}"))?;
-        if alive.recv_async().await.is_ok() {
-            break;
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
+    wait_ready(&session, &keys, &dir).await?;
     tokio::time::sleep(Duration::from_secs(3)).await;
     let idle = rss_kib(pid)?;
     println!("idle: {:.1} MiB", mib(idle));
@@ -243,6 +235,65 @@ durability = "process_crash"
     );
 
     // What `cell orders` and the dashboard ask: every order's state.
+    let states = read_states(&session, &keys).await?;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let read = rss_kib(pid)?;
+    println!(
+        "after a read of every order's state ({states} states): {:.1} MiB, {:+.1} MiB against idle",
+        mib(read),
+        mib(read) - mib(idle)
+    );
+    drop(node);
+
+    // Restarted on the same journal.
+    let node = start()?;
+    let pid = node.0.id();
+    wait_ready(&session, &keys, &dir).await?;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let restarted = rss_kib(pid)?;
+    println!(
+        "restarted with {orders} finished orders in its journal: {:.1} MiB",
+        mib(restarted)
+    );
+    let states = read_states(&session, &keys).await?;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    println!(
+        "restarted, after a read of every order's state ({states} states): {:.1} MiB",
+        mib(rss_kib(pid)?)
+    );
+    drop(node);
+    if let Err(e) = std::fs::remove_dir_all(&dir) {
+        eprintln!("cannot remove {}: {e}", dir.display());
+    }
+    Ok(())
+}
+
+/// Waits until the order-node's token is there.
+async fn wait_ready(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    dir: &std::path::Path,
+) -> anyhow::Result<()> {
+    let ready = Instant::now() + Duration::from_secs(30);
+    loop {
+        if Instant::now() > ready {
+            bail!("the order-node did not come up (see {})", dir.display());
+        }
+        let alive = session
+            .liveliness()
+            .get(keys.host("order-node", "orders1"))
+            .timeout(Duration::from_secs(1))
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        if alive.recv_async().await.is_ok() {
+            return Ok(());
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Reads every order's state, as `cell orders` does: how many answered.
+async fn read_states(session: &zenoh::Session, keys: &CellKeys) -> anyhow::Result<usize> {
     let replies = session
         .get(keys.node_orders("orders1", "state"))
         .timeout(Duration::from_secs(60))
@@ -254,16 +305,5 @@ durability = "process_crash"
             states += 1;
         }
     }
-    tokio::time::sleep(Duration::from_secs(3)).await;
-    let read = rss_kib(pid)?;
-    println!(
-        "after a read of every order's state ({states} states): {:.1} MiB, {:+.1} MiB against idle",
-        mib(read),
-        mib(read) - mib(idle)
-    );
-    drop(node);
-    if let Err(e) = std::fs::remove_dir_all(&dir) {
-        eprintln!("cannot remove {}: {e}", dir.display());
-    }
-    Ok(())
+    Ok(states)
 }
