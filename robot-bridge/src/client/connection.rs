@@ -29,6 +29,8 @@ pub(super) enum ConnectionEnd {
 struct Exchange {
     command: RobotCommand,
     values: Values,
+    /// Each element's message, written once when the command came.
+    messages: Vec<Vec<u8>>,
     /// The element of the sequence it is at.
     element: usize,
     /// Whether that element's message has been sent (and not yet answered).
@@ -169,42 +171,56 @@ impl<'a> Connection<'a> {
         end
     }
 
+    /// The earliest deadline or due time, if any.
     fn next_wake(&self) -> Option<Instant> {
-        let mut wake: Vec<Instant> = self.exchanges.iter().map(|e| e.deadline).collect();
-        wake.extend(self.exchanges.iter().filter_map(|e| e.poll_at));
-        wake.extend(self.banner_until);
-        if self.banner_until.is_none() {
-            wake.extend(self.next_status_poll);
-            if let Some(k) = &self.dialect.keepalive {
-                wake.push(self.last_traffic + k.every);
+        let exchanges = self
+            .exchanges
+            .iter()
+            .flat_map(|e| std::iter::once(e.deadline).chain(e.poll_at));
+        let connection = if self.banner_until.is_some() {
+            [self.banner_until, None]
+        } else {
+            let keepalive = self
+                .dialect
+                .keepalive
+                .as_ref()
+                .map(|k| self.last_traffic + k.every);
+            [self.next_status_poll, keepalive]
+        };
+        let awaiting = match self.awaiting {
+            Some(Awaiting::StatusPoll { deadline } | Awaiting::Keepalive { deadline }) => {
+                Some(deadline)
             }
-        }
-        match self.awaiting {
-            Some(Awaiting::StatusPoll { deadline }) | Some(Awaiting::Keepalive { deadline }) => {
-                wake.push(deadline)
-            }
-            _ => {}
-        }
-        wake.into_iter().min()
+            _ => None,
+        };
+        exchanges
+            .chain(connection.into_iter().flatten())
+            .chain(awaiting)
+            .min()
     }
 
     /// A new command: its exchange begins (or waits its turn on a one-in-flight wire).
     async fn take(&mut self, command: RobotCommand) -> Step {
         debug!(id = command.id, action = %command.action, "command to controller");
         let values = command_values(&command, &self.dialect.format);
-        // Every message of the sequence must be writable before the first is sent.
+        // Every message of the sequence is written before the first is sent.
+        let mut messages = Vec::with_capacity(self.dialect.sequence.len());
         for element in &self.dialect.sequence {
-            if let Err(why) = self.dialect.write_command(element.command, &values) {
-                let event = ControllerEvent::CommandFailed {
-                    id: command.id,
-                    failure: CommandFailure::Unwritable(why),
-                };
-                return self.report(event).await;
+            match self.dialect.write_command(element.command, &values) {
+                Ok(message) => messages.push(message),
+                Err(why) => {
+                    let event = ControllerEvent::CommandFailed {
+                        id: command.id,
+                        failure: CommandFailure::Unwritable(why),
+                    };
+                    return self.report(event).await;
+                }
             }
         }
         self.exchanges.push_back(Exchange {
             command,
             values,
+            messages,
             element: 0,
             sent: false,
             poll_at: None,
@@ -236,12 +252,8 @@ impl<'a> Connection<'a> {
             if exchange.sent || exchange.poll_at.is_some_and(|at| at > now) {
                 continue;
             }
-            let element = &self.dialect.sequence[exchange.element];
-            let bytes = self
-                .dialect
-                .write_command(element.command, &exchange.values)
-                .expect("checked when the command came");
-            self.outbox.push(bytes);
+            self.outbox
+                .push(exchange.messages[exchange.element].clone());
             self.last_traffic = now;
             let exchange = &mut self.exchanges[i];
             exchange.sent = true;
@@ -426,7 +438,10 @@ impl<'a> Connection<'a> {
                     Ok(Some(values)) => values,
                     Err(why) => return Err(Ok(why)),
                 };
-                if !one && values.get("id") != Some(&exchange.command.id.to_string()) {
+                if !one
+                    && values.get("id").and_then(|id| id.parse::<u64>().ok())
+                        != Some(exchange.command.id)
+                {
                     continue;
                 }
                 self.advance(i, reply, &values).await.map_err(Err)?;

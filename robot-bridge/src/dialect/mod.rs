@@ -34,7 +34,7 @@ use binary::BinaryTemplate;
 use file::DialectFile;
 pub use file::{Correlation, Outcome, Role, StatusSource};
 use framing::{FrameCodec, Framing};
-use template::Template;
+use template::{Escape, Template};
 pub use values::{command_values, Enums, ValueFormat, Values};
 use xml::XmlTemplate;
 
@@ -243,7 +243,7 @@ impl Dialect {
         match body {
             Body::Xml(t) => t.render(values, &self.enums).map(String::into_bytes),
             Body::Text(t) => t
-                .render(values, &self.enums, &|v| v.to_string())
+                .render(values, &self.enums, Escape::Plain)
                 .map(String::into_bytes)
                 .map_err(|e| e.to_string()),
             Body::Binary(t) => t.render(values, &self.enums),
@@ -337,10 +337,9 @@ impl Dialect {
     /// (`failed`, `rejected`), or the state (`status`), from the reply's values and the
     /// command's.
     pub fn evaluate(&self, template: &Template, reply: &Values, command: &Values) -> String {
-        let mut all = reply.clone();
-        all.fill_from(command);
+        let lookup = |name: &str| reply.get(name).or_else(|| command.get(name));
         template
-            .render(&all, &self.enums, &|v| v.to_string())
+            .render_from(&lookup, &self.enums, Escape::Plain)
             .unwrap_or_else(|e| format!("({e})"))
     }
 

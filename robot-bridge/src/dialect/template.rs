@@ -33,6 +33,15 @@ pub enum Piece {
     },
 }
 
+/// How values are written into the text.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Escape {
+    /// As they are (text lines, binary fields).
+    Plain,
+    /// XML-escaped (`<` -> `&lt;` ...).
+    Xml,
+}
+
 /// A parsed template with its matcher.
 #[derive(Debug, Clone)]
 pub struct Template {
@@ -222,41 +231,53 @@ impl Template {
         &self,
         values: &Values,
         enums: &Enums,
-        escape: &dyn Fn(&str) -> String,
+        escape: Escape,
     ) -> Result<String, TemplateError> {
-        fn walk(
+        self.render_from(&|name| values.get(name), enums, escape)
+    }
+
+    /// Renders with the values `lookup` finds (e.g. a reply's, then its command's).
+    pub fn render_from<'v>(
+        &self,
+        lookup: &dyn Fn(&str) -> Option<&'v str>,
+        enums: &Enums,
+        escape: Escape,
+    ) -> Result<String, TemplateError> {
+        fn walk<'v>(
             pieces: &[Piece],
-            values: &Values,
+            lookup: &dyn Fn(&str) -> Option<&'v str>,
             enums: &Enums,
-            escape: &dyn Fn(&str) -> String,
+            escape: Escape,
             out: &mut String,
         ) -> Result<(), TemplateError> {
             for piece in pieces {
                 match piece {
                     Piece::Literal(text) => out.push_str(text),
                     Piece::Value { name, table } => {
-                        let value = values
-                            .get(name)
-                            .ok_or_else(|| TemplateError::Missing(name.clone()))?;
+                        let value =
+                            lookup(name).ok_or_else(|| TemplateError::Missing(name.clone()))?;
                         let wire = match table {
                             Some(table) => {
                                 enums.encode(table, value).map_err(TemplateError::Enum)?
                             }
                             None => value,
                         };
-                        out.push_str(&escape(wire));
+                        match escape {
+                            Escape::Plain => out.push_str(wire),
+                            Escape::Xml => out.push_str(&quick_xml::escape::escape(wire)),
+                        }
                     }
                     Piece::Section { name, body } => {
-                        if values.contains(name) {
-                            walk(body, values, enums, escape, out)?;
+                        if lookup(name).is_some() {
+                            walk(body, lookup, enums, escape, out)?;
                         }
                     }
                 }
             }
             Ok(())
         }
-        let mut out = String::new();
-        walk(&self.pieces, values, enums, escape, &mut out)?;
+        let mut out = String::with_capacity(self.source.len() + 32);
+        walk(&self.pieces, lookup, enums, escape, &mut out)?;
         Ok(out)
     }
 
@@ -264,6 +285,27 @@ impl Template {
     /// tables) are added to `values`. `Ok(false)`: the text does not have this shape;
     /// `Err`: it has, but a captured value is not in its enum table.
     pub fn capture(&self, text: &str, enums: &Enums, values: &mut Values) -> Result<bool, String> {
+        // The common shapes without the regular expression: a literal, one value.
+        match self.pieces.as_slice() {
+            [] => return Ok(text.is_empty()),
+            [Piece::Literal(literal)] => return Ok(text == literal),
+            [Piece::Value { name, table }] => {
+                let value = match table {
+                    Some(table) => enums.decode(table, text)?.to_string(),
+                    None => text.to_string(),
+                };
+                if let Some(earlier) = values.get(name) {
+                    if earlier != value {
+                        return Err(format!(
+                            "{name} is {earlier:?} in one place and {value:?} in another"
+                        ));
+                    }
+                }
+                values.set(name, value);
+                return Ok(true);
+            }
+            _ => {}
+        }
         let Some(found) = self.matcher.captures(text) else {
             return Ok(false);
         };
@@ -292,10 +334,6 @@ impl Template {
 mod tests {
     use super::*;
 
-    fn no_escape(s: &str) -> String {
-        s.to_string()
-    }
-
     #[test]
     fn renders_and_captures_the_same_values() {
         let mut enums = Enums::default();
@@ -304,11 +342,11 @@ mod tests {
         let mut values = Values::default();
         values.set("action", "pick".into());
         assert_eq!(
-            t.render(&values, &enums, &no_escape).unwrap(),
+            t.render(&values, &enums, Escape::Plain).unwrap(),
             "load pick.urp"
         );
         values.set("program", "b2".into());
-        let text = t.render(&values, &enums, &no_escape).unwrap();
+        let text = t.render(&values, &enums, Escape::Plain).unwrap();
         assert_eq!(text, "load pick.urp for b2");
         let mut back = Values::default();
         assert_eq!(t.capture(&text, &enums, &mut back), Ok(true));
@@ -334,7 +372,7 @@ mod tests {
         );
         let t = Template::parse("{{literal}} {id}").unwrap();
         assert_eq!(
-            t.render(&Values::default(), &Enums::default(), &no_escape),
+            t.render(&Values::default(), &Enums::default(), Escape::Plain),
             Err(TemplateError::Missing("id".into()))
         );
     }

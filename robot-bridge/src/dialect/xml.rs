@@ -12,7 +12,7 @@
 use quick_xml::events::Event;
 use quick_xml::Reader;
 
-use super::template::Template;
+use super::template::{Escape, Template};
 use super::values::{Enums, Values};
 use crate::codec::Element;
 
@@ -32,10 +32,6 @@ pub struct Shape {
 pub struct XmlTemplate {
     pub text: Template,
     root: Shape,
-}
-
-fn escape_xml(value: &str) -> String {
-    quick_xml::escape::escape(value).into_owned()
 }
 
 fn template(text: &str) -> Result<Template, String> {
@@ -155,7 +151,7 @@ impl XmlTemplate {
 
     pub fn render(&self, values: &Values, enums: &Enums) -> Result<String, String> {
         self.text
-            .render(values, enums, &escape_xml)
+            .render(values, enums, Escape::Xml)
             .map_err(|e| e.to_string())
     }
 
