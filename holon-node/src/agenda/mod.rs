@@ -1,0 +1,617 @@
+//! The Agenda Manager: the seed's Figure 4 as a pure state machine.
+//!
+//! Its state is the execution status (`init`, `free`, `busy`), the bookings in the order
+//! they were made, the results not yet acknowledged, and whether the holon is
+//! withdrawing. The status is `init` until the execution component reports `ready` (the
+//! controller is connected and ready), `busy` while a job runs, `free` otherwise; it
+//! goes back to `init` when the execution component reports the controller unavailable.
+//! A booking (and its job) is identified by its requester and `conversation_id`.
+//!
+//! Every event, with the checks of a request in the order they are made (the first
+//! that applies answers; "the conversation" is the request's requester and
+//! `conversation_id`):
+//!
+//! | event | condition, in order | outcome | next |
+//! |---|---|---|---|
+//! | `proposal_req` | type not offered | `proposal` false `unknown_service` | same |
+//! | | controller not ready, or withdrawing | `proposal` false `unavailable` | same |
+//! | | agenda full | `proposal` false `agenda_full` | same |
+//! | | `info.priority` is not an integer from -1000 to 1000 | refused `invalid_info` | same |
+//! | | otherwise | `proposal` true with the queue and the expected wait where a booking of its priority would go | same |
+//! | `booking_req` | type not offered | refused `unknown_service` | same |
+//! | | the requester is a resource | refused `not_a_requester` (nothing would release it) | same |
+//! | | the conversation is booked | true again with its queue position (no second booking) | same |
+//! | | start on turn asked, and the conversation's job runs or finished with its result undelivered | true, `started` again (no second execution) | same |
+//! | | the conversation's job is running | refused `busy` | same |
+//! | | controller not ready, or withdrawing | refused `unavailable` (no commitment without hardware) | same |
+//! | | agenda full | refused `agenda_full` | same |
+//! | | `info.priority` or `info.due` is not one | refused `invalid_info` | same |
+//! | | start on turn asked, and the info lacks what the steps need or there is no `reply_to` | refused `invalid_info` | same |
+//! | | start on turn asked, `free`, nothing booked ahead | true, `started`; the booking becomes the job, execution starts | `busy` |
+//! | | otherwise | true with the queue position; booking inserted by priority (below) | same + booking |
+//! | `booking_cancel` | the conversation is booked | true; booking removed | same − booking |
+//! | | otherwise | refused `not_booked` | same |
+//! | `start` | type not offered | refused `unknown_service` | same |
+//! | | the conversation's job runs, or finished with its result undelivered | true again (no second execution) | same |
+//! | | the conversation is not booked ("not booked" beats "busy") | refused `not_booked` | same |
+//! | | withdrawing | refused `unavailable` | same |
+//! | | the booking is for another service type | refused `not_booked` | same |
+//! | | `busy` | refused `busy` (the booking stays) | same |
+//! | | controller not ready | refused `unavailable` (the booking stays) | same |
+//! | | the info (the start's, else the booking's) lacks what the steps need | refused `invalid_info` | same |
+//! | | neither the start nor the booking has `reply_to` | refused `invalid_info` | same |
+//! | | otherwise | true; the booking becomes the job, execution starts | `busy` |
+//! | `status`, `proposal`, `done`, `failed` | (`status` is answered by the communication component) | refused `unknown_service` | same |
+//! | execution ready | | | `free` (or `busy`) |
+//! | execution unavailable | | | `init` (a running job ends first) |
+//! | execution finished the running job | | its `done` / `failed` is delivered until acknowledged | `free` or `init` |
+//! | execution finished another job (stale) | | nothing | same |
+//! | result acknowledged | the result is undelivered | removed | same |
+//! | | otherwise | nothing | same |
+//! | withdraw (SIGTERM) | not yet withdrawing | every booking with a `reply_to` gets `failed` `withdrawn`; bookings cleared | withdrawing |
+//! | | already withdrawing | nothing | same |
+//! | hand over (a successor asks, `cell upgrade`) | not withdrawing | bookings kept for the successor; the running job finishes | handing over |
+//! | | withdrawing | nothing | same |
+//! | hand-over abandoned (the running job outlasted the successor's wait) | handing over | | serving again |
+//! | requester gone (absent longer than the grace) | | its bookings removed; its running job and undelivered results stay | same − bookings |
+//! | restored from the journal | handed over by a predecessor just now | bookings as they were | `init` |
+//! | | otherwise (a restart) | bookings kept, none starts on its turn: each waits for its requester's `start` ([`Inheritance::Restarted`]) | `init` |
+//! | after any event | `free`, not withdrawing or handing over, and the first booking asked to start on its turn | the booking becomes the job, execution starts | `busy` |
+//!
+//! "Withdrawing" in the rows above reads "withdrawing or handing over": both take no
+//! new work and start nothing. A refusal `unavailable` while handing over says so in
+//! `info.detail` and carries `info.retry_after_ms` ([`HANDOVER_RETRY`]): the successor
+//! answers within moments.
+//!
+//! Every change of state is followed by a `StateChanged` action (a new snapshot).
+//!
+//! Bookings wait by priority ([`schemas::info_key::PRIORITY`], higher first), equal
+//! priorities in the order they came. A new booking goes ahead of the waiting bookings
+//! of lower priority at the back, but stops behind one that later bookings have passed
+//! `max_overtakes` times. So a booking starts after at most the jobs ahead of it when it
+//! was booked, plus `max_overtakes`: low priority is served later, never starved.
+
+use std::sync::Arc;
+
+use schemas::{
+    reason, unix_ms, BookingView, ControllerStatus, CurrentJobView, HolonId, MessageType,
+    ResourceSnapshot, ResourceState, Service,
+};
+use serde_json::{json, Map, Value};
+
+use crate::catalog::ServiceCatalog;
+
+mod queue;
+mod requests;
+
+/// How many later bookings of higher priority may go ahead of a waiting one, unless
+/// the config says (`agenda.max_overtakes`).
+pub const DEFAULT_MAX_OVERTAKES: u32 = 4;
+
+/// How the journal's bookings came to this process, which decides whether those asked
+/// to start on their turn still do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Inheritance {
+    /// A predecessor handed them over a moment ago: their requesters knew of the
+    /// hand-over and kept them, so each starts on its turn as it was booked to.
+    HandedOver,
+    /// The holon was away (it stopped, crashed, or its successor never served): a
+    /// requester may have given up on its booking and booked again, here or elsewhere,
+    /// with its cancel not yet arrived. Started on its turn, such a booking would run
+    /// the step twice; so every booking waits for its requester's `start` (an order
+    /// that still holds it sends one when its turn comes, an order that gave up sends
+    /// the cancel).
+    Restarted,
+}
+
+/// A commitment on the agenda.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Booking {
+    pub requester: HolonId,
+    pub conversation_id: String,
+    pub service_type: String,
+    pub reply_to: Option<String>,
+    /// The booking's `info`, used when `start` carries none.
+    pub info: Map<String, Value>,
+    /// The requester asked for the job to start by itself on its turn
+    /// ([`schemas::info_key::START_ON_TURN`]); its `reply_to` and `info` were checked
+    /// when it was booked.
+    #[serde(default)]
+    pub start_on_turn: bool,
+    /// Its priority ([`schemas::info_key::PRIORITY`]): it went ahead of waiting
+    /// bookings of lower priority when it was made.
+    #[serde(default)]
+    pub priority: i32,
+    /// When its order is due, in Unix milliseconds, if it said (shown, not used here).
+    #[serde(default)]
+    pub due: Option<u64>,
+    /// How many later bookings went ahead of it; at `max_overtakes` none may.
+    #[serde(default)]
+    pub overtaken: u32,
+}
+
+/// A booking being executed.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Job {
+    pub requester: HolonId,
+    pub conversation_id: String,
+    pub service_type: String,
+    /// Where `done` / `failed` goes.
+    pub reply_to: String,
+    pub info: Map<String, Value>,
+}
+
+/// How an execution ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Outcome {
+    /// Every step completed; `results` maps each action to the controller's result.
+    Done { results: Map<String, Value> },
+    /// A step failed; `reason` is one of [`schemas::reason`], `detail` is for people.
+    Failed { reason: String, detail: String },
+}
+
+/// As an operator reads it in a log: `done pick=picking_done place=placing_done`, or
+/// `failed controller_error: pick failed: gripper empty`.
+impl std::fmt::Display for Outcome {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Outcome::Done { results } => {
+                f.write_str("done")?;
+                for (action, result) in results {
+                    match result.as_str() {
+                        Some(text) => write!(f, " {action}={text}")?,
+                        None => write!(f, " {action}={result}")?,
+                    }
+                }
+                Ok(())
+            }
+            Outcome::Failed { reason, detail } => write!(f, "failed {reason}: {detail}"),
+        }
+    }
+}
+
+/// What the agenda manager reacts to.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AgendaEvent {
+    /// A Service request from another holon, via the communication component.
+    Request(Service),
+    /// Execution is ready: the controller is connected and ready, nothing runs.
+    ExecutionReady,
+    /// Execution cannot run services: the controller is away, in fault or estop.
+    ExecutionUnavailable,
+    /// Execution finished the job of `conversation_id`.
+    ExecutionFinished {
+        conversation_id: String,
+        outcome: Outcome,
+    },
+    /// The requester acknowledged the result of `conversation_id`.
+    ResultAcknowledged { conversation_id: String },
+    /// The holon is shutting down: take no new work, hand every booking back (a
+    /// `failed` with reason `withdrawn` to its `reply_to`), let the running job finish.
+    Withdraw,
+    /// A successor process is taking the holon over (a planned upgrade): take no new
+    /// work and start nothing, keep every booking (the successor restores them from the
+    /// journal), let the running job finish.
+    HandOver,
+    /// The hand-over did not happen (the running job outlasted the successor's wait):
+    /// serve again.
+    HandOverAbandoned,
+    /// `requester` has been absent from the cell (no liveliness token) longer than the
+    /// booking grace: its bookings end. The running job and undelivered results stay.
+    RequesterGone { requester: HolonId },
+}
+
+/// What the task around the agenda manager must do.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AgendaAction {
+    /// Answer the request being handled.
+    Reply(Service),
+    /// Have the execution component execute this job.
+    Execute(Job),
+    /// Deliver this `done` / `failed` to its `reply_to` until acknowledged.
+    Deliver(Service),
+    /// The state changed: publish a snapshot.
+    StateChanged,
+}
+
+/// What the journal keeps of the agenda manager: everything that must survive a crash.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct AgendaRecord {
+    pub bookings: Vec<Booking>,
+    /// The job that was executing: after a crash it is reported `interrupted`.
+    pub current: Option<Job>,
+    pub undelivered: Vec<Service>,
+}
+
+/// The execution status in Figure 4 (plus `init`).
+#[derive(Debug, Clone, PartialEq)]
+pub enum Status {
+    Init,
+    Free,
+    Busy(Job),
+}
+
+/// The Agenda Manager's state.
+#[derive(Debug, Clone)]
+pub struct AgendaManager {
+    holon: HolonId,
+    catalog: Arc<ServiceCatalog>,
+    capacity: usize,
+    /// How many later bookings of higher priority may go ahead of a waiting one.
+    max_overtakes: u32,
+    execution_ready: bool,
+    current: Option<Job>,
+    bookings: Vec<Booking>,
+    /// `done` / `failed` not yet acknowledged, oldest first.
+    undelivered: Vec<Service>,
+    /// Shutting down: no new bookings or starts.
+    withdrawing: bool,
+    /// Being handed over to a successor process: no new bookings or starts, bookings kept.
+    handing_over: bool,
+}
+
+impl AgendaManager {
+    pub fn new(holon: HolonId, catalog: Arc<ServiceCatalog>, capacity: usize) -> Self {
+        AgendaManager {
+            holon,
+            catalog,
+            capacity,
+            max_overtakes: DEFAULT_MAX_OVERTAKES,
+            execution_ready: false,
+            current: None,
+            bookings: Vec::new(),
+            undelivered: Vec::new(),
+            withdrawing: false,
+            handing_over: false,
+        }
+    }
+
+    /// The same agenda, letting at most `max_overtakes` later bookings of higher
+    /// priority go ahead of a waiting one (0: first come, first served).
+    pub fn with_max_overtakes(mut self, max_overtakes: u32) -> Self {
+        self.max_overtakes = max_overtakes;
+        self
+    }
+
+    /// What the journal keeps.
+    pub fn record(&self) -> AgendaRecord {
+        AgendaRecord {
+            bookings: self.bookings.clone(),
+            current: self.current.clone(),
+            undelivered: self.undelivered.clone(),
+        }
+    }
+
+    /// The agenda manager after a restart of the process: the bookings and undelivered
+    /// results come back; a job that was executing is reported `failed` with reason
+    /// `interrupted` (never re-executed), as one more undelivered result. Unless a
+    /// predecessor has just handed them over, no booking starts by itself on its turn
+    /// (see [`Inheritance::Restarted`]).
+    pub fn restore(
+        holon: HolonId,
+        catalog: Arc<ServiceCatalog>,
+        capacity: usize,
+        record: AgendaRecord,
+        inheritance: Inheritance,
+    ) -> AgendaManager {
+        let mut manager = AgendaManager::new(holon, catalog, capacity);
+        manager.bookings = record.bookings;
+        if inheritance == Inheritance::Restarted {
+            for booking in &mut manager.bookings {
+                booking.start_on_turn = false;
+            }
+        }
+        manager.undelivered = record.undelivered;
+        if let Some(job) = record.current {
+            let message = manager.result_message(
+                job,
+                Outcome::Failed {
+                    reason: reason::INTERRUPTED.into(),
+                    detail: "the resource holon stopped while the step ran; it was not completed"
+                        .into(),
+                },
+            );
+            manager.undelivered.push(message);
+        }
+        manager
+    }
+
+    /// Whether the holon is shutting down (no new bookings or starts).
+    pub fn is_withdrawing(&self) -> bool {
+        self.withdrawing
+    }
+
+    /// Whether the holon is being handed over to a successor.
+    pub fn is_handing_over(&self) -> bool {
+        self.handing_over
+    }
+
+    /// Withdrawing or handing over: it takes no new work and starts nothing.
+    fn leaving(&self) -> bool {
+        self.withdrawing || self.handing_over
+    }
+
+    /// True once withdrawing and nothing is left to finish or deliver.
+    pub fn is_drained(&self) -> bool {
+        self.withdrawing && self.current.is_none() && self.undelivered.is_empty()
+    }
+
+    pub fn status(&self) -> Status {
+        match (&self.current, self.execution_ready) {
+            (Some(job), _) => Status::Busy(job.clone()),
+            (None, true) => Status::Free,
+            (None, false) => Status::Init,
+        }
+    }
+
+    /// The status as the snapshot shows it.
+    pub fn state(&self) -> ResourceState {
+        match (&self.current, self.execution_ready) {
+            (Some(_), _) => ResourceState::Busy,
+            (None, true) => ResourceState::Free,
+            (None, false) => ResourceState::Init,
+        }
+    }
+
+    pub fn bookings(&self) -> &[Booking] {
+        &self.bookings
+    }
+
+    pub fn undelivered(&self) -> &[Service] {
+        &self.undelivered
+    }
+
+    pub fn current(&self) -> Option<&Job> {
+        self.current.as_ref()
+    }
+
+    /// The seed's FSM: one event in, the actions out. No I/O.
+    pub fn handle(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
+        let mut actions = self.transition(event);
+        actions.extend(self.turn());
+        actions
+    }
+
+    /// The machine without its last row: no booking starts on its turn. For an event
+    /// that must be kept while the journal cannot record a job's start (the booking then
+    /// waits; its requester's `start` is refused until the journal can be written).
+    pub fn handle_holding_turns(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
+        self.transition(event)
+    }
+
+    /// The last row of the table, as actions.
+    fn turn(&mut self) -> Vec<AgendaAction> {
+        let mut actions = Vec::new();
+        if let Some(job) = self.start_on_turn() {
+            actions.push(AgendaAction::Execute(job));
+            actions.push(AgendaAction::StateChanged);
+        }
+        actions
+    }
+
+    /// The row of the table for `event`.
+    fn transition(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
+        match event {
+            AgendaEvent::Request(request) => self.request(request),
+            AgendaEvent::ExecutionReady => self.set_ready(true),
+            AgendaEvent::ExecutionUnavailable => self.set_ready(false),
+            AgendaEvent::ExecutionFinished {
+                conversation_id,
+                outcome,
+            } => self.finished(&conversation_id, outcome),
+            AgendaEvent::Withdraw => self.withdraw(),
+            AgendaEvent::HandOver => self.hand_over(true),
+            AgendaEvent::HandOverAbandoned => self.hand_over(false),
+            AgendaEvent::RequesterGone { requester } => self.release(&requester),
+            AgendaEvent::ResultAcknowledged { conversation_id } => {
+                let before = self.undelivered.len();
+                self.undelivered
+                    .retain(|r| r.conversation_id != conversation_id);
+                if self.undelivered.len() == before {
+                    vec![]
+                } else {
+                    vec![AgendaAction::StateChanged]
+                }
+            }
+        }
+    }
+
+    fn hand_over(&mut self, handing_over: bool) -> Vec<AgendaAction> {
+        if self.withdrawing || self.handing_over == handing_over {
+            return vec![];
+        }
+        self.handing_over = handing_over;
+        vec![AgendaAction::StateChanged]
+    }
+
+    fn withdraw(&mut self) -> Vec<AgendaAction> {
+        if self.withdrawing {
+            return vec![];
+        }
+        self.withdrawing = true;
+        self.handing_over = false;
+        let mut actions = Vec::new();
+        for booking in std::mem::take(&mut self.bookings) {
+            let Some(reply_to) = booking.reply_to else {
+                // Nowhere to tell: the requester finds out when its start is refused.
+                continue;
+            };
+            let message = self.result_message(
+                Job {
+                    requester: booking.requester,
+                    conversation_id: booking.conversation_id,
+                    service_type: booking.service_type,
+                    reply_to,
+                    info: Map::new(),
+                },
+                Outcome::Failed {
+                    reason: reason::WITHDRAWN.into(),
+                    detail: "the resource is shutting down; book elsewhere".into(),
+                },
+            );
+            self.undelivered.push(message.clone());
+            actions.push(AgendaAction::Deliver(message));
+        }
+        actions.push(AgendaAction::StateChanged);
+        actions
+    }
+
+    fn release(&mut self, requester: &HolonId) -> Vec<AgendaAction> {
+        let before = self.bookings.len();
+        self.bookings.retain(|b| &b.requester != requester);
+        if self.bookings.len() == before {
+            vec![]
+        } else {
+            vec![AgendaAction::StateChanged]
+        }
+    }
+
+    fn set_ready(&mut self, ready: bool) -> Vec<AgendaAction> {
+        if self.execution_ready == ready {
+            return vec![];
+        }
+        self.execution_ready = ready;
+        vec![AgendaAction::StateChanged]
+    }
+
+    /// The last row of the table: a free resource whose first booking asked to start
+    /// on its turn makes it the running job.
+    fn start_on_turn(&mut self) -> Option<Job> {
+        let first = self.bookings.first()?;
+        if self.state() != ResourceState::Free || self.leaving() || !first.start_on_turn {
+            return None;
+        }
+        // Checked when it was booked; a booking without one waits for a `start`.
+        let reply_to = first.reply_to.clone()?;
+        let info = first.info.clone();
+        Some(self.run_booking(0, reply_to, info))
+    }
+
+    /// Makes the booking at `index` the running job, its results to `reply_to`.
+    fn run_booking(&mut self, index: usize, reply_to: String, info: Map<String, Value>) -> Job {
+        let booking = self.bookings.remove(index);
+        let job = Job {
+            requester: booking.requester,
+            conversation_id: booking.conversation_id,
+            service_type: booking.service_type,
+            reply_to,
+            info,
+        };
+        self.current = Some(job.clone());
+        job
+    }
+
+    fn finished(&mut self, conversation_id: &str, outcome: Outcome) -> Vec<AgendaAction> {
+        let Some(job) = self
+            .current
+            .take_if(|job| job.conversation_id == conversation_id)
+        else {
+            // Not the running job (a stale report): nothing changes.
+            return vec![];
+        };
+        let message = self.result_message(job, outcome);
+        self.undelivered.push(message.clone());
+        vec![AgendaAction::Deliver(message), AgendaAction::StateChanged]
+    }
+
+    /// The `done` / `failed` message that reports `outcome` of `job` to its requester.
+    fn result_message(&self, job: Job, outcome: Outcome) -> Service {
+        let (message_type, result, why, info) = match outcome {
+            Outcome::Done { results } => {
+                (MessageType::Done, true, None, json!({ "results": results }))
+            }
+            Outcome::Failed { reason, detail } => (
+                MessageType::Failed,
+                false,
+                Some(reason),
+                json!({ "detail": detail }),
+            ),
+        };
+        Service {
+            v: schemas::SERVICE_VERSION,
+            message_type,
+            service_type: job.service_type,
+            conversation_id: job.conversation_id,
+            requester: job.requester,
+            provider: Some(self.holon.clone()),
+            reply_to: Some(job.reply_to),
+            result: Some(result),
+            reason: why,
+            info: match info {
+                Value::Object(map) => map,
+                _ => Map::new(),
+            },
+        }
+    }
+
+    /// The agenda's part of the snapshot published on `resource/<name>/state`: the
+    /// controller, the step in progress and the requesters' absences are the other
+    /// components' to fill in (see [`crate::views::Views::snapshot`]).
+    pub fn snapshot(&self) -> ResourceSnapshot {
+        ResourceSnapshot {
+            holon: self.holon.clone(),
+            state: self.state(),
+            controller: ControllerStatus::Disconnected,
+            agenda: self
+                .bookings
+                .iter()
+                .map(|b| BookingView {
+                    requester: b.requester.clone(),
+                    conversation_id: b.conversation_id.clone(),
+                    service_type: b.service_type.clone(),
+                    requester_absent_since: None,
+                    priority: b.priority,
+                    due: b.due,
+                    overtaken: b.overtaken,
+                    program: crate::catalog::program(&b.info).ok().flatten(),
+                })
+                .collect(),
+            current: self.current.as_ref().map(|j| CurrentJobView {
+                requester: j.requester.clone(),
+                conversation_id: j.conversation_id.clone(),
+                service_type: j.service_type.clone(),
+                step: None,
+                program: crate::catalog::program(&j.info).ok().flatten(),
+                started_at: None,
+            }),
+            undelivered: self.undelivered.len(),
+            services: self.catalog.service_types().map(String::from).collect(),
+            nominal_ms: self
+                .catalog
+                .service_types()
+                .filter_map(|t| {
+                    let nominal = self.catalog.get(t)?.nominal_duration.as_millis() as u64;
+                    Some((t.to_string(), nominal))
+                })
+                .collect(),
+            journal_fault: None,
+            delivery_retries: 0,
+            handing_over: self.handing_over,
+            host: None,
+            version: None,
+            v: 0,
+            at: unix_ms(),
+        }
+    }
+}
+
+/// When a requester refused `unavailable` during a hand-over is told to ask again.
+pub const HANDOVER_RETRY: std::time::Duration = std::time::Duration::from_millis(100);
+
+/// Says, on a refusal `unavailable`, that the resource is being handed over.
+pub fn handing_over_hint(info: &mut Map<String, Value>) {
+    info.insert(
+        "detail".into(),
+        Value::String(
+            "the resource is being handed over to its successor (an upgrade); bookings are kept; ask again shortly"
+                .into(),
+        ),
+    );
+    info.insert(
+        schemas::info_key::RETRY_AFTER_MS.into(),
+        Value::from(HANDOVER_RETRY.as_millis() as u64),
+    );
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,251 @@
+//! The requests other holons send the agenda: the rows of the table for `proposal_req`,
+//! `booking_req`, `booking_cancel` and `start`, checked in the table's order, and their
+//! refusals.
+
+use schemas::{reason, HolonId, HolonKind, MessageType, ResourceState, Service};
+use serde_json::Value;
+
+use super::{handing_over_hint, AgendaAction, AgendaManager, Booking};
+
+/// Where one conversation (a requester and a `conversation_id`) stands on the agenda.
+#[derive(Debug, Clone, Copy)]
+struct Conversation {
+    /// Its booking's index, if it is booked.
+    booked: Option<usize>,
+    /// Its job is running.
+    running: bool,
+    /// Its job finished and the result is not acknowledged yet.
+    finished: bool,
+}
+
+impl AgendaManager {
+    /// Where the request's conversation stands on this agenda.
+    fn conversation(&self, request: &Service) -> Conversation {
+        let same = |requester: &HolonId, conversation_id: &str| {
+            requester == &request.requester && conversation_id == request.conversation_id
+        };
+        Conversation {
+            booked: self
+                .bookings
+                .iter()
+                .position(|b| same(&b.requester, &b.conversation_id)),
+            running: self
+                .current
+                .as_ref()
+                .is_some_and(|job| same(&job.requester, &job.conversation_id)),
+            finished: self
+                .undelivered
+                .iter()
+                .any(|r| same(&r.requester, &r.conversation_id)),
+        }
+    }
+
+    /// A request from another holon: the rows of the table (in the documentation of
+    /// [`crate::agenda`]), in their order.
+    pub(super) fn request(&mut self, request: Service) -> Vec<AgendaAction> {
+        match request.message_type {
+            MessageType::ProposalReq => self.proposal(&request),
+            MessageType::BookingReq => self.book(request),
+            MessageType::BookingCancel => self.cancel(&request),
+            MessageType::Start => self.start(request),
+            // Not agenda requests: the communication component answers `status` itself
+            // (a read of the state) and rejects the others.
+            MessageType::Proposal
+            | MessageType::Done
+            | MessageType::Failed
+            | MessageType::Status => self.refuse(&request, reason::UNKNOWN_SERVICE, None),
+        }
+    }
+
+    fn refuse(&self, request: &Service, why: &str, detail: Option<String>) -> Vec<AgendaAction> {
+        let mut reply = request.refused(&self.holon, why);
+        if let Some(detail) = detail {
+            reply.info.insert("detail".into(), Value::String(detail));
+        }
+        if why == reason::UNAVAILABLE && self.handing_over {
+            handing_over_hint(&mut reply.info);
+        }
+        vec![AgendaAction::Reply(reply)]
+    }
+
+    fn proposal(&self, request: &Service) -> Vec<AgendaAction> {
+        let refusal = if !self.catalog.offers(&request.service_type) {
+            Some(reason::UNKNOWN_SERVICE)
+        } else if !self.execution_ready || self.leaving() {
+            Some(reason::UNAVAILABLE)
+        } else if self.bookings.len() >= self.capacity {
+            Some(reason::AGENDA_FULL)
+        } else {
+            None
+        };
+        let mut reply = request.accepted(&self.holon);
+        reply.message_type = MessageType::Proposal;
+        if let Some(why) = refusal {
+            reply.result = Some(false);
+            reply.reason = Some(why.to_string());
+        }
+        let priority = match request.priority() {
+            Ok(priority) => priority,
+            Err(detail) => return self.refuse(request, reason::INVALID_INFO, Some(detail)),
+        };
+        reply.info = self.proposal_info(&request.service_type, priority);
+        if refusal == Some(reason::UNAVAILABLE) && self.handing_over {
+            handing_over_hint(&mut reply.info);
+        }
+        vec![AgendaAction::Reply(reply)]
+    }
+
+    fn book(&mut self, request: Service) -> Vec<AgendaAction> {
+        let conversation = self.conversation(&request);
+        let taking_work = self.execution_ready && !self.leaving();
+        let full = self.bookings.len() >= self.capacity;
+        match (conversation, taking_work, full) {
+            _ if !self.catalog.offers(&request.service_type) => {
+                self.refuse(&request, reason::UNKNOWN_SERVICE, None)
+            }
+            _ if request.requester.kind() == HolonKind::Resource => {
+                self.refuse(&request, reason::NOT_A_REQUESTER, None)
+            }
+            (
+                Conversation {
+                    booked: Some(position),
+                    ..
+                },
+                _,
+                _,
+            ) => {
+                vec![AgendaAction::Reply(self.booked_reply(&request, position))]
+            }
+            // Asked again (a lost reply, a restarted order) after the job began on
+            // its turn: it has begun.
+            (Conversation { running: true, .. } | Conversation { finished: true, .. }, ..)
+                if request.start_on_turn() =>
+            {
+                vec![AgendaAction::Reply(self.started_reply(&request))]
+            }
+            (Conversation { running: true, .. }, _, _) => self.refuse(&request, reason::BUSY, None),
+            (_, false, _) => self.refuse(&request, reason::UNAVAILABLE, None),
+            (_, true, true) => self.refuse(&request, reason::AGENDA_FULL, None),
+            (_, true, false) => self.append(request),
+        }
+    }
+
+    /// Appends the booking of `request`; one that asks to start on its turn is checked
+    /// as a start would be, and begins at once when it is the next job of a free
+    /// resource.
+    fn append(&mut self, request: Service) -> Vec<AgendaAction> {
+        let (priority, due) = match (request.priority(), request.due()) {
+            (Ok(priority), Ok(due)) => (priority, due),
+            (Err(detail), _) | (_, Err(detail)) => {
+                return self.refuse(&request, reason::INVALID_INFO, Some(detail))
+            }
+        };
+        let start_on_turn = request.start_on_turn();
+        if start_on_turn {
+            if let Err(detail) = self.catalog.check(&request.service_type, &request.info) {
+                return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+            }
+            if request.reply_to.is_none() {
+                let detail = "a booking that starts on its turn needs reply_to".to_string();
+                return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+            }
+        }
+        let at = self.insertion_point(priority);
+        for passed in &mut self.bookings[at..] {
+            passed.overtaken += 1;
+        }
+        self.bookings.insert(
+            at,
+            Booking {
+                requester: request.requester.clone(),
+                conversation_id: request.conversation_id.clone(),
+                service_type: request.service_type.clone(),
+                reply_to: request.reply_to.clone(),
+                info: request.info.clone(),
+                start_on_turn,
+                priority,
+                due,
+                overtaken: 0,
+            },
+        );
+        match self.start_on_turn() {
+            Some(job) => vec![
+                AgendaAction::Reply(self.started_reply(&request)),
+                AgendaAction::Execute(job),
+                AgendaAction::StateChanged,
+            ],
+            None => {
+                let reply = self.booked_reply(&request, at);
+                vec![AgendaAction::Reply(reply), AgendaAction::StateChanged]
+            }
+        }
+    }
+
+    fn cancel(&mut self, request: &Service) -> Vec<AgendaAction> {
+        match self.conversation(request).booked {
+            Some(index) => {
+                self.bookings.remove(index);
+                vec![
+                    AgendaAction::Reply(request.accepted(&self.holon)),
+                    AgendaAction::StateChanged,
+                ]
+            }
+            None => self.refuse(request, reason::NOT_BOOKED, None),
+        }
+    }
+
+    fn start(&mut self, request: Service) -> Vec<AgendaAction> {
+        let conversation = self.conversation(&request);
+        let booking = conversation
+            .booked
+            .map(|index| (index, self.bookings[index].service_type.clone()));
+        match (conversation, booking, self.state(), self.leaving()) {
+            _ if !self.catalog.offers(&request.service_type) => {
+                self.refuse(&request, reason::UNKNOWN_SERVICE, None)
+            }
+            // A repeated start of the running job, or of one that finished and whose
+            // result is on its way: it has begun.
+            (Conversation { running: true, .. } | Conversation { finished: true, .. }, ..) => {
+                vec![AgendaAction::Reply(request.accepted(&self.holon))]
+            }
+            (_, None, _, _) => self.refuse(&request, reason::NOT_BOOKED, None),
+            (_, Some(_), _, true) => self.refuse(&request, reason::UNAVAILABLE, None),
+            (_, Some((_, booked_type)), _, _) if booked_type != request.service_type => {
+                let detail = format!("the booking is for {booked_type}");
+                self.refuse(&request, reason::NOT_BOOKED, Some(detail))
+            }
+            (_, Some(_), ResourceState::Busy, _) => self.refuse(&request, reason::BUSY, None),
+            (_, Some(_), ResourceState::Init, _) => {
+                self.refuse(&request, reason::UNAVAILABLE, None)
+            }
+            (_, Some((index, _)), ResourceState::Free, false) => self.begin(index, request),
+        }
+    }
+
+    /// Makes the booking at `index` the running job, if what the steps need is there.
+    fn begin(&mut self, index: usize, request: Service) -> Vec<AgendaAction> {
+        let booking = &self.bookings[index];
+        let info = if request.info.is_empty() {
+            booking.info.clone()
+        } else {
+            request.info.clone()
+        };
+        if let Err(detail) = self.catalog.check(&request.service_type, &info) {
+            return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+        }
+        let Some(reply_to) = request
+            .reply_to
+            .clone()
+            .or_else(|| booking.reply_to.clone())
+        else {
+            let detail = "neither the start nor the booking has reply_to".to_string();
+            return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+        };
+        let job = self.run_booking(index, reply_to, info);
+        vec![
+            AgendaAction::Reply(request.accepted(&self.holon)),
+            AgendaAction::Execute(job),
+            AgendaAction::StateChanged,
+        ]
+    }
+}

@@ -1,0 +1,957 @@
+use super::*;
+use crate::catalog::pick_n_place;
+
+const INBOX: &str = "holarchy/t/order/o-1/inbox";
+
+fn manager() -> AgendaManager {
+    let mut m = AgendaManager::new(
+        HolonId::resource("robot1").unwrap(),
+        Arc::new(pick_n_place()),
+        3,
+    );
+    m.handle(AgendaEvent::ExecutionReady);
+    m
+}
+
+fn poses() -> Map<String, Value> {
+    json!({"pick": {"x": 1, "y": 2, "z": 3}, "place": {"x": 4, "y": 5, "z": 6}})
+        .as_object()
+        .unwrap()
+        .clone()
+}
+
+fn msg(kind: MessageType, order: &str, conversation: &str) -> Service {
+    Service::request(
+        kind,
+        "pick_n_place",
+        conversation,
+        HolonId::order(order).unwrap(),
+    )
+    .with_reply_to(INBOX)
+}
+
+fn book(order: &str, conversation: &str) -> Service {
+    msg(MessageType::BookingReq, order, conversation)
+}
+
+fn start(order: &str, conversation: &str) -> Service {
+    msg(MessageType::Start, order, conversation).with_info(poses())
+}
+
+fn reply(actions: &[AgendaAction]) -> &Service {
+    match actions.first() {
+        Some(AgendaAction::Reply(r)) => r,
+        other => panic!("expected a reply first, got {other:?}"),
+    }
+}
+
+fn assert_refused(actions: &[AgendaAction], why: &str) {
+    let r = reply(actions);
+    assert_eq!(r.result, Some(false), "{r:?}");
+    assert_eq!(r.reason.as_deref(), Some(why));
+    assert_eq!(actions.len(), 1, "a refusal changes nothing: {actions:?}");
+}
+
+fn assert_accepted(actions: &[AgendaAction]) {
+    let r = reply(actions);
+    assert_eq!(r.result, Some(true), "{r:?}");
+    assert_eq!(r.provider, Some(HolonId::resource("robot1").unwrap()));
+}
+
+fn done(conversation: &str) -> AgendaEvent {
+    AgendaEvent::ExecutionFinished {
+        conversation_id: conversation.into(),
+        outcome: Outcome::Done {
+            results: Map::new(),
+        },
+    }
+}
+
+#[test]
+fn starts_in_init_until_execution_is_ready() {
+    let mut m = AgendaManager::new(
+        HolonId::resource("robot1").unwrap(),
+        Arc::new(pick_n_place()),
+        3,
+    );
+    assert_eq!(m.status(), Status::Init);
+    assert_refused(
+        &m.handle(AgendaEvent::Request(book("o-1", "c1"))),
+        "unavailable",
+    );
+    assert_eq!(
+        m.handle(AgendaEvent::ExecutionReady),
+        vec![AgendaAction::StateChanged]
+    );
+    assert_eq!(m.status(), Status::Free);
+    assert_eq!(m.handle(AgendaEvent::ExecutionReady), vec![]);
+}
+
+#[test]
+fn free_empty_to_free_booked_on_booking_request() {
+    let mut m = manager();
+    let actions = m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    assert_accepted(&actions);
+    assert_eq!(reply(&actions).info["queue_position"], 1);
+    assert_eq!(actions[1], AgendaAction::StateChanged);
+    assert_eq!(m.bookings().len(), 1);
+    let actions = m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    assert_eq!(reply(&actions).info["queue_position"], 2);
+    assert_eq!(m.status(), Status::Free);
+}
+
+#[test]
+fn a_repeated_booking_request_books_once() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    let again = m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    assert_accepted(&again);
+    assert_eq!(again.len(), 1);
+    assert_eq!(m.bookings().len(), 1);
+}
+
+#[test]
+fn free_booked_to_busy_on_start_from_a_booked_requester() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    let actions = m.handle(AgendaEvent::Request(start("o-2", "c2")));
+    assert_accepted(&actions);
+    match &actions[1] {
+        AgendaAction::Execute(job) => {
+            assert_eq!(job.conversation_id, "c2");
+            assert_eq!(job.reply_to, INBOX);
+            assert_eq!(job.info, poses());
+        }
+        other => panic!("{other:?}"),
+    }
+    assert_eq!(actions[2], AgendaAction::StateChanged);
+    assert!(matches!(m.status(), Status::Busy(ref j) if j.conversation_id == "c2"));
+    assert_eq!(m.bookings().len(), 1, "the started booking left the list");
+}
+
+fn book_on_turn(order: &str, conversation: &str) -> Service {
+    book(order, conversation)
+        .with_info(poses())
+        .with_start_on_turn()
+}
+
+fn executed(actions: &[AgendaAction]) -> Vec<String> {
+    actions
+        .iter()
+        .filter_map(|a| match a {
+            AgendaAction::Execute(job) => Some(job.conversation_id.clone()),
+            _ => None,
+        })
+        .collect()
+}
+
+#[test]
+fn a_booking_on_turn_starts_at_once_on_a_free_resource() {
+    let mut m = manager();
+    let actions = m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+    assert_accepted(&actions);
+    assert!(reply(&actions).started(), "{actions:?}");
+    assert_eq!(executed(&actions), ["c1"]);
+    assert_eq!(actions.last(), Some(&AgendaAction::StateChanged));
+    assert!(
+        matches!(m.status(), Status::Busy(ref j) if j.conversation_id == "c1" && j.reply_to == INBOX)
+    );
+    assert!(m.bookings().is_empty());
+    // Asked again (a lost reply): begun, not begun twice.
+    let again = m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+    assert!(reply(&again).started());
+    assert_eq!(again.len(), 1, "{again:?}");
+    // A start (the order's fallback) finds it running.
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+    // Finished, its result not yet acknowledged: still begun, never run again.
+    m.handle(done("c1"));
+    let after = m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+    assert!(reply(&after).started());
+    assert!(executed(&after).is_empty());
+    assert!(m.bookings().is_empty());
+}
+
+#[test]
+fn a_booking_on_turn_waits_for_the_running_job_and_starts_when_it_ends() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+    let second = m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
+    assert_accepted(&second);
+    assert!(!reply(&second).started());
+    assert_eq!(reply(&second).info["queue_position"], 2);
+    let third = m.handle(AgendaEvent::Request(book_on_turn("o-3", "c3")));
+    assert_eq!(reply(&third).info["queue_position"], 3);
+    // The first ends: its result goes out and the next starts, in one transition.
+    let actions = m.handle(done("c1"));
+    assert!(matches!(actions[0], AgendaAction::Deliver(ref r) if r.conversation_id == "c1"));
+    assert_eq!(executed(&actions), ["c2"]);
+    assert_eq!(m.bookings().len(), 1);
+    // Not while the controller is away; again when it is back.
+    m.handle(AgendaEvent::ExecutionUnavailable);
+    assert!(executed(&m.handle(done("c2"))).is_empty());
+    assert_eq!(m.status(), Status::Init);
+    assert_eq!(executed(&m.handle(AgendaEvent::ExecutionReady)), ["c3"]);
+}
+
+#[test]
+fn a_booking_on_turn_does_not_pass_one_that_waits_for_its_start() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    let actions = m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
+    assert!(!reply(&actions).started());
+    assert!(executed(&actions).is_empty());
+    // The booking ahead is cancelled: the one on turn is first, and starts.
+    let actions = m.handle(AgendaEvent::Request(msg(
+        MessageType::BookingCancel,
+        "o-1",
+        "c1",
+    )));
+    assert_accepted(&actions);
+    assert_eq!(executed(&actions), ["c2"]);
+}
+
+#[test]
+fn a_booking_on_turn_without_what_its_start_needs_is_refused() {
+    let mut m = manager();
+    let no_poses = book("o-1", "c1").with_start_on_turn();
+    assert_refused(
+        &m.handle(AgendaEvent::Request(no_poses)),
+        reason::INVALID_INFO,
+    );
+    let mut no_reply_to = book_on_turn("o-1", "c1");
+    no_reply_to.reply_to = None;
+    assert_refused(
+        &m.handle(AgendaEvent::Request(no_reply_to)),
+        reason::INVALID_INFO,
+    );
+    assert!(m.bookings().is_empty());
+    assert_eq!(m.status(), Status::Free);
+}
+
+#[test]
+fn a_withdrawing_resource_starts_nothing_on_its_turn() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
+    m.handle(AgendaEvent::Withdraw);
+    assert!(executed(&m.handle(done("c1"))).is_empty());
+    assert_eq!(m.status(), Status::Free);
+}
+
+#[test]
+fn a_resource_may_not_book() {
+    let mut m = manager();
+    let by_a_resource = Service::request(
+        MessageType::BookingReq,
+        "pick_n_place",
+        "c1",
+        HolonId::resource("robot2").unwrap(),
+    )
+    .with_reply_to(INBOX);
+    let actions = m.handle(AgendaEvent::Request(by_a_resource));
+    assert_refused(&actions, reason::NOT_A_REQUESTER);
+    assert!(m.bookings().is_empty());
+}
+
+#[test]
+fn start_by_the_last_booked_client_leaves_busy_with_no_bookings() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    assert!(matches!(m.status(), Status::Busy(_)));
+    assert!(m.bookings().is_empty());
+}
+
+#[test]
+fn start_uses_the_booking_info_when_it_has_none() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1").with_info(poses())));
+    let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
+    assert!(matches!(&actions[1], AgendaAction::Execute(job) if job.info == poses()));
+}
+
+#[test]
+fn start_while_busy_is_refused_and_keeps_the_booking() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    assert_refused(&m.handle(AgendaEvent::Request(start("o-2", "c2"))), "busy");
+    assert_eq!(m.bookings().len(), 1);
+}
+
+#[test]
+fn start_without_a_booking_is_refused() {
+    let mut m = manager();
+    assert_refused(
+        &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+        "not_booked",
+    );
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    // Another requester, or another conversation of the same requester.
+    assert_refused(
+        &m.handle(AgendaEvent::Request(start("o-2", "c1"))),
+        "not_booked",
+    );
+    assert_refused(
+        &m.handle(AgendaEvent::Request(start("o-1", "c9"))),
+        "not_booked",
+    );
+    // Not booked beats busy: a stranger is told it holds no booking.
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    assert_refused(
+        &m.handle(AgendaEvent::Request(start("o-3", "c3"))),
+        "not_booked",
+    );
+}
+
+#[test]
+fn start_while_unavailable_is_refused_and_keeps_the_booking() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::ExecutionUnavailable);
+    assert_eq!(m.status(), Status::Init);
+    assert_refused(
+        &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+        "unavailable",
+    );
+    assert_eq!(m.bookings().len(), 1);
+    m.handle(AgendaEvent::ExecutionReady);
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+}
+
+#[test]
+fn start_without_what_the_steps_need_is_refused() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
+    assert_refused(&actions, "invalid_info");
+    assert!(reply(&actions).info["detail"]
+        .as_str()
+        .unwrap()
+        .contains("info.pick"));
+    let mut booking_without_reply_to = book("o-2", "c2");
+    booking_without_reply_to.reply_to = None;
+    m.handle(AgendaEvent::Request(booking_without_reply_to));
+    let mut no_reply_to = start("o-2", "c2");
+    no_reply_to.reply_to = None;
+    assert_refused(&m.handle(AgendaEvent::Request(no_reply_to)), "invalid_info");
+    assert_eq!(m.bookings().len(), 2);
+    assert_eq!(m.status(), Status::Free);
+}
+
+#[test]
+fn a_repeated_start_of_the_running_job_is_accepted_without_a_second_execution() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    let again = m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    assert_accepted(&again);
+    assert_eq!(again.len(), 1);
+}
+
+#[test]
+fn unknown_service_types_are_refused() {
+    let mut m = manager();
+    let mut weld = book("o-1", "c1");
+    weld.service_type = "weld".into();
+    assert_refused(
+        &m.handle(AgendaEvent::Request(weld.clone())),
+        "unknown_service",
+    );
+    weld.message_type = MessageType::Start;
+    assert_refused(
+        &m.handle(AgendaEvent::Request(weld.clone())),
+        "unknown_service",
+    );
+    weld.message_type = MessageType::ProposalReq;
+    let proposal = m.handle(AgendaEvent::Request(weld));
+    assert_eq!(reply(&proposal).message_type, MessageType::Proposal);
+    assert_eq!(reply(&proposal).reason.as_deref(), Some("unknown_service"));
+    assert!(m.bookings().is_empty());
+}
+
+#[test]
+fn start_for_a_booking_of_another_service_type_is_refused() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    let mut inspect = start("o-1", "c1");
+    inspect.service_type = "inspect".into();
+    assert_refused(&m.handle(AgendaEvent::Request(inspect)), "not_booked");
+}
+
+#[test]
+fn booking_cancel_removes_the_booking() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    let actions = m.handle(AgendaEvent::Request(msg(
+        MessageType::BookingCancel,
+        "o-1",
+        "c1",
+    )));
+    assert_accepted(&actions);
+    assert_eq!(actions[1], AgendaAction::StateChanged);
+    assert_eq!(m.bookings().len(), 1);
+    assert_eq!(m.bookings()[0].conversation_id, "c2");
+    // Cancel by the last booked client leaves an empty agenda.
+    m.handle(AgendaEvent::Request(msg(
+        MessageType::BookingCancel,
+        "o-2",
+        "c2",
+    )));
+    assert!(m.bookings().is_empty());
+    assert_eq!(m.status(), Status::Free);
+}
+
+#[test]
+fn booking_cancel_without_a_booking_is_refused() {
+    let mut m = manager();
+    assert_refused(
+        &m.handle(AgendaEvent::Request(msg(
+            MessageType::BookingCancel,
+            "o-1",
+            "c1",
+        ))),
+        "not_booked",
+    );
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    assert_refused(
+        &m.handle(AgendaEvent::Request(msg(
+            MessageType::BookingCancel,
+            "o-2",
+            "c1",
+        ))),
+        "not_booked",
+    );
+    assert_eq!(m.bookings().len(), 1);
+}
+
+#[test]
+fn bookings_and_cancels_while_busy_keep_it_busy() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2"))));
+    assert!(matches!(m.status(), Status::Busy(_)));
+    assert_accepted(&m.handle(AgendaEvent::Request(msg(
+        MessageType::BookingCancel,
+        "o-2",
+        "c2",
+    ))));
+    assert!(matches!(m.status(), Status::Busy(_)));
+    // The running job cannot be booked again.
+    assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "busy");
+}
+
+#[test]
+fn done_from_execution_frees_the_resource_and_delivers_the_result() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    let actions = m.handle(done("c1"));
+    let AgendaAction::Deliver(result) = &actions[0] else {
+        panic!("{actions:?}")
+    };
+    assert_eq!(result.message_type, MessageType::Done);
+    assert_eq!(result.result, Some(true));
+    assert_eq!(result.conversation_id, "c1");
+    assert_eq!(result.reply_to.as_deref(), Some(INBOX));
+    assert_eq!(result.provider, Some(HolonId::resource("robot1").unwrap()));
+    assert_eq!(actions[1], AgendaAction::StateChanged);
+    assert_eq!(m.status(), Status::Free);
+    assert_eq!(m.bookings().len(), 1, "busy_booked goes to free_booked");
+    assert_eq!(m.undelivered().len(), 1);
+}
+
+#[test]
+fn failed_from_execution_carries_the_reason() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    let actions = m.handle(AgendaEvent::ExecutionFinished {
+        conversation_id: "c1".into(),
+        outcome: Outcome::Failed {
+            reason: reason::CONTROLLER_DISCONNECTED.into(),
+            detail: "the connection broke".into(),
+        },
+    });
+    let AgendaAction::Deliver(result) = &actions[0] else {
+        panic!("{actions:?}")
+    };
+    assert_eq!(result.message_type, MessageType::Failed);
+    assert_eq!(result.result, Some(false));
+    assert_eq!(result.reason.as_deref(), Some("controller_disconnected"));
+    assert_eq!(result.info["detail"], "the connection broke");
+}
+
+#[test]
+fn a_stale_finish_changes_nothing() {
+    let mut m = manager();
+    assert_eq!(m.handle(done("c1")), vec![]);
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    assert_eq!(m.handle(done("c9")), vec![]);
+    assert!(matches!(m.status(), Status::Busy(_)));
+}
+
+#[test]
+fn unavailable_while_busy_returns_to_init_after_the_job_ends() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    m.handle(AgendaEvent::ExecutionUnavailable);
+    assert!(matches!(m.status(), Status::Busy(_)));
+    m.handle(done("c1"));
+    assert_eq!(m.status(), Status::Init);
+}
+
+#[test]
+fn acknowledgement_removes_the_undelivered_result() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    m.handle(done("c1"));
+    let ack = |c: &str| AgendaEvent::ResultAcknowledged {
+        conversation_id: c.into(),
+    };
+    assert_eq!(m.handle(ack("c9")), vec![]);
+    assert_eq!(m.handle(ack("c1")), vec![AgendaAction::StateChanged]);
+    assert!(m.undelivered().is_empty());
+    assert_eq!(m.handle(ack("c1")), vec![]);
+}
+
+#[test]
+fn withdraw_hands_every_booking_back_and_lets_the_running_job_finish() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    let mut silent = book("o-3", "c3");
+    silent.reply_to = None;
+    m.handle(AgendaEvent::Request(silent));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    let actions = m.handle(AgendaEvent::Withdraw);
+    let handed_back: Vec<&Service> = actions
+        .iter()
+        .filter_map(|a| match a {
+            AgendaAction::Deliver(s) => Some(s),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        handed_back.len(),
+        1,
+        "only bookings with a reply_to can be told"
+    );
+    assert_eq!(handed_back[0].conversation_id, "c2");
+    assert_eq!(handed_back[0].message_type, MessageType::Failed);
+    assert_eq!(handed_back[0].reason.as_deref(), Some("withdrawn"));
+    assert!(m.bookings().is_empty());
+    assert!(
+        !m.is_drained(),
+        "the running job and the hand-back are pending"
+    );
+    assert_eq!(m.handle(AgendaEvent::Withdraw), vec![]);
+    // No new work.
+    assert_refused(
+        &m.handle(AgendaEvent::Request(book("o-4", "c4"))),
+        "unavailable",
+    );
+    let mut proposal = book("o-4", "p");
+    proposal.message_type = MessageType::ProposalReq;
+    assert_eq!(
+        reply(&m.handle(AgendaEvent::Request(proposal)))
+            .reason
+            .as_deref(),
+        Some("unavailable")
+    );
+    // The running job finishes and is delivered.
+    m.handle(done("c1"));
+    for c in ["c1", "c2"] {
+        m.handle(AgendaEvent::ResultAcknowledged {
+            conversation_id: c.into(),
+        });
+    }
+    assert!(m.is_drained());
+}
+
+#[test]
+fn a_start_of_a_finished_job_whose_result_is_undelivered_is_accepted_again() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    m.handle(done("c1"));
+    let again = m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    assert_accepted(&again);
+    assert_eq!(again.len(), 1, "no second execution");
+    m.handle(AgendaEvent::ResultAcknowledged {
+        conversation_id: "c1".into(),
+    });
+    assert_refused(
+        &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+        "not_booked",
+    );
+}
+
+/// The agenda of a busy resource with two bookings on turn behind the running job,
+/// journalled and restored as `inheritance` says, its controller ready again: the
+/// restored agenda and the jobs that started.
+fn restored_with_bookings_on_turn(inheritance: Inheritance) -> (AgendaManager, Vec<String>) {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
+    m.handle(AgendaEvent::Request(book_on_turn("o-3", "c3")));
+    let json = serde_json::to_string(&m.record()).unwrap();
+    let mut restored = AgendaManager::restore(
+        HolonId::resource("robot1").unwrap(),
+        Arc::new(pick_n_place()),
+        3,
+        serde_json::from_str(&json).unwrap(),
+        inheritance,
+    );
+    let started = executed(&restored.handle(AgendaEvent::ExecutionReady));
+    (restored, started)
+}
+
+#[test]
+fn bookings_handed_over_start_on_their_turn_in_the_successor() {
+    let (_, started) = restored_with_bookings_on_turn(Inheritance::HandedOver);
+    assert_eq!(started, ["c2"]);
+}
+
+#[test]
+fn after_a_restart_a_booking_on_turn_waits_for_its_requesters_start() {
+    let (mut m, started) = restored_with_bookings_on_turn(Inheritance::Restarted);
+    assert!(started.is_empty(), "{started:?}");
+    assert_eq!(m.state(), ResourceState::Free);
+    // Its order gave up on it while the resource was away: the cancel is taken.
+    let cancel = msg(MessageType::BookingCancel, "o-2", "c2");
+    let actions = m.handle(AgendaEvent::Request(cancel));
+    assert_accepted(&actions);
+    assert!(executed(&actions).is_empty(), "{actions:?}");
+    // The other order still holds its booking and asks to start.
+    let actions = m.handle(AgendaEvent::Request(start("o-3", "c3")));
+    assert_accepted(&actions);
+    assert_eq!(executed(&actions), ["c3"]);
+}
+
+#[test]
+fn restore_reports_the_interrupted_job_and_redelivers_results() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    m.handle(AgendaEvent::Request(book("o-3", "c3")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    m.handle(done("c1"));
+    m.handle(AgendaEvent::Request(start("o-2", "c2")));
+    let record = m.record();
+    let json = serde_json::to_string(&record).unwrap();
+    let record: AgendaRecord = serde_json::from_str(&json).unwrap();
+    let restored = AgendaManager::restore(
+        HolonId::resource("robot1").unwrap(),
+        Arc::new(pick_n_place()),
+        3,
+        record,
+        Inheritance::Restarted,
+    );
+    assert_eq!(restored.bookings().len(), 1);
+    assert_eq!(restored.bookings()[0].conversation_id, "c3");
+    assert_eq!(
+        restored.status(),
+        Status::Init,
+        "no job runs after a restart"
+    );
+    let delivered: Vec<(&str, MessageType, Option<&str>)> = restored
+        .undelivered()
+        .iter()
+        .map(|s| {
+            (
+                s.conversation_id.as_str(),
+                s.message_type,
+                s.reason.as_deref(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        delivered,
+        vec![
+            ("c1", MessageType::Done, None),
+            ("c2", MessageType::Failed, Some("interrupted"))
+        ]
+    );
+}
+
+#[test]
+fn the_agenda_has_a_capacity() {
+    let mut m = manager();
+    for i in 0..3 {
+        assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", &format!("c{i}")))));
+    }
+    assert_refused(
+        &m.handle(AgendaEvent::Request(book("o-1", "c3"))),
+        "agenda_full",
+    );
+    let mut proposal = book("o-2", "p");
+    proposal.message_type = MessageType::ProposalReq;
+    let actions = m.handle(AgendaEvent::Request(proposal));
+    assert_eq!(reply(&actions).reason.as_deref(), Some("agenda_full"));
+}
+
+#[test]
+fn proposals_report_the_expected_wait() {
+    let mut m = manager();
+    let mut proposal = book("o-9", "p1");
+    proposal.message_type = MessageType::ProposalReq;
+    let actions = m.handle(AgendaEvent::Request(proposal.clone()));
+    let r = reply(&actions);
+    assert_eq!(r.message_type, MessageType::Proposal);
+    assert_eq!(r.result, Some(true));
+    assert_eq!(r.info["expected_wait_ms"], 0);
+    assert_eq!(r.info["state"], "free");
+    assert_eq!(actions.len(), 1, "a proposal books nothing");
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    let actions = m.handle(AgendaEvent::Request(proposal.clone()));
+    assert_eq!(reply(&actions).info["expected_wait_ms"], 2000);
+    assert_eq!(reply(&actions).info["queue_position"], 2);
+    m.handle(AgendaEvent::ExecutionUnavailable);
+    let actions = m.handle(AgendaEvent::Request(proposal));
+    assert_eq!(reply(&actions).reason.as_deref(), Some("unavailable"));
+}
+
+/// A ready agenda of room for 16 bookings, running `c0` so the others wait.
+fn busy_manager(max_overtakes: u32) -> AgendaManager {
+    let mut m = AgendaManager::new(
+        HolonId::resource("robot1").unwrap(),
+        Arc::new(pick_n_place()),
+        16,
+    )
+    .with_max_overtakes(max_overtakes);
+    m.handle(AgendaEvent::ExecutionReady);
+    m.handle(AgendaEvent::Request(book("o-0", "c0")));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-0", "c0"))));
+    m
+}
+
+fn urgent(order: &str, conversation: &str, priority: i32) -> Service {
+    book(order, conversation).with_urgency(priority, None)
+}
+
+fn waiting(m: &AgendaManager) -> Vec<(&str, i32, u32)> {
+    m.bookings()
+        .iter()
+        .map(|b| (b.conversation_id.as_str(), b.priority, b.overtaken))
+        .collect()
+}
+
+#[test]
+fn bookings_wait_by_priority_then_in_the_order_they_came() {
+    let mut m = busy_manager(4);
+    m.handle(AgendaEvent::Request(urgent("o-1", "c1", 0)));
+    m.handle(AgendaEvent::Request(urgent("o-2", "c2", 0)));
+    let rush = m.handle(AgendaEvent::Request(urgent("o-3", "c3", 100)));
+    assert_accepted(&rush);
+    assert_eq!(
+        reply(&rush).info["queue_position"],
+        2,
+        "behind the running job only"
+    );
+    m.handle(AgendaEvent::Request(urgent("o-4", "c4", 100)));
+    m.handle(AgendaEvent::Request(urgent("o-5", "c5", 50)));
+    m.handle(AgendaEvent::Request(urgent("o-6", "c6", -5)));
+    assert_eq!(
+        waiting(&m),
+        vec![
+            ("c3", 100, 0),
+            ("c4", 100, 0),
+            ("c5", 50, 0),
+            ("c1", 0, 3),
+            ("c2", 0, 3),
+            ("c6", -5, 0)
+        ]
+    );
+    // A proposal says where a booking of its priority would stand: a rush order
+    // waits for the running job and the two rush bookings only.
+    let mut ask = urgent("o-9", "p1", 100);
+    ask.message_type = MessageType::ProposalReq;
+    let r = m.handle(AgendaEvent::Request(ask.clone()));
+    assert_eq!(reply(&r).info["queue_position"], 3);
+    assert_eq!(reply(&r).info["expected_wait_ms"], 3000);
+    ask.info.remove(schemas::info_key::PRIORITY);
+    let r = m.handle(AgendaEvent::Request(ask));
+    assert_eq!(
+        reply(&r).info["queue_position"],
+        6,
+        "priority 0 waits behind c2"
+    );
+    // The snapshot shows each booking's priority and how often it was passed.
+    let view = m.snapshot();
+    assert_eq!(view.agenda[3].priority, 0);
+    assert_eq!(view.agenda[3].overtaken, 3);
+    assert_eq!(view.agenda[0].priority, 100);
+}
+
+#[test]
+fn a_waiting_booking_is_passed_at_most_max_overtakes_times() {
+    let mut m = busy_manager(2);
+    m.handle(AgendaEvent::Request(urgent("o-1", "c1", 0)));
+    for (order, conversation) in [("o-2", "c2"), ("o-3", "c3"), ("o-4", "c4")] {
+        m.handle(AgendaEvent::Request(urgent(order, conversation, 10)));
+    }
+    // c2 and c3 passed c1; c4 may not (c1 was passed twice), nor can anything later.
+    assert_eq!(
+        waiting(&m),
+        vec![("c2", 10, 0), ("c3", 10, 0), ("c1", 0, 2), ("c4", 10, 0)]
+    );
+    m.handle(AgendaEvent::Request(urgent("o-5", "c5", 1000)));
+    assert_eq!(
+        waiting(&m)[2..],
+        [("c1", 0, 2), ("c5", 1000, 0), ("c4", 10, 1)],
+        "the bound holds for every priority"
+    );
+    // With no overtakes allowed, bookings wait in the order they came.
+    let mut fifo = busy_manager(0);
+    fifo.handle(AgendaEvent::Request(urgent("o-1", "c1", -1000)));
+    fifo.handle(AgendaEvent::Request(urgent("o-2", "c2", 1000)));
+    assert_eq!(waiting(&fifo), vec![("c1", -1000, 0), ("c2", 1000, 0)]);
+}
+
+#[test]
+fn a_priority_or_due_time_that_is_not_one_is_refused_and_changes_nothing() {
+    let mut m = busy_manager(4);
+    for (key, bad) in [
+        (schemas::info_key::PRIORITY, json!("high")),
+        (schemas::info_key::PRIORITY, json!(1001)),
+        (schemas::info_key::PRIORITY, json!(1.5)),
+        (schemas::info_key::DUE, json!(-1)),
+        (schemas::info_key::DUE, json!("tomorrow")),
+    ] {
+        let mut request = book("o-1", "c1");
+        request.info.insert(key.into(), bad.clone());
+        let actions = m.handle(AgendaEvent::Request(request.clone()));
+        assert_refused(&actions, "invalid_info");
+        let detail = reply(&actions).info["detail"].as_str().unwrap().to_string();
+        assert!(detail.contains(key), "{bad}: {detail}");
+        if key == schemas::info_key::PRIORITY {
+            request.message_type = MessageType::ProposalReq;
+            assert_refused(&m.handle(AgendaEvent::Request(request)), "invalid_info");
+        }
+    }
+    assert!(m.bookings().is_empty());
+    let ok = m.handle(AgendaEvent::Request(
+        book("o-1", "c1").with_urgency(-1000, Some(1_700_000_000_000)),
+    ));
+    assert_accepted(&ok);
+    assert_eq!(m.bookings()[0].due, Some(1_700_000_000_000));
+}
+
+#[test]
+fn a_booking_journalled_before_priorities_reads_as_priority_zero() {
+    let old = json!({"requester": "order/o-1", "conversation_id": "c1",
+        "service_type": "pick_n_place", "reply_to": INBOX, "info": {}});
+    let booking: Booking = serde_json::from_value(old).unwrap();
+    assert_eq!(
+        (booking.priority, booking.due, booking.overtaken),
+        (0, None, 0)
+    );
+}
+
+#[test]
+fn a_requester_gone_for_good_loses_its_bookings_not_its_running_job() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c2")));
+    m.handle(AgendaEvent::Request(book("o-2", "c3")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    let actions = m.handle(AgendaEvent::RequesterGone {
+        requester: HolonId::order("o-1").unwrap(),
+    });
+    assert_eq!(actions, vec![AgendaAction::StateChanged]);
+    let left: Vec<_> = m
+        .bookings()
+        .iter()
+        .map(|b| b.conversation_id.as_str())
+        .collect();
+    assert_eq!(left, vec!["c3"], "o-2's booking stays");
+    assert_eq!(m.current().map(|j| j.conversation_id.as_str()), Some("c1"));
+    let again = m.handle(AgendaEvent::RequesterGone {
+        requester: HolonId::order("o-1").unwrap(),
+    });
+    assert!(again.is_empty(), "nothing left to release: {again:?}");
+}
+
+fn proposal_req(order: &str, service_type: &str) -> Service {
+    Service::request(
+        MessageType::ProposalReq,
+        service_type,
+        "c0",
+        HolonId::order(order).unwrap(),
+    )
+}
+
+#[test]
+fn proposal_refusals_come_in_the_tables_order() {
+    let mut m = AgendaManager::new(
+        HolonId::resource("robot1").unwrap(),
+        Arc::new(pick_n_place()),
+        1,
+    );
+    // Not offered beats unavailable.
+    let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "weld")));
+    assert_eq!(reply(&r).reason.as_deref(), Some("unknown_service"));
+    let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "pick_n_place")));
+    assert_eq!(reply(&r).reason.as_deref(), Some("unavailable"));
+    m.handle(AgendaEvent::ExecutionReady);
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    let r = m.handle(AgendaEvent::Request(proposal_req("o-2", "pick_n_place")));
+    assert_eq!(reply(&r).reason.as_deref(), Some("agenda_full"));
+    assert_eq!(reply(&r).message_type, MessageType::Proposal);
+    // A proposal changes nothing.
+    assert_eq!(r.len(), 1);
+}
+
+#[test]
+fn a_booking_request_for_the_running_conversation_is_refused_busy() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "busy");
+}
+
+#[test]
+fn a_repeated_withdraw_and_an_unknown_acknowledgement_change_nothing() {
+    let mut m = manager();
+    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    assert!(!m.handle(AgendaEvent::Withdraw).is_empty());
+    assert_eq!(m.handle(AgendaEvent::Withdraw), vec![]);
+    assert_eq!(
+        m.handle(AgendaEvent::ResultAcknowledged {
+            conversation_id: "nobody".into()
+        }),
+        vec![]
+    );
+    assert_eq!(
+        m.handle(AgendaEvent::RequesterGone {
+            requester: HolonId::order("o-9").unwrap()
+        }),
+        vec![]
+    );
+}
+
+#[test]
+fn requests_that_are_not_for_the_agenda_are_refused() {
+    let mut m = manager();
+    for kind in [
+        MessageType::Status,
+        MessageType::Done,
+        MessageType::Proposal,
+    ] {
+        assert_refused(
+            &m.handle(AgendaEvent::Request(msg(kind, "o-1", "c1"))),
+            "unknown_service",
+        );
+    }
+}
