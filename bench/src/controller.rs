@@ -41,7 +41,12 @@ pub async fn section(
         let at = if *name == "holarchy-xml" {
             address.to_string()
         } else {
-            let sim = Sim::start(dir, &format!("sim-{name}"), "127.0.0.1:0", &["--dialect", name])?;
+            let sim = Sim::start(
+                dir,
+                &format!("sim-{name}"),
+                "127.0.0.1:0",
+                &["--dialect", name],
+            )?;
             let at = sim.address.clone();
             sims.push(sim);
             at
@@ -71,7 +76,11 @@ pub async fn section(
     let codec = &latencies[0];
     table.add(
         "controller command: codec (before dialects)",
-        format!("p50 {:.0} us, p99 {:.0} us", codec.pct(0.5), codec.pct(0.99)),
+        format!(
+            "p50 {:.0} us, p99 {:.0} us",
+            codec.pct(0.5),
+            codec.pct(0.99)
+        ),
         format!("TCP p50 {:.0} us", tcp.pct(0.5)),
         codec.json(),
     );
@@ -165,11 +174,9 @@ impl Client {
             })
             .await?;
         match tokio::time::timeout(Duration::from_secs(10), self.events.recv()).await {
-            Ok(Some(ControllerEvent::Reply { id: got, result, .. }))
-                if got == id && result == "picking_done" =>
-            {
-                Ok(t.elapsed())
-            }
+            Ok(Some(ControllerEvent::Reply {
+                id: got, result, ..
+            })) if got == id && result == "picking_done" => Ok(t.elapsed()),
             Ok(other) => bail!("unexpected {other:?}"),
             Err(_) => bail!("no reply within 10 s"),
         }
