@@ -875,7 +875,34 @@ impl Cell {
             command_timeout_ms: 5000,
             config_extra: String::new(),
             node_flags: Vec::new(),
+            dialect: None,
         }
+    }
+
+    /// Books and starts one `pick_n_place` job on `resource` for `order` (both must be
+    /// accepted), and returns the result `inbox` (the order's) then gets.
+    pub async fn job(
+        &self,
+        resource: &str,
+        inbox: &mut Inbox,
+        order: &str,
+        conversation: &str,
+    ) -> Result<Service> {
+        for kind in [MessageType::BookingReq, MessageType::Start] {
+            let request = pick_n_place(&self.keys, kind, order, conversation);
+            let answer = self.service(resource, &request).await?;
+            if answer.result != Some(true) {
+                bail!("{kind:?} for {conversation} on {resource} refused: {answer:?}");
+            }
+        }
+        inbox.next().await
+    }
+
+    /// Waits until `resource` is free again.
+    pub async fn wait_free(&self, resource: &str) -> Result<()> {
+        self.wait_state(resource, "free again", |s| s["state"] == "free")
+            .await
+            .map(|_| ())
     }
 
     /// Submits a work order on `orders/submit` and returns the new orders' names.
@@ -907,6 +934,8 @@ pub struct ResourceBuilder<'a> {
     command_timeout_ms: u64,
     config_extra: String,
     node_flags: Vec<String>,
+    /// The controller dialect of both the simulator and the holon (None: the default).
+    dialect: Option<String>,
 }
 
 impl ResourceBuilder<'_> {
@@ -927,6 +956,13 @@ impl ResourceBuilder<'_> {
         self
     }
 
+    /// The controller dialect both the simulator and the holon speak (a shipped name or
+    /// a file), set in the config's `[controller]` section and by `--dialect`.
+    pub fn dialect(mut self, dialect: &str) -> Self {
+        self.dialect = Some(dialect.to_string());
+        self
+    }
+
     /// Extra flags of `holon-node` (e.g. `--data-dir DIR`).
     pub fn node_flags(mut self, flags: &[&str]) -> Self {
         self.node_flags = flags.iter().map(|f| f.to_string()).collect();
@@ -936,7 +972,10 @@ impl ResourceBuilder<'_> {
     /// Starts the simulator (`<name>-sim`), writes the config (`<name>.toml`) and starts
     /// the resource holon on it, and waits until the holon is alive and free.
     pub async fn start(self) -> Result<Resource> {
-        let sim_flags: Vec<&str> = self.sim_flags.iter().map(String::as_str).collect();
+        let mut sim_flags: Vec<&str> = self.sim_flags.iter().map(String::as_str).collect();
+        if let Some(dialect) = &self.dialect {
+            sim_flags.extend(["--dialect", dialect.as_str()]);
+        }
         let sim = Sim::start(
             &self.dir,
             &format!("{}-sim", self.name),
@@ -944,6 +983,14 @@ impl ResourceBuilder<'_> {
             &sim_flags,
         )?;
         let config = resource_config(&self.dir, &self.name, self.command_timeout_ms)?;
+        if let Some(dialect) = &self.dialect {
+            let text = fs::read_to_string(&config)?.replacen(
+                "[controller]\n",
+                &format!("[controller]\ndialect = {dialect:?}\n"),
+                1,
+            );
+            fs::write(&config, text)?;
+        }
         if !self.config_extra.is_empty() {
             let mut text = fs::read_to_string(&config)?;
             text.push_str(&self.config_extra);

@@ -32,29 +32,14 @@ async fn robot(cell: &str, sim_flags: &[&str]) -> Robot {
 impl Robot {
     /// Books and starts one job for `order`, and returns the result its inbox gets.
     async fn job(&self, inbox: &mut Inbox, order: &str, conversation: &str) -> Service {
-        let book = pick_n_place(
-            &self.cell.keys,
-            MessageType::BookingReq,
-            order,
-            conversation,
-        );
-        assert_eq!(
-            self.cell.service("robot1", &book).await.unwrap().result,
-            Some(true)
-        );
-        let start = pick_n_place(&self.cell.keys, MessageType::Start, order, conversation);
-        assert_eq!(
-            self.cell.service("robot1", &start).await.unwrap().result,
-            Some(true)
-        );
-        inbox.next().await.unwrap()
+        self.cell
+            .job("robot1", inbox, order, conversation)
+            .await
+            .unwrap()
     }
 
     async fn free(&self) {
-        self.cell
-            .wait_state("robot1", "free again", |s| s["state"] == "free")
-            .await
-            .unwrap();
+        self.cell.wait_free("robot1").await.unwrap();
     }
 }
 

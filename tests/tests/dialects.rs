@@ -25,56 +25,34 @@ fn config_with_dialect(dir: &Path, name: &str, dialect: &str) -> PathBuf {
 
 struct Robot {
     cell: Cell,
-    sim: Sim,
-    _node: Process,
+    resource: Resource,
     _dir: tempfile::TempDir,
 }
 
 async fn robot(cell: &str, dialect: &str, sim_flags: &[&str]) -> Robot {
     let dir = tempfile::tempdir().unwrap();
     let cell = Cell::open(cell).await.unwrap();
-    let mut flags = vec!["--dialect", dialect];
-    flags.extend_from_slice(sim_flags);
-    let sim = Sim::start(dir.path(), "sim", "127.0.0.1:0", &flags).unwrap();
-    let config = config_with_dialect(dir.path(), "robot1", dialect);
-    let node = cell
-        .start_free_resource(dir.path(), &config, &sim.address, &[])
+    let resource = cell
+        .resource(dir.path(), "robot1")
+        .dialect(dialect)
+        .sim_flags(sim_flags)
+        .command_timeout_ms(2000)
+        .start()
         .await
         .unwrap();
     Robot {
         cell,
-        sim,
-        _node: node,
+        resource,
         _dir: dir,
     }
 }
 
 impl Robot {
-    /// Books and starts one job for `order`, and returns the result its inbox gets.
-    async fn job(&self, inbox: &mut Inbox, order: &str, conversation: &str) -> Service {
-        let book = pick_n_place(
-            &self.cell.keys,
-            MessageType::BookingReq,
-            order,
-            conversation,
-        );
-        assert_eq!(
-            self.cell.service("robot1", &book).await.unwrap().result,
-            Some(true)
-        );
-        let start = pick_n_place(&self.cell.keys, MessageType::Start, order, conversation);
-        assert_eq!(
-            self.cell.service("robot1", &start).await.unwrap().result,
-            Some(true)
-        );
-        inbox.next().await.unwrap()
-    }
-
-    async fn free(&self) {
+    async fn job(&self, inbox: &mut Inbox, conversation: &str) -> Service {
         self.cell
-            .wait_state("robot1", "free again", |s| s["state"] == "free")
+            .job("robot1", inbox, "o-1", conversation)
             .await
-            .unwrap();
+            .unwrap()
     }
 }
 
@@ -83,7 +61,7 @@ async fn a_holon_drives_every_shipped_dialect() {
     for (i, dialect) in DIALECTS.iter().enumerate() {
         let r = robot(&format!("t-dialect-{i}"), dialect, &[]).await;
         let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
-        let result = r.job(&mut inbox, "o-1", "c1").await;
+        let result = r.job(&mut inbox, "c1").await;
         assert_eq!(
             result.message_type,
             MessageType::Done,
@@ -91,8 +69,8 @@ async fn a_holon_drives_every_shipped_dialect() {
         );
         assert_eq!(result.info["results"]["pick"], "picking_done", "{dialect}");
         assert_eq!(result.info["results"]["place"], "placing_done", "{dialect}");
-        assert_eq!(r.sim.executed("pick"), 1, "{dialect}");
-        assert_eq!(r.sim.executed("place"), 1, "{dialect}");
+        assert_eq!(r.resource.sim.executed("pick"), 1, "{dialect}");
+        assert_eq!(r.resource.sim.executed("place"), 1, "{dialect}");
         let state = r.cell.status("robot1").await.unwrap();
         assert_eq!(state["controller"], "ready", "{dialect}: {state}");
     }
@@ -109,7 +87,7 @@ async fn garbage_in_any_dialect_fails_the_step_and_the_holon_serves_on() {
         )
         .await;
         let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
-        let result = r.job(&mut inbox, "o-1", "c1").await;
+        let result = r.job(&mut inbox, "c1").await;
         assert_eq!(
             result.message_type,
             MessageType::Failed,
@@ -120,15 +98,15 @@ async fn garbage_in_any_dialect_fails_the_step_and_the_holon_serves_on() {
             Some("controller_protocol_error"),
             "{dialect}: {result:?}"
         );
-        r.free().await;
-        let result = r.job(&mut inbox, "o-1", "c2").await;
+        r.cell.wait_free("robot1").await.unwrap();
+        let result = r.job(&mut inbox, "c2").await;
         assert_eq!(
             result.message_type,
             MessageType::Done,
             "{dialect}: {result:?}"
         );
-        assert_eq!(r.sim.executed("pick"), 1, "{dialect}");
-        assert_eq!(r.sim.executed("place"), 1, "{dialect}");
+        assert_eq!(r.resource.sim.executed("pick"), 1, "{dialect}");
+        assert_eq!(r.resource.sim.executed("place"), 1, "{dialect}");
     }
 }
 
