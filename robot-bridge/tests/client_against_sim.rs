@@ -2,110 +2,11 @@
 
 use std::time::Duration;
 
-use robot_bridge::client::{self, ClientConfig, CommandFailure, ControllerEvent, ControllerStatus};
-use robot_bridge::sim::{SimConfig, SimStats, Simulator};
-use schemas::{Pose, RobotCommand};
-use std::sync::Arc;
-use tokio::sync::mpsc;
-use tokio_util::sync::CancellationToken;
+mod common;
 
-const WAIT: Duration = Duration::from_secs(10);
-
-struct Harness {
-    commands: mpsc::Sender<RobotCommand>,
-    events: mpsc::Receiver<ControllerEvent>,
-    shutdown: CancellationToken,
-    client: tokio::task::JoinHandle<()>,
-}
-
-impl Harness {
-    fn start(address: String, command_timeout: Duration) -> Harness {
-        let (commands, mut command_rx) = mpsc::channel(16);
-        let (event_tx, events) = mpsc::channel(16);
-        let shutdown = CancellationToken::new();
-        let config = ClientConfig {
-            address,
-            reconnect_interval: Duration::from_millis(100),
-            command_timeout,
-            connect_timeout: Duration::from_secs(1),
-            ..ClientConfig::new("")
-        };
-        let client = tokio::spawn({
-            let shutdown = shutdown.clone();
-            async move { client::run(config, &mut command_rx, event_tx, shutdown).await }
-        });
-        Harness {
-            commands,
-            events,
-            shutdown,
-            client,
-        }
-    }
-
-    async fn next(&mut self) -> ControllerEvent {
-        tokio::time::timeout(WAIT, self.events.recv())
-            .await
-            .expect("no event in time")
-            .expect("client gone")
-    }
-
-    async fn wait_ready(&mut self) {
-        loop {
-            if self.next().await == ControllerEvent::Status(ControllerStatus::Ready) {
-                return;
-            }
-        }
-    }
-
-    async fn send(&self, id: u64, action: &str) {
-        self.send_for(id, action, None).await
-    }
-
-    /// Sends a command of `program` (a product variant).
-    async fn send_for(&self, id: u64, action: &str, program: Option<&str>) {
-        let pos = Some(Pose {
-            x: 1.0,
-            y: 2.0,
-            z: 3.0,
-            ..Pose::default()
-        });
-        self.commands
-            .send(RobotCommand {
-                id,
-                action: action.into(),
-                pos,
-                program: program.map(str::to_string),
-                info: Default::default(),
-            })
-            .await
-            .unwrap();
-    }
-
-    async fn stop(self) {
-        self.shutdown.cancel();
-        tokio::time::timeout(WAIT, self.client)
-            .await
-            .unwrap()
-            .unwrap();
-    }
-}
-
-async fn start_sim(address: &str, config: SimConfig) -> (String, Arc<SimStats>, CancellationToken) {
-    let sim = Simulator::bind(address, config).await.unwrap();
-    let address = sim.local_addr().unwrap().to_string();
-    let stats = sim.stats();
-    let shutdown = CancellationToken::new();
-    tokio::spawn(sim.run(shutdown.clone()));
-    (address, stats, shutdown)
-}
-
-fn reply(id: u64, result: &str) -> ControllerEvent {
-    ControllerEvent::Reply {
-        id,
-        result: result.into(),
-        message: None,
-    }
-}
+use common::{reply, start_sim, Harness};
+use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
+use robot_bridge::sim::SimConfig;
 
 #[tokio::test(flavor = "multi_thread")]
 async fn executes_commands_and_tracks_status() {

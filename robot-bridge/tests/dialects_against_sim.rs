@@ -7,138 +7,13 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use robot_bridge::client::{self, ClientConfig, CommandFailure, ControllerEvent, ControllerStatus};
+mod common;
+
+use common::{reply, start_sim, Harness, WAIT};
+use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
 use robot_bridge::dialect::{Dialect, SHIPPED};
 use robot_bridge::sim::{SimConfig, SimStats, Simulator};
-use schemas::{Pose, RobotCommand};
-use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
-
-const WAIT: Duration = Duration::from_secs(10);
-
-struct Harness {
-    commands: mpsc::Sender<RobotCommand>,
-    events: mpsc::Receiver<ControllerEvent>,
-    shutdown: CancellationToken,
-    client: tokio::task::JoinHandle<()>,
-    dialect: String,
-}
-
-impl Harness {
-    fn start(dialect: Arc<Dialect>, address: String, command_timeout: Duration) -> Harness {
-        let (commands, mut command_rx) = mpsc::channel(16);
-        let (event_tx, events) = mpsc::channel(64);
-        let shutdown = CancellationToken::new();
-        let name = dialect.name.clone();
-        let config = ClientConfig {
-            reconnect_interval: Duration::from_millis(100),
-            command_timeout,
-            connect_timeout: Duration::from_secs(2),
-            dialect,
-            ..ClientConfig::new(address)
-        };
-        let client = tokio::spawn({
-            let shutdown = shutdown.clone();
-            async move { client::run(config, &mut command_rx, event_tx, shutdown).await }
-        });
-        Harness {
-            commands,
-            events,
-            shutdown,
-            client,
-            dialect: name,
-        }
-    }
-
-    async fn next(&mut self) -> ControllerEvent {
-        tokio::time::timeout(WAIT, self.events.recv())
-            .await
-            .unwrap_or_else(|_| panic!("{}: no event in time", self.dialect))
-            .expect("client gone")
-    }
-
-    /// The next event that is not a status.
-    async fn answer(&mut self) -> ControllerEvent {
-        loop {
-            match self.next().await {
-                ControllerEvent::Status(_) => continue,
-                other => return other,
-            }
-        }
-    }
-
-    async fn wait_status(&mut self, status: ControllerStatus) {
-        loop {
-            if self.next().await == ControllerEvent::Status(status) {
-                return;
-            }
-        }
-    }
-
-    /// A pick from `id` on, sent again while the client is (re)connecting, served.
-    async fn serve_again(&mut self, mut id: u64, what: &str) {
-        loop {
-            self.send(id, "pick").await;
-            match self.answer().await {
-                ControllerEvent::CommandFailed {
-                    failure: CommandFailure::NotConnected | CommandFailure::Disconnected,
-                    ..
-                } => {
-                    self.wait_status(ControllerStatus::Ready).await;
-                    id += 1;
-                }
-                other => {
-                    assert_eq!(other, reply(id, "picking_done"), "{what}");
-                    return;
-                }
-            }
-        }
-    }
-
-    async fn send(&self, id: u64, action: &str) {
-        let pos = Some(Pose {
-            x: 100.0,
-            y: 20.5,
-            z: -5.0,
-            ..Pose::default()
-        });
-        self.commands
-            .send(RobotCommand {
-                id,
-                action: action.into(),
-                pos,
-                program: Some("b2".into()),
-                info: Default::default(),
-            })
-            .await
-            .unwrap();
-    }
-
-    async fn stop(self) {
-        self.shutdown.cancel();
-        tokio::time::timeout(WAIT, self.client)
-            .await
-            .unwrap()
-            .unwrap();
-    }
-}
-
-async fn start_sim(config: SimConfig) -> (String, Arc<SimStats>, CancellationToken) {
-    let sim = Simulator::bind("127.0.0.1:0", config).await.unwrap();
-    let address = sim.local_addr().unwrap().to_string();
-    let stats = sim.stats();
-    let shutdown = CancellationToken::new();
-    tokio::spawn(sim.run(shutdown.clone()));
-    (address, stats, shutdown)
-}
-
-fn reply(id: u64, result: &str) -> ControllerEvent {
-    ControllerEvent::Reply {
-        id,
-        result: result.into(),
-        message: None,
-    }
-}
 
 fn dialects() -> Vec<Arc<Dialect>> {
     SHIPPED
@@ -158,8 +33,8 @@ async fn ready(
         delay: Duration::from_millis(5),
         ..faults
     };
-    let (address, stats, sim) = start_sim(config).await;
-    let mut h = Harness::start(dialect.clone(), address, command_timeout);
+    let (address, stats, sim) = start_sim("127.0.0.1:0", config).await;
+    let mut h = Harness::start_in(dialect.clone(), address, command_timeout, Some("b2"));
     h.wait_status(ControllerStatus::Ready).await;
     (h, stats, sim)
 }
@@ -421,7 +296,12 @@ async fn a_controller_that_connects_to_the_holon() {
         .local_addr()
         .unwrap()
         .to_string();
-    let mut h = Harness::start(dialect.clone(), address.clone(), Duration::from_secs(5));
+    let mut h = Harness::start_in(
+        dialect.clone(),
+        address.clone(),
+        Duration::from_secs(5),
+        Some("b2"),
+    );
     let sim = Simulator::dialing(
         &address,
         SimConfig {
