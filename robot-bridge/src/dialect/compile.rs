@@ -3,31 +3,13 @@
 
 use super::file::{Correlation, DialectFile, FramingKind, Outcome, StatusSource};
 use super::framing::{ByteOrder, Framing};
-use super::messages::{captures, compile_command, compile_reply, templates_of};
+use super::messages::{
+    captures, compile_command, compile_reply, invalid, templates_of, valid_name,
+};
 use super::values::{Enums, ValueFormat};
 use super::{Command, Dialect, DialectError, Element, Keepalive, Reply, Sending, Status};
 use crate::codec::parse_tree;
 use std::time::Duration;
-
-pub(super) fn invalid(
-    origin: &str,
-    field: impl Into<String>,
-    why: impl Into<String>,
-) -> DialectError {
-    DialectError::Invalid {
-        origin: origin.to_string(),
-        field: field.into(),
-        why: why.into(),
-    }
-}
-
-pub(super) fn valid_name(name: &str) -> bool {
-    !name.is_empty()
-        && name.len() <= 64
-        && name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
-}
 
 /// Reads escapes in a terminator: `\n`, `\r`, `\t`, `\0`, `\xHH`.
 fn unescape_bytes(text: &str) -> Result<Vec<u8>, String> {

@@ -5,13 +5,32 @@ use regex::Regex;
 use schemas::ControllerState;
 
 use super::binary::{self, BinaryTemplate};
-use super::compile::{invalid, valid_name};
 use super::file::{FramingKind, MessageSection, Outcome, ReplySection};
 use super::framing::ByteOrder;
 use super::template::Template;
 use super::values::{self, Enums};
 use super::xml::XmlTemplate;
 use super::{Body, Command, DialectError, Reply};
+
+pub(super) fn invalid(
+    origin: &str,
+    field: impl Into<String>,
+    why: impl Into<String>,
+) -> DialectError {
+    DialectError::Invalid {
+        origin: origin.to_string(),
+        field: field.into(),
+        why: why.into(),
+    }
+}
+
+pub(super) fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 64
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+}
 
 /// A message's body as the file gives it: `xml`, `text` or `fields`.
 type Given<'a> = (
