@@ -237,3 +237,178 @@ async fn attempt(
     }
     Ok(false)
 }
+
+#[cfg(test)]
+mod tests {
+    //! The delivery of results against a requester's inbox on a real zenoh session (one
+    //! peer, on loopback, that both sends and answers).
+
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::sync::Arc;
+
+    use schemas::{MessageType, Service};
+
+    use super::*;
+
+    const INBOX: &str = "holarchy/test/inbox/o-1";
+
+    fn settings() -> DeliverySettings {
+        DeliverySettings {
+            retry_initial: Duration::from_millis(20),
+            retry_max: Duration::from_millis(80),
+            attempt_timeout: Duration::from_millis(500),
+        }
+    }
+
+    async fn session() -> zenoh::Session {
+        let mut config = zenoh::Config::default();
+        for (key, value) in [
+            ("mode", "\"peer\""),
+            ("scouting/multicast/enabled", "false"),
+            ("listen/endpoints", "[\"tcp/127.0.0.1:0\"]"),
+        ] {
+            config.insert_json5(key, value).unwrap();
+        }
+        zenoh::open(config).await.unwrap()
+    }
+
+    fn done(conversation: &str) -> Service {
+        Service::request(
+            MessageType::Done,
+            "pick_n_place",
+            conversation,
+            HolonId::order("o-1").unwrap(),
+        )
+        .with_reply_to(INBOX)
+    }
+
+    /// An inbox that refuses the first `refuse` results it gets, then acknowledges (or,
+    /// with `wrong`, answers with another conversation); counts what it got.
+    async fn inbox(
+        session: &zenoh::Session,
+        refuse: usize,
+        wrong: bool,
+    ) -> (Arc<AtomicUsize>, zenoh::query::Queryable<()>) {
+        let got = Arc::new(AtomicUsize::new(0));
+        let counter = got.clone();
+        let queryable = session
+            .declare_queryable(INBOX)
+            .callback(move |query| {
+                let n = counter.fetch_add(1, Ordering::SeqCst);
+                let Some(payload) = query.payload() else {
+                    return;
+                };
+                let mut ack = Service::from_json(&payload.to_bytes()).unwrap();
+                tokio::spawn(async move {
+                    let sent = if n < refuse {
+                        query
+                            .reply_err(schemas::ErrorReply::new("not_booked", "not yet").to_json())
+                            .await
+                    } else {
+                        if wrong {
+                            ack.conversation_id.push_str("-other");
+                        }
+                        ack.result = Some(true);
+                        query.reply(query.key_expr().clone(), ack.to_json()).await
+                    };
+                    sent.unwrap();
+                });
+            })
+            .await
+            .unwrap();
+        (got, queryable)
+    }
+
+    /// Runs the deliveries' loop (as the communication component does) until `until`
+    /// conversations are acknowledged or `deadline` passes; returns them in order.
+    async fn run(deliveries: &mut Deliveries, until: usize, deadline: Duration) -> Vec<String> {
+        let mut acked = Vec::new();
+        let end = Instant::now() + deadline;
+        while acked.len() < until && Instant::now() < end {
+            let due = deliveries.next_due().unwrap_or(end).min(end);
+            tokio::select! {
+                ended = deliveries.attempt_ended() => {
+                    if let Some(conversation) = ended.and_then(|e| deliveries.ended(e)) {
+                        acked.push(conversation);
+                    }
+                }
+                _ = tokio::time::sleep_until(due) => deliveries.send_due(),
+            }
+        }
+        acked
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_result_is_sent_until_acknowledged() {
+        let session = session().await;
+        let (got, _inbox) = inbox(&session, 3, false).await;
+        let holon = HolonId::resource("robot1").unwrap();
+        let mut deliveries = Deliveries::new(holon, session.clone(), settings());
+        deliveries.add(done("c1"));
+        // A repeat of a pending result changes nothing.
+        deliveries.add(done("c1"));
+        let acked = run(&mut deliveries, 1, Duration::from_secs(10)).await;
+        assert_eq!(acked, vec!["c1".to_string()]);
+        assert_eq!(
+            got.load(Ordering::SeqCst),
+            4,
+            "three refusals, then the ack"
+        );
+        assert_eq!(deliveries.retries(), 3);
+        assert_eq!(deliveries.next_due(), None, "nothing left to send");
+        session.close().await.unwrap();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn an_acknowledgement_of_another_conversation_does_not_count() {
+        let session = session().await;
+        let (got, _inbox) = inbox(&session, 0, true).await;
+        let holon = HolonId::resource("robot1").unwrap();
+        let mut deliveries = Deliveries::new(holon, session.clone(), settings());
+        deliveries.add(done("c1"));
+        let acked = run(&mut deliveries, 1, Duration::from_millis(600)).await;
+        assert!(acked.is_empty(), "{acked:?}");
+        assert!(got.load(Ordering::SeqCst) >= 2, "it was sent again");
+        assert!(deliveries.retries() >= 1, "it was counted as a retry");
+        session.close().await.unwrap();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_requester_away_is_tried_again_until_it_is_back() {
+        let session = session().await;
+        let holon = HolonId::resource("robot1").unwrap();
+        let mut deliveries = Deliveries::new(holon, session.clone(), settings());
+        // Nobody answers on the inbox: each attempt ends unanswered at once.
+        deliveries.add(done("c1"));
+        let acked = run(&mut deliveries, 1, Duration::from_millis(1000)).await;
+        assert!(acked.is_empty());
+        let tried = deliveries.retries();
+        assert!(tried >= 2, "tried again {tried} times in a second");
+        assert_eq!(deliveries.pending["c1"].attempts as u64, tried + 1);
+        // The requester comes back: the next attempt is acknowledged.
+        let (_, _inbox) = inbox(&session, 0, false).await;
+        let acked = run(&mut deliveries, 1, Duration::from_secs(5)).await;
+        assert_eq!(acked, vec!["c1".to_string()]);
+        session.close().await.unwrap();
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn after_a_shutdown_the_undelivered_are_due_again_for_the_successor() {
+        let session = session().await;
+        let holon = HolonId::resource("robot1").unwrap();
+        let mut deliveries = Deliveries::new(holon.clone(), session.clone(), settings());
+        deliveries.add(done("c1"));
+        deliveries.shutdown().await;
+        assert!(deliveries
+            .next_due()
+            .is_some_and(|due| due <= Instant::now()));
+        // A successor takes the undelivered from the agenda and delivers them.
+        let (_, _inbox) = inbox(&session, 0, false).await;
+        let mut successor = Deliveries::new(holon, session.clone(), settings());
+        successor.resync(&[done("c1"), done("c2")]);
+        let mut acked = run(&mut successor, 2, Duration::from_secs(5)).await;
+        acked.sort();
+        assert_eq!(acked, vec!["c1".to_string(), "c2".to_string()]);
+        session.close().await.unwrap();
+    }
+}
