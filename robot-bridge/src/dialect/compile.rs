@@ -65,26 +65,21 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
             Ok(())
         }
     };
+    if f.kind != FramingKind::LengthPrefix {
+        only("prefix_bytes", f.prefix_bytes.is_some(), "length_prefix")?;
+        only("byte_order", f.byte_order.is_some(), "length_prefix")?;
+        only(
+            "prefix_counts_itself",
+            f.prefix_counts_itself.is_some(),
+            "length_prefix",
+        )?;
+    }
+    if f.kind != FramingKind::Line {
+        only("terminator", f.terminator.is_some(), "line")?;
+    }
     let framing = match f.kind {
-        FramingKind::Xml => {
-            only("terminator", f.terminator.is_some(), "line")?;
-            only("prefix_bytes", f.prefix_bytes.is_some(), "length_prefix")?;
-            only("byte_order", f.byte_order.is_some(), "length_prefix")?;
-            only(
-                "prefix_counts_itself",
-                f.prefix_counts_itself.is_some(),
-                "length_prefix",
-            )?;
-            Framing::Xml
-        }
+        FramingKind::Xml => Framing::Xml,
         FramingKind::Line => {
-            only("prefix_bytes", f.prefix_bytes.is_some(), "length_prefix")?;
-            only("byte_order", f.byte_order.is_some(), "length_prefix")?;
-            only(
-                "prefix_counts_itself",
-                f.prefix_counts_itself.is_some(),
-                "length_prefix",
-            )?;
             let terminator = unescape_bytes(f.terminator.as_deref().unwrap_or("\n"))
                 .map_err(|e| invalid(origin, "framing.terminator", e))?;
             if terminator.is_empty() || terminator.len() > 4 {
@@ -93,7 +88,6 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
             Framing::Line { terminator }
         }
         FramingKind::LengthPrefix => {
-            only("terminator", f.terminator.is_some(), "line")?;
             let bytes = f.prefix_bytes.unwrap_or(4);
             if bytes != 2 && bytes != 4 {
                 return Err(invalid(origin, "framing.prefix_bytes", "2 or 4"));
