@@ -7,7 +7,7 @@ use std::collections::HashMap;
 use std::time::Duration;
 
 use futures_util::{SinkExt, StreamExt};
-use schemas::{RobotCommand, RobotMessage};
+use schemas::RobotMessage;
 use tokio::net::TcpStream;
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -15,14 +15,16 @@ use tokio_util::codec::Framed;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use robot_bridge::client::{ClientConfig, CommandFailure, ControllerEvent, ControllerStatus};
+use robot_bridge::client::{
+    ClientConfig, CommandFailure, ControllerEvent, ControllerRequest, ControllerStatus,
+};
 use robot_bridge::codec::RobotCodec;
 
 /// Runs the client until `shutdown` is cancelled or the event receiver is dropped.
 /// Commands come from `commands`; their `id` is the wire `ID` and comes back in events.
 pub async fn run(
     config: ClientConfig,
-    commands: &mut mpsc::Receiver<RobotCommand>,
+    commands: &mut mpsc::Receiver<ControllerRequest>,
     events: mpsc::Sender<ControllerEvent>,
     shutdown: CancellationToken,
 ) {
@@ -79,7 +81,7 @@ impl Reporter {
 /// Connects, retrying every `reconnect_interval`; fails commands that arrive meanwhile.
 async fn connect(
     config: &ClientConfig,
-    commands: &mut mpsc::Receiver<RobotCommand>,
+    commands: &mut mpsc::Receiver<ControllerRequest>,
     reporter: &mut Reporter,
     shutdown: &CancellationToken,
     first_attempt: bool,
@@ -94,7 +96,7 @@ async fn connect(
         tokio::select! {
             _ = shutdown.cancelled() => return None,
             command = commands.recv() => {
-                let command = command?;
+                let ControllerRequest::Command(command) = command? else { continue };
                 if !reporter.send(ControllerEvent::CommandFailed { id: command.id, failure: CommandFailure::NotConnected }).await {
                     return None;
                 }
@@ -133,7 +135,7 @@ enum ConnectionEnd {
 async fn serve(
     config: &ClientConfig,
     stream: TcpStream,
-    commands: &mut mpsc::Receiver<RobotCommand>,
+    commands: &mut mpsc::Receiver<ControllerRequest>,
     reporter: &mut Reporter,
     shutdown: &CancellationToken,
 ) -> ConnectionEnd {
@@ -147,7 +149,12 @@ async fn serve(
         tokio::select! {
             _ = shutdown.cancelled() => break ConnectionEnd::Shutdown,
             command = commands.recv() => {
-                let Some(command) = command else { break ConnectionEnd::OwnerGone };
+                let command = match command {
+                    None => break ConnectionEnd::OwnerGone,
+                    Some(ControllerRequest::Command(command)) => command,
+                    // The baseline has no abort.
+                    Some(ControllerRequest::Abort) => continue,
+                };
                 debug!(id = command.id, action = %command.action, "command to controller");
                 let id = command.id;
                 if let Err(e) = framed.send(&RobotMessage::Command(command)).await {

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Result};
 use holarchy_tests::Sim;
-use robot_bridge::client::{self, ClientConfig, ControllerEvent};
+use robot_bridge::client::{self, ClientConfig, ControllerEvent, ControllerRequest};
 use robot_bridge::dialect::{Dialect, SHIPPED};
 use schemas::RobotCommand;
 use serde_json::json;
@@ -108,7 +108,7 @@ pub async fn section(
 
 /// A controller client (today's, in a dialect, or the codec one) and its mailboxes.
 struct Client {
-    commands: mpsc::Sender<RobotCommand>,
+    commands: mpsc::Sender<ControllerRequest>,
     events: mpsc::Receiver<ControllerEvent>,
     shutdown: CancellationToken,
     task: tokio::task::JoinHandle<()>,
@@ -160,18 +160,21 @@ impl Client {
     async fn round_trip(&mut self, id: u64) -> Result<Duration> {
         let t = Instant::now();
         self.commands
-            .send(RobotCommand {
-                id,
-                action: "pick".into(),
-                pos: Some(schemas::Pose {
-                    x: 1.0,
-                    y: 2.0,
-                    z: 3.0,
-                    ..Default::default()
-                }),
-                program: None,
-                info: Default::default(),
-            })
+            .send(
+                RobotCommand {
+                    id,
+                    action: "pick".into(),
+                    pos: Some(schemas::Pose {
+                        x: 1.0,
+                        y: 2.0,
+                        z: 3.0,
+                        ..Default::default()
+                    }),
+                    program: None,
+                    info: Default::default(),
+                }
+                .into(),
+            )
             .await?;
         match tokio::time::timeout(Duration::from_secs(10), self.events.recv()).await {
             Ok(Some(ControllerEvent::Reply {

@@ -152,6 +152,7 @@ impl Execution {
                     }
                     CommandFailure::Protocol(_) => reason::CONTROLLER_PROTOCOL,
                     CommandFailure::Unwritable(_) => reason::INVALID_INFO,
+                    CommandFailure::Aborted => reason::ABORTED,
                 };
                 self.fail(why, failure.to_string())
             }

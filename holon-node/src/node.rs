@@ -13,7 +13,7 @@ use std::time::Duration;
 use holon::takeover::{StandInEnd, TakenOver};
 use holon::{ChildSpec, Supervisor};
 use robot_bridge::client::ControllerEvent;
-use schemas::{RobotCommand, Service};
+use schemas::Service;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
@@ -86,7 +86,7 @@ impl Wiring {
         let agenda_mail: Mailbox<AgendaMessage> = Mailbox::new();
         let jobs: Mailbox<Job> = Mailbox::new();
         let controller: Mailbox<ControllerEvent> = Mailbox::new();
-        let commands: Mailbox<RobotCommand> = Mailbox::new();
+        let commands: Mailbox<robot_bridge::client::ControllerRequest> = Mailbox::new();
         let results: Mailbox<Service> = Mailbox::new();
         Ok(Wiring {
             interfacing: Arc::new(interfacing::Links {

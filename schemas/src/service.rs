@@ -147,6 +147,9 @@ pub mod reason {
     /// The resource holon stopped (crashed, was killed) while the step ran; it was not
     /// completed and is never re-executed by the resource: the order decides.
     pub const INTERRUPTED: &str = "interrupted";
+    /// The resource was aborted (PackML Abort, by an operator) while the step ran: the
+    /// controller was told to stop, the step did not complete.
+    pub const ABORTED: &str = "aborted";
 }
 
 /// The Service message: one per zenoh payload, JSON, UTF-8.

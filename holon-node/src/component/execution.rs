@@ -10,8 +10,8 @@
 use std::sync::Arc;
 
 use holon::ChildError;
-use robot_bridge::client::ControllerEvent;
-use schemas::{HolonId, RobotCommand};
+use robot_bridge::client::{ControllerEvent, ControllerRequest};
+use schemas::HolonId;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info};
@@ -33,7 +33,7 @@ pub struct Links {
     /// What the interfacing component reports.
     pub controller: Mailbox<ControllerEvent>,
     /// The interfacing component's command mailbox.
-    pub commands: mpsc::Sender<RobotCommand>,
+    pub commands: mpsc::Sender<ControllerRequest>,
     /// The agenda manager's mailbox.
     pub agenda: mpsc::Sender<AgendaMessage>,
     /// Where it publishes its view.
@@ -103,7 +103,7 @@ async fn carry_out(links: &Links, action: ExecutionAction) -> Result<(), ChildEr
             info!(%holon, component = "execution", command_id = command.id, action = %command.action, "command to controller");
             links
                 .commands
-                .send(command)
+                .send(command.into())
                 .await
                 .map_err(|_| "command mailbox closed")?;
         }

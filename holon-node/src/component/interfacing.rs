@@ -4,8 +4,7 @@
 use std::sync::Arc;
 
 use holon::ChildError;
-use robot_bridge::client::{self, ClientConfig, ControllerEvent};
-use schemas::RobotCommand;
+use robot_bridge::client::{self, ClientConfig, ControllerEvent, ControllerRequest};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 
@@ -17,7 +16,7 @@ pub struct Links {
     /// Where the controller is, and the protocol's timeouts.
     pub controller: ClientConfig,
     /// Commands from the execution component.
-    pub commands: Mailbox<RobotCommand>,
+    pub commands: Mailbox<ControllerRequest>,
     /// The execution component's controller mailbox.
     pub events: mpsc::Sender<ControllerEvent>,
     pub faults: Arc<Faults>,

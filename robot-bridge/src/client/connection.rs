@@ -13,7 +13,9 @@ use tokio_util::codec::Framed;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use super::{ClientConfig, CommandFailure, ControllerEvent, ControllerStatus, Reporter};
+use super::{
+    ClientConfig, CommandFailure, ControllerEvent, ControllerRequest, ControllerStatus, Reporter,
+};
 use crate::dialect::{
     command_values, framing::FrameCodec, Correlation, Dialect, Outcome, Parsed, Sending, Status,
     Values,
@@ -60,7 +62,7 @@ type Step = Result<(), ConnectionEnd>;
 pub(super) struct Connection<'a> {
     config: &'a ClientConfig,
     dialect: &'a Dialect,
-    commands: &'a mut mpsc::Receiver<RobotCommand>,
+    commands: &'a mut mpsc::Receiver<ControllerRequest>,
     reporter: &'a mut Reporter,
     /// Commands in flight, oldest first.
     exchanges: VecDeque<Exchange>,
@@ -80,7 +82,7 @@ pub(super) struct Connection<'a> {
 impl<'a> Connection<'a> {
     pub(super) fn new(
         config: &'a ClientConfig,
-        commands: &'a mut mpsc::Receiver<RobotCommand>,
+        commands: &'a mut mpsc::Receiver<ControllerRequest>,
         reporter: &'a mut Reporter,
     ) -> Self {
         let now = Instant::now();
@@ -131,9 +133,13 @@ impl<'a> Connection<'a> {
             let wake = self.next_wake();
             tokio::select! {
                 _ = shutdown.cancelled() => break ConnectionEnd::Shutdown,
-                command = self.commands.recv() => {
-                    let Some(command) = command else { break ConnectionEnd::OwnerGone };
-                    if let Err(end) = self.take(command).await {
+                request = self.commands.recv() => {
+                    let step = match request {
+                        None => break ConnectionEnd::OwnerGone,
+                        Some(ControllerRequest::Command(command)) => self.take(command).await,
+                        Some(ControllerRequest::Abort) => self.abort().await,
+                    };
+                    if let Err(end) = step {
                         break end;
                     }
                 }
@@ -226,6 +232,12 @@ impl<'a> Connection<'a> {
             poll_at: None,
             deadline: Instant::now() + self.config.command_timeout,
         });
+        Ok(())
+    }
+
+    /// An abort: not yet in any dialect; the command in flight runs to its end.
+    async fn abort(&mut self) -> Step {
+        warn!(dialect = %self.dialect.name, "abort asked: the dialect has no abort message; the command in flight runs to its end");
         Ok(())
     }
 

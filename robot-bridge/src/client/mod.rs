@@ -79,6 +79,27 @@ pub enum CommandFailure {
     /// The dialect cannot write this command (e.g. an action its enum tables lack).
     #[error("the command cannot be written in the controller's dialect: {0}")]
     Unwritable(String),
+    /// An abort ([`ControllerRequest::Abort`]) ended it on the controller.
+    #[error("aborted on the controller")]
+    Aborted,
+}
+
+/// What the client's owner asks of it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ControllerRequest {
+    /// Run this command; its `id` comes back in events.
+    Command(RobotCommand),
+    /// Stop now: the dialect's abort message goes out at once, even while a command is
+    /// in flight; the command in flight then ends as the controller reports it (its
+    /// failure, or [`CommandFailure::Aborted`]). A dialect without an abort message
+    /// cannot be told: the step runs to its end (logged).
+    Abort,
+}
+
+impl From<RobotCommand> for ControllerRequest {
+    fn from(command: RobotCommand) -> ControllerRequest {
+        ControllerRequest::Command(command)
+    }
 }
 
 /// What the client reports to its owner, in the order it happened.
@@ -100,7 +121,7 @@ pub enum ControllerEvent {
 /// Commands come from `commands`; their `id` comes back in events.
 pub async fn run(
     config: ClientConfig,
-    commands: &mut mpsc::Receiver<RobotCommand>,
+    commands: &mut mpsc::Receiver<ControllerRequest>,
     events: mpsc::Sender<ControllerEvent>,
     shutdown: CancellationToken,
 ) {
@@ -164,18 +185,28 @@ impl Reporter {
 /// Establishing a connection, while commands that arrive meanwhile fail.
 struct Link<'a> {
     config: &'a ClientConfig,
-    commands: &'a mut mpsc::Receiver<RobotCommand>,
+    commands: &'a mut mpsc::Receiver<ControllerRequest>,
     reporter: &'a mut Reporter,
     shutdown: &'a CancellationToken,
 }
 
 impl Link<'_> {
-    async fn refuse(&mut self, command: RobotCommand) -> bool {
-        let event = ControllerEvent::CommandFailed {
-            id: command.id,
-            failure: CommandFailure::NotConnected,
-        };
-        self.reporter.send(event).await
+    /// A request while no controller is connected: a command fails at once, an abort
+    /// has nothing to stop.
+    async fn refuse(&mut self, request: ControllerRequest) -> bool {
+        match request {
+            ControllerRequest::Command(command) => {
+                let event = ControllerEvent::CommandFailed {
+                    id: command.id,
+                    failure: CommandFailure::NotConnected,
+                };
+                self.reporter.send(event).await
+            }
+            ControllerRequest::Abort => {
+                debug!("abort while not connected: nothing runs on the controller");
+                true
+            }
+        }
     }
 
     /// Connects, retrying every `reconnect_interval`.

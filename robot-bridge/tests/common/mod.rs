@@ -6,7 +6,9 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use robot_bridge::client::{self, ClientConfig, CommandFailure, ControllerEvent, ControllerStatus};
+use robot_bridge::client::{
+    self, ClientConfig, CommandFailure, ControllerEvent, ControllerRequest, ControllerStatus,
+};
 use robot_bridge::dialect::Dialect;
 use robot_bridge::sim::{SimConfig, SimStats, Simulator};
 use schemas::{Pose, RobotCommand};
@@ -18,7 +20,7 @@ pub const WAIT: Duration = Duration::from_secs(10);
 
 /// A controller client task, its command mailbox and its events.
 pub struct Harness {
-    pub commands: mpsc::Sender<RobotCommand>,
+    pub commands: mpsc::Sender<ControllerRequest>,
     pub events: mpsc::Receiver<ControllerEvent>,
     pub shutdown: CancellationToken,
     pub client: tokio::task::JoinHandle<()>,
@@ -130,13 +132,16 @@ impl Harness {
             ..Pose::default()
         });
         self.commands
-            .send(RobotCommand {
-                id,
-                action: action.into(),
-                pos,
-                program: program.map(str::to_string),
-                info: Default::default(),
-            })
+            .send(
+                RobotCommand {
+                    id,
+                    action: action.into(),
+                    pos,
+                    program: program.map(str::to_string),
+                    info: Default::default(),
+                }
+                .into(),
+            )
             .await
             .unwrap();
     }
