@@ -46,7 +46,73 @@ pub struct ConfigFile {
     pub shutdown: ShutdownSection,
     #[serde(default)]
     pub journal: JournalSection,
+    #[serde(default)]
+    pub packml: PackmlSection,
     pub services: BTreeMap<String, ServiceSection>,
+}
+
+/// `[packml]`: how the resource's PackML unit starts, and how long a held resource
+/// keeps its bookings (docs/packml.md).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PackmlSection {
+    /// The state of a resource that has never run (no PackML state in its journal):
+    /// `execute` (default: it takes work at once), `idle` (until Start) or `stopped`
+    /// (until Reset and Start). A journalled state always wins.
+    #[serde(default = "default_initial_state")]
+    pub initial_state: String,
+    /// Its unit mode then: `production` (default), `maintenance` or `manual`.
+    #[serde(default = "default_initial_mode")]
+    pub initial_mode: String,
+    /// How long bookings wait on a Held resource before they are handed back, so that
+    /// their orders rebook elsewhere (default 30000).
+    #[serde(default = "default_held_bookings_ms")]
+    pub held_bookings_ms: u64,
+}
+
+fn default_initial_state() -> String {
+    "execute".into()
+}
+fn default_initial_mode() -> String {
+    "production".into()
+}
+fn default_held_bookings_ms() -> u64 {
+    30_000
+}
+
+impl Default for PackmlSection {
+    fn default() -> Self {
+        PackmlSection {
+            initial_state: default_initial_state(),
+            initial_mode: default_initial_mode(),
+            held_bookings_ms: default_held_bookings_ms(),
+        }
+    }
+}
+
+impl PackmlSection {
+    fn settings(&self) -> Result<crate::agenda::PackmlSettings, String> {
+        use schemas::PackmlState;
+        let initial_state = match self.initial_state.to_ascii_lowercase().as_str() {
+            "execute" => PackmlState::Execute,
+            "idle" => PackmlState::Idle,
+            "stopped" => PackmlState::Stopped,
+            other => {
+                return Err(format!(
+                    "packml.initial_state: {other:?} is not one of execute, idle, stopped"
+                ))
+            }
+        };
+        let initial_mode = self
+            .initial_mode
+            .parse::<schemas::UnitMode>()
+            .map_err(|e| format!("packml.initial_mode: {e}"))?;
+        Ok(crate::agenda::PackmlSettings {
+            initial_state,
+            initial_mode,
+            held_bookings_ms: self.held_bookings_ms,
+        })
+    }
 }
 
 #[derive(Debug, Clone, Default, Deserialize)]
@@ -249,6 +315,8 @@ pub struct ResourceConfig {
     pub agenda_capacity: usize,
     /// How many later bookings of higher priority may go ahead of a waiting one.
     pub agenda_max_overtakes: u32,
+    /// How the PackML unit starts, and how long a held resource keeps its bookings.
+    pub packml: crate::agenda::PackmlSettings,
     /// How long a requester may be absent before its bookings are released.
     pub requester_grace: Duration,
     pub delivery: DeliverySettings,
@@ -422,6 +490,7 @@ impl ResourceConfig {
         }
         let dialect = robot_bridge::dialect::Dialect::load(&c.dialect, None)
             .map_err(|e| format!("controller.dialect: {e}"))?;
+        let packml = file.packml.settings()?;
         for (service_type, definition) in &services {
             for step in &definition.steps {
                 dialect.check_action(&step.action).map_err(|e| {
@@ -450,6 +519,7 @@ impl ResourceConfig {
             },
             agenda_capacity: file.agenda.capacity,
             agenda_max_overtakes: file.agenda.max_overtakes,
+            packml,
             requester_grace: Duration::from_millis(file.agenda.requester_grace_ms),
             delivery: DeliverySettings {
                 retry_initial: Duration::from_millis(file.delivery.retry_initial_ms),

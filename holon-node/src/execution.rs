@@ -9,7 +9,7 @@
 //! | state | event | actions | next |
 //! |---|---|---|---|
 //! | `init` | controller `ready` | ready | `ready` |
-//! | `init` | controller not ready (disconnected, `fault`, `estop`) | unavailable, if it was ready | `init` |
+//! | `init` | controller not ready (disconnected, `fault`, `estop`), a change | unavailable with the status | `init` |
 //! | `init` | start | finished: failed `unavailable` | `init` |
 //! | `ready` | start | command of step 1 | step 1 |
 //! | `ready` | controller not ready | unavailable | `init` |
@@ -21,6 +21,10 @@
 //! | step n | its command timed out / the connection broke / the protocol broke | finished: failed `controller_timeout` / `controller_disconnected` / `controller_protocol_error` | `ready` (or `init`) |
 //! | step n | controller disconnected | finished: failed `controller_disconnected`; unavailable | `init` |
 //! | step n | controller `fault` / `estop` | finished: failed `controller_fault`; unavailable | `init` |
+//! | step n | abort (PackML Abort) | the controller is told to abort | step n, aborting |
+//! | step n, aborting | reply with a result the last step expects | finished: done (it completed before the abort took) | `ready` (or `init`) |
+//! | step n, aborting | any other reply, a command failure, the controller not ready | finished: failed `aborted` | `ready` (or `init`) |
+//! | `init`, `ready` | abort | nothing (no step runs) | same |
 //! | any | a reply or failure of another command (late) | nothing | same |
 //!
 //! A step's command, and every change of step, is followed by a `StateChanged` action.
@@ -39,8 +43,19 @@ use crate::catalog::ServiceCatalog;
 pub enum ExecutionEvent {
     /// From the agenda manager: execute this job.
     Start(Job),
+    /// From the agenda manager: abort the running step now (PackML Abort).
+    Abort,
     /// From the interfacing component.
     Controller(ControllerEvent),
+}
+
+/// What the agenda manager asks of the execution component (its job mailbox).
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExecutionRequest {
+    /// Execute this job.
+    Start(Job),
+    /// Abort the running step (PackML Abort).
+    Abort,
 }
 
 /// What the task around the execution FSM must do.
@@ -48,10 +63,12 @@ pub enum ExecutionEvent {
 pub enum ExecutionAction {
     /// Send this command to the controller.
     Command(RobotCommand),
+    /// Tell the controller to stop now (its dialect's abort).
+    AbortController,
     /// Tell the agenda manager: ready to execute.
     Ready,
     /// Tell the agenda manager: cannot execute (controller away, fault or estop).
-    Unavailable,
+    Unavailable(ControllerStatus),
     /// Tell the agenda manager how the job ended.
     Finished {
         conversation_id: String,
@@ -72,6 +89,9 @@ pub enum ExecutionState {
         step: usize,
         command_id: u64,
         results: Map<String, Value>,
+        /// The controller was told to abort: the step ends `aborted` unless it
+        /// completed the job first.
+        aborting: bool,
     },
 }
 
@@ -81,6 +101,11 @@ impl std::fmt::Display for ExecutionState {
         match self {
             ExecutionState::Init => f.write_str("init"),
             ExecutionState::Ready => f.write_str("ready"),
+            ExecutionState::Running {
+                step,
+                aborting: true,
+                ..
+            } => write!(f, "step {}, aborting", step + 1),
             ExecutionState::Running { step, .. } => write!(f, "step {}", step + 1),
         }
     }
@@ -135,6 +160,7 @@ impl Execution {
     pub fn handle(&mut self, event: ExecutionEvent) -> Vec<ExecutionAction> {
         match event {
             ExecutionEvent::Start(job) => self.start(job),
+            ExecutionEvent::Abort => self.abort(),
             ExecutionEvent::Controller(ControllerEvent::Status(status)) => self.status(status),
             ExecutionEvent::Controller(ControllerEvent::Reply {
                 id,
@@ -144,6 +170,12 @@ impl Execution {
             ExecutionEvent::Controller(ControllerEvent::CommandFailed { id, failure }) => {
                 if !self.is_waiting_for(id) {
                     return vec![];
+                }
+                if self.is_aborting() {
+                    return self.fail(
+                        reason::ABORTED,
+                        format!("aborted by an operator: {failure}"),
+                    );
                 }
                 let why = match failure {
                     CommandFailure::Timeout(_) => reason::CONTROLLER_TIMEOUT,
@@ -156,6 +188,24 @@ impl Execution {
                 };
                 self.fail(why, failure.to_string())
             }
+        }
+    }
+
+    fn is_aborting(&self) -> bool {
+        matches!(&self.state, ExecutionState::Running { aborting: true, .. })
+    }
+
+    /// PackML Abort: the controller is told to stop; the step ends when it says so.
+    fn abort(&mut self) -> Vec<ExecutionAction> {
+        match &mut self.state {
+            ExecutionState::Running { aborting, .. } if !*aborting => {
+                *aborting = true;
+                vec![
+                    ExecutionAction::AbortController,
+                    ExecutionAction::StateChanged,
+                ]
+            }
+            _ => vec![],
         }
     }
 
@@ -192,6 +242,7 @@ impl Execution {
             step: 0,
             command_id: 0,
             results: Map::new(),
+            aborting: false,
         };
         self.send_step()
     }
@@ -244,11 +295,16 @@ impl Execution {
             return vec![];
         }
         let ExecutionState::Running {
-            job, step, results, ..
+            job,
+            step,
+            results,
+            aborting,
+            ..
         } = &mut self.state
         else {
             return vec![];
         };
+        let aborting = *aborting;
         let Some(current) = self
             .catalog
             .get(&job.service_type)
@@ -257,6 +313,21 @@ impl Execution {
         else {
             return self.fail(reason::INVALID_INFO, "the service has no such step".into());
         };
+        let steps = self
+            .catalog
+            .get(&job.service_type)
+            .map_or(0, |d| d.steps.len());
+        let completes = result != schemas::robot::RESULT_ERROR
+            && current.until.contains(&result)
+            && *step + 1 == steps;
+        if aborting && !completes {
+            let detail = format!(
+                "aborted by an operator during {} (the controller answered {result:?}{})",
+                current.action,
+                message.map(|m| format!(": {m}")).unwrap_or_default()
+            );
+            return self.fail(reason::ABORTED, detail);
+        }
         if result == schemas::robot::RESULT_ERROR {
             let detail = format!(
                 "{} failed: {}",
@@ -275,10 +346,6 @@ impl Execution {
         }
         results.insert(current.action.clone(), Value::String(result));
         *step += 1;
-        let steps = self
-            .catalog
-            .get(&job.service_type)
-            .map_or(0, |d| d.steps.len());
         if *step < steps {
             return self.send_step();
         }
@@ -313,10 +380,14 @@ impl Execution {
 
     fn status(&mut self, status: ControllerStatus) -> Vec<ExecutionAction> {
         let was_ready = self.controller.is_ready();
-        self.controller = status;
+        let previous = std::mem::replace(&mut self.controller, status);
         let mut actions = Vec::new();
         if !status.is_ready() && matches!(self.state, ExecutionState::Running { .. }) {
             let (why, detail) = match status {
+                _ if self.is_aborting() => (
+                    reason::ABORTED,
+                    format!("aborted by an operator; the controller then reported {status}"),
+                ),
                 ControllerStatus::Disconnected => (
                     reason::CONTROLLER_DISCONNECTED,
                     "the connection to the controller broke".to_string(),
@@ -335,10 +406,10 @@ impl Execution {
             }
             (ExecutionState::Ready, false) => {
                 self.state = ExecutionState::Init;
-                actions.push(ExecutionAction::Unavailable);
+                actions.push(ExecutionAction::Unavailable(status));
             }
-            (ExecutionState::Init, false) if was_ready => {
-                actions.push(ExecutionAction::Unavailable);
+            (ExecutionState::Init, false) if was_ready || status != previous => {
+                actions.push(ExecutionAction::Unavailable(status));
             }
             _ => {}
         }
@@ -415,6 +486,11 @@ mod tests {
         assert_eq!(
             e.handle(status(ControllerStatus::Disconnected)),
             vec![ExecutionAction::StateChanged]
+        );
+        // A fault before it was ever ready is news for the agenda (PackML aborts).
+        assert_eq!(
+            e.handle(status(ControllerStatus::Fault)),
+            vec![ExecutionAction::Unavailable(ControllerStatus::Fault)]
         );
         assert_eq!(
             e.handle(status(ControllerStatus::Fault)),
@@ -548,7 +624,10 @@ mod tests {
         let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
         let actions = e.handle(status(ControllerStatus::Disconnected));
         failed_with(&actions, "controller_disconnected");
-        assert_eq!(actions[1], ExecutionAction::Unavailable);
+        assert_eq!(
+            actions[1],
+            ExecutionAction::Unavailable(ControllerStatus::Disconnected)
+        );
         assert_eq!(e.state(), &ExecutionState::Init);
         // The command's own failure, arriving after, changes nothing.
         assert_eq!(
@@ -568,7 +647,7 @@ mod tests {
             e.handle(ExecutionEvent::Start(job("pick_n_place")));
             let actions = e.handle(status(state));
             failed_with(&actions, "controller_fault");
-            assert_eq!(actions[1], ExecutionAction::Unavailable);
+            assert_eq!(actions[1], ExecutionAction::Unavailable(state));
         }
     }
 
@@ -577,7 +656,7 @@ mod tests {
         let mut e = ready_execution();
         assert_eq!(
             e.handle(status(ControllerStatus::Estop)),
-            vec![ExecutionAction::Unavailable]
+            vec![ExecutionAction::Unavailable(ControllerStatus::Estop)]
         );
         let actions = e.handle(ExecutionEvent::Start(job("pick_n_place")));
         failed_with(&actions, "unavailable");
@@ -597,6 +676,91 @@ mod tests {
         assert_eq!(
             command(&e.handle(reply(pick.id, "picking_done"))).action,
             "place"
+        );
+    }
+
+    #[test]
+    fn an_abort_tells_the_controller_and_the_step_ends_aborted() {
+        let mut e = ready_execution();
+        let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+        assert_eq!(
+            e.handle(ExecutionEvent::Abort),
+            vec![
+                ExecutionAction::AbortController,
+                ExecutionAction::StateChanged
+            ]
+        );
+        assert_eq!(e.state().to_string(), "step 1, aborting");
+        // A second abort changes nothing.
+        assert_eq!(e.handle(ExecutionEvent::Abort), vec![]);
+        // The controller answers the aborted command with its error.
+        let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::Reply {
+            id: pick.id,
+            result: "error".into(),
+            message: Some("aborted".into()),
+        }));
+        failed_with(&actions, "aborted");
+        assert_eq!(e.state(), &ExecutionState::Ready);
+        // Nothing runs: nothing to abort.
+        assert_eq!(e.handle(ExecutionEvent::Abort), vec![]);
+    }
+
+    #[test]
+    fn an_aborted_step_that_completes_a_middle_step_still_ends_aborted() {
+        for end in [
+            reply(0, "picking_done"),
+            ExecutionEvent::Controller(ControllerEvent::CommandFailed {
+                id: 0,
+                failure: CommandFailure::Aborted,
+            }),
+            status(ControllerStatus::Estop),
+        ] {
+            let mut e = ready_execution();
+            let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+            e.handle(ExecutionEvent::Abort);
+            let end = match end {
+                ExecutionEvent::Controller(ControllerEvent::Reply {
+                    result, message, ..
+                }) => ExecutionEvent::Controller(ControllerEvent::Reply {
+                    id: pick.id,
+                    result,
+                    message,
+                }),
+                ExecutionEvent::Controller(ControllerEvent::CommandFailed { failure, .. }) => {
+                    ExecutionEvent::Controller(ControllerEvent::CommandFailed {
+                        id: pick.id,
+                        failure,
+                    })
+                }
+                other => other,
+            };
+            let actions = e.handle(end);
+            failed_with(&actions, "aborted");
+            assert!(
+                !actions
+                    .iter()
+                    .any(|a| matches!(a, ExecutionAction::Command(_))),
+                "no next step after an abort: {actions:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_last_step_that_completes_before_the_abort_took_is_done() {
+        let mut e = ready_execution();
+        let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+        let place = command(&e.handle(reply(pick.id, "picking_done")));
+        e.handle(ExecutionEvent::Abort);
+        let actions = e.handle(reply(place.id, "placing_done"));
+        assert!(
+            matches!(
+                &actions[0],
+                ExecutionAction::Finished {
+                    outcome: Outcome::Done { .. },
+                    ..
+                }
+            ),
+            "a completed step is never reported failed: {actions:?}"
         );
     }
 

@@ -19,6 +19,7 @@ pub mod handover;
 pub mod holon_config;
 pub mod identity;
 pub mod node;
+pub mod packml;
 pub mod product;
 pub mod staff;
 pub mod views;

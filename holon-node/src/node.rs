@@ -19,7 +19,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
 use crate::absences::{Absences, Moment};
-use crate::agenda::{AgendaEvent, Inheritance, Job};
+use crate::agenda::{AgendaEvent, Inheritance};
 use crate::component::agenda_manager::{self, AgendaMessage, JournalledAgenda};
 use crate::component::delivery::Deliveries;
 use crate::component::{communication, execution, interfacing, requesters};
@@ -84,7 +84,7 @@ impl Wiring {
         let views = Arc::new(Views::new(agenda.view(), Absences::new(Moment::now())));
         let faults = Arc::new(Faults::default());
         let agenda_mail: Mailbox<AgendaMessage> = Mailbox::new();
-        let jobs: Mailbox<Job> = Mailbox::new();
+        let jobs: Mailbox<crate::execution::ExecutionRequest> = Mailbox::new();
         let controller: Mailbox<ControllerEvent> = Mailbox::new();
         let commands: Mailbox<robot_bridge::client::ControllerRequest> = Mailbox::new();
         let results: Mailbox<Service> = Mailbox::new();

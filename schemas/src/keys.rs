@@ -86,6 +86,13 @@ impl CellKeys {
         format!("{}/resource/{resource}/service", self.prefix())
     }
 
+    /// `holarchy/<cell>/resource/<name>/packml`: PackML commands and unit mode changes
+    /// to one resource (a [`crate::packml::PackmlRequest`] in, a
+    /// [`crate::packml::PackmlReply`] out); operators only in a secure cell.
+    pub fn packml(&self, resource: &str) -> String {
+        format!("{}/resource/{resource}/packml", self.prefix())
+    }
+
     /// `holarchy/<cell>/offer/<service_type>/<name>`: one resource's offer of a service type.
     pub fn offer(&self, service_type: &str, resource: &str) -> String {
         format!("{}/offer/{service_type}/{resource}", self.prefix())

@@ -7,6 +7,7 @@
 pub mod advice;
 pub mod id;
 pub mod keys;
+pub mod packml;
 pub mod plan;
 pub mod robot;
 pub mod service;
@@ -15,6 +16,10 @@ pub mod state;
 pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION};
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
+pub use packml::{
+    PackmlCommand, PackmlReply, PackmlRequest, PackmlState, PackmlStatus, Refusal, StopReason,
+    UnitMode,
+};
 pub use plan::{
     AttemptEnd, AttemptRecord, CancelReply, OnReject, OrderSnapshot, OrderStatus, Plan, PlanStep,
     SubmitReply, WorkOrder, MAX_ATTEMPT_HISTORY,

@@ -140,6 +140,11 @@ pub struct ResourceSnapshot {
     /// bookings while it is away, for at most their node's `orders.handover_grace_ms`.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub handing_over: bool,
+    /// Its PackML state, unit mode and figures (docs/packml.md); absent from holons
+    /// built before PackML. A resource takes orders' work only in Execute and
+    /// Production.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub packml: Option<crate::packml::PackmlStatus>,
     /// The machine the holon's process runs on (its hostname).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub host: Option<String>,

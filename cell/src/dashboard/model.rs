@@ -743,6 +743,7 @@ mod tests {
             journal_fault: None,
             delivery_retries: 0,
             handing_over: false,
+            packml: None,
             host: None,
             version: None,
             v: 0,

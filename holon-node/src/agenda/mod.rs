@@ -56,10 +56,18 @@
 //! | requester gone (absent longer than the grace) | | its bookings removed; its running job and undelivered results stay | same − bookings |
 //! | restored from the journal | handed over by a predecessor just now | bookings as they were | `init` |
 //! | | otherwise (a restart) | bookings kept, none starts on its turn: each waits for its requester's `start` ([`Inheritance::Restarted`]) | `init` |
-//! | after any event | `free`, not withdrawing or handing over, and the first booking asked to start on its turn | the booking becomes the job, execution starts | `busy` |
+//! | PackML command (`resource/<name>/packml`) | the unit refuses it ([`crate::packml`]) | the refusal, naming the state | same |
+//! | | Hold | accepted; bookings kept, the running job finishes | Holding, then Held |
+//! | | Stop | accepted; every booking with a `reply_to` gets `failed` `withdrawn`; the running job finishes | Stopping, then Stopped |
+//! | | Abort | accepted; bookings handed back as for Stop; the execution aborts the running job | Aborting, then Aborted |
+//! | | another command, a mode change | accepted | as the unit says |
+//! | execution unavailable with `fault` / `estop` | not Aborting, Aborted, Clearing | bookings handed back as for Stop | `init`, Aborted |
+//! | tick (each second while Held with bookings) | Held for `held_bookings_ms` | bookings handed back as for Stop | same − bookings |
+//! | after any event | `free`, not withdrawing or handing over, in PackML Execute and Production, and the first booking asked to start on its turn | the booking becomes the job, execution starts | `busy` |
 //!
-//! "Withdrawing" in the rows above reads "withdrawing or handing over": both take no
-//! new work and start nothing. A refusal `unavailable` while handing over says so in
+//! "Withdrawing" in the rows above reads "withdrawing or handing over, or out of PackML
+//! Execute and Production": none takes new work or starts anything (a refusal out of
+//! Execute names the PackML state in `info.detail` and `info.packml_state`). A refusal `unavailable` while handing over says so in
 //! `info.detail` and carries `info.retry_after_ms` ([`HANDOVER_RETRY`]): the successor
 //! answers within moments.
 //!
@@ -75,11 +83,12 @@ use std::sync::Arc;
 
 use schemas::{
     reason, unix_ms, BookingView, ControllerStatus, CurrentJobView, HolonId, MessageType,
-    ResourceSnapshot, ResourceState, Service,
+    PackmlReply, PackmlRequest, PackmlState, ResourceSnapshot, ResourceState, Service, UnitMode,
 };
 use serde_json::{json, Map, Value};
 
 use crate::catalog::ServiceCatalog;
+use crate::packml::{Consequence, PackmlUnit};
 
 mod queue;
 mod requests;
@@ -177,8 +186,9 @@ pub enum AgendaEvent {
     Request(Service),
     /// Execution is ready: the controller is connected and ready, nothing runs.
     ExecutionReady,
-    /// Execution cannot run services: the controller is away, in fault or estop.
-    ExecutionUnavailable,
+    /// Execution cannot run services: the controller is away (`disconnected`), in
+    /// `fault` or `estop`.
+    ExecutionUnavailable(ControllerStatus),
     /// Execution finished the job of `conversation_id`.
     ExecutionFinished {
         conversation_id: String,
@@ -199,6 +209,10 @@ pub enum AgendaEvent {
     /// `requester` has been absent from the cell (no liveliness token) longer than the
     /// booking grace: its bookings end. The running job and undelivered results stay.
     RequesterGone { requester: HolonId },
+    /// An operator's PackML command or unit mode change (`resource/<name>/packml`).
+    Packml(PackmlRequest),
+    /// A second has passed (`now`, Unix ms): bookings held too long are handed back.
+    Tick { now: u64 },
 }
 
 /// What the task around the agenda manager must do.
@@ -210,6 +224,11 @@ pub enum AgendaAction {
     Execute(Job),
     /// Deliver this `done` / `failed` to its `reply_to` until acknowledged.
     Deliver(Service),
+    /// Answer the PackML request being handled.
+    PackmlReply(PackmlReply),
+    /// Have the execution component abort the running step (PackML Abort): the
+    /// controller is told to stop now.
+    Abort,
     /// The state changed: publish a snapshot.
     StateChanged,
 }
@@ -221,6 +240,32 @@ pub struct AgendaRecord {
     /// The job that was executing: after a crash it is reported `interrupted`.
     pub current: Option<Job>,
     pub undelivered: Vec<Service>,
+    /// The PackML unit; absent from journals written before PackML (the config's
+    /// initial state then applies).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub packml: Option<PackmlUnit>,
+}
+
+/// How the PackML unit starts when the journal has none, and how long a held resource
+/// keeps its bookings (the holon's `[packml]` config).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PackmlSettings {
+    /// The state of a resource that has never run: Execute, Idle or Stopped.
+    pub initial_state: PackmlState,
+    pub initial_mode: UnitMode,
+    /// How long bookings wait on a Held resource before they are handed back (orders
+    /// then rebook elsewhere at once).
+    pub held_bookings_ms: u64,
+}
+
+impl Default for PackmlSettings {
+    fn default() -> Self {
+        PackmlSettings {
+            initial_state: PackmlState::Execute,
+            initial_mode: UnitMode::Production,
+            held_bookings_ms: 30_000,
+        }
+    }
 }
 
 /// The execution status in Figure 4 (plus `init`).
@@ -248,6 +293,14 @@ pub struct AgendaManager {
     withdrawing: bool,
     /// Being handed over to a successor process: no new bookings or starts, bookings kept.
     handing_over: bool,
+    /// The PackML unit: orders' work is taken only in Execute and Production.
+    packml: PackmlUnit,
+    /// Whether `packml` came from the journal (else the settings' initial state applies).
+    packml_restored: bool,
+    /// How long bookings wait on a Held resource ([`PackmlSettings::held_bookings_ms`]).
+    held_bookings_ms: u64,
+    /// The controller as the execution last reported it.
+    controller: ControllerStatus,
 }
 
 impl AgendaManager {
@@ -263,7 +316,32 @@ impl AgendaManager {
             undelivered: Vec::new(),
             withdrawing: false,
             handing_over: false,
+            packml: PackmlUnit::new(PackmlState::Execute, UnitMode::Production, unix_ms()),
+            packml_restored: false,
+            held_bookings_ms: PackmlSettings::default().held_bookings_ms,
+            controller: ControllerStatus::Disconnected,
         }
+    }
+
+    /// The same agenda with the holon's PackML settings: a unit restored from the
+    /// journal keeps its state and mode; a new one starts as the settings say.
+    pub fn with_packml(mut self, settings: PackmlSettings) -> Self {
+        self.held_bookings_ms = settings.held_bookings_ms;
+        if !self.packml_restored {
+            self.packml = PackmlUnit::new(settings.initial_state, settings.initial_mode, unix_ms());
+        }
+        self
+    }
+
+    /// The PackML unit.
+    pub fn packml(&self) -> &PackmlUnit {
+        &self.packml
+    }
+
+    /// Whether it takes orders' work now: the controller ready, not leaving, and in
+    /// PackML Execute and Production.
+    pub fn takes_work(&self) -> bool {
+        self.execution_ready && !self.leaving() && self.packml.takes_orders()
     }
 
     /// The same agenda, letting at most `max_overtakes` later bookings of higher
@@ -279,6 +357,7 @@ impl AgendaManager {
             bookings: self.bookings.clone(),
             current: self.current.clone(),
             undelivered: self.undelivered.clone(),
+            packml: Some(self.packml.clone()),
         }
     }
 
@@ -302,6 +381,10 @@ impl AgendaManager {
             }
         }
         manager.undelivered = record.undelivered;
+        if let Some(unit) = record.packml {
+            manager.packml = unit.restored();
+            manager.packml_restored = true;
+        }
         if let Some(job) = record.current {
             let message = manager.result_message(
                 job,
@@ -368,6 +451,7 @@ impl AgendaManager {
     /// The seed's FSM: one event in, the actions out. No I/O.
     pub fn handle(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
         let mut actions = self.transition(event);
+        actions.extend(self.settle());
         actions.extend(self.turn());
         actions
     }
@@ -376,7 +460,21 @@ impl AgendaManager {
     /// that must be kept while the journal cannot record a job's start (the booking then
     /// waits; its requester's `start` is refused until the journal can be written).
     pub fn handle_holding_turns(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
-        self.transition(event)
+        let mut actions = self.transition(event);
+        actions.extend(self.settle());
+        actions
+    }
+
+    /// The PackML row "after every event": an acting state whose work is done moves on.
+    fn settle(&mut self) -> Vec<AgendaAction> {
+        if self
+            .packml
+            .settle(self.current.is_some(), self.controller, unix_ms())
+        {
+            vec![AgendaAction::StateChanged]
+        } else {
+            vec![]
+        }
     }
 
     /// The last row of the table, as actions.
@@ -393,8 +491,10 @@ impl AgendaManager {
     fn transition(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
         match event {
             AgendaEvent::Request(request) => self.request(request),
-            AgendaEvent::ExecutionReady => self.set_ready(true),
-            AgendaEvent::ExecutionUnavailable => self.set_ready(false),
+            AgendaEvent::ExecutionReady => self.controller_now(ControllerStatus::Ready),
+            AgendaEvent::ExecutionUnavailable(status) => self.controller_now(status),
+            AgendaEvent::Packml(request) => self.packml_request(request),
+            AgendaEvent::Tick { now } => self.tick(now),
             AgendaEvent::ExecutionFinished {
                 conversation_id,
                 outcome,
@@ -430,6 +530,14 @@ impl AgendaManager {
         }
         self.withdrawing = true;
         self.handing_over = false;
+        let mut actions = self.hand_back("the resource is shutting down; book elsewhere");
+        actions.push(AgendaAction::StateChanged);
+        actions
+    }
+
+    /// Every booking handed back: a `failed` `withdrawn` with `detail` to its
+    /// `reply_to`, so its order books elsewhere at once.
+    fn hand_back(&mut self, detail: &str) -> Vec<AgendaAction> {
         let mut actions = Vec::new();
         for booking in std::mem::take(&mut self.bookings) {
             let Some(reply_to) = booking.reply_to else {
@@ -446,13 +554,12 @@ impl AgendaManager {
                 },
                 Outcome::Failed {
                     reason: reason::WITHDRAWN.into(),
-                    detail: "the resource is shutting down; book elsewhere".into(),
+                    detail: detail.into(),
                 },
             );
             self.undelivered.push(message.clone());
             actions.push(AgendaAction::Deliver(message));
         }
-        actions.push(AgendaAction::StateChanged);
         actions
     }
 
@@ -466,19 +573,105 @@ impl AgendaManager {
         }
     }
 
-    fn set_ready(&mut self, ready: bool) -> Vec<AgendaAction> {
-        if self.execution_ready == ready {
+    /// The controller's state as the execution reports it: ready or not, and what
+    /// that does to the PackML unit (a fault aborts, hands every booking back).
+    fn controller_now(&mut self, status: ControllerStatus) -> Vec<AgendaAction> {
+        let ready = status.is_ready();
+        if self.execution_ready == ready && self.controller == status {
             return vec![];
         }
         self.execution_ready = ready;
-        vec![AgendaAction::StateChanged]
+        self.controller = status;
+        let mut actions = match self.packml.controller(status, unix_ms()) {
+            Consequence::None => vec![],
+            Consequence::HandBack | Consequence::Abort => self.hand_back(&format!(
+                "the resource was aborted: its controller reported {status}; book elsewhere"
+            )),
+        };
+        actions.push(AgendaAction::StateChanged);
+        actions
+    }
+
+    /// An operator's PackML command or mode change: the reply, and what the new state
+    /// does to the bookings and the running step.
+    fn packml_request(&mut self, request: PackmlRequest) -> Vec<AgendaAction> {
+        let by = request.by.as_deref().unwrap_or("an operator");
+        let now = unix_ms();
+        let outcome = match (request.command, request.mode) {
+            (Some(command), _) => self.packml.command(command, by, now),
+            (None, Some(mode)) => self.packml.set_mode(mode).map(|()| Consequence::None),
+            (None, None) => Ok(Consequence::None),
+        };
+        let mut actions = Vec::new();
+        let refused = match outcome {
+            Ok(consequence) => {
+                match consequence {
+                    Consequence::None => {}
+                    Consequence::HandBack => actions.extend(
+                        self.hand_back(&format!("the resource was stopped ({by}); book elsewhere")),
+                    ),
+                    Consequence::Abort => {
+                        actions.extend(self.hand_back(&format!(
+                            "the resource was aborted ({by}); book elsewhere"
+                        )));
+                        if self.current.is_some() {
+                            actions.push(AgendaAction::Abort);
+                        }
+                    }
+                }
+                actions.extend(self.settle());
+                actions.push(AgendaAction::StateChanged);
+                None
+            }
+            Err(refusal) => Some(refusal),
+        };
+        let state = self.packml.state();
+        actions.insert(
+            0,
+            AgendaAction::PackmlReply(PackmlReply {
+                state,
+                state_number: state.number(),
+                mode: self.packml.mode(),
+                detail: refused.as_ref().map(|r| r.to_string()),
+                refused,
+            }),
+        );
+        actions
+    }
+
+    /// A second passed: a resource Held longer than `held_bookings_ms` hands its
+    /// bookings back.
+    fn tick(&mut self, now: u64) -> Vec<AgendaAction> {
+        let held_for = now.saturating_sub(self.packml.since());
+        if self.packml.state() != PackmlState::Held
+            || held_for < self.held_bookings_ms
+            || self.bookings.is_empty()
+        {
+            return vec![];
+        }
+        let mut actions = self.hand_back(&format!(
+            "the resource has been held for more than {} s; book elsewhere",
+            self.held_bookings_ms / 1000
+        ));
+        actions.push(AgendaAction::StateChanged);
+        actions
+    }
+
+    /// Whether a [`AgendaEvent::Tick`] could change anything now (the agenda manager
+    /// sends one each second only then).
+    pub fn wants_tick(&self) -> bool {
+        self.packml.state() == PackmlState::Held && !self.bookings.is_empty()
     }
 
     /// The last row of the table: a free resource whose first booking asked to start
     /// on its turn makes it the running job.
     fn start_on_turn(&mut self) -> Option<Job> {
         let first = self.bookings.first()?;
-        if self.state() != ResourceState::Free || self.leaving() || !first.start_on_turn {
+        if self.state() != ResourceState::Free
+            || self.leaving()
+            || !self.packml.takes_orders()
+            || !first.start_on_turn
+        {
             return None;
         }
         // Checked when it was booked; a booking without one waits for a `start`.
@@ -509,6 +702,8 @@ impl AgendaManager {
             // Not the running job (a stale report): nothing changes.
             return vec![];
         };
+        self.packml
+            .step_ended(matches!(outcome, Outcome::Done { .. }));
         let message = self.result_message(job, outcome);
         self.undelivered.push(message.clone());
         vec![AgendaAction::Deliver(message), AgendaAction::StateChanged]
@@ -587,6 +782,7 @@ impl AgendaManager {
             journal_fault: None,
             delivery_retries: 0,
             handing_over: self.handing_over,
+            packml: Some(self.packml.status()),
             host: None,
             version: None,
             v: 0,
@@ -597,6 +793,21 @@ impl AgendaManager {
 
 /// When a requester refused `unavailable` during a hand-over is told to ask again.
 pub const HANDOVER_RETRY: std::time::Duration = std::time::Duration::from_millis(100);
+
+/// Says, on a refusal `unavailable`, why a resource out of Execute or Production takes
+/// no work: its PackML state and mode.
+pub fn packml_hint(unit: &PackmlUnit, info: &mut Map<String, Value>) {
+    info.insert(
+        "detail".into(),
+        Value::String(format!(
+            "the resource is {} ({}) in {} mode: it takes orders' work only in Execute and Production",
+            unit.state(),
+            unit.state().number(),
+            unit.mode()
+        )),
+    );
+    info.insert("packml_state".into(), Value::from(unit.state().number()));
+}
 
 /// Says, on a refusal `unavailable`, that the resource is being handed over.
 pub fn handing_over_hint(info: &mut Map<String, Value>) {

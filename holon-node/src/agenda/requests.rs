@@ -5,7 +5,7 @@
 use schemas::{reason, HolonId, HolonKind, MessageType, ResourceState, Service};
 use serde_json::Value;
 
-use super::{handing_over_hint, AgendaAction, AgendaManager, Booking};
+use super::{handing_over_hint, packml_hint, AgendaAction, AgendaManager, Booking};
 
 /// Where one conversation (a requester and a `conversation_id`) stands on the agenda.
 #[derive(Debug, Clone, Copy)]
@@ -64,6 +64,8 @@ impl AgendaManager {
         }
         if why == reason::UNAVAILABLE && self.handing_over {
             handing_over_hint(&mut reply.info);
+        } else if why == reason::UNAVAILABLE && !self.packml.takes_orders() {
+            packml_hint(&self.packml, &mut reply.info);
         }
         vec![AgendaAction::Reply(reply)]
     }
@@ -71,7 +73,7 @@ impl AgendaManager {
     fn proposal(&self, request: &Service) -> Vec<AgendaAction> {
         let refusal = if !self.catalog.offers(&request.service_type) {
             Some(reason::UNKNOWN_SERVICE)
-        } else if !self.execution_ready || self.leaving() {
+        } else if !self.takes_work() {
             Some(reason::UNAVAILABLE)
         } else if self.bookings.len() >= self.capacity {
             Some(reason::AGENDA_FULL)
@@ -91,13 +93,15 @@ impl AgendaManager {
         reply.info = self.proposal_info(&request.service_type, priority);
         if refusal == Some(reason::UNAVAILABLE) && self.handing_over {
             handing_over_hint(&mut reply.info);
+        } else if refusal == Some(reason::UNAVAILABLE) && !self.packml.takes_orders() {
+            packml_hint(&self.packml, &mut reply.info);
         }
         vec![AgendaAction::Reply(reply)]
     }
 
     fn book(&mut self, request: Service) -> Vec<AgendaAction> {
         let conversation = self.conversation(&request);
-        let taking_work = self.execution_ready && !self.leaving();
+        let taking_work = self.takes_work();
         let full = self.bookings.len() >= self.capacity;
         match (conversation, taking_work, full) {
             _ if !self.catalog.offers(&request.service_type) => {
@@ -199,7 +203,8 @@ impl AgendaManager {
         let booking = conversation
             .booked
             .map(|index| (index, self.bookings[index].service_type.clone()));
-        match (conversation, booking, self.state(), self.leaving()) {
+        let out_of_work = self.leaving() || !self.packml.takes_orders();
+        match (conversation, booking, self.state(), out_of_work) {
             _ if !self.catalog.offers(&request.service_type) => {
                 self.refuse(&request, reason::UNKNOWN_SERVICE, None)
             }

@@ -23,14 +23,15 @@ use std::time::Duration;
 
 use holon::journal::{Journal, JournalError};
 use holon::ChildError;
-use schemas::{HolonId, Service};
+use schemas::{HolonId, PackmlState, Service};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
-use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord, Inheritance, Job};
+use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord, Inheritance};
 use crate::component::question::Question;
 use crate::config::ResourceConfig;
+use crate::execution::ExecutionRequest;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
 use crate::views::{AgendaView, Views};
@@ -127,7 +128,8 @@ impl JournalledAgenda {
             record,
             inheritance,
         )
-        .with_max_overtakes(config.agenda_max_overtakes);
+        .with_max_overtakes(config.agenda_max_overtakes)
+        .with_packml(config.packml);
         if let Some(journal) = &journal {
             // The interrupted job became an undelivered result: record that at once.
             journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record())?;
@@ -153,10 +155,7 @@ impl JournalledAgenda {
                 .filter(|r| !self.held.contains(r))
                 .cloned()
                 .collect(),
-            accepting: self.agenda.state() != schemas::ResourceState::Init
-                && !self.agenda.is_withdrawing()
-                && !self.agenda.is_handing_over()
-                && self.fault.is_none(),
+            accepting: self.agenda.takes_work() && self.fault.is_none(),
             drained: self.agenda.is_drained(),
         }
     }
@@ -169,7 +168,7 @@ impl JournalledAgenda {
         holon: &HolonId,
         event: AgendaEvent,
     ) -> Result<Vec<AgendaAction>, NotRecorded> {
-        let before = self.agenda.state();
+        let before = (self.agenda.state(), self.agenda.packml().state());
         let previous = self.journal.as_ref().map(|_| self.agenda.clone());
         // An acknowledgement is recorded with the next write, not on its own: if the
         // process dies first, the result is delivered once more and the order, which
@@ -177,7 +176,7 @@ impl JournalledAgenda {
         let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
         // A request can be refused when it cannot be recorded; the other events are facts
         // (a job finished, a requester left) that the agenda must keep even then.
-        let refusable = matches!(event, AgendaEvent::Request(_));
+        let refusable = matches!(event, AgendaEvent::Request(_) | AgendaEvent::Packml(_));
         // Stopping: the held results go out now, and so do the bookings handed back,
         // whether or not the journal can record the withdrawal (see `release_held`).
         let withdraw = matches!(event, AgendaEvent::Withdraw);
@@ -232,7 +231,7 @@ impl JournalledAgenda {
             }
         }
         actions.extend(released);
-        log_transition(holon, before, self.agenda.state());
+        self.log_transition(holon, before);
         Ok(actions)
     }
 
@@ -252,7 +251,7 @@ impl JournalledAgenda {
         if one_by_one {
             return events.into_iter().map(|e| self.apply(holon, e)).collect();
         }
-        let before = self.agenda.state();
+        let before = (self.agenda.state(), self.agenda.packml().state());
         let previous = self.agenda.clone();
         let mut changed = false;
         let mut outcomes = Vec::with_capacity(events.len());
@@ -270,8 +269,26 @@ impl JournalledAgenda {
                 return events.into_iter().map(|e| self.apply(holon, e)).collect();
             }
         }
-        log_transition(holon, before, self.agenda.state());
+        self.log_transition(holon, before);
         outcomes
+    }
+
+    /// Logs a change of the resource's state or PackML state (not every event: most
+    /// leave both as they were).
+    fn log_transition(&self, holon: &HolonId, before: (schemas::ResourceState, PackmlState)) {
+        let after = self.agenda.state();
+        if before.0 != after {
+            info!(%holon, component = "agenda", from = %before.0, to = %after, "transition");
+        }
+        let unit = self.agenda.packml();
+        if before.1 != unit.state() {
+            info!(%holon, component = "packml", from = %before.1, to = %unit.state(), state = unit.state().number(), mode = %unit.mode(), "PackML state");
+        }
+    }
+
+    /// Whether a tick could change the agenda now.
+    fn wants_tick(&self) -> bool {
+        self.agenda.wants_tick()
     }
 
     fn write(&self) -> Result<(), JournalError> {
@@ -335,13 +352,6 @@ impl JournalledAgenda {
     }
 }
 
-/// Logs a change of the resource's state (not every event: most leave it as it was).
-fn log_transition(holon: &HolonId, before: schemas::ResourceState, after: schemas::ResourceState) {
-    if before != after {
-        info!(%holon, component = "agenda", from = %before, to = %after, "transition");
-    }
-}
-
 /// What the agenda manager is linked to.
 pub struct Links {
     pub holon: HolonId,
@@ -349,8 +359,8 @@ pub struct Links {
     pub agenda: Handover<JournalledAgenda>,
     /// Every event for it.
     pub mailbox: Mailbox<AgendaMessage>,
-    /// The execution component's job mailbox.
-    pub jobs: mpsc::Sender<Job>,
+    /// The execution component's job mailbox (jobs and aborts).
+    pub jobs: mpsc::Sender<ExecutionRequest>,
     /// The communication component's mailbox of results to deliver.
     pub results: mpsc::Sender<Service>,
     /// Where it publishes its view.
@@ -374,7 +384,13 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             _ = token.cancelled() => return Ok(()),
             _ = links.faults.agenda.notified() => panic!("fault injection: agenda manager crashed"),
             _ = journal_retry.tick() => {
-                let actions = agenda.retry(holon);
+                let mut actions = agenda.retry(holon);
+                if agenda.wants_tick() {
+                    let tick = AgendaEvent::Tick { now: schemas::unix_ms() };
+                    if let Ok(more) = agenda.apply(holon, tick) {
+                        actions.extend(more);
+                    }
+                }
                 if actions.contains(&AgendaAction::StateChanged) {
                     links.views.agenda.send_replace(agenda.view());
                 }
@@ -443,10 +459,27 @@ async fn carry_out(
                 info!(%holon, component = "agenda", conversation_id = %job.conversation_id, requester = %job.requester, "starting execution");
                 links
                     .jobs
-                    .send(job)
+                    .send(ExecutionRequest::Start(job))
                     .await
                     .map_err(|_| "execution mailbox closed")?;
             }
+            AgendaAction::Abort => {
+                info!(%holon, component = "agenda", "PackML abort: the running step is aborted");
+                links
+                    .jobs
+                    .send(ExecutionRequest::Abort)
+                    .await
+                    .map_err(|_| "execution mailbox closed")?;
+            }
+            AgendaAction::PackmlReply(reply) => match question.take() {
+                Some(question) => {
+                    let payload = serde_json::to_vec(&reply).expect("a reply serializes");
+                    question.answer_bytes(holon, "packml", payload).await;
+                }
+                None => {
+                    warn!(%holon, "a PackML answer without a question is dropped (a bug: only requests are answered)")
+                }
+            },
             AgendaAction::Deliver(result) => links
                 .results
                 .send(result)

@@ -2,7 +2,7 @@
 //!
 //! It declares the holon's queryables (`resource/<name>/service`, one
 //! `offer/<type>/<name>` per service type while the resource takes work,
-//! `resource/<name>/state`, and `resource/<name>/debug/crash` with
+//! `resource/<name>/state`, `resource/<name>/packml` (PackML commands), and `resource/<name>/debug/crash` with
 //! `--allow-fault-injection`), decodes and checks every request, and hands each agenda
 //! request, with its query, to the agenda manager, which answers it. A request that
 //! cannot be decoded, or is not allowed on the key it came to, gets an error reply
@@ -62,6 +62,7 @@ enum Endpoint {
     Service,
     Offer(String),
     State,
+    Packml,
     Crash,
 }
 
@@ -73,6 +74,7 @@ impl Endpoint {
             Endpoint::Service => config.keys.service(name),
             Endpoint::Offer(service_type) => config.keys.offer(service_type, name),
             Endpoint::State => config.keys.state(&config.holon),
+            Endpoint::Packml => config.keys.packml(name),
             Endpoint::Crash => config.keys.debug_crash(name),
         }
     }
@@ -100,7 +102,7 @@ impl Queryables {
         arrivals: mpsc::Sender<Arrival>,
     ) -> Result<Queryables, ChildError> {
         let config = &links.config;
-        let mut endpoints = vec![Endpoint::Service, Endpoint::State];
+        let mut endpoints = vec![Endpoint::Service, Endpoint::State, Endpoint::Packml];
         if config.allow_fault_injection {
             endpoints.push(Endpoint::Crash);
         }
@@ -293,6 +295,21 @@ async fn answer(links: &Links, arrival: Arrival) -> Option<AgendaMessage> {
                 }
             }
             return None;
+        }
+        Endpoint::Packml => {
+            return match schemas::PackmlRequest::from_json(&question.payload()) {
+                Ok(request) => {
+                    info!(%holon, command = ?request.command, mode = ?request.mode, by = request.by.as_deref().unwrap_or(""), "PackML request");
+                    Some(AgendaMessage {
+                        event: AgendaEvent::Packml(request),
+                        question: Some(question),
+                    })
+                }
+                Err(e) => {
+                    question.reject(holon, "malformed", e.to_string()).await;
+                    None
+                }
+            };
         }
         Endpoint::Service | Endpoint::Offer(_) => {}
     }

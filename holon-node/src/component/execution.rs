@@ -16,9 +16,9 @@ use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info};
 
-use crate::agenda::{AgendaEvent, Job};
+use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
-use crate::execution::{Execution, ExecutionAction, ExecutionEvent};
+use crate::execution::{Execution, ExecutionAction, ExecutionEvent, ExecutionRequest};
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
 use crate::views::{ExecutionView, Views};
@@ -28,8 +28,8 @@ pub struct Links {
     pub holon: HolonId,
     /// The state machine it owns.
     pub execution: Handover<Execution>,
-    /// Jobs from the agenda manager.
-    pub jobs: Mailbox<Job>,
+    /// Jobs (and aborts) from the agenda manager.
+    pub jobs: Mailbox<ExecutionRequest>,
     /// What the interfacing component reports.
     pub controller: Mailbox<ControllerEvent>,
     /// The interfacing component's command mailbox.
@@ -51,7 +51,10 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         let event = tokio::select! {
             _ = token.cancelled() => return Ok(()),
             _ = links.faults.execution.notified() => panic!("fault injection: execution crashed"),
-            job = jobs.recv() => ExecutionEvent::Start(job.ok_or("execution mailbox closed")?),
+            request = jobs.recv() => match request.ok_or("execution mailbox closed")? {
+                ExecutionRequest::Start(job) => ExecutionEvent::Start(job),
+                ExecutionRequest::Abort => ExecutionEvent::Abort,
+            },
             event = controller.recv() => ExecutionEvent::Controller(event.ok_or("controller mailbox closed")?),
         };
         debug!(%holon, component = "execution", event = ?event, "event");
@@ -107,8 +110,18 @@ async fn carry_out(links: &Links, action: ExecutionAction) -> Result<(), ChildEr
                 .await
                 .map_err(|_| "command mailbox closed")?;
         }
+        ExecutionAction::AbortController => {
+            info!(%holon, component = "execution", "abort: the controller is told to stop");
+            links
+                .commands
+                .send(ControllerRequest::Abort)
+                .await
+                .map_err(|_| "command mailbox closed")?;
+        }
         ExecutionAction::Ready => to_agenda(AgendaEvent::ExecutionReady).await?,
-        ExecutionAction::Unavailable => to_agenda(AgendaEvent::ExecutionUnavailable).await?,
+        ExecutionAction::Unavailable(status) => {
+            to_agenda(AgendaEvent::ExecutionUnavailable(status)).await?
+        }
         ExecutionAction::Finished {
             conversation_id,
             outcome,

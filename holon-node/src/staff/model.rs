@@ -237,12 +237,17 @@ impl ResourceModel {
         }
     }
 
-    /// Whether it can be advised: present, controller ready, taking work.
+    /// Whether it can be advised: present, controller ready, taking work (in PackML
+    /// Execute and Production, not being handed over).
     pub fn takes_work(&self) -> bool {
         let s = &self.snapshot;
         s.state != ResourceState::Init
             && s.controller == schemas::ControllerStatus::Ready
             && s.journal_fault.is_none()
+            && !s.handing_over
+            && s.packml.as_ref().is_none_or(|p| {
+                p.state == schemas::PackmlState::Execute && p.mode == schemas::UnitMode::Production
+            })
     }
 
     pub fn offers(&self, service_type: &str) -> bool {
@@ -354,6 +359,7 @@ pub(crate) mod tests {
             journal_fault: None,
             delivery_retries: 0,
             handing_over: false,
+            packml: None,
             host: None,
             version: None,
             v: 0,

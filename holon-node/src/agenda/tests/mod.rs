@@ -1,6 +1,7 @@
 use super::*;
 use crate::catalog::pick_n_place;
 
+mod packml;
 mod queue;
 mod restore;
 
@@ -191,7 +192,9 @@ fn a_booking_on_turn_waits_for_the_running_job_and_starts_when_it_ends() {
     assert_eq!(executed(&actions), ["c2"]);
     assert_eq!(m.bookings().len(), 1);
     // Not while the controller is away; again when it is back.
-    m.handle(AgendaEvent::ExecutionUnavailable);
+    m.handle(AgendaEvent::ExecutionUnavailable(
+        ControllerStatus::Disconnected,
+    ));
     assert!(executed(&m.handle(done("c2"))).is_empty());
     assert_eq!(m.status(), Status::Init);
     assert_eq!(executed(&m.handle(AgendaEvent::ExecutionReady)), ["c3"]);
@@ -313,7 +316,9 @@ fn start_without_a_booking_is_refused() {
 fn start_while_unavailable_is_refused_and_keeps_the_booking() {
     let mut m = manager();
     m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::ExecutionUnavailable);
+    m.handle(AgendaEvent::ExecutionUnavailable(
+        ControllerStatus::Disconnected,
+    ));
     assert_eq!(m.status(), Status::Init);
     assert_refused(
         &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
@@ -505,7 +510,9 @@ fn unavailable_while_busy_returns_to_init_after_the_job_ends() {
     let mut m = manager();
     m.handle(AgendaEvent::Request(book("o-1", "c1")));
     m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    m.handle(AgendaEvent::ExecutionUnavailable);
+    m.handle(AgendaEvent::ExecutionUnavailable(
+        ControllerStatus::Disconnected,
+    ));
     assert!(matches!(m.status(), Status::Busy(_)));
     m.handle(done("c1"));
     assert_eq!(m.status(), Status::Init);

@@ -37,7 +37,9 @@ fn proposals_report_the_expected_wait() {
     let actions = m.handle(AgendaEvent::Request(proposal.clone()));
     assert_eq!(reply(&actions).info["expected_wait_ms"], 2000);
     assert_eq!(reply(&actions).info["queue_position"], 2);
-    m.handle(AgendaEvent::ExecutionUnavailable);
+    m.handle(AgendaEvent::ExecutionUnavailable(
+        ControllerStatus::Disconnected,
+    ));
     let actions = m.handle(AgendaEvent::Request(proposal));
     assert_eq!(reply(&actions).reason.as_deref(), Some("unavailable"));
 }
