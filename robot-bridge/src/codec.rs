@@ -12,6 +12,11 @@
 //! 2. [`parse_document`] parses one complete document with quick-xml, which checks that it
 //!    is well-formed, and maps it to a [`RobotMessage`].
 //!
+//! The holon also writes `ROBOT_ABORT` ([`encode_abort`]): stop the command with this
+//! `ID` now (PackML Abort); the controller answers that command's `ROBOT_CMD` with
+//! `RESULT` `error`, `MESSAGE` `aborted`. The codec does not decode it (it is not a
+//! [`RobotMessage`]); robot-sim reads it through the `holarchy-xml` dialect.
+//!
 //! [`RobotCodec`] puts both behind tokio-util's `Decoder`/`Encoder` for a framed socket.
 //! After any decode error the stream cannot be resynchronised: drop the connection.
 
@@ -508,6 +513,12 @@ pub fn encode_message(message: &RobotMessage) -> String {
             format!("<ROBOT_STATUS><STATE>{state}</STATE></ROBOT_STATUS>")
         }
     }
+}
+
+/// Writes the abort of command `id` as a single-line XML document (the `holarchy-xml`
+/// dialect's abort, byte for byte).
+pub fn encode_abort(id: u64) -> String {
+    format!("<ROBOT_ABORT><ID>{id}</ID></ROBOT_ABORT>")
 }
 
 /// tokio-util codec for a framed controller connection (either side).

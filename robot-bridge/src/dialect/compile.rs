@@ -7,7 +7,7 @@ use super::messages::{
     captures, compile_command, compile_reply, invalid, templates_of, valid_name,
 };
 use super::values::{Enums, ValueFormat};
-use super::{Command, Dialect, DialectError, Element, Keepalive, Reply, Sending, Status};
+use super::{Abort, Command, Dialect, DialectError, Element, Keepalive, Reply, Sending, Status};
 use crate::codec::parse_tree;
 use std::time::Duration;
 
@@ -368,6 +368,60 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
             })
         }
     };
+    let abort = match &file.abort {
+        None => None,
+        Some(a) => {
+            let command = command_named("abort.send", &a.send)?;
+            let mut users = sequence
+                .iter()
+                .enumerate()
+                .filter(|(_, e)| e.command == command)
+                .map(|(i, _)| format!("sequence[{i}]"))
+                .collect::<Vec<_>>();
+            if matches!(status, Status::Polled { command: c, .. } if c == command) {
+                users.push("status.poll".into());
+            }
+            if keepalive.as_ref().is_some_and(|k| k.command == command) {
+                users.push("connection.keepalive".into());
+            }
+            if let Some(user) = users.first() {
+                return Err(invalid(
+                    origin,
+                    "abort.send",
+                    format!("{:?} is also sent by {user}: the abort needs a message of its own, or the controller could not tell it", a.send),
+                ));
+            }
+            let mut expect = Vec::new();
+            for name in &a.expect {
+                let r = reply_named("abort.expect", name)?;
+                let outcome = replies[r].outcome;
+                if !matches!(outcome, Outcome::Accepted | Outcome::Rejected) {
+                    return Err(invalid(
+                        origin,
+                        "abort.expect",
+                        format!("{name:?} is a {outcome:?} reply; the abort's own answer is `accepted` (the controller stopped) or `rejected` (it had nothing to stop)").to_lowercase(),
+                    ));
+                }
+                let step = sequence
+                    .iter()
+                    .position(|e| e.expect.contains(&r))
+                    .map(|i| format!("sequence[{i}]"));
+                let keep = keepalive
+                    .as_ref()
+                    .is_some_and(|k| k.expect.contains(&r))
+                    .then(|| "connection.keepalive".to_string());
+                if let Some(other) = step.or(keep) {
+                    return Err(invalid(
+                        origin,
+                        "abort.expect",
+                        format!("{name:?} also answers {other}: the abort's answer must be told apart from the other answers"),
+                    ));
+                }
+                expect.push(r);
+            }
+            Some(Abort { command, expect })
+        }
+    };
     if let Some(banner) = &file.connection.banner {
         if banner.is_empty() || banner.len() > max {
             return Err(invalid(
@@ -419,6 +473,7 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
         commands,
         replies,
         sequence,
+        abort,
     })
 }
 

@@ -34,6 +34,22 @@ pub struct DialectFile {
     /// Messages the controller sends.
     #[serde(default)]
     pub reply: Vec<ReplySection>,
+    /// How the action under way is stopped (PackML Abort); none: it cannot be.
+    pub abort: Option<AbortSection>,
+}
+
+/// `abort = { send = "...", expect = [...] }`: the message that stops the action under
+/// way, and the replies that answer that message itself (none: the controller answers
+/// only through the aborted command's own reply).
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AbortSection {
+    /// The command sent to stop; it may use the values of the command it aborts.
+    pub send: String,
+    /// The replies that answer the abort message itself: `accepted` (the controller
+    /// stopped) or `rejected` (it had nothing to stop, or refused).
+    #[serde(default)]
+    pub expect: Vec<String>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]

@@ -144,6 +144,19 @@ pub struct Keepalive {
     pub expect: Vec<usize>,
 }
 
+/// How the action under way is stopped (PackML Abort).
+#[derive(Debug, Clone)]
+pub struct Abort {
+    /// The message that stops it: an index into [`Dialect::commands`]. Written with the
+    /// values of the command it aborts (its `{id}`, where the dialect correlates by id).
+    pub command: usize,
+    /// The replies that answer the abort message itself, indices into
+    /// [`Dialect::replies`]: `accepted` (the controller stopped) or `rejected` (it had
+    /// nothing to stop). Empty: the controller answers only through the aborted
+    /// command's own reply.
+    pub expect: Vec<usize>,
+}
+
 /// A message as read off the wire, parsed once and matched against the rules.
 #[derive(Debug)]
 pub enum Parsed {
@@ -169,6 +182,8 @@ pub struct Dialect {
     pub commands: Vec<Command>,
     pub replies: Vec<Reply>,
     pub sequence: Vec<Element>,
+    /// How the action under way is stopped; None: the dialect cannot abort.
+    pub abort: Option<Abort>,
 }
 
 impl Dialect {
@@ -228,6 +243,11 @@ impl Dialect {
             framing: self.framing.clone(),
             max: self.max_message_bytes,
         }
+    }
+
+    /// Whether the controller can be told to stop the action under way.
+    pub fn can_abort(&self) -> bool {
+        self.abort.is_some()
     }
 
     pub fn command_index(&self, name: &str) -> Option<usize> {
@@ -364,8 +384,8 @@ impl Dialect {
     }
 
     /// Checks, at start, that a step of `action` can be written: every message of the
-    /// sequence renders (an action missing from an enum table is found here, not at the
-    /// first job). `info.KEY` values are taken as given.
+    /// sequence, and the abort, renders (an action missing from an enum table is found
+    /// here, not at the first job). `info.KEY` values are taken as given.
     pub fn check_action(&self, action: &str) -> Result<(), String> {
         let mut values = Values::default();
         values.set("id", "1".into());
@@ -383,6 +403,9 @@ impl Dialect {
                     }
                 }
             }
+        }
+        if let Some(abort) = &self.abort {
+            self.write_command(abort.command, &values)?;
         }
         for element in &self.sequence {
             self.write_command(element.command, &values)?;

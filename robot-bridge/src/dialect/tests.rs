@@ -2,7 +2,7 @@
 //! byte, and the errors a bad file gets.
 
 use super::*;
-use crate::codec::{encode_message, parse_document};
+use crate::codec::{encode_abort, encode_message, parse_document};
 use proptest::prelude::*;
 use schemas::{Pose, RobotCommand, RobotMessage, RobotReply};
 
@@ -27,6 +27,37 @@ fn every_shipped_dialect_is_valid_and_simulatable() {
         Dialect::shipped("fanuc"),
         Err(DialectError::Unknown(_))
     ));
+}
+
+#[test]
+fn every_shipped_dialect_can_abort_and_writes_its_abort() {
+    for (name, _) in SHIPPED {
+        let dialect = Dialect::shipped(name).unwrap();
+        assert!(dialect.can_abort(), "{name}");
+        dialect.check_action("pick").unwrap();
+        let abort = dialect.abort.as_ref().unwrap();
+        let values = command_values(&command(7, "pick", None, None), &dialect.format);
+        let written = dialect.write_command(abort.command, &values).unwrap();
+        // robot-sim tells it from every other command.
+        let parsed = dialect.parse(&written).unwrap();
+        let first = (0..dialect.commands.len())
+            .find(|&i| dialect.read_command(i, &parsed).unwrap().is_some());
+        assert_eq!(first, Some(abort.command), "{name}");
+    }
+    let minimal = Dialect::from_toml(MINIMAL, "test.toml").unwrap();
+    assert!(!minimal.can_abort());
+}
+
+#[test]
+fn holarchy_xml_aborts_as_the_codec_writes_it() {
+    let dialect = Dialect::holarchy_xml();
+    let abort = dialect.abort.as_ref().unwrap();
+    assert!(abort.expect.is_empty());
+    for id in [1, 42, u64::MAX] {
+        let values = command_values(&command(id, "pick", None, Some("b2")), &dialect.format);
+        let written = dialect.write_command(abort.command, &values).unwrap();
+        assert_eq!(String::from_utf8(written).unwrap(), encode_abort(id));
+    }
 }
 
 #[test]
@@ -254,6 +285,94 @@ fn a_bad_dialect_names_the_field_and_the_problem() {
         assert!(error.contains(expected), "{to:?}: {error}");
         assert!(error.starts_with("test.toml"), "{error}");
     }
+}
+
+/// MINIMAL with an abort: a command of its own and the replies to it.
+fn with_abort(abort: &str) -> String {
+    MINIMAL.replacen("[framing]", &format!("{abort}\n[framing]"), 1)
+        + r#"
+[[command]]
+name = "halt"
+text = "HALT {action}"
+[[reply]]
+name = "halted"
+outcome = "accepted"
+text = "HALTED"
+[[reply]]
+name = "idle"
+outcome = "rejected"
+text = "IDLE"
+"#
+}
+
+#[test]
+fn an_abort_loads_with_its_command_and_replies() {
+    let dialect = Dialect::from_toml(
+        &with_abort(r#"abort = { send = "halt", expect = ["halted", "idle"] }"#),
+        "test.toml",
+    )
+    .unwrap();
+    let abort = dialect.abort.as_ref().unwrap();
+    assert_eq!(dialect.commands[abort.command].name, "halt");
+    let names: Vec<&str> = abort
+        .expect
+        .iter()
+        .map(|&r| dialect.replies[r].name.as_str())
+        .collect();
+    assert_eq!(names, ["halted", "idle"]);
+    assert!(dialect.can_abort());
+    // Without `expect`, the abort has no reply of its own.
+    let bare =
+        Dialect::from_toml(&with_abort(r#"abort = { send = "halt" }"#), "test.toml").unwrap();
+    assert!(bare.abort.unwrap().expect.is_empty());
+}
+
+#[test]
+fn a_bad_abort_names_the_field_and_the_problem() {
+    let cases: &[(&str, &str)] = &[
+        (
+            r#"abort = { send = "stop" }"#,
+            "test.toml: abort.send: no [[command]] is named \"stop\"",
+        ),
+        (
+            r#"abort = { send = "halt", expect = ["halted", "stopped"] }"#,
+            "test.toml: abort.expect: no [[reply]] is named \"stopped\"",
+        ),
+        (
+            r#"abort = { send = "go" }"#,
+            "test.toml: abort.send: \"go\" is also sent by sequence[0]",
+        ),
+        (
+            r#"abort = { send = "halt", expect = ["ok"] }"#,
+            "test.toml: abort.expect: \"ok\" is a done reply",
+        ),
+        (
+            r#"abort = { send = "halt", expect = ["no"] }"#,
+            "test.toml: abort.expect: \"no\" is a failed reply",
+        ),
+        (
+            r#"abort = { send = "halt", expects = ["halted"] }"#,
+            "unknown field `expects`",
+        ),
+        (r#"abort = { expect = ["halted"] }"#, "missing field `send`"),
+    ];
+    for (abort, expected) in cases {
+        let error = error_of(&with_abort(abort));
+        assert!(error.contains(expected), "{abort}: {error}");
+    }
+    // An abort's answer must be told apart from a step's.
+    let text = with_abort(r#"abort = { send = "halt", expect = ["halted"] }"#).replace(
+        r#"expect = ["ok", "no"]"#,
+        r#"expect = ["halted", "ok", "no"]"#,
+    );
+    let error = error_of(&text);
+    assert!(
+        error.contains("abort.expect: \"halted\" also answers sequence[0]"),
+        "{error}"
+    );
+    // The abort's message is checked like any other.
+    let text = with_abort(r#"abort = { send = "halt" }"#).replace("HALT {action}", "HALT {acton}");
+    assert!(error_of(&text).contains("command[1] (halt): {acton} is not a value here"));
 }
 
 #[test]
