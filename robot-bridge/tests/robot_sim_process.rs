@@ -51,6 +51,7 @@ fn robot_sim_serves_counts_and_stops_on_sigterm() {
     let json = read();
     assert_eq!(json["executed"], 1);
     assert_eq!(json["by_action"]["pick"], 1);
+    assert_eq!(json["aborted"], 0);
 
     nix::sys::signal::kill(
         nix::unistd::Pid::from_raw(child.id() as i32),

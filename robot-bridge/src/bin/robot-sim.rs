@@ -14,7 +14,8 @@ use tokio_util::sync::CancellationToken;
 /// (or, for a dialect whose controller connects, the client that dials the holon).
 ///
 /// Prints `listening on ADDR` (or `dialling ADDR`) on stdout once it serves, and
-/// `executed N commands` when it stops (SIGTERM or Ctrl-C). Command numbers in the
+/// `executed N commands` when it stops (SIGTERM or Ctrl-C; with `, aborted M` when the
+/// dialect's abort stopped M actions). Command numbers in the
 /// fault flags count every action begun by the process, from 1.
 #[derive(Debug, Parser)]
 #[command(name = "robot-sim", version)]
@@ -88,7 +89,8 @@ struct Args {
     #[arg(long, default_value_t = 2000)]
     fault_for_ms: u64,
     /// Keep the command counts in this JSON file, rewritten after every command:
-    /// {"executed":N,"received":N,"connections":N,"by_action":{"pick":N,...}}.
+    /// {"executed":N,"received":N,"aborted":N,"connections":N,"changeovers":N,
+    /// "by_action":{"pick":N,...}} (aborted: actions the dialect's abort stopped).
     #[arg(long, value_name = "PATH")]
     count_file: Option<PathBuf>,
 }
@@ -164,6 +166,7 @@ async fn main() -> anyhow::Result<()> {
         oversize_after: args.oversize_after,
         fragment: args.fragment,
         merge: args.merge,
+        abort_too_late: false,
     };
     let simulator = match &args.connect {
         Some(address) => {
@@ -195,7 +198,15 @@ async fn main() -> anyhow::Result<()> {
     });
     simulator.run(shutdown).await;
     // The reader of our stdout may be gone (a launcher that only read the first line).
-    let _ = writeln!(std::io::stdout(), "executed {} commands", stats.executed());
+    let aborted = match stats.aborted() {
+        0 => String::new(),
+        n => format!(", aborted {n}"),
+    };
+    let _ = writeln!(
+        std::io::stdout(),
+        "executed {} commands{aborted}",
+        stats.executed()
+    );
     Ok(())
 }
 

@@ -1,6 +1,16 @@
 //! One connection to the controller: the commands in flight, each on its way through
 //! the dialect's sequence, the request on a one-in-flight wire, the status poll and the
 //! keep-alive; each message from the controller matched to what awaits it.
+//!
+//! An abort ([`ControllerRequest::Abort`]) is written at once, whatever is on the wire.
+//! Every command in flight is then aborted: one that has not reached the controller ends
+//! at once ([`CommandFailure::Aborted`]); the others send no further `send` element (an
+//! exchange that would ends as aborted), and end as the controller reports: their own
+//! answer (a `failed` reply, or `done` when the action ended before the abort took
+//! effect), or, where the dialect's abort has a reply of its own, aborted when that
+//! reply says the controller stopped (`accepted`); when it says there was nothing to
+//! stop (`rejected`) they go on to their end. While the abort's own reply is awaited,
+//! nothing else goes on a one-in-flight wire, and an aborted command is not polled.
 
 use std::collections::VecDeque;
 
@@ -39,6 +49,24 @@ struct Exchange {
     sent: bool,
     /// When a poll is due again.
     poll_at: Option<Instant>,
+    /// When the step must have ended.
+    deadline: Instant,
+    /// Whether an abort has been asked while it was in flight.
+    aborted: bool,
+}
+
+impl Exchange {
+    /// Whether a message of it has gone to the controller.
+    fn reached(&self) -> bool {
+        self.sent || self.element > 0 || self.poll_at.is_some()
+    }
+}
+
+/// An abort message whose own reply is awaited.
+struct AbortWait {
+    /// The commands it stops (those in flight when it was sent; none when nothing was).
+    ids: Vec<u64>,
+    /// When the controller must have answered it.
     deadline: Instant,
 }
 
@@ -77,6 +105,11 @@ pub(super) struct Connection<'a> {
     repeats: u64,
     /// Messages to write.
     outbox: Vec<Vec<u8>>,
+    /// Abort messages whose own replies are awaited, oldest first.
+    abort_waits: VecDeque<AbortWait>,
+    /// The values of the last command that reached the controller (on this connection
+    /// or an earlier one): what an abort with nothing in flight is written with.
+    last_run: &'a mut Option<Values>,
 }
 
 impl<'a> Connection<'a> {
@@ -84,6 +117,7 @@ impl<'a> Connection<'a> {
         config: &'a ClientConfig,
         commands: &'a mut mpsc::Receiver<ControllerRequest>,
         reporter: &'a mut Reporter,
+        last_run: &'a mut Option<Values>,
     ) -> Self {
         let now = Instant::now();
         let dialect = &*config.dialect;
@@ -102,11 +136,18 @@ impl<'a> Connection<'a> {
             last_traffic: now,
             repeats: 0,
             outbox: Vec::new(),
+            abort_waits: VecDeque::new(),
+            last_run,
         }
     }
 
     fn one_in_flight(&self) -> bool {
         self.dialect.correlation == Correlation::OneInFlight
+    }
+
+    /// Whether a new request may go on the wire now (with ids, always).
+    fn wire_free(&self) -> bool {
+        !self.one_in_flight() || (self.awaiting.is_none() && self.abort_waits.is_empty())
     }
 
     pub(super) async fn serve(
@@ -202,6 +243,7 @@ impl<'a> Connection<'a> {
         exchanges
             .chain(connection.into_iter().flatten())
             .chain(awaiting)
+            .chain(self.abort_waits.iter().map(|w| w.deadline))
             .min()
     }
 
@@ -231,14 +273,123 @@ impl<'a> Connection<'a> {
             sent: false,
             poll_at: None,
             deadline: Instant::now() + self.config.command_timeout,
+            aborted: false,
         });
         Ok(())
     }
 
-    /// An abort: not yet in any dialect; the command in flight runs to its end.
+    /// An abort: the dialect's abort message goes out at once, once for each distinct
+    /// message the commands in flight make of it (or with the last command's values when
+    /// none is in flight); the commands in flight are marked aborted.
     async fn abort(&mut self) -> Step {
-        warn!(dialect = %self.dialect.name, "abort asked: the dialect has no abort message; the command in flight runs to its end");
+        let Some(abort) = &self.dialect.abort else {
+            warn!(dialect = %self.dialect.name, "abort asked: the dialect has no abort message; the command in flight runs to its end");
+            return Ok(());
+        };
+        let now = Instant::now();
+        // What the abort is written with: each command on the controller.
+        let mut targets: Vec<(Option<u64>, &Values)> = Vec::new();
+        for exchange in self.exchanges.iter_mut() {
+            exchange.aborted = true;
+        }
+        for exchange in self.exchanges.iter().filter(|e| e.reached()) {
+            targets.push((Some(exchange.command.id), &exchange.values));
+        }
+        if targets.is_empty() {
+            match self.last_run.as_ref() {
+                Some(values) => targets.push((None, values)),
+                None if self.exchanges.is_empty() => {
+                    debug!(dialect = %self.dialect.name, "abort asked: nothing has run on the controller; nothing is sent");
+                    return Ok(());
+                }
+                // Commands waiting for the wire: they end without a word to the controller.
+                None => {}
+            }
+        }
+        let mut messages: Vec<(Vec<u8>, Vec<u64>)> = Vec::new();
+        let mut unwritable = Vec::new();
+        for (id, values) in targets {
+            match self.dialect.write_command(abort.command, values) {
+                Ok(bytes) => match messages.iter_mut().find(|(written, _)| *written == bytes) {
+                    Some((_, ids)) => ids.extend(id),
+                    None => messages.push((bytes, id.into_iter().collect())),
+                },
+                Err(why) => {
+                    warn!(id, error = %why, "the abort cannot be written for this command; it runs to its end");
+                    unwritable.extend(id);
+                }
+            }
+        }
+        for exchange in self.exchanges.iter_mut() {
+            if unwritable.contains(&exchange.command.id) {
+                exchange.aborted = false;
+            }
+        }
+        for (bytes, ids) in messages {
+            info!(dialect = %self.dialect.name, commands = ?ids, "abort sent to the controller");
+            self.outbox.push(bytes);
+            self.last_traffic = now;
+            if !abort.expect.is_empty() {
+                self.abort_waits.push_back(AbortWait {
+                    ids,
+                    deadline: now + self.config.command_timeout,
+                });
+            }
+        }
         Ok(())
+    }
+
+    /// The abort's own reply `reply` came: the controller stopped (`accepted`), and the
+    /// commands that abort stops end as aborted; or it had nothing to stop, and they go on.
+    async fn abort_answered(&mut self, reply: usize, values: &Values) -> Step {
+        let id = values.get("id").and_then(|id| id.parse::<u64>().ok());
+        let at = id
+            .and_then(|id| self.abort_waits.iter().position(|w| w.ids.contains(&id)))
+            .unwrap_or(0);
+        let Some(wait) = self.abort_waits.remove(at) else {
+            return Ok(());
+        };
+        let rule = &self.dialect.replies[reply];
+        if rule.outcome != Outcome::Accepted {
+            let message = self
+                .dialect
+                .evaluate(&rule.message, values, &Values::default());
+            info!(reply = %rule.name, %message, commands = ?wait.ids, "the controller had nothing to stop; the commands in flight go on");
+            return Ok(());
+        }
+        info!(reply = %rule.name, commands = ?wait.ids, "the controller stopped");
+        for id in wait.ids {
+            if let Some(i) = self.exchanges.iter().position(|e| e.command.id == id) {
+                self.end_aborted(i).await?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Ends exchange `i` as aborted.
+    async fn end_aborted(&mut self, i: usize) -> Step {
+        let Some(mut exchange) = self.exchanges.remove(i) else {
+            return Ok(());
+        };
+        let id = exchange.command.id;
+        if self.awaiting == Some(Awaiting::Command(id)) {
+            self.awaiting = None;
+        }
+        self.remember(&mut exchange);
+        info!(id, "command aborted");
+        self.report(ControllerEvent::CommandFailed {
+            id,
+            failure: CommandFailure::Aborted,
+        })
+        .await
+    }
+
+    /// Keeps the values of an exchange that ends, if it reached the controller: an abort
+    /// with nothing in flight is written with them.
+    fn remember(&mut self, exchange: &mut Exchange) {
+        if exchange.reached() {
+            *self.last_run = Some(std::mem::take(&mut exchange.values));
+        }
     }
 
     async fn report(&mut self, event: ControllerEvent) -> Step {
@@ -255,13 +406,32 @@ impl<'a> Connection<'a> {
         if self.banner_until.is_some() {
             return Ok(());
         }
+        // An aborted exchange whose next message would begin (or go on with) the action
+        // ends here: that message is not sent.
+        while let Some(i) = self.exchanges.iter().position(|e| {
+            e.aborted
+                && !e.sent
+                && e.poll_at.is_none()
+                && (e.element == 0 || self.dialect.sequence[e.element].sending == Sending::Send)
+        }) {
+            self.end_aborted(i).await?;
+        }
         let one = self.one_in_flight();
         for i in 0..self.exchanges.len() {
-            if one && self.awaiting.is_some() {
+            if !self.wire_free() {
                 break;
             }
             let exchange = &self.exchanges[i];
             if exchange.sent || exchange.poll_at.is_some_and(|at| at > now) {
+                continue;
+            }
+            if exchange.aborted
+                && self
+                    .abort_waits
+                    .iter()
+                    .any(|w| w.ids.contains(&exchange.command.id))
+            {
+                // Not polled until the controller says whether it stopped.
                 continue;
             }
             self.outbox
@@ -274,30 +444,26 @@ impl<'a> Connection<'a> {
                 self.awaiting = Some(Awaiting::Command(exchange.command.id));
             }
         }
-        if self.awaiting.is_none() || !one {
-            if let (Status::Polled { command, every }, Some(at)) =
-                (self.dialect.status, self.next_status_poll)
-            {
-                let free = !one || self.awaiting.is_none();
-                if at <= now && free {
-                    let bytes = self
-                        .dialect
-                        .write_command(command, &Values::default())
-                        .map_err(ConnectionEnd::Lost)?;
-                    self.outbox.push(bytes);
-                    self.last_traffic = now;
-                    self.next_status_poll = if one { None } else { Some(now + every) };
-                    if one {
-                        self.awaiting = Some(Awaiting::StatusPoll {
-                            deadline: now + self.config.command_timeout,
-                        });
-                    }
+        if let (Status::Polled { command, every }, Some(at)) =
+            (self.dialect.status, self.next_status_poll)
+        {
+            if at <= now && self.wire_free() {
+                let bytes = self
+                    .dialect
+                    .write_command(command, &Values::default())
+                    .map_err(ConnectionEnd::Lost)?;
+                self.outbox.push(bytes);
+                self.last_traffic = now;
+                self.next_status_poll = if one { None } else { Some(now + every) };
+                if one {
+                    self.awaiting = Some(Awaiting::StatusPoll {
+                        deadline: now + self.config.command_timeout,
+                    });
                 }
             }
         }
         if let Some(keepalive) = &self.dialect.keepalive {
-            let free = !one || self.awaiting.is_none();
-            if free && self.last_traffic + keepalive.every <= now {
+            if self.wire_free() && self.last_traffic + keepalive.every <= now {
                 let bytes = self
                     .dialect
                     .write_command(keepalive.command, &Values::default())
@@ -330,6 +496,11 @@ impl<'a> Connection<'a> {
                 ));
             }
         }
+        if self.abort_waits.iter().any(|w| w.deadline <= now) {
+            return Err(ConnectionEnd::Lost(
+                "the controller did not answer the abort in time".into(),
+            ));
+        }
         let expired: Vec<u64> = self
             .exchanges
             .iter()
@@ -341,7 +512,11 @@ impl<'a> Connection<'a> {
         }
         let timeout = self.config.command_timeout;
         for id in expired {
-            self.exchanges.retain(|e| e.command.id != id);
+            if let Some(i) = self.exchanges.iter().position(|e| e.command.id == id) {
+                if let Some(mut exchange) = self.exchanges.remove(i) {
+                    self.remember(&mut exchange);
+                }
+            }
             warn!(id, ?timeout, "controller did not reply in time");
             self.report(ControllerEvent::CommandFailed {
                 id,
@@ -373,6 +548,16 @@ impl<'a> Connection<'a> {
             Ok(false) => {}
             Err(Ok(why)) => return self.protocol_error(why).await,
             Err(Err(end)) => return Err(end),
+        }
+        // The abort's own answer, while one is awaited.
+        if let (Some(abort), false) = (&self.dialect.abort, self.abort_waits.is_empty()) {
+            for &reply in &abort.expect {
+                match self.dialect.read_reply(reply, &parsed) {
+                    Ok(None) => continue,
+                    Ok(Some(values)) => return self.abort_answered(reply, &values).await,
+                    Err(why) => return self.protocol_error(why).await,
+                }
+            }
         }
         // An answer to a keep-alive, whatever its outcome, frees the wire; a status or
         // ignore answer is acted on below as well.
@@ -500,7 +685,9 @@ impl<'a> Connection<'a> {
                 let result = self
                     .dialect
                     .evaluate(&rule.result, values, &exchange.values);
-                self.exchanges.remove(i);
+                if let Some(mut exchange) = self.exchanges.remove(i) {
+                    self.remember(&mut exchange);
+                }
                 self.report(ControllerEvent::Reply {
                     id,
                     result,
@@ -517,7 +704,9 @@ impl<'a> Connection<'a> {
                     (_, true) => None,
                     (_, false) => Some(message),
                 };
-                self.exchanges.remove(i);
+                if let Some(mut exchange) = self.exchanges.remove(i) {
+                    self.remember(&mut exchange);
+                }
                 self.report(ControllerEvent::Reply {
                     id,
                     result: schemas::robot::RESULT_ERROR.into(),
@@ -556,7 +745,11 @@ impl<'a> Connection<'a> {
 
     /// Fails every command in flight, oldest first; false when the owner is gone.
     async fn fail_all(&mut self, failure: CommandFailure) -> bool {
-        let mut ids: Vec<u64> = self.exchanges.drain(..).map(|e| e.command.id).collect();
+        let mut exchanges = std::mem::take(&mut self.exchanges);
+        let mut ids: Vec<u64> = exchanges.iter().map(|e| e.command.id).collect();
+        for exchange in exchanges.iter_mut() {
+            self.remember(exchange);
+        }
         ids.sort_unstable();
         for id in ids {
             let event = ControllerEvent::CommandFailed {

@@ -131,6 +131,8 @@ pub async fn run(
     };
     let mut listener = None;
     let mut first_attempt = true;
+    // The last command that reached the controller, across connections.
+    let mut last_run = None;
     loop {
         if !reporter.status(ControllerStatus::Disconnected).await {
             return;
@@ -148,7 +150,7 @@ pub async fn run(
         let Some(stream) = stream else { return };
         first_attempt = false;
         info!(controller = %config.address, dialect = %config.dialect.name, "connected to the controller");
-        let connection = Connection::new(&config, commands, &mut reporter);
+        let connection = Connection::new(&config, commands, &mut reporter, &mut last_run);
         match connection.serve(stream, listener.as_ref(), &shutdown).await {
             ConnectionEnd::Shutdown => {
                 info!(controller = %config.address, "closed the controller connection");

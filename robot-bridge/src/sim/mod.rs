@@ -15,6 +15,14 @@
 //! before it are accepted; a poll is answered `running` until the action's time is up,
 //! then `done`; a status poll is answered with the state.
 //!
+//! The dialect's abort stops the action under way at once (the connection keeps reading
+//! while an action takes its time): the action is not executed, its command is answered
+//! with the dialect's `failed` reply, message `aborted` (a polled program just stops, or,
+//! where the abort has no reply of its own, its next poll finds it failed), and the
+//! abort with its own `accepted` reply, if it has one. With nothing under way (or an
+//! abort naming another command's id) nothing stops, and the abort gets its `rejected`
+//! reply, if it has one.
+//!
 //! Faults, for tests (command numbers count every action begun, from 1):
 //! - `error_every N`: every Nth command is answered with a `failed` (or `rejected`)
 //!   reply and not executed;
@@ -34,9 +42,12 @@
 //!   wire is free for the state);
 //! - `fragment`: every message is written in pieces of 1 to 3 bytes;
 //! - `merge`: messages are written together: an `accepted` reply with the `done` that
-//!   follows it, and (where the dialect pushes its state) a `ready` with every reply.
+//!   follows it, and (where the dialect pushes its state) a `ready` with every reply;
+//! - `abort_too_late`: an abort that comes while an action runs finds it just ended:
+//!   the `done` goes out (crossing the abort on the wire) and nothing is stopped.
 //!
-//! The simulator counts the commands it executed (answered with their success result);
+//! The simulator counts the commands it executed (answered with their success result)
+//! and the actions an abort stopped;
 //! [`SimStats`] can be written to a JSON file when each command arrives and after it is
 //! answered, so tests can check that nothing ran twice. A thread of its own writes the
 //! file, off the command's path (after the reply went out), with the latest counts
@@ -98,6 +109,9 @@ pub struct SimConfig {
     pub fragment: bool,
     /// Write messages together (see the module docs).
     pub merge: bool,
+    /// An abort that comes while an action runs finds it just ended: its `done` reply
+    /// goes first (crossing the abort on the wire) and the abort has nothing to stop.
+    pub abort_too_late: bool,
 }
 
 impl SimConfig {
@@ -112,6 +126,8 @@ impl SimConfig {
 pub struct SimStats {
     received: AtomicU64,
     executed: AtomicU64,
+    /// Actions stopped by an abort (not executed).
+    aborted: AtomicU64,
     inspections: AtomicU64,
     by_action: Mutex<BTreeMap<String, u64>>,
     connections: AtomicU64,
@@ -124,6 +140,11 @@ impl SimStats {
     /// Commands executed (answered with their success result).
     pub fn executed(&self) -> u64 {
         self.executed.load(Ordering::SeqCst)
+    }
+
+    /// Actions stopped by the dialect's abort while under way (not executed).
+    pub fn aborted(&self) -> u64 {
+        self.aborted.load(Ordering::SeqCst)
     }
 
     /// Commands received, executed or not.
@@ -165,7 +186,7 @@ impl SimStats {
             .clone()
     }
 
-    /// `{"executed": N, "received": N, "connections": N, "changeovers": N,
+    /// `{"executed": N, "received": N, "aborted": N, "connections": N, "changeovers": N,
     /// "by_action": {"pick": N, ...}}`.
     pub fn to_json(&self) -> String {
         let by_action: Vec<String> = self
@@ -174,9 +195,10 @@ impl SimStats {
             .map(|(k, v)| format!("\"{k}\":{v}"))
             .collect();
         format!(
-            "{{\"executed\":{},\"received\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
+            "{{\"executed\":{},\"received\":{},\"aborted\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
             self.executed(),
             self.received(),
+            self.aborted(),
             self.connections(),
             self.changeovers(),
             by_action.join(",")

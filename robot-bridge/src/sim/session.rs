@@ -1,6 +1,12 @@
 //! One simulated controller connection: each message the holon sends matched to the
 //! dialect's commands and answered as its sequence says, with the faults of the config.
+//!
+//! An action whose `done` reply goes in the same exchange is under way ([`Acting`])
+//! while the connection goes on reading: the loop waits for the action's end and for
+//! the next message together. The dialect's abort stops it at once; any other message
+//! waits until the action ends, as on a controller that runs one command at a time.
 
+use std::collections::VecDeque;
 use std::time::Duration;
 
 use bytes::BytesMut;
@@ -48,6 +54,18 @@ async fn act_for(done: std::time::Instant) {
     }
 }
 
+/// An action under way whose `done` reply answers the message that began it.
+struct Acting {
+    /// When it ends.
+    until: std::time::Instant,
+    /// The element that began it: its `done` and `failed` replies answer it.
+    element: Element,
+    /// The `done` reply.
+    done: usize,
+    /// Its result.
+    result: &'static str,
+}
+
 /// The action under way on a connection whose dialect polls for its end.
 struct Running {
     until: std::time::Instant,
@@ -70,6 +88,10 @@ struct Session<'a> {
     on_this_connection: u64,
     /// After `hang_after`: nothing more is answered.
     hung: bool,
+    /// The action under way, answered when it ends (or is aborted).
+    acting: Option<Acting>,
+    /// Messages that came while an action was under way, answered after it.
+    deferred: VecDeque<bytes::Bytes>,
 }
 
 pub(super) async fn serve(
@@ -110,18 +132,34 @@ pub(super) async fn serve(
         fault_until: None,
         on_this_connection: 0,
         hung: false,
+        acting: None,
+        deferred: VecDeque::new(),
     };
     loop {
-        let frame = tokio::select! {
+        let ends = session
+            .acting
+            .as_ref()
+            .map_or_else(std::time::Instant::now, |a| a.until);
+        let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
-            frame = reader.next() => frame,
+            frame = reader.next() => match frame {
+                None => return Ok(()),
+                Some(Err(e)) => return Err(e.into()),
+                Some(Ok(frame)) => session.receive(frame, &mut writer, &shutdown).await?,
+            },
+            _ = act_for(ends), if session.acting.is_some() => {
+                session.end_action(&mut writer).await?;
+                Flow::Continue
+            }
         };
-        let frame = match frame {
-            None => return Ok(()),
-            Some(Err(e)) => return Err(e.into()),
-            Some(Ok(frame)) => frame,
-        };
-        match session.message(&frame, &mut writer, &shutdown).await? {
+        // What waited for the action, now that none is under way.
+        while matches!(flow, Flow::Continue) && session.acting.is_none() {
+            let Some(frame) = session.deferred.pop_front() else {
+                break;
+            };
+            flow = session.message(&frame, &mut writer, &shutdown).await?;
+        }
+        match flow {
             Flow::Continue => {}
             Flow::Close => return Ok(()),
             Flow::Reset => {
@@ -155,6 +193,116 @@ impl Session<'_> {
         }
     }
 
+    /// A message from the holon: answered now, or, while an action is under way, kept
+    /// for after it (an abort is answered now).
+    async fn receive(
+        &mut self,
+        frame: bytes::Bytes,
+        writer: &mut Writer<'_>,
+        shutdown: &CancellationToken,
+    ) -> Result<Flow, SimError> {
+        if self.acting.is_some() && !self.hung {
+            let (index, _) = self.identify(&frame)?;
+            if self.dialect.abort.as_ref().map(|a| a.command) != Some(index) {
+                self.deferred.push_back(frame);
+                return Ok(Flow::Continue);
+            }
+        }
+        self.message(&frame, writer, shutdown).await
+    }
+
+    /// The command `frame` is, and its values.
+    fn identify(&self, frame: &[u8]) -> Result<(usize, Values), SimError> {
+        let parsed = self.dialect.parse(frame)?;
+        for index in 0..self.dialect.commands.len() {
+            match self.dialect.read_command(index, &parsed) {
+                Ok(Some(values)) => return Ok((index, values)),
+                Ok(None) => {}
+                Err(why) => return Err(SimError::Unknown(why)),
+            }
+        }
+        Err(SimError::Unknown(
+            String::from_utf8_lossy(frame).into_owned(),
+        ))
+    }
+
+    /// The action under way ends: its `done` reply.
+    async fn end_action(&mut self, writer: &mut Writer<'_>) -> Result<(), SimError> {
+        if let Some(acting) = self.acting.take() {
+            self.finish(Some(acting.done), acting.result, writer)
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// The dialect's abort, with the values it carries: the action under way (the one it
+    /// names, where it names one) stops at once and is not executed; its command is
+    /// answered with its `failed` reply (`aborted`), or, polled, its program just stops;
+    /// the abort is answered with its `accepted` reply when something stopped, its
+    /// `rejected` reply when nothing ran.
+    async fn abort(&mut self, values: &Values, writer: &mut Writer<'_>) -> Result<Flow, SimError> {
+        let Some(abort) = &self.dialect.abort else {
+            return Ok(Flow::Continue);
+        };
+        let rule = |outcome: Outcome| {
+            abort
+                .expect
+                .iter()
+                .copied()
+                .find(|&r| self.dialect.replies[r].outcome == outcome)
+        };
+        let (stopped, nothing) = (rule(Outcome::Accepted), rule(Outcome::Rejected));
+        let mut answer = values.clone();
+        answer.fill_from(&self.context);
+        // Where the dialect has ids, the abort names the command it stops.
+        let this_one = values
+            .get("id")
+            .is_none_or(|id| Some(id) == self.context.get("id"));
+        let now = std::time::Instant::now();
+        let under_way = this_one
+            && (self.acting.is_some()
+                || self
+                    .running
+                    .as_ref()
+                    .is_some_and(|r| now < r.until && r.result.is_ok()));
+        let id = self.context.get("id").unwrap_or("-").to_string();
+        let action = self.context.get("action").unwrap_or("").to_string();
+        if under_way && self.config.abort_too_late {
+            // The action ends as the abort comes: its done crosses the abort on the wire.
+            info!(%id, %action, "the action ended before the abort (abort_too_late)");
+            self.end_action(writer).await?;
+            if let Some(running) = &mut self.running {
+                running.until = now;
+            }
+        } else if under_way {
+            self.stats.aborted.fetch_add(1, Ordering::SeqCst);
+            info!(%id, %action, "action aborted");
+            if let Some(acting) = self.acting.take() {
+                self.answer_failed(&acting.element, writer, "aborted")
+                    .await?;
+            } else if stopped.is_some() {
+                // The program stops; the abort's answer says so.
+                self.running = None;
+            } else if let Some(running) = &mut self.running {
+                // The next poll finds it failed.
+                running.until = now;
+                running.result = Err("aborted".into());
+            }
+            if let Some(rule) = stopped {
+                writer.reply(rule, &answer).await?;
+            }
+            self.count_file.update();
+            return Ok(Flow::Continue);
+        } else {
+            info!(%id, "abort with nothing under way");
+        }
+        if let Some(rule) = nothing {
+            answer.set("message", "nothing to stop".into());
+            writer.reply(rule, &answer).await?;
+        }
+        Ok(Flow::Continue)
+    }
+
     /// The first of `element`'s expected replies with one of `outcomes`.
     fn rule(&self, element: &Element, outcomes: &[Outcome]) -> Option<usize> {
         outcomes.iter().find_map(|o| {
@@ -175,23 +323,15 @@ impl Session<'_> {
         if self.hung {
             return Ok(Flow::Continue);
         }
-        let parsed = self.dialect.parse(frame)?;
-        let mut found = None;
-        for index in 0..self.dialect.commands.len() {
-            match self.dialect.read_command(index, &parsed) {
-                Ok(Some(values)) => {
-                    found = Some((index, values));
-                    break;
-                }
-                Ok(None) => {}
-                Err(why) => return Err(SimError::Unknown(why)),
-            }
+        let (index, values) = self.identify(frame)?;
+        if self
+            .dialect
+            .abort
+            .as_ref()
+            .is_some_and(|a| a.command == index)
+        {
+            return self.abort(&values, writer).await;
         }
-        let Some((index, values)) = found else {
-            return Err(SimError::Unknown(
-                String::from_utf8_lossy(frame).into_owned(),
-            ));
-        };
         if let Status::Polled { command, .. } = self.dialect.status {
             if command == index {
                 let state = self.state_now();
@@ -366,14 +506,18 @@ impl Session<'_> {
             });
             return Ok(Flow::Continue);
         }
-        if !takes.is_zero() {
-            tokio::select! {
-                _ = shutdown.cancelled() => return Ok(Flow::Close),
-                _ = act_for(received + takes) => {}
+        if let (Some(done), Some(result)) = (done_here, result) {
+            if takes.is_zero() {
+                self.finish(Some(done), result, writer).await?;
+            } else {
+                // It ends (or is aborted) while the connection goes on reading.
+                self.acting = Some(Acting {
+                    until: received + takes,
+                    element: element.clone(),
+                    done,
+                    result,
+                });
             }
-        }
-        if let Some(result) = result {
-            self.finish(done_here, result, writer).await?;
         }
         Ok(Flow::Continue)
     }

@@ -146,6 +146,11 @@ impl Harness {
             .unwrap();
     }
 
+    /// Asks the client to abort (PackML Abort).
+    pub async fn abort(&self) {
+        self.commands.send(ControllerRequest::Abort).await.unwrap();
+    }
+
     pub async fn stop(self) {
         self.shutdown.cancel();
         tokio::time::timeout(WAIT, self.client)
@@ -175,5 +180,17 @@ pub fn reply(id: u64, result: &str) -> ControllerEvent {
         id,
         result: result.into(),
         message: None,
+    }
+}
+
+/// Waits until the simulator has received `n` commands (begun `n` actions).
+pub async fn wait_received(stats: &SimStats, n: u64) {
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while stats.received() < n {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the simulator never received {n} commands"
+        );
+        tokio::time::sleep(Duration::from_millis(2)).await;
     }
 }
