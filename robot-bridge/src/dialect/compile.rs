@@ -399,7 +399,7 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
                     return Err(invalid(
                         origin,
                         "abort.expect",
-                        format!("{name:?} is a {outcome:?} reply; the abort's own answer is `accepted` (the controller stopped) or `rejected` (it had nothing to stop)").to_lowercase(),
+                        format!("{name:?} is a {} reply; the abort's own answer is `accepted` (the controller stopped) or `rejected` (it had nothing to stop)", format!("{outcome:?}").to_lowercase()),
                     ));
                 }
                 let step = sequence
