@@ -293,3 +293,116 @@ fields = [
     assert_eq!(stats.connections(), 1);
     h.stop().await;
 }
+
+/// A hand-played ur-dashboard controller: answers `safetystatus` itself and hands every
+/// other line to the test.
+struct Dashboard {
+    lines: tokio::io::Lines<tokio::io::BufReader<tokio::net::tcp::OwnedReadHalf>>,
+    write: tokio::net::tcp::OwnedWriteHalf,
+}
+
+impl Dashboard {
+    async fn accept(listener: &tokio::net::TcpListener) -> Dashboard {
+        use tokio::io::AsyncBufReadExt;
+        let (socket, _) = listener.accept().await.unwrap();
+        let (read, mut write) = socket.into_split();
+        write
+            .write_all(b"Connected: Universal Robots Dashboard Server\n")
+            .await
+            .unwrap();
+        let mut ur = Dashboard {
+            lines: tokio::io::BufReader::new(read).lines(),
+            write,
+        };
+        // The first status poll: the client is ready once it is answered.
+        let first = ur.lines.next_line().await.unwrap();
+        assert_eq!(first.as_deref(), Some("safetystatus"));
+        ur.say("Safetystatus: NORMAL").await;
+        ur
+    }
+
+    /// The next line that is not a status poll.
+    async fn next(&mut self) -> String {
+        loop {
+            let line = tokio::time::timeout(WAIT, self.lines.next_line())
+                .await
+                .expect("a line in time")
+                .unwrap()
+                .expect("the client closed the connection");
+            if line == "safetystatus" {
+                self.say("Safetystatus: NORMAL").await;
+                continue;
+            }
+            return line;
+        }
+    }
+
+    async fn say(&mut self, line: &str) {
+        self.write
+            .write_all(format!("{line}\n").as_bytes())
+            .await
+            .unwrap();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_abort_on_a_one_in_flight_wire_is_answered_by_its_own_reply() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    let dialect = Dialect::shipped("ur-dashboard").unwrap();
+    let mut h = Harness::start_in(dialect, address, Duration::from_secs(5), None);
+    let mut ur = Dashboard::accept(&listener).await;
+    h.wait_ready().await;
+
+    // Aborted while `load` awaits its answer: `stop` goes at once; `play` never does.
+    h.send(1, "pick").await;
+    assert_eq!(ur.next().await, "load pick.urp");
+    h.abort().await;
+    assert_eq!(ur.next().await, "stop");
+    ur.say("Loading program: pick.urp").await;
+    ur.say("Failed to execute: stop").await;
+    assert_eq!(
+        h.answer().await,
+        ControllerEvent::CommandFailed {
+            id: 1,
+            failure: CommandFailure::Aborted
+        }
+    );
+
+    // Aborted while polled: the poll's answer, then `Stopped`, which is the abort's.
+    h.send(2, "place").await;
+    assert_eq!(ur.next().await, "load place.urp");
+    ur.say("Loading program: place.urp").await;
+    assert_eq!(ur.next().await, "play");
+    ur.say("Starting program").await;
+    assert_eq!(ur.next().await, "programState");
+    h.abort().await;
+    assert_eq!(ur.next().await, "stop");
+    ur.say("PLAYING place.urp").await;
+    ur.say("Stopped").await;
+    assert_eq!(
+        h.answer().await,
+        ControllerEvent::CommandFailed {
+            id: 2,
+            failure: CommandFailure::Aborted
+        }
+    );
+
+    // The program had just ended: `stop` finds nothing, and the step is done.
+    h.send(3, "move").await;
+    assert_eq!(ur.next().await, "load move.urp");
+    ur.say("Loading program: move.urp").await;
+    assert_eq!(ur.next().await, "play");
+    ur.say("Starting program").await;
+    assert_eq!(ur.next().await, "programState");
+    h.abort().await;
+    assert_eq!(ur.next().await, "stop");
+    ur.say("STOPPED move.urp").await;
+    ur.say("Failed to execute: stop").await;
+    assert_eq!(h.answer().await, reply(3, "arrived"));
+
+    // The connection serves on; nothing was taken for a protocol error.
+    h.send(4, "pick").await;
+    assert_eq!(ur.next().await, "load pick.urp");
+    h.stop().await;
+}
