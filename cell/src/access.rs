@@ -5,11 +5,11 @@
 //!
 //! | role | may declare (queryable, token, publication) | may query / subscribe |
 //! |---|---|---|
-//! | `resource.<r>` | `resource/<r>/{service,state,debug/crash}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
+//! | `resource.<r>` | `resource/<r>/{service,state,packml,debug/crash}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
 //! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
-//! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, states, plans, liveliness |
+//! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, `resource/*/packml` (PackML commands), states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, liveliness |
 //! | `router.<h>` | everything (routers forward for others; trusted) | everything |
 //!
@@ -109,6 +109,7 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                 vec![
                     format!("resource/{name}/service"),
                     format!("resource/{name}/state"),
+                    format!("resource/{name}/packml"),
                     format!("resource/{name}/debug/crash"),
                     format!("offer/*/{name}"),
                 ],
@@ -188,7 +189,11 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
         ],
         Role::Operator => vec![(READ, {
             let mut keys = reading();
-            keys.extend(["orders/submit".to_string(), "order/*/cancel".to_string()]);
+            keys.extend([
+                "orders/submit".to_string(),
+                "order/*/cancel".to_string(),
+                "resource/*/packml".to_string(),
+            ]);
             keys
         })],
         Role::Observer => vec![(READ, reading())],
@@ -337,5 +342,38 @@ mod tests {
             .flat_map(|(_, keys)| keys)
             .collect();
         assert!(asks.iter().all(|k| !k.contains("service")), "{asks:?}");
+    }
+
+    #[test]
+    fn only_operators_may_command_a_resource_and_only_a_resource_answers() {
+        let may = |role, name, message: &str| -> Vec<String> {
+            grants(role, name)
+                .into_iter()
+                .filter(|(messages, _)| messages.contains(&message))
+                .flat_map(|(_, keys)| keys)
+                .filter(|k| k.ends_with("/packml") || k == "**")
+                .collect()
+        };
+        assert_eq!(
+            may(Role::Operator, "default", "query"),
+            ["resource/*/packml"]
+        );
+        for (role, name) in [
+            (Role::Observer, "default"),
+            (Role::Resource, "robot1"),
+            (Role::OrderNode, "orders1"),
+            (Role::Staff, "planner"),
+            (Role::Product, "breaker"),
+        ] {
+            assert!(
+                may(role, name, "query").is_empty(),
+                "{role:?} may command resources"
+            );
+        }
+        assert_eq!(
+            may(Role::Resource, "robot1", "declare_queryable"),
+            ["resource/robot1/packml"]
+        );
+        assert!(may(Role::Operator, "default", "declare_queryable").is_empty());
     }
 }

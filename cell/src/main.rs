@@ -193,6 +193,22 @@ enum Commands {
         #[command(flatten)]
         client: ClientArgs,
     },
+    /// Show a resource's PackML state, figures and allowed commands, or command it
+    /// (operators only in a secure cell): hold, unhold, stop, reset, start, abort,
+    /// clear (or their numbers 1-9), or --mode production|maintenance|manual (only in
+    /// Stopped, Idle or Aborted). Prints the new state, or the refusal and exits 1.
+    /// What each state does to bookings and orders: docs/packml.md.
+    Packml {
+        /// The resource, e.g. robot1.
+        resource: String,
+        /// The command; none: show the state.
+        command: Option<schemas::PackmlCommand>,
+        /// Change the unit mode instead.
+        #[arg(long, conflicts_with = "command")]
+        mode: Option<schemas::UnitMode>,
+        #[command(flatten)]
+        client: ClientArgs,
+    },
     /// List the live holons of a cell with their kind, state and agenda length.
     Status {
         #[command(flatten)]
@@ -298,6 +314,7 @@ fn main() -> ExitCode {
             | Commands::Orders { .. }
             | Commands::Submit { .. }
             | Commands::Cancel { .. }
+            | Commands::Packml { .. }
     ) {
         // A client command piped into `head` or `grep -q` stops quietly when the reader
         // goes, like any Unix tool, instead of panicking on a broken pipe.
@@ -495,6 +512,41 @@ async fn run(args: Args) -> Result<bool> {
             let reply = reply?;
             println!("{}: {}", reply.order, reply.detail);
             Ok(true)
+        }
+        Commands::Packml {
+            resource,
+            command,
+            mode,
+            client,
+        } => {
+            let keys = client.keys()?;
+            let by = format!(
+                "cell {} on {}",
+                client.identity.as_deref().unwrap_or(OPERATOR),
+                holon::presence::host_name()
+            );
+            let request = match (command, mode) {
+                (Some(command), _) => Some(schemas::PackmlRequest::command(command, &by)),
+                (None, Some(mode)) => Some(schemas::PackmlRequest::mode(mode, &by)),
+                (None, None) => None,
+            };
+            let Some(request) = request else {
+                let session = client.session(OBSERVER).await?;
+                let state = cell::packml::state(&session, &keys, &resource, client.timeout()).await;
+                close(session).await;
+                print!(
+                    "{}",
+                    cell::packml::render_state(&state?, schemas::unix_ms())
+                );
+                return Ok(true);
+            };
+            let session = client.session(OPERATOR).await?;
+            let reply =
+                cell::packml::ask(&session, &keys, &resource, &request, client.timeout()).await;
+            close(session).await;
+            let reply = reply?;
+            println!("{}", cell::packml::render_reply(&resource, &reply));
+            Ok(reply.refused.is_none())
         }
         Commands::Status { client } => {
             let keys = client.keys()?;

@@ -69,8 +69,8 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
         if rows.len() == 1 { "" } else { "s" }
     );
     out.push_str(&format!(
-        "{:<28} {:<9} {:<8} {:<13} {:>6} {:>11}  VERSION\n",
-        "HOLON", "KIND", "STATE", "CONTROLLER", "AGENDA", "UNDELIVERED"
+        "{:<28} {:<9} {:<8} {:<14} {:<13} {:>6} {:>11}  VERSION\n",
+        "HOLON", "KIND", "STATE", "PACKML", "CONTROLLER", "AGENDA", "UNDELIVERED"
     ));
     for row in rows {
         let field = |name: &str| {
@@ -114,8 +114,23 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
             (release, Some(v)) if v > 0 => format!("{release}/v{v}"),
             (release, _) => release,
         };
+        // A resource's PackML state and number; its mode when not Production.
+        let packml = row
+            .snapshot
+            .as_ref()
+            .and_then(|s| s.get("packml"))
+            .and_then(|p| serde_json::from_value::<schemas::PackmlStatus>(p.clone()).ok())
+            .map_or_else(
+                || "-".to_string(),
+                |p| match p.mode {
+                    schemas::UnitMode::Production => {
+                        format!("{}({})", p.state.name(), p.state_number)
+                    }
+                    mode => format!("{}({})/{}", p.state.name(), p.state_number, mode.name()),
+                },
+            );
         out.push_str(&format!(
-            "{:<28} {:<9} {:<8} {:<13} {:>6} {:>11}  {}\n",
+            "{:<28} {:<9} {:<8} {:<14} {:<13} {:>6} {:>11}  {}\n",
             row.holon.to_string(),
             row.holon.kind().to_string(),
             if row.holon.kind() == schemas::HolonKind::Order {
@@ -125,6 +140,7 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
             } else {
                 field("state")
             },
+            packml,
             field("controller"),
             agenda,
             field("undelivered"),

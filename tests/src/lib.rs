@@ -898,6 +898,43 @@ impl Cell {
         inbox.next().await
     }
 
+    /// Sends the PackML `command` (a name, e.g. `hold`) to `resource` over zenoh and
+    /// returns its answer; an error if it was refused.
+    pub async fn packml(&self, resource: &str, command: &str) -> Result<schemas::PackmlReply> {
+        let command: schemas::PackmlCommand = command.parse().map_err(|e: String| anyhow!(e))?;
+        let request = schemas::PackmlRequest::command(command, "a test");
+        let replies = self
+            .session
+            .get(self.keys.packml(resource))
+            .payload(serde_json::to_vec(&request)?)
+            .timeout(WAIT)
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        let reply = replies
+            .recv_async()
+            .await
+            .map_err(|_| anyhow!("{resource} did not answer the PackML {command}"))?;
+        let sample = reply.result().map_err(|e| {
+            anyhow!(
+                "{resource} rejected the PackML {command}: {}",
+                e.payload().try_to_string().unwrap_or_default()
+            )
+        })?;
+        let answer: schemas::PackmlReply = serde_json::from_slice(&sample.payload().to_bytes())?;
+        if let Some(why) = &answer.detail {
+            bail!("{resource} refused {command}: {why}");
+        }
+        Ok(answer)
+    }
+
+    /// Waits until `resource` is in the PackML state numbered `state`.
+    pub async fn wait_packml(&self, resource: &str, state: i32) -> Result<serde_json::Value> {
+        self.wait_state(resource, &format!("PackML state {state}"), |s| {
+            s["packml"]["state_number"] == state
+        })
+        .await
+    }
+
     /// Waits until `resource` is free again.
     pub async fn wait_free(&self, resource: &str) -> Result<()> {
         self.wait_state(resource, "free again", |s| s["state"] == "free")

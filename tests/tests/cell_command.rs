@@ -145,6 +145,7 @@ async fn cell_status_lists_the_live_holons() {
             "resource/robot7",
             "resource",
             "free",
+            "Execute(6)",
             "ready",
             "0",
             "0",

@@ -1,5 +1,6 @@
 //! Controller faults, each through a real resource holon: the step fails with a clear
-//! reason delivered to the order, and the holon keeps serving.
+//! reason delivered to the order, and the holon keeps serving (after a controller fault
+//! or e-stop, once an operator has cleared, reset and started it: PackML Aborted).
 
 use holarchy_tests::*;
 use schemas::{MessageType, Service};
@@ -131,7 +132,7 @@ async fn a_dropped_connection_fails_the_step_and_reconnects() {
 }
 
 #[tokio::test(flavor = "multi_thread")]
-async fn a_fault_stops_the_offers_until_the_controller_is_ready() {
+async fn a_fault_aborts_the_resource_until_an_operator_clears_resets_and_starts_it() {
     for state in ["fault", "estop"] {
         let r = robot(
             &format!("t-f-{state}"),
@@ -172,8 +173,22 @@ async fn a_fault_stops_the_offers_until_the_controller_is_ready() {
                 .as_deref(),
             Some("unavailable")
         );
-        // Ready again: it offers again.
+        // PackML: the fault aborted the resource; ready again, it stays Aborted (no
+        // offers) until an operator clears, resets and starts it.
         r.free().await;
+        let aborted = r
+            .cell
+            .wait_state("robot1", "Aborted", |s| s["packml"]["state"] == "aborted")
+            .await
+            .unwrap();
+        assert_eq!(
+            aborted["packml"]["stop_reason"]["id"],
+            if state == "fault" { 100 } else { 101 }
+        );
+        r.cell.wait_proposals(&ask, 0).await.unwrap();
+        for command in ["clear", "reset", "start"] {
+            r.cell.packml("robot1", command).await.unwrap();
+        }
         r.cell.wait_proposals(&ask, 1).await.unwrap();
         assert_eq!(
             r.job(&mut inbox, "o-1", "c3").await.message_type,
