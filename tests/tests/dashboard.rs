@@ -271,6 +271,12 @@ async fn the_dashboard_shows_the_cell_raises_alarms_and_serves_metrics() {
     assert_eq!(status, 403, "{body}");
     let (status, body) = observer.http("POST", "/api/orders", r#"{"product":"breaker","count":1}"#);
     assert_eq!(status, 403, "{body}");
+    let (status, body) = observer.http(
+        "POST",
+        "/api/resources/robot1/packml",
+        r#"{"command":"hold"}"#,
+    );
+    assert_eq!(status, 403, "an observer's page holds no robot: {body}");
 
     // Metrics in the Prometheus text format.
     let (status, metrics) = observer.http("GET", "/metrics", "");
@@ -458,9 +464,38 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
         ),
         "{metrics}"
     );
+    // PackML from the page: Hold robot1 (it is idle: Held at once), the page then offers
+    // Unhold instead of Hold; Unhold brings it back to Execute.
+    let (hold, _) = browser
+        .wait_for(
+            "button[data-packml=\"hold\"][data-resource=\"robot1\"]",
+            within,
+        )
+        .unwrap();
+    browser.click(&hold).unwrap();
+    cell.wait_packml("robot1", 11).await.unwrap();
+    let (unhold, _) = browser
+        .wait_for(
+            "button[data-packml=\"unhold\"][data-resource=\"robot1\"]",
+            within,
+        )
+        .unwrap();
+    let row = browser
+        .find("tr[data-holon=\"resource/robot1\"] .packml-state")
+        .unwrap()
+        .expect("robot1's PackML cell");
+    assert_eq!(browser.text(&row).unwrap(), "Held (11)");
     let screenshot = workspace_root().join("target").join("dashboard.png");
     browser.screenshot(&screenshot).unwrap();
     println!("screenshot: {}", screenshot.display());
+    browser.click(&unhold).unwrap();
+    cell.wait_packml("robot1", 6).await.unwrap();
+    browser
+        .wait_for(
+            "button[data-packml=\"hold\"][data-resource=\"robot1\"]",
+            within,
+        )
+        .unwrap();
     drop((breaker, orders));
 }
 
@@ -527,6 +562,11 @@ async fn in_a_secure_cell_the_identity_decides_what_the_page_may_do() {
         .wait_for("tr[data-holon=\"resource/robot1\"]", within)
         .unwrap();
     browser.wait_for("#submit-panel.hidden", within).unwrap();
+    assert_eq!(
+        browser.find("button[data-packml]").unwrap(),
+        None,
+        "an observer's page offers no PackML command"
+    );
     // The operator's page submits a breaker, which is done.
     browser
         .goto(&format!("http://{}/", operator.address))

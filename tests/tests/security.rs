@@ -327,12 +327,54 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         );
     }
 
+    // PackML commands are the operators': the operator's Unhold (refused in Execute by
+    // robot1 itself, nothing changes) is answered, so the observer's silence is the
+    // denial.
+    let packml =
+        |command| serde_json::to_vec(&schemas::PackmlRequest::command(command, "a test")).unwrap();
+    let operator = cell
+        .session_as(&cell.pki(), "operator.default", holon::Mode::Client)
+        .await
+        .expect("the operator connects");
+    let refused = answered(
+        &operator,
+        &keys.packml("robot1"),
+        packml(schemas::PackmlCommand::Unhold),
+        "the operator",
+    )
+    .await;
+    assert!(
+        matches!(&refused[0], Ok(body) if String::from_utf8_lossy(body).contains("not_in_state")),
+        "{refused:?}"
+    );
+    operator.close().await.unwrap();
+    let replies = ask(
+        &observer,
+        &keys.packml("robot1"),
+        packml(schemas::PackmlCommand::Hold),
+    )
+    .await;
+    assert!(replies.is_empty(), "the observer held robot1: {replies:?}");
+
     // A resource identity (a spare: robot9) may not submit, book another resource,
     // declare another resource's keys or an order's inbox, or fake a result.
     let robot9 = cell
         .session_as(&cell.pki(), "resource.robot9", holon::Mode::Peer)
         .await
         .expect("a spare resource identity connects");
+    let replies = ask(
+        &robot9,
+        &keys.packml("robot1"),
+        packml(schemas::PackmlCommand::Abort),
+    )
+    .await;
+    assert!(replies.is_empty(), "robot9 aborted robot1: {replies:?}");
+    let snapshot = ask(&observer, &keys.state(&robot1), Vec::new()).await;
+    let Some(Ok(payload)) = snapshot.first() else {
+        panic!("the observer cannot read robot1's state: {snapshot:?}");
+    };
+    let state: serde_json::Value = serde_json::from_slice(payload).unwrap();
+    assert_eq!(state["packml"]["state"], "execute", "{state}");
     let work = serde_json::to_vec(&schemas::WorkOrder {
         product: "breaker".into(),
         count: 1,

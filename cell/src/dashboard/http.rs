@@ -7,6 +7,7 @@
 //! | `GET /api/view`, `/api/holons`, `/api/orders`, `/api/alarms`, `/api/events` | JSON |
 //! | `POST /api/orders` | submit a work order, `{"product", "count", "queue"}` (operator dashboards only) |
 //! | `POST /api/alarms/{id}/ack` | acknowledge an alarm (operator dashboards only) |
+//! | `POST /api/resources/{name}/packml` | a PackML command, `{"command": "hold"}` (operator dashboards only): the resource's answer, or why it refused (409) |
 //! | `GET /metrics` | Prometheus text format |
 
 use std::convert::Infallible;
@@ -37,6 +38,7 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/orders", get(orders).post(submit))
         .route("/api/alarms", get(alarms))
         .route("/api/alarms/{id}/ack", post(acknowledge))
+        .route("/api/resources/{name}/packml", post(packml))
         .route("/api/events", get(event_log))
         .route("/metrics", get(prometheus))
         .with_state(shared)
@@ -128,6 +130,47 @@ struct SubmitForm {
     /// Due this many seconds from now (optional).
     #[serde(default)]
     due_in_s: Option<u64>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PackmlForm {
+    command: schemas::PackmlCommand,
+}
+
+async fn packml(
+    State(shared): State<Arc<Shared>>,
+    Path(name): Path<String>,
+    Json(form): Json<PackmlForm>,
+) -> Response {
+    if !shared.operator {
+        return refused(StatusCode::FORBIDDEN, READ_ONLY);
+    }
+    if let Err(e) = schemas::validate_name("resource", &name) {
+        return refused(StatusCode::BAD_REQUEST, &e.to_string());
+    }
+    let by = format!("dashboard {}", shared.identity);
+    let request = schemas::PackmlRequest::command(form.command, &by);
+    match crate::packml::ask(
+        &shared.session,
+        &shared.keys,
+        &name,
+        &request,
+        Duration::from_secs(5),
+    )
+    .await
+    {
+        Ok(reply) if reply.refused.is_some() => {
+            let why = reply.detail.clone().unwrap_or_default();
+            (
+                StatusCode::CONFLICT,
+                Json(serde_json::json!({ "error": why, "reply": reply })),
+            )
+                .into_response()
+        }
+        Ok(reply) => Json(reply).into_response(),
+        Err(e) => refused(StatusCode::BAD_GATEWAY, &format!("{e:#}")),
+    }
 }
 
 fn one() -> u32 {

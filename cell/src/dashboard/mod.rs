@@ -205,6 +205,9 @@ pub struct Shared {
     pub session: zenoh::Session,
     pub keys: CellKeys,
     pub operator: bool,
+    /// The identity the dashboard joined the cell with: who commands, in a PackML
+    /// command's `by`.
+    pub identity: String,
 }
 
 /// Runs the dashboard until `shutdown`.
@@ -245,6 +248,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
         session: session.clone(),
         keys: config.keys.clone(),
         operator: config.operator,
+        identity: config.identity.clone(),
     });
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
