@@ -143,8 +143,14 @@ pub(super) async fn serve(
         let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
             frame = reader.next() => match frame {
-                None => return Ok(()),
-                Some(Err(e)) => return Err(e.into()),
+                None => {
+                    session.complete_unanswered(&shutdown).await;
+                    return Ok(());
+                }
+                Some(Err(e)) => {
+                    session.complete_unanswered(&shutdown).await;
+                    return Err(e.into());
+                }
                 Some(Ok(frame)) => session.receive(frame, &mut writer, &shutdown).await?,
             },
             _ = act_for(ends), if session.acting.is_some() => {
@@ -227,6 +233,30 @@ impl Session<'_> {
     }
 
     /// The action under way ends: its `done` reply.
+    /// The connection is gone while an action is under way: like a real robot, the
+    /// controller completes the motion it began (counted as executed), with nobody to
+    /// tell.
+    async fn complete_unanswered(&mut self, shutdown: &CancellationToken) {
+        let Some(acting) = self.acting.take() else {
+            return;
+        };
+        tokio::select! {
+            _ = shutdown.cancelled() => return,
+            _ = act_for(acting.until) => {}
+        }
+        let action = self.context.get("action").unwrap_or("").to_string();
+        info!(%action, "the connection is gone: the action completes unanswered");
+        self.stats.executed.fetch_add(1, Ordering::SeqCst);
+        *self
+            .stats
+            .by_action
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(action)
+            .or_default() += 1;
+        self.count_file.update();
+    }
+
     async fn end_action(&mut self, writer: &mut Writer<'_>) -> Result<(), SimError> {
         if let Some(acting) = self.acting.take() {
             self.finish(Some(acting.done), acting.result, writer)
