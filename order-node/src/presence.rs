@@ -293,9 +293,16 @@ fn read_state(
     snapshot: &schemas::ResourceSnapshot,
 ) -> (StateNews, (usize, bool)) {
     let (length_before, ready_before) = previous.unwrap_or((0, false));
-    let ready = snapshot.state != ResourceState::Init && snapshot.controller.is_ready();
+    // A resource out of PackML Execute or Production (held, stopped, aborted, in
+    // maintenance) takes no orders' work: nobody's turn, and not ready (its return to
+    // Execute is news, so waiting orders ask at once).
+    let takes_orders = snapshot.packml.as_ref().is_none_or(|p| {
+        p.state == schemas::PackmlState::Execute && p.mode == schemas::UnitMode::Production
+    });
+    let ready =
+        snapshot.state != ResourceState::Init && snapshot.controller.is_ready() && takes_orders;
     let news = StateNews {
-        turn: (snapshot.state == ResourceState::Free)
+        turn: (snapshot.state == ResourceState::Free && takes_orders)
             .then(|| snapshot.agenda.first().map(|b| b.conversation_id.clone()))
             .flatten(),
         became_ready: ready && !ready_before,
@@ -408,6 +415,42 @@ mod tests {
         assert_eq!(fault.turn, None);
         let (back, _) = read_state(Some(now), &snapshot("free", "ready", &[]));
         assert!(back.became_ready, "back from a fault");
+    }
+
+    #[test]
+    fn a_held_resource_gives_no_turn_and_its_unhold_is_news() {
+        let mut held = snapshot("free", "ready", &["a/1/1"]);
+        let mut unit = packml(schemas::PackmlState::Held);
+        held.packml = Some(unit.clone());
+        let (news, now) = read_state(Some((1, true)), &held);
+        assert_eq!(news.turn, None, "nobody's turn on a held resource");
+        assert!(!news.became_ready);
+        unit.state = schemas::PackmlState::Execute;
+        let mut back = snapshot("free", "ready", &["a/1/1"]);
+        back.packml = Some(unit.clone());
+        let (news, _) = read_state(Some(now), &back);
+        assert_eq!(news.turn.as_deref(), Some("a/1/1"));
+        assert!(news.became_ready, "the unhold is news");
+        unit.mode = schemas::UnitMode::Maintenance;
+        back.packml = Some(unit);
+        let (news, _) = read_state(Some(now), &back);
+        assert_eq!(news.turn, None, "maintenance takes no orders");
+    }
+
+    /// A resource's PackML figures in `state`, in Production.
+    fn packml(state: schemas::PackmlState) -> schemas::PackmlStatus {
+        schemas::PackmlStatus {
+            state,
+            state_number: state.number(),
+            state_requested: state,
+            mode: schemas::UnitMode::Production,
+            processed: 0,
+            defective: 0,
+            stop_reason: None,
+            since: 0,
+            cumulative_ms: Default::default(),
+            commands: vec![],
+        }
     }
 
     #[test]
