@@ -65,19 +65,39 @@ impl Dashboard {
 }
 
 impl Api {
-    /// One HTTP/1.1 request: the status code and the body.
+    /// One HTTP/1.1 request as the dashboard's own page makes it (its host, and for a
+    /// change its own `Origin` and JSON): the status code and the body.
     fn http(&self, method: &str, path: &str, body: &str) -> (u16, String) {
+        let origin = format!("http://{}", self.address);
+        let mut headers = vec![("content-type", "application/json")];
+        if method != "GET" {
+            headers.push(("origin", origin.as_str()));
+        }
+        let (status, _, body) = self.raw(method, path, &self.address, &headers, body);
+        (status, body)
+    }
+
+    /// One HTTP/1.1 request with `host` and `headers` as given: the status code, the
+    /// response's headers and its body.
+    fn raw(
+        &self,
+        method: &str,
+        path: &str,
+        host: &str,
+        headers: &[(&str, &str)],
+        body: &str,
+    ) -> (u16, String, String) {
         let mut stream = TcpStream::connect(&self.address).unwrap();
         stream
             .set_read_timeout(Some(Duration::from_secs(10)))
             .unwrap();
-        write!(
-            stream,
-            "{method} {path} HTTP/1.1\r\nHost: {}\r\nConnection: close\r\ncontent-type: application/json\r\ncontent-length: {}\r\n\r\n{body}",
-            self.address,
-            body.len()
-        )
-        .unwrap();
+        let mut request =
+            format!("{method} {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n");
+        for (name, value) in headers {
+            request.push_str(&format!("{name}: {value}\r\n"));
+        }
+        request.push_str(&format!("content-length: {}\r\n\r\n{body}", body.len()));
+        stream.write_all(request.as_bytes()).unwrap();
         let mut response = String::new();
         stream.read_to_string(&mut response).unwrap();
         let status = response
@@ -85,11 +105,11 @@ impl Api {
             .nth(1)
             .and_then(|s| s.parse().ok())
             .unwrap_or(0);
-        let body = response
+        let (head, body) = response
             .split_once("\r\n\r\n")
-            .map(|(_, b)| b.to_string())
+            .map(|(h, b)| (h.to_string(), b.to_string()))
             .unwrap_or_default();
-        (status, body)
+        (status, head, body)
     }
 
     fn json(&self, path: &str) -> serde_json::Value {
@@ -497,6 +517,62 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
         )
         .unwrap();
     drop((breaker, orders));
+}
+
+/// Another web page, opened in an operator's browser, cannot act through the dashboard:
+/// a DNS-rebound page (its own host name) is refused outright, and a cross-site form or
+/// script cannot change anything (no same-origin `Origin`, or not JSON); the dashboard's
+/// own page and tools that say where they come from work, and every answer keeps out of
+/// other sites' frames.
+#[tokio::test(flavor = "multi_thread")]
+async fn another_site_cannot_act_through_the_dashboard() {
+    let cell = Cell::open("t-dashboard-sites").await.unwrap();
+    let operator = Dashboard::start(&cell, &["--operator"]);
+    let port = operator.address.rsplit_once(':').unwrap().1.to_string();
+    let evil_host = format!("evil.example:{port}");
+    let work = r#"{"product":"breaker","count":1}"#;
+    // DNS rebinding: the attacker's name in Host. Neither a read nor a change.
+    let json = [("content-type", "application/json")];
+    let (status, _, body) = operator.raw("GET", "/api/orders", &evil_host, &[], "");
+    assert_eq!(status, 421, "{body}");
+    let rebound = [
+        ("content-type", "application/json"),
+        ("origin", "http://evil.example"),
+    ];
+    let (status, _, body) = operator.raw("POST", "/api/orders", &evil_host, &rebound, work);
+    assert_eq!(status, 421, "{body}");
+    // A cross-site form post to acknowledge an alarm, and a cross-site JSON submit.
+    let form = [
+        ("content-type", "application/x-www-form-urlencoded"),
+        ("origin", "http://evil.example"),
+    ];
+    let (status, _, body) = operator.raw("POST", "/api/alarms/1/ack", &operator.address, &form, "");
+    assert_eq!(status, 403, "{body}");
+    let (status, _, body) = operator.raw("POST", "/api/orders", &operator.address, &rebound, work);
+    assert_eq!(status, 403, "{body}");
+    // A change without Origin, or not JSON, from the right host: refused too.
+    let (status, _, body) = operator.raw("POST", "/api/orders", &operator.address, &json, work);
+    assert_eq!(status, 403, "{body}");
+    let own = format!("http://{}", operator.address);
+    let not_json = [("content-type", "text/plain"), ("origin", own.as_str())];
+    let (status, _, body) = operator.raw("POST", "/api/orders", &operator.address, &not_json, work);
+    assert_eq!(status, 415, "{body}");
+    // Nothing was submitted: no order-node ever saw a work order.
+    assert_eq!(
+        operator.json("/api/orders").as_array().map(Vec::len),
+        Some(0)
+    );
+    // Its own names work; every answer carries the frame and sniffing headers.
+    let (status, head, _) = operator.raw("GET", "/api/view", &format!("localhost:{port}"), &[], "");
+    assert_eq!(status, 200);
+    let head = head.to_ascii_lowercase();
+    for header in [
+        "x-frame-options: deny",
+        "content-security-policy: frame-ancestors 'none'",
+        "x-content-type-options: nosniff",
+    ] {
+        assert!(head.contains(header), "{header} missing: {head}");
+    }
 }
 
 /// The secure cell: each dashboard connects with an identity of its own, and the role

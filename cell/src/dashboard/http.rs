@@ -9,6 +9,9 @@
 //! | `POST /api/alarms/{id}/ack` | acknowledge an alarm (operator dashboards only) |
 //! | `POST /api/resources/{name}/packml` | a PackML command, `{"command": "hold"}` (operator dashboards only): the resource's answer, or why it refused (409) |
 //! | `GET /metrics` | Prometheus text format |
+//!
+//! Every request passes [`super::guard`] first: its `Host` must be the dashboard's own,
+//! and a change (POST) must come from the dashboard's own page (`Origin`) as JSON.
 
 use std::convert::Infallible;
 use std::sync::Arc;
@@ -29,7 +32,8 @@ use super::{metrics, Command, Shared, View};
 /// The page: HTML, CSS and script in one file, compiled in.
 const PAGE: &str = include_str!("page.html");
 
-pub fn router(shared: Arc<Shared>) -> Router {
+/// The routes, behind the [`guard`](super::guard) that keeps other sites out.
+pub fn router(shared: Arc<Shared>, guard: Arc<super::guard::Guard>) -> Router {
     Router::new()
         .route("/", get(page))
         .route("/events", get(events))
@@ -42,6 +46,10 @@ pub fn router(shared: Arc<Shared>) -> Router {
         .route("/api/events", get(event_log))
         .route("/metrics", get(prometheus))
         .with_state(shared)
+        .layer(axum::middleware::from_fn_with_state(
+            guard,
+            super::guard::check,
+        ))
 }
 
 fn current(shared: &Shared) -> Arc<View> {

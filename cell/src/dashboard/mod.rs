@@ -18,6 +18,7 @@
 //! and it publishes a view of the model at most every [`PUBLISH_EVERY`] for the web
 //! server ([`http`]), which pushes it to every open page as a server-sent event.
 
+pub mod guard;
 pub mod http;
 pub mod metrics;
 pub mod model;
@@ -259,7 +260,9 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
         "dashboard of cell {} on http://{address}/",
         config.keys.cell()
     );
-    let served = axum::serve(listener, http::router(shared))
+    // Names other than its addresses it answers to: none yet (a flag to come).
+    let guard = Arc::new(guard::Guard::new(address, &[]));
+    let served = axum::serve(listener, http::router(shared, guard))
         .with_graceful_shutdown(shutdown.clone().cancelled_owned())
         .await;
     shutdown.cancel();
