@@ -164,8 +164,32 @@ impl std::fmt::Debug for Journal {
     }
 }
 
+/// Narrows the journal's files (`path` and its `-wal` and `-shm`) to their owner: a
+/// journal of an older release was created 0644, and a process whose umask is open
+/// creates them so.
+fn owner_only(path: &Path) -> std::io::Result<()> {
+    use std::os::unix::fs::PermissionsExt;
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned());
+    let name = name.unwrap_or_default();
+    for file in [
+        path.to_path_buf(),
+        path.with_file_name(format!("{name}-wal")),
+        path.with_file_name(format!("{name}-shm")),
+    ] {
+        let mode = match std::fs::metadata(&file) {
+            Ok(meta) => meta.permissions().mode(),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(e) => return Err(e),
+        };
+        if mode & 0o077 != 0 {
+            std::fs::set_permissions(&file, std::fs::Permissions::from_mode(mode & 0o700))?;
+        }
+    }
+    Ok(())
+}
+
 impl Journal {
-    /// Opens (creating if needed) `dir/file`.
+    /// Opens (creating if needed) `dir/file`, readable by its owner only.
     pub fn open(dir: &Path, file: &str, durability: Durability) -> Result<Journal, JournalError> {
         std::fs::create_dir_all(dir).map_err(|source| JournalError::Directory {
             path: dir.display().to_string(),
@@ -199,6 +223,7 @@ impl Journal {
             Err(_) => false,
         };
         check_wal_header(&path.with_file_name(format!("{file}-wal"))).map_err(&damaged)?;
+
         let sqlite = |e: rusqlite::Error| match e.sqlite_error_code() {
             Some(rusqlite::ErrorCode::DatabaseBusy | rusqlite::ErrorCode::DatabaseLocked) => {
                 JournalError::InUse {
@@ -230,6 +255,12 @@ impl Journal {
              PRAGMA synchronous = {synchronous};"
         );
         connection.execute_batch(&setup).map_err(sqlite)?;
+        // Orders, bookings and results are the plant's business: the journal is its
+        // owner's alone (the holon binaries also create every file so, umask 077).
+        owner_only(&path).map_err(|source| JournalError::NotWritable {
+            path: display.clone(),
+            source,
+        })?;
         if existed {
             // Every page read once: damage shows now, not in the middle of a job.
             let verdict: String = connection
@@ -582,6 +613,43 @@ mod tests {
     struct Record {
         n: u32,
         text: String,
+    }
+
+    #[test]
+    fn the_journal_is_its_owners_alone() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let mode = |name: &str| {
+            std::fs::metadata(dir.path().join(name))
+                .unwrap()
+                .permissions()
+                .mode()
+                & 0o777
+        };
+        {
+            let journal = Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap();
+            journal
+                .put(
+                    "order",
+                    "a",
+                    &Record {
+                        n: 1,
+                        text: "x".into(),
+                    },
+                )
+                .unwrap();
+            // SQLite gives the WAL the database file's mode (no -shm: exclusive locking).
+            for name in ["j.sqlite", "j.sqlite-wal"] {
+                assert_eq!(mode(name), 0o600, "{name}");
+            }
+        }
+        std::fs::set_permissions(
+            dir.path().join("j.sqlite"),
+            std::fs::Permissions::from_mode(0o644),
+        )
+        .unwrap();
+        drop(Journal::open(dir.path(), "j.sqlite", Durability::PowerLoss).unwrap());
+        assert_eq!(mode("j.sqlite"), 0o600, "narrowed when reopened");
     }
 
     #[test]

@@ -44,6 +44,12 @@ pub fn shutdown_on_signals() -> CancellationToken {
     token
 }
 
+/// Sets the process umask to 077: the files it creates from now on are readable and
+/// writable by their owner only. For a binary's `main`, before any file is made.
+pub fn owner_only_files() {
+    nix::sys::stat::umask(nix::sys::stat::Mode::from_bits_truncate(0o077));
+}
+
 /// The edge of a holon binary: sets up logging, runs `run` on a multi-thread tokio
 /// runtime with a shutdown token cancelled by SIGTERM / Ctrl-C, and turns its result into
 /// the exit code (errors are logged and printed as `program: error`): 0 on success,
@@ -60,6 +66,9 @@ where
     Fut: std::future::Future<Output = Result<(), E>>,
     E: Into<anyhow::Error>,
 {
+    // Journals, logs and keys name the plant's orders and identities: every file the
+    // process creates is its owner's alone.
+    owner_only_files();
     // Dropped last (declared first): the runtime's last lines are written out too.
     let _logs = match logging::init(format, log_file, "info") {
         Ok(guard) => guard,

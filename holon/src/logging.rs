@@ -14,6 +14,7 @@
 
 use std::fs::OpenOptions;
 use std::io::IsTerminal;
+use std::os::unix::fs::OpenOptionsExt;
 use std::path::Path;
 use std::str::FromStr;
 
@@ -118,9 +119,11 @@ pub fn init(
     };
     let mut layers = vec![terminal];
     if let Some(path) = file {
+        // Logs name orders, products and identities: their owner's alone.
         let file = OpenOptions::new()
             .create(true)
             .append(true)
+            .mode(0o600)
             .open(path)
             .map_err(|source| LoggingError::File {
                 path: path.display().to_string(),
