@@ -322,3 +322,56 @@ async fn wait_done(cell: &Cell, orders: &[String]) {
             .unwrap();
     }
 }
+
+/// A planned hand-over (an upgrade) keeps the PackML state: a robot in Maintenance, Held
+/// by an operator, is in Maintenance and Held in its successor, with its figures.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_successor_takes_over_the_packml_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let data = data.to_str().unwrap();
+    let cell = Cell::open("t-packml-upgrade").await.unwrap();
+    let mut robot = cell
+        .resource(dir.path(), "robot1")
+        .node_flags(&["--data-dir", data])
+        .start()
+        .await
+        .unwrap();
+    let mut inbox = cell.inbox("o-1", 0).await.unwrap();
+    let done = cell.job("robot1", &mut inbox, "o-1", "c1").await.unwrap();
+    assert_eq!(done.message_type, MessageType::Done);
+    for args in [
+        &["robot1", "stop"][..],
+        &["robot1", "--mode", "maintenance"],
+        &["robot1", "reset"],
+        &["robot1", "start"],
+        &["robot1", "hold"],
+    ] {
+        accepted(&cell, args).await;
+    }
+    let before = cell.wait_packml("robot1", 11).await.unwrap();
+    let next = dir.path().join("next");
+    std::fs::create_dir_all(&next).unwrap();
+    let mut successor = start_node(
+        &next,
+        &robot.config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &robot.sim.address,
+        &["--data-dir", data, "--take-over"],
+    )
+    .unwrap();
+    let status = robot.node.wait_exit(Duration::from_secs(30)).unwrap();
+    assert!(status.success(), "the predecessor hands over: {status:?}");
+    cell.wait_alive(&schemas::HolonId::resource("robot1").unwrap())
+        .await
+        .unwrap();
+    let after = cell.wait_packml("robot1", 11).await.unwrap();
+    assert_eq!(after["packml"]["mode"], "maintenance", "{after}");
+    assert_eq!(after["packml"]["processed"], 1, "{after}");
+    assert_eq!(
+        after["packml"]["stop_reason"], before["packml"]["stop_reason"],
+        "{after}"
+    );
+    successor.kill();
+}
