@@ -9,7 +9,10 @@
 //! - `access_control.json5`: the cell's zenoh access control (see `crate::access`),
 //!   rewritten every time;
 //! - `router-<host>.json5`: a zenohd config per router of the manifest (listen,
-//!   connect, TLS, access control), for the stock `zenohd -c` or `cell router --config`.
+//!   connect, TLS, access control), for the stock `zenohd -c` or `cell router --config`;
+//! - `opcua-server.der`, `.pem`, `.key` (RSA, 0600): the OPC UA server's application
+//!   certificate, when the manifest runs `cell opcua` (docs/opcua.md); issued when
+//!   missing, with a new CA, or with `--renew opcua-server`.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -116,7 +119,7 @@ pub fn identities(manifest: &Manifest) -> Result<Vec<Identity>> {
     Ok(out)
 }
 
-fn write_private(path: &Path, text: &str) -> Result<()> {
+pub(crate) fn write_private(path: &Path, text: &str) -> Result<()> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
     let _ = std::fs::remove_file(path);
@@ -244,7 +247,9 @@ pub fn run(dir: &Path, options: &CertsOptions) -> Result<Vec<String>> {
     let manifest = Manifest::load(dir)?;
     let identities = identities(&manifest)?;
     for renew in &options.renew {
-        if !identities.iter().any(|i| &i.name == renew) {
+        let known = identities.iter().any(|i| &i.name == renew)
+            || (renew == OPCUA_SERVER && opcua_server(&manifest).is_some());
+        if !known {
             bail!(
                 "--renew {renew}: no such identity in {}",
                 dir.join("cell.toml").display()
@@ -301,6 +306,30 @@ pub fn run(dir: &Path, options: &CertsOptions) -> Result<Vec<String>> {
             identity.addresses.join(", ")
         ));
     }
+    if let Some(server) = opcua_server(&manifest) {
+        let fresh = pki.join(crate::opcua::security::SERVER_CERT).exists()
+            && pki.join(crate::opcua::security::SERVER_KEY).exists();
+        if made_ca || !fresh || options.renew.iter().any(|r| r == OPCUA_SERVER) {
+            let addresses = server
+                .identity
+                .as_ref()
+                .and_then(|name| identities.iter().find(|i| &i.name == name))
+                .map(|i| i.addresses.clone())
+                .unwrap_or_else(|| ["localhost", "127.0.0.1", "::1"].map(String::from).to_vec());
+            crate::opcua::security::issue_server_certificate(
+                &pki,
+                &manifest.cell,
+                &addresses,
+                manifest.pki.days,
+                &issuer,
+            )?;
+            said.push(format!(
+                "issued the OPC UA server's certificate {} (RSA, for `cell opcua`; {})",
+                pki.join(crate::opcua::security::SERVER_CERT).display(),
+                addresses.join(", ")
+            ));
+        }
+    }
     let names: Vec<String> = identities.iter().map(|i| i.name.clone()).collect();
     let access = access::access_control(&manifest.cell, &names)?;
     let access_path = pki.join("access_control.json5");
@@ -324,6 +353,17 @@ pub fn run(dir: &Path, options: &CertsOptions) -> Result<Vec<String>> {
         }
     }
     Ok(said)
+}
+
+/// The name `--renew` takes for the OPC UA server's application certificate.
+pub const OPCUA_SERVER: &str = "opcua-server";
+
+/// The manifest's `cell opcua` process, if it has one: its certificate is issued too.
+fn opcua_server(manifest: &Manifest) -> Option<&crate::manifest::ProcessSection> {
+    manifest.processes.iter().find(|p| {
+        Path::new(&p.program).file_name().and_then(|n| n.to_str()) == Some("cell")
+            && p.args.first().map(String::as_str) == Some("opcua")
+    })
 }
 
 /// The PKI directory of a manifest, for the commands that use it.

@@ -8,6 +8,7 @@ pub mod certs;
 pub mod dashboard;
 pub mod demo;
 pub mod manifest;
+pub mod opcua;
 pub mod packml;
 pub mod router;
 pub mod status;

@@ -193,6 +193,51 @@ enum Commands {
         #[command(flatten)]
         client: ClientArgs,
     },
+    /// Serve the cell over OPC UA (docs/opcua.md): every resource as a PackML unit after
+    /// OPC 30050 under Objects/PackMLObjects/<resource> (Status, Admin, the methods
+    /// Start, Stop, Hold, Unhold, Suspend, Unsuspend, Abort, Clear, Reset and
+    /// SetUnitMode), and Objects/Cell (OrdersRunning, OrdersDone, OrdersFailed,
+    /// SubmitWorkOrder), live from what the holons publish. Without --pki: no security,
+    /// anonymous sessions, loopback only. With --pki: SignAndEncrypt only, user names
+    /// and passwords from the users file, unknown client certificates rejected. Stops on
+    /// Ctrl-C or SIGTERM.
+    Opcua {
+        /// Where the server listens (HOST:PORT); the endpoint is opc.tcp://HOST:PORT/.
+        /// Without --pki only a loopback address is allowed.
+        #[arg(long, default_value = cell::opcua::DEFAULT_LISTEN, value_name = "HOST:PORT")]
+        listen: std::net::SocketAddr,
+        /// The cell's name (the namespace is urn:holarchy:<cell>).
+        #[arg(long, default_value = "demo")]
+        cell: String,
+        /// The endpoint of a zenoh router of the cell, e.g. tcp/127.0.0.1:7447 or
+        /// tls/127.0.0.1:7447 (repeatable); the server joins as a client.
+        #[arg(long, value_name = "ENDPOINT")]
+        connect: Vec<String>,
+        /// A secure cell's PKI directory (`cell certs`): the zenoh identity's
+        /// certificate, the server's application certificate (opcua-server.der,
+        /// opcua-server.key), its store of client certificates (opcua/trusted,
+        /// opcua/rejected) and the default users file (opcua-users.toml).
+        #[arg(long, value_name = "DIR")]
+        pki: Option<PathBuf>,
+        /// The zenoh identity to join with (an operator.* identity; default
+        /// operator.opcua). Method calls go to the cell as this identity, with `by`
+        /// naming the OPC UA user.
+        #[arg(long, value_name = "ROLE.NAME")]
+        identity: Option<String>,
+        /// The users file (TOML: [[user]] name, role = operator|observer, password
+        /// hash); default <pki>/opcua-users.toml. Only with --pki.
+        #[arg(long, value_name = "FILE", requires = "pki")]
+        users: Option<PathBuf>,
+        /// Read a password from standard input (one line), print its salted hash for the
+        /// users file, and exit.
+        #[arg(long, exclusive = true)]
+        hash_password: bool,
+        /// Trust a client application certificate (DER or PEM) of the server in --pki:
+        /// copy it into the store's trusted/ (and out of rejected/), print where, and
+        /// exit. A running server sees it at the client's next connect.
+        #[arg(long, value_name = "CLIENT_CERT", requires = "pki")]
+        trust: Option<PathBuf>,
+    },
     /// Show a resource's PackML state, figures and allowed commands, or command it
     /// (operators only in a secure cell): hold, unhold, stop, reset, start, abort,
     /// clear (or their numbers 1-9), or --mode production|maintenance|manual (only in
@@ -333,7 +378,18 @@ fn main() -> ExitCode {
     // off, are not the operator's). The holons `cell up` starts keep their own default
     // (info) in their log files: RUST_LOG is passed on only when the user set it.
     // Dropped last (declared first): the last lines are written out before the exit.
-    let _logs = match holon::logging::init(LogFormat::Text, None, "warn,zenoh=error") {
+    // `cell opcua` is a server: its own start, logins and refusals are worth a line.
+    let default_filter = if let Commands::Opcua { pki, .. } = &args.command {
+        if pki.is_some() {
+            "info,zenoh=error,opcua_server=warn,opcua_core=warn,opcua_crypto=warn,opcua_nodes=warn,opcua_types=warn"
+        } else {
+            // No security, so no certificate: async-opcua's lines saying so are noise.
+            "info,zenoh=error,opcua_server=warn,opcua_server::server=error,opcua_core=warn,opcua_crypto=warn,opcua_crypto::certificate_store=off,opcua_nodes=warn,opcua_types=warn"
+        }
+    } else {
+        "warn,zenoh=error"
+    };
+    let _logs = match holon::logging::init(LogFormat::Text, None, default_filter) {
         Ok(guard) => guard,
         Err(e) => {
             eprintln!("cell: {e}");
@@ -408,6 +464,62 @@ async fn run(args: Args) -> Result<bool> {
                 operator,
             };
             cell::dashboard::run(config, holon::shutdown_on_signals()).await?;
+            Ok(true)
+        }
+        Commands::Opcua {
+            listen,
+            cell,
+            connect,
+            pki,
+            identity,
+            users,
+            hash_password,
+            trust,
+        } => {
+            if hash_password {
+                let mut password = String::new();
+                std::io::stdin().read_line(&mut password)?;
+                let password = password.trim_end_matches(['\r', '\n']);
+                if password.is_empty() {
+                    return Err(anyhow!("an empty password: type one line"));
+                }
+                println!("{}", cell::opcua::users::PasswordHash::new(password));
+                return Ok(true);
+            }
+            if let (Some(client), Some(pki)) = (&trust, &pki) {
+                let path = cell::opcua::security::trust(pki, client)?;
+                println!("trusted {} as {}", client.display(), path.display());
+                return Ok(true);
+            }
+            if connect.is_empty() {
+                return Err(anyhow!("--connect ENDPOINT: a zenoh router of the cell"));
+            }
+            let identity = identity.unwrap_or_else(|| "operator.opcua".to_string());
+            if pki.is_some() {
+                let (role, _) = cell::access::parse_identity(&identity)?;
+                if role != cell::access::Role::Operator {
+                    return Err(anyhow!(
+                        "the OPC UA server joins as an operator.* identity (its methods command resources), not as {identity}"
+                    ));
+                }
+            }
+            let config = cell::opcua::OpcuaConfig {
+                keys: schemas::CellKeys::new(&cell)?,
+                zenoh: holon::ZenohSettings {
+                    mode: holon::Mode::Client,
+                    connect,
+                    tls: pki.as_ref().map(|pki| holon::tls::TlsSettings {
+                        pki: Some(pki.clone()),
+                        ..holon::tls::TlsSettings::default()
+                    }),
+                    ..holon::ZenohSettings::default()
+                },
+                identity,
+                listen,
+                pki,
+                users,
+            };
+            cell::opcua::run(config, holon::shutdown_on_signals()).await?;
             Ok(true)
         }
         Commands::Up { dir, host } => {

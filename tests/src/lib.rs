@@ -1108,3 +1108,61 @@ fn netns_probe() -> std::result::Result<(), String> {
         Err(e) => Err(format!("no `ip` command (apt-get install iproute2): {e}")),
     }
 }
+
+// --- `cell opcua` (tests/tests/opcua.rs) ---
+
+/// Starts `bin(program)` with `args`, its stderr in `dir/<name>.stderr`, stdout dropped.
+pub fn start_program(dir: &Path, program: &str, name: &str, args: &[&str]) -> Result<Process> {
+    let stderr_path = dir.join(format!("{name}.stderr"));
+    let child = Command::new(bin(program))
+        .args(args)
+        .stdout(Stdio::null())
+        .stderr(fs::File::create(&stderr_path)?)
+        .spawn()
+        .with_context(|| format!("start {program}"))?;
+    Ok(Process {
+        name: name.to_string(),
+        child: Some(child),
+        stderr_path,
+    })
+}
+
+/// Waits, at most [`WAIT`], until something accepts TCP connections on `address`.
+pub async fn wait_listening(address: &str) -> Result<()> {
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while tokio::net::TcpStream::connect(address).await.is_err() {
+        if tokio::time::Instant::now() >= deadline {
+            bail!("nothing listens on {address} after {WAIT:?}");
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    Ok(())
+}
+
+/// The Python with asyncua for the OPC UA tests (docs/opcua.md, "Testing"): env
+/// `HOLARCHY_OPCUA_PYTHON`, default `target/opcua-venv/bin/python`. `None` when it is
+/// missing or has no asyncua (the test then skips), unless `HOLARCHY_REQUIRE_OPCUA=1`:
+/// then it panics.
+pub fn opcua_python() -> Option<PathBuf> {
+    let python = std::env::var_os("HOLARCHY_OPCUA_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| workspace_root().join("target/opcua-venv/bin/python"));
+    let works = Command::new(&python)
+        .args(["-c", "import asyncua"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if works {
+        return Some(python);
+    }
+    let why = format!(
+        "no Python with asyncua at {} (python3 -m venv target/opcua-venv && target/opcua-venv/bin/pip install asyncua==2.1.0, or set HOLARCHY_OPCUA_PYTHON)",
+        python.display()
+    );
+    if std::env::var("HOLARCHY_REQUIRE_OPCUA").is_ok_and(|v| v == "1") {
+        panic!("HOLARCHY_REQUIRE_OPCUA=1 but {why}");
+    }
+    eprintln!("SKIPPED: {why}");
+    None
+}

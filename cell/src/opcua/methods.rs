@@ -1,0 +1,312 @@
+//! The cell's node manager: owns the cell's namespace, and answers method calls by
+//! asking the cell over zenoh (a PackML request to a resource, a work order to the
+//! order-nodes), with the status codes of docs/opcua.md.
+//!
+//! Each Call service request runs in its own task inside async-opcua, so a call waiting
+//! for a resource's answer blocks no read, publish or other session. The address
+//! space's lock is never held across an await.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use async_trait::async_trait;
+use futures_util::future::join_all;
+use opcua::sync::RwLock;
+use opcua::types::{IdType, Identifier, StatusCode, Variant};
+use opcua_server::address_space::AddressSpace;
+use opcua_server::diagnostics::NamespaceMetadata;
+use opcua_server::node_manager::memory::{
+    InMemoryNodeManager, InMemoryNodeManagerBuilder, InMemoryNodeManagerImpl,
+    InMemoryNodeManagerImplBuilder,
+};
+use opcua_server::node_manager::{MethodCall, RequestContext, ServerContext};
+use schemas::{CellKeys, PackmlCommand, PackmlReply, PackmlRequest, Refusal, UnitMode, WorkOrder};
+use tracing::{info, warn};
+
+use super::address_space::{self, MethodTarget};
+use super::users::{CellAuth, Role};
+
+/// How long a method call waits for the cell's answer (below asyncua's default request
+/// timeout of 4 s, so the client gets our BadTimeout rather than its own).
+pub const ANSWER_WITHIN: Duration = Duration::from_secs(3);
+
+/// The node manager of the cell's namespace.
+pub type CellNodeManager = InMemoryNodeManager<CellNodes>;
+
+/// What the cell's node manager needs to answer calls.
+pub struct CellNodes {
+    /// Our namespace's index.
+    ns: u16,
+    /// Our namespace's URI.
+    uri: String,
+    /// The cell's zenoh session.
+    session: zenoh::Session,
+    /// The cell's keys.
+    keys: CellKeys,
+    /// Who may call methods.
+    auth: Arc<CellAuth>,
+}
+
+/// The builder of the cell's node manager, for `ServerBuilder::with_node_manager`.
+pub fn cell_nodes(
+    uri: String,
+    session: zenoh::Session,
+    keys: CellKeys,
+    auth: Arc<CellAuth>,
+) -> InMemoryNodeManagerBuilder<impl InMemoryNodeManagerImplBuilder> {
+    InMemoryNodeManagerBuilder::new(move |context: ServerContext, space: &mut AddressSpace| {
+        let ns = context
+            .type_tree
+            .write()
+            .namespaces_mut()
+            .add_namespace(&uri);
+        space.add_namespace(&uri, ns);
+        address_space::add_static(space, ns);
+        CellNodes {
+            ns,
+            uri,
+            session,
+            keys,
+            auth,
+        }
+    })
+}
+
+/// A call's outcome: its outputs, or a Bad status code.
+type Outcome = Result<Vec<Variant>, StatusCode>;
+
+/// The PackML command of a method's browse name.
+fn command_of(method: &str) -> Option<PackmlCommand> {
+    Some(match method {
+        "Start" => PackmlCommand::Start,
+        "Stop" => PackmlCommand::Stop,
+        "Hold" => PackmlCommand::Hold,
+        "Unhold" => PackmlCommand::Unhold,
+        "Suspend" => PackmlCommand::Suspend,
+        "Unsuspend" => PackmlCommand::Unsuspend,
+        "Abort" => PackmlCommand::Abort,
+        "Clear" => PackmlCommand::Clear,
+        "Reset" => PackmlCommand::Reset,
+        _ => return None,
+    })
+}
+
+/// The status code of a resource's refusal (docs/opcua.md).
+pub fn refusal_status(refusal: &Refusal) -> StatusCode {
+    match refusal {
+        Refusal::NotInState { .. } | Refusal::ModeNotInState { .. } => StatusCode::BadInvalidState,
+        // Suspend/Unsuspend: the resource suspends by itself; the command exists in
+        // PackML but this unit does not implement it.
+        Refusal::NotSupported { .. } => StatusCode::BadNotSupported,
+    }
+}
+
+impl CellNodes {
+    async fn call_one(&self, context: &RequestContext, call: &mut MethodCall) {
+        let who = CellAuth::who(&context.token);
+        // async-opcua asked `is_user_executable` already; this is the second check.
+        if self.auth.role_of(&context.token) != Some(Role::Operator) {
+            warn!(%who, method = %call.method_id(), "method call refused: only operators call methods (BadUserAccessDenied)");
+            call.set_status(StatusCode::BadUserAccessDenied);
+            return;
+        }
+        let target = match &call.method_id().identifier {
+            Identifier::String(path) if call.method_id().namespace == self.ns => {
+                address_space::method_target(path.as_ref())
+            }
+            _ => None,
+        };
+        let outcome = match target {
+            Some(MethodTarget::Resource { resource, method }) => {
+                self.resource_method(&who, &resource, &method, call.arguments())
+                    .await
+            }
+            Some(MethodTarget::Cell { method }) if method == address_space::SUBMIT_WORK_ORDER => {
+                self.submit(&who, call.arguments()).await
+            }
+            _ => Err(StatusCode::BadMethodInvalid),
+        };
+        match outcome {
+            Ok(outputs) => {
+                call.set_outputs(outputs);
+                call.set_status(StatusCode::Good);
+            }
+            Err(status) => call.set_status(status),
+        }
+    }
+
+    async fn resource_method(
+        &self,
+        who: &str,
+        resource: &str,
+        method: &str,
+        arguments: &[Variant],
+    ) -> Outcome {
+        let request = if method == address_space::SET_UNIT_MODE {
+            let [Variant::Int32(number)] = arguments else {
+                warn!(%who, resource, "SetUnitMode wants one Int32 (BadTypeMismatch)");
+                return Err(StatusCode::BadTypeMismatch);
+            };
+            let Some(mode) = UnitMode::from_number(*number) else {
+                warn!(%who, resource, mode = number, "SetUnitMode: no such unit mode (1 Production, 2 Maintenance, 3 Manual; BadInvalidArgument)");
+                return Err(StatusCode::BadInvalidArgument);
+            };
+            PackmlRequest::mode(mode, who)
+        } else {
+            let Some(command) = command_of(method) else {
+                return Err(StatusCode::BadMethodInvalid);
+            };
+            PackmlRequest::command(command, who)
+        };
+        let reply = self.ask_resource(resource, &request).await?;
+        match &reply.refused {
+            None => {
+                info!(%who, resource, method, state = %reply.state, "PackML request accepted");
+                Ok(Vec::new())
+            }
+            Some(refusal) => {
+                let status = refusal_status(refusal);
+                warn!(%who, resource, method, %refusal, status = %status, "PackML request refused by the resource; nothing changed");
+                Err(status)
+            }
+        }
+    }
+
+    /// Sends one PackML request (never again on its own: commands are not idempotent).
+    async fn ask_resource(
+        &self,
+        resource: &str,
+        request: &PackmlRequest,
+    ) -> Result<PackmlReply, StatusCode> {
+        let payload = serde_json::to_vec(request).map_err(|_| StatusCode::BadInternalError)?;
+        let replies = self
+            .session
+            .get(self.keys.packml(resource))
+            .payload(payload)
+            .timeout(ANSWER_WITHIN)
+            .with(holon::query::replies())
+            .await;
+        let mut replies = match replies {
+            Ok(replies) => replies,
+            Err(e) => {
+                warn!(resource, error = %e, "cannot send the PackML request (BadCommunicationError); nothing was asked");
+                return Err(StatusCode::BadCommunicationError);
+            }
+        };
+        let Some(reply) =
+            tokio::time::timeout(ANSWER_WITHIN + Duration::from_millis(500), replies.recv())
+                .await
+                .ok()
+                .flatten()
+        else {
+            warn!(resource, "the resource did not answer the PackML request (BadTimeout); it may or may not have taken: see its Status");
+            return Err(StatusCode::BadTimeout);
+        };
+        match reply.result() {
+            Ok(sample) => serde_json::from_slice(&sample.payload().to_bytes()).map_err(|e| {
+                warn!(resource, error = %e, "the resource answered what is not a PackML reply (BadInternalError)");
+                StatusCode::BadInternalError
+            }),
+            Err(err) => {
+                let text = err.payload().try_to_string().unwrap_or_default();
+                warn!(resource, answer = %text, "the resource rejected the PackML request (BadRequestNotAllowed)");
+                Err(StatusCode::BadRequestNotAllowed)
+            }
+        }
+    }
+
+    async fn submit(&self, who: &str, arguments: &[Variant]) -> Outcome {
+        let [Variant::String(product), Variant::Int32(count), Variant::Int32(priority)] = arguments
+        else {
+            warn!(%who, "SubmitWorkOrder wants (String, Int32, Int32) (BadTypeMismatch)");
+            return Err(StatusCode::BadTypeMismatch);
+        };
+        let product = product.as_ref().to_string();
+        if product.is_empty() || !(1..=10_000).contains(count) || !(-1000..=1000).contains(priority)
+        {
+            warn!(%who, %product, count, priority, "SubmitWorkOrder: a product, count 1 to 10000 and priority -1000 to 1000 (BadInvalidArgument)");
+            return Err(StatusCode::BadInvalidArgument);
+        }
+        let work = WorkOrder {
+            product: product.clone(),
+            count: *count as u32,
+            priority: *priority,
+            due: None,
+            queue: false,
+        };
+        let key = self.keys.orders_submit();
+        let payload = serde_json::to_vec(&work).map_err(|_| StatusCode::BadInternalError)?;
+        let reply = match crate::ask::until_answered(
+            &self.session,
+            &key,
+            Some(payload),
+            ANSWER_WITHIN,
+        )
+        .await
+        {
+            Ok(Some(reply)) => reply,
+            Ok(None) => {
+                warn!(%who, %product, "no order-node answered the work order (BadTimeout); no order was made");
+                return Err(StatusCode::BadTimeout);
+            }
+            Err(e) => {
+                warn!(%who, %product, error = %e, "cannot send the work order (BadCommunicationError)");
+                return Err(StatusCode::BadCommunicationError);
+            }
+        };
+        match reply.result() {
+            Ok(sample) => {
+                let orders = serde_json::from_slice::<schemas::SubmitReply>(&sample.payload().to_bytes())
+                    .map_err(|e| {
+                        warn!(error = %e, "the order-node answered what is not a submit reply (BadInternalError)");
+                        StatusCode::BadInternalError
+                    })?
+                    .orders;
+                info!(%who, %product, count, priority, orders = ?orders, "work order submitted");
+                Ok(vec![Variant::from(orders)])
+            }
+            Err(err) => {
+                let text = err.payload().try_to_string().unwrap_or_default();
+                let (code, message) = match serde_json::from_str::<schemas::ErrorReply>(&text) {
+                    Ok(e) => (e.code, e.message),
+                    Err(_) => (String::new(), text.to_string()),
+                };
+                let status = if code == "unavailable" {
+                    StatusCode::BadResourceUnavailable
+                } else {
+                    StatusCode::BadInvalidArgument
+                };
+                warn!(%who, %product, %code, reason = %message, status = %status, "the order-node refused the work order; no order was made");
+                Err(status)
+            }
+        }
+    }
+}
+
+#[async_trait]
+impl InMemoryNodeManagerImpl for CellNodes {
+    async fn init(&self, _space: &mut AddressSpace, _context: ServerContext) {}
+
+    fn name(&self) -> &str {
+        "holarchy-cell"
+    }
+
+    fn namespaces(&self) -> Vec<NamespaceMetadata> {
+        vec![NamespaceMetadata {
+            namespace_uri: self.uri.clone(),
+            namespace_index: self.ns,
+            static_node_id_types: Some(vec![IdType::String]),
+            ..Default::default()
+        }]
+    }
+
+    async fn call(
+        &self,
+        context: &RequestContext,
+        _space: &RwLock<AddressSpace>,
+        methods: &mut [&mut &mut MethodCall],
+    ) -> Result<(), StatusCode> {
+        join_all(methods.iter_mut().map(|call| self.call_one(context, call))).await;
+        Ok(())
+    }
+}

@@ -1,0 +1,545 @@
+//! `cell opcua`: an OPC UA server for the cell (docs/opcua.md).
+//!
+//! It joins the cell as a zenoh client (an operator identity in a secure cell) and
+//! shows every resource holon as a PackML unit after OPC 30050
+//! (`Objects/PackMLObjects/<resource>`: Status, Admin, the command methods) and the
+//! cell as `Objects/Cell` (order figures, SubmitWorkOrder). The values come from what
+//! the holons publish: `resource/*/state` and `order/*/state`, subscribed and asked for
+//! at the start (and once more [`ASK_AGAIN_AFTER`] later, and after each resource's
+//! liveliness token appears, as the dashboard does: a change published before the
+//! subscription reached its publisher would be lost otherwise). A resource's token
+//! appearing adds its object; its token going marks its variables
+//! `BadNoCommunication` and removes its object, while clients stay connected.
+//!
+//! One task owns the values ([`own_the_values`]); zenoh callbacks queue what they
+//! hear for it (bounded; a sample dropped on a full queue is counted and logged, and
+//! the holon's next snapshot repairs it). Values are pushed to the address space only
+//! when they change, which notifies the OPC UA subscriptions; the server checks its
+//! subscriptions every [`TICK_MS`] ms and allows publishing intervals down to that.
+
+pub mod address_space;
+pub mod methods;
+pub mod ns0;
+pub mod security;
+pub mod users;
+
+use std::collections::{BTreeMap, HashMap, HashSet};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Context, Result};
+use opcua::types::{DataValue, StatusCode, Variant};
+use opcua_server::{ServerBuilder, ServerEndpoint, SubscriptionCache};
+use schemas::{CellKeys, HolonKind, OrderSnapshot, OrderStatus, ResourceSnapshot};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+use methods::CellNodeManager;
+use users::CellAuth;
+
+/// The default endpoint's address (OPC UA's registered port, loopback only).
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:4840";
+
+/// The server's subscription tick, and the shortest publishing and sampling interval it
+/// grants (ms): a change reaches a client asking for a 20 ms publishing interval in
+/// about 20 ms.
+pub const TICK_MS: u64 = 10;
+
+/// After the start and after a resource's token appears, how long until the states are
+/// asked for once more.
+pub const ASK_AGAIN_AFTER: Duration = Duration::from_secs(1);
+
+/// How many inputs wait for the values' owner.
+const INPUT_QUEUE: usize = 8192;
+
+/// What `cell opcua` runs with.
+#[derive(Debug, Clone)]
+pub struct OpcuaConfig {
+    /// The cell's keys.
+    pub keys: CellKeys,
+    /// The cell's zenoh session settings (a client of its routers; TLS with --pki).
+    pub zenoh: holon::ZenohSettings,
+    /// The zenoh identity to join with (an operator's in a secure cell).
+    pub identity: String,
+    /// Where the OPC UA server listens.
+    pub listen: SocketAddr,
+    /// A secure cell's PKI directory: the server's certificate, its store of trusted
+    /// client certificates, and the users file's default place. None: a plain cell.
+    pub pki: Option<PathBuf>,
+    /// The users file (default `<pki>/opcua-users.toml`).
+    pub users: Option<PathBuf>,
+}
+
+/// The server's endpoint URL for a listen address.
+pub fn endpoint_url(listen: &SocketAddr) -> String {
+    format!("opc.tcp://{listen}/")
+}
+
+/// What the zenoh callbacks tell the values' owner.
+#[derive(Debug)]
+enum Input {
+    /// A resource's state snapshot.
+    Resource(Box<ResourceSnapshot>),
+    /// An order's state snapshot.
+    Order(Box<OrderSnapshot>),
+    /// A resource's liveliness token appeared.
+    Appeared(String),
+    /// A resource's liveliness token went.
+    Vanished(String),
+}
+
+/// Queues an input from a zenoh callback (which must not block).
+fn queue(inputs: &mpsc::Sender<Input>, dropped: &AtomicU64, input: Input) {
+    if inputs.try_send(input).is_err() {
+        let n = dropped.fetch_add(1, Ordering::Relaxed) + 1;
+        warn!(dropped = n, "the OPC UA server's input queue is full: a state sample was dropped (the holon's next snapshot repairs it)");
+    }
+}
+
+/// Runs the server until `shutdown`.
+pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()> {
+    let cell = config.keys.cell().to_string();
+    let url = endpoint_url(&config.listen);
+    // Decide the security first: a bad setup must not join the cell at all.
+    let (auth, server_files) = match &config.pki {
+        None => {
+            if !security::is_loopback(&config.listen) {
+                bail!(
+                    "refusing to serve OPC UA without security on {} (not a loopback address): anyone on that network could command the cell's resources; run with --pki DIR (a secure cell, docs/opcua.md) or listen on 127.0.0.1",
+                    config.listen
+                );
+            }
+            (
+                CellAuth {
+                    anonymous: true,
+                    users: HashMap::new(),
+                },
+                None,
+            )
+        }
+        Some(pki) => {
+            let files = security::ServerFiles::in_pki(pki)?;
+            files.check()?;
+            let users_path = config
+                .users
+                .clone()
+                .unwrap_or_else(|| pki.join(security::USERS_FILE));
+            let users = users::load(&users_path).with_context(|| {
+                "a secure cell's OPC UA server needs its users (docs/opcua.md, \"Users\"; `cell opcua --hash-password` makes a password's hash)".to_string()
+            })?;
+            if users.is_empty() {
+                bail!(
+                    "the users file {} names no user: no one could log in",
+                    users_path.display()
+                );
+            }
+            info!(users = users.len(), file = %users_path.display(), "OPC UA users loaded");
+            (
+                CellAuth {
+                    anonymous: false,
+                    users,
+                },
+                Some(files),
+            )
+        }
+    };
+    let auth = Arc::new(auth);
+    // Fail early and clearly if the port is taken (async-opcua only logs it).
+    drop(
+        std::net::TcpListener::bind(config.listen)
+            .with_context(|| format!("cannot listen on {}", config.listen))?,
+    );
+
+    let session = config
+        .zenoh
+        .open(&config.identity, Duration::from_secs(10))
+        .await
+        .map_err(|e| anyhow!("cannot join the cell: {e}"))?;
+
+    let uri = address_space::namespace_uri(&cell);
+    let mut builder = ServerBuilder::new()
+        .application_name(format!("holarchy cell {cell}"))
+        .application_uri(security::application_uri(&cell))
+        .product_uri("urn:holarchy")
+        .host(config.listen.ip().to_string())
+        .port(config.listen.port())
+        .discovery_urls(vec!["/".to_string()])
+        .create_sample_keypair(false)
+        .trust_client_certs(false)
+        .subscription_poll_interval_ms(TICK_MS)
+        .token(shutdown.child_token())
+        .with_authenticator(auth.clone())
+        .with_node_manager(ns0::mini_core())
+        .with_node_manager(methods::cell_nodes(
+            uri.clone(),
+            session.clone(),
+            config.keys.clone(),
+            auth.clone(),
+        ));
+    builder
+        .limits_mut()
+        .subscriptions
+        .min_publishing_interval_ms = TICK_MS as f64;
+    builder.limits_mut().subscriptions.min_sampling_interval_ms = TICK_MS as f64;
+    let plain_store;
+    match &server_files {
+        Some(files) => {
+            builder = builder
+                .pki_dir(&files.store)
+                .certificate_path(&files.certificate)
+                .private_key_path(&files.key);
+            for (id, endpoint) in security::secure_endpoints() {
+                builder = builder.add_endpoint(id, endpoint);
+            }
+            plain_store = None;
+        }
+        None => {
+            // async-opcua wants a certificate store even with no security.
+            let store = std::env::temp_dir().join(format!("holarchy-opcua-{}", std::process::id()));
+            builder = builder
+                .pki_dir(&store)
+                .add_endpoint("none", ServerEndpoint::new_none("/", &[]));
+            plain_store = Some(store);
+        }
+    }
+    let (server, handle) = builder
+        .build()
+        .map_err(|e| anyhow!("cannot set up the OPC UA server: {e}"))?;
+    if server_files.is_some()
+        && (handle.info().server_certificate.is_none() || handle.info().server_pkey.is_none())
+    {
+        bail!("the OPC UA server's certificate or key did not load: refusing to run without encryption");
+    }
+    let ns = handle
+        .get_namespace_index(&uri)
+        .ok_or_else(|| anyhow!("the namespace {uri} was not registered"))?;
+    let nodes = handle
+        .node_managers()
+        .get_of_type::<CellNodeManager>()
+        .ok_or_else(|| anyhow!("the cell's node manager is missing"))?;
+    let subscriptions = handle.subscriptions().clone();
+
+    let (inputs, input_rx) = mpsc::channel(INPUT_QUEUE);
+    let dropped = Arc::new(AtomicU64::new(0));
+    let _subscriptions = subscribe(&session, &config.keys, &inputs, &dropped).await?;
+    let owner = tokio::spawn(own_the_values(
+        nodes,
+        subscriptions,
+        ns,
+        input_rx,
+        shutdown.clone(),
+    ));
+    let every_state = [config.keys.resource_states(), config.keys.order_states()];
+    ask_states(&session, &every_state, &inputs, &dropped).await;
+    {
+        let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
+        tokio::spawn(async move {
+            tokio::time::sleep(ASK_AGAIN_AFTER).await;
+            ask_states(&session, &every_state, &inputs, &dropped).await;
+        });
+    }
+
+    match &server_files {
+        None => warn!(
+            %cell, endpoint = %url,
+            "OPC UA server without security (None/None; anonymous sessions may browse and call methods): allowed because it listens on loopback only; a secure cell uses --pki"
+        ),
+        Some(files) => info!(
+            %cell, endpoint = %url, store = %files.store.display(),
+            "OPC UA server, SignAndEncrypt only (Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss); user names and passwords; unknown client certificates are rejected into the store's rejected/ (trust one with `cell opcua --trust`)"
+        ),
+    }
+    if let (Some(files), Some(pki)) = (&server_files, &config.pki) {
+        tokio::spawn(security::watch_rejected(
+            pki.clone(),
+            files.store.clone(),
+            shutdown.clone(),
+        ));
+    }
+    println!("opcua server of cell {cell} on {url}");
+    let served = server.run().await;
+    shutdown.cancel();
+    if let Err(e) = owner.await {
+        warn!(error = %e, "the values' task ended abnormally");
+    }
+    if let Err(e) = session.close().await {
+        warn!(error = %e, "cannot close the zenoh session");
+    }
+    if let Some(store) = plain_store {
+        if let Err(e) = std::fs::remove_dir_all(&store) {
+            debug!(error = %e, store = %store.display(), "cannot remove the plain server's certificate store");
+        }
+    }
+    served.map_err(|e| anyhow!("the OPC UA server stopped: {e}"))
+}
+
+/// What the server subscribes to, declared for its life.
+struct Subscriptions {
+    _alive: zenoh::pubsub::Subscriber<()>,
+    _resources: zenoh::pubsub::Subscriber<()>,
+    _orders: zenoh::pubsub::Subscriber<()>,
+}
+
+async fn subscribe(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    inputs: &mpsc::Sender<Input>,
+    dropped: &Arc<AtomicU64>,
+) -> Result<Subscriptions> {
+    let z = |e: zenoh::Error| anyhow!("{}", holon::zenoh_error::describe(&e));
+    let alive = {
+        let (inputs, dropped, keys) = (inputs.clone(), dropped.clone(), keys.clone());
+        let (runtime, asker) = (tokio::runtime::Handle::current(), session.clone());
+        session
+            .liveliness()
+            .declare_subscriber(keys.alive_all())
+            .history(true)
+            .callback(move |sample| {
+                let Some(holon) = keys.holon_from_alive(sample.key_expr().as_str()) else {
+                    return;
+                };
+                if holon.kind() != HolonKind::Resource {
+                    return;
+                }
+                let name = holon.name().to_string();
+                match sample.kind() {
+                    zenoh::sample::SampleKind::Put => {
+                        let key = keys.state(&holon);
+                        let (asker, later, counter) =
+                            (asker.clone(), inputs.clone(), dropped.clone());
+                        runtime.spawn(async move {
+                            ask_states(&asker, std::slice::from_ref(&key), &later, &counter).await;
+                            tokio::time::sleep(ASK_AGAIN_AFTER).await;
+                            ask_states(&asker, &[key], &later, &counter).await;
+                        });
+                        queue(&inputs, &dropped, Input::Appeared(name));
+                    }
+                    zenoh::sample::SampleKind::Delete => {
+                        queue(&inputs, &dropped, Input::Vanished(name))
+                    }
+                }
+            })
+            .await
+            .map_err(z)?
+    };
+    let resources = {
+        let (inputs, dropped) = (inputs.clone(), dropped.clone());
+        session
+            .declare_subscriber(keys.resource_states())
+            .callback(move |sample| {
+                if let Ok(snapshot) =
+                    serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes())
+                {
+                    queue(&inputs, &dropped, Input::Resource(Box::new(snapshot)));
+                }
+            })
+            .await
+            .map_err(z)?
+    };
+    let orders = {
+        let (inputs, dropped) = (inputs.clone(), dropped.clone());
+        session
+            .declare_subscriber(keys.order_states())
+            .callback(move |sample| {
+                if let Ok(snapshot) =
+                    serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
+                {
+                    queue(&inputs, &dropped, Input::Order(Box::new(snapshot)));
+                }
+            })
+            .await
+            .map_err(z)?
+    };
+    Ok(Subscriptions {
+        _alive: alive,
+        _resources: resources,
+        _orders: orders,
+    })
+}
+
+/// Asks for the states on `keys` (the subscriptions bring the changes from then on).
+async fn ask_states(
+    session: &zenoh::Session,
+    keys: &[String],
+    inputs: &mpsc::Sender<Input>,
+    dropped: &AtomicU64,
+) {
+    for key in keys {
+        let Ok(mut replies) = session
+            .get(key)
+            .timeout(Duration::from_secs(3))
+            .with(holon::query::replies())
+            .await
+        else {
+            warn!(%key, "cannot ask for the states; they arrive with their next change");
+            continue;
+        };
+        while let Some(reply) = replies.recv().await {
+            let Ok(sample) = reply.result() else { continue };
+            let bytes = sample.payload().to_bytes();
+            if let Ok(snapshot) = serde_json::from_slice::<ResourceSnapshot>(&bytes) {
+                queue(inputs, dropped, Input::Resource(Box::new(snapshot)));
+            } else if let Ok(snapshot) = serde_json::from_slice::<OrderSnapshot>(&bytes) {
+                queue(inputs, dropped, Input::Order(Box::new(snapshot)));
+            }
+        }
+    }
+}
+
+/// The one owner of the values: adds and removes resources' objects and pushes the
+/// values that changed.
+async fn own_the_values(
+    nodes: Arc<CellNodeManager>,
+    subscriptions: Arc<SubscriptionCache>,
+    ns: u16,
+    mut inputs: mpsc::Receiver<Input>,
+    shutdown: CancellationToken,
+) {
+    let mut values = Values {
+        nodes,
+        subscriptions,
+        ns,
+        pushed: HashMap::new(),
+        resources: HashSet::new(),
+        orders: BTreeMap::new(),
+    };
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => return,
+            input = inputs.recv() => match input {
+                Some(input) => values.apply(input),
+                None => return,
+            },
+        }
+    }
+}
+
+/// The address space's values as last pushed.
+struct Values {
+    /// The cell's node manager.
+    nodes: Arc<CellNodeManager>,
+    /// The server's subscriptions, notified of each push.
+    subscriptions: Arc<SubscriptionCache>,
+    /// Our namespace's index.
+    ns: u16,
+    /// Each variable's last pushed value, by NodeId path.
+    pushed: HashMap<String, Variant>,
+    /// The resources with an object in the address space.
+    resources: HashSet<String>,
+    /// Every order's status, by order name.
+    orders: BTreeMap<String, OrderStatus>,
+}
+
+impl Values {
+    fn apply(&mut self, input: Input) {
+        match input {
+            Input::Appeared(resource) => self.add(&resource),
+            Input::Vanished(resource) => self.remove(&resource),
+            Input::Resource(snapshot) => {
+                let resource = snapshot.holon.name().to_string();
+                self.add(&resource);
+                self.push(address_space::snapshot_values(&snapshot));
+            }
+            Input::Order(snapshot) => {
+                self.orders
+                    .insert(snapshot.holon.name().to_string(), snapshot.status);
+                let count = |status: OrderStatus| {
+                    let n = self.orders.values().filter(|s| **s == status).count();
+                    Variant::Int32(i32::try_from(n).unwrap_or(i32::MAX))
+                };
+                let figures = vec![
+                    (
+                        "Cell.OrdersRunning".to_string(),
+                        count(OrderStatus::Running),
+                    ),
+                    ("Cell.OrdersDone".to_string(), count(OrderStatus::Done)),
+                    ("Cell.OrdersFailed".to_string(), count(OrderStatus::Failed)),
+                ];
+                self.push(figures);
+            }
+        }
+    }
+
+    fn add(&mut self, resource: &str) {
+        if !self.resources.insert(resource.to_string()) {
+            return;
+        }
+        let added = {
+            let mut space = self.nodes.address_space().write();
+            address_space::add_resource(&mut space, self.ns, resource)
+        };
+        if added {
+            info!(resource, "resource added to the address space");
+        }
+        for (path, value) in address_space::values(resource, None) {
+            self.pushed.insert(path, value);
+        }
+    }
+
+    fn remove(&mut self, resource: &str) {
+        if !self.resources.remove(resource) {
+            return;
+        }
+        // A monitored item on a deleted node goes quiet: tell the clients first.
+        let paths: Vec<String> = address_space::values(resource, None)
+            .into_iter()
+            .map(|(path, _)| path)
+            .collect();
+        let ids: Vec<_> = paths
+            .iter()
+            .map(|p| address_space::id(self.ns, p))
+            .collect();
+        let gone = ids.iter().map(|id| {
+            let mut value = DataValue::null();
+            value.status = Some(StatusCode::BadNoCommunication);
+            value.source_timestamp = Some(opcua::types::DateTime::now());
+            (id, None, value)
+        });
+        if let Err(status) = self.nodes.set_values(&self.subscriptions, gone) {
+            warn!(resource, %status, "cannot mark the resource's variables BadNoCommunication before removing them");
+        }
+        for path in &paths {
+            self.pushed.remove(path);
+        }
+        let removed = {
+            let mut space = self.nodes.address_space().write();
+            address_space::remove_resource(&mut space, self.ns, resource)
+        };
+        if removed {
+            info!(resource, "resource left the cell (its liveliness token went): removed from the address space");
+        }
+    }
+
+    /// Pushes the values that differ from the last pushed ones.
+    fn push(&mut self, values: Vec<(String, Variant)>) {
+        let changed: Vec<(String, Variant)> = values
+            .into_iter()
+            .filter(|(path, value)| self.pushed.get(path) != Some(value))
+            .collect();
+        if changed.is_empty() {
+            return;
+        }
+        let ids: Vec<_> = changed
+            .iter()
+            .map(|(path, _)| address_space::id(self.ns, path))
+            .collect();
+        let updates = ids
+            .iter()
+            .zip(&changed)
+            .map(|(id, (_, value))| (id, None, DataValue::new_now(value.clone())));
+        match self.nodes.set_values(&self.subscriptions, updates) {
+            Ok(()) => {
+                for (path, value) in changed {
+                    self.pushed.insert(path, value);
+                }
+            }
+            Err(status) => {
+                warn!(%status, "cannot update the address space; the next snapshot tries again");
+            }
+        }
+    }
+}

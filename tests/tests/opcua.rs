@@ -1,0 +1,511 @@
+//! `cell opcua` with a foreign client (Python asyncua 2.1, tests/opcua/driver.py), on
+//! real processes: a plain cell where an anonymous client browses, subscribes, commands
+//! the resources through every PackML method and submits work orders while the orders
+//! run; and a secure cell (`cell certs`, `cell up`) where only a trusted client
+//! application with an operator's password may command. The Python comes from
+//! `HOLARCHY_OPCUA_PYTHON` (default target/opcua-venv/bin/python, docs/opcua.md); without
+//! it the Python tests print SKIPPED, unless HOLARCHY_REQUIRE_OPCUA=1.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use holarchy_tests::*;
+use serde_json::Value;
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader, Lines};
+use tokio::process::{Child, ChildStdin, ChildStdout};
+
+/// The driver script, connected to a server.
+struct Driver {
+    child: Child,
+    stdin: ChildStdin,
+    lines: Lines<BufReader<ChildStdout>>,
+}
+
+impl Driver {
+    /// Starts the driver on `url` and returns it with its first line
+    /// (`{"connected": ...}`).
+    async fn start(python: &Path, url: &str, cell: &str, extra: &[&str]) -> (Driver, Value) {
+        let script = workspace_root().join("tests/opcua/driver.py");
+        let mut child = tokio::process::Command::new(python)
+            .arg(script)
+            .args([url, cell])
+            .args(extra)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .kill_on_drop(true)
+            .spawn()
+            .expect("start the OPC UA driver");
+        let stdin = child.stdin.take().unwrap();
+        let lines = BufReader::new(child.stdout.take().unwrap()).lines();
+        let mut driver = Driver {
+            child,
+            stdin,
+            lines,
+        };
+        let first = driver.line().await;
+        (driver, first)
+    }
+
+    async fn line(&mut self) -> Value {
+        let line = tokio::time::timeout(Duration::from_secs(30), self.lines.next_line())
+            .await
+            .expect("the driver answers within 30 s")
+            .expect("the driver's stdout")
+            .expect("the driver still runs (see its stderr above)");
+        serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"))
+    }
+
+    async fn ask(&mut self, command: &str) -> Value {
+        self.stdin
+            .write_all(format!("{command}\n").as_bytes())
+            .await
+            .expect("write to the driver");
+        self.stdin.flush().await.unwrap();
+        self.line().await
+    }
+
+    /// The status of a method call.
+    async fn call(&mut self, command: &str) -> String {
+        let answer = self.ask(command).await;
+        answer["status"].as_str().unwrap_or_default().to_string()
+    }
+
+    /// Reads until `value` is read, at most 5 s (the value is pushed from the resource's
+    /// state publication).
+    async fn wait_read(&mut self, what: &str, value: Value) {
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
+        loop {
+            let read = self.ask(&format!("read {what}")).await;
+            if read["value"] == value {
+                return;
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "{what}: never {value}, last {read}"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
+    async fn resources(&mut self) -> Vec<String> {
+        serde_json::from_value(self.ask("browse").await["resources"].clone()).unwrap()
+    }
+
+    async fn quit(mut self) {
+        let _ = self.stdin.write_all(b"quit\n").await;
+        let _ = tokio::time::timeout(Duration::from_secs(10), self.child.wait()).await;
+    }
+}
+
+async fn wait_busy(cell: &Cell, resource: &str) {
+    cell.wait_state(resource, "busy", |s| s["state"] == "busy")
+        .await
+        .unwrap();
+}
+
+async fn wait_done(cell: &Cell, orders: &[String]) {
+    for order in orders {
+        cell.wait_order(order, "done", |s| s.is_some_and(|s| s["status"] == "done"))
+            .await
+            .unwrap();
+    }
+}
+
+fn orders_of(answer: &Value, n: usize) -> Vec<String> {
+    assert_eq!(answer["status"], "Good", "{answer}");
+    let orders: Vec<String> = serde_json::from_value(answer["orders"].clone()).unwrap();
+    assert_eq!(orders.len(), n, "{answer}");
+    orders
+}
+
+/// Starts `cell opcua` on the test's cell (plain) and waits until it listens.
+async fn start_server(dir: &Path, cell: &Cell) -> (Process, String) {
+    let address = format!("127.0.0.1:{}", free_port());
+    let server = start_program(
+        dir,
+        "cell",
+        "opcua",
+        &[
+            "opcua",
+            "--cell",
+            cell.keys.cell(),
+            "--connect",
+            &cell.endpoint,
+            "--listen",
+            &address,
+        ],
+    )
+    .unwrap();
+    wait_listening(&address).await.unwrap();
+    (server, format!("opc.tcp://{address}/"))
+}
+
+/// A plain cell, two robots, an order-node; an anonymous asyncua client does what an
+/// operator's SCADA would.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_foreign_client_watches_and_commands_the_cell_over_opcua() {
+    let Some(python) = opcua_python() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-opcua").await.unwrap();
+    let robot1 = cell
+        .resource(dir.path(), "robot1")
+        .sim_flags(&["--delay-ms", "300"])
+        // A held robot hands its bookings back after 1 s (30 s by default).
+        .config("\n[packml]\nheld_bookings_ms = 1000\n")
+        .start()
+        .await
+        .unwrap();
+    let _robot2 = cell
+        .resource(dir.path(), "robot2")
+        .sim_flags(&["--delay-ms", "300"])
+        .start()
+        .await
+        .unwrap();
+    let (_product, _orders) = cell
+        .start_part_and_orders(
+            dir.path(),
+            &demo_config("orders1.toml"),
+            &dir.path().join("orders-data"),
+        )
+        .await
+        .unwrap();
+    let (server, url) = start_server(dir.path(), &cell).await;
+    let (mut ua, connected) = Driver::start(&python, &url, "t-opcua", &[]).await;
+    assert_eq!(connected["connected"], true, "{connected}");
+
+    let resources = ua.resources().await;
+    assert!(
+        resources.contains(&"robot1".to_string()) && resources.contains(&"robot2".to_string()),
+        "{resources:?}"
+    );
+    ua.wait_read("robot1 Status.StateCurrent", 6.into()).await;
+    assert_eq!(
+        ua.call("subscribe robot1 Status.StateCurrent").await,
+        "Good"
+    );
+
+    // Hold while robot1 runs a step: Held once the step completes; the orders go on
+    // on robot2, none is lost or failed.
+    let first = orders_of(&ua.ask("submit part 4 0").await, 4);
+    wait_busy(&cell, "robot1").await;
+    assert_eq!(ua.call("call robot1 Hold").await, "Good");
+    cell.wait_packml("robot1", 11).await.unwrap();
+    ua.wait_read("robot1 Status.StateCurrent", 11.into()).await;
+    ua.wait_read("robot1 Admin.StopReason.ID", 4.into()).await;
+    let picks_held = robot1.sim.executed("pick");
+    let second = orders_of(&ua.ask("submit part 3 0").await, 3);
+    wait_done(&cell, &first).await;
+    wait_done(&cell, &second).await;
+    assert_eq!(
+        robot1.sim.executed("pick"),
+        picks_held,
+        "a held robot starts no new step"
+    );
+    let changes = ua.ask("changes").await;
+    let seen: Vec<i64> = serde_json::from_value(changes["values"].clone()).unwrap();
+    assert!(seen.contains(&11), "the subscription saw Held: {changes}");
+    let mut latency: Vec<f64> = serde_json::from_value(changes["latency_ms"].clone()).unwrap();
+    latency.sort_by(f64::total_cmp);
+    eprintln!("subscription latency (ms, sorted): {latency:?}");
+    assert_eq!(ua.call("call robot1 Unhold").await, "Good");
+    cell.wait_packml("robot1", 6).await.unwrap();
+    ua.wait_read("robot1 Status.StateCurrent", 6.into()).await;
+
+    // Abort mid-step: Aborted, the controller told, the step failed and rebooked.
+    let third = orders_of(&ua.ask("submit part 4 0").await, 4);
+    wait_busy(&cell, "robot1").await;
+    assert_eq!(ua.call("call robot1 Abort").await, "Good");
+    cell.wait_packml("robot1", 9).await.unwrap();
+    ua.wait_read("robot1 Status.StateCurrent", 9.into()).await;
+    wait_done(&cell, &third).await;
+    assert!(
+        robot1.sim.counts()["aborted"].as_u64().unwrap_or(0) >= 1,
+        "the simulator saw the abort: {}",
+        robot1.sim.counts()
+    );
+    let mut failed_attempts = 0;
+    for order in &third {
+        let state = cell.order_state(order).await.unwrap();
+        failed_attempts += state["failed_attempts"].as_u64().unwrap_or(0);
+    }
+    assert!(
+        failed_attempts >= 1,
+        "the aborted step failed and was rebooked"
+    );
+    // Suspend is the resource's own state: not supported as a command.
+    assert_eq!(ua.call("call robot1 Suspend").await, "BadNotSupported");
+    assert_eq!(ua.call("call robot1 Clear").await, "Good");
+    cell.wait_packml("robot1", 2).await.unwrap();
+
+    // Modes: an unknown one is a bad argument; a change outside Stopped/Idle/Aborted
+    // is refused by the state.
+    assert_eq!(
+        ua.call("call robot1 SetUnitMode 99").await,
+        "BadInvalidArgument"
+    );
+    assert_eq!(ua.call("call robot1 Reset").await, "Good");
+    cell.wait_packml("robot1", 4).await.unwrap();
+    assert_eq!(ua.call("call robot1 Start").await, "Good");
+    cell.wait_packml("robot1", 6).await.unwrap();
+    assert_eq!(
+        ua.call("call robot1 SetUnitMode 2").await,
+        "BadInvalidState"
+    );
+    assert_eq!(ua.call("call robot1 Unhold").await, "BadInvalidState");
+
+    // Stop with bookings: handed back, rebooked, all done.
+    let fourth = orders_of(&ua.ask("submit part 4 0").await, 4);
+    wait_busy(&cell, "robot1").await;
+    assert_eq!(ua.call("call robot1 Stop").await, "Good");
+    cell.wait_packml("robot1", 2).await.unwrap();
+    wait_done(&cell, &fourth).await;
+    ua.wait_read("robot1 Status.StateCurrent", 2.into()).await;
+
+    // Bad work orders.
+    assert_eq!(
+        ua.ask("submit part 0 0").await["status"],
+        "BadInvalidArgument"
+    );
+    assert_eq!(
+        ua.ask("submit nothing-such 1 0").await["status"],
+        "BadInvalidArgument"
+    );
+    let done = ua.ask("readcell OrdersDone").await["value"]
+        .as_i64()
+        .unwrap();
+    assert!(done >= 15, "OrdersDone {done}");
+    assert_eq!(ua.ask("readcell OrdersFailed").await["value"], 0);
+
+    // A resource hot-added appears while the client stays connected, and goes when
+    // it leaves.
+    let robot3 = cell
+        .resource(dir.path(), "robot3")
+        .sim_flags(&["--delay-ms", "100"])
+        .start()
+        .await
+        .unwrap();
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    while !ua.resources().await.contains(&"robot3".to_string()) {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "robot3 never appeared"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    ua.wait_read("robot3 Status.StateCurrent", 6.into()).await;
+    drop(robot3);
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+    while ua.resources().await.contains(&"robot3".to_string()) {
+        assert!(tokio::time::Instant::now() < deadline, "robot3 never went");
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    ua.wait_read("robot2 Status.StateCurrent", 6.into()).await;
+    ua.quit().await;
+    drop(server);
+}
+
+/// Refused setups: no security off loopback, a secure cell without its certificate.
+#[test]
+fn cell_opcua_refuses_an_insecure_or_broken_setup() {
+    let open = Command::new(bin("cell"))
+        .args([
+            "opcua",
+            "--connect",
+            "tcp/127.0.0.1:1",
+            "--listen",
+            "0.0.0.0:0",
+        ])
+        .output()
+        .unwrap();
+    assert!(!open.status.success());
+    let said = String::from_utf8_lossy(&open.stderr);
+    assert!(
+        said.contains("refusing to serve OPC UA without security"),
+        "{said}"
+    );
+    let empty = tempfile::tempdir().unwrap();
+    let broken = Command::new(bin("cell"))
+        .args(["opcua", "--connect", "tls/127.0.0.1:1", "--pki"])
+        .arg(empty.path())
+        .output()
+        .unwrap();
+    assert!(!broken.status.success());
+    let said = String::from_utf8_lossy(&broken.stderr);
+    assert!(said.contains("OPC UA server certificate"), "{said}");
+}
+
+/// `cell up` killed (its processes with it) when dropped.
+struct Up(std::process::Child);
+
+impl Drop for Up {
+    fn drop(&mut self) {
+        let _ = nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(self.0.id() as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        );
+        let _ = self.0.wait();
+    }
+}
+
+fn hash(password: &str) -> String {
+    let mut child = Command::new(bin("cell"))
+        .args(["opcua", "--hash-password"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    use std::io::Write;
+    writeln!(child.stdin.take().unwrap(), "{password}").unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(out.status.success());
+    String::from_utf8(out.stdout).unwrap().trim().to_string()
+}
+
+/// A secure cell as docs/opcua.md sets one up: `cell certs` issues the server's
+/// certificate, a users file with an operator and an observer, `cell up`; the client's
+/// application certificate is trusted with `cell opcua --trust`.
+#[tokio::test(flavor = "multi_thread")]
+async fn in_a_secure_cell_only_a_trusted_operator_commands() {
+    let Some(python) = opcua_python() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let dir = dir.path();
+    let cell = "t-opcua-sec";
+    let endpoint = format!("tls/127.0.0.1:{}", free_port());
+    let sim_port = free_port();
+    let address = format!("127.0.0.1:{}", free_port());
+    let robot_config = workspace_root().join("deploy/cells/demo/robot1.toml");
+    let manifest = format!(
+        r#"cell = "{cell}"
+[router]
+listen = ["{endpoint}"]
+[restart]
+backoff_initial_ms = 100
+stop_timeout_ms = 10000
+[[process]]
+name = "robot1-sim"
+program = "robot-sim"
+args = ["--listen", "127.0.0.1:{sim_port}", "--delay-ms", "20"]
+[[process]]
+name = "robot1"
+identity = "resource.robot1"
+program = "holon-node"
+args = ["--config", "{}", "--cell", "{cell}", "--name", "robot1", "--controller", "127.0.0.1:{sim_port}", "--connect", "{endpoint}", "--pki", "pki", "--data-dir", "data"]
+[[process]]
+name = "opcua"
+identity = "operator.opcua"
+program = "cell"
+args = ["opcua", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", "--listen", "{address}"]
+"#,
+        robot_config.display()
+    );
+    std::fs::write(dir.join("cell.toml"), manifest).unwrap();
+    let certs = Command::new(bin("cell"))
+        .arg("certs")
+        .arg(dir)
+        .output()
+        .unwrap();
+    assert!(
+        certs.status.success(),
+        "{}",
+        String::from_utf8_lossy(&certs.stderr)
+    );
+    let pki = dir.join("pki");
+    for file in ["opcua-server.der", "opcua-server.key", "operator.opcua.pem"] {
+        assert!(pki.join(file).exists(), "cell certs issued {file}");
+    }
+    std::fs::write(
+        pki.join("opcua-users.toml"),
+        format!(
+            "[[user]]\nname = \"anna\"\nrole = \"operator\"\npassword = \"{}\"\n[[user]]\nname = \"wall\"\nrole = \"observer\"\npassword = \"{}\"\n",
+            hash("anna-pw"),
+            hash("wall-pw")
+        ),
+    )
+    .unwrap();
+    let _up = Up(Command::new(bin("cell"))
+        .arg("up")
+        .arg(dir)
+        .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
+        .stderr(std::fs::File::create(dir.join("up.stderr.log")).unwrap())
+        .spawn()
+        .unwrap());
+    if let Err(e) = wait_listening(&address).await {
+        let log = std::fs::read_to_string(dir.join("logs/opcua.log")).unwrap_or_default();
+        panic!("{e}; logs/opcua.log:\n{log}");
+    }
+    let url = format!("opc.tcp://{address}/");
+    let client_dir = dir.join("client");
+    let client_dir_s = client_dir.to_str().unwrap();
+    let secure = ["--secure", client_dir_s];
+    let as_user = |user: &'static str, password: &'static str| {
+        let mut args = secure.to_vec();
+        args.extend(["--user", user, "--password", password]);
+        args
+    };
+
+    // An unknown client application is rejected, and lands in rejected/.
+    let (_, first) = Driver::start(&python, &url, cell, &as_user("anna", "anna-pw")).await;
+    assert_eq!(first["connected"], false, "{first}");
+    assert_eq!(first["status"], "BadCertificateUntrusted", "{first}");
+    let rejected: Vec<PathBuf> = std::fs::read_dir(pki.join("opcua/rejected"))
+        .map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).collect())
+        .unwrap_or_default();
+    assert_eq!(rejected.len(), 1, "{first}: rejected/ {rejected:?}");
+    let trust = Command::new(bin("cell"))
+        .args(["opcua", "--pki"])
+        .arg(&pki)
+        .arg("--trust")
+        .arg(client_dir.join("client.der"))
+        .output()
+        .unwrap();
+    assert!(
+        trust.status.success(),
+        "{}",
+        String::from_utf8_lossy(&trust.stderr)
+    );
+
+    // Anonymous and a wrong password are refused.
+    let (_, anonymous) = Driver::start(&python, &url, cell, &secure).await;
+    assert_eq!(anonymous["connected"], false, "{anonymous}");
+    assert!(
+        anonymous["status"]
+            .as_str()
+            .is_some_and(|s| s.starts_with("BadIdentityToken")),
+        "{anonymous}"
+    );
+    let (_, wrong) = Driver::start(&python, &url, cell, &as_user("anna", "nope")).await;
+    assert_eq!(wrong["connected"], false, "{wrong}");
+    assert_eq!(wrong["status"], "BadUserAccessDenied", "{wrong}");
+
+    // The operator holds robot1; the observer sees it but may not command.
+    let (mut anna, connected) =
+        Driver::start(&python, &url, cell, &as_user("anna", "anna-pw")).await;
+    assert_eq!(connected["connected"], true, "{connected}");
+    anna.wait_read("robot1 Status.StateCurrent", 6.into()).await;
+    assert_eq!(anna.call("call robot1 Hold").await, "Good");
+    anna.wait_read("robot1 Status.StateCurrent", 11.into())
+        .await;
+    anna.wait_read(
+        "robot1 Admin.StopReason.Message",
+        "Hold by opcua:anna".into(),
+    )
+    .await;
+    let (mut wall, connected) =
+        Driver::start(&python, &url, cell, &as_user("wall", "wall-pw")).await;
+    assert_eq!(connected["connected"], true, "{connected}");
+    wall.wait_read("robot1 Status.StateCurrent", 11.into())
+        .await;
+    assert_eq!(wall.call("call robot1 Unhold").await, "BadUserAccessDenied");
+    assert_eq!(
+        wall.ask("submit breaker 1 0").await["status"],
+        "BadUserAccessDenied"
+    );
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    wall.wait_read("robot1 Status.StateCurrent", 11.into())
+        .await;
+    assert_eq!(anna.call("call robot1 Unhold").await, "Good");
+    wall.wait_read("robot1 Status.StateCurrent", 6.into()).await;
+    wall.quit().await;
+    anna.quit().await;
+}
