@@ -177,13 +177,37 @@ impl Wiring {
             error!(%holon, "the agenda manager is gone: bookings are not handed back");
             return;
         }
+        // With a journal, results whose requesters have gone (an order-node stopped
+        // on purpose, before the resources) need not be waited for: they are delivered
+        // when the holon is back.
+        let durable = self.communication.config.data_dir.is_some();
         let mut agenda = links.views.agenda.subscribe();
-        let drained = tokio::time::timeout(grace, agenda.wait_for(|view| view.drained))
-            .await
-            .map(|waited| waited.map(|_| ()));
+        let mut absences = links.views.absences.subscribe();
+        let drained = tokio::time::timeout(grace, async {
+            loop {
+                {
+                    let view = agenda.borrow_and_update();
+                    if view.drained {
+                        return Ok::<usize, tokio::sync::watch::error::RecvError>(0);
+                    }
+                    let absences = absences.borrow_and_update();
+                    if durable && only_absent_requesters_wait(&view, &absences) {
+                        return Ok(view.deliverable.len());
+                    }
+                }
+                tokio::select! {
+                    changed = agenda.changed() => changed?,
+                    changed = absences.changed() => changed?,
+                }
+            }
+        })
+        .await;
         match drained {
-            Ok(Ok(())) => {
+            Ok(Ok(0)) => {
                 info!(%holon, "withdrawn: the running job finished and every result was acknowledged")
+            }
+            Ok(Ok(kept)) => {
+                info!(%holon, results = kept, "withdrawn: the running job finished; its requesters are gone, so the results not yet acknowledged stay in the journal and are delivered when this resource is back")
             }
             Ok(Err(_)) => error!(%holon, "the agenda view closed while withdrawing"),
             Err(_) => {
@@ -295,6 +319,21 @@ fn same_data_dir(mine: Option<&std::path::Path>, theirs: Option<&std::path::Path
 /// Runs a resource holon until `shutdown` is cancelled (then it withdraws its token,
 /// stops its components in reverse order, closes the session and returns `Ok`) or its
 /// supervisor gives up (then it returns the error, for a non-zero exit).
+/// Withdrawing: nothing runs, and every result still to be acknowledged is journalled
+/// (none held by a journal fault) and waits for a requester that is gone.
+fn only_absent_requesters_wait(
+    view: &crate::views::AgendaView,
+    absences: &crate::absences::Absences,
+) -> bool {
+    view.snapshot.current.is_none()
+        && view.snapshot.journal_fault.is_none()
+        && view.deliverable.len() == view.snapshot.undelivered
+        && view
+            .deliverable
+            .iter()
+            .all(|result| absences.absent_since(&result.requester).is_some())
+}
+
 pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.holon.clone();
     let alive_key = config.keys.alive(&holon);

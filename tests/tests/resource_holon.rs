@@ -529,3 +529,61 @@ async fn a_killed_resource_comes_back_with_its_bookings_and_reports_the_interrup
         Some(true)
     );
 }
+
+/// SIGTERM with a result whose requester is gone (its order-node was stopped first, as
+/// `cell up` and the demo stop a cell): the resource finishes its step, keeps the result
+/// in its journal and stops at once instead of waiting its whole shutdown grace (30 s
+/// here) for an acknowledgement nobody can send; back, it delivers the result.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_result_for_a_requester_gone_does_not_hold_up_the_shutdown() {
+    let data = tempfile::tempdir().unwrap();
+    let data_dir = data.path().to_str().unwrap().to_string();
+    let mut r = robot(
+        "t-stop-promptly",
+        &["--delay-ms", "300"],
+        &["--data-dir", &data_dir],
+        10_000,
+    )
+    .await;
+    // o-1 refuses its results and holds no liveliness token: gone, as far as the
+    // resource can tell.
+    let mut refusing = r.cell.inbox("o-1", usize::MAX).await.unwrap();
+    r.send(MessageType::BookingReq, "o-1", "c1").await;
+    assert_eq!(
+        r.send(MessageType::Start, "o-1", "c1").await.result,
+        Some(true)
+    );
+    r.sim.wait_received(1).await.unwrap();
+    r.node.signal(Signal::SIGTERM).unwrap();
+    let status = r.node.wait_exit(Duration::from_secs(20)).unwrap();
+    assert!(status.success(), "{status}");
+    let log = r.node.stderr();
+    assert!(
+        log.contains("delivered when this resource is back"),
+        "{log}"
+    );
+    // The step was finished, not cut short, and its result was refused until now.
+    assert_eq!(r.sim.executed("place"), 1, "{}", r.sim.counts());
+    assert_eq!(
+        refusing.next().await.unwrap().conversation_id,
+        "c1",
+        "it was tried"
+    );
+    drop(refusing);
+    let mut accepting = r.cell.inbox("o-1", 0).await.unwrap();
+    let config = r.dir.path().join("robot1.toml");
+    r.node = start_node(
+        r.dir.path(),
+        &config,
+        r.cell.keys.cell(),
+        &r.cell.endpoint,
+        &r.sim.address,
+        &["--data-dir", &data_dir],
+    )
+    .unwrap();
+    let done = accepting.next().await.unwrap();
+    assert_eq!(
+        (done.message_type, done.conversation_id.as_str()),
+        (MessageType::Done, "c1")
+    );
+}
