@@ -51,10 +51,13 @@ pub struct DemoOptions {
     pub keep: bool,
     /// Run a staff holon (`staff/planner`) whose advice the orders take.
     pub staff: bool,
+    /// Serve the cell over OPC UA (`cell opcua`, in this process) on this address while
+    /// the demo runs.
+    pub opcua: Option<std::net::SocketAddr>,
 }
 
 /// The manifest `cell certs` issues the secure demo's identities from.
-fn secure_manifest(cell: &str, endpoint: &str) -> String {
+fn secure_manifest(cell: &str, endpoint: &str, opcua: bool) -> String {
     let mut text = format!(
         "cell = \"{cell}\"\n[router]\nlisten = [\"{endpoint}\"]\n[pki]\nspares = [\"resource.robot3\"]\n"
     );
@@ -71,6 +74,12 @@ fn secure_manifest(cell: &str, endpoint: &str) -> String {
         text.push_str(&format!(
             "[[process]]\nname = \"{name}\"\nprogram = \"holon-node\"\nidentity = \"{identity}\"\n"
         ));
+    }
+    // `cell certs` issues the OPC UA server's certificate for a manifest running it.
+    if opcua {
+        text.push_str(
+            "[[process]]\nname = \"opcua\"\nprogram = \"cell\"\nargs = [\"opcua\"]\nidentity = \"operator.opcua\"\n",
+        );
     }
     text
 }
@@ -249,7 +258,7 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
     let pki = if options.secure {
         std::fs::write(
             dir.join("cell.toml"),
-            secure_manifest(&options.cell, &endpoint),
+            secure_manifest(&options.cell, &endpoint, options.opcua.is_some()),
         )?;
         crate::certs::run(&dir, &crate::certs::CertsOptions::default())?;
         Some(dir.join("pki"))
@@ -294,6 +303,10 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         Some(listen) => Some(start_dashboard(&cell, listen).await?),
         None => None,
     };
+    let opcua = match options.opcua {
+        Some(listen) => Some(start_opcua(&cell, listen)?),
+        None => None,
+    };
     let outcome = tokio::select! {
         outcome = operate(&mut cell, &options) => outcome,
         _ = shutdown.cancelled() => Err(anyhow!("interrupted")),
@@ -315,6 +328,15 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         _ => false,
     };
     println!("stopping everything the demo started, in reverse order ...");
+    if let Some((stop, task)) = opcua {
+        stop.cancel();
+        match tokio::time::timeout(Duration::from_secs(10), task).await {
+            Ok(Ok(Ok(()))) => {}
+            Ok(Ok(Err(e))) => println!("the OPC UA server stopped with an error: {e:#}"),
+            Ok(Err(e)) => println!("the OPC UA server's task ended abnormally: {e}"),
+            Err(_) => println!("the OPC UA server did not stop within 10 s"),
+        }
+    }
     if let Some((stop, task)) = dashboard {
         stop.cancel();
         match task.await {
@@ -359,6 +381,53 @@ async fn start_dashboard(
     };
     let stop = CancellationToken::new();
     let task = tokio::spawn(crate::dashboard::run(config, stop.clone()));
+    Ok((stop, task))
+}
+
+/// The cell's OPC UA server, in this process (it prints its endpoint): the token that
+/// stops it and its task. A secure demo's server gets a users file with one operator,
+/// `operator`, whose new random password is printed.
+fn start_opcua(
+    cell: &Cell,
+    listen: std::net::SocketAddr,
+) -> Result<(CancellationToken, tokio::task::JoinHandle<Result<()>>)> {
+    if let Some(pki) = &cell.pki {
+        use ring::rand::SecureRandom;
+        let mut bytes = [0u8; 9];
+        ring::rand::SystemRandom::new()
+            .fill(&mut bytes)
+            .map_err(|_| anyhow!("no random source for the OPC UA password"))?;
+        let password: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+        let hash = crate::opcua::users::PasswordHash::new(&password);
+        let users = pki.join(crate::opcua::security::USERS_FILE);
+        std::fs::write(
+            &users,
+            format!("[[user]]\nname = \"operator\"\nrole = \"operator\"\npassword = \"{hash}\"\n"),
+        )?;
+        println!(
+            "OPC UA: SignAndEncrypt only; user operator, password {password} (in {}); trust your client's certificate with `cell opcua --pki {} --trust CLIENT.der` (docs/opcua.md)",
+            users.display(),
+            pki.display()
+        );
+    }
+    let config = crate::opcua::OpcuaConfig {
+        keys: cell.keys.clone(),
+        zenoh: holon::ZenohSettings {
+            mode: holon::Mode::Client,
+            connect: vec![cell.endpoint.clone()],
+            tls: cell.pki.as_ref().map(|pki| holon::tls::TlsSettings {
+                pki: Some(pki.clone()),
+                ..holon::tls::TlsSettings::default()
+            }),
+            ..holon::ZenohSettings::default()
+        },
+        identity: "operator.opcua".into(),
+        listen,
+        pki: cell.pki.clone(),
+        users: None,
+    };
+    let stop = CancellationToken::new();
+    let task = tokio::spawn(crate::opcua::run(config, stop.clone()));
     Ok((stop, task))
 }
 

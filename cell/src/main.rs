@@ -63,6 +63,14 @@ enum Commands {
         /// each step booked on its advice is marked, and the summary counts them.
         #[arg(long)]
         staff: bool,
+        /// Serve the cell over OPC UA (as `cell opcua`, docs/opcua.md) while the demo
+        /// runs; its endpoint is printed. Plain: no security, anonymous; with --secure:
+        /// SignAndEncrypt, user `operator` with a new password printed.
+        #[arg(long)]
+        opcua: bool,
+        /// Where the OPC UA server listens (with --opcua).
+        #[arg(long, default_value = cell::opcua::DEFAULT_LISTEN, value_name = "HOST:PORT")]
+        opcua_listen: std::net::SocketAddr,
     },
     /// Launch and supervise the processes of a cell from the manifest DIR/cell.toml
     /// (deploy/cells/demo/cell.toml documents it): restart a process that dies, with a
@@ -430,6 +438,8 @@ async fn run(args: Args) -> Result<bool> {
             listen,
             keep,
             staff,
+            opcua,
+            opcua_listen,
         } => {
             let shutdown = holon::shutdown_on_signals();
             let options = cell::demo::DemoOptions {
@@ -443,6 +453,7 @@ async fn run(args: Args) -> Result<bool> {
                 dashboard: dashboard.then_some(listen),
                 keep,
                 staff,
+                opcua: opcua.then_some(opcua_listen),
             };
             cell::demo::run(options, shutdown).await
         }

@@ -284,7 +284,15 @@ mod tests {
         assert_eq!(manifest.cell, "demo");
         let names: Vec<&str> = manifest.processes.iter().map(|p| p.name.as_str()).collect();
         assert_eq!(names.first(), Some(&"robot1-sim"));
-        assert_eq!(names.last(), Some(&"orders1"));
+        assert_eq!(names.last(), Some(&"opcua"));
+        let opcua = manifest.processes.last().unwrap();
+        assert_eq!(
+            (
+                opcua.program.as_str(),
+                opcua.args.first().map(String::as_str)
+            ),
+            ("cell", Some("opcua"))
+        );
         assert_eq!(manifest.restart.max_restarts, 10);
         assert!(manifest
             .processes

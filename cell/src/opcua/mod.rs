@@ -160,55 +160,21 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         .await
         .map_err(|e| anyhow!("cannot join the cell: {e}"))?;
 
+    // Subscribed before the server is built; what arrives waits in the queue.
+    let (inputs, input_rx) = mpsc::channel(INPUT_QUEUE);
+    let dropped = Arc::new(AtomicU64::new(0));
+    let _subscriptions = subscribe(&session, &config.keys, &inputs, &dropped).await?;
+
     let uri = address_space::namespace_uri(&cell);
-    let mut builder = ServerBuilder::new()
-        .application_name(format!("holarchy cell {cell}"))
-        .application_uri(security::application_uri(&cell))
-        .product_uri("urn:holarchy")
-        .host(config.listen.ip().to_string())
-        .port(config.listen.port())
-        .discovery_urls(vec!["/".to_string()])
-        .create_sample_keypair(false)
-        .trust_client_certs(false)
-        .subscription_poll_interval_ms(TICK_MS)
-        .token(shutdown.child_token())
-        .with_authenticator(auth.clone())
-        .with_node_manager(ns0::mini_core())
-        .with_node_manager(methods::cell_nodes(
-            uri.clone(),
-            session.clone(),
-            config.keys.clone(),
-            auth.clone(),
-        ));
-    builder
-        .limits_mut()
-        .subscriptions
-        .min_publishing_interval_ms = TICK_MS as f64;
-    builder.limits_mut().subscriptions.min_sampling_interval_ms = TICK_MS as f64;
-    let plain_store;
-    match &server_files {
-        Some(files) => {
-            builder = builder
-                .pki_dir(&files.store)
-                .certificate_path(&files.certificate)
-                .private_key_path(&files.key);
-            for (id, endpoint) in security::secure_endpoints() {
-                builder = builder.add_endpoint(id, endpoint);
-            }
-            plain_store = None;
-        }
-        None => {
-            // async-opcua wants a certificate store even with no security.
-            let store = std::env::temp_dir().join(format!("holarchy-opcua-{}", std::process::id()));
-            builder = builder
-                .pki_dir(&store)
-                .add_endpoint("none", ServerEndpoint::new_none("/", &[]));
-            plain_store = Some(store);
-        }
-    }
-    let (server, handle) = builder
-        .build()
-        .map_err(|e| anyhow!("cannot set up the OPC UA server: {e}"))?;
+    let (server, handle, plain_store) = build_server(
+        &config,
+        &cell,
+        &uri,
+        server_files.as_ref(),
+        &session,
+        auth.clone(),
+        shutdown.child_token(),
+    )?;
     if server_files.is_some()
         && (handle.info().server_certificate.is_none() || handle.info().server_pkey.is_none())
     {
@@ -223,9 +189,6 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         .ok_or_else(|| anyhow!("the cell's node manager is missing"))?;
     let subscriptions = handle.subscriptions().clone();
 
-    let (inputs, input_rx) = mpsc::channel(INPUT_QUEUE);
-    let dropped = Arc::new(AtomicU64::new(0));
-    let _subscriptions = subscribe(&session, &config.keys, &inputs, &dropped).await?;
     let owner = tokio::spawn(own_the_values(
         nodes,
         subscriptions,
@@ -233,11 +196,12 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         input_rx,
         shutdown.clone(),
     ));
-    let every_state = [config.keys.resource_states(), config.keys.order_states()];
-    ask_states(&session, &every_state, &inputs, &dropped).await;
+    // No await between the build and the run: the server is not Send until it runs.
     {
+        let every_state = [config.keys.resource_states(), config.keys.order_states()];
         let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
         tokio::spawn(async move {
+            ask_states(&session, &every_state, &inputs, &dropped).await;
             tokio::time::sleep(ASK_AGAIN_AFTER).await;
             ask_states(&session, &every_state, &inputs, &dropped).await;
         });
@@ -275,6 +239,72 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         }
     }
     served.map_err(|e| anyhow!("the OPC UA server stopped: {e}"))
+}
+
+/// Builds the server (a plain function: the builder is not Send, and `run` is awaited
+/// in a spawned task by `cell demo`).
+fn build_server(
+    config: &OpcuaConfig,
+    cell: &str,
+    uri: &str,
+    server_files: Option<&security::ServerFiles>,
+    session: &zenoh::Session,
+    auth: Arc<CellAuth>,
+    token: CancellationToken,
+) -> Result<(
+    opcua_server::Server,
+    opcua_server::ServerHandle,
+    Option<PathBuf>,
+)> {
+    let mut builder = ServerBuilder::new()
+        .application_name(format!("holarchy cell {cell}"))
+        .application_uri(security::application_uri(cell))
+        .product_uri("urn:holarchy")
+        .host(config.listen.ip().to_string())
+        .port(config.listen.port())
+        .discovery_urls(vec!["/".to_string()])
+        .create_sample_keypair(false)
+        .trust_client_certs(false)
+        .subscription_poll_interval_ms(TICK_MS)
+        .token(token)
+        .with_authenticator(auth.clone())
+        .with_node_manager(ns0::mini_core())
+        .with_node_manager(methods::cell_nodes(
+            uri.to_string(),
+            session.clone(),
+            config.keys.clone(),
+            auth.clone(),
+        ));
+    builder
+        .limits_mut()
+        .subscriptions
+        .min_publishing_interval_ms = TICK_MS as f64;
+    builder.limits_mut().subscriptions.min_sampling_interval_ms = TICK_MS as f64;
+    let plain_store;
+    match server_files {
+        Some(files) => {
+            builder = builder
+                .pki_dir(&files.store)
+                .certificate_path(&files.certificate)
+                .private_key_path(&files.key);
+            for (id, endpoint) in security::secure_endpoints() {
+                builder = builder.add_endpoint(id, endpoint);
+            }
+            plain_store = None;
+        }
+        None => {
+            // async-opcua wants a certificate store even with no security.
+            let store = std::env::temp_dir().join(format!("holarchy-opcua-{}", std::process::id()));
+            builder = builder
+                .pki_dir(&store)
+                .add_endpoint("none", ServerEndpoint::new_none("/", &[]));
+            plain_store = Some(store);
+        }
+    }
+    let (server, handle) = builder
+        .build()
+        .map_err(|e| anyhow!("cannot set up the OPC UA server: {e}"))?;
+    Ok((server, handle, plain_store))
 }
 
 /// What the server subscribes to, declared for its life.
