@@ -207,10 +207,14 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     let mut deliveries = links.deliveries.take().await;
     let mut results = links.results.take().await;
     deliveries.resync(&undelivered);
-    publish(&links, &publisher).await;
+    // The last snapshot published (its time cleared): an unchanged one is not sent again.
+    let mut last_published = None;
+    publish(&links, &publisher, &mut last_published).await;
     info!(%holon, component = "communication", "serving");
     links.serving.notify_one();
 
+    // Whether the last view changes are published.
+    let mut settled = true;
     loop {
         let next_due = deliveries.next_due();
         tokio::select! {
@@ -232,7 +236,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                     changed
                 });
                 if counted {
-                    publish(&links, &publisher).await;
+                    publish(&links, &publisher, &mut last_published).await;
                 }
             }
             Some(end) = deliveries.attempt_ended() => {
@@ -243,17 +247,29 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             }
             changed = agenda_view.changed() => {
                 changed.map_err(|_| "the agenda view closed")?;
-                queryables.sync_offers(&links).await?;
-                publish(&links, &publisher).await;
+                settled = false;
             }
             changed = execution_view.changed() => {
                 changed.map_err(|_| "the execution view closed")?;
-                publish(&links, &publisher).await;
+                settled = false;
             }
             changed = absences.changed() => {
                 changed.map_err(|_| "the absences view closed")?;
-                publish(&links, &publisher).await;
+                settled = false;
             }
+        }
+        if !settled {
+            // The changes of one moment (a job begins: the agenda says busy and the
+            // execution its first step; it ends: the execution is idle and the agenda
+            // holds its result) are published once: the other components are let run
+            // first, then every view is taken as it is now.
+            tokio::task::yield_now().await;
+            agenda_view.borrow_and_update();
+            execution_view.borrow_and_update();
+            absences.borrow_and_update();
+            queryables.sync_offers(&links).await?;
+            publish(&links, &publisher, &mut last_published).await;
+            settled = true;
         }
     }
     deliveries.shutdown().await;
@@ -261,12 +277,25 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     Ok(())
 }
 
-async fn publish(links: &Links, publisher: &zenoh::pubsub::Publisher<'_>) {
+/// Publishes the state snapshot, unless it says what the last one said (only its time
+/// would differ): `last` is the last one published, with its time cleared.
+async fn publish(
+    links: &Links,
+    publisher: &zenoh::pubsub::Publisher<'_>,
+    last: &mut Option<schemas::ResourceSnapshot>,
+) {
     let snapshot = links.views.snapshot();
+    let mut unstamped = snapshot.clone();
+    unstamped.at = 0;
+    if last.as_ref() == Some(&unstamped) {
+        return;
+    }
     let payload = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
     if let Err(e) = publisher.put(payload).await {
         warn!(holon = %links.config.holon, error = %e, "cannot publish the state; readers see it at the next change or by asking");
+        return;
     }
+    *last = Some(unstamped);
 }
 
 /// Answers one query here, or returns it as a message for the agenda manager.
