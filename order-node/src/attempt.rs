@@ -12,6 +12,7 @@
 //! | proposing | proposals: none, past give-up | end: no resource | — |
 //! | booking(c) | resumed | declare token, ask c again (booking is idempotent) | booking(c) |
 //! | booking(c) | accepted and started (on its turn) | record started(c), publish, watch (step timeout) | started(c) |
+//! | booking(c) | accepted, asked to start on its turn | record booked(c), publish, watch for the turn (backoff) | booked(c) |
 //! | booking(c) | accepted | record booked(c), publish, ask start | booked(c) |
 //! | booking(c) | no answer, asked to start on its turn (it may have begun) | record booked(c), ask start | booked(c) |
 //! | booking(c) | refused or no answer, candidates left | record booking(next), ask it | booking(next) |
@@ -24,6 +25,7 @@
 //! | booked(p) | `not_booked` | end: lost | — |
 //! | booked(p) | other refusal | cancel the booking, end: failed | — |
 //! | booked(p) | watched: pause over or turn | ask start | booked(p) |
+//! | booked(p) | began (p published that the step runs) | record started(p), publish, watch (step timeout) | started(p) |
 //! | booked(p) | watched: lost | cancel the booking when p is back, end: lost | — |
 //! | booked(p) | watched: another outcome | end with it | — |
 //! | started(p) | resumed | declare token, watch (step timeout) | started(p) |
@@ -34,10 +36,13 @@
 //! logged by the caller). The backoff doubles with each refused round and each wait for
 //! the turn, and starts over once booked.
 //!
-//! A booking asked to start on its turn (the node's `orders.start_on_turn`) may begin
-//! without the order's `start`: while booked, a vanished resource gets the same grace
-//! as one running the step (it may be), and the `start` the order still sends after
-//! each pause is answered true if the job began (the phase becomes started).
+//! A booking asked to start on its turn (the node's `orders.start_on_turn`) begins
+//! without the order's `start`: the order learns it from the resource's state
+//! publication (its job runs) and sends no `start`, unless a pause passes without
+//! news (a publication missed) or the resource says it is this order's turn (a
+//! resource restarted on its journal waits for its requesters' `start`); a `start` is
+//! answered true if the job began. While booked, a vanished resource gets the same
+//! grace as one running the step (it may be).
 
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -76,6 +81,8 @@ pub enum AttemptEvent {
     /// A watch ended: `None` when its pause is over (or the resource said it is this
     /// order's turn), else how the attempt ended.
     Watched(Option<StepOutcome>),
+    /// Booked: the resource published that the step runs (it began on its turn).
+    Began,
 }
 
 /// What the order's task must do, in order.
@@ -202,10 +209,15 @@ impl Attempt {
             (Phase::Booking(candidate), E::BookingAnswer(Answer::Accepted)) => {
                 self.backoff.reset();
                 self.round = None;
-                self.record(Phase::Booked(candidate.clone()))
-                    .into_iter()
-                    .chain([AttemptAction::Publish, AttemptAction::AskStart(candidate)])
-                    .collect()
+                let mut actions = self.record(Phase::Booked(candidate.clone()));
+                actions.push(AttemptAction::Publish);
+                if self.start_on_turn {
+                    // It starts by itself on its turn, and says so in its state.
+                    actions.extend(self.watch_for_turn(candidate));
+                } else {
+                    actions.push(AttemptAction::AskStart(candidate));
+                }
+                actions
             }
             (Phase::Booking(_), E::BookingAnswer(_)) => self.next_candidate(now),
             (Phase::Booked(provider), E::Resumed) => vec![
@@ -216,6 +228,10 @@ impl Attempt {
                 self.start_answer(provider, answer, now)
             }
             (Phase::Booked(provider), E::Watched(None)) => vec![AttemptAction::AskStart(provider)],
+            (Phase::Booked(provider), E::Began) => {
+                self.backoff.reset();
+                self.started(provider)
+            }
             (Phase::Booked(provider), E::Watched(Some(outcome))) => {
                 let mut actions = Vec::new();
                 if matches!(outcome, StepOutcome::Lost { .. }) {
@@ -675,6 +691,55 @@ mod tests {
     #[test]
     fn a_booking_on_turn_that_waits_is_watched_with_the_grace_of_a_running_step() {
         let (mut a, now) = on_turn(Phase::Booking(robot(1)));
+        let watch = A::Watch {
+            provider: robot(1),
+            pause: Duration::from_millis(100),
+            started: false,
+            may_run: true,
+        };
+        // No start is sent: the resource starts it on its turn and says so.
+        assert_eq!(
+            a.handle(E::BookingAnswer(Answer::Accepted), now),
+            vec![
+                A::Record(Phase::Booked(robot(1))),
+                A::Publish,
+                watch.clone()
+            ]
+        );
+        // A pause without news: the order asks (a publication may have been missed).
+        assert_eq!(a.handle(E::Watched(None), now), vec![A::AskStart(robot(1))]);
+        assert_eq!(
+            a.handle(E::StartAnswer(Answer::Refused(Some("busy".into()))), now),
+            vec![A::Watch {
+                provider: robot(1),
+                pause: Duration::from_millis(200),
+                started: false,
+                may_run: true,
+            }]
+        );
+        // The resource publishes that the step runs: started, without a start.
+        assert_eq!(
+            a.handle(E::Began, now),
+            vec![
+                A::Record(Phase::Started(robot(1))),
+                A::Publish,
+                A::Watch {
+                    provider: robot(1),
+                    pause: Duration::from_secs(30),
+                    started: true,
+                    may_run: true,
+                }
+            ]
+        );
+        // Began means nothing once started, or before booking.
+        assert_eq!(a.handle(E::Began, now), vec![]);
+        let (mut proposing, now) = on_turn(Phase::Proposing);
+        assert_eq!(proposing.handle(E::Began, now), vec![]);
+    }
+
+    #[test]
+    fn a_booking_asked_to_start_by_request_asks_start_at_once() {
+        let (mut a, now) = attempt(Phase::Booking(robot(1)));
         assert_eq!(
             a.handle(E::BookingAnswer(Answer::Accepted), now),
             vec![
@@ -682,21 +747,6 @@ mod tests {
                 A::Publish,
                 A::AskStart(robot(1))
             ]
-        );
-        assert_eq!(
-            a.handle(E::StartAnswer(Answer::Refused(Some("busy".into()))), now),
-            vec![A::Watch {
-                provider: robot(1),
-                pause: Duration::from_millis(100),
-                started: false,
-                may_run: true,
-            }]
-        );
-        // It began on its turn: the start the order sends after the pause says so.
-        assert_eq!(a.handle(E::Watched(None), now), vec![A::AskStart(robot(1))]);
-        assert_eq!(
-            a.handle(E::StartAnswer(Answer::Accepted), now)[0],
-            A::Record(Phase::Started(robot(1)))
         );
     }
 

@@ -89,6 +89,9 @@ struct OrderTask {
 enum Watched {
     /// The pause is over (or, before the start, it is this order's turn).
     Elapsed,
+    /// Before the start: the resource published that the step runs (it began on its
+    /// turn).
+    Began,
     /// Something ended the attempt; a result to acknowledge once recorded.
     Ended(StepOutcome, Option<Box<ResultReport>>),
 }
@@ -389,6 +392,7 @@ impl OrderTask {
                     .await
                 {
                     Watched::Elapsed => Some(AttemptEvent::Watched(None)),
+                    Watched::Began => Some(AttemptEvent::Began),
                     Watched::Ended(outcome, delivered) => {
                         *report = delivered;
                         Some(AttemptEvent::Watched(Some(outcome)))
@@ -434,10 +438,11 @@ impl OrderTask {
         let ctx = self.ctx.clone();
         let worked_with = lock(&self.progress).worked_with.clone();
         let until = Instant::now() + pause;
-        // Booked, not started: the pause ends early when the resource says it is our turn.
+        // Booked, not started: the pause ends early when the resource says it is our
+        // turn, or that our step runs.
         let turn = async {
             if started {
-                std::future::pending::<()>().await
+                std::future::pending().await
             } else {
                 ctx.presence.turn(provider, conversation_id).await
             }
@@ -479,7 +484,10 @@ impl OrderTask {
                 Some(gone) => gone,
             };
             tokio::select! {
-                _ = &mut turn => return Watched::Elapsed,
+                news = &mut turn => return match news {
+                    crate::presence::TurnNews::Turn => Watched::Elapsed,
+                    crate::presence::TurnNews::Began => Watched::Began,
+                },
                 _ = tokio::time::sleep_until(deadline) => {
                     if gone_until.is_some_and(|g| Instant::now() >= g) {
                         return lost("the resource vanished");

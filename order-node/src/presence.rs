@@ -28,11 +28,10 @@ pub struct Presence {
     /// each waiting booking in agenda order. Fresher than a proposal heard during a
     /// round.
     queues: Mutex<HashMap<HolonId, PublishedQueue>>,
-    /// Per resource, from its state publications: the conversation first on its agenda
-    /// while it is free (`None` while it is busy or has no booking). An order booked
-    /// there waits on its own resource's channel only, so a state change wakes the
-    /// orders it concerns, not all of them.
-    turns: Mutex<HashMap<HolonId, watch::Sender<Option<String>>>>,
+    /// Per resource, from its state publications: whose turn it is and whose job runs.
+    /// An order booked there waits on its own resource's channel only, so a state
+    /// change wakes the orders it concerns, not all of them.
+    turns: Mutex<HashMap<HolonId, watch::Sender<Turns>>>,
     /// The staff holons alive (advisors), by name.
     staff: Mutex<std::collections::BTreeSet<HolonId>>,
     /// The resources whose last state said they are being handed over to a successor
@@ -128,9 +127,10 @@ impl Presence {
                         },
                     );
                 presence.set_handing_over(&snapshot.holon, snapshot.handing_over);
-                presence
-                    .turn_channel(&snapshot.holon)
-                    .send_replace(news.turn);
+                presence.turn_channel(&snapshot.holon).send_replace(Turns {
+                    turn: news.turn,
+                    running: snapshot.current.as_ref().map(|c| c.conversation_id.clone()),
+                });
                 if news.became_ready {
                     // Back from a fault or first ready: as good as a new resource.
                     presence.appeared.send_modify(|n| *n += 1);
@@ -236,26 +236,34 @@ impl Presence {
         self.changes.subscribe()
     }
 
-    fn turn_channel(&self, resource: &HolonId) -> watch::Sender<Option<String>> {
+    fn turn_channel(&self, resource: &HolonId) -> watch::Sender<Turns> {
         self.turns
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .entry(resource.clone())
-            .or_insert_with(|| watch::channel(None).0)
+            .or_insert_with(|| watch::channel(Turns::default()).0)
             .clone()
     }
 
-    /// Completes when `resource` next publishes that it is free with `conversation_id`
-    /// first on its agenda (publications from before this call do not count).
-    pub async fn turn(&self, resource: &HolonId, conversation_id: &str) {
+    /// Completes when `resource` publishes that the job of `conversation_id` runs
+    /// (it began on its turn: also when its last publication already said so), or next
+    /// publishes that it is free with `conversation_id` first on its agenda (a turn
+    /// published before this call does not count: it may be stale).
+    pub async fn turn(&self, resource: &HolonId, conversation_id: &str) -> TurnNews {
         let mut turns = self.turn_channel(resource).subscribe();
-        turns.mark_unchanged();
+        if turns.borrow_and_update().running.as_deref() == Some(conversation_id) {
+            return TurnNews::Began;
+        }
         while turns.changed().await.is_ok() {
-            if turns.borrow_and_update().as_deref() == Some(conversation_id) {
-                return;
+            let now = turns.borrow_and_update();
+            if now.running.as_deref() == Some(conversation_id) {
+                return TurnNews::Began;
+            }
+            if now.turn.as_deref() == Some(conversation_id) {
+                return TurnNews::Turn;
             }
         }
-        std::future::pending::<()>().await
+        std::future::pending().await
     }
 
     /// Appearances from now on: pass it to [`Presence::appeared_or_room`] after a look
@@ -284,6 +292,25 @@ struct StateNews {
     became_ready: bool,
     /// Places freed on its agenda since its previous publication.
     places_freed: usize,
+}
+
+/// What a resource's last publication said of the bookings on it.
+#[derive(Debug, Clone, Default, PartialEq)]
+struct Turns {
+    /// The conversation first on its agenda while it is free and taking orders' work
+    /// (`None` while it is busy, has no booking, or is out of Execute).
+    turn: Option<String>,
+    /// The conversation whose job runs.
+    running: Option<String>,
+}
+
+/// What [`Presence::turn`] saw.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TurnNews {
+    /// It is the conversation's turn: its requester asks the resource to start.
+    Turn,
+    /// Its job runs (the resource began it on its turn).
+    Began,
 }
 
 /// Reads a snapshot against what the resource published before (its agenda length and
