@@ -394,6 +394,16 @@ fn main() -> ExitCode {
             // No security, so no certificate: async-opcua's lines saying so are noise.
             "info,zenoh=error,opcua_server=warn,opcua_server::server=error,opcua_core=warn,opcua_crypto=warn,opcua_crypto::certificate_store=off,opcua_nodes=warn,opcua_types=warn"
         }
+    } else if matches!(
+        &args.command,
+        Commands::Demo {
+            opcua: true,
+            secure: false,
+            ..
+        }
+    ) {
+        // The demo's plain OPC UA server has no certificate, by design.
+        "warn,zenoh=error,opcua_server::server=error,opcua_crypto::certificate_store=off"
     } else {
         "warn,zenoh=error"
     };

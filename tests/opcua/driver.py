@@ -19,6 +19,7 @@ Commands:
     submit PRODUCT COUNT PRIORITY   -> {"status": ..., "orders": [...]}
     subscribe RES PATH              -> {"status": "Good"} (publishing interval 20 ms)
     changes                         -> {"values": [...], "latency_ms": [...]} since start
+                                       (latency: SourceTimestamp to receipt, initial values left out)
     quit
 """
 
@@ -47,15 +48,21 @@ def status_name(error):
 
 
 class Changes:
+    """Every value a subscription delivered and, for each change after a monitored
+    item's first (initial) value, the time from the server's SourceTimestamp to here."""
+
     def __init__(self):
         self.values = []
         self.latency_ms = []
+        self.seen = set()
 
     def datachange_notification(self, node, val, data):
         now = time.time()
         self.values.append(val)
+        first = node.nodeid not in self.seen
+        self.seen.add(node.nodeid)
         source = data.monitored_item.Value.SourceTimestamp
-        if source is not None:
+        if source is not None and not first:
             self.latency_ms.append(round((now - source.timestamp()) * 1000.0, 1))
 
 

@@ -17,8 +17,11 @@ use tokio::process::{Child, ChildStdin, ChildStdout};
 
 /// The driver script, connected to a server.
 struct Driver {
+    /// The Python process (killed when dropped).
     child: Child,
+    /// Where the commands go.
     stdin: ChildStdin,
+    /// Its answers, one JSON line each.
     lines: Lines<BufReader<ChildStdout>>,
 }
 
@@ -301,6 +304,35 @@ async fn a_foreign_client_watches_and_commands_the_cell_over_opcua() {
         tokio::time::sleep(Duration::from_millis(200)).await;
     }
     ua.wait_read("robot2 Status.StateCurrent", 6.into()).await;
+
+    // The subscription saw every state robot1 stayed in, in order, promptly (a state
+    // left within one publishing interval, such as Idle between Reset and Start, is
+    // coalesced: the queue size is 1): the server ticks every 10 ms and grants the
+    // driver's 20 ms publishing interval (with async-opcua's defaults, 100 ms, the
+    // median is about 200 ms).
+    let changes = ua.ask("changes").await;
+    let seen: Vec<i64> = serde_json::from_value(changes["values"].clone()).unwrap();
+    let stayed = [11, 6, 9, 2, 6, 2];
+    let mut rest = seen.iter();
+    for state in stayed {
+        assert!(
+            rest.any(|s| *s == state),
+            "the subscription saw {stayed:?} in order: {seen:?}; the server:\n{}",
+            server.stderr()
+        );
+    }
+    for state in [11, 6, 9, 2] {
+        assert!(
+            seen.contains(&state),
+            "the subscription saw {state}: {seen:?}"
+        );
+    }
+    let mut latency: Vec<f64> = serde_json::from_value(changes["latency_ms"].clone()).unwrap();
+    latency.sort_by(f64::total_cmp);
+    eprintln!("subscription latency over the run (ms, sorted): {latency:?}");
+    assert!(latency.len() >= 5, "{changes}");
+    let median = latency[latency.len() / 2];
+    assert!(median < 150.0, "median latency {median} ms: {latency:?}");
     ua.quit().await;
     drop(server);
 }

@@ -9,7 +9,9 @@
 //! liveliness token appears, as the dashboard does: a change published before the
 //! subscription reached its publisher would be lost otherwise). A resource's token
 //! appearing adds its object; its token going marks its variables
-//! `BadNoCommunication` and removes its object, while clients stay connected.
+//! `BadNoCommunication` and removes its object, while clients stay connected. A
+//! snapshot is shown only while its resource's token is there (one arriving first
+//! waits for the token; a late one of a resource that left is dropped).
 //!
 //! One task owns the values ([`own_the_values`]); zenoh callbacks queue what they
 //! hear for it (bounded; a sample dropped on a full queue is counted and logged, and
@@ -44,9 +46,9 @@ use users::CellAuth;
 /// The default endpoint's address (OPC UA's registered port, loopback only).
 pub const DEFAULT_LISTEN: &str = "127.0.0.1:4840";
 
-/// The server's subscription tick, and the shortest publishing and sampling interval it
-/// grants (ms): a change reaches a client asking for a 20 ms publishing interval in
-/// about 20 ms.
+/// The server's subscription tick, and the shortest publishing interval it grants (ms):
+/// a change reaches a client asking for a 20 ms publishing interval in about 20 ms.
+/// Sampling intervals may be 0 (every change is reported).
 pub const TICK_MS: u64 = 10;
 
 /// After the start and after a resource's token appears, how long until the states are
@@ -230,8 +232,10 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
     if let Err(e) = owner.await {
         warn!(error = %e, "the values' task ended abnormally");
     }
-    if let Err(e) = session.close().await {
-        warn!(error = %e, "cannot close the zenoh session");
+    match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => warn!(error = %e, "cannot close the zenoh session"),
+        Err(_) => warn!("the zenoh session did not close within 5 s; leaving anyway"),
     }
     if let Some(store) = plain_store {
         if let Err(e) = std::fs::remove_dir_all(&store) {
@@ -279,7 +283,11 @@ fn build_server(
         .limits_mut()
         .subscriptions
         .min_publishing_interval_ms = TICK_MS as f64;
-    builder.limits_mut().subscriptions.min_sampling_interval_ms = TICK_MS as f64;
+    // Values are pushed on change, not sampled: a sampling interval of 0 (the default
+    // most clients ask for) reports every change. With a minimum above 0, async-opcua
+    // holds back a change that comes within the interval of the previous one, and in
+    // our test never delivered it (Aborting then Aborted 2 ms apart: Aborted lost).
+    builder.limits_mut().subscriptions.min_sampling_interval_ms = 0.0;
     let plain_store;
     match server_files {
         Some(files) => {
@@ -309,8 +317,11 @@ fn build_server(
 
 /// What the server subscribes to, declared for its life.
 struct Subscriptions {
+    /// The holons' liveliness tokens (`alive/**`, with history).
     _alive: zenoh::pubsub::Subscriber<()>,
+    /// `resource/*/state`.
     _resources: zenoh::pubsub::Subscriber<()>,
+    /// `order/*/state`.
     _orders: zenoh::pubsub::Subscriber<()>,
 }
 
@@ -435,8 +446,13 @@ async fn own_the_values(
         ns,
         pushed: HashMap::new(),
         resources: HashSet::new(),
+        waiting: HashMap::new(),
+        shown_at: HashMap::new(),
+        reassert: BTreeMap::new(),
         orders: BTreeMap::new(),
     };
+    let mut tick = tokio::time::interval(Duration::from_millis(TICK_MS * 2));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
             _ = shutdown.cancelled() => return,
@@ -444,9 +460,14 @@ async fn own_the_values(
                 Some(input) => values.apply(input),
                 None => return,
             },
+            _ = tick.tick() => values.reassert_due(tokio::time::Instant::now()),
         }
     }
 }
+
+/// After a value changes, when it is told to the subscriptions again (see
+/// [`Values::reassert_due`]).
+const REASSERT_AFTER_MS: [u64; 4] = [60, 260, 1010, 2010];
 
 /// The address space's values as last pushed.
 struct Values {
@@ -458,8 +479,16 @@ struct Values {
     ns: u16,
     /// Each variable's last pushed value, by NodeId path.
     pushed: HashMap<String, Variant>,
-    /// The resources with an object in the address space.
+    /// The resources with an object in the address space: those whose liveliness
+    /// token is in the cell.
     resources: HashSet<String>,
+    /// The last snapshot of a resource whose token has not appeared (yet): applied
+    /// when it does. A late snapshot of a resource that left is never shown.
+    waiting: HashMap<String, Box<ResourceSnapshot>>,
+    /// The `at` of each resource's snapshot shown.
+    shown_at: HashMap<String, u64>,
+    /// When to tell the subscriptions a changed value again, by NodeId path.
+    reassert: BTreeMap<tokio::time::Instant, Vec<String>>,
     /// Every order's status, by order name.
     orders: BTreeMap<String, OrderStatus>,
 }
@@ -467,12 +496,36 @@ struct Values {
 impl Values {
     fn apply(&mut self, input: Input) {
         match input {
-            Input::Appeared(resource) => self.add(&resource),
-            Input::Vanished(resource) => self.remove(&resource),
+            Input::Appeared(resource) => {
+                self.add(&resource);
+                if let Some(snapshot) = self.waiting.remove(&resource) {
+                    self.shown_at.insert(resource, snapshot.at);
+                    self.push(address_space::snapshot_values(&snapshot));
+                }
+            }
+            Input::Vanished(resource) => {
+                self.waiting.remove(&resource);
+                self.shown_at.remove(&resource);
+                self.remove(&resource);
+            }
             Input::Resource(snapshot) => {
                 let resource = snapshot.holon.name().to_string();
-                self.add(&resource);
-                self.push(address_space::snapshot_values(&snapshot));
+                // A snapshot older than the one shown (a late answer to an ask) is not
+                // shown.
+                if self
+                    .shown_at
+                    .get(&resource)
+                    .is_some_and(|at| snapshot.at < *at)
+                {
+                    debug!(resource, at = snapshot.at, "an older snapshot ignored");
+                    return;
+                }
+                if self.resources.contains(&resource) {
+                    self.shown_at.insert(resource, snapshot.at);
+                    self.push(address_space::snapshot_values(&snapshot));
+                } else {
+                    self.waiting.insert(resource, snapshot);
+                }
             }
             Input::Order(snapshot) => {
                 self.orders
@@ -544,6 +597,37 @@ impl Values {
         }
     }
 
+    /// Tells the subscriptions the current value of the variables that changed
+    /// [`REASSERT_AFTER_MS`] ago, with a new source timestamp, without writing the
+    /// address space. A monitored item that already reported the value reports nothing
+    /// (the value did not change). It works around async-opcua 0.19: a change that comes
+    /// within a monitored item's sampling interval of the one before is held back to
+    /// the interval's end, but the item is not visited again until its next change, so
+    /// the last state of a quick succession (Aborting then Aborted 1 ms later; asyncua's
+    /// default sampling interval is 50 ms) was never delivered. A later notification
+    /// releases it. Sampling intervals up to 2 s are covered this way.
+    fn reassert_due(&mut self, now: tokio::time::Instant) {
+        let later = self.reassert.split_off(&(now + Duration::from_millis(1)));
+        let due = std::mem::replace(&mut self.reassert, later);
+        let current: HashMap<opcua::types::NodeId, Variant> = due
+            .into_values()
+            .flatten()
+            .filter_map(|path| {
+                let value = self.pushed.get(&path)?.clone();
+                Some((address_space::id(self.ns, &path), value))
+            })
+            .collect();
+        if current.is_empty() {
+            return;
+        }
+        self.subscriptions.maybe_notify(
+            current
+                .keys()
+                .map(|id| (id, opcua::types::AttributeId::Value)),
+            |id, _, _, _| current.get(id).map(|v| DataValue::new_now(v.clone())),
+        );
+    }
+
     /// Pushes the values that differ from the last pushed ones.
     fn push(&mut self, values: Vec<(String, Variant)>) {
         let changed: Vec<(String, Variant)> = values
@@ -563,6 +647,14 @@ impl Values {
             .map(|(id, (_, value))| (id, None, DataValue::new_now(value.clone())));
         match self.nodes.set_values(&self.subscriptions, updates) {
             Ok(()) => {
+                debug!(changed = ?changed, "values pushed");
+                let now = tokio::time::Instant::now();
+                for after in REASSERT_AFTER_MS {
+                    self.reassert
+                        .entry(now + Duration::from_millis(after))
+                        .or_default()
+                        .extend(changed.iter().map(|(path, _)| path.clone()));
+                }
                 for (path, value) in changed {
                     self.pushed.insert(path, value);
                 }
