@@ -419,6 +419,46 @@ mod tests {
     }
 
     #[test]
+    fn a_manifest_running_cell_opcua_gets_its_server_certificate() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(
+            dir.path().join("cell.toml"),
+            "cell = \"t\"\n[[process]]\nname = \"opcua\"\nprogram = \"cell\"\nargs = [\"opcua\", \"--pki\", \"pki\"]\nidentity = \"operator.opcua\"\n",
+        )
+        .unwrap();
+        let said = run(dir.path(), &CertsOptions::default()).unwrap();
+        assert!(said.iter().any(|l| l.contains("OPC UA server")), "{said:?}");
+        let pki = dir.path().join("pki");
+        let files = crate::opcua::security::ServerFiles::in_pki(&pki).unwrap();
+        files.check().unwrap();
+        assert!(pki.join("operator.opcua.pem").exists());
+        // Kept on a second run; reissued with --renew opcua-server.
+        let again = run(dir.path(), &CertsOptions::default()).unwrap();
+        assert!(
+            !again.iter().any(|l| l.contains("OPC UA server")),
+            "{again:?}"
+        );
+        let before = std::fs::read(&files.certificate).unwrap();
+        let renewed = run(
+            dir.path(),
+            &CertsOptions {
+                renew: vec![OPCUA_SERVER.into()],
+                ..Default::default()
+            },
+        )
+        .unwrap();
+        assert!(
+            renewed.iter().any(|l| l.contains("OPC UA server")),
+            "{renewed:?}"
+        );
+        assert_ne!(std::fs::read(&files.certificate).unwrap(), before);
+        files.check().unwrap();
+        // A key of another certificate is refused.
+        std::fs::copy(pki.join("operator.opcua.key"), &files.key).unwrap();
+        assert!(files.check().is_err());
+    }
+
+    #[test]
     fn order_node_names_must_not_overlap() {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(

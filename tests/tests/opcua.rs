@@ -205,6 +205,13 @@ async fn a_foreign_client_watches_and_commands_the_cell_over_opcua() {
         picks_held,
         "a held robot starts no new step"
     );
+    for order in first.iter().chain(&second) {
+        let state = cell.order_state(order).await.unwrap();
+        assert_eq!(
+            state["failed_attempts"], 0,
+            "the step running at the Hold completed: {state}"
+        );
+    }
     let changes = ua.ask("changes").await;
     let seen: Vec<i64> = serde_json::from_value(changes["values"].clone()).unwrap();
     assert!(seen.contains(&11), "the subscription saw Held: {changes}");
