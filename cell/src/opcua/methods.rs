@@ -98,6 +98,9 @@ pub fn refusal_status(refusal: &Refusal) -> StatusCode {
         // Suspend/Unsuspend: the resource suspends by itself; the command exists in
         // PackML but this unit does not implement it.
         Refusal::NotSupported { .. } => StatusCode::BadNotSupported,
+        // Refusals of other requests (none of a command or a mode change today).
+        #[allow(unreachable_patterns)]
+        _ => StatusCode::BadInvalidState,
     }
 }
 

@@ -322,12 +322,13 @@ impl AuthManager for CellAuth {
         policies
     }
 
-    fn is_user_executable(&self, token: &UserToken, method_id: &NodeId) -> bool {
-        let operator = self.role_of(token) == Some(Role::Operator);
-        if !operator {
-            warn!(who = %CellAuth::who(token), method = %method_id, "method call refused: only operators call methods (BadUserAccessDenied)");
-        }
-        operator
+    /// Every user we know may reach a method: the call itself refuses an observer
+    /// (BadUserAccessDenied) and logs it (`methods.rs`). async-opcua asks this both for
+    /// a call and for a read of the UserExecutable attribute, so refusing here would
+    /// leave refused calls unlogged, or log every attribute read of an observer's
+    /// client. UserExecutable therefore reads true for observers too.
+    fn is_user_executable(&self, token: &UserToken, _method_id: &NodeId) -> bool {
+        self.role_of(token).is_some()
     }
 
     fn effective_user_access_level(
