@@ -8,6 +8,7 @@
 use std::time::Duration;
 
 use anyhow::{anyhow, bail, Result};
+use schemas::packml::OperatorJob;
 use schemas::{CellKeys, HolonId, PackmlReply, PackmlRequest, ResourceSnapshot};
 
 /// Sends `request` to `resource` and returns its answer (which may be a refusal).
@@ -91,6 +92,71 @@ async fn alive(
     Ok(tokens.recv_async().await.is_ok())
 }
 
+/// Runs an operator's single job on `resource` (in Maintenance mode) and waits, at most
+/// `patience`, for its end: the [`OperatorJob`] as the resource's state reports it
+/// (`outcome` none if it had not ended by then), or the refusal.
+pub async fn run_job(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    resource: &str,
+    request: &PackmlRequest,
+    timeout: Duration,
+    patience: Duration,
+) -> Result<Result<OperatorJob, PackmlReply>> {
+    let holon = HolonId::resource(resource)?;
+    // Subscribed before asking: the job's end may be published at once.
+    let states = session
+        .declare_subscriber(keys.state(&holon))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let reply = ask(session, keys, resource, request, timeout).await?;
+    let Some(conversation) = reply.job.clone() else {
+        return Ok(Err(reply));
+    };
+    let ended = |snapshot: &ResourceSnapshot| {
+        snapshot
+            .packml
+            .as_ref()
+            .and_then(|p| p.operator_job.clone())
+            .filter(|job| job.conversation_id == conversation)
+    };
+    let deadline = tokio::time::Instant::now() + patience;
+    let mut last = None;
+    loop {
+        let sample = match tokio::time::timeout_at(deadline, states.recv_async()).await {
+            Ok(Ok(sample)) => sample,
+            Ok(Err(e)) => bail!("{holon}'s state could not be followed: {e}"),
+            Err(_) => break,
+        };
+        let Ok(snapshot) = serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes())
+        else {
+            continue;
+        };
+        if let Some(job) = ended(&snapshot) {
+            if job.outcome.is_some() {
+                return Ok(Ok(job));
+            }
+            last = Some(job);
+        }
+    }
+    // Not seen to end: as the resource says now.
+    let now = state(session, keys, resource, timeout).await.ok();
+    Ok(Ok(now.as_ref().and_then(ended).or(last).unwrap_or(
+        OperatorJob {
+            conversation_id: conversation,
+            service_type: request
+                .job
+                .as_ref()
+                .map(|j| j.service_type.clone())
+                .unwrap_or_default(),
+            by: request.by.clone().unwrap_or_default(),
+            at: 0,
+            outcome: None,
+            done: false,
+        },
+    )))
+}
+
 /// One line for an answer: `robot1: Held (11), Production` or the refusal.
 pub fn render_reply(resource: &str, reply: &PackmlReply) -> String {
     let now = format!(
@@ -129,6 +195,15 @@ pub fn render_state(snapshot: &ResourceSnapshot, now_ms: u64) -> String {
         out.push_str(&format!(
             "  stop reason: {} ({}) at {}\n",
             reason.message, reason.id, reason.at
+        ));
+    }
+    if let Some(job) = &p.operator_job {
+        out.push_str(&format!(
+            "  operator job: {} {} by {}: {}\n",
+            job.conversation_id,
+            job.service_type,
+            job.by,
+            job.outcome.as_deref().unwrap_or("running")
         ));
     }
     let commands: Vec<&str> = p.commands.iter().map(|c| c.name()).collect();

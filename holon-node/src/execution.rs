@@ -437,6 +437,7 @@ mod tests {
                 .as_object()
                 .unwrap()
                 .clone(),
+            operator: None,
         }
     }
 

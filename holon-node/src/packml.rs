@@ -29,6 +29,7 @@
 
 use std::collections::BTreeMap;
 
+use schemas::packml::OperatorJob;
 use schemas::packml::{STOP_CONTROLLER_AWAY, STOP_CONTROLLER_ESTOP, STOP_CONTROLLER_FAULT};
 use schemas::{
     ControllerStatus, PackmlCommand, PackmlState, PackmlStatus, Refusal, StopReason, UnitMode,
@@ -68,6 +69,12 @@ pub struct PackmlUnit {
     since: u64,
     /// Milliseconds spent in each state before the current stay.
     cumulative_ms: BTreeMap<PackmlState, u64>,
+    /// The last single job an operator ran (Maintenance mode).
+    #[serde(default)]
+    operator_job: Option<OperatorJob>,
+    /// How many operator jobs it has run: the next one's number.
+    #[serde(default)]
+    operator_jobs: u64,
 }
 
 fn yes() -> bool {
@@ -86,6 +93,40 @@ impl PackmlUnit {
             defective: 0,
             since: now,
             cumulative_ms: BTreeMap::new(),
+            operator_job: None,
+            operator_jobs: 0,
+        }
+    }
+
+    /// Whether an operator may run a single job now: Execute in Maintenance.
+    pub fn allows_operator_job(&self) -> bool {
+        self.state == PackmlState::Execute && self.mode == UnitMode::Maintenance
+    }
+
+    /// An operator's job begins: its conversation id (`maintenance/<n>`).
+    pub fn operator_job_began(&mut self, service_type: &str, by: &str, now: u64) -> String {
+        self.operator_jobs += 1;
+        let conversation_id = format!("maintenance/{}", self.operator_jobs);
+        self.operator_job = Some(OperatorJob {
+            conversation_id: conversation_id.clone(),
+            service_type: service_type.to_string(),
+            by: by.to_string(),
+            at: now,
+            outcome: None,
+            done: false,
+        });
+        conversation_id
+    }
+
+    /// The operator's job of `conversation_id` ended so.
+    pub fn operator_job_ended(&mut self, conversation_id: &str, outcome: String, done: bool) {
+        if let Some(job) = self
+            .operator_job
+            .as_mut()
+            .filter(|job| job.conversation_id == conversation_id)
+        {
+            job.outcome = Some(outcome);
+            job.done = done;
         }
     }
 
@@ -253,6 +294,7 @@ impl PackmlUnit {
             since: self.since,
             cumulative_ms: self.cumulative_ms.clone(),
             commands: self.commands(),
+            operator_job: self.operator_job.clone(),
         }
     }
 

@@ -477,6 +477,7 @@ mod tests {
             since: 0,
             cumulative_ms: Default::default(),
             commands: vec![],
+            operator_job: None,
         }
     }
 

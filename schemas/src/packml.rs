@@ -359,6 +359,18 @@ pub enum Refusal {
     /// A resource holon does not use this command.
     #[error("{command} is not used by a resource holon")]
     NotSupported { command: PackmlCommand },
+    /// An operator's single job runs only in Maintenance mode, in Execute, on a free
+    /// resource whose controller is ready.
+    #[error("an operator's job runs only in Maintenance mode, in Execute, with nothing running and the controller ready (the resource is {state} in {mode} mode{why})")]
+    JobNotAllowed {
+        state: PackmlState,
+        mode: UnitMode,
+        /// What else stands in the way, e.g. `, a job runs`.
+        why: String,
+    },
+    /// The job's service type or info does not fit the resource's steps.
+    #[error("the job does not fit this resource: {detail}")]
+    InvalidJob { detail: String },
 }
 
 /// The first-out stop reason (PackML `Admin.StopReason`): the first event that took
@@ -381,6 +393,26 @@ pub const STOP_CONTROLLER_FAULT: i32 = 100;
 pub const STOP_CONTROLLER_ESTOP: i32 = 101;
 /// [`StopReason::id`] of a controller that is not ready (disconnected).
 pub const STOP_CONTROLLER_AWAY: i32 = 102;
+
+/// A single job an operator runs on a resource in Maintenance mode (`cell packml NAME
+/// --job ...`), and how it ended.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct OperatorJob {
+    /// `maintenance/<n>`.
+    pub conversation_id: String,
+    pub service_type: String,
+    /// Who asked.
+    pub by: String,
+    /// When it began (Unix ms).
+    pub at: u64,
+    /// How it ended (`done pick=picking_done ...`, `failed controller_error: ...`);
+    /// none while it runs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outcome: Option<String>,
+    /// Whether it ended done.
+    #[serde(default)]
+    pub done: bool,
+}
 
 /// A resource's PackML figures, in its state snapshot (PackTags after ISA-TR88.00.02).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
@@ -409,10 +441,23 @@ pub struct PackmlStatus {
     pub cumulative_ms: std::collections::BTreeMap<PackmlState, u64>,
     /// The commands the current state accepts.
     pub commands: Vec<PackmlCommand>,
+    /// The last single job an operator ran in Maintenance mode, if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator_job: Option<OperatorJob>,
+}
+
+/// An operator's single job: a service the resource offers, with its info (poses,
+/// program) as a booking's would carry.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct JobRequest {
+    pub service_type: String,
+    #[serde(default)]
+    pub info: serde_json::Map<String, serde_json::Value>,
 }
 
 /// What a PackML command or mode change asks of a resource (the payload of a query on
-/// `resource/<name>/packml`): exactly one of `command` and `mode`.
+/// `resource/<name>/packml`): exactly one of `command`, `mode` and `job`.
 #[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PackmlRequest {
@@ -420,6 +465,9 @@ pub struct PackmlRequest {
     pub command: Option<PackmlCommand>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mode: Option<UnitMode>,
+    /// A single job to run now (Maintenance mode only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub job: Option<JobRequest>,
     /// Who asks, for the stop reason and the log (e.g. `cell@host1`, `opcua:alice`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub by: Option<String>,
@@ -431,6 +479,7 @@ impl PackmlRequest {
         PackmlRequest {
             command: Some(command),
             mode: None,
+            job: None,
             by: Some(by.to_string()),
         }
     }
@@ -440,6 +489,17 @@ impl PackmlRequest {
         PackmlRequest {
             command: None,
             mode: Some(mode),
+            job: None,
+            by: Some(by.to_string()),
+        }
+    }
+
+    /// A single job (Maintenance mode).
+    pub fn job(job: JobRequest, by: &str) -> PackmlRequest {
+        PackmlRequest {
+            command: None,
+            mode: None,
+            job: Some(job),
             by: Some(by.to_string()),
         }
     }
@@ -448,14 +508,16 @@ impl PackmlRequest {
     pub fn from_json(payload: &[u8]) -> Result<PackmlRequest, crate::SchemaError> {
         let request: PackmlRequest =
             serde_json::from_slice(payload).map_err(|e| crate::SchemaError::Json(e.to_string()))?;
-        match (&request.command, &request.mode) {
-            (Some(_), None) | (None, Some(_)) => {}
-            _ => {
-                return Err(crate::SchemaError::InvalidField {
-                    field: "packml request",
-                    why: "give exactly one of command and mode".into(),
-                })
-            }
+        let asked = [
+            request.command.is_some(),
+            request.mode.is_some(),
+            request.job.is_some(),
+        ];
+        if asked.iter().filter(|a| **a).count() != 1 {
+            return Err(crate::SchemaError::InvalidField {
+                field: "packml request",
+                why: "give exactly one of command, mode and job".into(),
+            });
         }
         if request.by.as_ref().is_some_and(|by| by.len() > 128) {
             return Err(crate::SchemaError::InvalidField {
@@ -470,6 +532,10 @@ impl PackmlRequest {
 /// The answer: the state (and mode) after the command, or the refusal.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 pub struct PackmlReply {
+    /// An operator's job that began: its conversation (`maintenance/<n>`); its end is
+    /// in the resource's state (`packml.operator_job`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub job: Option<String>,
     /// The resource's state after the request (unchanged when refused).
     pub state: PackmlState,
     pub state_number: i32,
@@ -666,6 +732,7 @@ mod tests {
             assert!(PackmlRequest::from_json(bad).is_err(), "{bad:?}");
         }
         let reply = PackmlReply {
+            job: None,
             state: PackmlState::Execute,
             state_number: 6,
             mode: UnitMode::Production,

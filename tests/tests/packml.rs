@@ -375,3 +375,81 @@ async fn a_successor_takes_over_the_packml_state() {
     );
     successor.kill();
 }
+
+/// Maintenance: not offered to orders, but an operator runs single jobs on it; the
+/// result goes to no inbox and is in the PackML figures.
+#[tokio::test(flavor = "multi_thread")]
+async fn an_operator_runs_single_jobs_in_maintenance() {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-packml-job").await.unwrap();
+    let robot = cell.resource(dir.path(), "robot1").start().await.unwrap();
+    let info = pick_n_place(&cell.keys, MessageType::Start, "o-1", "x").info;
+    let job = schemas::PackmlRequest::job(
+        schemas::packml::JobRequest {
+            service_type: "pick_n_place".into(),
+            info: info.clone(),
+        },
+        "a test",
+    );
+    let ask = |request: schemas::PackmlRequest| {
+        let cell = &cell;
+        async move {
+            let replies = cell
+                .session
+                .get(cell.keys.packml("robot1"))
+                .payload(serde_json::to_vec(&request).unwrap())
+                .timeout(Duration::from_secs(5))
+                .await
+                .unwrap();
+            let reply = replies.recv_async().await.unwrap();
+            serde_json::from_slice::<schemas::PackmlReply>(
+                &reply.result().unwrap().payload().to_bytes(),
+            )
+            .unwrap()
+        }
+    };
+    // In Production: refused, nothing runs.
+    let refused = ask(job.clone()).await;
+    assert!(
+        refused
+            .detail
+            .as_deref()
+            .is_some_and(|d| d.contains("Maintenance mode")),
+        "{refused:?}"
+    );
+    for args in [
+        &["robot1", "stop"][..],
+        &["robot1", "--mode", "maintenance"],
+        &["robot1", "reset"],
+        &["robot1", "start"],
+    ] {
+        accepted(&cell, args).await;
+    }
+    let began = ask(job).await;
+    assert_eq!(began.job.as_deref(), Some("maintenance/1"), "{began:?}");
+    let state = cell
+        .wait_state("robot1", "the operator's job done", |s| {
+            s["packml"]["operator_job"]["done"] == true
+        })
+        .await
+        .unwrap();
+    assert!(
+        state["packml"]["operator_job"]["outcome"]
+            .as_str()
+            .unwrap()
+            .starts_with("done pick=picking_done"),
+        "{state}"
+    );
+    assert_eq!(state["undelivered"], 0, "delivered to nobody: {state}");
+    assert_eq!(robot.sim.executed("pick"), 1);
+    // Orders still get nothing from it.
+    let book = pick_n_place(&cell.keys, MessageType::BookingReq, "o-1", "c1");
+    assert_eq!(
+        cell.service("robot1", &book)
+            .await
+            .unwrap()
+            .reason
+            .as_deref(),
+        Some("unavailable")
+    );
+}

@@ -145,9 +145,13 @@ pub struct Job {
     pub requester: HolonId,
     pub conversation_id: String,
     pub service_type: String,
-    /// Where `done` / `failed` goes.
+    /// Where `done` / `failed` goes (empty for an operator's job).
     pub reply_to: String,
     pub info: Map<String, Value>,
+    /// An operator's single job in Maintenance mode: who asked. Its result goes to no
+    /// inbox; it is kept in the PackML figures (`packml.operator_job`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator: Option<String>,
 }
 
 /// How an execution ended.
@@ -385,7 +389,17 @@ impl AgendaManager {
             manager.packml = unit.restored();
             manager.packml_restored = true;
         }
-        if let Some(job) = record.current {
+        if let Some(job) = record.current.filter(|job| {
+            if job.operator.is_none() {
+                return true;
+            }
+            manager.packml.operator_job_ended(
+                &job.conversation_id,
+                "failed interrupted: the resource holon stopped while the job ran".into(),
+                false,
+            );
+            false
+        }) {
             let message = manager.result_message(
                 job,
                 Outcome::Failed {
@@ -551,6 +565,7 @@ impl AgendaManager {
                     service_type: booking.service_type,
                     reply_to,
                     info: Map::new(),
+                    operator: None,
                 },
                 Outcome::Failed {
                     reason: reason::WITHDRAWN.into(),
@@ -597,6 +612,9 @@ impl AgendaManager {
     fn packml_request(&mut self, request: PackmlRequest) -> Vec<AgendaAction> {
         let by = request.by.as_deref().unwrap_or("an operator");
         let now = unix_ms();
+        if let Some(job) = request.job {
+            return self.operator_job(job, by, now);
+        }
         let outcome = match (request.command, request.mode) {
             (Some(command), _) => self.packml.command(command, by, now),
             (None, Some(mode)) => self.packml.set_mode(mode).map(|()| Consequence::None),
@@ -629,6 +647,7 @@ impl AgendaManager {
         actions.insert(
             0,
             AgendaAction::PackmlReply(PackmlReply {
+                job: None,
                 state,
                 state_number: state.number(),
                 mode: self.packml.mode(),
@@ -637,6 +656,66 @@ impl AgendaManager {
             }),
         );
         actions
+    }
+
+    /// An operator's single job (Maintenance mode): begun at once, or refused.
+    fn operator_job(
+        &mut self,
+        request: schemas::packml::JobRequest,
+        by: &str,
+        now: u64,
+    ) -> Vec<AgendaAction> {
+        let why = match (self.execution_ready, self.current.is_some(), self.leaving()) {
+            (_, true, _) => Some(", a job runs"),
+            (false, _, _) => Some(", its controller is not ready"),
+            (_, _, true) => Some(", it is stopping"),
+            _ => None,
+        };
+        let refusal = if !self.packml.allows_operator_job() || why.is_some() {
+            Some(schemas::Refusal::JobNotAllowed {
+                state: self.packml.state(),
+                mode: self.packml.mode(),
+                why: why.unwrap_or("").to_string(),
+            })
+        } else if let Err(detail) = self.catalog.check(&request.service_type, &request.info) {
+            Some(schemas::Refusal::InvalidJob { detail })
+        } else if !self.catalog.offers(&request.service_type) {
+            Some(schemas::Refusal::InvalidJob {
+                detail: format!("{} is not offered here", request.service_type),
+            })
+        } else {
+            None
+        };
+        let state = self.packml.state();
+        let mut reply = PackmlReply {
+            job: None,
+            state,
+            state_number: state.number(),
+            mode: self.packml.mode(),
+            detail: refusal.as_ref().map(|r| r.to_string()),
+            refused: refusal,
+        };
+        if reply.refused.is_some() {
+            return vec![AgendaAction::PackmlReply(reply)];
+        }
+        let conversation_id = self
+            .packml
+            .operator_job_began(&request.service_type, by, now);
+        let job = Job {
+            requester: self.holon.clone(),
+            conversation_id: conversation_id.clone(),
+            service_type: request.service_type,
+            reply_to: String::new(),
+            info: request.info,
+            operator: Some(by.to_string()),
+        };
+        self.current = Some(job.clone());
+        reply.job = Some(conversation_id);
+        vec![
+            AgendaAction::PackmlReply(reply),
+            AgendaAction::Execute(job),
+            AgendaAction::StateChanged,
+        ]
     }
 
     /// A second passed: a resource Held longer than `held_bookings_ms` hands its
@@ -689,6 +768,7 @@ impl AgendaManager {
             service_type: booking.service_type,
             reply_to,
             info,
+            operator: None,
         };
         self.current = Some(job.clone());
         job
@@ -702,8 +782,14 @@ impl AgendaManager {
             // Not the running job (a stale report): nothing changes.
             return vec![];
         };
-        self.packml
-            .step_ended(matches!(outcome, Outcome::Done { .. }));
+        let done = matches!(outcome, Outcome::Done { .. });
+        if job.operator.is_some() {
+            // An operator's job: kept in the figures, delivered to nobody.
+            self.packml
+                .operator_job_ended(&job.conversation_id, outcome.to_string(), done);
+            return vec![AgendaAction::StateChanged];
+        }
+        self.packml.step_ended(done);
         let message = self.result_message(job, outcome);
         self.undelivered.push(message.clone());
         vec![AgendaAction::Deliver(message), AgendaAction::StateChanged]

@@ -238,3 +238,104 @@ fn a_held_resource_comes_back_held_from_its_journal() {
     });
     assert_eq!(old.packml().state(), PackmlState::Idle);
 }
+
+/// robot1 stopped, put in Maintenance, reset and started: Execute in Maintenance.
+fn in_maintenance() -> AgendaManager {
+    let mut m = manager();
+    command(&mut m, PackmlCommand::Stop);
+    m.handle(AgendaEvent::Packml(PackmlRequest::mode(
+        UnitMode::Maintenance,
+        "op",
+    )));
+    command(&mut m, PackmlCommand::Reset);
+    command(&mut m, PackmlCommand::Start);
+    assert_eq!(m.packml().state(), PackmlState::Execute);
+    m
+}
+
+fn operator_job(m: &mut AgendaManager, info: Map<String, Value>) -> Vec<AgendaAction> {
+    m.handle(AgendaEvent::Packml(PackmlRequest::job(
+        schemas::packml::JobRequest {
+            service_type: "pick_n_place".into(),
+            info,
+        },
+        "alice",
+    )))
+}
+
+#[test]
+fn an_operator_runs_a_single_job_in_maintenance_and_it_goes_to_no_inbox() {
+    let mut m = in_maintenance();
+    let actions = operator_job(&mut m, poses());
+    let reply = packml_reply(&actions);
+    assert_eq!(reply.refused, None, "{reply:?}");
+    assert_eq!(reply.job.as_deref(), Some("maintenance/1"));
+    let Some(AgendaAction::Execute(job)) = actions.get(1) else {
+        panic!("{actions:?}")
+    };
+    assert_eq!(job.operator.as_deref(), Some("alice"));
+    assert_eq!(m.packml().status().operator_job.unwrap().outcome, None);
+    // One at a time.
+    let again = operator_job(&mut m, poses());
+    assert!(
+        matches!(&packml_reply(&again).refused, Some(Refusal::JobNotAllowed { why, .. }) if why.contains("a job runs")),
+        "{again:?}"
+    );
+    let ended = m.handle(done("maintenance/1"));
+    assert_eq!(ended, vec![AgendaAction::StateChanged], "no delivery");
+    let status = m.packml().status();
+    let job = status.operator_job.unwrap();
+    assert!(job.done && job.outcome.unwrap().starts_with("done"));
+    assert_eq!(status.processed, 0, "an operator's job is not production");
+    assert!(m.undelivered().is_empty());
+    assert_eq!(
+        packml_reply(&operator_job(&mut m, poses())).job.as_deref(),
+        Some("maintenance/2")
+    );
+}
+
+#[test]
+fn an_operator_job_is_refused_outside_maintenance_and_when_it_does_not_fit() {
+    let mut m = manager();
+    let refused = operator_job(&mut m, poses());
+    assert!(
+        matches!(
+            &packml_reply(&refused).refused,
+            Some(Refusal::JobNotAllowed {
+                state: PackmlState::Execute,
+                mode: UnitMode::Production,
+                ..
+            })
+        ),
+        "{refused:?}"
+    );
+    assert_eq!(refused.len(), 1, "nothing changed");
+    let mut m = in_maintenance();
+    let refused = operator_job(&mut m, Map::new());
+    assert!(
+        matches!(
+            &packml_reply(&refused).refused,
+            Some(Refusal::InvalidJob { .. })
+        ),
+        "{refused:?}"
+    );
+    assert!(m.current().is_none());
+}
+
+#[test]
+fn an_operator_job_running_at_a_crash_is_reported_interrupted_not_delivered() {
+    let mut m = in_maintenance();
+    operator_job(&mut m, poses());
+    let record = m.record();
+    let restored = AgendaManager::restore(
+        HolonId::resource("robot1").unwrap(),
+        Arc::new(pick_n_place()),
+        3,
+        record,
+        Inheritance::Restarted,
+    );
+    assert!(restored.undelivered().is_empty());
+    let job = restored.packml().status().operator_job.unwrap();
+    assert!(!job.done);
+    assert!(job.outcome.unwrap().contains("interrupted"));
+}
