@@ -367,7 +367,14 @@ async fn subscribe(
                     serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes())
                 {
                     let at = schemas::unix_ms();
-                    queue(&inputs, &dropped, Input::Resource { snapshot, at });
+                    queue(
+                        &inputs,
+                        &dropped,
+                        Input::Resource {
+                            snapshot: Box::new(snapshot),
+                            at,
+                        },
+                    );
                 }
             })
             .await
@@ -382,7 +389,14 @@ async fn subscribe(
                     serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
                 {
                     let at = schemas::unix_ms();
-                    queue(&inputs, &dropped, Input::Order { snapshot, at });
+                    queue(
+                        &inputs,
+                        &dropped,
+                        Input::Order {
+                            snapshot: Box::new(snapshot),
+                            at,
+                        },
+                    );
                 }
             })
             .await
@@ -418,9 +432,23 @@ async fn ask_states(
             let bytes = sample.payload().to_bytes();
             let at = schemas::unix_ms();
             if let Ok(snapshot) = serde_json::from_slice::<ResourceSnapshot>(&bytes) {
-                queue(inputs, dropped, Input::Resource { snapshot, at });
+                queue(
+                    inputs,
+                    dropped,
+                    Input::Resource {
+                        snapshot: Box::new(snapshot),
+                        at,
+                    },
+                );
             } else if let Ok(snapshot) = serde_json::from_slice::<OrderSnapshot>(&bytes) {
-                queue(inputs, dropped, Input::Order { snapshot, at });
+                queue(
+                    inputs,
+                    dropped,
+                    Input::Order {
+                        snapshot: Box::new(snapshot),
+                        at,
+                    },
+                );
             }
         }
     }

@@ -39,39 +39,26 @@ pub const RESTARTING_WINDOW_MS: u64 = 60_000;
 #[derive(Debug, Clone, PartialEq)]
 pub enum Input {
     /// A holon's liveliness token appeared.
-    Appeared {
-        holon: HolonId,
-        at: u64,
-    },
+    Appeared { holon: HolonId, at: u64 },
     /// A holon's liveliness token vanished.
-    Vanished {
-        holon: HolonId,
-        at: u64,
-    },
+    Vanished { holon: HolonId, at: u64 },
+    /// A resource's state (boxed: a snapshot is large beside the other inputs).
     Resource {
-        snapshot: ResourceSnapshot,
+        snapshot: Box<ResourceSnapshot>,
         at: u64,
     },
+    /// An order's state (boxed, as a resource's).
     Order {
-        snapshot: OrderSnapshot,
+        snapshot: Box<OrderSnapshot>,
         at: u64,
     },
     /// A process that serves the cell without being a holon (a router, an
     /// order-node) announced itself.
-    ProcessAppeared {
-        process: ProcessId,
-        at: u64,
-    },
+    ProcessAppeared { process: ProcessId, at: u64 },
     /// Its token vanished.
-    ProcessVanished {
-        process: ProcessId,
-        at: u64,
-    },
+    ProcessVanished { process: ProcessId, at: u64 },
     /// An operator acknowledged alarm `id`.
-    Acknowledge {
-        id: u64,
-        at: u64,
-    },
+    Acknowledge { id: u64, at: u64 },
 }
 
 /// One holon as the page shows it.
@@ -272,8 +259,8 @@ impl Model {
         match input {
             Input::Appeared { holon, at } => self.appeared(holon, at),
             Input::Vanished { holon, at } => self.vanished(holon, at),
-            Input::Resource { snapshot, at } => self.resource(snapshot, at),
-            Input::Order { snapshot, at } => self.order(snapshot, at),
+            Input::Resource { snapshot, at } => self.resource(*snapshot, at),
+            Input::Order { snapshot, at } => self.order(*snapshot, at),
             Input::ProcessAppeared { process, at } => self.process(process, true, at),
             Input::ProcessVanished { process, at } => self.process(process, false, at),
             Input::Acknowledge { id, at } => self.acknowledge(id, at),
@@ -807,7 +794,7 @@ mod tests {
         let mut m = Model::default();
         let fault = snapshot(ResourceState::Init, ControllerStatus::Fault, &[]);
         m.apply(Input::Resource {
-            snapshot: fault,
+            snapshot: Box::new(fault),
             at: 1,
         });
         let id = m.alarms()[0].id;
@@ -816,7 +803,7 @@ mod tests {
         assert!(m.alarms()[0].acknowledged.is_some());
         let ready = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
         m.apply(Input::Resource {
-            snapshot: ready,
+            snapshot: Box::new(ready),
             at: 3,
         });
         assert!(m.alarms().is_empty(), "cleared and acknowledged: gone");
@@ -828,13 +815,13 @@ mod tests {
         let mut m = Model::default();
         let busy = snapshot(ResourceState::Busy, ControllerStatus::Ready, &["o-2/1/1"]);
         assert!(m.apply(Input::Resource {
-            snapshot: busy.clone(),
+            snapshot: Box::new(busy.clone()),
             at: 1_000
         }));
         let mut again = busy.clone();
         again.at = 99;
         assert!(!m.apply(Input::Resource {
-            snapshot: again,
+            snapshot: Box::new(again),
             at: 1_500
         }));
         let free = ResourceSnapshot {
@@ -842,7 +829,7 @@ mod tests {
             ..snapshot(ResourceState::Free, ControllerStatus::Ready, &[])
         };
         m.apply(Input::Resource {
-            snapshot: free,
+            snapshot: Box::new(free),
             at: 3_000,
         });
         assert_eq!(m.busy_ms(10_000)[&robot()], 2_000);
@@ -855,15 +842,15 @@ mod tests {
         let free = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
         let busy = snapshot(ResourceState::Busy, ControllerStatus::Ready, &[]);
         m.apply(Input::Resource {
-            snapshot: free.clone(),
+            snapshot: Box::new(free.clone()),
             at: 1_000,
         });
         m.apply(Input::Resource {
-            snapshot: busy,
+            snapshot: Box::new(busy),
             at: 2_000,
         });
         m.apply(Input::Resource {
-            snapshot: free,
+            snapshot: Box::new(free),
             at: 2_700,
         });
         let histogram = &m.counters().steps[&("pick_n_place".to_string(), "robot1".to_string())];
@@ -881,11 +868,11 @@ mod tests {
         let busy = snapshot(ResourceState::Busy, ControllerStatus::Ready, &[]);
         let free = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
         m.apply(Input::Resource {
-            snapshot: busy,
+            snapshot: Box::new(busy),
             at: 1_000,
         });
         m.apply(Input::Resource {
-            snapshot: free,
+            snapshot: Box::new(free),
             at: 2_000,
         });
         assert!(m.counters().steps.is_empty());
@@ -903,11 +890,11 @@ mod tests {
             ..snapshot(ResourceState::Init, ControllerStatus::Disconnected, &[])
         };
         assert!(m.apply(Input::Resource {
-            snapshot: free,
+            snapshot: Box::new(free),
             at: 21
         }));
         assert!(!m.apply(Input::Resource {
-            snapshot: init,
+            snapshot: Box::new(init),
             at: 22
         }));
         let shown = m.holons().next().unwrap().resource.as_ref().unwrap();
@@ -921,11 +908,11 @@ mod tests {
             ..order("o-1", OrderStatus::Running, None)
         };
         assert!(m.apply(Input::Order {
-            snapshot: done,
+            snapshot: Box::new(done),
             at: 21
         }));
         assert!(!m.apply(Input::Order {
-            snapshot: running,
+            snapshot: Box::new(running),
             at: 22
         }));
         assert_eq!(m.orders().next().unwrap().status, OrderStatus::Done);
@@ -966,13 +953,13 @@ mod tests {
         let mut piling = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
         piling.undelivered = UNDELIVERED_ALARM;
         m.apply(Input::Resource {
-            snapshot: piling,
+            snapshot: Box::new(piling),
             at: 1,
         });
         assert_eq!(active(&m), vec![AlarmKind::Undelivered]);
         let drained = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);
         m.apply(Input::Resource {
-            snapshot: drained,
+            snapshot: Box::new(drained),
             at: 2,
         });
         assert_eq!(active(&m), vec![]);
@@ -982,11 +969,11 @@ mod tests {
     fn a_failed_order_leaves_an_alarm_to_acknowledge_and_done_ones_count() {
         let mut m = Model::default();
         m.apply(Input::Order {
-            snapshot: order("o-1", OrderStatus::Running, None),
+            snapshot: Box::new(order("o-1", OrderStatus::Running, None)),
             at: 1,
         });
         m.apply(Input::Order {
-            snapshot: order("o-1", OrderStatus::Failed, Some("no resource")),
+            snapshot: Box::new(order("o-1", OrderStatus::Failed, Some("no resource"))),
             at: 2,
         });
         assert_eq!(m.alarms().len(), 1);
@@ -996,7 +983,7 @@ mod tests {
             "an event: cleared at once, kept until acknowledged"
         );
         m.apply(Input::Order {
-            snapshot: order("o-2", OrderStatus::Done, None),
+            snapshot: Box::new(order("o-2", OrderStatus::Done, None)),
             at: 3,
         });
         assert_eq!(m.done_last_hour(4), 1);
