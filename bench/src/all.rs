@@ -6,8 +6,8 @@ use anyhow::{bail, Context, Result};
 use serde_json::{json, Value};
 
 use crate::{
-    booking, cycle, dashboard, erlang, floors::floors, holon, lease, orders, rebook, robots, scale,
-    throughput, tls,
+    booking, cycle, dashboard, erlang, floors::floors, holon, lease, opcua, orders, rebook, robots,
+    scale, throughput, tls,
 };
 
 /// The most resource holons the dashboard section runs (`--scale` beyond it still
@@ -27,6 +27,7 @@ const SECTIONS: &[&str] = &[
     "orders",
     "scale",
     "dashboard",
+    "opcua",
     "erlang",
 ];
 
@@ -97,6 +98,9 @@ pub async fn run(
         // saturate 2 cores long before that (at 300, a submit got no answer in 5 s);
         // the page's figures are what this section measures, not the cell's.
         dashboard::section(&mut run, scale.min(DASHBOARD_HOLONS), 1000).await?;
+    }
+    if wants("opcua") {
+        opcua::section(&mut run).await?;
     }
 
     let machine = json!({

@@ -20,6 +20,7 @@ mod erlang;
 mod floors;
 mod holon;
 mod lease;
+mod opcua;
 mod orders;
 mod process;
 mod rebook;
@@ -64,7 +65,7 @@ enum Commands {
         scale: usize,
         /// Run only these sections (comma-separated; the floors always run): booking,
         /// tls, cycle, erlang, holon, rebook, lease, throughput, robots, orders, scale,
-        /// dashboard.
+        /// dashboard, opcua.
         #[arg(long, value_delimiter = ',')]
         only: Vec<String>,
         /// The seed's resource holon in Erlang/OTP (a directory with its run.sh): run it
