@@ -110,7 +110,9 @@ async def main():
                     break
                 elif command == "browse":
                     folder = await objects.get_child([f"{idx}:PackMLObjects"])
-                    names = [(await c.read_browse_name()).Name for c in await folder.get_children()]
+                    # One Browse: the names come with the references (a resource
+                    # removed meanwhile cannot fail a second read).
+                    names = [d.BrowseName.Name for d in await folder.get_children_descriptions()]
                     out = {"resources": sorted(names)}
                 elif command == "read":
                     path = [f"{idx}:PackMLObjects", f"{idx}:{rest[0]}"] + [f"{idx}:{p}" for p in rest[1].split(".")]

@@ -12,7 +12,7 @@ use std::time::Duration;
 use async_trait::async_trait;
 use futures_util::future::join_all;
 use opcua::sync::RwLock;
-use opcua::types::{IdType, Identifier, StatusCode, Variant};
+use opcua::types::{IdType, Identifier, StatusCode, TimestampsToReturn, Variant};
 use opcua_server::address_space::AddressSpace;
 use opcua_server::diagnostics::NamespaceMetadata;
 use opcua_server::node_manager::memory::{
@@ -20,6 +20,7 @@ use opcua_server::node_manager::memory::{
     InMemoryNodeManagerImplBuilder,
 };
 use opcua_server::node_manager::{MethodCall, RequestContext, ServerContext};
+use opcua_server::CreateMonitoredItem;
 use schemas::{CellKeys, PackmlCommand, PackmlReply, PackmlRequest, Refusal, UnitMode, WorkOrder};
 use tracing::{info, warn};
 
@@ -29,6 +30,10 @@ use super::users::{CellAuth, Role};
 /// How long a method call waits for the cell's answer (below asyncua's default request
 /// timeout of 4 s, so the client gets our BadTimeout rather than its own).
 pub const ANSWER_WITHIN: Duration = Duration::from_secs(3);
+
+/// The sampling interval every data monitored item of the cell's namespace gets (ms):
+/// as good as 0 (every change), which async-opcua's revision does not allow.
+pub const PUSHED_SAMPLING_MS: f64 = 0.001;
 
 /// The node manager of the cell's namespace.
 pub type CellNodeManager = InMemoryNodeManager<CellNodes>;
@@ -301,6 +306,30 @@ impl InMemoryNodeManagerImpl for CellNodes {
             static_node_id_types: Some(vec![IdType::String]),
             ..Default::default()
         }]
+    }
+
+    /// As async-opcua's default (the current value, Good), and every data monitored
+    /// item samples every 1 µs: our values are pushed on change, not sampled, and
+    /// async-opcua 0.19 holds back a change that comes within the sampling interval of
+    /// the one before and may never deliver it (Aborting then Aborted 1 ms apart stayed
+    /// Aborting for a client sampling every 50 ms, asyncua's default).
+    async fn create_value_monitored_items(
+        &self,
+        context: &RequestContext,
+        space: &RwLock<AddressSpace>,
+        items: &mut [&mut &mut CreateMonitoredItem],
+    ) {
+        let to_read: Vec<_> = items.iter().map(|item| item.item_to_monitor()).collect();
+        let values = self
+            .read_values(context, space, &to_read, 0.0, TimestampsToReturn::Both)
+            .await;
+        for (value, item) in values.into_iter().zip(items.iter_mut()) {
+            if value.status() != StatusCode::BadAttributeIdInvalid {
+                item.set_initial_value(value);
+            }
+            item.set_status(StatusCode::Good);
+            item.revise_sampling_interval(PUSHED_SAMPLING_MS);
+        }
     }
 
     async fn call(

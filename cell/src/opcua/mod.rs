@@ -48,7 +48,8 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:4840";
 
 /// The server's subscription tick, and the shortest publishing interval it grants (ms):
 /// a change reaches a client asking for a 20 ms publishing interval in about 20 ms.
-/// Sampling intervals may be 0 (every change is reported).
+/// Monitored items of the cell's values report every change
+/// ([`methods::PUSHED_SAMPLING_MS`]).
 pub const TICK_MS: u64 = 10;
 
 /// After the start and after a resource's token appears, how long until the states are
@@ -283,10 +284,7 @@ fn build_server(
         .limits_mut()
         .subscriptions
         .min_publishing_interval_ms = TICK_MS as f64;
-    // Values are pushed on change, not sampled: a sampling interval of 0 (the default
-    // most clients ask for) reports every change. With a minimum above 0, async-opcua
-    // holds back a change that comes within the interval of the previous one, and in
-    // our test never delivered it (Aborting then Aborted 2 ms apart: Aborted lost).
+    // Values are pushed on change, not sampled (see methods::PUSHED_SAMPLING_MS).
     builder.limits_mut().subscriptions.min_sampling_interval_ms = 0.0;
     let plain_store;
     match server_files {
@@ -448,11 +446,8 @@ async fn own_the_values(
         resources: HashSet::new(),
         waiting: HashMap::new(),
         shown_at: HashMap::new(),
-        reassert: BTreeMap::new(),
         orders: BTreeMap::new(),
     };
-    let mut tick = tokio::time::interval(Duration::from_millis(TICK_MS * 2));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tokio::select! {
             _ = shutdown.cancelled() => return,
@@ -460,14 +455,9 @@ async fn own_the_values(
                 Some(input) => values.apply(input),
                 None => return,
             },
-            _ = tick.tick() => values.reassert_due(tokio::time::Instant::now()),
         }
     }
 }
-
-/// After a value changes, when it is told to the subscriptions again (see
-/// [`Values::reassert_due`]).
-const REASSERT_AFTER_MS: [u64; 4] = [60, 260, 1010, 2010];
 
 /// The address space's values as last pushed.
 struct Values {
@@ -487,8 +477,6 @@ struct Values {
     waiting: HashMap<String, Box<ResourceSnapshot>>,
     /// The `at` of each resource's snapshot shown.
     shown_at: HashMap<String, u64>,
-    /// When to tell the subscriptions a changed value again, by NodeId path.
-    reassert: BTreeMap<tokio::time::Instant, Vec<String>>,
     /// Every order's status, by order name.
     orders: BTreeMap<String, OrderStatus>,
 }
@@ -597,37 +585,6 @@ impl Values {
         }
     }
 
-    /// Tells the subscriptions the current value of the variables that changed
-    /// [`REASSERT_AFTER_MS`] ago, with a new source timestamp, without writing the
-    /// address space. A monitored item that already reported the value reports nothing
-    /// (the value did not change). It works around async-opcua 0.19: a change that comes
-    /// within a monitored item's sampling interval of the one before is held back to
-    /// the interval's end, but the item is not visited again until its next change, so
-    /// the last state of a quick succession (Aborting then Aborted 1 ms later; asyncua's
-    /// default sampling interval is 50 ms) was never delivered. A later notification
-    /// releases it. Sampling intervals up to 2 s are covered this way.
-    fn reassert_due(&mut self, now: tokio::time::Instant) {
-        let later = self.reassert.split_off(&(now + Duration::from_millis(1)));
-        let due = std::mem::replace(&mut self.reassert, later);
-        let current: HashMap<opcua::types::NodeId, Variant> = due
-            .into_values()
-            .flatten()
-            .filter_map(|path| {
-                let value = self.pushed.get(&path)?.clone();
-                Some((address_space::id(self.ns, &path), value))
-            })
-            .collect();
-        if current.is_empty() {
-            return;
-        }
-        self.subscriptions.maybe_notify(
-            current
-                .keys()
-                .map(|id| (id, opcua::types::AttributeId::Value)),
-            |id, _, _, _| current.get(id).map(|v| DataValue::new_now(v.clone())),
-        );
-    }
-
     /// Pushes the values that differ from the last pushed ones.
     fn push(&mut self, values: Vec<(String, Variant)>) {
         let changed: Vec<(String, Variant)> = values
@@ -648,13 +605,6 @@ impl Values {
         match self.nodes.set_values(&self.subscriptions, updates) {
             Ok(()) => {
                 debug!(changed = ?changed, "values pushed");
-                let now = tokio::time::Instant::now();
-                for after in REASSERT_AFTER_MS {
-                    self.reassert
-                        .entry(now + Duration::from_millis(after))
-                        .or_default()
-                        .extend(changed.iter().map(|(path, _)| path.clone()));
-                }
                 for (path, value) in changed {
                     self.pushed.insert(path, value);
                 }
