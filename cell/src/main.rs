@@ -392,7 +392,7 @@ fn main() -> ExitCode {
             "info,zenoh=error,opcua_server=warn,opcua_core=warn,opcua_crypto=warn,opcua_nodes=warn,opcua_types=warn"
         } else {
             // No security, so no certificate: async-opcua's lines saying so are noise.
-            "info,zenoh=error,opcua_server=warn,opcua_server::server=error,opcua_core=warn,opcua_crypto=warn,opcua_crypto::certificate_store=off,opcua_nodes=warn,opcua_types=warn"
+            "info,zenoh=error,opcua_server=warn,opcua_server::server=error,opcua_core=warn,opcua_core::comms::secure_channel=off,opcua_crypto=warn,opcua_crypto::certificate_store=off,opcua_nodes=warn,opcua_types=warn"
         }
     } else if matches!(
         &args.command,
@@ -403,7 +403,7 @@ fn main() -> ExitCode {
         }
     ) {
         // The demo's plain OPC UA server has no certificate, by design.
-        "warn,zenoh=error,opcua_server::server=error,opcua_crypto::certificate_store=off"
+        "warn,zenoh=error,opcua_server::server=error,opcua_core::comms::secure_channel=off,opcua_crypto::certificate_store=off"
     } else {
         "warn,zenoh=error"
     };
