@@ -378,6 +378,7 @@ async fn start_dashboard(
         identity: "operator.default".into(),
         listen,
         operator: true,
+        host_names: Vec::new(),
     };
     let stop = CancellationToken::new();
     let task = tokio::spawn(crate::dashboard::run(config, stop.clone()));

@@ -198,6 +198,11 @@ enum Commands {
         /// --identity, --operator connects as operator.default, else observer.default.
         #[arg(long)]
         operator: bool,
+        /// A host name the dashboard answers to besides its IP addresses and localhost
+        /// (repeatable), e.g. a name of the plant's DNS: a request naming another host
+        /// is refused (a page of another site, rebound to this address).
+        #[arg(long = "host-name", value_name = "NAME")]
+        host_names: Vec<String>,
         #[command(flatten)]
         client: ClientArgs,
     },
@@ -259,6 +264,18 @@ enum Commands {
         /// Change the unit mode instead.
         #[arg(long, conflicts_with = "command")]
         mode: Option<schemas::UnitMode>,
+        /// Run one job of this service type now (Maintenance mode only: the resource
+        /// must be in Execute, in Maintenance, with nothing running), and wait for its
+        /// end: prints how it ended, exits 1 unless done.
+        #[arg(long, value_name = "SERVICE_TYPE", conflicts_with_all = ["command", "mode"])]
+        job: Option<String>,
+        /// The job's info as JSON, as a booking's would carry it (its poses, program),
+        /// e.g. '{"pick": {"x": 1, "y": 2, "z": 3}, "place": {"x": 4, "y": 5, "z": 6}}'.
+        #[arg(long, value_name = "JSON", requires = "job", default_value = "{}")]
+        info: String,
+        /// How long to wait for the job's end, in milliseconds.
+        #[arg(long, value_name = "MS", requires = "job", default_value_t = 60_000)]
+        wait_ms: u64,
         #[command(flatten)]
         client: ClientArgs,
     },
@@ -360,6 +377,9 @@ async fn close(session: zenoh::Session) {
 }
 
 fn main() -> ExitCode {
+    // Keys, journals, logs and the files `cell up` writes for its processes are their
+    // owner's alone.
+    holon::owner_only_files();
     let args = Args::parse();
     if matches!(
         args.command,
@@ -470,6 +490,7 @@ async fn run(args: Args) -> Result<bool> {
         Commands::Dashboard {
             listen,
             operator,
+            host_names,
             client,
         } => {
             let (identity, operator) = cell::dashboard::connect_as(
@@ -483,6 +504,7 @@ async fn run(args: Args) -> Result<bool> {
                 identity,
                 listen,
                 operator,
+                host_names,
             };
             cell::dashboard::run(config, holon::shutdown_on_signals()).await?;
             Ok(true)
@@ -650,6 +672,9 @@ async fn run(args: Args) -> Result<bool> {
             resource,
             command,
             mode,
+            job,
+            info,
+            wait_ms,
             client,
         } => {
             let keys = client.keys()?;
@@ -658,6 +683,42 @@ async fn run(args: Args) -> Result<bool> {
                 client.identity.as_deref().unwrap_or(OPERATOR),
                 holon::presence::host_name()
             );
+            if let Some(service_type) = job {
+                let info: serde_json::Map<String, serde_json::Value> = serde_json::from_str(&info)
+                    .map_err(|e| anyhow!("--info is not a JSON object: {e}"))?;
+                let request = schemas::PackmlRequest::job(
+                    schemas::packml::JobRequest { service_type, info },
+                    &by,
+                );
+                let session = client.session(OPERATOR).await?;
+                let ended = cell::packml::run_job(
+                    &session,
+                    &keys,
+                    &resource,
+                    &request,
+                    client.timeout(),
+                    Duration::from_millis(wait_ms),
+                )
+                .await;
+                close(session).await;
+                return match ended? {
+                    Ok(job) => {
+                        println!(
+                            "{resource}: {} {}: {}",
+                            job.conversation_id,
+                            job.service_type,
+                            job.outcome
+                                .as_deref()
+                                .unwrap_or("still running (see cell packml)")
+                        );
+                        Ok(job.done)
+                    }
+                    Err(reply) => {
+                        println!("{}", cell::packml::render_reply(&resource, &reply));
+                        Ok(false)
+                    }
+                };
+            }
             let request = match (command, mode) {
                 (Some(command), _) => Some(schemas::PackmlRequest::command(command, &by)),
                 (None, Some(mode)) => Some(schemas::PackmlRequest::mode(mode, &by)),

@@ -573,6 +573,19 @@ async fn another_site_cannot_act_through_the_dashboard() {
     ] {
         assert!(head.contains(header), "{header} missing: {head}");
     }
+    // A name of the plant's DNS, given with --host-name, is one of its own.
+    let named = Dashboard::start(&cell, &["--host-name", "Dashboard.Plant"]);
+    let port = named.address.rsplit_once(':').unwrap().1.to_string();
+    let (status, _, _) = named.raw(
+        "GET",
+        "/api/view",
+        &format!("dashboard.plant:{port}"),
+        &[],
+        "",
+    );
+    assert_eq!(status, 200);
+    let (status, _, _) = named.raw("GET", "/api/view", &format!("other.plant:{port}"), &[], "");
+    assert_eq!(status, 421);
 }
 
 /// The secure cell: each dashboard connects with an identity of its own, and the role

@@ -442,6 +442,17 @@ async fn an_operator_runs_single_jobs_in_maintenance() {
     );
     assert_eq!(state["undelivered"], 0, "delivered to nobody: {state}");
     assert_eq!(robot.sim.executed("pick"), 1);
+    // The same from the command line: it waits for the job's end and says how.
+    let info = serde_json::Value::Object(info).to_string();
+    let out = accepted(&cell, &["robot1", "--job", "pick_n_place", "--info", &info]).await;
+    assert!(
+        out.contains("robot1: maintenance/2 pick_n_place: done pick=picking_done"),
+        "{out}"
+    );
+    assert_eq!(robot.sim.executed("pick"), 2);
+    // A job that does not fit is refused and exits 1.
+    let (ok, out) = cell_packml(&cell, &["robot1", "--job", "pick_n_place"]).await;
+    assert!(!ok && out.contains("does not fit"), "{out}");
     // Orders still get nothing from it.
     let book = pick_n_place(&cell.keys, MessageType::BookingReq, "o-1", "c1");
     assert_eq!(

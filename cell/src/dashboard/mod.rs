@@ -59,6 +59,9 @@ pub struct DashboardConfig {
     pub listen: SocketAddr,
     /// Whether the page may submit work orders and acknowledge alarms.
     pub operator: bool,
+    /// Host names the page is served under besides its IP addresses and localhost
+    /// (`--host-name`); requests naming another host are refused.
+    pub host_names: Vec<String>,
 }
 
 /// Who the dashboard connects as, and whether its page may operate (submit work
@@ -260,8 +263,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
         "dashboard of cell {} on http://{address}/",
         config.keys.cell()
     );
-    // Names other than its addresses it answers to: none yet (a flag to come).
-    let guard = Arc::new(guard::Guard::new(address, &[]));
+    let guard = Arc::new(guard::Guard::new(address, &config.host_names));
     let served = axum::serve(listener, http::router(shared, guard))
         .with_graceful_shutdown(shutdown.clone().cancelled_owned())
         .await;
