@@ -316,8 +316,14 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         (Ok(report), true) => {
             report.print(&dir);
             println!();
+            // Every hint must work when pasted: a secure cell needs its PKI.
+            let pki = cell
+                .pki
+                .as_ref()
+                .map(|pki| format!(" --pki {}", pki.display()))
+                .unwrap_or_default();
             println!(
-                "the cell stays up (--keep): submit more with `cell submit breaker --count 5 --cell {} --connect {}`{}; Ctrl-C stops it",
+                "the cell stays up (--keep): submit more with `cell submit breaker --count 5 --cell {} --connect {}{pki}`{}; Ctrl-C stops it",
                 options.cell,
                 cell.endpoint,
                 if dashboard.is_some() { " or from the dashboard" } else { "" }

@@ -351,6 +351,13 @@ impl ClientArgs {
     /// A zenoh client of the cell: everything it asks is routed by the router it
     /// connects to.
     async fn session(&self, default_identity: &str) -> Result<zenoh::Session> {
+        if self.pki.is_none() {
+            if let Some(tls) = self.connect.iter().find(|e| e.starts_with("tls/")) {
+                return Err(anyhow!(
+                    "{tls} is a secure cell's endpoint (mutual TLS): give --pki DIR (its PKI directory, written by cell certs) and, if not the default, --identity ROLE.NAME"
+                ));
+            }
+        }
         let settings = self.settings();
         let identity = self.identity.as_deref().unwrap_or(default_identity);
         let session = settings

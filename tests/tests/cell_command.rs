@@ -162,3 +162,33 @@ async fn cell_status_lists_the_live_holons() {
         ["orders1", "0", "0", "0"]
     );
 }
+
+/// A secure cell's endpoint reached without its PKI: the tool says what is missing
+/// instead of timing out.
+#[test]
+fn a_tls_endpoint_without_a_pki_says_so() {
+    for command in [
+        &["status"][..],
+        &["submit", "breaker"],
+        &["packml", "robot1", "hold"],
+    ] {
+        let output = std::process::Command::new(bin("cell"))
+            .args(command)
+            .args([
+                "--cell",
+                "t-tls",
+                "--connect",
+                "tls/127.0.0.1:9",
+                "--timeout-ms",
+                "500",
+            ])
+            .output()
+            .unwrap();
+        assert!(!output.status.success());
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(
+            stderr.contains("give --pki DIR"),
+            "cell {command:?}: {stderr}"
+        );
+    }
+}
