@@ -11,6 +11,7 @@ pub mod manifest;
 pub mod opcua;
 pub mod packml;
 pub mod router;
+pub mod states;
 pub mod status;
 pub mod submit;
 pub mod up;

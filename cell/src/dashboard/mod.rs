@@ -29,7 +29,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{anyhow, Context, Result};
-use schemas::{CellKeys, HolonKind, OrderSnapshot, ResourceSnapshot};
+use schemas::{CellKeys, HolonKind, OrderSnapshot};
 use serde::Serialize;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
@@ -288,8 +288,7 @@ fn queue(inputs: &mpsc::Sender<Input>, dropped: &AtomicU64, input: Input) {
 struct Subscriptions {
     _alive: zenoh::pubsub::Subscriber<()>,
     _processes: zenoh::pubsub::Subscriber<()>,
-    _resources: zenoh::pubsub::Subscriber<()>,
-    _orders: zenoh::pubsub::Subscriber<()>,
+    _states: crate::states::Following,
 }
 
 async fn subscribe(
@@ -360,55 +359,17 @@ async fn subscribe(
             .await
             .map_err(z)?
     };
-    let resources = {
+    let states = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
-        session
-            .declare_subscriber(keys.resource_states())
-            .callback(move |sample| {
-                if let Ok(snapshot) =
-                    serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes())
-                {
-                    let at = schemas::unix_ms();
-                    queue(
-                        &inputs,
-                        &dropped,
-                        Input::Resource {
-                            snapshot: Box::new(snapshot),
-                            at,
-                        },
-                    );
-                }
-            })
-            .await
-            .map_err(z)?
-    };
-    let orders = {
-        let (inputs, dropped) = (inputs.clone(), dropped.clone());
-        session
-            .declare_subscriber(keys.order_states())
-            .callback(move |sample| {
-                if let Ok(snapshot) =
-                    serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
-                {
-                    let at = schemas::unix_ms();
-                    queue(
-                        &inputs,
-                        &dropped,
-                        Input::Order {
-                            snapshot: Box::new(snapshot),
-                            at,
-                        },
-                    );
-                }
-            })
-            .await
-            .map_err(z)?
+        crate::states::follow(session, keys, move |heard| {
+            queue(&inputs, &dropped, input_of(heard))
+        })
+        .await?
     };
     Ok(Subscriptions {
         _alive: alive,
         _processes: processes,
-        _resources: resources,
-        _orders: orders,
+        _states: states,
     })
 }
 
@@ -419,40 +380,18 @@ async fn ask_states(
     inputs: &mpsc::Sender<Input>,
     dropped: &AtomicU64,
 ) {
-    for key in keys {
-        let Ok(mut replies) = session
-            .get(key)
-            .timeout(Duration::from_secs(3))
-            .with(holon::query::replies())
-            .await
-        else {
-            warn!(%key, "cannot ask for the state; it arrives with its next change");
-            continue;
-        };
-        while let Some(reply) = replies.recv().await {
-            let Ok(sample) = reply.result() else { continue };
-            let bytes = sample.payload().to_bytes();
-            let at = schemas::unix_ms();
-            if let Ok(snapshot) = serde_json::from_slice::<ResourceSnapshot>(&bytes) {
-                queue(
-                    inputs,
-                    dropped,
-                    Input::Resource {
-                        snapshot: Box::new(snapshot),
-                        at,
-                    },
-                );
-            } else if let Ok(snapshot) = serde_json::from_slice::<OrderSnapshot>(&bytes) {
-                queue(
-                    inputs,
-                    dropped,
-                    Input::Order {
-                        snapshot: Box::new(snapshot),
-                        at,
-                    },
-                );
-            }
-        }
+    crate::states::ask(session, keys, |heard| {
+        queue(inputs, dropped, input_of(heard))
+    })
+    .await;
+}
+
+/// A state heard, as the model's input, stamped now.
+fn input_of(heard: crate::states::Heard) -> Input {
+    let at = schemas::unix_ms();
+    match heard {
+        crate::states::Heard::Resource(snapshot) => Input::Resource { snapshot, at },
+        crate::states::Heard::Order(snapshot) => Input::Order { snapshot, at },
     }
 }
 

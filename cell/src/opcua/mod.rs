@@ -95,6 +95,15 @@ enum Input {
     Vanished(String),
 }
 
+impl From<crate::states::Heard> for Input {
+    fn from(heard: crate::states::Heard) -> Input {
+        match heard {
+            crate::states::Heard::Resource(snapshot) => Input::Resource(snapshot),
+            crate::states::Heard::Order(snapshot) => Input::Order(snapshot),
+        }
+    }
+}
+
 /// Queues an input from a zenoh callback (which must not block).
 fn queue(inputs: &mpsc::Sender<Input>, dropped: &AtomicU64, input: Input) {
     if inputs.try_send(input).is_err() {
@@ -317,10 +326,8 @@ fn build_server(
 struct Subscriptions {
     /// The holons' liveliness tokens (`alive/**`, with history).
     _alive: zenoh::pubsub::Subscriber<()>,
-    /// `resource/*/state`.
-    _resources: zenoh::pubsub::Subscriber<()>,
-    /// `order/*/state`.
-    _orders: zenoh::pubsub::Subscriber<()>,
+    /// `resource/*/state` and `order/*/state`.
+    _states: crate::states::Following,
 }
 
 async fn subscribe(
@@ -365,38 +372,16 @@ async fn subscribe(
             .await
             .map_err(z)?
     };
-    let resources = {
+    let states = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
-        session
-            .declare_subscriber(keys.resource_states())
-            .callback(move |sample| {
-                if let Ok(snapshot) =
-                    serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes())
-                {
-                    queue(&inputs, &dropped, Input::Resource(Box::new(snapshot)));
-                }
-            })
-            .await
-            .map_err(z)?
-    };
-    let orders = {
-        let (inputs, dropped) = (inputs.clone(), dropped.clone());
-        session
-            .declare_subscriber(keys.order_states())
-            .callback(move |sample| {
-                if let Ok(snapshot) =
-                    serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
-                {
-                    queue(&inputs, &dropped, Input::Order(Box::new(snapshot)));
-                }
-            })
-            .await
-            .map_err(z)?
+        crate::states::follow(session, keys, move |heard| {
+            queue(&inputs, &dropped, heard.into())
+        })
+        .await?
     };
     Ok(Subscriptions {
         _alive: alive,
-        _resources: resources,
-        _orders: orders,
+        _states: states,
     })
 }
 
@@ -407,26 +392,7 @@ async fn ask_states(
     inputs: &mpsc::Sender<Input>,
     dropped: &AtomicU64,
 ) {
-    for key in keys {
-        let Ok(mut replies) = session
-            .get(key)
-            .timeout(Duration::from_secs(3))
-            .with(holon::query::replies())
-            .await
-        else {
-            warn!(%key, "cannot ask for the states; they arrive with their next change");
-            continue;
-        };
-        while let Some(reply) = replies.recv().await {
-            let Ok(sample) = reply.result() else { continue };
-            let bytes = sample.payload().to_bytes();
-            if let Ok(snapshot) = serde_json::from_slice::<ResourceSnapshot>(&bytes) {
-                queue(inputs, dropped, Input::Resource(Box::new(snapshot)));
-            } else if let Ok(snapshot) = serde_json::from_slice::<OrderSnapshot>(&bytes) {
-                queue(inputs, dropped, Input::Order(Box::new(snapshot)));
-            }
-        }
-    }
+    crate::states::ask(session, keys, |heard| queue(inputs, dropped, heard.into())).await;
 }
 
 /// The one owner of the values: adds and removes resources' objects and pushes the

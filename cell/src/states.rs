@@ -1,0 +1,90 @@
+//! Following the holons' states, as the cell's screens do (the dashboard, the OPC UA
+//! server): every resource's and order's snapshot as it is published, and asked for
+//! once (the subscriptions bring the changes from then on). What is heard is handed to
+//! a callback, which must not block (it runs in zenoh's callbacks): it queues it for
+//! the task that owns the screen's model.
+
+use std::time::Duration;
+
+use anyhow::{anyhow, Result};
+use schemas::{CellKeys, OrderSnapshot, ResourceSnapshot};
+use tracing::warn;
+
+/// How long one ask for the states waits for their replies.
+const ASK_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// A holon's state, heard.
+#[derive(Debug, Clone)]
+pub enum Heard {
+    Resource(Box<ResourceSnapshot>),
+    Order(Box<OrderSnapshot>),
+}
+
+impl Heard {
+    /// A resource's or an order's snapshot, from its payload; `None` for anything else.
+    pub fn read(payload: &[u8]) -> Option<Heard> {
+        if let Ok(snapshot) = serde_json::from_slice::<ResourceSnapshot>(payload) {
+            return Some(Heard::Resource(Box::new(snapshot)));
+        }
+        serde_json::from_slice::<OrderSnapshot>(payload)
+            .ok()
+            .map(|snapshot| Heard::Order(Box::new(snapshot)))
+    }
+}
+
+/// The subscriptions to every resource's and order's state; dropping it ends them.
+pub struct Following {
+    _resources: zenoh::pubsub::Subscriber<()>,
+    _orders: zenoh::pubsub::Subscriber<()>,
+}
+
+/// Subscribes to `resource/*/state` and `order/*/state`: each snapshot goes to `heard`.
+pub async fn follow<F>(session: &zenoh::Session, keys: &CellKeys, heard: F) -> Result<Following>
+where
+    F: Fn(Heard) + Clone + Send + Sync + 'static,
+{
+    let z = |e: zenoh::Error| anyhow!("{}", holon::zenoh_error::describe(&e));
+    let mut subscribers = Vec::with_capacity(2);
+    for key in [keys.resource_states(), keys.order_states()] {
+        let heard = heard.clone();
+        subscribers.push(
+            session
+                .declare_subscriber(key)
+                .callback(move |sample| {
+                    if let Some(state) = Heard::read(&sample.payload().to_bytes()) {
+                        heard(state);
+                    }
+                })
+                .await
+                .map_err(z)?,
+        );
+    }
+    let orders = subscribers.pop().expect("two subscribers");
+    let resources = subscribers.pop().expect("two subscribers");
+    Ok(Following {
+        _resources: resources,
+        _orders: orders,
+    })
+}
+
+/// Asks for the states on `keys` (e.g. `resource/*/state`, or one holon's) and hands
+/// each reply to `heard`.
+pub async fn ask(session: &zenoh::Session, keys: &[String], heard: impl Fn(Heard)) {
+    for key in keys {
+        let Ok(mut replies) = session
+            .get(key)
+            .timeout(ASK_TIMEOUT)
+            .with(holon::query::replies())
+            .await
+        else {
+            warn!(%key, "cannot ask for the states; they arrive with their next change");
+            continue;
+        };
+        while let Some(reply) = replies.recv().await {
+            let Ok(sample) = reply.result() else { continue };
+            if let Some(state) = Heard::read(&sample.payload().to_bytes()) {
+                heard(state);
+            }
+        }
+    }
+}
