@@ -407,9 +407,9 @@ fn start_opcua(
         let password: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
         let hash = crate::opcua::users::PasswordHash::new(&password);
         let users = pki.join(crate::opcua::security::USERS_FILE);
-        std::fs::write(
+        crate::certs::write_private(
             &users,
-            format!("[[user]]\nname = \"operator\"\nrole = \"operator\"\npassword = \"{hash}\"\n"),
+            &format!("[[user]]\nname = \"operator\"\nrole = \"operator\"\npassword = \"{hash}\"\n"),
         )?;
         println!(
             "OPC UA: SignAndEncrypt only; user operator, password {password} (in {}); trust your client's certificate with `cell opcua --pki {} --trust CLIENT.der` (docs/opcua.md)",

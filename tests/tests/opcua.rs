@@ -458,6 +458,12 @@ args = ["opcua", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", 
         ),
     )
     .unwrap();
+    // Its owner's alone, as docs/opcua.md says (others' read access stops the server).
+    std::fs::set_permissions(
+        pki.join("opcua-users.toml"),
+        std::os::unix::fs::PermissionsExt::from_mode(0o600),
+    )
+    .unwrap();
     let _up = Up(Command::new(bin("cell"))
         .arg("up")
         .arg(dir)

@@ -56,6 +56,13 @@ impl ServerFiles {
     /// starts (async-opcua would otherwise run without encryption, with a log line).
     pub fn check(&self) -> Result<()> {
         let hint = "issue it with `cell certs DIR` (a manifest with a `cell opcua` process) or see docs/opcua.md";
+        if let Some(mode) = open_to_others(&self.key) {
+            bail!(
+                "the OPC UA server key {} is readable by other users (mode {mode:o}); a private key must be 0600 or stricter: chmod 600 {}",
+                self.key.display(),
+                self.key.display()
+            );
+        }
         let cert = CertificateStore::read_cert(&self.certificate).map_err(|e| {
             anyhow!(
                 "the OPC UA server certificate {}: {e}; {hint}",
@@ -90,6 +97,13 @@ impl ServerFiles {
         }
         Ok(())
     }
+}
+
+/// The mode of `path` if others than its owner may read or write it.
+pub fn open_to_others(path: &Path) -> Option<u32> {
+    use std::os::unix::fs::PermissionsExt;
+    let mode = std::fs::metadata(path).ok()?.permissions().mode() & 0o777;
+    (mode & 0o077 != 0).then_some(mode)
 }
 
 /// Whether the server listens on a loopback address only.

@@ -53,6 +53,8 @@ pub enum UsersError {
     },
     #[error("the users file {path} is not valid: {message}")]
     Invalid { path: String, message: String },
+    #[error("the users file {path} is readable by other users (mode {mode:o}); it holds password hashes: chmod 600 {path}")]
+    Open { path: String, mode: u32 },
 }
 
 /// The users file as written.
@@ -182,6 +184,9 @@ pub struct User {
 /// Reads a users file.
 pub fn load(path: &Path) -> Result<HashMap<String, User>, UsersError> {
     let shown = path.display().to_string();
+    if let Some(mode) = super::security::open_to_others(path) {
+        return Err(UsersError::Open { path: shown, mode });
+    }
     let text = std::fs::read_to_string(path).map_err(|source| UsersError::Read {
         path: shown.clone(),
         source,
@@ -365,28 +370,30 @@ mod tests {
 
     #[test]
     fn a_users_file_names_each_user_once_with_a_role() {
+        use std::os::unix::fs::PermissionsExt;
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("users.toml");
+        // Written 0600, as a users file must be (the test's umask would make it 0644).
+        let write = |text: String| {
+            std::fs::write(&path, text).unwrap();
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).unwrap();
+        };
         let hash = PasswordHash::new("pw").to_string();
-        std::fs::write(
-            &path,
-            format!("[[user]]\nname = \"anna\"\nrole = \"operator\"\npassword = \"{hash}\"\n[[user]]\nname = \"wall\"\nrole = \"observer\"\npassword = \"{hash}\"\n"),
-        )
-        .unwrap();
+        write(format!("[[user]]\nname = \"anna\"\nrole = \"operator\"\npassword = \"{hash}\"\n[[user]]\nname = \"wall\"\nrole = \"observer\"\npassword = \"{hash}\"\n"));
         let users = load(&path).unwrap();
         assert_eq!(users["anna"].role, Role::Operator);
         assert_eq!(users["wall"].role, Role::Observer);
-        std::fs::write(
-            &path,
-            format!("[[user]]\nname = \"anna\"\nrole = \"admin\"\npassword = \"{hash}\"\n"),
-        )
-        .unwrap();
+        write(format!(
+            "[[user]]\nname = \"anna\"\nrole = \"admin\"\npassword = \"{hash}\"\n"
+        ));
         assert!(load(&path).is_err());
-        std::fs::write(
-            &path,
-            format!("[[user]]\nname = \"a\"\nrole = \"operator\"\npassword = \"{hash}\"\n[[user]]\nname = \"a\"\nrole = \"observer\"\npassword = \"{hash}\"\n"),
-        )
-        .unwrap();
+        write(format!("[[user]]\nname = \"a\"\nrole = \"operator\"\npassword = \"{hash}\"\n[[user]]\nname = \"a\"\nrole = \"observer\"\npassword = \"{hash}\"\n"));
         assert!(load(&path).unwrap_err().to_string().contains("twice"));
+        // Readable by others: refused, naming the fix.
+        write(format!(
+            "[[user]]\nname = \"anna\"\nrole = \"operator\"\npassword = \"{hash}\"\n"
+        ));
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o644)).unwrap();
+        assert!(load(&path).unwrap_err().to_string().contains("chmod 600"));
     }
 }
