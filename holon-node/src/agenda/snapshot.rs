@@ -1,0 +1,58 @@
+//! The agenda's part of the state snapshot a resource publishes.
+
+use schemas::{unix_ms, BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot};
+
+use super::AgendaManager;
+
+impl AgendaManager {
+    /// The agenda's part of the snapshot published on `resource/<name>/state`: the
+    /// controller, the step in progress and the requesters' absences are the other
+    /// components' to fill in (see [`crate::views::Views::snapshot`]).
+    pub fn snapshot(&self) -> ResourceSnapshot {
+        ResourceSnapshot {
+            holon: self.holon.clone(),
+            state: self.state(),
+            controller: ControllerStatus::Disconnected,
+            agenda: self
+                .bookings
+                .iter()
+                .map(|b| BookingView {
+                    requester: b.requester.clone(),
+                    conversation_id: b.conversation_id.clone(),
+                    service_type: b.service_type.clone(),
+                    requester_absent_since: None,
+                    priority: b.priority,
+                    due: b.due,
+                    overtaken: b.overtaken,
+                    program: crate::catalog::program(&b.info).ok().flatten(),
+                })
+                .collect(),
+            current: self.current.as_ref().map(|j| CurrentJobView {
+                requester: j.requester.clone(),
+                conversation_id: j.conversation_id.clone(),
+                service_type: j.service_type.clone(),
+                step: None,
+                program: crate::catalog::program(&j.info).ok().flatten(),
+                started_at: None,
+            }),
+            undelivered: self.undelivered.len(),
+            services: self.catalog.service_types().map(String::from).collect(),
+            nominal_ms: self
+                .catalog
+                .service_types()
+                .filter_map(|t| {
+                    let nominal = self.catalog.get(t)?.nominal_duration.as_millis() as u64;
+                    Some((t.to_string(), nominal))
+                })
+                .collect(),
+            journal_fault: None,
+            delivery_retries: 0,
+            handing_over: self.handing_over,
+            packml: Some(self.packml.status()),
+            host: None,
+            version: None,
+            v: 0,
+            at: unix_ms(),
+        }
+    }
+}
