@@ -31,6 +31,8 @@ use crate::dialect::{
     Values,
 };
 
+mod abort;
+
 pub(super) enum ConnectionEnd {
     Shutdown,
     OwnerGone,
@@ -60,14 +62,6 @@ impl Exchange {
     fn reached(&self) -> bool {
         self.sent || self.element > 0 || self.poll_at.is_some()
     }
-}
-
-/// An abort message whose own reply is awaited.
-struct AbortWait {
-    /// The commands it stops (those in flight when it was sent; none when nothing was).
-    ids: Vec<u64>,
-    /// When the controller must have answered it.
-    deadline: Instant,
 }
 
 /// What the request on the wire is waiting for (one-in-flight dialects).
@@ -106,7 +100,7 @@ pub(super) struct Connection<'a> {
     /// Messages to write.
     outbox: Vec<Vec<u8>>,
     /// Abort messages whose own replies are awaited, oldest first.
-    abort_waits: VecDeque<AbortWait>,
+    abort_waits: VecDeque<abort::AbortWait>,
     /// The values of the last command that reached the controller (on this connection
     /// or an earlier one): what an abort with nothing in flight is written with.
     last_run: &'a mut Option<Values>,
@@ -276,112 +270,6 @@ impl<'a> Connection<'a> {
             aborted: false,
         });
         Ok(())
-    }
-
-    /// An abort: the dialect's abort message goes out at once, once for each distinct
-    /// message the commands in flight make of it (or with the last command's values when
-    /// none is in flight); the commands in flight are marked aborted.
-    async fn abort(&mut self) -> Step {
-        let Some(abort) = &self.dialect.abort else {
-            warn!(dialect = %self.dialect.name, "abort asked: the dialect has no abort message; the command in flight runs to its end");
-            return Ok(());
-        };
-        let now = Instant::now();
-        // What the abort is written with: each command on the controller.
-        let mut targets: Vec<(Option<u64>, &Values)> = Vec::new();
-        for exchange in self.exchanges.iter_mut() {
-            exchange.aborted = true;
-        }
-        for exchange in self.exchanges.iter().filter(|e| e.reached()) {
-            targets.push((Some(exchange.command.id), &exchange.values));
-        }
-        if targets.is_empty() {
-            match self.last_run.as_ref() {
-                Some(values) => targets.push((None, values)),
-                None if self.exchanges.is_empty() => {
-                    debug!(dialect = %self.dialect.name, "abort asked: nothing has run on the controller; nothing is sent");
-                    return Ok(());
-                }
-                // Commands waiting for the wire: they end without a word to the controller.
-                None => {}
-            }
-        }
-        let mut messages: Vec<(Vec<u8>, Vec<u64>)> = Vec::new();
-        let mut unwritable = Vec::new();
-        for (id, values) in targets {
-            match self.dialect.write_command(abort.command, values) {
-                Ok(bytes) => match messages.iter_mut().find(|(written, _)| *written == bytes) {
-                    Some((_, ids)) => ids.extend(id),
-                    None => messages.push((bytes, id.into_iter().collect())),
-                },
-                Err(why) => {
-                    warn!(id, error = %why, "the abort cannot be written for this command; it runs to its end");
-                    unwritable.extend(id);
-                }
-            }
-        }
-        for exchange in self.exchanges.iter_mut() {
-            if unwritable.contains(&exchange.command.id) {
-                exchange.aborted = false;
-            }
-        }
-        for (bytes, ids) in messages {
-            info!(dialect = %self.dialect.name, commands = ?ids, "abort sent to the controller");
-            self.outbox.push(bytes);
-            self.last_traffic = now;
-            if !abort.expect.is_empty() {
-                self.abort_waits.push_back(AbortWait {
-                    ids,
-                    deadline: now + self.config.command_timeout,
-                });
-            }
-        }
-        Ok(())
-    }
-
-    /// The abort's own reply `reply` came: the controller stopped (`accepted`), and the
-    /// commands that abort stops end as aborted; or it had nothing to stop, and they go on.
-    async fn abort_answered(&mut self, reply: usize, values: &Values) -> Step {
-        let id = values.get("id").and_then(|id| id.parse::<u64>().ok());
-        let at = id
-            .and_then(|id| self.abort_waits.iter().position(|w| w.ids.contains(&id)))
-            .unwrap_or(0);
-        let Some(wait) = self.abort_waits.remove(at) else {
-            return Ok(());
-        };
-        let rule = &self.dialect.replies[reply];
-        if rule.outcome != Outcome::Accepted {
-            let message = self
-                .dialect
-                .evaluate(&rule.message, values, &Values::default());
-            info!(reply = %rule.name, %message, commands = ?wait.ids, "the controller had nothing to stop; the commands in flight go on");
-            return Ok(());
-        }
-        info!(reply = %rule.name, commands = ?wait.ids, "the controller stopped");
-        for id in wait.ids {
-            if let Some(i) = self.exchanges.iter().position(|e| e.command.id == id) {
-                self.end_aborted(i).await?;
-            }
-        }
-        Ok(())
-    }
-
-    /// Ends exchange `i` as aborted.
-    async fn end_aborted(&mut self, i: usize) -> Step {
-        let Some(mut exchange) = self.exchanges.remove(i) else {
-            return Ok(());
-        };
-        let id = exchange.command.id;
-        if self.awaiting == Some(Awaiting::Command(id)) {
-            self.awaiting = None;
-        }
-        self.remember(&mut exchange);
-        info!(id, "command aborted");
-        self.report(ControllerEvent::CommandFailed {
-            id,
-            failure: CommandFailure::Aborted,
-        })
-        .await
     }
 
     /// Keeps the values of an exchange that ends, if it reached the controller: an abort
