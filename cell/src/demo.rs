@@ -9,7 +9,7 @@
 //! order) and exits 0 only if every order completed (`done`, or `scrapped` by its plan).
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::Stdio;
 use std::time::{Duration, Instant};
 
@@ -18,6 +18,10 @@ use schemas::{CellKeys, HolonId, OrderSnapshot, OrderStatus, WorkOrder};
 use tokio::io::{AsyncBufReadExt, BufReader};
 use tokio::process::{Child, Command};
 use tokio_util::sync::CancellationToken;
+
+mod report;
+
+use report::{print_progress, Report};
 
 const ROBOT: &str = include_str!("../../deploy/cells/demo/robot1.toml");
 const INSPECTION: &str = include_str!("../../deploy/cells/demo/inspect1.toml");
@@ -438,76 +442,6 @@ fn start_opcua(
     Ok((stop, task))
 }
 
-struct Report {
-    orders: BTreeMap<HolonId, OrderSnapshot>,
-    failed: usize,
-    elapsed: Duration,
-    hot_added: Option<Duration>,
-    /// A staff holon advised the orders.
-    staff: bool,
-}
-
-impl Report {
-    fn completed(&self) -> usize {
-        self.orders
-            .values()
-            .filter(|o| matches!(o.status, OrderStatus::Done | OrderStatus::Scrapped))
-            .count()
-    }
-
-    fn print(&self, dir: &Path) {
-        let count = |s: OrderStatus| self.orders.values().filter(|o| o.status == s).count();
-        let mut steps: BTreeMap<String, usize> = BTreeMap::new();
-        for order in self.orders.values() {
-            for (_, resource) in &order.completed {
-                *steps.entry(resource.to_string()).or_default() += 1;
-            }
-        }
-        println!();
-        println!("summary");
-        println!("  orders done     {}", count(OrderStatus::Done));
-        println!("  orders scrapped {}", count(OrderStatus::Scrapped));
-        println!("  orders failed   {}", self.failed);
-        for order in self
-            .orders
-            .values()
-            .filter(|o| o.status == OrderStatus::Failed)
-        {
-            println!(
-                "    {}: {}",
-                order.holon,
-                order.reason.as_deref().unwrap_or("")
-            );
-        }
-        println!("  time taken      {:.2} s", self.elapsed.as_secs_f64());
-        if let Some(at) = self.hot_added {
-            println!("  robot3 added    at {:.2} s", at.as_secs_f64());
-        }
-        println!(
-            "  reworks         {}",
-            self.orders.values().map(|o| o.reworks).sum::<u32>()
-        );
-        println!(
-            "  rebooks         {}",
-            self.orders.values().map(|o| o.rebooks).sum::<u32>()
-        );
-        if self.staff {
-            let steps: usize = self.orders.values().map(|o| o.completed.len()).sum();
-            println!(
-                "  on advice       {} of {steps} steps booked as staff/planner advised",
-                self.orders.values().map(|o| o.advised).sum::<u32>()
-            );
-        }
-        println!("  steps per resource");
-        for (resource, n) in &steps {
-            let sim = resource.trim_start_matches("resource/");
-            let counts = std::fs::read_to_string(dir.join(format!("{sim}-sim.counts.json")))
-                .unwrap_or_default();
-            println!("    {resource:<20} {n:>4}   controller {}", counts.trim());
-        }
-    }
-}
-
 async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
     start_holons(cell, options).await?;
     // Watch every order's state before submitting.
@@ -663,61 +597,6 @@ async fn hot_add_robot3(cell: &mut Cell, options: &DemoOptions, running: usize) 
         took.as_millis()
     );
     Ok(())
-}
-
-/// Prints what an order's new state says, if it progressed since `previous`: the step
-/// just completed (passed, or rejected: a rework or a scrap), and its end.
-fn print_progress(
-    previous: Option<&OrderSnapshot>,
-    snapshot: &OrderSnapshot,
-    elapsed: Duration,
-    advised_shown: &mut BTreeMap<HolonId, u32>,
-) {
-    let progressed = previous.is_none_or(|p| {
-        p.status != snapshot.status || p.completed.len() != snapshot.completed.len()
-    });
-    if !progressed {
-        return;
-    }
-    let elapsed = elapsed.as_secs_f64();
-    let steps_before = previous.map_or(0, |p| p.completed.len());
-    let reworked = previous.is_some_and(|p| snapshot.reworks > p.reworks);
-    // The step was booked on a staff holon's advice: the count grew since the last
-    // step shown (it grows when a step is booked, before it is done).
-    let shown = advised_shown.entry(snapshot.holon.clone()).or_default();
-    let advised = if snapshot.advised > *shown && snapshot.completed.len() > steps_before {
-        *shown = snapshot.advised;
-        " *"
-    } else {
-        ""
-    };
-    if snapshot.completed.len() > steps_before {
-        if let Some((service, resource)) = snapshot.completed.last() {
-            let outcome = if reworked {
-                format!("rejected by {resource} -> rework {}", snapshot.reworks)
-            } else if snapshot.status == OrderStatus::Scrapped {
-                format!("rejected by {resource}")
-            } else {
-                format!("done by {resource}{advised}")
-            };
-            println!(
-                "{elapsed:7.2}s  {:<14} {service:<13} {outcome}",
-                snapshot.holon.name()
-            );
-        }
-    }
-    if snapshot.status != OrderStatus::Running {
-        println!(
-            "{elapsed:7.2}s  {:<14} {:?}{}",
-            snapshot.holon.name(),
-            snapshot.status,
-            snapshot
-                .reason
-                .as_deref()
-                .map(|r| format!(": {r}"))
-                .unwrap_or_default()
-        );
-    }
 }
 
 /// A temporary directory removed when dropped, unless kept for its logs.
