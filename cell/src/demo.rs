@@ -396,8 +396,8 @@ async fn start_dashboard(
 }
 
 /// The cell's OPC UA server, in this process (it prints its endpoint): the token that
-/// stops it and its task. A secure demo's server gets a users file with one operator,
-/// `operator`, whose new random password is printed.
+/// stops it and its task. A secure demo's users file (`<pki>/users.toml`, 0600) gets an
+/// operator, `operator`, whose new random password is printed.
 fn start_opcua(
     cell: &Cell,
     listen: std::net::SocketAddr,
@@ -409,12 +409,14 @@ fn start_opcua(
             .fill(&mut bytes)
             .map_err(|_| anyhow!("no random source for the OPC UA password"))?;
         let password: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
-        let hash = crate::opcua::users::PasswordHash::new(&password);
-        let users = pki.join(crate::opcua::security::USERS_FILE);
-        crate::certs::write_private(
-            &users,
-            &format!("[[user]]\nname = \"operator\"\nrole = \"operator\"\npassword = \"{hash}\"\n"),
-        )?;
+        let users = crate::users::default_path(pki);
+        crate::users::change(&users, |users| {
+            if users.get("operator").is_some() {
+                users.set_password("operator", &password)
+            } else {
+                users.add("operator", crate::users::Role::Operator, &password)
+            }
+        })?;
         println!(
             "OPC UA: SignAndEncrypt only; user operator, password {password} (in {}); trust your client's certificate with `cell opcua --pki {} --trust CLIENT.der` (docs/opcua.md)",
             users.display(),

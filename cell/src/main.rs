@@ -188,6 +188,10 @@ enum Commands {
         #[command(flatten)]
         client: ClientArgs,
     },
+    /// Manage the cell's users (one file per cell, read by the dashboard and `cell
+    /// opcua`): add, passwd, role, remove, list. Every change is recorded in audit.jsonl
+    /// beside the file. See docs/opcua.md, "Users".
+    Users(cell::users::cli::UsersArgs),
     /// Serve a live web page of a running cell: its holons, orders, alarms, event log
     /// and throughput, pushed to the page as they change; a JSON API (/api/view,
     /// /api/holons, /api/orders, /api/alarms, /api/events) and Prometheus metrics
@@ -233,7 +237,7 @@ enum Commands {
         /// A secure cell's PKI directory (`cell certs`): the zenoh identity's
         /// certificate, the server's application certificate (opcua-server.der,
         /// opcua-server.key), its store of client certificates (opcua/trusted,
-        /// opcua/rejected) and the default users file (opcua-users.toml).
+        /// opcua/rejected) and the cell's users file (users.toml, `cell users`).
         #[arg(long, value_name = "DIR")]
         pki: Option<PathBuf>,
         /// The zenoh identity to join with (an operator.* identity; default
@@ -241,14 +245,11 @@ enum Commands {
         /// naming the OPC UA user.
         #[arg(long, value_name = "ROLE.NAME")]
         identity: Option<String>,
-        /// The users file (TOML: [[user]] name, role = operator|observer, password
-        /// hash); default <pki>/opcua-users.toml. Only with --pki.
+        /// The users file (`cell users --file FILE` writes it); default <pki>/users.toml.
+        /// Observers may browse, read and subscribe; operators and admins may also call
+        /// methods. Only with --pki.
         #[arg(long, value_name = "FILE", requires = "pki")]
         users: Option<PathBuf>,
-        /// Read a password from standard input (one line), print its salted hash for the
-        /// users file, and exit.
-        #[arg(long, exclusive = true)]
-        hash_password: bool,
         /// Trust a client application certificate (DER or PEM) of the server in --pki:
         /// copy it into the store's trusted/ (and out of rejected/), print where, and
         /// exit. A running server sees it at the client's next connect.
@@ -447,19 +448,8 @@ async fn run(args: Args) -> Result<bool> {
             pki,
             identity,
             users,
-            hash_password,
             trust,
         } => {
-            if hash_password {
-                let mut password = String::new();
-                std::io::stdin().read_line(&mut password)?;
-                let password = password.trim_end_matches(['\r', '\n']);
-                if password.is_empty() {
-                    return Err(anyhow!("an empty password: type one line"));
-                }
-                println!("{}", cell::opcua::users::PasswordHash::new(password));
-                return Ok(true);
-            }
             if let (Some(client), Some(pki)) = (&trust, &pki) {
                 let path = cell::opcua::security::trust(pki, client)?;
                 println!("trusted {} as {}", client.display(), path.display());
@@ -494,6 +484,10 @@ async fn run(args: Args) -> Result<bool> {
                 users,
             };
             cell::opcua::run(config, holon::shutdown_on_signals()).await?;
+            Ok(true)
+        }
+        Commands::Users(args) => {
+            cell::users::cli::run(args)?;
             Ok(true)
         }
         Commands::Up { dir, host } => {

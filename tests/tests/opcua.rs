@@ -383,23 +383,30 @@ impl Drop for Up {
     }
 }
 
-fn hash(password: &str) -> String {
+/// Adds a user to the users file of `pki` with `cell users`, the password piped in.
+fn add_user(pki: &Path, name: &str, role: &str, password: &str) {
     let mut child = Command::new(bin("cell"))
-        .args(["opcua", "--hash-password"])
+        .args(["users", "--pki"])
+        .arg(pki)
+        .args(["add", name, "--role", role])
         .stdin(Stdio::piped())
         .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
         .spawn()
         .unwrap();
     use std::io::Write;
     writeln!(child.stdin.take().unwrap(), "{password}").unwrap();
     let out = child.wait_with_output().unwrap();
-    assert!(out.status.success());
-    String::from_utf8(out.stdout).unwrap().trim().to_string()
+    assert!(
+        out.status.success(),
+        "cell users add {name}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// A secure cell as docs/opcua.md sets one up: `cell certs` issues the server's
-/// certificate, a users file with an operator and an observer, `cell up`; the client's
-/// application certificate is trusted with `cell opcua --trust`.
+/// certificate, `cell users` makes an operator, an observer and an admin, `cell up`; the
+/// client's application certificate is trusted with `cell opcua --trust`.
 #[tokio::test(flavor = "multi_thread")]
 async fn in_a_secure_cell_only_a_trusted_operator_commands() {
     let Some(python) = opcua_python() else { return };
@@ -449,21 +456,44 @@ args = ["opcua", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", 
     for file in ["opcua-server.der", "opcua-server.key", "operator.opcua.pem"] {
         assert!(pki.join(file).exists(), "cell certs issued {file}");
     }
-    std::fs::write(
-        pki.join("opcua-users.toml"),
-        format!(
-            "[[user]]\nname = \"anna\"\nrole = \"operator\"\npassword = \"{}\"\n[[user]]\nname = \"wall\"\nrole = \"observer\"\npassword = \"{}\"\n",
-            hash("anna-pw"),
-            hash("wall-pw")
-        ),
-    )
-    .unwrap();
-    // Its owner's alone, as docs/opcua.md says (others' read access stops the server).
-    std::fs::set_permissions(
-        pki.join("opcua-users.toml"),
-        std::os::unix::fs::PermissionsExt::from_mode(0o600),
-    )
-    .unwrap();
+    // A PKI directory with only the old OPC UA users file: refused, saying where the
+    // users live now.
+    std::fs::write(pki.join("opcua-users.toml"), "").unwrap();
+    let old = Command::new(bin("cell"))
+        .args(["opcua", "--cell", cell, "--connect", &endpoint, "--pki"])
+        .arg(&pki)
+        .args(["--listen", &address])
+        .output()
+        .unwrap();
+    assert!(!old.status.success());
+    let said = String::from_utf8_lossy(&old.stderr);
+    assert!(
+        said.contains("users.toml") && said.contains("cell users --pki"),
+        "{said}"
+    );
+    std::fs::remove_file(pki.join("opcua-users.toml")).unwrap();
+    add_user(&pki, "anna", "operator", "anna-password");
+    add_user(&pki, "wall", "observer", "wall-password");
+    add_user(&pki, "root", "admin", "root-password");
+    // Its owner's alone (others' read access would stop the server), every change in
+    // the audit trail beside it, no password or hash in there.
+    let mode = |file: &str| {
+        std::os::unix::fs::PermissionsExt::mode(
+            &std::fs::metadata(pki.join(file)).unwrap().permissions(),
+        ) & 0o777
+    };
+    assert_eq!(mode("users.toml"), 0o600);
+    assert_eq!(mode("audit.jsonl"), 0o600);
+    let audit = std::fs::read_to_string(pki.join("audit.jsonl")).unwrap();
+    assert_eq!(
+        audit.matches(r#""action":"user_add""#).count(),
+        3,
+        "{audit}"
+    );
+    assert!(
+        !audit.contains("password") && !audit.contains("argon2"),
+        "{audit}"
+    );
     let _up = Up(Command::new(bin("cell"))
         .arg("up")
         .arg(dir)
@@ -486,7 +516,7 @@ args = ["opcua", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", 
     };
 
     // An unknown client application is rejected, and lands in rejected/.
-    let (_, first) = Driver::start(&python, &url, cell, &as_user("anna", "anna-pw")).await;
+    let (_, first) = Driver::start(&python, &url, cell, &as_user("anna", "anna-password")).await;
     assert_eq!(first["connected"], false, "{first}");
     assert_eq!(first["status"], "BadCertificateUntrusted", "{first}");
     let rejected: Vec<PathBuf> = std::fs::read_dir(pki.join("opcua/rejected"))
@@ -515,13 +545,19 @@ args = ["opcua", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", 
             .is_some_and(|s| s.starts_with("BadIdentityToken")),
         "{anonymous}"
     );
-    let (_, wrong) = Driver::start(&python, &url, cell, &as_user("anna", "nope")).await;
-    assert_eq!(wrong["connected"], false, "{wrong}");
-    assert_eq!(wrong["status"], "BadUserAccessDenied", "{wrong}");
+    for (user, password) in [
+        ("anna", "wall-password"),
+        ("root", "anna-password"),
+        ("nobody", "anna-password"),
+    ] {
+        let (_, wrong) = Driver::start(&python, &url, cell, &as_user(user, password)).await;
+        assert_eq!(wrong["connected"], false, "{user}: {wrong}");
+        assert_eq!(wrong["status"], "BadUserAccessDenied", "{user}: {wrong}");
+    }
 
     // The operator holds robot1; the observer sees it but may not command.
     let (mut anna, connected) =
-        Driver::start(&python, &url, cell, &as_user("anna", "anna-pw")).await;
+        Driver::start(&python, &url, cell, &as_user("anna", "anna-password")).await;
     assert_eq!(connected["connected"], true, "{connected}");
     anna.wait_read("robot1 Status.StateCurrent", 6.into()).await;
     assert_eq!(anna.call("call robot1 Hold").await, "Good");
@@ -533,7 +569,7 @@ args = ["opcua", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", 
     )
     .await;
     let (mut wall, connected) =
-        Driver::start(&python, &url, cell, &as_user("wall", "wall-pw")).await;
+        Driver::start(&python, &url, cell, &as_user("wall", "wall-password")).await;
     assert_eq!(connected["connected"], true, "{connected}");
     wall.wait_read("robot1 Status.StateCurrent", 11.into())
         .await;
@@ -547,6 +583,22 @@ args = ["opcua", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", 
         .await;
     assert_eq!(anna.call("call robot1 Unhold").await, "Good");
     wall.wait_read("robot1 Status.StateCurrent", 6.into()).await;
+
+    // An admin operates too.
+    let (mut root, connected) =
+        Driver::start(&python, &url, cell, &as_user("root", "root-password")).await;
+    assert_eq!(connected["connected"], true, "{connected}");
+    assert_eq!(root.call("call robot1 Hold").await, "Good");
+    wall.wait_read("robot1 Status.StateCurrent", 11.into())
+        .await;
+    root.wait_read(
+        "robot1 Admin.StopReason.Message",
+        "Hold by opcua:root".into(),
+    )
+    .await;
+    assert_eq!(root.call("call robot1 Unhold").await, "Good");
+    wall.wait_read("robot1 Status.StateCurrent", 6.into()).await;
+    root.quit().await;
     wall.quit().await;
     anna.quit().await;
 }

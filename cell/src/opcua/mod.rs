@@ -73,13 +73,31 @@ pub struct OpcuaConfig {
     /// A secure cell's PKI directory: the server's certificate, its store of trusted
     /// client certificates, and the users file's default place. None: a plain cell.
     pub pki: Option<PathBuf>,
-    /// The users file (default `<pki>/opcua-users.toml`).
+    /// The cell's users file (default `<pki>/users.toml`, [`crate::users`]).
     pub users: Option<PathBuf>,
 }
 
 /// The server's endpoint URL for a listen address.
 pub fn endpoint_url(listen: &SocketAddr) -> String {
     format!("opc.tcp://{listen}/")
+}
+
+/// The users file of a secure cell without `--users`: `<pki>/users.toml`. Refuses a
+/// PKI directory that still has only the old OPC UA users file (`opcua-users.toml`,
+/// PBKDF2 hashes): its users must be added again.
+fn default_users_file(pki: &std::path::Path) -> Result<PathBuf> {
+    let path = crate::users::default_path(pki);
+    let old = pki.join(security::USERS_FILE);
+    if old.exists() && !path.exists() {
+        bail!(
+            "{} is no longer read: the cell's users now live in {} (one file for the dashboard and the OPC UA server, argon2id hashes); add them again with `cell users --pki {} add NAME --role observer|operator|admin`, then remove {}",
+            old.display(),
+            path.display(),
+            pki.display(),
+            old.display()
+        );
+    }
+    Ok(path)
 }
 
 /// What the zenoh callbacks tell the values' owner.
@@ -128,7 +146,7 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
             (
                 CellAuth {
                     anonymous: true,
-                    users: HashMap::new(),
+                    users: Arc::new(crate::users::Users::default()),
                 },
                 None,
             )
@@ -136,24 +154,28 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         Some(pki) => {
             let files = security::ServerFiles::in_pki(pki)?;
             files.check()?;
-            let users_path = config
-                .users
-                .clone()
-                .unwrap_or_else(|| pki.join(security::USERS_FILE));
-            let users = users::load(&users_path).with_context(|| {
-                "a secure cell's OPC UA server needs its users (docs/opcua.md, \"Users\"; `cell opcua --hash-password` makes a password's hash)".to_string()
+            let users_path = match &config.users {
+                Some(path) => path.clone(),
+                None => default_users_file(pki)?,
+            };
+            let users = crate::users::load(&users_path).with_context(|| {
+                format!(
+                    "a secure cell's OPC UA server needs its users (docs/opcua.md, \"Users\"): add them with `cell users --pki {} add NAME --role observer|operator|admin`",
+                    pki.display()
+                )
             })?;
             if users.is_empty() {
                 bail!(
-                    "the users file {} names no user: no one could log in",
-                    users_path.display()
+                    "the users file {} names no user: no one could log in (`cell users --pki {} add NAME --role operator`)",
+                    users_path.display(),
+                    pki.display()
                 );
             }
             info!(users = users.len(), file = %users_path.display(), "OPC UA users loaded");
             (
                 CellAuth {
                     anonymous: false,
-                    users,
+                    users: Arc::new(users),
                 },
                 Some(files),
             )

@@ -1,22 +1,12 @@
-//! Who may use `cell opcua`: the users file, password hashes, and the server's
-//! [`AuthManager`] (authentication, and the operator/observer split).
+//! Who may use `cell opcua`: the server's [`AuthManager`] on the cell's users file
+//! ([`crate::users`], docs/opcua.md "Users"), and the operator/observer split.
 //!
-//! The users file is TOML (docs/opcua.md):
-//!
-//! ```toml
-//! [[user]]
-//! name = "anna"
-//! role = "operator"            # operator | observer
-//! password = "pbkdf2-sha256$100000$<salt hex>$<hash hex>"   # cell opcua --hash-password
-//! ```
-//!
-//! A hash is PBKDF2-HMAC-SHA256 over the password with a 16-byte random salt. The
-//! password never reaches the server in clear on the wire: the secure endpoints encrypt
-//! it, and async-opcua hands it to us decrypted.
+//! An observer may browse, read and subscribe; an operator or an admin may also call
+//! methods. The password never reaches the server in clear on the wire: the secure
+//! endpoints encrypt it, and async-opcua hands it to us decrypted. Verifying it (argon2id,
+//! tens of ms of CPU) runs on tokio's blocking threads, never on the server's.
 
-use std::collections::HashMap;
-use std::num::NonZeroU32;
-use std::path::Path;
+use std::sync::Arc;
 
 use async_trait::async_trait;
 use opcua::crypto::SecurityPolicy;
@@ -24,205 +14,28 @@ use opcua::types::{Error, NodeId, StatusCode, UAString, UserTokenPolicy, UserTok
 use opcua_server::address_space::AccessLevel;
 use opcua_server::authenticator::{user_pass_security_policy_id, AuthManager, Password, UserToken};
 use opcua_server::ServerEndpoint;
-use serde::Deserialize;
 use tracing::{info, warn};
 
-/// The PBKDF2 rounds of a new hash (a login costs a few ms of one core).
-pub const ROUNDS: u32 = 100_000;
+use crate::users::Users;
 
-/// The longest user name, so that `opcua:<name>` fits a PackML request's `by`.
-pub const MAX_NAME: usize = 64;
-
-/// What a user may do.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize)]
-#[serde(rename_all = "snake_case")]
+/// What a session may do in the OPC UA server.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Role {
-    /// Browse, read, subscribe and call methods.
+    /// Browse, read, subscribe and call methods (an operator or an admin of the users
+    /// file, or an anonymous session of a plain cell).
     Operator,
     /// Browse, read and subscribe; every method call is refused (BadUserAccessDenied).
     Observer,
 }
 
-/// A users file's problems.
-#[derive(Debug, thiserror::Error)]
-pub enum UsersError {
-    #[error("cannot read the users file {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
-    #[error("the users file {path} is not valid: {message}")]
-    Invalid { path: String, message: String },
-    #[error("the users file {path} is readable by other users (mode {mode:o}); it holds password hashes: chmod 600 {path}")]
-    Open { path: String, mode: u32 },
-}
-
-/// The users file as written.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct UsersFile {
-    /// One entry per user.
-    #[serde(default)]
-    user: Vec<UserEntry>,
-}
-
-/// One user as written in the file.
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct UserEntry {
-    /// The user name the client sends.
-    name: String,
-    /// operator or observer.
-    role: Role,
-    /// `pbkdf2-sha256$<rounds>$<salt hex>$<hash hex>`, from `cell opcua --hash-password`.
-    password: String,
-}
-
-/// A password hash, parsed.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct PasswordHash {
-    /// PBKDF2 rounds.
-    rounds: NonZeroU32,
-    /// The salt.
-    salt: Vec<u8>,
-    /// PBKDF2-HMAC-SHA256(password, salt, rounds), 32 bytes.
-    hash: Vec<u8>,
-}
-
-impl PasswordHash {
-    /// Hashes `password` with a new random salt.
-    pub fn new(password: &str) -> PasswordHash {
-        use ring::rand::SecureRandom;
-        let mut salt = vec![0u8; 16];
-        ring::rand::SystemRandom::new()
-            .fill(&mut salt)
-            .expect("the system's random source works");
-        let rounds = NonZeroU32::new(ROUNDS).expect("ROUNDS > 0");
-        let mut hash = vec![0u8; 32];
-        ring::pbkdf2::derive(
-            ring::pbkdf2::PBKDF2_HMAC_SHA256,
-            rounds,
-            &salt,
-            password.as_bytes(),
-            &mut hash,
-        );
-        PasswordHash { rounds, salt, hash }
-    }
-
-    /// Parses `pbkdf2-sha256$<rounds>$<salt hex>$<hash hex>`.
-    pub fn parse(text: &str) -> Result<PasswordHash, String> {
-        let parts: Vec<&str> = text.trim().split('$').collect();
-        let [scheme, rounds, salt, hash] = parts.as_slice() else {
-            return Err("a password is pbkdf2-sha256$ROUNDS$SALT$HASH (cell opcua --hash-password makes one)".into());
-        };
-        if *scheme != "pbkdf2-sha256" {
-            return Err(format!(
-                "unknown password scheme {scheme:?} (pbkdf2-sha256)"
-            ));
-        }
-        let rounds = rounds
-            .parse::<u32>()
-            .ok()
-            .and_then(NonZeroU32::new)
-            .ok_or_else(|| format!("bad rounds {rounds:?}"))?;
-        let salt = from_hex(salt).ok_or("the salt is not hex")?;
-        let hash = from_hex(hash).ok_or("the hash is not hex")?;
-        if salt.len() < 8 || hash.len() != 32 {
-            return Err("a salt of at least 8 bytes and a hash of 32 bytes".into());
-        }
-        Ok(PasswordHash { rounds, salt, hash })
-    }
-
-    /// Whether `password` is the one hashed (in constant time).
-    pub fn verify(&self, password: &str) -> bool {
-        ring::pbkdf2::verify(
-            ring::pbkdf2::PBKDF2_HMAC_SHA256,
-            self.rounds,
-            &self.salt,
-            password.as_bytes(),
-            &self.hash,
-        )
-        .is_ok()
-    }
-}
-
-impl std::fmt::Display for PasswordHash {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "pbkdf2-sha256${}${}${}",
-            self.rounds,
-            to_hex(&self.salt),
-            to_hex(&self.hash)
-        )
-    }
-}
-
-fn to_hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
-}
-
-fn from_hex(text: &str) -> Option<Vec<u8>> {
-    if !text.len().is_multiple_of(2) {
-        return None;
-    }
-    (0..text.len())
-        .step_by(2)
-        .map(|i| u8::from_str_radix(text.get(i..i + 2)?, 16).ok())
-        .collect()
-}
-
-/// One user the server knows.
-#[derive(Debug, Clone)]
-pub struct User {
-    /// What the user may do.
-    pub role: Role,
-    /// The password's hash.
-    pub hash: PasswordHash,
-}
-
-/// Reads a users file.
-pub fn load(path: &Path) -> Result<HashMap<String, User>, UsersError> {
-    let shown = path.display().to_string();
-    if let Some(mode) = super::security::open_to_others(path) {
-        return Err(UsersError::Open { path: shown, mode });
-    }
-    let text = std::fs::read_to_string(path).map_err(|source| UsersError::Read {
-        path: shown.clone(),
-        source,
-    })?;
-    let invalid = |message: String| UsersError::Invalid {
-        path: shown.clone(),
-        message,
-    };
-    let file: UsersFile = toml::from_str(&text).map_err(|e| invalid(e.to_string()))?;
-    let mut users = HashMap::new();
-    for entry in file.user {
-        if entry.name.is_empty()
-            || entry.name.len() > MAX_NAME
-            || entry.name.chars().any(|c| c.is_control())
-        {
-            return Err(invalid(format!(
-                "user name {:?}: 1 to {MAX_NAME} bytes, no control characters",
-                entry.name
-            )));
-        }
-        let hash = PasswordHash::parse(&entry.password)
-            .map_err(|e| invalid(format!("user {}: {e}", entry.name)))?;
-        if users
-            .insert(
-                entry.name.clone(),
-                User {
-                    role: entry.role,
-                    hash,
-                },
-            )
-            .is_some()
-        {
-            return Err(invalid(format!("user {} appears twice", entry.name)));
+impl From<crate::users::Role> for Role {
+    fn from(role: crate::users::Role) -> Role {
+        if role.may_operate() {
+            Role::Operator
+        } else {
+            Role::Observer
         }
     }
-    Ok(users)
 }
 
 /// The prefix of a user-name session's token; the rest is the user's name.
@@ -235,7 +48,7 @@ pub struct CellAuth {
     /// Whether anonymous sessions are allowed (on None endpoints only): a plain cell.
     pub anonymous: bool,
     /// The users of the users file (empty in a plain cell).
-    pub users: HashMap<String, User>,
+    pub users: Arc<Users>,
 }
 
 impl CellAuth {
@@ -245,7 +58,7 @@ impl CellAuth {
             return self.anonymous.then_some(Role::Operator);
         }
         let name = token.0.strip_prefix(USER_PREFIX)?;
-        self.users.get(name).map(|u| u.role)
+        self.users.get(name).map(|u| u.role.into())
     }
 
     /// Who a session is, for a PackML request's `by` and the log: `opcua:anna`,
@@ -278,12 +91,23 @@ impl AuthManager for CellAuth {
         username: &str,
         password: &Password,
     ) -> Result<UserToken, Error> {
-        match self.users.get(username) {
-            Some(user) if user.hash.verify(password.get()) => {
-                info!(user = username, role = ?user.role, "OPC UA user authenticated");
+        let users = self.users.clone();
+        let (name, password) = (username.to_string(), password.get().to_string());
+        let role =
+            tokio::task::spawn_blocking(move || users.verify(&name, &password).map(|u| u.role))
+                .await
+                .map_err(|e| {
+                    Error::new(
+                        StatusCode::BadInternalError,
+                        format!("the password check failed: {e}"),
+                    )
+                })?;
+        match role {
+            Some(role) => {
+                info!(user = username, role = %role, "OPC UA user authenticated");
                 Ok(UserToken(format!("{USER_PREFIX}{username}")))
             }
-            Some(_) => {
+            None if self.users.get(username).is_some() => {
                 warn!(
                     user = username,
                     "OPC UA login refused: wrong password (BadUserAccessDenied)"
@@ -352,48 +176,35 @@ impl AuthManager for CellAuth {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::users::Role as UserRole;
 
     #[test]
-    fn a_hash_verifies_its_password_only() {
-        let hash = PasswordHash::new("s3cret");
-        let text = hash.to_string();
-        let parsed = PasswordHash::parse(&text).unwrap();
-        assert_eq!(parsed, hash);
-        assert!(parsed.verify("s3cret"));
-        assert!(!parsed.verify("s3cret "));
-        assert!(!parsed.verify(""));
-        // A new salt every time.
-        assert_ne!(PasswordHash::new("s3cret").to_string(), text);
-        assert!(PasswordHash::parse("sha1$1$00$00").is_err());
-        assert!(PasswordHash::parse("pbkdf2-sha256$0$0011223344556677$00").is_err());
+    fn observers_watch_and_operators_and_admins_operate() {
+        assert_eq!(Role::from(UserRole::Observer), Role::Observer);
+        assert_eq!(Role::from(UserRole::Operator), Role::Operator);
+        assert_eq!(Role::from(UserRole::Admin), Role::Operator);
     }
 
     #[test]
-    fn a_users_file_names_each_user_once_with_a_role() {
-        use std::os::unix::fs::PermissionsExt;
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("users.toml");
-        // Written 0600, as a users file must be (the test's umask would make it 0644).
-        let write = |text: String| {
-            std::fs::write(&path, text).unwrap();
-            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).unwrap();
+    fn a_session_is_its_users_role() {
+        let mut users = Users::default();
+        users.add("anna", UserRole::Admin, "anna-password").unwrap();
+        users
+            .add("wall", UserRole::Observer, "wall-password")
+            .unwrap();
+        let auth = CellAuth {
+            anonymous: false,
+            users: Arc::new(users),
         };
-        let hash = PasswordHash::new("pw").to_string();
-        write(format!("[[user]]\nname = \"anna\"\nrole = \"operator\"\npassword = \"{hash}\"\n[[user]]\nname = \"wall\"\nrole = \"observer\"\npassword = \"{hash}\"\n"));
-        let users = load(&path).unwrap();
-        assert_eq!(users["anna"].role, Role::Operator);
-        assert_eq!(users["wall"].role, Role::Observer);
-        write(format!(
-            "[[user]]\nname = \"anna\"\nrole = \"admin\"\npassword = \"{hash}\"\n"
-        ));
-        assert!(load(&path).is_err());
-        write(format!("[[user]]\nname = \"a\"\nrole = \"operator\"\npassword = \"{hash}\"\n[[user]]\nname = \"a\"\nrole = \"observer\"\npassword = \"{hash}\"\n"));
-        assert!(load(&path).unwrap_err().to_string().contains("twice"));
-        // Readable by others: refused, naming the fix.
-        write(format!(
-            "[[user]]\nname = \"anna\"\nrole = \"operator\"\npassword = \"{hash}\"\n"
-        ));
-        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o644)).unwrap();
-        assert!(load(&path).unwrap_err().to_string().contains("chmod 600"));
+        assert_eq!(
+            auth.role_of(&UserToken("user:anna".into())),
+            Some(Role::Operator)
+        );
+        assert_eq!(
+            auth.role_of(&UserToken("user:wall".into())),
+            Some(Role::Observer)
+        );
+        assert_eq!(auth.role_of(&UserToken("user:bert".into())), None);
+        assert_eq!(CellAuth::who(&UserToken("user:anna".into())), "opcua:anna");
     }
 }
