@@ -2,7 +2,8 @@
 //! real processes: a plain cell where an anonymous client browses, subscribes, commands
 //! the resources through every PackML method and submits work orders while the orders
 //! run; and a secure cell (`cell certs`, `cell up`) where only a trusted client
-//! application with an operator's password may command. The Python comes from
+//! application with an operator's or an admin's password may command (its users made
+//! with `cell users`, which has a test of its own). The Python comes from
 //! `HOLARCHY_OPCUA_PYTHON` (default target/opcua-venv/bin/python, docs/opcua.md); without
 //! it the Python tests print SKIPPED, unless HOLARCHY_REQUIRE_OPCUA=1.
 
@@ -402,6 +403,131 @@ fn add_user(pki: &Path, name: &str, role: &str, password: &str) {
         "cell users add {name}: {}",
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+/// Runs `cell users --pki PKI ARGS` with `stdin` piped in: whether it succeeded, its
+/// stdout and its stderr.
+fn cell_users(pki: &Path, args: &[&str], stdin: &str) -> (bool, String, String) {
+    let mut child = Command::new(bin("cell"))
+        .args(["users", "--pki"])
+        .arg(pki)
+        .args(args)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    use std::io::Write;
+    let _ = child.stdin.take().unwrap().write_all(stdin.as_bytes());
+    let out = child.wait_with_output().unwrap();
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// `cell users`: every change lands in the file and in the audit trail; refusals say
+/// why and change nothing; no password or hash is ever printed or recorded.
+#[test]
+fn cell_users_changes_the_users_file_and_records_each_change() {
+    let dir = tempfile::tempdir().unwrap();
+    let pki = dir.path();
+    let ok = |args: &[&str], stdin: &str| {
+        let (ok, out, err) = cell_users(pki, args, stdin);
+        assert!(ok, "cell users {args:?}: {err}");
+        out
+    };
+    let refused = |args: &[&str], stdin: &str| {
+        let (ok, out, err) = cell_users(pki, args, stdin);
+        assert!(!ok, "cell users {args:?} succeeded: {out}");
+        err
+    };
+    ok(&["add", "root", "--role", "admin"], "root-password\n");
+    ok(&["add", "anna", "--role", "operator"], "anna-password\n");
+    assert!(
+        refused(&["add", "anna", "--role", "observer"], "whatever1\n")
+            .contains("already a user anna")
+    );
+    assert!(refused(&["add", "bert", "--role", "operator"], "short\n")
+        .contains("at least 8 characters"));
+    assert!(
+        refused(&["add", "b rt", "--role", "operator"], "long-enough\n").contains("bad user name")
+    );
+    assert!(refused(&["add", "bert", "--role", "boss"], "long-enough\n")
+        .contains("observer, operator or admin"));
+    assert!(refused(&["remove", "root"], "").contains("add another admin first"));
+    assert!(refused(&["role", "root", "operator"], "").contains("add another admin first"));
+    assert!(refused(&["passwd", "nobody"], "long-enough\n").contains("no user nobody"));
+    ok(&["passwd", "anna"], "new-anna-password\n");
+    ok(&["role", "anna", "admin"], "");
+    ok(&["role", "root", "observer"], "");
+    ok(&["remove", "root"], "");
+    let list = ok(&["list"], "");
+    assert_eq!(list.lines().collect::<Vec<_>>(), ["anna  admin"], "{list}");
+    let users = std::fs::read_to_string(pki.join("users.toml")).unwrap();
+    assert!(
+        !users.contains("anna-password") && !users.contains("root-password"),
+        "{users}"
+    );
+    let audit = std::fs::read_to_string(pki.join("audit.jsonl")).unwrap();
+    let records: Vec<Value> = audit
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let seen: Vec<(String, String, String)> = records
+        .iter()
+        .map(|r| {
+            (
+                r["action"].as_str().unwrap().to_string(),
+                r["target"].as_str().unwrap_or_default().to_string(),
+                r["outcome"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect();
+    let done =
+        |action: &str, target: &str| (action.to_string(), target.to_string(), "done".to_string());
+    let no = |action: &str, target: &str| {
+        (
+            action.to_string(),
+            target.to_string(),
+            "refused".to_string(),
+        )
+    };
+    assert_eq!(
+        seen,
+        [
+            done("user_add", "root"),
+            done("user_add", "anna"),
+            no("user_add", "anna"),
+            no("user_add", "bert"),
+            no("user_add", "b rt"),
+            no("user_remove", "root"),
+            no("user_role", "root"),
+            no("user_password", "nobody"),
+            done("user_password", "anna"),
+            done("user_role", "anna"),
+            done("user_role", "root"),
+            done("user_remove", "root"),
+        ],
+        "{audit}"
+    );
+    assert!(records
+        .iter()
+        .all(|r| r["who"].as_str().unwrap().starts_with("cli:")
+            && r["from"].as_str().unwrap().starts_with("cell users on ")));
+    assert!(
+        !audit.contains("-password") && !audit.contains("argon2"),
+        "{audit}"
+    );
+    // A users file others may read is refused, naming the fix.
+    std::fs::set_permissions(
+        pki.join("users.toml"),
+        std::os::unix::fs::PermissionsExt::from_mode(0o640),
+    )
+    .unwrap();
+    assert!(refused(&["list"], "").contains("chmod 600"));
+    assert!(refused(&["add", "bert", "--role", "operator"], "long-enough\n").contains("chmod 600"));
 }
 
 /// A secure cell as docs/opcua.md sets one up: `cell certs` issues the server's
