@@ -2,12 +2,12 @@
 //! appended to the audit trail beside the users file (`audit.jsonl`).
 
 use std::io::{BufRead, IsTerminal, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{anyhow, bail, Context, Result};
 use clap::{ArgGroup, Args, Subcommand};
 
-use super::{Role, UsersError};
+use super::{Role, Users, UsersError};
 use crate::audit::{self, AuditAction, AuditOutcome, AuditRecord, AuditTrail};
 
 /// `cell users`: which users file, and what to do with it.
@@ -61,6 +61,31 @@ pub enum UsersCommand {
     List,
 }
 
+/// A change `cell users` makes to one user.
+#[derive(Debug, Clone, Copy)]
+enum Change {
+    /// Add them with this role.
+    Add(Role),
+    /// Give them a new password.
+    Passwd,
+    /// Give them this role.
+    Role(Role),
+    /// Remove them.
+    Remove,
+}
+
+impl Change {
+    /// How the audit trail calls it.
+    fn action(self) -> AuditAction {
+        match self {
+            Change::Add(_) => AuditAction::UserAdd,
+            Change::Passwd => AuditAction::UserPassword,
+            Change::Role(_) => AuditAction::UserRole,
+            Change::Remove => AuditAction::UserRemove,
+        }
+    }
+}
+
 /// Runs `cell users`.
 pub fn run(args: UsersArgs) -> Result<()> {
     let path = match (args.pki, args.file) {
@@ -68,117 +93,126 @@ pub fn run(args: UsersArgs) -> Result<()> {
         (None, Some(file)) => file,
         _ => bail!("exactly one of --pki DIR and --file FILE"),
     };
-    let (name, action) = match &args.command {
-        UsersCommand::List => {
-            let users = match super::load(&path) {
-                Err(UsersError::Read { source, .. })
-                    if source.kind() == std::io::ErrorKind::NotFound =>
-                {
-                    eprintln!(
-                        "no users file at {} yet: `cell users add` makes it",
-                        path.display()
-                    );
-                    return Ok(());
-                }
-                other => other?,
-            };
-            let width = users.iter().map(|u| u.name.len()).max().unwrap_or(0);
-            let mut out = std::io::stdout().lock();
-            for user in users.iter() {
-                writeln!(out, "{:width$}  {}", user.name, user.role)?;
-            }
+    let (name, change) = match args.command {
+        UsersCommand::List => return list(&path),
+        UsersCommand::Add { name, role } => (name, Change::Add(role)),
+        UsersCommand::Passwd { name } => (name, Change::Passwd),
+        UsersCommand::Role { name, role } => (name, Change::Role(role)),
+        UsersCommand::Remove { name } => (name, Change::Remove),
+    };
+    apply(&path, &name, change)
+}
+
+/// Prints the users of the file at `path`: name and role.
+fn list(path: &Path) -> Result<()> {
+    let users = match read(path)? {
+        Some(users) => users,
+        None => {
+            eprintln!(
+                "no users file at {} yet: `cell users add` makes it",
+                path.display()
+            );
             return Ok(());
         }
-        UsersCommand::Add { name, .. } => (name.clone(), AuditAction::UserAdd),
-        UsersCommand::Passwd { name } => (name.clone(), AuditAction::UserPassword),
-        UsersCommand::Role { name, .. } => (name.clone(), AuditAction::UserRole),
-        UsersCommand::Remove { name } => (name.clone(), AuditAction::UserRemove),
     };
+    let width = users.iter().map(|u| u.name.len()).max().unwrap_or(0);
+    let mut out = std::io::stdout().lock();
+    for user in users.iter() {
+        writeln!(out, "{:width$}  {}", user.name, user.role)?;
+    }
+    Ok(())
+}
+
+/// The users file at `path`; `None` when there is none yet.
+fn read(path: &Path) -> Result<Option<Users>, UsersError> {
+    match super::load(path) {
+        Ok(users) => Ok(Some(users)),
+        Err(UsersError::Read { source, .. }) if source.kind() == std::io::ErrorKind::NotFound => {
+            Ok(None)
+        }
+        Err(e) => Err(e),
+    }
+}
+
+/// Makes `change` to the user `name` in the file at `path`, and records it (or its
+/// refusal) in the audit trail beside the file.
+fn apply(path: &Path, name: &str, change: Change) -> Result<()> {
+    let action = change.action();
     // The trail first: a change that could not be recorded is not made.
     let dir = match path.parent() {
         Some(dir) if !dir.as_os_str().is_empty() => dir.to_path_buf(),
         _ => PathBuf::from("."),
     };
     let trail = AuditTrail::open(&dir.join(audit::FILE_NAME))?;
-    let password = match &args.command {
-        UsersCommand::Add { name, .. } | UsersCommand::Passwd { name } => {
+    let password = match change {
+        Change::Add(_) | Change::Passwd => {
             // Known before asking: a bad name, a name taken or an unknown user fails
             // before the password is typed.
-            let known = match super::load(&path) {
-                Ok(users) => users.get(name).is_some(),
-                Err(UsersError::Read { source, .. })
-                    if source.kind() == std::io::ErrorKind::NotFound =>
-                {
-                    false
+            let known = read(path)?.is_some_and(|users| users.get(name).is_some());
+            let refusal = match change {
+                Change::Add(_) if !super::valid_name(name) => {
+                    Some(UsersError::BadName(name.to_string()))
                 }
-                Err(e) => return Err(e.into()),
-            };
-            let refusal = match &args.command {
-                UsersCommand::Add { .. } if !super::valid_name(name) => {
-                    Some(UsersError::BadName(name.clone()))
-                }
-                UsersCommand::Add { .. } if known => Some(UsersError::Exists(name.clone())),
-                UsersCommand::Passwd { .. } if !known => Some(UsersError::Unknown(name.clone())),
+                Change::Add(_) if known => Some(UsersError::Exists(name.to_string())),
+                Change::Passwd if !known => Some(UsersError::Unknown(name.to_string())),
                 _ => None,
             };
             if let Some(refusal) = refusal {
                 refused(&trail, name, action, &refusal);
                 return Err(refusal.into());
             }
-            Some(read_password(name)?)
+            read_password(name)?
         }
-        _ => None,
+        Change::Role(_) | Change::Remove => String::new(),
     };
-    let changed = super::change(&path, |users| match &args.command {
-        UsersCommand::Add { name, role } => {
-            users.add(name, *role, password.as_deref().unwrap_or_default())?;
-            Ok(Some(serde_json::json!({ "role": role.as_str() })))
-        }
-        UsersCommand::Passwd { name } => {
-            users.set_password(name, password.as_deref().unwrap_or_default())?;
-            Ok(None)
-        }
-        UsersCommand::Role { name, role } => {
-            let was = users.set_role(name, *role)?;
-            Ok(Some(
-                serde_json::json!({ "role": role.as_str(), "was": was.as_str() }),
+    let changed = super::change(path, |users| match change {
+        Change::Add(role) => {
+            users.add(name, role, &password)?;
+            Ok((
+                Some(serde_json::json!({ "role": role.as_str() })),
+                format!("added {name} ({role})"),
             ))
         }
-        UsersCommand::Remove { name } => {
-            let user = users.remove(name)?;
-            Ok(Some(serde_json::json!({ "role": user.role.as_str() })))
+        Change::Passwd => {
+            users.set_password(name, &password)?;
+            Ok((None, format!("changed the password of {name}")))
         }
-        UsersCommand::List => unreachable!("listed above"),
+        Change::Role(role) => {
+            let was = users.set_role(name, role)?;
+            Ok((
+                Some(serde_json::json!({ "role": role.as_str(), "was": was.as_str() })),
+                format!("{name} is now {role} (was {was})"),
+            ))
+        }
+        Change::Remove => {
+            let user = users.remove(name)?;
+            Ok((
+                Some(serde_json::json!({ "role": user.role.as_str() })),
+                format!("removed {name} ({})", user.role),
+            ))
+        }
     });
     match changed {
-        Ok(detail) => {
-            let mut record =
-                AuditRecord::now(&who(), &from(), action, AuditOutcome::Done).on(&name);
+        Ok((detail, said)) => {
+            let mut record = AuditRecord::now(&who(), &from(), action, AuditOutcome::Done).on(name);
             if let Some(detail) = detail {
                 record = record.with(detail);
             }
             trail.append(&record).context(
                 "the users file was changed, but the change is missing from the audit trail",
             )?;
-            let said = match &args.command {
-                UsersCommand::Add { role, .. } => format!("added {name} ({role})"),
-                UsersCommand::Passwd { .. } => format!("changed the password of {name}"),
-                UsersCommand::Role { role, .. } => format!("{name} is now {role}"),
-                UsersCommand::Remove { .. } => format!("removed {name}"),
-                UsersCommand::List => unreachable!(),
-            };
             println!("{said} in {}", path.display());
             Ok(())
         }
+        Err(e) if e.is_refusal() => {
+            refused(&trail, name, action, &e);
+            Err(e.into())
+        }
         Err(e) => {
-            if e.is_refusal() {
-                refused(&trail, &name, action, &e);
-            } else {
-                trail.record(
-                    &AuditRecord::now(&who(), &from(), action, AuditOutcome::Failed(e.to_string()))
-                        .on(&name),
-                );
-            }
+            trail.record(
+                &AuditRecord::now(&who(), &from(), action, AuditOutcome::Failed(e.to_string()))
+                    .on(name),
+            );
             Err(e.into())
         }
     }

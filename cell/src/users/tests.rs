@@ -82,11 +82,17 @@ fn verify_knows_the_right_password_only() {
     assert!(users.verify("anna", "anna-passwore").is_none());
     assert!(users.verify("anna", "").is_none());
     assert!(users.verify("bert", "anna-password").is_none());
-    // An unknown name takes about as long as a wrong password (a hash is verified).
+    // An unknown name takes about as long as a wrong password (a hash is verified);
+    // the fastest of three, as other tests share the cores.
     let time = |name: &str| {
-        let start = std::time::Instant::now();
-        assert!(users.verify(name, "wrong-password").is_none());
-        start.elapsed()
+        (0..3)
+            .map(|_| {
+                let start = std::time::Instant::now();
+                assert!(users.verify(name, "wrong-password").is_none());
+                start.elapsed()
+            })
+            .min()
+            .unwrap()
     };
     let (known, unknown) = (time("anna"), time("nobody"));
     assert!(
