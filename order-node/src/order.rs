@@ -103,7 +103,19 @@ impl OrderTask {
 
     /// The order's life: its plan, then its steps until none is left.
     async fn work(&mut self, operator_cancel: &CancellationToken) -> Result<(), OrderError> {
-        self.plan().await?;
+        // An order that waits for its plan (a queued work order whose product holon is
+        // not up yet) ends at an operator's cancel: without a plan it holds no booking.
+        let planned = lock(&self.progress).plan.is_some();
+        tokio::select! {
+            biased;
+            _ = operator_cancel.cancelled(), if !planned => {
+                info!(holon = %self.holon, "cancelled while waiting for its plan");
+                self.ctx.commit(&self.progress, |p| p.cancel())?;
+                self.publish().await;
+                return Ok(());
+            }
+            planned = self.plan() => planned?,
+        }
         loop {
             let (step, conversation_id) = {
                 let p = lock(&self.progress);
