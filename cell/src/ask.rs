@@ -13,12 +13,13 @@ use anyhow::{anyhow, Result};
 use tokio::time::Instant;
 use zenoh::query::Reply;
 
-/// The first reply to a `get` on `key` (with `payload`), asked again until one comes or
-/// `timeout` passes (`None`).
+/// The first reply to a `get` on `key` (with `payload`, and who asks as its attachment,
+/// [`schemas::requested_by`]), asked again until one comes or `timeout` passes (`None`).
 pub async fn until_answered(
     session: &zenoh::Session,
     key: &str,
     payload: Option<Vec<u8>>,
+    by: &str,
     timeout: Duration,
 ) -> Result<Option<Reply>> {
     let deadline = Instant::now() + timeout;
@@ -30,6 +31,9 @@ pub async fn until_answered(
         );
         if let Some(payload) = &payload {
             get = get.payload(payload.clone());
+        }
+        if !by.is_empty() {
+            get = get.attachment(by.as_bytes().to_vec());
         }
         let mut replies = get
             .with(holon::query::replies())

@@ -34,6 +34,16 @@ impl ClientArgs {
         Ok(schemas::CellKeys::new(&self.cell)?)
     }
 
+    /// Who asks, for the holons' logs: `cell operator.default on host1 (user kim)`.
+    pub fn who_asks(&self) -> String {
+        let user = std::env::var("USER").unwrap_or_else(|_| nix::unistd::getuid().to_string());
+        format!(
+            "cell {} on {} (user {user})",
+            self.identity.as_deref().unwrap_or(OPERATOR),
+            holon::presence::host_name()
+        )
+    }
+
     pub fn timeout(&self) -> Duration {
         Duration::from_millis(self.timeout_ms)
     }

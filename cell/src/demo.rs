@@ -389,6 +389,25 @@ async fn start_dashboard(
         listen,
         operator: true,
         host_names: Vec::new(),
+        // A secure demo's dashboard: HTTPS, people log in with the users file (the
+        // demo's operator) or an operator.* certificate, and an audit trail beside it.
+        // An open demo's: no login on loopback, its trail in the demo's directory.
+        users: cell.pki.as_deref().map(crate::users::default_path),
+        audit: Some(
+            cell.pki
+                .as_deref()
+                .unwrap_or(&cell.dir)
+                .join(crate::audit::FILE_NAME),
+        ),
+        sessions: Default::default(),
+        tls: crate::dashboard::https_files(
+            cell.pki.as_deref(),
+            "operator.default",
+            false,
+            false,
+            None,
+            listen,
+        )?,
     };
     let stop = CancellationToken::new();
     let task = tokio::spawn(crate::dashboard::run(config, stop.clone()));
@@ -460,7 +479,7 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         due: None,
         queue: false,
     };
-    let ids = crate::submit::submit(&cell.session, &cell.keys, &work, STARTUP).await?;
+    let ids = crate::submit::submit(&cell.session, &cell.keys, &work, "cell demo", STARTUP).await?;
     println!(
         "submitted {} orders of breaker: {} .. {}",
         ids.len(),

@@ -4,6 +4,7 @@
 
 pub mod access;
 pub mod ask;
+pub mod audit;
 pub mod certs;
 pub mod dashboard;
 pub mod demo;
@@ -16,3 +17,4 @@ pub mod status;
 pub mod submit;
 pub mod up;
 pub mod upgrade;
+pub mod users;

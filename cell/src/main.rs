@@ -211,6 +211,37 @@ enum Commands {
         /// is refused (a page of another site, rebound to this address).
         #[arg(long = "host-name", value_name = "NAME")]
         host_names: Vec<String>,
+        /// The users file people log in with (`cell users`); default <pki>/users.toml
+        /// with --pki. Without a users file (and without --pki) nobody logs in, and the
+        /// dashboard listens on loopback only.
+        #[arg(long, value_name = "FILE")]
+        users: Option<PathBuf>,
+        /// The audit trail, JSON lines (default: audit.jsonl beside the users file;
+        /// without a users file, none unless given).
+        #[arg(long, value_name = "FILE")]
+        audit: Option<PathBuf>,
+        /// A session ends after this many seconds without a request.
+        #[arg(long, default_value_t = 900, value_name = "SECONDS")]
+        session_idle_s: u64,
+        /// A session ends this many seconds after its login, however busy.
+        #[arg(long, default_value_t = 28_800, value_name = "SECONDS")]
+        session_max_s: u64,
+        /// Serve HTTPS (plain HTTP on the same port then only redirects). On by default
+        /// with --pki, with the certificate of the dashboard's identity
+        /// (<pki>/<identity>.pem and .key) and client certificates of the cell CA as
+        /// logins; without --pki it needs --tls-cert and --tls-key.
+        #[arg(long, conflicts_with = "no_tls")]
+        tls: bool,
+        /// With --pki, serve plain HTTP anyway (loopback only: behind a reverse proxy
+        /// on this host that serves HTTPS).
+        #[arg(long)]
+        no_tls: bool,
+        /// The HTTPS certificate chain (PEM), e.g. one the plant's CA issued.
+        #[arg(long, value_name = "FILE", requires = "tls_key")]
+        tls_cert: Option<PathBuf>,
+        /// The HTTPS certificate's key (PEM, readable by its owner only).
+        #[arg(long, value_name = "FILE", requires = "tls_cert")]
+        tls_key: Option<PathBuf>,
         #[command(flatten)]
         client: ClientArgs,
     },
@@ -423,12 +454,36 @@ async fn run(args: Args) -> Result<bool> {
             listen,
             operator,
             host_names,
+            users,
+            audit,
+            session_idle_s,
+            session_max_s,
+            tls,
+            no_tls,
+            tls_cert,
+            tls_key,
             client,
         } => {
             let (identity, operator) = cell::dashboard::connect_as(
                 client.pki.is_some(),
                 client.identity.as_deref(),
                 operator,
+            )?;
+            let pki = client.pki.as_deref();
+            let users = users.or_else(|| pki.map(cell::users::default_path));
+            let audit = audit.or_else(|| {
+                users
+                    .as_deref()
+                    .and_then(|u| u.parent())
+                    .map(|dir| dir.join(cell::audit::FILE_NAME))
+            });
+            let tls = cell::dashboard::https_files(
+                pki,
+                &identity,
+                tls,
+                no_tls,
+                tls_cert.zip(tls_key),
+                listen,
             )?;
             let config = cell::dashboard::DashboardConfig {
                 keys: client.keys()?,
@@ -437,6 +492,13 @@ async fn run(args: Args) -> Result<bool> {
                 listen,
                 operator,
                 host_names,
+                users,
+                audit,
+                sessions: cell::dashboard::session::SessionLimits {
+                    idle: Duration::from_secs(session_idle_s),
+                    absolute: Duration::from_secs(session_max_s),
+                },
+                tls,
             };
             cell::dashboard::run(config, holon::shutdown_on_signals()).await?;
             Ok(true)
@@ -578,7 +640,8 @@ async fn run(args: Args) -> Result<bool> {
             };
             work.validate()?;
             let session = client.session(OPERATOR).await?;
-            let ids = cell::submit::submit(&session, &keys, &work, client.timeout()).await?;
+            let by = client.who_asks();
+            let ids = cell::submit::submit(&session, &keys, &work, &by, client.timeout()).await?;
             println!("{}", ids.join("\n"));
             close(session).await;
             Ok(true)
@@ -587,7 +650,8 @@ async fn run(args: Args) -> Result<bool> {
             let keys = client.keys()?;
             schemas::HolonId::order(&order)?;
             let session = client.session(OPERATOR).await?;
-            let reply = cell::status::cancel(&session, &keys, &order, client.timeout()).await;
+            let by = client.who_asks();
+            let reply = cell::status::cancel(&session, &keys, &order, &by, client.timeout()).await;
             close(session).await;
             let reply = reply?;
             println!("{}: {}", reply.order, reply.detail);
@@ -603,11 +667,7 @@ async fn run(args: Args) -> Result<bool> {
             client,
         } => {
             let keys = client.keys()?;
-            let by = format!(
-                "cell {} on {}",
-                client.identity.as_deref().unwrap_or(OPERATOR),
-                holon::presence::host_name()
-            );
+            let by = client.who_asks();
             if let Some(service_type) = job {
                 let info: serde_json::Map<String, serde_json::Value> = serde_json::from_str(&info)
                     .map_err(|e| anyhow!("--info is not a JSON object: {e}"))?;

@@ -279,16 +279,18 @@ pub fn render_order_nodes(nodes: &[OrderNodeStatus]) -> String {
     out
 }
 
-/// Asks the order-node hosting `order` to cancel it.
+/// Asks the order-node hosting `order` to cancel it; `by` says who asks, for the
+/// order-node's log.
 pub async fn cancel(
     session: &zenoh::Session,
     keys: &CellKeys,
     order: &str,
+    by: &str,
     timeout: Duration,
 ) -> Result<schemas::CancelReply> {
     // A cancel is idempotent (journalled before its reply; asked again it answers the
     // order's state), so it is asked until an order-node answers.
-    match crate::ask::until_answered(session, &keys.cancel(order), None, timeout).await? {
+    match crate::ask::until_answered(session, &keys.cancel(order), None, by, timeout).await? {
         Some(reply) => match reply.result() {
             Ok(sample) => Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
             Err(err) => Err(anyhow!(

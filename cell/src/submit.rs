@@ -6,16 +6,19 @@ use std::time::Duration;
 use anyhow::{bail, Result};
 use schemas::{CellKeys, SubmitReply, WorkOrder};
 
-/// Submits a work order to the cell's order-nodes (a default `get` reaches one).
+/// Submits a work order to the cell's order-nodes (a default `get` reaches one); `by`
+/// says who asks, for the order-node's log.
 pub async fn submit(
     session: &zenoh::Session,
     keys: &CellKeys,
     work: &WorkOrder,
+    by: &str,
     timeout: Duration,
 ) -> Result<Vec<String>> {
     let key = keys.orders_submit();
     let Some(reply) =
-        crate::ask::until_answered(session, &key, Some(serde_json::to_vec(work)?), timeout).await?
+        crate::ask::until_answered(session, &key, Some(serde_json::to_vec(work)?), by, timeout)
+            .await?
     else {
         bail!("no order-node answered on {key}");
     };

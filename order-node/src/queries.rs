@@ -239,6 +239,7 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
         }
         return;
     }
+    let by = requested_by(&query);
     let orders = match host.create(&work, tasks, cancel) {
         Ok(orders) => orders,
         Err(e) => {
@@ -247,10 +248,18 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
             return refuse_work(host, &query, refusal).await;
         }
     };
+    info!(node = %host.config.name, product = %work.product, orders = ?orders, by = by.as_deref().unwrap_or("(not said)"), "work order accepted");
     let reply = serde_json::to_vec(&SubmitReply { orders }).expect("serializes");
     if let Err(e) = query.reply(query.key_expr().clone(), reply).await {
         warn!(node = %host.config.name, error = %e, "cannot answer the work order");
     }
+}
+
+/// Who asks, as the query's attachment says ([`schemas::requested_by`]).
+fn requested_by(query: &Query) -> Option<String> {
+    query
+        .attachment()
+        .and_then(|a| schemas::requested_by(&a.to_bytes()))
 }
 
 /// An operator's cancel of one order (`order/<name>/cancel`).
@@ -260,6 +269,8 @@ async fn cancel(host: &Host, query: Query) {
         .strip_suffix("/cancel")
         .and_then(|k| k.rsplit('/').next())
         .unwrap_or_default();
+    let by = requested_by(&query);
+    info!(node = %host.config.name, order = %name, by = by.as_deref().unwrap_or("(not said)"), "cancel asked");
     let answer = match host.cancel(name) {
         Ok(reply) => {
             let payload = serde_json::to_vec(&reply).expect("serializes");

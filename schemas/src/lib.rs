@@ -21,8 +21,8 @@ pub use packml::{
     UnitMode,
 };
 pub use plan::{
-    AttemptEnd, AttemptRecord, CancelReply, OnReject, OrderSnapshot, OrderStatus, Plan, PlanStep,
-    SubmitReply, WorkOrder, MAX_ATTEMPT_HISTORY,
+    requested_by, AttemptEnd, AttemptRecord, CancelReply, OnReject, OrderSnapshot, OrderStatus,
+    Plan, PlanStep, SubmitReply, WorkOrder, MAX_ATTEMPT_HISTORY, MAX_REQUESTED_BY,
 };
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{

@@ -132,6 +132,20 @@ impl WorkOrder {
     }
 }
 
+/// The longest "who asks" a work order or a cancel may carry.
+pub const MAX_REQUESTED_BY: usize = 200;
+
+/// Who asks for a work order or a cancel (`cell submit on host`, a dashboard's user,
+/// an OPC UA user), as the zenoh attachment of the query, so that the order-node's log
+/// names them. It is not part of the payload, so an order-node that does not read it
+/// still takes the query; what is not UTF-8, or longer than [`MAX_REQUESTED_BY`], or
+/// holds control characters, is not read.
+pub fn requested_by(attachment: &[u8]) -> Option<String> {
+    let text = std::str::from_utf8(attachment).ok()?;
+    (!text.is_empty() && text.len() <= MAX_REQUESTED_BY && !text.chars().any(char::is_control))
+        .then(|| text.to_string())
+}
+
 /// The answer to a work order: the new orders' names.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 pub struct SubmitReply {

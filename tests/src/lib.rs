@@ -4,6 +4,7 @@
 //! bounds every wait, and kills its children when a test ends.
 
 pub mod secure_cell;
+pub mod web;
 pub mod webdriver;
 
 use std::fs;

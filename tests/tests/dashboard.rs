@@ -193,14 +193,6 @@ fn wait_done_on_page(browser: &webdriver::Browser, orders: &[String], within: Du
     }
 }
 
-/// Whether a `/api/orders` answer lists `order` done.
-fn lists_done(orders: &serde_json::Value, order: &str) -> bool {
-    orders.as_array().is_some_and(|o| {
-        o.iter()
-            .any(|o| o["holon"] == format!("order/{order}") && o["status"] == "done")
-    })
-}
-
 /// Reads the server-sent events of `/events` until a `view` event comes: its data.
 fn first_view(address: &str) -> serde_json::Value {
     let mut stream = TcpStream::connect(address).unwrap();
@@ -586,99 +578,6 @@ async fn another_site_cannot_act_through_the_dashboard() {
     assert_eq!(status, 200);
     let (status, _, _) = named.raw("GET", "/api/view", &format!("other.plant:{port}"), &[], "");
     assert_eq!(status, 421);
-}
-
-/// The secure cell: each dashboard connects with an identity of its own, and the role
-/// decides the page. An observer's page lists the cell and offers no submit form (its
-/// API refuses); an operator's page submits work orders, which are done; an observer
-/// identity asked to operate is refused at the start.
-#[tokio::test(flavor = "multi_thread")]
-async fn in_a_secure_cell_the_identity_decides_what_the_page_may_do() {
-    if let Err(why) = webdriver::browser_available() {
-        println!("SKIPPED: the browser test needs Chromium ({why})");
-        return;
-    }
-    let dir = tempfile::tempdir().unwrap();
-    let cell = holarchy_tests::secure_cell::secure_cell(dir.path(), "t-dash-sec");
-    let pki = cell.pki().display().to_string();
-
-    // An observer identity may not run an operator's page: refused, with why.
-    let refused = Command::new(bin("cell"))
-        .args([
-            "dashboard",
-            "--cell",
-            cell.keys.cell(),
-            "--connect",
-            &cell.endpoint,
-        ])
-        .args(["--listen", "127.0.0.1:0", "--pki", &pki])
-        .args(["--identity", "observer.default", "--operator"])
-        .output()
-        .unwrap();
-    assert!(!refused.status.success());
-    let stderr = String::from_utf8_lossy(&refused.stderr);
-    assert!(
-        stderr.contains("--operator needs an operator identity"),
-        "{stderr}"
-    );
-
-    let observer = Dashboard::start_on(cell.keys.cell(), &cell.endpoint, &["--pki", &pki]);
-    let operator = Dashboard::start_on(
-        cell.keys.cell(),
-        &cell.endpoint,
-        &["--pki", &pki, "--identity", "operator.default"],
-    );
-    observer.wait("/api/holons", "the four resources free", |h| {
-        h.as_array().is_some_and(|a| {
-            a.iter()
-                .filter(|h| h["resource"]["state"] == "free")
-                .count()
-                == 4
-        })
-    });
-    assert_eq!(observer.json("/api/view")["operator"], false);
-    assert_eq!(operator.json("/api/view")["operator"], true);
-    let (status, body) = observer.http("POST", "/api/orders", r#"{"product":"breaker","count":1}"#);
-    assert_eq!(status, 403, "{body}");
-
-    let browser = webdriver::Browser::start(&dir.path().join("profile")).unwrap();
-    let within = Duration::from_secs(10);
-    // The observer's page: the cell, over mutual TLS, and no way to submit.
-    browser
-        .goto(&format!("http://{}/", observer.address))
-        .unwrap();
-    browser
-        .wait_for("tr[data-holon=\"resource/robot1\"]", within)
-        .unwrap();
-    browser.wait_for("#submit-panel.hidden", within).unwrap();
-    assert_eq!(
-        browser.find("button[data-packml]").unwrap(),
-        None,
-        "an observer's page offers no PackML command"
-    );
-    // The operator's page submits a breaker, which is done.
-    browser
-        .goto(&format!("http://{}/", operator.address))
-        .unwrap();
-    browser
-        .wait_for("#submit-panel:not(.hidden)", within)
-        .unwrap();
-    let submitted = submit_from_page(&browser, "breaker", 1, within);
-    let order = submitted[0].clone();
-    operator.wait("/api/orders", "the submitted order done", |o| {
-        lists_done(o, &order)
-    });
-    // The observer's page shows it done too.
-    observer.wait("/api/orders", "the order done, for the observer", |o| {
-        lists_done(o, &order)
-    });
-    browser
-        .goto(&format!("http://{}/", observer.address))
-        .unwrap();
-    browser
-        .wait_for("tr[data-holon=\"resource/robot1\"]", within)
-        .unwrap();
-    wait_done_on_page(&browser, &submitted, within);
 }
 
 /// `cell demo --dashboard --keep`: the demo's dashboard shows its orders done, the cell

@@ -12,19 +12,24 @@
 //! frame-ancestors 'none'`, `X-Content-Type-Options: nosniff`, `Referrer-Policy:
 //! same-origin`).
 //!
-//! Not here (issue: people log in): users, sessions and HTTPS; a process on the
-//! operator's own machine, or anyone who reaches the port with a tool of their own,
-//! is not a web page and is not stopped by these checks.
+//! A dashboard that serves HTTPS answers a plain HTTP request (on the same port) only
+//! with a redirect (308) to the same path over HTTPS, once its `Host` passed.
+//!
+//! Who may do what is the [`gate`](super::gate)'s business, after this: anyone who
+//! reaches the port with a tool of their own is not a web page, and only a login
+//! stops them.
 
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Arc;
 
-use axum::extract::{Request, State};
+use axum::extract::{ConnectInfo, Request, State};
 use axum::http::{header, HeaderValue, Method, StatusCode};
 use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use tracing::warn;
+
+use super::listener::Peer;
 
 /// The names and port the dashboard answers to.
 #[derive(Debug, Clone)]
@@ -35,12 +40,15 @@ pub struct Guard {
     localhost: bool,
     /// Other names it answers to, lower case.
     names: Vec<String>,
+    /// Whether it serves HTTPS (plain HTTP is then only redirected).
+    https: bool,
 }
 
 impl Guard {
     /// A guard for a dashboard bound to `bound`, also answering to `names`.
-    pub fn new(bound: SocketAddr, names: &[String]) -> Guard {
+    pub fn new(bound: SocketAddr, names: &[String], https: bool) -> Guard {
         Guard {
+            https,
             port: bound.port(),
             localhost: bound.ip().is_loopback() || bound.ip().is_unspecified(),
             names: names.iter().map(|n| n.to_ascii_lowercase()).collect(),
@@ -129,12 +137,18 @@ fn split_host(host: &str) -> Option<(&str, u16)> {
 
 /// The middleware: refuses what [`Guard`] refuses, and adds the safety headers to
 /// every answer.
-pub async fn check(State(guard): State<Arc<Guard>>, request: Request, next: Next) -> Response {
+pub async fn check(
+    State(guard): State<Arc<Guard>>,
+    ConnectInfo(peer): ConnectInfo<Peer>,
+    request: Request,
+    next: Next,
+) -> Response {
     let mut response = match guard.refusal(&request) {
         Some((status, why)) => {
-            warn!(method = %request.method(), path = %request.uri().path(), status = status.as_u16(), reason = %why, "dashboard request refused");
+            warn!(method = %request.method(), path = %request.uri().path(), status = status.as_u16(), reason = %why, from = %peer.address, "dashboard request refused");
             (status, Json(serde_json::json!({ "error": why }))).into_response()
         }
+        None if guard.https && !peer.tls => to_https(&request),
         None => next.run(request).await,
     };
     let headers = response.headers_mut();
@@ -154,12 +168,36 @@ pub async fn check(State(guard): State<Arc<Guard>>, request: Request, next: Next
     response
 }
 
+/// The same request's address over HTTPS, as a redirect (its `Host` passed the check).
+fn to_https(request: &Request) -> Response {
+    let host = request
+        .headers()
+        .get(header::HOST)
+        .and_then(|h| h.to_str().ok())
+        .unwrap_or("");
+    let path = request.uri().path_and_query().map_or("/", |p| p.as_str());
+    let location = format!("https://{host}{path}");
+    match HeaderValue::from_str(&location) {
+        Ok(location) => (
+            StatusCode::PERMANENT_REDIRECT,
+            [(header::LOCATION, location)],
+            "this dashboard serves HTTPS only\n",
+        )
+            .into_response(),
+        Err(_) => StatusCode::BAD_REQUEST.into_response(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn guard(bound: &str) -> Guard {
-        Guard::new(bound.parse().unwrap(), &["Dashboard.Plant".to_string()])
+        Guard::new(
+            bound.parse().unwrap(),
+            &["Dashboard.Plant".to_string()],
+            false,
+        )
     }
 
     #[test]

@@ -1,50 +1,78 @@
 //! The dashboard's web server: the page, its live updates, the JSON API and `/metrics`.
 //!
-//! | route | what |
-//! |---|---|
-//! | `GET /` | the page (embedded; no external asset) |
-//! | `GET /events` | server-sent events: `view`, the whole view, at once and after every change (at most every 250 ms) |
-//! | `GET /api/view`, `/api/holons`, `/api/orders`, `/api/alarms`, `/api/events` | JSON |
-//! | `POST /api/orders` | submit a work order, `{"product", "count", "queue"}` (operator dashboards only) |
-//! | `POST /api/alarms/{id}/ack` | acknowledge an alarm (operator dashboards only) |
-//! | `POST /api/resources/{name}/packml` | a PackML command, `{"command": "hold"}` (operator dashboards only): the resource's answer, or why it refused (409) |
-//! | `GET /metrics` | Prometheus text format |
+//! | route | who | what |
+//! |---|---|---|
+//! | `GET /login`, `POST /api/login` | anybody | the login page; `{"name", "password"}` opens a session (cookie) |
+//! | `POST /api/logout` | logged in | ends the session |
+//! | `GET /api/me` | logged in | who, the role, what the page may offer |
+//! | `GET /` | logged in | the page (embedded; no external asset) |
+//! | `GET /events` | logged in | server-sent events: `view`, the whole view, at once and after every change (at most every 250 ms); ends with the session |
+//! | `GET /api/view`, `/api/holons`, `/api/orders`, `/api/alarms`, `/api/events` | logged in | JSON |
+//! | `GET /metrics` | logged in | Prometheus text format |
+//! | `POST /api/orders` | operator | submit a work order, `{"product", "count", "queue", "priority", "due_in_s"}` |
+//! | `POST /api/orders/{name}/cancel` | operator | cancel an order |
+//! | `POST /api/alarms/{id}/ack` | operator | acknowledge an alarm |
+//! | `POST /api/resources/{name}/packml` | operator | a PackML command, `{"command": "hold"}`: the resource's answer, or why it refused (409) |
+//! | `GET /api/audit`, `/api/audit.jsonl` | operator | the audit trail: the newest 500 records, newest first; the whole trail as JSON lines |
+//! | `GET /api/users`, `POST /api/users`, `POST /api/users/{name}/password`, `/role`, `/remove` | admin | the users ([`super::people`]) |
 //!
-//! Every request passes [`super::guard`] first: its `Host` must be the dashboard's own,
-//! and a change (POST) must come from the dashboard's own page (`Origin`) as JSON.
+//! Every request passes [`super::guard`] first (its `Host` must be the dashboard's
+//! own, a change must come from the dashboard's own page as JSON, and plain HTTP is
+//! sent to HTTPS when the dashboard serves it), then [`super::gate`] (who it is).
 
 use std::convert::Infallible;
 use std::sync::Arc;
 use std::time::Duration;
 
-use axum::extract::{Path, State};
+use axum::extract::State;
 use axum::http::{header, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{Html, IntoResponse, Response};
 use axum::routing::{get, post};
-use axum::{Json, Router};
+use axum::{Extension, Json, Router};
 use futures_util::stream::{self, Stream};
-use serde::Deserialize;
 use tracing::warn;
 
-use super::{metrics, Command, Shared, View};
+use super::gate::{self, Gate, Who};
+use super::{actions, metrics, people, Shared, View};
 
 /// The page: HTML, CSS and script in one file, compiled in.
 const PAGE: &str = include_str!("page.html");
 
-/// The routes, behind the [`guard`](super::guard) that keeps other sites out.
+/// How many audit records `GET /api/audit` returns.
+const AUDIT_SHOWN: usize = 500;
+
+/// The routes, behind the [`guard`](super::guard) that keeps other sites out and the
+/// [`gate`] that finds who asks.
 pub fn router(shared: Arc<Shared>, guard: Arc<super::guard::Guard>) -> Router {
+    let gate = shared.gate.clone();
     Router::new()
         .route("/", get(page))
+        .route("/login", get(gate::login_page))
+        .route("/api/login", post(gate::login))
+        .route("/api/logout", post(gate::logout))
+        .route("/api/me", get(me))
         .route("/events", get(events))
         .route("/api/view", get(view))
         .route("/api/holons", get(holons))
-        .route("/api/orders", get(orders).post(submit))
+        .route("/api/orders", get(orders).post(actions::submit))
+        .route("/api/orders/{name}/cancel", post(actions::cancel))
         .route("/api/alarms", get(alarms))
-        .route("/api/alarms/{id}/ack", post(acknowledge))
-        .route("/api/resources/{name}/packml", post(packml))
+        .route("/api/alarms/{id}/ack", post(actions::acknowledge))
+        .route("/api/resources/{name}/packml", post(actions::packml))
         .route("/api/events", get(event_log))
+        .route("/api/audit", get(audit))
+        .route("/api/audit.jsonl", get(audit_export))
+        .route("/api/users", get(people::list).post(people::add))
+        .route("/api/users/{name}/password", post(people::password))
+        .route("/api/users/{name}/role", post(people::role))
+        .route("/api/users/{name}/remove", post(people::remove))
         .route("/metrics", get(prometheus))
+        .layer(axum::middleware::from_fn_with_state(
+            gate.clone(),
+            gate::authenticate,
+        ))
+        .layer(Extension(gate))
         .with_state(shared)
         .layer(axum::middleware::from_fn_with_state(
             guard,
@@ -60,13 +88,23 @@ async fn page() -> Html<&'static str> {
     Html(PAGE)
 }
 
+async fn me(State(shared): State<Arc<Shared>>, Extension(who): Extension<Who>) -> Response {
+    Json(gate::me(&shared.gate, &who, shared.operator)).into_response()
+}
+
 async fn events(
     State(shared): State<Arc<Shared>>,
+    Extension(who): Extension<Who>,
 ) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
     let mut views = shared.view.clone();
     views.mark_changed();
-    let updates = stream::unfold(views, |mut views| async move {
+    let gate = shared.gate.clone();
+    let updates = stream::unfold((views, gate, who), |(mut views, gate, who)| async move {
         views.changed().await.ok()?;
+        // The stream ends with the session: the page then finds it must log in again.
+        if !gate.still_in(&who) {
+            return None;
+        }
         let view = views.borrow_and_update().clone();
         let event = match Event::default().event("view").json_data(&*view) {
             Ok(event) => event,
@@ -75,7 +113,7 @@ async fn events(
                 Event::default().comment("the view could not be encoded")
             }
         };
-        Some((Ok(event), views))
+        Some((Ok(event), (views, gate, who)))
     });
     Sse::new(updates).keep_alive(KeepAlive::new().interval(Duration::from_secs(10)))
 }
@@ -101,109 +139,84 @@ async fn event_log(State(shared): State<Arc<Shared>>) -> Response {
 }
 
 async fn prometheus(State(shared): State<Arc<Shared>>) -> Response {
-    (
-        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
-        metrics::render(&current(&shared)),
-    )
-        .into_response()
+    let mut text = metrics::render(&current(&shared));
+    text.push_str(&metrics::render_gate(&shared.gate));
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response()
 }
 
-fn refused(status: StatusCode, message: &str) -> Response {
+/// An answer that refuses, with why.
+pub fn refused(status: StatusCode, message: &str) -> Response {
     (status, Json(serde_json::json!({ "error": message }))).into_response()
 }
 
-const READ_ONLY: &str =
-    "this dashboard is read-only (start it with --operator to submit and acknowledge)";
+/// A request refused: its status and why (answered as `{"error": why}`).
+#[derive(Debug)]
+pub struct Refusal {
+    pub status: StatusCode,
+    pub why: String,
+}
 
-async fn acknowledge(State(shared): State<Arc<Shared>>, Path(id): Path<u64>) -> Response {
-    if !shared.operator {
-        return refused(StatusCode::FORBIDDEN, READ_ONLY);
-    }
-    match shared.commands.send(Command::Acknowledge(id)).await {
-        Ok(()) => StatusCode::NO_CONTENT.into_response(),
-        Err(_) => refused(StatusCode::SERVICE_UNAVAILABLE, "the dashboard is stopping"),
+impl IntoResponse for Refusal {
+    fn into_response(self) -> Response {
+        refused(self.status, &self.why)
     }
 }
 
-#[derive(Debug, Deserialize)]
-struct SubmitForm {
-    product: String,
-    #[serde(default = "one")]
-    count: u32,
-    #[serde(default)]
-    queue: bool,
-    /// -1000 to 1000, higher first.
-    #[serde(default)]
-    priority: i32,
-    /// Due this many seconds from now (optional).
-    #[serde(default)]
-    due_in_s: Option<u64>,
-}
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct PackmlForm {
-    command: schemas::PackmlCommand,
-}
-
-async fn packml(
-    State(shared): State<Arc<Shared>>,
-    Path(name): Path<String>,
-    Json(form): Json<PackmlForm>,
-) -> Response {
-    if !shared.operator {
-        return refused(StatusCode::FORBIDDEN, READ_ONLY);
-    }
-    if let Err(e) = schemas::validate_name("resource", &name) {
-        return refused(StatusCode::BAD_REQUEST, &e.to_string());
-    }
-    let by = format!("dashboard {}", shared.identity);
-    let request = schemas::PackmlRequest::command(form.command, &by);
-    match crate::packml::ask(
-        &shared.session,
-        &shared.keys,
-        &name,
-        &request,
-        Duration::from_secs(5),
-    )
-    .await
-    {
-        Ok(reply) if reply.refused.is_some() => {
-            let why = reply.detail.clone().unwrap_or_default();
-            (
-                StatusCode::CONFLICT,
-                Json(serde_json::json!({ "error": why, "reply": reply })),
-            )
-                .into_response()
-        }
-        Ok(reply) => Json(reply).into_response(),
-        Err(e) => refused(StatusCode::BAD_GATEWAY, &format!("{e:#}")),
-    }
-}
-
-fn one() -> u32 {
-    1
-}
-
-async fn submit(State(shared): State<Arc<Shared>>, Json(form): Json<SubmitForm>) -> Response {
-    if !shared.operator {
-        return refused(StatusCode::FORBIDDEN, READ_ONLY);
-    }
-    let work = schemas::WorkOrder {
-        product: form.product,
-        count: form.count,
-        priority: form.priority,
-        due: form
-            .due_in_s
-            .map(|s| schemas::unix_ms().saturating_add(s.saturating_mul(1000))),
-        queue: form.queue,
+/// Whether `who` may read the audit trail: the trail, or the refusal.
+fn audit_path<'a>(gate: &'a Gate, who: &Who) -> Result<&'a std::path::Path, Refusal> {
+    let Some(trail) = &gate.audit else {
+        return Err(Refusal {
+            status: StatusCode::NOT_FOUND,
+            why: "this dashboard keeps no audit trail (it has no users file and no --audit)".into(),
+        });
     };
-    if let Err(e) = work.validate() {
-        return refused(StatusCode::BAD_REQUEST, &e.to_string());
+    if !who.role.may_operate() {
+        return Err(Refusal {
+            status: StatusCode::FORBIDDEN,
+            why: format!(
+                "{} is an observer: the audit trail is for operators and admins",
+                who.who
+            ),
+        });
     }
-    match crate::submit::submit(&shared.session, &shared.keys, &work, Duration::from_secs(5)).await
-    {
-        Ok(orders) => Json(serde_json::json!({ "orders": orders })).into_response(),
-        Err(e) => refused(StatusCode::BAD_GATEWAY, &format!("{e:#}")),
+    Ok(trail.path())
+}
+
+async fn audit(State(shared): State<Arc<Shared>>, Extension(who): Extension<Who>) -> Response {
+    let path = match audit_path(&shared.gate, &who) {
+        Ok(path) => path.to_path_buf(),
+        Err(refusal) => return refusal.into_response(),
+    };
+    match tokio::task::spawn_blocking(move || crate::audit::newest(&path, AUDIT_SHOWN)).await {
+        Ok(Ok(records)) => Json(records).into_response(),
+        Ok(Err(e)) => refused(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+        Err(e) => refused(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
+    }
+}
+
+async fn audit_export(
+    State(shared): State<Arc<Shared>>,
+    Extension(who): Extension<Who>,
+) -> Response {
+    let path = match audit_path(&shared.gate, &who) {
+        Ok(path) => path.to_path_buf(),
+        Err(refusal) => return refusal.into_response(),
+    };
+    match tokio::fs::read(&path).await {
+        Ok(bytes) => (
+            [
+                (header::CONTENT_TYPE, "application/jsonl"),
+                (
+                    header::CONTENT_DISPOSITION,
+                    "attachment; filename=\"audit.jsonl\"",
+                ),
+            ],
+            bytes,
+        )
+            .into_response(),
+        Err(e) => refused(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            &format!("cannot read the audit trail {}: {e}", path.display()),
+        ),
     }
 }

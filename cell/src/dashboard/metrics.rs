@@ -4,7 +4,23 @@ use std::collections::BTreeMap;
 
 use schemas::OrderStatus;
 
+use super::gate::Gate;
 use super::View;
+
+/// The dashboard's own door in the Prometheus text format: refused logins and live
+/// sessions.
+pub fn render_gate(gate: &Gate) -> String {
+    format!(
+        "# HELP holarchy_dashboard_logins_failed_total Logins refused (a wrong password, an unknown user, a lock-out) since the dashboard started.\n\
+         # TYPE holarchy_dashboard_logins_failed_total counter\n\
+         holarchy_dashboard_logins_failed_total {}\n\
+         # HELP holarchy_dashboard_sessions Live login sessions.\n\
+         # TYPE holarchy_dashboard_sessions gauge\n\
+         holarchy_dashboard_sessions {}\n",
+        gate.logins_refused(),
+        gate.sessions_live()
+    )
+}
 
 /// The metrics of `view`, one family after the other, each with its HELP and TYPE.
 pub fn render(view: &View) -> String {

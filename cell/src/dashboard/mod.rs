@@ -18,10 +18,16 @@
 //! and it publishes a view of the model at most every [`PUBLISH_EVERY`] for the web
 //! server ([`http`]), which pushes it to every open page as a server-sent event.
 
+pub mod actions;
+pub mod gate;
 pub mod guard;
 pub mod http;
+pub mod listener;
 pub mod metrics;
 pub mod model;
+pub mod people;
+pub mod session;
+pub mod throttle;
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -62,6 +68,42 @@ pub struct DashboardConfig {
     /// Host names the page is served under besides its IP addresses and localhost
     /// (`--host-name`); requests naming another host are refused.
     pub host_names: Vec<String>,
+    /// The users file people log in with (`--users`; `<pki>/users.toml` in a secure
+    /// cell). Without it and without client certificates nobody logs in, and the
+    /// dashboard may listen on loopback only.
+    pub users: Option<std::path::PathBuf>,
+    /// The audit trail (`--audit`; `audit.jsonl` beside the users file); `None`: none.
+    pub audit: Option<std::path::PathBuf>,
+    /// How long login sessions live.
+    pub sessions: session::SessionLimits,
+    /// HTTPS: the certificate, its key and the CA of client certificates that log in
+    /// (`None`: plain HTTP).
+    pub tls: Option<listener::TlsFiles>,
+}
+
+impl DashboardConfig {
+    /// Who logs in and how, from the users file, HTTPS and the dashboard's own role;
+    /// refuses a dashboard without login anywhere but on loopback.
+    fn gate(&self) -> Result<gate::GateConfig> {
+        let certificates = self.tls.as_ref().is_some_and(|t| t.client_ca.is_some());
+        let without_login = (self.users.is_none() && !certificates).then_some(if self.operator {
+            crate::users::Role::Operator
+        } else {
+            crate::users::Role::Observer
+        });
+        if without_login.is_some() && !self.listen.ip().is_loopback() {
+            return Err(anyhow!(
+                "a dashboard without login listens on loopback only, and {} is not: give it a users file (--users FILE, made with `cell users --file FILE add NAME --role admin`) or listen on 127.0.0.1",
+                self.listen
+            ));
+        }
+        Ok(gate::GateConfig {
+            users: self.users.clone(),
+            certificates,
+            limits: self.sessions,
+            without_login,
+        })
+    }
 }
 
 /// Who the dashboard connects as, and whether its page may operate (submit work
@@ -93,6 +135,52 @@ pub fn connect_as(secure: bool, identity: Option<&str>, operator: bool) -> Resul
         _ => Err(anyhow!(
             "a dashboard connects as an operator or an observer, not as {identity}"
         )),
+    }
+}
+
+/// Where the dashboard's HTTPS certificate comes from, from `--pki`, `--tls`,
+/// `--no-tls` and `--tls-cert`/`--tls-key` (`given`):
+/// - a certificate given is served (HTTPS), in any cell;
+/// - a secure cell (`pki`) serves HTTPS by default, with the certificate `cell certs`
+///   issued for the dashboard's identity, and takes client certificates of the cell CA
+///   as logins; `--no-tls` serves plain HTTP instead, on loopback only (behind a
+///   reverse proxy on the same host);
+/// - an open cell serves plain HTTP unless `--tls` (which then needs a certificate).
+pub fn https_files(
+    pki: Option<&std::path::Path>,
+    identity: &str,
+    tls: bool,
+    no_tls: bool,
+    given: Option<(std::path::PathBuf, std::path::PathBuf)>,
+    listen: SocketAddr,
+) -> Result<Option<listener::TlsFiles>> {
+    let client_ca = pki.map(|p| p.join("ca.pem"));
+    if no_tls {
+        return match pki {
+            None => Err(anyhow!(
+                "--no-tls is for a secure cell (--pki): without --pki the dashboard serves plain HTTP unless --tls"
+            )),
+            Some(_) if !listen.ip().is_loopback() => Err(anyhow!(
+                "--no-tls serves plain HTTP on loopback only (behind a reverse proxy on this host), and {listen} is not loopback"
+            )),
+            Some(_) => Ok(None),
+        };
+    }
+    match (given, pki) {
+        (Some((certificate, key)), _) => Ok(Some(listener::TlsFiles {
+            certificate,
+            key,
+            client_ca,
+        })),
+        (None, Some(pki)) => Ok(Some(listener::TlsFiles {
+            certificate: pki.join(format!("{identity}.pem")),
+            key: pki.join(format!("{identity}.key")),
+            client_ca,
+        })),
+        (None, None) if tls => Err(anyhow!(
+            "--tls needs a certificate: --tls-cert FILE --tls-key FILE (or --pki DIR of a secure cell)"
+        )),
+        (None, None) => Ok(None),
     }
 }
 
@@ -199,11 +287,14 @@ fn order_rows(model: &Model) -> Vec<OrderRow> {
 /// Commands from the pages to the model's owner.
 #[derive(Debug)]
 pub enum Command {
-    Acknowledge(u64),
+    /// An alarm acknowledged by a user.
+    Acknowledge { id: u64, by: String },
 }
 
 /// What the web server shares with the model's task.
 pub struct Shared {
+    /// Who is let in, and the audit trail.
+    pub gate: Arc<gate::Gate>,
     pub view: watch::Receiver<Arc<View>>,
     pub commands: mpsc::Sender<Command>,
     pub session: zenoh::Session,
@@ -216,6 +307,30 @@ pub struct Shared {
 
 /// Runs the dashboard until `shutdown`.
 pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result<()> {
+    // Everything that can be wrong with the settings is found before joining the cell.
+    let gate_config = config.gate()?;
+    let tls = config
+        .tls
+        .as_ref()
+        .map(listener::server_config)
+        .transpose()
+        .map_err(|e| anyhow!("{e}"))?;
+    if let Some(users) = &config.users {
+        if users.exists() {
+            crate::users::load(users)?;
+        } else {
+            warn!(file = %users.display(), "no users file yet: nobody logs in with a password (add users with `cell users`)");
+        }
+    }
+    let audit = config
+        .audit
+        .as_deref()
+        .map(crate::audit::AuditTrail::open)
+        .transpose()?;
+    if gate_config.without_login.is_some() {
+        warn!("this dashboard has no login: everybody who reaches it on this machine is `local`");
+    }
+    let gate = Arc::new(gate::Gate::new(gate_config, audit));
     let session = config
         .zenoh
         .open(&config.identity, Duration::from_secs(10))
@@ -247,6 +362,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
         shutdown.clone(),
     ));
     let shared = Arc::new(Shared {
+        gate,
         view: view_rx,
         commands,
         session: session.clone(),
@@ -254,17 +370,20 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
         operator: config.operator,
         identity: config.identity.clone(),
     });
-    let listener = tokio::net::TcpListener::bind(config.listen)
+    let https = tls.is_some();
+    let listener = listener::DashboardListener::bind(config.listen, tls)
         .await
         .with_context(|| format!("cannot listen on {}", config.listen))?;
     let address = listener.local_addr()?;
-    info!(cell = %config.keys.cell(), %address, "dashboard serving");
+    let scheme = if https { "https" } else { "http" };
+    info!(cell = %config.keys.cell(), %address, %scheme, login = shared.gate.login_required(), "dashboard serving");
     println!(
-        "dashboard of cell {} on http://{address}/",
+        "dashboard of cell {} on {scheme}://{address}/",
         config.keys.cell()
     );
-    let guard = Arc::new(guard::Guard::new(address, &config.host_names));
-    let served = axum::serve(listener, http::router(shared, guard))
+    let guard = Arc::new(guard::Guard::new(address, &config.host_names, https));
+    let app = http::router(shared, guard).into_make_service_with_connect_info::<listener::Peer>();
+    let served = axum::serve(listener, app)
         .with_graceful_shutdown(shutdown.clone().cancelled_owned())
         .await;
     shutdown.cancel();
@@ -417,8 +536,8 @@ async fn own_the_model(
             _ = shutdown.cancelled() => return,
             Some(input) = inputs.recv() => changed |= model.apply(input),
             Some(command) = commands.recv() => match command {
-                Command::Acknowledge(id) => {
-                    changed |= model.apply(Input::Acknowledge { id, at: schemas::unix_ms() });
+                Command::Acknowledge { id, by } => {
+                    changed |= model.apply(Input::Acknowledge { id, by, at: schemas::unix_ms() });
                 }
             },
             _ = tick.tick() => {

@@ -58,7 +58,8 @@ pub enum Input {
     /// Its token vanished.
     ProcessVanished { process: ProcessId, at: u64 },
     /// An operator acknowledged alarm `id`.
-    Acknowledge { id: u64, at: u64 },
+    /// `by` (a user) acknowledged alarm `id`.
+    Acknowledge { id: u64, by: String, at: u64 },
 }
 
 /// One holon as the page shows it.
@@ -263,7 +264,7 @@ impl Model {
             Input::Order { snapshot, at } => self.order(*snapshot, at),
             Input::ProcessAppeared { process, at } => self.process(process, true, at),
             Input::ProcessVanished { process, at } => self.process(process, false, at),
-            Input::Acknowledge { id, at } => self.acknowledge(id, at),
+            Input::Acknowledge { id, by, at } => self.acknowledge(id, &by, at),
         }
     }
 
@@ -664,7 +665,7 @@ impl Model {
         true
     }
 
-    fn acknowledge(&mut self, id: u64, at: u64) -> bool {
+    fn acknowledge(&mut self, id: u64, by: &str, at: u64) -> bool {
         let Some(alarm) = self.alarms.iter_mut().find(|a| a.id == id) else {
             return false;
         };
@@ -675,7 +676,7 @@ impl Model {
         let (source, message) = (alarm.source.clone(), alarm.message.clone());
         self.alarms
             .retain(|a| a.active() || a.acknowledged.is_none());
-        self.log(at, source, format!("acknowledged: {message}"));
+        self.log(at, source, format!("acknowledged by {by}: {message}"));
         true
     }
 }
@@ -785,7 +786,11 @@ mod tests {
         // Cleared but not acknowledged: it stays listed until an operator acknowledges.
         let id = m.alarms()[0].id;
         assert_eq!(m.alarms().len(), 1);
-        assert!(m.apply(Input::Acknowledge { id, at: 5 }));
+        assert!(m.apply(Input::Acknowledge {
+            id,
+            by: "anna".into(),
+            at: 5
+        }));
         assert!(m.alarms().is_empty());
     }
 
@@ -798,7 +803,11 @@ mod tests {
             at: 1,
         });
         let id = m.alarms()[0].id;
-        m.apply(Input::Acknowledge { id, at: 2 });
+        m.apply(Input::Acknowledge {
+            id,
+            by: "anna".into(),
+            at: 2,
+        });
         assert_eq!(active(&m), vec![AlarmKind::Controller]);
         assert!(m.alarms()[0].acknowledged.is_some());
         let ready = snapshot(ResourceState::Free, ControllerStatus::Ready, &[]);

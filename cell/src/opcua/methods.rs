@@ -248,6 +248,7 @@ impl CellNodes {
             &self.session,
             &key,
             Some(payload),
+            &who.to_string(),
             ANSWER_WITHIN,
         )
         .await
