@@ -20,6 +20,7 @@ use tokio::process::{Child, Command};
 use tokio_util::sync::CancellationToken;
 
 mod report;
+mod servers;
 
 use report::{print_progress, Report};
 
@@ -303,12 +304,15 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         session: session.clone(),
         started: Vec::new(),
     };
+    if options.dashboard.is_some() || options.opcua.is_some() {
+        servers::demo_operator(&cell)?;
+    }
     let dashboard = match options.dashboard {
-        Some(listen) => Some(start_dashboard(&cell, listen).await?),
+        Some(listen) => Some(servers::start_dashboard(&cell, listen).await?),
         None => None,
     };
     let opcua = match options.opcua {
-        Some(listen) => Some(start_opcua(&cell, listen)?),
+        Some(listen) => Some(servers::start_opcua(&cell, listen)?),
         None => None,
     };
     let outcome = tokio::select! {
@@ -366,101 +370,6 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         println!("  logs kept in    {}", dir.display());
     }
     Ok(success)
-}
-
-/// The cell's dashboard, in this process, as an operator (it prints its address): the
-/// token that stops it and its task.
-async fn start_dashboard(
-    cell: &Cell,
-    listen: std::net::SocketAddr,
-) -> Result<(CancellationToken, tokio::task::JoinHandle<Result<()>>)> {
-    let config = crate::dashboard::DashboardConfig {
-        keys: cell.keys.clone(),
-        zenoh: holon::ZenohSettings {
-            mode: holon::Mode::Client,
-            connect: vec![cell.endpoint.clone()],
-            tls: cell.pki.as_ref().map(|pki| holon::tls::TlsSettings {
-                pki: Some(pki.clone()),
-                ..holon::tls::TlsSettings::default()
-            }),
-            ..holon::ZenohSettings::default()
-        },
-        identity: "operator.default".into(),
-        listen,
-        operator: true,
-        host_names: Vec::new(),
-        // A secure demo's dashboard: HTTPS, people log in with the users file (the
-        // demo's operator) or an operator.* certificate, and an audit trail beside it.
-        // An open demo's: no login on loopback, its trail in the demo's directory.
-        users: cell.pki.as_deref().map(crate::users::default_path),
-        audit: Some(
-            cell.pki
-                .as_deref()
-                .unwrap_or(&cell.dir)
-                .join(crate::audit::FILE_NAME),
-        ),
-        sessions: Default::default(),
-        tls: crate::dashboard::https_files(
-            cell.pki.as_deref(),
-            "operator.default",
-            false,
-            false,
-            None,
-            listen,
-        )?,
-    };
-    let stop = CancellationToken::new();
-    let task = tokio::spawn(crate::dashboard::run(config, stop.clone()));
-    Ok((stop, task))
-}
-
-/// The cell's OPC UA server, in this process (it prints its endpoint): the token that
-/// stops it and its task. A secure demo's users file (`<pki>/users.toml`, 0600) gets an
-/// operator, `operator`, whose new random password is printed.
-fn start_opcua(
-    cell: &Cell,
-    listen: std::net::SocketAddr,
-) -> Result<(CancellationToken, tokio::task::JoinHandle<Result<()>>)> {
-    if let Some(pki) = &cell.pki {
-        use ring::rand::SecureRandom;
-        let mut bytes = [0u8; 9];
-        ring::rand::SystemRandom::new()
-            .fill(&mut bytes)
-            .map_err(|_| anyhow!("no random source for the OPC UA password"))?;
-        let password: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
-        let users = crate::users::default_path(pki);
-        crate::users::change(&users, |users| {
-            if users.get("operator").is_some() {
-                users.set_password("operator", &password)
-            } else {
-                users.add("operator", crate::users::Role::Operator, &password)
-            }
-        })?;
-        println!(
-            "OPC UA: SignAndEncrypt only; user operator, password {password} (in {}); trust your client's certificate with `cell opcua --pki {} --trust CLIENT.der` (docs/opcua.md)",
-            users.display(),
-            pki.display()
-        );
-    }
-    let config = crate::opcua::OpcuaConfig {
-        keys: cell.keys.clone(),
-        zenoh: holon::ZenohSettings {
-            mode: holon::Mode::Client,
-            connect: vec![cell.endpoint.clone()],
-            tls: cell.pki.as_ref().map(|pki| holon::tls::TlsSettings {
-                pki: Some(pki.clone()),
-                ..holon::tls::TlsSettings::default()
-            }),
-            ..holon::ZenohSettings::default()
-        },
-        identity: "operator.opcua".into(),
-        listen,
-        pki: cell.pki.clone(),
-        users: None,
-    };
-    let stop = CancellationToken::new();
-    let task = tokio::spawn(crate::opcua::run(config, stop.clone()));
-    Ok((stop, task))
 }
 
 async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
