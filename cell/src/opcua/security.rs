@@ -16,7 +16,8 @@ pub const SERVER_CERT: &str = "opcua-server.der";
 pub const SERVER_CERT_PEM: &str = "opcua-server.pem";
 /// The server's RSA key (PKCS#8 PEM, 0600).
 pub const SERVER_KEY: &str = "opcua-server.key";
-/// The default users file in the PKI directory.
+/// The old OPC UA users file (PBKDF2 hashes) in the PKI directory: no longer read, looked
+/// for only to refuse a PKI that still has it and no `users.toml` (`cell users` makes one).
 pub const USERS_FILE: &str = "opcua-users.toml";
 /// The server's own certificate store in the PKI directory: `trusted/` (client
 /// application certificates it accepts) and `rejected/` (those it refused).
