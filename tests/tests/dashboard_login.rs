@@ -489,8 +489,8 @@ async fn https_logins_certificates_lockouts_and_file_modes() {
     assert_eq!(anna.call("POST", "/api/logout", "{}").status, 204);
     assert_eq!(anna.call("GET", "/api/me", "").status, 401);
 
-    // A wrong password waits its second, then five lock the name out, the right
-    // password included.
+    // A wrong password waits its second; five failures from one address (four of them
+    // for anna) lock that address out, anna's right password included.
     let mut guesser = dashboard.web(&cell, None);
     let started = Instant::now();
     assert_eq!(guesser.login("anna", "guess-0").status, 401);
@@ -555,7 +555,8 @@ async fn https_logins_certificates_lockouts_and_file_modes() {
 }
 
 /// A dashboard without login serves loopback only: asked to listen on every address
-/// without a users file, it refuses at the start and says what to do.
+/// without a users file, it refuses at the start and says what to do; with a users file
+/// but without HTTPS, too.
 #[test]
 fn a_dashboard_without_login_listens_on_loopback_only() {
     let refused = Command::new(bin("cell"))
@@ -573,4 +574,23 @@ fn a_dashboard_without_login_listens_on_loopback_only() {
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(stderr.contains("loopback only"), "{stderr}");
     assert!(stderr.contains("--users"), "{stderr}");
+    // Nor do passwords travel over plain HTTP off loopback.
+    let dir = tempfile::tempdir().unwrap();
+    let users = dir.path().join("users.toml");
+    let refused = Command::new(bin("cell"))
+        .args([
+            "dashboard",
+            "--cell",
+            "t-open",
+            "--connect",
+            "tcp/127.0.0.1:1",
+        ])
+        .args(["--listen", "0.0.0.0:0", "--operator"])
+        .arg("--users")
+        .arg(&users)
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("serve HTTPS"), "{stderr}");
 }

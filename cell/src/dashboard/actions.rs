@@ -189,16 +189,16 @@ pub async fn submit(
             );
             Json(serde_json::json!({ "orders": orders })).into_response()
         }
+        Err(e @ crate::submit::SubmitError::Refused { .. }) => {
+            let why = e.to_string();
+            let outcome = AuditOutcome::Refused(why.clone());
+            record(&shared, &who, action, None, detail, outcome);
+            refused(StatusCode::CONFLICT, &why)
+        }
         Err(e) => {
-            let why = format!("{e:#}");
-            record(
-                &shared,
-                &who,
-                action,
-                None,
-                detail,
-                AuditOutcome::Failed(why.clone()),
-            );
+            let why = e.to_string();
+            let outcome = AuditOutcome::Failed(why.clone());
+            record(&shared, &who, action, None, detail, outcome);
             refused(StatusCode::BAD_GATEWAY, &why)
         }
     }

@@ -132,7 +132,7 @@ impl Gate {
 
     /// Live sessions.
     pub fn sessions_live(&self) -> usize {
-        lock(&self.sessions).count()
+        lock(&self.sessions).count(Instant::now())
     }
 
     /// The users file's users, read again if it changed since.
@@ -162,11 +162,20 @@ impl Gate {
     }
 
     /// Whether `who` may still be served an open stream: a session still live (not
-    /// marked as used), or a login that needs no session.
+    /// marked as used) whose user is still what it was at login (`cell users` may have
+    /// changed it), or a login that needs no session.
     pub fn still_in(&self, who: &Who) -> bool {
-        match &who.token {
-            Some(token) => lock(&self.sessions).alive(token, Instant::now()),
-            None => true,
+        let Some(token) = &who.token else {
+            return true;
+        };
+        let login = lock(&self.sessions).peek(token, Instant::now());
+        match login {
+            Some(login) if self.still_the_same(&login) => true,
+            Some(login) => {
+                self.end_sessions_of(&login.who);
+                false
+            }
+            None => false,
         }
     }
 
@@ -375,7 +384,7 @@ pub async fn login(
     };
     let locked = lock(&gate.throttle).check(&name, ip, Instant::now());
     if let Err(locked) = locked {
-        lock(&gate.throttle).refused_total += 1;
+        lock(&gate.throttle).refused_during_lock();
         let why = format!(
             "too many failed logins for {}: try again in {} s",
             locked.what,

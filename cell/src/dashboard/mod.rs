@@ -83,7 +83,8 @@ pub struct DashboardConfig {
 
 impl DashboardConfig {
     /// Who logs in and how, from the users file, HTTPS and the dashboard's own role;
-    /// refuses a dashboard without login anywhere but on loopback.
+    /// refuses a dashboard without login, or with password logins over plain HTTP,
+    /// anywhere but on loopback.
     fn gate(&self) -> Result<gate::GateConfig> {
         let certificates = self.tls.as_ref().is_some_and(|t| t.client_ca.is_some());
         let without_login = (self.users.is_none() && !certificates).then_some(if self.operator {
@@ -94,6 +95,12 @@ impl DashboardConfig {
         if without_login.is_some() && !self.listen.ip().is_loopback() {
             return Err(anyhow!(
                 "a dashboard without login listens on loopback only, and {} is not: give it a users file (--users FILE, made with `cell users --file FILE add NAME --role admin`) or listen on 127.0.0.1",
+                self.listen
+            ));
+        }
+        if self.users.is_some() && self.tls.is_none() && !self.listen.ip().is_loopback() {
+            return Err(anyhow!(
+                "password logins over plain HTTP on {} would show the passwords to the network: serve HTTPS (--tls-cert FILE --tls-key FILE, or --pki DIR of a secure cell) or listen on loopback behind a reverse proxy that serves HTTPS",
                 self.listen
             ));
         }

@@ -1,7 +1,7 @@
 //! The dashboard's login sessions: who holds which session cookie, until when.
 //!
-//! A session begins at a login (a password, or a client certificate) and ends at the
-//! first of:
+//! A session begins at a password login (a client certificate needs none: it logs in
+//! with every request) and ends at the first of:
 //! - logout;
 //! - [`SessionLimits::idle`] without a request (default 15 min);
 //! - [`SessionLimits::absolute`] after the login, however busy (default 8 h);
@@ -158,13 +158,18 @@ impl Sessions {
         Ok(session.login.clone())
     }
 
-    /// Whether the session of `token` is still live at `now`, without counting this as
-    /// its use (a page's open stream of updates does not keep a session alive).
-    pub fn alive(&self, token: &str, now: Instant) -> bool {
-        self.live.get(token).is_some_and(|s| {
-            now.duration_since(s.began) < self.limits.absolute
-                && now.duration_since(s.seen) < self.limits.idle
-        })
+    /// Who holds the session of `token`, if it is still live at `now`, without counting
+    /// this as its use (a page's open stream of updates does not keep a session alive).
+    pub fn peek(&self, token: &str, now: Instant) -> Option<Login> {
+        self.live
+            .get(token)
+            .filter(|s| self.live_at(s, now))
+            .map(|s| s.login.clone())
+    }
+
+    fn live_at(&self, session: &Session, now: Instant) -> bool {
+        now.duration_since(session.began) < self.limits.absolute
+            && now.duration_since(session.seen) < self.limits.idle
     }
 
     /// Ends the session of `token` (logout): who it was.
@@ -188,9 +193,9 @@ impl Sessions {
         Some((idle_end.min(absolute_end), s.from))
     }
 
-    /// How many sessions are live.
-    pub fn count(&self) -> usize {
-        self.live.len()
+    /// How many sessions are live at `now`.
+    pub fn count(&self, now: Instant) -> usize {
+        self.live.values().filter(|s| self.live_at(s, now)).count()
     }
 
     fn forget_ended(&mut self, now: Instant) {

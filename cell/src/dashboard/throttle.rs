@@ -99,8 +99,9 @@ impl Throttle {
         Ok(())
     }
 
-    /// A login of `name` from `from` was refused (a wrong password, an unknown name, or
-    /// a lock-out).
+    /// A login of `name` from `from` was refused: a wrong password or an unknown name
+    /// (a login refused by a lock-out is only counted, [`Throttle::refused_during_lock`],
+    /// and does not make the lock longer).
     pub fn failed(&mut self, name: &str, from: IpAddr, now: Instant) {
         self.refused_total += 1;
         if self.names.len() >= MOST_REMEMBERED {
@@ -111,6 +112,11 @@ impl Throttle {
         }
         self.names.entry(name.to_string()).or_default().fail(now);
         self.addresses.entry(from).or_default().fail(now);
+    }
+
+    /// A login was refused by a lock-out, without looking at the password.
+    pub fn refused_during_lock(&mut self) {
+        self.refused_total += 1;
     }
 
     /// A login of `name` from `from` succeeded: their counts start again.
