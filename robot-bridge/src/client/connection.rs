@@ -488,7 +488,10 @@ impl<'a> Connection<'a> {
         }
         // A late answer to a command already failed is shaped like an answer: ignored.
         for (i, reply) in self.dialect.replies.iter().enumerate() {
-            if matches!(reply.outcome, Outcome::Status | Outcome::Ignore) {
+            if matches!(
+                reply.outcome,
+                Outcome::Status | Outcome::Ignore | Outcome::Fence
+            ) {
                 continue;
             }
             if let Ok(Some(values)) = self.dialect.read_reply(i, &parsed) {
@@ -602,7 +605,7 @@ impl<'a> Connection<'a> {
                 })
                 .await
             }
-            Outcome::Status | Outcome::Ignore => Ok(()),
+            Outcome::Status | Outcome::Ignore | Outcome::Fence => Ok(()),
         }
     }
 

@@ -7,7 +7,9 @@ use super::messages::{
     captures, compile_command, compile_reply, invalid, templates_of, valid_name,
 };
 use super::values::{Enums, ValueFormat};
-use super::{Abort, Command, Dialect, DialectError, Element, Keepalive, Reply, Sending, Status};
+use super::{
+    Abort, Command, Dialect, DialectError, Element, Fence, Keepalive, Reply, Sending, Status,
+};
 use crate::codec::parse_tree;
 use std::time::Duration;
 
@@ -219,7 +221,10 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
         let mut expect = Vec::new();
         for name in &e.expect {
             let r = reply_named(&format!("{at}.expect"), name)?;
-            if matches!(replies[r].outcome, Outcome::Status | Outcome::Ignore) {
+            if matches!(
+                replies[r].outcome,
+                Outcome::Status | Outcome::Ignore | Outcome::Fence
+            ) {
                 return Err(invalid(
                     origin,
                     format!("{at}.expect"),
@@ -422,6 +427,67 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
             Some(Abort { command, expect })
         }
     };
+    let fence = match &file.fence {
+        None => None,
+        Some(f) => {
+            let fence = Fence {
+                claim: command_named("fence.claim", &f.claim)?,
+                heartbeat: command_named("fence.heartbeat", &f.heartbeat)?,
+                step_status: command_named("fence.step_status", &f.step_status)?,
+                granted: reply_named("fence.granted", &f.granted)?,
+                refused: reply_named("fence.refused", &f.refused)?,
+                step_state: reply_named("fence.step_state", &f.step_state)?,
+                stale: reply_named("fence.stale", &f.stale)?,
+            };
+            for (field, r) in [
+                ("fence.granted", fence.granted),
+                ("fence.refused", fence.refused),
+                ("fence.step_state", fence.step_state),
+            ] {
+                if replies[r].outcome != Outcome::Fence {
+                    return Err(invalid(
+                        origin,
+                        field,
+                        "a fence reply has outcome = \"fence\"",
+                    ));
+                }
+            }
+            if !matches!(
+                replies[fence.stale].outcome,
+                Outcome::Failed | Outcome::Rejected
+            ) {
+                return Err(invalid(
+                    origin,
+                    "fence.stale",
+                    "the stale-epoch refusal has outcome = \"failed\" or \"rejected\"",
+                ));
+            }
+            if !sequence.iter().any(|e| e.expect.contains(&fence.stale)) {
+                return Err(invalid(
+                    origin,
+                    "fence.stale",
+                    "the stale-epoch refusal answers a command: put it in the sequence's expect",
+                ));
+            }
+            let used = sequence
+                .iter()
+                .map(|e| e.command)
+                .chain(abort.as_ref().map(|a| a.command));
+            for c in used {
+                if [fence.claim, fence.heartbeat, fence.step_status].contains(&c) {
+                    return Err(invalid(origin, "fence", format!("{:?} is also a step's or the abort's message: the fence needs messages of its own", commands[c].name)));
+                }
+            }
+            Some(fence)
+        }
+    };
+    if replies.iter().any(|r| r.outcome == Outcome::Fence) && fence.is_none() {
+        return Err(invalid(
+            origin,
+            "reply",
+            "an outcome = \"fence\" reply needs a [fence] section",
+        ));
+    }
     if let Some(banner) = &file.connection.banner {
         if banner.is_empty() || banner.len() > max {
             return Err(invalid(
@@ -474,6 +540,7 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
         replies,
         sequence,
         abort,
+        fence,
     })
 }
 

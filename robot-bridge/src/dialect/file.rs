@@ -36,6 +36,33 @@ pub struct DialectFile {
     pub reply: Vec<ReplySection>,
     /// How the action under way is stopped (PackML Abort); none: it cannot be.
     pub abort: Option<AbortSection>,
+    /// The fence for a standby holon (claim, heartbeat, epoch, step ids, step status);
+    /// none: the controller cannot fence, and standby is refused.
+    pub fence: Option<FenceSection>,
+}
+
+/// `[fence]`: the messages of the fence (`docs/controller-protocol.md`, "Fencing"). The
+/// command template itself carries `{?epoch}` and `{?step}` sections.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FenceSection {
+    /// The command that asks for the claim, with `{name}`.
+    pub claim: String,
+    /// The command that shows life while holding the claim, with `{epoch}`; not answered.
+    pub heartbeat: String,
+    /// The command that asks a step id's stored outcome, with `{step}`.
+    pub step_status: String,
+    /// The reply granting the claim (outcome `fence`), with `{epoch}` and `{lease_ms}`.
+    pub granted: String,
+    /// The reply refusing a claim or a heartbeat (outcome `fence`), with `{epoch}` (the
+    /// holder's) and `{reason}` (`held`, `not_fenced`, `stale_epoch`, `invalid`).
+    pub refused: String,
+    /// The reply to `step_status` (outcome `fence`), with `{step}`, `{step_state}`
+    /// (`done`, `failed`, `running`, `unknown`) and `{result}` / `{message}`.
+    pub step_state: String,
+    /// The reply refusing a command for a stale epoch (outcome `failed`), in the
+    /// sequence's `expect`.
+    pub stale: String,
 }
 
 /// `abort = { send = "...", expect = [...] }`: the message that stops the action under
@@ -195,6 +222,8 @@ pub enum Outcome {
     Status,
     /// Nothing to act on (a chatty controller's other messages), at any time.
     Ignore,
+    /// A message of the fence (`[fence]`): a claim's answer or a step's stored state.
+    Fence,
 }
 
 #[derive(Debug, Deserialize)]

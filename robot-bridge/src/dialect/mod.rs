@@ -157,6 +157,26 @@ pub struct Abort {
     pub expect: Vec<usize>,
 }
 
+/// The fence of a standby holon: indices of its messages ([`Dialect::commands`],
+/// [`Dialect::replies`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Fence {
+    /// `{name}` asks for the claim.
+    pub claim: usize,
+    /// `{epoch}` shows life; not answered.
+    pub heartbeat: usize,
+    /// `{step}` asks a step's stored outcome.
+    pub step_status: usize,
+    /// The claim granted: `{epoch}`, `{lease_ms}`.
+    pub granted: usize,
+    /// A claim or heartbeat refused: `{epoch}` (the holder's), `{reason}`.
+    pub refused: usize,
+    /// A step's stored state: `{step}`, `{step_state}`, `{result}`, `{message}`.
+    pub step_state: usize,
+    /// A command refused for a stale epoch (in the sequence's `expect`).
+    pub stale: usize,
+}
+
 /// A message as read off the wire, parsed once and matched against the rules.
 #[derive(Debug)]
 pub enum Parsed {
@@ -184,6 +204,9 @@ pub struct Dialect {
     pub sequence: Vec<Element>,
     /// How the action under way is stopped; None: the dialect cannot abort.
     pub abort: Option<Abort>,
+    /// The fence (claim, epochs, step ids); None: the controller cannot fence, so a
+    /// standby holon is refused.
+    pub fence: Option<Fence>,
 }
 
 impl Dialect {
@@ -243,6 +266,11 @@ impl Dialect {
             framing: self.framing.clone(),
             max: self.max_message_bytes,
         }
+    }
+
+    /// Whether the controller can fence a standby holon (claim, epochs, step ids).
+    pub fn fencing_supported(&self) -> bool {
+        self.fence.is_some()
     }
 
     /// Whether the controller can be told to stop the action under way.

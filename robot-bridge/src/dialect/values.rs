@@ -45,11 +45,18 @@ impl Values {
 
 /// The names a command's values may have (besides `info.KEY`).
 pub const COMMAND_NAMES: &[&str] = &[
-    "id", "action", "program", "pose", "x", "y", "z", "a", "b", "c",
+    "id", "action", "program", "pose", "x", "y", "z", "a", "b", "c", "epoch", "step", "name",
 ];
 
 /// The names only a controller's message carries.
-pub const REPLY_NAMES: &[&str] = &["result", "message", "state"];
+pub const REPLY_NAMES: &[&str] = &[
+    "result",
+    "message",
+    "state",
+    "lease_ms",
+    "reason",
+    "step_state",
+];
 
 /// Whether `name` may be a command's value.
 pub fn is_command_name(name: &str) -> bool {
