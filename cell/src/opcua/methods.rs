@@ -248,7 +248,7 @@ impl CellNodes {
             &self.session,
             &key,
             Some(payload),
-            &who.to_string(),
+            who,
             ANSWER_WITHIN,
         )
         .await
