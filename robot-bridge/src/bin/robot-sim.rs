@@ -93,6 +93,20 @@ struct Args {
     /// "by_action":{"pick":N,...}} (aborted: actions the dialect's abort stopped).
     #[arg(long, value_name = "PATH")]
     count_file: Option<PathBuf>,
+    /// Fence for standby holons (docs/controller-protocol.md, "Fencing (standby)"): one
+    /// live session at a time holds the claim (CLAIM -> an epoch, +1 per grant, going on
+    /// from the count file's "epoch" after a restart); a command must carry the
+    /// holder's EPOCH (else it is refused `stale_epoch`, counted, not executed); a STEP
+    /// id runs at most once (a repeat gets the stored outcome); STEP_STATUS answers a
+    /// step's state. The count file adds "epoch", "stale_epoch_refused" and "by_step".
+    /// Without it the fence's messages are refused `not_fenced` and EPOCH/STEP are
+    /// ignored. Needs a dialect with a [fence] (holarchy-xml).
+    #[arg(long)]
+    fenced: bool,
+    /// With --fenced: the session lease in ms: a holder silent this long (no heartbeat,
+    /// no command) loses the claim and its connection is closed.
+    #[arg(long, default_value_t = 1000, value_name = "MS")]
+    lease_ms: u64,
 }
 
 #[tokio::main]
@@ -108,6 +122,17 @@ async fn main() -> anyhow::Result<()> {
             std::process::exit(2);
         }
     };
+    if args.fenced && !dialect.fencing_supported() {
+        eprintln!(
+            "robot-sim: the dialect {} cannot fence (it has no [fence]): --fenced needs one that can, e.g. holarchy-xml",
+            dialect.name
+        );
+        std::process::exit(2);
+    }
+    if args.fenced && args.lease_ms == 0 {
+        eprintln!("robot-sim: --lease-ms must be more than 0");
+        std::process::exit(2);
+    }
     if args.check {
         println!("dialect {} is valid", dialect.name);
         return Ok(());
@@ -167,6 +192,7 @@ async fn main() -> anyhow::Result<()> {
         fragment: args.fragment,
         merge: args.merge,
         abort_too_late: false,
+        fence_lease: args.fenced.then(|| Duration::from_millis(args.lease_ms)),
     };
     let simulator = match &args.connect {
         Some(address) => {

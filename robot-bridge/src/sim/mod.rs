@@ -68,6 +68,7 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
+pub mod fence;
 mod session;
 mod writer;
 
@@ -112,6 +113,10 @@ pub struct SimConfig {
     /// An abort that comes while an action runs finds it just ended: its `done` reply
     /// goes first (crossing the abort on the wire) and the abort has nothing to stop.
     pub abort_too_late: bool,
+    /// Fenced mode (`--fenced`) with this session lease: one live session holds the
+    /// claim, commands carry its epoch and step ids run at most once. None: unfenced,
+    /// as without the fence (fence messages are refused `not_fenced`).
+    pub fence_lease: Option<Duration>,
 }
 
 impl SimConfig {
@@ -134,9 +139,34 @@ pub struct SimStats {
     /// The program of the last command run that named one.
     program: Mutex<Option<String>>,
     changeovers: AtomicU64,
+    /// The fence, in fenced mode.
+    fence: Mutex<Option<fence::FenceBook>>,
 }
 
 impl SimStats {
+    /// The fence's state (None: unfenced).
+    pub(crate) fn fence(&self) -> std::sync::MutexGuard<'_, Option<fence::FenceBook>> {
+        self.fence.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Commands refused for a stale epoch (fenced mode).
+    pub fn stale_epoch_refused(&self) -> u64 {
+        self.fence().as_ref().map_or(0, |f| f.stale_refused)
+    }
+
+    /// The last epoch granted (fenced mode; 0: none).
+    pub fn epoch(&self) -> u64 {
+        self.fence().as_ref().map_or(0, |f| f.epoch())
+    }
+
+    /// Executions per step id, the last [`fence::STEPS_KEPT`] (fenced mode).
+    pub fn by_step(&self) -> BTreeMap<String, u64> {
+        self.fence()
+            .as_ref()
+            .map(|f| f.by_step())
+            .unwrap_or_default()
+    }
+
     /// Commands executed (answered with their success result).
     pub fn executed(&self) -> u64 {
         self.executed.load(Ordering::SeqCst)
@@ -187,8 +217,29 @@ impl SimStats {
     }
 
     /// `{"executed": N, "received": N, "aborted": N, "connections": N, "changeovers": N,
-    /// "by_action": {"pick": N, ...}}`.
+    /// "by_action": {"pick": N, ...}}`; fenced, with `"epoch": N,
+    /// "stale_epoch_refused": N, "by_step": {"STEP ID": N, ...}` too.
     pub fn to_json(&self) -> String {
+        let plain = self.plain_json();
+        let fence = self.fence();
+        let Some(fence) = fence.as_ref() else {
+            return plain;
+        };
+        let by_step: Vec<String> = fence
+            .by_step()
+            .iter()
+            .map(|(k, v)| format!("{}:{v}", serde_json::Value::String(k.clone())))
+            .collect();
+        format!(
+            "{},\"epoch\":{},\"stale_epoch_refused\":{},\"by_step\":{{{}}}}}",
+            plain.strip_suffix('}').unwrap_or(&plain),
+            fence.epoch(),
+            fence.stale_refused,
+            by_step.join(",")
+        )
+    }
+
+    fn plain_json(&self) -> String {
         let by_action: Vec<String> = self
             .by_action()
             .iter()
@@ -266,19 +317,21 @@ impl Simulator {
     /// Listens on `address`, for a dialect whose controller is the TCP server.
     pub async fn bind(address: &str, config: SimConfig) -> std::io::Result<Simulator> {
         let listener = TcpListener::bind(address).await?;
+        let stats = fenced_stats(&config);
         Ok(Simulator {
             link: SimLink::Listen(listener),
             config: Arc::new(config),
-            stats: Arc::default(),
+            stats,
         })
     }
 
     /// Dials the holon at `address`, for a dialect whose controller connects.
     pub fn dialing(address: &str, config: SimConfig) -> Simulator {
+        let stats = fenced_stats(&config);
         Simulator {
             link: SimLink::Dial(address.to_string()),
             config: Arc::new(config),
-            stats: Arc::default(),
+            stats,
         }
     }
 
@@ -304,14 +357,18 @@ impl Simulator {
             if let Err(e) = stream.set_nodelay(true) {
                 warn!(error = %e, "cannot set TCP_NODELAY");
             }
-            self.stats.connections.fetch_add(1, Ordering::SeqCst);
+            let session = self.stats.connections.fetch_add(1, Ordering::SeqCst) + 1;
             info!(%peer, "bridge connected");
             let config = self.config.clone();
             let stats = self.stats.clone();
             let shutdown = shutdown.clone();
             let count_file = count_file.clone();
             connections.spawn(async move {
-                if let Err(e) = serve(stream, &config, &stats, &count_file, shutdown).await {
+                let served = serve(stream, session, &config, &stats, &count_file, shutdown).await;
+                if stats.fence().as_mut().is_some_and(|f| f.release(session)) {
+                    info!(%peer, session, "the claim's holder is gone: the claim is free");
+                }
+                if let Err(e) = served {
                     warn!(%peer, error = %e, "connection ended with an error");
                 } else {
                     info!(%peer, "bridge disconnected");
@@ -375,6 +432,26 @@ impl Simulator {
             }
         }
     }
+}
+
+/// The counts of a new simulator: in fenced mode with the fence, whose epochs go on
+/// from the count file's `epoch` (a restart never grants an epoch again).
+fn fenced_stats(config: &SimConfig) -> Arc<SimStats> {
+    let stats = SimStats::default();
+    if let Some(lease) = config.fence_lease {
+        let epoch = config
+            .count_file
+            .as_ref()
+            .and_then(|path| std::fs::read_to_string(path).ok())
+            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok())
+            .and_then(|json| json.get("epoch").and_then(serde_json::Value::as_u64))
+            .unwrap_or(0);
+        if epoch > 0 {
+            info!(epoch, "fenced: epochs go on from the count file's");
+        }
+        *stats.fence() = Some(fence::FenceBook::new(lease, epoch));
+    }
+    Arc::new(stats)
 }
 
 /// Rewrites the count file, if any, in place (a write and a rename: readers see the

@@ -17,6 +17,9 @@ use tokio_util::codec::{Encoder, FramedRead};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
+mod fenced;
+
+use super::fence::StepRecord;
 use super::writer::Writer;
 use super::{CountFile, SimConfig, SimError, SimStats};
 use crate::dialect::{Correlation, Dialect, Element, Outcome, Sending, Status, Values};
@@ -92,10 +95,15 @@ struct Session<'a> {
     acting: Option<Acting>,
     /// Messages that came while an action was under way, answered after it.
     deferred: VecDeque<bytes::Bytes>,
+    /// This connection's number (the fence's session).
+    session: u64,
+    /// (Fenced) the step id of the action under way, recorded as running.
+    step: Option<String>,
 }
 
 pub(super) async fn serve(
     stream: TcpStream,
+    session_number: u64,
     config: &SimConfig,
     stats: &SimStats,
     count_file: &CountFile,
@@ -134,20 +142,34 @@ pub(super) async fn serve(
         hung: false,
         acting: None,
         deferred: VecDeque::new(),
+        session: session_number,
+        step: None,
     };
     loop {
         let ends = session
             .acting
             .as_ref()
             .map_or_else(std::time::Instant::now, |a| a.until);
+        let lease_end = session.lease_end();
         let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
+            _ = tokio::time::sleep_until(lease_end.unwrap_or_else(std::time::Instant::now).into()), if lease_end.is_some() => {
+                if session.lease_expired() {
+                    drop(reader);
+                    drop(writer);
+                    session.complete_unanswered(&shutdown).await;
+                    return Ok(());
+                }
+                Flow::Continue
+            }
             frame = reader.next() => match frame {
                 None => {
+                    session.release();
                     session.complete_unanswered(&shutdown).await;
                     return Ok(());
                 }
                 Some(Err(e)) => {
+                    session.release();
                     session.complete_unanswered(&shutdown).await;
                     return Err(e.into());
                 }
@@ -192,6 +214,21 @@ enum Flow {
 }
 
 impl Session<'_> {
+    /// The connection ends: a claim it held is free at once.
+    fn release(&self) {
+        if self
+            .stats
+            .fence()
+            .as_mut()
+            .is_some_and(|f| f.release(self.session))
+        {
+            info!(
+                session = self.session,
+                "the holder's connection closed: the claim is free"
+            );
+        }
+    }
+
     fn state_now(&self) -> ControllerState {
         match self.fault_until {
             Some((until, state)) if std::time::Instant::now() < until => state,
@@ -207,9 +244,12 @@ impl Session<'_> {
         writer: &mut Writer<'_>,
         shutdown: &CancellationToken,
     ) -> Result<Flow, SimError> {
+        self.seen();
         if self.acting.is_some() && !self.hung {
             let (index, _) = self.identify(&frame)?;
-            if self.dialect.abort.as_ref().map(|a| a.command) != Some(index) {
+            if self.dialect.abort.as_ref().map(|a| a.command) != Some(index)
+                && self.fence_command(index).is_none()
+            {
                 self.deferred.push_back(frame);
                 return Ok(Flow::Continue);
             }
@@ -246,6 +286,7 @@ impl Session<'_> {
         }
         let action = self.context.get("action").unwrap_or("").to_string();
         info!(%action, "the connection is gone: the action completes unanswered");
+        self.settle(StepRecord::Done(acting.result.to_string()));
         self.stats.executed.fetch_add(1, Ordering::SeqCst);
         *self
             .stats
@@ -354,6 +395,9 @@ impl Session<'_> {
             return Ok(Flow::Continue);
         }
         let (index, values) = self.identify(frame)?;
+        if let Some(fence) = self.fence_command(index) {
+            return self.fence_message(fence, index, &values, writer).await;
+        }
         if self
             .dialect
             .abort
@@ -417,6 +461,9 @@ impl Session<'_> {
         writer: &mut Writer<'_>,
         shutdown: &CancellationToken,
     ) -> Result<Flow, SimError> {
+        if let Some(flow) = self.fence_check(element, writer).await? {
+            return Ok(flow);
+        }
         let (config, stats) = (self.config, self.stats);
         let received = std::time::Instant::now();
         let n = stats.received.fetch_add(1, Ordering::SeqCst) + 1;
@@ -485,6 +532,10 @@ impl Session<'_> {
         if stats.change_to(self.context.get("program")) {
             info!(%id, program = self.context.get("program").unwrap_or(""), changeover = ?config.changeover, "changing over");
             takes += config.changeover;
+        }
+        if self.step.is_some() && self.config.reset_after.is_some_and(|limit| n == limit + 1) {
+            // Reset halfway through: not executed, so not kept as run.
+            self.forget_step();
         }
         let simulated_error =
             matches!(config.error_every, Some(every) if every > 0 && n.is_multiple_of(every));
@@ -562,6 +613,7 @@ impl Session<'_> {
         if let Some(rule) = self.rule(element, &[Outcome::Failed, Outcome::Rejected]) {
             let mut values = self.context.clone();
             values.set("message", why.to_string());
+            self.settle(StepRecord::Failed(why.to_string()));
             writer.reply(rule, &values).await?;
         } else {
             warn!("the dialect has no failed reply here: the command is not answered");
@@ -591,6 +643,7 @@ impl Session<'_> {
             .entry(action)
             .or_default() += 1;
         values.set("result", result.into());
+        self.settle(StepRecord::Done(result.to_string()));
         writer.reply(rule, &values).await?;
         self.count_file.update();
         Ok(())
