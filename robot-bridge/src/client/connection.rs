@@ -32,6 +32,7 @@ use crate::dialect::{
 };
 
 mod abort;
+mod fence;
 
 pub(super) enum ConnectionEnd {
     Shutdown,
@@ -104,6 +105,12 @@ pub(super) struct Connection<'a> {
     /// The values of the last command that reached the controller (on this connection
     /// or an earlier one): what an abort with nothing in flight is written with.
     last_run: &'a mut Option<Values>,
+    /// The fence's requests, when fenced.
+    pub(super) fence: Option<&'a mut super::FencePort>,
+    /// The fence's state across connections, when fenced.
+    pub(super) claimed: Option<&'a mut super::fence::Claimed>,
+    /// What the fence awaits on this connection.
+    fence_waits: fence::FenceWaits,
 }
 
 impl<'a> Connection<'a> {
@@ -132,6 +139,9 @@ impl<'a> Connection<'a> {
             outbox: Vec::new(),
             abort_waits: VecDeque::new(),
             last_run,
+            fence: None,
+            claimed: None,
+            fence_waits: fence::FenceWaits::default(),
         }
     }
 
@@ -178,6 +188,11 @@ impl<'a> Connection<'a> {
                         break end;
                     }
                 }
+                request = super::next_fence(&mut self.fence) => {
+                    if let Err(end) = self.fence_request(request).await {
+                        break end;
+                    }
+                }
                 frame = framed.next() => {
                     let step = match frame {
                         Some(Ok(frame)) => self.incoming(&frame).await,
@@ -205,6 +220,7 @@ impl<'a> Connection<'a> {
                 }
             }
         };
+        self.fence_ends().await;
         let failure = CommandFailure::Disconnected;
         if !self.fail_all(failure).await {
             return ConnectionEnd::OwnerGone;
@@ -238,13 +254,20 @@ impl<'a> Connection<'a> {
             .chain(connection.into_iter().flatten())
             .chain(awaiting)
             .chain(self.abort_waits.iter().map(|w| w.deadline))
+            .chain(self.fence_waits.next_wake())
             .min()
     }
 
     /// A new command: its exchange begins (or waits its turn on a one-in-flight wire).
     async fn take(&mut self, command: RobotCommand) -> Step {
+        self.take_step(command, None).await
+    }
+
+    /// A new command, with its step id when the fence is used.
+    async fn take_step(&mut self, command: RobotCommand, step: Option<super::StepId>) -> Step {
         debug!(id = command.id, action = %command.action, "command to controller");
-        let values = command_values(&command, &self.dialect.format);
+        let mut values = command_values(&command, &self.dialect.format);
+        self.epoch_values(&mut values, step.as_ref());
         // Every message of the sequence is written before the first is sent.
         let mut messages = Vec::with_capacity(self.dialect.sequence.len());
         for element in &self.dialect.sequence {
@@ -369,6 +392,7 @@ impl<'a> Connection<'a> {
     }
 
     async fn timers(&mut self, now: Instant) -> Step {
+        self.fence_timers(now).await?;
         if self.banner_until.is_some_and(|until| until <= now) {
             return Err(ConnectionEnd::Lost(format!(
                 "no banner within {:?}",
@@ -431,6 +455,9 @@ impl<'a> Connection<'a> {
             Ok(parsed) => parsed,
             Err(e) => return self.protocol_error(e.to_string()).await,
         };
+        if let Some(step) = self.fence_incoming(&parsed).await {
+            return step;
+        }
         match self.answer(&parsed).await {
             Ok(true) => return Ok(()),
             Ok(false) => {}
@@ -541,6 +568,13 @@ impl<'a> Connection<'a> {
 
     /// Exchange `i`'s element was answered by `reply`.
     async fn advance(&mut self, i: usize, reply: usize, values: &Values) -> Step {
+        if self.dialect.fence.is_some_and(|f| f.stale == reply) {
+            let current = values
+                .get("epoch")
+                .and_then(|e| e.parse().ok())
+                .map(super::Epoch);
+            self.deposed(current).await;
+        }
         let rule = &self.dialect.replies[reply];
         let now = Instant::now();
         let exchange = &mut self.exchanges[i];

@@ -30,6 +30,12 @@ use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
 mod connection;
+pub mod fence;
+
+pub use fence::{
+    ClaimError, Epoch, FenceError, FenceEvent, FenceHandle, FencePort, FenceRequest, StepId,
+    StepStatus,
+};
 
 use crate::dialect::{Dialect, Role};
 use connection::{Connection, ConnectionEnd};
@@ -125,6 +131,29 @@ pub async fn run(
     events: mpsc::Sender<ControllerEvent>,
     shutdown: CancellationToken,
 ) {
+    run_with(config, commands, None, events, shutdown).await
+}
+
+/// [`run`] with the fence of a standby holon: its requests come from `fence` (a
+/// [`fence::channel`]'s port, whose [`FenceHandle`] the holon keeps).
+pub async fn run_fenced(
+    config: ClientConfig,
+    commands: &mut mpsc::Receiver<ControllerRequest>,
+    fence: &mut FencePort,
+    events: mpsc::Sender<ControllerEvent>,
+    shutdown: CancellationToken,
+) {
+    run_with(config, commands, Some(fence), events, shutdown).await
+}
+
+async fn run_with(
+    config: ClientConfig,
+    commands: &mut mpsc::Receiver<ControllerRequest>,
+    mut fence: Option<&mut FencePort>,
+    events: mpsc::Sender<ControllerEvent>,
+    shutdown: CancellationToken,
+) {
+    let mut claimed = fence::Claimed::default();
     let mut reporter = Reporter {
         events,
         status: None,
@@ -140,6 +169,8 @@ pub async fn run(
         let link = Link {
             config: &config,
             commands,
+            fence: fence.as_deref_mut(),
+            claimed: &mut claimed,
             reporter: &mut reporter,
             shutdown: &shutdown,
         };
@@ -150,7 +181,9 @@ pub async fn run(
         let Some(stream) = stream else { return };
         first_attempt = false;
         info!(controller = %config.address, dialect = %config.dialect.name, "connected to the controller");
-        let connection = Connection::new(&config, commands, &mut reporter, &mut last_run);
+        let mut connection = Connection::new(&config, commands, &mut reporter, &mut last_run);
+        connection.fence = fence.as_deref_mut();
+        connection.claimed = Some(&mut claimed);
         match connection.serve(stream, listener.as_ref(), &shutdown).await {
             ConnectionEnd::Shutdown => {
                 info!(controller = %config.address, "closed the controller connection");
@@ -188,6 +221,10 @@ impl Reporter {
 struct Link<'a> {
     config: &'a ClientConfig,
     commands: &'a mut mpsc::Receiver<ControllerRequest>,
+    /// The fence's requests, when fenced.
+    fence: Option<&'a mut FencePort>,
+    /// The fence's state.
+    claimed: &'a mut fence::Claimed,
     reporter: &'a mut Reporter,
     shutdown: &'a CancellationToken,
 }
@@ -211,6 +248,23 @@ impl Link<'_> {
         }
     }
 
+    /// A fence request while no controller is connected: it fails at once.
+    async fn refuse_fence(&mut self, request: FenceRequest) -> bool {
+        match request {
+            FenceRequest::Claim { reply, .. } => {
+                let _ = reply.send(Err(ClaimError::NotConnected));
+            }
+            FenceRequest::StepStatus { reply, .. } => {
+                let _ = reply.send(Err(FenceError::NotConnected));
+            }
+            FenceRequest::PauseHeartbeats(paused) => self.claimed.paused = paused,
+            FenceRequest::Command { command, .. } => {
+                return self.refuse(ControllerRequest::Command(command)).await;
+            }
+        }
+        true
+    }
+
     /// Connects, retrying every `reconnect_interval`.
     async fn connect(mut self, first_attempt: bool) -> Option<TcpStream> {
         let config = self.config;
@@ -225,6 +279,11 @@ impl Link<'_> {
                 _ = self.shutdown.cancelled() => return None,
                 command = self.commands.recv() => {
                     if !self.refuse(command?).await {
+                        return None;
+                    }
+                }
+                request = next_fence(&mut self.fence) => {
+                    if !self.refuse_fence(request).await {
                         return None;
                     }
                 }
@@ -280,6 +339,11 @@ impl Link<'_> {
                         return None;
                     }
                 }
+                request = next_fence(&mut self.fence) => {
+                    if !self.refuse_fence(request).await {
+                        return None;
+                    }
+                }
                 accepted = async { listener.as_ref().expect("bound").accept().await }, if listener.is_some() => match accepted {
                     Ok((stream, peer)) => {
                         info!(%peer, "the controller connected");
@@ -293,5 +357,16 @@ impl Link<'_> {
                 _ = retry, if listener.is_none() => {}
             }
         }
+    }
+}
+
+/// The next fence request; never, without a fence (or once its handles are gone).
+async fn next_fence(fence: &mut Option<&mut FencePort>) -> FenceRequest {
+    match fence {
+        Some(port) => match port.requests.recv().await {
+            Some(request) => request,
+            None => std::future::pending().await,
+        },
+        None => std::future::pending().await,
     }
 }

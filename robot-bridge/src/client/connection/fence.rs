@@ -1,0 +1,283 @@
+//! The fence on one connection: the claim and its answer, heartbeats every lease/4 while
+//! it is held, the epoch and step id written in commands, step status queries, and the
+//! controller's `stale_epoch` (the holder must step down).
+
+use std::collections::VecDeque;
+
+use tokio::sync::oneshot;
+use tokio::time::Instant;
+use tracing::{info, warn};
+
+use super::super::fence::{
+    ClaimError, Epoch, FenceError, FenceEvent, FenceRequest, StepId, StepStatus,
+};
+use super::{Connection, ConnectionEnd, Step};
+use crate::dialect::{Parsed, Values};
+
+/// What the fence awaits on this connection.
+#[derive(Default)]
+pub(super) struct FenceWaits {
+    /// A claim sent, and when its answer is due.
+    claim: Option<(oneshot::Sender<Result<Epoch, ClaimError>>, Instant)>,
+    /// Step status queries sent, oldest first.
+    status: VecDeque<StatusWait>,
+    /// When the next heartbeat goes, while the claim is held.
+    pub(super) heartbeat_at: Option<Instant>,
+}
+
+/// A step status query awaiting its answer.
+struct StatusWait {
+    step: String,
+    reply: oneshot::Sender<Result<StepStatus, FenceError>>,
+    deadline: Instant,
+}
+
+impl FenceWaits {
+    /// The earliest of the fence's due times.
+    pub(super) fn next_wake(&self) -> Option<Instant> {
+        self.claim
+            .as_ref()
+            .map(|(_, at)| *at)
+            .into_iter()
+            .chain(self.status.iter().map(|w| w.deadline))
+            .chain(self.heartbeat_at)
+            .min()
+    }
+}
+
+impl Connection<'_> {
+    /// The epoch to write in commands, while we have one.
+    pub(super) fn epoch_values(&self, values: &mut Values, step: Option<&StepId>) {
+        if self.dialect.fence.is_none() {
+            return;
+        }
+        if let Some(epoch) = self.claimed.as_ref().and_then(|c| c.epoch) {
+            values.set("epoch", epoch.0.to_string());
+        }
+        if let Some(step) = step {
+            values.set("step", step.as_str().to_string());
+        }
+    }
+
+    async fn fence_event(&mut self, event: FenceEvent) {
+        if let Some(port) = self.fence.as_mut() {
+            // Bounded: a holon that does not read its fence events misses them.
+            if port.events.try_send(event.clone()).is_err() {
+                warn!(
+                    ?event,
+                    "the fence event could not be told: nobody reads them"
+                );
+            }
+        }
+    }
+
+    /// A request from the fence handle.
+    pub(super) async fn fence_request(&mut self, request: FenceRequest) -> Step {
+        let now = Instant::now();
+        let timeout = self.config.command_timeout;
+        match request {
+            FenceRequest::Command { command, step } => self.take_step(command, Some(step)).await,
+            FenceRequest::PauseHeartbeats(paused) => {
+                if let Some(c) = self.claimed.as_mut() {
+                    c.paused = paused;
+                }
+                Ok(())
+            }
+            FenceRequest::Claim { name, reply } => {
+                let Some(fence) = self.dialect.fence else {
+                    let _ = reply.send(Err(ClaimError::NotSupported(format!(
+                        "the dialect {} has no fence",
+                        self.dialect.name
+                    ))));
+                    return Ok(());
+                };
+                if self.fence_waits.claim.is_some() {
+                    let _ = reply.send(Err(ClaimError::Busy));
+                    return Ok(());
+                }
+                let mut values = Values::default();
+                values.set("name", name);
+                let bytes = self
+                    .dialect
+                    .write_command(fence.claim, &values)
+                    .map_err(ConnectionEnd::Lost)?;
+                self.outbox.push(bytes);
+                self.last_traffic = now;
+                self.fence_waits.claim = Some((reply, now + timeout));
+                Ok(())
+            }
+            FenceRequest::StepStatus { step, reply } => {
+                let Some(fence) = self.dialect.fence else {
+                    let _ = reply.send(Err(FenceError::NotSupported(self.dialect.name.clone())));
+                    return Ok(());
+                };
+                let mut values = Values::default();
+                values.set("step", step.as_str().to_string());
+                let bytes = self
+                    .dialect
+                    .write_command(fence.step_status, &values)
+                    .map_err(ConnectionEnd::Lost)?;
+                self.outbox.push(bytes);
+                self.last_traffic = now;
+                self.fence_waits.status.push_back(StatusWait {
+                    step: step.as_str().to_string(),
+                    reply,
+                    deadline: now + timeout,
+                });
+                Ok(())
+            }
+        }
+    }
+
+    /// A message that may be the fence's; `None`: it is not.
+    pub(super) async fn fence_incoming(&mut self, parsed: &Parsed) -> Option<Step> {
+        let fence = self.dialect.fence?;
+        let read = |r: usize| self.dialect.read_reply(r, parsed);
+        let number = |v: &Values, name: &str| v.get(name).and_then(|e| e.parse::<u64>().ok());
+        if let Ok(Some(v)) = read(fence.granted) {
+            let (Some(epoch), Some(lease)) = (number(&v, "epoch"), number(&v, "lease_ms")) else {
+                return Some(
+                    self.protocol_error("a claim granted without a number epoch and lease".into())
+                        .await,
+                );
+            };
+            let lease = std::time::Duration::from_millis(lease.max(4));
+            if let Some(c) = self.claimed.as_mut() {
+                c.epoch = Some(Epoch(epoch));
+                c.held = true;
+                c.lease = lease;
+            }
+            self.fence_waits.heartbeat_at = Some(Instant::now() + lease / 4);
+            info!(epoch, lease = ?lease, "claim granted");
+            if let Some((reply, _)) = self.fence_waits.claim.take() {
+                let _ = reply.send(Ok(Epoch(epoch)));
+            }
+            return Some(Ok(()));
+        }
+        if let Ok(Some(v)) = read(fence.refused) {
+            let epoch = number(&v, "epoch").map(Epoch);
+            let reason = v.get("reason").unwrap_or("").to_string();
+            if let Some((reply, _)) = self.fence_waits.claim.take() {
+                let error = match (reason.as_str(), epoch) {
+                    ("held", Some(epoch)) => ClaimError::Held(epoch),
+                    ("not_fenced", _) => {
+                        ClaimError::NotSupported("the controller is not fenced".into())
+                    }
+                    _ => ClaimError::Refused(reason),
+                };
+                let _ = reply.send(Err(error));
+            } else if reason == "stale_epoch" {
+                self.deposed(epoch).await;
+            } else if let Some(wait) = self.fence_waits.status.pop_front() {
+                let _ = wait.reply.send(Err(FenceError::Refused(reason)));
+            }
+            return Some(Ok(()));
+        }
+        if let Ok(Some(v)) = read(fence.step_state) {
+            let step = v.get("step").unwrap_or("");
+            let at = self.fence_waits.status.iter().position(|w| w.step == step);
+            let Some(wait) = at.and_then(|i| self.fence_waits.status.remove(i)) else {
+                warn!(%step, "a step state nobody asked for; ignored");
+                return Some(Ok(()));
+            };
+            let status = match v.get("step_state").unwrap_or("") {
+                "done" => StepStatus::Done {
+                    result: v.get("result").unwrap_or("").to_string(),
+                },
+                "failed" => StepStatus::Failed {
+                    message: v.get("message").unwrap_or("").to_string(),
+                },
+                "running" => StepStatus::Running,
+                "unknown" => StepStatus::Unknown,
+                other => {
+                    let _ = wait.reply.send(Err(FenceError::Refused(format!(
+                        "unknown step state {other:?}"
+                    ))));
+                    return Some(Ok(()));
+                }
+            };
+            let _ = wait.reply.send(Ok(status));
+            return Some(Ok(()));
+        }
+        None
+    }
+
+    /// The controller said our epoch is stale: we hold nothing; the holon must step down.
+    pub(super) async fn deposed(&mut self, current: Option<Epoch>) {
+        let Some(c) = self.claimed.as_mut() else {
+            return;
+        };
+        let epoch = c.epoch.unwrap_or(Epoch(0));
+        let was = std::mem::replace(&mut c.held, false);
+        self.fence_waits.heartbeat_at = None;
+        warn!(%epoch, ?current, held = was, "the controller refused our epoch (stale_epoch): step down");
+        self.fence_event(FenceEvent::Deposed { epoch, current })
+            .await;
+    }
+
+    /// Due heartbeats and expired fence waits.
+    pub(super) async fn fence_timers(&mut self, now: Instant) -> Step {
+        if self
+            .fence_waits
+            .claim
+            .as_ref()
+            .is_some_and(|(_, at)| *at <= now)
+        {
+            if let Some((reply, _)) = self.fence_waits.claim.take() {
+                let _ = reply.send(Err(ClaimError::Timeout(self.config.command_timeout)));
+            }
+        }
+        while self
+            .fence_waits
+            .status
+            .front()
+            .is_some_and(|w| w.deadline <= now)
+        {
+            if let Some(wait) = self.fence_waits.status.pop_front() {
+                let _ = wait
+                    .reply
+                    .send(Err(FenceError::Timeout(self.config.command_timeout)));
+            }
+        }
+        let Some(at) = self.fence_waits.heartbeat_at else {
+            return Ok(());
+        };
+        if at > now {
+            return Ok(());
+        }
+        let (Some(fence), Some(c)) = (self.dialect.fence, self.claimed.as_ref()) else {
+            return Ok(());
+        };
+        self.fence_waits.heartbeat_at = Some(now + c.lease / 4);
+        if !c.held || c.paused {
+            return Ok(());
+        }
+        let mut values = Values::default();
+        values.set("epoch", c.epoch.unwrap_or(Epoch(0)).0.to_string());
+        let bytes = self
+            .dialect
+            .write_command(fence.heartbeat, &values)
+            .map_err(ConnectionEnd::Lost)?;
+        self.outbox.push(bytes);
+        self.last_traffic = now;
+        Ok(())
+    }
+
+    /// The connection ends: what the fence awaited fails, a claim held is lost.
+    pub(super) async fn fence_ends(&mut self) {
+        if let Some((reply, _)) = self.fence_waits.claim.take() {
+            let _ = reply.send(Err(ClaimError::NotConnected));
+        }
+        for wait in self.fence_waits.status.drain(..) {
+            let _ = wait.reply.send(Err(FenceError::NotConnected));
+        }
+        let Some(c) = self.claimed.as_mut() else {
+            return;
+        };
+        if std::mem::replace(&mut c.held, false) {
+            let epoch = c.epoch.unwrap_or(Epoch(0));
+            warn!(%epoch, "the connection holding the claim ended: the claim is lost");
+            self.fence_event(FenceEvent::Lost { epoch }).await;
+        }
+    }
+}
