@@ -1,0 +1,299 @@
+//! The fence (issue 31) against a real robot-sim over TCP: one live holder, a silent
+//! holder deposed, stale epochs refused and counted, step ids run at most once, step
+//! status, and the unfenced paths unchanged. No timing is asserted.
+
+mod common;
+
+use std::time::Duration;
+
+use common::{reply, start_sim, wait_received, WAIT};
+use robot_bridge::client::{
+    self, fence, ClaimError, ClientConfig, ControllerEvent, ControllerRequest, Epoch, FenceEvent,
+    FenceHandle, StepId, StepStatus,
+};
+use robot_bridge::sim::SimConfig;
+use schemas::RobotCommand;
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+
+const LEASE: Duration = Duration::from_millis(300);
+
+/// A fenced client task: its fence handle, command mailbox and events.
+struct Fenced {
+    handle: FenceHandle,
+    commands: mpsc::Sender<ControllerRequest>,
+    events: mpsc::Receiver<ControllerEvent>,
+    fence_events: mpsc::Receiver<FenceEvent>,
+    shutdown: CancellationToken,
+}
+
+fn start(address: &str) -> Fenced {
+    let config = ClientConfig {
+        reconnect_interval: Duration::from_millis(50),
+        command_timeout: Duration::from_secs(5),
+        connect_timeout: Duration::from_secs(1),
+        ..ClientConfig::new(address)
+    };
+    let (handle, mut port, fence_events) = fence::channel(&config);
+    let (commands, mut command_rx) = mpsc::channel(16);
+    let (event_tx, events) = mpsc::channel(64);
+    let shutdown = CancellationToken::new();
+    tokio::spawn({
+        let shutdown = shutdown.clone();
+        async move { client::run_fenced(config, &mut command_rx, &mut port, event_tx, shutdown).await }
+    });
+    Fenced {
+        handle,
+        commands,
+        events,
+        fence_events,
+        shutdown,
+    }
+}
+
+fn pick(id: u64) -> RobotCommand {
+    RobotCommand {
+        id,
+        action: "pick".into(),
+        pos: None,
+        program: None,
+        info: Default::default(),
+    }
+}
+
+impl Fenced {
+    /// Claims until connected: the answer once the controller gave one.
+    async fn claim(&self, name: &str) -> Result<Epoch, ClaimError> {
+        let deadline = tokio::time::Instant::now() + WAIT;
+        loop {
+            match self.handle.claim(name).await {
+                Err(ClaimError::NotConnected) if tokio::time::Instant::now() < deadline => {
+                    tokio::time::sleep(Duration::from_millis(20)).await
+                }
+                other => return other,
+            }
+        }
+    }
+
+    async fn answer(&mut self) -> ControllerEvent {
+        loop {
+            let event = tokio::time::timeout(WAIT, self.events.recv())
+                .await
+                .expect("an event in time")
+                .expect("client gone");
+            if !matches!(event, ControllerEvent::Status(_)) {
+                return event;
+            }
+        }
+    }
+
+    async fn fence_event(&mut self) -> FenceEvent {
+        tokio::time::timeout(WAIT, self.fence_events.recv())
+            .await
+            .expect("a fence event in time")
+            .expect("client gone")
+    }
+}
+
+fn fenced_sim(delay: Duration) -> SimConfig {
+    SimConfig {
+        delay,
+        fence_lease: Some(LEASE),
+        ..SimConfig::default()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn one_holder_a_silent_one_is_deposed_and_a_step_runs_once() {
+    let (address, stats, sim) = start_sim("127.0.0.1:0", fenced_sim(Duration::ZERO)).await;
+    let mut first = start(&address);
+    let mut second = start(&address);
+    assert!(first.handle.fencing_supported());
+    let e1 = first.claim("robot1").await.expect("granted");
+    assert_eq!(e1, Epoch(1));
+    // While the first holds it (heartbeats), the second is refused with its epoch.
+    for _ in 0..3 {
+        assert_eq!(second.claim("robot1").await, Err(ClaimError::Held(e1)));
+        tokio::time::sleep(LEASE / 2).await;
+    }
+    // A step, run by the first.
+    let step = StepId::of("orders1-3/2/1", 0).unwrap();
+    first.handle.command(pick(1), step.clone()).await.unwrap();
+    assert_eq!(first.answer().await, reply(1, "picking_done"));
+    // The first goes silent: the controller closes it, the claim is lost.
+    first.handle.pause_heartbeats(true).await.unwrap();
+    assert_eq!(first.fence_event().await, FenceEvent::Lost { epoch: e1 });
+    let e2 = loop {
+        match second.claim("robot1").await {
+            Ok(epoch) => break epoch,
+            Err(ClaimError::Held(_)) => tokio::time::sleep(Duration::from_millis(20)).await,
+            Err(other) => panic!("claim: {other}"),
+        }
+    };
+    assert_eq!(e2, Epoch(2));
+    // The old holder's next command: refused stale_epoch, counted, not executed.
+    let executed = stats.executed();
+    let mut id = 2;
+    let answer = loop {
+        first
+            .handle
+            .command(pick(id), StepId::of("orders1-4/1/1", 0).unwrap())
+            .await
+            .unwrap();
+        match first.answer().await {
+            // Still reconnecting after the controller closed it.
+            ControllerEvent::CommandFailed { .. } => {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+                id += 1;
+            }
+            other => break other,
+        }
+    };
+    match answer {
+        ControllerEvent::Reply {
+            result, message, ..
+        } => {
+            assert_eq!(result, "error");
+            assert!(message.unwrap_or_default().starts_with("stale_epoch"));
+        }
+        other => panic!("expected stale_epoch, got {other:?}"),
+    }
+    assert!(matches!(
+        first.fence_event().await,
+        FenceEvent::Deposed {
+            current: Some(Epoch(2)),
+            ..
+        }
+    ));
+    assert!(stats.stale_epoch_refused() >= 1);
+    assert_eq!(stats.executed(), executed);
+    // The new holder learns the step's outcome and repeats it: the stored outcome.
+    assert_eq!(
+        second.handle.step_status(&step).await,
+        Ok(StepStatus::Done {
+            result: "picking_done".into()
+        })
+    );
+    second.handle.command(pick(7), step.clone()).await.unwrap();
+    assert_eq!(second.answer().await, reply(7, "picking_done"));
+    assert_eq!(stats.by_step().get(step.as_str()), Some(&1));
+    assert_eq!(stats.executed(), executed);
+    assert_eq!(
+        second
+            .handle
+            .step_status(&StepId::new("never/ran#0").unwrap())
+            .await,
+        Ok(StepStatus::Unknown)
+    );
+    first.shutdown.cancel();
+    second.shutdown.cancel();
+    sim.cancel();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn step_status_of_a_running_step() {
+    let (address, stats, sim) =
+        start_sim("127.0.0.1:0", fenced_sim(Duration::from_millis(500))).await;
+    let mut holder = start(&address);
+    holder.claim("robot1").await.expect("granted");
+    let step = StepId::of("o/1", 0).unwrap();
+    holder.handle.command(pick(1), step.clone()).await.unwrap();
+    wait_received(&stats, 1).await;
+    assert_eq!(
+        holder.handle.step_status(&step).await,
+        Ok(StepStatus::Running)
+    );
+    assert_eq!(holder.answer().await, reply(1, "picking_done"));
+    assert_eq!(
+        holder.handle.step_status(&step).await,
+        Ok(StepStatus::Done {
+            result: "picking_done".into()
+        })
+    );
+    holder.shutdown.cancel();
+    sim.cancel();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn unfenced_sim_and_client_work_as_before() {
+    let (address, stats, sim) = start_sim("127.0.0.1:0", SimConfig::default()).await;
+    let mut fenced = start(&address);
+    // An unfenced controller refuses the claim: standby is not possible.
+    assert!(matches!(
+        fenced.claim("robot1").await,
+        Err(ClaimError::NotSupported(_))
+    ));
+    fenced.commands.send(pick(1).into()).await.unwrap();
+    assert_eq!(fenced.answer().await, reply(1, "picking_done"));
+    let mut plain = common::Harness::start(address.clone(), Duration::from_secs(5));
+    plain.wait_ready().await;
+    plain.send(2, "pick").await;
+    assert_eq!(plain.answer().await, reply(2, "picking_done"));
+    assert_eq!(stats.executed(), 2);
+    assert!(!stats.to_json().contains("by_step"));
+    plain.stop().await;
+    fenced.shutdown.cancel();
+    sim.cancel();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_unfenced_client_is_refused_by_a_fenced_sim() {
+    let (address, stats, sim) = start_sim("127.0.0.1:0", fenced_sim(Duration::ZERO)).await;
+    let mut plain = common::Harness::start(address, Duration::from_secs(5));
+    plain.wait_ready().await;
+    plain.send(1, "pick").await;
+    match plain.answer().await {
+        ControllerEvent::Reply {
+            id: 1,
+            result,
+            message,
+        } => {
+            assert_eq!(result, "error");
+            assert!(message.unwrap_or_default().starts_with("stale_epoch"));
+        }
+        other => panic!("expected stale_epoch, got {other:?}"),
+    }
+    assert_eq!(stats.executed(), 0);
+    assert_eq!(stats.stale_epoch_refused(), 1);
+    plain.stop().await;
+    sim.cancel();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn garbage_fence_messages_are_refused_and_change_nothing() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let (address, stats, sim) = start_sim("127.0.0.1:0", fenced_sim(Duration::ZERO)).await;
+    let holder = start(&address);
+    let epoch = holder.claim("robot1").await.expect("granted");
+    let mut raw = tokio::net::TcpStream::connect(&address).await.unwrap();
+    let long = "x".repeat(200);
+    let messages = [
+        format!("<CLAIM><NAME>{long}</NAME></CLAIM>"),
+        "<CLAIM><NAME>a b</NAME></CLAIM>".to_string(),
+        "<HEARTBEAT><EPOCH>banana</EPOCH></HEARTBEAT>".to_string(),
+        format!("<STEP_STATUS><STEP>{long}</STEP></STEP_STATUS>"),
+    ];
+    for m in &messages {
+        raw.write_all(m.as_bytes()).await.unwrap();
+    }
+    let mut seen = String::new();
+    let mut buf = [0u8; 4096];
+    while seen.matches("<FENCE_REFUSED>").count() < messages.len() {
+        let n = tokio::time::timeout(WAIT, raw.read(&mut buf))
+            .await
+            .unwrap()
+            .unwrap();
+        assert!(n > 0, "closed early: {seen}");
+        seen.push_str(&String::from_utf8_lossy(&buf[..n]));
+    }
+    assert!(seen.contains("<REASON>invalid</REASON>"), "{seen}");
+    assert!(seen.contains("<REASON>stale_epoch</REASON>"), "{seen}");
+    // Oversized: the connection is closed, as for any over-size document.
+    let mut big = b"<CLAIM><NAME>".to_vec();
+    big.resize(70_000, b'x');
+    let _ = raw.write_all(&big).await;
+    assert_eq!(stats.epoch(), epoch.0);
+    assert_eq!(holder.claim("robot1").await, Ok(epoch));
+    holder.shutdown.cancel();
+    sim.cancel();
+}
