@@ -381,6 +381,8 @@ impl Session<'_> {
                 .expect
                 .iter()
                 .copied()
+                // The fence's stale-epoch refusal is written by the fence alone.
+                .filter(|&r| self.dialect.fence.is_none_or(|f| f.stale != r))
                 .find(|&r| self.dialect.replies[r].outcome == *o)
         })
     }
