@@ -584,7 +584,7 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
                     "{} ended {}: {}",
                     order.holon,
                     order.status.as_str(),
-                    order.reason.as_deref().unwrap_or("")
+                    order.reason.as_ref().map_or("", |r| r.as_str())
                 );
             }
             done.entry(order.holon.name().to_string())

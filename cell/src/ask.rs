@@ -60,6 +60,6 @@ pub async fn until_answered(
 fn unavailable(reply: &Reply) -> Option<Duration> {
     let error = reply.result().err()?;
     let body = schemas::ErrorReply::from_json(&error.payload().to_bytes())?;
-    (body.code == "unavailable")
+    (body.code == schemas::ErrorCode::Unavailable)
         .then(|| Duration::from_millis(body.retry_after_ms.unwrap_or(100).clamp(10, 5000)))
 }

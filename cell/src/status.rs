@@ -357,7 +357,7 @@ pub fn render_orders_at(
             o.failed_attempts,
             o.rebooks,
             o.reworks,
-            o.reason.as_deref().unwrap_or("")
+            o.reason.as_ref().map_or("", |r| r.as_str())
         ));
         if detail {
             for a in &o.attempts {

@@ -10,7 +10,10 @@ use schemas::{CellKeys, SubmitReply, WorkOrder};
 pub enum SubmitError {
     /// An order-node answered and refused it (nothing was made).
     #[error("the order-node refused the work order ({code}): {message}")]
-    Refused { code: String, message: String },
+    Refused {
+        code: schemas::ErrorCode,
+        message: String,
+    },
     /// No order-node answered within the time.
     #[error("no order-node answered on {0}")]
     NoAnswer(String),
@@ -49,7 +52,7 @@ pub async fn submit(
                     message: e.message,
                 },
                 Err(_) => SubmitError::Refused {
-                    code: "unknown".into(),
+                    code: schemas::ErrorCode::Other("unknown".into()),
                     message: text.to_string(),
                 },
             })

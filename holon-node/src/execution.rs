@@ -32,7 +32,7 @@
 use std::sync::Arc;
 
 use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
-use schemas::{reason, RobotCommand};
+use schemas::{Reason, RobotCommand};
 use serde_json::{Map, Value};
 
 use crate::agenda::{Job, Outcome};
@@ -173,18 +173,18 @@ impl Execution {
                 }
                 if self.is_aborting() {
                     return self.fail(
-                        reason::ABORTED,
+                        Reason::Aborted,
                         format!("aborted by an operator: {failure}"),
                     );
                 }
                 let why = match failure {
-                    CommandFailure::Timeout(_) => reason::CONTROLLER_TIMEOUT,
+                    CommandFailure::Timeout(_) => Reason::ControllerTimeout,
                     CommandFailure::Disconnected | CommandFailure::NotConnected => {
-                        reason::CONTROLLER_DISCONNECTED
+                        Reason::ControllerDisconnected
                     }
-                    CommandFailure::Protocol(_) => reason::CONTROLLER_PROTOCOL,
-                    CommandFailure::Unwritable(_) => reason::INVALID_INFO,
-                    CommandFailure::Aborted => reason::ABORTED,
+                    CommandFailure::Protocol(_) => Reason::ControllerProtocol,
+                    CommandFailure::Unwritable(_) => Reason::InvalidInfo,
+                    CommandFailure::Aborted => Reason::Aborted,
                 };
                 self.fail(why, failure.to_string())
             }
@@ -226,13 +226,13 @@ impl Execution {
             // The agenda manager only starts a ready execution; a race with a controller
             // status change ends here.
             let (why, detail) = match self.state {
-                ExecutionState::Running { .. } => (reason::BUSY, "another job is running"),
-                _ => (reason::UNAVAILABLE, "the controller is not ready"),
+                ExecutionState::Running { .. } => (Reason::Busy, "another job is running"),
+                _ => (Reason::Unavailable, "the controller is not ready"),
             };
             return vec![ExecutionAction::Finished {
                 conversation_id: job.conversation_id,
                 outcome: Outcome::Failed {
-                    reason: why.into(),
+                    reason: why,
                     detail: detail.into(),
                 },
             }];
@@ -263,12 +263,12 @@ impl Execution {
         let program = crate::catalog::program(&job.info);
         let (Some(definition), Ok(poses), Ok(program)) = (definition, poses, program) else {
             return self.fail(
-                reason::INVALID_INFO,
+                Reason::InvalidInfo,
                 "the job's info does not fit its steps".into(),
             );
         };
         let Some(current) = definition.steps.get(*step) else {
-            return self.fail(reason::INVALID_INFO, "the service has no such step".into());
+            return self.fail(Reason::InvalidInfo, "the service has no such step".into());
         };
         *command_id = self.next_command_id;
         self.next_command_id += 1;
@@ -311,7 +311,7 @@ impl Execution {
             .and_then(|d| d.steps.get(*step))
             .cloned()
         else {
-            return self.fail(reason::INVALID_INFO, "the service has no such step".into());
+            return self.fail(Reason::InvalidInfo, "the service has no such step".into());
         };
         let steps = self
             .catalog
@@ -326,7 +326,7 @@ impl Execution {
                 current.action,
                 message.map(|m| format!(": {m}")).unwrap_or_default()
             );
-            return self.fail(reason::ABORTED, detail);
+            return self.fail(Reason::Aborted, detail);
         }
         if result == schemas::robot::RESULT_ERROR {
             let detail = format!(
@@ -334,7 +334,7 @@ impl Execution {
                 current.action,
                 message.unwrap_or_else(|| "no message".into())
             );
-            return self.fail(reason::CONTROLLER_ERROR, detail);
+            return self.fail(Reason::ControllerError, detail);
         }
         if !current.until.contains(&result) {
             let detail = format!(
@@ -342,7 +342,7 @@ impl Execution {
                 current.action,
                 current.until.join(" or ")
             );
-            return self.fail(reason::UNEXPECTED_RESULT, detail);
+            return self.fail(Reason::UnexpectedResult, detail);
         }
         results.insert(current.action.clone(), Value::String(result));
         *step += 1;
@@ -361,7 +361,7 @@ impl Execution {
         }]
     }
 
-    fn fail(&mut self, why: &str, detail: String) -> Vec<ExecutionAction> {
+    fn fail(&mut self, why: Reason, detail: String) -> Vec<ExecutionAction> {
         let previous = std::mem::replace(&mut self.state, ExecutionState::Init);
         self.state = self.idle_state();
         let mut actions = Vec::new();
@@ -369,7 +369,7 @@ impl Execution {
             actions.push(ExecutionAction::Finished {
                 conversation_id: job.conversation_id,
                 outcome: Outcome::Failed {
-                    reason: why.into(),
+                    reason: why,
                     // A controller's text goes into a message: bounded.
                     detail: schemas::bounded_detail(detail),
                 },
@@ -385,15 +385,15 @@ impl Execution {
         if !status.is_ready() && matches!(self.state, ExecutionState::Running { .. }) {
             let (why, detail) = match status {
                 _ if self.is_aborting() => (
-                    reason::ABORTED,
+                    Reason::Aborted,
                     format!("aborted by an operator; the controller then reported {status}"),
                 ),
                 ControllerStatus::Disconnected => (
-                    reason::CONTROLLER_DISCONNECTED,
+                    Reason::ControllerDisconnected,
                     "the connection to the controller broke".to_string(),
                 ),
                 ControllerStatus::Ready | ControllerStatus::Fault | ControllerStatus::Estop => (
-                    reason::CONTROLLER_FAULT,
+                    Reason::ControllerFault,
                     format!("the controller reported {status}"),
                 ),
             };
@@ -470,12 +470,13 @@ mod tests {
         }
     }
 
-    fn failed_with(actions: &[ExecutionAction], why: &str) {
+    fn failed_with(actions: &[ExecutionAction], why: impl AsRef<str>) {
+        let why = why.as_ref();
         match actions.first() {
             Some(ExecutionAction::Finished {
                 outcome: Outcome::Failed { reason, .. },
                 ..
-            }) => assert_eq!(reason, why),
+            }) => assert_eq!(reason.as_str(), why),
             other => panic!("expected failed {why}, got {other:?}"),
         }
     }

@@ -557,7 +557,7 @@ fn stand_in_answer(holon: schemas::HolonId) -> holon::takeover::Answer {
             .unwrap_or_default();
         let sent = match Service::from_json(&payload) {
             Ok(request) => {
-                let mut refusal = request.refused(&holon, schemas::reason::UNAVAILABLE);
+                let mut refusal = request.refused(&holon, schemas::Reason::Unavailable);
                 crate::agenda::handing_over_hint(&mut refusal.info);
                 query
                     .reply(query.key_expr().clone(), refusal.to_json())

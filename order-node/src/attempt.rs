@@ -48,7 +48,7 @@ use std::collections::VecDeque;
 use std::time::Duration;
 
 use holon::Backoff;
-use schemas::{reason, HolonId};
+use schemas::{HolonId, Reason};
 use tokio::time::Instant;
 
 use crate::progress::{Phase, StepOutcome};
@@ -59,8 +59,8 @@ pub enum Answer {
     Accepted,
     /// Accepted, and the job has begun: a booking that asked to start on its turn.
     Started,
-    /// Refused, with its reason (one of [`schemas::reason`]).
-    Refused(Option<String>),
+    /// Refused, with its reason.
+    Refused(Option<Reason>),
     /// No answer within the request timeout, or an error reply.
     Silent,
 }
@@ -327,12 +327,12 @@ impl Attempt {
             Answer::Accepted | Answer::Started => return self.started(provider),
             Answer::Silent => None,
             // A refusal without a reason is a refusal all the same.
-            Answer::Refused(why) => Some(why.unwrap_or_else(|| "refused".into())),
+            Answer::Refused(why) => Some(why.unwrap_or_else(|| Reason::Other("refused".into()))),
         };
-        match refusal.as_deref() {
-            None | Some(reason::BUSY) => self.watch_for_turn(provider),
-            Some(reason::UNAVAILABLE) if now < self.give_up => self.watch_for_turn(provider),
-            Some(reason::NOT_BOOKED) => vec![AttemptAction::End(StepOutcome::Lost {
+        match refusal {
+            None | Some(Reason::Busy) => self.watch_for_turn(provider),
+            Some(Reason::Unavailable) if now < self.give_up => self.watch_for_turn(provider),
+            Some(Reason::NotBooked) => vec![AttemptAction::End(StepOutcome::Lost {
                 provider,
                 why: "the booking was lost".into(),
             })],
@@ -466,7 +466,7 @@ mod tests {
         a.handle(E::Proposals(vec![robot(1), robot(2)]), now);
         assert_eq!(
             a.handle(
-                E::BookingAnswer(Answer::Refused(Some("agenda_full".into()))),
+                E::BookingAnswer(Answer::Refused(Some(Reason::AgendaFull))),
                 now
             ),
             vec![A::Record(Phase::Booking(robot(2))), A::AskBooking(robot(2))]
@@ -554,14 +554,14 @@ mod tests {
             }]
         };
         assert_eq!(
-            a.handle(E::StartAnswer(Answer::Refused(Some("busy".into()))), now),
+            a.handle(E::StartAnswer(Answer::Refused(Some(Reason::Busy))), now),
             watch(100)
         );
         assert_eq!(a.handle(E::Watched(None), now), vec![A::AskStart(robot(1))]);
         assert_eq!(a.handle(E::StartAnswer(Answer::Silent), now), watch(200));
         assert_eq!(
             a.handle(
-                E::StartAnswer(Answer::Refused(Some("unavailable".into()))),
+                E::StartAnswer(Answer::Refused(Some(Reason::Unavailable))),
                 now
             ),
             watch(400)
@@ -574,7 +574,7 @@ mod tests {
         let (mut a, now) = attempt(Phase::Booked(robot(1)));
         assert_eq!(
             a.handle(
-                E::StartAnswer(Answer::Refused(Some("unavailable".into()))),
+                E::StartAnswer(Answer::Refused(Some(Reason::Unavailable))),
                 later(now)
             ),
             vec![
@@ -607,7 +607,7 @@ mod tests {
         let (mut a, now) = attempt(Phase::Booked(robot(1)));
         assert_eq!(
             a.handle(
-                E::StartAnswer(Answer::Refused(Some("not_booked".into()))),
+                E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
                 now
             ),
             vec![A::End(StepOutcome::Lost {
@@ -709,7 +709,7 @@ mod tests {
         // A pause without news: the order asks (a publication may have been missed).
         assert_eq!(a.handle(E::Watched(None), now), vec![A::AskStart(robot(1))]);
         assert_eq!(
-            a.handle(E::StartAnswer(Answer::Refused(Some("busy".into()))), now),
+            a.handle(E::StartAnswer(Answer::Refused(Some(Reason::Busy))), now),
             vec![A::Watch {
                 provider: robot(1),
                 pause: Duration::from_millis(200),
@@ -762,7 +762,7 @@ mod tests {
         // The booking never arrived: lost, and a new attempt (a new conversation).
         assert_eq!(
             a.handle(
-                E::StartAnswer(Answer::Refused(Some(reason::NOT_BOOKED.into()))),
+                E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
                 now
             ),
             vec![A::End(StepOutcome::Lost {

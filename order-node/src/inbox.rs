@@ -37,7 +37,7 @@ impl ResultReport {
     }
 
     /// Refuses the result with an error reply (the resource logs it and retries).
-    pub async fn refuse(self, code: &str, message: String) {
+    pub async fn refuse(self, code: schemas::ErrorCode, message: String) {
         if let Err(e) = self
             .query
             .reply_err(schemas::ErrorReply::new(code, message).to_json())
@@ -118,7 +118,7 @@ impl Inboxes {
                         MessageType::Done | MessageType::Failed
                     ) =>
             {
-                info!(holon = %message.requester, conversation_id = %message.conversation_id, message_type = %message.message_type, provider = %message.provider.as_ref().map(|p| p.to_string()).unwrap_or_default(), reason = message.reason.as_deref().unwrap_or(""), "received");
+                info!(holon = %message.requester, conversation_id = %message.conversation_id, message_type = %message.message_type, provider = %message.provider.as_ref().map(|p| p.to_string()).unwrap_or_default(), reason = message.reason.as_ref().map_or("", |r| r.as_str()), "received");
                 match sender.try_send(ResultReport { message, query }) {
                     Ok(()) => return None,
                     // The order's task ended between the lookup and the send: the node
@@ -130,14 +130,14 @@ impl Inboxes {
                     // the order records them): refused, the resource sends it again.
                     Err(mpsc::error::TrySendError::Full(returned)) => {
                         warn!(order = %name, conversation_id = %returned.message.conversation_id, "the order's inbox is full: result refused, the resource sends it again");
-                        (returned.query, schemas::ErrorReply::new("unavailable", format!("{INBOX_CAPACITY} results are waiting for this order; send it again later")))
+                        (returned.query, schemas::ErrorReply::new(schemas::ErrorCode::Unavailable, format!("{INBOX_CAPACITY} results are waiting for this order; send it again later")))
                     }
                 }
             }
             Ok(other) => (
                 query,
                 schemas::ErrorReply::new(
-                    "wrong_key",
+                    schemas::ErrorCode::WrongKey,
                     format!(
                         "{} for {} is not for this inbox",
                         other.message_type, other.requester

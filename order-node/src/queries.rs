@@ -41,7 +41,7 @@ fn enqueue(queue: &mpsc::Sender<NodeQuery>, query: NodeQuery) {
         )) => {
             warn!(key = %query.key_expr(), "{QUERY_QUEUE} queries are waiting for the order-node: this one is refused unavailable");
             let busy = schemas::ErrorReply::new(
-                "unavailable",
+                schemas::ErrorCode::Unavailable,
                 format!(
                     "{QUERY_QUEUE} requests are waiting for this order-node; ask again shortly"
                 ),
@@ -194,19 +194,29 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
         Ok(work) => match work.validate() {
             Ok(()) => work,
             Err(e) => {
-                return refuse_work(host, &query, ErrorReply::new("invalid", e.to_string())).await
+                return refuse_work(
+                    host,
+                    &query,
+                    ErrorReply::new(schemas::ErrorCode::Invalid, e.to_string()),
+                )
+                .await
             }
         },
         Err(e) => {
             warn!(node = %host.config.name, error = %e, "malformed work order");
-            return refuse_work(host, &query, ErrorReply::new("malformed", e.to_string())).await;
+            return refuse_work(
+                host,
+                &query,
+                ErrorReply::new(schemas::ErrorCode::Malformed, e.to_string()),
+            )
+            .await;
         }
     };
     if !work.queue {
         if let Some(why) = product_missing(host, &work.product).await {
             warn!(node = %host.config.name, product = %work.product, "work order refused: {why}");
             if let Err(e) = query
-                .reply_err(ErrorReply::new("unknown_product", why).to_json())
+                .reply_err(ErrorReply::new(schemas::ErrorCode::UnknownProduct, why).to_json())
                 .await
             {
                 warn!(node = %host.config.name, error = %e, "cannot refuse the work order");
@@ -232,7 +242,7 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
     if let Some(why) = refusal {
         warn!(node = %host.config.name, product = %work.product, count = work.count, "work order refused: {why}");
         if let Err(e) = query
-            .reply_err(ErrorReply::new("quota", why).to_json())
+            .reply_err(ErrorReply::new(schemas::ErrorCode::Quota, why).to_json())
             .await
         {
             warn!(node = %host.config.name, error = %e, "cannot refuse the work order");
@@ -244,7 +254,10 @@ async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &Cancellat
         Ok(orders) => orders,
         Err(e) => {
             error!(node = %host.config.name, error = %e, "cannot record the work order");
-            let refusal = ErrorReply::new("unavailable", format!("cannot record the orders: {e}"));
+            let refusal = ErrorReply::new(
+                schemas::ErrorCode::Unavailable,
+                format!("cannot record the orders: {e}"),
+            );
             return refuse_work(host, &query, refusal).await;
         }
     };
@@ -279,7 +292,7 @@ async fn cancel(host: &Host, query: Query) {
         Err(why) => {
             warn!(node = %host.config.name, order = %name, "cancel refused: {why}");
             query
-                .reply_err(ErrorReply::new("unknown_order", why).to_json())
+                .reply_err(ErrorReply::new(schemas::ErrorCode::UnknownOrder, why).to_json())
                 .await
         }
     };
@@ -333,7 +346,7 @@ async fn acknowledge_finished(host: &Host, query: Query) {
         if let Err(e) = query
             .reply_err(
                 ErrorReply::new(
-                    "unknown_order",
+                    schemas::ErrorCode::UnknownOrder,
                     format!("{name} is not an order of {}", host.config.name),
                 )
                 .to_json(),
@@ -372,8 +385,11 @@ async fn acknowledge_finished(host: &Host, query: Query) {
             warn!(order = %name, conversation_id = %message.conversation_id, "result for a finished order from a resource it never booked refused");
             if let Err(e) = query
                 .reply_err(
-                    ErrorReply::new("not_booked", "this order never booked that resource")
-                        .to_json(),
+                    ErrorReply::new(
+                        schemas::ErrorCode::NotBooked,
+                        "this order never booked that resource",
+                    )
+                    .to_json(),
                 )
                 .await
             {

@@ -12,6 +12,7 @@ pub mod plan;
 pub mod robot;
 pub mod service;
 pub mod state;
+pub mod vocabulary;
 
 pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION};
 pub use id::{validate_name, HolonId, HolonKind};
@@ -26,12 +27,13 @@ pub use plan::{
 };
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{
-    bounded_detail, info_key, reason, ErrorReply, MessageType, Service, MAX_DETAIL_BYTES,
-    MAX_PRIORITY, MIN_PRIORITY, SERVICE_VERSION,
+    bounded_detail, info_key, ErrorReply, MessageType, Service, MAX_DETAIL_BYTES, MAX_PRIORITY,
+    MIN_PRIORITY, SERVICE_VERSION,
 };
 pub use state::{
     unix_ms, BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot, ResourceState,
 };
+pub use vocabulary::{ErrorCode, Reason};
 
 /// Everything that can be wrong with a message, an id or a key.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

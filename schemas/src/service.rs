@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::id::{validate_name, HolonId};
 use crate::keys::validate_reply_key;
+use crate::vocabulary::{ErrorCode, Reason};
 use crate::SchemaError;
 
 /// The schema version this crate reads and writes.
@@ -110,48 +111,6 @@ pub const MAX_PRIORITY: i32 = 1000;
 /// The least urgent priority a work order may have.
 pub const MIN_PRIORITY: i32 = -1000;
 
-/// The reasons a holon gives when `result` is false (free text is allowed beyond these,
-/// but holarchy's own holons only use these codes; details go in `info.detail`).
-pub mod reason {
-    /// `start` or `booking_cancel` from a requester that holds no such booking.
-    pub const NOT_BOOKED: &str = "not_booked";
-    /// `start` while the resource executes another service.
-    pub const BUSY: &str = "busy";
-    /// The resource cannot execute now: its controller is disconnected, in fault or estop.
-    pub const UNAVAILABLE: &str = "unavailable";
-    /// The resource does not offer this service type.
-    pub const UNKNOWN_SERVICE: &str = "unknown_service";
-    /// The agenda is full (`agenda_capacity`).
-    pub const AGENDA_FULL: &str = "agenda_full";
-    /// `info` lacks what the service's steps need (e.g. a pose).
-    pub const INVALID_INFO: &str = "invalid_info";
-    /// `booking_req` whose requester is a resource: orders, products and staff book
-    /// resources; a resource does not (its absence is not watched, so nothing would
-    /// release its bookings).
-    pub const NOT_A_REQUESTER: &str = "not_a_requester";
-    /// The controller answered a command with `error` (its message is in `info.detail`).
-    pub const CONTROLLER_ERROR: &str = "controller_error";
-    /// The connection to the controller broke during the step.
-    pub const CONTROLLER_DISCONNECTED: &str = "controller_disconnected";
-    /// The controller did not answer a command within its timeout.
-    pub const CONTROLLER_TIMEOUT: &str = "controller_timeout";
-    /// The controller sent something that is not the protocol.
-    pub const CONTROLLER_PROTOCOL: &str = "controller_protocol_error";
-    /// The controller answered with a result the step does not expect.
-    pub const UNEXPECTED_RESULT: &str = "unexpected_result";
-    /// The controller reported `fault` or `estop` during the step.
-    pub const CONTROLLER_FAULT: &str = "controller_fault";
-    /// The resource is shutting down and hands the booking back (sent as `failed` for a
-    /// booking that never started): book elsewhere.
-    pub const WITHDRAWN: &str = "withdrawn";
-    /// The resource holon stopped (crashed, was killed) while the step ran; it was not
-    /// completed and is never re-executed by the resource: the order decides.
-    pub const INTERRUPTED: &str = "interrupted";
-    /// The resource was aborted (PackML Abort, by an operator) while the step ran: the
-    /// controller was told to stop, the step did not complete.
-    pub const ABORTED: &str = "aborted";
-}
-
 /// The Service message: one per zenoh payload, JSON, UTF-8.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -183,7 +142,8 @@ pub struct Service {
     pub result: Option<bool>,
     /// Why `result` is false: `not_booked`, `busy`, `unavailable`, `unknown_service`, ...
     #[serde(default)]
-    pub reason: Option<String>,
+    #[schemars(with = "Option<String>")]
+    pub reason: Option<Reason>,
     /// Service data, e.g. `{"pick": {"x":..}, "place": {..}}`; on replies, e.g. queue position.
     #[serde(default)]
     pub info: serde_json::Map<String, serde_json::Value>,
@@ -303,10 +263,10 @@ impl Service {
     }
 
     /// The answer to this message with `result` false and a reason.
-    pub fn refused(&self, provider: &HolonId, reason: &str) -> Service {
+    pub fn refused(&self, provider: &HolonId, reason: Reason) -> Service {
         let mut reply = self.accepted(provider);
         reply.result = Some(false);
-        reply.reason = Some(reason.to_string());
+        reply.reason = Some(reason);
         reply
     }
 
@@ -359,8 +319,9 @@ impl Service {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 pub struct ErrorReply {
     /// A stable code: `malformed`, `unsupported_version`, `invalid`, `wrong_key`,
-    /// `internal`, `unavailable`.
-    pub code: String,
+    /// `internal`, `unavailable`, ...
+    #[schemars(with = "String")]
+    pub code: ErrorCode,
     /// What was wrong, for a person.
     pub message: String,
     /// With `unavailable`: when to ask again, in ms (e.g. while the holon is handed over
@@ -370,9 +331,9 @@ pub struct ErrorReply {
 }
 
 impl ErrorReply {
-    pub fn new(code: &str, message: impl Into<String>) -> Self {
+    pub fn new(code: ErrorCode, message: impl Into<String>) -> Self {
         ErrorReply {
-            code: code.to_string(),
+            code,
             message: message.into(),
             retry_after_ms: None,
         }
@@ -382,7 +343,7 @@ impl ErrorReply {
     pub fn unavailable(message: impl Into<String>, retry_after: std::time::Duration) -> Self {
         ErrorReply {
             retry_after_ms: Some(retry_after.as_millis() as u64),
-            ..ErrorReply::new("unavailable", message)
+            ..ErrorReply::new(ErrorCode::Unavailable, message)
         }
     }
 
@@ -391,9 +352,11 @@ impl ErrorReply {
     /// when a field is wrong.
     pub fn for_schema_error(error: &crate::SchemaError) -> Self {
         let code = match error {
-            crate::SchemaError::UnsupportedVersion(_) => "unsupported_version",
-            crate::SchemaError::Json(_) | crate::SchemaError::TooLarge { .. } => "malformed",
-            _ => "invalid",
+            crate::SchemaError::UnsupportedVersion(_) => ErrorCode::UnsupportedVersion,
+            crate::SchemaError::Json(_) | crate::SchemaError::TooLarge { .. } => {
+                ErrorCode::Malformed
+            }
+            _ => ErrorCode::Invalid,
         };
         ErrorReply::new(code, error.to_string())
     }
@@ -497,9 +460,9 @@ mod tests {
         assert_eq!(yes.result, Some(true));
         assert_eq!(yes.provider.as_ref(), Some(&robot));
         assert_eq!(yes.conversation_id, msg.conversation_id);
-        let no = msg.refused(&robot, reason::BUSY);
+        let no = msg.refused(&robot, Reason::Busy);
         assert_eq!(no.result, Some(false));
-        assert_eq!(no.reason.as_deref(), Some("busy"));
+        assert_eq!(no.reason, Some(Reason::Busy));
     }
 
     #[test]

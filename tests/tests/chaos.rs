@@ -435,7 +435,7 @@ impl<'a> Chaos<'a> {
             println!(
                 "  failed {}: {}",
                 failed.holon,
-                failed.reason.as_deref().unwrap_or("")
+                failed.reason.as_ref().map_or("", |r| r.as_str())
             );
         }
     }

@@ -46,7 +46,11 @@ impl Robot {
 
 fn assert_failed(result: &Service, reason: &str) {
     assert_eq!(result.message_type, MessageType::Failed, "{result:?}");
-    assert_eq!(result.reason.as_deref(), Some(reason), "{result:?}");
+    assert_eq!(
+        result.reason.as_ref().map(|r| r.as_str()),
+        Some(reason),
+        "{result:?}"
+    );
     assert!(
         result.info["detail"]
             .as_str()
@@ -165,13 +169,8 @@ async fn a_fault_aborts_the_resource_until_an_operator_clears_resets_and_starts_
         r.cell.wait_proposals(&ask, 0).await.unwrap();
         let book = pick_n_place(&r.cell.keys, MessageType::BookingReq, "o-2", "c2");
         assert_eq!(
-            r.cell
-                .service("robot1", &book)
-                .await
-                .unwrap()
-                .reason
-                .as_deref(),
-            Some("unavailable")
+            r.cell.service("robot1", &book).await.unwrap().reason,
+            Some(schemas::Reason::Unavailable)
         );
         // PackML: the fault aborted the resource; ready again, it stays Aborted (no
         // offers) until an operator clears, resets and starts it.

@@ -94,7 +94,7 @@ async fn garbage_in_any_dialect_fails_the_step_and_the_holon_serves_on() {
             "{dialect}: {result:?}"
         );
         assert_eq!(
-            result.reason.as_deref(),
+            result.reason.as_ref().map(|r| r.as_str()),
             Some("controller_protocol_error"),
             "{dialect}: {result:?}"
         );

@@ -438,7 +438,10 @@ async fn stopping_while_the_disk_is_full_delivers_the_held_result_and_hands_the_
         MessageType::Failed,
         "{handed_back:?}"
     );
-    assert_eq!(handed_back.reason.as_deref(), Some("withdrawn"));
+    assert_eq!(
+        handed_back.reason.as_ref().map(|r| r.as_str()),
+        Some("withdrawn")
+    );
     assert_eq!(handed_back.conversation_id, "o-2/1/1");
     let status = node.wait_exit(Duration::from_secs(60)).unwrap();
     assert!(status.success(), "{}", node.stderr());

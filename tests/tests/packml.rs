@@ -84,7 +84,11 @@ async fn hold_stop_reset_start_and_modes_through_cell_packml() {
         .service("robot1", &request(&cell, MessageType::Start, "c2"))
         .await
         .unwrap();
-    assert_eq!(start.reason.as_deref(), Some("unavailable"), "{start:?}");
+    assert_eq!(
+        start.reason.as_ref().map(|r| r.as_str()),
+        Some("unavailable"),
+        "{start:?}"
+    );
     assert_eq!(start.info["packml_state"], 11, "{start:?}");
     let ask = pick_n_place(&cell.keys, MessageType::ProposalReq, "o-9", "p");
     cell.wait_proposals(&ask, 0).await.unwrap();
@@ -119,7 +123,11 @@ async fn hold_stop_reset_start_and_modes_through_cell_packml() {
     accepted(&cell, &["robot1", "stop"]).await;
     let back = inbox.next().await.unwrap();
     assert_eq!(back.conversation_id, "c3");
-    assert_eq!(back.reason.as_deref(), Some("withdrawn"), "{back:?}");
+    assert_eq!(
+        back.reason.as_ref().map(|r| r.as_str()),
+        Some("withdrawn"),
+        "{back:?}"
+    );
     cell.wait_packml("robot1", 2).await.unwrap();
 
     // Maintenance takes no orders' work, even in Execute.
@@ -135,7 +143,10 @@ async fn hold_stop_reset_start_and_modes_through_cell_packml() {
         .service("robot1", &request(&cell, MessageType::BookingReq, "c4"))
         .await
         .unwrap();
-    assert_eq!(refused.reason.as_deref(), Some("unavailable"));
+    assert_eq!(
+        refused.reason.as_ref().map(|r| r.as_str()),
+        Some("unavailable")
+    );
     assert!(
         refused.info["detail"]
             .as_str()
@@ -190,7 +201,7 @@ async fn a_malformed_packml_request_gets_an_error_and_changes_nothing() {
         let reply = replies.recv_async().await.unwrap();
         let error = reply.result().expect_err("refused");
         let body = schemas::ErrorReply::from_json(&error.payload().to_bytes()).unwrap();
-        assert_eq!(body.code, "malformed", "{body:?}");
+        assert_eq!(body.code.as_str(), "malformed", "{body:?}");
     }
     let state = cell.status("robot1").await.unwrap();
     assert_eq!(state["packml"]["state"], "execute");
@@ -219,7 +230,11 @@ async fn abort_mid_step_tells_the_controller_and_fails_the_step_aborted() {
     accepted(&cell, &["robot1", "abort"]).await;
     let result = inbox.next().await.unwrap();
     assert_eq!(result.message_type, MessageType::Failed, "{result:?}");
-    assert_eq!(result.reason.as_deref(), Some("aborted"), "{result:?}");
+    assert_eq!(
+        result.reason.as_ref().map(|r| r.as_str()),
+        Some("aborted"),
+        "{result:?}"
+    );
     let aborted = cell.wait_packml("robot1", 9).await.unwrap();
     assert_eq!(aborted["packml"]["defective"], 1, "{aborted}");
     // The simulator was told: the pick was aborted, never completed.
@@ -456,11 +471,7 @@ async fn an_operator_runs_single_jobs_in_maintenance() {
     // Orders still get nothing from it.
     let book = pick_n_place(&cell.keys, MessageType::BookingReq, "o-1", "c1");
     assert_eq!(
-        cell.service("robot1", &book)
-            .await
-            .unwrap()
-            .reason
-            .as_deref(),
-        Some("unavailable")
+        cell.service("robot1", &book).await.unwrap().reason,
+        Some(schemas::Reason::Unavailable)
     );
 }

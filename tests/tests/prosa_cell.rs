@@ -345,7 +345,7 @@ async fn bad_work_orders_get_an_error_and_create_nothing() {
             .await
             .unwrap()
             .unwrap_err();
-        assert_eq!(error.code, code);
+        assert_eq!(error.code.as_str(), code);
     }
     // No product holon runs in this cell: a product nobody serves is refused, saying so.
     let submit = |extra: &'static [&'static str]| {

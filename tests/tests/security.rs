@@ -415,7 +415,7 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
                 .err()
                 .and_then(|text| serde_json::from_str::<schemas::ErrorReply>(text).ok());
             assert!(
-                refusal.is_some_and(|r| r.code == "not_booked"),
+                refusal.is_some_and(|r| r.code.as_str() == "not_booked"),
                 "an order did not refuse (not_booked) a result from a resource it did not book: {replies:?}"
             );
         }

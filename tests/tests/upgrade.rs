@@ -133,7 +133,7 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
         .await
         .unwrap()
         .expect_err("another version is refused");
-    assert_eq!(refused.code, "unsupported_version", "{refused:?}");
+    assert_eq!(refused.code.as_str(), "unsupported_version", "{refused:?}");
     assert!(refused.message.contains("speaks version 1"), "{refused:?}");
     // Mid-run: a step is running and others wait on the agenda.
     sim.wait_executed("pick", 3).await.unwrap();

@@ -45,7 +45,7 @@ impl Report {
             println!(
                 "    {}: {}",
                 order.holon,
-                order.reason.as_deref().unwrap_or("")
+                order.reason.as_ref().map_or("", |r| r.as_str())
             );
         }
         println!("  time taken      {:.2} s", self.elapsed.as_secs_f64());

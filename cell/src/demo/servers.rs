@@ -113,4 +113,3 @@ pub(super) fn start_opcua(
     let task = tokio::spawn(crate::opcua::run(config, stop.clone()));
     Ok((stop, task))
 }
-

@@ -278,9 +278,9 @@ impl CellNodes {
                 let text = err.payload().try_to_string().unwrap_or_default();
                 let (code, message) = match serde_json::from_str::<schemas::ErrorReply>(&text) {
                     Ok(e) => (e.code, e.message),
-                    Err(_) => (String::new(), text.to_string()),
+                    Err(_) => (schemas::ErrorCode::Other(String::new()), text.to_string()),
                 };
-                let status = if code == "unavailable" {
+                let status = if code == schemas::ErrorCode::Unavailable {
                     StatusCode::BadResourceUnavailable
                 } else {
                     StatusCode::BadInvalidArgument

@@ -82,8 +82,8 @@
 use std::sync::Arc;
 
 use schemas::{
-    reason, unix_ms, ControllerStatus, HolonId, MessageType, PackmlReply, PackmlRequest,
-    PackmlState, ResourceState, Service, UnitMode,
+    unix_ms, ControllerStatus, HolonId, MessageType, PackmlReply, PackmlRequest, PackmlState,
+    Reason, ResourceState, Service, UnitMode,
 };
 use serde_json::{json, Map, Value};
 
@@ -163,8 +163,8 @@ pub struct Job {
 pub enum Outcome {
     /// Every step completed; `results` maps each action to the controller's result.
     Done { results: Map<String, Value> },
-    /// A step failed; `reason` is one of [`schemas::reason`], `detail` is for people.
-    Failed { reason: String, detail: String },
+    /// A step failed; `reason` says why in the cell's words, `detail` is for people.
+    Failed { reason: Reason, detail: String },
 }
 
 /// As an operator reads it in a log: `done pick=picking_done place=placing_done`, or
@@ -385,7 +385,7 @@ impl AgendaManager {
             let message = manager.result_message(
                 job,
                 Outcome::Failed {
-                    reason: reason::INTERRUPTED.into(),
+                    reason: Reason::Interrupted,
                     detail: "the resource holon stopped while the step ran; it was not completed"
                         .into(),
                 },
@@ -550,7 +550,7 @@ impl AgendaManager {
                     operator: None,
                 },
                 Outcome::Failed {
-                    reason: reason::WITHDRAWN.into(),
+                    reason: Reason::Withdrawn,
                     detail: detail.into(),
                 },
             );

@@ -2,7 +2,7 @@
 //! `booking_req`, `booking_cancel` and `start`, checked in the table's order, and their
 //! refusals.
 
-use schemas::{reason, HolonId, HolonKind, MessageType, ResourceState, Service};
+use schemas::{HolonId, HolonKind, MessageType, Reason, ResourceState, Service};
 use serde_json::Value;
 
 use super::{handing_over_hint, packml_hint, AgendaAction, AgendaManager, Booking};
@@ -53,18 +53,19 @@ impl AgendaManager {
             MessageType::Proposal
             | MessageType::Done
             | MessageType::Failed
-            | MessageType::Status => self.refuse(&request, reason::UNKNOWN_SERVICE, None),
+            | MessageType::Status => self.refuse(&request, Reason::UnknownService, None),
         }
     }
 
-    fn refuse(&self, request: &Service, why: &str, detail: Option<String>) -> Vec<AgendaAction> {
+    fn refuse(&self, request: &Service, why: Reason, detail: Option<String>) -> Vec<AgendaAction> {
+        let unavailable = why == Reason::Unavailable;
         let mut reply = request.refused(&self.holon, why);
         if let Some(detail) = detail {
             reply.info.insert("detail".into(), Value::String(detail));
         }
-        if why == reason::UNAVAILABLE && self.handing_over {
+        if unavailable && self.handing_over {
             handing_over_hint(&mut reply.info);
-        } else if why == reason::UNAVAILABLE && !self.packml.takes_orders() {
+        } else if unavailable && !self.packml.takes_orders() {
             packml_hint(&self.packml, &mut reply.info);
         }
         vec![AgendaAction::Reply(reply)]
@@ -72,28 +73,28 @@ impl AgendaManager {
 
     fn proposal(&self, request: &Service) -> Vec<AgendaAction> {
         let refusal = if !self.catalog.offers(&request.service_type) {
-            Some(reason::UNKNOWN_SERVICE)
+            Some(Reason::UnknownService)
         } else if !self.takes_work() {
-            Some(reason::UNAVAILABLE)
+            Some(Reason::Unavailable)
         } else if self.bookings.len() >= self.capacity {
-            Some(reason::AGENDA_FULL)
+            Some(Reason::AgendaFull)
         } else {
             None
         };
         let mut reply = request.accepted(&self.holon);
         reply.message_type = MessageType::Proposal;
-        if let Some(why) = refusal {
+        if let Some(why) = &refusal {
             reply.result = Some(false);
-            reply.reason = Some(why.to_string());
+            reply.reason = Some(why.clone());
         }
         let priority = match request.priority() {
             Ok(priority) => priority,
-            Err(detail) => return self.refuse(request, reason::INVALID_INFO, Some(detail)),
+            Err(detail) => return self.refuse(request, Reason::InvalidInfo, Some(detail)),
         };
         reply.info = self.proposal_info(&request.service_type, priority);
-        if refusal == Some(reason::UNAVAILABLE) && self.handing_over {
+        if refusal == Some(Reason::Unavailable) && self.handing_over {
             handing_over_hint(&mut reply.info);
-        } else if refusal == Some(reason::UNAVAILABLE) && !self.packml.takes_orders() {
+        } else if refusal == Some(Reason::Unavailable) && !self.packml.takes_orders() {
             packml_hint(&self.packml, &mut reply.info);
         }
         vec![AgendaAction::Reply(reply)]
@@ -105,10 +106,10 @@ impl AgendaManager {
         let full = self.bookings.len() >= self.capacity;
         match (conversation, taking_work, full) {
             _ if !self.catalog.offers(&request.service_type) => {
-                self.refuse(&request, reason::UNKNOWN_SERVICE, None)
+                self.refuse(&request, Reason::UnknownService, None)
             }
             _ if request.requester.kind() == HolonKind::Resource => {
-                self.refuse(&request, reason::NOT_A_REQUESTER, None)
+                self.refuse(&request, Reason::NotARequester, None)
             }
             (
                 Conversation {
@@ -127,9 +128,9 @@ impl AgendaManager {
             {
                 vec![AgendaAction::Reply(self.started_reply(&request))]
             }
-            (Conversation { running: true, .. }, _, _) => self.refuse(&request, reason::BUSY, None),
-            (_, false, _) => self.refuse(&request, reason::UNAVAILABLE, None),
-            (_, true, true) => self.refuse(&request, reason::AGENDA_FULL, None),
+            (Conversation { running: true, .. }, _, _) => self.refuse(&request, Reason::Busy, None),
+            (_, false, _) => self.refuse(&request, Reason::Unavailable, None),
+            (_, true, true) => self.refuse(&request, Reason::AgendaFull, None),
             (_, true, false) => self.append(request),
         }
     }
@@ -141,17 +142,17 @@ impl AgendaManager {
         let (priority, due) = match (request.priority(), request.due()) {
             (Ok(priority), Ok(due)) => (priority, due),
             (Err(detail), _) | (_, Err(detail)) => {
-                return self.refuse(&request, reason::INVALID_INFO, Some(detail))
+                return self.refuse(&request, Reason::InvalidInfo, Some(detail))
             }
         };
         let start_on_turn = request.start_on_turn();
         if start_on_turn {
             if let Err(detail) = self.catalog.check(&request.service_type, &request.info) {
-                return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+                return self.refuse(&request, Reason::InvalidInfo, Some(detail));
             }
             if request.reply_to.is_none() {
                 let detail = "a booking that starts on its turn needs reply_to".to_string();
-                return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+                return self.refuse(&request, Reason::InvalidInfo, Some(detail));
             }
         }
         let at = self.insertion_point(priority);
@@ -194,7 +195,7 @@ impl AgendaManager {
                     AgendaAction::StateChanged,
                 ]
             }
-            None => self.refuse(request, reason::NOT_BOOKED, None),
+            None => self.refuse(request, Reason::NotBooked, None),
         }
     }
 
@@ -206,22 +207,22 @@ impl AgendaManager {
         let out_of_work = self.leaving() || !self.packml.takes_orders();
         match (conversation, booking, self.state(), out_of_work) {
             _ if !self.catalog.offers(&request.service_type) => {
-                self.refuse(&request, reason::UNKNOWN_SERVICE, None)
+                self.refuse(&request, Reason::UnknownService, None)
             }
             // A repeated start of the running job, or of one that finished and whose
             // result is on its way: it has begun.
             (Conversation { running: true, .. } | Conversation { finished: true, .. }, ..) => {
                 vec![AgendaAction::Reply(request.accepted(&self.holon))]
             }
-            (_, None, _, _) => self.refuse(&request, reason::NOT_BOOKED, None),
-            (_, Some(_), _, true) => self.refuse(&request, reason::UNAVAILABLE, None),
+            (_, None, _, _) => self.refuse(&request, Reason::NotBooked, None),
+            (_, Some(_), _, true) => self.refuse(&request, Reason::Unavailable, None),
             (_, Some((_, booked_type)), _, _) if booked_type != request.service_type => {
                 let detail = format!("the booking is for {booked_type}");
-                self.refuse(&request, reason::NOT_BOOKED, Some(detail))
+                self.refuse(&request, Reason::NotBooked, Some(detail))
             }
-            (_, Some(_), ResourceState::Busy, _) => self.refuse(&request, reason::BUSY, None),
+            (_, Some(_), ResourceState::Busy, _) => self.refuse(&request, Reason::Busy, None),
             (_, Some(_), ResourceState::Init, _) => {
-                self.refuse(&request, reason::UNAVAILABLE, None)
+                self.refuse(&request, Reason::Unavailable, None)
             }
             (_, Some((index, _)), ResourceState::Free, false) => self.begin(index, request),
         }
@@ -236,7 +237,7 @@ impl AgendaManager {
             request.info.clone()
         };
         if let Err(detail) = self.catalog.check(&request.service_type, &info) {
-            return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+            return self.refuse(&request, Reason::InvalidInfo, Some(detail));
         }
         let Some(reply_to) = request
             .reply_to
@@ -244,7 +245,7 @@ impl AgendaManager {
             .or_else(|| booking.reply_to.clone())
         else {
             let detail = "neither the start nor the booking has reply_to".to_string();
-            return self.refuse(&request, reason::INVALID_INFO, Some(detail));
+            return self.refuse(&request, Reason::InvalidInfo, Some(detail));
         };
         let job = self.run_booking(index, reply_to, info);
         vec![

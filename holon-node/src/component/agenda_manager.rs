@@ -429,7 +429,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                         question
                             .reject(
                                 holon,
-                                "unavailable",
+                                schemas::ErrorCode::Unavailable,
                                 "the journal could not record the request; nothing changed".into(),
                             )
                             .await;

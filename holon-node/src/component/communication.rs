@@ -21,7 +21,7 @@
 use std::sync::Arc;
 
 use holon::ChildError;
-use schemas::{HolonId, MessageType, SchemaError, Service};
+use schemas::{ErrorCode, ErrorReply, HolonId, MessageType, Service};
 use tokio::sync::{mpsc, Notify};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
@@ -168,7 +168,7 @@ async fn declare(
                 Ok(()) => {}
                 Err(mpsc::error::TrySendError::Full(arrival)) => arrival.question.reject_now(
                     &holon,
-                    "unavailable",
+                    schemas::ErrorCode::Unavailable,
                     format!(
                         "{QUERY_QUEUE} requests are waiting for this resource; ask again shortly"
                     ),
@@ -320,7 +320,7 @@ async fn answer(links: &Links, arrival: Arrival) -> Option<AgendaMessage> {
                     fault.notify_one();
                 }
                 None => {
-                    question.reject(holon, "invalid", format!("unknown component {component:?} (interfacing, execution, agenda, communication)")).await
+                    question.reject(holon, schemas::ErrorCode::Invalid, format!("unknown component {component:?} (interfacing, execution, agenda, communication)")).await
                 }
             }
             return None;
@@ -335,7 +335,9 @@ async fn answer(links: &Links, arrival: Arrival) -> Option<AgendaMessage> {
                     })
                 }
                 Err(e) => {
-                    question.reject(holon, "malformed", e.to_string()).await;
+                    question
+                        .reject(holon, schemas::ErrorCode::Malformed, e.to_string())
+                        .await;
                     None
                 }
             };
@@ -390,14 +392,10 @@ fn decode(
     holon: &HolonId,
     endpoint: &Endpoint,
     question: &Question,
-) -> Result<Service, (&'static str, String)> {
+) -> Result<Service, (ErrorCode, String)> {
     let request = Service::from_json(&question.payload()).map_err(|e| {
-        let code = match e {
-            SchemaError::UnsupportedVersion(_) => "unsupported_version",
-            SchemaError::Json(_) | SchemaError::TooLarge { .. } => "malformed",
-            _ => "invalid",
-        };
-        (code, e.to_string())
+        let refusal = ErrorReply::for_schema_error(&e);
+        (refusal.code, refusal.message)
     })?;
     debug!(
         %holon,
@@ -426,12 +424,12 @@ fn decode(
             Endpoint::Offer(t) => format!("{} offers {t}: only proposal_req for {t} is answered here", question.asked_key()),
             _ => format!("{} is not a request a resource answers (proposal_req, booking_req, booking_cancel, start, status)", request.message_type),
         };
-        return Err(("wrong_key", message));
+        return Err((ErrorCode::WrongKey, message));
     }
     if let Some(provider) = &request.provider {
         if provider != holon {
             return Err((
-                "invalid",
+                ErrorCode::Invalid,
                 format!("addressed to {provider}, this is {holon}"),
             ));
         }

@@ -302,7 +302,10 @@ mod tests {
                 tokio::spawn(async move {
                     let sent = if n < refuse {
                         query
-                            .reply_err(schemas::ErrorReply::new("not_booked", "not yet").to_json())
+                            .reply_err(
+                                schemas::ErrorReply::new(schemas::ErrorCode::NotBooked, "not yet")
+                                    .to_json(),
+                            )
                             .await
                     } else {
                         if wrong {

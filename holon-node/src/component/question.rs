@@ -6,7 +6,7 @@
 //! recorded. Whoever answers logs a failed reply with what it means: the requester
 //! gets no answer and asks again after its timeout.
 
-use schemas::{ErrorReply, HolonId, MessageType, Service};
+use schemas::{ErrorCode, ErrorReply, HolonId, MessageType, Service};
 use tracing::{debug, info, warn};
 use zenoh::query::Query;
 
@@ -56,7 +56,7 @@ impl Question {
                     message_type = %message.message_type,
                     requester = %message.requester,
                     result = message.result.map_or("", |r| if r { "true" } else { "false" }),
-                    reason = message.reason.as_deref().unwrap_or(""),
+                    reason = message.reason.as_ref().map_or("", |r| r.as_str()),
                     "sent"
                 )
             };
@@ -79,14 +79,14 @@ impl Question {
     }
 
     /// Rejects the query with an error reply (`{"code", "message"}`).
-    pub async fn reject(self, holon: &HolonId, code: &str, message: String) {
-        warn!(%holon, key = %self.query.key_expr(), code, error = %message, "request rejected");
+    pub async fn reject(self, holon: &HolonId, code: ErrorCode, message: String) {
+        warn!(%holon, key = %self.query.key_expr(), %code, error = %message, "request rejected");
         if let Err(e) = self
             .query
-            .reply_err(ErrorReply::new(code, message).to_json())
+            .reply_err(ErrorReply::new(code.clone(), message).to_json())
             .await
         {
-            warn!(%holon, code, error = %e, "cannot send the error reply; the requester asks again after its timeout");
+            warn!(%holon, %code, error = %e, "cannot send the error reply; the requester asks again after its timeout");
         }
     }
 }
@@ -94,15 +94,15 @@ impl Question {
 impl Question {
     /// Rejects the query at once, without awaiting: for a queryable's callback, which
     /// must not block (the queue behind it is full).
-    pub fn reject_now(self, holon: &HolonId, code: &str, message: String) {
+    pub fn reject_now(self, holon: &HolonId, code: ErrorCode, message: String) {
         use zenoh::Wait;
-        warn!(%holon, key = %self.query.key_expr(), code, error = %message, "request rejected");
+        warn!(%holon, key = %self.query.key_expr(), %code, error = %message, "request rejected");
         if let Err(e) = self
             .query
-            .reply_err(ErrorReply::new(code, message).to_json())
+            .reply_err(ErrorReply::new(code.clone(), message).to_json())
             .wait()
         {
-            warn!(%holon, code, error = %e, "cannot send the error reply; the requester asks again after its timeout");
+            warn!(%holon, %code, error = %e, "cannot send the error reply; the requester asks again after its timeout");
         }
     }
 }

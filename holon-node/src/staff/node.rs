@@ -131,7 +131,7 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
                 Err(mpsc::error::TrySendError::Full(StaffEvent::Advice(query)))
                 | Err(mpsc::error::TrySendError::Closed(StaffEvent::Advice(query))) => {
                     use zenoh::Wait;
-                    let busy = ErrorReply::new("unavailable", "the staff is busy; go by contract net");
+                    let busy = ErrorReply::new(schemas::ErrorCode::Unavailable, "the staff is busy; go by contract net");
                     if let Err(e) = query.reply_err(busy.to_json()).wait() {
                         warn!(%holon, error = %e, "cannot refuse an advice request; the order's wait ends it");
                     }
@@ -303,11 +303,11 @@ async fn answer(
         .map(|p| p.to_bytes().to_vec())
         .unwrap_or_default();
     let request = serde_json::from_slice::<AdviceRequest>(&request)
-        .map_err(|e| ErrorReply::new("malformed", e.to_string()))
+        .map_err(|e| ErrorReply::new(schemas::ErrorCode::Malformed, e.to_string()))
         .and_then(|r| {
             r.validate()
                 .map(|()| r)
-                .map_err(|e| ErrorReply::new("invalid", e.to_string()))
+                .map_err(|e| ErrorReply::new(schemas::ErrorCode::Invalid, e.to_string()))
         });
     let request = match request {
         Ok(request) => request,

@@ -50,10 +50,10 @@ fn reply(actions: &[AgendaAction]) -> &Service {
     }
 }
 
-fn assert_refused(actions: &[AgendaAction], why: &str) {
+fn assert_refused(actions: &[AgendaAction], why: impl AsRef<str>) {
     let r = reply(actions);
     assert_eq!(r.result, Some(false), "{r:?}");
-    assert_eq!(r.reason.as_deref(), Some(why));
+    assert_eq!(r.reason.as_ref().map(|r| r.as_str()), Some(why.as_ref()));
     assert_eq!(actions.len(), 1, "a refusal changes nothing: {actions:?}");
 }
 
@@ -162,7 +162,7 @@ fn a_resource_may_not_book() {
     )
     .with_reply_to(INBOX);
     let actions = m.handle(AgendaEvent::Request(by_a_resource));
-    assert_refused(&actions, reason::NOT_A_REQUESTER);
+    assert_refused(&actions, Reason::NotARequester);
     assert!(m.bookings().is_empty());
 }
 
@@ -282,7 +282,10 @@ fn unknown_service_types_are_refused() {
     weld.message_type = MessageType::ProposalReq;
     let proposal = m.handle(AgendaEvent::Request(weld));
     assert_eq!(reply(&proposal).message_type, MessageType::Proposal);
-    assert_eq!(reply(&proposal).reason.as_deref(), Some("unknown_service"));
+    assert_eq!(
+        reply(&proposal).reason.as_ref().map(|r| r.as_str()),
+        Some("unknown_service")
+    );
     assert!(m.bookings().is_empty());
 }
 
@@ -388,7 +391,7 @@ fn failed_from_execution_carries_the_reason() {
     let actions = m.handle(AgendaEvent::ExecutionFinished {
         conversation_id: "c1".into(),
         outcome: Outcome::Failed {
-            reason: reason::CONTROLLER_DISCONNECTED.into(),
+            reason: Reason::ControllerDisconnected.into(),
             detail: "the connection broke".into(),
         },
     });
@@ -397,7 +400,10 @@ fn failed_from_execution_carries_the_reason() {
     };
     assert_eq!(result.message_type, MessageType::Failed);
     assert_eq!(result.result, Some(false));
-    assert_eq!(result.reason.as_deref(), Some("controller_disconnected"));
+    assert_eq!(
+        result.reason.as_ref().map(|r| r.as_str()),
+        Some("controller_disconnected")
+    );
     assert_eq!(result.info["detail"], "the connection broke");
 }
 
@@ -463,7 +469,10 @@ fn withdraw_hands_every_booking_back_and_lets_the_running_job_finish() {
     );
     assert_eq!(handed_back[0].conversation_id, "c2");
     assert_eq!(handed_back[0].message_type, MessageType::Failed);
-    assert_eq!(handed_back[0].reason.as_deref(), Some("withdrawn"));
+    assert_eq!(
+        handed_back[0].reason.as_ref().map(|r| r.as_str()),
+        Some("withdrawn")
+    );
     assert!(m.bookings().is_empty());
     assert!(
         !m.is_drained(),
@@ -478,10 +487,8 @@ fn withdraw_hands_every_booking_back_and_lets_the_running_job_finish() {
     let mut proposal = book("o-4", "p");
     proposal.message_type = MessageType::ProposalReq;
     assert_eq!(
-        reply(&m.handle(AgendaEvent::Request(proposal)))
-            .reason
-            .as_deref(),
-        Some("unavailable")
+        reply(&m.handle(AgendaEvent::Request(proposal))).reason,
+        Some(Reason::Unavailable)
     );
     // The running job finishes and is delivered.
     m.handle(done("c1"));
@@ -556,13 +563,22 @@ fn proposal_refusals_come_in_the_tables_order() {
     );
     // Not offered beats unavailable.
     let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "weld")));
-    assert_eq!(reply(&r).reason.as_deref(), Some("unknown_service"));
+    assert_eq!(
+        reply(&r).reason.as_ref().map(|r| r.as_str()),
+        Some("unknown_service")
+    );
     let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "pick_n_place")));
-    assert_eq!(reply(&r).reason.as_deref(), Some("unavailable"));
+    assert_eq!(
+        reply(&r).reason.as_ref().map(|r| r.as_str()),
+        Some("unavailable")
+    );
     m.handle(AgendaEvent::ExecutionReady);
     m.handle(AgendaEvent::Request(book("o-1", "c1")));
     let r = m.handle(AgendaEvent::Request(proposal_req("o-2", "pick_n_place")));
-    assert_eq!(reply(&r).reason.as_deref(), Some("agenda_full"));
+    assert_eq!(
+        reply(&r).reason.as_ref().map(|r| r.as_str()),
+        Some("agenda_full")
+    );
     assert_eq!(reply(&r).message_type, MessageType::Proposal);
     // A proposal changes nothing.
     assert_eq!(r.len(), 1);

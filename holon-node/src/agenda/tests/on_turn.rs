@@ -76,13 +76,13 @@ fn a_booking_on_turn_without_what_its_start_needs_is_refused() {
     let no_poses = book("o-1", "c1").with_start_on_turn();
     assert_refused(
         &m.handle(AgendaEvent::Request(no_poses)),
-        reason::INVALID_INFO,
+        Reason::InvalidInfo,
     );
     let mut no_reply_to = book_on_turn("o-1", "c1");
     no_reply_to.reply_to = None;
     assert_refused(
         &m.handle(AgendaEvent::Request(no_reply_to)),
-        reason::INVALID_INFO,
+        Reason::InvalidInfo,
     );
     assert!(m.bookings().is_empty());
     assert_eq!(m.status(), Status::Free);

@@ -20,7 +20,9 @@ fn handed_back(actions: &[AgendaAction]) -> Vec<String> {
     actions
         .iter()
         .filter_map(|a| match a {
-            AgendaAction::Deliver(r) if r.reason.as_deref() == Some("withdrawn") => {
+            AgendaAction::Deliver(r)
+                if r.reason.as_ref().map(|r| r.as_str()) == Some("withdrawn") =>
+            {
                 Some(r.conversation_id.clone())
             }
             _ => None,
@@ -51,7 +53,7 @@ fn hold_keeps_the_bookings_and_lets_the_running_step_finish() {
         "p",
     )));
     let r = reply(&proposal);
-    assert_eq!(r.reason.as_deref(), Some("unavailable"));
+    assert_eq!(r.reason.as_ref().map(|r| r.as_str()), Some("unavailable"));
     assert_eq!(r.info["packml_state"], 10);
     assert_refused(
         &m.handle(AgendaEvent::Request(book("o-2", "c9"))),

@@ -16,7 +16,10 @@ fn the_agenda_has_a_capacity() {
     let mut proposal = book("o-2", "p");
     proposal.message_type = MessageType::ProposalReq;
     let actions = m.handle(AgendaEvent::Request(proposal));
-    assert_eq!(reply(&actions).reason.as_deref(), Some("agenda_full"));
+    assert_eq!(
+        reply(&actions).reason.as_ref().map(|r| r.as_str()),
+        Some("agenda_full")
+    );
 }
 
 #[test]
@@ -41,7 +44,10 @@ fn proposals_report_the_expected_wait() {
         ControllerStatus::Disconnected,
     ));
     let actions = m.handle(AgendaEvent::Request(proposal));
-    assert_eq!(reply(&actions).reason.as_deref(), Some("unavailable"));
+    assert_eq!(
+        reply(&actions).reason.as_ref().map(|r| r.as_str()),
+        Some("unavailable")
+    );
 }
 
 /// A ready agenda of room for 16 bookings, running `c0` so the others wait.

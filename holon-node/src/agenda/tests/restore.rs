@@ -75,7 +75,7 @@ fn restore_reports_the_interrupted_job_and_redelivers_results() {
             (
                 s.conversation_id.as_str(),
                 s.message_type,
-                s.reason.as_deref(),
+                s.reason.as_ref().map(|r| r.as_str()),
             )
         })
         .collect();
