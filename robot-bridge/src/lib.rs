@@ -5,9 +5,11 @@
 //!   correlation, outcomes, status), spoken by the client and the simulator;
 //! - [`client`]: the controller client, one persistent connection with reconnection,
 //!   per-command timeouts and `ROBOT_STATUS` tracking;
-//! - [`sim`]: `robot-sim`, a controller simulator that speaks the same protocol.
+//! - [`sim`]: `robot-sim`, a controller simulator that speaks the same protocol;
+//! - [`fence_wire`]: what both ends of the fence for standby holons share.
 
 pub mod client;
 pub mod codec;
 pub mod dialect;
+pub mod fence_wire;
 pub mod sim;

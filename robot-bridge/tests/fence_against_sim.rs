@@ -297,3 +297,141 @@ async fn garbage_fence_messages_are_refused_and_change_nothing() {
     holder.shutdown.cancel();
     sim.cancel();
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn epochs_go_on_after_a_sim_restart_and_the_count_file_shows_the_fence() {
+    let dir = tempfile::tempdir().unwrap();
+    let counts = dir.path().join("counts.json");
+    let config = || SimConfig {
+        count_file: Some(counts.clone()),
+        ..fenced_sim(Duration::ZERO)
+    };
+    let (address, _, sim) = start_sim("127.0.0.1:0", config()).await;
+    let mut holder = start(&address);
+    assert_eq!(holder.claim("robot1").await, Ok(Epoch(1)));
+    let step = StepId::of("o/9", 1).unwrap();
+    holder.handle.command(pick(1), step.clone()).await.unwrap();
+    assert_eq!(holder.answer().await, reply(1, "picking_done"));
+    holder.shutdown.cancel();
+    sim.cancel();
+    // The count file is written (off the command path): wait for the step in it.
+    let deadline = tokio::time::Instant::now() + WAIT;
+    let json = loop {
+        let json: serde_json::Value = std::fs::read_to_string(&counts)
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .unwrap_or_default();
+        if json["by_step"][step.as_str()] == 1 {
+            break json;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the count file: {json}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
+    assert_eq!(json["epoch"], 1);
+    assert_eq!(json["stale_epoch_refused"], 0);
+    // A new simulator on the same count file never grants epoch 1 again.
+    let (address, _, sim) = start_sim("127.0.0.1:0", config()).await;
+    let holder = start(&address);
+    assert_eq!(holder.claim("robot1").await, Ok(Epoch(2)));
+    holder.shutdown.cancel();
+    sim.cancel();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_step_in_flight_when_its_holder_froze_runs_once() {
+    let (address, stats, sim) =
+        start_sim("127.0.0.1:0", fenced_sim(Duration::from_millis(600))).await;
+    let mut old = start(&address);
+    let mut new = start(&address);
+    assert_eq!(old.claim("robot1").await, Ok(Epoch(1)));
+    let step = StepId::of("orders1-5/1/1", 0).unwrap();
+    old.handle.command(pick(1), step.clone()).await.unwrap();
+    wait_received(&stats, 1).await;
+    // It freezes with the step under way; the controller completes the motion.
+    old.handle.pause_heartbeats(true).await.unwrap();
+    let epoch = loop {
+        match new.claim("robot1").await {
+            Ok(epoch) => break epoch,
+            Err(ClaimError::Held(_)) => tokio::time::sleep(Duration::from_millis(20)).await,
+            Err(other) => panic!("claim: {other}"),
+        }
+    };
+    assert_eq!(epoch, Epoch(2));
+    // The new holder repeats the step: it is not run again (still running, or done).
+    new.handle.command(pick(5), step.clone()).await.unwrap();
+    match new.answer().await {
+        ControllerEvent::Reply {
+            id: 5,
+            result,
+            message,
+        } if result == "error" => {
+            assert!(message.unwrap_or_default().starts_with("step_running"));
+        }
+        other => assert_eq!(other, reply(5, "picking_done")),
+    }
+    // It learns the outcome from the controller.
+    let deadline = tokio::time::Instant::now() + WAIT;
+    loop {
+        match new.handle.step_status(&step).await {
+            Ok(StepStatus::Done { result }) => {
+                assert_eq!(result, "picking_done");
+                break;
+            }
+            Ok(StepStatus::Running) => tokio::time::sleep(Duration::from_millis(20)).await,
+            other => panic!("step status: {other:?}"),
+        }
+        assert!(tokio::time::Instant::now() < deadline);
+    }
+    assert_eq!(stats.by_step().get(step.as_str()), Some(&1));
+    assert_eq!(stats.executed(), 1);
+    old.shutdown.cancel();
+    new.shutdown.cancel();
+    sim.cancel();
+}
+
+/// Any claim name, valid or not, from a second session while a holder is live: refused
+/// (held, or invalid), and the epoch stays the holder's.
+#[tokio::test(flavor = "multi_thread")]
+async fn arbitrary_claim_names_change_nothing() {
+    use proptest::strategy::{Strategy, ValueTree};
+    use proptest::test_runner::TestRunner;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let (address, stats, sim) = start_sim("127.0.0.1:0", fenced_sim(Duration::ZERO)).await;
+    let holder = start(&address);
+    let epoch = holder.claim("robot1").await.expect("granted");
+    let mut raw = tokio::net::TcpStream::connect(&address).await.unwrap();
+    let mut runner = TestRunner::deterministic();
+    let names = proptest::string::string_regex(".{0,300}").unwrap();
+    let mut buf = vec![0u8; 8192];
+    let mut seen = String::new();
+    for _ in 0..64 {
+        let name = names.new_tree(&mut runner).unwrap().current();
+        let claim = format!(
+            "<CLAIM><NAME>{}</NAME></CLAIM>",
+            quick_xml::escape::escape(name.as_str())
+        );
+        raw.write_all(claim.as_bytes()).await.unwrap();
+        while !seen.contains("</FENCE_REFUSED>") {
+            let n = tokio::time::timeout(WAIT, raw.read(&mut buf))
+                .await
+                .unwrap()
+                .unwrap();
+            assert!(n > 0, "the controller closed on {name:?}: {seen}");
+            seen.push_str(&String::from_utf8_lossy(&buf[..n]));
+        }
+        let (answer, rest) = seen.split_once("</FENCE_REFUSED>").unwrap();
+        assert!(
+            answer.ends_with("<REASON>held</REASON>")
+                || answer.ends_with("<REASON>invalid</REASON>"),
+            "{name:?}: {answer}"
+        );
+        seen = rest.to_string();
+        assert_eq!(stats.epoch(), epoch.0);
+    }
+    assert_eq!(holder.claim("robot1").await, Ok(epoch));
+    holder.shutdown.cancel();
+    sim.cancel();
+}

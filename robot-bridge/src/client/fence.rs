@@ -14,7 +14,7 @@ use schemas::RobotCommand;
 use tokio::sync::{mpsc, oneshot};
 
 use super::ClientConfig;
-use crate::sim::fence::{valid_token, MAX_NAME_BYTES, MAX_STEP_BYTES};
+use crate::fence_wire::{valid_token, MAX_NAME_BYTES, MAX_STEP_BYTES};
 
 /// An epoch the controller granted (+1 per grant).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]

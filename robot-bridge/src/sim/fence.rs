@@ -9,20 +9,6 @@ use std::time::{Duration, Instant};
 /// How many step ids are remembered (outcomes and execution counts), oldest forgotten.
 pub const STEPS_KEPT: usize = 10_000;
 
-/// The longest holon name and step id, in bytes.
-pub const MAX_NAME_BYTES: usize = 64;
-pub const MAX_STEP_BYTES: usize = 128;
-
-/// Whether `text` is a valid holon name or step id: 1 to `max` printable ASCII bytes,
-/// no space, none of `<>&'"`.
-pub fn valid_token(text: &str, max: usize) -> bool {
-    !text.is_empty()
-        && text.len() <= max
-        && text
-            .bytes()
-            .all(|b| b.is_ascii_graphic() && !b"<>&'\"".contains(&b))
-}
-
 /// The session holding the claim.
 #[derive(Debug, Clone)]
 struct Holder {
@@ -297,12 +283,61 @@ mod tests {
         assert!(book.by_step().len() <= STEPS_KEPT);
     }
 
-    #[test]
-    fn tokens_are_bounded_and_printable() {
-        assert!(valid_token("orders1-3/2/1#2", MAX_STEP_BYTES));
-        assert!(!valid_token("", MAX_STEP_BYTES));
-        assert!(!valid_token("a b", MAX_STEP_BYTES));
-        assert!(!valid_token("<x>", MAX_STEP_BYTES));
-        assert!(!valid_token(&"x".repeat(129), MAX_STEP_BYTES));
+    use proptest::prelude::*;
+
+    /// One thing that happens to the fence.
+    #[derive(Debug, Clone)]
+    enum Op {
+        Claim(u64),
+        Heartbeat(u64, u64),
+        Command(u64, u64),
+        Release(u64),
+        Wait(u64),
+    }
+
+    fn op() -> impl Strategy<Value = Op> {
+        prop_oneof![
+            (0..3u64).prop_map(Op::Claim),
+            (0..3u64, 0..6u64).prop_map(|(s, e)| Op::Heartbeat(s, e)),
+            (0..3u64, 0..6u64).prop_map(|(s, e)| Op::Command(s, e)),
+            (0..3u64).prop_map(Op::Release),
+            (0..1500u64).prop_map(Op::Wait),
+        ]
+    }
+
+    proptest! {
+        /// Whatever happens: a new grant is always a new, higher epoch; a command runs
+        /// only from the live holder with its epoch; and at most one session holds the
+        /// claim while its lease runs.
+        #[test]
+        fn one_holder_and_increasing_epochs_whatever_happens(ops in proptest::collection::vec(op(), 1..60)) {
+            let mut now = Instant::now();
+            let mut book = FenceBook::new(LEASE, 0);
+            let mut granted: Vec<(u64, u64)> = Vec::new();
+            for op in ops {
+                match op {
+                    Op::Claim(s) => {
+                        if let ClaimAnswer::Granted { epoch } = book.claim(s, "r", now) {
+                            match granted.last() {
+                                Some(&(session, last)) if session == s && last == epoch => {}
+                                Some(&(_, last)) => prop_assert!(epoch > last),
+                                None => prop_assert_eq!(epoch, 1),
+                            }
+                            granted.push((s, epoch));
+                        }
+                    }
+                    Op::Heartbeat(s, e) => { book.heartbeat(s, Some(e), now); }
+                    Op::Command(s, e) => {
+                        if book.check_command(s, Some(e), now) == CommandCheck::Current {
+                            let &(holder, epoch) = granted.last().expect("a grant");
+                            prop_assert_eq!((holder, epoch), (s, e));
+                        }
+                    }
+                    Op::Release(s) => { book.release(s); }
+                    Op::Wait(ms) => now += Duration::from_millis(ms),
+                }
+                prop_assert_eq!(book.epoch(), granted.last().map_or(0, |g| g.1));
+            }
+        }
     }
 }

@@ -141,6 +141,8 @@ pub struct SimStats {
     changeovers: AtomicU64,
     /// The fence, in fenced mode.
     fence: Mutex<Option<fence::FenceBook>>,
+    /// Held while the count file is written.
+    file_lock: Mutex<()>,
 }
 
 impl SimStats {
@@ -455,11 +457,15 @@ fn fenced_stats(config: &SimConfig) -> Arc<SimStats> {
 }
 
 /// Rewrites the count file, if any, in place (a write and a rename: readers see the
-/// old counts or the new, never half). Blocking: on the writer thread only.
-fn write_count_file(config: &SimConfig, stats: &SimStats) {
+/// old counts or the new, never half). Blocking: on the writer thread, and (fenced) once
+/// per claim granted, before the grant is sent, so a restart never grants an epoch
+/// again. Writes are one at a time, each with the counts as they are when it begins, so
+/// the file never goes back to an older epoch.
+pub(super) fn write_count_file(config: &SimConfig, stats: &SimStats) {
     let Some(path) = &config.count_file else {
         return;
     };
+    let _one_at_a_time = stats.file_lock.lock().unwrap_or_else(|e| e.into_inner());
     let tmp = path.with_extension("tmp");
     let written = std::fs::write(&tmp, stats.to_json()).and_then(|()| std::fs::rename(&tmp, path));
     if let Err(e) = written {

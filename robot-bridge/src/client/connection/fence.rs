@@ -13,6 +13,10 @@ use super::super::fence::{
 };
 use super::{Connection, ConnectionEnd, Step};
 use crate::dialect::{Parsed, Values};
+use crate::fence_wire::{
+    REASON_HELD, REASON_NOT_FENCED, REASON_STALE_EPOCH, STEP_DONE, STEP_FAILED, STEP_RUNNING,
+    STEP_UNKNOWN,
+};
 
 /// What the fence awaits on this connection.
 #[derive(Default)]
@@ -159,14 +163,14 @@ impl Connection<'_> {
             let reason = v.get("reason").unwrap_or("").to_string();
             if let Some((reply, _)) = self.fence_waits.claim.take() {
                 let error = match (reason.as_str(), epoch) {
-                    ("held", Some(epoch)) => ClaimError::Held(epoch),
-                    ("not_fenced", _) => {
+                    (REASON_HELD, Some(epoch)) => ClaimError::Held(epoch),
+                    (REASON_NOT_FENCED, _) => {
                         ClaimError::NotSupported("the controller is not fenced".into())
                     }
                     _ => ClaimError::Refused(reason),
                 };
                 let _ = reply.send(Err(error));
-            } else if reason == "stale_epoch" {
+            } else if reason == REASON_STALE_EPOCH {
                 self.deposed(epoch).await;
             } else if let Some(wait) = self.fence_waits.status.pop_front() {
                 let _ = wait.reply.send(Err(FenceError::Refused(reason)));
@@ -181,14 +185,14 @@ impl Connection<'_> {
                 return Some(Ok(()));
             };
             let status = match v.get("step_state").unwrap_or("") {
-                "done" => StepStatus::Done {
+                STEP_DONE => StepStatus::Done {
                     result: v.get("result").unwrap_or("").to_string(),
                 },
-                "failed" => StepStatus::Failed {
+                STEP_FAILED => StepStatus::Failed {
                     message: v.get("message").unwrap_or("").to_string(),
                 },
-                "running" => StepStatus::Running,
-                "unknown" => StepStatus::Unknown,
+                STEP_RUNNING => StepStatus::Running,
+                STEP_UNKNOWN => StepStatus::Unknown,
                 other => {
                     let _ = wait.reply.send(Err(FenceError::Refused(format!(
                         "unknown step state {other:?}"

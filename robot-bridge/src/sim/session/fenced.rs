@@ -4,13 +4,15 @@
 
 use tracing::{info, warn};
 
-use super::super::fence::{
-    valid_token, ClaimAnswer, CommandCheck, StepRecord, MAX_NAME_BYTES, MAX_STEP_BYTES,
-};
+use super::super::fence::{ClaimAnswer, CommandCheck, StepRecord};
 use super::super::writer::Writer;
 use super::super::SimError;
 use super::{Flow, Session};
 use crate::dialect::{Element, Fence, Outcome, Values};
+use crate::fence_wire::{
+    valid_token, MAX_NAME_BYTES, MAX_STEP_BYTES, REASON_HELD, REASON_INVALID, REASON_NOT_FENCED,
+    REASON_STALE_EPOCH, STEP_DONE, STEP_FAILED, STEP_RUNNING, STEP_UNKNOWN,
+};
 
 impl Session<'_> {
     /// The dialect's fence, if the message `index` is one of its commands.
@@ -36,6 +38,10 @@ impl Session<'_> {
         writer: &mut Writer<'_>,
     ) -> Result<Flow, SimError> {
         if let Some((rule, answer)) = self.fence_answer(fence, index, values) {
+            if rule == fence.granted {
+                // The epoch is on disk before anyone holds it.
+                super::super::write_count_file(self.config, self.stats);
+            }
             writer.reply(rule, &answer).await?;
         }
         Ok(Flow::Continue)
@@ -54,13 +60,13 @@ impl Session<'_> {
             let mut guard = self.stats.fence();
             let Some(book) = guard.as_mut() else {
                 info!("a fence message to an unfenced controller: refused not_fenced");
-                return Some((fence.refused, refuse(0, "not_fenced")));
+                return Some((fence.refused, refuse(0, REASON_NOT_FENCED)));
             };
             if index == fence.claim {
                 let name = values.get("name").unwrap_or("");
                 if !valid_token(name, MAX_NAME_BYTES) {
                     warn!(name = %name.chars().take(80).collect::<String>(), "a claim with an invalid name: refused");
-                    (fence.refused, refuse(book.epoch(), "invalid"))
+                    (fence.refused, refuse(book.epoch(), REASON_INVALID))
                 } else {
                     match book.claim(self.session, name, now) {
                         ClaimAnswer::Granted { epoch } => {
@@ -72,7 +78,7 @@ impl Session<'_> {
                         }
                         ClaimAnswer::Held { epoch, holder } => {
                             info!(session = self.session, %name, %holder, epoch, "claim refused: held by a live session");
-                            (fence.refused, refuse(epoch, "held"))
+                            (fence.refused, refuse(epoch, REASON_HELD))
                         }
                     }
                 }
@@ -86,24 +92,24 @@ impl Session<'_> {
                     ?epoch,
                     "a heartbeat with no claim: refused stale_epoch"
                 );
-                (fence.refused, refuse(book.epoch(), "stale_epoch"))
+                (fence.refused, refuse(book.epoch(), REASON_STALE_EPOCH))
             } else {
                 let step = values.get("step").unwrap_or("");
                 if !valid_token(step, MAX_STEP_BYTES) {
-                    (fence.refused, refuse(book.epoch(), "invalid"))
+                    (fence.refused, refuse(book.epoch(), REASON_INVALID))
                 } else {
                     let mut v = Values::default();
                     v.set("step", step.to_string());
                     let state = match book.step(step) {
-                        None => "unknown",
-                        Some(StepRecord::Running) => "running",
+                        None => STEP_UNKNOWN,
+                        Some(StepRecord::Running) => STEP_RUNNING,
                         Some(StepRecord::Done(result)) => {
                             v.set("result", result.clone());
-                            "done"
+                            STEP_DONE
                         }
                         Some(StepRecord::Failed(message)) => {
                             v.set("message", message.clone());
-                            "failed"
+                            STEP_FAILED
                         }
                     };
                     v.set("step_state", state.to_string());
@@ -140,13 +146,12 @@ impl Session<'_> {
             Checked::Invalid(why) => Err(why),
             Checked::Known(record) => Ok(record),
         };
-        match Some(stored) {
-            None => Ok(None),
-            Some(Err(why)) => {
+        match stored {
+            Err(why) => {
                 self.answer_failed(element, writer, &why).await?;
                 Ok(Some(Flow::Continue))
             }
-            Some(Ok(record)) => {
+            Ok(record) => {
                 let step = self.context.get("step").unwrap_or("").to_string();
                 info!(%id, %step, ?record, "a step id already known: its stored outcome, not executed again");
                 match record {
