@@ -24,46 +24,7 @@
 
 use serde_json::{json, Value};
 
-/// A role: what the first part of an identity says.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
-pub enum Role {
-    Resource,
-    Product,
-    OrderNode,
-    Staff,
-    Operator,
-    Observer,
-    Router,
-}
-
-impl Role {
-    pub fn parse(text: &str) -> Option<Role> {
-        Some(match text {
-            "resource" => Role::Resource,
-            "product" => Role::Product,
-            "order-node" => Role::OrderNode,
-            "staff" => Role::Staff,
-            "operator" => Role::Operator,
-            "observer" => Role::Observer,
-            "router" => Role::Router,
-            _ => return None,
-        })
-    }
-}
-
-/// Splits `<role>.<name>` and checks both parts.
-pub fn parse_identity(identity: &str) -> anyhow::Result<(Role, &str)> {
-    let (role, name) = identity.split_once('.').ok_or_else(|| {
-        anyhow::anyhow!("identity {identity:?} is not <role>.<name> (e.g. resource.robot1)")
-    })?;
-    let role = Role::parse(role).ok_or_else(|| {
-        anyhow::anyhow!(
-            "identity {identity:?}: the role {role:?} is not resource, product, order-node, staff, operator, observer or router"
-        )
-    })?;
-    schemas::validate_name("identity name", name)?;
-    Ok((role, name))
-}
+pub use holon::role::{parse_identity, Role};
 
 const DECLARE: &[&str] = &["declare_queryable", "reply"];
 const READ: &[&str] = &[

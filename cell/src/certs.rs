@@ -88,7 +88,10 @@ pub fn identities(manifest: &Manifest) -> Result<Vec<Identity>> {
         addresses.extend(listen.iter().filter_map(|e| endpoint_host(e)));
         addresses.sort();
         addresses.dedup();
-        push(holon::tls::identity("router", &host), addresses)?;
+        push(
+            holon::role::identity(holon::role::Role::Router, &host),
+            addresses,
+        )?;
     }
     for process in &manifest.processes {
         if let Some(identity) = &process.identity {
@@ -99,10 +102,16 @@ pub fn identities(manifest: &Manifest) -> Result<Vec<Identity>> {
         push(spare.clone(), addresses_of("local"))?;
     }
     for operator in &manifest.pki.operators {
-        push(holon::tls::identity("operator", operator), local.clone())?;
+        push(
+            holon::role::identity(holon::role::Role::Operator, operator),
+            local.clone(),
+        )?;
     }
     for observer in &manifest.pki.observers {
-        push(holon::tls::identity("observer", observer), local.clone())?;
+        push(
+            holon::role::identity(holon::role::Role::Observer, observer),
+            local.clone(),
+        )?;
     }
     // An order-node's orders are `<node>-<n>`: no node may be named like another's orders.
     let nodes: Vec<&str> = out
@@ -217,7 +226,7 @@ fn router_config(
     } else {
         manifest.hosts.get(host)?.router.as_ref()?
     };
-    let identity = holon::tls::identity("router", host);
+    let identity = holon::role::identity(holon::role::Role::Router, host);
     let path = |file: String| pki.join(file).display().to_string();
     let mut config = serde_json::json!({
         "mode": "router",

@@ -54,7 +54,7 @@ pub fn config(options: &RouterOptions) -> Result<zenoh::Config> {
             let identity = options
                 .identity
                 .clone()
-                .unwrap_or_else(|| holon::tls::identity("router", "local"));
+                .unwrap_or_else(|| holon::role::identity(holon::role::Role::Router, "local"));
             settings.to_config(&identity).map_err(|e| anyhow!("{e}"))?
         }
     };

@@ -62,7 +62,10 @@ impl Identity {
         let holon = HolonId::new(kind, &header.name).map_err(|e| invalid(format!("name: {e}")))?;
         header
             .zenoh
-            .validate(&holon::tls::identity(&kind.to_string(), holon.name()))
+            .validate(&holon::role::identity(
+                holon::role::Role::of_holon(kind),
+                holon.name(),
+            ))
             .map_err(|e| invalid(format!("zenoh: {e}")))?;
         Ok(Identity {
             keys,
@@ -82,7 +85,8 @@ impl Identity {
         shutdown: &tokio_util::sync::CancellationToken,
     ) -> Result<Option<(zenoh::Session, holon::presence::Claim)>, NodeError> {
         let holon = &self.holon;
-        let tls_identity = holon::tls::identity(&holon.kind().to_string(), holon.name());
+        let tls_identity =
+            holon::role::identity(holon::role::Role::of_holon(holon.kind()), holon.name());
         let session = self.zenoh.open(&tls_identity, STARTUP_TIMEOUT).await?;
         if let Some(wait) = self.take_over {
             let request = holon::takeover::Request {

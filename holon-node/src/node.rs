@@ -340,7 +340,7 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
     let session = config
         .zenoh
         .open(
-            &holon::tls::identity("resource", holon.name()),
+            &holon::role::identity(holon::role::Role::Resource, holon.name()),
             STARTUP_TIMEOUT,
         )
         .await?;

@@ -8,6 +8,7 @@ pub mod logging;
 pub mod presence;
 pub mod query;
 pub mod restart;
+pub mod role;
 pub mod session;
 pub mod supervisor;
 pub mod takeover;

@@ -258,10 +258,3 @@ impl IdentityFiles {
         Ok(())
     }
 }
-
-/// The identity (certificate common name) of a process: `<role>.<name>`, where the
-/// role is a holon kind (`resource`, `product`), `order-node`, `router`, `operator` or
-/// `observer`.
-pub fn identity(role: &str, name: &str) -> String {
-    format!("{role}.{name}")
-}

@@ -96,7 +96,7 @@ pub async fn run(
     let session = config
         .zenoh
         .open(
-            &holon::tls::identity("order-node", &config.name),
+            &holon::role::identity(holon::role::Role::OrderNode, &config.name),
             Duration::from_secs(10),
         )
         .await?;

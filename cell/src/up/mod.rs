@@ -63,7 +63,7 @@ async fn start_router(
     let settings = router.settings(&crate::certs::pki_dir(dir, manifest));
     let session = settings
         .open(
-            &holon::tls::identity("router", host),
+            &holon::role::identity(holon::role::Role::Router, host),
             Duration::from_secs(10),
         )
         .await
