@@ -344,7 +344,7 @@ async fn epochs_go_on_after_a_sim_restart_and_the_count_file_shows_the_fence() {
 async fn a_step_in_flight_when_its_holder_froze_runs_once() {
     let (address, stats, sim) =
         start_sim("127.0.0.1:0", fenced_sim(Duration::from_millis(600))).await;
-    let mut old = start(&address);
+    let old = start(&address);
     let mut new = start(&address);
     assert_eq!(old.claim("robot1").await, Ok(Epoch(1)));
     let step = StepId::of("orders1-5/1/1", 0).unwrap();
