@@ -13,7 +13,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use schemas::{reason, HolonId, MessageType, PlanStep};
+use schemas::{HolonId, MessageType, PlanStep, Reason};
 use tokio::sync::{broadcast, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -56,7 +56,7 @@ pub async fn run(
         }
     }
     let p = lock(&order.progress).snapshot();
-    info!(%holon, status = %p.status, reason = p.reason.as_deref().unwrap_or(""), reworks = p.reworks, rebooks = p.rebooks, "order finished");
+    info!(%holon, status = %p.status, reason = p.reason.as_ref().map_or("", |r| r.as_str()), reworks = p.reworks, rebooks = p.rebooks, "order finished");
     // Results still arriving for this order (duplicates, late reports of abandoned
     // attempts) are acknowledged by the node from now on.
     order.token.undeclare().await;
@@ -339,7 +339,7 @@ impl OrderTask {
                         info!(holon = %self.holon, %conversation_id, resource = %candidate, service_type = %step.service_type, started = a.started(), "booked")
                     }
                     Some(a) => {
-                        info!(holon = %self.holon, %conversation_id, resource = %candidate, reason = a.reason.as_deref().unwrap_or(""), "booking refused")
+                        info!(holon = %self.holon, %conversation_id, resource = %candidate, reason = a.reason.as_ref().map_or("", |r| r.as_str()), "booking refused")
                     }
                     None => {}
                 }
@@ -362,7 +362,7 @@ impl OrderTask {
                 let key = ctx.keys.service(provider.name());
                 let answer = requests::ask(&ctx, &key, &cancel).await;
                 let handed_over =
-                    answer.as_ref().and_then(|a| a.reason.as_deref()) == Some(reason::UNAVAILABLE);
+                    answer.as_ref().and_then(|a| a.reason.as_ref()) == Some(&Reason::Unavailable);
                 if answer.is_none() || handed_over {
                     // Not answered, or by a stand-in while the resource is handed over
                     // (it keeps its bookings): sent again until the resource answers,
@@ -587,7 +587,10 @@ async fn judge(
         } else {
             warn!(conversation_id = %message.conversation_id, current = %conversation_id, "result from a resource this order never booked refused");
             report
-                .refuse("not_booked", "this order never booked that resource".into())
+                .refuse(
+                    schemas::ErrorCode::NotBooked,
+                    "this order never booked that resource".into(),
+                )
                 .await;
         }
         return None;
@@ -602,7 +605,7 @@ async fn judge(
         warn!(%conversation_id, booked = %provider, from = %from, "result from a resource this attempt did not book refused");
         report
             .refuse(
-                "not_booked",
+                schemas::ErrorCode::NotBooked,
                 format!("{conversation_id} is booked on {provider}, not {from:?}"),
             )
             .await;
@@ -619,13 +622,16 @@ async fn judge(
                 .cloned()
                 .unwrap_or_default(),
         },
-        _ if message.reason.as_deref() == Some(reason::WITHDRAWN) => StepOutcome::Lost {
+        _ if message.reason.as_ref() == Some(&Reason::Withdrawn) => StepOutcome::Lost {
             provider: from,
-            why: reason::WITHDRAWN.into(),
+            why: Reason::Withdrawn.to_string(),
         },
         _ => StepOutcome::Failed {
             provider: from,
-            reason: message.reason.clone().unwrap_or_else(|| "failed".into()),
+            reason: message
+                .reason
+                .as_ref()
+                .map_or_else(|| "failed".to_string(), Reason::to_string),
         },
     };
     Some((outcome, report))

@@ -6,7 +6,7 @@ use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 
-use schemas::{reason, HolonId, MessageType, Plan, PlanStep, Service};
+use schemas::{HolonId, MessageType, Plan, PlanStep, Reason, Service};
 use tokio::sync::broadcast;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -91,7 +91,7 @@ pub async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Ser
         let Some(service) = read_answer(key, message, &reply) else {
             continue;
         };
-        let unavailable = service.reason.as_deref() == Some(reason::UNAVAILABLE);
+        let unavailable = service.reason.as_ref() == Some(&Reason::Unavailable);
         if !unavailable {
             return Some(service);
         }
@@ -232,7 +232,7 @@ pub async fn cancel_when_back(
                     {
                         match read_answer(&key, &cancel, &reply) {
                             Some(answer)
-                                if answer.reason.as_deref() == Some(reason::UNAVAILABLE) =>
+                                if answer.reason.as_ref() == Some(&Reason::Unavailable) =>
                             {
                                 retry_after = Some(
                                     answer.retry_after().unwrap_or(Duration::from_millis(100)),
@@ -245,7 +245,7 @@ pub async fn cancel_when_back(
                             // `not_booked`: it was not there, or its job began (a
                             // restarted resource begins one only on its order's start).
                             Some(answer) => {
-                                info!(conversation_id = %cancel.conversation_id, %resource, reason = answer.reason.as_deref().unwrap_or_default(), "abandoned booking: the resource did not hold it");
+                                info!(conversation_id = %cancel.conversation_id, %resource, reason = answer.reason.as_ref().map_or("", |r| r.as_str()), "abandoned booking: the resource did not hold it");
                                 return;
                             }
                             None => {}
