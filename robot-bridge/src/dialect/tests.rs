@@ -438,3 +438,92 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn only_holarchy_xml_can_fence() {
+    for (name, _) in SHIPPED {
+        let dialect = Dialect::shipped(name).unwrap();
+        assert_eq!(dialect.fencing_supported(), *name == DEFAULT, "{name}");
+    }
+}
+
+#[test]
+fn holarchy_xml_writes_the_epoch_and_step_only_when_given() {
+    let dialect = Dialect::holarchy_xml();
+    let mut values = command_values(&command(7, "pick", None, None), &dialect.format);
+    let plain = dialect
+        .write_command(dialect.sequence[0].command, &values)
+        .unwrap();
+    assert_eq!(
+        String::from_utf8(plain).unwrap(),
+        "<ROBOT_CMD><ID>7</ID><ACTION>pick</ACTION></ROBOT_CMD>"
+    );
+    values.set("epoch", "3".into());
+    values.set("step", "orders1-3/2/1#0".into());
+    let fenced = dialect
+        .write_command(dialect.sequence[0].command, &values)
+        .unwrap();
+    assert_eq!(
+        String::from_utf8(fenced.clone()).unwrap(),
+        "<ROBOT_CMD><ID>7</ID><EPOCH>3</EPOCH><STEP>orders1-3/2/1#0</STEP><ACTION>pick</ACTION></ROBOT_CMD>"
+    );
+    let parsed = dialect.parse(&fenced).unwrap();
+    let read = dialect
+        .read_command(dialect.sequence[0].command, &parsed)
+        .unwrap()
+        .unwrap();
+    assert_eq!(read.get("epoch"), Some("3"));
+    assert_eq!(read.get("step"), Some("orders1-3/2/1#0"));
+    // A stale refusal is read as such, not as a result.
+    let fence = dialect.fence.unwrap();
+    let stale = dialect
+        .parse(b"<ROBOT_REPLY><ID>7</ID><RESULT>stale_epoch</RESULT><EPOCH>4</EPOCH></ROBOT_REPLY>")
+        .unwrap();
+    let first = dialect.sequence[0]
+        .expect
+        .iter()
+        .copied()
+        .find(|&r| dialect.read_reply(r, &stale).unwrap().is_some());
+    assert_eq!(first, Some(fence.stale));
+}
+
+#[test]
+fn a_bad_fence_names_the_field_and_the_problem() {
+    let shipped = SHIPPED[0].1;
+    let cases = [
+        (
+            shipped.replace("granted = \"claim_granted\"", "granted = \"nope\""),
+            "fence.granted",
+        ),
+        (
+            shipped.replace(
+                "name = \"claim_granted\"\noutcome = \"fence\"",
+                "name = \"claim_granted\"\noutcome = \"ignore\"",
+            ),
+            "fence.granted",
+        ),
+        (
+            shipped.replace(
+                "expect = [\"stale_epoch\", \"error\", \"result\"]",
+                "expect = [\"error\", \"result\"]",
+            ),
+            "fence.stale",
+        ),
+        (
+            shipped.replace("claim = \"claim\"", "claim = \"command\""),
+            "fence",
+        ),
+    ];
+    for (text, field) in cases {
+        let e = Dialect::from_toml(&text, "t.toml").unwrap_err().to_string();
+        assert!(e.contains(field), "{field}: {e}");
+    }
+    // A fence reply without [fence].
+    let start = shipped.find("\n[fence]\n").unwrap();
+    let end = start + shipped[start..].find("\n\n").unwrap();
+    let without = format!("{}{}", &shipped[..start], &shipped[end..]);
+    let e = Dialect::from_toml(&without, "t.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("[fence]"), "{e}");
+}
