@@ -74,3 +74,28 @@ fn robot_sim_serves_counts_and_stops_on_sigterm() {
         "colour codes in a log file: {log:?}"
     );
 }
+
+#[test]
+fn robot_sim_fenced_needs_a_dialect_that_can_fence() {
+    let out = Command::new(env!("CARGO_BIN_EXE_robot-sim"))
+        .args(["--fenced", "--dialect", "kuka-eki", "--check"])
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("cannot fence"), "{stderr}");
+    let out = Command::new(env!("CARGO_BIN_EXE_robot-sim"))
+        .args(["--fenced", "--check"])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let help = Command::new(env!("CARGO_BIN_EXE_robot-sim"))
+        .arg("--help")
+        .output()
+        .unwrap();
+    let help = String::from_utf8_lossy(&help.stdout);
+    assert!(
+        help.contains("--fenced") && help.contains("--lease-ms"),
+        "{help}"
+    );
+}
