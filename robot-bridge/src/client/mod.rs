@@ -18,6 +18,11 @@
 //!
 //! A controller that misses a deadline or sends something the dialect does not describe
 //! has its connection reset; the client then reconnects as usual.
+//!
+//! A standby holon runs the client with [`run_fenced`] and keeps a [`FenceHandle`]
+//! ([`fence`]): the same task, the one owner of the connection, also claims the
+//! controller, heartbeats while it holds the claim, writes the epoch and step ids in
+//! commands and asks step states.
 
 use std::sync::Arc;
 use std::time::Duration;

@@ -46,6 +46,11 @@
 //! - `abort_too_late`: an abort that comes while an action runs finds it just ended:
 //!   the `done` goes out (crossing the abort on the wire) and nothing is stopped.
 //!
+//! Fenced (`fence_lease`, `robot-sim --fenced`), it is the fence of standby holons
+//! ([`fence`]): one live session holds the claim with an epoch, a silent holder loses it
+//! and its connection, a command with a stale epoch is refused and never begun, and a
+//! step id runs at most once (a repeat gets the stored outcome).
+//!
 //! The simulator counts the commands it executed (answered with their success result)
 //! and the actions an abort stopped;
 //! [`SimStats`] can be written to a JSON file when each command arrives and after it is
