@@ -135,6 +135,8 @@ impl Connection<'_> {
 
     /// A message that may be the fence's; `None`: it is not.
     pub(super) async fn fence_incoming(&mut self, parsed: &Parsed) -> Option<Step> {
+        // Only a fenced client ([`super::super::run_fenced`]) sends the fence's messages.
+        self.fence.as_ref()?;
         let fence = self.dialect.fence?;
         let read = |r: usize| self.dialect.read_reply(r, parsed);
         let number = |v: &Values, name: &str| v.get(name).and_then(|e| e.parse::<u64>().ok());
