@@ -280,7 +280,10 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         ..holon::ZenohSettings::default()
     };
     let session = settings
-        .open(&holon::role::identity(holon::role::Role::Router, "local"), STARTUP)
+        .open(
+            &holon::role::identity(holon::role::Role::Router, "local"),
+            STARTUP,
+        )
         .await
         .map_err(|e| anyhow!("{e}"))?;
     let _announced =

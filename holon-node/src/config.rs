@@ -399,7 +399,10 @@ impl ResourceConfig {
         }
         let holon = HolonId::resource(&file.name).map_err(|e| format!("name: {e}"))?;
         file.zenoh
-            .validate(&holon::role::identity(holon::role::Role::Resource, holon.name()))
+            .validate(&holon::role::identity(
+                holon::role::Role::Resource,
+                holon.name(),
+            ))
             .map_err(|e| format!("zenoh: {e}"))?;
         let c = &file.controller;
         let port = c

@@ -250,7 +250,10 @@ impl OrderNodeConfig {
             ));
         }
         file.zenoh
-            .validate(&holon::role::identity(holon::role::Role::OrderNode, &file.name))
+            .validate(&holon::role::identity(
+                holon::role::Role::OrderNode,
+                &file.name,
+            ))
             .map_err(|e| invalid(format!("zenoh: {e}")))?;
         let o = &file.orders;
         for (field, value) in [

@@ -233,7 +233,10 @@ impl Cell {
                     let n = seen.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
                     if n < refuse_first {
                         let _ = query
-                            .reply_err(ErrorReply::new(schemas::ErrorCode::NotYet, "test refuses").to_json())
+                            .reply_err(
+                                ErrorReply::new(schemas::ErrorCode::NotYet, "test refuses")
+                                    .to_json(),
+                            )
                             .wait();
                     } else {
                         let mut ack = message.clone();
