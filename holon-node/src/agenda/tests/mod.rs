@@ -391,7 +391,7 @@ fn failed_from_execution_carries_the_reason() {
     let actions = m.handle(AgendaEvent::ExecutionFinished {
         conversation_id: "c1".into(),
         outcome: Outcome::Failed {
-            reason: Reason::ControllerDisconnected.into(),
+            reason: Reason::ControllerDisconnected,
             detail: "the connection broke".into(),
         },
     });
