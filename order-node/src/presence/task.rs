@@ -95,7 +95,7 @@ struct Owner {
     appeared: watch::Sender<u64>,
     /// One wake-up per freed place.
     room: Arc<Notify>,
-    /// Lost events, and the count the last resynchronisation answered.
+    /// Where the callbacks count the events lost to a full mailbox.
     overflow: Arc<Overflow>,
     /// `overflow.lost` when the last resynchronisation began.
     lost_answered: u64,
