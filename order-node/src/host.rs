@@ -17,12 +17,14 @@ use std::time::Duration;
 
 use holon::journal::JournalError;
 use holon::{Intensity, RestartWindow};
-use schemas::{CancelReply, HolonId, WorkOrder};
+use schemas::{CancelReply, ErrorCode, HolonId, WorkOrder};
+use tokio::sync::mpsc;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 use zenoh::key_expr::KeyExpr;
 
+use crate::cancel::CancelAsk;
 use crate::config::OrderNodeConfig;
 use crate::context::{OrderContext, OrderError, ORDER_RECORD};
 use crate::order;
@@ -64,8 +66,12 @@ pub struct Hosted {
     pub progress: Arc<Mutex<OrderProgress>>,
     /// The task's restarts, against [`ORDER_RESTARTS`].
     pub restarts: RestartWindow,
-    /// Cancelled when an operator cancels the order (`cell cancel`).
+    /// Cancelled by the order's task once it recorded an operator's cancel (`cell
+    /// cancel`); cancelled at the start for an order whose journal says so.
     pub operator_cancel: CancellationToken,
+    /// The mailbox of the order's running task for cancels ([`crate::cancel`]); closed
+    /// while no task runs.
+    pub cancel_asks: mpsc::Sender<CancelAsk>,
 }
 
 /// The finished orders that are only in the journal: by order number, when each ended
@@ -179,6 +185,7 @@ impl Host {
                     progress: progress.clone(),
                     restarts: RestartWindow::new(ORDER_RESTARTS),
                     operator_cancel,
+                    cancel_asks: crate::cancel::mailbox().0,
                 },
             );
         if running {
@@ -283,13 +290,19 @@ impl Host {
     ) {
         let context = self.context.clone();
         let cancel = cancel.child_token();
-        let operator_cancel = self
-            .orders
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(name)
-            .map(|h| h.operator_cancel.clone())
-            .unwrap_or_default();
+        // This run of the task gets a mailbox of its own: the node's table keeps where
+        // to send.
+        let (asks, cancel_asks) = crate::cancel::mailbox();
+        let operator_cancel = {
+            let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+            match orders.get_mut(name) {
+                Some(hosted) => {
+                    hosted.cancel_asks = asks;
+                    hosted.operator_cancel.clone()
+                }
+                None => CancellationToken::new(),
+            }
+        };
         let handle = tasks.set.spawn(async move {
             if !delay.is_zero() {
                 tokio::select! {
@@ -297,7 +310,7 @@ impl Host {
                     _ = cancel.cancelled() => return Ok(()),
                 }
             }
-            order::run(context, progress, cancel, operator_cancel).await
+            order::run(context, progress, cancel, operator_cancel, cancel_asks).await
         });
         tasks.names.insert(handle.id(), name.to_string());
     }
@@ -423,43 +436,41 @@ impl Host {
             .count()
     }
 
-    /// Records an operator's cancel of `name` and tells its task; what to answer.
-    pub fn cancel(&self, name: &str) -> Result<CancelReply, String> {
-        let unknown = || format!("{name} is not an order of {}", self.config.name);
-        let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-        let Some(hosted) = orders.get(name) else {
-            drop(orders);
-            // Finished (or unknown): refused, as it ended.
-            let progress = self
-                .progress(name)
-                .map_err(|e| format!("cannot read {name} from the journal: {e}"))?
-                .ok_or_else(unknown)?;
-            return Ok(refused_cancel(name, &progress));
-        };
-        let mut progress = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
-        if progress.status.is_final() {
-            return Ok(refused_cancel(name, &progress));
-        }
-        if !progress.cancel_requested {
-            // Written first: on a journal error nothing changed and the cancel is refused.
-            let mut next = progress.clone();
-            next.cancel_requested = true;
-            self.context.save(&next).map_err(|e| e.to_string())?;
-            *progress = next;
-        }
-        hosted.operator_cancel.cancel();
-        info!(node = %self.config.name, order = %name, "cancel requested by an operator");
-        Ok(CancelReply {
-            order: name.to_string(),
-            cancelled: true,
-            status: progress.status,
-            detail: match progress.phase {
-                crate::progress::Phase::Started(_) => {
-                    "its running step finishes first, then it ends as cancelled".into()
+    /// An operator's cancel of `name`: asked of the order's task, which records it
+    /// ([`crate::cancel`]); an ended order's is refused from what is recorded.
+    pub async fn cancel(&self, name: &str) -> Result<CancelReply, (ErrorCode, String)> {
+        let asks = {
+            let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+            match orders.get(name) {
+                Some(hosted) => {
+                    let progress = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
+                    if progress.status.is_final() {
+                        return Ok(crate::cancel::refused(name, &progress));
+                    }
+                    Some(hosted.cancel_asks.clone())
                 }
-                _ => "its bookings are cancelled and it ends as cancelled".into(),
-            },
-        })
+                None => None,
+            }
+        };
+        if let Some(asks) = asks {
+            return crate::cancel::ask(&asks, name).await;
+        }
+        // Finished (or unknown): refused, as it ended.
+        let progress = self
+            .progress(name)
+            .map_err(|e| {
+                (
+                    ErrorCode::Internal,
+                    format!("cannot read {name} from the journal: {e}"),
+                )
+            })?
+            .ok_or_else(|| {
+                (
+                    ErrorCode::UnknownOrder,
+                    format!("{name} is not an order of {}", self.config.name),
+                )
+            })?;
+        Ok(crate::cancel::refused(name, &progress))
     }
 
     /// The states of the orders whose `order/<name>/state` intersects `key`, by name:
@@ -555,16 +566,6 @@ pub fn recover(
         }
     })?;
     Ok((recovered, finished))
-}
-
-/// The answer to a cancel of an order that has ended.
-fn refused_cancel(name: &str, progress: &OrderProgress) -> CancelReply {
-    CancelReply {
-        order: name.to_string(),
-        cancelled: false,
-        status: progress.status,
-        detail: format!("the order has already ended ({:?})", progress.status),
-    }
 }
 
 /// An order task ended: done (the order ended), waiting for the journal (resumed after
@@ -742,6 +743,7 @@ mod tests {
                 progress: progress.clone(),
                 restarts: RestartWindow::new(ORDER_RESTARTS),
                 operator_cancel: CancellationToken::new(),
+                cancel_asks: crate::cancel::mailbox().0,
             },
         );
         host.next.fetch_max(n + 1, Ordering::SeqCst);
@@ -762,9 +764,49 @@ mod tests {
             .collect()
     }
 
-    fn cancel_reply(host: &Host, name: &str) -> Result<Vec<u8>, String> {
+    async fn cancel_reply(host: &Host, name: &str) -> Result<Vec<u8>, String> {
         host.cancel(name)
+            .await
             .map(|reply| serde_json::to_vec(&reply).unwrap())
+            .map_err(|(code, why)| format!("{code}: {why}"))
+    }
+
+    /// A cancel is the order's task's to record: the node asks, the task writes the
+    /// journal and answers, once; without a running task the node answers
+    /// `unavailable` and writes nothing.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_cancel_is_recorded_by_the_orders_own_task() {
+        let dir = TestDir::new("cancel");
+        let host = host(Some(&dir.0)).await;
+        let progress = running(&host, 1);
+        let refused = host.cancel("n1-1").await.unwrap_err();
+        assert_eq!(refused.0, ErrorCode::Unavailable, "{refused:?}");
+        assert!(!progress.lock().unwrap().cancel_requested);
+
+        let (asks, mailbox) = crate::cancel::mailbox();
+        let operator_cancel = CancellationToken::new();
+        host.orders.lock().unwrap().get_mut("n1-1").unwrap().cancel_asks = asks;
+        let task = {
+            let (ctx, progress, stop) = (
+                host.context.clone(),
+                progress.clone(),
+                operator_cancel.clone(),
+            );
+            tokio::spawn(async move {
+                crate::cancel::answer_cancels(&ctx, &progress, mailbox, &stop).await
+            })
+        };
+        let reply = host.cancel("n1-1").await.unwrap();
+        assert!(reply.cancelled, "{reply:?}");
+        assert!(operator_cancel.is_cancelled());
+        assert!(host.progress("n1-1").unwrap().unwrap().cancel_requested);
+        let journal = host.context.journal.as_ref().unwrap();
+        let recorded: OrderProgress = journal.get(ORDER_RECORD, "n1-1").unwrap().unwrap();
+        assert!(recorded.cancel_requested, "journalled before the answer");
+        // Asked again: the same answer, nothing new to record.
+        assert!(host.cancel("n1-1").await.unwrap().cancelled);
+        host.orders.lock().unwrap().remove("n1-1");
+        task.await.unwrap();
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -776,7 +818,7 @@ mod tests {
         host.context
             .commit(&done, |p| p.fail("no plan".into()))
             .unwrap();
-        let (states_before, cancel_before) = (states(&host), cancel_reply(&host, "n1-1"));
+        let (states_before, cancel_before) = (states(&host), cancel_reply(&host, "n1-1").await);
         let progress_before = host.progress("n1-1").unwrap().unwrap();
         assert_eq!(states_before.len(), 2);
 
@@ -793,7 +835,7 @@ mod tests {
         );
         assert_eq!(host.progress("n1-1").unwrap().unwrap(), progress_before);
         assert_eq!(
-            cancel_reply(&host, "n1-1"),
+            cancel_reply(&host, "n1-1").await,
             cancel_before,
             "refused as before"
         );
@@ -801,8 +843,8 @@ mod tests {
         assert!(!refused.cancelled);
         assert!(!host.forgotten("n1-1"));
         assert_eq!(
-            cancel_reply(&host, "n1-9"),
-            Err("n1-9 is not an order of n1".to_string())
+            cancel_reply(&host, "n1-9").await,
+            Err("unknown_order: n1-9 is not an order of n1".to_string())
         );
         assert_eq!(host.unfinished(), 1);
 
@@ -824,7 +866,7 @@ mod tests {
         host.resume(recovered, &[], &mut tasks, &cancel);
         assert!(!host.orders.lock().unwrap().contains_key("n1-1"));
         assert_eq!(states(&host), states_before);
-        assert_eq!(cancel_reply(&host, "n1-1"), cancel_before);
+        assert_eq!(cancel_reply(&host, "n1-1").await, cancel_before);
         while tasks.set.join_next().await.is_some() {}
     }
 
@@ -861,7 +903,7 @@ mod tests {
         assert!(host.forgotten("n1-1"));
         assert!(!host.forgotten("n1-2"));
         assert_eq!(host.progress("n1-1").unwrap(), None);
-        assert!(cancel_reply(&host, "n1-1").is_err());
+        assert!(cancel_reply(&host, "n1-1").await.is_err());
         let states = states(&host);
         assert_eq!(states.len(), 1);
         assert!(states[0].0.ends_with("/order/n1-2/state"), "{states:?}");
@@ -895,7 +937,7 @@ mod tests {
         assert!(read.finished_at.is_some(), "stamped in the journal");
         assert_eq!(read.status, old.status);
         assert_eq!(states(&host).len(), 1);
-        assert!(!cancel_reply(&host, "n1-1").unwrap().is_empty());
+        assert!(!cancel_reply(&host, "n1-1").await.unwrap().is_empty());
     }
 
     /// Without a journal there is nowhere else to read a finished order from: it stays
@@ -910,6 +952,10 @@ mod tests {
         assert!(host.orders.lock().unwrap().contains_key("n1-1"));
         assert!(host.finished.lock().unwrap().is_empty());
         assert_eq!(states(&host), before);
-        assert_eq!(host.forget_finished(Duration::ZERO), 0, "ended just now");
+        assert_eq!(
+            host.forget_finished(Duration::from_secs(3600)),
+            0,
+            "ended just now: kept for the hour"
+        );
     }
 }

@@ -15,6 +15,7 @@
 
 pub mod advice_pause;
 pub mod attempt;
+pub mod cancel;
 pub mod config;
 pub mod context;
 pub mod host;

@@ -14,12 +14,13 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use schemas::{HolonId, MessageType, PlanStep, Reason};
-use tokio::sync::{broadcast, watch};
+use tokio::sync::{broadcast, mpsc, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::attempt::{Attempt, AttemptAction, AttemptEvent, AttemptTiming};
+use crate::cancel::CancelAsk;
 use crate::context::{jittered, lock, IdleOrder, OrderContext, OrderError, Shared, IDLE_POLL};
 use crate::inbox::{Inbox, ResultReport};
 use crate::order_token::OrderToken;
@@ -27,13 +28,15 @@ use crate::progress::{Phase, StepOutcome};
 use crate::ranking::InFlight;
 use crate::requests;
 
-/// Runs one order until it is done, scrapped, failed or cancelled by an operator
-/// (`operator_cancel`), or its node stops (`cancel`).
+/// Runs one order until it is done, scrapped, failed or cancelled by an operator, or
+/// its node stops (`cancel`). An operator's cancel arrives in `cancel_asks`: this task
+/// records it and answers ([`crate::cancel`]), then `operator_cancel` stops the attempt.
 pub async fn run(
     ctx: Arc<OrderContext>,
     progress: Shared,
     cancel: CancellationToken,
     operator_cancel: CancellationToken,
+    cancel_asks: mpsc::Receiver<CancelAsk>,
 ) -> Result<(), OrderError> {
     let holon = lock(&progress).holon.clone();
     let mut order = OrderTask {
@@ -48,8 +51,15 @@ pub async fn run(
         holon: holon.clone(),
     };
     order.publish().await;
+    let (own_ctx, own_progress) = (order.ctx.clone(), order.progress.clone());
+    let cancels = async {
+        crate::cancel::answer_cancels(&own_ctx, &own_progress, cancel_asks, &operator_cancel).await;
+        // The node dropped the mailbox (it replaced this run's): nothing more to answer.
+        std::future::pending::<()>().await
+    };
     tokio::select! {
         worked = order.work(&operator_cancel) => worked?,
+        () = cancels => {}
         _ = cancel.cancelled() => {
             info!(%holon, "order stopped with its node; it resumes from the journal");
             return Ok(());

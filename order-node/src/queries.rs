@@ -284,16 +284,14 @@ async fn cancel(host: &Host, query: Query) {
         .unwrap_or_default();
     let by = requested_by(&query);
     info!(node = %host.config.name, order = %name, by = by.as_deref().unwrap_or("(not said)"), "cancel asked");
-    let answer = match host.cancel(name) {
+    let answer = match host.cancel(name).await {
         Ok(reply) => {
             let payload = serde_json::to_vec(&reply).expect("serializes");
             query.reply(host.config.keys.cancel(name), payload).await
         }
-        Err(why) => {
-            warn!(node = %host.config.name, order = %name, "cancel refused: {why}");
-            query
-                .reply_err(ErrorReply::new(schemas::ErrorCode::UnknownOrder, why).to_json())
-                .await
+        Err((code, why)) => {
+            warn!(node = %host.config.name, order = %name, %code, "cancel not taken: {why}");
+            query.reply_err(ErrorReply::new(code, why).to_json()).await
         }
     };
     if let Err(e) = answer {
