@@ -162,6 +162,10 @@ pub struct ControllerSection {
     /// to the config file). Default holarchy-xml.
     #[serde(default = "default_dialect")]
     pub dialect: String,
+    /// Claim the controller before serving (a standby resource, docs/reliability.md,
+    /// "Standby resources"); `--standby` sets it too. The dialect must fence.
+    #[serde(default)]
+    pub fenced: bool,
 }
 
 fn default_dialect() -> String {
@@ -331,6 +335,9 @@ pub struct ResourceConfig {
     /// Start as the successor of the running process (`--take-over`), waiting this
     /// long at most for it to hand over.
     pub take_over: Option<Duration>,
+    /// Claim the controller before serving, wait as a standby while another session
+    /// holds it, step down when deposed (`[controller] fenced`, `--standby`).
+    pub fenced: bool,
 }
 
 /// What the command line may override.
@@ -340,6 +347,8 @@ pub struct Overrides {
     pub common: holon::session::CommandLine,
     pub controller: Option<String>,
     pub allow_fault_injection: bool,
+    /// `--standby`: fenced, whatever the file says.
+    pub standby: bool,
 }
 
 impl ResourceConfig {
@@ -378,6 +387,7 @@ impl ResourceConfig {
         if let Some(controller) = overrides.controller {
             file.controller.address = controller;
         }
+        file.controller.fenced |= overrides.standby;
         let mut config =
             Self::validate(file, overrides.allow_fault_injection).map_err(|message| {
                 ConfigError::Invalid {
@@ -386,6 +396,12 @@ impl ResourceConfig {
                 }
             })?;
         config.take_over = overrides.common.take_over;
+        if config.fenced && config.take_over.is_some() {
+            return Err(ConfigError::Invalid {
+                path: path.to_string(),
+                message: "--take-over with a fenced resource (--standby, controller.fenced): the controller's claim decides who serves; start it as a standby instead".into(),
+            });
+        }
         Ok(config)
     }
 
@@ -493,6 +509,12 @@ impl ResourceConfig {
         }
         let dialect = robot_bridge::dialect::Dialect::load(&c.dialect, None)
             .map_err(|e| format!("controller.dialect: {e}"))?;
+        if c.fenced && !dialect.fencing_supported() {
+            return Err(format!(
+                "controller.fenced (--standby): the dialect {} has no fence (claim, epochs, step ids): standby is refused",
+                dialect.name
+            ));
+        }
         let packml = file.packml.settings()?;
         for (service_type, definition) in &services {
             for step in &definition.steps {
@@ -535,6 +557,7 @@ impl ResourceConfig {
             durability: file.journal.durability,
             allow_fault_injection,
             take_over: None,
+            fenced: c.fenced,
         })
     }
 }

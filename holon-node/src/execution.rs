@@ -17,6 +17,7 @@
 //! | step n | reply to its command with a result the step expects, steps left | command of step n+1 | step n+1 |
 //! | step n | the same, last step | finished: done with every step's result | `ready` (or `init`) |
 //! | step n | reply `error` | finished: failed `controller_error` | `ready` (or `init`) |
+//! | step n | reply `error` `stale_epoch` (a fenced resource deposed) | finished: failed `withdrawn` | `ready` (or `init`) |
 //! | step n | reply with a result the step does not expect | finished: failed `unexpected_result` | `ready` (or `init`) |
 //! | step n | its command timed out / the connection broke / the protocol broke | finished: failed `controller_timeout` / `controller_disconnected` / `controller_protocol_error` | `ready` (or `init`) |
 //! | step n | controller disconnected | finished: failed `controller_disconnected`; unavailable | `init` |
@@ -142,6 +143,15 @@ impl Execution {
     pub fn current_conversation(&self) -> Option<&str> {
         match &self.state {
             ExecutionState::Running { job, .. } => Some(&job.conversation_id),
+            _ => None,
+        }
+    }
+
+    /// The job running and the index of its step in progress: a fenced resource's step
+    /// id (`<conversation_id>#<index>`).
+    pub fn current_step_index(&self) -> Option<(&str, usize)> {
+        match &self.state {
+            ExecutionState::Running { job, step, .. } => Some((&job.conversation_id, *step)),
             _ => None,
         }
     }
@@ -294,6 +304,16 @@ impl Execution {
             // A late reply to a command whose step already failed: ignored.
             return vec![];
         }
+        if result == schemas::robot::RESULT_ERROR && message.as_deref().is_some_and(is_stale_epoch)
+        {
+            // Deposed: the controller has a newer holder and ran nothing. Not the
+            // controller's error: this resource steps down and hands the job back.
+            let detail = format!(
+                "deposed: the controller refused this resource's epoch ({}); it steps down, the step was not run here",
+                message.unwrap_or_default()
+            );
+            return self.fail(Reason::Withdrawn, detail);
+        }
         let ExecutionState::Running {
             job,
             step,
@@ -418,6 +438,12 @@ impl Execution {
         }
         actions
     }
+}
+
+/// Whether a controller's error message is the fence's refusal of a stale epoch
+/// (`docs/controller-protocol.md`, "Fencing (standby)").
+pub fn is_stale_epoch(message: &str) -> bool {
+    message.starts_with("stale_epoch")
 }
 
 #[cfg(test)]
@@ -781,6 +807,21 @@ mod tests {
         let mut bad = job("pick_n_place");
         bad.info.remove("place");
         failed_with(&e.handle(ExecutionEvent::Start(bad)), "invalid_info");
+        assert_eq!(e.state(), &ExecutionState::Ready);
+    }
+
+    #[test]
+    fn a_stale_epoch_refusal_hands_the_job_back_withdrawn_not_controller_error() {
+        let mut e = ready_execution();
+        let actions = e.handle(ExecutionEvent::Start(job("pick_n_place")));
+        let id = command(&actions).id;
+        assert_eq!(e.current_step_index().map(|(_, i)| i), Some(0));
+        let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::Reply {
+            id,
+            result: "error".into(),
+            message: Some("stale_epoch: the holder's epoch is 2".into()),
+        }));
+        failed_with(&actions, "withdrawn");
         assert_eq!(e.state(), &ExecutionState::Ready);
     }
 }

@@ -15,6 +15,7 @@ pub mod component;
 pub mod config;
 pub mod execution;
 pub mod fault_injection;
+pub mod fence;
 pub mod handover;
 pub mod holon_config;
 pub mod identity;

@@ -27,6 +27,14 @@ struct Args {
     /// panic on request (for tests and demonstrations of supervision; never in production).
     #[arg(long)]
     allow_fault_injection: bool,
+    /// Claim the controller before serving (as `[controller] fenced = true`): a resource
+    /// of the same name and controller may run beside this one, on another host; the one
+    /// that holds the controller's claim serves, the other waits as a standby (its name's
+    /// token is not declared) and takes over when the holder's controller session goes
+    /// silent. A holder the controller deposes steps down and waits again. The dialect
+    /// must fence; else start is refused with the reason. Not with --take-over.
+    #[arg(long)]
+    standby: bool,
     /// Check the config and exit without starting.
     #[arg(long)]
     check: bool,
@@ -45,6 +53,7 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
         common: args.common.overrides(),
         controller: args.controller,
         allow_fault_injection: args.allow_fault_injection,
+        standby: args.standby,
     };
     let config = HolonConfig::load(&args.common.config, overrides)?;
     if args.check {

@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use holon::takeover::{StandInEnd, TakenOver};
 use holon::{ChildSpec, Supervisor};
-use robot_bridge::client::ControllerEvent;
+use robot_bridge::client::{ControllerEvent, FenceHandle, FencePort};
 use schemas::Service;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
@@ -27,7 +27,12 @@ use crate::config::ResourceConfig;
 use crate::execution::Execution;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
-use crate::views::Views;
+use crate::views::{FenceView, Views};
+
+mod stand_in;
+mod standby;
+
+use stand_in::stand_in_answer;
 
 /// How long a holon waits for zenoh to open and for its components to come up.
 pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
@@ -52,6 +57,9 @@ pub enum NodeError {
     Takeover(#[from] holon::takeover::TakeoverError),
     #[error(transparent)]
     NoSuccessor(#[from] holon::takeover::NoSuccessor),
+    /// A fenced resource cannot claim its controller (docs/reliability.md).
+    #[error("standby refused: {0}")]
+    Fence(String),
 }
 
 /// The components' links, built once per process: they outlive the components'
@@ -75,6 +83,7 @@ impl Wiring {
         config: &ResourceConfig,
         session: &zenoh::Session,
         inheritance: Inheritance,
+        fence: Option<(FenceHandle, FencePort)>,
     ) -> Result<Wiring, NodeError> {
         let holon = config.holon.clone();
         let agenda = JournalledAgenda::open(config, inheritance)?;
@@ -82,6 +91,10 @@ impl Wiring {
         // go out when the communication component starts (from the agenda's view).
         let deliveries = Deliveries::new(holon.clone(), session.clone(), config.delivery);
         let views = Arc::new(Views::new(agenda.view(), Absences::new(Moment::now())));
+        if fence.is_some() {
+            views.fence.send_replace(FenceView::Standby);
+        }
+        let (fence, port) = fence.map(|(f, p)| (f, Handover::new(p))).unzip();
         let faults = Arc::new(Faults::default());
         let agenda_mail: Mailbox<AgendaMessage> = Mailbox::new();
         let jobs: Mailbox<crate::execution::ExecutionRequest> = Mailbox::new();
@@ -93,6 +106,7 @@ impl Wiring {
                 controller: config.controller.clone(),
                 commands: commands.share(),
                 events: controller.sender.clone(),
+                fence: port,
                 faults: faults.clone(),
             }),
             execution: Arc::new(execution::Links {
@@ -103,6 +117,7 @@ impl Wiring {
                 commands: commands.sender.clone(),
                 agenda: agenda_mail.sender.clone(),
                 views: views.clone(),
+                fence,
                 faults: faults.clone(),
             }),
             agenda_manager: Arc::new(agenda_manager::Links {
@@ -379,7 +394,11 @@ pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<
             };
         }
     }
-    let outcome = serve(&config, &session, &alive_key, inheritance, shutdown).await;
+    let outcome = if config.fenced {
+        standby::serve(&config, &session, &alive_key, shutdown).await
+    } else {
+        serve(&config, &session, &alive_key, inheritance, shutdown).await
+    };
     if let Err(e) = session.close().await {
         error!(%holon, error = %e, "cannot close the zenoh session");
     }
@@ -401,7 +420,7 @@ async fn serve(
     // answers anything.
     let _claim =
         holon::presence::claim(session, alive_key, &holon.to_string(), STARTUP_TIMEOUT).await?;
-    let wiring = Wiring::new(config, session, inheritance)?;
+    let wiring = Wiring::new(config, session, inheritance, None)?;
     let serving = wiring.communication.serving.notified();
     let components = CancellationToken::new();
     let mut supervision = tokio::spawn(wiring.supervisor(config).run(components.clone()));
@@ -544,33 +563,6 @@ async fn serve(
             .into())
         }
     }
-}
-
-/// The stand-in's answer to a Service request while the resource is handed over:
-/// refused `unavailable`, with a retry hint.
-fn stand_in_answer(holon: schemas::HolonId) -> holon::takeover::Answer {
-    std::sync::Arc::new(move |query: &zenoh::query::Query| {
-        use zenoh::Wait;
-        let payload = query
-            .payload()
-            .map(|p| p.to_bytes().into_owned())
-            .unwrap_or_default();
-        let sent = match Service::from_json(&payload) {
-            Ok(request) => {
-                let mut refusal = request.refused(&holon, schemas::Reason::Unavailable);
-                crate::agenda::handing_over_hint(&mut refusal.info);
-                query
-                    .reply(query.key_expr().clone(), refusal.to_json())
-                    .wait()
-            }
-            Err(e) => query
-                .reply_err(schemas::ErrorReply::for_schema_error(&e).to_json())
-                .wait(),
-        };
-        if let Err(e) = sent {
-            warn!(%holon, error = %e, "cannot answer a request while handed over; the requester asks again after its timeout");
-        }
-    })
 }
 
 /// What the supervisor's end means for the holon.

@@ -40,6 +40,25 @@ pub struct ExecutionView {
     pub running_since: Option<(String, u64)>,
 }
 
+/// Where a resource stands with its controller's fence (docs/reliability.md, "Standby
+/// resources"), written by the node's fence loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FenceView {
+    /// Not fenced: it serves as soon as it is up.
+    Unfenced,
+    /// Fenced, not holding the claim: it neither offers nor answers.
+    Standby,
+    /// Holding the claim with this epoch: it serves.
+    Holding(u64),
+}
+
+impl FenceView {
+    /// Whether the resource may serve.
+    pub fn serves(self) -> bool {
+        !matches!(self, FenceView::Standby)
+    }
+}
+
 /// The published views, one per owner.
 pub struct Views {
     /// Written by the agenda manager.
@@ -51,6 +70,8 @@ pub struct Views {
     /// Written by the communication component: how many times a result went out again
     /// because its first attempt was not acknowledged, since the process started.
     pub delivery_retries: watch::Sender<u64>,
+    /// Written by the node's fence loop: whether this process holds the controller.
+    pub fence: watch::Sender<FenceView>,
     /// The machine this process runs on, named in every snapshot.
     host: String,
 }
@@ -66,6 +87,7 @@ impl Views {
             }),
             absences: watch::Sender::new(absences),
             delivery_retries: watch::Sender::new(0),
+            fence: watch::Sender::new(FenceView::Unfenced),
             host: holon::presence::host_name(),
         }
     }
@@ -99,6 +121,6 @@ impl Views {
 
     /// Whether the resource takes new work (see [`AgendaView::accepting`]).
     pub fn accepting(&self) -> bool {
-        self.agenda.borrow().accepting
+        self.agenda.borrow().accepting && self.fence.borrow().serves()
     }
 }

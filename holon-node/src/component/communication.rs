@@ -188,6 +188,15 @@ async fn declare(
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
     let config = &links.config;
     let holon = &config.holon;
+    // A fenced resource declares nothing until it holds its controller's claim: a
+    // standby neither offers nor answers (docs/reliability.md, "Standby resources").
+    let mut fence = links.views.fence.subscribe();
+    tokio::select! {
+        _ = token.cancelled() => return Ok(()),
+        held = fence.wait_for(|fence| fence.serves()) => {
+            held.map_err(|_| "the fence view closed")?;
+        }
+    }
     // The views are watched before anything is read from them: a change from now on
     // wakes the loop below, however early it comes (the controller may become ready
     // while the queryables are being declared).
@@ -257,6 +266,10 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                 changed.map_err(|_| "the absences view closed")?;
                 settled = false;
             }
+            changed = fence.changed() => {
+                changed.map_err(|_| "the fence view closed")?;
+                settled = false;
+            }
         }
         if !settled {
             // The changes of one moment (a job begins: the agenda says busy and the
@@ -267,6 +280,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             agenda_view.borrow_and_update();
             execution_view.borrow_and_update();
             absences.borrow_and_update();
+            fence.borrow_and_update();
             queryables.sync_offers(&links).await?;
             publish(&links, &publisher, &mut last_published).await;
             settled = true;

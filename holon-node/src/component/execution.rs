@@ -10,7 +10,7 @@
 use std::sync::Arc;
 
 use holon::ChildError;
-use robot_bridge::client::{ControllerEvent, ControllerRequest};
+use robot_bridge::client::{ControllerEvent, ControllerRequest, FenceHandle, StepId};
 use schemas::HolonId;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -38,6 +38,9 @@ pub struct Links {
     pub agenda: mpsc::Sender<AgendaMessage>,
     /// Where it publishes its view.
     pub views: Arc<Views>,
+    /// A fenced resource's fence: each step's command goes through it, with its step id.
+    pub fence: Option<FenceHandle>,
+    /// Its fault to inject on request.
     pub faults: Arc<Faults>,
 }
 
@@ -65,8 +68,11 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             info!(%holon, component = "execution", from = %before, to = %after, "transition");
         }
         publish(&links, &execution);
+        let step = execution
+            .current_step_index()
+            .map(|(conversation, index)| (conversation.to_string(), index));
         for action in actions {
-            carry_out(&links, action).await?;
+            carry_out(&links, action, step.as_ref()).await?;
         }
     }
 }
@@ -92,7 +98,13 @@ fn publish(links: &Links, execution: &Execution) {
     });
 }
 
-async fn carry_out(links: &Links, action: ExecutionAction) -> Result<(), ChildError> {
+/// Carries out one action; `step` is the running job's conversation and the index of
+/// its step in progress (a command's step id, for a fenced resource).
+async fn carry_out(
+    links: &Links,
+    action: ExecutionAction,
+    step: Option<&(String, usize)>,
+) -> Result<(), ChildError> {
     let holon = &links.holon;
     let to_agenda = |event: AgendaEvent| async {
         links
@@ -104,11 +116,22 @@ async fn carry_out(links: &Links, action: ExecutionAction) -> Result<(), ChildEr
     match action {
         ExecutionAction::Command(command) => {
             info!(%holon, component = "execution", command_id = command.id, action = %command.action, "command to controller");
-            links
-                .commands
-                .send(command.into())
-                .await
-                .map_err(|_| "command mailbox closed")?;
+            match (&links.fence, step) {
+                (Some(fence), Some((conversation, index))) => {
+                    let step = StepId::of(conversation, *index).map_err(|e| {
+                        ChildError::from(format!("no step id for {conversation:?}: {e}"))
+                    })?;
+                    fence
+                        .command(command, step)
+                        .await
+                        .map_err(|e| ChildError::from(format!("the fence: {e}")))?;
+                }
+                _ => links
+                    .commands
+                    .send(command.into())
+                    .await
+                    .map_err(|_| "command mailbox closed")?,
+            }
         }
         ExecutionAction::AbortController => {
             info!(%holon, component = "execution", "abort: the controller is told to stop");
