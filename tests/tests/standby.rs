@@ -1,0 +1,206 @@
+//! Standby resources (issue 31): two `holon-node --standby` processes with the same name
+//! and controller, a fenced `robot-sim`; the controller's claim decides which one
+//! serves. The primary is frozen (SIGSTOP: its token stays, its controller session goes
+//! silent), the standby's claim is granted and it serves; the old primary, thawed, finds
+//! its claim gone and steps down. Every step runs once by the simulator's counts per
+//! step id. Bounded waits only; no timing is asserted.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{bail, Result};
+use holarchy_tests::*;
+use nix::sys::signal::Signal;
+use schemas::{HolonId, MessageType, Service};
+
+/// The log of the holon whose files are in `dir`.
+fn log(dir: &Path) -> String {
+    fs::read_to_string(dir.join("robot1.log.json")).unwrap_or_default()
+}
+
+/// How often `text` occurs in the log of the holon in `dir`.
+fn said(dir: &Path, text: &str) -> usize {
+    log(dir).matches(text).count()
+}
+
+/// Waits (at most [`WAIT`]) until the holon in `dir` has logged `text` `n` times.
+async fn wait_said(dir: &Path, text: &str, n: usize) -> Result<()> {
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while said(dir, text) < n {
+        if tokio::time::Instant::now() > deadline {
+            bail!(
+                "{} never logged {text:?} {n} times; its log ends:\n{}",
+                dir.display(),
+                tail(&log(dir))
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    Ok(())
+}
+
+fn tail(text: &str) -> String {
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(15)..].join("\n")
+}
+
+/// A host of its own for one of the twins: a directory with the config `robot1.toml`.
+fn host(root: &Path, name: &str) -> Result<PathBuf> {
+    let dir = root.join(name);
+    fs::create_dir_all(&dir)?;
+    resource_config(&dir, "robot1", 5000)?;
+    Ok(dir)
+}
+
+/// Starts `holon-node --standby` for robot1 on `host`'s config and journal.
+fn twin(cell: &Cell, host: &Path, sim: &Sim) -> Result<Process> {
+    let data = host.join("data");
+    start_node(
+        host,
+        &host.join("robot1.toml"),
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &["--standby", "--data-dir", data.to_str().expect("utf-8")],
+    )
+}
+
+/// Books and starts one job for `order` on robot1 and returns its result.
+async fn job(cell: &Cell, order: &str) -> Result<Service> {
+    let mut inbox = cell.inbox(order, 0).await?;
+    cell.job("robot1", &mut inbox, order, &format!("{order}-1"))
+        .await
+}
+
+/// How many liveliness tokens robot1's name has, as the router answers.
+async fn tokens(cell: &Cell) -> usize {
+    let holon = HolonId::resource("robot1").unwrap();
+    let replies = cell
+        .session
+        .liveliness()
+        .get(cell.keys.alive(&holon))
+        .timeout(Duration::from_secs(2))
+        .await
+        .unwrap();
+    let mut n = 0;
+    while let Ok(reply) = replies.recv_async().await {
+        if reply.result().is_ok() {
+            n += 1;
+        }
+    }
+    n
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_down() {
+    let root = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-standby").await.unwrap();
+    let sim = Sim::start(
+        root.path(),
+        "robot1-sim",
+        "127.0.0.1:0",
+        &["--fenced", "--lease-ms", "500"],
+    )
+    .unwrap();
+    let (a, b) = (
+        host(root.path(), "a").unwrap(),
+        host(root.path(), "b").unwrap(),
+    );
+    let robot1 = HolonId::resource("robot1").unwrap();
+
+    // (1) The first holds the claim and serves; the second waits as a standby.
+    let primary = twin(&cell, &a, &sim).unwrap();
+    cell.wait_alive(&robot1).await.unwrap();
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    wait_said(&a, "holding the controller", 1).await.unwrap();
+    let standby = twin(&cell, &b, &sim).unwrap();
+    wait_said(&b, "standby: another session holds the controller", 1)
+        .await
+        .unwrap();
+    assert_eq!(said(&b, "holding the controller"), 0, "{}", log(&b));
+    assert_eq!(tokens(&cell).await, 1, "the standby declared no token");
+    let asking = pick_n_place(&cell.keys, MessageType::ProposalReq, "asker", "asker-1");
+    let proposals = cell.proposals(&asking).await.unwrap();
+    assert_eq!(proposals.len(), 1, "only the holder offers: {proposals:?}");
+
+    let first = job(&cell, "o1").await.unwrap();
+    assert_eq!(first.message_type, MessageType::Done, "{first:?}");
+    assert_eq!(said(&b, "holding the controller"), 0, "{}", log(&b));
+    assert_eq!(sim.counts()["epoch"], 1, "{}", sim.counts());
+
+    // (2) The primary freezes: its token stays, its controller session goes silent.
+    // The standby's claim is granted after the lease; it serves the next job.
+    primary.signal(Signal::SIGSTOP).unwrap();
+    wait_said(&b, "holding the controller", 1).await.unwrap();
+    assert_eq!(sim.counts()["epoch"], 2, "{}", sim.counts());
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    let second = job(&cell, "o2").await.unwrap();
+    assert_eq!(second.message_type, MessageType::Done, "{second:?}");
+
+    // (3) Thawed, the old primary finds its claim gone (the controller closed its
+    // silent session, or refuses its epoch) and steps down: a standby again.
+    primary.signal(Signal::SIGCONT).unwrap();
+    wait_said(&a, "deposed: stepping down", 1).await.unwrap();
+    wait_said(&a, "stepped down: a standby again", 1)
+        .await
+        .unwrap();
+    wait_said(&a, "standby: another session holds the controller", 1)
+        .await
+        .unwrap();
+    assert_eq!(said(&a, "holding the controller"), 1, "{}", log(&a));
+    // The new holder serves on; the old one takes nothing.
+    let third = job(&cell, "o3").await.unwrap();
+    assert_eq!(third.message_type, MessageType::Done, "{third:?}");
+    assert_eq!(said(&a, "holding the controller"), 1, "{}", log(&a));
+
+    // (4) Every step of every job ran exactly once on the controller.
+    let counts = sim.counts();
+    for order in ["o1", "o2", "o3"] {
+        for index in 0..2 {
+            let step = format!("{order}-1#{index}");
+            assert_eq!(counts["by_step"][&step], 1, "{step}: {counts}");
+        }
+    }
+    eprintln!(
+        "stale_epoch_refused: {}, epoch: {}",
+        counts["stale_epoch_refused"], counts["epoch"]
+    );
+    drop((primary, standby));
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn standby_is_refused_when_the_controller_cannot_fence() {
+    let root = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-standby-unfenced").await.unwrap();
+    // kuka-eki has no [fence]: the config is refused at start, with the reason.
+    let sim = Sim::start(root.path(), "robot1-sim", "127.0.0.1:0", &[]).unwrap();
+    let a = host(root.path(), "a").unwrap();
+    let config = a.join("robot1.toml");
+    let text = fs::read_to_string(&config).unwrap().replacen(
+        "[controller]\n",
+        "[controller]\ndialect = \"kuka-eki\"\nfenced = true\n",
+        1,
+    );
+    fs::write(&config, text).unwrap();
+    let mut node = start_node(
+        &a,
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &[],
+    )
+    .unwrap();
+    let status = node.wait_exit(WAIT).unwrap();
+    assert!(!status.success());
+    let stderr = node.stderr();
+    assert!(
+        stderr.contains("has no fence") && stderr.contains("standby is refused"),
+        "{stderr}"
+    );
+}
