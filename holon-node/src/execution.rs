@@ -17,7 +17,8 @@
 //! | step n | reply to its command with a result the step expects, steps left | command of step n+1 | step n+1 |
 //! | step n | the same, last step | finished: done with every step's result | `ready` (or `init`) |
 //! | step n | reply `error` | finished: failed `controller_error` | `ready` (or `init`) |
-//! | step n | reply `error` `stale_epoch` (a fenced resource deposed) | finished: failed `withdrawn` | `ready` (or `init`) |
+//! | step 1 | reply `error` `stale_epoch` (a fenced resource deposed) | finished: failed `withdrawn` | `ready` (or `init`) |
+//! | step n > 1 | the same | finished: failed `interrupted` | `ready` (or `init`) |
 //! | step n | reply with a result the step does not expect | finished: failed `unexpected_result` | `ready` (or `init`) |
 //! | step n | its command timed out / the connection broke / the protocol broke | finished: failed `controller_timeout` / `controller_disconnected` / `controller_protocol_error` | `ready` (or `init`) |
 //! | step n | controller disconnected | finished: failed `controller_disconnected`; unavailable | `init` |
@@ -306,13 +307,22 @@ impl Execution {
         }
         if result == schemas::robot::RESULT_ERROR && message.as_deref().is_some_and(is_stale_epoch)
         {
-            // Deposed: the controller has a newer holder and ran nothing. Not the
-            // controller's error: this resource steps down and hands the job back.
+            // Deposed: the controller has a newer holder and ran nothing of this
+            // command. Not the controller's error: this resource steps down. Its first
+            // command refused, nothing of the job ran here (`withdrawn`: book
+            // elsewhere); a later one, its earlier steps did (`interrupted`: the order
+            // decides).
+            let first = matches!(&self.state, ExecutionState::Running { step: 0, .. });
             let detail = format!(
-                "deposed: the controller refused this resource's epoch ({}); it steps down, the step was not run here",
+                "deposed: the controller refused this resource's epoch ({}); it steps down, this step was not run here",
                 message.unwrap_or_default()
             );
-            return self.fail(Reason::Withdrawn, detail);
+            let why = if first {
+                Reason::Withdrawn
+            } else {
+                Reason::Interrupted
+            };
+            return self.fail(why, detail);
         }
         let ExecutionState::Running {
             job,
@@ -823,5 +833,14 @@ mod tests {
         }));
         failed_with(&actions, "withdrawn");
         assert_eq!(e.state(), &ExecutionState::Ready);
+        // Refused at its second step, its first ran here: interrupted, the order decides.
+        let id = command(&e.handle(ExecutionEvent::Start(job("pick_n_place")))).id;
+        let id = command(&e.handle(reply(id, "picking_done"))).id;
+        let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::Reply {
+            id,
+            result: "error".into(),
+            message: Some("stale_epoch".into()),
+        }));
+        failed_with(&actions, "interrupted");
     }
 }

@@ -316,6 +316,16 @@ async fn publish(
 async fn answer(links: &Links, arrival: Arrival) -> Option<AgendaMessage> {
     let Arrival { endpoint, question } = arrival;
     let holon = &links.config.holon;
+    let work = matches!(
+        endpoint,
+        Endpoint::Service | Endpoint::Offer(_) | Endpoint::Packml
+    );
+    if work && !links.views.fence.borrow().serves() {
+        // A fenced resource stepping down: the holder of the controller answers; this
+        // one says nothing (the query ends without its reply).
+        debug!(%holon, key = %question.asked_key(), "not holding the controller: a request left to the holder");
+        return None;
+    }
     match &endpoint {
         Endpoint::State => {
             let snapshot =

@@ -24,7 +24,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
 use super::{supervisor_ended, wait_stopped, NodeError, Wiring, STARTUP_TIMEOUT};
-use crate::agenda::Inheritance;
+use crate::agenda::{AgendaEvent, Inheritance};
 use crate::config::ResourceConfig;
 use crate::fence::{Claim, ClaimAction, ClaimEvent, CLAIM_RETRY};
 use crate::views::FenceView;
@@ -184,12 +184,47 @@ async fn round(
         .send_replace(FenceView::Standby);
     undeclare(holon, token).await;
     publish_epoch(config, session, None).await;
-    wiring.withdraw(config.shutdown_grace).await;
+    step_down(&wiring, config.shutdown_grace.min(STEP_DOWN_GRACE)).await;
     let stopped = stop(holon, components, supervision).await;
     drop(wiring);
     stopped?;
     info!(%holon, "stepped down: a standby again");
     Ok(Round::SteppedDown)
+}
+
+/// The longest a deposed holder waits for its bookings to be handed back and its
+/// results acknowledged (or its shutdown grace, if shorter); what is not acknowledged
+/// stays in its journal and goes out when it serves again.
+const STEP_DOWN_GRACE: Duration = Duration::from_secs(2);
+
+/// Hands every booking back (`withdrawn`) and waits, at most `grace`, until the
+/// agenda is drained: nothing runs and every result is acknowledged. Unlike a shutdown
+/// it waits for the agenda itself to say so (requests that reached it before the
+/// withdrawal are handed back too).
+async fn step_down(wiring: &Wiring, grace: Duration) {
+    let links = &wiring.agenda_manager;
+    let holon = &links.holon;
+    let mut agenda = links.views.agenda.subscribe();
+    let bookings = links.views.agenda.borrow().snapshot.agenda.len();
+    info!(%holon, bookings, "stepping down: no new work, handing bookings back");
+    let withdraw = links.mailbox.sender.send(AgendaEvent::Withdraw.into());
+    if tokio::time::timeout(grace, withdraw).await.is_err() {
+        error!(%holon, "the agenda manager did not take the withdrawal: bookings are not handed back");
+        return;
+    }
+    let drained = tokio::time::timeout(grace, agenda.wait_for(|view| view.drained))
+        .await
+        .map(|waited| waited.map(|_| ()));
+    match drained {
+        Ok(Ok(())) => {
+            info!(%holon, "stepped down: every booking handed back, every result acknowledged")
+        }
+        Ok(Err(_)) => error!(%holon, "the agenda view closed while stepping down"),
+        Err(_) => {
+            let view = links.views.agenda.borrow();
+            warn!(%holon, running = view.snapshot.current.is_some(), undelivered = view.snapshot.undelivered, ?grace, "step-down grace elapsed; stopping anyway (what is left stays in the journal)");
+        }
+    }
 }
 
 /// Stops the components (each within its shutdown timeout).
