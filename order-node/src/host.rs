@@ -785,7 +785,12 @@ mod tests {
 
         let (asks, mailbox) = crate::cancel::mailbox();
         let operator_cancel = CancellationToken::new();
-        host.orders.lock().unwrap().get_mut("n1-1").unwrap().cancel_asks = asks;
+        host.orders
+            .lock()
+            .unwrap()
+            .get_mut("n1-1")
+            .unwrap()
+            .cancel_asks = asks;
         let task = {
             let (ctx, progress, stop) = (
                 host.context.clone(),
