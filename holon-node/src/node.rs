@@ -107,6 +107,7 @@ impl Wiring {
                 commands: commands.share(),
                 events: controller.sender.clone(),
                 fence: port,
+                fence_view: views.fence.subscribe(),
                 faults: faults.clone(),
             }),
             execution: Arc::new(execution::Links {

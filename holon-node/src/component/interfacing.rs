@@ -6,12 +6,16 @@
 use std::sync::Arc;
 
 use holon::ChildError;
-use robot_bridge::client::{self, ClientConfig, ControllerEvent, ControllerRequest, FencePort};
-use tokio::sync::mpsc;
+use robot_bridge::client::{
+    self, ClientConfig, ControllerEvent, ControllerRequest, Epoch, FenceEvent, FencePort,
+};
+use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
+use tracing::warn;
 
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
+use crate::views::FenceView;
 
 /// What the interfacing component is linked to.
 pub struct Links {
@@ -24,6 +28,10 @@ pub struct Links {
     /// The fence's port, for a fenced resource: taken by the running component and
     /// handed to its successor, like a mailbox.
     pub fence: Option<Handover<FencePort>>,
+    /// Whether the resource holds the claim (the node's fence loop writes it): a
+    /// successor started while it does reports the claim lost with its predecessor's
+    /// connection.
+    pub fence_view: watch::Receiver<FenceView>,
     /// Its fault to inject on request.
     pub faults: Arc<Faults>,
 }
@@ -35,6 +43,18 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         Some(fence) => Some(fence.take().await),
         None => None,
     };
+    if let (Some(port), FenceView::Holding(epoch)) = (&port, *links.fence_view.borrow()) {
+        // A restart: the claim went with the predecessor's connection.
+        let lost = FenceEvent::Lost {
+            epoch: Epoch(epoch),
+        };
+        if port.events.try_send(lost).is_err() {
+            warn!(
+                epoch,
+                "cannot report the claim lost with the restarted controller client"
+            );
+        }
+    }
     let config = links.controller.clone();
     let client = async {
         match port.as_deref_mut() {
