@@ -204,3 +204,52 @@ async fn standby_is_refused_when_the_controller_cannot_fence() {
         "{stderr}"
     );
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_holder_whose_controller_client_crashes_steps_down_and_claims_again() {
+    let root = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-standby-crash").await.unwrap();
+    let sim = Sim::start(
+        root.path(),
+        "robot1-sim",
+        "127.0.0.1:0",
+        &["--fenced", "--lease-ms", "500"],
+    )
+    .unwrap();
+    let a = host(root.path(), "a").unwrap();
+    let node = start_node(
+        &a,
+        &a.join("robot1.toml"),
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &["--standby", "--allow-fault-injection"],
+    )
+    .unwrap();
+    cell.wait_alive(&HolonId::resource("robot1").unwrap())
+        .await
+        .unwrap();
+    wait_said(&a, "holding the controller", 1).await.unwrap();
+
+    // The interfacing component's connection held the claim: its successor reports it
+    // lost, the holder steps down and claims again (the next epoch).
+    let replies = cell
+        .session
+        .get(cell.keys.debug_crash("robot1"))
+        .payload("interfacing")
+        .timeout(Duration::from_secs(5))
+        .await
+        .unwrap();
+    assert!(replies.recv_async().await.unwrap().result().is_ok());
+    wait_said(&a, "deposed: stepping down", 1).await.unwrap();
+    wait_said(&a, "holding the controller", 2).await.unwrap();
+    cell.wait_state("robot1", "free", |s| s["state"] == "free")
+        .await
+        .unwrap();
+    let done = job(&cell, "o1").await.unwrap();
+    assert_eq!(done.message_type, MessageType::Done, "{done:?}");
+    let counts = sim.counts();
+    assert_eq!(counts["epoch"], 2, "{counts}");
+    assert_eq!(counts["by_step"]["o1-1#0"], 1, "{counts}");
+    drop(node);
+}
