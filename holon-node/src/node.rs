@@ -29,6 +29,7 @@ use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
 use crate::views::{FenceView, Views};
 
+mod fence_report;
 mod stand_in;
 mod standby;
 

@@ -92,6 +92,55 @@ async fn tokens(cell: &Cell) -> usize {
     n
 }
 
+/// The fence reports of robot1's processes that answer within a second, as
+/// `(role, epoch, holder_epoch)`, sorted.
+async fn reports(cell: &Cell) -> Vec<(String, Option<u64>, Option<u64>)> {
+    let key = format!(
+        "{}/*",
+        cell.keys.state(&HolonId::resource("robot1").unwrap())
+    )
+    .replace("/state/*", "/fence/*");
+    let replies = cell
+        .session
+        .get(&key)
+        .timeout(Duration::from_secs(1))
+        .await
+        .unwrap();
+    let mut found = Vec::new();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result() {
+            let report: serde_json::Value =
+                serde_json::from_slice(&sample.payload().to_bytes()).unwrap();
+            found.push((
+                report["role"].as_str().unwrap_or_default().to_string(),
+                report["epoch"].as_u64(),
+                report["holder_epoch"].as_u64(),
+            ));
+        }
+    }
+    found.sort();
+    found
+}
+
+/// Waits (at most [`WAIT`]) until robot1's fence reports are `expected`.
+async fn wait_reports(cell: &Cell, expected: &[(&str, Option<u64>, Option<u64>)]) {
+    let expected: Vec<_> = expected
+        .iter()
+        .map(|(role, epoch, holder)| (role.to_string(), *epoch, *holder))
+        .collect();
+    let deadline = tokio::time::Instant::now() + WAIT;
+    loop {
+        let found = reports(cell).await;
+        if found == expected {
+            return;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "fence reports {found:?}, never {expected:?}"
+        );
+    }
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_down() {
     let root = tempfile::tempdir().unwrap();
@@ -126,6 +175,13 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
     let proposals = cell.proposals(&asking).await.unwrap();
     assert_eq!(proposals.len(), 1, "only the holder offers: {proposals:?}");
 
+    // Each process says where it stands: the holder its epoch, the standby the holder's.
+    wait_reports(
+        &cell,
+        &[("holder", Some(1), None), ("standby", None, Some(1))],
+    )
+    .await;
+
     let first = job(&cell, "o1").await.unwrap();
     assert_eq!(first.message_type, MessageType::Done, "{first:?}");
     assert_eq!(said(&b, "holding the controller"), 0, "{}", log(&b));
@@ -139,6 +195,8 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
     cell.wait_state("robot1", "free", |s| s["state"] == "free")
         .await
         .unwrap();
+    // The frozen one answers nothing; the new holder says epoch 2.
+    wait_reports(&cell, &[("holder", Some(2), None)]).await;
     let second = job(&cell, "o2").await.unwrap();
     assert_eq!(second.message_type, MessageType::Done, "{second:?}");
 
@@ -153,6 +211,11 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
         .await
         .unwrap();
     assert_eq!(said(&a, "holding the controller"), 1, "{}", log(&a));
+    wait_reports(
+        &cell,
+        &[("holder", Some(2), None), ("standby", None, Some(2))],
+    )
+    .await;
     // The new holder serves on; the old one takes nothing.
     let third = job(&cell, "o3").await.unwrap();
     assert_eq!(third.message_type, MessageType::Done, "{third:?}");

@@ -8,8 +8,9 @@
 //! nothing and the name's liveliness token is not declared, so it may wait beside a live
 //! primary of the same name (the twin check of an unfenced resource is not made: the
 //! fence decides). On a grant it asks the controller the outcome of the steps its
-//! journal left in flight, then serves: the token is declared, the epoch published on
-//! `resource/<name>/fence`, offers made. Deposed (a command refused `stale_epoch`) or
+//! journal left in flight, then serves: the token is declared, offers made. Each
+//! process reports its role and epoch on `resource/<name>/fence/<zid>`
+//! ([`super::fence_report`]). Deposed (a command refused `stale_epoch`) or
 //! its connection lost, it steps down: the token goes, offers stop, bookings are handed
 //! back `withdrawn` (as a shutdown does), the components stop, and a new round claims
 //! again.
@@ -17,12 +18,13 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use robot_bridge::client::{fence, Epoch, FenceHandle, StepId};
+use robot_bridge::client::{fence, FenceHandle, StepId};
 use schemas::Reason;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
+use super::fence_report::Reporter;
 use super::{supervisor_ended, wait_stopped, NodeError, Wiring, STARTUP_TIMEOUT};
 use crate::agenda::{AgendaEvent, Inheritance};
 use crate::config::ResourceConfig;
@@ -47,8 +49,9 @@ pub(super) async fn serve(
     alive_key: &str,
     shutdown: CancellationToken,
 ) -> Result<(), NodeError> {
+    let reporter = Reporter::declare(config, session).await;
     loop {
-        match round(config, session, alive_key, &shutdown).await? {
+        match round(config, session, alive_key, &shutdown, &reporter).await? {
             Round::End(outcome) => return outcome,
             Round::SteppedDown => continue,
         }
@@ -61,6 +64,7 @@ async fn round(
     session: &zenoh::Session,
     alive_key: &str,
     shutdown: &CancellationToken,
+    reporter: &Reporter,
 ) -> Result<Round, NodeError> {
     let holon = &config.holon;
     let (handle, port, mut events) = fence::channel(&config.controller);
@@ -97,6 +101,7 @@ async fn round(
             match action {
                 ClaimAction::Serve(epoch) => granted = Some(epoch),
                 ClaimAction::Standby(holder) => {
+                    reporter.standby(Some(holder.0)).await;
                     info!(%holon, holder_epoch = holder.0, "standby: another session holds the controller; claiming every 200 ms, serving nothing until granted")
                 }
                 ClaimAction::Retry(reason) => {
@@ -148,7 +153,7 @@ async fn round(
         .declare_token(alive_key)
         .await
         .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
-    publish_epoch(config, session, Some(epoch)).await;
+    reporter.holder(epoch.0).await;
     info!(%holon, epoch = epoch.0, key = %alive_key, "holding the controller: holon ready, serving");
 
     // Serving, until stopped or deposed.
@@ -183,7 +188,7 @@ async fn round(
         .fence
         .send_replace(FenceView::Standby);
     undeclare(holon, token).await;
-    publish_epoch(config, session, None).await;
+    reporter.standby(None).await;
     step_down(&wiring, config.shutdown_grace.min(STEP_DOWN_GRACE)).await;
     let stopped = stop(holon, components, supervision).await;
     drop(wiring);
@@ -242,26 +247,6 @@ async fn stop(
 async fn undeclare(holon: &schemas::HolonId, token: zenoh::liveliness::LivelinessToken) {
     if let Err(e) = token.undeclare().await {
         error!(%holon, error = %e, "cannot withdraw the liveliness token");
-    }
-}
-
-/// `resource/<name>/fence`: the epoch this process serves with (`{"epoch": N, "zid":
-/// ..}`), so that watchers tell holders apart; `{"epoch": null}` when it steps down.
-pub fn fence_key(config: &ResourceConfig) -> String {
-    let state = config.keys.state(&config.holon);
-    format!("{}/fence", state.trim_end_matches("/state"))
-}
-
-async fn publish_epoch(config: &ResourceConfig, session: &zenoh::Session, epoch: Option<Epoch>) {
-    let payload = serde_json::json!({
-        "holon": config.holon.to_string(),
-        "epoch": epoch.map(|e| e.0),
-        "zid": session.zid().to_string(),
-        "host": holon::presence::host_name(),
-        "at": schemas::unix_ms(),
-    });
-    if let Err(e) = session.put(fence_key(config), payload.to_string()).await {
-        warn!(holon = %config.holon, error = %e, "cannot publish the fence's epoch");
     }
 }
 
