@@ -96,6 +96,7 @@ impl Wiring {
             views.fence.send_replace(FenceView::Standby);
         }
         let (fence, port) = fence.map(|(f, p)| (f, Handover::new(p))).unzip();
+        let fence_handle = fence.clone();
         let faults = Arc::new(Faults::default());
         let agenda_mail: Mailbox<AgendaMessage> = Mailbox::new();
         let jobs: Mailbox<crate::execution::ExecutionRequest> = Mailbox::new();
@@ -148,6 +149,7 @@ impl Wiring {
                 views,
                 faults,
                 serving: Arc::new(Notify::new()),
+                fence: fence_handle,
             }),
         })
     }

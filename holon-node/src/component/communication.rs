@@ -54,7 +54,14 @@ pub struct Links {
     pub faults: Arc<Faults>,
     /// Notified each time it has declared its queryables.
     pub serving: Arc<Notify>,
+    /// A fenced resource's fence: the claim is confirmed with the controller before a
+    /// booking or a start is taken.
+    pub fence: Option<robot_bridge::client::FenceHandle>,
 }
+
+/// How long a fenced resource waits for the controller to confirm its claim before it
+/// takes a booking or a start; unconfirmed, the request is left unanswered.
+pub const CONFIRM_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// Which of the holon's queryables a query came to.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -384,10 +391,39 @@ async fn answer(links: &Links, arrival: Arrival) -> Option<AgendaMessage> {
         question.answer(holon, &status).await;
         return None;
     }
+    if matches!(
+        request.message_type,
+        MessageType::BookingReq | MessageType::Start
+    ) {
+        if let Err(why) = confirm_claim(links).await {
+            // A holder frozen and thawed may still have requests queued from before it
+            // learnt it was deposed: the holder of the controller answers them.
+            info!(%holon, conversation_id = %request.conversation_id, message_type = %request.message_type, %why, "the claim is not confirmed: the request is left to the holder");
+            return None;
+        }
+    }
     Some(AgendaMessage {
         event: AgendaEvent::Request(request),
         question: Some(question),
     })
+}
+
+/// For a fenced resource: whether the controller still grants this process the epoch it
+/// serves with (a claim again, answered with the same epoch while it holds it).
+async fn confirm_claim(links: &Links) -> Result<(), String> {
+    let Some(fence) = &links.fence else {
+        return Ok(());
+    };
+    let crate::views::FenceView::Holding(held) = *links.views.fence.borrow() else {
+        return Err("it does not hold the controller".into());
+    };
+    let name = links.config.holon.name();
+    match tokio::time::timeout(CONFIRM_WAIT, fence.claim(name)).await {
+        Ok(Ok(epoch)) if epoch.0 == held => Ok(()),
+        Ok(Ok(epoch)) => Err(format!("the controller granted epoch {epoch}, not {held}")),
+        Ok(Err(e)) => Err(e.to_string()),
+        Err(_) => Err(format!("no answer within {CONFIRM_WAIT:?}")),
+    }
 }
 
 /// Sends `message` to the agenda manager. While its mailbox is full this component
