@@ -216,6 +216,17 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
         &[("holder", Some(2), None), ("standby", None, Some(2))],
     )
     .await;
+    // What queued at it while it was frozen (o2's booking and start) it left to the
+    // holder: its claim was not confirmed.
+    let answered_o2: Vec<String> = log(&a)
+        .lines()
+        .filter(|line| line.contains("\"o2-1\"") && line.contains("\"message\":\"sent\""))
+        .map(str::to_string)
+        .collect();
+    assert!(
+        answered_o2.is_empty(),
+        "the deposed one answered o2: {answered_o2:?}"
+    );
     // The new holder serves on; the old one takes nothing.
     let third = job(&cell, "o3").await.unwrap();
     assert_eq!(third.message_type, MessageType::Done, "{third:?}");
