@@ -5,7 +5,7 @@
 //!
 //! | role | may declare (queryable, token, publication) | may query / subscribe |
 //! |---|---|---|
-//! | `resource.<r>` | `resource/<r>/{service,state,packml,debug/crash}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
+//! | `resource.<r>` | `resource/<r>/{service,state,packml,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
 //! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
@@ -51,6 +51,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
     let reading = || {
         vec![
             "*/*/state".to_string(),
+            // Which process holds a fenced resource's controller, and its standbys.
+            "resource/*/fence/*".to_string(),
             "product/*/plan".to_string(),
             "alive/**".to_string(),
             "host/**".to_string(),
@@ -72,10 +74,17 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                     format!("resource/{name}/state"),
                     format!("resource/{name}/packml"),
                     format!("resource/{name}/debug/crash"),
+                    format!("resource/{name}/fence/*"),
                     format!("offer/*/{name}"),
                 ],
             ),
-            (&["put"], vec![format!("resource/{name}/state")]),
+            (
+                &["put"],
+                vec![
+                    format!("resource/{name}/state"),
+                    format!("resource/{name}/fence/*"),
+                ],
+            ),
             (
                 &["liveliness_token"],
                 vec![format!("alive/resource/{name}")],
