@@ -61,6 +61,79 @@ pub async fn collect(
         .collect())
 }
 
+/// The fenced resources' processes (`resource/*/fence/*`, docs/reliability.md): each
+/// one's place at the controller, holder or standby, whatever answers within `timeout`.
+pub async fn fences(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    timeout: Duration,
+) -> Result<Vec<schemas::FenceReport>> {
+    let mut replies = session
+        .get(keys.fence_all())
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(timeout)
+        .with(holon::query::replies())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let mut reports = Vec::new();
+    while let Some(reply) = replies.recv().await {
+        let Ok(sample) = reply.result() else { continue };
+        if let Ok(report) =
+            serde_json::from_slice::<schemas::FenceReport>(&sample.payload().to_bytes())
+        {
+            reports.push(report);
+        }
+    }
+    reports.sort_by(|a, b| {
+        (a.holon.name(), a.role as u8, &a.host).cmp(&(b.holon.name(), b.role as u8, &b.host))
+    });
+    Ok(reports)
+}
+
+/// The fence table `cell status` prints below the holons (nothing without fenced
+/// resources): who holds each fenced resource's controller, at which epoch, and its
+/// standbys.
+pub fn render_fences(reports: &[schemas::FenceReport]) -> String {
+    if reports.is_empty() {
+        return String::new();
+    }
+    let mut out = format!(
+        "{:<28} {:<8} {:>6}  {:<20} ZID\n",
+        "FENCED RESOURCE", "ROLE", "EPOCH", "HOST"
+    );
+    for report in reports {
+        let (role, epoch) = match report.role {
+            schemas::FenceRole::Holder => ("holder", report.epoch),
+            schemas::FenceRole::Standby => ("standby", report.holder_epoch),
+        };
+        let epoch = epoch.map_or_else(|| "-".to_string(), |e| e.to_string());
+        out.push_str(&format!(
+            "{:<28} {:<8} {:>6}  {:<20} {}\n",
+            report.holon.to_string(),
+            role,
+            epoch,
+            report.host,
+            report.zid
+        ));
+    }
+    let held: std::collections::BTreeSet<&str> = reports
+        .iter()
+        .filter(|r| r.role == schemas::FenceRole::Holder)
+        .map(|r| r.holon.name())
+        .collect();
+    let unheld: std::collections::BTreeSet<String> = reports
+        .iter()
+        .filter(|r| !held.contains(r.holon.name()))
+        .map(|r| r.holon.to_string())
+        .collect();
+    for holon in unheld {
+        out.push_str(&format!(
+            "! {holon}: no process that answered holds its controller (a standby's EPOCH is the holder's it last heard of)\n"
+        ));
+    }
+    out
+}
+
 /// The table `cell status` prints.
 pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
     let mut out = format!(
@@ -423,6 +496,25 @@ mod tests {
             })),
         };
         let table = render("demo", std::slice::from_ref(&row));
+        let fenced = |role, epoch, holder_epoch, host: &str| schemas::FenceReport {
+            holon: "resource/robot1".parse().unwrap(),
+            role,
+            epoch,
+            holder_epoch,
+            host: host.into(),
+            zid: "z".into(),
+            at: 0,
+        };
+        let fences = render_fences(&[
+            fenced(schemas::FenceRole::Holder, Some(2), None, "host-a"),
+            fenced(schemas::FenceRole::Standby, None, Some(2), "host-b"),
+        ]);
+        assert!(fences.contains("holder        2  host-a"), "{fences}");
+        assert!(fences.contains("standby       2  host-b"), "{fences}");
+        assert!(!fences.contains('!'), "{fences}");
+        let unheld = render_fences(&[fenced(schemas::FenceRole::Standby, None, None, "host-b")]);
+        assert!(unheld.contains("! resource/robot1: no process"), "{unheld}");
+        assert_eq!(render_fences(&[]), "");
         assert!(table.contains("2 (1 absent)"), "{table}");
         let mut faulty = row;
         faulty.snapshot.as_mut().unwrap()["journal_fault"] = "No space left on device".into();

@@ -141,6 +141,17 @@ impl CellKeys {
         format!("{}/{}/{}/state", self.prefix(), holon.kind(), holon.name())
     }
 
+    /// `holarchy/<cell>/resource/<name>/fence`: under it, each process of a fenced
+    /// resource reports its place at the controller (`<prefix>/<zid>`).
+    pub fn fence(&self, resource: &str) -> String {
+        format!("{}/resource/{resource}/fence", self.prefix())
+    }
+
+    /// `holarchy/<cell>/resource/*/fence/*`: every fenced resource's processes.
+    pub fn fence_all(&self) -> String {
+        format!("{}/resource/*/fence/*", self.prefix())
+    }
+
     /// `holarchy/<cell>/*/*/state`: the state of every holon.
     pub fn state_all(&self) -> String {
         format!("{}/*/*/state", self.prefix())

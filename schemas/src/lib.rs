@@ -5,6 +5,7 @@
 //! (see [`service_json_schema`]); a test fails when that file is stale.
 
 pub mod advice;
+pub mod fence;
 pub mod id;
 pub mod keys;
 pub mod packml;
@@ -15,6 +16,7 @@ pub mod state;
 pub mod vocabulary;
 
 pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION};
+pub use fence::{FenceReport, FenceRole};
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
 pub use packml::{

@@ -216,6 +216,35 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
         &[("holder", Some(2), None), ("standby", None, Some(2))],
     )
     .await;
+    // `cell status` lists both: the holder at epoch 2 and the standby that heard of it.
+    let status = std::process::Command::new(bin("cell"))
+        .args([
+            "status",
+            "--cell",
+            cell.keys.cell(),
+            "--connect",
+            &cell.endpoint,
+        ])
+        .output()
+        .unwrap();
+    let table = String::from_utf8_lossy(&status.stdout);
+    assert!(status.status.success(), "{table}");
+    let fenced: Vec<&str> = table
+        .lines()
+        .filter(|line| line.starts_with("resource/robot1 "))
+        .collect();
+    assert!(
+        fenced
+            .iter()
+            .any(|l| l.contains(" holder ") && l.contains(" 2 ")),
+        "{table}"
+    );
+    assert!(
+        fenced
+            .iter()
+            .any(|l| l.contains(" standby ") && l.contains(" 2 ")),
+        "{table}"
+    );
     // What queued at it while it was frozen (o2's booking and start) it left to the
     // holder: its claim was not confirmed.
     let answered_o2: Vec<String> = log(&a)

@@ -2,31 +2,11 @@
 //! `holarchy/<cell>/resource/<name>/fence/<zid>`, one key per process (a holder and its
 //! standbys side by side), answered to a query and put on every change.
 
-use serde::Serialize;
+use schemas::{FenceReport, FenceRole};
 use tokio::sync::watch;
 use tracing::{debug, warn};
 
 use crate::config::ResourceConfig;
-
-/// One process's place in its resource's fence.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
-pub struct FenceReport {
-    /// `resource/<name>`.
-    pub holon: String,
-    /// `holder` (it holds the controller's claim and serves) or `standby`.
-    pub role: &'static str,
-    /// The epoch it holds, while a holder.
-    pub epoch: Option<u64>,
-    /// The holder's epoch as the controller last said, while a standby (none before
-    /// it has heard).
-    pub holder_epoch: Option<u64>,
-    /// The machine the process runs on.
-    pub host: String,
-    /// Its zenoh session id.
-    pub zid: String,
-    /// Unix ms of the last change.
-    pub at: u64,
-}
 
 /// The report of this process: its key's queryable and its latest value.
 pub struct Reporter {
@@ -42,8 +22,7 @@ pub struct Reporter {
 
 /// `holarchy/<cell>/resource/<name>/fence`: every process's report is under it.
 pub fn fence_prefix(config: &ResourceConfig) -> String {
-    let state = config.keys.state(&config.holon);
-    format!("{}/fence", state.trim_end_matches("/state"))
+    config.keys.fence(config.holon.name())
 }
 
 impl Reporter {
@@ -54,8 +33,8 @@ impl Reporter {
         let zid = session.zid().to_string();
         let key = format!("{}/{zid}", fence_prefix(config));
         let report = watch::Sender::new(FenceReport {
-            holon: config.holon.to_string(),
-            role: "standby",
+            holon: config.holon.clone(),
+            role: FenceRole::Standby,
             epoch: None,
             holder_epoch: None,
             host: holon::presence::host_name(),
@@ -91,15 +70,15 @@ impl Reporter {
 
     /// A holder with `epoch`.
     pub async fn holder(&self, epoch: u64) {
-        self.set("holder", Some(epoch), None).await;
+        self.set(FenceRole::Holder, Some(epoch), None).await;
     }
 
     /// A standby; `holder_epoch` when the controller said it.
     pub async fn standby(&self, holder_epoch: Option<u64>) {
-        self.set("standby", None, holder_epoch).await;
+        self.set(FenceRole::Standby, None, holder_epoch).await;
     }
 
-    async fn set(&self, role: &'static str, epoch: Option<u64>, holder_epoch: Option<u64>) {
+    async fn set(&self, role: FenceRole, epoch: Option<u64>, holder_epoch: Option<u64>) {
         self.report.send_modify(|report| {
             report.role = role;
             report.epoch = epoch;
