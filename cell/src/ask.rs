@@ -13,6 +13,39 @@ use anyhow::{anyhow, Result};
 use tokio::time::Instant;
 use zenoh::query::Reply;
 
+/// Why an order-node did not do what it was asked (a work order, a cancel).
+#[derive(Debug, thiserror::Error)]
+pub enum AskError {
+    /// An order-node answered and refused it (nothing changed).
+    #[error("the order-node refused ({code}): {message}")]
+    Refused {
+        code: schemas::ErrorCode,
+        message: String,
+    },
+    /// No order-node answered within the time.
+    #[error("no order-node answered on {0}")]
+    NoAnswer(String),
+    /// The question could not be asked, or the answer not read.
+    #[error("{0}")]
+    Failed(String),
+}
+
+impl AskError {
+    /// The refusal in an error reply's body (`{"code", "message"}`), or its raw text.
+    pub fn refusal(text: &str) -> AskError {
+        match serde_json::from_str::<schemas::ErrorReply>(text) {
+            Ok(e) => AskError::Refused {
+                code: e.code,
+                message: e.message,
+            },
+            Err(_) => AskError::Refused {
+                code: schemas::ErrorCode::Other("unknown".into()),
+                message: text.to_string(),
+            },
+        }
+    }
+}
+
 /// The first reply to a `get` on `key` (with `payload`, and who asks as its attachment,
 /// [`schemas::requested_by`]), asked again until one comes or `timeout` passes (`None`).
 pub async fn until_answered(

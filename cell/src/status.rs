@@ -360,20 +360,27 @@ pub async fn cancel(
     order: &str,
     by: &str,
     timeout: Duration,
-) -> Result<schemas::CancelReply> {
+) -> Result<schemas::CancelReply, crate::ask::AskError> {
+    use crate::ask::AskError;
+    let failed = |e: &dyn std::fmt::Display| AskError::Failed(format!("{e:#}"));
     // A cancel is idempotent (journalled before its reply; asked again it answers the
     // order's state), so it is asked until an order-node answers.
-    match crate::ask::until_answered(session, &keys.cancel(order), None, by, timeout).await? {
+    let asked = crate::ask::until_answered(session, &keys.cancel(order), None, by, timeout)
+        .await
+        .map_err(|e| failed(&e))?;
+    match asked {
         Some(reply) => match reply.result() {
-            Ok(sample) => Ok(serde_json::from_slice(&sample.payload().to_bytes())?),
-            Err(err) => Err(anyhow!(
-                "the order-node refused: {}",
-                err.payload().try_to_string().unwrap_or_default()
+            Ok(sample) => {
+                serde_json::from_slice(&sample.payload().to_bytes()).map_err(|e| failed(&e))
+            }
+            Err(err) => Err(AskError::refusal(
+                &err.payload().try_to_string().unwrap_or_default(),
             )),
         },
-        None => Err(anyhow!(
-            "no order-node answered for {order} (unknown order, its order-node is down, or this identity may not cancel)"
-        )),
+        None => Err(AskError::NoAnswer(format!(
+            "{} ({order}: unknown order, its order-node is down, or this identity may not cancel)",
+            keys.cancel(order)
+        ))),
     }
 }
 

@@ -458,6 +458,10 @@ async fn https_logins_certificates_lockouts_and_file_modes() {
     );
     let refused = observer.call("POST", "/api/orders", r#"{"product":"breaker"}"#);
     assert_eq!(refused.status, 403, "{refused:?}");
+    // Cancelling an order nobody made: the order-node refuses, and so does the page.
+    let unknown = operator.call("POST", "/api/orders/orders1-999/cancel", "{}");
+    assert_eq!(unknown.status, 409, "{unknown:?}");
+    assert!(unknown.body.contains("unknown_order"), "{}", unknown.body);
     // A resource's certificate is of the cell CA but no person: not a login.
     let robot = dashboard.web(&cell, Some("resource.robot1"));
     assert_eq!(robot.call("GET", "/api/me", "").status, 401);
@@ -524,6 +528,12 @@ async fn https_logins_certificates_lockouts_and_file_modes() {
         "{trail}"
     );
     assert!(!trail.contains("operator-pw-1") && !trail.contains("guess-"));
+    assert!(
+        trail.lines().any(|l| l.contains("\"cancel\"")
+            && l.contains("orders1-999")
+            && l.contains("\"outcome\":\"refused\"")),
+        "{trail}"
+    );
 
     // The files: the owner's only; a users file others can read stops a dashboard.
     let users = cell.pki().join("users.toml");

@@ -189,7 +189,7 @@ pub async fn submit(
             );
             Json(serde_json::json!({ "orders": orders })).into_response()
         }
-        Err(e @ crate::submit::SubmitError::Refused { .. }) => {
+        Err(e @ crate::ask::AskError::Refused { .. }) => {
             let why = e.to_string();
             let outcome = AuditOutcome::Refused(why.clone());
             record(&shared, &who, action, None, detail, outcome);
@@ -245,16 +245,16 @@ pub async fn cancel(
             record(&shared, &who, action, Some(&name), None, outcome);
             Json(reply).into_response()
         }
+        Err(e @ crate::ask::AskError::Refused { .. }) => {
+            let why = e.to_string();
+            let outcome = AuditOutcome::Refused(why.clone());
+            record(&shared, &who, action, Some(&name), None, outcome);
+            refused(StatusCode::CONFLICT, &why)
+        }
         Err(e) => {
-            let why = format!("{e:#}");
-            record(
-                &shared,
-                &who,
-                action,
-                Some(&name),
-                None,
-                AuditOutcome::Failed(why.clone()),
-            );
+            let why = e.to_string();
+            let outcome = AuditOutcome::Failed(why.clone());
+            record(&shared, &who, action, Some(&name), None, outcome);
             refused(StatusCode::BAD_GATEWAY, &why)
         }
     }
