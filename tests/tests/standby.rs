@@ -245,6 +245,49 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
             .any(|l| l.contains(" standby ") && l.contains(" 2 ")),
         "{table}"
     );
+    // The dashboard shows them too.
+    let mut dashboard = std::process::Command::new(bin("cell"))
+        .args([
+            "dashboard",
+            "--cell",
+            cell.keys.cell(),
+            "--connect",
+            &cell.endpoint,
+        ])
+        .args(["--listen", "127.0.0.1:0"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(
+        &mut std::io::BufReader::new(dashboard.stdout.take().unwrap()),
+        &mut line,
+    )
+    .unwrap();
+    let address = line
+        .trim()
+        .rsplit("http://")
+        .next()
+        .unwrap()
+        .trim_end_matches('/');
+    let web = holarchy_tests::web::Web::plain(address);
+    let deadline = tokio::time::Instant::now() + WAIT;
+    loop {
+        let view = web.call("GET", "/api/view", "").json();
+        let fences = view["fences"].as_array().cloned().unwrap_or_default();
+        let has =
+            |role: &str, field: &str| fences.iter().any(|f| f["role"] == role && f[field] == 2);
+        if has("holder", "epoch") && has("standby", "holder_epoch") {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the dashboard never showed holder and standby: {fences:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    dashboard.kill().unwrap();
+    dashboard.wait().unwrap();
     // What queued at it while it was frozen (o2's booking and start) it left to the
     // holder: its claim was not confirmed.
     let answered_o2: Vec<String> = log(&a)

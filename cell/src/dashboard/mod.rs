@@ -46,6 +46,10 @@ use model::{Alarm, Event, HolonView, Input, Model, ProcessId, ProcessView};
 /// How often, at most, the view is published to the pages.
 pub const PUBLISH_EVERY: Duration = Duration::from_millis(250);
 
+/// How often the fenced resources' processes are asked where they stand (holder or
+/// standby): their reports are answered by live processes only, so a dead one drops off.
+const FENCES_EVERY: Duration = Duration::from_secs(2);
+
 /// How many inputs wait for the model's task.
 const INPUT_QUEUE: usize = 8192;
 
@@ -211,6 +215,9 @@ pub struct View {
     /// How many orders the cell's order-nodes host, by status.
     pub order_counts: std::collections::BTreeMap<String, usize>,
     pub alarms: Vec<Alarm>,
+    /// The fenced resources' processes: who holds each controller, at which epoch, and
+    /// who stands by.
+    pub fences: Vec<schemas::FenceReport>,
     /// The newest first.
     pub events: Vec<Event>,
     pub throughput: Throughput,
@@ -355,6 +362,35 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
         tokio::spawn(async move {
             tokio::time::sleep(ASK_NEWCOMER_AFTER).await;
             ask_states(&session, &every_state, &inputs, &dropped).await;
+        });
+    }
+    {
+        let (session, keys, inputs, dropped, stop) = (
+            session.clone(),
+            config.keys.clone(),
+            inputs.clone(),
+            dropped.clone(),
+            shutdown.clone(),
+        );
+        tokio::spawn(async move {
+            let mut every = tokio::time::interval(FENCES_EVERY);
+            loop {
+                tokio::select! {
+                    _ = stop.cancelled() => return,
+                    _ = every.tick() => {}
+                }
+                match crate::status::fences(&session, &keys, FENCES_EVERY).await {
+                    Ok(reports) => queue(
+                        &inputs,
+                        &dropped,
+                        Input::Fences {
+                            reports,
+                            at: schemas::unix_ms(),
+                        },
+                    ),
+                    Err(e) => warn!(error = %e, "cannot ask the fenced resources where they stand"),
+                }
+            }
         });
     }
     let (view_tx, view_rx) = watch::channel(Arc::new(View::default()));
@@ -589,6 +625,7 @@ fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, started: u64) 
             counts
         }),
         alarms: model.alarms().to_vec(),
+        fences: model.fence_reports().to_vec(),
         events: model.events().rev().cloned().collect(),
         throughput: Throughput {
             done_last_hour: model.done_last_hour(now),

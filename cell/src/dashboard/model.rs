@@ -57,9 +57,14 @@ pub enum Input {
     ProcessAppeared { process: ProcessId, at: u64 },
     /// Its token vanished.
     ProcessVanished { process: ProcessId, at: u64 },
-    /// An operator acknowledged alarm `id`.
     /// `by` (a user) acknowledged alarm `id`.
     Acknowledge { id: u64, by: String, at: u64 },
+    /// The fenced resources' processes that answered, as of now (docs/reliability.md,
+    /// "Standby resources"): they replace the previous list.
+    Fences {
+        reports: Vec<schemas::FenceReport>,
+        at: u64,
+    },
 }
 
 /// One holon as the page shows it.
@@ -213,6 +218,8 @@ pub struct Model {
     jobs: HashMap<HolonId, (String, String, u64)>,
     /// Counters for the metrics.
     counters: Counters,
+    /// The fenced resources' processes, holders and standbys, as last asked.
+    fences: Vec<schemas::FenceReport>,
 }
 
 /// The upper bounds of the step-duration histograms' buckets, in seconds.
@@ -265,7 +272,50 @@ impl Model {
             Input::ProcessAppeared { process, at } => self.process(process, true, at),
             Input::ProcessVanished { process, at } => self.process(process, false, at),
             Input::Acknowledge { id, by, at } => self.acknowledge(id, &by, at),
+            Input::Fences { reports, at } => self.fences(reports, at),
         }
+    }
+
+    /// The fenced resources' processes, holders and standbys (sorted by resource).
+    pub fn fence_reports(&self) -> &[schemas::FenceReport] {
+        &self.fences
+    }
+
+    /// A new list of fence reports: a change of holder or epoch is logged.
+    fn fences(&mut self, mut reports: Vec<schemas::FenceReport>, at: u64) -> bool {
+        reports.sort_by(|a, b| {
+            (a.holon.name(), a.role as u8, &a.zid).cmp(&(b.holon.name(), b.role as u8, &b.zid))
+        });
+        // Only who holds what, and who waits, is news: the reports' times are not.
+        let shape = |r: &schemas::FenceReport| (r.holon.clone(), r.role, r.epoch, r.zid.clone());
+        let same = reports.len() == self.fences.len()
+            && reports
+                .iter()
+                .zip(&self.fences)
+                .all(|(a, b)| shape(a) == shape(b));
+        if same {
+            return false;
+        }
+        for report in &reports {
+            let holder = report.role == schemas::FenceRole::Holder;
+            let known = self
+                .fences
+                .iter()
+                .any(|r| r.zid == report.zid && r.role == report.role && r.epoch == report.epoch);
+            if holder && !known {
+                self.log(
+                    at,
+                    &report.holon,
+                    format!(
+                        "holds its controller at epoch {} (on {})",
+                        report.epoch.unwrap_or_default(),
+                        report.host
+                    ),
+                );
+            }
+        }
+        self.fences = reports;
+        true
     }
 
     pub fn processes(&self) -> impl Iterator<Item = &ProcessView> {
@@ -1033,5 +1083,50 @@ mod tests {
             });
         }
         assert_eq!(m.events().count(), EVENTS_KEPT);
+    }
+
+    #[test]
+    fn a_new_holder_of_a_fenced_resource_is_news_and_the_same_list_is_not() {
+        let report = |role, epoch, zid: &str| schemas::FenceReport {
+            holon: HolonId::resource("robot1").unwrap(),
+            role,
+            epoch,
+            holder_epoch: None,
+            host: "host-a".into(),
+            zid: zid.into(),
+            at: 1,
+        };
+        let mut m = Model::default();
+        let first = vec![
+            report(schemas::FenceRole::Standby, None, "b"),
+            report(schemas::FenceRole::Holder, Some(1), "a"),
+        ];
+        assert!(m.apply(Input::Fences {
+            reports: first.clone(),
+            at: 5
+        }));
+        assert_eq!(m.fence_reports()[0].role, schemas::FenceRole::Holder);
+        assert!(
+            !m.apply(Input::Fences {
+                reports: first,
+                at: 6
+            }),
+            "no news"
+        );
+        // The standby took over at epoch 2.
+        let taken = vec![report(schemas::FenceRole::Holder, Some(2), "b")];
+        assert!(m.apply(Input::Fences {
+            reports: taken,
+            at: 7
+        }));
+        let said: Vec<&str> = m.events().map(|e| e.text.as_str()).collect();
+        assert!(
+            said.contains(&"holds its controller at epoch 1 (on host-a)"),
+            "{said:?}"
+        );
+        assert!(
+            said.contains(&"holds its controller at epoch 2 (on host-a)"),
+            "{said:?}"
+        );
     }
 }
