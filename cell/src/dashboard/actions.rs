@@ -1,7 +1,7 @@
 //! What an operator does from the page: submit and cancel orders, acknowledge alarms,
 //! command resources. Each action is checked against the user's role and the
 //! dashboard's own, carried out, and recorded in the audit trail with who, from where,
-//! what and how it ended, refusals included.
+//! what and how it ended, refusals included ([`Act`]).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -16,57 +16,105 @@ use tracing::info;
 use super::gate::Who;
 use super::http::{refused, Refusal};
 use super::{Command, Shared};
+use crate::ask::AskError;
 use crate::audit::{AuditAction, AuditOutcome, AuditRecord};
 
 /// How long the cell has to answer an action.
 const ANSWER_WITHIN: Duration = Duration::from_secs(5);
 
-/// Why `who` may not operate, if they may not: the refusal, recorded.
-fn may_operate(
-    shared: &Shared,
-    who: &Who,
+/// One action of one user, from its check to its answer: every way it ends is
+/// recorded once in the audit trail, with the answer the page gets.
+struct Act<'a> {
+    /// The dashboard.
+    shared: &'a Shared,
+    /// Who acts.
+    who: &'a Who,
+    /// What.
     action: AuditAction,
-    target: Option<&str>,
-) -> Result<(), Refusal> {
-    let why = if !shared.operator {
-        "this dashboard is read-only (it joined the cell as an observer; start it with --operator or an operator.* identity)".to_string()
-    } else if !who.role.may_operate() {
-        format!("{} is an observer: observers change nothing", who.who)
-    } else {
-        return Ok(());
-    };
-    let mut record = AuditRecord::now(
-        &who.who,
-        &who.from.to_string(),
-        action,
-        AuditOutcome::Refused(why.clone()),
-    );
-    record.target = target.map(String::from);
-    shared.gate.record(record);
-    Err(Refusal {
-        status: StatusCode::FORBIDDEN,
-        why,
-    })
-}
-
-/// Records what `who` did and how it ended.
-fn record(
-    shared: &Shared,
-    who: &Who,
-    action: AuditAction,
-    target: Option<&str>,
+    /// On what (an order, a resource, an alarm), when known.
+    target: Option<String>,
+    /// The request's particulars, as given.
     detail: Option<serde_json::Value>,
-    outcome: AuditOutcome,
-) {
-    let mut record = AuditRecord::now(&who.who, &who.from.to_string(), action, outcome);
-    record.target = target.map(String::from);
-    record.detail = detail;
-    shared.gate.record(record);
 }
 
-/// Who commands, as the holons log it: the dashboard's identity and the user.
-fn by(shared: &Shared, who: &Who) -> String {
-    format!("dashboard {} for {}", shared.identity, who.who)
+impl<'a> Act<'a> {
+    /// `who`'s `action` on `target`: refused (and recorded) unless both the user's role
+    /// and the dashboard's own identity may operate.
+    fn begin(
+        shared: &'a Shared,
+        who: &'a Who,
+        action: AuditAction,
+        target: Option<&str>,
+        detail: Option<serde_json::Value>,
+    ) -> Result<Act<'a>, Refusal> {
+        let act = Act {
+            shared,
+            who,
+            action,
+            target: target.map(String::from),
+            detail,
+        };
+        if !shared.operator {
+            return Err(act.refusal(
+                StatusCode::FORBIDDEN,
+                "this dashboard is read-only (it joined the cell as an observer; start it with --operator or an operator.* identity)".into(),
+            ));
+        }
+        if !who.role.may_operate() {
+            let why = format!("{} is an observer: observers change nothing", who.who);
+            return Err(act.refusal(StatusCode::FORBIDDEN, why));
+        }
+        Ok(act)
+    }
+
+    /// Who commands, as the holons log it: the dashboard's identity and the user.
+    fn by(&self) -> String {
+        format!("dashboard {} for {}", self.shared.identity, self.who.who)
+    }
+
+    /// Records how the action ended.
+    fn record(&self, outcome: AuditOutcome) {
+        let mut record = AuditRecord::now(
+            &self.who.who,
+            &self.who.from.to_string(),
+            self.action,
+            outcome,
+        );
+        record.target = self.target.clone();
+        record.detail = self.detail.clone();
+        self.shared.gate.record(record);
+    }
+
+    /// Done: recorded, and `answer` for the page.
+    fn done(&self, answer: Response) -> Response {
+        self.record(AuditOutcome::Done);
+        answer
+    }
+
+    /// Refused (the cell did not change): recorded, answered with `status`.
+    fn refuse(&self, status: StatusCode, why: String) -> Response {
+        self.refusal(status, why).into_response()
+    }
+
+    /// The same, as a value.
+    fn refusal(&self, status: StatusCode, why: String) -> Refusal {
+        self.record(AuditOutcome::Refused(why.clone()));
+        Refusal { status, why }
+    }
+
+    /// Tried and failed: recorded, answered with `status`.
+    fn fail(&self, status: StatusCode, why: String) -> Response {
+        self.record(AuditOutcome::Failed(why.clone()));
+        refused(status, &why)
+    }
+
+    /// An order-node's refusal (409), or a failure to reach one (502).
+    fn asked(&self, error: AskError) -> Response {
+        match error {
+            AskError::Refused { .. } => self.refuse(StatusCode::CONFLICT, error.to_string()),
+            _ => self.fail(StatusCode::BAD_GATEWAY, error.to_string()),
+        }
+    }
 }
 
 /// `POST /api/alarms/{id}/ack`.
@@ -76,42 +124,26 @@ pub async fn acknowledge(
     Path(id): Path<u64>,
 ) -> Response {
     let target = id.to_string();
-    let action = AuditAction::AcknowledgeAlarm;
-    if let Err(refusal) = may_operate(&shared, &who, action, Some(&target)) {
-        return refusal.into_response();
-    }
-    match shared
-        .commands
-        .send(Command::Acknowledge {
-            id,
-            by: who.who.clone(),
-        })
-        .await
-    {
+    let act = match Act::begin(
+        &shared,
+        &who,
+        AuditAction::AcknowledgeAlarm,
+        Some(&target),
+        None,
+    ) {
+        Ok(act) => act,
+        Err(refusal) => return refusal.into_response(),
+    };
+    let by = who.who.clone();
+    match shared.commands.send(Command::Acknowledge { id, by }).await {
         Ok(()) => {
             info!(user = %who.who, alarm = id, "alarm acknowledged");
-            record(
-                &shared,
-                &who,
-                action,
-                Some(&target),
-                None,
-                AuditOutcome::Done,
-            );
-            StatusCode::NO_CONTENT.into_response()
+            act.done(StatusCode::NO_CONTENT.into_response())
         }
-        Err(_) => {
-            let why = "the dashboard is stopping";
-            record(
-                &shared,
-                &who,
-                action,
-                Some(&target),
-                None,
-                AuditOutcome::Failed(why.into()),
-            );
-            refused(StatusCode::SERVICE_UNAVAILABLE, why)
-        }
+        Err(_) => act.fail(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "the dashboard is stopping".into(),
+        ),
     }
 }
 
@@ -142,11 +174,11 @@ pub async fn submit(
     Extension(who): Extension<Who>,
     Json(form): Json<SubmitForm>,
 ) -> Response {
-    let action = AuditAction::Submit;
     let detail = serde_json::to_value(&form).ok();
-    if let Err(refusal) = may_operate(&shared, &who, action, None) {
-        return refusal.into_response();
-    }
+    let mut act = match Act::begin(&shared, &who, AuditAction::Submit, None, detail) {
+        Ok(act) => act,
+        Err(refusal) => return refusal.into_response(),
+    };
     let work = schemas::WorkOrder {
         product: form.product,
         count: form.count,
@@ -157,50 +189,16 @@ pub async fn submit(
         queue: form.queue,
     };
     if let Err(e) = work.validate() {
-        let why = e.to_string();
-        record(
-            &shared,
-            &who,
-            action,
-            None,
-            detail,
-            AuditOutcome::Refused(why.clone()),
-        );
-        return refused(StatusCode::BAD_REQUEST, &why);
+        return act.refuse(StatusCode::BAD_REQUEST, e.to_string());
     }
-    match crate::submit::submit(
-        &shared.session,
-        &shared.keys,
-        &work,
-        &by(&shared, &who),
-        ANSWER_WITHIN,
-    )
-    .await
-    {
+    let by = act.by();
+    match crate::submit::submit(&shared.session, &shared.keys, &work, &by, ANSWER_WITHIN).await {
         Ok(orders) => {
-            info!(user = %who.who, by = %by(&shared, &who), orders = ?orders, product = %work.product, "work order submitted");
-            record(
-                &shared,
-                &who,
-                action,
-                Some(&orders.join(",")),
-                detail,
-                AuditOutcome::Done,
-            );
-            Json(serde_json::json!({ "orders": orders })).into_response()
+            info!(user = %who.who, %by, orders = ?orders, product = %work.product, "work order submitted");
+            act.target = Some(orders.join(","));
+            act.done(Json(serde_json::json!({ "orders": orders })).into_response())
         }
-        Err(e @ crate::ask::AskError::Refused { .. }) => {
-            let why = e.to_string();
-            let outcome = AuditOutcome::Refused(why.clone());
-            record(&shared, &who, action, None, detail, outcome);
-            refused(StatusCode::CONFLICT, &why)
-        }
-        Err(e) => {
-            let why = e.to_string();
-            let outcome = AuditOutcome::Failed(why.clone());
-            record(&shared, &who, action, None, detail, outcome);
-            refused(StatusCode::BAD_GATEWAY, &why)
-        }
+        Err(e) => act.asked(e),
     }
 }
 
@@ -210,53 +208,25 @@ pub async fn cancel(
     Extension(who): Extension<Who>,
     Path(name): Path<String>,
 ) -> Response {
-    let action = AuditAction::Cancel;
-    if let Err(refusal) = may_operate(&shared, &who, action, Some(&name)) {
-        return refusal.into_response();
-    }
+    let act = match Act::begin(&shared, &who, AuditAction::Cancel, Some(&name), None) {
+        Ok(act) => act,
+        Err(refusal) => return refusal.into_response(),
+    };
     if let Err(e) = schemas::HolonId::order(&name) {
-        let why = e.to_string();
-        record(
-            &shared,
-            &who,
-            action,
-            Some(&name),
-            None,
-            AuditOutcome::Refused(why.clone()),
-        );
-        return refused(StatusCode::BAD_REQUEST, &why);
+        return act.refuse(StatusCode::BAD_REQUEST, e.to_string());
     }
-    match crate::status::cancel(
-        &shared.session,
-        &shared.keys,
-        &name,
-        &by(&shared, &who),
-        ANSWER_WITHIN,
-    )
-    .await
-    {
+    let by = act.by();
+    match crate::status::cancel(&shared.session, &shared.keys, &name, &by, ANSWER_WITHIN).await {
         Ok(reply) => {
-            info!(user = %who.who, by = %by(&shared, &who), order = %name, cancelled = reply.cancelled, "cancel asked");
-            let outcome = if reply.cancelled {
-                AuditOutcome::Done
+            info!(user = %who.who, %by, order = %name, cancelled = reply.cancelled, "cancel asked");
+            if reply.cancelled {
+                act.done(Json(reply).into_response())
             } else {
-                AuditOutcome::Refused(reply.detail.clone())
-            };
-            record(&shared, &who, action, Some(&name), None, outcome);
-            Json(reply).into_response()
+                act.record(AuditOutcome::Refused(reply.detail.clone()));
+                Json(reply).into_response()
+            }
         }
-        Err(e @ crate::ask::AskError::Refused { .. }) => {
-            let why = e.to_string();
-            let outcome = AuditOutcome::Refused(why.clone());
-            record(&shared, &who, action, Some(&name), None, outcome);
-            refused(StatusCode::CONFLICT, &why)
-        }
-        Err(e) => {
-            let why = e.to_string();
-            let outcome = AuditOutcome::Failed(why.clone());
-            record(&shared, &who, action, Some(&name), None, outcome);
-            refused(StatusCode::BAD_GATEWAY, &why)
-        }
+        Err(e) => act.asked(e),
     }
 }
 
@@ -274,24 +244,15 @@ pub async fn packml(
     Path(name): Path<String>,
     Json(form): Json<PackmlForm>,
 ) -> Response {
-    let action = AuditAction::Packml;
     let detail = Some(serde_json::json!({ "command": form.command }));
-    if let Err(refusal) = may_operate(&shared, &who, action, Some(&name)) {
-        return refusal.into_response();
-    }
+    let act = match Act::begin(&shared, &who, AuditAction::Packml, Some(&name), detail) {
+        Ok(act) => act,
+        Err(refusal) => return refusal.into_response(),
+    };
     if let Err(e) = schemas::validate_name("resource", &name) {
-        let why = e.to_string();
-        record(
-            &shared,
-            &who,
-            action,
-            Some(&name),
-            detail,
-            AuditOutcome::Refused(why.clone()),
-        );
-        return refused(StatusCode::BAD_REQUEST, &why);
+        return act.refuse(StatusCode::BAD_REQUEST, e.to_string());
     }
-    let request = schemas::PackmlRequest::command(form.command, &by(&shared, &who));
+    let request = schemas::PackmlRequest::command(form.command, &act.by());
     match crate::packml::ask(
         &shared.session,
         &shared.keys,
@@ -303,42 +264,14 @@ pub async fn packml(
     {
         Ok(reply) if reply.refused.is_some() => {
             let why = reply.detail.clone().unwrap_or_default();
-            record(
-                &shared,
-                &who,
-                action,
-                Some(&name),
-                detail,
-                AuditOutcome::Refused(why.clone()),
-            );
+            act.record(AuditOutcome::Refused(why.clone()));
             (
                 StatusCode::CONFLICT,
                 Json(serde_json::json!({ "error": why, "reply": reply })),
             )
                 .into_response()
         }
-        Ok(reply) => {
-            record(
-                &shared,
-                &who,
-                action,
-                Some(&name),
-                detail,
-                AuditOutcome::Done,
-            );
-            Json(reply).into_response()
-        }
-        Err(e) => {
-            let why = format!("{e:#}");
-            record(
-                &shared,
-                &who,
-                action,
-                Some(&name),
-                detail,
-                AuditOutcome::Failed(why.clone()),
-            );
-            refused(StatusCode::BAD_GATEWAY, &why)
-        }
+        Ok(reply) => act.done(Json(reply).into_response()),
+        Err(e) => act.fail(StatusCode::BAD_GATEWAY, format!("{e:#}")),
     }
 }
