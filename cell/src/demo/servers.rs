@@ -35,6 +35,19 @@ pub(super) fn demo_operator(cell: &Cell) -> Result<()> {
     Ok(())
 }
 
+/// A client session of the demo's router (with the PKI of a secure demo).
+fn client_of(cell: &Cell) -> holon::ZenohSettings {
+    holon::ZenohSettings {
+        mode: holon::Mode::Client,
+        connect: vec![cell.endpoint.clone()],
+        tls: cell.pki.as_ref().map(|pki| holon::tls::TlsSettings {
+            pki: Some(pki.clone()),
+            ..holon::tls::TlsSettings::default()
+        }),
+        ..holon::ZenohSettings::default()
+    }
+}
+
 /// The cell's dashboard, in this process, as an operator (it prints its address): the
 /// token that stops it and its task.
 pub(super) async fn start_dashboard(
@@ -43,15 +56,7 @@ pub(super) async fn start_dashboard(
 ) -> Result<(CancellationToken, tokio::task::JoinHandle<Result<()>>)> {
     let config = crate::dashboard::DashboardConfig {
         keys: cell.keys.clone(),
-        zenoh: holon::ZenohSettings {
-            mode: holon::Mode::Client,
-            connect: vec![cell.endpoint.clone()],
-            tls: cell.pki.as_ref().map(|pki| holon::tls::TlsSettings {
-                pki: Some(pki.clone()),
-                ..holon::tls::TlsSettings::default()
-            }),
-            ..holon::ZenohSettings::default()
-        },
+        zenoh: client_of(cell),
         identity: "operator.default".into(),
         listen,
         operator: true,
@@ -95,15 +100,7 @@ pub(super) fn start_opcua(
     }
     let config = crate::opcua::OpcuaConfig {
         keys: cell.keys.clone(),
-        zenoh: holon::ZenohSettings {
-            mode: holon::Mode::Client,
-            connect: vec![cell.endpoint.clone()],
-            tls: cell.pki.as_ref().map(|pki| holon::tls::TlsSettings {
-                pki: Some(pki.clone()),
-                ..holon::tls::TlsSettings::default()
-            }),
-            ..holon::ZenohSettings::default()
-        },
+        zenoh: client_of(cell),
         identity: "operator.opcua".into(),
         listen,
         pki: cell.pki.clone(),
