@@ -14,7 +14,7 @@ use serde::Deserialize;
 use tracing::info;
 
 use super::gate::Who;
-use super::http::{refused, Refusal};
+use super::refusal::{refused, Refusal};
 use super::{Command, Shared};
 use crate::ask::AskError;
 use crate::audit::{AuditAction, AuditOutcome, AuditRecord};

@@ -34,6 +34,7 @@ use futures_util::stream::{self, Stream};
 use tracing::warn;
 
 use super::gate::{self, Gate, Who};
+use super::refusal::{refused, Refusal};
 use super::{actions, metrics, people, Shared, View};
 
 /// The page: HTML, CSS and script in one file, compiled in.
@@ -142,24 +143,6 @@ async fn prometheus(State(shared): State<Arc<Shared>>) -> Response {
     let mut text = metrics::render(&current(&shared));
     text.push_str(&metrics::render_gate(&shared.gate));
     ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], text).into_response()
-}
-
-/// An answer that refuses, with why.
-pub fn refused(status: StatusCode, message: &str) -> Response {
-    (status, Json(serde_json::json!({ "error": message }))).into_response()
-}
-
-/// A request refused: its status and why (answered as `{"error": why}`).
-#[derive(Debug)]
-pub struct Refusal {
-    pub status: StatusCode,
-    pub why: String,
-}
-
-impl IntoResponse for Refusal {
-    fn into_response(self) -> Response {
-        refused(self.status, &self.why)
-    }
 }
 
 /// Whether `who` may read the audit trail: the trail, or the refusal.

@@ -26,6 +26,7 @@ pub mod listener;
 pub mod metrics;
 pub mod model;
 pub mod people;
+pub mod refusal;
 pub mod session;
 pub mod throttle;
 

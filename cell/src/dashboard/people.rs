@@ -13,7 +13,7 @@ use serde::Deserialize;
 use tracing::info;
 
 use super::gate::Who;
-use super::http::{refused, Refusal};
+use super::refusal::{refused, Refusal};
 use super::Shared;
 use crate::audit::{AuditAction, AuditOutcome, AuditRecord};
 use crate::users::{self, Role};
