@@ -157,7 +157,7 @@ impl AuditTrail {
                 path: shown.clone(),
                 source,
             })?;
-        if let Some(mode) = open_to_others(path) {
+        if let Some(mode) = crate::private_file::open_to_others(path) {
             return Err(AuditError::OpenToOthers { path: shown, mode });
         }
         Ok(AuditTrail {
@@ -225,13 +225,6 @@ pub fn newest(path: &Path, count: usize) -> Result<Vec<AuditRecord>, AuditError>
     records.reverse();
     records.truncate(count);
     Ok(records)
-}
-
-/// The file's mode when users other than its owner may read or write it.
-pub fn open_to_others(path: &Path) -> Option<u32> {
-    use std::os::unix::fs::PermissionsExt;
-    let mode = std::fs::metadata(path).ok()?.permissions().mode() & 0o777;
-    (mode & 0o077 != 0).then_some(mode)
 }
 
 #[cfg(test)]

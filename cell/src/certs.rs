@@ -128,21 +128,6 @@ pub fn identities(manifest: &Manifest) -> Result<Vec<Identity>> {
     Ok(out)
 }
 
-pub(crate) fn write_private(path: &Path, text: &str) -> Result<()> {
-    use std::io::Write;
-    use std::os::unix::fs::OpenOptionsExt;
-    let _ = std::fs::remove_file(path);
-    let mut file = std::fs::OpenOptions::new()
-        .write(true)
-        .create_new(true)
-        .mode(0o600)
-        .open(path)
-        .with_context(|| format!("cannot write {}", path.display()))?;
-    file.write_all(text.as_bytes())?;
-    file.sync_all()?;
-    Ok(())
-}
-
 fn validity(days: u32) -> (time::OffsetDateTime, time::OffsetDateTime) {
     let now = time::OffsetDateTime::now_utc();
     (
@@ -282,7 +267,7 @@ pub fn run(dir: &Path, options: &CertsOptions) -> Result<Vec<String>> {
             );
         }
         let (pem, key) = new_ca(&manifest.cell)?;
-        write_private(&ca_key_path, &key.serialize_pem())?;
+        crate::private_file::write_private(&ca_key_path, &key.serialize_pem())?;
         std::fs::write(&ca_pem_path, pem)?;
         said.push(format!("new cell CA {}", ca_pem_path.display()));
         true
@@ -307,7 +292,7 @@ pub fn run(dir: &Path, options: &CertsOptions) -> Result<Vec<String>> {
             continue;
         }
         let (cert, key) = issue(identity, manifest.pki.days, &issuer)?;
-        write_private(&pki.join(format!("{}.key", identity.name)), &key)?;
+        crate::private_file::write_private(&pki.join(format!("{}.key", identity.name)), &key)?;
         std::fs::write(pki.join(format!("{}.pem", identity.name)), cert)?;
         said.push(format!(
             "issued {} ({})",

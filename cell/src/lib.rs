@@ -11,6 +11,7 @@ pub mod demo;
 pub mod manifest;
 pub mod opcua;
 pub mod packml;
+pub mod private_file;
 pub mod router;
 pub mod states;
 pub mod status;

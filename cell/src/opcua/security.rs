@@ -57,7 +57,7 @@ impl ServerFiles {
     /// starts (async-opcua would otherwise run without encryption, with a log line).
     pub fn check(&self) -> Result<()> {
         let hint = "issue it with `cell certs DIR` (a manifest with a `cell opcua` process) or see docs/opcua.md";
-        if let Some(mode) = open_to_others(&self.key) {
+        if let Some(mode) = crate::private_file::open_to_others(&self.key) {
             bail!(
                 "the OPC UA server key {} is readable by other users (mode {mode:o}); a private key must be 0600 or stricter: chmod 600 {}",
                 self.key.display(),
@@ -98,13 +98,6 @@ impl ServerFiles {
         }
         Ok(())
     }
-}
-
-/// The mode of `path` if others than its owner may read or write it.
-pub fn open_to_others(path: &Path) -> Option<u32> {
-    use std::os::unix::fs::PermissionsExt;
-    let mode = std::fs::metadata(path).ok()?.permissions().mode() & 0o777;
-    (mode & 0o077 != 0).then_some(mode)
 }
 
 /// Whether the server listens on a loopback address only.
@@ -201,7 +194,7 @@ pub fn issue_server_certificate(
     params.not_before = now - time::Duration::hours(1);
     params.not_after = now + time::Duration::days(days as i64);
     let cert = params.signed_by(&key, issuer)?;
-    crate::certs::write_private(&pki.join(SERVER_KEY), &key.serialize_pem())?;
+    crate::private_file::write_private(&pki.join(SERVER_KEY), &key.serialize_pem())?;
     std::fs::write(pki.join(SERVER_CERT), cert.der())?;
     std::fs::write(pki.join(SERVER_CERT_PEM), cert.pem())?;
     Ok(())
