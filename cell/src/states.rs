@@ -7,11 +7,17 @@
 use std::time::Duration;
 
 use anyhow::{anyhow, Result};
-use schemas::{CellKeys, OrderSnapshot, ResourceSnapshot};
+use schemas::{CellKeys, HolonId, HolonKind, OrderSnapshot, ResourceSnapshot};
 use tracing::warn;
 
 /// How long one ask for the states waits for their replies.
 const ASK_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// After a resource's token appears, how long until its state is asked for once more: a
+/// holon that has just joined can publish a change before the subscription reached it,
+/// and zenoh would never route that change to us (seen: a resource turning `free` 1 ms
+/// after its token appeared, shown `init` for good).
+pub const ASK_NEWCOMER_AGAIN: Duration = Duration::from_secs(1);
 
 /// A holon's state, heard.
 #[derive(Debug, Clone)]
@@ -65,6 +71,46 @@ where
         _resources: resources,
         _orders: orders,
     })
+}
+
+/// Follows the holons' liveliness tokens (`alive/**`, with their history): each
+/// holon's token appearing (`true`) or vanishing (`false`) goes to `token`. When a
+/// resource's appears, its state is asked for at once and again
+/// [`ASK_NEWCOMER_AGAIN`] later, each reply handed to `heard`. Both callbacks must not
+/// block (`token` runs in zenoh's callback). Dropping the subscriber ends it.
+pub async fn follow_tokens<T, H>(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    token: T,
+    heard: H,
+) -> Result<zenoh::pubsub::Subscriber<()>>
+where
+    T: Fn(HolonId, bool) + Send + Sync + 'static,
+    H: Fn(Heard) + Clone + Send + Sync + 'static,
+{
+    let keys = keys.clone();
+    let (runtime, asker) = (tokio::runtime::Handle::current(), session.clone());
+    session
+        .liveliness()
+        .declare_subscriber(keys.alive_all())
+        .history(true)
+        .callback(move |sample| {
+            let Some(holon) = keys.holon_from_alive(sample.key_expr().as_str()) else {
+                return;
+            };
+            let appeared = sample.kind() == zenoh::sample::SampleKind::Put;
+            if appeared && holon.kind() == HolonKind::Resource {
+                let (asker, heard, key) = (asker.clone(), heard.clone(), keys.state(&holon));
+                runtime.spawn(async move {
+                    ask(&asker, std::slice::from_ref(&key), &heard).await;
+                    tokio::time::sleep(ASK_NEWCOMER_AGAIN).await;
+                    ask(&asker, &[key], &heard).await;
+                });
+            }
+            token(holon, appeared);
+        })
+        .await
+        .map_err(|e| anyhow!("{}", holon::zenoh_error::describe(&e)))
 }
 
 /// Asks for the states on `keys` (e.g. `resource/*/state`, or one holon's) and hands

@@ -11,7 +11,7 @@
 //! dashboard that has just subscribed) can publish a change before the subscription
 //! reached it, and that change would never arrive (seen: a resource turning `free`
 //! 1 ms after its token appeared, shown `init` for good). So the dashboard asks again,
-//! once, [`ASK_NEWCOMER_AFTER`] after it starts and after each resource's token
+//! once, [`crate::states::ASK_NEWCOMER_AGAIN`] after it starts and after each resource's token
 //! appears; a snapshot older than the one held changes nothing. One task owns the model;
 //! the zenoh callbacks queue what they hear for it (bounded; when full, a sample is
 //! dropped and counted: the next snapshot of that holon brings the model up to date),
@@ -53,10 +53,6 @@ const FENCES_EVERY: Duration = Duration::from_secs(2);
 
 /// How many inputs wait for the model's task.
 const INPUT_QUEUE: usize = 8192;
-
-/// After a resource's token appears (and after the dashboard starts), how long until
-/// its state is asked for once more.
-const ASK_NEWCOMER_AFTER: Duration = Duration::from_secs(1);
 
 /// What `cell dashboard` runs with.
 #[derive(Debug, Clone)]
@@ -361,7 +357,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
     {
         let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
         tokio::spawn(async move {
-            tokio::time::sleep(ASK_NEWCOMER_AFTER).await;
+            tokio::time::sleep(crate::states::ASK_NEWCOMER_AGAIN).await;
             ask_states(&session, &every_state, &inputs, &dropped).await;
         });
     }
@@ -462,40 +458,27 @@ async fn subscribe(
 ) -> Result<Subscriptions> {
     let z = |e: zenoh::Error| anyhow!("{}", holon::zenoh_error::describe(&e));
     let alive = {
-        let (inputs, dropped, keys) = (inputs.clone(), dropped.clone(), keys.clone());
-        let (runtime, asker) = (tokio::runtime::Handle::current(), session.clone());
-        session
-            .liveliness()
-            .declare_subscriber(keys.alive_all())
-            .history(true)
-            .callback(move |sample| {
-                let Some(holon) = keys.holon_from_alive(sample.key_expr().as_str()) else {
-                    return;
-                };
+        let (inputs, dropped) = (inputs.clone(), dropped.clone());
+        let (asked, counter) = (inputs.clone(), dropped.clone());
+        crate::states::follow_tokens(
+            session,
+            keys,
+            move |holon, appeared| {
                 // Orders hold a token only while they book: they show in the orders.
                 if holon.kind() == HolonKind::Order {
                     return;
                 }
                 let at = schemas::unix_ms();
-                let input = match sample.kind() {
-                    zenoh::sample::SampleKind::Put => {
-                        if holon.kind() == HolonKind::Resource {
-                            let key = keys.state(&holon);
-                            let (session, inputs, dropped) =
-                                (asker.clone(), inputs.clone(), dropped.clone());
-                            runtime.spawn(async move {
-                                tokio::time::sleep(ASK_NEWCOMER_AFTER).await;
-                                ask_states(&session, &[key], &inputs, &dropped).await;
-                            });
-                        }
-                        Input::Appeared { holon, at }
-                    }
-                    zenoh::sample::SampleKind::Delete => Input::Vanished { holon, at },
+                let input = if appeared {
+                    Input::Appeared { holon, at }
+                } else {
+                    Input::Vanished { holon, at }
                 };
                 queue(&inputs, &dropped, input);
-            })
-            .await
-            .map_err(z)?
+            },
+            move |heard| queue(&asked, &counter, input_of(heard)),
+        )
+        .await?
     };
     let processes = {
         let (inputs, dropped, keys) = (inputs.clone(), dropped.clone(), keys.clone());

@@ -5,7 +5,7 @@
 //! (`Objects/PackMLObjects/<resource>`: Status, Admin, the command methods) and the
 //! cell as `Objects/Cell` (order figures, SubmitWorkOrder). The values come from what
 //! the holons publish: `resource/*/state` and `order/*/state`, subscribed and asked for
-//! at the start (and once more [`ASK_AGAIN_AFTER`] later, and after each resource's
+//! at the start (and once more [`crate::states::ASK_NEWCOMER_AGAIN`] later, and after each resource's
 //! liveliness token appears, as the dashboard does: a change published before the
 //! subscription reached its publisher would be lost otherwise). A resource's token
 //! appearing adds its object; its token going marks its variables
@@ -51,10 +51,6 @@ pub const DEFAULT_LISTEN: &str = "127.0.0.1:4840";
 /// Monitored items of the cell's values report every change
 /// ([`methods::PUSHED_SAMPLING_MS`]).
 pub const TICK_MS: u64 = 10;
-
-/// After the start and after a resource's token appears, how long until the states are
-/// asked for once more.
-pub const ASK_AGAIN_AFTER: Duration = Duration::from_secs(1);
 
 /// How many inputs wait for the values' owner.
 const INPUT_QUEUE: usize = 8192;
@@ -236,7 +232,7 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
         tokio::spawn(async move {
             ask_states(&session, &every_state, &inputs, &dropped).await;
-            tokio::time::sleep(ASK_AGAIN_AFTER).await;
+            tokio::time::sleep(crate::states::ASK_NEWCOMER_AGAIN).await;
             ask_states(&session, &every_state, &inputs, &dropped).await;
         });
     }
@@ -358,41 +354,27 @@ async fn subscribe(
     inputs: &mpsc::Sender<Input>,
     dropped: &Arc<AtomicU64>,
 ) -> Result<Subscriptions> {
-    let z = |e: zenoh::Error| anyhow!("{}", holon::zenoh_error::describe(&e));
     let alive = {
-        let (inputs, dropped, keys) = (inputs.clone(), dropped.clone(), keys.clone());
-        let (runtime, asker) = (tokio::runtime::Handle::current(), session.clone());
-        session
-            .liveliness()
-            .declare_subscriber(keys.alive_all())
-            .history(true)
-            .callback(move |sample| {
-                let Some(holon) = keys.holon_from_alive(sample.key_expr().as_str()) else {
-                    return;
-                };
+        let (inputs, dropped) = (inputs.clone(), dropped.clone());
+        let (asked, counter) = (inputs.clone(), dropped.clone());
+        crate::states::follow_tokens(
+            session,
+            keys,
+            move |holon, appeared| {
                 if holon.kind() != HolonKind::Resource {
                     return;
                 }
                 let name = holon.name().to_string();
-                match sample.kind() {
-                    zenoh::sample::SampleKind::Put => {
-                        let key = keys.state(&holon);
-                        let (asker, later, counter) =
-                            (asker.clone(), inputs.clone(), dropped.clone());
-                        runtime.spawn(async move {
-                            ask_states(&asker, std::slice::from_ref(&key), &later, &counter).await;
-                            tokio::time::sleep(ASK_AGAIN_AFTER).await;
-                            ask_states(&asker, &[key], &later, &counter).await;
-                        });
-                        queue(&inputs, &dropped, Input::Appeared(name));
-                    }
-                    zenoh::sample::SampleKind::Delete => {
-                        queue(&inputs, &dropped, Input::Vanished(name))
-                    }
-                }
-            })
-            .await
-            .map_err(z)?
+                let input = if appeared {
+                    Input::Appeared(name)
+                } else {
+                    Input::Vanished(name)
+                };
+                queue(&inputs, &dropped, input);
+            },
+            move |heard| queue(&asked, &counter, heard.into()),
+        )
+        .await?
     };
     let states = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
