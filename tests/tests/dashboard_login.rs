@@ -20,11 +20,11 @@ struct Dashboard {
 }
 
 impl Dashboard {
-    /// A dashboard of `cell` joined as `identity`, with `extra` flags; waits for the
-    /// line that says where it serves, which must be `scheme`.
-    fn start(cell: &SecureCell, identity: &str, scheme: &str, extra: &[&str]) -> Dashboard {
+    /// `cell dashboard` of `cell`, on a port of its choosing, joined as `identity`.
+    fn command(cell: &SecureCell, identity: &str) -> Command {
         let pki = cell.pki().display().to_string();
-        let mut child = Command::new(bin("cell"))
+        let mut command = Command::new(bin("cell"));
+        command
             .args([
                 "dashboard",
                 "--cell",
@@ -39,7 +39,14 @@ impl Dashboard {
                 &pki,
                 "--identity",
                 identity,
-            ])
+            ]);
+        command
+    }
+
+    /// A dashboard of `cell` joined as `identity`, with `extra` flags; waits for the
+    /// line that says where it serves, which must be `scheme`.
+    fn start(cell: &SecureCell, identity: &str, scheme: &str, extra: &[&str]) -> Dashboard {
+        let mut child = Dashboard::command(cell, identity)
             .args(extra)
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
@@ -540,23 +547,7 @@ async fn https_logins_certificates_lockouts_and_file_modes() {
     assert_eq!(mode(&users), 0o600);
     assert_eq!(mode(&cell.pki().join("audit.jsonl")), 0o600);
     std::fs::set_permissions(&users, std::fs::Permissions::from_mode(0o644)).unwrap();
-    let pki = cell.pki().display().to_string();
-    let refused = Command::new(bin("cell"))
-        .args([
-            "dashboard",
-            "--cell",
-            cell.keys.cell(),
-            "--connect",
-            &cell.endpoint,
-        ])
-        .args([
-            "--listen",
-            "127.0.0.1:0",
-            "--pki",
-            &pki,
-            "--identity",
-            "operator.default",
-        ])
+    let refused = Dashboard::command(&cell, "operator.default")
         .output()
         .unwrap();
     assert!(!refused.status.success());

@@ -321,4 +321,4 @@ fn read_state(previous: Option<Published>, snapshot: &ResourceSnapshot) -> (Stat
 }
 
 #[cfg(test)]
-mod tests;
+pub(super) mod tests;

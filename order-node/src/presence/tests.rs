@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use schemas::{BookingView, CellKeys, HolonId, HolonKind, ResourceSnapshot};
+use schemas::{CellKeys, HolonId, HolonKind};
 
 use super::{task, Presence, TurnNews};
 
@@ -19,36 +19,7 @@ async fn session() -> zenoh::Session {
 }
 
 fn snapshot(resource: &HolonId, state: &str, agenda: &[&str]) -> Vec<u8> {
-    let snapshot = ResourceSnapshot {
-        holon: resource.clone(),
-        state: serde_json::from_value(state.into()).unwrap(),
-        controller: serde_json::from_value("ready".into()).unwrap(),
-        agenda: agenda
-            .iter()
-            .map(|c| BookingView {
-                requester: HolonId::new(HolonKind::Order, "o-1").unwrap(),
-                conversation_id: c.to_string(),
-                service_type: "pick_n_place".into(),
-                requester_absent_since: None,
-                priority: 0,
-                due: None,
-                overtaken: 0,
-                program: None,
-            })
-            .collect(),
-        current: None,
-        undelivered: 0,
-        services: vec!["pick_n_place".into()],
-        nominal_ms: Default::default(),
-        journal_fault: None,
-        delivery_retries: 0,
-        handing_over: false,
-        packml: None,
-        host: None,
-        version: None,
-        v: 0,
-        at: 0,
-    };
+    let snapshot = super::model::tests::snapshot_of(resource, state, "ready", agenda);
     serde_json::to_vec(&snapshot).unwrap()
 }
 

@@ -10,8 +10,19 @@ fn published(length: usize, ready: bool) -> Option<Published> {
 }
 
 fn snapshot(state: &str, controller: &str, agenda: &[&str]) -> ResourceSnapshot {
+    snapshot_of(&robot(), state, controller, agenda)
+}
+
+/// A snapshot of `resource` in `state` with its `controller`, its agenda the bookings
+/// of these conversations (the presence's task tests publish it too).
+pub(in crate::presence) fn snapshot_of(
+    resource: &HolonId,
+    state: &str,
+    controller: &str,
+    agenda: &[&str],
+) -> ResourceSnapshot {
     ResourceSnapshot {
-        holon: robot(),
+        holon: resource.clone(),
         state: serde_json::from_value(state.into()).expect("a resource state"),
         controller: serde_json::from_value(controller.into()).expect("a controller status"),
         agenda: agenda
