@@ -572,13 +572,13 @@ async fn a_result_for_a_requester_gone_does_not_hold_up_the_shutdown() {
         log.contains("delivered when this resource is back"),
         "{log}"
     );
-    // The step was finished, not cut short, and its result was refused until now.
+    // The step was finished, not cut short. Its result may have been tried before the
+    // resource saw its requester gone, or not (the resource need not wait for that);
+    // whatever was tried was refused, so only the journal holds it now.
     assert_eq!(r.sim.executed("place"), 1, "{}", r.sim.counts());
-    assert_eq!(
-        refusing.next().await.unwrap().conversation_id,
-        "c1",
-        "it was tried"
-    );
+    while let Ok(tried) = refusing.received.try_recv() {
+        assert_eq!(tried.conversation_id, "c1", "only c1 was running");
+    }
     drop(refusing);
     let mut accepting = r.cell.inbox("o-1", 0).await.unwrap();
     let config = r.dir.path().join("robot1.toml");
