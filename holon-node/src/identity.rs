@@ -6,7 +6,7 @@ use std::path::Path;
 
 use holon::ZenohSettings;
 use schemas::{CellKeys, HolonId, HolonKind};
-use tracing::{info, warn};
+use tracing::warn;
 
 use crate::config::{ConfigError, Overrides};
 use crate::node::{NodeError, STARTUP_TIMEOUT};
@@ -75,6 +75,18 @@ impl Identity {
         })
     }
 
+    /// Who the holon is, for the life cycle every holon shares.
+    pub fn life(&self) -> holon::life::Life {
+        holon::life::Life {
+            presence_key: self.keys.alive(&self.holon),
+            holder: self.holon.to_string(),
+            version: crate::VERSION,
+            take_over: self.take_over,
+            data_dir: None,
+            startup_timeout: STARTUP_TIMEOUT,
+        }
+    }
+
     /// Opens the holon's session (as `<kind>.<name>` for TLS) and claims its name: a
     /// twin (the name alive elsewhere in the cell) is refused before this process
     /// answers anything. Keep the claim for as long as the holon serves. With
@@ -87,49 +99,11 @@ impl Identity {
         let holon = &self.holon;
         let tls_identity =
             holon::role::identity(holon::role::Role::of_holon(holon.kind()), holon.name());
-        let session = self.zenoh.open(&tls_identity, STARTUP_TIMEOUT).await?;
-        if let Some(wait) = self.take_over {
-            let request = holon::takeover::Request {
-                successor: holon::presence::Holder::this_process(&session),
-                version: crate::VERSION.to_string(),
-                data_dir: None,
-                wait_ms: wait.as_millis() as u64,
-            };
-            let alive_key = self.keys.alive(holon);
-            let name = holon.to_string();
-            let taken = tokio::select! {
-                taken = holon::takeover::take_over(&session, &alive_key, &name, &request) => taken.map(Some),
-                _ = shutdown.cancelled() => Ok(None),
-            };
-            if !matches!(taken, Ok(Some(_))) {
-                if let Err(close) = session.close().await {
-                    warn!(%holon, error = %close, "cannot close the zenoh session");
-                }
-                return match taken {
-                    Err(e) => Err(e.into()),
-                    _ => {
-                        warn!(%holon, "told to stop while taking over; the running process may hand over to nobody (it then exits, and its supervisor starts it again)");
-                        Ok(None)
-                    }
-                };
-            }
-        }
-        match holon::presence::claim(
-            &session,
-            &self.keys.alive(holon),
-            &holon.to_string(),
-            STARTUP_TIMEOUT,
-        )
-        .await
-        {
-            Ok(claim) => Ok(Some((session, claim))),
-            Err(e) => {
-                if let Err(close) = session.close().await {
-                    warn!(%holon, error = %close, "cannot close the zenoh session");
-                }
-                Err(e.into())
-            }
-        }
+        let joined = self
+            .life()
+            .join(&self.zenoh, &tls_identity, shutdown)
+            .await?;
+        Ok(joined.map(|(opened, claim)| (opened.session, claim)))
     }
 }
 
@@ -175,34 +149,12 @@ pub async fn hand_over<Replaced: Send>(
         }
     };
     drop(replaced);
-    if let Err(e) = token.undeclare().await {
-        warn!(%holon, error = %e, "cannot withdraw the liveliness token");
-    }
-    drop(claim);
-    let successor = offer.request.successor.clone();
-    offer.release(crate::VERSION).await;
-    info!(%holon, %successor, "handed over; standing in until the successor serves");
-    let alive_key = identity.keys.alive(holon);
-    let end = holon::takeover::stand_by(session, &alive_key, shutdown).await;
+    let ended = identity
+        .life()
+        .let_go(session, token, claim, offer, started, shutdown)
+        .await;
     drop(stand_in);
-    let gap_ms = started.elapsed().as_millis() as u64;
-    match end {
-        holon::takeover::StandInEnd::Served => {
-            info!(%holon, gap_ms, "the successor serves; this process ends");
-            Ok(())
-        }
-        holon::takeover::StandInEnd::Shutdown => {
-            warn!(%holon, gap_ms, "told to stop while standing in for the successor");
-            Ok(())
-        }
-        holon::takeover::StandInEnd::NoSuccessor => {
-            warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends with an error, so that its supervisor starts it again");
-            Err(holon::takeover::NoSuccessor {
-                successor: successor.to_string(),
-            }
-            .into())
-        }
-    }
+    Ok(ended?)
 }
 
 /// When a request refused during a hand-over is to be asked again.

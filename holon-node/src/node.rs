@@ -10,7 +10,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use holon::takeover::{StandInEnd, TakenOver};
+use holon::takeover::TakenOver;
 use holon::{ChildSpec, Supervisor};
 use robot_bridge::client::{ControllerEvent, FenceHandle, FencePort};
 use schemas::Service;
@@ -61,6 +61,18 @@ pub enum NodeError {
     /// A fenced resource cannot claim its controller (docs/reliability.md).
     #[error("standby refused: {0}")]
     Fence(String),
+}
+
+impl From<holon::life::LifeError> for NodeError {
+    fn from(e: holon::life::LifeError) -> Self {
+        use holon::life::LifeError;
+        match e {
+            LifeError::Session(e) => NodeError::Session(e),
+            LifeError::Claim(e) => NodeError::Claim(e),
+            LifeError::Takeover(e) => NodeError::Takeover(e),
+            LifeError::Zenoh(e) => NodeError::Zenoh(e),
+        }
+    }
 }
 
 /// The components' links, built once per process: they outlive the components'
@@ -327,14 +339,6 @@ enum Ending {
     HandingOver(Box<holon::takeover::Offer>),
 }
 
-/// Whether the successor's data directory is this holon's: the same journal.
-fn same_data_dir(mine: Option<&std::path::Path>, theirs: Option<&std::path::Path>) -> bool {
-    let canonical = |dir: Option<&std::path::Path>| {
-        dir.map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.to_path_buf()))
-    };
-    canonical(mine) == canonical(theirs)
-}
-
 /// Runs a resource holon until `shutdown` is cancelled (then it withdraws its token,
 /// stops its components in reverse order, closes the session and returns `Ok`) or its
 /// supervisor gives up (then it returns the error, for a non-zero exit).
@@ -355,75 +359,51 @@ fn only_absent_requesters_wait(
 
 pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.holon.clone();
-    let alive_key = config.keys.alive(&holon);
-    let session = config
-        .zenoh
-        .open(
-            &holon::role::identity(holon::role::Role::Resource, holon.name()),
-            STARTUP_TIMEOUT,
-        )
-        .await?;
-    info!(%holon, zid = %session.zid(), "zenoh session open");
+    let life = life(&config);
+    let tls_identity = holon::role::identity(holon::role::Role::Resource, holon.name());
+    let Some(opened) = life.open(&config.zenoh, &tls_identity, &shutdown).await? else {
+        return Ok(());
+    };
     // The journal's bookings are a predecessor's hand-over only when one released
     // them to this process just now.
-    let mut inheritance = Inheritance::Restarted;
-    if let Some(wait) = config.take_over {
-        let request = holon::takeover::Request {
-            successor: holon::presence::Holder::this_process(&session),
-            version: crate::VERSION.to_string(),
-            data_dir: config
-                .data_dir
-                .as_ref()
-                .map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.clone())),
-            wait_ms: wait.as_millis() as u64,
-        };
-        let name = holon.to_string();
-        let taken = tokio::select! {
-            taken = holon::takeover::take_over(&session, &alive_key, &name, &request) => taken.map(Some),
-            _ = shutdown.cancelled() => Ok(None),
-        };
-        if matches!(taken, Ok(Some(TakenOver::From(_)))) {
-            inheritance = Inheritance::HandedOver;
-        }
-        if !matches!(taken, Ok(Some(_))) {
-            if let Err(close) = session.close().await {
-                error!(%holon, error = %close, "cannot close the zenoh session");
-            }
-            return match taken {
-                Err(e) => Err(e.into()),
-                _ => {
-                    warn!(%holon, "told to stop while taking over; the running process may hand over to nobody (it then exits, and its supervisor starts it again)");
-                    Ok(())
-                }
-            };
-        }
-    }
-    let outcome = if config.fenced {
-        standby::serve(&config, &session, &alive_key, shutdown).await
-    } else {
-        serve(&config, &session, &alive_key, inheritance, shutdown).await
+    let inheritance = match opened.taken_over {
+        Some(TakenOver::From(_)) => Inheritance::HandedOver,
+        _ => Inheritance::Restarted,
     };
-    if let Err(e) = session.close().await {
-        error!(%holon, error = %e, "cannot close the zenoh session");
-    }
+    let session = &opened.session;
+    let outcome = if config.fenced {
+        standby::serve(&config, session, &life.presence_key, shutdown).await
+    } else {
+        serve(&config, &life, session, inheritance, shutdown).await
+    };
+    holon::life::close(&holon.to_string(), opened.session).await;
     info!(%holon, "holon stopped");
     outcome
+}
+
+/// Who the resource is, for the life cycle every holon shares.
+fn life(config: &ResourceConfig) -> holon::life::Life {
+    holon::life::Life {
+        presence_key: config.keys.alive(&config.holon),
+        holder: config.holon.to_string(),
+        version: crate::VERSION,
+        take_over: config.take_over,
+        data_dir: config.data_dir.clone(),
+        startup_timeout: STARTUP_TIMEOUT,
+    }
 }
 
 /// The holon's life on an open session: claim its name, start its components, declare
 /// its token, serve until shutdown or until the supervisor gives up, then stop.
 async fn serve(
     config: &ResourceConfig,
+    life: &holon::life::Life,
     session: &zenoh::Session,
-    alive_key: &str,
     inheritance: Inheritance,
     shutdown: CancellationToken,
 ) -> Result<(), NodeError> {
     let holon = &config.holon;
-    // A twin (the same name alive elsewhere in the cell) is refused before this process
-    // answers anything.
-    let _claim =
-        holon::presence::claim(session, alive_key, &holon.to_string(), STARTUP_TIMEOUT).await?;
+    let claim = life.claim(session).await?;
     let wiring = Wiring::new(config, session, inheritance, None)?;
     let serving = wiring.communication.serving.notified();
     let components = CancellationToken::new();
@@ -440,15 +420,17 @@ async fn serve(
         wait_stopped(holon, supervision).await;
         return Err(e);
     }
-    let token = session
-        .liveliness()
-        .declare_token(alive_key)
-        .await
-        .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
-    let mut successors = holon::takeover::listen(session, alive_key)
-        .await
-        .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
-    info!(%holon, key = %alive_key, "holon ready");
+    let holon::life::Announced {
+        token,
+        mut successors,
+    } = match life.announce(session).await {
+        Ok(announced) => announced,
+        Err(e) => {
+            components.cancel();
+            wait_stopped(holon, supervision).await;
+            return Err(e.into());
+        }
+    };
 
     let outcome = loop {
         tokio::select! {
@@ -459,7 +441,7 @@ async fn serve(
             offer = successors.next() => {
                 let request = &offer.request;
                 info!(%holon, successor = %request.successor, version = %request.version, "a successor asks to take over");
-                if !same_data_dir(config.data_dir.as_deref(), request.data_dir.as_deref()) {
+                if !life.opens_my_journal(request) {
                     let detail = format!(
                         "its data dir {:?} is not this holon's {:?}: it would not take over the agenda",
                         request.data_dir, config.data_dir
@@ -540,33 +522,11 @@ async fn serve(
     wait_stopped(holon, supervision).await;
     // The journal closes with the components' links: the successor opens it next.
     drop(wiring);
-    if let Err(e) = token.undeclare().await {
-        error!(%holon, error = %e, "cannot withdraw the liveliness token");
-    }
-    drop(_claim);
-    let successor = offer.request.successor.clone();
-    offer.release(crate::VERSION).await;
-    info!(%holon, %successor, released_in_ms = started.elapsed().as_millis() as u64, "handed over: journal closed, token withdrawn; standing in until the successor serves");
-    let end = holon::takeover::stand_by(session, alive_key, &shutdown).await;
+    let ended = life
+        .let_go(session, token, claim, *offer, started, &shutdown)
+        .await;
     drop(stand_in);
-    let gap_ms = started.elapsed().as_millis() as u64;
-    match end {
-        StandInEnd::Served => {
-            info!(%holon, gap_ms, "the successor serves; this process ends");
-            Ok(())
-        }
-        StandInEnd::Shutdown => {
-            warn!(%holon, gap_ms, "told to stop while standing in for the successor");
-            Ok(())
-        }
-        StandInEnd::NoSuccessor => {
-            warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends with an error, so that its supervisor starts it again (its requesters keep their bookings for their own bound)");
-            Err(holon::takeover::NoSuccessor {
-                successor: successor.to_string(),
-            }
-            .into())
-        }
-    }
+    Ok(ended?)
 }
 
 /// What the supervisor's end means for the holon.

@@ -1,8 +1,6 @@
 //! The product holon: knows how its product is made and answers
 //! `product/<product>/plan` with the process plan from its config.
 
-use std::time::Duration;
-
 use holon::ZenohSettings;
 use schemas::{unix_ms, HolonKind, Plan, PlanStep};
 use serde::Deserialize;
@@ -119,15 +117,11 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
         .put(&state_key, snapshot)
         .await
         .map_err(zenoh_error)?;
-    let token = session
-        .liveliness()
-        .declare_token(config.identity.keys.alive(&holon))
-        .await
-        .map_err(zenoh_error)?;
-    let mut successors = holon::takeover::listen(&session, &config.identity.keys.alive(&holon))
-        .await
-        .map_err(zenoh_error)?;
-    info!(holon = %holon, key = %plan_key, steps = config.plan.steps.len(), "holon ready");
+    let holon::life::Announced {
+        token,
+        mut successors,
+    } = config.identity.life().announce(&session).await?;
+    info!(holon = %holon, key = %plan_key, steps = config.plan.steps.len(), "plan offered");
     let ended = tokio::select! {
         _ = shutdown.cancelled() => {
             successors.close(crate::VERSION, "the holon is stopping").await;
@@ -152,11 +146,7 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
             .await
         }
     };
-    match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => warn!(holon = %holon, error = %e, "cannot close the zenoh session"),
-        Err(_) => warn!(holon = %holon, "the zenoh session did not close within 5 s"),
-    }
+    holon::life::close(&holon.to_string(), session).await;
     info!(holon = %holon, "holon stopped");
     ended
 }

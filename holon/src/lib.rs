@@ -4,6 +4,7 @@
 pub mod backoff;
 pub mod cli;
 pub mod journal;
+pub mod life;
 pub mod logging;
 pub mod presence;
 pub mod query;

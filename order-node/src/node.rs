@@ -11,7 +11,6 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use holon::journal::Journal;
-use holon::takeover::StandInEnd;
 use schemas::WorkOrder;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -45,6 +44,18 @@ pub enum OrderNodeError {
     Takeover(#[from] holon::takeover::TakeoverError),
     #[error(transparent)]
     NoSuccessor(#[from] holon::takeover::NoSuccessor),
+}
+
+impl From<holon::life::LifeError> for OrderNodeError {
+    fn from(e: holon::life::LifeError) -> Self {
+        use holon::life::LifeError;
+        match e {
+            LifeError::Session(e) => OrderNodeError::Session(e),
+            LifeError::Claim(e) => OrderNodeError::Claim(e),
+            LifeError::Takeover(e) => OrderNodeError::Takeover(e),
+            LifeError::Zenoh(e) => OrderNodeError::Zenoh(e),
+        }
+    }
 }
 
 /// This build's release, published in its orders' states and named in hand-overs.
@@ -93,43 +104,22 @@ pub async fn run(
     submits: Vec<WorkOrder>,
     shutdown: CancellationToken,
 ) -> Result<(), OrderNodeError> {
-    let session = config
-        .zenoh
-        .open(
-            &holon::role::identity(holon::role::Role::OrderNode, &config.name),
-            Duration::from_secs(10),
-        )
-        .await?;
-    let host_key = config.keys.host("order-node", &config.name);
-    let holder = format!("order-node {}", config.name);
-    if let Some(wait) = config.take_over {
-        let request = holon::takeover::Request {
-            successor: holon::presence::Holder::this_process(&session),
-            version: VERSION.to_string(),
-            data_dir: canonical(config.data_dir.as_deref()),
-            wait_ms: wait.as_millis() as u64,
-        };
-        let taken = tokio::select! {
-            taken = holon::takeover::take_over(&session, &host_key, &holder, &request) => taken.map(Some),
-            _ = shutdown.cancelled() => Ok(None),
-        };
-        match taken {
-            Ok(Some(_)) => {}
-            Ok(None) => {
-                warn!(node = %config.name, "told to stop while taking over; the running order-node may hand over to nobody (it then exits, and its supervisor starts it again)");
-                close(&config.name, session).await;
-                return Ok(());
-            }
-            Err(e) => {
-                close(&config.name, session).await;
-                return Err(e.into());
-            }
-        }
-    }
+    let life = holon::life::Life {
+        presence_key: config.keys.host("order-node", &config.name),
+        holder: format!("order-node {}", config.name),
+        version: VERSION,
+        take_over: config.take_over,
+        data_dir: config.data_dir.clone(),
+        startup_timeout: Duration::from_secs(10),
+    };
+    let tls_identity = holon::role::identity(holon::role::Role::OrderNode, &config.name);
     // A twin (an order-node of the same name alive in the cell) would number its
     // orders like this one: refused before anything is declared.
-    let claim =
-        holon::presence::claim(&session, &host_key, &holder, Duration::from_secs(10)).await?;
+    let Some((holon::life::Opened { session, .. }, claim)) =
+        life.join(&config.zenoh, &tls_identity, &shutdown).await?
+    else {
+        return Ok(());
+    };
     let (journal, (recovered, finished, next)) = open_journal(&config)?;
     let presence = Presence::follow(&session, &config.keys)
         .await
@@ -157,15 +147,10 @@ pub async fn run(
     let endpoints = Endpoints::declare(&session, &host, queue)
         .await
         .map_err(zenoh_error)?;
-    let token = session
-        .liveliness()
-        .declare_token(config.keys.host("order-node", &config.name))
-        .await
-        .map_err(zenoh_error)?;
-    let mut successors = holon::takeover::listen(&session, &host_key)
-        .await
-        .map_err(zenoh_error)?;
-    info!(node = %config.name, cell = %config.keys.cell(), "order-node ready");
+    let holon::life::Announced {
+        token,
+        mut successors,
+    } = life.announce(&session).await?;
 
     let orders_cancel = CancellationToken::new();
     let mut tasks = Tasks::default();
@@ -183,7 +168,7 @@ pub async fn run(
             offer = successors.next() => {
                 let request = &offer.request;
                 info!(node = %config.name, successor = %request.successor, version = %request.version, "a successor asks to take over");
-                if canonical(config.data_dir.as_deref()) != request.data_dir {
+                if !life.opens_my_journal(request) {
                     let detail = format!(
                         "its data dir {:?} is not this order-node's {:?}: its orders would not resume there",
                         request.data_dir, config.data_dir
@@ -260,57 +245,27 @@ pub async fn run(
         None => None,
     };
     drop(endpoints);
-    if let Err(e) = token.undeclare().await {
-        warn!(node = %config.name, error = %e, "cannot withdraw the order-node's token; it goes with the session");
-    }
     let mut ended = Ok(());
-    if let Some(offer) = handing_over {
-        // The journal closes with the last holder of the host: the successor opens it.
-        drop(queries);
-        drop(host);
-        drop(claim);
-        let successor = offer.request.successor.clone();
-        offer.release(VERSION).await;
-        info!(node = %config.name, %successor, released_in_ms = started.elapsed().as_millis() as u64, "handed over: orders stopped where they stood, journal closed; standing in until the successor serves");
-        let end = holon::takeover::stand_by(&session, &host_key, &shutdown).await;
-        let gap_ms = started.elapsed().as_millis() as u64;
-        match end {
-            StandInEnd::Served => {
-                info!(node = %config.name, gap_ms, "the successor serves; this process ends")
-            }
-            StandInEnd::Shutdown => {
-                warn!(node = %config.name, gap_ms, "told to stop while standing in for the successor")
-            }
-            StandInEnd::NoSuccessor => {
-                warn!(node = %config.name, gap_ms, "the successor did not serve within the stand-in limit; this process ends with an error, so that its supervisor starts it again (its orders resume from the journal)");
-                ended = Err(holon::takeover::NoSuccessor {
-                    successor: successor.to_string(),
-                }
-                .into());
+    match handing_over {
+        Some(offer) => {
+            // The journal closes with the last holder of the host: the successor opens it.
+            drop(queries);
+            drop(host);
+            ended = life
+                .let_go(&session, token, claim, offer, started, &shutdown)
+                .await
+                .map_err(OrderNodeError::from);
+        }
+        None => {
+            if let Err(e) = token.undeclare().await {
+                warn!(node = %config.name, error = %e, "cannot withdraw the order-node's token; it goes with the session");
             }
         }
     }
     drop(stand_in);
-    match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => warn!(node = %config.name, error = %e, "cannot close the zenoh session"),
-        Err(_) => warn!(node = %config.name, "the zenoh session did not close within 5 s"),
-    }
+    holon::life::close(&life.holder, session).await;
     info!(node = %config.name, "order-node stopped");
     ended
-}
-
-/// A data directory as a successor names it (absolute, so two spellings of one
-/// directory compare equal).
-fn canonical(dir: Option<&std::path::Path>) -> Option<std::path::PathBuf> {
-    dir.map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.to_path_buf()))
-}
-
-/// Closes a session that never served.
-async fn close(node: &str, session: zenoh::Session) {
-    if let Err(e) = session.close().await {
-        warn!(%node, error = %e, "cannot close the zenoh session");
-    }
 }
 
 /// The stand-in's answer while the node is handed over: `unavailable`, ask again.

@@ -173,15 +173,11 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
     if let Err(e) = session.put(&state_key, state.borrow().clone()).await {
         warn!(%holon, error = %e, "cannot publish the state");
     }
-    let token = session
-        .liveliness()
-        .declare_token(keys.alive(&holon))
-        .await
-        .map_err(zenoh_error)?;
-    let mut successors = holon::takeover::listen(&session, &keys.alive(&holon))
-        .await
-        .map_err(zenoh_error)?;
-    info!(%holon, key = %advice_key, resources = model.resources().count(), "holon ready");
+    let holon::life::Announced {
+        token,
+        mut successors,
+    } = config.identity.life().announce(&session).await?;
+    info!(%holon, key = %advice_key, resources = model.resources().count(), "advising");
     let mut successor = None;
 
     let mut departed: BTreeSet<HolonId> = BTreeSet::new();
@@ -258,11 +254,7 @@ pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(),
             Ok(())
         }
     };
-    match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => warn!(%holon, error = %e, "cannot close the zenoh session"),
-        Err(_) => warn!(%holon, "the zenoh session did not close within 5 s"),
-    }
+    holon::life::close(&holon.to_string(), session).await;
     info!(%holon, advised = published.advised, "holon stopped");
     ended
 }
