@@ -12,18 +12,7 @@ use serde::Deserialize;
 
 use crate::catalog::{ServiceCatalog, ServiceDefinition, Step};
 
-#[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
-    #[error("cannot read {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
-    #[error("{path}: {message}")]
-    Parse { path: String, message: String },
-    #[error("{path}: {message}")]
-    Invalid { path: String, message: String },
-}
+pub use holon::config_file::ConfigError;
 
 /// The file as written.
 #[derive(Debug, Clone, Deserialize)]
@@ -353,11 +342,7 @@ pub struct Overrides {
 
 impl ResourceConfig {
     pub fn load(path: &Path, overrides: Overrides) -> Result<ResourceConfig, ConfigError> {
-        let display = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: display.clone(),
-            source,
-        })?;
+        let (text, display) = holon::config_file::read(path)?;
         Self::parse(&text, &display, overrides)
     }
 
@@ -366,35 +351,33 @@ impl ResourceConfig {
         path: &str,
         overrides: Overrides,
     ) -> Result<ResourceConfig, ConfigError> {
-        let mut file: ConfigFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
-            path: path.to_string(),
-            message: e.to_string(),
-        })?;
+        let invalid = holon::config_file::invalid(path);
+        let mut file: ConfigFile = holon::config_file::parse(text, path)?;
         if let Some(base) = Path::new(path).parent() {
-            file.zenoh.resolve_paths(base);
             let dialect = &mut file.controller.dialect;
             let is_file = dialect.contains('/') || dialect.ends_with(".toml");
             if is_file && Path::new(dialect.as_str()).is_relative() {
                 *dialect = base.join(dialect.as_str()).display().to_string();
             }
         }
-        overrides.common.apply(
-            &mut file.cell,
-            &mut file.name,
-            &mut file.zenoh,
+        let header = holon::config_file::Header {
+            cell: file.cell.clone(),
+            name: file.name.clone(),
+            zenoh: file.zenoh.clone(),
+        }
+        .check(
+            path,
+            &overrides.common,
             &mut file.journal.dir,
-        );
+            holon::role::Role::Resource,
+        )
+        .map_err(&invalid)?;
         if let Some(controller) = overrides.controller {
             file.controller.address = controller;
         }
         file.controller.fenced |= overrides.standby;
         let mut config =
-            Self::validate(file, overrides.allow_fault_injection).map_err(|message| {
-                ConfigError::Invalid {
-                    path: path.to_string(),
-                    message,
-                }
-            })?;
+            Self::validate(file, header, overrides.allow_fault_injection).map_err(&invalid)?;
         config.take_over = overrides.common.take_over;
         if config.fenced && config.take_over.is_some() {
             return Err(ConfigError::Invalid {
@@ -405,21 +388,18 @@ impl ResourceConfig {
         Ok(config)
     }
 
-    fn validate(file: ConfigFile, allow_fault_injection: bool) -> Result<ResourceConfig, String> {
-        let keys = CellKeys::new(&file.cell).map_err(|e| format!("cell: {e}"))?;
+    fn validate(
+        file: ConfigFile,
+        header: holon::config_file::CheckedHeader,
+        allow_fault_injection: bool,
+    ) -> Result<ResourceConfig, String> {
         if file.kind != "resource" {
             return Err(format!(
                 "kind: {:?} is not supported by this holon-node (resource)",
                 file.kind
             ));
         }
-        let holon = HolonId::resource(&file.name).map_err(|e| format!("name: {e}"))?;
-        file.zenoh
-            .validate(&holon::role::identity(
-                holon::role::Role::Resource,
-                holon.name(),
-            ))
-            .map_err(|e| format!("zenoh: {e}"))?;
+        let holon = HolonId::resource(&header.name).map_err(|e| format!("name: {e}"))?;
         let c = &file.controller;
         let port = c
             .address
@@ -527,9 +507,9 @@ impl ResourceConfig {
             }
         }
         Ok(ResourceConfig {
-            keys,
+            keys: header.keys,
             holon,
-            zenoh: file.zenoh,
+            zenoh: header.zenoh,
             controller: robot_bridge::client::ClientConfig {
                 address: c.address.clone(),
                 reconnect_interval: Duration::from_millis(c.reconnect_interval_ms),

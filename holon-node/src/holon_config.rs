@@ -22,15 +22,8 @@ impl HolonConfig {
     /// The text is read as a table for its `kind`, then parsed again as that kind's
     /// file: only the second parse knows the fields, and its errors name the line.
     pub fn load(path: &Path, overrides: Overrides) -> Result<HolonConfig, ConfigError> {
-        let display = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: display.clone(),
-            source,
-        })?;
-        let table: toml::Table = toml::from_str(&text).map_err(|e| ConfigError::Parse {
-            path: display.clone(),
-            message: e.to_string(),
-        })?;
+        let (text, display) = holon::config_file::read(path)?;
+        let table: toml::Table = holon::config_file::parse(&text, &display)?;
         match table
             .get("kind")
             .and_then(|k| k.as_str())

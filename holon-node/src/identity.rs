@@ -2,8 +2,6 @@
 //! the `cell`, `name`, `kind` and `[zenoh]` of its config with the command line applied
 //! and checked, and its session opened as that identity with its name claimed.
 
-use std::path::Path;
-
 use holon::ZenohSettings;
 use schemas::{CellKeys, HolonId, HolonKind};
 use tracing::warn;
@@ -23,52 +21,34 @@ pub struct Identity {
     pub take_over: Option<std::time::Duration>,
 }
 
-/// The fields every holon file has, as read.
-pub struct Header {
-    pub cell: String,
-    pub name: String,
-    pub kind: String,
-    pub zenoh: ZenohSettings,
-}
+pub use holon::config_file::Header;
 
 impl Identity {
-    /// Checks `header` (of the file at `path`) for a holon of `kind`, with the command
-    /// line's `overrides` applied. Such a holon keeps no state: a data directory, if
-    /// given, is not used.
+    /// Checks `header` (of the file at `path`, whose `kind` field says `written_kind`)
+    /// for a holon of `kind`, with the command line's `overrides` applied. Such a holon
+    /// keeps no state: a data directory, if given, is not used.
     pub fn from_header(
-        mut header: Header,
+        header: Header,
+        written_kind: &str,
         kind: HolonKind,
         path: &str,
         overrides: &Overrides,
     ) -> Result<Identity, ConfigError> {
-        let invalid = |message: String| ConfigError::Invalid {
-            path: path.to_string(),
-            message,
-        };
-        let mut no_data_dir = None;
-        if let Some(base) = Path::new(path).parent() {
-            header.zenoh.resolve_paths(base);
+        let invalid = holon::config_file::invalid(path);
+        if written_kind != kind.to_string() {
+            return Err(invalid(format!("kind: {written_kind:?} is not {kind}")));
         }
-        overrides.common.apply(
-            &mut header.cell,
-            &mut header.name,
-            &mut header.zenoh,
-            &mut no_data_dir,
-        );
-        if header.kind != kind.to_string() {
-            return Err(invalid(format!("kind: {:?} is not {kind}", header.kind)));
-        }
-        let keys = CellKeys::new(&header.cell).map_err(|e| invalid(format!("cell: {e}")))?;
-        let holon = HolonId::new(kind, &header.name).map_err(|e| invalid(format!("name: {e}")))?;
-        header
-            .zenoh
-            .validate(&holon::role::identity(
+        let header = header
+            .check(
+                path,
+                &overrides.common,
+                &mut None,
                 holon::role::Role::of_holon(kind),
-                holon.name(),
-            ))
-            .map_err(|e| invalid(format!("zenoh: {e}")))?;
+            )
+            .map_err(&invalid)?;
+        let holon = HolonId::new(kind, &header.name).map_err(|e| invalid(format!("name: {e}")))?;
         Ok(Identity {
-            keys,
+            keys: header.keys,
             holon,
             zenoh: header.zenoh,
             take_over: overrides.common.take_over,

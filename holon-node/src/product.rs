@@ -37,21 +37,15 @@ impl ProductConfig {
         path: &str,
         overrides: Overrides,
     ) -> Result<ProductConfig, ConfigError> {
-        let invalid = |message: String| ConfigError::Invalid {
-            path: path.to_string(),
-            message,
-        };
-        let file: ProductFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
-            path: path.to_string(),
-            message: e.to_string(),
-        })?;
+        let invalid = holon::config_file::invalid(path);
+        let file: ProductFile = holon::config_file::parse(text, path)?;
         let header = Header {
             cell: file.cell,
             name: file.name,
-            kind: file.kind,
             zenoh: file.zenoh,
         };
-        let identity = Identity::from_header(header, HolonKind::Product, path, &overrides)?;
+        let identity =
+            Identity::from_header(header, &file.kind, HolonKind::Product, path, &overrides)?;
         let plan = Plan {
             product: identity.holon.name().to_string(),
             steps: file.steps,

@@ -3,6 +3,7 @@
 
 pub mod backoff;
 pub mod cli;
+pub mod config_file;
 pub mod journal;
 pub mod life;
 pub mod logging;

@@ -4,19 +4,10 @@ use std::path::Path;
 use std::time::Duration;
 
 use holon::ZenohSettings;
-use schemas::{validate_name, CellKeys};
+use schemas::CellKeys;
 use serde::Deserialize;
 
-#[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
-    #[error("cannot read {path}: {source}")]
-    Read {
-        path: String,
-        source: std::io::Error,
-    },
-    #[error("{path}: {message}")]
-    Invalid { path: String, message: String },
-}
+pub use holon::config_file::ConfigError;
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -219,42 +210,30 @@ pub type Overrides = holon::session::CommandLine;
 
 impl OrderNodeConfig {
     pub fn load(path: &Path, overrides: Overrides) -> Result<Self, ConfigError> {
-        let display = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            path: display.clone(),
-            source,
-        })?;
+        let (text, display) = holon::config_file::read(path)?;
         Self::parse(&text, &display, overrides)
     }
 
     pub fn parse(text: &str, path: &str, overrides: Overrides) -> Result<Self, ConfigError> {
-        let invalid = |message: String| ConfigError::Invalid {
-            path: path.to_string(),
-            message,
-        };
-        let mut file: File = toml::from_str(text).map_err(|e| invalid(e.to_string()))?;
-        if let Some(base) = Path::new(path).parent() {
-            file.zenoh.resolve_paths(base);
+        let invalid = holon::config_file::invalid(path);
+        let mut file: File = holon::config_file::parse(text, path)?;
+        let header = holon::config_file::Header {
+            cell: file.cell,
+            name: file.name,
+            zenoh: file.zenoh,
         }
-        overrides.apply(
-            &mut file.cell,
-            &mut file.name,
-            &mut file.zenoh,
+        .check(
+            path,
+            &overrides,
             &mut file.journal.dir,
-        );
-        let keys = CellKeys::new(&file.cell).map_err(|e| invalid(format!("cell: {e}")))?;
-        validate_name("order-node name", &file.name).map_err(|e| invalid(format!("name: {e}")))?;
-        if file.name.len() > 40 {
+            holon::role::Role::OrderNode,
+        )
+        .map_err(&invalid)?;
+        if header.name.len() > 40 {
             return Err(invalid(
                 "name: at most 40 bytes (order names append a number)".into(),
             ));
         }
-        file.zenoh
-            .validate(&holon::role::identity(
-                holon::role::Role::OrderNode,
-                &file.name,
-            ))
-            .map_err(|e| invalid(format!("zenoh: {e}")))?;
         let o = &file.orders;
         for (field, value) in [
             ("orders.proposal_timeout_ms", o.proposal_timeout_ms),
@@ -290,9 +269,9 @@ impl OrderNodeConfig {
             )));
         }
         Ok(OrderNodeConfig {
-            keys,
-            name: file.name,
-            zenoh: file.zenoh,
+            keys: header.keys,
+            name: header.name,
+            zenoh: header.zenoh,
             orders: OrderSettings {
                 proposal_timeout: Duration::from_millis(o.proposal_timeout_ms),
                 max_attempts: o.max_attempts,

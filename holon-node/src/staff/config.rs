@@ -65,22 +65,16 @@ pub struct StaffConfig {
 
 impl StaffConfig {
     pub fn parse(text: &str, path: &str, overrides: Overrides) -> Result<StaffConfig, ConfigError> {
-        let invalid = |message: String| ConfigError::Invalid {
-            path: path.to_string(),
-            message,
-        };
-        let file: StaffFile = toml::from_str(text).map_err(|e| ConfigError::Parse {
-            path: path.to_string(),
-            message: e.to_string(),
-        })?;
+        let invalid = holon::config_file::invalid(path);
+        let file: StaffFile = holon::config_file::parse(text, path)?;
         // A staff holon keeps no state of its own: what it knows, it learns again.
         let header = Header {
             cell: file.cell,
             name: file.name,
-            kind: file.kind,
             zenoh: file.zenoh,
         };
-        let identity = Identity::from_header(header, HolonKind::Staff, path, &overrides)?;
+        let identity =
+            Identity::from_header(header, &file.kind, HolonKind::Staff, path, &overrides)?;
         if !(100..=600_000).contains(&file.advice.intention_ttl_ms) {
             return Err(invalid(
                 "advice.intention_ttl_ms must be 100 to 600000".into(),
