@@ -3,6 +3,7 @@
 
 pub mod backoff;
 pub mod cli;
+pub mod etcd;
 pub mod config_file;
 pub mod journal;
 pub mod life;

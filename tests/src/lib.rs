@@ -6,6 +6,7 @@
 mod cell;
 mod cell_holons;
 mod environment;
+mod etcd;
 mod paths;
 mod process;
 mod resource;
@@ -16,6 +17,7 @@ pub mod webdriver;
 
 pub use cell::*;
 pub use environment::*;
+pub use etcd::*;
 pub use paths::*;
 pub use process::*;
 pub use resource::*;

@@ -1,0 +1,182 @@
+//! A real etcd cluster for a test: members started from `/usr/bin/etcd` (Debian's
+//! `etcd-server`) on loopback with free ports and their data in a temporary directory,
+//! killed when the cluster is dropped.
+
+use std::path::PathBuf;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+use holon::etcd::{Client, ClientConfig};
+
+use crate::*;
+
+/// The etcd binary, if this machine has one (env `HOLARCHY_ETCD`, default
+/// `/usr/bin/etcd`). `None` prints SKIPPED and the test skips, unless
+/// `HOLARCHY_REQUIRE_ETCD` is set (CI sets it): then a missing etcd fails the test.
+pub fn etcd_binary() -> Option<PathBuf> {
+    let etcd = std::env::var_os("HOLARCHY_ETCD")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("/usr/bin/etcd"));
+    let works = Command::new(&etcd)
+        .arg("--version")
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if works {
+        return Some(etcd);
+    }
+    let why = format!(
+        "no etcd at {} (apt-get install etcd-server, or set HOLARCHY_ETCD)",
+        etcd.display()
+    );
+    if std::env::var_os("HOLARCHY_REQUIRE_ETCD").is_some() {
+        panic!("HOLARCHY_REQUIRE_ETCD is set but {why}");
+    }
+    eprintln!("SKIPPED: {why}");
+    None
+}
+
+/// One member of an [`EtcdCluster`].
+pub struct EtcdMember {
+    /// Its name in the cluster, `m0`, `m1`, ...
+    pub name: String,
+    /// Its client URL, `http://127.0.0.1:<port>`.
+    pub client_url: String,
+    /// The process, `None` once killed.
+    pub process: Option<Process>,
+}
+
+/// A cluster of etcd members on loopback, killed when dropped.
+pub struct EtcdCluster {
+    /// The members, in the order of their names.
+    pub members: Vec<EtcdMember>,
+    /// Data directories and logs (`<name>.stderr`).
+    pub dir: tempfile::TempDir,
+}
+
+impl EtcdCluster {
+    /// Starts `size` members of one new cluster with etcd's default timing (heartbeat
+    /// 100 ms, election 1 s) and waits, at most [`WAIT`], until a put commits.
+    pub async fn start(etcd: &std::path::Path, size: usize) -> Result<EtcdCluster> {
+        let dir = tempfile::tempdir()?;
+        let ports: Vec<(u16, u16)> = (0..size).map(|_| (free_port(), free_port())).collect();
+        let initial: Vec<String> = ports
+            .iter()
+            .enumerate()
+            .map(|(n, (_, peer))| format!("m{n}=http://127.0.0.1:{peer}"))
+            .collect();
+        let initial = initial.join(",");
+        let mut members = Vec::new();
+        for (n, (client, peer)) in ports.iter().enumerate() {
+            let name = format!("m{n}");
+            let client_url = format!("http://127.0.0.1:{client}");
+            let peer_url = format!("http://127.0.0.1:{peer}");
+            let data = dir.path().join(&name);
+            let stderr_path = dir.path().join(format!("{name}.stderr"));
+            let child = Command::new(etcd)
+                .args(["--name", &name, "--data-dir"])
+                .arg(&data)
+                .args([
+                    "--listen-client-urls",
+                    &client_url,
+                    "--advertise-client-urls",
+                    &client_url,
+                    "--listen-peer-urls",
+                    &peer_url,
+                    "--initial-advertise-peer-urls",
+                    &peer_url,
+                    "--initial-cluster",
+                    &initial,
+                    "--initial-cluster-state",
+                    "new",
+                    "--initial-cluster-token",
+                    &format!("holarchy-test-{}", std::process::id()),
+                    "--logger",
+                    "zap",
+                ])
+                .stdout(Stdio::null())
+                .stderr(std::fs::File::create(&stderr_path)?)
+                .spawn()
+                .with_context(|| format!("start {}", etcd.display()))?;
+            members.push(EtcdMember {
+                name: name.clone(),
+                client_url,
+                process: Some(Process {
+                    name: format!("etcd {name}"),
+                    child: Some(child),
+                    stderr_path,
+                }),
+            });
+        }
+        let cluster = EtcdCluster { members, dir };
+        cluster.wait_ready().await?;
+        Ok(cluster)
+    }
+
+    /// Waits until every member names the same raft leader.
+    async fn wait_ready(&self) -> Result<()> {
+        let deadline = tokio::time::Instant::now() + WAIT;
+        let client = self.client();
+        loop {
+            let statuses = client.member_statuses().await;
+            let leaders: Vec<u64> = statuses.iter().map(|s| s.leader_id).collect();
+            if statuses.len() == self.members.len()
+                && leaders[0] != 0
+                && leaders.iter().all(|l| *l == leaders[0])
+            {
+                return Ok(());
+            }
+            if tokio::time::Instant::now() >= deadline {
+                self.print_logs();
+                bail!("the etcd cluster has no common leader after {WAIT:?}: {statuses:?}");
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
+    /// Every member's client URL, killed ones too (a client must cope with them).
+    pub fn endpoints(&self) -> Vec<String> {
+        self.members.iter().map(|m| m.client_url.clone()).collect()
+    }
+
+    /// A client of every member, with the default timeouts.
+    pub fn client(&self) -> Client {
+        Client::new(ClientConfig::new(self.endpoints())).expect("loopback endpoints")
+    }
+
+    /// Kills member `n` (SIGKILL), as a host that dies.
+    pub fn kill(&mut self, n: usize) {
+        if let Some(mut process) = self.members[n].process.take() {
+            process.kill();
+        }
+    }
+
+    /// The index of the member that is the raft leader, as the live members say.
+    pub async fn raft_leader(&self) -> Result<usize> {
+        let statuses = self.client().member_statuses().await;
+        let leader = statuses
+            .iter()
+            .find(|s| s.leader_id != 0 && s.member_id == s.leader_id)
+            .with_context(|| format!("no member is the raft leader: {statuses:?}"))?;
+        self.members
+            .iter()
+            .position(|m| m.client_url == leader.endpoint)
+            .context("the leader is not a member")
+    }
+
+    /// Prints the end of each member's log (for a failed test).
+    pub fn print_logs(&self) {
+        for member in &self.members {
+            let log =
+                std::fs::read_to_string(self.dir.path().join(format!("{}.stderr", member.name)))
+                    .unwrap_or_default();
+            let tail: Vec<&str> = log.lines().rev().take(15).collect();
+            eprintln!("--- etcd {} (last lines)", member.name);
+            for line in tail.into_iter().rev() {
+                eprintln!("{line}");
+            }
+        }
+    }
+}

@@ -1,0 +1,384 @@
+//! The order-node's store on etcd (issue 31, step 1), against a real cluster of three
+//! etcd members on loopback: one holder at a time with growing epochs, a deposed
+//! holder's writes refused by etcd and nothing of them stored, writes that commit with
+//! a member dead or the raft leader dead, a dead holder replaced by its standby, and the
+//! cost of a fenced write against a SQLite journal's.
+//!
+//! Skipped (SKIPPED printed) without `/usr/bin/etcd`, unless `HOLARCHY_REQUIRE_ETCD` is
+//! set. The tests run one at a time (each starts its own cluster), so the figures they
+//! print are not those of three clusters on two cores.
+
+use std::time::{Duration, Instant};
+
+use holarchy_tests::*;
+use holon::etcd::{Candidate, ElectionConfig, EtcdError, FencedStore, Leader};
+use serde_json::{json, Value};
+
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+const PREFIX: &str = "holarchy/test/order-node/orders";
+
+/// The lease TTL of the elections here (the default).
+const TTL: Duration = Duration::from_secs(2);
+
+fn candidate(cluster: &EtcdCluster, name: &str) -> Candidate {
+    Candidate::new(cluster.client(), ElectionConfig::new(PREFIX, name))
+}
+
+/// Campaigns until won, at most [`WAIT`].
+async fn win(candidate: &Candidate) -> Leader {
+    tokio::time::timeout(WAIT, candidate.campaign(std::future::pending()))
+        .await
+        .expect("won within WAIT")
+        .expect("campaign")
+        .expect("not cancelled")
+}
+
+/// A campaign in its own task.
+fn campaign_in_background(candidate: Candidate) -> tokio::task::JoinHandle<Leader> {
+    tokio::spawn(async move { win(&candidate).await })
+}
+
+async fn cluster() -> Option<EtcdCluster> {
+    let etcd = etcd_binary()?;
+    Some(
+        EtcdCluster::start(&etcd, 3)
+            .await
+            .expect("a 3-member etcd cluster"),
+    )
+}
+
+fn order(by: &str, n: u32) -> Value {
+    json!({"by": by, "n": n, "steps": ["drill", "mill", "inspect"]})
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_holder_at_a_time_and_epochs_grow() {
+    let _serial = ONE_AT_A_TIME.lock().await;
+    let Some(cluster) = cluster().await else {
+        return;
+    };
+    let (a, b) = (candidate(&cluster, "host-a"), candidate(&cluster, "host-b"));
+    let mut first = campaign_in_background(a.clone());
+    let mut second = campaign_in_background(b.clone());
+    // Exactly one wins; the other stands by.
+    let (winner, mut standby, winner_name) = tokio::time::timeout(WAIT, async {
+        tokio::select! {
+            won = &mut first => (won.unwrap(), second, "host-a"),
+            won = &mut second => (won.unwrap(), first, "host-b"),
+        }
+    })
+    .await
+    .expect("one candidate wins");
+    let holder = a.holder().await.unwrap().expect("a holder");
+    assert_eq!(holder.candidate, winner_name);
+    assert_eq!(holder.epoch, winner.epoch());
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert!(
+        !standby.is_finished(),
+        "the second candidate won while the first held the key"
+    );
+    assert!(!winner.is_deposed(), "the holder keeps its key alive");
+    // The holder resigns: the standby wins at once, at a greater epoch.
+    let first_epoch = winner.epoch();
+    let resigned = Instant::now();
+    winner.resign().await.unwrap();
+    let next = tokio::time::timeout(WAIT, &mut standby)
+        .await
+        .expect("the standby wins after a resignation")
+        .unwrap();
+    println!(
+        "after a resignation the standby won in {:?}",
+        resigned.elapsed()
+    );
+    assert!(
+        next.epoch() > first_epoch,
+        "epoch {} after {first_epoch}",
+        next.epoch()
+    );
+    // The first campaigns again and wins once the second is gone; greater again.
+    let again = campaign_in_background(if winner_name == "host-a" { a } else { b });
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert!(!again.is_finished(), "won while the key was held");
+    let second_epoch = next.epoch();
+    drop(next);
+    let third = tokio::time::timeout(WAIT, again).await.unwrap().unwrap();
+    assert!(third.epoch() > second_epoch);
+    println!("epochs: {first_epoch} < {second_epoch} < {}", third.epoch());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_deposed_holders_writes_are_refused_and_change_nothing() {
+    let _serial = ONE_AT_A_TIME.lock().await;
+    let Some(cluster) = cluster().await else {
+        return;
+    };
+    let a = win(&candidate(&cluster, "host-a")).await;
+    let store_a = a.store();
+    store_a.put("order", "o1", &order("a", 1)).await.unwrap();
+    store_a
+        .put_all([("order", "o2", &order("a", 2)), ("meta", "next", &json!(3))])
+        .await
+        .unwrap();
+    // A store fenced on the epoch alone: it cannot know it is deposed, etcd must refuse.
+    let blind = FencedStore::new(cluster.client(), PREFIX, a.epoch());
+    // a's lease ends behind its back (as when it expires while a is frozen) and b wins.
+    assert!(cluster.client().lease_revoke(a.lease()).await.unwrap());
+    let b = win(&candidate(&cluster, "host-b")).await;
+    assert!(b.epoch() > a.epoch());
+    let store_b = b.store();
+    store_b.put("order", "o1", &order("b", 10)).await.unwrap();
+
+    for (what, refused) in [
+        ("put", blind.put("order", "o1", &order("a", 99)).await),
+        ("new record", blind.put("order", "o9", &order("a", 9)).await),
+        ("delete", blind.delete("order", ["o2"]).await),
+        (
+            "batch",
+            blind
+                .put_all([("order", "o3", &order("a", 3)), ("meta", "next", &json!(4))])
+                .await,
+        ),
+    ] {
+        match refused {
+            Err(EtcdError::Deposed { epoch, holder, .. }) => {
+                assert_eq!(epoch, a.epoch());
+                assert!(holder.contains("host-b"), "{what}: {holder}");
+                assert!(holder.contains(&b.epoch().to_string()), "{what}: {holder}");
+            }
+            other => panic!("{what} of a deposed holder: {other:?}"),
+        }
+    }
+    // Nothing of them is in the store.
+    let orders: Vec<(String, Value)> = store_b.list("order").await.unwrap();
+    assert_eq!(
+        orders,
+        vec![
+            ("o1".to_string(), order("b", 10)),
+            ("o2".to_string(), order("a", 2))
+        ]
+    );
+    assert_eq!(store_b.get::<u32>("meta", "next").await.unwrap(), Some(3));
+
+    // a hears it is deposed, and its own store then refuses without asking etcd.
+    let why = tokio::time::timeout(WAIT, a.deposed()).await.unwrap();
+    println!("a deposed: {why}");
+    let refused = store_a
+        .put("order", "o1", &order("a", 7))
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(&refused, EtcdError::Deposed { holder, .. } if holder.contains("stepped down")),
+        "{refused}"
+    );
+    assert!(!b.is_deposed());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_store_commits_with_one_member_dead() {
+    let _serial = ONE_AT_A_TIME.lock().await;
+    let Some(mut cluster) = cluster().await else {
+        return;
+    };
+    // The member to kill is a follower, and first in the client's list: the client must
+    // fail over to the next.
+    let leader = cluster.raft_leader().await.unwrap();
+    let dead = (leader + 1) % 3;
+    let mut endpoints = cluster.endpoints();
+    endpoints.rotate_left(dead);
+    let client = holon::etcd::Client::new(holon::etcd::ClientConfig::new(endpoints)).unwrap();
+    let holder = win(&Candidate::new(
+        client.clone(),
+        ElectionConfig::new(PREFIX, "host-a"),
+    ))
+    .await;
+    let store = holder.store();
+    for n in 0..10 {
+        store
+            .put("order", &format!("before-{n}"), &order("a", n))
+            .await
+            .unwrap();
+    }
+    cluster.kill(dead);
+    let killed = Instant::now();
+    for n in 0..20 {
+        store
+            .put("order", &format!("after-{n}"), &order("a", n))
+            .await
+            .unwrap_or_else(|e| panic!("write {n} with 2 of 3 members: {e}"));
+    }
+    println!(
+        "20 fenced writes with member {dead} dead: {:?}",
+        killed.elapsed()
+    );
+    store.delete("order", ["before-0"]).await.unwrap();
+    let orders: Vec<(String, Value)> = store.list("order").await.unwrap();
+    assert_eq!(orders.len(), 29);
+    assert!(
+        !holder.is_deposed(),
+        "the holder keeps its lease with 2 of 3"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_dead_holder_is_replaced_by_its_standby() {
+    let _serial = ONE_AT_A_TIME.lock().await;
+    let Some(cluster) = cluster().await else {
+        return;
+    };
+    let primary = win(&candidate(&cluster, "host-a")).await;
+    primary
+        .store()
+        .put("order", "o1", &order("a", 1))
+        .await
+        .unwrap();
+    let epoch = primary.epoch();
+    let standby = campaign_in_background(candidate(&cluster, "host-b"));
+    tokio::time::sleep(Duration::from_millis(700)).await;
+    assert!(!standby.is_finished());
+    // The primary's process dies: its keep-alives stop, its lease is not revoked (the
+    // gateway's connections carry no session): etcd expires it after the TTL.
+    drop(primary);
+    let died = Instant::now();
+    let next = tokio::time::timeout(WAIT, standby).await.unwrap().unwrap();
+    let failover = died.elapsed();
+    println!("the standby took over {failover:?} after the holder died (lease TTL {TTL:?})");
+    assert!(
+        failover < TTL + Duration::from_secs(3),
+        "took {failover:?} (TTL {TTL:?})"
+    );
+    assert!(next.epoch() > epoch);
+    // The standby reads what the primary wrote, and writes on.
+    let store = next.store();
+    assert_eq!(
+        store.get::<Value>("order", "o1").await.unwrap(),
+        Some(order("a", 1))
+    );
+    store.put("order", "o1", &order("b", 2)).await.unwrap();
+    let stale = FencedStore::new(cluster.client(), PREFIX, epoch);
+    assert!(matches!(
+        stale.put("order", "o1", &order("a", 3)).await,
+        Err(EtcdError::Deposed { .. })
+    ));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_store_works_after_the_raft_leader_dies() {
+    let _serial = ONE_AT_A_TIME.lock().await;
+    let Some(mut cluster) = cluster().await else {
+        return;
+    };
+    let a = candidate(&cluster, "host-a");
+    let mut holder = win(&a).await;
+    let mut store = holder.store();
+    store.put("order", "o0", &order("a", 0)).await.unwrap();
+    let raft_leader = cluster.raft_leader().await.unwrap();
+    cluster.kill(raft_leader);
+    let killed = Instant::now();
+    // Writes fail (no raft leader) or are uncertain until etcd has elected a new one;
+    // then they commit.
+    let mut failures = Vec::new();
+    let n = 1;
+    loop {
+        assert!(
+            killed.elapsed() < WAIT,
+            "no write committed within {WAIT:?}: {failures:?}"
+        );
+        match store.put("order", &format!("o{n}"), &order("a", n)).await {
+            Ok(()) => break,
+            Err(EtcdError::Deposed { .. }) => {
+                // The holder could not renew its lease during the raft election and
+                // stepped down: it campaigns again, at a new epoch.
+                println!("the holder stepped down during the raft election; campaigning again");
+                holder = win(&a).await;
+                store = holder.store();
+            }
+            Err(e) => {
+                assert!(e.is_transient(), "{e}");
+                failures.push(e.to_string());
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+        }
+    }
+    println!(
+        "first write committed {:?} after the raft leader died ({} failed before)",
+        killed.elapsed(),
+        failures.len()
+    );
+    let new_leader = cluster.raft_leader().await.unwrap();
+    assert_ne!(new_leader, raft_leader);
+    for m in n + 1..n + 11 {
+        store
+            .put("order", &format!("o{m}"), &order("a", m))
+            .await
+            .unwrap();
+    }
+    let orders: Vec<(String, Value)> = store.list("order").await.unwrap();
+    assert_eq!(orders.len(), 12, "{orders:?}");
+    println!(
+        "the holder {} (epoch {})",
+        if holder.is_deposed() {
+            "is deposed"
+        } else {
+            "holds on"
+        },
+        holder.epoch()
+    );
+}
+
+/// Milliseconds per write, sorted: (mean, median, 99th percentile).
+fn figures(mut samples: Vec<Duration>) -> (f64, f64, f64) {
+    samples.sort();
+    let ms = |d: Duration| d.as_secs_f64() * 1000.0;
+    let mean = samples.iter().map(|d| ms(*d)).sum::<f64>() / samples.len() as f64;
+    let median = ms(samples[samples.len() / 2]);
+    let p99 = ms(samples[(samples.len() * 99 / 100).min(samples.len() - 1)]);
+    (mean, median, p99)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_fenced_write_costs_against_a_sqlite_put() {
+    let _serial = ONE_AT_A_TIME.lock().await;
+    let Some(cluster) = cluster().await else {
+        return;
+    };
+    const WRITES: u32 = 200;
+    let holder = win(&candidate(&cluster, "host-a")).await;
+    let store = holder.store();
+    let mut etcd = Vec::new();
+    for n in 0..WRITES {
+        let started = Instant::now();
+        store
+            .put("order", &format!("o{n}"), &order("a", n))
+            .await
+            .unwrap();
+        etcd.push(started.elapsed());
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let journal = holon::journal::Journal::open(
+        dir.path(),
+        "j.sqlite",
+        holon::journal::Durability::default(),
+    )
+    .unwrap();
+    let mut sqlite = Vec::new();
+    for n in 0..WRITES {
+        let started = Instant::now();
+        journal
+            .put("order", &format!("o{n}"), &order("a", n))
+            .unwrap();
+        sqlite.push(started.elapsed());
+    }
+    let (mean, median, p99) = figures(etcd);
+    println!(
+        "fenced etcd write (3 members on loopback, one writer): mean {mean:.2} ms, median {median:.2} ms, p99 {p99:.2} ms"
+    );
+    let (mean, median, p99) = figures(sqlite);
+    println!(
+        "SQLite journal put (power_loss, one writer): mean {mean:.2} ms, median {median:.2} ms, p99 {p99:.2} ms"
+    );
+    assert_eq!(
+        store.list::<Value>("order").await.unwrap().len(),
+        WRITES as usize
+    );
+}
