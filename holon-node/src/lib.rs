@@ -3,7 +3,8 @@
 //! The resource holon is five components, each a task under one supervisor
 //! ([`component`]): interfacing, execution, agenda manager, requesters and
 //! communication, after the seed's Figure 3. The state machines they own are pure:
-//! [`agenda`] (Figure 4) and [`execution`] (Figure 5). [`node::run`] wires them.
+//! [`agenda`] (Figure 4), [`execution`] (Figure 5) and [`delivery`] (results until
+//! acknowledged). [`node::run`] wires them.
 
 /// This build's release, published in every holon's state (`version`).
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
@@ -13,6 +14,7 @@ pub mod agenda;
 pub mod catalog;
 pub mod component;
 pub mod config;
+pub mod delivery;
 pub mod execution;
 pub mod fault_injection;
 pub mod fence;

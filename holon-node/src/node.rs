@@ -13,7 +13,6 @@ use std::time::Duration;
 use holon::takeover::TakenOver;
 use holon::{ChildSpec, Supervisor};
 use robot_bridge::client::{ControllerEvent, FenceHandle, FencePort};
-use schemas::Service;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
@@ -21,7 +20,6 @@ use tracing::{error, info, warn};
 use crate::absences::{Absences, Moment};
 use crate::agenda::{AgendaEvent, Inheritance};
 use crate::component::agenda_manager::{self, AgendaMessage, JournalledAgenda};
-use crate::component::delivery::Deliveries;
 use crate::component::{communication, execution, interfacing, requesters};
 use crate::config::ResourceConfig;
 use crate::execution::Execution;
@@ -100,9 +98,6 @@ impl Wiring {
     ) -> Result<Wiring, NodeError> {
         let holon = config.holon.clone();
         let agenda = JournalledAgenda::open(config, inheritance)?;
-        // Results not acknowledged before a restart (and an interrupted job's `failed`)
-        // go out when the communication component starts (from the agenda's view).
-        let deliveries = Deliveries::new(holon.clone(), session.clone(), config.delivery);
         let views = Arc::new(Views::new(agenda.view(), Absences::new(Moment::now())));
         if fence.is_some() {
             views.fence.send_replace(FenceView::Standby);
@@ -114,7 +109,6 @@ impl Wiring {
         let jobs: Mailbox<crate::execution::ExecutionRequest> = Mailbox::new();
         let controller: Mailbox<ControllerEvent> = Mailbox::new();
         let commands: Mailbox<robot_bridge::client::ControllerRequest> = Mailbox::new();
-        let results: Mailbox<Service> = Mailbox::new();
         Ok(Wiring {
             interfacing: Arc::new(interfacing::Links {
                 controller: config.controller.clone(),
@@ -140,7 +134,8 @@ impl Wiring {
                 agenda: Handover::new(agenda),
                 mailbox: agenda_mail.share(),
                 jobs: jobs.sender.clone(),
-                results: results.sender.clone(),
+                session: session.clone(),
+                delivery: config.delivery,
                 views: views.clone(),
                 faults: faults.clone(),
             }),
@@ -155,8 +150,6 @@ impl Wiring {
             communication: Arc::new(communication::Links {
                 config: config.clone(),
                 session: session.clone(),
-                deliveries: Handover::new(deliveries),
-                results,
                 agenda: agenda_mail.sender,
                 views,
                 faults,

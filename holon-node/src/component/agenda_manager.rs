@@ -15,8 +15,17 @@
 //! 3. the agenda view is republished ([`crate::views`]), so a state read after the
 //!    answer sees the change;
 //! 4. the actions are carried out, here and nowhere else: `Reply` answers the question,
-//!    `Execute` goes to the execution component, `Deliver` to the communication
-//!    component, which sends the result until it is acknowledged.
+//!    `Execute` goes to the execution component, `Deliver` to the delivery machine
+//!    ([`crate::delivery`]), whose attempts this task sends out and owns
+//!    ([`crate::component::delivery::Courier`]) until the requester acknowledges.
+//!
+//! It owns the undelivered results alone: the agenda holds them (journalled), the
+//! delivery machine their attempts; an acknowledgement goes straight into the agenda.
+//! It never waits on another component: a job goes to the execution component's
+//! mailbox with `try_send` (that mailbox holds at most a job and an abort, see
+//! [`send_job`]), and an attempt is a future of its own, not a task behind a channel.
+//! Every other component sends to its mailbox, and none of them is waited on by it, so
+//! no cycle of waiting can form.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -25,12 +34,15 @@ use holon::journal::{Journal, JournalError};
 use holon::ChildError;
 use schemas::{HolonId, PackmlState, Service};
 use tokio::sync::mpsc;
+use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
 use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord, Inheritance};
+use crate::component::delivery::Courier;
 use crate::component::question::Question;
-use crate::config::ResourceConfig;
+use crate::config::{DeliverySettings, ResourceConfig};
+use crate::delivery::{repeat_worth_logging, Deliveries, DeliveryAction, DeliveryEvent};
 use crate::execution::ExecutionRequest;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
@@ -84,7 +96,7 @@ pub struct JournalledAgenda {
 impl JournalledAgenda {
     /// The agenda, restored from the journal if the holon has a data directory. Results
     /// not acknowledged before a restart (and an interrupted job's `failed`) are
-    /// delivered by the communication component, which asks for them when it starts.
+    /// delivered by the agenda manager, which takes them from the agenda when it starts.
     pub fn open(
         config: &ResourceConfig,
         inheritance: Inheritance,
@@ -148,16 +160,21 @@ impl JournalledAgenda {
         snapshot.journal_fault = self.fault.clone();
         AgendaView {
             snapshot,
-            deliverable: self
-                .agenda
-                .undelivered()
-                .iter()
-                .filter(|r| !self.held.contains(r))
-                .cloned()
-                .collect(),
+            deliverable: self.deliverable(),
             accepting: self.agenda.takes_work() && self.fault.is_none(),
             drained: self.agenda.is_drained(),
         }
+    }
+
+    /// The results not yet acknowledged that may go out: all but those the journal could
+    /// not record yet.
+    fn deliverable(&self) -> Vec<Service> {
+        self.agenda
+            .undelivered()
+            .iter()
+            .filter(|r| !self.held.contains(r))
+            .cloned()
+            .collect()
     }
 
     /// One event through the state machine, and the journal write of what changed: the
@@ -359,17 +376,29 @@ pub struct Links {
     pub agenda: Handover<JournalledAgenda>,
     /// Every event for it.
     pub mailbox: Mailbox<AgendaMessage>,
-    /// The execution component's job mailbox (jobs and aborts).
+    /// The execution component's job mailbox (jobs and aborts), never waited on.
     pub jobs: mpsc::Sender<ExecutionRequest>,
-    /// The communication component's mailbox of results to deliver.
-    pub results: mpsc::Sender<Service>,
+    /// The session results are delivered on.
+    pub session: zenoh::Session,
+    /// The pauses between attempts to deliver a result, and their timeout.
+    pub delivery: DeliverySettings,
     /// Where it publishes its view.
     pub views: Arc<Views>,
     pub faults: Arc<Faults>,
 }
 
-/// The component's task: drains the mailbox, the events waiting at once together, until
-/// cancelled.
+/// The delivery of the agenda's results, held by the running task: the machine that
+/// schedules the attempts and the attempts out. A successor starts both afresh from the
+/// agenda's undelivered results (an attempt lost with its predecessor goes out again).
+struct Delivery {
+    /// When each result goes out (again).
+    deliveries: Deliveries,
+    /// The attempts out.
+    courier: Courier,
+}
+
+/// The component's task: drains the mailbox, the events waiting at once together, and
+/// delivers the results, until cancelled.
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
     let holon = &links.holon;
     let mut agenda = links.agenda.take().await;
@@ -377,9 +406,27 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     // A successor publishes at once: its predecessor may have died between a change and
     // its publication.
     links.views.agenda.send_replace(agenda.view());
+    let mut delivery = Delivery {
+        deliveries: Deliveries::new(links.delivery, *links.views.delivery_retries.borrow()),
+        courier: Courier::new(links.session.clone(), links.delivery.attempt_timeout),
+    };
+    // Results not yet acknowledged (from before a restart of the process or of this
+    // component) go out as soon as the resource serves.
+    for result in agenda.deliverable() {
+        deliver(&links, &mut delivery, DeliveryEvent::Result(result));
+    }
+    // A fenced resource delivers nothing until it holds its controller
+    // (docs/reliability.md, "Standby resources").
+    let mut fence = links.views.fence.subscribe();
+    let mut serving = false;
     let mut journal_retry = tokio::time::interval(JOURNAL_RETRY);
     journal_retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
+        if !serving && fence.borrow_and_update().serves() {
+            serving = true;
+            deliver(&links, &mut delivery, DeliveryEvent::Serving);
+        }
+        let next_due = delivery.deliveries.next_due();
         let batch = tokio::select! {
             _ = token.cancelled() => return Ok(()),
             _ = links.faults.agenda.notified() => panic!("fault injection: agenda manager crashed"),
@@ -394,7 +441,29 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                 if actions.contains(&AgendaAction::StateChanged) {
                     links.views.agenda.send_replace(agenda.view());
                 }
-                carry_out(&links, actions, None).await?;
+                carry_out(&links, &mut delivery, actions, None).await?;
+                continue;
+            }
+            (conversation_id, outcome) = delivery.courier.next_end() => {
+                let ended = DeliveryEvent::AttemptEnded { conversation_id, outcome };
+                for conversation_id in deliver(&links, &mut delivery, ended) {
+                    // Recorded lazily (see `JournalledAgenda::apply`); never refused.
+                    let acknowledged = AgendaEvent::ResultAcknowledged { conversation_id };
+                    if let Ok(actions) = agenda.apply(holon, acknowledged) {
+                        if actions.contains(&AgendaAction::StateChanged) {
+                            links.views.agenda.send_replace(agenda.view());
+                        }
+                        carry_out(&links, &mut delivery, actions, None).await?;
+                    }
+                }
+                continue;
+            }
+            _ = tokio::time::sleep_until(next_due.unwrap_or_else(Instant::now)), if next_due.is_some() => {
+                deliver(&links, &mut delivery, DeliveryEvent::Tick);
+                continue;
+            }
+            changed = fence.changed(), if !serving => {
+                changed.map_err(|_| "the fence view closed")?;
                 continue;
             }
             message = mailbox.recv() => {
@@ -423,7 +492,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         }
         for (outcome, question) in outcomes.into_iter().zip(questions) {
             match outcome {
-                Ok(actions) => carry_out(&links, actions, question).await?,
+                Ok(actions) => carry_out(&links, &mut delivery, actions, question).await?,
                 Err(NotRecorded) => {
                     if let Some(question) = question {
                         question
@@ -440,9 +509,72 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     }
 }
 
+/// One event through the delivery machine, its actions carried out: attempts go out,
+/// the count of retries is republished when it changed. Returns the conversations
+/// whose results were acknowledged (for the agenda).
+fn deliver(links: &Links, delivery: &mut Delivery, event: DeliveryEvent) -> Vec<String> {
+    let holon = &links.holon;
+    let mut acknowledged = Vec::new();
+    for action in delivery.deliveries.handle(event, Instant::now()) {
+        match action {
+            DeliveryAction::Attempt { message, attempt } => {
+                if repeat_worth_logging(attempt) {
+                    info!(%holon, conversation_id = %message.conversation_id, message_type = %message.message_type, reply_to = message.reply_to.as_deref().unwrap_or(""), attempt, "sending result");
+                } else {
+                    debug!(%holon, conversation_id = %message.conversation_id, attempt, "sending result again");
+                }
+                delivery.courier.send(message);
+            }
+            DeliveryAction::Retry {
+                conversation_id,
+                attempt,
+                refused,
+                pause,
+            } => match refused {
+                Some(why) if repeat_worth_logging(attempt) => {
+                    warn!(%holon, %conversation_id, attempt, reason = %why, retry_in = ?pause, "result refused; it is sent again until acknowledged");
+                }
+                _ => {
+                    debug!(%holon, %conversation_id, retry_in = ?pause, "result not acknowledged yet")
+                }
+            },
+            DeliveryAction::Acknowledged {
+                conversation_id,
+                message_type,
+                attempts,
+            } => {
+                info!(%holon, %conversation_id, %message_type, attempts, "result acknowledged");
+                acknowledged.push(conversation_id);
+            }
+        }
+    }
+    // Retries back off (doubling), so publishing the count with each is cheap.
+    let retries = delivery.deliveries.retries();
+    links.views.delivery_retries.send_if_modified(|count| {
+        let changed = *count != retries;
+        *count = retries;
+        changed
+    });
+    acknowledged
+}
+
+/// Hands a job or an abort to the execution component without waiting for room: the
+/// agenda begins a job only after it learnt the end of the last one, and aborts the
+/// running one at most once, so the mailbox holds at most a job and an abort and is
+/// never full. Full would be a bug: the component fails and is restarted.
+fn send_job(links: &Links, request: ExecutionRequest) -> Result<(), ChildError> {
+    links.jobs.try_send(request).map_err(|e| match e {
+        mpsc::error::TrySendError::Full(_) => ChildError::from(
+            "the execution mailbox is full (it holds at most a job and an abort: a bug)",
+        ),
+        mpsc::error::TrySendError::Closed(_) => ChildError::from("execution mailbox closed"),
+    })
+}
+
 /// Carries out the actions of one transition.
 async fn carry_out(
     links: &Links,
+    delivery: &mut Delivery,
     actions: Vec<AgendaAction>,
     mut question: Option<Question>,
 ) -> Result<(), ChildError> {
@@ -457,19 +589,11 @@ async fn carry_out(
             },
             AgendaAction::Execute(job) => {
                 info!(%holon, component = "agenda", conversation_id = %job.conversation_id, requester = %job.requester, "starting execution");
-                links
-                    .jobs
-                    .send(ExecutionRequest::Start(job))
-                    .await
-                    .map_err(|_| "execution mailbox closed")?;
+                send_job(links, ExecutionRequest::Start(job))?;
             }
             AgendaAction::Abort => {
                 info!(%holon, component = "agenda", "PackML abort: the running step is aborted");
-                links
-                    .jobs
-                    .send(ExecutionRequest::Abort)
-                    .await
-                    .map_err(|_| "execution mailbox closed")?;
+                send_job(links, ExecutionRequest::Abort)?;
             }
             AgendaAction::PackmlReply(reply) => match question.take() {
                 Some(question) => {
@@ -480,11 +604,11 @@ async fn carry_out(
                     warn!(%holon, "a PackML answer without a question is dropped (a bug: only requests are answered)")
                 }
             },
-            AgendaAction::Deliver(result) => links
-                .results
-                .send(result)
-                .await
-                .map_err(|_| "delivery mailbox closed")?,
+            AgendaAction::Deliver(result) => {
+                // A new result is not acknowledged yet: nothing comes back for the agenda.
+                let acknowledged = deliver(links, delivery, DeliveryEvent::Result(result));
+                debug_assert!(acknowledged.is_empty());
+            }
             // Published before the actions (see `run`).
             AgendaAction::StateChanged => {}
         }

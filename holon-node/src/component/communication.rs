@@ -10,13 +10,14 @@
 //! `status` are answered here from the published views.
 //!
 //! It also publishes the state snapshot on `resource/<name>/state` whenever a view
-//! changes, and delivers each `done` / `failed` to its `reply_to` until acknowledged
-//! ([`crate::component::delivery`]).
+//! changes. Results are not its business: the agenda manager, which owns them, delivers
+//! them ([`crate::component::delivery`]).
 //!
 //! Back-pressure: queries wait in a queue of [`QUERY_QUEUE`]; when it is full (the
 //! component is far behind), a new query is refused at once with `unavailable`, and the
 //! requester asks again after its pause. The agenda manager's mailbox is bounded too:
-//! while it is full this component waits, and queries queue up here.
+//! while it is full this component waits, and queries queue up here. The agenda
+//! manager never waits on this component (it sends it nothing), so that wait ends.
 
 use std::sync::Arc;
 
@@ -28,11 +29,9 @@ use tracing::{debug, info, warn};
 
 use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
-use crate::component::delivery::Deliveries;
 use crate::component::question::Question;
 use crate::config::ResourceConfig;
 use crate::fault_injection::Faults;
-use crate::handover::{Handover, Mailbox};
 use crate::views::Views;
 
 /// How many queries wait for this component before new ones are refused `unavailable`.
@@ -43,10 +42,6 @@ pub struct Links {
     /// Its keys, its service types, whether fault injection is declared.
     pub config: ResourceConfig,
     pub session: zenoh::Session,
-    /// The results on their way, which it owns.
-    pub deliveries: Handover<Deliveries>,
-    /// Results to deliver, from the agenda manager.
-    pub results: Mailbox<Service>,
     /// The agenda manager's mailbox.
     pub agenda: mpsc::Sender<AgendaMessage>,
     /// What it publishes and answers state reads from.
@@ -210,9 +205,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     let mut agenda_view = links.views.agenda.subscribe();
     let mut execution_view = links.views.execution.subscribe();
     let mut absences = links.views.absences.subscribe();
-    // Results not yet acknowledged (from before a restart of the process or of this
-    // component): due at once.
-    let undelivered = agenda_view.borrow_and_update().deliverable.clone();
+    let mut retries = links.views.delivery_retries.subscribe();
     let (arrivals_tx, mut arrivals) = mpsc::channel(QUERY_QUEUE);
     let mut queryables = Queryables::declare(&links, arrivals_tx).await?;
     queryables.sync_offers(&links).await?;
@@ -220,9 +213,6 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         .session
         .declare_publisher(config.keys.state(holon))
         .await?;
-    let mut deliveries = links.deliveries.take().await;
-    let mut results = links.results.take().await;
-    deliveries.resync(&undelivered);
     // The last snapshot published (its time cleared): an unchanged one is not sent again.
     let mut last_published = None;
     publish(&links, &publisher, &mut last_published).await;
@@ -232,33 +222,12 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     // Whether the last view changes are published.
     let mut settled = true;
     loop {
-        let next_due = deliveries.next_due();
         tokio::select! {
             _ = token.cancelled() => break,
             _ = links.faults.communication.notified() => panic!("fault injection: communication crashed"),
             Some(arrival) = arrivals.recv() => {
                 if let Some(message) = answer(&links, arrival).await {
-                    to_agenda(&links, message, &mut results, &mut deliveries).await?;
-                }
-            }
-            result = results.recv() => deliveries.add(result.ok_or("delivery mailbox closed")?),
-            _ = async { tokio::time::sleep_until(next_due.unwrap_or_else(tokio::time::Instant::now)).await }, if next_due.is_some() => {
-                deliveries.send_due();
-                // Retries back off (doubling), so publishing the count with each is cheap.
-                let retries = deliveries.retries();
-                let counted = links.views.delivery_retries.send_if_modified(|count| {
-                    let changed = *count != retries;
-                    *count = retries;
-                    changed
-                });
-                if counted {
-                    publish(&links, &publisher, &mut last_published).await;
-                }
-            }
-            Some(end) = deliveries.attempt_ended() => {
-                if let Some(conversation_id) = deliveries.ended(end) {
-                    let acknowledged = AgendaEvent::ResultAcknowledged { conversation_id };
-                    to_agenda(&links, acknowledged.into(), &mut results, &mut deliveries).await?;
+                    links.agenda.send(message).await.map_err(|_| "agenda mailbox closed")?;
                 }
             }
             changed = agenda_view.changed() => {
@@ -277,6 +246,10 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                 changed.map_err(|_| "the fence view closed")?;
                 settled = false;
             }
+            changed = retries.changed() => {
+                changed.map_err(|_| "the delivery retries view closed")?;
+                settled = false;
+            }
         }
         if !settled {
             // The changes of one moment (a job begins: the agenda says busy and the
@@ -288,12 +261,12 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             execution_view.borrow_and_update();
             absences.borrow_and_update();
             fence.borrow_and_update();
+            retries.borrow_and_update();
             queryables.sync_offers(&links).await?;
             publish(&links, &publisher, &mut last_published).await;
             settled = true;
         }
     }
-    deliveries.shutdown().await;
     queryables.undeclare(holon).await;
     Ok(())
 }
@@ -423,26 +396,6 @@ async fn confirm_claim(links: &Links) -> Result<(), String> {
         Ok(Ok(epoch)) => Err(format!("the controller granted epoch {epoch}, not {held}")),
         Ok(Err(e)) => Err(e.to_string()),
         Err(_) => Err(format!("no answer within {CONFIRM_WAIT:?}")),
-    }
-}
-
-/// Sends `message` to the agenda manager. While its mailbox is full this component
-/// keeps taking the results the agenda manager hands over (it may be waiting to hand
-/// one over itself): neither waits for the other for ever.
-async fn to_agenda(
-    links: &Links,
-    message: AgendaMessage,
-    results: &mut mpsc::Receiver<Service>,
-    deliveries: &mut Deliveries,
-) -> Result<(), ChildError> {
-    loop {
-        tokio::select! {
-            permit = links.agenda.reserve() => {
-                permit.map_err(|_| "agenda mailbox closed")?.send(message);
-                return Ok(());
-            }
-            result = results.recv() => deliveries.add(result.ok_or("delivery mailbox closed")?),
-        }
     }
 }
 

@@ -6,6 +6,11 @@
 //! actions: commands go to the interfacing component, `ready`, `unavailable` and
 //! finished jobs to the agenda manager; after every event it republishes its view (the
 //! controller and the step in progress) when that changed.
+//!
+//! It waits for room in the agenda manager's mailbox (which never waits on it), never
+//! in the interfacing component's: that mailbox holds at most the running step's
+//! command and an abort (the machine sends a step's command after the last one's
+//! reply), so a command goes with `try_send` and the two never wait on each other.
 
 use std::sync::Arc;
 
@@ -126,20 +131,12 @@ async fn carry_out(
                         .await
                         .map_err(|e| ChildError::from(format!("the fence: {e}")))?;
                 }
-                _ => links
-                    .commands
-                    .send(command.into())
-                    .await
-                    .map_err(|_| "command mailbox closed")?,
+                _ => to_controller(links, command.into())?,
             }
         }
         ExecutionAction::AbortController => {
             info!(%holon, component = "execution", "abort: the controller is told to stop");
-            links
-                .commands
-                .send(ControllerRequest::Abort)
-                .await
-                .map_err(|_| "command mailbox closed")?;
+            to_controller(links, ControllerRequest::Abort)?;
         }
         ExecutionAction::Ready => to_agenda(AgendaEvent::ExecutionReady).await?,
         ExecutionAction::Unavailable(status) => {
@@ -160,4 +157,15 @@ async fn carry_out(
         ExecutionAction::StateChanged => {}
     }
     Ok(())
+}
+
+/// Hands a request to the interfacing component without waiting for room (see the
+/// module's doc): a full mailbox would be a bug, and the component fails.
+fn to_controller(links: &Links, request: ControllerRequest) -> Result<(), ChildError> {
+    links.commands.try_send(request).map_err(|e| match e {
+        mpsc::error::TrySendError::Full(_) => ChildError::from(
+            "the command mailbox is full (it holds at most a step's command and an abort: a bug)",
+        ),
+        mpsc::error::TrySendError::Closed(_) => ChildError::from("command mailbox closed"),
+    })
 }
