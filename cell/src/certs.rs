@@ -95,7 +95,14 @@ pub fn identities(manifest: &Manifest) -> Result<Vec<Identity>> {
     }
     for process in &manifest.processes {
         if let Some(identity) = &process.identity {
-            push(identity.clone(), addresses_of(&process.host))?;
+            // A standby runs as the same identity on its own host.
+            let mut addresses = addresses_of(&process.host);
+            if let Some(standby_on) = &process.standby_on {
+                addresses.extend(addresses_of(standby_on));
+                addresses.sort();
+                addresses.dedup();
+            }
+            push(identity.clone(), addresses)?;
         }
     }
     for spare in &manifest.pki.spares {

@@ -181,10 +181,48 @@ pub struct ProcessSection {
     /// (only when it fails; exit status 0 means its work is done) or `temporary` (never).
     #[serde(default)]
     pub restart: RestartType,
+    /// Another host that runs a standby of this process: `cell up --host` there starts
+    /// it too. Only for a resource holon (`holon-node`, identity `resource.<name>`)
+    /// whose controller fences (docs/reliability.md, "Standby resources"). Both copies
+    /// are started with `--standby`: the one that holds the controller's claim serves,
+    /// the other waits, and takes over when the holder's session lease ends.
+    #[serde(default)]
+    pub standby_on: Option<String>,
+    /// The standby's arguments, where they differ from `args`: its own host's router
+    /// (`--connect`) and data directory. Default: `args`.
+    #[serde(default)]
+    pub standby_args: Option<Vec<String>>,
+    /// True on the copy that `standby_on` names, as [`Manifest::for_host`] gives it.
+    #[serde(skip)]
+    pub standby: bool,
 }
+
+/// The flag that makes a resource holon claim its controller before it serves.
+pub const STANDBY_FLAG: &str = "--standby";
 
 fn default_host() -> String {
     "local".into()
+}
+
+impl ProcessSection {
+    /// Whether this process may have a standby on `standby_on`: a resource holon, on
+    /// another host.
+    fn check_standby(&self, standby_on: &str) -> Result<()> {
+        if standby_on == self.host {
+            bail!("standby_on: {standby_on:?} is the host it runs on; a standby belongs on another host");
+        }
+        let resource = self
+            .identity
+            .as_deref()
+            .is_some_and(|identity| identity.starts_with("resource."));
+        let program = Path::new(&self.program)
+            .file_name()
+            .is_some_and(|name| name == "holon-node");
+        if !(resource && program) {
+            bail!("standby_on: only a resource holon (program holon-node, identity resource.<name>) can have a standby for now; an order-node's standby needs its journal on etcd, which is not built yet (docs/reliability.md)");
+        }
+        Ok(())
+    }
 }
 
 impl Manifest {
@@ -214,13 +252,23 @@ impl Manifest {
             if !names.insert(&p.name) {
                 bail!("{}: process {} appears twice", path.display(), p.name);
             }
-            if p.host != "local" && !manifest.hosts.contains_key(&p.host) {
+            for host in std::iter::once(&p.host).chain(&p.standby_on) {
+                if host != "local" && !manifest.hosts.contains_key(host) {
+                    bail!(
+                        "{}: process {} runs on host {host:?}, which has no [hosts.{host}] section",
+                        path.display(),
+                        p.name,
+                    );
+                }
+            }
+            if let Some(standby_on) = &p.standby_on {
+                p.check_standby(standby_on)
+                    .with_context(|| format!("{}: process {}", path.display(), p.name))?;
+            } else if p.standby_args.is_some() {
                 bail!(
-                    "{}: process {} runs on host {:?}, which has no [hosts.{}] section",
+                    "{}: process {}: standby_args without standby_on",
                     path.display(),
-                    p.name,
-                    p.host,
-                    p.host
+                    p.name
                 );
             }
         }
@@ -241,7 +289,21 @@ impl Manifest {
                 None => bail!("the manifest has no host {host:?}; {}", self.hosts_hint()),
             }
         };
-        self.processes.retain(|p| p.host == host);
+        self.processes.retain_mut(|p| {
+            if p.standby_on.as_deref() == Some(host) {
+                p.host = host.to_string();
+                p.standby = true;
+                if let Some(args) = p.standby_args.take() {
+                    p.args = args;
+                }
+            }
+            p.host == host
+        });
+        for p in &mut self.processes {
+            if p.standby_on.is_some() && !p.args.iter().any(|a| a == STANDBY_FLAG) {
+                p.args.push(STANDBY_FLAG.into());
+            }
+        }
         if self.processes.is_empty() && router.is_none() {
             bail!(
                 "the manifest gives host {host:?} nothing to run; {}",
@@ -298,5 +360,111 @@ mod tests {
             .processes
             .iter()
             .all(|p| p.restart == RestartType::Permanent));
+    }
+
+    fn two_hosts(robot: &str) -> String {
+        format!(
+            r#"
+cell = "t"
+[router]
+listen = ["tcp/127.0.0.1:7447"]
+[hosts.b]
+addresses = ["10.0.0.2"]
+[[process]]
+name = "sim"
+program = "robot-sim"
+[[process]]
+{robot}
+"#
+        )
+    }
+
+    fn load(text: &str) -> Result<Manifest> {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("cell.toml"), text).unwrap();
+        Manifest::load(dir.path())
+    }
+
+    #[test]
+    fn a_resource_with_a_standby_runs_fenced_on_both_hosts() {
+        let manifest = load(&two_hosts(
+            r#"name = "robot1"
+program = "holon-node"
+args = ["--config", "robot1.toml"]
+identity = "resource.robot1"
+standby_on = "b"
+standby_args = ["--config", "robot1.toml", "--data-dir", "data-b"]"#,
+        ))
+        .unwrap();
+        let (local, _) = manifest.clone().for_host("local").unwrap();
+        let primary = local.processes.iter().find(|p| p.name == "robot1").unwrap();
+        assert!(!primary.standby);
+        assert_eq!(primary.args.last().map(String::as_str), Some(STANDBY_FLAG));
+        let (b, router) = manifest.clone().for_host("b").unwrap();
+        assert!(router.is_none());
+        let names: Vec<&str> = b.processes.iter().map(|p| p.name.as_str()).collect();
+        assert_eq!(names, ["robot1"], "only the standby runs on b");
+        assert!(b.processes[0].standby);
+        assert_eq!(b.processes[0].host, "b");
+        assert_eq!(
+            b.processes[0].args,
+            [
+                "--config",
+                "robot1.toml",
+                "--data-dir",
+                "data-b",
+                STANDBY_FLAG
+            ]
+        );
+        assert_eq!(
+            b.processes[0]
+                .args
+                .iter()
+                .filter(|a| *a == STANDBY_FLAG)
+                .count(),
+            1
+        );
+        // Its certificate names both hosts.
+        let identities = crate::certs::identities(&manifest).unwrap();
+        let robot = identities
+            .iter()
+            .find(|i| i.name == "resource.robot1")
+            .unwrap();
+        assert!(
+            robot.addresses.contains(&"10.0.0.2".to_string()),
+            "{:?}",
+            robot.addresses
+        );
+    }
+
+    #[test]
+    fn a_standby_is_refused_where_it_cannot_be_kept_apart() {
+        let cases = [
+            (
+                r#"name = "orders1"
+program = "order-node"
+identity = "order-node.orders1"
+standby_on = "b""#,
+                "only a resource holon",
+            ),
+            (
+                r#"name = "robot1"
+program = "holon-node"
+identity = "resource.robot1"
+standby_on = "local""#,
+                "belongs on another host",
+            ),
+            (
+                r#"name = "robot1"
+program = "holon-node"
+identity = "resource.robot1"
+standby_on = "c""#,
+                "no [hosts.c] section",
+            ),
+        ];
+        for (process, expected) in cases {
+            let err = format!("{:#}", load(&two_hosts(process)).unwrap_err());
+            assert!(err.contains(expected), "{expected}: {err}");
+        }
     }
 }

@@ -134,7 +134,12 @@ mod tests {
         };
         let mut data_dir = None;
         let checked = header("demo", "robot1")
-            .check("/etc/holarchy/robot1.toml", &overrides, &mut data_dir, Role::Resource)
+            .check(
+                "/etc/holarchy/robot1.toml",
+                &overrides,
+                &mut data_dir,
+                Role::Resource,
+            )
             .unwrap();
         assert_eq!(checked.name, "robot2");
         assert_eq!(checked.keys.cell(), "demo");
@@ -145,8 +150,12 @@ mod tests {
     fn a_bad_header_says_which_field() {
         let none = CommandLine::default();
         let check = |h: Header| h.check("x.toml", &none, &mut None, Role::Resource);
-        assert!(check(header("De mo", "robot1")).unwrap_err().starts_with("cell:"));
-        assert!(check(header("demo", "Robot 1")).unwrap_err().starts_with("name:"));
+        assert!(check(header("De mo", "robot1"))
+            .unwrap_err()
+            .starts_with("cell:"));
+        assert!(check(header("demo", "Robot 1"))
+            .unwrap_err()
+            .starts_with("name:"));
         let alone = Header {
             zenoh: ZenohSettings::default(),
             ..header("demo", "robot1")
@@ -157,7 +166,10 @@ mod tests {
     #[test]
     fn a_file_that_is_not_there_or_not_toml_is_named() {
         let missing = read(Path::new("/nonexistent/robot1.toml")).unwrap_err();
-        assert!(missing.to_string().contains("/nonexistent/robot1.toml"), "{missing}");
+        assert!(
+            missing.to_string().contains("/nonexistent/robot1.toml"),
+            "{missing}"
+        );
         let bad = parse::<toml::Table>("cell = ", "robot1.toml").unwrap_err();
         assert!(bad.to_string().starts_with("robot1.toml:"), "{bad}");
     }

@@ -3,8 +3,8 @@
 
 pub mod backoff;
 pub mod cli;
-pub mod etcd;
 pub mod config_file;
+pub mod etcd;
 pub mod journal;
 pub mod life;
 pub mod logging;

@@ -214,3 +214,141 @@ restart = "transient"
         "{stdout}"
     );
 }
+
+/// `cell status`'s lines for robot1's fence, as `(role, epoch)` sorted, asked through
+/// `router`.
+fn fence_lines(cell: &str, router: &str) -> Vec<(String, String)> {
+    let status = Command::new(bin("cell"))
+        .args(["status", "--cell", cell, "--connect", router])
+        .output()
+        .unwrap();
+    let table = String::from_utf8_lossy(&status.stdout);
+    let mut found: Vec<(String, String)> = table
+        .lines()
+        .filter(|line| line.starts_with("resource/robot1 "))
+        .filter_map(|line| {
+            let words: Vec<&str> = line.split_whitespace().collect();
+            let role = words.iter().find(|w| ["holder", "standby"].contains(w))?;
+            let epoch = words
+                .iter()
+                .skip_while(|w| *w != role)
+                .nth(1)
+                .copied()
+                .unwrap_or_default();
+            Some((role.to_string(), epoch.to_string()))
+        })
+        .collect();
+    found.sort();
+    found
+}
+
+/// Waits (at most [`WAIT`]) until robot1's fence in `cell status` has these roles.
+async fn wait_roles(cell: &str, router: &str, roles: &[&str]) -> Vec<(String, String)> {
+    let deadline = tokio::time::Instant::now() + WAIT;
+    loop {
+        let found = fence_lines(cell, router);
+        let have: Vec<&str> = found.iter().map(|(role, _)| role.as_str()).collect();
+        if have == roles {
+            return found;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "robot1's fence is {found:?}, never {roles:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// A manifest with `standby_on`: `cell up` on the primary's host and `cell up --host b`
+/// each start their copy of robot1, both fenced; the copy on b waits as a standby, and
+/// serves when the primary freezes.
+#[tokio::test(flavor = "multi_thread")]
+async fn cell_up_starts_a_resource_and_its_standby_on_their_hosts() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = format!("tcp/127.0.0.1:{}", free_port());
+    let sim_port = free_port();
+    resource_config(dir.path(), "robot1", 5000).unwrap();
+    let args = |data: &str| {
+        format!(
+            r#"["--config", "robot1.toml", "--cell", "t-up-standby", "--controller", "127.0.0.1:{sim_port}", "--connect", "{router}", "--data-dir", "{data}"]"#
+        )
+    };
+    std::fs::write(
+        dir.path().join("cell.toml"),
+        format!(
+            r#"
+cell = "t-up-standby"
+[router]
+listen = ["{router}"]
+[hosts.b]
+[[process]]
+name = "robot1-sim"
+program = "robot-sim"
+args = ["--listen", "127.0.0.1:{sim_port}", "--fenced", "--lease-ms", "500"]
+[[process]]
+name = "robot1"
+program = "holon-node"
+identity = "resource.robot1"
+args = {}
+standby_on = "b"
+standby_args = {}
+"#,
+            args("data-a"),
+            args("data-b")
+        ),
+    )
+    .unwrap();
+    let up = |host: Option<&str>| {
+        let mut command = Command::new(bin("cell"));
+        command.arg("up").arg(dir.path());
+        if let Some(host) = host {
+            command.args(["--host", host]);
+        }
+        command
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap()
+    };
+    let mut local = up(None);
+    let local_lines = lines(&mut local);
+    let mut seen = Vec::new();
+    let started = wait_line(&local_lines, &mut seen, "started robot1 (pid");
+    assert!(!started.contains("standby"), "{started}");
+    let pid: i32 = started
+        .rsplit("pid ")
+        .next()
+        .unwrap()
+        .trim_end_matches(')')
+        .parse()
+        .unwrap();
+    wait_roles("t-up-standby", &router, &["holder"]).await;
+    let mut b = up(Some("b"));
+    let b_lines = lines(&mut b);
+    let mut b_seen = Vec::new();
+    let standby = wait_line(&b_lines, &mut b_seen, "started robot1 (pid");
+    assert!(standby.contains("as a standby"), "{standby}");
+    let roles = wait_roles("t-up-standby", &router, &["holder", "standby"]).await;
+    assert_eq!(roles[0], ("holder".to_string(), "1".to_string()));
+    assert!(
+        dir.path().join("data-b").exists(),
+        "the standby's own journal"
+    );
+
+    // The primary freezes: after the controller's lease the standby holds the claim.
+    let primary = nix::unistd::Pid::from_raw(pid);
+    nix::sys::signal::kill(primary, Signal::SIGSTOP).unwrap();
+    let roles = wait_roles("t-up-standby", &router, &["holder"]).await;
+    assert_eq!(roles[0], ("holder".to_string(), "2".to_string()));
+    nix::sys::signal::kill(primary, Signal::SIGCONT).unwrap();
+    let roles = wait_roles("t-up-standby", &router, &["holder", "standby"]).await;
+    assert_eq!(roles[0], ("holder".to_string(), "2".to_string()));
+
+    for (mut up, rx, seen) in [(b, b_lines, b_seen), (local, local_lines, seen)] {
+        nix::sys::signal::kill(nix::unistd::Pid::from_raw(up.id() as i32), Signal::SIGTERM)
+            .unwrap();
+        let mut seen = seen;
+        wait_line(&rx, &mut seen, "cell stopped");
+        assert!(up.wait().unwrap().success());
+    }
+}

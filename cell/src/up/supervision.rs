@@ -156,9 +156,14 @@ impl<'a> Processes<'a> {
         slot.pid = pid;
         slot.started_at = Instant::now();
         slot.restart_at = None;
+        let spec = &self.specs[index];
+        let role = match spec.standby {
+            true => " as a standby: it serves when it holds its controller's claim",
+            false => "",
+        };
         self.clock.say(format!(
-            "started {} (pid {})",
-            self.specs[index].name,
+            "started {} (pid {}){role}",
+            spec.name,
             pid.unwrap_or(0)
         ));
         Ok(())
