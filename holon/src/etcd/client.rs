@@ -28,6 +28,9 @@ use serde::Serialize;
 use super::wire;
 use super::EtcdError;
 
+/// The most idle connections kept open to one member.
+const MAX_IDLE_PER_MEMBER: usize = 16;
+
 /// Where the cluster is and how long to wait for it.
 #[derive(Debug, Clone)]
 pub struct ClientConfig {
@@ -278,11 +281,11 @@ impl Client {
             .map_err(|e| Failure::NoReply(format!("{}: reply cut: {e}", member.endpoint)))?
             .to_bytes();
         if !sender.is_closed() {
-            member
-                .idle
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .push(sender);
+            let mut idle = member.idle.lock().unwrap_or_else(|e| e.into_inner());
+            // More than that were open only for a burst: closed (dropped) after it.
+            if idle.len() < MAX_IDLE_PER_MEMBER {
+                idle.push(sender);
+            }
         }
         if status == hyper::StatusCode::OK {
             return Ok(reply);

@@ -14,9 +14,10 @@
 //!   was deleted or is another holder's; or
 //! - no keep-alive was confirmed for long enough that the lease may have expired: a
 //!   keep-alive sent at `t` that etcd confirms keeps the lease at least until `t + TTL`,
-//!   and the holder gives up at that time, less [`ElectionConfig::keep_alive_every`]
+//!   and the holder gives up at that time, less [`ElectionConfig::step_down_margin`]
 //!   for timers that fire late. (A failed keep-alive is tried again at the next tick;
-//!   etcd itself extends leases when its raft leader changes.)
+//!   etcd itself extends leases when its raft leader changes, but a holder that cannot
+//!   reach a raft leader cannot know it.)
 //!
 //! The store does not depend on the holder hearing this in time: every write is fenced
 //! by etcd on the epoch. The event is for the holder to stop acting at once.
@@ -46,10 +47,14 @@ pub struct ElectionConfig {
     pub keep_alive_every: Duration,
     /// How often a candidate that lost asks whether the key is gone.
     pub retry_every: Duration,
+    /// How long before its lease may have expired a holder with no confirmed keep-alive
+    /// steps down.
+    pub step_down_margin: Duration,
 }
 
 impl ElectionConfig {
-    /// The defaults: a 2 s lease renewed every 500 ms; a loser asks every 250 ms.
+    /// The defaults: a 2 s lease renewed every 500 ms, a holder that could not renew it
+    /// steps down 200 ms before it may expire; a loser asks every 250 ms.
     pub fn new(prefix: impl Into<String>, candidate: impl Into<String>) -> ElectionConfig {
         let ttl = Duration::from_secs(2);
         ElectionConfig {
@@ -58,6 +63,7 @@ impl ElectionConfig {
             ttl,
             keep_alive_every: ttl / 4,
             retry_every: Duration::from_millis(250),
+            step_down_margin: Duration::from_millis(200),
         }
     }
 
@@ -429,7 +435,7 @@ impl KeepAlive {
             // Gives up when the lease may have expired, renewal in flight or not.
             let give_up = self
                 .confirmed_until
-                .checked_sub(self.config.keep_alive_every)
+                .checked_sub(self.config.step_down_margin)
                 .unwrap_or(self.confirmed_until);
             let verdict = tokio::select! {
                 _ = stop.cancelled() => return,
