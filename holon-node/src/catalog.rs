@@ -24,6 +24,20 @@ pub struct ServiceDefinition {
     pub nominal_duration: Duration,
 }
 
+/// A job's `info` as its steps use it: read once, when the job is booked (or when its
+/// `start` brings an `info` of its own), and carried with the booking and the job, so
+/// neither the start nor each step reads the JSON again.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Parameters {
+    /// The pose each step sends with its command (`POS`), in step order.
+    pub poses: Vec<Option<Pose>>,
+    /// The job's program (product variant), if `info` names one ([`PROGRAM_KEY`]).
+    pub program: Option<String>,
+    /// The `info` entries that are strings, numbers or booleans: each command carries
+    /// them for a dialect's `{info.KEY}` placeholders.
+    pub scalars: BTreeMap<String, Value>,
+}
+
 /// Every service type a resource offers.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct ServiceCatalog {
@@ -50,9 +64,28 @@ impl ServiceCatalog {
     /// Whether `info` holds what a job of `service_type` needs to run: every step's
     /// pose, and a valid `program` if it names one. The error says what is wrong.
     pub fn check(&self, service_type: &str, info: &Map<String, Value>) -> Result<(), String> {
-        self.poses(service_type, info)?;
-        program(info)?;
-        Ok(())
+        self.parameters(service_type, info).map(|_| ())
+    }
+
+    /// What a job of `service_type` takes from `info` (see [`Parameters`]), or what is
+    /// wrong with it (as [`check`](Self::check) says).
+    pub fn parameters(
+        &self,
+        service_type: &str,
+        info: &Map<String, Value>,
+    ) -> Result<Parameters, String> {
+        let poses = self.poses(service_type, info)?;
+        let program = program(info)?;
+        let scalars = info
+            .iter()
+            .filter(|(_, v)| v.is_string() || v.is_number() || v.is_boolean())
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        Ok(Parameters {
+            poses,
+            program,
+            scalars,
+        })
     }
 
     /// The pose each step needs, from `info`; an error names what is missing or wrong.
@@ -175,6 +208,30 @@ mod tests {
             let why = catalog.check("pick_n_place", &info).unwrap_err();
             assert!(why.contains("info.program"), "{bad}: {why}");
         }
+    }
+
+    #[test]
+    fn a_jobs_parameters_are_read_from_info_once() {
+        let catalog = pick_n_place();
+        let info = info(json!({
+            "pick": {"x": 1, "y": 2, "z": 3},
+            "place": {"x": 4, "y": 5, "z": 6},
+            "program": "b2",
+            "lot": "L7",
+            "count": 3,
+            "rework": false,
+            "notes": ["not", "a", "scalar"]
+        }));
+        let parameters = catalog.parameters("pick_n_place", &info).unwrap();
+        assert_eq!(parameters.poses.len(), 2);
+        assert_eq!(parameters.poses[0].unwrap().x, 1.0);
+        assert_eq!(parameters.program.as_deref(), Some("b2"));
+        let scalars: Vec<&str> = parameters.scalars.keys().map(String::as_str).collect();
+        assert_eq!(scalars, ["count", "lot", "program", "rework"]);
+        assert_eq!(
+            catalog.parameters("pick_n_place", &Map::new()).unwrap_err(),
+            catalog.check("pick_n_place", &Map::new()).unwrap_err()
+        );
     }
 
     #[test]

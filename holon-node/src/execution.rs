@@ -232,7 +232,7 @@ impl Execution {
         }
     }
 
-    fn start(&mut self, job: Job) -> Vec<ExecutionAction> {
+    fn start(&mut self, mut job: Job) -> Vec<ExecutionAction> {
         if !matches!(self.state, ExecutionState::Ready) {
             // The agenda manager only starts a ready execution; a race with a controller
             // status change ends here.
@@ -247,6 +247,10 @@ impl Execution {
                     detail: detail.into(),
                 },
             }];
+        }
+        // Read when it was booked; only a job that came without them is read here, once.
+        if job.parameters.is_none() {
+            job.parameters = self.catalog.parameters(&job.service_type, &job.info).ok();
         }
         self.state = ExecutionState::Running {
             job,
@@ -270,9 +274,7 @@ impl Execution {
             return vec![];
         };
         let definition = self.catalog.get(&job.service_type);
-        let poses = self.catalog.poses(&job.service_type, &job.info);
-        let program = crate::catalog::program(&job.info);
-        let (Some(definition), Ok(poses), Ok(program)) = (definition, poses, program) else {
+        let (Some(definition), Some(parameters)) = (definition, &job.parameters) else {
             return self.fail(
                 Reason::InvalidInfo,
                 "the job's info does not fit its steps".into(),
@@ -287,14 +289,9 @@ impl Execution {
             ExecutionAction::Command(RobotCommand {
                 id: *command_id,
                 action: current.action.clone(),
-                pos: poses[*step],
-                program,
-                info: job
-                    .info
-                    .iter()
-                    .filter(|(_, v)| v.is_string() || v.is_number() || v.is_boolean())
-                    .map(|(k, v)| (k.clone(), v.clone()))
-                    .collect(),
+                pos: parameters.poses.get(*step).copied().flatten(),
+                program: parameters.program.clone(),
+                info: parameters.scalars.clone(),
             }),
             ExecutionAction::StateChanged,
         ]
@@ -473,6 +470,7 @@ mod tests {
                 .as_object()
                 .unwrap()
                 .clone(),
+            parameters: None,
             operator: None,
         }
     }
@@ -809,6 +807,26 @@ mod tests {
         let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
         assert_eq!(e.handle(reply(pick.id + 100, "picking_done")), vec![]);
         assert_eq!(e.current_step().as_deref(), Some("pick"));
+    }
+
+    #[test]
+    fn a_job_read_at_booking_is_not_read_again() {
+        let mut e = ready_execution();
+        let mut booked = job("pick_n_place");
+        let catalog = crate::catalog::pick_n_place();
+        let mut parameters = catalog
+            .parameters(&booked.service_type, &booked.info)
+            .unwrap();
+        parameters.program = Some("read-at-booking".into());
+        booked.parameters = Some(parameters);
+        // What the steps use comes from the parameters, not from the info.
+        booked.info.clear();
+        let pick = command(&e.handle(ExecutionEvent::Start(booked)));
+        assert_eq!(pick.pos.unwrap().x, 1.0);
+        assert_eq!(pick.program.as_deref(), Some("read-at-booking"));
+        let place = command(&e.handle(reply(pick.id, "picking_done")));
+        assert_eq!(place.pos.unwrap().x, 4.0);
+        assert_eq!(place.program.as_deref(), Some("read-at-booking"));
     }
 
     #[test]

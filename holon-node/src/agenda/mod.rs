@@ -87,7 +87,7 @@ use schemas::{
 };
 use serde_json::{json, Map, Value};
 
-use crate::catalog::ServiceCatalog;
+use crate::catalog::{Parameters, ServiceCatalog};
 use crate::packml::PackmlUnit;
 
 mod packml;
@@ -126,6 +126,10 @@ pub struct Booking {
     pub reply_to: Option<String>,
     /// The booking's `info`, used when `start` carries none.
     pub info: Map<String, Value>,
+    /// Its `info` as the steps use it, read when booked (or the journal opened; not
+    /// journalled); `None` when it does not fit the steps (a `start` is to bring one).
+    #[serde(skip)]
+    pub parameters: Option<Parameters>,
     /// The requester asked for the job to start by itself on its turn
     /// ([`schemas::info_key::START_ON_TURN`]); its `reply_to` and `info` were checked
     /// when it was booked.
@@ -152,6 +156,10 @@ pub struct Job {
     /// Where `done` / `failed` goes (empty for an operator's job).
     pub reply_to: String,
     pub info: Map<String, Value>,
+    /// Its `info` as the steps use it, read when it was booked or started (the execution
+    /// reads it from `info` only for a job that lacks it). Not journalled.
+    #[serde(skip)]
+    pub parameters: Option<Parameters>,
     /// An operator's single job in Maintenance mode: who asked. Its result goes to no
     /// inbox; it is kept in the PackML figures (`packml.operator_job`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -361,6 +369,12 @@ impl AgendaManager {
     ) -> AgendaManager {
         let mut manager = AgendaManager::new(holon, catalog, capacity);
         manager.bookings = record.bookings;
+        for booking in &mut manager.bookings {
+            booking.parameters = manager
+                .catalog
+                .parameters(&booking.service_type, &booking.info)
+                .ok();
+        }
         if inheritance == Inheritance::Restarted {
             for booking in &mut manager.bookings {
                 booking.start_on_turn = false;
@@ -547,6 +561,7 @@ impl AgendaManager {
                     service_type: booking.service_type,
                     reply_to,
                     info: Map::new(),
+                    parameters: None,
                     operator: None,
                 },
                 Outcome::Failed {
@@ -583,19 +598,29 @@ impl AgendaManager {
         }
         // Checked when it was booked; a booking without one waits for a `start`.
         let reply_to = first.reply_to.clone()?;
-        let info = first.info.clone();
-        Some(self.run_booking(0, reply_to, info))
+        Some(self.run_booking(0, reply_to, None))
     }
 
-    /// Makes the booking at `index` the running job, its results to `reply_to`.
-    fn run_booking(&mut self, index: usize, reply_to: String, info: Map<String, Value>) -> Job {
+    /// Makes the booking at `index` the running job, its results to `reply_to`, with
+    /// the `info` its start brought (read) or, without one, the booking's.
+    fn run_booking(
+        &mut self,
+        index: usize,
+        reply_to: String,
+        started_with: Option<(Map<String, Value>, Parameters)>,
+    ) -> Job {
         let booking = self.bookings.remove(index);
+        let (info, parameters) = match started_with {
+            Some((info, parameters)) => (info, Some(parameters)),
+            None => (booking.info, booking.parameters),
+        };
         let job = Job {
             requester: booking.requester,
             conversation_id: booking.conversation_id,
             service_type: booking.service_type,
             reply_to,
             info,
+            parameters,
             operator: None,
         };
         self.current = Some(job.clone());

@@ -115,14 +115,19 @@ impl AgendaManager {
             (_, _, true) => Some(", it is stopping"),
             _ => None,
         };
+        let parameters = self
+            .catalog
+            .parameters(&request.service_type, &request.info);
         let refusal = if !self.packml.allows_operator_job() || why.is_some() {
             Some(schemas::Refusal::JobNotAllowed {
                 state: self.packml.state(),
                 mode: self.packml.mode(),
                 why: why.unwrap_or("").to_string(),
             })
-        } else if let Err(detail) = self.catalog.check(&request.service_type, &request.info) {
-            Some(schemas::Refusal::InvalidJob { detail })
+        } else if let Err(detail) = &parameters {
+            Some(schemas::Refusal::InvalidJob {
+                detail: detail.clone(),
+            })
         } else if !self.catalog.offers(&request.service_type) {
             Some(schemas::Refusal::InvalidJob {
                 detail: format!("{} is not offered here", request.service_type),
@@ -151,6 +156,7 @@ impl AgendaManager {
             service_type: request.service_type,
             reply_to: String::new(),
             info: request.info,
+            parameters: parameters.ok(),
             operator: Some(by.to_string()),
         };
         self.current = Some(job.clone());

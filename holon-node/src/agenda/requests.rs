@@ -146,8 +146,12 @@ impl AgendaManager {
             }
         };
         let start_on_turn = request.start_on_turn();
+        // Read once, here: the start and each step take them from the booking.
+        let parameters = self
+            .catalog
+            .parameters(&request.service_type, &request.info);
         if start_on_turn {
-            if let Err(detail) = self.catalog.check(&request.service_type, &request.info) {
+            if let Err(detail) = parameters {
                 return self.refuse(&request, Reason::InvalidInfo, Some(detail));
             }
             if request.reply_to.is_none() {
@@ -167,6 +171,7 @@ impl AgendaManager {
                 service_type: request.service_type.clone(),
                 reply_to: request.reply_to.clone(),
                 info: request.info.clone(),
+                parameters: parameters.ok(),
                 start_on_turn,
                 priority,
                 due,
@@ -231,14 +236,27 @@ impl AgendaManager {
     /// Makes the booking at `index` the running job, if what the steps need is there.
     fn begin(&mut self, index: usize, request: Service) -> Vec<AgendaAction> {
         let booking = &self.bookings[index];
-        let info = if request.info.is_empty() {
-            booking.info.clone()
+        // The booking's info was read when it was booked; a start's own is read now.
+        let started_with = if request.info.is_empty() {
+            match &booking.parameters {
+                Some(_) => None,
+                None => {
+                    let why = self
+                        .catalog
+                        .parameters(&request.service_type, &booking.info);
+                    let detail = why.err().unwrap_or_default();
+                    return self.refuse(&request, Reason::InvalidInfo, Some(detail));
+                }
+            }
         } else {
-            request.info.clone()
+            match self
+                .catalog
+                .parameters(&request.service_type, &request.info)
+            {
+                Ok(parameters) => Some((request.info.clone(), parameters)),
+                Err(detail) => return self.refuse(&request, Reason::InvalidInfo, Some(detail)),
+            }
         };
-        if let Err(detail) = self.catalog.check(&request.service_type, &info) {
-            return self.refuse(&request, Reason::InvalidInfo, Some(detail));
-        }
         let Some(reply_to) = request
             .reply_to
             .clone()
@@ -247,7 +265,7 @@ impl AgendaManager {
             let detail = "neither the start nor the booking has reply_to".to_string();
             return self.refuse(&request, Reason::InvalidInfo, Some(detail));
         };
-        let job = self.run_booking(index, reply_to, info);
+        let job = self.run_booking(index, reply_to, started_with);
         vec![
             AgendaAction::Reply(request.accepted(&self.holon)),
             AgendaAction::Execute(job),

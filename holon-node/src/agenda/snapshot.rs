@@ -24,7 +24,7 @@ impl AgendaManager {
                     priority: b.priority,
                     due: b.due,
                     overtaken: b.overtaken,
-                    program: crate::catalog::program(&b.info).ok().flatten(),
+                    program: program_of(b.parameters.as_ref(), &b.info),
                 })
                 .collect(),
             current: self.current.as_ref().map(|j| CurrentJobView {
@@ -32,7 +32,7 @@ impl AgendaManager {
                 conversation_id: j.conversation_id.clone(),
                 service_type: j.service_type.clone(),
                 step: None,
-                program: crate::catalog::program(&j.info).ok().flatten(),
+                program: program_of(j.parameters.as_ref(), &j.info),
                 started_at: None,
             }),
             undelivered: self.undelivered.len(),
@@ -54,5 +54,17 @@ impl AgendaManager {
             v: 0,
             at: unix_ms(),
         }
+    }
+}
+
+/// A booking's or job's program: as read when it was booked, else (its `info` does not
+/// fit the steps, or it came from the journal as the job that ran) from its `info`.
+fn program_of(
+    parameters: Option<&crate::catalog::Parameters>,
+    info: &serde_json::Map<String, serde_json::Value>,
+) -> Option<String> {
+    match parameters {
+        Some(parameters) => parameters.program.clone(),
+        None => crate::catalog::program(info).ok().flatten(),
     }
 }

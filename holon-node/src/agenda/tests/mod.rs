@@ -184,6 +184,31 @@ fn start_uses_the_booking_info_when_it_has_none() {
 }
 
 #[test]
+fn a_jobs_info_is_read_at_booking_and_carried_to_its_execution() {
+    let mut m = manager();
+    let booking = book("o-1", "c1").with_info(poses());
+    m.handle(AgendaEvent::Request(booking));
+    let read = m.bookings()[0].parameters.clone();
+    assert!(
+        read.as_ref().is_some_and(|p| p.poses.len() == 2),
+        "{read:?}"
+    );
+    let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
+    assert!(matches!(&actions[1], AgendaAction::Execute(job) if job.parameters == read));
+    // A start with an info of its own is read when it comes.
+    m.handle(done("c1"));
+    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    let mut own = poses();
+    own.insert("program".into(), serde_json::json!("b2"));
+    let start = msg(MessageType::Start, "o-2", "c2").with_info(own);
+    let actions = m.handle(AgendaEvent::Request(start));
+    assert!(
+        matches!(&actions[1], AgendaAction::Execute(job) if job.parameters.as_ref().and_then(|p| p.program.as_deref()) == Some("b2")),
+        "{actions:?}"
+    );
+}
+
+#[test]
 fn start_while_busy_is_refused_and_keeps_the_booking() {
     let mut m = manager();
     m.handle(AgendaEvent::Request(book("o-1", "c1")));

@@ -87,3 +87,23 @@ fn restore_reports_the_interrupted_job_and_redelivers_results() {
         ]
     );
 }
+
+#[test]
+fn a_journal_keeps_no_parameters_and_its_bookings_are_read_again_when_it_opens() {
+    let (m, _) = restored_with_bookings_on_turn(Inheritance::HandedOver);
+    let json = serde_json::to_value(m.record()).unwrap();
+    // The journal's form is as before: a booking's info, not what was read from it.
+    let booking = &json["bookings"][0];
+    assert!(booking.get("parameters").is_none(), "{booking}");
+    assert!(booking["info"]["pick"].is_object(), "{booking}");
+    // Opened again, each booking has what its steps need, read from its info.
+    let restored = AgendaManager::restore(
+        HolonId::resource("robot1").unwrap(),
+        Arc::new(pick_n_place()),
+        3,
+        serde_json::from_value(json).unwrap(),
+        Inheritance::HandedOver,
+    );
+    let parameters = restored.bookings()[0].parameters.as_ref().unwrap();
+    assert_eq!(parameters.poses.len(), 2);
+}
