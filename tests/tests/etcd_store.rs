@@ -81,6 +81,7 @@ async fn one_holder_at_a_time_and_epochs_grow() {
     assert!(!winner.is_deposed(), "the holder keeps its key alive");
     // The holder resigns: the standby wins at once, at a greater epoch.
     let first_epoch = winner.epoch();
+    let resigned_store = winner.store();
     let resigned = Instant::now();
     winner.resign().await.unwrap();
     let next = tokio::time::timeout(WAIT, &mut standby)
@@ -91,6 +92,11 @@ async fn one_holder_at_a_time_and_epochs_grow() {
         "after a resignation the standby won in {:?}",
         resigned.elapsed()
     );
+    let refused = resigned_store
+        .put("order", "o1", &order("resigned", 1))
+        .await
+        .unwrap_err();
+    assert!(refused.to_string().contains("resigned"), "{refused}");
     assert!(
         next.epoch() > first_epoch,
         "epoch {} after {first_epoch}",

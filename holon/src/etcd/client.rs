@@ -81,14 +81,18 @@ pub struct MemberStatus {
 /// A client of one etcd cluster; clones share its connections.
 #[derive(Clone)]
 pub struct Client {
+    /// Shared by the clones.
     inner: Arc<Inner>,
 }
 
 struct Inner {
+    /// The cluster's members, as configured.
     members: Vec<Member>,
     /// The member that answered last: tried first.
     preferred: AtomicUsize,
+    /// See [`ClientConfig::request_timeout`].
     request_timeout: Duration,
+    /// See [`ClientConfig::connect_timeout`].
     connect_timeout: Duration,
 }
 
@@ -121,7 +125,7 @@ enum Failure {
     NotSent(String),
     /// The request went out and no usable reply came back.
     NoReply(String),
-    /// etcd answered with an error.
+    /// etcd answered with an error: its message and gRPC code.
     Refused { message: String, code: i32 },
     /// etcd answered something that is not its JSON.
     Malformed(String),

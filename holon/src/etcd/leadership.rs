@@ -107,7 +107,9 @@ pub struct Holder {
 /// One candidate for one leader key.
 #[derive(Debug, Clone)]
 pub struct Candidate {
+    /// The cluster.
     client: Client,
+    /// The election.
     config: ElectionConfig,
 }
 
@@ -313,12 +315,20 @@ async fn holder_of(client: &Client, key: &str) -> Result<Option<Holder>, EtcdErr
 /// [`Leader::resign`] gives it up at once.
 #[derive(Debug)]
 pub struct Leader {
+    /// The cluster.
     client: Client,
+    /// The election it won.
     config: ElectionConfig,
+    /// The leader key's create_revision.
     epoch: i64,
+    /// The lease the key is under.
     lease: i64,
+    /// Its standing, as the keep-alive task tells it.
     state: watch::Receiver<Leadership>,
+    /// Stops the keep-alive task.
     stop: CancellationToken,
+    /// Tells the holder's stores it resigned.
+    tell: watch::Sender<Leadership>,
 }
 
 impl Leader {
@@ -338,7 +348,7 @@ impl Leader {
             lease,
             // A lease granted after `granted_at` lives at least until then + TTL.
             confirmed_until: granted_at + config.ttl,
-            tell,
+            tell: tell.clone(),
         };
         tokio::spawn(keeper.run(stop.clone()));
         Leader {
@@ -348,6 +358,7 @@ impl Leader {
             lease,
             state,
             stop,
+            tell,
         }
     }
 
@@ -396,9 +407,16 @@ impl Leader {
             .with_leadership(self.state.clone())
     }
 
-    /// Gives the key up at once (its lease revoked): a standby may win it now.
+    /// Gives the key up at once (its lease revoked): a standby may win it now. This
+    /// holder's stores refuse to write from now on.
     pub async fn resign(self) -> Result<(), EtcdError> {
         self.stop.cancel();
+        let resigned = Leadership::Deposed {
+            epoch: self.epoch,
+            why: "resigned".into(),
+        };
+        // The holder itself keeps a receiver: this cannot fail.
+        self.tell.send_replace(resigned);
         self.client.lease_revoke(self.lease).await.map(|revoked| {
             tracing::info!(key = %self.config.leader_key(), epoch = self.epoch, revoked, "resigned the leader key");
         })
@@ -413,12 +431,17 @@ impl Drop for Leader {
 
 /// The holder's keep-alive task.
 struct KeepAlive {
+    /// The cluster.
     client: Client,
+    /// The election.
     config: ElectionConfig,
+    /// The holder's epoch.
     epoch: i64,
+    /// The lease renewed.
     lease: i64,
     /// Until when the lease surely lives, by the keep-alives etcd confirmed.
     confirmed_until: Instant,
+    /// Tells the holder its standing.
     tell: watch::Sender<Leadership>,
 }
 

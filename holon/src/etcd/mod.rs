@@ -12,6 +12,8 @@
 //! store is for a holon with a standby. docs/reliability.md, "The order-node's store on
 //! etcd", says what is built and what is not yet.
 
+#![warn(missing_docs)]
+
 mod client;
 mod error;
 mod leadership;

@@ -30,8 +30,11 @@ const PAGE: i64 = 500;
 /// epoch.
 #[derive(Debug, Clone)]
 pub struct FencedStore {
+    /// The cluster.
     client: Client,
+    /// The holon's key prefix.
     prefix: String,
+    /// The leader key's create_revision every write is conditional on.
     epoch: i64,
     /// The holder's standing, when the store came from a [`super::Leader`]: once
     /// deposed, writes are refused without asking etcd.

@@ -73,11 +73,15 @@ pub(crate) struct Header {
 /// One key as etcd holds it.
 #[derive(Debug, Clone, Default, Deserialize)]
 pub(crate) struct KeyValue {
+    /// The key.
     pub key: Base64,
+    /// The revision that created it (since it last did not exist).
     #[serde(default, with = "int")]
     pub create_revision: i64,
+    /// Its value.
     #[serde(default)]
     pub value: Base64,
+    /// The lease it is attached to (0: none).
     #[serde(default, with = "int")]
     pub lease: i64,
 }
@@ -85,6 +89,7 @@ pub(crate) struct KeyValue {
 /// `/v3/kv/range`.
 #[derive(Debug, Clone, Default, Serialize)]
 pub(crate) struct RangeRequest {
+    /// The key, or the first of the range.
     pub key: Base64,
     /// Every key in `[key, range_end)`; absent: `key` alone.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -104,8 +109,10 @@ fn is_zero(n: &i64) -> bool {
 /// The reply to a range.
 #[derive(Debug, Clone, Default, Deserialize)]
 pub(crate) struct RangeResponse {
+    /// The reply's header.
     #[serde(default)]
     pub header: Header,
+    /// The keys found, in key order.
     #[serde(default)]
     pub kvs: Vec<KeyValue>,
     /// Whether more keys are in the range than `limit` let through.
@@ -116,7 +123,9 @@ pub(crate) struct RangeResponse {
 /// A put, inside a txn.
 #[derive(Debug, Clone, Default, Serialize)]
 pub(crate) struct PutRequest {
+    /// The key.
     pub key: Base64,
+    /// The value.
     pub value: Base64,
     /// Attached to this lease (0: none).
     #[serde(with = "int", skip_serializing_if = "is_zero")]
@@ -126,7 +135,9 @@ pub(crate) struct PutRequest {
 /// A delete, inside a txn.
 #[derive(Debug, Clone, Default, Serialize)]
 pub(crate) struct DeleteRangeRequest {
+    /// The key, or the first of the range.
     pub key: Base64,
+    /// Every key in `[key, range_end)`; absent: `key` alone.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub range_end: Option<Base64>,
 }
@@ -134,10 +145,13 @@ pub(crate) struct DeleteRangeRequest {
 /// One operation of a txn.
 #[derive(Debug, Clone, Serialize)]
 pub(crate) enum RequestOp {
+    /// A read.
     #[serde(rename = "request_range")]
     Range(RangeRequest),
+    /// A write.
     #[serde(rename = "request_put")]
     Put(PutRequest),
+    /// A delete.
     #[serde(rename = "request_delete_range")]
     Delete(DeleteRangeRequest),
 }
@@ -145,6 +159,7 @@ pub(crate) enum RequestOp {
 /// The reply to one operation of a txn (only ranges are read back).
 #[derive(Debug, Clone, Default, Deserialize)]
 pub(crate) struct ResponseOp {
+    /// A range's reply (absent for a put's or a delete's).
     #[serde(default)]
     pub response_range: Option<RangeResponse>,
 }
@@ -152,11 +167,13 @@ pub(crate) struct ResponseOp {
 /// A txn's condition: here always "the key's create_revision equals".
 #[derive(Debug, Clone, Serialize)]
 pub(crate) struct Compare {
+    /// The key compared.
     pub key: Base64,
     /// `CREATE`: the key's create_revision (0 for a key that does not exist).
     pub target: &'static str,
     /// `EQUAL`.
     pub result: &'static str,
+    /// The create_revision the key must have.
     #[serde(with = "int")]
     pub create_revision: i64,
 }
@@ -176,19 +193,24 @@ impl Compare {
 /// `/v3/kv/txn`: `success` if every compare holds, else `failure`, in one commit.
 #[derive(Debug, Clone, Default, Serialize)]
 pub(crate) struct TxnRequest {
+    /// The conditions, all of which must hold.
     pub compare: Vec<Compare>,
+    /// Done if they hold.
     pub success: Vec<RequestOp>,
+    /// Done if they do not.
     pub failure: Vec<RequestOp>,
 }
 
 /// The reply to a txn.
 #[derive(Debug, Clone, Default, Deserialize)]
 pub(crate) struct TxnResponse {
+    /// The reply's header (its revision: the txn's, if it wrote).
     #[serde(default)]
     pub header: Header,
     /// Whether the compares held (absent, hence false, when they did not).
     #[serde(default)]
     pub succeeded: bool,
+    /// The replies to the branch's operations, in order.
     #[serde(default)]
     pub responses: Vec<ResponseOp>,
 }
@@ -196,6 +218,7 @@ pub(crate) struct TxnResponse {
 /// `/v3/lease/grant`.
 #[derive(Debug, Clone, Serialize)]
 pub(crate) struct LeaseGrantRequest {
+    /// Seconds to live.
     #[serde(rename = "TTL", with = "int")]
     pub ttl: i64,
 }
@@ -203,6 +226,7 @@ pub(crate) struct LeaseGrantRequest {
 /// The reply to a grant, and a keep-alive's `result`.
 #[derive(Debug, Clone, Default, Deserialize)]
 pub(crate) struct LeaseResponse {
+    /// The lease's id.
     #[serde(rename = "ID", default, with = "int")]
     pub id: i64,
     /// Seconds left; absent (0) in a keep-alive's reply when the lease is gone.
@@ -213,6 +237,7 @@ pub(crate) struct LeaseResponse {
 /// `/v3/lease/keepalive` and `/v3/lease/revoke`.
 #[derive(Debug, Clone, Serialize)]
 pub(crate) struct LeaseIdRequest {
+    /// The lease's id.
     #[serde(rename = "ID", with = "int")]
     pub id: i64,
 }
@@ -220,6 +245,7 @@ pub(crate) struct LeaseIdRequest {
 /// The keep-alive stream's one reply to a one-request body.
 #[derive(Debug, Clone, Default, Deserialize)]
 pub(crate) struct KeepAliveResponse {
+    /// The renewed lease.
     #[serde(default)]
     pub result: LeaseResponse,
 }
@@ -227,6 +253,7 @@ pub(crate) struct KeepAliveResponse {
 /// `/v3/maintenance/status`.
 #[derive(Debug, Clone, Default, Deserialize)]
 pub(crate) struct StatusResponse {
+    /// The reply's header (its member_id: the member asked).
     #[serde(default)]
     pub header: Header,
     /// The raft leader's member id, as this member knows it (0: none).
@@ -237,8 +264,10 @@ pub(crate) struct StatusResponse {
 /// An error reply (HTTP status not 200): gRPC's code and etcd's message.
 #[derive(Debug, Clone, Default, Deserialize)]
 pub(crate) struct ErrorReply {
+    /// etcd's message.
     #[serde(default)]
     pub message: String,
+    /// The gRPC status code.
     #[serde(default)]
     pub code: i32,
 }
