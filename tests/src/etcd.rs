@@ -180,3 +180,59 @@ impl EtcdCluster {
         }
     }
 }
+
+/// An `etcd-holder` process (a test fixture) that holds a leader key, killed when
+/// dropped.
+pub struct EtcdHolder {
+    /// The process.
+    pub process: Process,
+    /// The epoch it won.
+    pub epoch: i64,
+}
+
+impl EtcdHolder {
+    /// Starts `program` (the `etcd-holder` fixture: a test passes
+    /// `env!("CARGO_BIN_EXE_etcd-holder")`) for `prefix` as `name` and waits, at most
+    /// [`WAIT`], until it says it holds the key.
+    pub fn start(
+        program: &str,
+        cluster: &EtcdCluster,
+        prefix: &str,
+        name: &str,
+    ) -> Result<EtcdHolder> {
+        use std::io::BufRead;
+        let stderr_path = cluster.dir.path().join(format!("{name}.stderr"));
+        let mut child = Command::new(program)
+            .args([&cluster.endpoints().join(","), prefix, name])
+            .stdout(Stdio::piped())
+            .stderr(std::fs::File::create(&stderr_path)?)
+            .spawn()
+            .context("start etcd-holder")?;
+        let stdout = child.stdout.take().context("its stdout")?;
+        let process = Process {
+            name: name.to_string(),
+            child: Some(child),
+            stderr_path,
+        };
+        let (lines, said) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut first = String::new();
+            let read = std::io::BufReader::new(stdout).read_line(&mut first);
+            if lines.send(read.map(|_| first)).is_err() {
+                eprintln!("etcd-holder's first line came after the test stopped waiting");
+            }
+        });
+        let line = said.recv_timeout(WAIT).with_context(|| {
+            format!(
+                "etcd-holder did not win within {WAIT:?}: {}",
+                process.stderr()
+            )
+        })??;
+        let epoch = line
+            .trim()
+            .strip_prefix("epoch ")
+            .and_then(|n| n.parse().ok())
+            .with_context(|| format!("etcd-holder said {line:?}: {}", process.stderr()))?;
+        Ok(EtcdHolder { process, epoch })
+    }
+}

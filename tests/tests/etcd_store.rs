@@ -18,6 +18,9 @@ static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(())
 
 const PREFIX: &str = "holarchy/test/order-node/orders";
 
+/// The fixture that holds a leader key in a process of its own.
+const HOLDER: &str = env!("CARGO_BIN_EXE_etcd-holder");
+
 /// The lease TTL of the elections here (the default).
 const TTL: Duration = Duration::from_secs(2);
 
@@ -232,23 +235,23 @@ async fn a_dead_holder_is_replaced_by_its_standby() {
     let Some(cluster) = cluster().await else {
         return;
     };
-    let primary = win(&candidate(&cluster, "host-a")).await;
-    primary
-        .store()
+    // The primary is a process of its own, which is killed.
+    let mut primary = EtcdHolder::start(HOLDER, &cluster, PREFIX, "host-a").unwrap();
+    let epoch = primary.epoch;
+    FencedStore::new(cluster.client(), PREFIX, epoch)
         .put("order", "o1", &order("a", 1))
         .await
         .unwrap();
-    let epoch = primary.epoch();
     let standby = campaign_in_background(candidate(&cluster, "host-b"));
     tokio::time::sleep(Duration::from_millis(700)).await;
-    assert!(!standby.is_finished());
-    // The primary's process dies: its keep-alives stop, its lease is not revoked (the
-    // gateway's connections carry no session): etcd expires it after the TTL.
-    drop(primary);
+    assert!(!standby.is_finished(), "won while the primary lived");
+    // SIGKILL: its keep-alives stop, its lease is not revoked (the gateway's connections
+    // carry no session): etcd expires it after the TTL.
+    primary.process.kill();
     let died = Instant::now();
     let next = tokio::time::timeout(WAIT, standby).await.unwrap().unwrap();
     let failover = died.elapsed();
-    println!("the standby took over {failover:?} after the holder died (lease TTL {TTL:?})");
+    println!("the standby took over {failover:?} after the holder was killed (lease TTL {TTL:?})");
     assert!(
         failover < TTL + Duration::from_secs(3),
         "took {failover:?} (TTL {TTL:?})"
@@ -352,14 +355,14 @@ async fn a_holder_dead_with_the_raft_leader_is_replaced() {
     let Some(mut cluster) = cluster().await else {
         return;
     };
-    let primary = win(&candidate(&cluster, "host-a")).await;
-    let epoch = primary.epoch();
+    let mut primary = EtcdHolder::start(HOLDER, &cluster, PREFIX, "host-a").unwrap();
+    let epoch = primary.epoch;
     let standby = campaign_in_background(candidate(&cluster, "host-b"));
     tokio::time::sleep(Duration::from_millis(700)).await;
     assert!(!standby.is_finished());
     let raft_leader = cluster.raft_leader().await.unwrap();
     cluster.kill(raft_leader);
-    drop(primary);
+    primary.process.kill();
     let died = Instant::now();
     let next = tokio::time::timeout(WAIT, standby).await.unwrap().unwrap();
     let failover = died.elapsed();
