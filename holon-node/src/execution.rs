@@ -87,7 +87,8 @@ pub enum ExecutionState {
     Ready,
     /// Executing `job`: step `step` is waiting for the reply to `command_id`.
     Running {
-        job: Job,
+        /// Boxed: the state is moved at each transition, the job stays where it is.
+        job: Box<Job>,
         step: usize,
         command_id: u64,
         results: Map<String, Value>,
@@ -250,10 +251,14 @@ impl Execution {
         }
         // Read when it was booked; only a job that came without them is read here, once.
         if job.parameters.is_none() {
-            job.parameters = self.catalog.parameters(&job.service_type, &job.info).ok();
+            job.parameters = self
+                .catalog
+                .parameters(&job.service_type, &job.info)
+                .ok()
+                .map(Arc::new);
         }
         self.state = ExecutionState::Running {
-            job,
+            job: Box::new(job),
             step: 0,
             command_id: 0,
             results: Map::new(),
@@ -818,7 +823,7 @@ mod tests {
             .parameters(&booked.service_type, &booked.info)
             .unwrap();
         parameters.program = Some("read-at-booking".into());
-        booked.parameters = Some(parameters);
+        booked.parameters = Some(Arc::new(parameters));
         // What the steps use comes from the parameters, not from the info.
         booked.info.clear();
         let pick = command(&e.handle(ExecutionEvent::Start(booked)));

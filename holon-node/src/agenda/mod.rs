@@ -129,7 +129,7 @@ pub struct Booking {
     /// Its `info` as the steps use it, read when booked (or the journal opened; not
     /// journalled); `None` when it does not fit the steps (a `start` is to bring one).
     #[serde(skip)]
-    pub parameters: Option<Parameters>,
+    pub parameters: Option<Arc<Parameters>>,
     /// The requester asked for the job to start by itself on its turn
     /// ([`schemas::info_key::START_ON_TURN`]); its `reply_to` and `info` were checked
     /// when it was booked.
@@ -159,7 +159,7 @@ pub struct Job {
     /// Its `info` as the steps use it, read when it was booked or started (the execution
     /// reads it from `info` only for a job that lacks it). Not journalled.
     #[serde(skip)]
-    pub parameters: Option<Parameters>,
+    pub parameters: Option<Arc<Parameters>>,
     /// An operator's single job in Maintenance mode: who asked. Its result goes to no
     /// inbox; it is kept in the PackML figures (`packml.operator_job`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -373,7 +373,8 @@ impl AgendaManager {
             booking.parameters = manager
                 .catalog
                 .parameters(&booking.service_type, &booking.info)
-                .ok();
+                .ok()
+                .map(Arc::new);
         }
         if inheritance == Inheritance::Restarted {
             for booking in &mut manager.bookings {
@@ -611,7 +612,7 @@ impl AgendaManager {
     ) -> Job {
         let booking = self.bookings.remove(index);
         let (info, parameters) = match started_with {
-            Some((info, parameters)) => (info, Some(parameters)),
+            Some((info, parameters)) => (info, Some(Arc::new(parameters))),
             None => (booking.info, booking.parameters),
         };
         let job = Job {

@@ -156,7 +156,7 @@ impl AgendaManager {
             service_type: request.service_type,
             reply_to: String::new(),
             info: request.info,
-            parameters: parameters.ok(),
+            parameters: parameters.ok().map(std::sync::Arc::new),
             operator: Some(by.to_string()),
         };
         self.current = Some(job.clone());

@@ -171,7 +171,7 @@ impl AgendaManager {
                 service_type: request.service_type.clone(),
                 reply_to: request.reply_to.clone(),
                 info: request.info.clone(),
-                parameters: parameters.ok(),
+                parameters: parameters.ok().map(std::sync::Arc::new),
                 start_on_turn,
                 priority,
                 due,

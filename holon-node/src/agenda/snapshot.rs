@@ -24,7 +24,7 @@ impl AgendaManager {
                     priority: b.priority,
                     due: b.due,
                     overtaken: b.overtaken,
-                    program: program_of(b.parameters.as_ref(), &b.info),
+                    program: program_of(b.parameters.as_deref(), &b.info),
                 })
                 .collect(),
             current: self.current.as_ref().map(|j| CurrentJobView {
@@ -32,7 +32,7 @@ impl AgendaManager {
                 conversation_id: j.conversation_id.clone(),
                 service_type: j.service_type.clone(),
                 step: None,
-                program: program_of(j.parameters.as_ref(), &j.info),
+                program: program_of(j.parameters.as_deref(), &j.info),
                 started_at: None,
             }),
             undelivered: self.undelivered.len(),
