@@ -6,8 +6,8 @@ use anyhow::{bail, Context, Result};
 use serde_json::{json, Value};
 
 use crate::{
-    booking, cycle, dashboard, erlang, floors::floors, holon, lease, opcua, orders, rebook, robots,
-    scale, throughput, tls,
+    booking, cycle, dashboard, erlang, etcd, floors::floors, holon, lease, opcua, orders, rebook,
+    robots, scale, throughput, tls,
 };
 
 /// The most resource holons the dashboard section runs (`--scale` beyond it still
@@ -28,6 +28,7 @@ const SECTIONS: &[&str] = &[
     "scale",
     "dashboard",
     "opcua",
+    "etcd",
     "erlang",
 ];
 
@@ -101,6 +102,9 @@ pub async fn run(
     }
     if wants("opcua") {
         opcua::section(&mut run).await?;
+    }
+    if wants("etcd") {
+        etcd::section(&mut run).await?;
     }
 
     let machine = json!({

@@ -17,6 +17,7 @@ mod cycle;
 mod dashboard;
 mod echo;
 mod erlang;
+mod etcd;
 mod floors;
 mod holon;
 mod lease;
@@ -65,7 +66,7 @@ enum Commands {
         scale: usize,
         /// Run only these sections (comma-separated; the floors always run): booking,
         /// tls, cycle, erlang, holon, rebook, lease, throughput, robots, orders, scale,
-        /// dashboard, opcua.
+        /// dashboard, opcua, etcd.
         #[arg(long, value_delimiter = ',')]
         only: Vec<String>,
         /// The seed's resource holon in Erlang/OTP (a directory with its run.sh): run it
