@@ -249,7 +249,7 @@ impl Client {
 
     /// One POST to one member: the reply's body when its status is 200.
     async fn attempt(&self, member: &Member, path: &str, body: Bytes) -> Result<Bytes, Failure> {
-        let mut sender = match self.idle_connection(member) {
+        let mut sender = match self.idle_connection(member).await {
             Some(sender) => sender,
             None => self.connect(member).await?,
         };
@@ -306,15 +306,21 @@ impl Client {
         }
     }
 
-    /// An open idle connection to `member`, if it has one.
-    fn idle_connection(&self, member: &Member) -> Option<SendRequest<Full<Bytes>>> {
-        let mut idle = member.idle.lock().unwrap_or_else(|e| e.into_inner());
-        while let Some(sender) = idle.pop() {
-            if sender.is_ready() && !sender.is_closed() {
+    /// An open idle connection to `member`, if it has one. (One just returned may not
+    /// say it is ready yet: its driver is told the last reply was read; it is waited
+    /// for, within the attempt's timeout.)
+    async fn idle_connection(&self, member: &Member) -> Option<SendRequest<Full<Bytes>>> {
+        loop {
+            let sender = member
+                .idle
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .pop();
+            let mut sender = sender?;
+            if !sender.is_closed() && sender.ready().await.is_ok() {
                 return Some(sender);
             }
         }
-        None
     }
 
     /// A new connection to `member`, its driver spawned.
