@@ -82,6 +82,16 @@ async fn one_holder_at_a_time_and_epochs_grow() {
         "the second candidate won while the first held the key"
     );
     assert!(!winner.is_deposed(), "the holder keeps its key alive");
+    // A campaign is cancelled while it waits.
+    let third = candidate(&cluster, "host-c");
+    let cancelled = tokio::time::timeout(
+        WAIT,
+        third.campaign(tokio::time::sleep(Duration::from_millis(300))),
+    )
+    .await
+    .expect("a cancelled campaign returns")
+    .unwrap();
+    assert!(cancelled.is_none(), "a cancelled campaign wins nothing");
     // The holder resigns: the standby wins at once, at a greater epoch.
     let first_epoch = winner.epoch();
     let resigned_store = winner.store();
