@@ -311,11 +311,7 @@ impl Client {
     /// for, within the attempt's timeout.)
     async fn idle_connection(&self, member: &Member) -> Option<SendRequest<Full<Bytes>>> {
         loop {
-            let sender = member
-                .idle
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .pop();
+            let sender = member.idle.lock().unwrap_or_else(|e| e.into_inner()).pop();
             let mut sender = sender?;
             if !sender.is_closed() && sender.ready().await.is_ok() {
                 return Some(sender);
