@@ -51,7 +51,12 @@ pub struct Mailbox<T> {
 
 impl<T> Mailbox<T> {
     pub fn new() -> Mailbox<T> {
-        let (sender, receiver) = mpsc::channel(MAILBOX);
+        Mailbox::with_capacity(MAILBOX)
+    }
+
+    /// A mailbox that holds `capacity` messages before its senders wait.
+    pub fn with_capacity(capacity: usize) -> Mailbox<T> {
+        let (sender, receiver) = mpsc::channel(capacity);
         Mailbox {
             sender,
             receiver: Handover::new(receiver),

@@ -105,7 +105,10 @@ impl Wiring {
         let (fence, port) = fence.map(|(f, p)| (f, Handover::new(p))).unzip();
         let fence_handle = fence.clone();
         let faults = Arc::new(Faults::default());
-        let agenda_mail: Mailbox<AgendaMessage> = Mailbox::new();
+        // Requests come straight from the queryables' callbacks: as many may wait as
+        // waited for the communication component before (see `communication`).
+        let agenda_mail: Mailbox<AgendaMessage> =
+            Mailbox::with_capacity(communication::QUERY_QUEUE);
         let jobs: Mailbox<crate::execution::ExecutionRequest> = Mailbox::new();
         let controller: Mailbox<ControllerEvent> = Mailbox::new();
         let commands: Mailbox<robot_bridge::client::ControllerRequest> = Mailbox::new();

@@ -119,8 +119,75 @@ impl Views {
         snapshot
     }
 
+    /// Whether a job is on its way between the agenda and the execution: the agenda runs
+    /// it and the execution has not begun it yet, or the execution has ended it and the
+    /// agenda has not learnt that yet. A moment that lasts until the next view change
+    /// and that nobody else needs to see: the snapshot is published once the two agree
+    /// again (a job's beginning and its step together, its end and its result together).
+    pub fn job_in_passage(&self) -> bool {
+        let agenda = self.agenda.borrow();
+        let Some(current) = &agenda.snapshot.current else {
+            return false;
+        };
+        let execution = self.execution.borrow();
+        execution
+            .running_since
+            .as_ref()
+            .is_none_or(|(running, _)| *running != current.conversation_id)
+    }
+
     /// Whether the resource takes new work (see [`AgendaView::accepting`]).
     pub fn accepting(&self) -> bool {
         self.agenda.borrow().accepting && self.fence.borrow().serves()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use schemas::{CurrentJobView, HolonId};
+
+    use super::*;
+    use crate::absences::Moment;
+    use crate::agenda::AgendaManager;
+
+    /// The views with the agenda running `current`, and the execution running `running`.
+    fn views(current: Option<&str>, running: Option<&str>) -> Views {
+        let holon = HolonId::resource("robot1").unwrap();
+        let catalog = Arc::new(crate::catalog::pick_n_place());
+        let mut snapshot = AgendaManager::new(holon, catalog, 3).snapshot();
+        snapshot.current = current.map(|conversation| CurrentJobView {
+            requester: HolonId::order("o-1").unwrap(),
+            conversation_id: conversation.into(),
+            service_type: "pick_n_place".into(),
+            step: None,
+            program: None,
+            started_at: None,
+        });
+        let agenda = AgendaView {
+            snapshot,
+            deliverable: vec![],
+            accepting: true,
+            drained: false,
+        };
+        let views = Views::new(agenda, Absences::new(Moment::now()));
+        views.execution.send_modify(|view| {
+            view.running_since = running.map(|conversation| (conversation.to_string(), 1));
+        });
+        views
+    }
+
+    #[test]
+    fn a_job_is_in_passage_only_while_the_agenda_and_the_execution_disagree_on_it() {
+        // Nothing runs; the same job runs on both sides.
+        assert!(!views(None, None).job_in_passage());
+        assert!(!views(Some("c1"), Some("c1")).job_in_passage());
+        // Handed to the execution, not begun there yet.
+        assert!(views(Some("c2"), None).job_in_passage());
+        assert!(views(Some("c2"), Some("c1")).job_in_passage());
+        // Ended in the execution, not yet learnt by the agenda: its view shows the job
+        // and the execution none (or, with the agenda already past it, nothing runs).
+        assert!(!views(None, Some("c1")).job_in_passage());
     }
 }

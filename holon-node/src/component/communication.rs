@@ -13,11 +13,18 @@
 //! changes. Results are not its business: the agenda manager, which owns them, delivers
 //! them ([`crate::component::delivery`]).
 //!
-//! Back-pressure: queries wait in a queue of [`QUERY_QUEUE`]; when it is full (the
-//! component is far behind), a new query is refused at once with `unavailable`, and the
-//! requester asks again after its pause. The agenda manager's mailbox is bounded too:
-//! while it is full this component waits, and queries queue up here. The agenda
-//! manager never waits on this component (it sends it nothing), so that wait ends.
+//! A request to `service` or to an offer of an unfenced resource is decoded and checked
+//! in the queryable's callback and goes from there straight into the agenda manager's
+//! mailbox (a malformed or misaddressed one is refused there, at once): one queue
+//! between zenoh and the agenda. The rest (state reads, `status`, PackML, fault
+//! injection, and a fenced resource's requests, whose claim is confirmed first) wait in
+//! this component's queue and are answered or passed on by its task.
+//!
+//! Back-pressure: both queues hold [`QUERY_QUEUE`]; when the one a query is for is full
+//! (the resource is far behind), the query is refused at once with `unavailable`, and
+//! the requester asks again after its pause. While the agenda manager's mailbox is full
+//! this component's task waits, and queries queue up here. The agenda manager never
+//! waits on this component (it sends it nothing), so that wait ends.
 
 use std::sync::Arc;
 
@@ -148,7 +155,9 @@ impl Queryables {
     }
 }
 
-/// Declares one queryable whose callback queues each query for this component.
+/// Declares one queryable whose callback takes the agenda's requests straight to the
+/// agenda manager (an unfenced resource's `service` and offers) and queues the other
+/// queries for this component.
 async fn declare(
     links: &Links,
     endpoint: Endpoint,
@@ -158,13 +167,24 @@ async fn declare(
     let holon = links.config.holon.clone();
     let arrivals = arrivals.clone();
     let answer_key = key.clone();
+    let direct =
+        matches!(endpoint, Endpoint::Service | Endpoint::Offer(_)) && links.fence.is_none();
+    let agenda = direct.then(|| links.agenda.clone());
     let queryable = links
         .session
         .declare_queryable(&key)
         .callback(move |query| {
+            let question = Question::new(query, answer_key.clone());
+            let question = match &agenda {
+                Some(agenda) => match to_agenda_now(&holon, &endpoint, question, agenda) {
+                    Some(question) => question,
+                    None => return,
+                },
+                None => question,
+            };
             let arrival = Arrival {
                 endpoint: endpoint.clone(),
-                question: Question::new(query, answer_key.clone()),
+                question,
             };
             match arrivals.try_send(arrival) {
                 Ok(()) => {}
@@ -185,6 +205,50 @@ async fn declare(
         .await?;
     debug!(%key, "queryable declared");
     Ok(queryable)
+}
+
+/// In a queryable's callback (it must not wait): decodes and checks an agenda request;
+/// refuses it at once when it is malformed or misaddressed, puts it into the agenda
+/// manager's mailbox (refused `unavailable` when that is full), or gives the question
+/// back for this component's task (a `status` read).
+fn to_agenda_now(
+    holon: &HolonId,
+    endpoint: &Endpoint,
+    question: Question,
+    agenda: &mpsc::Sender<AgendaMessage>,
+) -> Option<Question> {
+    let request = match decode(holon, endpoint, &question) {
+        Ok(request) if request.message_type == MessageType::Status => return Some(question),
+        Ok(request) => request,
+        Err((code, message)) => {
+            question.reject_now(holon, code, message);
+            return None;
+        }
+    };
+    let message = AgendaMessage {
+        event: AgendaEvent::Request(request),
+        question: Some(question),
+    };
+    match agenda.try_send(message) {
+        Ok(()) => {}
+        Err(mpsc::error::TrySendError::Full(message)) => {
+            if let Some(question) = message.question {
+                question.reject_now(
+                    holon,
+                    ErrorCode::Unavailable,
+                    format!(
+                        "{QUERY_QUEUE} requests are waiting for this resource; ask again shortly"
+                    ),
+                );
+            }
+        }
+        // The holon is stopping: the requester asks again (another resource, or this
+        // one's successor).
+        Err(mpsc::error::TrySendError::Closed(_)) => {
+            debug!(%holon, "a request arrived while the agenda manager stopped")
+        }
+    }
+    None
 }
 
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
@@ -272,12 +336,18 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
 }
 
 /// Publishes the state snapshot, unless it says what the last one said (only its time
-/// would differ): `last` is the last one published, with its time cleared.
+/// would differ): `last` is the last one published, with its time cleared. Nor is it
+/// published while a job passes between the agenda and the execution
+/// ([`Views::job_in_passage`]): the next view change, which ends that moment, publishes
+/// both halves of it at once.
 async fn publish(
     links: &Links,
     publisher: &zenoh::pubsub::Publisher<'_>,
     last: &mut Option<schemas::ResourceSnapshot>,
 ) {
+    if links.views.job_in_passage() {
+        return;
+    }
     let snapshot = links.views.snapshot();
     let mut unstamped = snapshot.clone();
     unstamped.at = 0;

@@ -5,12 +5,14 @@
 //! |---|---|---|
 //! | [`interfacing`] | the controller connection | commands |
 //! | [`execution`] | the execution state machine | jobs, controller events |
-//! | [`agenda_manager`] | the agenda and its journal | every agenda event, requests with their queries |
+//! | [`agenda_manager`] | the agenda and its journal, the undelivered results and their delivery ([`delivery`]) | every agenda event, requests with their queries, its attempts' ends |
 //! | [`requesters`] | who of the cell is absent | liveliness samples, a tick |
-//! | [`communication`] | the queryables, results on their way | queries, results to deliver, view changes |
+//! | [`communication`] | the queryables, the published snapshot | queries, view changes |
 //!
 //! Each owns its state alone and hands it to its successor when it crashes
-//! ([`crate::handover`]); the others see what it publishes ([`crate::views`]).
+//! ([`crate::handover`]); the others see what it publishes ([`crate::views`]). The
+//! agenda manager waits on no other component, and every other component waits only on
+//! it (or, the interfacing component, on the execution): no cycle of waits.
 
 pub mod agenda_manager;
 pub mod communication;
