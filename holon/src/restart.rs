@@ -1,9 +1,10 @@
 //! The one restart policy of the project, after Erlang/OTP's supervisor: a restart type
 //! per child, and a restart intensity over a sliding window.
 //!
-//! Used by the holons' component [`crate::Supervisor`], by the order-node for its order
-//! tasks, and by `cell up` for the processes of a cell; the pause before a restart,
-//! where there is one, is a [`crate::Backoff`].
+//! Held by the one supervision machine ([`crate::supervisor::machine`]), which decides
+//! for the holons' components ([`crate::Supervisor`]), the order-node's order tasks and
+//! `cell up`'s processes; the pause before a restart, where there is one, is a
+//! [`crate::Backoff`].
 //!
 //! | restart type | ends normally | fails (error, panic, crash) |
 //! |---|---|---|
@@ -58,7 +59,9 @@ impl std::fmt::Display for RestartType {
 /// At most `max_restarts` restarts within any `period`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Intensity {
+    /// The most restarts allowed within `period`.
     pub max_restarts: u32,
+    /// The sliding window restarts are counted over.
     pub period: Duration,
 }
 

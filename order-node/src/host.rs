@@ -2,6 +2,10 @@
 //! from the journal, restarted under the one restart policy when they fail, and
 //! forgotten once finished for longer than the retention.
 //!
+//! [`task_ended`] executes the one supervision machine ([`holon::supervisor::machine`])
+//! for the order tasks: `simple_one_for_one`, transient, an intensity per order (past it
+//! the order fails, not the node); a journal fault is a pause it sorts out itself.
+//!
 //! Only unfinished orders are held in memory. An order leaves memory when it finishes
 //! (its final progress was written to the journal before it was final in memory): from
 //! then on what is asked about it (its state, a cancel, a late result) is answered from
@@ -16,10 +20,12 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use holon::journal::JournalError;
-use holon::{Intensity, RestartWindow};
+use holon::supervisor::{Action, Event, Machine, Scope, Strategy};
+use holon::{Intensity, RestartType};
 use schemas::{CancelReply, ErrorCode, HolonId, WorkOrder};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
+use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 use zenoh::key_expr::KeyExpr;
@@ -51,21 +57,32 @@ const READ_AT_ONCE: usize = 256;
 /// The journal record of the next order number.
 pub const NEXT_RECORD: (&str, &str) = ("meta", "next_order");
 
-/// The running order tasks, and which order each one runs.
-#[derive(Default)]
+/// The running order tasks, which order each one runs, and their supervision.
 pub struct Tasks {
     /// The running tasks; each ends `Ok` when its order ended (or the node stops).
     pub set: JoinSet<Result<(), OrderError>>,
     /// Which order each task runs.
     pub names: std::collections::HashMap<tokio::task::Id, String>,
+    /// What to do when an order's task ends: the unfinished orders, each with its
+    /// restarts against [`ORDER_RESTARTS`].
+    pub supervision: Machine<String>,
+}
+
+impl Default for Tasks {
+    fn default() -> Tasks {
+        Tasks {
+            set: JoinSet::new(),
+            names: Default::default(),
+            supervision: Machine::new(Strategy::SimpleOneForOne, ORDER_RESTARTS)
+                .scope(Scope::PerChild),
+        }
+    }
 }
 
 /// An order held in memory: unfinished (or finished, without a journal).
 pub struct Hosted {
     /// The order's progress: written by its task, read for queries.
     pub progress: Arc<Mutex<OrderProgress>>,
-    /// The task's restarts, against [`ORDER_RESTARTS`].
-    pub restarts: RestartWindow,
     /// Cancelled by the order's task once it recorded an operator's cancel (`cell
     /// cancel`); cancelled at the start for an order whose journal says so.
     pub operator_cancel: CancellationToken,
@@ -183,14 +200,30 @@ impl Host {
                 name.to_string(),
                 Hosted {
                     progress: progress.clone(),
-                    restarts: RestartWindow::new(ORDER_RESTARTS),
                     operator_cancel,
                     cancel_asks: crate::cancel::mailbox().0,
                 },
             );
         if running {
-            self.spawn(name, progress, tasks, cancel, Duration::ZERO);
+            let added = Event::Added {
+                child: name.to_string(),
+                restart: RestartType::Transient,
+            };
+            for action in tasks.supervision.handle(added, Instant::now()) {
+                if let Action::Start(name) = action {
+                    self.spawn(&name, progress.clone(), tasks, cancel, Duration::ZERO);
+                }
+            }
         }
+    }
+
+    /// The progress of an order held in memory.
+    fn progress_of(&self, name: &str) -> Option<Arc<Mutex<OrderProgress>>> {
+        self.orders
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(name)
+            .map(|h| h.progress.clone())
     }
 
     /// The number of `name` if it is the name this node gives its order of that number.
@@ -569,7 +602,8 @@ pub fn recover(
 }
 
 /// An order task ended: done (the order ended), waiting for the journal (resumed after
-/// a pause, not counted as a failure), or failed (restarted under the restart policy).
+/// a pause, not counted as a failure), or failed (restarted under the restart policy,
+/// or, past it, the order fails).
 pub async fn task_ended(
     host: &Host,
     joined: Result<(tokio::task::Id, Result<(), OrderError>), tokio::task::JoinError>,
@@ -577,72 +611,73 @@ pub async fn task_ended(
     cancel_all: &CancellationToken,
 ) {
     let node = &host.config.name;
-    let (id, why) = match joined {
-        Ok((id, Ok(()))) => {
-            if let Some(name) = tasks.names.remove(&id) {
-                host.retire(&name);
-            }
-            return;
-        }
+    let (id, normally, why) = match joined {
+        Ok((id, Ok(()))) => (id, true, String::new()),
         Ok((id, Err(OrderError::Journal(why)))) => {
             // Not the order's fault: resumed from its last written progress once the
             // journal can write again (tried every second), not counted against its
-            // restarts.
+            // restarts (the machine is not told: to it the order runs on).
             let Some(name) = tasks.names.remove(&id) else {
                 return;
             };
             debug!(%node, order = %name, error = %why, "order waits for the journal");
-            let progress = host
-                .orders
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .get(&name)
-                .map(|h| h.progress.clone());
-            if let Some(progress) = progress {
+            if let Some(progress) = host.progress_of(&name) {
                 host.spawn(&name, progress, tasks, cancel_all, JOURNAL_RETRY);
             }
             return;
         }
-        Ok((id, Err(e))) => (id, e.to_string()),
+        Ok((id, Err(e))) => (id, false, e.to_string()),
         Err(e) if e.is_panic() => {
             let id = e.id();
             let why = format!(
                 "panicked: {}",
                 holon::supervisor::panic_message(e.into_panic())
             );
-            (id, why)
+            (id, false, why)
         }
         Err(e) => {
-            tasks.names.remove(&e.id());
+            // Aborted: the node is stopping.
+            if let Some(name) = tasks.names.remove(&e.id()) {
+                tasks
+                    .supervision
+                    .handle(Event::Removed { child: name }, Instant::now());
+            }
             return;
         }
     };
     let Some(name) = tasks.names.remove(&id) else {
         return;
     };
-    error!(%node, order = %name, error = %why, "order task failed");
-    restart(host, &name, tasks, cancel_all).await;
+    if !normally {
+        error!(%node, order = %name, error = %why, "order task failed");
+    }
+    let exited = Event::Exited {
+        child: name.clone(),
+        normally,
+        why,
+    };
+    for action in tasks.supervision.handle(exited, Instant::now()) {
+        match action {
+            Action::Done(name) => host.retire(&name),
+            Action::Start(name) | Action::RestartAfter(name, _) => {
+                if let Some(progress) = host.progress_of(&name) {
+                    warn!(order = %name, "restarting order");
+                    host.spawn(&name, progress, tasks, cancel_all, Duration::ZERO);
+                }
+            }
+            Action::GiveUp { child, .. } => fail(host, &child).await,
+            // simple_one_for_one stops no other order.
+            Action::Stop(_) => {}
+        }
+    }
 }
 
-/// Restarts a failed order task, unless it failed more often than [`ORDER_RESTARTS`]
-/// allows: then the order fails, recorded in the journal and published, so it does not
-/// resume after a restart of the node.
-async fn restart(host: &Host, name: &str, tasks: &mut Tasks, cancel: &CancellationToken) {
-    let (progress, allowed) = {
-        let mut orders = host.orders.lock().unwrap_or_else(|e| e.into_inner());
-        let Some(hosted) = orders.get_mut(name) else {
-            return;
-        };
-        (
-            hosted.progress.clone(),
-            hosted.restarts.allow(tokio::time::Instant::now()),
-        )
-    };
-    if allowed {
-        warn!(order = %name, "restarting order");
-        host.spawn(name, progress, tasks, cancel, Duration::ZERO);
+/// Fails an order whose task failed more often than [`ORDER_RESTARTS`] allows, recorded
+/// in the journal and published, so it does not resume after a restart of the node.
+async fn fail(host: &Host, name: &str) {
+    let Some(progress) = host.progress_of(name) else {
         return;
-    }
+    };
     let why = format!(
         "the order task failed more than {} times within {:?}",
         ORDER_RESTARTS.max_restarts, ORDER_RESTARTS.period
@@ -741,7 +776,6 @@ mod tests {
             name,
             Hosted {
                 progress: progress.clone(),
-                restarts: RestartWindow::new(ORDER_RESTARTS),
                 operator_cancel: CancellationToken::new(),
                 cancel_asks: crate::cancel::mailbox().0,
             },
@@ -962,5 +996,86 @@ mod tests {
             0,
             "ended just now: kept for the hour"
         );
+    }
+
+    /// Ends the order tasks the executor started (real ones) without telling the
+    /// machine, and gives order `name` a task that fails at once.
+    fn a_failing_task(tasks: &mut Tasks, name: &str) {
+        tasks.names.clear();
+        tasks.set.abort_all();
+        tasks.set.detach_all();
+        let handle = tasks
+            .set
+            .spawn(async { Err(OrderError::Other("the robot fell over".into())) });
+        tasks.names.insert(handle.id(), name.to_string());
+    }
+
+    #[tokio::test(flavor = "multi_thread")]
+    async fn a_failing_order_is_restarted_within_its_intensity_then_fails_alone() {
+        let host = host(None).await;
+        let failing = running(&host, 1);
+        let other = running(&host, 2);
+        let mut tasks = Tasks::default();
+        let now = tokio::time::Instant::now();
+        for name in ["n1-1", "n1-2"] {
+            let added = Event::Added {
+                child: name.to_string(),
+                restart: RestartType::Transient,
+            };
+            tasks.supervision.handle(added, now);
+        }
+        let cancel = CancellationToken::new();
+        cancel.cancel();
+        for _ in 0..=ORDER_RESTARTS.max_restarts {
+            a_failing_task(&mut tasks, "n1-1");
+            let joined = tasks.set.join_next_with_id().await.unwrap();
+            task_ended(&host, joined, &mut tasks, &cancel).await;
+        }
+        let failed = failing.lock().unwrap().clone();
+        assert!(failed.status.is_final(), "{failed:?}");
+        assert!(
+            failed
+                .reason
+                .as_deref()
+                .is_some_and(|r| r.contains("more than 3 times")),
+            "{failed:?}"
+        );
+        assert!(
+            !other.lock().unwrap().status.is_final(),
+            "the other order runs on"
+        );
+        assert_eq!(
+            tasks.supervision.len(),
+            1,
+            "only the failed order is forgotten"
+        );
+    }
+
+    #[tokio::test(flavor = "multi_thread")]
+    async fn a_journal_fault_is_a_pause_not_a_failure() {
+        let host = host(None).await;
+        let progress = running(&host, 1);
+        let mut tasks = Tasks::default();
+        let added = Event::Added {
+            child: "n1-1".to_string(),
+            restart: RestartType::Transient,
+        };
+        tasks.supervision.handle(added, tokio::time::Instant::now());
+        let cancel = CancellationToken::new();
+        cancel.cancel();
+        for _ in 0..=2 * ORDER_RESTARTS.max_restarts {
+            tasks.names.clear();
+            tasks.set.abort_all();
+            tasks.set.detach_all();
+            let handle = tasks
+                .set
+                .spawn(async { Err(OrderError::Journal("disk full".into())) });
+            tasks.names.insert(handle.id(), "n1-1".to_string());
+            let joined = tasks.set.join_next_with_id().await.unwrap();
+            task_ended(&host, joined, &mut tasks, &cancel).await;
+            assert_eq!(tasks.names.len(), 1, "resumed after a pause");
+        }
+        assert!(!progress.lock().unwrap().status.is_final());
+        assert_eq!(tasks.supervision.len(), 1);
     }
 }

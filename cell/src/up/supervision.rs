@@ -1,6 +1,12 @@
 //! The supervision of a cell's processes, like an OTP supervisor (one_for_one): they
 //! are started, restarted after their restart type, backoff and the intensity, and
 //! stopped in reverse order; [`upgrade`] holds how one is replaced by its successor.
+//!
+//! What to do when a process exits is decided by the project's one supervision machine
+//! ([`holon::supervisor::machine`]: one_for_one, one intensity for the whole cell, a
+//! backoff per process that starts over after it ran a whole period); this module is
+//! its executor for processes (spawn, signal, wait), and first sorts out the exits that
+//! are no restart decision: those of successors, of retired ones and of older starts.
 
 mod upgrade;
 
@@ -10,7 +16,8 @@ use std::process::{ExitStatus, Stdio};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
-use holon::{Backoff, RestartWindow};
+use holon::supervisor::{Action, Event, Machine, Strategy};
+use holon::Backoff;
 use tokio::process::Command;
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
@@ -54,10 +61,6 @@ struct Slot {
     pid: Option<u32>,
     /// How many times it was started: an exit of an older generation is stale.
     generation: u64,
-    /// The pause before its next restart.
-    backoff: Backoff,
-    /// When it was last started.
-    started_at: Instant,
     /// When it is due to start again, after it exited.
     restart_at: Option<Instant>,
     /// Its successor, started by `cell upgrade`, until the hand-over ends.
@@ -80,8 +83,6 @@ pub(super) struct Processes<'a> {
     /// Every start gets the next generation (of all processes), so an exit is matched
     /// with the start it ends.
     generations: u64,
-    /// A process that ran for a whole period has earned a fresh backoff.
-    period: Duration,
     /// How long a process has between SIGTERM and SIGKILL.
     stop_timeout: Duration,
     slots: Vec<Slot>,
@@ -93,8 +94,9 @@ pub(super) struct Processes<'a> {
     checking: HashMap<tokio::task::Id, usize>,
     /// Successors being stopped because their predecessor gave up on them.
     retired: Vec<Retired>,
-    /// The restarts of all processes together, against the intensity.
-    window: RestartWindow,
+    /// What to do when a process exits: restarts of all processes together against the
+    /// intensity, a backoff per process.
+    machine: Machine<usize>,
     clock: Clock,
 }
 
@@ -115,7 +117,6 @@ impl<'a> Processes<'a> {
             logs,
             specs: manifest.processes.clone(),
             generations: 0,
-            period: Duration::from_millis(restart.period_ms),
             stop_timeout: Duration::from_millis(restart.stop_timeout_ms),
             slots: manifest
                 .processes
@@ -123,8 +124,6 @@ impl<'a> Processes<'a> {
                 .map(|_| Slot {
                     pid: None,
                     generation: 0,
-                    backoff: backoff.clone(),
-                    started_at: clock.0,
                     restart_at: None,
                     successor: None,
                     checking: false,
@@ -134,7 +133,7 @@ impl<'a> Processes<'a> {
             checks: JoinSet::new(),
             checking: HashMap::new(),
             retired: Vec::new(),
-            window: RestartWindow::new(manifest.intensity()),
+            machine: Machine::new(Strategy::OneForOne, manifest.intensity()).backoff(backoff),
             clock,
         }
     }
@@ -142,7 +141,16 @@ impl<'a> Processes<'a> {
     /// Starts every process, in the manifest's order.
     pub(super) fn start_all(&mut self) -> Result<()> {
         for index in 0..self.slots.len() {
-            self.start(index)?;
+            let restart = self.specs[index].restart;
+            let added = Event::Added {
+                child: index,
+                restart,
+            };
+            for action in self.machine.handle(added, Instant::now()) {
+                if let Action::Start(index) = action {
+                    self.start(index)?;
+                }
+            }
         }
         Ok(())
     }
@@ -154,7 +162,6 @@ impl<'a> Processes<'a> {
         let slot = &mut self.slots[index];
         slot.generation = generation;
         slot.pid = pid;
-        slot.started_at = Instant::now();
         slot.restart_at = None;
         let spec = &self.specs[index];
         let role = match spec.standby {
@@ -294,8 +301,11 @@ impl<'a> Processes<'a> {
             let before = slot.pid.unwrap_or(0);
             slot.generation = successor.generation;
             slot.pid = successor.pid;
-            slot.started_at = successor.started_at;
-            slot.backoff.reset();
+            let replaced = Event::Replaced {
+                child: index,
+                started_at: successor.started_at,
+            };
+            self.machine.handle(replaced, Instant::now());
             let spec = &mut self.specs[index];
             spec.program = successor.program;
             spec.args = successor.args;
@@ -318,39 +328,48 @@ impl<'a> Processes<'a> {
             // again below, from its previous command line, on its journal.
             self.retire(index, successor, &status);
         }
-        let slot = &mut self.slots[index];
-        let spec = &self.specs[index];
-        slot.pid = None;
-        let ended_normally = status.as_ref().is_ok_and(ExitStatus::success);
-        let status = status
-            .map(|s| s.to_string())
-            .unwrap_or_else(|e| e.to_string());
-        let name = &spec.name;
-        if !spec.restart.restarts(ended_normally) {
-            self.clock.say(format!(
-                "{name} exited ({status}); {} processes are not restarted",
-                spec.restart
-            ));
-            return true;
-        }
-        if slot.started_at.elapsed() >= self.period {
-            slot.backoff.reset();
-        }
+        self.slots[index].pid = None;
+        let normally = status.as_ref().is_ok_and(ExitStatus::success);
+        let status = describe(status);
+        let exited = Event::Exited {
+            child: index,
+            normally,
+            why: status.clone(),
+        };
         let now = Instant::now();
-        if !self.window.allow(now) {
-            let intensity = self.window.intensity();
-            self.clock.say(format!(
-                "{name} exited ({status}); more than {} restarts within {:?}: giving up",
-                intensity.max_restarts, intensity.period
-            ));
-            return false;
+        for action in self.machine.handle(exited, now) {
+            let name = &self.specs[index].name;
+            match action {
+                Action::Done(_) => self.clock.say(format!(
+                    "{name} exited ({status}); {} processes are not restarted",
+                    self.specs[index].restart
+                )),
+                Action::GiveUp { error, .. } => {
+                    self.clock.say(format!(
+                        "{name} exited ({status}); more than {} restarts within {:?}: giving up",
+                        error.max_restarts, error.period
+                    ));
+                    // The caller stops the rest (and abandons upgrades under way).
+                    return false;
+                }
+                Action::RestartAfter(i, pause) => {
+                    self.clock.say(format!(
+                        "{name} exited ({status}); restarting in {} ms",
+                        pause.as_millis()
+                    ));
+                    self.slots[i].restart_at = Some(now + pause);
+                }
+                // With a backoff and one_for_one the machine neither starts at once nor
+                // stops others.
+                Action::Start(i) => self.slots[i].restart_at = Some(now),
+                Action::Stop(others) => {
+                    tracing::error!(
+                        ?others,
+                        "cell up supervises one_for_one: nothing else is stopped"
+                    )
+                }
+            }
         }
-        let pause = slot.backoff.next_pause();
-        self.clock.say(format!(
-            "{name} exited ({status}); restarting in {} ms",
-            pause.as_millis()
-        ));
-        slot.restart_at = Some(now + pause);
         true
     }
 
@@ -359,12 +378,31 @@ impl<'a> Processes<'a> {
     fn restart_due(&mut self) {
         let now = Instant::now();
         for index in 0..self.slots.len() {
-            if self.slots[index].restart_at.is_some_and(|t| t <= now) {
-                if let Err(e) = self.start(index) {
-                    let pause = self.slots[index].backoff.next_pause();
-                    self.clock
-                        .say(format!("{e:#}; retrying in {} ms", pause.as_millis()));
-                    self.slots[index].restart_at = Some(now + pause);
+            if self.slots[index].restart_at.is_none_or(|t| t > now) {
+                continue;
+            }
+            self.slots[index].restart_at = None;
+            for action in self.machine.handle(Event::RestartDue { child: index }, now) {
+                match action {
+                    Action::Start(i) => {
+                        if let Err(e) = self.start(i) {
+                            let failed = Event::StartFailed {
+                                child: i,
+                                why: format!("{e:#}"),
+                            };
+                            for action in self.machine.handle(failed, now) {
+                                if let Action::RestartAfter(i, pause) = action {
+                                    self.clock.say(format!(
+                                        "{e:#}; retrying in {} ms",
+                                        pause.as_millis()
+                                    ));
+                                    self.slots[i].restart_at = Some(now + pause);
+                                }
+                            }
+                        }
+                    }
+                    Action::RestartAfter(i, pause) => self.slots[i].restart_at = Some(now + pause),
+                    _ => {}
                 }
             }
         }

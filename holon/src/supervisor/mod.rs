@@ -8,8 +8,14 @@
 //! permanent child that returns while the supervisor runs counts as failed and is
 //! restarted; a transient one that returns `Ok` is done and stays stopped. Restarts count
 //! against the intensity ([`crate::restart`], the one restart policy of the project).
-//! Each child gets its own [`CancellationToken`] and must return soon after it is
-//! cancelled; one that does not return within its `shutdown_timeout` is aborted.
+//!
+//! What to do when a child ends is decided by the one supervision [`machine`] (the same
+//! machine decides for the order-node's order tasks and `cell up`'s processes); this
+//! module is its executor for tasks: it starts a child's future, cancels and aborts it,
+//! and waits. Each child gets its own [`CancellationToken`] and must return soon after it
+//! is cancelled; one that does not return within its `shutdown_timeout` is aborted.
+
+pub mod machine;
 
 use std::collections::VecDeque;
 use std::fmt;
@@ -18,17 +24,17 @@ use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
 
-use serde::{Deserialize, Serialize};
 use tokio::task::{AbortHandle, Id, JoinSet};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-/// How long an aborted child is waited for (an abort takes effect at its next await).
-const ABORTED_WITHIN: Duration = Duration::from_secs(1);
 use tracing::{error, info, warn};
 
-use crate::restart::RestartWindow;
 pub use crate::restart::{Intensity, RestartType};
+pub use machine::{Action, Event, GaveUp, Machine, Scope, Strategy};
+
+/// How long an aborted child is waited for (an abort takes effect at its next await).
+const ABORTED_WITHIN: Duration = Duration::from_secs(1);
 
 /// What a child returns when it fails.
 pub type ChildError = Box<dyn std::error::Error + Send + Sync>;
@@ -72,11 +78,13 @@ impl ChildSpec {
         self
     }
 
+    /// How long it has to return once cancelled before it is aborted (5 s by default).
     pub fn shutdown_timeout(mut self, timeout: Duration) -> ChildSpec {
         self.shutdown_timeout = timeout;
         self
     }
 
+    /// The component's name in logs and errors.
     pub fn name(&self) -> &str {
         &self.name
     }
@@ -90,26 +98,19 @@ impl fmt::Debug for ChildSpec {
     }
 }
 
-/// Which children a failure restarts.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Strategy {
-    /// Only the child that failed.
-    #[default]
-    OneForOne,
-    /// Every child: the others are stopped (in reverse order) and all restarted in order.
-    OneForAll,
-    /// The failed child and every child started after it.
-    RestForOne,
-}
-
+/// Why a supervisor ended other than by its shutdown.
 #[derive(Debug, thiserror::Error)]
 pub enum SupervisorError {
+    /// Its children failed more often than its intensity allows.
     #[error("restart intensity exceeded: more than {max_restarts} restarts within {period:?} (last failure: {last_child}: {last_failure})")]
     IntensityExceeded {
+        /// The intensity's restarts.
         max_restarts: u32,
+        /// The intensity's period.
         period: Duration,
+        /// The child whose failure was one too many.
         last_child: String,
+        /// Why it failed.
         last_failure: String,
     },
 }
@@ -123,20 +124,29 @@ pub fn panic_message(payload: Box<dyn std::any::Any + Send>) -> String {
         .unwrap_or_else(|| "(no message)".into())
 }
 
+/// A child's running task.
 struct Running {
+    /// Cancelled to ask it to return.
     token: CancellationToken,
+    /// Aborts it when it does not.
     abort: AbortHandle,
 }
 
 /// The supervisor of one holon's components.
 pub struct Supervisor {
+    /// Its name in logs.
     name: String,
+    /// Which children a failure restarts (`simple_one_for_one` is `one_for_one` here:
+    /// the children are static).
     strategy: Strategy,
+    /// At most so many restarts within a period, of all children together.
     intensity: Intensity,
+    /// The children, in the order they start.
     children: Vec<ChildSpec>,
 }
 
 impl Supervisor {
+    /// A supervisor without children yet.
     pub fn new(name: impl Into<String>, strategy: Strategy, intensity: Intensity) -> Supervisor {
         Supervisor {
             name: name.into(),
@@ -156,23 +166,30 @@ impl Supervisor {
     /// (then stops them in reverse order and returns `Ok`) or the restart intensity is
     /// exceeded (then stops them likewise and returns the error).
     pub async fn run(self, shutdown: CancellationToken) -> Result<(), SupervisorError> {
+        let mut machine = Machine::new(self.strategy, self.intensity);
         let mut state = State {
             supervisor: &self,
             set: JoinSet::new(),
             running: (0..self.children.len()).map(|_| None).collect(),
-            done: vec![false; self.children.len()],
             exited: VecDeque::new(),
         };
-        for index in 0..self.children.len() {
-            state.start(index);
+        for (index, spec) in self.children.iter().enumerate() {
+            let added = Event::Added {
+                child: index,
+                restart: spec.restart,
+            };
+            for action in machine.handle(added, Instant::now()) {
+                if let Action::Start(index) = action {
+                    state.start(index);
+                }
+            }
         }
-        let mut window = RestartWindow::new(self.intensity);
         loop {
             let (index, exit) = match state.exited.pop_front() {
                 Some(exit) => exit,
                 None => tokio::select! {
                     _ = shutdown.cancelled() => {
-                        state.stop_from(0).await;
+                        state.stop_all().await;
                         info!(supervisor = %self.name, "all components stopped");
                         return Ok(());
                     }
@@ -190,55 +207,62 @@ impl Supervisor {
                 },
             };
             let spec = &self.children[index];
-            let child = spec.name.clone();
-            if !spec.restart.restarts(exit.normally) {
-                state.done[index] = true;
-                info!(supervisor = %self.name, component = %child, restart = %spec.restart, how = %exit.why, "component ended; not restarted");
-                continue;
-            }
-            let failure = exit.why;
-            error!(supervisor = %self.name, component = %child, failure = %failure, "component failed");
-            if !window.allow(Instant::now()) {
-                error!(supervisor = %self.name, component = %child, max_restarts = self.intensity.max_restarts, period = ?self.intensity.period, "restart intensity exceeded; stopping");
-                state.stop_from(0).await;
-                return Err(SupervisorError::IntensityExceeded {
-                    max_restarts: self.intensity.max_restarts,
-                    period: self.intensity.period,
-                    last_child: child,
-                    last_failure: failure,
-                });
-            }
-
-            let first = match self.strategy {
-                Strategy::OneForOne => index,
-                Strategy::OneForAll => 0,
-                Strategy::RestForOne => index,
+            let exited = Event::Exited {
+                child: index,
+                normally: exit.normally,
+                why: exit.why.clone(),
             };
-            if self.strategy != Strategy::OneForOne {
-                state.stop_from(first).await;
-                // Exits collected while stopping that the restart below covers are moot.
-                state.exited.retain(|(i, _)| *i < first);
+            let actions = machine.handle(exited, Instant::now());
+            if !matches!(actions.first(), Some(Action::Done(_)) | None) {
+                error!(supervisor = %self.name, component = %spec.name, failure = %exit.why, "component failed");
             }
-            for i in first..self.children.len() {
-                if self.strategy == Strategy::OneForOne && i != index {
-                    continue;
+            let mut gave_up = None;
+            for action in actions {
+                match action {
+                    Action::Done(_) => {
+                        info!(supervisor = %self.name, component = %spec.name, restart = %spec.restart, how = %exit.why, "component ended; not restarted");
+                    }
+                    Action::GiveUp { error, .. } => {
+                        error!(supervisor = %self.name, component = %spec.name, max_restarts = error.max_restarts, period = ?error.period, "restart intensity exceeded; stopping");
+                        gave_up = Some(SupervisorError::IntensityExceeded {
+                            max_restarts: error.max_restarts,
+                            period: error.period,
+                            last_child: spec.name.clone(),
+                            last_failure: error.failure,
+                        });
+                    }
+                    Action::Stop(children) => {
+                        state.stop(&children).await;
+                        // Exits collected while stopping of children the machine has
+                        // decided on already (they are restarted below) are moot.
+                        state.exited.retain(|(i, _)| !children.contains(i));
+                    }
+                    Action::Start(i) | Action::RestartAfter(i, _) => {
+                        // No backoff here: `RestartAfter` is not decided, and would be
+                        // a start as well.
+                        warn!(supervisor = %self.name, component = %self.children[i].name, strategy = ?self.strategy, "restarting component");
+                        state.start(i);
+                    }
                 }
-                if state.running[i].is_none() && !state.done[i] {
-                    warn!(supervisor = %self.name, component = %self.children[i].name, strategy = ?self.strategy, "restarting component");
-                    state.start(i);
-                }
+            }
+            if let Some(error) = gave_up {
+                // Anything that ended while the others were stopped ends with them.
+                state.stop_all().await;
+                return Err(error);
             }
         }
     }
 }
 
+/// The running children of a supervisor, and the exits it has yet to decide on.
 struct State<'a> {
+    /// The children's specs.
     supervisor: &'a Supervisor,
+    /// The children's tasks.
     set: JoinSet<Result<(), ChildError>>,
+    /// Each child's task while it runs, by index.
     running: Vec<Option<Running>>,
-    /// Children that ended and are not to be restarted (transient or temporary).
-    done: Vec<bool>,
-    /// Children that exited and still await the strategy's decision.
+    /// Children that exited and still await the machine's decision.
     exited: VecDeque<(usize, Exit)>,
 }
 
@@ -285,9 +309,16 @@ impl State<'_> {
         Some((index, Exit { normally, why }))
     }
 
-    /// Stops every running child from `first` on, last first, each within its timeout.
-    async fn stop_from(&mut self, first: usize) {
-        for index in (first..self.running.len()).rev() {
+    /// Stops every running child, last first.
+    async fn stop_all(&mut self) {
+        let all: Vec<usize> = (0..self.running.len()).rev().collect();
+        self.stop(&all).await;
+    }
+
+    /// Stops these children, in this order, each within its timeout (those not running
+    /// are passed over).
+    async fn stop(&mut self, children: &[usize]) {
+        for &index in children {
             let Some(running) = self.running[index].take() else {
                 continue;
             };
