@@ -31,6 +31,12 @@ struct JournalSection {
     durability: holon::journal::Durability,
     #[serde(default = "default_keep_finished")]
     keep_finished_ms: u64,
+    #[serde(default)]
+    etcd: Vec<String>,
+    #[serde(default)]
+    etcd_prefix: Option<String>,
+    #[serde(default = "default_lease_ttl")]
+    lease_ttl_ms: u64,
 }
 
 impl Default for JournalSection {
@@ -39,8 +45,15 @@ impl Default for JournalSection {
             dir: None,
             durability: Default::default(),
             keep_finished_ms: default_keep_finished(),
+            etcd: Vec::new(),
+            etcd_prefix: None,
+            lease_ttl_ms: default_lease_ttl(),
         }
     }
+}
+
+fn default_lease_ttl() -> u64 {
+    2000
 }
 
 fn default_keep_finished() -> u64 {
@@ -68,8 +81,8 @@ struct OrdersSection {
     handover_grace_ms: u64,
     #[serde(default = "default_request")]
     request_timeout_ms: u64,
-    #[serde(default = "default_max_per_submit")]
-    max_orders_per_submit: u32,
+    #[serde(default)]
+    max_orders_per_submit: Option<u32>,
     #[serde(default = "default_max_unfinished")]
     max_unfinished_orders: usize,
     #[serde(default = "default_start_on_turn")]
@@ -137,7 +150,7 @@ impl Default for OrdersSection {
             vanished_grace_ms: default_grace(),
             handover_grace_ms: default_handover_grace(),
             request_timeout_ms: default_request(),
-            max_orders_per_submit: default_max_per_submit(),
+            max_orders_per_submit: None,
             max_unfinished_orders: default_max_unfinished(),
             start_on_turn: default_start_on_turn(),
             advice_timeout_ms: default_advice_timeout(),
@@ -203,7 +216,27 @@ pub struct OrderNodeConfig {
     /// Start as the successor of the running order-node (`--take-over`), waiting this
     /// long at most for it to hand over.
     pub take_over: Option<Duration>,
+    /// The journal on etcd (`journal.etcd`), for a primary and standbys of this name on
+    /// several hosts; `None`: the SQLite journal in `data_dir`.
+    pub etcd: Option<EtcdSettings>,
 }
+
+/// Where the order-node's journal lives on etcd, and its leader key's lease.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EtcdSettings {
+    /// The members' client URLs (`journal.etcd`).
+    pub endpoints: Vec<String>,
+    /// The key prefix of this node's leader key and records (`journal.etcd_prefix`,
+    /// default `holarchy/<cell>/order-node/<name>`).
+    pub prefix: String,
+    /// The leader key's lease (`journal.lease_ttl_ms`, whole seconds, at least 2 s): how
+    /// long a dead or cut-off primary holds the name before a standby may take it.
+    pub lease_ttl: Duration,
+}
+
+/// The most records etcd takes in one commit, less the next order number written with
+/// a work order's orders: the most orders one work order may create on etcd.
+pub const MAX_ORDERS_PER_SUBMIT_ON_ETCD: u32 = holon::etcd::MAX_RECORDS_PER_WRITE as u32 - 1;
 
 /// What the command line may override: cell, name, zenoh endpoints, data directory.
 pub type Overrides = holon::session::CommandLine;
@@ -234,6 +267,21 @@ impl OrderNodeConfig {
                 "name: at most 40 bytes (order names append a number)".into(),
             ));
         }
+        let etcd = etcd_settings(&file.journal, &header.keys, &header.name, &overrides)
+            .map_err(&invalid)?;
+        let max_orders_per_submit = match (file.orders.max_orders_per_submit, &etcd) {
+            (Some(n), Some(_)) if n > MAX_ORDERS_PER_SUBMIT_ON_ETCD => {
+                return Err(invalid(format!(
+                    "orders.max_orders_per_submit ({n}) must be at most \
+                     {MAX_ORDERS_PER_SUBMIT_ON_ETCD} with journal.etcd: a work order's orders \
+                     and the next number go to etcd in one commit, of at most {} records",
+                    holon::etcd::MAX_RECORDS_PER_WRITE
+                )))
+            }
+            (Some(n), _) => n,
+            (None, Some(_)) => MAX_ORDERS_PER_SUBMIT_ON_ETCD,
+            (None, None) => default_max_per_submit(),
+        };
         let o = &file.orders;
         for (field, value) in [
             ("orders.proposal_timeout_ms", o.proposal_timeout_ms),
@@ -243,10 +291,7 @@ impl OrderNodeConfig {
             ("orders.retry_max_ms", o.retry_max_ms),
             ("orders.step_timeout_ms", o.step_timeout_ms),
             ("orders.request_timeout_ms", o.request_timeout_ms),
-            (
-                "orders.max_orders_per_submit",
-                o.max_orders_per_submit as u64,
-            ),
+            ("orders.max_orders_per_submit", max_orders_per_submit as u64),
             (
                 "orders.max_unfinished_orders",
                 o.max_unfinished_orders as u64,
@@ -282,7 +327,7 @@ impl OrderNodeConfig {
                 vanished_grace: Duration::from_millis(o.vanished_grace_ms),
                 handover_grace: Duration::from_millis(o.handover_grace_ms),
                 request_timeout: Duration::from_millis(o.request_timeout_ms),
-                max_orders_per_submit: o.max_orders_per_submit,
+                max_orders_per_submit,
                 max_unfinished_orders: o.max_unfinished_orders,
                 start_on_turn: o.start_on_turn,
                 advice_timeout: Duration::from_millis(o.advice_timeout_ms),
@@ -292,8 +337,66 @@ impl OrderNodeConfig {
             keep_finished: (file.journal.keep_finished_ms > 0)
                 .then(|| Duration::from_millis(file.journal.keep_finished_ms)),
             take_over: overrides.take_over,
+            etcd,
         })
     }
+}
+
+/// The etcd settings of `journal`, if it names etcd members. With etcd the journal is
+/// not in a data directory: `journal.dir` (or `--data-dir`) beside `journal.etcd` is
+/// refused, as is `--take-over` (the leader key decides who serves).
+fn etcd_settings(
+    journal: &JournalSection,
+    keys: &CellKeys,
+    name: &str,
+    overrides: &Overrides,
+) -> Result<Option<EtcdSettings>, String> {
+    if journal.etcd.is_empty() {
+        if journal.etcd_prefix.is_some() {
+            return Err("journal.etcd_prefix is set without journal.etcd".into());
+        }
+        return Ok(None);
+    }
+    if let Some(dir) = &journal.dir {
+        return Err(format!(
+            "journal.dir (or --data-dir, here {}) and journal.etcd exclude each other: with \
+             etcd the orders live in etcd, and nothing is read from or written to a data \
+             directory (the orders of a SQLite journal there would not be resumed); remove one",
+            dir.display()
+        ));
+    }
+    if overrides.take_over.is_some() {
+        return Err(
+            "--take-over with journal.etcd: an order-node on etcd is replaced by its \
+                    standby (start the new one, then stop the old one: it gives its leader key up)"
+                .into(),
+        );
+    }
+    if journal.etcd.iter().any(|e| e.trim().is_empty()) {
+        return Err("journal.etcd: an endpoint is empty".into());
+    }
+    let ttl = journal.lease_ttl_ms;
+    if ttl < 2000 || !ttl.is_multiple_of(1000) {
+        return Err(format!(
+            "journal.lease_ttl_ms ({ttl}) must be a whole number of seconds, at least 2000 \
+             (etcd's leases are in seconds, 2 s at least)"
+        ));
+    }
+    let prefix = match &journal.etcd_prefix {
+        Some(prefix) => {
+            let prefix = prefix.trim_end_matches('/');
+            if prefix.is_empty() {
+                return Err("journal.etcd_prefix is empty".into());
+            }
+            prefix.to_string()
+        }
+        None => format!("holarchy/{}/order-node/{name}", keys.cell()),
+    };
+    Ok(Some(EtcdSettings {
+        endpoints: journal.etcd.clone(),
+        prefix,
+        lease_ttl: Duration::from_millis(ttl),
+    }))
 }
 
 #[cfg(test)]
@@ -307,6 +410,64 @@ mod tests {
         let c = OrderNodeConfig::parse(DEMO, "orders1.toml", Overrides::default()).unwrap();
         assert_eq!(c.name, "orders1");
         assert_eq!(c.orders.max_attempts, 3);
+    }
+
+    #[test]
+    fn the_journal_may_be_on_etcd() {
+        let sqlite = OrderNodeConfig::parse(DEMO, "x", Overrides::default()).unwrap();
+        assert_eq!(sqlite.etcd, None, "SQLite stays the default");
+        let with = |journal: &str| {
+            let text = DEMO.replacen("[journal]", &format!("[journal]\n{journal}"), 1);
+            let text = text.replace("max_orders_per_submit = 1000\n", "");
+            OrderNodeConfig::parse(&text, "x", Overrides::default())
+        };
+        let c = with("etcd = [\"http://10.0.0.1:2379\", \"http://10.0.0.2:2379\"]").unwrap();
+        let etcd = c.etcd.unwrap();
+        assert_eq!(etcd.endpoints.len(), 2);
+        assert_eq!(etcd.prefix, "holarchy/demo/order-node/orders1");
+        assert_eq!(etcd.lease_ttl, Duration::from_secs(2));
+        assert_eq!(
+            c.orders.max_orders_per_submit, MAX_ORDERS_PER_SUBMIT_ON_ETCD,
+            "a work order fits one etcd commit"
+        );
+        let c =
+            with("etcd = [\"http://e:2379\"]\netcd_prefix = \"plant/o1/\"\nlease_ttl_ms = 3000")
+                .unwrap()
+                .etcd
+                .unwrap();
+        assert_eq!(
+            (c.prefix.as_str(), c.lease_ttl),
+            ("plant/o1", Duration::from_secs(3))
+        );
+        for refused in [
+            "etcd = [\"http://e:2379\"]\ndir = \"/var/lib/holarchy\"",
+            "etcd = [\"http://e:2379\"]\nlease_ttl_ms = 1500",
+            "etcd = [\"http://e:2379\"]\nlease_ttl_ms = 1000",
+            "etcd = [\"\"]",
+            "etcd_prefix = \"a\"",
+        ] {
+            assert!(with(refused).is_err(), "{refused}");
+        }
+        // The demo's explicit 1000 does not fit one commit.
+        let text = DEMO.replacen("[journal]", "[journal]\netcd = [\"http://e:2379\"]", 1);
+        let e = OrderNodeConfig::parse(&text, "x", Overrides::default()).unwrap_err();
+        assert!(e.to_string().contains("max_orders_per_submit"), "{e}");
+        // --data-dir and --take-over are refused with etcd.
+        let text = DEMO
+            .replacen("[journal]", "[journal]\netcd = [\"http://e:2379\"]", 1)
+            .replace("max_orders_per_submit = 1000\n", "");
+        for overrides in [
+            Overrides {
+                data_dir: Some("/tmp/x".into()),
+                ..Default::default()
+            },
+            Overrides {
+                take_over: Some(Duration::from_secs(5)),
+                ..Default::default()
+            },
+        ] {
+            assert!(OrderNodeConfig::parse(&text, "x", overrides).is_err());
+        }
     }
 
     #[test]

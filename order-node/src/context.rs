@@ -5,12 +5,12 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use holon::journal::Journal;
 use tracing::{error, info, warn};
 
 use crate::advice_pause::AdvicePause;
 use crate::config::OrderSettings;
 use crate::inbox::Inboxes;
+use crate::journal::OrderJournal;
 use crate::presence::Presence;
 use crate::progress::OrderProgress;
 use crate::ranking::BookingsInFlight;
@@ -28,7 +28,8 @@ pub struct OrderContext {
     /// Orders waiting after a round nobody proposed in, or for a plan (see
     /// [`IDLE_POLL_SPACING`]).
     pub idle: Arc<std::sync::atomic::AtomicUsize>,
-    pub journal: Option<Arc<Journal>>,
+    /// The journal (SQLite or etcd); `None`: orders are kept in memory only.
+    pub journal: Option<Arc<OrderJournal>>,
     /// Set while journal writes fail (logged once per fault, not per order).
     pub journal_failing: AtomicBool,
     /// Bookings asked and not answered yet, per resource (see [`BookingsInFlight`]).
@@ -57,6 +58,13 @@ impl OrderContext {
                     info!("the journal can be written again: waiting orders resume");
                 }
                 Ok(())
+            }
+            Err(e) if e.is_deposed() => {
+                // The node's loop stops it (it is deposed); nothing was written.
+                self.journal_failing.store(true, Ordering::SeqCst);
+                Err(OrderError::Journal(format!(
+                    "the order-node is deposed, its write refused: {e}"
+                )))
             }
             Err(e) => {
                 if !self.journal_failing.swap(true, Ordering::SeqCst) {

@@ -19,7 +19,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use holon::journal::JournalError;
 use holon::supervisor::{Action, Event, Machine, Scope, Strategy};
 use holon::{Intensity, RestartType};
 use schemas::{CancelReply, ErrorCode, HolonId, WorkOrder};
@@ -33,6 +32,7 @@ use zenoh::key_expr::KeyExpr;
 use crate::cancel::CancelAsk;
 use crate::config::OrderNodeConfig;
 use crate::context::{OrderContext, OrderError, ORDER_RECORD};
+use crate::journal::{OrderJournal, OrderJournalError};
 use crate::order;
 use crate::progress::OrderProgress;
 
@@ -280,7 +280,7 @@ impl Host {
     fn read_finished(
         &self,
         names: &[String],
-    ) -> Result<Vec<(String, OrderProgress)>, JournalError> {
+    ) -> Result<Vec<(String, OrderProgress)>, OrderJournalError> {
         let Some(journal) = &self.context.journal else {
             return Ok(Vec::new());
         };
@@ -292,7 +292,7 @@ impl Host {
 
     /// The progress of `name` if it is an order of this node: from memory while it is
     /// unfinished, from the journal once it finished.
-    pub fn progress(&self, name: &str) -> Result<Option<OrderProgress>, JournalError> {
+    pub fn progress(&self, name: &str) -> Result<Option<OrderProgress>, OrderJournalError> {
         {
             let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
             if let Some(hosted) = orders.get(name) {
@@ -581,9 +581,9 @@ pub fn order_number(node: &str, name: &str) -> Option<u64> {
 /// order only its number and end are kept, so a day of finished orders is never all in
 /// memory at once.
 pub fn recover(
-    journal: &holon::journal::Journal,
+    journal: &OrderJournal,
     node: &str,
-) -> Result<(Vec<(String, OrderProgress)>, Finished), JournalError> {
+) -> Result<(Vec<(String, OrderProgress)>, Finished), OrderJournalError> {
     let mut recovered = Vec::new();
     let mut finished = Finished::new();
     journal.for_each::<OrderProgress>(ORDER_RECORD, |name, progress| {
@@ -742,7 +742,9 @@ mod tests {
             .await
             .unwrap();
         let journal = dir.map(|dir| {
-            Arc::new(Journal::open(dir, "order-node-n1.sqlite", Durability::ProcessCrash).unwrap())
+            Arc::new(OrderJournal::Local(
+                Journal::open(dir, "order-node-n1.sqlite", Durability::ProcessCrash).unwrap(),
+            ))
         });
         Host {
             context: Arc::new(OrderContext {

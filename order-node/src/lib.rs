@@ -9,7 +9,8 @@
 //!   are ranked; [`order_token`]: its presence;
 //! - [`presence`]: which resources are alive and whose turn it is on each;
 //! - [`inbox`]: where results reach the running orders;
-//! - [`context`]: what the orders of a node share;
+//! - [`context`]: what the orders of a node share; [`journal`]: their store (SQLite,
+//!   or etcd for a node with a standby, [`standby`]);
 //! - [`host`]: the orders a node hosts and their tasks; [`queries`]: its endpoints;
 //!   [`node`]: the process.
 
@@ -20,6 +21,7 @@ pub mod config;
 pub mod context;
 pub mod host;
 pub mod inbox;
+pub mod journal;
 pub mod node;
 pub mod order;
 pub mod order_token;
@@ -28,3 +30,4 @@ pub mod progress;
 pub mod queries;
 pub mod ranking;
 pub mod requests;
+pub mod standby;

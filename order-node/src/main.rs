@@ -14,6 +14,11 @@ use order_node::config::OrderNodeConfig;
 /// ready when its token holarchy/<cell>/host/order-node/<name> appears. SIGTERM or
 /// Ctrl-C stops it (exit 0); with --data-dir, orders in progress resume where they
 /// stood when it starts again.
+///
+/// With `[journal] etcd = [...]` in the config the orders live in etcd instead (no
+/// --data-dir), and order-nodes of one name on several hosts are a primary and
+/// standbys: a standby waits, declaring nothing, until it wins the leader key; a
+/// deposed primary exits with an error (deposed by epoch N).
 #[derive(Debug, Parser)]
 #[command(name = "order-node", version)]
 struct Args {

@@ -14,11 +14,12 @@ use holon::journal::Journal;
 use schemas::WorkOrder;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 
 use crate::config::OrderNodeConfig;
 use crate::context::{OrderContext, MAX_CONCURRENT_ROUNDS};
 use crate::host::{recover, task_ended, Finished, Host, Tasks, NEXT_RECORD};
+use crate::journal::{OrderJournal, OrderJournalError};
 use crate::presence::Presence;
 use crate::progress::OrderProgress;
 use crate::queries::{answer, Endpoints, QUERY_QUEUE};
@@ -44,6 +45,23 @@ pub enum OrderNodeError {
     Takeover(#[from] holon::takeover::TakeoverError),
     #[error(transparent)]
     NoSuccessor(#[from] holon::takeover::NoSuccessor),
+    /// The order journal could not be read at start (SQLite or etcd).
+    #[error(transparent)]
+    OrderJournal(#[from] OrderJournalError),
+    /// etcd could not be used for the election.
+    #[error("etcd: {0}")]
+    Etcd(#[from] holon::etcd::EtcdError),
+    /// Another process of this name holds the leader key now: this one stopped serving
+    /// (its supervisor starts it again, a standby).
+    #[error("deposed by {by}: this order-node held epoch {epoch} ({why}); it stopped serving and exits, to start again as a standby")]
+    Deposed {
+        /// The epoch this node held.
+        epoch: i64,
+        /// Who holds the key now (`epoch N (holder)`), as etcd said.
+        by: String,
+        /// How the node learned it was deposed.
+        why: String,
+    },
 }
 
 impl From<holon::life::LifeError> for OrderNodeError {
@@ -113,14 +131,45 @@ pub async fn run(
         startup_timeout: Duration::from_secs(10),
     };
     let tls_identity = holon::role::identity(holon::role::Role::OrderNode, &config.name);
-    // A twin (an order-node of the same name alive in the cell) would number its
-    // orders like this one: refused before anything is declared.
-    let Some((holon::life::Opened { session, .. }, claim)) =
-        life.join(&config.zenoh, &tls_identity, &shutdown).await?
+    let Some(holon::life::Opened { session, .. }) =
+        life.open(&config.zenoh, &tls_identity, &shutdown).await?
     else {
         return Ok(());
     };
-    let (journal, (recovered, finished, next)) = open_journal(&config)?;
+    let (claim, elected, journal, (recovered, finished, next)) = match &config.etcd {
+        None => {
+            // A twin (an order-node of the same name alive in the cell) would number its
+            // orders like this one: refused before anything is declared.
+            let claim = match life.claim(&session).await {
+                Ok(claim) => claim,
+                Err(e) => {
+                    holon::life::close(&life.holder, session).await;
+                    return Err(e.into());
+                }
+            };
+            let (journal, recovered) = open_journal(&config)?;
+            (Some(claim), None, journal, recovered)
+        }
+        // With etcd the leader key is the authority, not zenoh's liveliness: no twin
+        // check. A primary that froze or was cut off keeps its token until its link
+        // lease ends, and would be taken for a twin; it cannot act meanwhile (its writes
+        // are fenced on its epoch) and withdraws its token once it hears it is deposed.
+        Some(etcd) => match crate::standby::stand_by(&config, etcd, &session, &shutdown).await {
+            Ok(Some(mut elected)) => {
+                let recovered = std::mem::take(&mut elected.recovered);
+                let journal = Some(elected.journal.clone());
+                (None, Some(elected), journal, recovered)
+            }
+            Ok(None) => {
+                holon::life::close(&life.holder, session).await;
+                return Ok(());
+            }
+            Err(e) => {
+                holon::life::close(&life.holder, session).await;
+                return Err(e);
+            }
+        },
+    };
     let presence = Presence::follow(&session, &config.keys)
         .await
         .map_err(zenoh_error)?;
@@ -151,6 +200,9 @@ pub async fn run(
         token,
         mut successors,
     } = life.announce(&session).await?;
+    if let Some(elected) = &elected {
+        info!(node = %config.name, epoch = elected.leader.epoch(), "serving at epoch {}: the order-node's leader key on etcd is this process's", elected.leader.epoch());
+    }
 
     let orders_cancel = CancellationToken::new();
     let mut tasks = Tasks::default();
@@ -162,12 +214,26 @@ pub async fn run(
         .clamp(Duration::from_millis(100), RETENTION_SWEEP);
     let mut sweep = tokio::time::interval(every);
     sweep.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let handing_over = loop {
+    // Never ends without etcd.
+    let mut until_deposed = Box::pin(async {
+        match &elected {
+            Some(elected) => crate::standby::deposed(elected).await,
+            None => std::future::pending().await,
+        }
+    });
+    let (handing_over, deposed) = loop {
         tokio::select! {
-            _ = shutdown.cancelled() => break None,
+            _ = shutdown.cancelled() => break (None, None),
+            why = &mut until_deposed => break (None, Some(why)),
             offer = successors.next() => {
                 let request = &offer.request;
                 info!(node = %config.name, successor = %request.successor, version = %request.version, "a successor asks to take over");
+                if elected.is_some() {
+                    let detail = "its journal is on etcd: start the successor beside it (a standby), then stop this one, which gives its leader key up";
+                    warn!(node = %config.name, detail, "hand-over refused");
+                    offer.refuse(VERSION, detail).await;
+                    continue;
+                }
                 if !life.opens_my_journal(request) {
                     let detail = format!(
                         "its data dir {:?} is not this order-node's {:?}: its orders would not resume there",
@@ -183,7 +249,7 @@ pub async fn run(
                     offer.refuse(VERSION, detail).await;
                     continue;
                 }
-                break Some(offer);
+                break (Some(offer), None);
             }
             _ = sweep.tick(), if config.keep_finished.is_some() => {
                 if let Some(keep) = config.keep_finished {
@@ -196,11 +262,22 @@ pub async fn run(
             }
         }
     };
-    let refusal = match &handing_over {
-        Some(_) => "another successor is taking over already",
-        None => "the order-node is stopping",
+    drop(until_deposed);
+    let refusal = match (&handing_over, &deposed) {
+        (Some(_), _) => "another successor is taking over already",
+        (None, Some(_)) => "the order-node is deposed",
+        (None, None) => "the order-node is stopping",
     };
     successors.close(VERSION, refusal).await;
+    let mut token = Some(token);
+    let mut endpoints = Some(endpoints);
+    if let Some(why) = &deposed {
+        // Another process may serve this name already: from now on this one answers
+        // nothing and shows nothing, before its orders stop.
+        error!(node = %config.name, why = %why, "deposed: the order-node's leader key on etcd is no longer this process's; it stops at once (token and queryables withdrawn, order tasks stopped; their writes are refused by etcd anyway)");
+        drop(endpoints.take());
+        withdraw(&config.name, token.take()).await;
+    }
     let started = std::time::Instant::now();
     info!(node = %config.name, handing_over = handing_over.is_some(), "stopping: orders in progress stop where they stand");
     orders_cancel.cancel();
@@ -246,8 +323,9 @@ pub async fn run(
     };
     drop(endpoints);
     let mut ended = Ok(());
-    match handing_over {
-        Some(offer) => {
+    // A hand-over is refused with etcd: there is a claim (SQLite) whenever there is one.
+    match (handing_over, claim, token.take()) {
+        (Some(offer), Some(claim), Some(token)) => {
             // The journal closes with the last holder of the host: the successor opens it.
             drop(queries);
             drop(host);
@@ -256,16 +334,33 @@ pub async fn run(
                 .await
                 .map_err(OrderNodeError::from);
         }
-        None => {
-            if let Err(e) = token.undeclare().await {
-                warn!(node = %config.name, error = %e, "cannot withdraw the order-node's token; it goes with the session");
-            }
-        }
+        (_, _, token) => withdraw(&config.name, token).await,
     }
     drop(stand_in);
+    if let Some(elected) = elected {
+        match deposed {
+            Some(why) => ended = Err(crate::standby::deposed_error(&elected, why).await),
+            // Stopped: the key is given up, so that a standby serves at once.
+            None => crate::standby::resign(&config.name, elected.leader).await,
+        }
+    }
     holon::life::close(&life.holder, session).await;
-    info!(node = %config.name, "order-node stopped");
+    match &ended {
+        Err(e @ OrderNodeError::Deposed { .. }) => {
+            error!(node = %config.name, error = %e, "order-node stopped: deposed")
+        }
+        _ => info!(node = %config.name, "order-node stopped"),
+    }
     ended
+}
+
+/// Withdraws the node's token, if it still has one.
+async fn withdraw(node: &str, token: Option<zenoh::liveliness::LivelinessToken>) {
+    if let Some(token) = token {
+        if let Err(e) = token.undeclare().await {
+            warn!(%node, error = %e, "cannot withdraw the order-node's token; it goes with the session");
+        }
+    }
 }
 
 /// The stand-in's answer while the node is handed over: `unavailable`, ask again.
@@ -290,12 +385,12 @@ fn zenoh_error(e: zenoh::Error) -> OrderNodeError {
 /// What the journal holds at start-up: the orders to host (the unfinished ones, and
 /// finished ones whose end was not recorded), the finished orders that stay in the
 /// journal, and the number of the next order.
-type Recovered = (Vec<(String, OrderProgress)>, Finished, u64);
+pub type Recovered = (Vec<(String, OrderProgress)>, Finished, u64);
 
 /// The journal, if the node has a data directory, with what it holds.
 fn open_journal(
     config: &OrderNodeConfig,
-) -> Result<(Option<Arc<Journal>>, Recovered), OrderNodeError> {
+) -> Result<(Option<Arc<OrderJournal>>, Recovered), OrderNodeError> {
     let Some(dir) = &config.data_dir else {
         warn!(node = %config.name, "no data directory: orders are not durable (use --data-dir)");
         return Ok((None, (Vec::new(), Finished::new(), 1)));
@@ -311,6 +406,7 @@ fn open_journal(
         config.durability,
         patience,
     )?;
+    let journal = OrderJournal::Local(journal);
     let (recovered, finished) = recover(&journal, &config.name)?;
     let next = journal
         .get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?

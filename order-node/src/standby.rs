@@ -1,0 +1,151 @@
+//! An order-node whose journal is on etcd (`journal.etcd`): processes of one name on
+//! several hosts are a primary and standbys, and the leader key on etcd decides which
+//! one serves (docs/reliability.md, "Order-node standby on etcd").
+//!
+//! Before it declares anything in the cell, a node campaigns for
+//! `<prefix>/leader` ([`holon::etcd::Candidate`]). While another holds it, the node is a
+//! standby: it logs so, declares no token and no queryable, and answers nothing. Once
+//! it wins at epoch E, it reads its orders from etcd (as a SQLite node reads its
+//! journal at start) and serves; every write of its orders is fenced on E. When it is
+//! deposed it stops at once and exits with an error, so that its supervisor starts it
+//! again, a standby.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use holon::etcd::{Candidate, Client, ClientConfig, ElectionConfig, Leader};
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use crate::config::{EtcdSettings, OrderNodeConfig};
+use crate::host::{recover, NEXT_RECORD};
+use crate::journal::{OrderJournal, Replicated};
+use crate::node::{OrderNodeError, Recovered};
+
+/// How long a deposed node asks etcd who deposed it, at most, for its exit message.
+const ASK_HOLDER_WITHIN: Duration = Duration::from_secs(2);
+
+/// How long resigning the leader key at shutdown may take before the node goes on (the
+/// key then goes with its lease).
+const RESIGN_WITHIN: Duration = Duration::from_secs(2);
+
+/// A node that won its leader key, with its orders read from etcd.
+pub struct Elected {
+    /// The holder of the leader key; dropped or resigned when the node stops.
+    pub leader: Leader,
+    /// The candidate it won as: asked who holds the key once this node is deposed.
+    pub candidate: Candidate,
+    /// The orders' store, fenced on the leader's epoch.
+    pub journal: Arc<OrderJournal>,
+    /// What the store held when the node won.
+    pub recovered: Recovered,
+}
+
+/// Campaigns for the node's leader key until it wins (then reads its orders) or
+/// `shutdown` (`Ok(None)`). While another holds the key the node is a standby.
+pub async fn stand_by(
+    config: &OrderNodeConfig,
+    etcd: &EtcdSettings,
+    session: &zenoh::Session,
+    shutdown: &CancellationToken,
+) -> Result<Option<Elected>, OrderNodeError> {
+    let node = &config.name;
+    let handle = tokio::runtime::Handle::current();
+    if handle.runtime_flavor() != tokio::runtime::RuntimeFlavor::MultiThread {
+        // The journal's synchronous calls block on etcd in place: that needs other
+        // workers to run the runtime meanwhile.
+        return Err(holon::etcd::EtcdError::Config(
+            "the order journal on etcd needs tokio's multi-thread runtime".into(),
+        )
+        .into());
+    }
+    let client = Client::new(ClientConfig::new(etcd.endpoints.clone()))?;
+    let me = holon::presence::Holder::this_process(session).to_string();
+    let mut election = ElectionConfig::new(etcd.prefix.clone(), me);
+    election.ttl = etcd.lease_ttl;
+    election.keep_alive_every = etcd.lease_ttl / 4;
+    let candidate = Candidate::new(client, election);
+    match candidate.holder().await {
+        Ok(Some(holder)) => info!(
+            %node,
+            holder = %holder.candidate,
+            epoch = holder.epoch,
+            "standby: order-node {node} is held by {} (epoch {}); waiting",
+            holder.candidate,
+            holder.epoch
+        ),
+        Ok(None) => {}
+        Err(e) => {
+            warn!(%node, error = %e, endpoints = ?etcd.endpoints, "cannot ask etcd who holds the order-node; campaigning anyway")
+        }
+    }
+    let Some(leader) = candidate.campaign(shutdown.cancelled()).await? else {
+        info!(%node, "told to stop while standing by");
+        return Ok(None);
+    };
+    let epoch = leader.epoch();
+    let journal = Arc::new(OrderJournal::Replicated(Replicated {
+        store: leader.store(),
+        handle,
+        deposed: CancellationToken::new(),
+    }));
+    info!(%node, epoch, key = %leader.key(), "won the order-node's leader key at epoch {epoch}: reading its orders from etcd");
+    let read = recover(&journal, node).and_then(|(recovered, finished)| {
+        let next = journal
+            .get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?
+            .unwrap_or(1);
+        Ok((recovered, finished, next))
+    });
+    match read {
+        Ok(recovered) => Ok(Some(Elected {
+            leader,
+            candidate,
+            journal,
+            recovered,
+        })),
+        Err(e) => {
+            // Given up at once, so that a standby need not wait for the lease.
+            resign(node, leader).await;
+            Err(e.into())
+        }
+    }
+}
+
+/// Waits until the node is deposed: its keep-alive says so, or etcd refused a write.
+pub async fn deposed(elected: &Elected) -> String {
+    let refused = elected.journal.deposed().unwrap_or_default();
+    tokio::select! {
+        why = elected.leader.deposed() => why,
+        _ = refused.cancelled() => "etcd refused a write of this epoch".into(),
+    }
+}
+
+/// The error a deposed node exits with, naming who holds the key now (asked of etcd,
+/// bounded).
+pub async fn deposed_error(elected: &Elected, why: String) -> OrderNodeError {
+    let by = match tokio::time::timeout(ASK_HOLDER_WITHIN, elected.candidate.holder()).await {
+        Ok(Ok(Some(holder))) => format!("epoch {} ({})", holder.epoch, holder.candidate),
+        Ok(Ok(None)) => "no holder yet (the key is free)".into(),
+        Ok(Err(e)) => format!("an unknown holder (etcd: {e})"),
+        Err(_) => format!("an unknown holder (etcd did not answer within {ASK_HOLDER_WITHIN:?})"),
+    };
+    OrderNodeError::Deposed {
+        epoch: elected.leader.epoch(),
+        by,
+        why,
+    }
+}
+
+/// Gives the leader key up (bounded): a standby takes over within its next ask.
+pub async fn resign(node: &str, leader: Leader) {
+    let epoch = leader.epoch();
+    match tokio::time::timeout(RESIGN_WITHIN, leader.resign()).await {
+        Ok(Ok(())) => info!(%node, epoch, "gave the leader key up: a standby may serve now"),
+        Ok(Err(e)) => {
+            warn!(%node, epoch, error = %e, "cannot give the leader key up; a standby takes over when its lease expires")
+        }
+        Err(_) => {
+            warn!(%node, epoch, "etcd did not take the leader key back within {RESIGN_WITHIN:?}; a standby takes over when its lease expires")
+        }
+    }
+}

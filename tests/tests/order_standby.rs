@@ -1,0 +1,272 @@
+//! An order-node standby on etcd (issue 31, step 2): two order-nodes of one name with
+//! `journal.etcd`, against three real etcd members on loopback, a product and a robot.
+//! The first serves, the second waits with nothing declared; the first is frozen
+//! (SIGSTOP: its zenoh token lingers until its link lease, its etcd lease expires), the
+//! second wins a higher epoch, reads the orders from etcd and finishes every one; the
+//! first, thawed, finds itself deposed, writes nothing and exits with an error.
+//!
+//! Skipped (SKIPPED printed) without `/usr/bin/etcd`, unless `HOLARCHY_REQUIRE_ETCD` is
+//! set. Bounded waits only; the takeover time is printed, not asserted.
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Result};
+use holarchy_tests::*;
+use holon::etcd::FencedStore;
+use nix::sys::signal::Signal;
+use serde_json::Value;
+
+const PREFIX: &str = "holarchy/t-order-standby/order-node/orders1";
+
+/// How many orders are submitted before the freeze.
+const ORDERS: u32 = 12;
+
+/// The order-node's config: its journal on `cluster`, a 2 s leader lease, a 1 s zenoh
+/// link lease (a frozen node's token goes after it).
+fn config(root: &Path, cluster: &EtcdCluster) -> Result<PathBuf> {
+    let endpoints: Vec<String> = cluster
+        .endpoints()
+        .iter()
+        .map(|e| format!("{e:?}"))
+        .collect();
+    let path = root.join("orders1.toml");
+    fs::write(
+        &path,
+        format!(
+            r#"
+cell = "unset"
+name = "orders1"
+[zenoh]
+lease_ms = 1000
+[orders]
+no_resource_timeout_ms = 30000
+[journal]
+etcd = [{}]
+etcd_prefix = "{PREFIX}"
+lease_ttl_ms = 2000
+"#,
+            endpoints.join(", ")
+        ),
+    )?;
+    Ok(path)
+}
+
+/// The log of the order-node whose files are in `dir`.
+fn log(dir: &Path) -> String {
+    fs::read_to_string(dir.join("orders1.log.json")).unwrap_or_default()
+}
+
+fn tail(text: &str) -> String {
+    let lines: Vec<&str> = text.lines().collect();
+    lines[lines.len().saturating_sub(20)..].join("\n")
+}
+
+/// Waits (at most [`WAIT`]) until the order-node in `dir` has logged `text`.
+async fn wait_said(dir: &Path, text: &str) -> Result<()> {
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while !log(dir).contains(text) {
+        if tokio::time::Instant::now() > deadline {
+            bail!(
+                "{} never logged {text:?}; its log ends:\n{}",
+                dir.display(),
+                tail(&log(dir))
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    Ok(())
+}
+
+/// The epoch the order-node in `dir` said it serves at.
+fn serving_epoch(dir: &Path) -> Option<i64> {
+    log(dir).lines().find_map(|line| {
+        let line: Value = serde_json::from_str(line).ok()?;
+        let message = line.get("message")?.as_str()?;
+        message
+            .starts_with("serving at epoch")
+            .then(|| line.get("epoch")?.as_i64())
+            .flatten()
+    })
+}
+
+/// How many liveliness tokens of the order-node the cell sees.
+async fn tokens(cell: &Cell) -> usize {
+    let replies = cell
+        .session
+        .liveliness()
+        .get(cell.keys.host("order-node", "orders1"))
+        .timeout(Duration::from_secs(2))
+        .await
+        .expect("a liveliness query");
+    let mut n = 0;
+    while let Ok(reply) = replies.recv_async().await {
+        n += reply.result().is_ok() as usize;
+    }
+    n
+}
+
+/// Every order record in etcd, as JSON, by name.
+async fn records(cluster: &EtcdCluster) -> Vec<(String, Value)> {
+    // Reads are not fenced: any epoch reads what the holder wrote.
+    FencedStore::new(cluster.client(), PREFIX, 0)
+        .list("order")
+        .await
+        .expect("the order records")
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_standby_order_node_takes_over_every_order_and_the_old_one_is_fenced() {
+    let Some(etcd) = etcd_binary() else {
+        return;
+    };
+    let cluster = EtcdCluster::start(&etcd, 3)
+        .await
+        .expect("a 3-member etcd cluster");
+    let root = tempfile::tempdir().unwrap();
+    let root = root.path();
+    let outcome = run(root, &cluster).await;
+    if let Err(e) = &outcome {
+        print_log_tails(root);
+        for host in ["a", "b"] {
+            eprintln!(
+                "--- order-node on {host}:\n{}",
+                tail(&log(&root.join(host)))
+            );
+        }
+        cluster.print_logs();
+        panic!("{e:#}");
+    }
+}
+
+async fn run(root: &Path, cluster: &EtcdCluster) -> Result<()> {
+    let cell = Cell::open("t-order-standby").await?;
+    let config = config(root, cluster)?;
+    let _part = start_holon(
+        root,
+        "holon-node",
+        &one_step_product(root)?,
+        "part",
+        &cell,
+        &[],
+    )?;
+    cell.wait_alive(&schemas::HolonId::new(schemas::HolonKind::Product, "part")?)
+        .await?;
+    // Its steps take 300 ms: orders are in flight when the primary freezes.
+    let _robot = cell
+        .resource(root, "robot1")
+        .sim_flags(&["--delay-ms", "300"])
+        .start()
+        .await?;
+
+    let (a, b) = (root.join("a"), root.join("b"));
+    fs::create_dir_all(&a)?;
+    fs::create_dir_all(&b)?;
+    let mut primary = start_holon(&a, "order-node", &config, "orders1", &cell, &[])?;
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await?;
+    wait_said(&a, "serving at epoch").await?;
+    let first_epoch = serving_epoch(&a).expect("the primary's epoch");
+    let mut standby = start_holon(&b, "order-node", &config, "orders1", &cell, &[])?;
+    wait_said(&b, "standby: order-node orders1 is held by").await?;
+    // Waits, and declares nothing meanwhile.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert_eq!(tokens(&cell).await, 1, "only the primary's token");
+    let standing_by = log(&b);
+    assert!(
+        !standing_by.contains("holon ready"),
+        "{}",
+        tail(&standing_by)
+    );
+    assert!(
+        !standing_by.contains("serving at epoch"),
+        "{}",
+        tail(&standing_by)
+    );
+
+    // Orders acknowledged by the primary: each was on a majority of etcd's disks first.
+    let submitted = cell.submit("part", ORDERS).await?;
+    assert_eq!(submitted.len(), ORDERS as usize);
+    let first = submitted[0].clone();
+    cell.wait_order(&first, "done", |s| s.is_some_and(|s| s["status"] == "done"))
+        .await?;
+
+    // The primary freezes: its etcd lease expires, the standby wins.
+    primary.signal(Signal::SIGSTOP)?;
+    let frozen = Instant::now();
+    let deadline = tokio::time::Instant::now() + WAIT;
+    let second_epoch = loop {
+        if let Some(epoch) = serving_epoch(&b) {
+            break epoch;
+        }
+        if tokio::time::Instant::now() > deadline {
+            bail!("the standby never served:\n{}", tail(&log(&b)));
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
+    let takeover = frozen.elapsed();
+    println!(
+        "takeover: the standby served {} ms after the primary froze (epoch {first_epoch} -> {second_epoch})",
+        takeover.as_millis()
+    );
+    assert!(second_epoch > first_epoch, "{second_epoch} > {first_epoch}");
+    let after = log(&b);
+    assert!(
+        after.contains("orders recovered from the journal"),
+        "{}",
+        tail(&after)
+    );
+
+    // Every acknowledged order ends done under the new holder, none missing.
+    for order in &submitted {
+        cell.wait_order(order, "done under the standby", |s| {
+            s.is_some_and(|s| s["status"] == "done")
+        })
+        .await?;
+    }
+    // The numbering went on where the primary left it.
+    let next = cell.submit("part", 1).await?;
+    assert_eq!(next, [format!("orders1-{}", ORDERS + 1)]);
+    cell.wait_order(&next[0], "done", |s| {
+        s.is_some_and(|s| s["status"] == "done")
+    })
+    .await?;
+    let before_thaw = records(cluster).await;
+    assert_eq!(before_thaw.len(), ORDERS as usize + 1, "{before_thaw:?}");
+    assert!(
+        before_thaw.iter().all(|(_, o)| o["status"] == "done"),
+        "{before_thaw:?}"
+    );
+
+    // Thawed, the old primary finds itself deposed, writes nothing and exits with an
+    // error (its supervisor starts it again, a standby).
+    primary.signal(Signal::SIGCONT)?;
+    let status = primary.wait_exit(WAIT)?;
+    assert!(!status.success(), "{status:?}");
+    let said = log(&a);
+    assert!(said.contains("deposed by epoch"), "{}", tail(&said));
+    if let Some(line) = said.lines().find(|l| l.contains("deposed by epoch")) {
+        println!("the thawed primary: {line}");
+    }
+    assert_eq!(
+        records(cluster).await,
+        before_thaw,
+        "the deposed node wrote nothing"
+    );
+    assert_eq!(
+        cell.order_state(&first).await.map(|s| s["status"].clone()),
+        Some(Value::from("done"))
+    );
+    assert_eq!(tokens(&cell).await, 1, "only the new holder's token");
+
+    // Stopped, the holder gives its key up.
+    standby.signal(Signal::SIGTERM)?;
+    assert!(standby.wait_exit(WAIT)?.success());
+    assert!(
+        log(&b).contains("gave the leader key up"),
+        "{}",
+        tail(&log(&b))
+    );
+    Ok(())
+}
