@@ -182,10 +182,12 @@ pub struct ProcessSection {
     #[serde(default)]
     pub restart: RestartType,
     /// Another host that runs a standby of this process: `cell up --host` there starts
-    /// it too. Only for a resource holon (`holon-node`, identity `resource.<name>`)
-    /// whose controller fences (docs/reliability.md, "Standby resources"). Both copies
-    /// are started with `--standby`: the one that holds the controller's claim serves,
-    /// the other waits, and takes over when the holder's session lease ends.
+    /// it too. For a resource holon (`holon-node`, identity `resource.<name>`) whose
+    /// controller fences (docs/reliability.md, "Standby resources"), or an order-node
+    /// (`order-node`, identity `order-node.<name>`) whose config keeps its orders on
+    /// etcd (`[journal] etcd`, "Order-node standby on etcd"). Both copies are started
+    /// with `--standby`: the one that holds the controller's claim (the etcd leader
+    /// key) serves, the other waits and takes over when the holder's lease ends.
     #[serde(default)]
     pub standby_on: Option<String>,
     /// The standby's arguments, where they differ from `args`: its own host's router
@@ -211,15 +213,15 @@ impl ProcessSection {
         if standby_on == self.host {
             bail!("standby_on: {standby_on:?} is the host it runs on; a standby belongs on another host");
         }
-        let resource = self
-            .identity
-            .as_deref()
-            .is_some_and(|identity| identity.starts_with("resource."));
+        let identity = self.identity.as_deref().unwrap_or_default();
         let program = Path::new(&self.program)
             .file_name()
-            .is_some_and(|name| name == "holon-node");
-        if !(resource && program) {
-            bail!("standby_on: only a resource holon (program holon-node, identity resource.<name>) can have a standby for now; an order-node's standby needs its journal on etcd, which is not built yet (docs/reliability.md)");
+            .and_then(|name| name.to_str())
+            .unwrap_or_default();
+        let resource = identity.starts_with("resource.") && program == "holon-node";
+        let order_node = identity.starts_with("order-node.") && program == "order-node";
+        if !(resource || order_node) {
+            bail!("standby_on: only a resource holon (program holon-node, identity resource.<name>) or an order-node (program order-node, identity order-node.<name>, its config with [journal] etcd) can have a standby");
         }
         Ok(())
     }
@@ -441,11 +443,17 @@ standby_args = ["--config", "robot1.toml", "--data-dir", "data-b"]"#,
     fn a_standby_is_refused_where_it_cannot_be_kept_apart() {
         let cases = [
             (
-                r#"name = "orders1"
-program = "order-node"
-identity = "order-node.orders1"
+                r#"name = "router-ish"
+program = "robot-sim"
 standby_on = "b""#,
                 "only a resource holon",
+            ),
+            (
+                r#"name = "orders1"
+program = "holon-node"
+identity = "order-node.orders1"
+standby_on = "b""#,
+                "or an order-node",
             ),
             (
                 r#"name = "robot1"

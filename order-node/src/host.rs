@@ -575,6 +575,11 @@ pub fn order_number(node: &str, name: &str) -> Option<u64> {
     (format!("{node}-{number}") == name).then_some(number)
 }
 
+/// What the journal holds at start-up: the orders to host (the unfinished ones, and
+/// finished ones whose end was not recorded), the finished orders that stay in the
+/// journal, and the number of the next order.
+pub type Recovered = (Vec<(String, OrderProgress)>, Finished, u64);
+
 /// What node `node`'s journal holds at start-up: the orders to host (the unfinished
 /// ones, and finished ones whose end was not recorded: an older journal) and the
 /// finished orders that stay in the journal. Read one record at a time: of a finished

@@ -12,13 +12,14 @@
 //! - [`context`]: what the orders of a node share; [`journal`]: their store (SQLite,
 //!   or etcd for a node with a standby, [`standby`]);
 //! - [`host`]: the orders a node hosts and their tasks; [`queries`]: its endpoints;
-//!   [`node`]: the process.
+//!   [`node`]: the process, and [`error`]: why it stops with an error.
 
 pub mod advice_pause;
 pub mod attempt;
 pub mod cancel;
 pub mod config;
 pub mod context;
+pub mod error;
 pub mod host;
 pub mod inbox;
 pub mod journal;

@@ -31,6 +31,13 @@ struct Args {
     /// Check the config (and the TLS identity files, if any) and exit without starting.
     #[arg(long)]
     check: bool,
+    /// One of a primary and its standbys on other hosts (`cell up` passes it to both
+    /// copies of an order-node with `standby_on`). Needs `[journal] etcd` in the config,
+    /// and is refused without it: a second order-node of one name on a local journal
+    /// would be a twin. With etcd every order-node campaigns for its name; this flag
+    /// only says that it is meant so.
+    #[arg(long)]
+    standby: bool,
 }
 
 fn main() -> ExitCode {
@@ -43,6 +50,12 @@ fn main() -> ExitCode {
 
 async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyhow::Result<()> {
     let config = OrderNodeConfig::load(&args.common.config, args.common.overrides())?;
+    if args.standby && config.etcd.is_none() {
+        anyhow::bail!(
+            "{}: --standby needs [journal] etcd: a primary and its standby share their orders through etcd, and without it a second order-node of this name is a twin (docs/reliability.md, \"Order-node standby on etcd\")",
+            args.common.config.display()
+        );
+    }
     let submits = args
         .submit
         .iter()

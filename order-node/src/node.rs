@@ -19,62 +19,16 @@ use tracing::{error, info, warn};
 use crate::config::OrderNodeConfig;
 use crate::context::{OrderContext, MAX_CONCURRENT_ROUNDS};
 use crate::host::{recover, task_ended, Finished, Host, Tasks, NEXT_RECORD};
-use crate::journal::{OrderJournal, OrderJournalError};
+use crate::journal::OrderJournal;
 use crate::presence::Presence;
-use crate::progress::OrderProgress;
 use crate::queries::{answer, Endpoints, QUERY_QUEUE};
+
+pub use crate::error::OrderNodeError;
+pub use crate::host::Recovered;
 
 /// How often finished orders are checked against `journal.keep_finished_ms`, at most
 /// (a shorter retention is checked as often as it lasts).
 const RETENTION_SWEEP: Duration = Duration::from_secs(60);
-
-#[derive(Debug, thiserror::Error)]
-pub enum OrderNodeError {
-    #[error(transparent)]
-    Session(#[from] holon::session::SessionError),
-    #[error("zenoh: {0}")]
-    Zenoh(String),
-    #[error("invalid work order: {0}")]
-    WorkOrder(String),
-    #[error(transparent)]
-    Journal(#[from] holon::journal::JournalError),
-    #[error(transparent)]
-    Claim(#[from] holon::presence::ClaimError),
-    /// Shown as the take-over's own error, which stays in the chain (its exit code).
-    #[error("{0}")]
-    Takeover(#[from] holon::takeover::TakeoverError),
-    #[error(transparent)]
-    NoSuccessor(#[from] holon::takeover::NoSuccessor),
-    /// The order journal could not be read at start (SQLite or etcd).
-    #[error(transparent)]
-    OrderJournal(#[from] OrderJournalError),
-    /// etcd could not be used for the election.
-    #[error("etcd: {0}")]
-    Etcd(#[from] holon::etcd::EtcdError),
-    /// Another process of this name holds the leader key now: this one stopped serving
-    /// (its supervisor starts it again, a standby).
-    #[error("deposed by {by}: this order-node held epoch {epoch} ({why}); it stopped serving and exits, to start again as a standby")]
-    Deposed {
-        /// The epoch this node held.
-        epoch: i64,
-        /// Who holds the key now (`epoch N (holder)`), as etcd said.
-        by: String,
-        /// How the node learned it was deposed.
-        why: String,
-    },
-}
-
-impl From<holon::life::LifeError> for OrderNodeError {
-    fn from(e: holon::life::LifeError) -> Self {
-        use holon::life::LifeError;
-        match e {
-            LifeError::Session(e) => OrderNodeError::Session(e),
-            LifeError::Claim(e) => OrderNodeError::Claim(e),
-            LifeError::Takeover(e) => OrderNodeError::Takeover(e),
-            LifeError::Zenoh(e) => OrderNodeError::Zenoh(e),
-        }
-    }
-}
 
 /// This build's release, published in its orders' states and named in hand-overs.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
@@ -381,11 +335,6 @@ fn stand_in_answer(node: String) -> holon::takeover::Answer {
 fn zenoh_error(e: zenoh::Error) -> OrderNodeError {
     OrderNodeError::Zenoh(holon::zenoh_error::describe(&e))
 }
-
-/// What the journal holds at start-up: the orders to host (the unfinished ones, and
-/// finished ones whose end was not recorded), the finished orders that stay in the
-/// journal, and the number of the next order.
-pub type Recovered = (Vec<(String, OrderProgress)>, Finished, u64);
 
 /// The journal, if the node has a data directory, with what it holds.
 fn open_journal(

@@ -18,9 +18,9 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::config::{EtcdSettings, OrderNodeConfig};
-use crate::host::{recover, NEXT_RECORD};
+use crate::error::OrderNodeError;
+use crate::host::{recover, Recovered, NEXT_RECORD};
 use crate::journal::{OrderJournal, Replicated};
-use crate::node::{OrderNodeError, Recovered};
 
 /// How long a deposed node asks etcd who deposed it, at most, for its exit message.
 const ASK_HOLDER_WITHIN: Duration = Duration::from_secs(2);
