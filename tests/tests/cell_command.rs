@@ -28,6 +28,16 @@ fn order_node_and_holon_node_check_their_configs() {
         .output()
         .unwrap();
     assert!(!bad.status.success());
+    // A standby shares its orders through etcd: without it, it would be a twin.
+    let twin = Command::new(bin("order-node"))
+        .arg("--config")
+        .arg(demo_config("orders1.toml"))
+        .args(["--standby", "--check"])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&twin.stderr);
+    assert!(!twin.status.success(), "{said}");
+    assert!(said.contains("--standby needs [journal] etcd"), "{said}");
 }
 
 #[test]
