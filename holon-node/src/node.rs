@@ -39,8 +39,10 @@ pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
 /// Why a holon process stops with an error.
 #[derive(Debug, thiserror::Error)]
 pub enum NodeError {
+    /// A step of the holon's life cycle: its session, its name, a take-over, a
+    /// hand-over.
     #[error(transparent)]
-    Session(#[from] holon::session::SessionError),
+    Life(#[from] holon::life::LifeError),
     #[error("zenoh: {0}")]
     Zenoh(String),
     #[error("the components did not come up within {0:?}")]
@@ -49,28 +51,9 @@ pub enum NodeError {
     Supervisor(#[from] holon::supervisor::SupervisorError),
     #[error(transparent)]
     Journal(#[from] holon::journal::JournalError),
-    #[error(transparent)]
-    Claim(#[from] holon::presence::ClaimError),
-    /// Shown as the take-over's own error, which stays in the chain (its exit code).
-    #[error("{0}")]
-    Takeover(#[from] holon::takeover::TakeoverError),
-    #[error(transparent)]
-    NoSuccessor(#[from] holon::takeover::NoSuccessor),
     /// A fenced resource cannot claim its controller (docs/reliability.md).
     #[error("standby refused: {0}")]
     Fence(String),
-}
-
-impl From<holon::life::LifeError> for NodeError {
-    fn from(e: holon::life::LifeError) -> Self {
-        use holon::life::LifeError;
-        match e {
-            LifeError::Session(e) => NodeError::Session(e),
-            LifeError::Claim(e) => NodeError::Claim(e),
-            LifeError::Takeover(e) => NodeError::Takeover(e),
-            LifeError::Zenoh(e) => NodeError::Zenoh(e),
-        }
-    }
 }
 
 /// The components' links, built once per process: they outlive the components'

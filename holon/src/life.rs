@@ -60,6 +60,9 @@ pub enum LifeError {
     Takeover(#[from] TakeoverError),
     #[error("zenoh: {0}")]
     Zenoh(String),
+    /// Handed over, and no successor served: the supervisor starts this process again.
+    #[error(transparent)]
+    NoSuccessor(#[from] NoSuccessor),
 }
 
 /// A session opened, and the predecessor's hand-over if there was one.
@@ -195,7 +198,7 @@ impl Life {
         offer: Offer,
         started: Instant,
         shutdown: &CancellationToken,
-    ) -> Result<(), NoSuccessor> {
+    ) -> Result<(), LifeError> {
         let holon = &self.holder;
         if let Err(e) = token.undeclare().await {
             warn!(%holon, error = %e, "cannot withdraw the liveliness token; it goes with the session");
@@ -219,7 +222,8 @@ impl Life {
                 warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends with an error, so that its supervisor starts it again (on its journal, where it left off)");
                 Err(NoSuccessor {
                     successor: successor.to_string(),
-                })
+                }
+                .into())
             }
         }
     }

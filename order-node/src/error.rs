@@ -5,21 +5,16 @@ use crate::journal::OrderJournalError;
 /// Why the order-node could not start, or stopped serving.
 #[derive(Debug, thiserror::Error)]
 pub enum OrderNodeError {
+    /// A step of the holon's life cycle: its session, its name, a take-over, a
+    /// hand-over.
     #[error(transparent)]
-    Session(#[from] holon::session::SessionError),
+    Life(#[from] holon::life::LifeError),
     #[error("zenoh: {0}")]
     Zenoh(String),
     #[error("invalid work order: {0}")]
     WorkOrder(String),
     #[error(transparent)]
     Journal(#[from] holon::journal::JournalError),
-    #[error(transparent)]
-    Claim(#[from] holon::presence::ClaimError),
-    /// Shown as the take-over's own error, which stays in the chain (its exit code).
-    #[error("{0}")]
-    Takeover(#[from] holon::takeover::TakeoverError),
-    #[error(transparent)]
-    NoSuccessor(#[from] holon::takeover::NoSuccessor),
     /// The order journal could not be read at start (SQLite or etcd).
     #[error(transparent)]
     OrderJournal(#[from] OrderJournalError),
@@ -37,16 +32,4 @@ pub enum OrderNodeError {
         /// How the node learned it was deposed.
         why: String,
     },
-}
-
-impl From<holon::life::LifeError> for OrderNodeError {
-    fn from(e: holon::life::LifeError) -> Self {
-        use holon::life::LifeError;
-        match e {
-            LifeError::Session(e) => OrderNodeError::Session(e),
-            LifeError::Claim(e) => OrderNodeError::Claim(e),
-            LifeError::Takeover(e) => OrderNodeError::Takeover(e),
-            LifeError::Zenoh(e) => OrderNodeError::Zenoh(e),
-        }
-    }
 }

@@ -37,6 +37,14 @@ fn wait_line(rx: &mpsc::Receiver<String>, seen: &mut Vec<String>, what: &str) ->
     }
 }
 
+/// The pid in a `started NAME (pid N)...` line of `cell up`.
+fn pid_in(line: &str) -> i32 {
+    let after = line.split("(pid ").nth(1).expect("a started line");
+    after[..after.find(')').expect("(pid N)")]
+        .parse()
+        .expect("a pid")
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn cell_up_restarts_a_killed_holon_and_stops_in_reverse_order() {
     let dir = tempfile::tempdir().unwrap();
@@ -76,13 +84,7 @@ args = ["--config", "robot1.toml", "--cell", "t-up", "--controller", "127.0.0.1:
     let rx = lines(&mut up);
     let mut seen = Vec::new();
     let started = wait_line(&rx, &mut seen, "started robot1 (pid");
-    let pid: i32 = started
-        .rsplit("pid ")
-        .next()
-        .unwrap()
-        .trim_end_matches(')')
-        .parse()
-        .unwrap();
+    let pid = pid_in(&started);
 
     // A client of the router sees the holon.
     let session = holon::ZenohSettings {
@@ -315,13 +317,7 @@ standby_args = {}
     let mut seen = Vec::new();
     let started = wait_line(&local_lines, &mut seen, "started robot1 (pid");
     assert!(!started.contains("standby"), "{started}");
-    let pid: i32 = started
-        .rsplit("pid ")
-        .next()
-        .unwrap()
-        .trim_end_matches(')')
-        .parse()
-        .unwrap();
+    let pid = pid_in(&started);
     wait_roles("t-up-standby", &router, &["holder"]).await;
     let mut b = up(Some("b"));
     let b_lines = lines(&mut b);
