@@ -113,6 +113,10 @@ impl Views {
         }
         snapshot.delivery_retries = *self.delivery_retries.borrow();
         snapshot.host = Some(self.host.clone());
+        snapshot.epoch = match *self.fence.borrow() {
+            FenceView::Holding(epoch) => Some(epoch),
+            FenceView::Unfenced | FenceView::Standby => None,
+        };
         snapshot.version = Some(crate::VERSION.to_string());
         snapshot.v = schemas::SERVICE_VERSION;
         snapshot.at = schemas::unix_ms();

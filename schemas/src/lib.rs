@@ -33,7 +33,7 @@ pub use service::{
     MIN_PRIORITY, SERVICE_VERSION,
 };
 pub use state::{
-    unix_ms, BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot, ResourceState,
+    unix_ms, BookingView, ControllerStatus, CurrentJobView, Epochs, ResourceSnapshot, ResourceState,
 };
 pub use vocabulary::{ErrorCode, Reason};
 

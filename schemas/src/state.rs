@@ -148,6 +148,12 @@ pub struct ResourceSnapshot {
     /// The machine the holon's process runs on (its hostname).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub host: Option<String>,
+    /// The epoch of the controller's claim this process holds, for a fenced resource
+    /// (docs/reliability.md, "Standby resources"); absent when not fenced. Watchers
+    /// tell two processes of one name apart by it: a state from a lower epoch than one
+    /// already seen is a deposed holder's, and is not read.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub epoch: Option<u64>,
     /// The release of the holon's program (its package version, e.g. `0.1.0`); absent
     /// from holons built before versions were published.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -158,6 +164,31 @@ pub struct ResourceSnapshot {
     pub v: u32,
     /// Unix time in milliseconds.
     pub at: u64,
+}
+
+/// The highest epoch seen of each fenced resource: a state published by a process of a
+/// lower epoch is a deposed holder's (frozen or cut off, then thawed), and whoever reads
+/// the resources' states ignores it rather than read the cell backwards.
+#[derive(Debug, Clone, Default)]
+pub struct Epochs {
+    /// By resource, the highest epoch its states carried.
+    highest: std::collections::HashMap<HolonId, u64>,
+}
+
+impl Epochs {
+    /// Whether `snapshot` is from the resource's current holder (or from a resource that
+    /// is not fenced), remembering its epoch: false for a deposed holder's.
+    pub fn current(&mut self, snapshot: &ResourceSnapshot) -> bool {
+        let Some(epoch) = snapshot.epoch else {
+            return true;
+        };
+        let highest = self.highest.entry(snapshot.holon.clone()).or_insert(epoch);
+        if epoch < *highest {
+            return false;
+        }
+        *highest = epoch;
+        true
+    }
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]

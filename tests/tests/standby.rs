@@ -161,9 +161,11 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
     // (1) The first holds the claim and serves; the second waits as a standby.
     let primary = twin(&cell, &a, &sim).unwrap();
     cell.wait_alive(&robot1).await.unwrap();
-    cell.wait_state("robot1", "free", |s| s["state"] == "free")
-        .await
-        .unwrap();
+    cell.wait_state("robot1", "free at epoch 1", |s| {
+        s["state"] == "free" && s["epoch"] == 1
+    })
+    .await
+    .unwrap();
     wait_said(&a, "holding the controller", 1).await.unwrap();
     let standby = twin(&cell, &b, &sim).unwrap();
     wait_said(&b, "standby: another session holds the controller", 1)
@@ -192,9 +194,12 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
     primary.signal(Signal::SIGSTOP).unwrap();
     wait_said(&b, "holding the controller", 1).await.unwrap();
     assert_eq!(sim.counts()["epoch"], 2, "{}", sim.counts());
-    cell.wait_state("robot1", "free", |s| s["state"] == "free")
-        .await
-        .unwrap();
+    // Its state says which holder it is from.
+    cell.wait_state("robot1", "free at epoch 2", |s| {
+        s["state"] == "free" && s["epoch"] == 2
+    })
+    .await
+    .unwrap();
     // The frozen one answers nothing; the new holder says epoch 2.
     wait_reports(&cell, &[("holder", Some(2), None)]).await;
     let second = job(&cell, "o2").await.unwrap();

@@ -50,6 +50,7 @@ impl AgendaManager {
             handing_over: self.handing_over,
             packml: Some(self.packml.status()),
             host: None,
+            epoch: None,
             version: None,
             v: 0,
             at: unix_ms(),

@@ -97,12 +97,17 @@ pub struct LearnedView {
 pub struct CellModel {
     resources: BTreeMap<HolonId, ResourceModel>,
     intentions: Vec<Intention>,
+    /// The fenced resources' highest epochs: a deposed holder's states are not read.
+    epochs: schemas::Epochs,
 }
 
 impl CellModel {
     /// A resource's new snapshot, published (or answered) at `snapshot.at`: a job
     /// that ended since the last one is measured, a job that began is noted.
     pub fn observe(&mut self, snapshot: ResourceSnapshot) {
+        if !self.epochs.current(&snapshot) {
+            return; // a deposed holder's: what it ran is not the resource's
+        }
         let holon = snapshot.holon.clone();
         let model = self
             .resources
@@ -361,6 +366,7 @@ pub(crate) mod tests {
             handing_over: false,
             packml: None,
             host: None,
+            epoch: None,
             version: None,
             v: 0,
             at,

@@ -136,6 +136,8 @@ pub struct PresenceModel {
     /// Counts the changes of what orders read (alive, queues, staff, hand-overs): the
     /// owner publishes a new view when it moved.
     version: u64,
+    /// The fenced resources' highest epochs: a deposed holder's states are not read.
+    epochs: schemas::Epochs,
 }
 
 impl PresenceModel {
@@ -219,6 +221,10 @@ impl PresenceModel {
     }
 
     fn published(&mut self, snapshot: &ResourceSnapshot) -> Vec<Notice> {
+        if !self.epochs.current(snapshot) {
+            // A deposed holder's: its turns and queue are not the resource's.
+            return Vec::new();
+        }
         let resource = &snapshot.holon;
         let previous = self.published.get(resource).copied();
         let (news, now) = read_state(previous, snapshot);

@@ -705,6 +705,7 @@ mod tests {
             handing_over: false,
             packml: None,
             host: None,
+            epoch: None,
             version: None,
             v: 0,
             at: 0,

@@ -47,6 +47,7 @@ pub(in crate::presence) fn snapshot_of(
         handing_over: false,
         packml: None,
         host: None,
+        epoch: None,
         version: None,
         v: 0,
         at: 0,
@@ -321,4 +322,30 @@ fn staff_come_and_go_once() {
     );
     assert_eq!(model.apply(staff(&s1, false)), vec![], "already gone");
     assert_eq!(model.staff().iter().collect::<Vec<_>>(), vec![&s2]);
+}
+
+#[test]
+fn a_deposed_holders_state_is_not_read() {
+    let mut model = PresenceModel::default();
+    let r = robot();
+    let of = |epoch: u64, agenda: &[&str]| {
+        let mut s = snapshot("free", "ready", agenda);
+        s.epoch = Some(epoch);
+        Box::new(s)
+    };
+    // The holder at epoch 2 gives c the turn.
+    let notices = model.apply(Event::Snapshot(of(2, &["c/1/1"])));
+    assert!(
+        matches!(&notices[0], Notice::Turn { turns, .. } if turns.turn.as_deref() == Some("c/1/1")),
+        "{notices:?}"
+    );
+    let version = model.version();
+    // The deposed holder of epoch 1, thawed, publishes its old agenda: not read.
+    assert_eq!(model.apply(Event::Snapshot(of(1, &["b/1/1"]))), vec![]);
+    assert_eq!(model.version(), version);
+    assert_eq!(model.queues()[&r].waiting.len(), 1);
+    // The holder goes on; a later holder (epoch 3) is read.
+    assert!(!model.apply(Event::Snapshot(of(2, &[]))).is_empty());
+    assert!(!model.apply(Event::Snapshot(of(3, &["d/1/1"]))).is_empty());
+    assert_eq!(model.apply(Event::Snapshot(of(2, &[]))), vec![]);
 }
