@@ -83,14 +83,26 @@ async fn alive(
     holon: &HolonId,
     timeout: Duration,
 ) -> Result<bool> {
+    let key = keys.alive(holon);
     let tokens = session
         .liveliness()
-        .get(keys.alive(holon))
+        .get(&key)
         .timeout(timeout)
         .await
         .map_err(|e| anyhow!("{e}"))?;
-    Ok(tokens.recv_async().await.is_ok())
+    if tokens.recv_async().await.is_ok() {
+        return Ok(true);
+    }
+    // A query of the tokens can miss one that a subscriber with history sees (a holon
+    // started again under its name a moment ago, as the router answers): asked that way
+    // too, briefly, before the resource is said to be gone.
+    holon::presence::wait_token(session, &key, timeout.min(TOKEN_SEEN_WITHIN))
+        .await
+        .map_err(|e| anyhow!("{e}"))
 }
+
+/// How long a resource's token is looked for a second time, with a subscriber.
+const TOKEN_SEEN_WITHIN: Duration = Duration::from_secs(2);
 
 /// Runs an operator's single job on `resource` (in Maintenance mode) and waits, at most
 /// `patience`, for its end: the [`OperatorJob`] as the resource's state reports it
