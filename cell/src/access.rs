@@ -7,7 +7,7 @@
 //! |---|---|---|
 //! | `resource.<r>` | `resource/<r>/{service,state,packml,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
-//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
+//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>{,/fence/*}` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
 //! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, `resource/*/packml` (PackML commands), states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, liveliness |
@@ -120,6 +120,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                 vec![
                     "orders/submit".to_string(),
                     format!("host/order-node/{name}"),
+                    // Where each of its processes stands on etcd (holder or standby).
+                    format!("host/order-node/{name}/fence/*"),
                     format!("order/{name}-$*/inbox"),
                     format!("order/{name}-$*/state"),
                     format!("order/{name}-$*/cancel"),
@@ -312,6 +314,30 @@ mod tests {
             .flat_map(|(_, keys)| keys)
             .collect();
         assert!(asks.iter().all(|k| !k.contains("service")), "{asks:?}");
+    }
+
+    #[test]
+    fn an_order_node_answers_its_own_fence_reports_and_readers_read_every_one() {
+        let keys = |role, name, message: &str| -> Vec<String> {
+            grants(role, name)
+                .into_iter()
+                .filter(|(messages, _)| messages.contains(&message))
+                .flat_map(|(_, keys)| keys)
+                .collect()
+        };
+        let answers = keys(Role::OrderNode, "orders1", "declare_queryable");
+        assert!(answers.contains(&"host/order-node/orders1/fence/*".to_string()));
+        assert!(
+            answers
+                .iter()
+                .all(|k| !k.contains("fence") || k.contains("orders1")),
+            "{answers:?}"
+        );
+        // `cell status` and the dashboard ask `host/order-node/*/fence/*`: `host/**`.
+        for (role, name) in [(Role::Operator, "default"), (Role::Observer, "default")] {
+            assert!(keys(role, name, "query").contains(&"host/**".to_string()));
+            assert!(keys(role, name, "declare_queryable").is_empty());
+        }
     }
 
     #[test]

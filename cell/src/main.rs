@@ -407,10 +407,15 @@ async fn run(args: Args) -> Result<bool> {
             let rows = cell::status::collect(&session, &keys, client.timeout()).await?;
             let nodes = cell::status::order_nodes(&session, &keys, client.timeout()).await;
             let fences = cell::status::fences(&session, &keys, client.timeout()).await;
+            let node_fences = cell::status::node_fences(&session, &keys, client.timeout()).await;
             print!("{}", cell::status::render(&client.cell, &rows));
             match fences {
                 Ok(fences) => print!("{}", cell::status::render_fences(&fences)),
                 Err(e) => println!("fenced resources: cannot ask ({e})"),
+            }
+            match node_fences {
+                Ok(reports) => print!("{}", cell::status::render_node_fences(&reports)),
+                Err(e) => println!("fenced order-nodes: cannot ask ({e})"),
             }
             match nodes {
                 Ok(nodes) => print!("{}", cell::status::render_order_nodes(&nodes)),

@@ -134,6 +134,90 @@ pub fn render_fences(reports: &[schemas::FenceReport]) -> String {
     out
 }
 
+/// The processes of the order-nodes whose journal is on etcd
+/// (`host/order-node/*/fence/*`, docs/reliability.md): each one's place, holder or
+/// standby, with a standby's lag; whatever answers within `timeout`.
+pub async fn node_fences(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    timeout: Duration,
+) -> Result<Vec<schemas::fence::NodeFenceReport>> {
+    let mut replies = session
+        .get(keys.node_fence_all())
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(timeout)
+        .with(holon::query::replies())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let mut reports = Vec::new();
+    while let Some(reply) = replies.recv().await {
+        let Ok(sample) = reply.result() else { continue };
+        if let Ok(report) =
+            serde_json::from_slice::<schemas::fence::NodeFenceReport>(&sample.payload().to_bytes())
+        {
+            reports.push(report);
+        }
+    }
+    reports.sort_by(|a, b| (&a.node, a.role as u8, &a.host).cmp(&(&b.node, b.role as u8, &b.host)));
+    Ok(reports)
+}
+
+/// The order-nodes' fence table `cell status` prints below the resources' (nothing
+/// without an order-node on etcd): who holds each node's leader key at which epoch, and
+/// its standbys with the holder's epoch they last saw and their lag (`lost`: it cannot
+/// reach etcd). A node nobody who answered holds is flagged, and so is a lost store.
+pub fn render_node_fences(reports: &[schemas::fence::NodeFenceReport]) -> String {
+    use schemas::FenceRole;
+    if reports.is_empty() {
+        return String::new();
+    }
+    let mut out = format!(
+        "{:<28} {:<8} {:>6} {:>6}  {:<20} ZID\n",
+        "FENCED ORDER-NODE", "ROLE", "EPOCH", "LAG", "HOST"
+    );
+    let dash = |n: Option<u64>| n.map_or_else(|| "-".to_string(), |n| n.to_string());
+    for report in reports {
+        let (role, epoch, lag) = match report.role {
+            FenceRole::Holder => ("holder", report.epoch, "-".to_string()),
+            FenceRole::Standby if report.store_lost => {
+                ("standby", report.holder_epoch, "lost".to_string())
+            }
+            FenceRole::Standby => ("standby", report.holder_epoch, dash(report.lag)),
+        };
+        out.push_str(&format!(
+            "{:<28} {:<8} {:>6} {:>6}  {:<20} {}\n",
+            report.node,
+            role,
+            dash(epoch),
+            lag,
+            report.host,
+            report.zid
+        ));
+    }
+    let held: std::collections::BTreeSet<&str> = reports
+        .iter()
+        .filter(|r| r.role == FenceRole::Holder)
+        .map(|r| r.node.as_str())
+        .collect();
+    let unheld: std::collections::BTreeSet<&str> = reports
+        .iter()
+        .filter(|r| !held.contains(r.node.as_str()))
+        .map(|r| r.node.as_str())
+        .collect();
+    for node in unheld {
+        out.push_str(&format!(
+            "! order-node {node}: no process that answered holds its leader key on etcd (a standby's EPOCH is the holder's it last saw)\n"
+        ));
+    }
+    for lost in reports.iter().filter(|r| r.store_lost) {
+        out.push_str(&format!(
+            "! order-node {}: the standby on {} cannot reach etcd (store lost; LAG as of its last read)\n",
+            lost.node, lost.host
+        ));
+    }
+    out
+}
+
 /// The table `cell status` prints.
 pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
     let mut out = format!(
@@ -533,6 +617,43 @@ mod tests {
             ),
             "{table}"
         );
+    }
+
+    #[test]
+    fn the_order_node_fence_table_shows_holder_standby_lag_and_flags() {
+        let report = |role, epoch, holder_epoch, lag, store_lost, host: &str| {
+            schemas::fence::NodeFenceReport {
+                node: "orders".into(),
+                role,
+                epoch,
+                holder_epoch,
+                lag,
+                store_lost,
+                host: host.into(),
+                zid: format!("z-{host}"),
+                at: 0,
+            }
+        };
+        use schemas::FenceRole::{Holder, Standby};
+        let table = render_node_fences(&[
+            report(Holder, Some(9), None, None, false, "host-a"),
+            report(Standby, None, Some(9), Some(0), false, "host-b"),
+        ]);
+        assert!(table.starts_with("FENCED ORDER-NODE"), "{table}");
+        assert!(
+            table.contains("orders                       holder        9      -  host-a"),
+            "{table}"
+        );
+        assert!(
+            table.contains("orders                       standby       9      0  host-b"),
+            "{table}"
+        );
+        assert!(!table.contains('!'), "{table}");
+        let lost = render_node_fences(&[report(Standby, None, Some(9), Some(4), true, "host-b")]);
+        assert!(lost.contains("standby       9   lost"), "{lost}");
+        assert!(lost.contains("! order-node orders: no process"), "{lost}");
+        assert!(lost.contains("cannot reach etcd (store lost"), "{lost}");
+        assert_eq!(render_node_fences(&[]), "");
     }
 
     /// An order snapshot with everything at its start values.

@@ -10,7 +10,8 @@
 //! - [`presence`]: which resources are alive and whose turn it is on each;
 //! - [`inbox`]: where results reach the running orders;
 //! - [`context`]: what the orders of a node share; [`journal`]: their store (SQLite,
-//!   or etcd for a node with a standby, [`standby`]);
+//!   or etcd for a node with a standby, [`standby`], which says where it stands,
+//!   [`fence_report`]);
 //! - [`host`]: the orders a node hosts and their tasks; [`queries`]: its endpoints;
 //!   [`node`]: the process, and [`error`]: why it stops with an error.
 
@@ -20,6 +21,7 @@ pub mod cancel;
 pub mod config;
 pub mod context;
 pub mod error;
+pub mod fence_report;
 pub mod host;
 pub mod inbox;
 pub mod journal;

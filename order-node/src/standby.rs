@@ -2,9 +2,13 @@
 //! several hosts are a primary and standbys, and the leader key on etcd decides which
 //! one serves (docs/reliability.md, "Order-node standby on etcd").
 //!
-//! Before it declares anything in the cell, a node campaigns for
-//! `<prefix>/leader` ([`holon::etcd::Candidate`]). While another holds it, the node is a
-//! standby: it logs so, declares no token and no queryable, and answers nothing. Once
+//! Before it declares anything else in the cell, a node declares where it stands
+//! ([`crate::fence_report`]) and campaigns for `<prefix>/leader`
+//! ([`holon::etcd::Candidate`]). While another holds it, the node is a standby: it logs
+//! so, declares no token and no other queryable, and answers nothing else; every
+//! [`FOLLOW_EVERY`] it reads the journal's records changed since it last read, and
+//! reports its lag (the cluster's revisions it has not read) or that it cannot reach
+//! etcd. It keeps no records: once
 //! it wins at epoch E, it reads its orders from etcd (as a SQLite node reads its
 //! journal at start) and serves; every write of its orders is fenced on E. When it is
 //! deposed it stops at once and exits with an error, so that its supervisor starts it
@@ -19,6 +23,7 @@ use tracing::{info, warn};
 
 use crate::config::{EtcdSettings, OrderNodeConfig};
 use crate::error::OrderNodeError;
+use crate::fence_report::Reporter;
 use crate::host::{recover, Recovered, NEXT_RECORD};
 use crate::journal::{OrderJournal, Replicated};
 
@@ -29,8 +34,20 @@ const ASK_HOLDER_WITHIN: Duration = Duration::from_secs(2);
 /// key then goes with its lease).
 const RESIGN_WITHIN: Duration = Duration::from_secs(2);
 
+/// How often a standby reads the journal's changes (and who holds the key).
+pub const FOLLOW_EVERY: Duration = Duration::from_millis(500);
+
+/// How long one such read may take before the standby counts etcd as lost.
+const FOLLOW_WITHIN: Duration = Duration::from_secs(2);
+
+/// The most records one read of the journal's changes takes (more: the rest next time,
+/// and a lag meanwhile).
+const FOLLOW_PAGE: usize = 1000;
+
 /// A node that won its leader key, with its orders read from etcd.
 pub struct Elected {
+    /// Where this process stands (holder at its epoch), answered while it serves.
+    pub report: Reporter,
     /// The holder of the leader key; dropped or resigned when the node stops.
     pub leader: Leader,
     /// The candidate it won as: asked who holds the key once this node is deposed.
@@ -64,7 +81,8 @@ pub async fn stand_by(
     let mut election = ElectionConfig::new(etcd.prefix.clone(), me);
     election.ttl = etcd.lease_ttl;
     election.keep_alive_every = etcd.lease_ttl / 4;
-    let candidate = Candidate::new(client, election);
+    let candidate = Candidate::new(client.clone(), election);
+    let report = Reporter::declare(node, &config.keys.node_fence(node), session).await;
     match candidate.holder().await {
         Ok(Some(holder)) => info!(
             %node,
@@ -79,11 +97,16 @@ pub async fn stand_by(
             warn!(%node, error = %e, endpoints = ?etcd.endpoints, "cannot ask etcd who holds the order-node; campaigning anyway")
         }
     }
-    let Some(leader) = candidate.campaign(shutdown.cancelled()).await? else {
+    let won = tokio::select! {
+        won = candidate.campaign(shutdown.cancelled()) => won?,
+        never = follow(&client, &candidate, &etcd.prefix, node, &report) => match never {},
+    };
+    let Some(leader) = won else {
         info!(%node, "told to stop while standing by");
         return Ok(None);
     };
     let epoch = leader.epoch();
+    report.holder(u64::try_from(epoch).unwrap_or_default());
     let journal = Arc::new(OrderJournal::Replicated(Replicated {
         store: leader.store(),
         handle,
@@ -98,6 +121,7 @@ pub async fn stand_by(
     });
     match read {
         Ok(recovered) => Ok(Some(Elected {
+            report,
             leader,
             candidate,
             journal,
@@ -107,6 +131,66 @@ pub async fn stand_by(
             // Given up at once, so that a standby need not wait for the lease.
             resign(node, leader).await;
             Err(e.into())
+        }
+    }
+}
+
+/// A standby follows its holder's journal until the campaign ends (never returns):
+/// every [`FOLLOW_EVERY`], who holds the key and the records changed since it last read
+/// (bounded by [`FOLLOW_WITHIN`]); its report says the holder's epoch and its lag, or
+/// that it lost etcd. A change of either is logged once.
+async fn follow(
+    client: &Client,
+    candidate: &Candidate,
+    prefix: &str,
+    node: &str,
+    report: &Reporter,
+) -> std::convert::Infallible {
+    let mut read_to = 0;
+    let mut lost = false;
+    let mut behind = false;
+    let mut records = 0usize;
+    let mut every = tokio::time::interval(FOLLOW_EVERY);
+    every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        every.tick().await;
+        let asked = tokio::time::timeout(FOLLOW_WITHIN, async {
+            let holder = candidate.holder().await?;
+            let read = holon::etcd::journal_since(client, prefix, read_to, FOLLOW_PAGE).await?;
+            Ok::<_, holon::etcd::EtcdError>((holder, read))
+        })
+        .await;
+        match asked {
+            Ok(Ok((holder, read))) => {
+                if lost {
+                    info!(%node, revision = read.revision, "standby: reaches etcd again");
+                    lost = false;
+                }
+                read_to = read.read_to;
+                records += read.records.len();
+                let lag = read.lag();
+                if (lag > 0) != behind {
+                    behind = lag > 0;
+                    if behind {
+                        warn!(%node, lag, read_to, "standby: behind the journal by {lag} revisions");
+                    } else {
+                        info!(%node, read_to, records, "standby: caught up with the journal");
+                    }
+                }
+                let holder_epoch = holder.and_then(|h| u64::try_from(h.epoch).ok());
+                report.following(holder_epoch, lag);
+            }
+            failed => {
+                let why = match failed {
+                    Ok(Err(e)) => e.to_string(),
+                    _ => format!("etcd did not answer within {FOLLOW_WITHIN:?}"),
+                };
+                if !lost {
+                    warn!(%node, error = %why, read_to, "standby: store lost, cannot read the journal on etcd (it cannot take over meanwhile)");
+                    lost = true;
+                }
+                report.store_lost();
+            }
         }
     }
 }

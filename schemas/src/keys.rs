@@ -152,6 +152,18 @@ impl CellKeys {
         format!("{}/resource/*/fence/*", self.prefix())
     }
 
+    /// `holarchy/<cell>/host/order-node/<name>/fence`: under it, each process of an
+    /// order-node whose journal is on etcd (a primary, its standbys) reports where it
+    /// stands (`<prefix>/<zid>`, a [`crate::fence::NodeFenceReport`]).
+    pub fn node_fence(&self, node: &str) -> String {
+        format!("{}/host/order-node/{node}/fence", self.prefix())
+    }
+
+    /// `holarchy/<cell>/host/order-node/*/fence/*`: every such order-node's processes.
+    pub fn node_fence_all(&self) -> String {
+        format!("{}/host/order-node/*/fence/*", self.prefix())
+    }
+
     /// `holarchy/<cell>/*/*/state`: the state of every holon.
     pub fn state_all(&self) -> String {
         format!("{}/*/*/state", self.prefix())

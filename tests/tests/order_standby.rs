@@ -3,7 +3,9 @@
 //! The first serves, the second waits with nothing declared; the first is frozen
 //! (SIGSTOP: its zenoh token lingers until its link lease, its etcd lease expires), the
 //! second wins a higher epoch, reads the orders from etcd and finishes every one; the
-//! first, thawed, finds itself deposed, writes nothing and exits with an error.
+//! first, thawed, finds itself deposed, writes nothing and exits with an error. `cell
+//! status` lists where each process stands: the primary holder at its epoch and the
+//! standby with its lag, then the standby holder at a higher epoch.
 //!
 //! Skipped (SKIPPED printed) without `/usr/bin/etcd`, unless `HOLARCHY_REQUIRE_ETCD` is
 //! set. Bounded waits only; the takeover time is printed, not asserted.
@@ -116,6 +118,64 @@ async fn records(cluster: &EtcdCluster) -> Vec<(String, Value)> {
         .expect("the order records")
 }
 
+/// A row of `cell status`'s order-node fence table: role, epoch, lag.
+type Row = (String, String, String);
+
+/// The `FENCED ORDER-NODE` rows of `cell status` for orders1: (role, epoch, lag), in
+/// the table's order, and the whole output.
+fn status_rows(cell: &Cell) -> Result<(Vec<Row>, String)> {
+    let status = std::process::Command::new(bin("cell"))
+        .args([
+            "status",
+            "--cell",
+            cell.keys.cell(),
+            "--connect",
+            &cell.endpoint,
+        ])
+        .output()?;
+    let table = String::from_utf8_lossy(&status.stdout).into_owned();
+    if !status.status.success() {
+        bail!("cell status failed: {table}");
+    }
+    let start = table.find("FENCED ORDER-NODE").unwrap_or(table.len());
+    // Its rows only: the ORDER-NODE table below starts with the name too.
+    let rows = table[start..]
+        .lines()
+        .map(|l| l.split_whitespace().collect::<Vec<&str>>())
+        .filter(|cols| {
+            cols.first() == Some(&"orders1") && matches!(cols.get(1), Some(&"holder" | &"standby"))
+        })
+        .map(|cols| {
+            (
+                cols.get(1).unwrap_or(&"").to_string(),
+                cols.get(2).unwrap_or(&"").to_string(),
+                cols.get(3).unwrap_or(&"").to_string(),
+            )
+        })
+        .collect();
+    Ok((rows, table))
+}
+
+/// Waits (at most [`WAIT`]) until `cell status` lists orders1's processes as `expected`
+/// (role, epoch, lag).
+async fn wait_status(cell: &Cell, expected: &[(&str, i64, &str)]) -> Result<String> {
+    let expected: Vec<Row> = expected
+        .iter()
+        .map(|(role, epoch, lag)| (role.to_string(), epoch.to_string(), lag.to_string()))
+        .collect();
+    let deadline = tokio::time::Instant::now() + WAIT;
+    loop {
+        let (rows, table) = status_rows(cell)?;
+        if rows == expected {
+            return Ok(table);
+        }
+        if tokio::time::Instant::now() > deadline {
+            bail!("cell status never listed {expected:?}:\n{table}");
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_standby_order_node_takes_over_every_order_and_the_old_one_is_fenced() {
     let Some(etcd) = etcd_binary() else {
@@ -191,6 +251,15 @@ async fn run(root: &Path, cluster: &EtcdCluster) -> Result<()> {
     let first = submitted[0].clone();
     cell.wait_order(&first, "done", |s| s.is_some_and(|s| s["status"] == "done"))
         .await?;
+    // `cell status`: the primary holds at its epoch, the standby follows its journal
+    // (caught up within its next read).
+    let table = wait_status(
+        &cell,
+        &[("holder", first_epoch, "-"), ("standby", first_epoch, "0")],
+    )
+    .await?;
+    assert!(!table.contains("! order-node"), "{table}");
+    assert_eq!(tokens(&cell).await, 1, "the standby's report is no token");
 
     // The primary freezes: its etcd lease expires, the standby wins.
     primary.signal(Signal::SIGSTOP)?;
@@ -259,6 +328,8 @@ async fn run(root: &Path, cluster: &EtcdCluster) -> Result<()> {
         Some(Value::from("done"))
     );
     assert_eq!(tokens(&cell).await, 1, "only the new holder's token");
+    // The thawed primary has exited: `cell status` lists the new holder alone.
+    wait_status(&cell, &[("holder", second_epoch, "-")]).await?;
 
     // Stopped, the holder gives its key up.
     standby.signal(Signal::SIGTERM)?;

@@ -47,8 +47,8 @@ use model::{Alarm, Event, HolonView, Input, Model, ProcessId, ProcessView};
 /// How often, at most, the view is published to the pages.
 pub const PUBLISH_EVERY: Duration = Duration::from_millis(250);
 
-/// How often the fenced resources' processes are asked where they stand (holder or
-/// standby): their reports are answered by live processes only, so a dead one drops off.
+/// How often the fenced resources' and the order-nodes on etcd's processes are asked
+/// where they stand (holder or standby): their reports are answered by live processes only, so a dead one drops off.
 const FENCES_EVERY: Duration = Duration::from_secs(2);
 
 /// How many inputs wait for the model's task.
@@ -215,6 +215,9 @@ pub struct View {
     /// The fenced resources' processes: who holds each controller, at which epoch, and
     /// who stands by.
     pub fences: Vec<schemas::FenceReport>,
+    /// The order-nodes' processes on etcd: who holds each node's leader key, at which
+    /// epoch, and its standbys with their lag.
+    pub node_fences: Vec<schemas::fence::NodeFenceReport>,
     /// The newest first.
     pub events: Vec<Event>,
     pub throughput: Throughput,
@@ -386,6 +389,12 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
                         },
                     ),
                     Err(e) => warn!(error = %e, "cannot ask the fenced resources where they stand"),
+                }
+                match crate::status::node_fences(&session, &keys, FENCES_EVERY).await {
+                    Ok(reports) => queue(&inputs, &dropped, Input::NodeFences { reports }),
+                    Err(e) => {
+                        warn!(error = %e, "cannot ask the order-nodes on etcd where they stand")
+                    }
                 }
             }
         });
@@ -610,6 +619,7 @@ fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, started: u64) 
         }),
         alarms: model.alarms().to_vec(),
         fences: model.fence_reports().to_vec(),
+        node_fences: model.node_fence_reports().to_vec(),
         events: model.events().rev().cloned().collect(),
         throughput: Throughput {
             done_last_hour: model.done_last_hour(now),

@@ -23,4 +23,4 @@ mod wire;
 pub use client::{Client, ClientConfig, MemberStatus};
 pub use error::EtcdError;
 pub use leadership::{Candidate, ElectionConfig, Holder, Leader, Leadership};
-pub use store::{FencedStore, MAX_RECORDS_PER_WRITE};
+pub use store::{journal_since, FencedStore, JournalRead, MAX_RECORDS_PER_WRITE};

@@ -219,6 +219,7 @@ impl FencedStore {
                 range_end: Some(Base64(end.clone())),
                 limit: PAGE,
                 revision,
+                ..Default::default()
             };
             let reply: wire::RangeResponse = self
                 .client
@@ -238,6 +239,81 @@ impl FencedStore {
                 _ => return Ok(records),
             }
         }
+    }
+}
+
+/// What a follower of a holon's journal read with [`journal_since`].
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct JournalRead {
+    /// The records changed since the revision asked, oldest change first: (key under
+    /// `<prefix>/journal/`, e.g. `order/o-1`, and its JSON).
+    pub records: Vec<(String, Vec<u8>)>,
+    /// Every change of the journal up to this revision is read (ask from here next).
+    pub read_to: i64,
+    /// The cluster's revision when etcd answered.
+    pub revision: i64,
+}
+
+impl JournalRead {
+    /// The revisions of the cluster not read yet (0 when caught up).
+    pub fn lag(&self) -> u64 {
+        u64::try_from(self.revision - self.read_to).unwrap_or(0)
+    }
+}
+
+/// Reads at most `limit` records of `<prefix>/journal/` (a holon's [`FencedStore`])
+/// changed after revision `after`, oldest change first, with one linearizable range
+/// (`min_mod_revision`, sorted on the change's revision). A standby follows its
+/// holder's journal with it: `read_to` is where to ask from next, and
+/// [`JournalRead::lag`] how far it is behind the cluster. Deletions do not show (a
+/// range sees only keys that exist): a follower that must know them re-reads.
+///
+/// `limit` must exceed the records one write may hold ([`MAX_RECORDS_PER_WRITE`]), so
+/// that a page cut inside one revision still makes progress.
+pub async fn journal_since(
+    client: &Client,
+    prefix: &str,
+    after: i64,
+    limit: usize,
+) -> Result<JournalRead, EtcdError> {
+    let journal = format!("{prefix}/journal/");
+    let limit = limit.max(MAX_RECORDS_PER_WRITE + 1);
+    let range = RangeRequest {
+        key: journal.as_str().into(),
+        range_end: Some(Base64(wire::prefix_end(journal.as_bytes()))),
+        limit: i64::try_from(limit).unwrap_or(i64::MAX),
+        min_mod_revision: after + 1,
+        sort_order: Some("ASCEND"),
+        sort_target: Some("MOD"),
+        ..Default::default()
+    };
+    let reply: wire::RangeResponse = client.call("/v3/kv/range", &range, Retry::Always).await?;
+    Ok(journal_read(&journal, after, reply))
+}
+
+/// The read a range reply of [`journal_since`] makes.
+fn journal_read(journal: &str, after: i64, reply: wire::RangeResponse) -> JournalRead {
+    let revision = reply.header.revision;
+    let read_to = match (reply.more, reply.kvs.last()) {
+        // Cut after a page: the last revision may have more keys beyond it, so it is
+        // read only up to the one before (a write holds fewer keys than a page).
+        (true, Some(last)) => (last.mod_revision - 1).max(after),
+        _ => revision.max(after),
+    };
+    let records = reply
+        .kvs
+        .into_iter()
+        .filter(|kv| kv.mod_revision <= read_to)
+        .map(|kv| {
+            let key = String::from_utf8_lossy(&kv.key.0);
+            let key = key.strip_prefix(journal).unwrap_or(&key).to_string();
+            (key, kv.value.0)
+        })
+        .collect();
+    JournalRead {
+        records,
+        read_to,
+        revision,
     }
 }
 
@@ -271,6 +347,34 @@ fn decode<T: DeserializeOwned>(key: &str, body: &[u8]) -> Result<T, EtcdError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_journal_read_is_caught_up_unless_cut_after_a_page() {
+        let reply = |more, revisions: &[i64]| {
+            let text = format!(
+                r#"{{"header":{{"revision":"20"}},"more":{more},"kvs":[{}]}}"#,
+                revisions
+                    .iter()
+                    .map(|r| format!(
+                        r#"{{"key":"cC9qb3VybmFsL28vMQ==","mod_revision":"{r}","value":"e30="}}"#
+                    ))
+                    .collect::<Vec<_>>()
+                    .join(",")
+            );
+            serde_json::from_str::<wire::RangeResponse>(&text).unwrap()
+        };
+        let whole = journal_read("p/journal/", 10, reply(false, &[12, 15]));
+        assert_eq!(
+            (whole.read_to, whole.lag(), whole.records.len()),
+            (20, 0, 2)
+        );
+        assert_eq!(whole.records[0], ("o/1".to_string(), b"{}".to_vec()));
+        // Cut inside revision 15: read up to 14, the rest next time.
+        let cut = journal_read("p/journal/", 10, reply(true, &[12, 15]));
+        assert_eq!((cut.read_to, cut.lag(), cut.records.len()), (14, 6, 1));
+        let nothing = journal_read("p/journal/", 20, reply(false, &[]));
+        assert_eq!((nothing.read_to, nothing.lag()), (20, 0));
+    }
 
     #[test]
     fn records_live_under_the_prefix_by_kind_and_id() {

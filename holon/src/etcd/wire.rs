@@ -78,6 +78,9 @@ pub(crate) struct KeyValue {
     /// The revision that created it (since it last did not exist).
     #[serde(default, with = "int")]
     pub create_revision: i64,
+    /// The revision that last changed it.
+    #[serde(default, with = "int")]
+    pub mod_revision: i64,
     /// Its value.
     #[serde(default)]
     pub value: Base64,
@@ -100,6 +103,15 @@ pub(crate) struct RangeRequest {
     /// Read at this revision (0: the newest).
     #[serde(with = "int", skip_serializing_if = "is_zero")]
     pub revision: i64,
+    /// Only keys last changed at this revision or later (0: any).
+    #[serde(with = "int", skip_serializing_if = "is_zero")]
+    pub min_mod_revision: i64,
+    /// `ASCEND` or `DESCEND` (absent: etcd's default, by key).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sort_order: Option<&'static str>,
+    /// What to sort on: `KEY`, `MOD` (the last change's revision), ... (absent: `KEY`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sort_target: Option<&'static str>,
 }
 
 fn is_zero(n: &i64) -> bool {

@@ -70,6 +70,13 @@ pub enum Input {
         reports: Vec<schemas::FenceReport>,
         at: u64,
     },
+    /// The processes of the order-nodes on etcd that answered, as of now
+    /// (docs/reliability.md, "Order-node standby on etcd"): they replace the previous
+    /// list.
+    NodeFences {
+        /// Each process's report: holder or standby, epoch, lag.
+        reports: Vec<schemas::fence::NodeFenceReport>,
+    },
 }
 
 /// One holon as the page shows it.
@@ -142,6 +149,8 @@ pub struct Model {
     counters: Counters,
     /// The fenced resources' processes, holders and standbys, as last asked.
     fences: Vec<schemas::FenceReport>,
+    /// The order-nodes' processes on etcd, holders and standbys, as last asked.
+    node_fences: Vec<schemas::fence::NodeFenceReport>,
 }
 
 /// The upper bounds of the step-duration histograms' buckets, in seconds.
@@ -195,7 +204,32 @@ impl Model {
             Input::ProcessVanished { process, at } => self.process(process, false, at),
             Input::Acknowledge { id, by, at } => self.acknowledge(id, &by, at),
             Input::Fences { reports, at } => self.fences(reports, at),
+            Input::NodeFences { reports } => self.node_fences(reports),
         }
+    }
+
+    /// The order-nodes' processes on etcd, holders and standbys (sorted by node).
+    pub fn node_fence_reports(&self) -> &[schemas::fence::NodeFenceReport] {
+        &self.node_fences
+    }
+
+    /// A new list of the order-nodes' reports: news when a role, an epoch, a lag or a
+    /// lost store changed (not the reports' times).
+    fn node_fences(&mut self, mut reports: Vec<schemas::fence::NodeFenceReport>) -> bool {
+        use schemas::fence::NodeFenceReport as Report;
+        reports
+            .sort_by(|a, b| (&a.node, a.role as u8, &a.zid).cmp(&(&b.node, b.role as u8, &b.zid)));
+        // The reports without their times.
+        let timeless = |r: &Report| Report { at: 0, ..r.clone() };
+        if reports
+            .iter()
+            .map(timeless)
+            .eq(self.node_fences.iter().map(timeless))
+        {
+            return false;
+        }
+        self.node_fences = reports;
+        true
     }
 
     /// The fenced resources' processes, holders and standbys (sorted by resource).
@@ -1006,6 +1040,32 @@ mod tests {
             });
         }
         assert_eq!(m.events().count(), EVENTS_KEPT);
+    }
+
+    #[test]
+    fn an_order_node_report_is_news_when_its_lag_changes_not_its_time() {
+        let mut m = Model::default();
+        let report = |lag, at| schemas::fence::NodeFenceReport {
+            node: "orders".into(),
+            role: schemas::FenceRole::Standby,
+            epoch: None,
+            holder_epoch: Some(3),
+            lag: Some(lag),
+            store_lost: false,
+            host: "b".into(),
+            zid: "z".into(),
+            at,
+        };
+        assert!(m.apply(Input::NodeFences {
+            reports: vec![report(0, 1)]
+        }));
+        assert!(!m.apply(Input::NodeFences {
+            reports: vec![report(0, 2)]
+        }));
+        assert!(m.apply(Input::NodeFences {
+            reports: vec![report(4, 3)]
+        }));
+        assert_eq!(m.node_fence_reports()[0].lag, Some(4));
     }
 
     #[test]
