@@ -61,6 +61,30 @@ pub async fn collect(
         .collect())
 }
 
+/// Every answer to a query of `key` that reads as a `T`, whatever answers within
+/// `timeout` (each process answers for itself: no consolidation).
+async fn gather<T: serde::de::DeserializeOwned>(
+    session: &zenoh::Session,
+    key: &str,
+    timeout: Duration,
+) -> Result<Vec<T>> {
+    let mut replies = session
+        .get(key)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(timeout)
+        .with(holon::query::replies())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let mut found = Vec::new();
+    while let Some(reply) = replies.recv().await {
+        let Ok(sample) = reply.result() else { continue };
+        if let Ok(value) = serde_json::from_slice::<T>(&sample.payload().to_bytes()) {
+            found.push(value);
+        }
+    }
+    Ok(found)
+}
+
 /// The fenced resources' processes (`resource/*/fence/*`, docs/reliability.md): each
 /// one's place at the controller, holder or standby, whatever answers within `timeout`.
 pub async fn fences(
@@ -68,22 +92,8 @@ pub async fn fences(
     keys: &CellKeys,
     timeout: Duration,
 ) -> Result<Vec<schemas::FenceReport>> {
-    let mut replies = session
-        .get(keys.fence_all())
-        .consolidation(zenoh::query::ConsolidationMode::None)
-        .timeout(timeout)
-        .with(holon::query::replies())
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let mut reports = Vec::new();
-    while let Some(reply) = replies.recv().await {
-        let Ok(sample) = reply.result() else { continue };
-        if let Ok(report) =
-            serde_json::from_slice::<schemas::FenceReport>(&sample.payload().to_bytes())
-        {
-            reports.push(report);
-        }
-    }
+    let mut reports: Vec<schemas::FenceReport> =
+        gather(session, &keys.fence_all(), timeout).await?;
     reports.sort_by(|a, b| {
         (a.holon.name(), a.role as u8, &a.host).cmp(&(b.holon.name(), b.role as u8, &b.host))
     });
@@ -142,22 +152,8 @@ pub async fn node_fences(
     keys: &CellKeys,
     timeout: Duration,
 ) -> Result<Vec<schemas::fence::NodeFenceReport>> {
-    let mut replies = session
-        .get(keys.node_fence_all())
-        .consolidation(zenoh::query::ConsolidationMode::None)
-        .timeout(timeout)
-        .with(holon::query::replies())
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let mut reports = Vec::new();
-    while let Some(reply) = replies.recv().await {
-        let Ok(sample) = reply.result() else { continue };
-        if let Ok(report) =
-            serde_json::from_slice::<schemas::fence::NodeFenceReport>(&sample.payload().to_bytes())
-        {
-            reports.push(report);
-        }
-    }
+    let mut reports: Vec<schemas::fence::NodeFenceReport> =
+        gather(session, &keys.node_fence_all(), timeout).await?;
     reports.sort_by(|a, b| (&a.node, a.role as u8, &a.host).cmp(&(&b.node, b.role as u8, &b.host)));
     Ok(reports)
 }
