@@ -407,10 +407,16 @@ async fn a_crashed_component_is_restarted_with_the_bookings_intact() {
             );
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
-        // The supervisor restarts it; the holon serves again with both bookings.
+        // The supervisor restarts it; the holon serves again with both bookings (a new
+        // interfacing component connects again first: until then the resource is
+        // Suspended, and refuses a start `unavailable`).
         let state = r
             .cell
-            .wait_state("robot1", "free after the restart", |s| s["state"] == "free")
+            .wait_state("robot1", "free and in Execute after the restart", |s| {
+                s["state"] == "free"
+                    && s["controller"] == "ready"
+                    && s["packml"]["state_number"] == 6
+            })
             .await
             .unwrap();
         assert_eq!(
