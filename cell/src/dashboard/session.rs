@@ -26,6 +26,10 @@ pub const COOKIE: &str = "holarchy_session";
 /// The most sessions held at once; the oldest is dropped for a new one beyond it.
 const MOST_SESSIONS: usize = 10_000;
 
+/// How long a session that ended by a limit is remembered, so that every later request
+/// with its cookie is told why (the page's own request may be the first to notice).
+const ENDED_KEPT: Duration = Duration::from_secs(3600);
+
 /// How long a session lives.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct SessionLimits {
@@ -99,6 +103,8 @@ pub struct Sessions {
     limits: SessionLimits,
     /// By token.
     live: HashMap<String, Session>,
+    /// Sessions that ended by a limit, by token: why, and when that was noticed.
+    ended: HashMap<String, (Ended, Instant)>,
 }
 
 impl Sessions {
@@ -106,6 +112,7 @@ impl Sessions {
         Sessions {
             limits,
             live: HashMap::new(),
+            ended: HashMap::new(),
         }
     }
 
@@ -141,21 +148,42 @@ impl Sessions {
     }
 
     /// The session of `token` at `now`, marked as used; an ended one is forgotten.
+    /// A session that ended by a limit keeps saying so to every later request with its
+    /// cookie (for [`ENDED_KEPT`]).
     pub fn check(&mut self, token: &str, now: Instant) -> Result<Login, Ended> {
-        let session = self.live.get_mut(token).ok_or(Ended::Unknown)?;
-        let ended = if now.duration_since(session.began) >= self.limits.absolute {
-            Some(Ended::Expired)
-        } else if now.duration_since(session.seen) >= self.limits.idle {
-            Some(Ended::Idle)
-        } else {
-            None
+        let Some(session) = self.live.get_mut(token) else {
+            return Err(self
+                .ended
+                .get(token)
+                .filter(|(_, at)| now.duration_since(*at) < ENDED_KEPT)
+                .map_or(Ended::Unknown, |(why, _)| *why));
         };
+        let ended = ended_by(&self.limits, session, now);
         if let Some(ended) = ended {
             self.live.remove(token);
+            self.remember_ended(token.to_string(), ended, now);
             return Err(ended);
         }
         session.seen = now;
         Ok(session.login.clone())
+    }
+
+    /// Remembers why the session of `token` ended, forgetting the oldest such memories
+    /// past [`ENDED_KEPT`] or [`MOST_SESSIONS`].
+    fn remember_ended(&mut self, token: String, why: Ended, now: Instant) {
+        self.ended
+            .retain(|_, (_, at)| now.duration_since(*at) < ENDED_KEPT);
+        if self.ended.len() >= MOST_SESSIONS {
+            if let Some(oldest) = self
+                .ended
+                .iter()
+                .min_by_key(|(_, (_, at))| *at)
+                .map(|(t, _)| t.clone())
+            {
+                self.ended.remove(&oldest);
+            }
+        }
+        self.ended.insert(token, (why, now));
     }
 
     /// Who holds the session of `token`, if it is still live at `now`, without counting
@@ -200,10 +228,26 @@ impl Sessions {
 
     fn forget_ended(&mut self, now: Instant) {
         let limits = self.limits;
-        self.live.retain(|_, s| {
-            now.duration_since(s.began) < limits.absolute
-                && now.duration_since(s.seen) < limits.idle
-        });
+        let ended: Vec<(String, Ended)> = self
+            .live
+            .iter()
+            .filter_map(|(token, s)| ended_by(&limits, s, now).map(|why| (token.clone(), why)))
+            .collect();
+        for (token, why) in ended {
+            self.live.remove(&token);
+            self.remember_ended(token, why, now);
+        }
+    }
+}
+
+/// Whether `session` has ended by a limit at `now`, and which.
+fn ended_by(limits: &SessionLimits, session: &Session, now: Instant) -> Option<Ended> {
+    if now.duration_since(session.began) >= limits.absolute {
+        Some(Ended::Expired)
+    } else if now.duration_since(session.seen) >= limits.idle {
+        Some(Ended::Idle)
+    } else {
+        None
     }
 }
 
@@ -275,13 +319,31 @@ mod tests {
         }
         now += Duration::from_secs(50);
         assert_eq!(sessions.check(&token, now), Err(Ended::Expired));
-        assert_eq!(sessions.check(&token, now), Err(Ended::Unknown));
+        // Every later request with its cookie is told why, not just the first.
+        assert_eq!(sessions.check(&token, now), Err(Ended::Expired));
+        assert_eq!(
+            sessions.check(&token, now + ENDED_KEPT / 2),
+            Err(Ended::Expired)
+        );
         // Idle for a minute: gone.
         let token = sessions.open(anna(), HERE, t0);
         assert_eq!(
             sessions.check(&token, t0 + Duration::from_secs(60)),
             Err(Ended::Idle)
         );
+        assert_eq!(
+            sessions.check(&token, t0 + Duration::from_secs(61)),
+            Err(Ended::Idle)
+        );
+        // Swept when another logs in: still told why.
+        let quiet = sessions.open(anna(), HERE, t0);
+        let later = t0 + Duration::from_secs(70);
+        sessions.open(anna(), HERE, later);
+        assert_eq!(sessions.check(&quiet, later), Err(Ended::Idle));
+        // Forgotten after ENDED_KEPT.
+        let much_later = later + ENDED_KEPT + Duration::from_secs(1);
+        sessions.open(anna(), HERE, much_later);
+        assert_eq!(sessions.check(&quiet, much_later), Err(Ended::Unknown));
     }
 
     #[test]
