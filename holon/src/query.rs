@@ -24,3 +24,27 @@ pub fn replies() -> (Callback<Reply>, Replies) {
         receiver,
     )
 }
+
+/// Declares a queryable on `key` that answers every query with the latest value of
+/// `latest`, as JSON, on `key` itself (whatever wildcard the query used): a process
+/// saying where it stands, as of the moment it is asked.
+pub async fn answer_latest<T>(
+    session: &zenoh::Session,
+    key: &str,
+    latest: tokio::sync::watch::Receiver<T>,
+) -> zenoh::Result<zenoh::query::Queryable<()>>
+where
+    T: serde::Serialize + Send + Sync + 'static,
+{
+    let answer_key = key.to_string();
+    session
+        .declare_queryable(key)
+        .callback(move |query| {
+            use zenoh::Wait;
+            let payload = serde_json::to_vec(&*latest.borrow()).expect("a report serializes");
+            if let Err(e) = query.reply(&answer_key, payload).wait() {
+                tracing::debug!(key = %answer_key, error = %e, "cannot answer a query for the latest report: the asker sees none from this process");
+            }
+        })
+        .await
+}

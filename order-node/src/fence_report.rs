@@ -6,7 +6,7 @@
 use schemas::fence::NodeFenceReport;
 use schemas::FenceRole;
 use tokio::sync::watch;
-use tracing::{debug, warn};
+use tracing::warn;
 
 /// This process's report: its key's queryable and its latest value.
 pub struct Reporter {
@@ -45,18 +45,7 @@ impl Reporter {
             zid,
             schemas::unix_ms(),
         ));
-        let latest = report.subscribe();
-        let answer_key = key.clone();
-        let queryable = session
-            .declare_queryable(&key)
-            .callback(move |query| {
-                use zenoh::Wait;
-                let payload = serde_json::to_vec(&*latest.borrow()).expect("a report serializes");
-                if let Err(e) = query.reply(&answer_key, payload).wait() {
-                    debug!(key = %answer_key, error = %e, "cannot answer a query for where this order-node stands: the asker sees no report from it");
-                }
-            })
-            .await;
+        let queryable = holon::query::answer_latest(session, &key, report.subscribe()).await;
         let queryable = match queryable {
             Ok(queryable) => Some(queryable),
             Err(e) => {

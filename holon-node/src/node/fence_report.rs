@@ -41,18 +41,7 @@ impl Reporter {
             zid,
             at: schemas::unix_ms(),
         });
-        let latest = report.subscribe();
-        let answer_key = key.clone();
-        let queryable = session
-            .declare_queryable(&key)
-            .callback(move |query| {
-                use zenoh::Wait;
-                let payload = serde_json::to_vec(&*latest.borrow()).expect("a report serializes");
-                if let Err(e) = query.reply(&answer_key, payload).wait() {
-                    debug!(error = %e, "cannot answer a fence report query");
-                }
-            })
-            .await;
+        let queryable = holon::query::answer_latest(session, &key, report.subscribe()).await;
         let queryable = match queryable {
             Ok(queryable) => Some(queryable),
             Err(e) => {
