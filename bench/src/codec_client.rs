@@ -152,8 +152,8 @@ async fn serve(
                 let command = match command {
                     None => break ConnectionEnd::OwnerGone,
                     Some(ControllerRequest::Command(command)) => command,
-                    // The baseline has no abort.
-                    Some(ControllerRequest::Abort) => continue,
+                    // The baseline has no abort and no fence.
+                    Some(ControllerRequest::Abort | ControllerRequest::Step { .. }) => continue,
                 };
                 debug!(id = command.id, action = %command.action, "command to controller");
                 let id = command.id;

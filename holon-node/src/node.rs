@@ -1,8 +1,9 @@
-//! The resource holon process: five components under one supervisor.
+//! The resource holon process: four component tasks under one supervisor.
 //!
-//! Start order: interfacing, execution, agenda manager, requesters (the booking
-//! lifetime), communication; the stop order is the reverse, so the holon stops taking
-//! requests first and closes the controller connection last (see [`crate::component`]).
+//! Start order: execution (with the interfacing module's controller connection),
+//! agenda manager, requesters (the booking lifetime), communication; the stop order is
+//! the reverse, so the holon stops taking requests first and closes the controller
+//! connection last (see [`crate::component`]).
 //! The components talk through mailboxes, and each owns its state; both live here,
 //! beside the supervisor ([`crate::handover`]), so restarting a component loses neither
 //! its state nor a message in flight.
@@ -12,7 +13,7 @@ use std::time::Duration;
 
 use holon::takeover::TakenOver;
 use holon::{ChildSpec, Supervisor};
-use robot_bridge::client::{ControllerEvent, FenceHandle, FencePort};
+use robot_bridge::client::{FenceHandle, FencePort};
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
@@ -59,7 +60,6 @@ pub enum NodeError {
 /// The components' links, built once per process: they outlive the components'
 /// restarts, and each component sees only its own.
 struct Wiring {
-    interfacing: Arc<interfacing::Links>,
     execution: Arc<execution::Links>,
     agenda_manager: Arc<agenda_manager::Links>,
     requesters: Arc<requesters::Links>,
@@ -86,33 +86,24 @@ impl Wiring {
             views.fence.send_replace(FenceView::Standby);
         }
         let (fence, port) = fence.map(|(f, p)| (f, Handover::new(p))).unzip();
-        let fence_handle = fence.clone();
         let faults = Arc::new(Faults::default());
         // Requests come straight from the queryables' callbacks: as many may wait as
         // waited for the communication component before (see `communication`).
         let agenda_mail: Mailbox<AgendaMessage> =
             Mailbox::with_capacity(communication::QUERY_QUEUE);
         let jobs: Mailbox<crate::execution::ExecutionRequest> = Mailbox::new();
-        let controller: Mailbox<ControllerEvent> = Mailbox::new();
-        let commands: Mailbox<robot_bridge::client::ControllerRequest> = Mailbox::new();
         Ok(Wiring {
-            interfacing: Arc::new(interfacing::Links {
-                controller: config.controller.clone(),
-                commands: commands.share(),
-                events: controller.sender.clone(),
-                fence: port,
-                fence_view: views.fence.subscribe(),
-                faults: faults.clone(),
-            }),
             execution: Arc::new(execution::Links {
                 holon: holon.clone(),
                 execution: Handover::new(Execution::new(config.catalog.clone())),
                 jobs: jobs.share(),
-                controller,
-                commands: commands.sender.clone(),
+                interfacing: interfacing::Links {
+                    controller: config.controller.clone(),
+                    fence: port,
+                    fence_view: views.fence.subscribe(),
+                },
                 agenda: agenda_mail.sender.clone(),
                 views: views.clone(),
-                fence,
                 faults: faults.clone(),
             }),
             agenda_manager: Arc::new(agenda_manager::Links {
@@ -140,12 +131,12 @@ impl Wiring {
                 views,
                 faults,
                 serving: Arc::new(Notify::new()),
-                fence: fence_handle,
+                fence,
             }),
         })
     }
 
-    /// The supervisor of the five components, in start order.
+    /// The supervisor of the four component tasks, in start order.
     fn supervisor(&self, config: &ResourceConfig) -> Supervisor {
         fn spec<L: Send + Sync + 'static, F>(
             name: &str,
@@ -159,7 +150,6 @@ impl Wiring {
             ChildSpec::new(name, move |token| run(links.clone(), token))
         }
         Supervisor::new(config.holon.to_string(), config.strategy, config.intensity)
-            .child(spec("interfacing", &self.interfacing, interfacing::run))
             .child(spec("execution", &self.execution, execution::run))
             .child(spec("agenda", &self.agenda_manager, agenda_manager::run))
             .child(spec("requesters", &self.requesters, requesters::run))

@@ -75,6 +75,14 @@ impl Fenced {
         }
     }
 
+    /// Sends `command` as step `step` (answered as ordinary controller events).
+    async fn step(&self, command: RobotCommand, step: StepId) {
+        self.commands
+            .send(ControllerRequest::Step { command, step })
+            .await
+            .expect("the client runs");
+    }
+
     async fn answer(&mut self) -> ControllerEvent {
         loop {
             let event = tokio::time::timeout(WAIT, self.events.recv())
@@ -118,7 +126,7 @@ async fn one_holder_a_silent_one_is_deposed_and_a_step_runs_once() {
     }
     // A step, run by the first.
     let step = StepId::of("orders1-3/2/1", 0).unwrap();
-    first.handle.command(pick(1), step.clone()).await.unwrap();
+    first.step(pick(1), step.clone()).await;
     assert_eq!(first.answer().await, reply(1, "picking_done"));
     // The first goes silent: the controller closes it, the claim is lost.
     first.handle.pause_heartbeats(true).await.unwrap();
@@ -136,10 +144,8 @@ async fn one_holder_a_silent_one_is_deposed_and_a_step_runs_once() {
     let mut id = 2;
     let answer = loop {
         first
-            .handle
-            .command(pick(id), StepId::of("orders1-4/1/1", 0).unwrap())
-            .await
-            .unwrap();
+            .step(pick(id), StepId::of("orders1-4/1/1", 0).unwrap())
+            .await;
         match first.answer().await {
             // Still reconnecting after the controller closed it.
             ControllerEvent::CommandFailed { .. } => {
@@ -174,7 +180,7 @@ async fn one_holder_a_silent_one_is_deposed_and_a_step_runs_once() {
             result: "picking_done".into()
         })
     );
-    second.handle.command(pick(7), step.clone()).await.unwrap();
+    second.step(pick(7), step.clone()).await;
     assert_eq!(second.answer().await, reply(7, "picking_done"));
     assert_eq!(stats.by_step().get(step.as_str()), Some(&1));
     assert_eq!(stats.executed(), executed);
@@ -197,7 +203,7 @@ async fn step_status_of_a_running_step() {
     let mut holder = start(&address);
     holder.claim("robot1").await.expect("granted");
     let step = StepId::of("o/1", 0).unwrap();
-    holder.handle.command(pick(1), step.clone()).await.unwrap();
+    holder.step(pick(1), step.clone()).await;
     wait_received(&stats, 1).await;
     assert_eq!(
         holder.handle.step_status(&step).await,
@@ -310,7 +316,7 @@ async fn epochs_go_on_after_a_sim_restart_and_the_count_file_shows_the_fence() {
     let mut holder = start(&address);
     assert_eq!(holder.claim("robot1").await, Ok(Epoch(1)));
     let step = StepId::of("o/9", 1).unwrap();
-    holder.handle.command(pick(1), step.clone()).await.unwrap();
+    holder.step(pick(1), step.clone()).await;
     assert_eq!(holder.answer().await, reply(1, "picking_done"));
     holder.shutdown.cancel();
     sim.cancel();
@@ -348,7 +354,7 @@ async fn a_step_in_flight_when_its_holder_froze_runs_once() {
     let mut new = start(&address);
     assert_eq!(old.claim("robot1").await, Ok(Epoch(1)));
     let step = StepId::of("orders1-5/1/1", 0).unwrap();
-    old.handle.command(pick(1), step.clone()).await.unwrap();
+    old.step(pick(1), step.clone()).await;
     wait_received(&stats, 1).await;
     // It freezes with the step under way; the controller completes the motion.
     old.handle.pause_heartbeats(true).await.unwrap();
@@ -361,7 +367,7 @@ async fn a_step_in_flight_when_its_holder_froze_runs_once() {
     };
     assert_eq!(epoch, Epoch(2));
     // The new holder repeats the step: it is not run again (still running, or done).
-    new.handle.command(pick(5), step.clone()).await.unwrap();
+    new.step(pick(5), step.clone()).await;
     match new.answer().await {
         ControllerEvent::Reply {
             id: 5,

@@ -1,21 +1,24 @@
 //! The execution component: the one owner of the execution state machine
-//! ([`crate::execution`]).
+//! ([`crate::execution`]) and, through the interfacing module, of the controller
+//! connection.
 //!
-//! Its events come from two mailboxes: jobs from the agenda manager, and what the
-//! interfacing component reports of the controller. It carries out the machine's
-//! actions: commands go to the interfacing component, `ready`, `unavailable` and
-//! finished jobs to the agenda manager; after every event it republishes its view (the
-//! controller and the step in progress) when that changed.
+//! Its task runs the controller client ([`interfacing::serve`]) with itself as the
+//! client's owner ([`Driver`]): jobs and aborts from the agenda manager's side come
+//! from its mailbox when the client asks for its next request, and what the controller
+//! does is handed to it as the client's events. Each event goes through the machine;
+//! its actions are carried out at once: commands go back to the client (a
+//! [`ControllerRequest::Step`] with its step id, for a fenced resource), `ready`,
+//! `unavailable` and finished jobs to the agenda manager; after every event it
+//! republishes its view (the controller and the step in progress) when that changed.
 //!
-//! It waits for room in the agenda manager's mailbox (which never waits on it), never
-//! in the interfacing component's: that mailbox holds at most the running step's
-//! command and an abort (the machine sends a step's command after the last one's
-//! reply), so a command goes with `try_send` and the two never wait on each other.
+//! A command and its reply cross no queue between tasks. It waits for room in the
+//! agenda manager's mailbox (the agenda manager never waits on it): no cycle of waits.
 
+use std::collections::VecDeque;
 use std::sync::Arc;
 
 use holon::ChildError;
-use robot_bridge::client::{ControllerEvent, ControllerRequest, FenceHandle, StepId};
+use robot_bridge::client::{ControllerEvent, ControllerRequest, Owner, StepId};
 use schemas::HolonId;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -23,6 +26,7 @@ use tracing::{debug, info};
 
 use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
+use crate::component::interfacing;
 use crate::execution::{Execution, ExecutionAction, ExecutionEvent, ExecutionRequest};
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
@@ -35,137 +39,191 @@ pub struct Links {
     pub execution: Handover<Execution>,
     /// Jobs (and aborts) from the agenda manager.
     pub jobs: Mailbox<ExecutionRequest>,
-    /// What the interfacing component reports.
-    pub controller: Mailbox<ControllerEvent>,
-    /// The interfacing component's command mailbox.
-    pub commands: mpsc::Sender<ControllerRequest>,
+    /// The controller connection it runs.
+    pub interfacing: interfacing::Links,
     /// The agenda manager's mailbox.
     pub agenda: mpsc::Sender<AgendaMessage>,
     /// Where it publishes its view.
     pub views: Arc<Views>,
-    /// A fenced resource's fence: each step's command goes through it, with its step id.
-    pub fence: Option<FenceHandle>,
-    /// Its fault to inject on request.
+    /// Its faults (and the interfacing module's) to inject on request.
     pub faults: Arc<Faults>,
 }
 
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
-    let holon = &links.holon;
     let mut execution = links.execution.take().await;
     let mut jobs = links.jobs.take().await;
-    let mut controller = links.controller.take().await;
-    publish(&links, &execution);
-    loop {
-        let event = tokio::select! {
-            _ = token.cancelled() => return Ok(()),
-            _ = links.faults.execution.notified() => panic!("fault injection: execution crashed"),
-            request = jobs.recv() => match request.ok_or("execution mailbox closed")? {
-                ExecutionRequest::Start(job) => ExecutionEvent::Start(job),
-                ExecutionRequest::Abort => ExecutionEvent::Abort,
-            },
-            event = controller.recv() => ExecutionEvent::Controller(event.ok_or("controller mailbox closed")?),
-        };
+    let mut driver = Driver {
+        links: &links,
+        execution: &mut execution,
+        jobs: &mut jobs,
+        commands: VecDeque::new(),
+        to_agenda: VecDeque::new(),
+        failure: None,
+    };
+    driver.publish();
+    tokio::select! {
+        _ = interfacing::serve(&links.interfacing, &mut driver, token.clone()) => {}
+        _ = links.faults.execution.notified() => panic!("fault injection: execution crashed"),
+        _ = links.faults.interfacing.notified() => panic!("fault injection: interfacing crashed"),
+    }
+    match driver.failure {
+        Some(failure) => Err(failure),
+        None if token.is_cancelled() => Ok(()),
+        None => Err("the controller client stopped".into()),
+    }
+}
+
+/// The execution as the controller client's owner: the machine, its mailbox, and what
+/// its actions left to do.
+struct Driver<'a> {
+    links: &'a Links,
+    execution: &'a mut Execution,
+    jobs: &'a mut mpsc::Receiver<ExecutionRequest>,
+    /// Requests for the controller client, oldest first (at most a step's command and
+    /// an abort).
+    commands: VecDeque<ControllerRequest>,
+    /// Events for the agenda manager, oldest first.
+    to_agenda: VecDeque<AgendaEvent>,
+    /// Why the component fails, once it must (the client then stops).
+    failure: Option<ChildError>,
+}
+
+impl Owner for Driver<'_> {
+    /// A command the machine gave, else the next job (cancel-safe: a job taken from the
+    /// mailbox is handled before the next await).
+    async fn request(&mut self) -> Option<ControllerRequest> {
+        loop {
+            if self.failure.is_some() {
+                return None;
+            }
+            if let Some(request) = self.commands.pop_front() {
+                return Some(request);
+            }
+            if !self.tell_agenda().await {
+                return None;
+            }
+            let event = match self.jobs.recv().await {
+                Some(ExecutionRequest::Start(job)) => ExecutionEvent::Start(job),
+                Some(ExecutionRequest::Abort) => ExecutionEvent::Abort,
+                None => {
+                    self.failure = Some("execution mailbox closed".into());
+                    return None;
+                }
+            };
+            self.handle(event);
+        }
+    }
+
+    async fn report(&mut self, event: ControllerEvent) -> bool {
+        self.handle(ExecutionEvent::Controller(event));
+        self.tell_agenda().await
+    }
+}
+
+impl Driver<'_> {
+    /// One event through the machine; its actions are queued for the client and the
+    /// agenda manager.
+    fn handle(&mut self, event: ExecutionEvent) {
+        let holon = &self.links.holon;
         debug!(%holon, component = "execution", event = ?event, "event");
-        let before = execution.state().to_string();
-        let actions = execution.handle(event);
-        let after = execution.state().to_string();
+        let before = self.execution.state().to_string();
+        let actions = self.execution.handle(event);
+        let after = self.execution.state().to_string();
         if before != after {
             info!(%holon, component = "execution", from = %before, to = %after, "transition");
         }
-        publish(&links, &execution);
-        let step = execution
-            .current_step_index()
-            .map(|(conversation, index)| (conversation.to_string(), index));
+        self.publish();
         for action in actions {
-            carry_out(&links, action, step.as_ref()).await?;
+            self.carry_out(action);
         }
     }
-}
 
-/// Republishes the execution's view if it changed. A job seen running for the first
-/// time is stamped with the time now: its measured duration is what a staff holon
-/// learns from.
-fn publish(links: &Links, execution: &Execution) {
-    let running = execution.current_conversation();
-    links.views.execution.send_if_modified(|published| {
-        let running_since = running.map(|conversation| match &published.running_since {
-            Some((same, since)) if same == conversation => (same.clone(), *since),
-            _ => (conversation.to_string(), schemas::unix_ms()),
-        });
-        let view = ExecutionView {
-            controller: execution.controller(),
-            step: execution.current_step(),
-            running_since,
-        };
-        let changed = *published != view;
-        *published = view;
-        changed
-    });
-}
-
-/// Carries out one action; `step` is the running job's conversation and the index of
-/// its step in progress (a command's step id, for a fenced resource).
-async fn carry_out(
-    links: &Links,
-    action: ExecutionAction,
-    step: Option<&(String, usize)>,
-) -> Result<(), ChildError> {
-    let holon = &links.holon;
-    let to_agenda = |event: AgendaEvent| async {
-        links
-            .agenda
-            .send(event.into())
-            .await
-            .map_err(|_| ChildError::from("agenda mailbox closed"))
-    };
-    match action {
-        ExecutionAction::Command(command) => {
-            info!(%holon, component = "execution", command_id = command.id, action = %command.action, "command to controller");
-            match (&links.fence, step) {
-                (Some(fence), Some((conversation, index))) => {
-                    let step = StepId::of(conversation, *index).map_err(|e| {
-                        ChildError::from(format!("no step id for {conversation:?}: {e}"))
-                    })?;
-                    fence
-                        .command(command, step)
-                        .await
-                        .map_err(|e| ChildError::from(format!("the fence: {e}")))?;
-                }
-                _ => to_controller(links, command.into())?,
+    /// Queues one action.
+    fn carry_out(&mut self, action: ExecutionAction) {
+        let holon = &self.links.holon;
+        match action {
+            ExecutionAction::Command(command) => {
+                info!(%holon, component = "execution", command_id = command.id, action = %command.action, "command to controller");
+                let request = match self.step_id() {
+                    Ok(Some(step)) => ControllerRequest::Step { command, step },
+                    Ok(None) => ControllerRequest::Command(command),
+                    Err(failure) => {
+                        self.failure = Some(failure);
+                        return;
+                    }
+                };
+                self.commands.push_back(request);
             }
-        }
-        ExecutionAction::AbortController => {
-            info!(%holon, component = "execution", "abort: the controller is told to stop");
-            to_controller(links, ControllerRequest::Abort)?;
-        }
-        ExecutionAction::Ready => to_agenda(AgendaEvent::ExecutionReady).await?,
-        ExecutionAction::Unavailable(status) => {
-            to_agenda(AgendaEvent::ExecutionUnavailable(status)).await?
-        }
-        ExecutionAction::Finished {
-            conversation_id,
-            outcome,
-        } => {
-            info!(%holon, component = "execution", %conversation_id, outcome = %outcome, "job finished");
-            to_agenda(AgendaEvent::ExecutionFinished {
+            ExecutionAction::AbortController => {
+                info!(%holon, component = "execution", "abort: the controller is told to stop");
+                self.commands.push_back(ControllerRequest::Abort);
+            }
+            ExecutionAction::Ready => self.to_agenda.push_back(AgendaEvent::ExecutionReady),
+            ExecutionAction::Unavailable(status) => self
+                .to_agenda
+                .push_back(AgendaEvent::ExecutionUnavailable(status)),
+            ExecutionAction::Finished {
                 conversation_id,
                 outcome,
-            })
-            .await?
+            } => {
+                info!(%holon, component = "execution", %conversation_id, outcome = %outcome, "job finished");
+                self.to_agenda.push_back(AgendaEvent::ExecutionFinished {
+                    conversation_id,
+                    outcome,
+                });
+            }
+            // The view is republished after every event (see `handle`).
+            ExecutionAction::StateChanged => {}
         }
-        // The view is republished after every event (see `run`).
-        ExecutionAction::StateChanged => {}
     }
-    Ok(())
-}
 
-/// Hands a request to the interfacing component without waiting for room (see the
-/// module's doc): a full mailbox would be a bug, and the component fails.
-fn to_controller(links: &Links, request: ControllerRequest) -> Result<(), ChildError> {
-    links.commands.try_send(request).map_err(|e| match e {
-        mpsc::error::TrySendError::Full(_) => ChildError::from(
-            "the command mailbox is full (it holds at most a step's command and an abort: a bug)",
-        ),
-        mpsc::error::TrySendError::Closed(_) => ChildError::from("command mailbox closed"),
-    })
+    /// The step id of the running job's step in progress, for a fenced resource:
+    /// `<conversation>#<index>`.
+    fn step_id(&self) -> Result<Option<StepId>, ChildError> {
+        if !self.links.interfacing.fenced() {
+            return Ok(None);
+        }
+        let Some((conversation, index)) = self.execution.current_step_index() else {
+            return Ok(None);
+        };
+        StepId::of(conversation, index)
+            .map(Some)
+            .map_err(|e| ChildError::from(format!("no step id for {conversation:?}: {e}")))
+    }
+
+    /// Hands the agenda manager what the machine told it, in order, waiting for room;
+    /// false when its mailbox is closed (the component fails). Cancel-safe: an event
+    /// leaves the queue only once sent.
+    async fn tell_agenda(&mut self) -> bool {
+        while !self.to_agenda.is_empty() {
+            let Ok(permit) = self.links.agenda.reserve().await else {
+                self.failure = Some("agenda mailbox closed".into());
+                return false;
+            };
+            let event = self.to_agenda.pop_front().expect("not empty");
+            permit.send(event.into());
+        }
+        true
+    }
+
+    /// Republishes the execution's view if it changed. A job seen running for the first
+    /// time is stamped with the time now: its measured duration is what a staff holon
+    /// learns from.
+    fn publish(&self) {
+        let running = self.execution.current_conversation();
+        self.links.views.execution.send_if_modified(|published| {
+            let running_since = running.map(|conversation| match &published.running_since {
+                Some((same, since)) if same == conversation => (same.clone(), *since),
+                _ => (conversation.to_string(), schemas::unix_ms()),
+            });
+            let view = ExecutionView {
+                controller: self.execution.controller(),
+                step: self.execution.current_step(),
+                running_since,
+            };
+            let changed = *published != view;
+            *published = view;
+            changed
+        });
+    }
 }

@@ -1,30 +1,24 @@
-//! The interfacing component: robot-bridge's controller client, fed by the command
-//! mailbox and reporting to the execution component's controller mailbox. A fenced
-//! resource runs it with the fence's port ([`client::run_fenced`]): the same
-//! connection then claims the controller, heartbeats and writes epochs and step ids.
+//! The interfacing component: robot-bridge's controller client, run by the execution
+//! component's task for the execution ([`client::drive`], the execution being its
+//! [`client::Owner`]). It is the seed's interfacing component as a module: it owns the
+//! controller connection and speaks the controller's dialect; the execution gives it
+//! commands and learns the controller's events by calling it, with no queue between.
+//!
+//! A fenced resource runs the client with the fence's port: the same connection then
+//! claims the controller, heartbeats and writes epochs and step ids.
 
-use std::sync::Arc;
-
-use holon::ChildError;
-use robot_bridge::client::{
-    self, ClientConfig, ControllerEvent, ControllerRequest, Epoch, FenceEvent, FencePort,
-};
-use tokio::sync::{mpsc, watch};
+use robot_bridge::client::{self, ClientConfig, Epoch, FenceEvent, FencePort, Owner};
+use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tracing::warn;
 
-use crate::fault_injection::Faults;
-use crate::handover::{Handover, Mailbox};
+use crate::handover::Handover;
 use crate::views::FenceView;
 
 /// What the interfacing component is linked to.
 pub struct Links {
     /// Where the controller is, and the protocol's timeouts.
     pub controller: ClientConfig,
-    /// Commands from the execution component.
-    pub commands: Mailbox<ControllerRequest>,
-    /// The execution component's controller mailbox.
-    pub events: mpsc::Sender<ControllerEvent>,
     /// The fence's port, for a fenced resource: taken by the running component and
     /// handed to its successor, like a mailbox.
     pub fence: Option<Handover<FencePort>>,
@@ -32,13 +26,18 @@ pub struct Links {
     /// successor started while it does reports the claim lost with its predecessor's
     /// connection.
     pub fence_view: watch::Receiver<FenceView>,
-    /// Its fault to inject on request.
-    pub faults: Arc<Faults>,
 }
 
-pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
-    let mut commands = links.commands.take().await;
-    let events = links.events.clone();
+impl Links {
+    /// Whether the resource is fenced: its commands carry step ids.
+    pub fn fenced(&self) -> bool {
+        self.fence.is_some()
+    }
+}
+
+/// Runs the controller client for `owner` until `token` is cancelled or the owner is
+/// gone.
+pub async fn serve<O: Owner>(links: &Links, owner: &mut O, token: CancellationToken) {
     let mut port = match &links.fence {
         Some(fence) => Some(fence.take().await),
         None => None,
@@ -56,18 +55,5 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         }
     }
     let config = links.controller.clone();
-    let client = async {
-        match port.as_deref_mut() {
-            Some(port) => {
-                client::run_fenced(config, &mut commands, port, events, token.clone()).await
-            }
-            None => client::run(config, &mut commands, events, token.clone()).await,
-        }
-    };
-    tokio::select! {
-        _ = client => {
-            if token.is_cancelled() { Ok(()) } else { Err("the controller client stopped".into()) }
-        }
-        _ = links.faults.interfacing.notified() => panic!("fault injection: interfacing crashed"),
-    }
+    client::drive(config, owner, port.as_deref_mut(), token).await
 }

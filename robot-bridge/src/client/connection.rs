@@ -17,14 +17,14 @@ use std::collections::VecDeque;
 use futures_util::{SinkExt, StreamExt};
 use schemas::RobotCommand;
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::codec::Framed;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
 use super::{
-    ClientConfig, CommandFailure, ControllerEvent, ControllerRequest, ControllerStatus, Reporter,
+    ClientConfig, CommandFailure, ControllerEvent, ControllerRequest, ControllerStatus, Owner,
+    Reporter,
 };
 use crate::dialect::{
     command_values, framing::FrameCodec, Correlation, Dialect, Sending, Status, Values,
@@ -82,11 +82,11 @@ enum Awaiting {
 type Step = Result<(), ConnectionEnd>;
 
 /// The state of one connection: exchanges in flight and the wire.
-pub(super) struct Connection<'a> {
+pub(super) struct Connection<'a, 'o, O> {
     config: &'a ClientConfig,
     dialect: &'a Dialect,
-    commands: &'a mut mpsc::Receiver<ControllerRequest>,
-    reporter: &'a mut Reporter,
+    /// The owner: requests in, events out.
+    reporter: &'a mut Reporter<'o, O>,
     /// Commands in flight, oldest first.
     exchanges: VecDeque<Exchange>,
     /// One-in-flight: what the request on the wire awaits.
@@ -113,11 +113,10 @@ pub(super) struct Connection<'a> {
     fence_waits: fence::FenceWaits,
 }
 
-impl<'a> Connection<'a> {
+impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
     pub(super) fn new(
         config: &'a ClientConfig,
-        commands: &'a mut mpsc::Receiver<ControllerRequest>,
-        reporter: &'a mut Reporter,
+        reporter: &'a mut Reporter<'o, O>,
         last_run: &'a mut Option<Values>,
     ) -> Self {
         let now = Instant::now();
@@ -125,7 +124,6 @@ impl<'a> Connection<'a> {
         Connection {
             config,
             dialect,
-            commands,
             reporter,
             exchanges: VecDeque::new(),
             awaiting: None,
@@ -178,10 +176,13 @@ impl<'a> Connection<'a> {
             let wake = self.next_wake();
             tokio::select! {
                 _ = shutdown.cancelled() => break ConnectionEnd::Shutdown,
-                request = self.commands.recv() => {
+                request = self.reporter.request() => {
                     let step = match request {
                         None => break ConnectionEnd::OwnerGone,
                         Some(ControllerRequest::Command(command)) => self.take(command).await,
+                        Some(ControllerRequest::Step { command, step }) => {
+                            self.take_step(command, Some(step)).await
+                        }
                         Some(ControllerRequest::Abort) => self.abort().await,
                     };
                     if let Err(end) = step {

@@ -4,13 +4,12 @@
 //! a oneshot, every wait bounded.
 //!
 //! While it holds the claim, the connection task sends the dialect's heartbeat every
-//! lease/4 and writes the epoch in every command ([`FenceRequest::Command`] adds the
-//! step id). When the controller says the epoch is stale, or the connection that held
+//! lease/4 and writes the epoch in every command (a [`super::ControllerRequest::Step`]
+//! adds the step id). When the controller says the epoch is stale, or the connection that held
 //! the claim ends, a [`FenceEvent`] tells the holon to step down; it may claim again.
 
 use std::time::Duration;
 
-use schemas::RobotCommand;
 use tokio::sync::{mpsc, oneshot};
 
 use super::ClientConfig;
@@ -133,9 +132,6 @@ pub enum FenceRequest {
         name: String,
         reply: oneshot::Sender<Result<Epoch, ClaimError>>,
     },
-    /// A command with its step id (and the epoch, while claimed); its answer comes as
-    /// the ordinary [`super::ControllerEvent`]s.
-    Command { command: RobotCommand, step: StepId },
     /// Ask a step id's state.
     StepStatus {
         step: StepId,
@@ -233,15 +229,6 @@ impl FenceHandle {
             Ok(Ok(result)) => result,
             Ok(Err(_)) => Err(FenceError::Gone),
             Err(_) => Err(FenceError::Timeout(self.wait)),
-        }
-    }
-
-    /// Sends `command` with step id `step` (answered as ordinary controller events).
-    pub async fn command(&self, command: RobotCommand, step: StepId) -> Result<(), FenceError> {
-        let request = FenceRequest::Command { command, step };
-        match tokio::time::timeout(self.wait, self.requests.send(request)).await {
-            Ok(Ok(())) => Ok(()),
-            _ => Err(FenceError::Gone),
         }
     }
 

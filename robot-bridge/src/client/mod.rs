@@ -1,8 +1,11 @@
 //! The controller client: one persistent TCP connection to the robot controller, in the
 //! controller's dialect ([`crate::dialect`]).
 //!
-//! The client is a task ([`run`]) with a command mailbox and an event channel, like every
-//! component of a resource holon. It connects (or, when the dialect says the controller
+//! The client runs as a loop for an [`Owner`]: whoever owns it gives it its requests and
+//! takes its events in order. [`run`] is that loop with a command mailbox and an event
+//! channel for an owner that is a task of its own; a resource holon's execution
+//! component is the owner itself ([`drive`]), so a command and its reply cross no
+//! queue between tasks. It connects (or, when the dialect says the controller
 //! connects, listens and accepts one connection at a time), retries every
 //! `reconnect_interval` while the controller is away (the seed's `socket_connect`), runs
 //! each command's sequence of messages as the dialect says, and reports in order:
@@ -19,11 +22,13 @@
 //! A controller that misses a deadline or sends something the dialect does not describe
 //! has its connection reset; the client then reconnects as usual.
 //!
-//! A standby holon runs the client with [`run_fenced`] and keeps a [`FenceHandle`]
-//! ([`fence`]): the same task, the one owner of the connection, also claims the
-//! controller, heartbeats while it holds the claim, writes the epoch and step ids in
-//! commands and asks step states.
+//! A standby holon runs the client with the port of a fence ([`run_fenced`], or
+//! [`drive`] with the port) and keeps its [`FenceHandle`] ([`fence`]): the same loop,
+//! the one owner of the connection, also claims the controller, heartbeats while it
+//! holds the claim, writes the epoch and step ids in commands
+//! ([`ControllerRequest::Step`]) and asks step states.
 
+use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -100,6 +105,10 @@ pub enum CommandFailure {
 pub enum ControllerRequest {
     /// Run this command; its `id` comes back in events.
     Command(RobotCommand),
+    /// Run this command as step `step` of a fenced holon: the step id (and the epoch,
+    /// while the claim is held) is written in it, and the controller runs a step id at
+    /// most once. Without a fence it is an ordinary command.
+    Step { command: RobotCommand, step: StepId },
     /// Stop now: the dialect's abort message goes out at once, even while a command is
     /// in flight; the command in flight then ends as the controller reports it (its
     /// failure, or [`CommandFailure::Aborted`]). A dialect without an abort message
@@ -128,6 +137,35 @@ pub enum ControllerEvent {
     },
 }
 
+/// Who owns the client: where its requests come from and where its events go.
+///
+/// The client awaits [`Owner::request`] beside the socket and its timers, so that
+/// future must be cancel-safe: dropped before it is ready, it loses nothing.
+/// [`Owner::report`] is awaited to its end, one event at a time, in the order things
+/// happened.
+pub trait Owner: Send {
+    /// The next request; `None` when the owner is gone (the client stops).
+    fn request(&mut self) -> impl Future<Output = Option<ControllerRequest>> + Send;
+    /// One event; false when the owner is gone (the client stops).
+    fn report(&mut self, event: ControllerEvent) -> impl Future<Output = bool> + Send;
+}
+
+/// The owner of [`run`]: a command mailbox and an event channel to a task of its own.
+struct Channels<'a> {
+    commands: &'a mut mpsc::Receiver<ControllerRequest>,
+    events: mpsc::Sender<ControllerEvent>,
+}
+
+impl Owner for Channels<'_> {
+    async fn request(&mut self) -> Option<ControllerRequest> {
+        self.commands.recv().await
+    }
+
+    async fn report(&mut self, event: ControllerEvent) -> bool {
+        self.events.send(event).await.is_ok()
+    }
+}
+
 /// Runs the client until `shutdown` is cancelled or the event receiver is dropped.
 /// Commands come from `commands`; their `id` comes back in events.
 pub async fn run(
@@ -136,7 +174,7 @@ pub async fn run(
     events: mpsc::Sender<ControllerEvent>,
     shutdown: CancellationToken,
 ) {
-    run_with(config, commands, None, events, shutdown).await
+    drive(config, &mut Channels { commands, events }, None, shutdown).await
 }
 
 /// [`run`] with the fence of a standby holon: its requests come from `fence` (a
@@ -148,19 +186,35 @@ pub async fn run_fenced(
     events: mpsc::Sender<ControllerEvent>,
     shutdown: CancellationToken,
 ) {
-    run_with(config, commands, Some(fence), events, shutdown).await
+    drive(
+        config,
+        &mut Channels { commands, events },
+        Some(fence),
+        shutdown,
+    )
+    .await
 }
 
-async fn run_with(
+/// Runs the client for `owner` until `shutdown` is cancelled or the owner is gone; with
+/// a fence's port when the holon is fenced.
+pub async fn drive<O: Owner>(
     config: ClientConfig,
-    commands: &mut mpsc::Receiver<ControllerRequest>,
+    owner: &mut O,
+    fence: Option<&mut FencePort>,
+    shutdown: CancellationToken,
+) {
+    run_with(config, owner, fence, shutdown).await
+}
+
+async fn run_with<O: Owner>(
+    config: ClientConfig,
+    owner: &mut O,
     mut fence: Option<&mut FencePort>,
-    events: mpsc::Sender<ControllerEvent>,
     shutdown: CancellationToken,
 ) {
     let mut claimed = fence::Claimed::default();
     let mut reporter = Reporter {
-        events,
+        owner,
         status: None,
     };
     let mut listener = None;
@@ -173,7 +227,6 @@ async fn run_with(
         }
         let link = Link {
             config: &config,
-            commands,
             fence: fence.as_deref_mut(),
             claimed: &mut claimed,
             reporter: &mut reporter,
@@ -186,7 +239,7 @@ async fn run_with(
         let Some(stream) = stream else { return };
         first_attempt = false;
         info!(controller = %config.address, dialect = %config.dialect.name, "connected to the controller");
-        let mut connection = Connection::new(&config, commands, &mut reporter, &mut last_run);
+        let mut connection = Connection::new(&config, &mut reporter, &mut last_run);
         connection.fence = fence.as_deref_mut();
         connection.claimed = Some(&mut claimed);
         match connection.serve(stream, listener.as_ref(), &shutdown).await {
@@ -202,15 +255,21 @@ async fn run_with(
     }
 }
 
-struct Reporter {
-    events: mpsc::Sender<ControllerEvent>,
+/// The owner, and the controller's status as last reported to it.
+struct Reporter<'o, O> {
+    owner: &'o mut O,
     status: Option<ControllerStatus>,
 }
 
-impl Reporter {
+impl<O: Owner> Reporter<'_, O> {
+    /// The owner's next request; `None` when the owner is gone.
+    async fn request(&mut self) -> Option<ControllerRequest> {
+        self.owner.request().await
+    }
+
     /// Sends an event; false when the owner is gone.
     async fn send(&mut self, event: ControllerEvent) -> bool {
-        self.events.send(event).await.is_ok()
+        self.owner.report(event).await
     }
 
     async fn status(&mut self, status: ControllerStatus) -> bool {
@@ -223,23 +282,22 @@ impl Reporter {
 }
 
 /// Establishing a connection, while commands that arrive meanwhile fail.
-struct Link<'a> {
+struct Link<'a, 'o, O> {
     config: &'a ClientConfig,
-    commands: &'a mut mpsc::Receiver<ControllerRequest>,
     /// The fence's requests, when fenced.
     fence: Option<&'a mut FencePort>,
     /// The fence's state.
     claimed: &'a mut fence::Claimed,
-    reporter: &'a mut Reporter,
+    reporter: &'a mut Reporter<'o, O>,
     shutdown: &'a CancellationToken,
 }
 
-impl Link<'_> {
+impl<O: Owner> Link<'_, '_, O> {
     /// A request while no controller is connected: a command fails at once, an abort
     /// has nothing to stop.
     async fn refuse(&mut self, request: ControllerRequest) -> bool {
         match request {
-            ControllerRequest::Command(command) => {
+            ControllerRequest::Command(command) | ControllerRequest::Step { command, .. } => {
                 let event = ControllerEvent::CommandFailed {
                     id: command.id,
                     failure: CommandFailure::NotConnected,
@@ -263,9 +321,6 @@ impl Link<'_> {
                 let _ = reply.send(Err(FenceError::NotConnected));
             }
             FenceRequest::PauseHeartbeats(paused) => self.claimed.paused = paused,
-            FenceRequest::Command { command, .. } => {
-                return self.refuse(ControllerRequest::Command(command)).await;
-            }
         }
         true
     }
@@ -282,7 +337,7 @@ impl Link<'_> {
         loop {
             tokio::select! {
                 _ = self.shutdown.cancelled() => return None,
-                command = self.commands.recv() => {
+                command = self.reporter.request() => {
                     if !self.refuse(command?).await {
                         return None;
                     }
@@ -339,7 +394,7 @@ impl Link<'_> {
             let retry = tokio::time::sleep(config.reconnect_interval);
             tokio::select! {
                 _ = self.shutdown.cancelled() => return None,
-                command = self.commands.recv() => {
+                command = self.reporter.request() => {
                     if !self.refuse(command?).await {
                         return None;
                     }

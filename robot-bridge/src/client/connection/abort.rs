@@ -17,7 +17,7 @@ pub(super) struct AbortWait {
     pub(super) deadline: Instant,
 }
 
-impl Connection<'_> {
+impl<O: super::Owner> Connection<'_, '_, O> {
     /// An abort: the dialect's abort message goes out at once, once for each distinct
     /// message the commands in flight make of it (or with the last command's values when
     /// none is in flight); the commands in flight are marked aborted.

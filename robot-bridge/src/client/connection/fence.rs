@@ -49,7 +49,7 @@ impl FenceWaits {
     }
 }
 
-impl Connection<'_> {
+impl<O: super::Owner> Connection<'_, '_, O> {
     /// The epoch to write in commands, while we have one.
     pub(super) fn epoch_values(&self, values: &mut Values, step: Option<&StepId>) {
         if self.dialect.fence.is_none() {
@@ -80,7 +80,6 @@ impl Connection<'_> {
         let now = Instant::now();
         let timeout = self.config.command_timeout;
         match request {
-            FenceRequest::Command { command, step } => self.take_step(command, Some(step)).await,
             FenceRequest::PauseHeartbeats(paused) => {
                 if let Some(c) = self.claimed.as_mut() {
                     c.paused = paused;

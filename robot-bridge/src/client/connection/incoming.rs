@@ -9,7 +9,7 @@ use super::super::{ControllerEvent, ControllerStatus};
 use super::{shown, Awaiting, Connection, ConnectionEnd, Step};
 use crate::dialect::{Correlation, Outcome, Parsed, Sending, Status, Values};
 
-impl Connection<'_> {
+impl<O: super::Owner> Connection<'_, '_, O> {
     /// One message from the controller.
     pub(super) async fn incoming(&mut self, frame: &[u8]) -> Step {
         self.last_traffic = Instant::now();
