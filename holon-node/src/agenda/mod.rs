@@ -92,10 +92,12 @@ use crate::packml::PackmlUnit;
 
 mod packml;
 mod queue;
+mod record;
 mod requests;
 mod snapshot;
 
 pub use packml::{packml_hint, PackmlSettings};
+pub use record::{AgendaRecord, AgendaRecordRef};
 
 /// How many later bookings of higher priority may go ahead of a waiting one, unless
 /// the config says (`agenda.max_overtakes`).
@@ -249,19 +251,6 @@ pub enum AgendaAction {
     StateChanged,
 }
 
-/// What the journal keeps of the agenda manager: everything that must survive a crash.
-#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
-pub struct AgendaRecord {
-    pub bookings: Vec<Booking>,
-    /// The job that was executing: after a crash it is reported `interrupted`.
-    pub current: Option<Job>,
-    pub undelivered: Vec<Service>,
-    /// The PackML unit; absent from journals written before PackML (the config's
-    /// initial state then applies).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub packml: Option<PackmlUnit>,
-}
-
 /// The execution status in Figure 4 (plus `init`).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Status {
@@ -343,16 +332,6 @@ impl AgendaManager {
     pub fn with_max_overtakes(mut self, max_overtakes: u32) -> Self {
         self.max_overtakes = max_overtakes;
         self
-    }
-
-    /// What the journal keeps.
-    pub fn record(&self) -> AgendaRecord {
-        AgendaRecord {
-            bookings: self.bookings.clone(),
-            current: self.current.clone(),
-            undelivered: self.undelivered.clone(),
-            packml: Some(self.packml.clone()),
-        }
     }
 
     /// The agenda manager after a restart of the process: the bookings and undelivered

@@ -144,7 +144,7 @@ impl JournalledAgenda {
         .with_packml(config.packml);
         if let Some(journal) = &journal {
             // The interrupted job became an undelivered result: record that at once.
-            journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record())?;
+            journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record_ref())?;
         }
         Ok(JournalledAgenda {
             agenda,
@@ -186,6 +186,9 @@ impl JournalledAgenda {
         event: AgendaEvent,
     ) -> Result<Vec<AgendaAction>, NotRecorded> {
         let before = (self.agenda.state(), self.agenda.packml().state());
+        // The agenda before the event: what a request the journal cannot record leaves
+        // (the undo), and what tells whether there is anything to write (compared in
+        // place, never copied again).
         let previous = self.journal.as_ref().map(|_| self.agenda.clone());
         // An acknowledgement is recorded with the next write, not on its own: if the
         // process dies first, the result is delivered once more and the order, which
@@ -207,7 +210,7 @@ impl JournalledAgenda {
         let mut actions = self.agenda.handle(event);
         let changed = previous
             .as_ref()
-            .is_some_and(|p| !lazily && p.record() != self.agenda.record());
+            .is_some_and(|p| !lazily && !p.same_record(&self.agenda));
         if let (Some(previous), true) = (previous, changed) {
             match self.write() {
                 Ok(()) => actions.extend(self.written(holon)),
@@ -277,7 +280,7 @@ impl JournalledAgenda {
             let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
             let record = (!lazily && !changed).then(|| self.agenda.record());
             outcomes.push(Ok(self.agenda.handle(event)));
-            changed |= record.is_some_and(|r| r != self.agenda.record());
+            changed |= record.is_some_and(|r| !self.agenda.keeps(&r));
         }
         if changed {
             if let Err(e) = self.write() {
@@ -310,7 +313,9 @@ impl JournalledAgenda {
 
     fn write(&self) -> Result<(), JournalError> {
         match &self.journal {
-            Some(journal) => journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &self.agenda.record()),
+            Some(journal) => {
+                journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &self.agenda.record_ref())
+            }
             None => Ok(()),
         }
     }

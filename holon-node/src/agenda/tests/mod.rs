@@ -651,3 +651,16 @@ fn requests_that_are_not_for_the_agenda_are_refused() {
         );
     }
 }
+
+/// An agenda with a job running, a booking waiting and a result undelivered: every
+/// part of the journal's record (for `record`'s tests).
+pub(super) fn agenda_for_record() -> AgendaManager {
+    let mut m = manager();
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+    m.handle(done("c1"));
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-2", "c2"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-3", "c3"))));
+    m
+}

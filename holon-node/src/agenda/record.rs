@@ -1,0 +1,93 @@
+//! What the journal keeps of the agenda manager: everything that must survive a crash,
+//! owned ([`AgendaRecord`], read back when the journal is opened) or borrowed
+//! ([`AgendaRecordRef`], what a write serialises, in the same form).
+
+use schemas::Service;
+use serde::Serialize;
+
+use super::{AgendaManager, Booking, Job};
+use crate::packml::PackmlUnit;
+
+/// What the journal keeps of the agenda manager.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct AgendaRecord {
+    pub bookings: Vec<Booking>,
+    /// The job that was executing: after a crash it is reported `interrupted`.
+    pub current: Option<Job>,
+    pub undelivered: Vec<Service>,
+    /// The PackML unit; absent from journals written before PackML (the config's
+    /// initial state then applies).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub packml: Option<PackmlUnit>,
+}
+
+/// The record borrowed from the agenda manager: written as an [`AgendaRecord`] is,
+/// without copying it first.
+#[derive(Debug, Serialize)]
+pub struct AgendaRecordRef<'a> {
+    pub bookings: &'a [Booking],
+    pub current: Option<&'a Job>,
+    pub undelivered: &'a [Service],
+    pub packml: &'a PackmlUnit,
+}
+
+impl AgendaManager {
+    /// What the journal keeps, as a copy.
+    pub fn record(&self) -> AgendaRecord {
+        AgendaRecord {
+            bookings: self.bookings.clone(),
+            current: self.current.clone(),
+            undelivered: self.undelivered.clone(),
+            packml: Some(self.packml.clone()),
+        }
+    }
+
+    /// What the journal keeps, borrowed (for a write).
+    pub fn record_ref(&self) -> AgendaRecordRef<'_> {
+        AgendaRecordRef {
+            bookings: &self.bookings,
+            current: self.current.as_ref(),
+            undelivered: &self.undelivered,
+            packml: &self.packml,
+        }
+    }
+
+    /// Whether `other` keeps the same record, compared in place: whether a journal
+    /// write would change anything.
+    pub fn same_record(&self, other: &AgendaManager) -> bool {
+        self.bookings == other.bookings
+            && self.current == other.current
+            && self.undelivered == other.undelivered
+            && self.packml == other.packml
+    }
+
+    /// Whether this is the record it keeps, compared in place.
+    pub fn keeps(&self, record: &AgendaRecord) -> bool {
+        self.bookings == record.bookings
+            && self.current == record.current
+            && self.undelivered == record.undelivered
+            && record.packml.as_ref() == Some(&self.packml)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_borrowed_record_is_written_as_the_owned_one_is() {
+        let agenda = crate::agenda::tests::agenda_for_record();
+        let owned = serde_json::to_value(agenda.record()).unwrap();
+        let borrowed = serde_json::to_value(agenda.record_ref()).unwrap();
+        assert_eq!(owned, borrowed);
+        // (A job's parameters are not written: they are read again from its `info`.)
+        let _: AgendaRecord = serde_json::from_value(borrowed).unwrap();
+        let record = agenda.record();
+        assert!(agenda.keeps(&record));
+        assert!(agenda.same_record(&agenda.clone()));
+        let mut other = agenda.clone();
+        other.bookings.pop();
+        assert!(!agenda.same_record(&other));
+        assert!(!other.keeps(&record));
+    }
+}
