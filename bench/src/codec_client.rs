@@ -153,7 +153,7 @@ async fn serve(
                     None => break ConnectionEnd::OwnerGone,
                     Some(ControllerRequest::Command(command)) => command,
                     // The baseline has no abort and no fence.
-                    Some(ControllerRequest::Abort | ControllerRequest::Step { .. }) => continue,
+                    Some(ControllerRequest::Abort | ControllerRequest::Step { .. } | ControllerRequest::StepStatus(_)) => continue,
                 };
                 debug!(id = command.id, action = %command.action, "command to controller");
                 let id = command.id;

@@ -22,6 +22,13 @@
 //! | step n | reply with a result the step does not expect | finished: failed `unexpected_result` | `ready` (or `init`) |
 //! | step n | its command timed out / the connection broke / the protocol broke | finished: failed `controller_timeout` / `controller_disconnected` / `controller_protocol_error` | `ready` (or `init`) |
 //! | step n | controller disconnected | finished: failed `controller_disconnected`; unavailable | `init` |
+//! | step n, fenced | its command timed out / the connection broke / the protocol broke, or the controller disconnected | its step's state asked of the controller once it is ready | step n, unsettled |
+//! | step n, unsettled | controller `ready` | its step's state asked | step n, unsettled |
+//! | step n, unsettled | step state `done` with a result | as that reply (the next step's command, or finished: done) | step n+1, or `ready` |
+//! | step n, unsettled | step state `failed` | as a reply `error` | `ready` (or `init`) |
+//! | step n, unsettled | step state unknown (the controller never began it) | finished: failed `controller_disconnected` | `ready` (or `init`) |
+//! | step n, unsettled | the state cannot be asked now (not connected, no answer in time) | asked again once the controller is ready | step n, unsettled |
+//! | step n, unsettled | the controller cannot tell (no fence, refused) | finished: failed `controller_disconnected` | `ready` (or `init`) |
 //! | step n | controller `fault` / `estop` | finished: failed `controller_fault`; unavailable | `init` |
 //! | step n | abort (PackML Abort) | the controller is told to abort | step n, aborting |
 //! | step n, aborting | reply with a result the last step expects | finished: done (it completed before the abort took) | `ready` (or `init`) |
@@ -30,10 +37,19 @@
 //! | any | a reply or failure of another command (late) | nothing | same |
 //!
 //! A step's command, and every change of step, is followed by a `StateChanged` action.
+//!
+//! A fenced resource's controller runs each step id at most once and keeps its outcome
+//! (`docs/controller-protocol.md`, "Fencing (standby)"), so a step whose answer was lost
+//! with the connection is not reported failed: its outcome is asked (`unsettled`), and
+//! a step the controller completed is reported done, never run again by an order that
+//! was told it failed. While unsettled the agenda manager is not told the controller is
+//! away: the job is still running.
 
 use std::sync::Arc;
 
-use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
+use robot_bridge::client::{
+    CommandFailure, ControllerEvent, ControllerStatus, FenceError, StepStatus,
+};
 use schemas::{Reason, RobotCommand};
 use serde_json::{Map, Value};
 
@@ -67,6 +83,9 @@ pub enum ExecutionAction {
     Command(RobotCommand),
     /// Tell the controller to stop now (its dialect's abort).
     AbortController,
+    /// Ask the controller the state of the running step (its step id: the job's
+    /// conversation, `#`, the step's index), whose command's answer was lost.
+    AskStepStatus,
     /// Tell the agenda manager: ready to execute.
     Ready,
     /// Tell the agenda manager: cannot execute (controller away, fault or estop).
@@ -95,6 +114,9 @@ pub enum ExecutionState {
         /// The controller was told to abort: the step ends `aborted` unless it
         /// completed the job first.
         aborting: bool,
+        /// A fenced resource's step whose command's answer was lost: its outcome is
+        /// asked of the controller.
+        unsettled: bool,
     },
 }
 
@@ -109,6 +131,11 @@ impl std::fmt::Display for ExecutionState {
                 aborting: true,
                 ..
             } => write!(f, "step {}, aborting", step + 1),
+            ExecutionState::Running {
+                step,
+                unsettled: true,
+                ..
+            } => write!(f, "step {}, unsettled", step + 1),
             ExecutionState::Running { step, .. } => write!(f, "step {}", step + 1),
         }
     }
@@ -120,6 +147,8 @@ pub struct Execution {
     state: ExecutionState,
     controller: ControllerStatus,
     next_command_id: u64,
+    /// Whether the controller fences (a standby resource's): a lost answer is asked.
+    fenced: bool,
 }
 
 impl Execution {
@@ -129,7 +158,15 @@ impl Execution {
             state: ExecutionState::Init,
             controller: ControllerStatus::Disconnected,
             next_command_id: 1,
+            fenced: false,
         }
+    }
+
+    /// The same machine for a fenced controller: a step whose answer was lost is asked
+    /// of the controller, not failed.
+    pub fn fenced(mut self, fenced: bool) -> Self {
+        self.fenced = fenced;
+        self
     }
 
     pub fn state(&self) -> &ExecutionState {
@@ -179,9 +216,21 @@ impl Execution {
                 result,
                 message,
             }) => self.reply(id, result, message),
+            ExecutionEvent::Controller(ControllerEvent::StepStatus { step, status }) => {
+                self.settled(step.as_str(), status)
+            }
             ExecutionEvent::Controller(ControllerEvent::CommandFailed { id, failure }) => {
                 if !self.is_waiting_for(id) {
                     return vec![];
+                }
+                let unknown_outcome = matches!(
+                    failure,
+                    CommandFailure::Timeout(_)
+                        | CommandFailure::Disconnected
+                        | CommandFailure::Protocol(_)
+                );
+                if self.fenced && unknown_outcome && !self.is_aborting() {
+                    return self.unsettle();
                 }
                 if self.is_aborting() {
                     return self.fail(
@@ -263,6 +312,7 @@ impl Execution {
             command_id: 0,
             results: Map::new(),
             aborting: false,
+            unsettled: false,
         };
         self.send_step()
     }
@@ -414,7 +464,16 @@ impl Execution {
         let was_ready = self.controller.is_ready();
         let previous = std::mem::replace(&mut self.controller, status);
         let mut actions = Vec::new();
-        if !status.is_ready() && matches!(self.state, ExecutionState::Running { .. }) {
+        let running = matches!(self.state, ExecutionState::Running { .. });
+        if running && self.fenced && status == ControllerStatus::Disconnected && !self.is_aborting()
+        {
+            // Its step's answer may be lost with the connection: asked once it is back.
+            return self.unsettle();
+        }
+        if running && status.is_ready() && self.is_unsettled() {
+            return vec![ExecutionAction::AskStepStatus];
+        }
+        if !status.is_ready() && running {
             let (why, detail) = match status {
                 _ if self.is_aborting() => (
                     Reason::Aborted,
@@ -449,6 +508,84 @@ impl Execution {
             actions.push(ExecutionAction::StateChanged);
         }
         actions
+    }
+}
+
+impl Execution {
+    fn is_unsettled(&self) -> bool {
+        matches!(
+            &self.state,
+            ExecutionState::Running {
+                unsettled: true,
+                ..
+            }
+        )
+    }
+
+    /// The running step's answer is lost: its outcome is asked of the controller (now,
+    /// if it is ready; else once it is).
+    fn unsettle(&mut self) -> Vec<ExecutionAction> {
+        let ExecutionState::Running { unsettled, .. } = &mut self.state else {
+            return vec![];
+        };
+        let first = !std::mem::replace(unsettled, true);
+        let mut actions = Vec::new();
+        if self.controller.is_ready() {
+            actions.push(ExecutionAction::AskStepStatus);
+        }
+        if first {
+            actions.push(ExecutionAction::StateChanged);
+        }
+        actions
+    }
+
+    /// The controller's word on step `step` (`<conversation>#<index>`), asked while the
+    /// running step is unsettled.
+    fn settled(
+        &mut self,
+        step: &str,
+        status: Result<StepStatus, FenceError>,
+    ) -> Vec<ExecutionAction> {
+        let ExecutionState::Running {
+            job,
+            step: index,
+            command_id,
+            unsettled,
+            ..
+        } = &mut self.state
+        else {
+            return vec![];
+        };
+        if !*unsettled || format!("{}#{index}", job.conversation_id) != step {
+            // Asked for an earlier step, or already settled.
+            return vec![];
+        }
+        let id = *command_id;
+        match status {
+            Ok(StepStatus::Done { result }) => {
+                *unsettled = false;
+                self.reply(id, result, None)
+            }
+            Ok(StepStatus::Failed { message }) => {
+                *unsettled = false;
+                self.reply(id, schemas::robot::RESULT_ERROR.into(), Some(message))
+            }
+            Ok(StepStatus::Unknown) => self.fail(
+                Reason::ControllerDisconnected,
+                format!("the connection broke before the controller began step {step}"),
+            ),
+            // The client asks again while it runs.
+            Ok(StepStatus::Running) => vec![],
+            Err(FenceError::NotConnected | FenceError::Gone) => vec![],
+            Err(FenceError::Timeout(_)) if self.controller.is_ready() => {
+                vec![ExecutionAction::AskStepStatus]
+            }
+            Err(FenceError::Timeout(_)) => vec![],
+            Err(e) => self.fail(
+                Reason::ControllerDisconnected,
+                format!("the connection broke during step {step}, and the controller cannot tell its outcome: {e}"),
+            ),
+        }
     }
 }
 
@@ -865,5 +1002,118 @@ mod tests {
             message: Some("stale_epoch".into()),
         }));
         failed_with(&actions, "interrupted");
+    }
+
+    mod fenced {
+        use super::*;
+        use robot_bridge::client::StepId;
+
+        fn fenced_running() -> (Execution, RobotCommand) {
+            let mut e = Execution::new(Arc::new(pick_n_place())).fenced(true);
+            e.handle(ready());
+            let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+            (e, pick)
+        }
+
+        fn lost(id: u64) -> ExecutionEvent {
+            ExecutionEvent::Controller(ControllerEvent::CommandFailed {
+                id,
+                failure: CommandFailure::Disconnected,
+            })
+        }
+
+        fn step_state(step: &str, status: Result<StepStatus, FenceError>) -> ExecutionEvent {
+            ExecutionEvent::Controller(ControllerEvent::StepStatus {
+                step: StepId::new(step).unwrap(),
+                status,
+            })
+        }
+
+        /// The connection breaks: the step's state is asked once the controller is back.
+        fn unsettled() -> (Execution, RobotCommand) {
+            let (mut e, pick) = fenced_running();
+            let asked = e.handle(lost(pick.id));
+            assert_eq!(
+                asked,
+                vec![
+                    ExecutionAction::AskStepStatus,
+                    ExecutionAction::StateChanged
+                ]
+            );
+            // The client could not ask: not connected. The status says so next.
+            assert!(e
+                .handle(step_state("c1#0", Err(FenceError::NotConnected)))
+                .is_empty());
+            assert_eq!(
+                e.handle(status(ControllerStatus::Disconnected)),
+                Vec::<ExecutionAction>::new()
+            );
+            assert_eq!(e.state().to_string(), "step 1, unsettled");
+            assert_eq!(e.handle(ready()), vec![ExecutionAction::AskStepStatus]);
+            (e, pick)
+        }
+
+        #[test]
+        fn a_step_the_controller_completed_goes_on_as_if_it_had_answered() {
+            let (mut e, _) = unsettled();
+            let done = Ok(StepStatus::Done {
+                result: "picking_done".into(),
+            });
+            // An answer for another step changes nothing.
+            assert!(e.handle(step_state("c0#0", done.clone())).is_empty());
+            let place = command(&e.handle(step_state("c1#0", done)));
+            assert_eq!(place.action, "place");
+            assert_eq!(e.state().to_string(), "step 2");
+            let actions = e.handle(reply(place.id, "placing_done"));
+            assert!(matches!(
+                actions.first(),
+                Some(ExecutionAction::Finished {
+                    outcome: Outcome::Done { .. },
+                    ..
+                })
+            ));
+        }
+
+        #[test]
+        fn a_step_the_controller_never_began_fails_disconnected() {
+            let (mut e, _) = unsettled();
+            let actions = e.handle(step_state("c1#0", Ok(StepStatus::Unknown)));
+            failed_with(&actions, "controller_disconnected");
+            assert_eq!(e.state(), &ExecutionState::Ready);
+        }
+
+        #[test]
+        fn a_step_the_controller_failed_fails_with_its_message() {
+            let (mut e, _) = unsettled();
+            let failed = Ok(StepStatus::Failed {
+                message: "gripper".into(),
+            });
+            failed_with(&e.handle(step_state("c1#0", failed)), "controller_error");
+        }
+
+        #[test]
+        fn a_running_step_or_no_answer_waits_and_a_timeout_asks_again() {
+            let (mut e, _) = unsettled();
+            assert!(e
+                .handle(step_state("c1#0", Ok(StepStatus::Running)))
+                .is_empty());
+            let timeout = Err(FenceError::Timeout(std::time::Duration::from_secs(1)));
+            assert_eq!(
+                e.handle(step_state("c1#0", timeout)),
+                vec![ExecutionAction::AskStepStatus]
+            );
+            let cannot = Err(FenceError::Refused("no".into()));
+            failed_with(
+                &e.handle(step_state("c1#0", cannot)),
+                "controller_disconnected",
+            );
+        }
+
+        #[test]
+        fn an_unfenced_machine_still_fails_a_lost_step_at_once() {
+            let mut e = ready_execution();
+            let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+            failed_with(&e.handle(lost(pick.id)), "controller_disconnected");
+        }
     }
 }

@@ -95,7 +95,9 @@ impl Wiring {
         Ok(Wiring {
             execution: Arc::new(execution::Links {
                 holon: holon.clone(),
-                execution: Handover::new(Execution::new(config.catalog.clone())),
+                execution: Handover::new(
+                    Execution::new(config.catalog.clone()).fenced(port.is_some()),
+                ),
                 jobs: jobs.share(),
                 interfacing: interfacing::Links {
                     controller: config.controller.clone(),

@@ -90,6 +90,15 @@ pub async fn run(
     else {
         return Ok(());
     };
+    // Followed from the start, a standby's too: an order-node that takes over knows
+    // which resources are fenced before it hears from them again.
+    let presence = match Presence::follow(&session, &config.keys).await {
+        Ok(presence) => presence,
+        Err(e) => {
+            holon::life::close(&life.holder, session).await;
+            return Err(zenoh_error(e));
+        }
+    };
     let (claim, elected, journal, (recovered, finished, next)) = match &config.etcd {
         None => {
             // A twin (an order-node of the same name alive in the cell) would number its
@@ -124,9 +133,6 @@ pub async fn run(
             }
         },
     };
-    let presence = Presence::follow(&session, &config.keys)
-        .await
-        .map_err(zenoh_error)?;
     let host = Arc::new(Host {
         config: config.clone(),
         context: Arc::new(OrderContext {

@@ -494,8 +494,14 @@ impl OrderTask {
                 running
             }
         };
+        // A fenced provider that vanished may still run the step (its holder cut from
+        // the cell, not from the controller, or frozen with the step on the
+        // controller): the step is not given up, it waits for a holder's word (its
+        // result, or a holder that never ran it) as if the provider were there.
+        let fenced = may_run && ctx.presence.fenced(provider);
+        let gone = |alive: bool| (!alive && !fenced).then(|| Instant::now() + grace());
         // When the provider is gone: the moment its grace ends.
-        let mut gone_until = (!ctx.presence.is_alive(provider)).then(|| Instant::now() + grace());
+        let mut gone_until = gone(ctx.presence.is_alive(provider));
         loop {
             // While the provider is gone, asking it is pointless: a booked step waits
             // out the grace whatever its pause (a pause that ended it would start the
@@ -523,13 +529,11 @@ impl OrderTask {
                     }
                 }
                 change = self.changes.recv() => match change {
-                    Ok((holon, alive)) if &holon == provider => {
-                        gone_until = if alive { None } else { Some(Instant::now() + grace()) };
-                    }
+                    Ok((holon, alive)) if &holon == provider => gone_until = gone(alive),
                     Ok(_) => {}
                     Err(broadcast::error::RecvError::Lagged(_)) => {
-                        if !ctx.presence.is_alive(provider) && gone_until.is_none() {
-                            gone_until = Some(Instant::now() + grace());
+                        if gone_until.is_none() {
+                            gone_until = gone(ctx.presence.is_alive(provider));
                         }
                     }
                     Err(broadcast::error::RecvError::Closed) => return Watched::Elapsed,

@@ -7,6 +7,7 @@ mod cell;
 mod cell_holons;
 mod environment;
 mod etcd;
+pub mod lab;
 mod paths;
 mod process;
 mod resource;

@@ -154,6 +154,14 @@ impl Driver<'_> {
                 };
                 self.commands.push_back(request);
             }
+            ExecutionAction::AskStepStatus => match self.step_id() {
+                Ok(Some(step)) => {
+                    info!(%holon, component = "execution", step = step.as_str(), "the step's answer was lost: its outcome is asked of the controller");
+                    self.commands.push_back(ControllerRequest::StepStatus(step));
+                }
+                Ok(None) => {}
+                Err(failure) => self.failure = Some(failure),
+            },
             ExecutionAction::AbortController => {
                 info!(%holon, component = "execution", "abort: the controller is told to stop");
                 self.commands.push_back(ControllerRequest::Abort);

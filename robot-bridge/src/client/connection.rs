@@ -183,6 +183,9 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
                         Some(ControllerRequest::Step { command, step }) => {
                             self.take_step(command, Some(step)).await
                         }
+                        Some(ControllerRequest::StepStatus(step)) => {
+                            self.ask_status(step, fence::StatusReply::Owner).await
+                        }
                         Some(ControllerRequest::Abort) => self.abort().await,
                     };
                     if let Err(end) = step {

@@ -109,6 +109,11 @@ pub enum ControllerRequest {
     /// while the claim is held) is written in it, and the controller runs a step id at
     /// most once. Without a fence it is an ordinary command.
     Step { command: RobotCommand, step: StepId },
+    /// Ask the controller the state of step `step` (a fenced client's): the answer comes
+    /// as [`ControllerEvent::StepStatus`] once the step has ended or is unknown (while
+    /// it runs, the client asks again every `reconnect_interval`), or with why it
+    /// cannot be told.
+    StepStatus(StepId),
     /// Stop now: the dialect's abort message goes out at once, even while a command is
     /// in flight; the command in flight then ends as the controller reports it (its
     /// failure, or [`CommandFailure::Aborted`]). A dialect without an abort message
@@ -134,6 +139,11 @@ pub enum ControllerEvent {
     CommandFailed {
         id: u64,
         failure: CommandFailure,
+    },
+    /// The answer to a [`ControllerRequest::StepStatus`].
+    StepStatus {
+        step: StepId,
+        status: Result<StepStatus, FenceError>,
     },
 }
 
@@ -307,6 +317,13 @@ impl<O: Owner> Link<'_, '_, O> {
             ControllerRequest::Abort => {
                 debug!("abort while not connected: nothing runs on the controller");
                 true
+            }
+            ControllerRequest::StepStatus(step) => {
+                let event = ControllerEvent::StepStatus {
+                    step,
+                    status: Err(FenceError::NotConnected),
+                };
+                self.reporter.send(event).await
             }
         }
     }

@@ -6,7 +6,7 @@ use std::collections::VecDeque;
 
 use tokio::sync::oneshot;
 use tokio::time::Instant;
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 use super::super::fence::{
     ClaimError, Epoch, FenceError, FenceEvent, FenceRequest, StepId, StepStatus,
@@ -18,6 +18,9 @@ use crate::fence_wire::{
     STEP_UNKNOWN,
 };
 
+/// The shortest pause before a running step's state is asked again.
+const MIN_ASK_AGAIN: std::time::Duration = std::time::Duration::from_millis(50);
+
 /// What the fence awaits on this connection.
 #[derive(Default)]
 pub(super) struct FenceWaits {
@@ -27,13 +30,24 @@ pub(super) struct FenceWaits {
     status: VecDeque<StatusWait>,
     /// When the next heartbeat goes, while the claim is held.
     pub(super) heartbeat_at: Option<Instant>,
+    /// The owner's queries of steps that were still running: asked again when due.
+    again: Vec<(Instant, StepId)>,
 }
 
 /// A step status query awaiting its answer.
 struct StatusWait {
-    step: String,
-    reply: oneshot::Sender<Result<StepStatus, FenceError>>,
+    step: StepId,
+    reply: StatusReply,
     deadline: Instant,
+}
+
+/// Who asked a step's state.
+pub(super) enum StatusReply {
+    /// The fence's handle: answered on its oneshot.
+    Handle(oneshot::Sender<Result<StepStatus, FenceError>>),
+    /// The client's owner ([`super::super::ControllerRequest::StepStatus`]): answered
+    /// as an event once the step has ended (asked again while it runs).
+    Owner,
 }
 
 impl FenceWaits {
@@ -45,6 +59,7 @@ impl FenceWaits {
             .into_iter()
             .chain(self.status.iter().map(|w| w.deadline))
             .chain(self.heartbeat_at)
+            .chain(self.again.iter().map(|(at, _)| *at))
             .min()
     }
 }
@@ -110,24 +125,63 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 Ok(())
             }
             FenceRequest::StepStatus { step, reply } => {
-                let Some(fence) = self.dialect.fence else {
-                    let _ = reply.send(Err(FenceError::NotSupported(self.dialect.name.clone())));
-                    return Ok(());
-                };
-                let mut values = Values::default();
-                values.set("step", step.as_str().to_string());
-                let bytes = self
-                    .dialect
-                    .write_command(fence.step_status, &values)
-                    .map_err(ConnectionEnd::Lost)?;
-                self.outbox.push(bytes);
-                self.last_traffic = now;
-                self.fence_waits.status.push_back(StatusWait {
-                    step: step.as_str().to_string(),
-                    reply,
-                    deadline: now + timeout,
-                });
+                self.ask_status(step, StatusReply::Handle(reply)).await
+            }
+        }
+    }
+
+    /// Asks the controller step `step`'s state, for whoever asked.
+    pub(super) async fn ask_status(&mut self, step: StepId, reply: StatusReply) -> Step {
+        let fence = match (self.dialect.fence, &self.fence) {
+            (Some(fence), Some(_)) => fence,
+            _ => {
+                let why = FenceError::NotSupported(self.dialect.name.clone());
+                return self.answer_status(step, reply, Err(why)).await;
+            }
+        };
+        let now = Instant::now();
+        let mut values = Values::default();
+        values.set("step", step.as_str().to_string());
+        let bytes = self
+            .dialect
+            .write_command(fence.step_status, &values)
+            .map_err(ConnectionEnd::Lost)?;
+        self.outbox.push(bytes);
+        self.last_traffic = now;
+        self.fence_waits.status.push_back(StatusWait {
+            step,
+            reply,
+            deadline: now + self.config.command_timeout,
+        });
+        Ok(())
+    }
+
+    /// Answers a step state query: the handle on its oneshot; the owner with an event,
+    /// once the step has ended (a step still running is asked again when due).
+    async fn answer_status(
+        &mut self,
+        step: StepId,
+        reply: StatusReply,
+        status: Result<StepStatus, FenceError>,
+    ) -> Step {
+        match reply {
+            StatusReply::Handle(reply) => {
+                if reply.send(status).is_err() {
+                    debug!(
+                        step = step.as_str(),
+                        "a step state asked by a fence handle that is gone"
+                    );
+                }
                 Ok(())
+            }
+            StatusReply::Owner if status == Ok(StepStatus::Running) => {
+                let again = Instant::now() + self.config.reconnect_interval.max(MIN_ASK_AGAIN);
+                self.fence_waits.again.push((again, step));
+                Ok(())
+            }
+            StatusReply::Owner => {
+                self.report(super::super::ControllerEvent::StepStatus { step, status })
+                    .await
             }
         }
     }
@@ -174,13 +228,18 @@ impl<O: super::Owner> Connection<'_, '_, O> {
             } else if reason == REASON_STALE_EPOCH {
                 self.deposed(epoch).await;
             } else if let Some(wait) = self.fence_waits.status.pop_front() {
-                let _ = wait.reply.send(Err(FenceError::Refused(reason)));
+                let refused = Err(FenceError::Refused(reason));
+                return Some(self.answer_status(wait.step, wait.reply, refused).await);
             }
             return Some(Ok(()));
         }
         if let Ok(Some(v)) = read(fence.step_state) {
             let step = v.get("step").unwrap_or("");
-            let at = self.fence_waits.status.iter().position(|w| w.step == step);
+            let at = self
+                .fence_waits
+                .status
+                .iter()
+                .position(|w| w.step.as_str() == step);
             let Some(wait) = at.and_then(|i| self.fence_waits.status.remove(i)) else {
                 warn!(%step, "a step state nobody asked for; ignored");
                 return Some(Ok(()));
@@ -195,14 +254,11 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 STEP_RUNNING => StepStatus::Running,
                 STEP_UNKNOWN => StepStatus::Unknown,
                 other => {
-                    let _ = wait.reply.send(Err(FenceError::Refused(format!(
-                        "unknown step state {other:?}"
-                    ))));
-                    return Some(Ok(()));
+                    let refused = Err(FenceError::Refused(format!("unknown step state {other:?}")));
+                    return Some(self.answer_status(wait.step, wait.reply, refused).await);
                 }
             };
-            let _ = wait.reply.send(Ok(status));
-            return Some(Ok(()));
+            return Some(self.answer_status(wait.step, wait.reply, Ok(status)).await);
         }
         None
     }
@@ -239,10 +295,16 @@ impl<O: super::Owner> Connection<'_, '_, O> {
             .is_some_and(|w| w.deadline <= now)
         {
             if let Some(wait) = self.fence_waits.status.pop_front() {
-                let _ = wait
-                    .reply
-                    .send(Err(FenceError::Timeout(self.config.command_timeout)));
+                let timeout = Err(FenceError::Timeout(self.config.command_timeout));
+                self.answer_status(wait.step, wait.reply, timeout).await?;
             }
+        }
+        let (due, later) = std::mem::take(&mut self.fence_waits.again)
+            .into_iter()
+            .partition(|(at, _)| *at <= now);
+        self.fence_waits.again = later;
+        for (_, step) in due {
+            self.ask_status(step, StatusReply::Owner).await?;
         }
         let Some(at) = self.fence_waits.heartbeat_at else {
             return Ok(());
@@ -273,8 +335,26 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         if let Some((reply, _)) = self.fence_waits.claim.take() {
             let _ = reply.send(Err(ClaimError::NotConnected));
         }
-        for wait in self.fence_waits.status.drain(..) {
-            let _ = wait.reply.send(Err(FenceError::NotConnected));
+        // Every query waiting or to be asked again fails: the owner asks again once a
+        // connection is back.
+        let again = std::mem::take(&mut self.fence_waits.again)
+            .into_iter()
+            .map(|(_, step)| (step, StatusReply::Owner));
+        let waits: Vec<_> = self
+            .fence_waits
+            .status
+            .drain(..)
+            .map(|w| (w.step, w.reply))
+            .chain(again)
+            .collect();
+        for (step, reply) in waits {
+            if self
+                .answer_status(step, reply, Err(FenceError::NotConnected))
+                .await
+                .is_err()
+            {
+                return;
+            }
         }
         let Some(c) = self.claimed.as_mut() else {
             return;
