@@ -126,6 +126,12 @@ impl Plant {
                     "holarchy-hosts",
                     "--logger",
                     "zap",
+                    // As docs/deploy.md sets them on a LAN: a dead leader is replaced
+                    // within the order-node's failover budget.
+                    "--heartbeat-interval",
+                    "50",
+                    "--election-timeout",
+                    "500",
                 ],
                 &[],
             );

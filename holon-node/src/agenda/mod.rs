@@ -217,6 +217,11 @@ pub enum AgendaEvent {
     /// The holon is shutting down: take no new work, hand every booking back (a
     /// `failed` with reason `withdrawn` to its `reply_to`), let the running job finish.
     Withdraw,
+    /// A fenced resource was deposed (a newer holder has its controller): take no new
+    /// work, start nothing, drop every booking without a word. The new holder's agenda
+    /// is the truth: an order that booked with it again must not hear that its booking
+    /// went; one that did not is refused `not_booked` when it asks to start.
+    Deposed,
     /// A successor process is taking the holon over (a planned upgrade): take no new
     /// work and start nothing, keep every booking (the successor restores them from the
     /// journal), let the running job finish.
@@ -490,6 +495,7 @@ impl AgendaManager {
                 outcome,
             } => self.finished(&conversation_id, outcome),
             AgendaEvent::Withdraw => self.withdraw(),
+            AgendaEvent::Deposed => self.deposed(),
             AgendaEvent::HandOver => self.hand_over(true),
             AgendaEvent::HandOverAbandoned => self.hand_over(false),
             AgendaEvent::RequesterGone { requester } => self.release(&requester),
@@ -523,6 +529,16 @@ impl AgendaManager {
         let mut actions = self.hand_back("the resource is shutting down; book elsewhere");
         actions.push(AgendaAction::StateChanged);
         actions
+    }
+
+    fn deposed(&mut self) -> Vec<AgendaAction> {
+        let dropped = std::mem::take(&mut self.bookings).len();
+        if self.withdrawing && dropped == 0 {
+            return vec![];
+        }
+        self.withdrawing = true;
+        self.handing_over = false;
+        vec![AgendaAction::StateChanged]
     }
 
     /// Every booking handed back: a `failed` `withdrawn` with `detail` to its

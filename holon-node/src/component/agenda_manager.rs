@@ -199,7 +199,7 @@ impl JournalledAgenda {
         let refusable = matches!(event, AgendaEvent::Request(_) | AgendaEvent::Packml(_));
         // Stopping: the held results go out now, and so do the bookings handed back,
         // whether or not the journal can record the withdrawal (see `release_held`).
-        let withdraw = matches!(event, AgendaEvent::Withdraw);
+        let withdraw = matches!(event, AgendaEvent::Withdraw | AgendaEvent::Deposed);
         let released = if withdraw {
             self.release_held(holon)
         } else {
@@ -267,7 +267,9 @@ impl JournalledAgenda {
         let one_by_one = events.len() == 1
             || self.journal.is_none()
             || self.fault.is_some()
-            || events.iter().any(|e| matches!(e, AgendaEvent::Withdraw));
+            || events
+                .iter()
+                .any(|e| matches!(e, AgendaEvent::Withdraw | AgendaEvent::Deposed));
         if one_by_one {
             return events.into_iter().map(|e| self.apply(holon, e)).collect();
         }

@@ -180,8 +180,8 @@ async fn round(
         }
     };
 
-    // Deposed: no one may book it from now on; its bookings go back.
-    warn!(%holon, epoch = epoch.0, %why, "deposed: stepping down (token withdrawn, no offers, bookings handed back withdrawn); claiming again");
+    // Deposed: no one may book it from now on; its bookings are dropped.
+    warn!(%holon, epoch = epoch.0, %why, "deposed: stepping down (token withdrawn, no offers, bookings dropped: the new holder's agenda is the truth); claiming again");
     wiring
         .communication
         .views
@@ -197,24 +197,24 @@ async fn round(
     Ok(Round::SteppedDown)
 }
 
-/// The longest a deposed holder waits for its bookings to be handed back and its
+/// The longest a deposed holder waits for its running job to end and its
 /// results acknowledged (or its shutdown grace, if shorter); what is not acknowledged
 /// stays in its journal and goes out when it serves again.
 const STEP_DOWN_GRACE: Duration = Duration::from_secs(2);
 
-/// Hands every booking back (`withdrawn`) and waits, at most `grace`, until the
-/// agenda is drained: nothing runs and every result is acknowledged. Unlike a shutdown
-/// it waits for the agenda itself to say so (requests that reached it before the
-/// withdrawal are handed back too).
+/// Drops every booking without a word ([`AgendaEvent::Deposed`]: an order may have
+/// booked the same conversation with the new holder, which a `withdrawn` would cancel)
+/// and waits, at most `grace`, until the agenda is drained: nothing runs and every
+/// result is acknowledged. Unlike a shutdown it waits for the agenda itself to say so.
 async fn step_down(wiring: &Wiring, grace: Duration) {
     let links = &wiring.agenda_manager;
     let holon = &links.holon;
     let mut agenda = links.views.agenda.subscribe();
     let bookings = links.views.agenda.borrow().snapshot.agenda.len();
-    info!(%holon, bookings, "stepping down: no new work, handing bookings back");
-    let withdraw = links.mailbox.sender.send(AgendaEvent::Withdraw.into());
-    if tokio::time::timeout(grace, withdraw).await.is_err() {
-        error!(%holon, "the agenda manager did not take the withdrawal: bookings are not handed back");
+    info!(%holon, bookings, "stepping down: no new work, bookings dropped");
+    let deposed = links.mailbox.sender.send(AgendaEvent::Deposed.into());
+    if tokio::time::timeout(grace, deposed).await.is_err() {
+        error!(%holon, "the agenda manager did not take the deposition: its bookings stay");
         return;
     }
     let drained = tokio::time::timeout(grace, agenda.wait_for(|view| view.drained))
@@ -222,7 +222,7 @@ async fn step_down(wiring: &Wiring, grace: Duration) {
         .map(|waited| waited.map(|_| ()));
     match drained {
         Ok(Ok(())) => {
-            info!(%holon, "stepped down: every booking handed back, every result acknowledged")
+            info!(%holon, "stepped down: every booking dropped, every result acknowledged")
         }
         Ok(Err(_)) => error!(%holon, "the agenda view closed while stepping down"),
         Err(_) => {

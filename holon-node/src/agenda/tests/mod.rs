@@ -664,3 +664,20 @@ pub(super) fn agenda_for_record() -> AgendaManager {
     assert_accepted(&m.handle(AgendaEvent::Request(book("o-3", "c3"))));
     m
 }
+
+#[test]
+fn a_deposed_agenda_drops_its_bookings_without_a_word_and_takes_no_work() {
+    let mut m = agenda_for_record();
+    let actions = m.handle(AgendaEvent::Deposed);
+    assert_eq!(
+        actions,
+        vec![AgendaAction::StateChanged],
+        "no withdrawn result"
+    );
+    assert!(m.record().bookings.is_empty());
+    assert_eq!(m.handle(AgendaEvent::Deposed), vec![]);
+    assert_refused(
+        &m.handle(AgendaEvent::Request(book("o-4", "c4"))),
+        "unavailable",
+    );
+}
