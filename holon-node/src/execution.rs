@@ -17,8 +17,7 @@
 //! | step n | reply to its command with a result the step expects, steps left | command of step n+1 | step n+1 |
 //! | step n | the same, last step | finished: done with every step's result | `ready` (or `init`) |
 //! | step n | reply `error` | finished: failed `controller_error` | `ready` (or `init`) |
-//! | step 1 | reply `error` `stale_epoch` (a fenced resource deposed) | finished: failed `withdrawn` | `ready` (or `init`) |
-//! | step n > 1 | the same | finished: failed `interrupted` | `ready` (or `init`) |
+//! | step n | reply `error` `stale_epoch` (a fenced resource deposed) | finished: deposed (no result: the new holder's word counts) | `ready` (or `init`) |
 //! | step n | reply with a result the step does not expect | finished: failed `unexpected_result` | `ready` (or `init`) |
 //! | step n | its command timed out / the connection broke / the protocol broke | finished: failed `controller_timeout` / `controller_disconnected` / `controller_protocol_error` | `ready` (or `init`) |
 //! | step n | controller disconnected | finished: failed `controller_disconnected`; unavailable | `init` |
@@ -360,21 +359,15 @@ impl Execution {
         if result == schemas::robot::RESULT_ERROR && message.as_deref().is_some_and(is_stale_epoch)
         {
             // Deposed: the controller has a newer holder and ran nothing of this
-            // command. Not the controller's error: this resource steps down. Its first
-            // command refused, nothing of the job ran here (`withdrawn`: book
-            // elsewhere); a later one, its earlier steps did (`interrupted`: the order
-            // decides).
-            let first = matches!(&self.state, ExecutionState::Running { step: 0, .. });
+            // command. Not the controller's error: this resource steps down and says
+            // nothing of the job (the order may have booked the same conversation with
+            // the new holder, which then goes on from the controller's record of its
+            // steps; an order that did not asks the new holder what became of it).
             let detail = format!(
-                "deposed: the controller refused this resource's epoch ({}); it steps down, this step was not run here",
+                "the controller refused this resource's epoch ({}); it steps down, this step was not run here",
                 message.unwrap_or_default()
             );
-            let why = if first {
-                Reason::Withdrawn
-            } else {
-                Reason::Interrupted
-            };
-            return self.fail(why, detail);
+            return self.end(Outcome::Deposed { detail });
         }
         let ExecutionState::Running {
             job,
@@ -444,17 +437,22 @@ impl Execution {
     }
 
     fn fail(&mut self, why: Reason, detail: String) -> Vec<ExecutionAction> {
+        self.end(Outcome::Failed {
+            reason: why,
+            // A controller's text goes into a message: bounded.
+            detail: schemas::bounded_detail(detail),
+        })
+    }
+
+    /// The running job ends with `outcome` before its last step.
+    fn end(&mut self, outcome: Outcome) -> Vec<ExecutionAction> {
         let previous = std::mem::replace(&mut self.state, ExecutionState::Init);
         self.state = self.idle_state();
         let mut actions = Vec::new();
         if let ExecutionState::Running { job, .. } = previous {
             actions.push(ExecutionAction::Finished {
                 conversation_id: job.conversation_id,
-                outcome: Outcome::Failed {
-                    reason: why,
-                    // A controller's text goes into a message: bounded.
-                    detail: schemas::bounded_detail(detail),
-                },
+                outcome,
             });
         }
         actions
@@ -981,7 +979,14 @@ mod tests {
     }
 
     #[test]
-    fn a_stale_epoch_refusal_hands_the_job_back_withdrawn_not_controller_error() {
+    fn a_stale_epoch_refusal_ends_the_job_deposed_with_no_result() {
+        let deposed = |actions: &[ExecutionAction]| match actions.first() {
+            Some(ExecutionAction::Finished {
+                outcome: Outcome::Deposed { .. },
+                ..
+            }) => {}
+            other => panic!("expected the job ended deposed, got {other:?}"),
+        };
         let mut e = ready_execution();
         let actions = e.handle(ExecutionEvent::Start(job("pick_n_place")));
         let id = command(&actions).id;
@@ -991,9 +996,9 @@ mod tests {
             result: "error".into(),
             message: Some("stale_epoch: the holder's epoch is 2".into()),
         }));
-        failed_with(&actions, "withdrawn");
+        deposed(&actions);
         assert_eq!(e.state(), &ExecutionState::Ready);
-        // Refused at its second step, its first ran here: interrupted, the order decides.
+        // Refused at its second step: the same (the new holder may go on with it).
         let id = command(&e.handle(ExecutionEvent::Start(job("pick_n_place")))).id;
         let id = command(&e.handle(reply(id, "picking_done"))).id;
         let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::Reply {
@@ -1001,7 +1006,7 @@ mod tests {
             result: "error".into(),
             message: Some("stale_epoch".into()),
         }));
-        failed_with(&actions, "interrupted");
+        deposed(&actions);
     }
 
     mod fenced {

@@ -90,6 +90,7 @@ use serde_json::{json, Map, Value};
 use crate::catalog::{Parameters, ServiceCatalog};
 use crate::packml::PackmlUnit;
 
+mod leaving;
 mod packml;
 mod queue;
 mod record;
@@ -175,6 +176,10 @@ pub enum Outcome {
     Done { results: Map<String, Value> },
     /// A step failed; `reason` says why in the cell's words, `detail` is for people.
     Failed { reason: Reason, detail: String },
+    /// The controller has a newer holder (a fenced resource deposed mid-job): this
+    /// holder says nothing of the job; the new holder's word and the controller's
+    /// record of its steps count.
+    Deposed { detail: String },
 }
 
 /// As an operator reads it in a log: `done pick=picking_done place=placing_done`, or
@@ -193,6 +198,7 @@ impl std::fmt::Display for Outcome {
                 Ok(())
             }
             Outcome::Failed { reason, detail } => write!(f, "failed {reason}: {detail}"),
+            Outcome::Deposed { detail } => write!(f, "deposed: {detail}"),
         }
     }
 }
@@ -512,75 +518,6 @@ impl AgendaManager {
         }
     }
 
-    fn hand_over(&mut self, handing_over: bool) -> Vec<AgendaAction> {
-        if self.withdrawing || self.handing_over == handing_over {
-            return vec![];
-        }
-        self.handing_over = handing_over;
-        vec![AgendaAction::StateChanged]
-    }
-
-    fn withdraw(&mut self) -> Vec<AgendaAction> {
-        if self.withdrawing {
-            return vec![];
-        }
-        self.withdrawing = true;
-        self.handing_over = false;
-        let mut actions = self.hand_back("the resource is shutting down; book elsewhere");
-        actions.push(AgendaAction::StateChanged);
-        actions
-    }
-
-    fn deposed(&mut self) -> Vec<AgendaAction> {
-        let dropped = std::mem::take(&mut self.bookings).len();
-        if self.withdrawing && dropped == 0 {
-            return vec![];
-        }
-        self.withdrawing = true;
-        self.handing_over = false;
-        vec![AgendaAction::StateChanged]
-    }
-
-    /// Every booking handed back: a `failed` `withdrawn` with `detail` to its
-    /// `reply_to`, so its order books elsewhere at once.
-    fn hand_back(&mut self, detail: &str) -> Vec<AgendaAction> {
-        let mut actions = Vec::new();
-        for booking in std::mem::take(&mut self.bookings) {
-            let Some(reply_to) = booking.reply_to else {
-                // Nowhere to tell: the requester finds out when its start is refused.
-                continue;
-            };
-            let message = self.result_message(
-                Job {
-                    requester: booking.requester,
-                    conversation_id: booking.conversation_id,
-                    service_type: booking.service_type,
-                    reply_to,
-                    info: Map::new(),
-                    parameters: None,
-                    operator: None,
-                },
-                Outcome::Failed {
-                    reason: Reason::Withdrawn,
-                    detail: detail.into(),
-                },
-            );
-            self.undelivered.push(message.clone());
-            actions.push(AgendaAction::Deliver(message));
-        }
-        actions
-    }
-
-    fn release(&mut self, requester: &HolonId) -> Vec<AgendaAction> {
-        let before = self.bookings.len();
-        self.bookings.retain(|b| &b.requester != requester);
-        if self.bookings.len() == before {
-            vec![]
-        } else {
-            vec![AgendaAction::StateChanged]
-        }
-    }
-
     /// The last row of the table: a free resource whose first booking asked to start
     /// on its turn makes it the running job.
     fn start_on_turn(&mut self) -> Option<Job> {
@@ -631,6 +568,10 @@ impl AgendaManager {
             // Not the running job (a stale report): nothing changes.
             return vec![];
         };
+        if let Outcome::Deposed { detail } = &outcome {
+            tracing::info!(holon = %self.holon, conversation_id, %detail, "the job is left to the new holder: no result from here");
+            return vec![AgendaAction::StateChanged];
+        }
         let done = matches!(outcome, Outcome::Done { .. });
         if job.operator.is_some() {
             // An operator's job: kept in the figures, delivered to nobody.
@@ -654,6 +595,13 @@ impl AgendaManager {
                 MessageType::Failed,
                 false,
                 Some(reason),
+                json!({ "detail": detail }),
+            ),
+            // Never delivered (see `finished`); said as what it is, were it to be.
+            Outcome::Deposed { detail } => (
+                MessageType::Failed,
+                false,
+                Some(Reason::Interrupted),
                 json!({ "detail": detail }),
             ),
         };

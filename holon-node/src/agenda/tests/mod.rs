@@ -681,3 +681,19 @@ fn a_deposed_agenda_drops_its_bookings_without_a_word_and_takes_no_work() {
         "unavailable",
     );
 }
+
+#[test]
+fn a_job_ended_deposed_leaves_no_result() {
+    let mut m = manager();
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+    let actions = m.handle(AgendaEvent::ExecutionFinished {
+        conversation_id: "c1".into(),
+        outcome: Outcome::Deposed {
+            detail: "stale_epoch".into(),
+        },
+    });
+    assert_eq!(actions, vec![AgendaAction::StateChanged]);
+    assert!(m.current().is_none());
+    assert!(m.undelivered().is_empty(), "nothing to deliver");
+}
