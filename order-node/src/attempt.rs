@@ -22,7 +22,7 @@
 //! | booked(p) | resumed | declare token, ask start | booked(p) |
 //! | booked(p) | start accepted | record started(p), publish, watch (step timeout) | started(p) |
 //! | booked(p) | `busy`, no answer, `unavailable` before give-up | watch for the turn (backoff) | booked(p) |
-//! | booked(p) | `not_booked` | end: lost | — |
+//! | booked(p) | `not_booked` | ask p the outcome | booked(p), asking |
 //! | booked(p) | other refusal | cancel the booking, end: failed | — |
 //! | booked(p) | watched: pause over or turn | ask start | booked(p) |
 //! | booked(p) | began (p published that the step runs) | record started(p), publish, watch (step timeout) | started(p) |
@@ -30,7 +30,15 @@
 //! | booked(p) | watched: another outcome | end with it | — |
 //! | started(p) | resumed | declare token, watch (step timeout) | started(p) |
 //! | started(p) | watched: an outcome | end with it | — |
-//! | started(p) | watched: pause over | end: failed, no result within the step timeout | — |
+//! | started(p) | watched: pause over (the step timeout, or a poll of a running step) | ask p the outcome | started(p), asking |
+//! | started(p) | came back (p vanished and returned, or a holder of a higher epoch serves it) | ask p the outcome | started(p), asking |
+//! | asking | outcome `done` | end: done with its results (as if delivered) | — |
+//! | asking | outcome `failed` | end: failed with its reason | — |
+//! | asking | outcome `running` | (booked: record started(p), publish) watch for a poll pause | started(p) |
+//! | asking | outcome `never_reached` | end: lost (rebook: nothing ran) | — |
+//! | asking after the step timeout | `unknown` or no answer | end: failed, no result within the step timeout | — |
+//! | asking after p came back | `unknown` or no answer | watch (step timeout) | started(p) |
+//! | asking after `not_booked` | `unknown` or no answer | end: lost | — |
 //!
 //! Any other (phase, event) pair is a bug in the loop and changes nothing (no actions,
 //! logged by the caller). The backoff doubles with each refused round and each wait for
@@ -43,12 +51,19 @@
 //! resource restarted on its journal waits for its requesters' `start`); a `start` is
 //! answered true if the job began. While booked, a vanished resource gets the same
 //! grace as one running the step (it may be).
+//!
+//! Before it gives up on a step that may have run, the attempt asks the resource what
+//! became of its conversation (`resource/<name>/outcome`, [`schemas::OutcomeRequest`]):
+//! a resource whose holder died after its controller ran the step, and whose standby
+//! took over, learns it from the controller (`STEP_STATUS`), so the step ends done
+//! instead of being booked again under a new conversation, whose new step ids the
+//! controller would run again (docs/reliability.md, "Standby resources").
 
 use std::collections::VecDeque;
 use std::time::Duration;
 
 use holon::Backoff;
-use schemas::{HolonId, Reason};
+use schemas::{HolonId, Outcome, OutcomeReply, Reason};
 use tokio::time::Instant;
 
 use crate::progress::{Phase, StepOutcome};
@@ -83,6 +98,22 @@ pub enum AttemptEvent {
     Watched(Option<StepOutcome>),
     /// Booked: the resource published that the step runs (it began on its turn).
     Began,
+    /// Started: the provider came back while the step ran (its token vanished and
+    /// returned, or a holder of a higher epoch serves it): its result may never come.
+    CameBack,
+    /// The resource's answer to [`AttemptAction::AskOutcome`] (`None`: no answer).
+    Outcome(Option<OutcomeReply>),
+}
+
+/// Why the attempt asks its resource the outcome of its conversation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Asking {
+    /// The step timeout (or a poll of a step still running) passed without a result.
+    TimedOut,
+    /// The provider came back while the step ran.
+    CameBack,
+    /// The resource said `not_booked` to a start: the job may have begun unseen.
+    NotBooked,
 }
 
 /// What the order's task must do, in order.
@@ -105,6 +136,9 @@ pub enum AttemptAction {
     CancelBooking(HolonId),
     /// Cancel the booking on this resource whenever it is seen back.
     CancelWhenBack(HolonId),
+    /// Ask this resource what became of the conversation; answers
+    /// [`AttemptEvent::Outcome`].
+    AskOutcome(HolonId),
     /// Wait `pause` (jittered; `idle`: spaced with the other idle orders), at most
     /// until `until`, or until a resource appears or a place frees up; answers
     /// [`AttemptEvent::Woken`].
@@ -157,6 +191,8 @@ pub struct Attempt {
     timing: AttemptTiming,
     /// Bookings ask the resource to start on their turn.
     start_on_turn: bool,
+    /// Set while the attempt asks its resource the outcome of its conversation: why.
+    asking: Option<Asking>,
 }
 
 impl Attempt {
@@ -169,6 +205,7 @@ impl Attempt {
             give_up: now + timing.no_resource_timeout,
             timing,
             start_on_turn: false,
+            asking: None,
         }
     }
 
@@ -247,10 +284,18 @@ impl Attempt {
             }
             (Phase::Started(_), E::Watched(Some(outcome))) => vec![AttemptAction::End(outcome)],
             (Phase::Started(provider), E::Watched(None)) => {
-                vec![AttemptAction::End(StepOutcome::Failed {
-                    provider,
-                    reason: format!("no result within {:?}", self.timing.step_timeout),
-                })]
+                self.asking = Some(Asking::TimedOut);
+                vec![AttemptAction::AskOutcome(provider)]
+            }
+            (Phase::Started(provider), E::CameBack) => {
+                self.asking = Some(Asking::CameBack);
+                vec![AttemptAction::AskOutcome(provider)]
+            }
+            (Phase::Booked(provider) | Phase::Started(provider), E::Outcome(answer)) => {
+                match self.asking.take() {
+                    Some(asking) => self.told(provider, asking, answer),
+                    None => vec![],
+                }
             }
             (_, _) => vec![],
         }
@@ -332,10 +377,12 @@ impl Attempt {
         match refusal {
             None | Some(Reason::Busy) => self.watch_for_turn(provider),
             Some(Reason::Unavailable) if now < self.give_up => self.watch_for_turn(provider),
-            Some(Reason::NotBooked) => vec![AttemptAction::End(StepOutcome::Lost {
-                provider,
-                why: "the booking was lost".into(),
-            })],
+            // Gone from the agenda: never booked there, or begun unseen (on its turn,
+            // or a start whose answer was lost) by a holder that has since died.
+            Some(Reason::NotBooked) => {
+                self.asking = Some(Asking::NotBooked);
+                vec![AttemptAction::AskOutcome(provider)]
+            }
             Some(other) => vec![
                 AttemptAction::CancelBooking(provider.clone()),
                 AttemptAction::End(StepOutcome::Failed {
@@ -344,6 +391,69 @@ impl Attempt {
                 }),
             ],
         }
+    }
+
+    /// What the resource said of the conversation, asked for `asking`.
+    fn told(
+        &mut self,
+        provider: HolonId,
+        asking: Asking,
+        answer: Option<OutcomeReply>,
+    ) -> Vec<AttemptAction> {
+        let end = |outcome| vec![AttemptAction::End(outcome)];
+        let Some(answer) = answer.filter(|a| a.outcome != Outcome::Unknown) else {
+            // Nobody could tell: as without asking.
+            return match asking {
+                Asking::TimedOut => end(StepOutcome::Failed {
+                    provider,
+                    reason: format!("no result within {:?}", self.timing.step_timeout),
+                }),
+                Asking::CameBack => vec![self.watch_started(provider)],
+                Asking::NotBooked => end(StepOutcome::Lost {
+                    provider,
+                    why: "the booking was lost".into(),
+                }),
+            };
+        };
+        match answer.outcome {
+            Outcome::Done => end(StepOutcome::Done {
+                provider,
+                results: answer.results,
+            }),
+            Outcome::Failed => end(StepOutcome::Failed {
+                provider,
+                reason: answer
+                    .reason
+                    .as_ref()
+                    .map_or_else(|| "failed".to_string(), Reason::to_string),
+            }),
+            Outcome::NeverReached => end(StepOutcome::Lost {
+                provider,
+                why: "the step never reached the controller".into(),
+            }),
+            Outcome::Running | Outcome::Unknown => {
+                // Its result may come by itself (the resource runs it) or only when
+                // asked (a controller that runs it for a dead holder): asked again
+                // after a poll pause.
+                let mut actions = Vec::new();
+                if matches!(self.phase, Phase::Booked(_)) {
+                    actions.extend(self.record(Phase::Started(provider.clone())));
+                    actions.push(AttemptAction::Publish);
+                }
+                actions.push(AttemptAction::Watch {
+                    provider,
+                    pause: self.poll(),
+                    started: true,
+                    may_run: true,
+                });
+                actions
+            }
+        }
+    }
+
+    /// How long a step the resource says runs is watched before it is asked again.
+    fn poll(&self) -> Duration {
+        self.timing.retry_max.min(self.timing.step_timeout)
     }
 
     /// The step has begun on `provider`: recorded, published, its result awaited.
@@ -610,6 +720,11 @@ mod tests {
                 E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
                 now
             ),
+            vec![A::AskOutcome(robot(1))]
+        );
+        // Nobody can tell what became of it: lost.
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
             vec![A::End(StepOutcome::Lost {
                 provider: robot(1),
                 why: "the booking was lost".into()
@@ -647,6 +762,11 @@ mod tests {
         );
         assert_eq!(
             a.handle(E::Watched(None), now),
+            vec![A::AskOutcome(robot(2))]
+        );
+        // Nobody can tell what became of it: failed, as before asking.
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
             vec![A::End(StepOutcome::Failed {
                 provider: robot(2),
                 reason: "no result within 30s".into()
@@ -765,6 +885,22 @@ mod tests {
                 E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
                 now
             ),
+            vec![A::AskOutcome(robot(1))]
+        );
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::NeverReached))), now),
+            vec![A::End(StepOutcome::Lost {
+                provider: robot(1),
+                why: "the step never reached the controller".into()
+            })]
+        );
+        let (mut a, now) = on_turn(Phase::Booked(robot(1)));
+        a.handle(
+            E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
+            now,
+        );
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
             vec![A::End(StepOutcome::Lost {
                 provider: robot(1),
                 why: "the booking was lost".into()
@@ -777,5 +913,127 @@ mod tests {
             a.handle(E::BookingAnswer(Answer::Silent), now),
             vec![A::Record(Phase::Booking(robot(2))), A::AskBooking(robot(2))]
         );
+    }
+
+    /// What robot`n` says of the conversation.
+    fn told(n: u32, outcome: Outcome) -> OutcomeReply {
+        schemas::OutcomeRequest::new("o/1/1", "pick_n_place", HolonId::order("o").unwrap())
+            .answer(&robot(n), outcome)
+    }
+
+    fn watch(n: u32, pause: Duration) -> AttemptAction {
+        A::Watch {
+            provider: robot(n),
+            pause,
+            started: true,
+            may_run: true,
+        }
+    }
+
+    #[test]
+    fn a_provider_that_came_back_is_asked_and_a_done_it_tells_ends_the_step_done() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Resumed, now);
+        assert_eq!(a.handle(E::CameBack, now), vec![A::AskOutcome(robot(1))]);
+        let mut done = told(1, Outcome::Done);
+        done.results.insert("pick".into(), "picking_done".into());
+        assert_eq!(
+            a.handle(E::Outcome(Some(done.clone())), now),
+            vec![A::End(StepOutcome::Done {
+                provider: robot(1),
+                results: done.results
+            })]
+        );
+    }
+
+    #[test]
+    fn a_provider_that_came_back_and_cannot_tell_is_watched_on() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::CameBack, now);
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Unknown))), now),
+            vec![watch(1, Duration::from_secs(30))]
+        );
+        a.handle(E::CameBack, now);
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
+            vec![watch(1, Duration::from_secs(30))]
+        );
+        assert_eq!(a.phase(), &Phase::Started(robot(1)));
+    }
+
+    #[test]
+    fn after_the_step_timeout_the_outcome_told_ends_the_step() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Watched(None), now);
+        let mut failed = told(1, Outcome::Failed);
+        failed.reason = Some(Reason::Interrupted);
+        assert_eq!(
+            a.handle(E::Outcome(Some(failed)), now),
+            vec![A::End(StepOutcome::Failed {
+                provider: robot(1),
+                reason: "interrupted".into()
+            })]
+        );
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Watched(None), now);
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::NeverReached))), now),
+            vec![A::End(StepOutcome::Lost {
+                provider: robot(1),
+                why: "the step never reached the controller".into()
+            })]
+        );
+    }
+
+    #[test]
+    fn a_step_told_running_is_polled_until_it_ends() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::CameBack, now);
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Running))), now),
+            vec![watch(1, Duration::from_millis(400))]
+        );
+        assert_eq!(
+            a.handle(E::Watched(None), now),
+            vec![A::AskOutcome(robot(1))]
+        );
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Done))), now),
+            vec![A::End(StepOutcome::Done {
+                provider: robot(1),
+                results: Default::default()
+            })]
+        );
+    }
+
+    #[test]
+    fn a_booking_not_booked_but_running_on_the_controller_is_started() {
+        let (mut a, now) = on_turn(Phase::Booked(robot(1)));
+        a.handle(
+            E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
+            now,
+        );
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Running))), now),
+            vec![
+                A::Record(Phase::Started(robot(1))),
+                A::Publish,
+                watch(1, Duration::from_millis(400))
+            ]
+        );
+        assert_eq!(a.phase(), &Phase::Started(robot(1)));
+    }
+
+    #[test]
+    fn an_outcome_nobody_asked_for_changes_nothing() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Done))), now),
+            vec![]
+        );
+        let (mut b, now) = attempt(Phase::Booked(robot(1)));
+        assert_eq!(b.handle(E::CameBack, now), vec![]);
+        assert_eq!(b.handle(E::Outcome(None), now), vec![]);
     }
 }

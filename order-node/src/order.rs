@@ -102,6 +102,9 @@ enum Watched {
     /// Before the start: the resource published that the step runs (it began on its
     /// turn).
     Began,
+    /// Started: the provider came back (its token returned, or a holder of a higher
+    /// epoch serves it): it is asked what became of the step.
+    CameBack,
     /// Something ended the attempt; a result to acknowledge once recorded.
     Ended(StepOutcome, Option<Box<ResultReport>>),
 }
@@ -398,6 +401,12 @@ impl OrderTask {
                 ));
                 None
             }
+            AttemptAction::AskOutcome(provider) => {
+                let answer =
+                    requests::ask_outcome(&ctx, &self.holon, &provider, step, conversation_id)
+                        .await;
+                Some(AttemptEvent::Outcome(answer))
+            }
             AttemptAction::Wait { pause, idle, until } => {
                 self.wait_for_resource(pause, idle, until).await;
                 Some(AttemptEvent::Woken)
@@ -415,6 +424,7 @@ impl OrderTask {
                 {
                     Watched::Elapsed => Some(AttemptEvent::Watched(None)),
                     Watched::Began => Some(AttemptEvent::Began),
+                    Watched::CameBack => Some(AttemptEvent::CameBack),
                     Watched::Ended(outcome, delivered) => {
                         *report = delivered;
                         Some(AttemptEvent::Watched(Some(outcome)))
@@ -448,7 +458,9 @@ impl OrderTask {
     /// or booked to start on its turn) gets `vanished_grace` to come back and report
     /// before the attempt counts as lost.
     /// Before `started`, the pause also ends when the provider publishes that it is
-    /// free with this conversation first.
+    /// free with this conversation first; once `started`, when the provider comes back
+    /// after it was gone, or a holder of a higher epoch than when the watch began
+    /// publishes its state (it may not know the step: the order asks).
     async fn await_outcome(
         &mut self,
         provider: &HolonId,
@@ -470,6 +482,16 @@ impl OrderTask {
             }
         };
         tokio::pin!(turn);
+        let new_holder = async {
+            if started {
+                ctx.presence
+                    .new_holder(provider, ctx.presence.epoch(provider))
+                    .await
+            } else {
+                std::future::pending().await
+            }
+        };
+        tokio::pin!(new_holder);
         let lost = |why: &str| {
             Watched::Ended(
                 StepOutcome::Lost {
@@ -510,6 +532,7 @@ impl OrderTask {
                     crate::presence::TurnNews::Turn => Watched::Elapsed,
                     crate::presence::TurnNews::Began => Watched::Began,
                 },
+                () = &mut new_holder => return Watched::CameBack,
                 _ = tokio::time::sleep_until(deadline) => {
                     if gone_until.is_some_and(|g| Instant::now() >= g) {
                         return lost("the resource vanished");
@@ -524,6 +547,9 @@ impl OrderTask {
                 }
                 change = self.changes.recv() => match change {
                     Ok((holon, alive)) if &holon == provider => {
+                        if alive && started && gone_until.is_some() {
+                            return Watched::CameBack;
+                        }
                         gone_until = if alive { None } else { Some(Instant::now() + grace()) };
                     }
                     Ok(_) => {}

@@ -8,6 +8,7 @@ pub mod advice;
 pub mod fence;
 pub mod id;
 pub mod keys;
+pub mod outcome;
 pub mod packml;
 pub mod plan;
 pub mod robot;
@@ -19,6 +20,7 @@ pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION}
 pub use fence::{FenceReport, FenceRole};
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
+pub use outcome::{Outcome, OutcomeReply, OutcomeRequest, OutcomeSource};
 pub use packml::{
     PackmlCommand, PackmlReply, PackmlRequest, PackmlState, PackmlStatus, Refusal, StopReason,
     UnitMode,
