@@ -36,8 +36,8 @@
 //! | asking | outcome `failed` | end: failed with its reason | — |
 //! | asking | outcome `running` | (booked: record started(p), publish) watch for a poll pause | started(p) |
 //! | asking | outcome `never_reached` | end: lost (rebook: nothing ran) | — |
-//! | asking after the step timeout | `unknown` or no answer | end: failed, no result within the step timeout | — |
-//! | asking after p came back | `unknown` or no answer | watch (step timeout) | started(p) |
+//! | asking (timed out or came back), step timeout over | `unknown` or no answer | end: failed, no result within the step timeout | — |
+//! | asking (a poll, or came back), step timeout not over | `unknown` or no answer | watch what is left of the step timeout | started(p) |
 //! | asking after `not_booked` | `unknown` or no answer | end: lost | — |
 //!
 //! Any other (phase, event) pair is a bug in the loop and changes nothing (no actions,
@@ -63,7 +63,7 @@ use std::collections::VecDeque;
 use std::time::Duration;
 
 use holon::Backoff;
-use schemas::{HolonId, Outcome, OutcomeReply, Reason};
+use schemas::{HolonId, Outcome, OutcomeReply, OutcomeSource, Reason};
 use tokio::time::Instant;
 
 use crate::progress::{Phase, StepOutcome};
@@ -193,6 +193,9 @@ pub struct Attempt {
     start_on_turn: bool,
     /// Set while the attempt asks its resource the outcome of its conversation: why.
     asking: Option<Asking>,
+    /// Started: when its step timeout ends (set when the step is watched from its
+    /// beginning, or from a resume).
+    deadline: Option<Instant>,
 }
 
 impl Attempt {
@@ -206,6 +209,7 @@ impl Attempt {
             timing,
             start_on_turn: false,
             asking: None,
+            deadline: None,
         }
     }
 
@@ -232,7 +236,7 @@ impl Attempt {
             (Phase::Booking(candidate), E::BookingAnswer(Answer::Started)) => {
                 self.backoff.reset();
                 self.round = None;
-                self.started(candidate)
+                self.started(candidate, now)
             }
             // Silence after asking to start on its turn: the job may run there; only
             // the resource can say (a start is answered true if it began, `not_booked`
@@ -267,7 +271,7 @@ impl Attempt {
             (Phase::Booked(provider), E::Watched(None)) => vec![AttemptAction::AskStart(provider)],
             (Phase::Booked(provider), E::Began) => {
                 self.backoff.reset();
-                self.started(provider)
+                self.started(provider, now)
             }
             (Phase::Booked(provider), E::Watched(Some(outcome))) => {
                 let mut actions = Vec::new();
@@ -280,7 +284,10 @@ impl Attempt {
                 actions
             }
             (Phase::Started(provider), E::Resumed) => {
-                vec![AttemptAction::DeclareToken, self.watch_started(provider)]
+                vec![
+                    AttemptAction::DeclareToken,
+                    self.watch_started(provider, now),
+                ]
             }
             (Phase::Started(_), E::Watched(Some(outcome))) => vec![AttemptAction::End(outcome)],
             (Phase::Started(provider), E::Watched(None)) => {
@@ -293,7 +300,7 @@ impl Attempt {
             }
             (Phase::Booked(provider) | Phase::Started(provider), E::Outcome(answer)) => {
                 match self.asking.take() {
-                    Some(asking) => self.told(provider, asking, answer),
+                    Some(asking) => self.told(provider, asking, answer, now),
                     None => vec![],
                 }
             }
@@ -369,7 +376,7 @@ impl Attempt {
         now: Instant,
     ) -> Vec<AttemptAction> {
         let refusal = match answer {
-            Answer::Accepted | Answer::Started => return self.started(provider),
+            Answer::Accepted | Answer::Started => return self.started(provider, now),
             Answer::Silent => None,
             // A refusal without a reason is a refusal all the same.
             Answer::Refused(why) => Some(why.unwrap_or_else(|| Reason::Other("refused".into()))),
@@ -399,16 +406,27 @@ impl Attempt {
         provider: HolonId,
         asking: Asking,
         answer: Option<OutcomeReply>,
+        now: Instant,
     ) -> Vec<AttemptAction> {
         let end = |outcome| vec![AttemptAction::End(outcome)];
+        // What is left of the step timeout.
+        let left = self
+            .deadline
+            .map_or(Duration::ZERO, |d| d.saturating_duration_since(now));
         let Some(answer) = answer.filter(|a| a.outcome != Outcome::Unknown) else {
-            // Nobody could tell: as without asking.
+            // Nobody could tell: as without asking. The step timeout stands (a poll
+            // of a running step, or a provider back early, waits out what is left).
             return match asking {
-                Asking::TimedOut => end(StepOutcome::Failed {
+                Asking::TimedOut | Asking::CameBack if left.is_zero() => end(StepOutcome::Failed {
                     provider,
                     reason: format!("no result within {:?}", self.timing.step_timeout),
                 }),
-                Asking::CameBack => vec![self.watch_started(provider)],
+                Asking::TimedOut | Asking::CameBack => vec![AttemptAction::Watch {
+                    provider,
+                    pause: left,
+                    started: true,
+                    may_run: true,
+                }],
                 Asking::NotBooked => end(StepOutcome::Lost {
                     provider,
                     why: "the booking was lost".into(),
@@ -432,17 +450,25 @@ impl Attempt {
                 why: "the step never reached the controller".into(),
             }),
             Outcome::Running | Outcome::Unknown => {
-                // Its result may come by itself (the resource runs it) or only when
-                // asked (a controller that runs it for a dead holder): asked again
-                // after a poll pause.
+                // A resource that runs it itself (its journal knows it) reports its
+                // result: watched for what is left of the step timeout, or a poll
+                // pause. One whose controller runs it for a dead holder reports
+                // nothing: asked again after a poll pause.
                 let mut actions = Vec::new();
+                let mut left = left;
                 if matches!(self.phase, Phase::Booked(_)) {
                     actions.extend(self.record(Phase::Started(provider.clone())));
                     actions.push(AttemptAction::Publish);
+                    self.deadline = Some(now + self.timing.step_timeout);
+                    left = self.timing.step_timeout;
                 }
+                let pause = match answer.source {
+                    OutcomeSource::Journal => left.max(self.poll()),
+                    OutcomeSource::Controller | OutcomeSource::Nowhere => self.poll(),
+                };
                 actions.push(AttemptAction::Watch {
                     provider,
-                    pause: self.poll(),
+                    pause,
                     started: true,
                     may_run: true,
                 });
@@ -457,10 +483,10 @@ impl Attempt {
     }
 
     /// The step has begun on `provider`: recorded, published, its result awaited.
-    fn started(&mut self, provider: HolonId) -> Vec<AttemptAction> {
+    fn started(&mut self, provider: HolonId, now: Instant) -> Vec<AttemptAction> {
         let mut actions = self.record(Phase::Started(provider.clone()));
         actions.push(AttemptAction::Publish);
-        actions.push(self.watch_started(provider));
+        actions.push(self.watch_started(provider, now));
         actions
     }
 
@@ -475,7 +501,9 @@ impl Attempt {
         }]
     }
 
-    fn watch_started(&self, provider: HolonId) -> AttemptAction {
+    /// Watches a step that began (or resumed) at `now` for its step timeout.
+    fn watch_started(&mut self, provider: HolonId, now: Instant) -> AttemptAction {
+        self.deadline = Some(now + self.timing.step_timeout);
         AttemptAction::Watch {
             provider,
             pause: self.timing.step_timeout,
@@ -766,7 +794,7 @@ mod tests {
         );
         // Nobody can tell what became of it: failed, as before asking.
         assert_eq!(
-            a.handle(E::Outcome(None), now),
+            a.handle(E::Outcome(None), now + Duration::from_secs(30)),
             vec![A::End(StepOutcome::Failed {
                 provider: robot(2),
                 reason: "no result within 30s".into()
@@ -947,19 +975,69 @@ mod tests {
     }
 
     #[test]
-    fn a_provider_that_came_back_and_cannot_tell_is_watched_on() {
+    fn a_provider_that_came_back_and_cannot_tell_is_watched_for_what_is_left_of_the_timeout() {
         let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Resumed, now);
         a.handle(E::CameBack, now);
         assert_eq!(
             a.handle(E::Outcome(Some(told(1, Outcome::Unknown))), now),
             vec![watch(1, Duration::from_secs(30))]
         );
-        a.handle(E::CameBack, now);
+        let later = now + Duration::from_secs(10);
+        a.handle(E::CameBack, later);
         assert_eq!(
-            a.handle(E::Outcome(None), now),
-            vec![watch(1, Duration::from_secs(30))]
+            a.handle(E::Outcome(None), later),
+            vec![watch(1, Duration::from_secs(20))]
         );
         assert_eq!(a.phase(), &Phase::Started(robot(1)));
+        // Back once more, past the step timeout, and still nobody can tell: failed.
+        let past = now + Duration::from_secs(31);
+        a.handle(E::CameBack, past);
+        assert_eq!(
+            a.handle(E::Outcome(None), past),
+            vec![A::End(StepOutcome::Failed {
+                provider: robot(1),
+                reason: "no result within 30s".into()
+            })]
+        );
+    }
+
+    #[test]
+    fn a_step_its_resource_runs_itself_is_watched_for_the_step_timeout_not_polled() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Resumed, now);
+        let later = now + Duration::from_secs(10);
+        a.handle(E::CameBack, later);
+        let mut running = told(1, Outcome::Running);
+        running.source = OutcomeSource::Journal;
+        assert_eq!(
+            a.handle(E::Outcome(Some(running.clone())), later),
+            vec![watch(1, Duration::from_secs(20))]
+        );
+        // Past the step timeout, a step still running there is polled.
+        let past = now + Duration::from_secs(31);
+        a.handle(E::Watched(None), past);
+        assert_eq!(
+            a.handle(E::Outcome(Some(running)), past),
+            vec![watch(1, Duration::from_millis(400))]
+        );
+    }
+
+    #[test]
+    fn a_poll_of_a_running_step_that_goes_unanswered_waits_out_the_step_timeout() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Resumed, now);
+        a.handle(E::CameBack, now);
+        a.handle(E::Outcome(Some(told(1, Outcome::Running))), now);
+        let poll = now + Duration::from_millis(400);
+        assert_eq!(
+            a.handle(E::Watched(None), poll),
+            vec![A::AskOutcome(robot(1))]
+        );
+        assert_eq!(
+            a.handle(E::Outcome(None), poll),
+            vec![watch(1, Duration::from_millis(29_600))]
+        );
     }
 
     #[test]
