@@ -29,7 +29,8 @@
 //! | booked(p) | watched: lost | cancel the booking when p is back, end: lost | — |
 //! | booked(p) | watched: another outcome | end with it | — |
 //! | started(p) | resumed | declare token, watch (step timeout) | started(p) |
-//! | started(p) | watched: an outcome | end with it | — |
+//! | started(p) | watched: `failed` `interrupted` (p's journal knew only that it ran) | ask p the outcome | started(p), asking |
+//! | started(p) | watched: another outcome | end with it | — |
 //! | started(p) | watched: pause over (the step timeout, or a poll of a running step) | ask p the outcome | started(p), asking |
 //! | started(p) | came back (p vanished and returned, or a holder of a higher epoch serves it) | ask p the outcome | started(p), asking |
 //! | asking | outcome `done` | end: done with its results (as if delivered) | — |
@@ -39,6 +40,7 @@
 //! | asking (timed out or came back), step timeout over | `unknown` or no answer | end: failed, no result within the step timeout | — |
 //! | asking (a poll, or came back), step timeout not over | `unknown` or no answer | watch what is left of the step timeout | started(p) |
 //! | asking after `not_booked` | `unknown` or no answer | end: lost | — |
+//! | asking after `interrupted` | `unknown` or no answer | end: failed `interrupted`, as reported | — |
 //!
 //! Any other (phase, event) pair is a bug in the loop and changes nothing (no actions,
 //! logged by the caller). The backoff doubles with each refused round and each wait for
@@ -106,7 +108,7 @@ pub enum AttemptEvent {
 }
 
 /// Why the attempt asks its resource the outcome of its conversation.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 enum Asking {
     /// The step timeout (or a poll of a step still running) passed without a result.
     TimedOut,
@@ -114,6 +116,10 @@ enum Asking {
     CameBack,
     /// The resource said `not_booked` to a start: the job may have begun unseen.
     NotBooked,
+    /// The resource reported the step `interrupted` (this outcome): its journal
+    /// knew only that it was running when the holder stopped, the controller may know
+    /// that it completed.
+    Interrupted(StepOutcome),
 }
 
 /// What the order's task must do, in order.
@@ -289,6 +295,10 @@ impl Attempt {
                     self.watch_started(provider, now),
                 ]
             }
+            (Phase::Started(provider), E::Watched(Some(outcome))) if interrupted(&outcome) => {
+                self.asking = Some(Asking::Interrupted(outcome));
+                vec![AttemptAction::AskOutcome(provider)]
+            }
             (Phase::Started(_), E::Watched(Some(outcome))) => vec![AttemptAction::End(outcome)],
             (Phase::Started(provider), E::Watched(None)) => {
                 self.asking = Some(Asking::TimedOut);
@@ -431,6 +441,7 @@ impl Attempt {
                     provider,
                     why: "the booking was lost".into(),
                 }),
+                Asking::Interrupted(reported) => end(reported),
             };
         };
         match answer.outcome {
@@ -511,6 +522,12 @@ impl Attempt {
             may_run: true,
         }
     }
+}
+
+/// Whether `outcome` is a result `failed` `interrupted`: the resource's journal says the
+/// step was running when its holder stopped, not how it ended.
+fn interrupted(outcome: &StepOutcome) -> bool {
+    matches!(outcome, StepOutcome::Failed { reason, .. } if reason == Reason::Interrupted.as_str())
 }
 
 #[cfg(test)]
@@ -1113,5 +1130,55 @@ mod tests {
         let (mut b, now) = attempt(Phase::Booked(robot(1)));
         assert_eq!(b.handle(E::CameBack, now), vec![]);
         assert_eq!(b.handle(E::Outcome(None), now), vec![]);
+    }
+
+    #[test]
+    fn an_interrupted_step_is_asked_and_ends_as_the_controller_says() {
+        let interrupted = StepOutcome::Failed {
+            provider: robot(1),
+            reason: "interrupted".into(),
+        };
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        assert_eq!(
+            a.handle(E::Watched(Some(interrupted.clone())), now),
+            vec![A::AskOutcome(robot(1))]
+        );
+        let mut done = told(1, Outcome::Done);
+        done.source = OutcomeSource::Controller;
+        done.results.insert("place".into(), "placing_done".into());
+        assert_eq!(
+            a.handle(E::Outcome(Some(done.clone())), now),
+            vec![A::End(StepOutcome::Done {
+                provider: robot(1),
+                results: done.results
+            })]
+        );
+        // Nobody can tell: interrupted, as reported.
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Watched(Some(interrupted.clone())), now);
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
+            vec![A::End(interrupted.clone())]
+        );
+        // Nothing reached the controller: booked again, not a failure.
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Watched(Some(interrupted)), now);
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::NeverReached))), now),
+            vec![A::End(StepOutcome::Lost {
+                provider: robot(1),
+                why: "the step never reached the controller".into()
+            })]
+        );
+        // Any other failure ends the step at once.
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        let fault = StepOutcome::Failed {
+            provider: robot(1),
+            reason: "controller_fault".into(),
+        };
+        assert_eq!(
+            a.handle(E::Watched(Some(fault.clone())), now),
+            vec![A::End(fault)]
+        );
     }
 }

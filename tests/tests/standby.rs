@@ -502,3 +502,60 @@ async fn a_step_the_dead_holder_completed_ends_done_and_never_runs_again() {
     assert_eq!(sim.executed("place"), 1, "{counts}");
     drop(standby);
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_holder_killed_mid_step_and_restarted_on_its_journal_reports_the_step_done() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path();
+    let cell = Cell::open("t-standby-restart").await.unwrap();
+    let sim = Sim::start(
+        dir,
+        "robot1-sim",
+        "127.0.0.1:0",
+        &["--fenced", "--lease-ms", "500", "--action-ms", "place=1000"],
+    )
+    .unwrap();
+    let a = host(dir, "a").unwrap();
+    let mut holder = twin(&cell, &a, &sim).unwrap();
+    cell.wait_state("robot1", "free at epoch 1", |s| {
+        s["state"] == "free" && s["epoch"] == 1
+    })
+    .await
+    .unwrap();
+    let (_product, _orders) = cell
+        .start_part_and_orders(dir, &impatient_orders(dir), &dir.join("orders-data"))
+        .await
+        .unwrap();
+    let order = cell.submit("part", 1).await.unwrap()[0].clone();
+
+    // The holder dies while place runs; the controller completes it for nobody.
+    sim.wait_executed("pick", 1).await.unwrap();
+    sim.wait_received(2).await.unwrap();
+    holder.kill();
+    // Restarted on its journal, which says only that the job was running: it reports
+    // it `interrupted`. The order asks, the holder asks the controller: done.
+    let holder = twin(&cell, &a, &sim).unwrap();
+    cell.wait_order(&order, "ended", |s| {
+        s.is_some_and(|s| s["status"] != "running")
+    })
+    .await
+    .unwrap();
+    let state = cell.order_state(&order).await.unwrap();
+    assert_eq!(state["status"], "done", "{state}");
+    assert_eq!(state["attempt"], 1, "one conversation only: {state}");
+    assert_eq!(state["failed_attempts"], 0, "{state}");
+    let counts = sim.counts();
+    let first = format!("{order}/1/1");
+    let by_step = counts["by_step"].as_object().cloned().unwrap_or_default();
+    let ran: Vec<(String, u64)> = by_step
+        .iter()
+        .map(|(step, n)| (step.clone(), n.as_u64().unwrap_or(0)))
+        .collect();
+    assert_eq!(
+        ran,
+        vec![(format!("{first}#0"), 1), (format!("{first}#1"), 1)],
+        "{counts}"
+    );
+    assert_eq!(counts["epoch"], 2, "{counts}");
+    drop(holder);
+}
