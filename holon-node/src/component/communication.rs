@@ -281,6 +281,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     let mut retries = links.views.delivery_retries.subscribe();
     let (arrivals_tx, mut arrivals) = mpsc::channel(QUERY_QUEUE);
     let mut queryables = Queryables::declare(&links, arrivals_tx).await?;
+    links.views.answering.send_replace(true);
     queryables.sync_offers(&links).await?;
     let publisher = links
         .session
