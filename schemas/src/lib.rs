@@ -87,6 +87,23 @@ pub fn advice_json_schema() -> String {
     text
 }
 
+/// The JSON Schema of the question on `resource/<name>/outcome` and its answer (what
+/// became of a conversation), checked in as `schemas/json/outcome.schema.json`.
+pub fn outcome_json_schema() -> String {
+    let schema = serde_json::json!({
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "holarchy outcome",
+        "description": "What became of a conversation: the request an order sends on resource/<name>/outcome, and the reply.",
+        "$defs": {
+            "OutcomeRequest": schemars::schema_for!(OutcomeRequest),
+            "OutcomeReply": schemars::schema_for!(OutcomeReply),
+        },
+    });
+    let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
+    text.push('\n');
+    text
+}
+
 /// The JSON Schema of a resource's state snapshot (`resource/<name>/state`), checked in
 /// as `schemas/json/resource-state.schema.json`: it names the values `state` and
 /// `controller` take.
