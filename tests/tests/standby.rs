@@ -6,7 +6,8 @@
 //! step id. A holder that dies after its controller ran an order's step, before the
 //! result reached the order: the order asks the new holder what became of its
 //! conversation (the new holder asks the controller) and the step ends done, never run
-//! again. Bounded waits only; no timing is asserted.
+//! again; so too when the holder is killed mid-step and restarted on its journal, which
+//! says only `interrupted`. Bounded waits only; no timing is asserted.
 
 use std::fs;
 use std::path::{Path, PathBuf};
