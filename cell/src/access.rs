@@ -5,9 +5,9 @@
 //!
 //! | role | may declare (queryable, token, publication) | may query / subscribe |
 //! |---|---|---|
-//! | `resource.<r>` | `resource/<r>/{service,state,packml,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
+//! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
-//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>{,/fence/*}` | `resource/*/{service,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
+//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>{,/fence/*}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
 //! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, `resource/*/packml` (PackML commands), states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, liveliness |
@@ -73,6 +73,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                     format!("resource/{name}/service"),
                     format!("resource/{name}/state"),
                     format!("resource/{name}/packml"),
+                    // What became of a conversation, asked by the order that booked it.
+                    format!("resource/{name}/outcome"),
                     format!("resource/{name}/debug/crash"),
                     format!("resource/{name}/fence/*"),
                     format!("offer/*/{name}"),
@@ -139,6 +141,7 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                 let mut keys = reading();
                 keys.extend([
                     "resource/*/service".to_string(),
+                    "resource/*/outcome".to_string(),
                     "offer/**".to_string(),
                     "staff/*/advice".to_string(),
                 ]);

@@ -72,6 +72,10 @@ pub struct Views {
     pub delivery_retries: watch::Sender<u64>,
     /// Written by the node's fence loop: whether this process holds the controller.
     pub fence: watch::Sender<FenceView>,
+    /// Written by the communication component: true once its queryables are declared.
+    /// Results go out only from then on, so an order that hears of one can ask the
+    /// resource about it (`resource/<name>/outcome`).
+    pub answering: watch::Sender<bool>,
     /// The machine this process runs on, named in every snapshot.
     host: String,
 }
@@ -88,6 +92,7 @@ impl Views {
             absences: watch::Sender::new(absences),
             delivery_retries: watch::Sender::new(0),
             fence: watch::Sender::new(FenceView::Unfenced),
+            answering: watch::Sender::new(false),
             host: holon::presence::host_name(),
         }
     }

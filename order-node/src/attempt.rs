@@ -22,15 +22,25 @@
 //! | booked(p) | resumed | declare token, ask start | booked(p) |
 //! | booked(p) | start accepted | record started(p), publish, watch (step timeout) | started(p) |
 //! | booked(p) | `busy`, no answer, `unavailable` before give-up | watch for the turn (backoff) | booked(p) |
-//! | booked(p) | `not_booked` | end: lost | — |
+//! | booked(p) | `not_booked` | ask p the outcome | booked(p), asking |
 //! | booked(p) | other refusal | cancel the booking, end: failed | — |
 //! | booked(p) | watched: pause over or turn | ask start | booked(p) |
 //! | booked(p) | began (p published that the step runs) | record started(p), publish, watch (step timeout) | started(p) |
 //! | booked(p) | watched: lost | cancel the booking when p is back, end: lost | — |
 //! | booked(p) | watched: another outcome | end with it | — |
 //! | started(p) | resumed | declare token, watch (step timeout) | started(p) |
-//! | started(p) | watched: an outcome | end with it | — |
-//! | started(p) | watched: pause over | end: failed, no result within the step timeout | — |
+//! | started(p) | watched: `failed` `interrupted` (p's journal knew only that it ran) | ask p the outcome | started(p), asking |
+//! | started(p) | watched: another outcome | end with it | — |
+//! | started(p) | watched: pause over (the step timeout, or a poll of a running step) | ask p the outcome | started(p), asking |
+//! | started(p) | came back (p vanished and returned, or a holder of a higher epoch serves it) | ask p the outcome | started(p), asking |
+//! | asking | outcome `done` | end: done with its results (as if delivered) | — |
+//! | asking | outcome `failed` | end: failed with its reason | — |
+//! | asking | outcome `running` | (booked: record started(p), publish) watch for a poll pause | started(p) |
+//! | asking | outcome `never_reached` | end: lost (rebook: nothing ran) | — |
+//! | asking (timed out or came back), step timeout over | `unknown` or no answer | end: failed, no result within the step timeout | — |
+//! | asking (a poll, or came back), step timeout not over | `unknown` or no answer | watch what is left of the step timeout | started(p) |
+//! | asking after `not_booked` | `unknown` or no answer | end: lost | — |
+//! | asking after `interrupted` | `unknown` or no answer | end: failed `interrupted`, as reported | — |
 //!
 //! Any other (phase, event) pair is a bug in the loop and changes nothing (no actions,
 //! logged by the caller). The backoff doubles with each refused round and each wait for
@@ -43,12 +53,19 @@
 //! resource restarted on its journal waits for its requesters' `start`); a `start` is
 //! answered true if the job began. While booked, a vanished resource gets the same
 //! grace as one running the step (it may be).
+//!
+//! Before it gives up on a step that may have run, the attempt asks the resource what
+//! became of its conversation (`resource/<name>/outcome`, [`schemas::OutcomeRequest`]):
+//! a resource whose holder died after its controller ran the step, and whose standby
+//! took over, learns it from the controller (`STEP_STATUS`), so the step ends done
+//! instead of being booked again under a new conversation, whose new step ids the
+//! controller would run again (docs/reliability.md, "Standby resources").
 
 use std::collections::VecDeque;
 use std::time::Duration;
 
 use holon::Backoff;
-use schemas::{HolonId, Reason};
+use schemas::{HolonId, Outcome, OutcomeReply, OutcomeSource, Reason};
 use tokio::time::Instant;
 
 use crate::progress::{Phase, StepOutcome};
@@ -83,6 +100,26 @@ pub enum AttemptEvent {
     Watched(Option<StepOutcome>),
     /// Booked: the resource published that the step runs (it began on its turn).
     Began,
+    /// Started: the provider came back while the step ran (its token vanished and
+    /// returned, or a holder of a higher epoch serves it): its result may never come.
+    CameBack,
+    /// The resource's answer to [`AttemptAction::AskOutcome`] (`None`: no answer).
+    Outcome(Option<OutcomeReply>),
+}
+
+/// Why the attempt asks its resource the outcome of its conversation.
+#[derive(Debug, Clone, PartialEq)]
+enum Asking {
+    /// The step timeout (or a poll of a step still running) passed without a result.
+    TimedOut,
+    /// The provider came back while the step ran.
+    CameBack,
+    /// The resource said `not_booked` to a start: the job may have begun unseen.
+    NotBooked,
+    /// The resource reported the step `interrupted` (this outcome): its journal
+    /// knew only that it was running when the holder stopped, the controller may know
+    /// that it completed.
+    Interrupted(StepOutcome),
 }
 
 /// What the order's task must do, in order.
@@ -105,6 +142,9 @@ pub enum AttemptAction {
     CancelBooking(HolonId),
     /// Cancel the booking on this resource whenever it is seen back.
     CancelWhenBack(HolonId),
+    /// Ask this resource what became of the conversation; answers
+    /// [`AttemptEvent::Outcome`].
+    AskOutcome(HolonId),
     /// Wait `pause` (jittered; `idle`: spaced with the other idle orders), at most
     /// until `until`, or until a resource appears or a place frees up; answers
     /// [`AttemptEvent::Woken`].
@@ -157,6 +197,11 @@ pub struct Attempt {
     timing: AttemptTiming,
     /// Bookings ask the resource to start on their turn.
     start_on_turn: bool,
+    /// Set while the attempt asks its resource the outcome of its conversation: why.
+    asking: Option<Asking>,
+    /// Started: when its step timeout ends (set when the step is watched from its
+    /// beginning, or from a resume).
+    deadline: Option<Instant>,
 }
 
 impl Attempt {
@@ -169,6 +214,8 @@ impl Attempt {
             give_up: now + timing.no_resource_timeout,
             timing,
             start_on_turn: false,
+            asking: None,
+            deadline: None,
         }
     }
 
@@ -195,7 +242,7 @@ impl Attempt {
             (Phase::Booking(candidate), E::BookingAnswer(Answer::Started)) => {
                 self.backoff.reset();
                 self.round = None;
-                self.started(candidate)
+                self.started(candidate, now)
             }
             // Silence after asking to start on its turn: the job may run there; only
             // the resource can say (a start is answered true if it began, `not_booked`
@@ -230,7 +277,7 @@ impl Attempt {
             (Phase::Booked(provider), E::Watched(None)) => vec![AttemptAction::AskStart(provider)],
             (Phase::Booked(provider), E::Began) => {
                 self.backoff.reset();
-                self.started(provider)
+                self.started(provider, now)
             }
             (Phase::Booked(provider), E::Watched(Some(outcome))) => {
                 let mut actions = Vec::new();
@@ -243,14 +290,29 @@ impl Attempt {
                 actions
             }
             (Phase::Started(provider), E::Resumed) => {
-                vec![AttemptAction::DeclareToken, self.watch_started(provider)]
+                vec![
+                    AttemptAction::DeclareToken,
+                    self.watch_started(provider, now),
+                ]
+            }
+            (Phase::Started(provider), E::Watched(Some(outcome))) if interrupted(&outcome) => {
+                self.asking = Some(Asking::Interrupted(outcome));
+                vec![AttemptAction::AskOutcome(provider)]
             }
             (Phase::Started(_), E::Watched(Some(outcome))) => vec![AttemptAction::End(outcome)],
             (Phase::Started(provider), E::Watched(None)) => {
-                vec![AttemptAction::End(StepOutcome::Failed {
-                    provider,
-                    reason: format!("no result within {:?}", self.timing.step_timeout),
-                })]
+                self.asking = Some(Asking::TimedOut);
+                vec![AttemptAction::AskOutcome(provider)]
+            }
+            (Phase::Started(provider), E::CameBack) => {
+                self.asking = Some(Asking::CameBack);
+                vec![AttemptAction::AskOutcome(provider)]
+            }
+            (Phase::Booked(provider) | Phase::Started(provider), E::Outcome(answer)) => {
+                match self.asking.take() {
+                    Some(asking) => self.told(provider, asking, answer, now),
+                    None => vec![],
+                }
             }
             (_, _) => vec![],
         }
@@ -324,7 +386,7 @@ impl Attempt {
         now: Instant,
     ) -> Vec<AttemptAction> {
         let refusal = match answer {
-            Answer::Accepted | Answer::Started => return self.started(provider),
+            Answer::Accepted | Answer::Started => return self.started(provider, now),
             Answer::Silent => None,
             // A refusal without a reason is a refusal all the same.
             Answer::Refused(why) => Some(why.unwrap_or_else(|| Reason::Other("refused".into()))),
@@ -332,10 +394,12 @@ impl Attempt {
         match refusal {
             None | Some(Reason::Busy) => self.watch_for_turn(provider),
             Some(Reason::Unavailable) if now < self.give_up => self.watch_for_turn(provider),
-            Some(Reason::NotBooked) => vec![AttemptAction::End(StepOutcome::Lost {
-                provider,
-                why: "the booking was lost".into(),
-            })],
+            // Gone from the agenda: never booked there, or begun unseen (on its turn,
+            // or a start whose answer was lost) by a holder that has since died.
+            Some(Reason::NotBooked) => {
+                self.asking = Some(Asking::NotBooked);
+                vec![AttemptAction::AskOutcome(provider)]
+            }
             Some(other) => vec![
                 AttemptAction::CancelBooking(provider.clone()),
                 AttemptAction::End(StepOutcome::Failed {
@@ -346,11 +410,94 @@ impl Attempt {
         }
     }
 
+    /// What the resource said of the conversation, asked for `asking`.
+    fn told(
+        &mut self,
+        provider: HolonId,
+        asking: Asking,
+        answer: Option<OutcomeReply>,
+        now: Instant,
+    ) -> Vec<AttemptAction> {
+        let end = |outcome| vec![AttemptAction::End(outcome)];
+        // What is left of the step timeout.
+        let left = self
+            .deadline
+            .map_or(Duration::ZERO, |d| d.saturating_duration_since(now));
+        let Some(answer) = answer.filter(|a| a.outcome != Outcome::Unknown) else {
+            // Nobody could tell: as without asking. The step timeout stands (a poll
+            // of a running step, or a provider back early, waits out what is left).
+            return match asking {
+                Asking::TimedOut | Asking::CameBack if left.is_zero() => end(StepOutcome::Failed {
+                    provider,
+                    reason: format!("no result within {:?}", self.timing.step_timeout),
+                }),
+                Asking::TimedOut | Asking::CameBack => vec![AttemptAction::Watch {
+                    provider,
+                    pause: left,
+                    started: true,
+                    may_run: true,
+                }],
+                Asking::NotBooked => end(StepOutcome::Lost {
+                    provider,
+                    why: "the booking was lost".into(),
+                }),
+                Asking::Interrupted(reported) => end(reported),
+            };
+        };
+        match answer.outcome {
+            Outcome::Done => end(StepOutcome::Done {
+                provider,
+                results: answer.results,
+            }),
+            Outcome::Failed => end(StepOutcome::Failed {
+                provider,
+                reason: answer
+                    .reason
+                    .as_ref()
+                    .map_or_else(|| "failed".to_string(), Reason::to_string),
+            }),
+            Outcome::NeverReached => end(StepOutcome::Lost {
+                provider,
+                why: "the step never reached the controller".into(),
+            }),
+            Outcome::Running | Outcome::Unknown => {
+                // A resource that runs it itself (its journal knows it) reports its
+                // result: watched for what is left of the step timeout, or a poll
+                // pause. One whose controller runs it for a dead holder reports
+                // nothing: asked again after a poll pause.
+                let mut actions = Vec::new();
+                let mut left = left;
+                if matches!(self.phase, Phase::Booked(_)) {
+                    actions.extend(self.record(Phase::Started(provider.clone())));
+                    actions.push(AttemptAction::Publish);
+                    self.deadline = Some(now + self.timing.step_timeout);
+                    left = self.timing.step_timeout;
+                }
+                let pause = match answer.source {
+                    OutcomeSource::Journal => left.max(self.poll()),
+                    OutcomeSource::Controller | OutcomeSource::Nowhere => self.poll(),
+                };
+                actions.push(AttemptAction::Watch {
+                    provider,
+                    pause,
+                    started: true,
+                    may_run: true,
+                });
+                actions
+            }
+        }
+    }
+
+    /// How long a step the resource says runs is watched before it is asked again.
+    fn poll(&self) -> Duration {
+        self.timing.retry_max.min(self.timing.step_timeout)
+    }
+
     /// The step has begun on `provider`: recorded, published, its result awaited.
-    fn started(&mut self, provider: HolonId) -> Vec<AttemptAction> {
+    fn started(&mut self, provider: HolonId, now: Instant) -> Vec<AttemptAction> {
         let mut actions = self.record(Phase::Started(provider.clone()));
         actions.push(AttemptAction::Publish);
-        actions.push(self.watch_started(provider));
+        actions.push(self.watch_started(provider, now));
         actions
     }
 
@@ -365,7 +512,9 @@ impl Attempt {
         }]
     }
 
-    fn watch_started(&self, provider: HolonId) -> AttemptAction {
+    /// Watches a step that began (or resumed) at `now` for its step timeout.
+    fn watch_started(&mut self, provider: HolonId, now: Instant) -> AttemptAction {
+        self.deadline = Some(now + self.timing.step_timeout);
         AttemptAction::Watch {
             provider,
             pause: self.timing.step_timeout,
@@ -373,6 +522,12 @@ impl Attempt {
             may_run: true,
         }
     }
+}
+
+/// Whether `outcome` is a result `failed` `interrupted`: the resource's journal says the
+/// step was running when its holder stopped, not how it ended.
+fn interrupted(outcome: &StepOutcome) -> bool {
+    matches!(outcome, StepOutcome::Failed { reason, .. } if reason == Reason::Interrupted.as_str())
 }
 
 #[cfg(test)]
@@ -610,6 +765,11 @@ mod tests {
                 E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
                 now
             ),
+            vec![A::AskOutcome(robot(1))]
+        );
+        // Nobody can tell what became of it: lost.
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
             vec![A::End(StepOutcome::Lost {
                 provider: robot(1),
                 why: "the booking was lost".into()
@@ -647,6 +807,11 @@ mod tests {
         );
         assert_eq!(
             a.handle(E::Watched(None), now),
+            vec![A::AskOutcome(robot(2))]
+        );
+        // Nobody can tell what became of it: failed, as before asking.
+        assert_eq!(
+            a.handle(E::Outcome(None), now + Duration::from_secs(30)),
             vec![A::End(StepOutcome::Failed {
                 provider: robot(2),
                 reason: "no result within 30s".into()
@@ -765,6 +930,22 @@ mod tests {
                 E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
                 now
             ),
+            vec![A::AskOutcome(robot(1))]
+        );
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::NeverReached))), now),
+            vec![A::End(StepOutcome::Lost {
+                provider: robot(1),
+                why: "the step never reached the controller".into()
+            })]
+        );
+        let (mut a, now) = on_turn(Phase::Booked(robot(1)));
+        a.handle(
+            E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
+            now,
+        );
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
             vec![A::End(StepOutcome::Lost {
                 provider: robot(1),
                 why: "the booking was lost".into()
@@ -776,6 +957,228 @@ mod tests {
         assert_eq!(
             a.handle(E::BookingAnswer(Answer::Silent), now),
             vec![A::Record(Phase::Booking(robot(2))), A::AskBooking(robot(2))]
+        );
+    }
+
+    /// What robot`n` says of the conversation.
+    fn told(n: u32, outcome: Outcome) -> OutcomeReply {
+        schemas::OutcomeRequest::new("o/1/1", "pick_n_place", HolonId::order("o").unwrap())
+            .answer(&robot(n), outcome)
+    }
+
+    fn watch(n: u32, pause: Duration) -> AttemptAction {
+        A::Watch {
+            provider: robot(n),
+            pause,
+            started: true,
+            may_run: true,
+        }
+    }
+
+    #[test]
+    fn a_provider_that_came_back_is_asked_and_a_done_it_tells_ends_the_step_done() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Resumed, now);
+        assert_eq!(a.handle(E::CameBack, now), vec![A::AskOutcome(robot(1))]);
+        let mut done = told(1, Outcome::Done);
+        done.results.insert("pick".into(), "picking_done".into());
+        assert_eq!(
+            a.handle(E::Outcome(Some(done.clone())), now),
+            vec![A::End(StepOutcome::Done {
+                provider: robot(1),
+                results: done.results
+            })]
+        );
+    }
+
+    #[test]
+    fn a_provider_that_came_back_and_cannot_tell_is_watched_for_what_is_left_of_the_timeout() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Resumed, now);
+        a.handle(E::CameBack, now);
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Unknown))), now),
+            vec![watch(1, Duration::from_secs(30))]
+        );
+        let later = now + Duration::from_secs(10);
+        a.handle(E::CameBack, later);
+        assert_eq!(
+            a.handle(E::Outcome(None), later),
+            vec![watch(1, Duration::from_secs(20))]
+        );
+        assert_eq!(a.phase(), &Phase::Started(robot(1)));
+        // Back once more, past the step timeout, and still nobody can tell: failed.
+        let past = now + Duration::from_secs(31);
+        a.handle(E::CameBack, past);
+        assert_eq!(
+            a.handle(E::Outcome(None), past),
+            vec![A::End(StepOutcome::Failed {
+                provider: robot(1),
+                reason: "no result within 30s".into()
+            })]
+        );
+    }
+
+    #[test]
+    fn a_step_its_resource_runs_itself_is_watched_for_the_step_timeout_not_polled() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Resumed, now);
+        let later = now + Duration::from_secs(10);
+        a.handle(E::CameBack, later);
+        let mut running = told(1, Outcome::Running);
+        running.source = OutcomeSource::Journal;
+        assert_eq!(
+            a.handle(E::Outcome(Some(running.clone())), later),
+            vec![watch(1, Duration::from_secs(20))]
+        );
+        // Past the step timeout, a step still running there is polled.
+        let past = now + Duration::from_secs(31);
+        a.handle(E::Watched(None), past);
+        assert_eq!(
+            a.handle(E::Outcome(Some(running)), past),
+            vec![watch(1, Duration::from_millis(400))]
+        );
+    }
+
+    #[test]
+    fn a_poll_of_a_running_step_that_goes_unanswered_waits_out_the_step_timeout() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Resumed, now);
+        a.handle(E::CameBack, now);
+        a.handle(E::Outcome(Some(told(1, Outcome::Running))), now);
+        let poll = now + Duration::from_millis(400);
+        assert_eq!(
+            a.handle(E::Watched(None), poll),
+            vec![A::AskOutcome(robot(1))]
+        );
+        assert_eq!(
+            a.handle(E::Outcome(None), poll),
+            vec![watch(1, Duration::from_millis(29_600))]
+        );
+    }
+
+    #[test]
+    fn after_the_step_timeout_the_outcome_told_ends_the_step() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Watched(None), now);
+        let mut failed = told(1, Outcome::Failed);
+        failed.reason = Some(Reason::Interrupted);
+        assert_eq!(
+            a.handle(E::Outcome(Some(failed)), now),
+            vec![A::End(StepOutcome::Failed {
+                provider: robot(1),
+                reason: "interrupted".into()
+            })]
+        );
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Watched(None), now);
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::NeverReached))), now),
+            vec![A::End(StepOutcome::Lost {
+                provider: robot(1),
+                why: "the step never reached the controller".into()
+            })]
+        );
+    }
+
+    #[test]
+    fn a_step_told_running_is_polled_until_it_ends() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::CameBack, now);
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Running))), now),
+            vec![watch(1, Duration::from_millis(400))]
+        );
+        assert_eq!(
+            a.handle(E::Watched(None), now),
+            vec![A::AskOutcome(robot(1))]
+        );
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Done))), now),
+            vec![A::End(StepOutcome::Done {
+                provider: robot(1),
+                results: Default::default()
+            })]
+        );
+    }
+
+    #[test]
+    fn a_booking_not_booked_but_running_on_the_controller_is_started() {
+        let (mut a, now) = on_turn(Phase::Booked(robot(1)));
+        a.handle(
+            E::StartAnswer(Answer::Refused(Some(Reason::NotBooked))),
+            now,
+        );
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Running))), now),
+            vec![
+                A::Record(Phase::Started(robot(1))),
+                A::Publish,
+                watch(1, Duration::from_millis(400))
+            ]
+        );
+        assert_eq!(a.phase(), &Phase::Started(robot(1)));
+    }
+
+    #[test]
+    fn an_outcome_nobody_asked_for_changes_nothing() {
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::Done))), now),
+            vec![]
+        );
+        let (mut b, now) = attempt(Phase::Booked(robot(1)));
+        assert_eq!(b.handle(E::CameBack, now), vec![]);
+        assert_eq!(b.handle(E::Outcome(None), now), vec![]);
+    }
+
+    #[test]
+    fn an_interrupted_step_is_asked_and_ends_as_the_controller_says() {
+        let interrupted = StepOutcome::Failed {
+            provider: robot(1),
+            reason: "interrupted".into(),
+        };
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        assert_eq!(
+            a.handle(E::Watched(Some(interrupted.clone())), now),
+            vec![A::AskOutcome(robot(1))]
+        );
+        let mut done = told(1, Outcome::Done);
+        done.source = OutcomeSource::Controller;
+        done.results.insert("place".into(), "placing_done".into());
+        assert_eq!(
+            a.handle(E::Outcome(Some(done.clone())), now),
+            vec![A::End(StepOutcome::Done {
+                provider: robot(1),
+                results: done.results
+            })]
+        );
+        // Nobody can tell: interrupted, as reported.
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Watched(Some(interrupted.clone())), now);
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
+            vec![A::End(interrupted.clone())]
+        );
+        // Nothing reached the controller: booked again, not a failure.
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        a.handle(E::Watched(Some(interrupted)), now);
+        assert_eq!(
+            a.handle(E::Outcome(Some(told(1, Outcome::NeverReached))), now),
+            vec![A::End(StepOutcome::Lost {
+                provider: robot(1),
+                why: "the step never reached the controller".into()
+            })]
+        );
+        // Any other failure ends the step at once.
+        let (mut a, now) = attempt(Phase::Started(robot(1)));
+        let fault = StepOutcome::Failed {
+            provider: robot(1),
+            reason: "controller_fault".into(),
+        };
+        assert_eq!(
+            a.handle(E::Watched(Some(fault.clone())), now),
+            vec![A::End(fault)]
         );
     }
 }

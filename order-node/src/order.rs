@@ -102,6 +102,9 @@ enum Watched {
     /// Before the start: the resource published that the step runs (it began on its
     /// turn).
     Began,
+    /// Started: the provider came back (its token returned, or a holder of a higher
+    /// epoch serves it): it is asked what became of the step.
+    CameBack,
     /// Something ended the attempt; a result to acknowledge once recorded.
     Ended(StepOutcome, Option<Box<ResultReport>>),
 }
@@ -398,6 +401,12 @@ impl OrderTask {
                 ));
                 None
             }
+            AttemptAction::AskOutcome(provider) => {
+                let answer =
+                    requests::ask_outcome(&ctx, &self.holon, &provider, step, conversation_id)
+                        .await;
+                Some(AttemptEvent::Outcome(answer))
+            }
             AttemptAction::Wait { pause, idle, until } => {
                 self.wait_for_resource(pause, idle, until).await;
                 Some(AttemptEvent::Woken)
@@ -415,6 +424,7 @@ impl OrderTask {
                 {
                     Watched::Elapsed => Some(AttemptEvent::Watched(None)),
                     Watched::Began => Some(AttemptEvent::Began),
+                    Watched::CameBack => Some(AttemptEvent::CameBack),
                     Watched::Ended(outcome, delivered) => {
                         *report = delivered;
                         Some(AttemptEvent::Watched(Some(outcome)))
@@ -448,7 +458,9 @@ impl OrderTask {
     /// or booked to start on its turn) gets `vanished_grace` to come back and report
     /// before the attempt counts as lost.
     /// Before `started`, the pause also ends when the provider publishes that it is
-    /// free with this conversation first.
+    /// free with this conversation first; once `started`, when the provider comes back
+    /// after it was gone, or a holder of a higher epoch than when the watch began
+    /// publishes its state (it may not know the step: the order asks).
     async fn await_outcome(
         &mut self,
         provider: &HolonId,
@@ -470,6 +482,16 @@ impl OrderTask {
             }
         };
         tokio::pin!(turn);
+        let new_holder = async {
+            if started {
+                ctx.presence
+                    .new_holder(provider, ctx.presence.epoch(provider))
+                    .await
+            } else {
+                std::future::pending().await
+            }
+        };
+        tokio::pin!(new_holder);
         let lost = |why: &str| {
             Watched::Ended(
                 StepOutcome::Lost {
@@ -500,8 +522,9 @@ impl OrderTask {
         // result, or a holder that never ran it) as if the provider were there.
         let fenced = may_run && ctx.presence.fenced(provider);
         let gone = |alive: bool| (!alive && !fenced).then(|| Instant::now() + grace());
-        // When the provider is gone: the moment its grace ends.
-        let mut gone_until = gone(ctx.presence.is_alive(provider));
+        // Whether the provider was last seen gone, and when its grace ends.
+        let mut away = !ctx.presence.is_alive(provider);
+        let mut gone_until = gone(!away);
         loop {
             // While the provider is gone, asking it is pointless: a booked step waits
             // out the grace whatever its pause (a pause that ended it would start the
@@ -516,6 +539,7 @@ impl OrderTask {
                     crate::presence::TurnNews::Turn => Watched::Elapsed,
                     crate::presence::TurnNews::Began => Watched::Began,
                 },
+                () = &mut new_holder => return Watched::CameBack,
                 _ = tokio::time::sleep_until(deadline) => {
                     if gone_until.is_some_and(|g| Instant::now() >= g) {
                         return lost("the resource vanished");
@@ -529,7 +553,14 @@ impl OrderTask {
                     }
                 }
                 change = self.changes.recv() => match change {
-                    Ok((holon, alive)) if &holon == provider => gone_until = gone(alive),
+                    Ok((holon, alive)) if &holon == provider => {
+                        // A started step's provider back after being away: ask it.
+                        if alive && started && away {
+                            return Watched::CameBack;
+                        }
+                        away = !alive;
+                        gone_until = gone(alive);
+                    }
                     Ok(_) => {}
                     Err(broadcast::error::RecvError::Lagged(_)) => {
                         if gone_until.is_none() {

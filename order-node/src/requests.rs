@@ -6,7 +6,9 @@ use std::collections::BTreeSet;
 use std::sync::Arc;
 use std::time::Duration;
 
-use schemas::{HolonId, MessageType, Plan, PlanStep, Reason, Service};
+use schemas::{
+    HolonId, MessageType, Outcome, OutcomeReply, OutcomeRequest, Plan, PlanStep, Reason, Service,
+};
 use tokio::sync::broadcast;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -98,6 +100,76 @@ pub async fn ask(ctx: &OrderContext, key: &str, message: &Service) -> Option<Ser
         answer.get_or_insert(service);
     }
     answer
+}
+
+/// How much longer than a request an outcome question may wait: a fenced resource that
+/// does not know the conversation asks its controller first.
+pub const OUTCOME_EXTRA: Duration = Duration::from_secs(2);
+
+/// Asks `provider` what became of `conversation_id` (`resource/<name>/outcome`): the
+/// answer that says most (`done`, `failed` or `never_reached` at once; else `running`,
+/// else `unknown`), or `None` when nobody answered (a resource of an older release, or
+/// none serving the name).
+pub async fn ask_outcome(
+    ctx: &OrderContext,
+    holon: &HolonId,
+    provider: &HolonId,
+    step: &PlanStep,
+    conversation_id: &str,
+) -> Option<OutcomeReply> {
+    let key = ctx.keys.outcome(provider.name());
+    let question = OutcomeRequest::new(conversation_id, &step.service_type, holon.clone());
+    let mut replies = match ctx
+        .session
+        .get(&key)
+        .payload(question.to_json())
+        .consolidation(ConsolidationMode::None)
+        .timeout(ctx.settings.request_timeout + OUTCOME_EXTRA)
+        .with(holon::query::replies())
+        .await
+    {
+        Ok(replies) => replies,
+        Err(e) => {
+            warn!(%holon, %conversation_id, resource = %provider, error = %e, "cannot ask the outcome");
+            return None;
+        }
+    };
+    let mut best: Option<OutcomeReply> = None;
+    while let Some(reply) = replies.recv().await {
+        let answer = match reply.result() {
+            Ok(sample) => match OutcomeReply::from_json(&sample.payload().to_bytes()) {
+                Ok(answer) => answer,
+                Err(e) => {
+                    warn!(%holon, %conversation_id, resource = %provider, error = %e, "outcome answer not understood");
+                    continue;
+                }
+            },
+            Err(err) => {
+                warn!(%holon, %conversation_id, resource = %provider, error = %err.payload().try_to_string().unwrap_or_default(), "outcome question refused");
+                continue;
+            }
+        };
+        if &answer.provider != provider || answer.conversation_id != conversation_id {
+            warn!(%holon, %conversation_id, resource = %provider, from = %answer.provider, "an outcome answer for another resource or conversation ignored");
+            continue;
+        }
+        info!(%holon, %conversation_id, resource = %provider, outcome = %answer.outcome, source = ?answer.source, epoch = answer.epoch, reason = answer.reason.as_ref().map_or("", |r| r.as_str()), "outcome told");
+        let rank = |a: &OutcomeReply| match a.outcome {
+            Outcome::Unknown => 0,
+            Outcome::Running => 1,
+            Outcome::Done | Outcome::Failed | Outcome::NeverReached => 2,
+        };
+        if rank(&answer) == 2 {
+            return Some(answer);
+        }
+        if best.as_ref().is_none_or(|b| rank(&answer) > rank(b)) {
+            best = Some(answer);
+        }
+    }
+    if best.is_none() {
+        info!(%holon, %conversation_id, resource = %provider, "nobody said what became of the conversation");
+    }
+    best
 }
 
 /// A reply as a Service message; an error reply or one that cannot be read is logged

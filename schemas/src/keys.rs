@@ -86,6 +86,13 @@ impl CellKeys {
         format!("{}/resource/{resource}/service", self.prefix())
     }
 
+    /// `holarchy/<cell>/resource/<name>/outcome`: what became of a conversation (an
+    /// [`crate::outcome::OutcomeRequest`] in, an [`crate::outcome::OutcomeReply`] out),
+    /// asked by the order that booked it.
+    pub fn outcome(&self, resource: &str) -> String {
+        format!("{}/resource/{resource}/outcome", self.prefix())
+    }
+
     /// `holarchy/<cell>/resource/<name>/packml`: PackML commands and unit mode changes
     /// to one resource (a [`crate::packml::PackmlRequest`] in, a
     /// [`crate::packml::PackmlReply`] out); operators only in a secure cell.
@@ -242,6 +249,10 @@ mod tests {
         assert_eq!(
             keys.service("robot1"),
             "holarchy/demo/resource/robot1/service"
+        );
+        assert_eq!(
+            keys.outcome("robot1"),
+            "holarchy/demo/resource/robot1/outcome"
         );
         assert_eq!(
             keys.offer("pick_n_place", "robot1"),

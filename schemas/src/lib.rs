@@ -8,6 +8,7 @@ pub mod advice;
 pub mod fence;
 pub mod id;
 pub mod keys;
+pub mod outcome;
 pub mod packml;
 pub mod plan;
 pub mod robot;
@@ -19,6 +20,7 @@ pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION}
 pub use fence::{FenceReport, FenceRole};
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
+pub use outcome::{Outcome, OutcomeReply, OutcomeRequest, OutcomeSource};
 pub use packml::{
     PackmlCommand, PackmlReply, PackmlRequest, PackmlState, PackmlStatus, Refusal, StopReason,
     UnitMode,
@@ -78,6 +80,23 @@ pub fn advice_json_schema() -> String {
         "$defs": {
             "AdviceRequest": schemars::schema_for!(AdviceRequest),
             "Advice": schemars::schema_for!(Advice),
+        },
+    });
+    let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
+    text.push('\n');
+    text
+}
+
+/// The JSON Schema of the question on `resource/<name>/outcome` and its answer (what
+/// became of a conversation), checked in as `schemas/json/outcome.schema.json`.
+pub fn outcome_json_schema() -> String {
+    let schema = serde_json::json!({
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "holarchy outcome",
+        "description": "What became of a conversation: the request an order sends on resource/<name>/outcome, and the reply.",
+        "$defs": {
+            "OutcomeRequest": schemars::schema_for!(OutcomeRequest),
+            "OutcomeReply": schemars::schema_for!(OutcomeReply),
         },
     });
     let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");

@@ -18,6 +18,18 @@ fn advice_schema_file_is_current() {
 }
 
 #[test]
+fn outcome_schema_file_is_current_and_names_the_outcomes() {
+    let generated = schemas::outcome_json_schema();
+    schema_file_is_current("outcome.schema.json", generated.clone());
+    for value in ["done", "failed", "running", "never_reached", "unknown"] {
+        assert!(
+            generated.contains(&format!("\"{value}\"")),
+            "the schema lacks {value}"
+        );
+    }
+}
+
+#[test]
 fn resource_state_schema_file_is_current_and_names_the_states() {
     let generated = schemas::resource_state_json_schema();
     schema_file_is_current("resource-state.schema.json", generated.clone());

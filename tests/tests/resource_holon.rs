@@ -603,3 +603,65 @@ async fn a_result_for_a_requester_gone_does_not_hold_up_the_shutdown() {
         (MessageType::Done, "c1")
     );
 }
+
+/// What robot1 says became of `conversation` of `order` (`resource/robot1/outcome`).
+async fn outcome(cell: &Cell, order: &str, conversation: &str) -> schemas::OutcomeReply {
+    let request =
+        schemas::OutcomeRequest::new(conversation, "pick_n_place", HolonId::order(order).unwrap());
+    let replies = cell
+        .session
+        .get(cell.keys.outcome("robot1"))
+        .payload(request.to_json())
+        .timeout(WAIT)
+        .await
+        .unwrap();
+    let reply = replies.recv_async().await.expect("robot1 answers");
+    let sample = reply.result().expect("an outcome, not an error");
+    schemas::OutcomeReply::from_json(&sample.payload().to_bytes()).unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn an_unfenced_resource_tells_what_became_of_a_conversation_from_its_agenda() {
+    use schemas::{Outcome, OutcomeSource};
+    let r = robot("t-outcome", &["--action-ms", "place=1000"], &[], 5000).await;
+    // Never booked here: it cannot tell (and has no fenced controller to ask).
+    let never = outcome(&r.cell, "o1", "o1/1/1").await;
+    assert_eq!(
+        (never.outcome, never.source),
+        (Outcome::Unknown, OutcomeSource::Nowhere),
+        "{never:?}"
+    );
+    assert_eq!(never.epoch, None, "unfenced: {never:?}");
+    // Booked: waiting, then running (place takes a second); its result is refused, so
+    // it stays in the agenda until acknowledged.
+    let mut inbox = r.cell.inbox("o1", usize::MAX).await.unwrap();
+    let booked = r.send(MessageType::BookingReq, "o1", "o1/1/1").await;
+    assert_eq!(booked.result, Some(true), "{booked:?}");
+    assert_eq!(
+        outcome(&r.cell, "o1", "o1/1/1").await.outcome,
+        Outcome::Running
+    );
+    let started = r.send(MessageType::Start, "o1", "o1/1/1").await;
+    assert_eq!(started.result, Some(true), "{started:?}");
+    let running = outcome(&r.cell, "o1", "o1/1/1").await;
+    assert_eq!(
+        (running.outcome, running.source),
+        (Outcome::Running, OutcomeSource::Journal),
+        "{running:?}"
+    );
+    let delivered = inbox.next().await.unwrap();
+    assert_eq!(delivered.message_type, MessageType::Done, "{delivered:?}");
+    let done = outcome(&r.cell, "o1", "o1/1/1").await;
+    assert_eq!(
+        (done.outcome, done.source),
+        (Outcome::Done, OutcomeSource::Journal),
+        "{done:?}"
+    );
+    assert_eq!(done.results["place"], "placing_done", "{done:?}");
+    // Another requester's question about it is not answered from it.
+    assert_eq!(
+        outcome(&r.cell, "o2", "o1/1/1").await.outcome,
+        Outcome::Unknown
+    );
+    assert_eq!(r.sim.executed("place"), 1);
+}

@@ -261,7 +261,24 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         )
         .await;
     }
+    // What became of a conversation: an order-node may ask it (robot1 never heard of
+    // this one: `unknown`), an observer may not (no reply at all).
+    let outcome = schemas::OutcomeRequest::new("intruder-1/1/1", "pick_n_place", intruder.clone());
+    let told = answered(
+        &probe,
+        &keys.outcome("robot1"),
+        outcome.to_json(),
+        "the order-node probe",
+    )
+    .await;
+    let reply = schemas::OutcomeReply::from_json(told[0].as_ref().unwrap()).unwrap();
+    assert_eq!(reply.outcome, schemas::Outcome::Unknown, "{reply:?}");
     probe.close().await.unwrap();
+    let replies = ask(&observer, &keys.outcome("robot1"), outcome.to_json()).await;
+    assert!(
+        replies.is_empty(),
+        "the observer reached robot1's outcome: {replies:?}"
+    );
     for message in [&booking, &start] {
         let replies = ask(&observer, &keys.service("robot1"), message.to_json()).await;
         assert!(

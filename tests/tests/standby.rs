@@ -3,7 +3,11 @@
 //! serves. The primary is frozen (SIGSTOP: its token stays, its controller session goes
 //! silent), the standby's claim is granted and it serves; the old primary, thawed, finds
 //! its claim gone and steps down. Every step runs once by the simulator's counts per
-//! step id. Bounded waits only; no timing is asserted.
+//! step id. A holder that dies after its controller ran an order's step, before the
+//! result reached the order: the order asks the new holder what became of its
+//! conversation (the new holder asks the controller) and the step ends done, never run
+//! again; so too when the holder is killed mid-step and restarted on its journal, which
+//! says only `interrupted`. Bounded waits only; no timing is asserted.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -403,4 +407,156 @@ async fn a_holder_whose_controller_client_crashes_steps_down_and_claims_again() 
     assert_eq!(counts["epoch"], 2, "{counts}");
     assert_eq!(counts["by_step"]["o1-1#0"], 1, "{counts}");
     drop(node);
+}
+
+/// The demo order-node's config with a step timeout of 5 s (the default is 10 min): an
+/// order that hears nothing of its step gives up on it within the test.
+fn impatient_orders(dir: &Path) -> PathBuf {
+    let text = fs::read_to_string(demo_config("orders1.toml")).unwrap();
+    assert!(text.contains("step_timeout_ms = 600000"));
+    let path = dir.join("orders.toml");
+    fs::write(
+        &path,
+        text.replace("step_timeout_ms = 600000", "step_timeout_ms = 5000"),
+    )
+    .unwrap();
+    path
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_step_the_dead_holder_completed_ends_done_and_never_runs_again() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path();
+    let cell = Cell::open("t-standby-outcome").await.unwrap();
+    // `place` takes a second: the holder's host hangs while it runs.
+    let sim = Sim::start(
+        dir,
+        "robot1-sim",
+        "127.0.0.1:0",
+        &["--fenced", "--lease-ms", "500", "--action-ms", "place=1000"],
+    )
+    .unwrap();
+    let (a, b) = (host(dir, "a").unwrap(), host(dir, "b").unwrap());
+    let robot1 = HolonId::resource("robot1").unwrap();
+    let mut primary = twin(&cell, &a, &sim).unwrap();
+    cell.wait_alive(&robot1).await.unwrap();
+    cell.wait_state("robot1", "free at epoch 1", |s| {
+        s["state"] == "free" && s["epoch"] == 1
+    })
+    .await
+    .unwrap();
+    let standby = twin(&cell, &b, &sim).unwrap();
+    wait_said(&b, "standby: another session holds the controller", 1)
+        .await
+        .unwrap();
+    let (_product, _orders) = cell
+        .start_part_and_orders(dir, &impatient_orders(dir), &dir.join("orders-data"))
+        .await
+        .unwrap();
+    let orders = cell.submit("part", 1).await.unwrap();
+    let order = orders[0].clone();
+
+    // (1) The step runs on the holder: pick is done, place is on the controller.
+    sim.wait_executed("pick", 1).await.unwrap();
+    sim.wait_received(2).await.unwrap();
+    // (2) The holder's host hangs: its session goes silent, so its result can never
+    // reach the order. The controller completes place for nobody, frees the claim
+    // after its lease, and the standby holds the controller at epoch 2.
+    primary.signal(Signal::SIGSTOP).unwrap();
+    wait_said(&b, "holding the controller", 1).await.unwrap();
+    cell.wait_state("robot1", "free at epoch 2", |s| {
+        s["state"] == "free" && s["epoch"] == 2
+    })
+    .await
+    .unwrap();
+    // (3) The hung host dies, with the journal that held the undelivered result.
+    primary.kill();
+    sim.wait_executed("place", 1).await.unwrap();
+
+    // (4) The order asks the new holder what became of its conversation; it knows
+    // nothing of it, asks the controller, and says done: the step ends done.
+    cell.wait_order(&order, "ended", |s| {
+        s.is_some_and(|s| s["status"] != "running")
+    })
+    .await
+    .unwrap();
+    let state = cell.order_state(&order).await.unwrap();
+    assert_eq!(state["status"], "done", "{state}");
+    assert_eq!(state["attempt"], 1, "one conversation only: {state}");
+    assert_eq!(state["rebooks"], 0, "{state}");
+    assert_eq!(state["failed_attempts"], 0, "{state}");
+    assert!(said(&b, "outcome asked") >= 1, "{}", log(&b));
+
+    // (5) Every step ran exactly once on the controller, under the first conversation.
+    let counts = sim.counts();
+    let by_step = counts["by_step"].as_object().cloned().unwrap_or_default();
+    let ran: Vec<(String, u64)> = by_step
+        .iter()
+        .map(|(step, n)| (step.clone(), n.as_u64().unwrap_or(0)))
+        .collect();
+    let first = format!("{order}/1/1");
+    assert_eq!(
+        ran,
+        vec![(format!("{first}#0"), 1), (format!("{first}#1"), 1)],
+        "{counts}"
+    );
+    assert_eq!(sim.executed("place"), 1, "{counts}");
+    drop(standby);
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_holder_killed_mid_step_and_restarted_on_its_journal_reports_the_step_done() {
+    let root = tempfile::tempdir().unwrap();
+    let dir = root.path();
+    let cell = Cell::open("t-standby-restart").await.unwrap();
+    let sim = Sim::start(
+        dir,
+        "robot1-sim",
+        "127.0.0.1:0",
+        &["--fenced", "--lease-ms", "500", "--action-ms", "place=1000"],
+    )
+    .unwrap();
+    let a = host(dir, "a").unwrap();
+    let mut holder = twin(&cell, &a, &sim).unwrap();
+    cell.wait_state("robot1", "free at epoch 1", |s| {
+        s["state"] == "free" && s["epoch"] == 1
+    })
+    .await
+    .unwrap();
+    let (_product, _orders) = cell
+        .start_part_and_orders(dir, &impatient_orders(dir), &dir.join("orders-data"))
+        .await
+        .unwrap();
+    let order = cell.submit("part", 1).await.unwrap()[0].clone();
+
+    // The holder dies while place runs; the controller completes it for nobody.
+    sim.wait_executed("pick", 1).await.unwrap();
+    sim.wait_received(2).await.unwrap();
+    holder.kill();
+    // Restarted on its journal, which says only that the job was running: it reports
+    // it `interrupted`. The order asks, the holder asks the controller: done.
+    let holder = twin(&cell, &a, &sim).unwrap();
+    cell.wait_order(&order, "ended", |s| {
+        s.is_some_and(|s| s["status"] != "running")
+    })
+    .await
+    .unwrap();
+    let state = cell.order_state(&order).await.unwrap();
+    assert_eq!(state["status"], "done", "{state}");
+    assert_eq!(state["attempt"], 1, "one conversation only: {state}");
+    assert_eq!(state["failed_attempts"], 0, "{state}");
+    let counts = sim.counts();
+    let first = format!("{order}/1/1");
+    let by_step = counts["by_step"].as_object().cloned().unwrap_or_default();
+    let ran: Vec<(String, u64)> = by_step
+        .iter()
+        .map(|(step, n)| (step.clone(), n.as_u64().unwrap_or(0)))
+        .collect();
+    assert_eq!(
+        ran,
+        vec![(format!("{first}#0"), 1), (format!("{first}#1"), 1)],
+        "{counts}"
+    );
+    assert_eq!(counts["epoch"], 2, "{counts}");
+    drop(holder);
 }

@@ -423,13 +423,20 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         deliver(&links, &mut delivery, DeliveryEvent::Result(result));
     }
     // A fenced resource delivers nothing until it holds its controller
-    // (docs/reliability.md, "Standby resources").
+    // (docs/reliability.md, "Standby resources"), and no resource before it answers
+    // questions about its results (its queryables are declared).
     let mut fence = links.views.fence.subscribe();
+    let mut answering = links.views.answering.subscribe();
     let mut serving = false;
     let mut journal_retry = tokio::time::interval(JOURNAL_RETRY);
     journal_retry.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
-        if !serving && fence.borrow_and_update().serves() {
+        // Both read (and marked seen) every time: a change of either wakes the loop once.
+        let (serves, answers) = (
+            fence.borrow_and_update().serves(),
+            *answering.borrow_and_update(),
+        );
+        if !serving && serves && answers {
             serving = true;
             deliver(&links, &mut delivery, DeliveryEvent::Serving);
         }
@@ -471,6 +478,10 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             }
             changed = fence.changed(), if !serving => {
                 changed.map_err(|_| "the fence view closed")?;
+                continue;
+            }
+            changed = answering.changed(), if !serving => {
+                changed.map_err(|_| "the answering view closed")?;
                 continue;
             }
             message = mailbox.recv() => {

@@ -2,7 +2,9 @@
 //!
 //! It declares the holon's queryables (`resource/<name>/service`, one
 //! `offer/<type>/<name>` per service type while the resource takes work,
-//! `resource/<name>/state`, `resource/<name>/packml` (PackML commands), and `resource/<name>/debug/crash` with
+//! `resource/<name>/state`, `resource/<name>/packml` (PackML commands),
+//! `resource/<name>/outcome` (what became of a conversation, answered by
+//! [`super::outcome`] in a task of its own), and `resource/<name>/debug/crash` with
 //! `--allow-fault-injection`), decodes and checks every request, and hands each agenda
 //! request, with its query, to the agenda manager, which answers it. A request that
 //! cannot be decoded, or is not allowed on the key it came to, gets an error reply
@@ -72,6 +74,7 @@ enum Endpoint {
     Offer(String),
     State,
     Packml,
+    Outcome,
     Crash,
 }
 
@@ -84,6 +87,7 @@ impl Endpoint {
             Endpoint::Offer(service_type) => config.keys.offer(service_type, name),
             Endpoint::State => config.keys.state(&config.holon),
             Endpoint::Packml => config.keys.packml(name),
+            Endpoint::Outcome => config.keys.outcome(name),
             Endpoint::Crash => config.keys.debug_crash(name),
         }
     }
@@ -111,7 +115,12 @@ impl Queryables {
         arrivals: mpsc::Sender<Arrival>,
     ) -> Result<Queryables, ChildError> {
         let config = &links.config;
-        let mut endpoints = vec![Endpoint::Service, Endpoint::State, Endpoint::Packml];
+        let mut endpoints = vec![
+            Endpoint::Service,
+            Endpoint::State,
+            Endpoint::Packml,
+            Endpoint::Outcome,
+        ];
         if config.allow_fault_injection {
             endpoints.push(Endpoint::Crash);
         }
@@ -272,6 +281,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     let mut retries = links.views.delivery_retries.subscribe();
     let (arrivals_tx, mut arrivals) = mpsc::channel(QUERY_QUEUE);
     let mut queryables = Queryables::declare(&links, arrivals_tx).await?;
+    links.views.answering.send_replace(true);
     queryables.sync_offers(&links).await?;
     let publisher = links
         .session
@@ -363,12 +373,12 @@ async fn publish(
 }
 
 /// Answers one query here, or returns it as a message for the agenda manager.
-async fn answer(links: &Links, arrival: Arrival) -> Option<AgendaMessage> {
+async fn answer(links: &Arc<Links>, arrival: Arrival) -> Option<AgendaMessage> {
     let Arrival { endpoint, question } = arrival;
     let holon = &links.config.holon;
     let work = matches!(
         endpoint,
-        Endpoint::Service | Endpoint::Offer(_) | Endpoint::Packml
+        Endpoint::Service | Endpoint::Offer(_) | Endpoint::Packml | Endpoint::Outcome
     );
     if work && !links.views.fence.borrow().serves() {
         // A fenced resource stepping down: the holder of the controller answers; this
@@ -415,6 +425,11 @@ async fn answer(links: &Links, arrival: Arrival) -> Option<AgendaMessage> {
                     None
                 }
             };
+        }
+        Endpoint::Outcome => {
+            // It may ask the controller: answered by a task of its own.
+            tokio::spawn(super::outcome::answer(Arc::clone(links), question));
+            return None;
         }
         Endpoint::Service | Endpoint::Offer(_) => {}
     }

@@ -20,5 +20,6 @@ pub mod communication;
 pub mod delivery;
 pub mod execution;
 pub mod interfacing;
+pub mod outcome;
 pub mod question;
 pub mod requesters;

@@ -146,6 +146,39 @@ impl Presence {
         std::future::pending().await
     }
 
+    /// The epoch of the holder whose state `resource` last published (a fenced
+    /// resource), if one was heard.
+    pub fn epoch(&self, resource: &HolonId) -> Option<u64> {
+        self.view
+            .borrow()
+            .turns
+            .get(resource)
+            .and_then(|turns| turns.borrow().epoch)
+    }
+
+    /// Completes when `resource` publishes a state from a holder of a higher epoch than
+    /// `seen` (when `seen` is `None`, than the first epoch heard from now on): a new
+    /// holder serves it, which may know nothing of what the last one ran. Pending for
+    /// a resource that is not fenced.
+    pub async fn new_holder(&self, resource: &HolonId, seen: Option<u64>) {
+        let known = self.view.borrow().turns.get(resource).cloned();
+        let mut turns = match known {
+            Some(turns) => turns,
+            None => self.turns_when_heard(resource).await,
+        };
+        let mut baseline = seen;
+        loop {
+            match (baseline, turns.borrow_and_update().epoch) {
+                (Some(seen), Some(now)) if now > seen => return,
+                (None, Some(now)) => baseline = Some(now),
+                _ => {}
+            }
+            if turns.changed().await.is_err() {
+                return std::future::pending().await;
+            }
+        }
+    }
+
     /// The channel of `resource`'s turns, once the task heard of it (its token or its
     /// state); pending until then.
     async fn turns_when_heard(&self, resource: &HolonId) -> watch::Receiver<Turns> {

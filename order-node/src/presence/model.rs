@@ -84,6 +84,10 @@ pub struct Turns {
     pub turn: Option<String>,
     /// The conversation whose job runs.
     pub running: Option<String>,
+    /// The epoch of the holder that published (a fenced resource): one higher than an
+    /// order saw when its step began means a new holder serves, which may not know
+    /// the step.
+    pub epoch: Option<u64>,
 }
 
 /// A resource's queue as it last published it.
@@ -261,6 +265,7 @@ impl PresenceModel {
             turns: Turns {
                 turn: news.turn,
                 running: snapshot.current.as_ref().map(|c| c.conversation_id.clone()),
+                epoch: snapshot.epoch,
             },
         }];
         if news.became_ready {

@@ -226,7 +226,8 @@ fn a_snapshot_gives_the_turn_readiness_and_freed_places() {
                 resource: r.clone(),
                 turns: Turns {
                     turn: None,
-                    running: Some("a/1/1".into())
+                    running: Some("a/1/1".into()),
+                    epoch: None,
                 }
             },
             Notice::BecameReady(r.clone()),
@@ -245,7 +246,8 @@ fn a_snapshot_gives_the_turn_readiness_and_freed_places() {
                 resource: r.clone(),
                 turns: Turns {
                     turn: Some("c/1/1".into()),
-                    running: None
+                    running: None,
+                    epoch: None,
                 }
             },
             Notice::PlacesFreed {
