@@ -28,7 +28,7 @@
 //! | booked(p) | began (p published that the step runs) | record started(p), publish, watch (step timeout) | started(p) |
 //! | booked(p) | watched: lost | cancel the booking when p is back, end: lost | — |
 //! | booked(p) | watched: another outcome | end with it | — |
-//! | started(p) | resumed | declare token, watch (step timeout) | started(p) |
+//! | started(p) | resumed (a restart, or a takeover of the node) | declare token, ask p the outcome (the step timeout starts) | started(p), asking |
 //! | started(p) | watched: `failed` `interrupted` (p's journal knew only that it ran) | ask p the outcome | started(p), asking |
 //! | started(p) | watched: another outcome | end with it | — |
 //! | started(p) | watched: pause over (the step timeout, or a poll of a running step) | ask p the outcome | started(p), asking |
@@ -290,9 +290,13 @@ impl Attempt {
                 actions
             }
             (Phase::Started(provider), E::Resumed) => {
+                // What happened while no process watched (a restart, a takeover of the
+                // node) only the resource can say: asked at once.
+                self.deadline = Some(now + self.timing.step_timeout);
+                self.asking = Some(Asking::CameBack);
                 vec![
                     AttemptAction::DeclareToken,
-                    self.watch_started(provider, now),
+                    AttemptAction::AskOutcome(provider),
                 ]
             }
             (Phase::Started(provider), E::Watched(Some(outcome))) if interrupted(&outcome) => {
@@ -793,17 +797,20 @@ mod tests {
     #[test]
     fn a_started_step_without_a_result_in_time_fails() {
         let (mut a, now) = attempt(Phase::Started(robot(2)));
+        // Resumed (a restart, a takeover of the node): the resource is asked first;
+        // nobody can tell, so what is left of the step timeout is watched.
         assert_eq!(
             a.handle(E::Resumed, now),
-            vec![
-                A::DeclareToken,
-                A::Watch {
-                    provider: robot(2),
-                    pause: Duration::from_secs(30),
-                    started: true,
-                    may_run: true,
-                }
-            ]
+            vec![A::DeclareToken, A::AskOutcome(robot(2))]
+        );
+        assert_eq!(
+            a.handle(E::Outcome(None), now),
+            vec![A::Watch {
+                provider: robot(2),
+                pause: Duration::from_secs(30),
+                started: true,
+                may_run: true,
+            }]
         );
         assert_eq!(
             a.handle(E::Watched(None), now),
