@@ -9,27 +9,21 @@
 //! even when the test fails.
 
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use holarchy_tests::lab::{Lab, Network};
 use holarchy_tests::*;
 
 const LEASE_MS: u64 = 2000;
 const CELL: &str = "t-multi";
 
-/// The test's namespaces and links, removed when dropped.
+/// The test's hosts a, b and c on one network, in namespaces ([`Lab`]: removed when
+/// dropped, with every process the test started).
 struct Hosts {
-    prefix: String,
-    children: Vec<Child>,
-    /// Where the started processes log (`<name>.log`); printed when the test fails.
-    logs: Option<std::path::PathBuf>,
+    lab: Lab,
 }
 
 impl Hosts {
-    fn ns(&self, host: &str) -> String {
-        format!("{}{host}", self.prefix)
-    }
-
     fn address(host: &str) -> &'static str {
         match host {
             "a" => "10.213.77.1",
@@ -42,147 +36,45 @@ impl Hosts {
         format!("tcp/{}:7447", Self::address(host))
     }
 
-    fn setup() -> Hosts {
-        let prefix = format!("hl{}", std::process::id() % 100_000);
-        let hosts = Hosts {
-            prefix,
-            children: Vec::new(),
-            logs: None,
+    fn setup(dir: &Path) -> Hosts {
+        let network = Network {
+            name: "n",
+            subnet: "10.213.77",
         };
-        let sw = hosts.ns("s");
-        run(&["ip", "netns", "add", &sw]);
-        run(&[
-            "ip", "netns", "exec", &sw, "ip", "link", "add", "br0", "type", "bridge",
-        ]);
-        run(&["ip", "netns", "exec", &sw, "ip", "link", "set", "br0", "up"]);
-        for host in ["a", "b", "c"] {
-            let ns = hosts.ns(host);
-            let (inner, outer) = (
-                format!("{}{host}0", hosts.prefix),
-                format!("{}{host}1", hosts.prefix),
-            );
-            run(&["ip", "netns", "add", &ns]);
-            run(&["ip", "netns", "exec", &ns, "ip", "link", "set", "lo", "up"]);
-            run(&[
-                "ip", "link", "add", &inner, "type", "veth", "peer", "name", &outer,
-            ]);
-            run(&["ip", "link", "set", &inner, "netns", &ns]);
-            run(&["ip", "link", "set", &outer, "netns", &sw]);
-            run(&[
-                "ip", "netns", "exec", &sw, "ip", "link", "set", &outer, "master", "br0",
-            ]);
-            run(&[
-                "ip", "netns", "exec", &sw, "ip", "link", "set", &outer, "up",
-            ]);
-            let cidr = format!("{}/24", Self::address(host));
-            run(&[
-                "ip", "netns", "exec", &ns, "ip", "addr", "add", &cidr, "dev", &inner,
-            ]);
-            run(&[
-                "ip", "netns", "exec", &ns, "ip", "link", "set", &inner, "up",
-            ]);
+        let on: &[&str] = &["n"];
+        Hosts {
+            lab: Lab::new(
+                "hl",
+                dir,
+                &[network],
+                &[("a", 1, on), ("b", 2, on), ("c", 3, on)],
+            ),
         }
-        hosts
     }
 
-    /// Starts a command inside host `host`'s namespace, its output to `dir/<name>.log`.
-    fn spawn(&mut self, dir: &Path, host: &str, name: &str, program: &Path, args: &[&str]) {
-        self.logs = Some(dir.to_path_buf());
-        let log = std::fs::File::create(dir.join(format!("{name}.log"))).unwrap();
-        let child = Command::new("ip")
-            .args(["netns", "exec", &self.ns(host)])
-            .arg(program)
-            .args(args)
-            .env("RUST_LOG", "info")
-            .stdout(log.try_clone().unwrap())
-            .stderr(log)
-            .spawn()
-            .unwrap();
-        self.children.push(child);
+    /// Starts a command inside host `host`'s namespace, its output to `<dir>/<name>.log`.
+    fn spawn(&mut self, host: &str, name: &str, program: &Path, args: &[&str]) {
+        self.lab
+            .spawn(host, name, program, args, &[("RUST_LOG", "info")]);
     }
 
     /// Runs a `cell` command on host c and returns its output.
     fn cell(&self, args: &[&str]) -> String {
-        let output = Command::new("ip")
-            .args(["netns", "exec", &self.ns("c")])
-            .arg(bin("cell"))
-            .args(args)
-            .args(["--cell", CELL, "--connect", &Self::router("c")])
-            .output()
-            .unwrap();
-        String::from_utf8_lossy(&output.stdout).into_owned()
+        let router = Self::router("c");
+        let mut all = args.to_vec();
+        all.extend(["--cell", CELL, "--connect", &router]);
+        self.lab.output("c", &bin("cell"), &all)
     }
 
     fn link(&self, host: &str, state: &str) {
-        let inner = format!("{}{host}0", self.prefix);
-        run(&[
-            "ip",
-            "netns",
-            "exec",
-            &self.ns(host),
-            "ip",
-            "link",
-            "set",
-            &inner,
-            state,
-        ]);
+        self.lab.link(host, "n", state == "up");
     }
-}
 
-impl Hosts {
     /// Kills every process the test started and returns the PIDs of any process still
     /// in the test's namespaces afterwards (none, when all went).
     fn stop_all(&mut self) -> Vec<String> {
-        for child in &mut self.children {
-            let _ = child.kill();
-            let _ = child.wait();
-        }
-        let mut left = Vec::new();
-        for host in ["a", "b", "c", "s"] {
-            if let Ok(out) = Command::new("ip")
-                .args(["netns", "pids", &self.ns(host)])
-                .output()
-            {
-                left.extend(
-                    String::from_utf8_lossy(&out.stdout)
-                        .split_whitespace()
-                        .map(|pid| format!("{host}:{pid}")),
-                );
-            }
-        }
-        left
+        self.lab.stop_all()
     }
-}
-
-impl Drop for Hosts {
-    fn drop(&mut self) {
-        let left = self.stop_all();
-        if !left.is_empty() {
-            println!("still running in the test's namespaces, killed: {left:?}");
-            for pid in left.iter().filter_map(|p| p.split_once(':')) {
-                let _ = Command::new("kill").args(["-9", pid.1]).status();
-            }
-        }
-        if std::thread::panicking() {
-            if let Some(dir) = &self.logs {
-                print_log_tails(dir);
-            }
-        }
-        for host in ["a", "b", "c", "s"] {
-            let _ = Command::new("ip")
-                .args(["netns", "del", &self.ns(host)])
-                .status();
-        }
-    }
-}
-
-fn run(args: &[&str]) {
-    let status = Command::new(args[0])
-        .args(&args[1..])
-        .stderr(Stdio::inherit())
-        .status()
-        .unwrap();
-    assert!(status.success(), "{args:?} failed");
 }
 
 /// Waits until `check` holds on what `cell orders` prints.
@@ -215,8 +107,8 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
     }
     let dir = tempfile::tempdir().unwrap();
     let dir = dir.path();
-    let mut hosts = Hosts::setup();
-    start_a_router_on_every_host(&mut hosts, dir);
+    let mut hosts = Hosts::setup(dir);
+    start_a_router_on_every_host(&mut hosts);
     start_the_holons(&mut hosts, dir);
     the_cell_assembles_across_hosts(&hosts);
     orders_run_on_host_b(&hosts);
@@ -231,7 +123,7 @@ fn orders_cross_hosts_survive_a_partition_and_the_host_rejoins() {
 }
 
 /// A router on every host (`cell router`), each connected to the others.
-fn start_a_router_on_every_host(hosts: &mut Hosts, dir: &Path) {
+fn start_a_router_on_every_host(hosts: &mut Hosts) {
     let lease = LEASE_MS.to_string();
     for host in ["a", "b", "c"] {
         let mut args = vec![
@@ -246,7 +138,7 @@ fn start_a_router_on_every_host(hosts: &mut Hosts, dir: &Path) {
             args.push(Hosts::router(other));
         }
         let args: Vec<&str> = args.iter().map(String::as_str).collect();
-        hosts.spawn(dir, host, &format!("router-{host}"), &bin("cell"), &args);
+        hosts.spawn(host, &format!("router-{host}"), &bin("cell"), &args);
     }
 }
 
@@ -275,7 +167,6 @@ fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
         let controller = format!("127.0.0.1:{port}");
         let counts = dir.join(format!("{name}.counts.json"));
         hosts.spawn(
-            dir,
             host,
             &format!("{name}-sim"),
             &bin("robot-sim"),
@@ -291,7 +182,6 @@ fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
         let config = with_lease(config);
         let data = dir.join(format!("data-{host}"));
         hosts.spawn(
-            dir,
             host,
             name,
             &bin("holon-node"),
@@ -313,7 +203,6 @@ fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
     }
     let breaker = with_lease("breaker.toml");
     hosts.spawn(
-        dir,
         "c",
         "breaker",
         &bin("holon-node"),
@@ -329,7 +218,6 @@ fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
     let orders = with_lease("orders1.toml");
     let data_c = dir.join("data-c");
     hosts.spawn(
-        dir,
         "c",
         "orders1",
         &bin("order-node"),
