@@ -534,3 +534,18 @@ fn decode(
     }
     Ok(request)
 }
+
+/// The outcome of a conversation is answered from these links.
+impl super::outcome::Sources for Links {
+    fn config(&self) -> &ResourceConfig {
+        &self.config
+    }
+
+    fn views(&self) -> &Views {
+        &self.views
+    }
+
+    fn fence(&self) -> Option<&robot_bridge::client::FenceHandle> {
+        self.fence.as_ref()
+    }
+}

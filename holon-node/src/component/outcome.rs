@@ -21,9 +21,16 @@ use schemas::{
 };
 use tracing::{debug, info, warn};
 
-use super::communication::Links;
 use super::question::Question;
 use crate::views::{AgendaView, FenceView};
+
+/// What an answer is made of: the resource's name and catalog, what its components
+/// publish, and its fence (the communication component's links give them).
+pub trait Sources: Send + Sync + 'static {
+    fn config(&self) -> &crate::config::ResourceConfig;
+    fn views(&self) -> &crate::views::Views;
+    fn fence(&self) -> Option<&robot_bridge::client::FenceHandle>;
+}
 
 /// The longest a question waits for the controller's step states, in all.
 pub const CONTROLLER_WAIT: Duration = Duration::from_secs(2);
@@ -152,8 +159,8 @@ pub fn from_steps(
 }
 
 /// Answers one question on `resource/<name>/outcome` (in a task of its own).
-pub async fn answer(links: Arc<Links>, question: Question) {
-    let holon = &links.config.holon;
+pub async fn answer<L: Sources>(links: Arc<L>, question: Question) {
+    let holon = &links.config().holon;
     let request = match OutcomeRequest::from_json(&question.payload()) {
         Ok(request) => request,
         Err(e) => {
@@ -162,18 +169,18 @@ pub async fn answer(links: Arc<Links>, question: Question) {
             return;
         }
     };
-    let fence = *links.views.fence.borrow();
+    let fence = *links.views().fence.borrow();
     let epoch = match fence {
         FenceView::Holding(epoch) => Some(epoch),
         FenceView::Unfenced | FenceView::Standby => None,
     };
     let known = {
-        let view = links.views.agenda.borrow();
+        let view = links.views().agenda.borrow();
         from_agenda(&view, &request, holon, epoch.is_some())
     };
-    let mut reply = match (known, &links.fence, epoch) {
+    let mut reply = match (known, links.fence(), epoch) {
         (Some(reply), _, _) => reply,
-        (None, Some(handle), Some(_)) => ask_controller(&links, handle, &request).await,
+        (None, Some(handle), Some(_)) => ask_controller(links.as_ref(), handle, &request).await,
         (None, _, _) => {
             let mut unknown = request.answer(holon, Outcome::Unknown);
             unknown.detail = Some("this resource does not know the conversation".into());
@@ -189,12 +196,12 @@ pub async fn answer(links: Arc<Links>, question: Question) {
 
 /// Asks the controller the state of each step of the conversation's job.
 async fn ask_controller(
-    links: &Links,
+    links: &impl Sources,
     fence: &robot_bridge::client::FenceHandle,
     request: &OutcomeRequest,
 ) -> OutcomeReply {
-    let holon = &links.config.holon;
-    let Some(definition) = links.config.catalog.get(&request.service_type) else {
+    let holon = &links.config().holon;
+    let Some(definition) = links.config().catalog.get(&request.service_type) else {
         let mut unknown = request.answer(holon, Outcome::Unknown);
         unknown.detail = Some(format!(
             "this resource does not offer {}",
