@@ -585,7 +585,7 @@ impl Drop for Keep {
     fn drop(&mut self) {
         if std::env::var_os("HOLARCHY_TEST_KEEP").is_some() {
             if let Some(dir) = self.0.take() {
-                let _ = dir.keep();
+                println!("kept {}", dir.keep().display());
             }
         }
     }
