@@ -165,11 +165,7 @@ async fn a_standby_serves_when_its_primary_freezes_and_the_thawed_primary_steps_
     // (1) The first holds the claim and serves; the second waits as a standby.
     let primary = twin(&cell, &a, &sim).unwrap();
     cell.wait_alive(&robot1).await.unwrap();
-    cell.wait_state("robot1", "free at epoch 1", |s| {
-        s["state"] == "free" && s["epoch"] == 1
-    })
-    .await
-    .unwrap();
+    free_at_epoch_1(&cell).await;
     wait_said(&a, "holding the controller", 1).await.unwrap();
     let standby = twin(&cell, &b, &sim).unwrap();
     wait_said(&b, "standby: another session holds the controller", 1)
@@ -409,6 +405,58 @@ async fn a_holder_whose_controller_client_crashes_steps_down_and_claims_again() 
     drop(node);
 }
 
+/// A fenced robot-sim (500 ms lease) whose `place` takes a second: a step is on the
+/// controller long enough to freeze or kill its holder meanwhile.
+fn slow_place_sim(dir: &Path) -> Sim {
+    Sim::start(
+        dir,
+        "robot1-sim",
+        "127.0.0.1:0",
+        &["--fenced", "--lease-ms", "500", "--action-ms", "place=1000"],
+    )
+    .unwrap()
+}
+
+/// Waits until robot1 is free and held at epoch 1.
+async fn free_at_epoch_1(cell: &Cell) {
+    cell.wait_state("robot1", "free at epoch 1", |s| {
+        s["state"] == "free" && s["epoch"] == 1
+    })
+    .await
+    .unwrap();
+}
+
+/// Waits until `order` ended, and asserts it is done at its first attempt; its state.
+async fn done_at_attempt_1(cell: &Cell, order: &str) -> serde_json::Value {
+    cell.wait_order(order, "ended", |s| {
+        s.is_some_and(|s| s["status"] != "running")
+    })
+    .await
+    .unwrap();
+    let state = cell.order_state(order).await.unwrap();
+    assert_eq!(state["status"], "done", "{state}");
+    assert_eq!(state["attempt"], 1, "one conversation only: {state}");
+    state
+}
+
+/// Asserts that the controller ran the two step ids of `order`'s first conversation
+/// once each, and nothing else; its counts.
+fn ran_once_as_its_first_conversation(sim: &Sim, order: &str) -> serde_json::Value {
+    let counts = sim.counts();
+    let first = format!("{order}/1/1");
+    let by_step = counts["by_step"].as_object().cloned().unwrap_or_default();
+    let ran: Vec<(String, u64)> = by_step
+        .iter()
+        .map(|(step, n)| (step.clone(), n.as_u64().unwrap_or(0)))
+        .collect();
+    assert_eq!(
+        ran,
+        vec![(format!("{first}#0"), 1), (format!("{first}#1"), 1)],
+        "{counts}"
+    );
+    counts
+}
+
 /// The demo order-node's config with a step timeout of 5 s (the default is 10 min): an
 /// order that hears nothing of its step gives up on it within the test.
 fn impatient_orders(dir: &Path) -> PathBuf {
@@ -429,22 +477,12 @@ async fn a_step_the_dead_holder_completed_ends_done_and_never_runs_again() {
     let dir = root.path();
     let cell = Cell::open("t-standby-outcome").await.unwrap();
     // `place` takes a second: the holder's host hangs while it runs.
-    let sim = Sim::start(
-        dir,
-        "robot1-sim",
-        "127.0.0.1:0",
-        &["--fenced", "--lease-ms", "500", "--action-ms", "place=1000"],
-    )
-    .unwrap();
+    let sim = slow_place_sim(dir);
     let (a, b) = (host(dir, "a").unwrap(), host(dir, "b").unwrap());
     let robot1 = HolonId::resource("robot1").unwrap();
     let mut primary = twin(&cell, &a, &sim).unwrap();
     cell.wait_alive(&robot1).await.unwrap();
-    cell.wait_state("robot1", "free at epoch 1", |s| {
-        s["state"] == "free" && s["epoch"] == 1
-    })
-    .await
-    .unwrap();
+    free_at_epoch_1(&cell).await;
     let standby = twin(&cell, &b, &sim).unwrap();
     wait_said(&b, "standby: another session holds the controller", 1)
         .await
@@ -475,31 +513,13 @@ async fn a_step_the_dead_holder_completed_ends_done_and_never_runs_again() {
 
     // (4) The order asks the new holder what became of its conversation; it knows
     // nothing of it, asks the controller, and says done: the step ends done.
-    cell.wait_order(&order, "ended", |s| {
-        s.is_some_and(|s| s["status"] != "running")
-    })
-    .await
-    .unwrap();
-    let state = cell.order_state(&order).await.unwrap();
-    assert_eq!(state["status"], "done", "{state}");
-    assert_eq!(state["attempt"], 1, "one conversation only: {state}");
+    let state = done_at_attempt_1(&cell, &order).await;
     assert_eq!(state["rebooks"], 0, "{state}");
     assert_eq!(state["failed_attempts"], 0, "{state}");
     assert!(said(&b, "outcome asked") >= 1, "{}", log(&b));
 
     // (5) Every step ran exactly once on the controller, under the first conversation.
-    let counts = sim.counts();
-    let by_step = counts["by_step"].as_object().cloned().unwrap_or_default();
-    let ran: Vec<(String, u64)> = by_step
-        .iter()
-        .map(|(step, n)| (step.clone(), n.as_u64().unwrap_or(0)))
-        .collect();
-    let first = format!("{order}/1/1");
-    assert_eq!(
-        ran,
-        vec![(format!("{first}#0"), 1), (format!("{first}#1"), 1)],
-        "{counts}"
-    );
+    let counts = ran_once_as_its_first_conversation(&sim, &order);
     assert_eq!(sim.executed("place"), 1, "{counts}");
     drop(standby);
 }
@@ -509,20 +529,10 @@ async fn a_holder_killed_mid_step_and_restarted_on_its_journal_reports_the_step_
     let root = tempfile::tempdir().unwrap();
     let dir = root.path();
     let cell = Cell::open("t-standby-restart").await.unwrap();
-    let sim = Sim::start(
-        dir,
-        "robot1-sim",
-        "127.0.0.1:0",
-        &["--fenced", "--lease-ms", "500", "--action-ms", "place=1000"],
-    )
-    .unwrap();
+    let sim = slow_place_sim(dir);
     let a = host(dir, "a").unwrap();
     let mut holder = twin(&cell, &a, &sim).unwrap();
-    cell.wait_state("robot1", "free at epoch 1", |s| {
-        s["state"] == "free" && s["epoch"] == 1
-    })
-    .await
-    .unwrap();
+    free_at_epoch_1(&cell).await;
     let (_product, _orders) = cell
         .start_part_and_orders(dir, &impatient_orders(dir), &dir.join("orders-data"))
         .await
@@ -536,27 +546,9 @@ async fn a_holder_killed_mid_step_and_restarted_on_its_journal_reports_the_step_
     // Restarted on its journal, which says only that the job was running: it reports
     // it `interrupted`. The order asks, the holder asks the controller: done.
     let holder = twin(&cell, &a, &sim).unwrap();
-    cell.wait_order(&order, "ended", |s| {
-        s.is_some_and(|s| s["status"] != "running")
-    })
-    .await
-    .unwrap();
-    let state = cell.order_state(&order).await.unwrap();
-    assert_eq!(state["status"], "done", "{state}");
-    assert_eq!(state["attempt"], 1, "one conversation only: {state}");
+    let state = done_at_attempt_1(&cell, &order).await;
     assert_eq!(state["failed_attempts"], 0, "{state}");
-    let counts = sim.counts();
-    let first = format!("{order}/1/1");
-    let by_step = counts["by_step"].as_object().cloned().unwrap_or_default();
-    let ran: Vec<(String, u64)> = by_step
-        .iter()
-        .map(|(step, n)| (step.clone(), n.as_u64().unwrap_or(0)))
-        .collect();
-    assert_eq!(
-        ran,
-        vec![(format!("{first}#0"), 1), (format!("{first}#1"), 1)],
-        "{counts}"
-    );
+    let counts = ran_once_as_its_first_conversation(&sim, &order);
     assert_eq!(counts["epoch"], 2, "{counts}");
     drop(holder);
 }
