@@ -33,9 +33,6 @@ pub struct PresenceView {
     /// The resources whose last state said they are being handed over to a successor
     /// (an upgrade): while away, their bookings are kept for `orders.handover_grace_ms`.
     pub handing_over: HashSet<HolonId>,
-    /// The resources heard of as fenced (a state with an epoch): one that vanishes may
-    /// still run a step, on a host the cell cannot hear.
-    pub fenced: HashSet<HolonId>,
     /// Per resource heard of, the channel of its [`Turns`]: an order booked there
     /// waits on its own resource's channel only, so a state change wakes the orders it
     /// concerns, not all of them.
@@ -94,8 +91,9 @@ impl Presence {
     /// Whether `resource` was heard of as fenced: a holder of it that vanished may
     /// still run its steps (cut from the cell, not from its controller), so a step
     /// that may run there is not given up when it vanishes.
+    /// (Its last state carried an epoch: the same knowledge as [`Presence::epoch`].)
     pub fn fenced(&self, resource: &HolonId) -> bool {
-        self.view.borrow().fenced.contains(resource)
+        self.epoch(resource).is_some()
     }
 
     /// Whether `holon`'s token is alive, as the task last published.

@@ -137,9 +137,6 @@ pub struct PresenceModel {
     /// The resources whose last state said they are being handed over to a successor
     /// (an upgrade), until their token comes back.
     handing_over: HashSet<HolonId>,
-    /// The resources heard of as fenced (their states carry an epoch): a holder may
-    /// run a step while the cell cannot hear it (a standby resource, issue 31).
-    fenced: HashSet<HolonId>,
     /// Counts the changes of what orders read (alive, queues, staff, hand-overs): the
     /// owner publishes a new view when it moved.
     version: u64,
@@ -188,11 +185,6 @@ impl PresenceModel {
         &self.handing_over
     }
 
-    /// The resources heard of as fenced.
-    pub fn fenced(&self) -> &HashSet<HolonId> {
-        &self.fenced
-    }
-
     /// Moves whenever something orders read changed.
     pub fn version(&self) -> u64 {
         self.version
@@ -238,9 +230,6 @@ impl PresenceModel {
             return Vec::new();
         }
         let resource = &snapshot.holon;
-        if snapshot.epoch.is_some() && self.fenced.insert(resource.clone()) {
-            self.version += 1;
-        }
         let previous = self.published.get(resource).copied();
         let (news, now) = read_state(previous, snapshot);
         self.published.insert(resource.clone(), now);

@@ -277,7 +277,6 @@ impl Owner {
             queues: self.model.queues().clone(),
             staff: self.model.staff().clone(),
             handing_over: self.model.handing_over().clone(),
-            fenced: self.model.fenced().clone(),
             turns: self
                 .turns
                 .iter()
