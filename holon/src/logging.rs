@@ -6,10 +6,11 @@
 //! `--log-file PATH` additionally appends JSON lines to PATH. The level comes from
 //! `RUST_LOG` (default `info`; set but blank counts as unset).
 //!
-//! Lines are written by a thread of their own per destination, not by the task that
-//! logs: a request's path formats its lines and hands them over, it makes no write
-//! call (at `info` a service cycle logs about a dozen lines). Nothing is dropped: when a
-//! writer falls [`LINES_IN_FLIGHT`] lines behind, logging waits for it. The [`LogGuard`] that [`init`] returns writes out what is left
+//! Lines are written by a thread of their own per destination ([`crate::log_writer`]),
+//! not by the task that logs: a request's path formats its lines and hands them over,
+//! it makes no write call (at `info` a service cycle logs about a dozen lines). Nothing
+//! is dropped: when a writer falls [`LINES_IN_FLIGHT`] lines behind, logging waits for
+//! it. The [`LogGuard`] that [`init`] returns writes out what is left
 //! when it is dropped, at the end of `main`.
 
 use std::fs::OpenOptions;
@@ -54,6 +55,8 @@ pub enum LoggingError {
     },
     #[error("logging is already set up: {0}")]
     AlreadySet(String),
+    #[error("cannot start a log writer thread: {0}")]
+    Thread(std::io::Error),
 }
 
 type BoxedLayer = Box<dyn Layer<Registry> + Send + Sync>;
@@ -62,27 +65,21 @@ type BoxedLayer = Box<dyn Layer<Registry> + Send + Sync>;
 /// it for as long as the program runs.
 #[must_use = "dropping the guard stops the log writers"]
 pub struct LogGuard {
-    _writers: Vec<tracing_appender::non_blocking::WorkerGuard>,
+    _writers: Vec<crate::log_writer::WriterGuard>,
 }
 
-/// Lines queued for one writer thread before logging waits for it. The queue is
-/// allocated whole: the library's default (128,000) took 4 MiB per destination, more
-/// than the rest of an idle holon's own memory.
-pub const LINES_IN_FLIGHT: usize = 1024;
+pub use crate::log_writer::LINES_IN_FLIGHT;
 
 /// A writer on its own thread that never drops a line.
 fn off_the_path<W: std::io::Write + Send + 'static>(
     destination: W,
     name: &str,
-    guards: &mut Vec<tracing_appender::non_blocking::WorkerGuard>,
-) -> tracing_appender::non_blocking::NonBlocking {
-    let (writer, guard) = tracing_appender::non_blocking::NonBlockingBuilder::default()
-        .lossy(false)
-        .buffered_lines_limit(LINES_IN_FLIGHT)
-        .thread_name(name)
-        .finish(destination);
+    guards: &mut Vec<crate::log_writer::WriterGuard>,
+) -> Result<crate::log_writer::LineWriter, LoggingError> {
+    let (writer, guard) =
+        crate::log_writer::spawn(destination, name).map_err(LoggingError::Thread)?;
     guards.push(guard);
-    writer
+    Ok(writer)
 }
 
 /// Installs the global subscriber. Call once, at the start of `main`, and keep the guard.
@@ -102,7 +99,7 @@ pub fn init(
     // the terminal layer leaves it out, the log file keeps it.
     let not_fatal = filter_fn(|meta| meta.target() != FATAL);
     let mut guards = Vec::new();
-    let stderr = off_the_path(std::io::stderr(), "log-stderr", &mut guards);
+    let stderr = off_the_path(std::io::stderr(), "log-stderr", &mut guards)?;
     let terminal: BoxedLayer = match format {
         LogFormat::Text => tracing_subscriber::fmt::layer()
             .with_writer(stderr)
@@ -134,7 +131,7 @@ pub fn init(
                 .json()
                 .flatten_event(true)
                 .with_ansi(false)
-                .with_writer(off_the_path(file, "log-file", &mut guards))
+                .with_writer(off_the_path(file, "log-file", &mut guards)?)
                 .boxed(),
         );
     }

@@ -67,7 +67,10 @@ fn assert_refused(answer: &Service, why: &str) {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn books_starts_and_delivers_done_until_acknowledged() {
-    let r = robot("t-cycle", &[], &[], 5000).await;
+    // Each command takes 100 ms on the controller, so the job lasts long enough to be
+    // seen busy: the changes of one moment are published once, and a job of 0 ms
+    // begins and ends within one moment.
+    let r = robot("t-cycle", &["--delay-ms", "100"], &[], 5000).await;
     let states = r
         .cell
         .session
@@ -120,7 +123,7 @@ async fn books_starts_and_delivers_done_until_acknowledged() {
     assert_eq!(state["delivery_retries"], 2, "{state}");
     assert_eq!(state["host"], holon::presence::host_name(), "{state}");
 
-    // Snapshots were published on every change: booked, busy, steps, free.
+    // Snapshots were published on every change that lasted: booked, busy, steps, free.
     let mut seen = Vec::new();
     while let Ok(Some(sample)) = states.try_recv() {
         let snapshot: serde_json::Value =
