@@ -32,7 +32,7 @@ use zenoh::key_expr::KeyExpr;
 use crate::cancel::CancelAsk;
 use crate::config::OrderNodeConfig;
 use crate::context::{OrderContext, OrderError, ORDER_RECORD};
-use crate::journal::{OrderJournal, OrderJournalError};
+use crate::journal::OrderJournalError;
 use crate::order;
 use crate::progress::OrderProgress;
 
@@ -575,37 +575,6 @@ pub fn order_number(node: &str, name: &str) -> Option<u64> {
     (format!("{node}-{number}") == name).then_some(number)
 }
 
-/// What the journal holds at start-up: the orders to host (the unfinished ones, and
-/// finished ones whose end was not recorded), the finished orders that stay in the
-/// journal, and the number of the next order.
-pub type Recovered = (Vec<(String, OrderProgress)>, Finished, u64);
-
-/// What node `node`'s journal holds at start-up: the orders to host (the unfinished
-/// ones, and finished ones whose end was not recorded: an older journal) and the
-/// finished orders that stay in the journal. Read one record at a time: of a finished
-/// order only its number and end are kept, so a day of finished orders is never all in
-/// memory at once.
-pub fn recover(
-    journal: &OrderJournal,
-    node: &str,
-) -> Result<(Vec<(String, OrderProgress)>, Finished), OrderJournalError> {
-    let mut recovered = Vec::new();
-    let mut finished = Finished::new();
-    journal.for_each::<OrderProgress>(ORDER_RECORD, |name, progress| {
-        match (
-            progress.status.is_final(),
-            progress.finished_at,
-            order_number(node, &name),
-        ) {
-            (true, Some(at), Some(number)) => {
-                finished.insert(number, at);
-            }
-            _ => recovered.push((name, progress)),
-        }
-    })?;
-    Ok((recovered, finished))
-}
-
 /// An order task ended: done (the order ended), waiting for the journal (resumed after
 /// a pause, not counted as a failure), or failed (restarted under the restart policy,
 /// or, past it, the order fails).
@@ -700,6 +669,7 @@ async fn fail(host: &Host, name: &str) {
 mod tests {
     use super::*;
     use crate::context::Shared;
+    use crate::journal::OrderJournal;
     use holon::journal::{Durability, Journal};
     use std::path::{Path, PathBuf};
 
@@ -897,7 +867,8 @@ mod tests {
         // After a restart (the journal reopened), the same answers.
         drop(host);
         let host = self::host(Some(&dir.0)).await;
-        let (recovered, finished) = recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
+        let (recovered, finished, _) =
+            crate::recovery::recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
         assert_eq!(
             recovered.len(),
             1,
@@ -973,7 +944,8 @@ mod tests {
         }
         let host = host(Some(&dir.0)).await;
         host.next.store(2, Ordering::SeqCst);
-        let (recovered, finished) = recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
+        let (recovered, finished, _) =
+            crate::recovery::recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
         assert!(finished.is_empty(), "its end was not recorded: read whole");
         let mut tasks = Tasks::default();
         host.resume(recovered, &[], &mut tasks, &CancellationToken::new());

@@ -18,13 +18,14 @@ use tracing::{error, info, warn};
 
 use crate::config::OrderNodeConfig;
 use crate::context::{OrderContext, MAX_CONCURRENT_ROUNDS};
-use crate::host::{recover, task_ended, Finished, Host, Tasks, NEXT_RECORD};
+use crate::host::{task_ended, Finished, Host, Tasks};
+use crate::recovery::recover;
 use crate::journal::OrderJournal;
 use crate::presence::Presence;
 use crate::queries::{answer, Endpoints, QUERY_QUEUE};
 
 pub use crate::error::OrderNodeError;
-pub use crate::host::Recovered;
+pub use crate::recovery::Recovered;
 
 /// How often finished orders are checked against `journal.keep_finished_ms`, at most
 /// (a shorter retention is checked as often as it lasts).
@@ -362,11 +363,8 @@ fn open_journal(
         patience,
     )?;
     let journal = OrderJournal::Local(journal);
-    let (recovered, finished) = recover(&journal, &config.name)?;
-    let next = journal
-        .get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?
-        .unwrap_or(1);
-    Ok((Some(Arc::new(journal)), (recovered, finished, next)))
+    let recovered = recover(&journal, &config.name)?;
+    Ok((Some(Arc::new(journal)), recovered))
 }
 
 #[cfg(test)]

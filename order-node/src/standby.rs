@@ -4,13 +4,16 @@
 //!
 //! Before it declares anything else in the cell, a node declares where it stands
 //! ([`crate::fence_report`]) and campaigns for `<prefix>/leader`
-//! ([`holon::etcd::Candidate`]). While another holds it, the node is a standby: it logs
-//! so, declares no token and no other queryable, and answers nothing else; every
-//! [`FOLLOW_EVERY`] it reads the journal's records changed since it last read, and
-//! reports its lag (the cluster's revisions it has not read) or that it cannot reach
-//! etcd. It keeps no records: once
-//! it wins at epoch E, it reads its orders from etcd (as a SQLite node reads its
-//! journal at start) and serves; every write of its orders is fenced on E. When it is
+//! ([`holon::etcd::Candidate`]). While another holds it, the node is a standby: it
+//! logs so, declares no token and no other queryable, and answers nothing else; every
+//! [`FOLLOW_EVERY`] it reads the journal's records changed since it last read, applies
+//! them to its copy of the orders ([`Recovery`]: the unfinished ones whole, of the
+//! finished only number and end), and reports its lag (the cluster's revisions it has
+//! not read) or that it cannot reach etcd. Once it wins at epoch E it reads only what
+//! changed since its last read (nothing can change after: every write of a deposed
+//! holder is refused) and serves with its copy; every write of its orders is fenced on
+//! E. Without a whole copy (a record it could not read, etcd slow at the takeover) it
+//! reads the journal whole, as a SQLite node reads its journal at start. When it is
 //! deposed it stops at once and exits with an error, so that its supervisor starts it
 //! again, a standby.
 
@@ -24,8 +27,8 @@ use tracing::{info, warn};
 use crate::config::{EtcdSettings, OrderNodeConfig};
 use crate::error::OrderNodeError;
 use crate::fence_report::Reporter;
-use crate::host::{recover, Recovered, NEXT_RECORD};
 use crate::journal::{OrderJournal, Replicated};
+use crate::recovery::{recover, Recovered, Recovery};
 
 /// How long a deposed node asks etcd who deposed it, at most, for its exit message.
 const ASK_HOLDER_WITHIN: Duration = Duration::from_secs(2);
@@ -40,9 +43,13 @@ pub const FOLLOW_EVERY: Duration = Duration::from_millis(500);
 /// How long one such read may take before the standby counts etcd as lost.
 const FOLLOW_WITHIN: Duration = Duration::from_secs(2);
 
-/// The most records one read of the journal's changes takes (more: the rest next time,
-/// and a lag meanwhile).
+/// The most records one read of the journal's changes takes (more: the next page at
+/// once, and a lag meanwhile).
 const FOLLOW_PAGE: usize = 1000;
+
+/// How long the read of what changed since the standby's last read may take once it
+/// won, before it reads the journal whole instead.
+const CATCH_UP_WITHIN: Duration = Duration::from_secs(2);
 
 /// A node that won its leader key, with its orders read from etcd.
 pub struct Elected {
@@ -97,9 +104,10 @@ pub async fn stand_by(
             warn!(%node, error = %e, endpoints = ?etcd.endpoints, "cannot ask etcd who holds the order-node; campaigning anyway")
         }
     }
+    let mut copy = Followed::new(node);
     let won = tokio::select! {
         won = candidate.campaign(shutdown.cancelled()) => won?,
-        never = follow(&client, &candidate, &etcd.prefix, node, &report) => match never {},
+        never = follow(&client, &candidate, &etcd.prefix, config, &report, &mut copy) => match never {},
     };
     let Some(leader) = won else {
         info!(%node, "told to stop while standing by");
@@ -112,13 +120,16 @@ pub async fn stand_by(
         handle,
         deposed: CancellationToken::new(),
     }));
-    info!(%node, epoch, key = %leader.key(), "won the order-node's leader key at epoch {epoch}: reading its orders from etcd");
-    let read = recover(&journal, node).and_then(|(recovered, finished)| {
-        let next = journal
-            .get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?
-            .unwrap_or(1);
-        Ok((recovered, finished, next))
-    });
+    let read = match catch_up(&client, &etcd.prefix, copy).await {
+        Ok((recovered, changes)) => {
+            info!(%node, epoch, key = %leader.key(), changes, hosted = recovered.0.len(), finished = recovered.1.len(), "won the order-node's leader key at epoch {epoch}: serving with the orders it followed, {changes} records read at the takeover");
+            Ok(recovered)
+        }
+        Err(why) => {
+            info!(%node, epoch, key = %leader.key(), %why, "won the order-node's leader key at epoch {epoch}: reading its orders from etcd whole");
+            recover(&journal, node)
+        }
+    };
     match read {
         Ok(recovered) => Ok(Some(Elected {
             report,
@@ -135,46 +146,83 @@ pub async fn stand_by(
     }
 }
 
+/// A standby's copy of its holder's orders, and how far it read.
+struct Followed {
+    /// The orders as the journal holds them, up to `read_to`.
+    recovery: Recovery,
+    /// Every change of the journal up to this revision is applied.
+    read_to: i64,
+}
+
+impl Followed {
+    fn new(node: &str) -> Followed {
+        Followed {
+            recovery: Recovery::new(node),
+            read_to: 0,
+        }
+    }
+
+    /// Applies one read of the journal's changes; returns its lag.
+    fn apply(&mut self, read: &holon::etcd::JournalRead) -> u64 {
+        self.recovery.apply(&read.records);
+        self.read_to = read.read_to;
+        read.lag()
+    }
+}
+
 /// A standby follows its holder's journal until the campaign ends (never returns):
-/// every [`FOLLOW_EVERY`], who holds the key and the records changed since it last read
-/// (bounded by [`FOLLOW_WITHIN`]); its report says the holder's epoch and its lag, or
-/// that it lost etcd. A change of either is logged once.
+/// every [`FOLLOW_EVERY`] (at once while a read was cut after a page), who holds the key
+/// and the records changed since it last read (bounded by [`FOLLOW_WITHIN`]), applied
+/// to its copy; its report says the holder's epoch and its lag, or that it lost etcd. A
+/// change of either is logged once.
 async fn follow(
     client: &Client,
     candidate: &Candidate,
     prefix: &str,
-    node: &str,
+    config: &OrderNodeConfig,
     report: &Reporter,
+    copy: &mut Followed,
 ) -> std::convert::Infallible {
-    let mut read_to = 0;
+    let node = &config.name;
     let mut lost = false;
     let mut behind = false;
     let mut records = 0usize;
     let mut every = tokio::time::interval(FOLLOW_EVERY);
     every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut page_cut = false;
     loop {
-        every.tick().await;
+        if !page_cut {
+            every.tick().await;
+        }
+        let read_to = copy.read_to;
         let asked = tokio::time::timeout(FOLLOW_WITHIN, async {
             let holder = candidate.holder().await?;
             let read = holon::etcd::journal_since(client, prefix, read_to, FOLLOW_PAGE).await?;
             Ok::<_, holon::etcd::EtcdError>((holder, read))
         })
         .await;
+        page_cut = false;
         match asked {
             Ok(Ok((holder, read))) => {
                 if lost {
                     info!(%node, revision = read.revision, "standby: reaches etcd again");
                     lost = false;
                 }
-                read_to = read.read_to;
                 records += read.records.len();
-                let lag = read.lag();
+                page_cut = read.records.len() >= FOLLOW_PAGE;
+                let lag = copy.apply(&read);
+                if let Some(keep) = config.keep_finished {
+                    let keep_ms = u64::try_from(keep.as_millis()).unwrap_or(u64::MAX);
+                    copy.recovery
+                        .forget_finished_before(schemas::unix_ms().saturating_sub(keep_ms));
+                }
                 if (lag > 0) != behind {
                     behind = lag > 0;
                     if behind {
-                        warn!(%node, lag, read_to, "standby: behind the journal by {lag} revisions");
+                        warn!(%node, lag, read_to = copy.read_to, "standby: behind the journal by {lag} revisions");
                     } else {
-                        info!(%node, read_to, records, "standby: caught up with the journal");
+                        let (hosted, finished) = copy.recovery.counts();
+                        info!(%node, read_to = copy.read_to, records, hosted, finished, "standby: caught up with the journal");
                     }
                 }
                 let holder_epoch = holder.and_then(|h| u64::try_from(h.epoch).ok());
@@ -193,6 +241,45 @@ async fn follow(
             }
         }
     }
+}
+
+/// Once won: reads what changed since the copy's last read, up to the cluster's
+/// revision now, and returns the orders to serve with and how many records it read.
+/// Nothing changes the journal after this read: the key is this node's, so every write
+/// of the holder before is refused. Fails (the caller reads the journal whole) when the
+/// copy has a record it could not read, or etcd does not answer within
+/// [`CATCH_UP_WITHIN`].
+async fn catch_up(
+    client: &Client,
+    prefix: &str,
+    mut copy: Followed,
+) -> Result<(Recovered, usize), String> {
+    let mut changes = 0;
+    let caught_up = tokio::time::timeout(CATCH_UP_WITHIN, async {
+        loop {
+            let read = holon::etcd::journal_since(client, prefix, copy.read_to, FOLLOW_PAGE)
+                .await
+                .map_err(|e| e.to_string())?;
+            changes += read.records.len();
+            if copy.apply(&read) == 0 {
+                return Ok::<_, String>(());
+            }
+        }
+    })
+    .await;
+    match caught_up {
+        Ok(Ok(())) => {}
+        Ok(Err(why)) => return Err(format!("cannot read the journal's last changes: {why}")),
+        Err(_) => {
+            return Err(format!(
+                "etcd did not give the journal's last changes within {CATCH_UP_WITHIN:?}"
+            ))
+        }
+    }
+    if let Some(record) = copy.recovery.unreadable_record() {
+        return Err(format!("a record it followed cannot be read: {record}"));
+    }
+    Ok((copy.recovery.into_recovered(), changes))
 }
 
 /// Waits until the node is deposed: its keep-alive says so, or etcd refused a write.
