@@ -42,6 +42,12 @@ pub struct OrderContext {
 pub const ORDER_RECORD: &str = "order";
 
 impl OrderContext {
+    /// The epoch at which this node holds its leader key, on etcd (`None` on SQLite).
+    pub fn epoch(&self) -> Option<u64> {
+        let epoch = self.journal.as_ref()?.epoch()?;
+        u64::try_from(epoch).ok()
+    }
+
     /// Writes the order's progress; the order acts on a change only once it is written.
     pub fn save(&self, progress: &OrderProgress) -> Result<(), OrderError> {
         let Some(journal) = &self.journal else {

@@ -359,6 +359,12 @@ impl OrderTask {
                 Some(AttemptEvent::BookingAnswer(requests::answer(answer)))
             }
             AttemptAction::AskStart(provider) => {
+                // On etcd a start is journalled at this node's epoch before it is sent:
+                // a deposed holder's write is refused, and it sends nothing.
+                if let Some(epoch) = ctx.epoch() {
+                    self.ctx
+                        .commit(&self.progress, |p| p.start_epoch = Some(epoch))?;
+                }
                 let answer = requests::ask(
                     &ctx,
                     &ctx.keys.service(provider.name()),

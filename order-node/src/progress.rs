@@ -136,6 +136,10 @@ pub struct OrderProgress {
     /// Steps booked on a staff holon's advice.
     #[serde(default)]
     pub advised: u32,
+    /// On etcd: the epoch of the order-node at which the step's last `start` was
+    /// journalled, before it was sent with that epoch ([`schemas::info_key::EPOCH`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_epoch: Option<u64>,
 }
 
 impl OrderProgress {
@@ -164,6 +168,7 @@ impl OrderProgress {
             priority: 0,
             due: None,
             advised: 0,
+            start_epoch: None,
         }
     }
 

@@ -67,6 +67,14 @@ pub fn request(
     let request = Service::request(kind, &step.service_type, conversation_id, holon.clone())
         .with_reply_to(ctx.keys.inbox(holon.name()))
         .with_info(step.info.clone());
+    // What changes a booking carries this node's epoch (on etcd): the resource refuses
+    // a deposed holder's once a newer holder asked about the booking.
+    let request = match kind {
+        MessageType::BookingReq | MessageType::Start | MessageType::BookingCancel => {
+            request.with_epoch(ctx.epoch())
+        }
+        _ => request,
+    };
     if kind == MessageType::BookingReq && ctx.settings.start_on_turn {
         request.with_start_on_turn()
     } else {

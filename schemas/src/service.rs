@@ -104,6 +104,12 @@ pub mod info_key {
     /// On a refusal `unavailable`: when to ask again, in ms (set while the resource is
     /// handed over to its successor during an upgrade).
     pub const RETRY_AFTER_MS: &str = "retry_after_ms";
+    /// On a `booking_req`, `start` or `booking_cancel` of an order hosted by an
+    /// order-node on etcd: the epoch at which that order-node holds its leader key (a
+    /// `start` is journalled at that epoch before it is sent). The resource keeps the
+    /// highest it has seen with the booking and refuses `stale_epoch` a request of a
+    /// lower one: it comes from a deposed holder of the order-node.
+    pub const EPOCH: &str = "epoch";
 }
 
 /// The most urgent priority a work order may have.
@@ -240,6 +246,34 @@ impl Service {
                 format!("info.due must be a time in Unix milliseconds, not {value}")
             }),
         }
+    }
+
+    /// The epoch of the order-node that sent this request ([`info_key::EPOCH`]), if it
+    /// says; an error saying why when it is not a whole number.
+    pub fn epoch(&self) -> Result<Option<u64>, String> {
+        match self.info.get(info_key::EPOCH) {
+            None => Ok(None),
+            Some(value) => value
+                .as_u64()
+                .map(Some)
+                .ok_or_else(|| format!("info.epoch must be a whole number, not {value}")),
+        }
+    }
+
+    /// The same request carrying the epoch of the order-node that sends it, when it has
+    /// one ([`info_key::EPOCH`]).
+    pub fn with_epoch(mut self, epoch: Option<u64>) -> Self {
+        if let Some(epoch) = epoch {
+            self.info
+                .insert(info_key::EPOCH.into(), serde_json::Value::from(epoch));
+        }
+        self
+    }
+
+    /// Whether this request's `info` holds service data, not only the epoch of its
+    /// sender: a `start` without any runs with its booking's.
+    pub fn has_service_data(&self) -> bool {
+        self.info.keys().any(|key| key != info_key::EPOCH)
     }
 
     /// Whether this `booking_req` asks to start on its turn.

@@ -116,6 +116,10 @@ words! {
         /// The resource was aborted (PackML Abort, by an operator) while the step ran:
         /// the controller was told to stop, the step did not complete.
         Aborted = "aborted",
+        /// A `booking_req`, `start` or `booking_cancel` whose `info.epoch` is lower than
+        /// one the booking was already asked at: it comes from a deposed holder of an
+        /// order-node on etcd, and a newer holder has the order.
+        StaleEpoch = "stale_epoch",
     }
 }
 

@@ -270,10 +270,32 @@ async fn starts_that_are_not_allowed_are_refused() {
         .as_str()
         .unwrap()
         .contains("info.pick"));
+    // Booked by an order-node at epoch 3: its deposed holder (epoch 2) can neither
+    // start nor cancel the booking.
+    let booked = r
+        .msg(MessageType::BookingReq, "o-6", "c6")
+        .with_epoch(Some(3));
+    assert_eq!(
+        r.cell.service("robot1", &booked).await.unwrap().result,
+        Some(true)
+    );
+    for kind in [MessageType::Start, MessageType::BookingCancel] {
+        let stale = r.msg(kind, "o-6", "c6").with_epoch(Some(2));
+        let answer = r.cell.service("robot1", &stale).await.unwrap();
+        assert_refused(&answer, "stale_epoch");
+        assert!(
+            answer.info["detail"]
+                .as_str()
+                .unwrap()
+                .contains("booked at epoch 3"),
+            "{answer:?}"
+        );
+    }
     // The refused bookings are still there.
     let state = r.cell.status("robot1").await.unwrap();
     assert_eq!(state["agenda"][0]["conversation_id"], "c2");
     assert_eq!(state["agenda"][1]["conversation_id"], "c5");
+    assert_eq!(state["agenda"][2]["conversation_id"], "c6");
     assert_eq!(r.sim.executed("pick"), 1, "only the accepted start ran");
 }
 

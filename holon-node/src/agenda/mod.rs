@@ -148,6 +148,10 @@ pub struct Booking {
     /// How many later bookings went ahead of it; at `max_overtakes` none may.
     #[serde(default)]
     pub overtaken: u32,
+    /// The highest epoch of its order-node it was asked at ([`schemas::info_key::EPOCH`],
+    /// an order-node on etcd): a request of a lower one is refused `stale_epoch`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub requester_epoch: Option<u64>,
 }
 
 /// A booking being executed.

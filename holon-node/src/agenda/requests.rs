@@ -18,7 +18,54 @@ struct Conversation {
     finished: bool,
 }
 
+/// How a request's epoch ([`schemas::info_key::EPOCH`]) stands against the highest its
+/// booking was asked at.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Epoch {
+    /// Not lower (or neither says one): the request goes on; the booking keeps this
+    /// epoch from now on (`Some`) if it is higher than the one it had.
+    Current(Option<u64>),
+    /// Lower than the booking's: from a deposed holder of the order-node.
+    Stale { asked: u64, booked: u64 },
+}
+
 impl AgendaManager {
+    /// How `request`'s epoch stands against that of the booking at `index`; an error
+    /// saying why when its epoch is not a whole number.
+    fn epoch(&self, request: &Service, index: usize) -> Result<Epoch, String> {
+        let asked = request.epoch()?;
+        let booked = self.bookings[index].requester_epoch;
+        Ok(match (asked, booked) {
+            (Some(asked), Some(booked)) if asked < booked => Epoch::Stale { asked, booked },
+            (Some(asked), booked) if booked.is_none_or(|booked| asked > booked) => {
+                Epoch::Current(Some(asked))
+            }
+            _ => Epoch::Current(None),
+        })
+    }
+
+    /// Checks `request`'s epoch against the booking at `index` and keeps a higher one;
+    /// the refusal to answer with when it is stale or malformed, and otherwise whether
+    /// the booking changed (to be journalled).
+    fn check_epoch(&mut self, request: &Service, index: usize) -> Result<bool, Vec<AgendaAction>> {
+        match self.epoch(request, index) {
+            Err(detail) => Err(self.refuse(request, Reason::InvalidInfo, Some(detail))),
+            Ok(Epoch::Stale { asked, booked }) => Err(self.refuse_stale(request, asked, booked)),
+            Ok(Epoch::Current(Some(higher))) => {
+                self.bookings[index].requester_epoch = Some(higher);
+                Ok(true)
+            }
+            Ok(Epoch::Current(None)) => Ok(false),
+        }
+    }
+
+    fn refuse_stale(&self, request: &Service, asked: u64, booked: u64) -> Vec<AgendaAction> {
+        let detail = format!(
+            "asked at epoch {asked} of its order-node, booked at epoch {booked}: a newer holder has the order"
+        );
+        self.refuse(request, Reason::StaleEpoch, Some(detail))
+    }
+
     /// Where the request's conversation stands on this agenda.
     fn conversation(&self, request: &Service) -> Conversation {
         let same = |requester: &HolonId, conversation_id: &str| {
@@ -118,9 +165,17 @@ impl AgendaManager {
                 },
                 _,
                 _,
-            ) => {
-                vec![AgendaAction::Reply(self.booked_reply(&request, position))]
-            }
+            ) => match self.check_epoch(&request, position) {
+                Err(refusal) => refusal,
+                Ok(raised) => {
+                    let mut actions =
+                        vec![AgendaAction::Reply(self.booked_reply(&request, position))];
+                    if raised {
+                        actions.push(AgendaAction::StateChanged);
+                    }
+                    actions
+                }
+            },
             // Asked again (a lost reply, a restarted order) after the job began on
             // its turn: it has begun.
             (Conversation { running: true, .. } | Conversation { finished: true, .. }, ..)
@@ -139,12 +194,13 @@ impl AgendaManager {
     /// as a start would be, and begins at once when it is the next job of a free
     /// resource.
     fn append(&mut self, request: Service) -> Vec<AgendaAction> {
-        let (priority, due) = match (request.priority(), request.due()) {
-            (Ok(priority), Ok(due)) => (priority, due),
-            (Err(detail), _) | (_, Err(detail)) => {
-                return self.refuse(&request, Reason::InvalidInfo, Some(detail))
-            }
-        };
+        let (priority, due, requester_epoch) =
+            match (request.priority(), request.due(), request.epoch()) {
+                (Ok(priority), Ok(due), Ok(epoch)) => (priority, due, epoch),
+                (Err(detail), _, _) | (_, Err(detail), _) | (_, _, Err(detail)) => {
+                    return self.refuse(&request, Reason::InvalidInfo, Some(detail))
+                }
+            };
         let start_on_turn = request.start_on_turn();
         // Read once, here: the start and each step take them from the booking.
         let parameters = self
@@ -176,6 +232,7 @@ impl AgendaManager {
                 priority,
                 due,
                 overtaken: 0,
+                requester_epoch,
             },
         );
         match self.start_on_turn() {
@@ -194,6 +251,9 @@ impl AgendaManager {
     fn cancel(&mut self, request: &Service) -> Vec<AgendaAction> {
         match self.conversation(request).booked {
             Some(index) => {
+                if let Err(refusal) = self.check_epoch(request, index) {
+                    return refusal;
+                }
                 self.bookings.remove(index);
                 vec![
                     AgendaAction::Reply(request.accepted(&self.holon)),
@@ -225,11 +285,16 @@ impl AgendaManager {
                 let detail = format!("the booking is for {booked_type}");
                 self.refuse(&request, Reason::NotBooked, Some(detail))
             }
-            (_, Some(_), ResourceState::Busy, _) => self.refuse(&request, Reason::Busy, None),
-            (_, Some(_), ResourceState::Init, _) => {
-                self.refuse(&request, Reason::Unavailable, None)
-            }
-            (_, Some((index, _)), ResourceState::Free, false) => self.begin(index, request),
+            (_, Some((index, _)), state, _) => match self.epoch(&request, index) {
+                Err(detail) => self.refuse(&request, Reason::InvalidInfo, Some(detail)),
+                Ok(Epoch::Stale { asked, booked }) => self.refuse_stale(&request, asked, booked),
+                // (A higher epoch needs no keeping: the booking becomes the job.)
+                Ok(Epoch::Current(_)) => match state {
+                    ResourceState::Busy => self.refuse(&request, Reason::Busy, None),
+                    ResourceState::Init => self.refuse(&request, Reason::Unavailable, None),
+                    ResourceState::Free => self.begin(index, request),
+                },
+            },
         }
     }
 
@@ -237,7 +302,7 @@ impl AgendaManager {
     fn begin(&mut self, index: usize, request: Service) -> Vec<AgendaAction> {
         let booking = &self.bookings[index];
         // The booking's info was read when it was booked; a start's own is read now.
-        let started_with = if request.info.is_empty() {
+        let started_with = if !request.has_service_data() {
             match &booking.parameters {
                 Some(_) => None,
                 None => {

@@ -1,6 +1,7 @@
 use super::*;
 use crate::catalog::pick_n_place;
 
+mod epoch;
 mod on_turn;
 mod packml;
 mod queue;
