@@ -95,6 +95,12 @@ impl EtcdCluster {
                     &format!("holarchy-test-{}", std::process::id()),
                     "--logger",
                     "zap",
+                    // History compacted every 5 s (docs/deploy.md: 1 h): nothing of
+                    // ours may read an old revision.
+                    "--auto-compaction-mode",
+                    "periodic",
+                    "--auto-compaction-retention",
+                    "5s",
                 ])
                 .stdout(Stdio::null())
                 .stderr(std::fs::File::create(&stderr_path)?)

@@ -132,6 +132,12 @@ impl Plant {
                     "50",
                     "--election-timeout",
                     "500",
+                    // Its history compacted every 5 s (docs/deploy.md: 1 h), so that
+                    // the run proves nothing of ours reads an old revision.
+                    "--auto-compaction-mode",
+                    "periodic",
+                    "--auto-compaction-retention",
+                    "5s",
                 ],
                 &[],
             );
