@@ -1,9 +1,10 @@
 //! The scripts in deploy/netns, run as a user runs them (guide.sh runs docs/deploy.md
-//! sections 3-5 as written): they work, and whether they
+//! sections 3-5 as written, guide-standby.sh its section 4b): they work, and whether they
 //! end, fail or are interrupted, no process they started survives them and nothing of
 //! theirs is left behind (namespaces, run directory).
 //!
-//! Needs root and iproute2; without them each test says SKIPPED and passes.
+//! Needs root and iproute2 (and etcd for guide-standby.sh); without them each test says
+//! SKIPPED and passes, unless HOLARCHY_REQUIRE_NETNS (HOLARCHY_REQUIRE_ETCD) is set.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -198,6 +199,61 @@ fn the_deploy_guide_works_when_its_commands_are_copied() {
     assert!(
         output.contains("done: nothing of this run is left running"),
         "{output}"
+    );
+    script.assert_nothing_left();
+}
+
+#[test]
+fn the_deploy_guide_standby_section_works_when_its_commands_are_copied() {
+    if let Err(why) = netns_available() {
+        println!("SKIPPED: needs root and network namespaces ({why})");
+        return;
+    }
+    let Some(etcd) = etcd_binary() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let started = Instant::now();
+    let mut script = Script::start(
+        dir.path(),
+        "guide-standby.sh",
+        &prefix("s"),
+        &[("ETCD", etcd.to_str().unwrap())],
+    );
+    let status = script.wait(Duration::from_secs(300));
+    let output = script.output();
+    println!("{output}");
+    println!("guide-standby.sh ran {:?}", started.elapsed());
+    assert!(status.success(), "{output}");
+    // Every command of section 4b ran (robot-sim, robot1 twice, cell status, etcd
+    // three times, etcdctl or its skip, orders1 twice, cell status) and 5 of section 3.
+    let ran = output
+        .lines()
+        .filter(|l| l.starts_with("host ") && !l.contains(": 10.213.77."))
+        .count();
+    assert!(ran >= 16, "{ran} commands:\n{output}");
+    for checked in [
+        "robot1's standby on c holds the controller",
+        "orders1's standby on c serves",
+        "orders1 on b exited deposed",
+        "section 4b works as written",
+        "done: nothing of this run is left running",
+    ] {
+        assert!(output.contains(checked), "no {checked:?}:\n{output}");
+    }
+    // The last cell status: robot1 held on c, b's copy a standby again.
+    let last = output.rfind("FENCED RESOURCE").expect("a fence table");
+    let table = &output[last..];
+    let row = |role: &str, host: &str| {
+        table.lines().any(|l| {
+            let words: Vec<&str> = l.split_whitespace().collect();
+            words.len() >= 4
+                && words[0] == "resource/robot1"
+                && words[1] == role
+                && words[3] == host
+        })
+    };
+    assert!(
+        row("holder", "host-c") && row("standby", "host-b"),
+        "{table}"
     );
     script.assert_nothing_left();
 }
