@@ -12,6 +12,7 @@
 //! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, `resource/*/packml` (PackML commands), states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, liveliness |
 //! | `router.<h>` | everything (routers forward for others; trusted) | everything |
+//! | `etcd.<h>` | nothing (an etcd member, not a zenoh client: not even listed) | nothing |
 //!
 //! Every holon role also declares and queries its own `takeover/<role>/<name>`: a
 //! successor holding the same identity asks the running process to hand over (an
@@ -173,19 +174,22 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
         })],
         Role::Observer => vec![(READ, reading())],
         Role::Router => vec![(ALL, vec!["**".to_string()])],
+        // An etcd member's certificate is for etcd's links only.
+        Role::Etcd => Vec::new(),
     };
     match role {
         Role::Resource => rules.push(takeover("resource")),
         Role::Product => rules.push(takeover("product")),
         Role::OrderNode => rules.push(takeover("order-node")),
         Role::Staff => rules.push(takeover("staff")),
-        Role::Operator | Role::Observer | Role::Router => {}
+        Role::Operator | Role::Observer | Role::Router | Role::Etcd => {}
     }
     rules
 }
 
 /// The `access_control` section for a cell and its identities, as a zenoh config
-/// (`{"access_control": {...}}`): default deny, one subject per identity.
+/// (`{"access_control": {...}}`): default deny, one subject per identity. An etcd
+/// member's identity is left out: it is no subject, so zenoh denies it everything.
 pub fn access_control(cell: &str, identities: &[String]) -> anyhow::Result<Value> {
     let mut rules = vec![json!({
         "id": "egress",
@@ -198,6 +202,9 @@ pub fn access_control(cell: &str, identities: &[String]) -> anyhow::Result<Value
     let mut policies = Vec::new();
     for identity in identities {
         let (role, name) = parse_identity(identity)?;
+        if role == Role::Etcd {
+            continue;
+        }
         subjects.push(json!({ "id": identity, "cert_common_names": [identity] }));
         let mut rule_ids = vec!["egress".to_string()];
         for (index, (messages, keys)) in grants(role, name).into_iter().enumerate() {

@@ -4,10 +4,13 @@
 //! - `ca.pem`, `ca.key`: the cell CA (made once; replaced only with `--force`);
 //! - `<identity>.pem`, `<identity>.key` (0600) for every process with an `identity`,
 //!   a router per host (`router.<host>`), the operators, observers and spares of
-//!   `[pki]`: issued when missing, not issued by the current CA, expiring within 30
-//!   days, or named by `--renew`;
+//!   `[pki]`, and an etcd member per host of `[pki] etcd_hosts` (`etcd.<host>`: the
+//!   host's addresses and loopback, for etcd's `--cert-file`/`--key-file` and
+//!   `--peer-cert-file`/`--peer-key-file`, with the CA as its trusted CA): issued when
+//!   missing, not issued by the current CA, expiring within 30 days, or named by
+//!   `--renew`;
 //! - `access_control.json5`: the cell's zenoh access control (see `crate::access`),
-//!   rewritten every time;
+//!   rewritten every time; etcd members are not in it (they are no zenoh clients);
 //! - `router-<host>.json5`: a zenohd config per router of the manifest (listen,
 //!   connect, TLS, access control), for the stock `zenohd -c` or `cell router --config`;
 //! - `opcua-server.der`, `.pem`, `.key` (RSA, 0600): the OPC UA server's application
@@ -107,6 +110,26 @@ pub fn identities(manifest: &Manifest) -> Result<Vec<Identity>> {
     }
     for spare in &manifest.pki.spares {
         push(spare.clone(), addresses_of("local"))?;
+    }
+    for host in &manifest.pki.etcd_hosts {
+        if host != "local" && !manifest.hosts.contains_key(host) {
+            bail!(
+                "[pki] etcd_hosts names {host:?}, which is neither \"local\" nor a host of \
+                 [hosts]"
+            );
+        }
+        let mut addresses = addresses_of(host);
+        if host == "local" {
+            // A one-host manifest's addresses are its router's.
+            let listen = manifest.router.iter().flat_map(|r| &r.listen);
+            addresses.extend(listen.filter_map(|e| endpoint_host(e)));
+            addresses.sort();
+            addresses.dedup();
+        }
+        push(
+            holon::role::identity(holon::role::Role::Etcd, host),
+            addresses,
+        )?;
     }
     for operator in &manifest.pki.operators {
         push(
@@ -457,6 +480,68 @@ mod tests {
         // A key of another certificate is refused.
         std::fs::copy(pki.join("operator.opcua.key"), &files.key).unwrap();
         assert!(files.check().is_err());
+    }
+
+    #[test]
+    fn etcd_members_get_server_and_client_certificates_and_no_zenoh_rights() {
+        let dir = tempfile::tempdir().unwrap();
+        let manifest = |etcd_hosts: &str| {
+            format!(
+                "cell = \"t\"\n[hosts.b]\naddresses = [\"10.0.0.2\", \"etcd-b.plant\"]\n\
+                 [hosts.c.router]\nlisten = [\"tls/10.0.0.3:7447\"]\n[pki]\n\
+                 etcd_hosts = {etcd_hosts}\n[[process]]\nname = \"o\"\n\
+                 program = \"order-node\"\nhost = \"b\"\nidentity = \"order-node.orders1\"\n"
+            )
+        };
+        let path = dir.path().join("cell.toml");
+        std::fs::write(&path, manifest("[\"b\", \"c\"]")).unwrap();
+        let said = run(dir.path(), &CertsOptions::default()).unwrap();
+        assert!(
+            said.iter().any(|l| l.starts_with("issued etcd.b")),
+            "{said:?}"
+        );
+        let pki = dir.path().join("pki");
+        for (host, address) in [("b", "10.0.0.2"), ("c", "10.0.0.3")] {
+            let identity = format!("etcd.{host}");
+            let tls = holon::tls::TlsSettings {
+                pki: Some(pki.clone()),
+                ..Default::default()
+            };
+            tls.identity_files(&identity, false)
+                .unwrap_or_else(|e| panic!("{identity}: {e}"));
+            let pem = std::fs::read(pki.join(format!("{identity}.pem"))).unwrap();
+            let (_, pem) = x509_parser::pem::parse_x509_pem(&pem).unwrap();
+            let (_, cert) = x509_parser::parse_x509_certificate(&pem.contents).unwrap();
+            let names: Vec<String> = cert
+                .subject_alternative_name()
+                .unwrap()
+                .unwrap()
+                .value
+                .general_names
+                .iter()
+                .map(|n| match n {
+                    x509_parser::extensions::GeneralName::DNSName(d) => d.to_string(),
+                    x509_parser::extensions::GeneralName::IPAddress(ip) => {
+                        let octets: [u8; 4] = (*ip).try_into().unwrap_or([0; 4]);
+                        std::net::Ipv4Addr::from(octets).to_string()
+                    }
+                    other => format!("{other:?}"),
+                })
+                .collect();
+            for expected in [address, "127.0.0.1", "localhost"] {
+                assert!(names.iter().any(|n| n == expected), "{identity}: {names:?}");
+            }
+            let usage = cert.extended_key_usage().unwrap().unwrap().value;
+            assert!(usage.server_auth && usage.client_auth, "{identity}");
+        }
+        // Not in the cell's zenoh access control: no subject, so denied everything.
+        let access = std::fs::read_to_string(pki.join("access_control.json5")).unwrap();
+        assert!(access.contains("order-node.orders1"), "{access}");
+        assert!(!access.contains("etcd."), "{access}");
+        // A host the manifest does not know is refused.
+        std::fs::write(&path, manifest("[\"d\"]")).unwrap();
+        let error = run(dir.path(), &CertsOptions::default()).unwrap_err();
+        assert!(error.to_string().contains("\"d\""), "{error}");
     }
 
     #[test]

@@ -95,6 +95,11 @@ pub struct PkiSection {
     /// Validity of each issued certificate, in days (default 365).
     #[serde(default = "default_days")]
     pub days: u32,
+    /// The hosts that run an etcd member (`local`, or hosts of `[hosts]`): each gets
+    /// `etcd.<host>`, a server and client certificate with the host's addresses, for
+    /// its client URL (the order-nodes' journal) and its peer links.
+    #[serde(default)]
+    pub etcd_hosts: Vec<String>,
 }
 
 fn default_pki_dir() -> PathBuf {
@@ -115,6 +120,7 @@ impl Default for PkiSection {
             observers: default_default_name(),
             spares: Vec::new(),
             days: default_days(),
+            etcd_hosts: Vec::new(),
         }
     }
 }

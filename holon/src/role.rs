@@ -24,11 +24,15 @@ pub enum Role {
     Observer,
     /// A zenoh router (`router.hostA`).
     Router,
+    /// An etcd member (`etcd.hostB`): its server certificate for the order-nodes'
+    /// journal, and its client certificate on its peer links. Not a zenoh client: the
+    /// cell's access control gives it nothing.
+    Etcd,
 }
 
 impl Role {
     /// Every role, in the order the docs list them.
-    pub const ALL: [Role; 7] = [
+    pub const ALL: [Role; 8] = [
         Role::Resource,
         Role::Product,
         Role::OrderNode,
@@ -36,6 +40,7 @@ impl Role {
         Role::Operator,
         Role::Observer,
         Role::Router,
+        Role::Etcd,
     ];
 
     /// The word of the identity.
@@ -48,6 +53,7 @@ impl Role {
             Role::Operator => "operator",
             Role::Observer => "observer",
             Role::Router => "router",
+            Role::Etcd => "etcd",
         }
     }
 
@@ -79,7 +85,7 @@ impl fmt::Display for Role {
 pub enum IdentityError {
     #[error("identity {0:?} is not <role>.<name> (e.g. resource.robot1)")]
     NoRole(String),
-    #[error("identity {identity:?}: the role {role:?} is not resource, product, order-node, staff, operator, observer or router")]
+    #[error("identity {identity:?}: the role {role:?} is not resource, product, order-node, staff, operator, observer, router or etcd")]
     UnknownRole { identity: String, role: String },
     #[error("identity {identity:?}: {why}")]
     BadName { identity: String, why: String },

@@ -37,6 +37,20 @@ struct JournalSection {
     etcd_prefix: Option<String>,
     #[serde(default = "default_lease_ttl")]
     lease_ttl_ms: u64,
+    #[serde(default)]
+    etcd_tls: EtcdTlsSection,
+    #[serde(default)]
+    etcd_plain_http: bool,
+}
+
+/// `[journal.etcd_tls]`: the files of mutual TLS to `https://` members; each defaults
+/// to the node's own in a secure cell (`[zenoh.tls]` or `--pki`).
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct EtcdTlsSection {
+    ca: Option<std::path::PathBuf>,
+    certificate: Option<std::path::PathBuf>,
+    key: Option<std::path::PathBuf>,
 }
 
 impl Default for JournalSection {
@@ -48,6 +62,8 @@ impl Default for JournalSection {
             etcd: Vec::new(),
             etcd_prefix: None,
             lease_ttl_ms: default_lease_ttl(),
+            etcd_tls: EtcdTlsSection::default(),
+            etcd_plain_http: false,
         }
     }
 }
@@ -232,6 +248,11 @@ pub struct EtcdSettings {
     /// The leader key's lease (`journal.lease_ttl_ms`, whole seconds, at least 2 s): how
     /// long a dead or cut-off primary holds the name before a standby may take it.
     pub lease_ttl: Duration,
+    /// With `https://` endpoints: the CA the members' certificates must be issued by,
+    /// and the certificate and key this node presents (`[journal.etcd_tls]`, each by
+    /// default the cell CA and the node's identity `order-node.<name>` of its secure
+    /// cell). `None` with `http://` endpoints.
+    pub tls: Option<holon::etcd::TlsFiles>,
 }
 
 /// The most records etcd takes in one commit, less the next order number written with
@@ -267,8 +288,16 @@ impl OrderNodeConfig {
                 "name: at most 40 bytes (order names append a number)".into(),
             ));
         }
-        let etcd = etcd_settings(&file.journal, &header.keys, &header.name, &overrides)
-            .map_err(&invalid)?;
+        let base = Path::new(path).parent().unwrap_or(Path::new(""));
+        let etcd = etcd_settings(
+            &file.journal,
+            &header.keys,
+            &header.name,
+            &header.zenoh,
+            base,
+            &overrides,
+        )
+        .map_err(&invalid)?;
         let max_orders_per_submit = match (file.orders.max_orders_per_submit, &etcd) {
             (Some(n), Some(_)) if n > MAX_ORDERS_PER_SUBMIT_ON_ETCD => {
                 return Err(invalid(format!(
@@ -344,16 +373,26 @@ impl OrderNodeConfig {
 
 /// The etcd settings of `journal`, if it names etcd members. With etcd the journal is
 /// not in a data directory: `journal.dir` (or `--data-dir`) beside `journal.etcd` is
-/// refused, as is `--take-over` (the leader key decides who serves).
+/// refused, as is `--take-over` (the leader key decides who serves). TLS: see
+/// [`etcd_tls`].
 fn etcd_settings(
     journal: &JournalSection,
     keys: &CellKeys,
     name: &str,
+    zenoh: &ZenohSettings,
+    base: &Path,
     overrides: &Overrides,
 ) -> Result<Option<EtcdSettings>, String> {
     if journal.etcd.is_empty() {
         if journal.etcd_prefix.is_some() {
             return Err("journal.etcd_prefix is set without journal.etcd".into());
+        }
+        let tls = &journal.etcd_tls;
+        if tls.ca.is_some() || tls.certificate.is_some() || tls.key.is_some() {
+            return Err("journal.etcd_tls is set without journal.etcd".into());
+        }
+        if journal.etcd_plain_http {
+            return Err("journal.etcd_plain_http is set without journal.etcd".into());
         }
         return Ok(None);
     }
@@ -392,11 +431,107 @@ fn etcd_settings(
         }
         None => format!("holarchy/{}/order-node/{name}", keys.cell()),
     };
+    let tls = etcd_tls(journal, name, zenoh, base)?;
     Ok(Some(EtcdSettings {
         endpoints: journal.etcd.clone(),
         prefix,
         lease_ttl: Duration::from_millis(ttl),
+        tls,
     }))
+}
+
+/// The TLS files for `journal.etcd`: all endpoints `https://` or all `http://`.
+/// - https: `[journal.etcd_tls]`'s files (relative to `base`, the config file's
+///   directory), each by default the node's own in a secure cell (the cell CA,
+///   `order-node.<name>.pem` and `.key`); a file neither gives is an error saying what to
+///   set. The files are read now: one that is not usable stops the start.
+/// - http: no TLS. In a secure cell (`[zenoh.tls]` or `--pki`) a member off loopback is
+///   refused unless `journal.etcd_plain_http` says the operator knows anyone who reaches
+///   etcd's port can rewrite the journal.
+fn etcd_tls(
+    journal: &JournalSection,
+    name: &str,
+    zenoh: &ZenohSettings,
+    base: &Path,
+) -> Result<Option<holon::etcd::TlsFiles>, String> {
+    use holon::etcd::{common_scheme, Endpoint, Scheme};
+    let scheme = common_scheme(&journal.etcd).map_err(|e| format!("journal.etcd: {e}"))?;
+    let given = &journal.etcd_tls;
+    let secure = zenoh.tls.is_some();
+    match scheme {
+        Scheme::Http => {
+            if given.ca.is_some() || given.certificate.is_some() || given.key.is_some() {
+                return Err("journal.etcd_tls is set but journal.etcd's endpoints are \
+                            http://: write them https:// (the members must serve TLS)"
+                    .into());
+            }
+            let remote: Vec<&str> = journal
+                .etcd
+                .iter()
+                .filter(|e| Endpoint::parse(e).is_ok_and(|e| !e.is_loopback()))
+                .map(String::as_str)
+                .collect();
+            if secure && !remote.is_empty() && !journal.etcd_plain_http {
+                return Err(format!(
+                    "journal.etcd: this cell is secure ([zenoh.tls] or --pki) but etcd is \
+                     spoken to over plain http ({}): anyone who reaches etcd's port could \
+                     rewrite the order journal. Serve etcd's clients over TLS and write the \
+                     endpoints https:// (the cell CA and this node's identity are used; \
+                     `cell certs` issues etcd.<host> for [pki] etcd_hosts), or set \
+                     journal.etcd_plain_http = true to accept the risk",
+                    remote.join(", ")
+                ));
+            }
+            if journal.etcd_plain_http && !secure {
+                return Err(
+                    "journal.etcd_plain_http is for a secure cell ([zenoh.tls] or \
+                            --pki); without it the whole cell is plain TCP and http is the \
+                            default"
+                        .into(),
+                );
+            }
+            Ok(None)
+        }
+        Scheme::Https => {
+            if journal.etcd_plain_http {
+                return Err("journal.etcd_plain_http = true with https:// endpoints: \
+                            remove one"
+                    .into());
+            }
+            let identity = holon::role::identity(holon::role::Role::OrderNode, name);
+            let own = zenoh
+                .identity_files(&identity)
+                .map_err(|e| format!("zenoh: {e}"))?;
+            let pick = |field: &str,
+                        set: &Option<std::path::PathBuf>,
+                        default: Option<&std::path::PathBuf>| {
+                match (set, default) {
+                    (Some(path), _) if path.is_relative() => Ok(base.join(path)),
+                    (Some(path), _) => Ok(path.clone()),
+                    (None, Some(path)) => Ok(path.clone()),
+                    (None, None) => Err(format!(
+                        "journal.etcd is https:// but journal.etcd_tls.{field} is not set, and \
+                         this cell is not secure (no [zenoh.tls] nor --pki) to take it from: \
+                         set journal.etcd_tls's ca, certificate and key (the CA that issued \
+                         the members' certificates, and this node's certificate and key)"
+                    )),
+                }
+            };
+            let files = holon::etcd::TlsFiles {
+                ca: pick("ca", &given.ca, own.as_ref().map(|f| &f.ca))?,
+                certificate: pick(
+                    "certificate",
+                    &given.certificate,
+                    own.as_ref().map(|f| &f.certificate),
+                )?,
+                key: pick("key", &given.key, own.as_ref().map(|f| &f.key))?,
+            };
+            files
+                .client_config()
+                .map_err(|e| format!("journal.etcd_tls: {e}"))?;
+            Ok(Some(files))
+        }
+    }
 }
 
 #[cfg(test)]
@@ -468,6 +603,166 @@ mod tests {
         ] {
             assert!(OrderNodeConfig::parse(&text, "x", overrides).is_err());
         }
+    }
+
+    /// A PKI directory as `cell certs` writes one: `ca.pem` and `order-node.orders1`'s
+    /// certificate and key (0600).
+    fn pki() -> tempfile::TempDir {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let ca_key = rcgen::KeyPair::generate().unwrap();
+        let mut ca = rcgen::CertificateParams::default();
+        ca.is_ca = rcgen::IsCa::Ca(rcgen::BasicConstraints::Unconstrained);
+        ca.distinguished_name
+            .push(rcgen::DnType::CommonName, "holarchy cell demo CA");
+        let ca_cert = ca.self_signed(&ca_key).unwrap();
+        let issuer = rcgen::Issuer::new(ca, ca_key);
+        let key = rcgen::KeyPair::generate().unwrap();
+        let mut params = rcgen::CertificateParams::new(vec!["localhost".into()]).unwrap();
+        params
+            .distinguished_name
+            .push(rcgen::DnType::CommonName, "order-node.orders1");
+        let cert = params.signed_by(&key, &issuer).unwrap();
+        std::fs::write(dir.path().join("ca.pem"), ca_cert.pem()).unwrap();
+        std::fs::write(dir.path().join("order-node.orders1.pem"), cert.pem()).unwrap();
+        let key_path = dir.path().join("order-node.orders1.key");
+        std::fs::write(&key_path, key.serialize_pem()).unwrap();
+        std::fs::set_permissions(&key_path, std::fs::Permissions::from_mode(0o600)).unwrap();
+        dir
+    }
+
+    /// The demo config with `journal` added to `[journal]`, read as `path`, in a
+    /// secure cell of `pki` when given (its zenoh endpoints then `tls/`).
+    fn etcd_config(
+        journal: &str,
+        pki: Option<&Path>,
+        path: &str,
+    ) -> Result<OrderNodeConfig, ConfigError> {
+        let mut text = DEMO
+            .replacen("[journal]", &format!("[journal]\n{journal}"), 1)
+            .replace("max_orders_per_submit = 1000\n", "");
+        if let Some(pki) = pki {
+            text = text
+                .replace("tcp/127.0.0.1:7447", "tls/127.0.0.1:7447")
+                .replacen(
+                    "[orders]",
+                    &format!("[zenoh.tls]\npki = {:?}\n\n[orders]", pki.display()),
+                    1,
+                );
+        }
+        OrderNodeConfig::parse(&text, path, Overrides::default())
+    }
+
+    #[test]
+    fn etcd_over_tls_takes_the_cells_pki_or_its_own_files() {
+        let pki = pki();
+        let dir = pki.path();
+        // In a secure cell, https uses the cell CA and the node's identity.
+        let c = etcd_config("etcd = [\"https://10.0.0.1:2379\"]", Some(dir), "x").unwrap();
+        let tls = c.etcd.unwrap().tls.expect("TLS files");
+        assert_eq!(tls.ca, dir.join("ca.pem"));
+        assert_eq!(tls.certificate, dir.join("order-node.orders1.pem"));
+        assert_eq!(tls.key, dir.join("order-node.orders1.key"));
+        // Outside one, the files of [journal.etcd_tls], relative to the config file.
+        let config_path = dir.join("orders1.toml").display().to_string();
+        let own = "etcd = [\"https://etcd-a:2379\", \"https://etcd-b:2379\"]\n\
+                   etcd_tls = { ca = \"ca.pem\", certificate = \"order-node.orders1.pem\", \
+                   key = \"order-node.orders1.key\" }";
+        let tls = etcd_config(own, None, &config_path)
+            .unwrap()
+            .etcd
+            .unwrap()
+            .tls
+            .unwrap();
+        assert_eq!(tls.ca, dir.join("ca.pem"));
+        assert_eq!(tls.key, dir.join("order-node.orders1.key"));
+        // One field given overrides the cell's, the others stay the cell's.
+        let ca_only = format!(
+            "etcd = [\"https://10.0.0.1:2379\"]\netcd_tls = {{ ca = {:?} }}",
+            dir.join("order-node.orders1.pem").display()
+        );
+        let tls = etcd_config(&ca_only, Some(dir), "x")
+            .unwrap()
+            .etcd
+            .unwrap()
+            .tls
+            .unwrap();
+        assert_eq!(tls.ca, dir.join("order-node.orders1.pem"));
+        assert_eq!(tls.certificate, dir.join("order-node.orders1.pem"));
+        // http stays plain outside a secure cell, as today.
+        let plain = etcd_config("etcd = [\"http://10.0.0.1:2379\"]", None, "x").unwrap();
+        assert_eq!(plain.etcd.unwrap().tls, None);
+    }
+
+    #[test]
+    fn etcd_tls_misconfigurations_say_what_to_set() {
+        let pki = pki();
+        let dir = pki.path();
+        let refused = |journal: &str, pki: Option<&Path>, expected: &str| {
+            let error = etcd_config(journal, pki, "x").unwrap_err().to_string();
+            assert!(error.contains(expected), "{journal}: {error}");
+        };
+        // https with no files to take.
+        refused(
+            "etcd = [\"https://10.0.0.1:2379\"]",
+            None,
+            "journal.etcd_tls.ca is not set",
+        );
+        refused(
+            "etcd = [\"https://10.0.0.1:2379\"]\netcd_tls = { ca = \"/etc/ca.pem\" }",
+            None,
+            "journal.etcd_tls.certificate is not set",
+        );
+        // Files that are not there.
+        refused(
+            "etcd = [\"https://10.0.0.1:2379\"]\netcd_tls = { ca = \"/nonexistent/ca.pem\" }",
+            Some(dir),
+            "/nonexistent/ca.pem",
+        );
+        // One cluster, one scheme.
+        refused(
+            "etcd = [\"https://10.0.0.1:2379\", \"http://10.0.0.2:2379\"]",
+            Some(dir),
+            "mix http (http://10.0.0.2:2379) and https (https://10.0.0.1:2379)",
+        );
+        // A secure cell refuses plain http off loopback, unless told.
+        refused(
+            "etcd = [\"http://127.0.0.1:2379\", \"http://10.0.0.2:2379\"]",
+            Some(dir),
+            "plain http (http://10.0.0.2:2379)",
+        );
+        let accepted = "etcd = [\"http://10.0.0.2:2379\"]\netcd_plain_http = true";
+        assert_eq!(
+            etcd_config(accepted, Some(dir), "x")
+                .unwrap()
+                .etcd
+                .unwrap()
+                .tls,
+            None
+        );
+        let loopback = "etcd = [\"http://127.0.0.1:2379\", \"http://localhost:2380\"]";
+        assert!(etcd_config(loopback, Some(dir), "x").is_ok());
+        // Contradictions.
+        refused(
+            "etcd = [\"http://10.0.0.2:2379\"]\netcd_tls = { ca = \"ca.pem\" }",
+            Some(dir),
+            "write them https://",
+        );
+        refused(
+            "etcd = [\"https://10.0.0.2:2379\"]\netcd_plain_http = true",
+            Some(dir),
+            "remove one",
+        );
+        refused(
+            "etcd = [\"http://10.0.0.2:2379\"]\netcd_plain_http = true",
+            None,
+            "is for a secure cell",
+        );
+        refused(
+            "etcd_tls = { ca = \"ca.pem\" }",
+            None,
+            "without journal.etcd",
+        );
     }
 
     #[test]

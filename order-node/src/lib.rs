@@ -31,7 +31,7 @@ pub mod order_token;
 pub mod presence;
 pub mod progress;
 pub mod queries;
-pub mod recovery;
 pub mod ranking;
+pub mod recovery;
 pub mod requests;
 pub mod standby;

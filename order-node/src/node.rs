@@ -19,10 +19,10 @@ use tracing::{error, info, warn};
 use crate::config::OrderNodeConfig;
 use crate::context::{OrderContext, MAX_CONCURRENT_ROUNDS};
 use crate::host::{task_ended, Finished, Host, Tasks};
-use crate::recovery::recover;
 use crate::journal::OrderJournal;
 use crate::presence::Presence;
 use crate::queries::{answer, Endpoints, QUERY_QUEUE};
+use crate::recovery::recover;
 
 pub use crate::error::OrderNodeError;
 pub use crate::recovery::Recovered;

@@ -83,7 +83,10 @@ pub async fn stand_by(
         )
         .into());
     }
-    let client = Client::new(ClientConfig::new(etcd.endpoints.clone()))?;
+    let client = Client::new(ClientConfig {
+        tls: etcd.tls.clone(),
+        ..ClientConfig::new(etcd.endpoints.clone())
+    })?;
     let me = holon::presence::Holder::this_process(session).to_string();
     let mut election = ElectionConfig::new(etcd.prefix.clone(), me);
     election.ttl = etcd.lease_ttl;

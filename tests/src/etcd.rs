@@ -1,13 +1,14 @@
 //! A real etcd cluster for a test: members started from `/usr/bin/etcd` (Debian's
 //! `etcd-server`) on loopback with free ports and their data in a temporary directory,
-//! killed when the cluster is dropped.
+//! killed when the cluster is dropped. Its clients are served over plain HTTP, or over
+//! mutual TLS ([`EtcdCluster::start_tls`]).
 
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
-use holon::etcd::{Client, ClientConfig};
+use holon::etcd::{Client, ClientConfig, TlsFiles};
 
 use crate::*;
 
@@ -42,7 +43,7 @@ pub fn etcd_binary() -> Option<PathBuf> {
 pub struct EtcdMember {
     /// Its name in the cluster, `m0`, `m1`, ...
     pub name: String,
-    /// Its client URL, `http://127.0.0.1:<port>`.
+    /// Its client URL, `http://127.0.0.1:<port>` (`https://` with TLS).
     pub client_url: String,
     /// The process, `None` once killed.
     pub process: Option<Process>,
@@ -54,13 +55,49 @@ pub struct EtcdCluster {
     pub members: Vec<EtcdMember>,
     /// Data directories and logs (`<name>.stderr`).
     pub dir: tempfile::TempDir,
+    /// With TLS: the files [`EtcdCluster::client`] connects with.
+    pub client_tls: Option<TlsFiles>,
+}
+
+/// How the members of a cluster started with [`EtcdCluster::start_tls`] serve their
+/// clients: mutual TLS, every client's certificate checked against `trusted_ca`.
+#[derive(Debug, Clone)]
+pub struct MemberTls {
+    /// Every member's server certificate (`--cert-file`): it must name 127.0.0.1.
+    pub certificate: PathBuf,
+    /// Its key (`--key-file`).
+    pub key: PathBuf,
+    /// The CA a client's certificate must be issued by (`--trusted-ca-file`, with
+    /// `--client-cert-auth`).
+    pub trusted_ca: PathBuf,
 }
 
 impl EtcdCluster {
     /// Starts `size` members of one new cluster with etcd's default timing (heartbeat
     /// 100 ms, election 1 s) and waits, at most [`WAIT`], until a put commits.
     pub async fn start(etcd: &std::path::Path, size: usize) -> Result<EtcdCluster> {
+        Self::start_with(etcd, size, None).await
+    }
+
+    /// As [`EtcdCluster::start`], the members serving their clients over mutual TLS
+    /// (`members`; their peer links stay plain, on loopback); [`EtcdCluster::client`]
+    /// connects with `client`.
+    pub async fn start_tls(
+        etcd: &std::path::Path,
+        size: usize,
+        members: MemberTls,
+        client: TlsFiles,
+    ) -> Result<EtcdCluster> {
+        Self::start_with(etcd, size, Some((members, client))).await
+    }
+
+    async fn start_with(
+        etcd: &std::path::Path,
+        size: usize,
+        tls: Option<(MemberTls, TlsFiles)>,
+    ) -> Result<EtcdCluster> {
         let dir = tempfile::tempdir()?;
+        let scheme = if tls.is_some() { "https" } else { "http" };
         let ports: Vec<(u16, u16)> = (0..size).map(|_| (free_port(), free_port())).collect();
         let initial: Vec<String> = ports
             .iter()
@@ -71,7 +108,17 @@ impl EtcdCluster {
         let mut members = Vec::new();
         for (n, (client, peer)) in ports.iter().enumerate() {
             let name = format!("m{n}");
-            let client_url = format!("http://127.0.0.1:{client}");
+            let client_url = format!("{scheme}://127.0.0.1:{client}");
+            let mut tls_args: Vec<std::ffi::OsString> = Vec::new();
+            if let Some((member, _)) = &tls {
+                tls_args.push("--cert-file".into());
+                tls_args.push(member.certificate.clone().into());
+                tls_args.push("--key-file".into());
+                tls_args.push(member.key.clone().into());
+                tls_args.push("--trusted-ca-file".into());
+                tls_args.push(member.trusted_ca.clone().into());
+                tls_args.push("--client-cert-auth".into());
+            }
             let peer_url = format!("http://127.0.0.1:{peer}");
             let data = dir.path().join(&name);
             let stderr_path = dir.path().join(format!("{name}.stderr"));
@@ -102,6 +149,7 @@ impl EtcdCluster {
                     "--auto-compaction-retention",
                     "5s",
                 ])
+                .args(&tls_args)
                 .stdout(Stdio::null())
                 .stderr(std::fs::File::create(&stderr_path)?)
                 .spawn()
@@ -116,7 +164,11 @@ impl EtcdCluster {
                 }),
             });
         }
-        let cluster = EtcdCluster { members, dir };
+        let cluster = EtcdCluster {
+            members,
+            dir,
+            client_tls: tls.map(|(_, client)| client),
+        };
         cluster.wait_ready().await?;
         Ok(cluster)
     }
@@ -147,9 +199,19 @@ impl EtcdCluster {
         self.members.iter().map(|m| m.client_url.clone()).collect()
     }
 
-    /// A client of every member, with the default timeouts.
+    /// A client of every member, with the default timeouts (and the cluster's client
+    /// TLS files, with TLS).
     pub fn client(&self) -> Client {
-        Client::new(ClientConfig::new(self.endpoints())).expect("loopback endpoints")
+        self.client_with(self.client_tls.clone())
+            .expect("loopback endpoints")
+    }
+
+    /// A client of every member with these TLS files (`None`: plain HTTP).
+    pub fn client_with(&self, tls: Option<TlsFiles>) -> Result<Client, holon::etcd::EtcdError> {
+        Client::new(ClientConfig {
+            tls,
+            ..ClientConfig::new(self.endpoints())
+        })
     }
 
     /// Kills member `n` (SIGKILL), as a host that dies.

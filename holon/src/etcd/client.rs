@@ -1,5 +1,7 @@
-//! The client of etcd's v3 JSON gateway: plain HTTP/1 POSTs to the members of one
-//! cluster, with failover between them.
+//! The client of etcd's v3 JSON gateway: HTTP/1 POSTs to the members of one cluster,
+//! with failover between them, over plain TCP (`http://` endpoints) or mutual TLS
+//! (`https://`, [`ClientConfig::tls`]: the member's certificate checked against a given
+//! CA and its endpoint's host, this client's certificate presented).
 //!
 //! A request goes to the member that answered last, and on to the next ones in turn
 //! when it fails; every attempt is bounded by [`ClientConfig::request_timeout`] (its
@@ -12,7 +14,10 @@
 //!   reply is [`EtcdError::Uncertain`]: etcd may commit it later, so sending it again to
 //!   another member could land the two in either order.
 //!
-//! Connections are kept open and reused (one request at a time on each).
+//! Connections are kept open and reused (one request at a time on each). A TLS handshake
+//! is part of the connection (within [`ClientConfig::connect_timeout`]); a member whose
+//! handshake fails (its certificate not trusted, ours refused) has failed like one that
+//! refused the connection, and the next is tried.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -25,6 +30,7 @@ use hyper_util::rt::TokioIo;
 use serde::de::DeserializeOwned;
 use serde::Serialize;
 
+use super::endpoint::{common_scheme, server_name, Endpoint, Scheme, TlsFiles};
 use super::wire;
 use super::EtcdError;
 
@@ -34,13 +40,16 @@ const MAX_IDLE_PER_MEMBER: usize = 16;
 /// Where the cluster is and how long to wait for it.
 #[derive(Debug, Clone)]
 pub struct ClientConfig {
-    /// The members' client URLs, e.g. `http://10.0.0.1:2379` (the scheme may be left
-    /// out; only `http` is spoken).
+    /// The members' client URLs, e.g. `http://10.0.0.1:2379` or `https://etcd-a:2379`
+    /// (no scheme: http). All share one scheme.
     pub endpoints: Vec<String>,
     /// The longest one attempt on one member may take, connection included.
     pub request_timeout: Duration,
-    /// The longest a new connection to one member may take.
+    /// The longest a new connection to one member may take, TLS handshake included.
     pub connect_timeout: Duration,
+    /// The files of mutual TLS: required with `https://` endpoints, refused with
+    /// `http://` ones.
+    pub tls: Option<TlsFiles>,
 }
 
 impl ClientConfig {
@@ -54,6 +63,7 @@ impl ClientConfig {
             endpoints: endpoints.into_iter().map(Into::into).collect(),
             request_timeout: Duration::from_secs(1),
             connect_timeout: Duration::from_millis(250),
+            tls: None,
         }
     }
 }
@@ -94,6 +104,8 @@ struct Inner {
     request_timeout: Duration,
     /// See [`ClientConfig::connect_timeout`].
     connect_timeout: Duration,
+    /// With `https://` endpoints: the TLS connector of [`ClientConfig::tls`].
+    tls: Option<tokio_rustls::TlsConnector>,
 }
 
 struct Member {
@@ -101,6 +113,8 @@ struct Member {
     endpoint: String,
     /// `host:port`, to connect to and for the Host header.
     authority: String,
+    /// The name its certificate must have (with TLS): its endpoint's host.
+    server_name: rustls::pki_types::ServerName<'static>,
     /// Open connections, idle.
     idle: Mutex<Vec<SendRequest<Full<Bytes>>>>,
 }
@@ -132,19 +146,39 @@ enum Failure {
 }
 
 impl Client {
-    /// A client of the cluster at `config.endpoints`; it connects when first used.
+    /// A client of the cluster at `config.endpoints`; it connects when first used. With
+    /// `https://` endpoints the TLS files are read now: one missing or unusable is an
+    /// [`EtcdError::Config`] naming it.
     pub fn new(config: ClientConfig) -> Result<Client, EtcdError> {
-        if config.endpoints.is_empty() {
-            return Err(EtcdError::Config("no etcd endpoint given".into()));
-        }
+        let scheme = common_scheme(&config.endpoints)?;
+        let tls = match (scheme, &config.tls) {
+            (Scheme::Https, Some(files)) => {
+                Some(tokio_rustls::TlsConnector::from(files.client_config()?))
+            }
+            (Scheme::Https, None) => {
+                return Err(EtcdError::Config(format!(
+                    "https etcd endpoints ({}) need TLS files: a CA, a certificate and a key",
+                    config.endpoints.join(", ")
+                )))
+            }
+            (Scheme::Http, Some(_)) => {
+                return Err(EtcdError::Config(format!(
+                    "TLS files are given but the etcd endpoints ({}) are http://; write them \
+                     https://",
+                    config.endpoints.join(", ")
+                )))
+            }
+            (Scheme::Http, None) => None,
+        };
         let members = config
             .endpoints
             .iter()
             .map(|endpoint| {
-                let authority = authority_of(endpoint)?;
+                let parsed = Endpoint::parse(endpoint)?;
                 Ok(Member {
                     endpoint: endpoint.clone(),
-                    authority,
+                    server_name: server_name(&parsed)?,
+                    authority: parsed.authority,
                     idle: Mutex::new(Vec::new()),
                 })
             })
@@ -155,6 +189,7 @@ impl Client {
                 preferred: AtomicUsize::new(0),
                 request_timeout: config.request_timeout,
                 connect_timeout: config.connect_timeout,
+                tls,
             }),
         })
     }
@@ -249,9 +284,12 @@ impl Client {
 
     /// One POST to one member: the reply's body when its status is 200.
     async fn attempt(&self, member: &Member, path: &str, body: Bytes) -> Result<Bytes, Failure> {
-        let mut sender = match self.idle_connection(member).await {
-            Some(sender) => sender,
-            None => self.connect(member).await?,
+        let (mut sender, mut driver) = match self.idle_connection(member).await {
+            Some(sender) => (sender, None),
+            None => {
+                let (sender, driver) = self.connect(member).await?;
+                (sender, Some(driver))
+            }
         };
         let request = hyper::Request::builder()
             .method(hyper::Method::POST)
@@ -260,7 +298,45 @@ impl Client {
             .header(hyper::header::CONTENT_TYPE, "application/json")
             .body(Full::new(body))
             .expect("a POST with a path and two headers is a request");
-        let response = match sender.try_send_request(request).await {
+        let sending = sender.try_send_request(request);
+        let sent = match driver.as_mut() {
+            None => sending.await,
+            // A new connection is driven here until the reply's head: if it ends first
+            // (the member refused our certificate), its error says why.
+            Some(connection) => {
+                tokio::pin!(sending);
+                tokio::select! {
+                    sent = &mut sending => sent,
+                    ended = connection.as_mut() => {
+                        let why = match &ended {
+                            Ok(()) => "connection closed before the reply".to_string(),
+                            Err(e) => match refused_handshake(e) {
+                                Some(alert) => format!(
+                                    "the member refused this client's TLS certificate ({alert:?})"
+                                ),
+                                None => format!("connection closed: {e}"),
+                            },
+                        };
+                        // Unsent if the member refused the handshake: it read nothing.
+                        let failure = if matches!(&ended, Err(e) if refused_handshake(e).is_some()) {
+                            Failure::NotSent
+                        } else {
+                            Failure::NoReply
+                        };
+                        return Err(failure(format!("{}: {why}", member.endpoint)));
+                    }
+                }
+            }
+        };
+        if let Some(connection) = driver {
+            let endpoint = member.endpoint.clone();
+            tokio::spawn(async move {
+                if let Err(e) = connection.await {
+                    tracing::debug!(etcd = %endpoint, error = %e, "etcd connection ended");
+                }
+            });
+        }
+        let response = match sent {
             Ok(response) => response,
             Err(e) if e.message().is_some() => {
                 return Err(Failure::NotSent(format!(
@@ -270,11 +346,20 @@ impl Client {
                 )))
             }
             Err(e) => {
+                // TLS 1.3: the client's side of the handshake ends before the member has
+                // checked our certificate, so its refusal comes as an alert in place of
+                // the reply. It never read the request.
+                if let Some(alert) = refused_handshake(e.error()) {
+                    return Err(Failure::NotSent(format!(
+                        "{}: the member refused this client's TLS certificate ({alert:?})",
+                        member.endpoint
+                    )));
+                }
                 return Err(Failure::NoReply(format!(
                     "{}: {}",
                     member.endpoint,
                     e.error()
-                )))
+                )));
             }
         };
         let status = response.status();
@@ -319,12 +404,31 @@ impl Client {
         }
     }
 
-    /// A new connection to `member`, its driver spawned.
-    async fn connect(&self, member: &Member) -> Result<SendRequest<Full<Bytes>>, Failure> {
-        let connecting = tokio::net::TcpStream::connect(&member.authority);
+    /// A new connection to `member` (TCP, then TLS with https, both within the connect
+    /// timeout), and its driver, for the caller to poll or spawn.
+    async fn connect(
+        &self,
+        member: &Member,
+    ) -> Result<(SendRequest<Full<Bytes>>, Driver), Failure> {
+        let connecting = async {
+            let stream = tokio::net::TcpStream::connect(&member.authority)
+                .await
+                .map_err(|e| format!("{}: {e}", member.endpoint))?;
+            if let Err(e) = stream.set_nodelay(true) {
+                tracing::debug!(etcd = %member.endpoint, error = %e, "cannot set TCP_NODELAY");
+            }
+            match &self.inner.tls {
+                None => Ok(Stream::Plain(stream)),
+                Some(connector) => connector
+                    .connect(member.server_name.clone(), stream)
+                    .await
+                    .map(|tls| Stream::Tls(Box::new(tls)))
+                    .map_err(|e| format!("{}: TLS handshake failed: {e}", member.endpoint)),
+            }
+        };
         let stream = match tokio::time::timeout(self.inner.connect_timeout, connecting).await {
             Ok(Ok(stream)) => stream,
-            Ok(Err(e)) => return Err(Failure::NotSent(format!("{}: {e}", member.endpoint))),
+            Ok(Err(why)) => return Err(Failure::NotSent(why)),
             Err(_) => {
                 return Err(Failure::NotSent(format!(
                     "{}: no connection within {:?}",
@@ -332,19 +436,21 @@ impl Client {
                 )))
             }
         };
-        if let Err(e) = stream.set_nodelay(true) {
-            tracing::debug!(etcd = %member.endpoint, error = %e, "cannot set TCP_NODELAY");
-        }
-        let (sender, connection) = http1::handshake(TokioIo::new(stream))
-            .await
-            .map_err(|e| Failure::NotSent(format!("{}: {e}", member.endpoint)))?;
-        let endpoint = member.endpoint.clone();
-        tokio::spawn(async move {
-            if let Err(e) = connection.await {
-                tracing::debug!(etcd = %endpoint, error = %e, "etcd connection ended");
+        let not_sent = |e: hyper::Error| Failure::NotSent(format!("{}: {e}", member.endpoint));
+        Ok(match stream {
+            Stream::Plain(stream) => {
+                let (sender, connection) = http1::handshake(TokioIo::new(stream))
+                    .await
+                    .map_err(not_sent)?;
+                (sender, Box::pin(connection) as Driver)
             }
-        });
-        Ok(sender)
+            Stream::Tls(stream) => {
+                let (sender, connection) = http1::handshake(TokioIo::new(*stream))
+                    .await
+                    .map_err(not_sent)?;
+                (sender, Box::pin(connection) as Driver)
+            }
+        })
     }
 
     /// Grants a lease of `ttl` whole seconds; its id.
@@ -392,56 +498,85 @@ impl Client {
     }
 
     /// Each member's view of the cluster (its id and the raft leader's), asked of each
-    /// in turn; a member that does not answer is left out.
+    /// in turn (each within the request timeout); a member that does not answer is left
+    /// out.
     pub async fn member_statuses(&self) -> Vec<MemberStatus> {
+        const PATH: &str = "/v3/maintenance/status";
         let mut statuses = Vec::new();
-        for endpoint in self.endpoints() {
-            let single = Client::new(ClientConfig {
-                endpoints: vec![endpoint.clone()],
-                request_timeout: self.inner.request_timeout,
-                connect_timeout: self.inner.connect_timeout,
-            });
-            let Ok(single) = single else { continue };
-            let status: Result<wire::StatusResponse, _> = single
-                .call(
-                    "/v3/maintenance/status",
-                    &serde_json::json!({}),
-                    Retry::Always,
-                )
-                .await;
-            match status {
-                Ok(status) => statuses.push(MemberStatus {
-                    endpoint,
-                    member_id: status.header.member_id,
-                    leader_id: status.leader,
-                }),
-                Err(e) => tracing::debug!(etcd = %endpoint, error = %e, "no status"),
-            }
+        for member in &self.inner.members {
+            let attempt = tokio::time::timeout(
+                self.inner.request_timeout,
+                self.attempt(member, PATH, Bytes::from_static(b"{}")),
+            )
+            .await;
+            let why = match attempt {
+                Ok(Ok(reply)) => match serde_json::from_slice::<wire::StatusResponse>(&reply) {
+                    Ok(status) => {
+                        statuses.push(MemberStatus {
+                            endpoint: member.endpoint.clone(),
+                            member_id: status.header.member_id,
+                            leader_id: status.leader,
+                        });
+                        continue;
+                    }
+                    Err(e) => format!("malformed status: {e}"),
+                },
+                Ok(Err(
+                    Failure::NotSent(why) | Failure::NoReply(why) | Failure::Malformed(why),
+                )) => why,
+                Ok(Err(Failure::Refused { message, code })) => format!("{message} (code {code})"),
+                Err(_) => format!("no reply within {:?}", self.inner.request_timeout),
+            };
+            tracing::debug!(etcd = %member.endpoint, why = %why, "no status");
         }
         statuses
     }
 }
 
-/// `host:port` of an endpoint `http://host:port[/]` or `host:port`.
-fn authority_of(endpoint: &str) -> Result<String, EtcdError> {
-    let rest = match endpoint.split_once("://") {
-        Some(("http", rest)) => rest,
-        Some((scheme, _)) => {
-            return Err(EtcdError::Config(format!(
-                "etcd endpoint {endpoint:?}: scheme {scheme} is not spoken (http only)"
-            )))
+/// What drives one connection's I/O: polled by the first request's attempt, then
+/// spawned.
+type Driver = std::pin::Pin<Box<dyn std::future::Future<Output = Result<(), hyper::Error>> + Send>>;
+
+/// A connection to a member.
+enum Stream {
+    /// `http://`.
+    Plain(tokio::net::TcpStream),
+    /// `https://`.
+    Tls(Box<tokio_rustls::client::TlsStream<tokio::net::TcpStream>>),
+}
+
+/// The alert a member refused our certificate with, if that is what ended `error`: one
+/// of the handshake's alerts, received where the reply should have been.
+fn refused_handshake(
+    error: &(dyn std::error::Error + 'static),
+) -> Option<rustls::AlertDescription> {
+    use rustls::AlertDescription as A;
+    let mut next = Some(error);
+    while let Some(error) = next {
+        let tls = error.downcast_ref::<rustls::Error>().or_else(|| {
+            error
+                .downcast_ref::<std::io::Error>()
+                .and_then(|io| io.get_ref())
+                .and_then(|inner| inner.downcast_ref::<rustls::Error>())
+        });
+        if let Some(rustls::Error::AlertReceived(alert)) = tls {
+            let handshake = matches!(
+                alert,
+                A::BadCertificate
+                    | A::UnsupportedCertificate
+                    | A::CertificateRevoked
+                    | A::CertificateExpired
+                    | A::CertificateUnknown
+                    | A::UnknownCA
+                    | A::AccessDenied
+                    | A::HandshakeFailure
+                    | A::CertificateRequired
+            );
+            return handshake.then_some(*alert);
         }
-        None => endpoint,
-    };
-    let authority = rest.trim_end_matches('/');
-    match authority.rsplit_once(':') {
-        Some((host, port)) if !host.is_empty() && port.parse::<u16>().is_ok() => {
-            Ok(authority.to_string())
-        }
-        _ => Err(EtcdError::Config(format!(
-            "etcd endpoint {endpoint:?} is not http://host:port"
-        ))),
+        next = error.source();
     }
+    None
 }
 
 #[cfg(test)]
@@ -449,15 +584,32 @@ mod tests {
     use super::*;
 
     #[test]
-    fn endpoints_are_host_and_port_over_http() {
-        assert_eq!(
-            authority_of("http://10.0.0.1:2379").unwrap(),
-            "10.0.0.1:2379"
-        );
-        assert_eq!(authority_of("127.0.0.1:2379/").unwrap(), "127.0.0.1:2379");
-        assert!(authority_of("https://10.0.0.1:2379").is_err());
-        assert!(authority_of("10.0.0.1").is_err());
+    fn a_client_needs_endpoints_of_one_scheme_and_tls_files_with_https() {
         assert!(Client::new(ClientConfig::new(Vec::<String>::new())).is_err());
+        assert!(Client::new(ClientConfig::new(["http://10.0.0.1:2379"])).is_ok());
+        let mixed = ["https://10.0.0.1:2379", "http://10.0.0.2:2379"];
+        let error = Client::new(ClientConfig::new(mixed)).unwrap_err();
+        assert!(matches!(error, EtcdError::Config(_)), "{error}");
+        assert!(error.to_string().contains("10.0.0.2"), "{error}");
+        let error = Client::new(ClientConfig::new(["https://10.0.0.1:2379"])).unwrap_err();
+        assert!(error.to_string().contains("need TLS files"), "{error}");
+        let files = TlsFiles {
+            ca: "/nonexistent/ca.pem".into(),
+            certificate: "/nonexistent/c.pem".into(),
+            key: "/nonexistent/c.key".into(),
+        };
+        let plain = ClientConfig {
+            tls: Some(files.clone()),
+            ..ClientConfig::new(["http://10.0.0.1:2379"])
+        };
+        let error = Client::new(plain).unwrap_err();
+        assert!(error.to_string().contains("write them https://"), "{error}");
+        let secure = ClientConfig {
+            tls: Some(files),
+            ..ClientConfig::new(["https://10.0.0.1:2379"])
+        };
+        let error = Client::new(secure).unwrap_err();
+        assert!(error.to_string().contains("/nonexistent/ca.pem"), "{error}");
     }
 
     #[tokio::test]

@@ -15,12 +15,14 @@
 #![warn(missing_docs)]
 
 mod client;
+mod endpoint;
 mod error;
 mod leadership;
 mod store;
 mod wire;
 
 pub use client::{Client, ClientConfig, MemberStatus};
+pub use endpoint::{common_scheme, Endpoint, Scheme, TlsFiles};
 pub use error::EtcdError;
 pub use leadership::{Candidate, ElectionConfig, Holder, Leader, Leadership};
 pub use store::{journal_since, FencedStore, JournalRead, MAX_RECORDS_PER_WRITE};
