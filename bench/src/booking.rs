@@ -4,7 +4,7 @@
 use std::time::{Duration, Instant};
 
 use anyhow::{bail, Result};
-use holarchy_tests::{pick_n_place, resource_config, Cell, Process};
+use holarchy_tests::{pick_n_place, resource_config, Cell, Process, Sim};
 use schemas::{MessageType, Service};
 use serde_json::json;
 
@@ -172,18 +172,78 @@ pub async fn section(run: &mut Run) -> Result<()> {
         &series,
         1,
     );
+
+    // What a standby costs a booking: the same on a fenced resource holding its
+    // controller's claim, which confirms the claim with the controller before it books
+    // (docs/reliability.md, "Standby resources").
+    let (_sim, mut fenced) = start_fenced_robot(run, "robot10").await?;
+    let fenced_series = booking_series(&run.cell, "robot10", run.samples).await?;
+    fenced.kill();
+    run.table.add(
+        "booking round trip, fenced resource (standby-capable, process_crash)",
+        format!(
+            "p50 {:.0} us, p99 {:.0} us",
+            fenced_series.booking.pct(0.5),
+            fenced_series.booking.pct(0.99)
+        ),
+        format!(
+            "{:.2}x the unfenced booking's p50 ({:.0} us); {:.2}x its interleaved zenoh floor",
+            fenced_series.booking.pct(0.5) / series.booking.pct(0.5),
+            series.booking.pct(0.5),
+            fenced_series.ratio()
+        ),
+        json!({
+            "booking": fenced_series.booking.json(),
+            "interleaved_floor": fenced_series.floor.json(),
+            "unfenced_booking": series.booking.json(),
+        }),
+    );
     Ok(())
 }
 
-/// A resource holon `name` on the run's controller with the journal's
-/// `process_crash` durability (no fsync per commit), free.
-pub async fn start_process_crash_robot(run: &Run, name: &str) -> Result<Process> {
+/// A fenced resource holon `name` (`--standby`, `process_crash`) on a controller
+/// simulator of its own that fences (`robot-sim --fenced`), holding the claim and free.
+async fn start_fenced_robot(run: &Run, name: &str) -> Result<(Sim, Process)> {
+    let sim = Sim::start(
+        &run.dir,
+        &format!("{name}-sim"),
+        "127.0.0.1:0",
+        &["--fenced", "--lease-ms", "1000"],
+    )?;
+    let config = process_crash_config(run, name)?;
+    let robot = holarchy_tests::start_node(
+        &run.dir,
+        &config,
+        "bench",
+        &run.cell.endpoint,
+        &sim.address,
+        &[
+            "--data-dir",
+            run.dir.join(format!("data-{name}")).to_str().unwrap(),
+            "--standby",
+        ],
+    )?;
+    run.cell
+        .wait_state(name, "free", |s| s["state"] == "free")
+        .await?;
+    Ok((sim, robot))
+}
+
+/// The config of resource `name` with the journal's `process_crash` durability.
+fn process_crash_config(run: &Run, name: &str) -> Result<std::path::PathBuf> {
     let config = resource_config(&run.dir, name, 5000)?;
     let text = std::fs::read_to_string(&config)?;
     std::fs::write(
         &config,
         format!("{text}\n[journal]\ndurability = \"process_crash\"\n"),
     )?;
+    Ok(config)
+}
+
+/// A resource holon `name` on the run's controller with the journal's
+/// `process_crash` durability (no fsync per commit), free.
+pub async fn start_process_crash_robot(run: &Run, name: &str) -> Result<Process> {
+    let config = process_crash_config(run, name)?;
     let robot = holarchy_tests::start_node(
         &run.dir,
         &config,

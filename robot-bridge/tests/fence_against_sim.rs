@@ -441,3 +441,34 @@ async fn arbitrary_claim_names_change_nothing() {
     holder.shutdown.cancel();
     sim.cancel();
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_grant_is_known_for_half_a_lease_and_not_once_the_connection_is_gone() {
+    let lease = Duration::from_secs(2);
+    let config = SimConfig {
+        fence_lease: Some(lease),
+        ..SimConfig::default()
+    };
+    let (address, _stats, sim) = start_sim("127.0.0.1:0", config).await;
+    let mut holder = start(&address);
+    assert!(!holder.handle.confirmed(), "nothing granted yet");
+    holder.claim("robot1").await.expect("granted");
+    assert!(holder.handle.confirmed(), "granted just now");
+    // Half a lease after the claim was sent, it must be asked again.
+    tokio::time::sleep(lease / 2).await;
+    assert!(!holder.handle.confirmed(), "half a lease has passed");
+    holder.claim("robot1").await.expect("granted again");
+    assert!(holder.handle.confirmed());
+    // The controller goes away: the claim is lost, and no longer known held.
+    sim.cancel();
+    loop {
+        if let FenceEvent::Lost { .. } = holder.fence_event().await {
+            break;
+        }
+    }
+    assert!(
+        !holder.handle.confirmed(),
+        "the connection holding it ended"
+    );
+    holder.shutdown.cancel();
+}

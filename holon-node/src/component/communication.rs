@@ -467,7 +467,8 @@ async fn answer(links: &Arc<Links>, arrival: Arrival) -> Option<AgendaMessage> {
 }
 
 /// For a fenced resource: whether the controller still grants this process the epoch it
-/// serves with (a claim again, answered with the same epoch while it holds it).
+/// serves with (a claim again, answered with the same epoch while it holds it; not asked
+/// again within half a lease of the last grant, [`robot_bridge::client::FenceHandle::confirmed`]).
 async fn confirm_claim(links: &Links) -> Result<(), String> {
     let Some(fence) = &links.fence else {
         return Ok(());
@@ -475,6 +476,10 @@ async fn confirm_claim(links: &Links) -> Result<(), String> {
     let crate::views::FenceView::Holding(held) = *links.views.fence.borrow() else {
         return Err("it does not hold the controller".into());
     };
+    if fence.confirmed() {
+        // Granted less than half a lease ago: nobody else can hold it yet.
+        return Ok(());
+    }
     let name = links.config.holon.name();
     match tokio::time::timeout(CONFIRM_WAIT, fence.claim(name)).await {
         Ok(Ok(epoch)) if epoch.0 == held => Ok(()),

@@ -10,7 +10,8 @@
 
 use std::time::Duration;
 
-use tokio::sync::{mpsc, oneshot};
+use tokio::sync::{mpsc, oneshot, watch};
+use tokio::time::Instant;
 
 use super::ClientConfig;
 use crate::fence_wire::{valid_token, MAX_NAME_BYTES, MAX_STEP_BYTES};
@@ -147,6 +148,9 @@ pub struct FencePort {
     pub requests: mpsc::Receiver<FenceRequest>,
     /// Where [`FenceEvent`]s go.
     pub events: mpsc::Sender<FenceEvent>,
+    /// Until when the claim is known held without asking ([`FenceHandle::confirmed`]):
+    /// written by the connection task alone.
+    pub confirmed: watch::Sender<Option<Instant>>,
 }
 
 /// The holon's end of the fence.
@@ -158,14 +162,19 @@ pub struct FenceHandle {
     wait: Duration,
     /// The dialect's name, if it cannot fence.
     unsupported: Option<String>,
+    /// Until when the claim is known held without asking the controller: half a lease
+    /// after the last claim the controller granted was sent (see [`Self::confirmed`]).
+    confirmed: watch::Receiver<Option<Instant>>,
 }
 
 /// A fence handle, the port for [`super::run_fenced`], and the fence's events.
 pub fn channel(config: &ClientConfig) -> (FenceHandle, FencePort, mpsc::Receiver<FenceEvent>) {
     let (requests, request_rx) = mpsc::channel(16);
     let (event_tx, events) = mpsc::channel(16);
+    let (confirmed, confirmed_rx) = watch::channel(None);
     let handle = FenceHandle {
         requests,
+        confirmed: confirmed_rx,
         wait: config.command_timeout + config.connect_timeout,
         unsupported: (!config.dialect.fencing_supported()).then(|| {
             format!(
@@ -177,6 +186,7 @@ pub fn channel(config: &ClientConfig) -> (FenceHandle, FencePort, mpsc::Receiver
     let port = FencePort {
         requests: request_rx,
         events: event_tx,
+        confirmed,
     };
     (handle, port, events)
 }
@@ -185,6 +195,19 @@ impl FenceHandle {
     /// Whether the controller's dialect can fence; without it a standby is refused.
     pub fn fencing_supported(&self) -> bool {
         self.unsupported.is_none()
+    }
+
+    /// Whether this process is known to hold the claim now without asking the
+    /// controller: a claim of its own was granted, sent less than half a lease ago, on a
+    /// connection still open. The controller grants another session only after a lease
+    /// of silence from the holder, counted from when it heard the holder, which is after
+    /// we sent; half a lease leaves room for the two clocks. Not a fence (the epoch on
+    /// every command is): it spares a claim round trip per booking while requests come
+    /// often, as a lease-based read does.
+    pub fn confirmed(&self) -> bool {
+        self.confirmed
+            .borrow()
+            .is_some_and(|until| Instant::now() < until)
     }
 
     /// Claims the controller as `name`: the epoch granted, or why not.

@@ -24,14 +24,24 @@ const MIN_ASK_AGAIN: std::time::Duration = std::time::Duration::from_millis(50);
 /// What the fence awaits on this connection.
 #[derive(Default)]
 pub(super) struct FenceWaits {
-    /// A claim sent, and when its answer is due.
-    claim: Option<(oneshot::Sender<Result<Epoch, ClaimError>>, Instant)>,
+    /// A claim sent, awaiting its answer.
+    claim: Option<ClaimWait>,
     /// Step status queries sent, oldest first.
     status: VecDeque<StatusWait>,
     /// When the next heartbeat goes, while the claim is held.
     pub(super) heartbeat_at: Option<Instant>,
     /// The owner's queries of steps that were still running: asked again when due.
     again: Vec<(Instant, StepId)>,
+}
+
+/// A claim awaiting its answer.
+struct ClaimWait {
+    /// Who asked.
+    reply: oneshot::Sender<Result<Epoch, ClaimError>>,
+    /// When the answer is due.
+    deadline: Instant,
+    /// When it was sent: a grant holds for half a lease from then.
+    sent: Instant,
 }
 
 /// A step status query awaiting its answer.
@@ -55,7 +65,7 @@ impl FenceWaits {
     pub(super) fn next_wake(&self) -> Option<Instant> {
         self.claim
             .as_ref()
-            .map(|(_, at)| *at)
+            .map(|wait| wait.deadline)
             .into_iter()
             .chain(self.status.iter().map(|w| w.deadline))
             .chain(self.heartbeat_at)
@@ -121,7 +131,11 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                     .map_err(ConnectionEnd::Lost)?;
                 self.outbox.push(bytes);
                 self.last_traffic = now;
-                self.fence_waits.claim = Some((reply, now + timeout));
+                self.fence_waits.claim = Some(ClaimWait {
+                    reply,
+                    deadline: now + timeout,
+                    sent: now,
+                });
                 Ok(())
             }
             FenceRequest::StepStatus { step, reply } => {
@@ -201,22 +215,30 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 );
             };
             let lease = std::time::Duration::from_millis(lease.max(4));
+            let mut news = true;
             if let Some(c) = self.claimed.as_mut() {
+                news = !c.held || c.epoch != Some(Epoch(epoch));
                 c.epoch = Some(Epoch(epoch));
                 c.held = true;
                 c.lease = lease;
             }
             self.fence_waits.heartbeat_at = Some(Instant::now() + lease / 4);
-            info!(epoch, lease = ?lease, "claim granted");
-            if let Some((reply, _)) = self.fence_waits.claim.take() {
-                let _ = reply.send(Ok(Epoch(epoch)));
+            if news {
+                info!(epoch, lease = ?lease, "claim granted");
+            } else {
+                debug!(epoch, "claim confirmed");
+            }
+            if let Some(wait) = self.fence_waits.claim.take() {
+                self.set_confirmed(Some(wait.sent + lease / 2));
+                let _ = wait.reply.send(Ok(Epoch(epoch)));
             }
             return Some(Ok(()));
         }
         if let Ok(Some(v)) = read(fence.refused) {
             let epoch = number(&v, "epoch").map(Epoch);
             let reason = v.get("reason").unwrap_or("").to_string();
-            if let Some((reply, _)) = self.fence_waits.claim.take() {
+            if let Some(ClaimWait { reply, .. }) = self.fence_waits.claim.take() {
+                self.set_confirmed(None);
                 let error = match (reason.as_str(), epoch) {
                     (REASON_HELD, Some(epoch)) => ClaimError::Held(epoch),
                     (REASON_NOT_FENCED, _) => {
@@ -263,6 +285,14 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         None
     }
 
+    /// Until when the claim is known held without asking ([`super::super::FenceHandle::confirmed`]);
+    /// `None` once it may not be.
+    fn set_confirmed(&mut self, until: Option<Instant>) {
+        if let Some(port) = self.fence.as_mut() {
+            port.confirmed.send_replace(until);
+        }
+    }
+
     /// The controller said our epoch is stale: we hold nothing; the holon must step down.
     pub(super) async fn deposed(&mut self, current: Option<Epoch>) {
         let Some(c) = self.claimed.as_mut() else {
@@ -271,6 +301,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         let epoch = c.epoch.unwrap_or(Epoch(0));
         let was = std::mem::replace(&mut c.held, false);
         self.fence_waits.heartbeat_at = None;
+        self.set_confirmed(None);
         warn!(%epoch, ?current, held = was, "the controller refused our epoch (stale_epoch): step down");
         self.fence_event(FenceEvent::Deposed { epoch, current })
             .await;
@@ -282,9 +313,9 @@ impl<O: super::Owner> Connection<'_, '_, O> {
             .fence_waits
             .claim
             .as_ref()
-            .is_some_and(|(_, at)| *at <= now)
+            .is_some_and(|wait| wait.deadline <= now)
         {
-            if let Some((reply, _)) = self.fence_waits.claim.take() {
+            if let Some(ClaimWait { reply, .. }) = self.fence_waits.claim.take() {
                 let _ = reply.send(Err(ClaimError::Timeout(self.config.command_timeout)));
             }
         }
@@ -332,7 +363,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
 
     /// The connection ends: what the fence awaited fails, a claim held is lost.
     pub(super) async fn fence_ends(&mut self) {
-        if let Some((reply, _)) = self.fence_waits.claim.take() {
+        if let Some(ClaimWait { reply, .. }) = self.fence_waits.claim.take() {
             let _ = reply.send(Err(ClaimError::NotConnected));
         }
         // Every query waiting or to be asked again fails: the owner asks again once a
@@ -356,6 +387,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 return;
             }
         }
+        self.set_confirmed(None);
         let Some(c) = self.claimed.as_mut() else {
             return;
         };
