@@ -210,47 +210,48 @@ async fn start_fenced_robot(run: &Run, name: &str) -> Result<(Sim, Process)> {
         "127.0.0.1:0",
         &["--fenced", "--lease-ms", "1000"],
     )?;
-    let config = process_crash_config(run, name)?;
-    let robot = holarchy_tests::start_node(
-        &run.dir,
-        &config,
-        "bench",
-        &run.cell.endpoint,
-        &sim.address,
-        &[
-            "--data-dir",
-            run.dir.join(format!("data-{name}")).to_str().unwrap(),
-            "--standby",
-        ],
-    )?;
-    run.cell
-        .wait_state(name, "free", |s| s["state"] == "free")
-        .await?;
+    let data = run.dir.join(format!("data-{name}"));
+    let data = data.to_str().unwrap();
+    let robot =
+        start_process_crash_robot_on(run, name, &sim.address, &["--data-dir", data, "--standby"])
+            .await?;
     Ok((sim, robot))
 }
 
-/// The config of resource `name` with the journal's `process_crash` durability.
-fn process_crash_config(run: &Run, name: &str) -> Result<std::path::PathBuf> {
+/// A resource holon `name` on the run's controller with the journal's
+/// `process_crash` durability (no fsync per commit), free.
+pub async fn start_process_crash_robot(run: &Run, name: &str) -> Result<Process> {
+    let data = run.dir.join("data");
+    start_process_crash_robot_on(
+        run,
+        name,
+        &run.sim.address,
+        &["--data-dir", data.to_str().unwrap()],
+    )
+    .await
+}
+
+/// A resource holon `name` with the journal's `process_crash` durability, on the
+/// controller at `controller` with `flags`, free.
+async fn start_process_crash_robot_on(
+    run: &Run,
+    name: &str,
+    controller: &str,
+    flags: &[&str],
+) -> Result<Process> {
     let config = resource_config(&run.dir, name, 5000)?;
     let text = std::fs::read_to_string(&config)?;
     std::fs::write(
         &config,
         format!("{text}\n[journal]\ndurability = \"process_crash\"\n"),
     )?;
-    Ok(config)
-}
-
-/// A resource holon `name` on the run's controller with the journal's
-/// `process_crash` durability (no fsync per commit), free.
-pub async fn start_process_crash_robot(run: &Run, name: &str) -> Result<Process> {
-    let config = process_crash_config(run, name)?;
     let robot = holarchy_tests::start_node(
         &run.dir,
         &config,
         "bench",
         &run.cell.endpoint,
-        &run.sim.address,
-        &["--data-dir", run.dir.join("data").to_str().unwrap()],
+        controller,
+        flags,
     )?;
     run.cell
         .wait_state(name, "free", |s| s["state"] == "free")
