@@ -352,3 +352,121 @@ async fn run(root: &Path, cluster: &EtcdCluster) -> Result<()> {
     );
     Ok(())
 }
+
+/// An order-node whose etcd members serve clients over mutual TLS only (certificates of
+/// the cell's PKI, from `cell certs`): given the CA and its own certificate in
+/// `[journal.etcd_tls]`, it wins its key over https and its orders end done; given a
+/// certificate of another cell's CA, the members refuse it and it never serves.
+#[tokio::test(flavor = "multi_thread")]
+async fn an_order_node_on_etcd_over_mutual_tls_serves_and_a_stranger_is_refused() {
+    let Some(etcd) = etcd_binary() else {
+        return;
+    };
+    let root = tempfile::tempdir().unwrap();
+    let root = root.path();
+    let pki_of = |dir: &Path| -> PathBuf {
+        fs::create_dir_all(dir).unwrap();
+        fs::write(
+            dir.join("cell.toml"),
+            "cell = \"t\"\n[pki]\netcd_hosts = [\"local\"]\n[[process]]\nname = \"orders1\"\n\
+             program = \"order-node\"\nidentity = \"order-node.orders1\"\n",
+        )
+        .unwrap();
+        cell::certs::run(dir, &cell::certs::CertsOptions::default()).unwrap();
+        dir.join("pki")
+    };
+    let pki = pki_of(&root.join("cell"));
+    let other = pki_of(&root.join("other"));
+    let node_files = |pki: &Path| holon::etcd::TlsFiles {
+        ca: pki.join("ca.pem"),
+        certificate: pki.join("order-node.orders1.pem"),
+        key: pki.join("order-node.orders1.key"),
+    };
+    let members = MemberTls {
+        certificate: pki.join("etcd.local.pem"),
+        key: pki.join("etcd.local.key"),
+        trusted_ca: pki.join("ca.pem"),
+    };
+    let cluster = EtcdCluster::start_tls(&etcd, 3, members, node_files(&pki))
+        .await
+        .expect("a 3-member etcd cluster on TLS");
+    // The node's config: its members over https, the CA and its certificate.
+    let with_tls = |dir: &Path, files: &holon::etcd::TlsFiles| -> PathBuf {
+        fs::create_dir_all(dir).unwrap();
+        let plain = config(dir, &cluster).unwrap();
+        let text = fs::read_to_string(&plain).unwrap();
+        let text = format!(
+            "{text}\n[journal.etcd_tls]\nca = {:?}\ncertificate = {:?}\nkey = {:?}\n",
+            files.ca, files.certificate, files.key
+        );
+        fs::write(&plain, text).unwrap();
+        plain
+    };
+    assert!(
+        fs::read_to_string(with_tls(&root.join("probe"), &node_files(&pki)))
+            .unwrap()
+            .contains("https://")
+    );
+
+    let cell = Cell::open("t-order-tls").await.unwrap();
+    let _part = start_holon(
+        root,
+        "holon-node",
+        &one_step_product(root).unwrap(),
+        "part",
+        &cell,
+        &[],
+    )
+    .unwrap();
+    cell.wait_alive(&schemas::HolonId::new(schemas::HolonKind::Product, "part").unwrap())
+        .await
+        .unwrap();
+    let _robot = cell.resource(root, "robot1").start().await.unwrap();
+
+    // A stranger: it trusts the members, but its certificate is another CA's. It cannot
+    // even campaign.
+    let stranger_dir = root.join("stranger");
+    let stranger_files = holon::etcd::TlsFiles {
+        ca: pki.join("ca.pem"),
+        ..node_files(&other)
+    };
+    let stranger_config = with_tls(&stranger_dir, &stranger_files);
+    let mut stranger = start_holon(
+        &stranger_dir,
+        "order-node",
+        &stranger_config,
+        "orders1",
+        &cell,
+        &[],
+    )
+    .unwrap();
+    wait_said(&stranger_dir, "refused this client's TLS certificate")
+        .await
+        .unwrap();
+    assert!(
+        serving_epoch(&stranger_dir).is_none(),
+        "{}",
+        tail(&log(&stranger_dir))
+    );
+    stranger.kill();
+
+    // The node of this cell serves, and its orders end done.
+    let a = root.join("a");
+    let node_config = with_tls(&a, &node_files(&pki));
+    let _node = start_holon(&a, "order-node", &node_config, "orders1", &cell, &[]).unwrap();
+    if let Err(e) = wait_said(&a, "serving at epoch").await {
+        print_log_tails(root);
+        cluster.print_logs();
+        panic!("{e:#}");
+    }
+    let submitted = cell.submit("part", 3).await.unwrap();
+    for order in &submitted {
+        cell.wait_order(order, "done over TLS", |s| {
+            s.is_some_and(|s| s["status"] == "done")
+        })
+        .await
+        .unwrap();
+    }
+    // Its records are in etcd, read over TLS.
+    assert!(records(&cluster).await.len() >= 3);
+}

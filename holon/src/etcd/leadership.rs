@@ -156,12 +156,18 @@ impl Candidate {
     ) -> Result<Option<Leader>, EtcdError> {
         let key = self.config.leader_key();
         let mut last_holder: Option<Holder> = None;
+        // The last failure to reach etcd, logged once (again only when it changes).
+        let mut failing: Option<String> = None;
         loop {
             if cancel.is_cancelled() {
                 return Ok(None);
             }
             // Bounded by the client's timeouts; not cut short, so a key won is not left.
-            match self.try_once().await {
+            let tried = self.try_once().await;
+            if !matches!(&tried, Err(e) if e.is_transient()) && failing.take().is_some() {
+                tracing::info!(key = %key, "etcd answers again");
+            }
+            match tried {
                 Ok(Ok(leader)) if cancel.is_cancelled() => {
                     if let Err(e) = leader.resign().await {
                         tracing::warn!(key = %key, error = %e, "won as the campaign was cancelled, and could not resign: the key expires with its lease");
@@ -184,14 +190,24 @@ impl Candidate {
                             Ok(None) => break,
                             Ok(Some(_)) => {}
                             Err(e) if e.is_transient() => {
-                                tracing::warn!(key = %key, error = %e, "cannot ask etcd who leads; asking again");
+                                failed(
+                                    &mut failing,
+                                    &key,
+                                    &e,
+                                    "cannot ask etcd who leads; asking again",
+                                );
                             }
                             Err(e) => return Err(e),
                         }
                     }
                 }
                 Err(e) if e.is_transient() => {
-                    tracing::warn!(key = %key, error = %e, "cannot campaign on etcd; trying again");
+                    failed(
+                        &mut failing,
+                        &key,
+                        &e,
+                        "cannot campaign on etcd; trying again",
+                    );
                     tokio::select! {
                         _ = cancel.cancelled() => return Ok(None),
                         _ = tokio::time::sleep(self.config.retry_every) => {}
@@ -291,6 +307,18 @@ pub(crate) fn holder_in(reply: &wire::TxnResponse) -> Option<Holder> {
         .flat_map(|r| r.kvs.first())
         .map(holder_from)
         .next()
+}
+
+/// A failure to reach etcd while campaigning: logged as a warning when it is news (the
+/// first, or another than the last), at debug when it repeats.
+fn failed(failing: &mut Option<String>, key: &str, error: &EtcdError, what: &str) {
+    let why = error.to_string();
+    if failing.as_deref() == Some(why.as_str()) {
+        tracing::debug!(key = %key, error = %why, "{what}");
+    } else {
+        tracing::warn!(key = %key, error = %why, "{what}");
+        *failing = Some(why);
+    }
 }
 
 fn holder_from(kv: &wire::KeyValue) -> Holder {
