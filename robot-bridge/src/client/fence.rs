@@ -142,6 +142,16 @@ pub enum FenceRequest {
     PauseHeartbeats(bool),
 }
 
+/// Answers a claim on `reply`; an asker that is gone (it gave up waiting) is logged.
+pub(super) fn answer_claim(
+    reply: oneshot::Sender<Result<Epoch, ClaimError>>,
+    answer: Result<Epoch, ClaimError>,
+) {
+    if let Err(answer) = reply.send(answer) {
+        tracing::debug!(?answer, "a claim answered after its asker stopped waiting");
+    }
+}
+
 /// The connection task's end of the fence: requests in, events out.
 pub struct FencePort {
     /// Requests from the [`FenceHandle`].

@@ -332,10 +332,15 @@ impl<O: Owner> Link<'_, '_, O> {
     async fn refuse_fence(&mut self, request: FenceRequest) -> bool {
         match request {
             FenceRequest::Claim { reply, .. } => {
-                let _ = reply.send(Err(ClaimError::NotConnected));
+                fence::answer_claim(reply, Err(ClaimError::NotConnected));
             }
-            FenceRequest::StepStatus { reply, .. } => {
-                let _ = reply.send(Err(FenceError::NotConnected));
+            FenceRequest::StepStatus { step, reply } => {
+                if reply.send(Err(FenceError::NotConnected)).is_err() {
+                    debug!(
+                        step = step.as_str(),
+                        "a step state asked by a fence handle that is gone"
+                    );
+                }
             }
             FenceRequest::PauseHeartbeats(paused) => self.claimed.paused = paused,
         }

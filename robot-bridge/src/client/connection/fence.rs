@@ -9,7 +9,7 @@ use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
 use super::super::fence::{
-    ClaimError, Epoch, FenceError, FenceEvent, FenceRequest, StepId, StepStatus,
+    answer_claim, ClaimError, Epoch, FenceError, FenceEvent, FenceRequest, StepId, StepStatus,
 };
 use super::{Connection, ConnectionEnd, Step};
 use crate::dialect::{Parsed, Values};
@@ -113,14 +113,17 @@ impl<O: super::Owner> Connection<'_, '_, O> {
             }
             FenceRequest::Claim { name, reply } => {
                 let Some(fence) = self.dialect.fence else {
-                    let _ = reply.send(Err(ClaimError::NotSupported(format!(
-                        "the dialect {} has no fence",
-                        self.dialect.name
-                    ))));
+                    answer_claim(
+                        reply,
+                        Err(ClaimError::NotSupported(format!(
+                            "the dialect {} has no fence",
+                            self.dialect.name
+                        ))),
+                    );
                     return Ok(());
                 };
                 if self.fence_waits.claim.is_some() {
-                    let _ = reply.send(Err(ClaimError::Busy));
+                    answer_claim(reply, Err(ClaimError::Busy));
                     return Ok(());
                 }
                 let mut values = Values::default();
@@ -230,7 +233,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
             }
             if let Some(wait) = self.fence_waits.claim.take() {
                 self.set_confirmed(Some(wait.sent + lease / 2));
-                let _ = wait.reply.send(Ok(Epoch(epoch)));
+                answer_claim(wait.reply, Ok(Epoch(epoch)));
             }
             return Some(Ok(()));
         }
@@ -246,7 +249,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                     }
                     _ => ClaimError::Refused(reason),
                 };
-                let _ = reply.send(Err(error));
+                answer_claim(reply, Err(error));
             } else if reason == REASON_STALE_EPOCH {
                 self.deposed(epoch).await;
             } else if let Some(wait) = self.fence_waits.status.pop_front() {
@@ -316,7 +319,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
             .is_some_and(|wait| wait.deadline <= now)
         {
             if let Some(ClaimWait { reply, .. }) = self.fence_waits.claim.take() {
-                let _ = reply.send(Err(ClaimError::Timeout(self.config.command_timeout)));
+                answer_claim(reply, Err(ClaimError::Timeout(self.config.command_timeout)));
             }
         }
         while self
@@ -364,7 +367,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
     /// The connection ends: what the fence awaited fails, a claim held is lost.
     pub(super) async fn fence_ends(&mut self) {
         if let Some(ClaimWait { reply, .. }) = self.fence_waits.claim.take() {
-            let _ = reply.send(Err(ClaimError::NotConnected));
+            answer_claim(reply, Err(ClaimError::NotConnected));
         }
         // Every query waiting or to be asked again fails: the owner asks again once a
         // connection is back.
