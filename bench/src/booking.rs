@@ -181,11 +181,7 @@ pub async fn section(run: &mut Run) -> Result<()> {
     fenced.kill();
     run.table.add(
         "booking round trip, fenced resource (standby-capable, process_crash)",
-        format!(
-            "p50 {:.0} us, p99 {:.0} us",
-            fenced_series.booking.pct(0.5),
-            fenced_series.booking.pct(0.99)
-        ),
+        fenced_series.booking.p50_p99(),
         format!(
             "{:.2}x the unfenced booking's p50 ({:.0} us); {:.2}x its interleaved zenoh floor",
             fenced_series.booking.pct(0.5) / series.booking.pct(0.5),

@@ -76,11 +76,7 @@ pub async fn section(
     let codec = &latencies[0];
     table.add(
         "controller command: codec (before dialects)",
-        format!(
-            "p50 {:.0} us, p99 {:.0} us",
-            codec.pct(0.5),
-            codec.pct(0.99)
-        ),
+        codec.p50_p99(),
         format!("TCP p50 {:.0} us", tcp.pct(0.5)),
         codec.json(),
     );
@@ -94,11 +90,7 @@ pub async fn section(
         let ratio = latency.pct(0.5) / codec.pct(0.5);
         table.add(
             &row,
-            format!(
-                "p50 {:.0} us, p99 {:.0} us",
-                latency.pct(0.5),
-                latency.pct(0.99)
-            ),
+            latency.p50_p99(),
             format!("{name}: {ratio:.2}x the codec's p50"),
             json!({"dialect": name, "latency": latency.json(), "ratio_to_codec_p50": ratio}),
         );

@@ -52,7 +52,7 @@ pub async fn section(run: &mut Run) -> Result<()> {
     let sqlite = &run.journal_floor.0;
     run.table.add(
         "journal write fenced on etcd (3 members, loopback)",
-        format!("p50 {:.0} us, p99 {:.0} us", etcd.pct(0.5), etcd.pct(0.99)),
+        etcd.p50_p99(),
         format!(
             "SQLite power_loss p50 {:.0} us, p99 {:.0} us",
             sqlite.pct(0.5),

@@ -51,7 +51,7 @@ pub async fn floors(dir: &Path, samples: usize) -> Result<Run> {
     let _ = tcp_child.kill();
     table.add(
         "floor: TCP round trip (loopback)",
-        format!("p50 {:.0} us, p99 {:.0} us", tcp.pct(0.5), tcp.pct(0.99)),
+        tcp.p50_p99(),
         format!("{service_size} B payload"),
         tcp.json(),
     );
@@ -72,11 +72,7 @@ pub async fn floors(dir: &Path, samples: usize) -> Result<Run> {
     let floor = Latency::new(times, started.elapsed());
     table.add(
         "floor: zenoh get round trip (2 processes)",
-        format!(
-            "p50 {:.0} us, p99 {:.0} us",
-            floor.pct(0.5),
-            floor.pct(0.99)
-        ),
+        floor.p50_p99(),
         format!("TCP p50 {:.0} us", tcp.pct(0.5)),
         floor.json(),
     );

@@ -96,11 +96,7 @@ async fn router_hop(run: &mut Run) -> Result<()> {
     let across = booking_series(&order_side, "robot1", run.samples / 2).await?;
     run.table.add(
         "topology: booking across the router (2 links)",
-        format!(
-            "p50 {:.0} us, p99 {:.0} us",
-            across.booking.pct(0.5),
-            across.booking.pct(0.99)
-        ),
+        across.booking.p50_p99(),
         format!(
             "on one link p50 {:.0} us; floors {:.0} | {:.0} us",
             direct.booking.pct(0.5),

@@ -29,6 +29,11 @@ impl Latency {
         self.samples.len() as f64 / self.total.as_secs_f64()
     }
 
+    /// Its p50 and p99, as the table shows them: `p50 N us, p99 M us`.
+    pub fn p50_p99(&self) -> String {
+        format!("p50 {:.0} us, p99 {:.0} us", self.pct(0.5), self.pct(0.99))
+    }
+
     pub fn json(&self) -> Value {
         json!({"n": self.samples.len(), "p50_us": self.pct(0.5), "p99_us": self.pct(0.99), "rate_per_s": self.rate()})
     }

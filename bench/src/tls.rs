@@ -91,7 +91,7 @@ pub async fn section(run: &mut Run) -> Result<()> {
     let tcp = Latency::new(tcp_times, total);
     run.table.add(
         "booking round trip over mutual TLS + access control (power_loss)",
-        format!("p50 {:.0} us, p99 {:.0} us", tls.pct(0.5), tls.pct(0.99)),
+        tls.p50_p99(),
         format!(
             "{:.2}x plain TCP interleaved (p50 {:.0} us, p99 {:.0} us)",
             tls.pct(0.5) / tcp.pct(0.5),

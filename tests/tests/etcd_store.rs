@@ -400,6 +400,20 @@ fn figures(mut samples: Vec<Duration>) -> (f64, f64, f64) {
     (mean, median, p99)
 }
 
+/// How long each of `writes` fenced writes of an order record took, one after another.
+async fn timed_writes(store: &FencedStore, writes: u32) -> Vec<Duration> {
+    let mut samples = Vec::new();
+    for n in 0..writes {
+        let started = Instant::now();
+        store
+            .put("order", &format!("o{n}"), &order("a", n))
+            .await
+            .unwrap();
+        samples.push(started.elapsed());
+    }
+    samples
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_fenced_write_costs_against_a_sqlite_put() {
     let _serial = ONE_AT_A_TIME.lock().await;
@@ -409,15 +423,7 @@ async fn a_fenced_write_costs_against_a_sqlite_put() {
     const WRITES: u32 = 200;
     let holder = win(&candidate(&cluster, "host-a")).await;
     let store = holder.store();
-    let mut etcd = Vec::new();
-    for n in 0..WRITES {
-        let started = Instant::now();
-        store
-            .put("order", &format!("o{n}"), &order("a", n))
-            .await
-            .unwrap();
-        etcd.push(started.elapsed());
-    }
+    let etcd = timed_writes(&store, WRITES).await;
     let dir = tempfile::tempdir().unwrap();
     let journal = holon::journal::Journal::open(
         dir.path(),
@@ -679,16 +685,7 @@ async fn over_mutual_tls_only_the_cells_certificates_get_in() {
 
     // What a fenced write costs over TLS (connections are reused: no handshake each).
     const WRITES: u32 = 100;
-    let mut samples = Vec::new();
-    for n in 0..WRITES {
-        let started = Instant::now();
-        store
-            .put("order", &format!("o{n}"), &order("a", n))
-            .await
-            .unwrap();
-        samples.push(started.elapsed());
-    }
-    let (mean, median, p99) = figures(samples);
+    let (mean, median, p99) = figures(timed_writes(&store, WRITES).await);
     println!(
         "fenced write over mutual TLS, {WRITES} in a row: mean {mean:.2} ms, median \
          {median:.2} ms, p99 {p99:.2} ms"
