@@ -285,9 +285,18 @@ impl OrderTask {
                     // Used up, or the booking moved on to another resource.
                     self.advised = None;
                 }
+                // A fenced provider is remembered with its booking (see
+                // `OrderProgress::fenced`).
+                let fenced = phase
+                    .resource()
+                    .filter(|resource| ctx.presence.fenced(resource))
+                    .cloned();
                 self.ctx.commit(&self.progress, |p| {
                     if on_advice {
                         p.advised += 1;
+                    }
+                    if let Some(resource) = fenced {
+                        p.fenced.insert(resource);
                     }
                     p.set_phase(phase)
                 })?;
@@ -525,8 +534,11 @@ impl OrderTask {
         // A fenced provider that vanished may still run the step (its holder cut from
         // the cell, not from the controller, or frozen with the step on the
         // controller): the step is not given up, it waits for a holder's word (its
-        // result, or a holder that never ran it) as if the provider were there.
-        let fenced = may_run && ctx.presence.fenced(provider);
+        // result, or a holder that never ran it) as if the provider were there. Known
+        // from this node's presence, or from the order's journal (a node that took the
+        // order over may not have heard the provider before it vanished).
+        let fenced = may_run
+            && (ctx.presence.fenced(provider) || lock(&self.progress).fenced.contains(provider));
         let gone = |alive: bool| (!alive && !fenced).then(|| Instant::now() + grace());
         // Whether the provider was last seen gone, and when its grace ends.
         let mut away = !ctx.presence.is_alive(provider);

@@ -140,6 +140,13 @@ pub struct OrderProgress {
     /// journalled, before it was sent with that epoch ([`schemas::info_key::EPOCH`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub start_epoch: Option<u64>,
+    /// The resources this order booked that were heard of as fenced when it booked
+    /// them (their state carried an epoch): journalled with the booking, so that a
+    /// node resuming the order knows, before its own presence has heard them, that a
+    /// holder of one that vanished may still run the step (it waits rather than book
+    /// the step elsewhere).
+    #[serde(default, skip_serializing_if = "BTreeSet::is_empty")]
+    pub fenced: BTreeSet<HolonId>,
 }
 
 impl OrderProgress {
@@ -169,6 +176,7 @@ impl OrderProgress {
             due: None,
             advised: 0,
             start_epoch: None,
+            fenced: BTreeSet::new(),
         }
     }
 

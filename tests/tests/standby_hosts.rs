@@ -547,12 +547,8 @@ fn standbys_on_other_hosts_finish_every_order_with_no_step_run_twice() {
 /// Returns the round's stale-epoch refusals, commands and writes.
 fn round_ends(plant: &Plant, round: &str, stale_before: u64, writes_refused: usize) -> u64 {
     let (done, failed) = plant.every_order_ends(round);
-    let steps_done = plant.every_step_ran_once(round);
-    assert!(
-        steps_done >= done,
-        "{round}: {done} orders done, but the controllers did only {steps_done} steps"
-    );
-    // The orders that needed more than one attempt, and how each attempt ended.
+    // The orders that needed more than one attempt, and how each attempt ended (shown
+    // before the steps are counted, so that a failure there has them).
     let detail = plant.cell(&["orders", "--detail"]);
     let mut retried = detail
         .lines()
@@ -564,6 +560,11 @@ fn round_ends(plant: &Plant, round: &str, stale_before: u64, writes_refused: usi
             println!("  {line}");
         }
     }
+    let steps_done = plant.every_step_ran_once(round);
+    assert!(
+        steps_done >= done,
+        "{round}: {done} orders done, but the controllers did only {steps_done} steps"
+    );
     let counts = plant.counts(1);
     let stale = stale_refused(plant) - stale_before;
     println!(
