@@ -153,13 +153,17 @@ impl Lab {
 
     /// Runs `program` with `args` in `host`'s namespace and returns its stdout.
     pub fn output(&self, host: &str, program: &Path, args: &[&str]) -> String {
-        let output = Command::new("ip")
+        String::from_utf8_lossy(&self.run(host, program, args).stdout).into_owned()
+    }
+
+    /// Runs `program` with `args` on `host` to its end: its exit status and outputs.
+    pub fn run(&self, host: &str, program: &Path, args: &[&str]) -> std::process::Output {
+        Command::new("ip")
             .args(["netns", "exec", &self.ns(host)])
             .arg(program)
             .args(args)
             .output()
-            .expect("run a command in a namespace");
-        String::from_utf8_lossy(&output.stdout).into_owned()
+            .expect("run a command in a namespace")
     }
 
     /// Takes `host`'s link to `network` down (`up` false: no FIN, no RST, packets

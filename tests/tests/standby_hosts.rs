@@ -355,9 +355,34 @@ lease_ttl_ms = 2000
         serde_json::from_str(&text).unwrap_or(Value::Null)
     }
 
-    /// Submits `n` orders of `part` and keeps their names.
+    /// Submits `n` orders of `part` and keeps their names. A refusal because the
+    /// holder does not see the product yet (the routers of a host that came back still
+    /// rejoining the mesh) is asked again, for at most 60 s: the round begins with a
+    /// whole cell.
     fn submit(&mut self, n: usize) {
-        let out = self.cell(&["submit", "part", "--count", &n.to_string()]);
+        let count = n.to_string();
+        let mut all = vec!["submit", "part", "--count", &count];
+        let router = self.router("c");
+        all.extend(["--cell", CELL, "--connect", &router]);
+        let asked = Instant::now();
+        let out = loop {
+            let run = self.lab.run("c", &bin("cell"), &all);
+            let errors = String::from_utf8_lossy(&run.stderr).into_owned();
+            if run.status.success() || !errors.contains("no product holon") {
+                break String::from_utf8_lossy(&run.stdout).into_owned();
+            }
+            assert!(
+                asked.elapsed() < Duration::from_secs(60),
+                "the order-node never saw the product: {errors}"
+            );
+            std::thread::sleep(Duration::from_millis(500));
+        };
+        if asked.elapsed() > Duration::from_secs(1) {
+            println!(
+                "the holder saw the product {:.1}s after the first submit",
+                asked.elapsed().as_secs_f64()
+            );
+        }
         let names: Vec<String> = out
             .lines()
             .map(str::trim)
