@@ -1,4 +1,5 @@
-//! The orders' inboxes: one queryable for all the orders of a node.
+//! The orders' inboxes: one queryable for all the orders of a node, and what a result
+//! reported there means for the attempt that waits on it ([`judge`]).
 //!
 //! A resource delivers `done` / `failed` with a `get` on `holarchy/<cell>/order/<name>/inbox`.
 //! The node declares one queryable, `order/<node>-$*/inbox`, and [`Inboxes::route`] hands
@@ -11,10 +12,12 @@
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 
-use schemas::{HolonId, MessageType, Service};
+use schemas::{HolonId, MessageType, Reason, Service};
 use tokio::sync::mpsc;
 use tracing::{info, warn};
 use zenoh::query::Query;
+
+use crate::progress::StepOutcome;
 
 /// A result reported to an order, with the query to acknowledge once it is recorded.
 pub struct ResultReport {
@@ -159,6 +162,80 @@ impl Inboxes {
 /// The order named by an inbox key (`.../order/<name>/inbox`).
 pub fn order_name(key: &str) -> Option<&str> {
     key.strip_suffix("/inbox")?.rsplit('/').next()
+}
+
+/// What a result in the inbox means for the attempt waiting on `provider` with
+/// `conversation_id`: its outcome (with the report, to acknowledge once recorded), or
+/// `None` when it is not this attempt's (then it was acknowledged or refused here).
+pub async fn judge(
+    report: ResultReport,
+    provider: &HolonId,
+    worked_with: &std::collections::BTreeSet<HolonId>,
+    conversation_id: &str,
+) -> Option<(StepOutcome, ResultReport)> {
+    let message = &report.message;
+    if message.conversation_id != conversation_id {
+        // A duplicate of a recorded result, or a late report of an abandoned attempt:
+        // acknowledged (no effect) if it comes from a resource this order booked,
+        // refused otherwise.
+        if message
+            .provider
+            .as_ref()
+            .is_some_and(|p| worked_with.contains(p))
+        {
+            info!(conversation_id = %message.conversation_id, current = %conversation_id, "result of an earlier conversation acknowledged and ignored");
+            report.acknowledge().await;
+        } else {
+            warn!(conversation_id = %message.conversation_id, current = %conversation_id, "result from a resource this order never booked refused");
+            report
+                .refuse(
+                    schemas::ErrorCode::NotBooked,
+                    "this order never booked that resource".into(),
+                )
+                .await;
+        }
+        return None;
+    }
+    if message.provider.as_ref() != Some(provider) {
+        // Only the resource this attempt booked reports its result.
+        let from = message
+            .provider
+            .as_ref()
+            .map(|p| p.to_string())
+            .unwrap_or_default();
+        warn!(%conversation_id, booked = %provider, from = %from, "result from a resource this attempt did not book refused");
+        report
+            .refuse(
+                schemas::ErrorCode::NotBooked,
+                format!("{conversation_id} is booked on {provider}, not {from:?}"),
+            )
+            .await;
+        return None;
+    }
+    let from = provider.clone();
+    let outcome = match message.message_type {
+        MessageType::Done => StepOutcome::Done {
+            provider: from,
+            results: message
+                .info
+                .get("results")
+                .and_then(|r| r.as_object())
+                .cloned()
+                .unwrap_or_default(),
+        },
+        _ if message.reason.as_ref() == Some(&Reason::Withdrawn) => StepOutcome::Lost {
+            provider: from,
+            why: Reason::Withdrawn.to_string(),
+        },
+        _ => StepOutcome::Failed {
+            provider: from,
+            reason: message
+                .reason
+                .as_ref()
+                .map_or_else(|| "failed".to_string(), Reason::to_string),
+        },
+    };
+    Some((outcome, report))
 }
 
 #[cfg(test)]

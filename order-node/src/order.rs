@@ -17,7 +17,7 @@ use schemas::{HolonId, MessageType, PlanStep, Reason};
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
+use tracing::info;
 
 use crate::attempt::{Attempt, AttemptAction, AttemptEvent, AttemptTiming};
 use crate::cancel::CancelAsk;
@@ -566,7 +566,7 @@ impl OrderTask {
                 }
                 report = self.inbox.reports.recv() => {
                     let Some(report) = report else { return lost("inbox closed") };
-                    if let Some((outcome, report)) = judge(report, provider, &worked_with, conversation_id).await {
+                    if let Some((outcome, report)) = crate::inbox::judge(report, provider, &worked_with, conversation_id).await {
                         return Watched::Ended(outcome, Some(Box::new(report)));
                     }
                 }
@@ -624,78 +624,4 @@ impl OrderTask {
         info!(%holon, "order cancelled by an operator");
         Ok(())
     }
-}
-
-/// What a result in the inbox means for the attempt waiting on `provider` with
-/// `conversation_id`: its outcome (with the report, to acknowledge once recorded), or
-/// `None` when it is not this attempt's (then it was acknowledged or refused here).
-async fn judge(
-    report: ResultReport,
-    provider: &HolonId,
-    worked_with: &std::collections::BTreeSet<HolonId>,
-    conversation_id: &str,
-) -> Option<(StepOutcome, ResultReport)> {
-    let message = &report.message;
-    if message.conversation_id != conversation_id {
-        // A duplicate of a recorded result, or a late report of an abandoned attempt:
-        // acknowledged (no effect) if it comes from a resource this order booked,
-        // refused otherwise.
-        if message
-            .provider
-            .as_ref()
-            .is_some_and(|p| worked_with.contains(p))
-        {
-            info!(conversation_id = %message.conversation_id, current = %conversation_id, "result of an earlier conversation acknowledged and ignored");
-            report.acknowledge().await;
-        } else {
-            warn!(conversation_id = %message.conversation_id, current = %conversation_id, "result from a resource this order never booked refused");
-            report
-                .refuse(
-                    schemas::ErrorCode::NotBooked,
-                    "this order never booked that resource".into(),
-                )
-                .await;
-        }
-        return None;
-    }
-    if message.provider.as_ref() != Some(provider) {
-        // Only the resource this attempt booked reports its result.
-        let from = message
-            .provider
-            .as_ref()
-            .map(|p| p.to_string())
-            .unwrap_or_default();
-        warn!(%conversation_id, booked = %provider, from = %from, "result from a resource this attempt did not book refused");
-        report
-            .refuse(
-                schemas::ErrorCode::NotBooked,
-                format!("{conversation_id} is booked on {provider}, not {from:?}"),
-            )
-            .await;
-        return None;
-    }
-    let from = provider.clone();
-    let outcome = match message.message_type {
-        MessageType::Done => StepOutcome::Done {
-            provider: from,
-            results: message
-                .info
-                .get("results")
-                .and_then(|r| r.as_object())
-                .cloned()
-                .unwrap_or_default(),
-        },
-        _ if message.reason.as_ref() == Some(&Reason::Withdrawn) => StepOutcome::Lost {
-            provider: from,
-            why: Reason::Withdrawn.to_string(),
-        },
-        _ => StepOutcome::Failed {
-            provider: from,
-            reason: message
-                .reason
-                .as_ref()
-                .map_or_else(|| "failed".to_string(), Reason::to_string),
-        },
-    };
-    Some((outcome, report))
 }
