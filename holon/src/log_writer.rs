@@ -1,21 +1,33 @@
 //! A log destination written by a thread of its own: the task that logs formats its line
 //! and queues it; the thread writes what has queued up in one write call.
 //!
-//! The thread sleeps on a condition variable while nothing is queued and is woken only
-//! then: it does not spin or yield between lines (a channel's receiver does, and at a
-//! dozen lines per service cycle its yields took a third of a resource holon's CPU on
-//! two cores, docs/benchmarks.md). Nothing is dropped: a logger that finds
-//! [`LINES_IN_FLIGHT`] lines queued waits until the thread has taken them. Dropping the
-//! [`WriterGuard`] writes out what is left and ends the thread.
+//! The thread is woken by a logger only when it sleeps deeply, after [`GATHER`] without a
+//! line: the first line of a burst wakes it, and while lines keep coming it wakes by
+//! itself every [`GATHER`] and writes what queued up meanwhile, so a busy holon's
+//! loggers make no wake-up call and no thread switch on the request's path. (Woken per
+//! line, with the notification made under the queue's lock, the two writer threads took
+//! four thread switches per line on two cores, about 300 us of a service cycle between
+//! a job's arrival and its first controller command; docs/benchmarks.md.) It never spins
+//! or yields between lines either (a channel's receiver does, and at a dozen lines per
+//! service cycle its yields took a third of a resource holon's CPU). A line reaches its
+//! destination at most [`GATHER`] after it was logged. Nothing is dropped: a logger that
+//! finds [`LINES_IN_FLIGHT`] lines queued waits until the thread has taken them, and the
+//! thread is woken at once when half that many wait. Dropping the [`WriterGuard`] writes
+//! out what is left and ends the thread.
 
 use std::io::Write;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
 
 use tracing_subscriber::fmt::MakeWriter;
 
 /// Lines queued for one writer thread before logging waits for it.
 pub const LINES_IN_FLIGHT: usize = 1024;
+
+/// How long the thread gathers lines after it wrote some before it writes again; after a
+/// [`GATHER`] without a line it sleeps until a logger wakes it.
+pub const GATHER: Duration = Duration::from_millis(2);
 
 /// What the loggers and the thread share.
 struct Shared {
@@ -33,7 +45,7 @@ struct Queue {
     bytes: Vec<u8>,
     /// How many.
     lines: usize,
-    /// The thread sleeps on `queued`.
+    /// The thread sleeps on `queued` until a logger wakes it (not gathering).
     sleeping: bool,
     /// The guard was dropped: write out and end.
     closed: bool,
@@ -45,7 +57,9 @@ impl Shared {
         self.queue.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// Queues one line, waiting while the queue is full.
+    /// Queues one line, waiting while the queue is full; wakes the thread when it sleeps
+    /// deeply or half the queue waits. The thread is notified after the lock is released,
+    /// so that it does not wake only to wait for the lock.
     fn push(&self, line: &[u8]) {
         let mut queue = self.lock();
         while queue.lines >= LINES_IN_FLIGHT && !queue.closed {
@@ -53,29 +67,49 @@ impl Shared {
         }
         queue.bytes.extend_from_slice(line);
         queue.lines += 1;
-        if queue.sleeping {
-            queue.sleeping = false;
+        let wake = queue.sleeping || queue.lines == LINES_IN_FLIGHT / 2;
+        queue.sleeping = false;
+        drop(queue);
+        if wake {
             self.queued.notify_one();
         }
     }
 }
 
-/// The thread's loop: takes whatever is queued and writes it in one call.
-fn write_out<W: Write>(shared: &Shared, mut destination: W) {
+/// The thread's loop: takes whatever is queued and writes it in one call, then gathers
+/// for [`GATHER`] before it takes the queue again.
+fn write_out<W: Write + ?Sized>(shared: &Shared, destination: &mut W) {
     let mut batch = Vec::new();
+    let mut wrote = false;
     loop {
         let closed = {
             let mut queue = shared.lock();
+            if wrote {
+                let until = Instant::now() + GATHER;
+                loop {
+                    let now = Instant::now();
+                    if queue.closed || queue.lines >= LINES_IN_FLIGHT / 2 || now >= until {
+                        break;
+                    }
+                    queue = shared
+                        .queued
+                        .wait_timeout(queue, until - now)
+                        .unwrap_or_else(|e| e.into_inner())
+                        .0;
+                }
+            }
             while queue.lines == 0 && !queue.closed {
                 queue.sleeping = true;
                 queue = shared.queued.wait(queue).unwrap_or_else(|e| e.into_inner());
             }
+            queue.sleeping = false;
             std::mem::swap(&mut batch, &mut queue.bytes);
             queue.lines = 0;
-            shared.taken.notify_all();
             queue.closed
         };
-        if !batch.is_empty() {
+        shared.taken.notify_all();
+        wrote = !batch.is_empty();
+        if wrote {
             // Nowhere to report a failed write of the log itself: the line is lost,
             // the program goes on (as with any logger).
             if destination
@@ -137,7 +171,10 @@ pub fn spawn<W: Write + Send + 'static>(
         let shared = Arc::clone(&shared);
         std::thread::Builder::new()
             .name(name.to_string())
-            .spawn(move || write_out(&shared, destination))?
+            .spawn(move || {
+                let mut destination = destination;
+                write_out(&shared, &mut destination)
+            })?
     };
     Ok((
         LineWriter {
@@ -250,5 +287,42 @@ mod tests {
         }
         drop(guard);
         assert_eq!(sink.0.lock().unwrap().len(), 20);
+    }
+
+    /// Waits, at most 5 s, until the sink holds `bytes` bytes.
+    fn wait_for(sink: &Sink, bytes: usize) -> usize {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            let held = sink.0.lock().unwrap().len();
+            if held >= bytes || Instant::now() >= deadline {
+                return held;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
+    #[test]
+    fn a_line_is_written_whether_the_thread_sleeps_or_gathers() {
+        let sink = Sink::default();
+        let (writer, _guard) = spawn(sink.clone(), "log-test").unwrap();
+        // The thread sleeps: the first line wakes it.
+        writeln!(writer.make_writer(), "a").unwrap();
+        assert_eq!(wait_for(&sink, 2), 2, "the first line is written");
+        // It gathers now: the next line is taken without being woken.
+        writeln!(writer.make_writer(), "b").unwrap();
+        assert_eq!(
+            wait_for(&sink, 4),
+            4,
+            "a line logged while it gathers is written"
+        );
+        // After a quiet spell it sleeps again, and a line wakes it again.
+        std::thread::sleep(GATHER * 5);
+        writeln!(writer.make_writer(), "c").unwrap();
+        assert_eq!(
+            wait_for(&sink, 6),
+            6,
+            "a line after a quiet spell is written"
+        );
+        assert_eq!(sink.0.lock().unwrap().as_slice(), b"a\nb\nc\n");
     }
 }

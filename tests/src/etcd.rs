@@ -142,6 +142,9 @@ impl EtcdCluster {
                     &format!("holarchy-test-{}", std::process::id()),
                     "--logger",
                     "zap",
+                    // As docs/deploy.md runs them: a member back from a partition
+                    // does not depose the leader.
+                    "--pre-vote",
                     // History compacted every 5 s (docs/deploy.md: 1 h): nothing of
                     // ours may read an old revision.
                     "--auto-compaction-mode",
