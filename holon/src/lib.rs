@@ -7,7 +7,6 @@ pub mod config_file;
 pub mod etcd;
 pub mod journal;
 pub mod life;
-pub mod log_writer;
 pub mod logging;
 pub mod presence;
 pub mod query;

@@ -6,7 +6,7 @@
 //! `--log-file PATH` additionally appends JSON lines to PATH. The level comes from
 //! `RUST_LOG` (default `info`; set but blank counts as unset).
 //!
-//! Lines are written by a thread of their own per destination ([`crate::log_writer`]),
+//! Lines are written by a thread of their own per destination (the `log-writer` crate),
 //! not by the task that logs: a request's path formats its lines and hands them over,
 //! it makes no write call (at `info` a service cycle logs about a dozen lines). Nothing
 //! is dropped: when a writer falls [`LINES_IN_FLIGHT`] lines behind, logging waits for
@@ -65,19 +65,18 @@ type BoxedLayer = Box<dyn Layer<Registry> + Send + Sync>;
 /// it for as long as the program runs.
 #[must_use = "dropping the guard stops the log writers"]
 pub struct LogGuard {
-    _writers: Vec<crate::log_writer::WriterGuard>,
+    _writers: Vec<log_writer::WriterGuard>,
 }
 
-pub use crate::log_writer::LINES_IN_FLIGHT;
+pub use log_writer::LINES_IN_FLIGHT;
 
 /// A writer on its own thread that never drops a line.
 fn off_the_path<W: std::io::Write + Send + 'static>(
     destination: W,
     name: &str,
-    guards: &mut Vec<crate::log_writer::WriterGuard>,
-) -> Result<crate::log_writer::LineWriter, LoggingError> {
-    let (writer, guard) =
-        crate::log_writer::spawn(destination, name).map_err(LoggingError::Thread)?;
+    guards: &mut Vec<log_writer::WriterGuard>,
+) -> Result<log_writer::LineWriter, LoggingError> {
+    let (writer, guard) = log_writer::spawn(destination, name).map_err(LoggingError::Thread)?;
     guards.push(guard);
     Ok(writer)
 }

@@ -88,7 +88,8 @@ struct Args {
     /// How long the fault lasts before the controller reports ready again, in ms.
     #[arg(long, default_value_t = 2000)]
     fault_for_ms: u64,
-    /// Keep the command counts in this JSON file, rewritten after every command:
+    /// Keep the command counts in this JSON file, rewritten after each command (the
+    /// commands of 2 ms share one write; read it once it stays the same for a moment):
     /// {"executed":N,"received":N,"aborted":N,"connections":N,"changeovers":N,
     /// "by_action":{"pick":N,...}} (aborted: actions the dialect's abort stopped).
     #[arg(long, value_name = "PATH")]
@@ -153,13 +154,11 @@ async fn main() -> anyhow::Result<()> {
         std::process::exit(2);
     }
     use std::io::IsTerminal;
-    // Lines are written by a thread of their own, off the command path; none is dropped,
-    // and the rest are written out when `_logs` drops at the end of `main`.
-    let (stderr, _logs) = tracing_appender::non_blocking::NonBlockingBuilder::default()
-        .lossy(false)
-        // The queue is allocated whole: the default (128,000 lines) is 4 MiB.
-        .buffered_lines_limit(1024)
-        .finish(std::io::stderr());
+    // Lines are written by a thread of their own, off the command path, as the holons
+    // write theirs: none is dropped, the thread neither spins nor is woken per line, and
+    // the rest are written out when `_logs` drops at the end of `main`.
+    let (stderr, _logs) = log_writer::spawn(std::io::stderr(), "log-stderr")
+        .context("cannot start the log writer thread")?;
     tracing_subscriber::fmt()
         .with_writer(stderr)
         // Colour codes only on a terminal, never in a redirected log file.
