@@ -60,15 +60,16 @@ pub struct EtcdCluster {
 }
 
 /// How the members of a cluster started with [`EtcdCluster::start_tls`] serve their
-/// clients: mutual TLS, every client's certificate checked against `trusted_ca`.
+/// clients and each other: mutual TLS, every certificate checked against `trusted_ca`.
 #[derive(Debug, Clone)]
 pub struct MemberTls {
-    /// Every member's server certificate (`--cert-file`): it must name 127.0.0.1.
+    /// Every member's certificate (`--cert-file`, `--peer-cert-file`): it must name
+    /// 127.0.0.1 and serve as both server and client.
     pub certificate: PathBuf,
     /// Its key (`--key-file`).
     pub key: PathBuf,
-    /// The CA a client's certificate must be issued by (`--trusted-ca-file`, with
-    /// `--client-cert-auth`).
+    /// The CA a client's or a peer's certificate must be issued by (`--trusted-ca-file`
+    /// with `--client-cert-auth`, `--peer-trusted-ca-file` with `--peer-client-cert-auth`).
     pub trusted_ca: PathBuf,
 }
 
@@ -79,9 +80,10 @@ impl EtcdCluster {
         Self::start_with(etcd, size, None).await
     }
 
-    /// As [`EtcdCluster::start`], the members serving their clients over mutual TLS
-    /// (`members`; their peer links stay plain, on loopback); [`EtcdCluster::client`]
-    /// connects with `client`.
+    /// As [`EtcdCluster::start`], the members serving their clients and each other over
+    /// mutual TLS with `members`' files, as docs/deploy.md runs them (the same
+    /// certificate serves a member's client port and its peer links, where it is both
+    /// server and client); [`EtcdCluster::client`] connects with `client`.
     pub async fn start_tls(
         etcd: &std::path::Path,
         size: usize,
@@ -102,7 +104,7 @@ impl EtcdCluster {
         let initial: Vec<String> = ports
             .iter()
             .enumerate()
-            .map(|(n, (_, peer))| format!("m{n}=http://127.0.0.1:{peer}"))
+            .map(|(n, (_, peer))| format!("m{n}={scheme}://127.0.0.1:{peer}"))
             .collect();
         let initial = initial.join(",");
         let mut members = Vec::new();
@@ -118,8 +120,15 @@ impl EtcdCluster {
                 tls_args.push("--trusted-ca-file".into());
                 tls_args.push(member.trusted_ca.clone().into());
                 tls_args.push("--client-cert-auth".into());
+                tls_args.push("--peer-cert-file".into());
+                tls_args.push(member.certificate.clone().into());
+                tls_args.push("--peer-key-file".into());
+                tls_args.push(member.key.clone().into());
+                tls_args.push("--peer-trusted-ca-file".into());
+                tls_args.push(member.trusted_ca.clone().into());
+                tls_args.push("--peer-client-cert-auth".into());
             }
-            let peer_url = format!("http://127.0.0.1:{peer}");
+            let peer_url = format!("{scheme}://127.0.0.1:{peer}");
             let data = dir.path().join(&name);
             let stderr_path = dir.path().join(format!("{name}.stderr"));
             let child = Command::new(etcd)
