@@ -113,20 +113,18 @@ impl EtcdCluster {
             let client_url = format!("{scheme}://127.0.0.1:{client}");
             let mut tls_args: Vec<std::ffi::OsString> = Vec::new();
             if let Some((member, _)) = &tls {
-                tls_args.push("--cert-file".into());
-                tls_args.push(member.certificate.clone().into());
-                tls_args.push("--key-file".into());
-                tls_args.push(member.key.clone().into());
-                tls_args.push("--trusted-ca-file".into());
-                tls_args.push(member.trusted_ca.clone().into());
-                tls_args.push("--client-cert-auth".into());
-                tls_args.push("--peer-cert-file".into());
-                tls_args.push(member.certificate.clone().into());
-                tls_args.push("--peer-key-file".into());
-                tls_args.push(member.key.clone().into());
-                tls_args.push("--peer-trusted-ca-file".into());
-                tls_args.push(member.trusted_ca.clone().into());
-                tls_args.push("--peer-client-cert-auth".into());
+                // The same files on the client port and on the peer links.
+                for side in ["", "peer-"] {
+                    for (flag, file) in [
+                        ("cert-file", &member.certificate),
+                        ("key-file", &member.key),
+                        ("trusted-ca-file", &member.trusted_ca),
+                    ] {
+                        tls_args.push(format!("--{side}{flag}").into());
+                        tls_args.push(file.clone().into());
+                    }
+                    tls_args.push(format!("--{side}client-cert-auth").into());
+                }
             }
             let peer_url = format!("{scheme}://127.0.0.1:{peer}");
             let data = dir.path().join(&name);
