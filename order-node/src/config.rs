@@ -653,13 +653,22 @@ mod tests {
         OrderNodeConfig::parse(&text, path, Overrides::default())
     }
 
+    /// The TLS files an etcd journal config resolves to (it must have some).
+    fn etcd_tls(journal: &str, pki: Option<&Path>, path: &str) -> holon::etcd::TlsFiles {
+        etcd_config(journal, pki, path)
+            .unwrap()
+            .etcd
+            .unwrap()
+            .tls
+            .expect("TLS files")
+    }
+
     #[test]
     fn etcd_over_tls_takes_the_cells_pki_or_its_own_files() {
         let pki = pki();
         let dir = pki.path();
         // In a secure cell, https uses the cell CA and the node's identity.
-        let c = etcd_config("etcd = [\"https://10.0.0.1:2379\"]", Some(dir), "x").unwrap();
-        let tls = c.etcd.unwrap().tls.expect("TLS files");
+        let tls = etcd_tls("etcd = [\"https://10.0.0.1:2379\"]", Some(dir), "x");
         assert_eq!(tls.ca, dir.join("ca.pem"));
         assert_eq!(tls.certificate, dir.join("order-node.orders1.pem"));
         assert_eq!(tls.key, dir.join("order-node.orders1.key"));
@@ -668,12 +677,7 @@ mod tests {
         let own = "etcd = [\"https://etcd-a:2379\", \"https://etcd-b:2379\"]\n\
                    etcd_tls = { ca = \"ca.pem\", certificate = \"order-node.orders1.pem\", \
                    key = \"order-node.orders1.key\" }";
-        let tls = etcd_config(own, None, &config_path)
-            .unwrap()
-            .etcd
-            .unwrap()
-            .tls
-            .unwrap();
+        let tls = etcd_tls(own, None, &config_path);
         assert_eq!(tls.ca, dir.join("ca.pem"));
         assert_eq!(tls.key, dir.join("order-node.orders1.key"));
         // One field given overrides the cell's, the others stay the cell's.
@@ -681,12 +685,7 @@ mod tests {
             "etcd = [\"https://10.0.0.1:2379\"]\netcd_tls = {{ ca = {:?} }}",
             dir.join("order-node.orders1.pem").display()
         );
-        let tls = etcd_config(&ca_only, Some(dir), "x")
-            .unwrap()
-            .etcd
-            .unwrap()
-            .tls
-            .unwrap();
+        let tls = etcd_tls(&ca_only, Some(dir), "x");
         assert_eq!(tls.ca, dir.join("order-node.orders1.pem"));
         assert_eq!(tls.certificate, dir.join("order-node.orders1.pem"));
         // http stays plain outside a secure cell, as today.
