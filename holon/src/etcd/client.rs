@@ -308,22 +308,19 @@ impl Client {
                 tokio::select! {
                     sent = &mut sending => sent,
                     ended = connection.as_mut() => {
-                        let why = match &ended {
-                            Ok(()) => "connection closed before the reply".to_string(),
-                            Err(e) => match refused_handshake(e) {
-                                Some(alert) => format!(
-                                    "the member refused this client's TLS certificate ({alert:?})"
-                                ),
-                                None => format!("connection closed: {e}"),
+                        let endpoint = &member.endpoint;
+                        return Err(match ended {
+                            // Unsent if the member refused the handshake: it read nothing.
+                            Err(e) => match refused_handshake(&e) {
+                                Some(alert) => Failure::NotSent(format!(
+                                    "{endpoint}: the member refused this client's TLS certificate ({alert:?})"
+                                )),
+                                None => Failure::NoReply(format!("{endpoint}: connection closed: {e}")),
                             },
-                        };
-                        // Unsent if the member refused the handshake: it read nothing.
-                        let failure = if matches!(&ended, Err(e) if refused_handshake(e).is_some()) {
-                            Failure::NotSent
-                        } else {
-                            Failure::NoReply
-                        };
-                        return Err(failure(format!("{}: {why}", member.endpoint)));
+                            Ok(()) => Failure::NoReply(format!(
+                                "{endpoint}: connection closed before the reply"
+                            )),
+                        });
                     }
                 }
             }
