@@ -4,6 +4,7 @@
 //! the spares `resource.robot9` and `order-node.probe`.
 
 use std::path::{Path, PathBuf};
+use std::os::unix::process::CommandExt;
 use std::process::{Child, Command};
 use std::time::Duration;
 
@@ -11,7 +12,9 @@ use schemas::CellKeys;
 
 use crate::{bin, free_port, workspace_root};
 
-/// `cell up` of the secure cell, stopped (SIGTERM, then SIGKILL) when dropped.
+/// `cell up` of the secure cell, in a process group of its own with the processes it
+/// starts: stopped (SIGTERM, then SIGKILL) when dropped, and then whatever of its group
+/// is left is killed, so that a `cell up` that had to be killed leaves no process behind.
 pub struct Up(Child);
 
 impl Drop for SecureCell {
@@ -37,6 +40,8 @@ impl Drop for Up {
         }
         let _ = self.0.kill();
         let _ = self.0.wait();
+        // Killed rather than stopped: its holons and simulators outlived it.
+        let _ = nix::sys::signal::killpg(pid, nix::sys::signal::Signal::SIGKILL);
     }
 }
 
@@ -123,6 +128,7 @@ args = ["--config", "{}", "--cell", "{cell}", "--connect", "{endpoint}", "--pki"
     let up = Command::new(bin("cell"))
         .arg("up")
         .arg(dir)
+        .process_group(0)
         .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
         // Its own logs (warnings, a panic's message), kept for a failed run to read.
         .stderr(std::fs::File::create(dir.join("up.stderr.log")).unwrap())
