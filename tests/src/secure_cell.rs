@@ -3,8 +3,8 @@
 //! product `breaker` and the order-node `orders1`, each with its own identity, and
 //! the spares `resource.robot9` and `order-node.probe`.
 
-use std::path::{Path, PathBuf};
 use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command};
 use std::time::Duration;
 
