@@ -39,8 +39,11 @@ impl Robot {
             .unwrap()
     }
 
+    /// Waits until robot1 takes work again: free, and in Execute (a holon that dropped
+    /// its connection is free at once but Suspended until it has connected again).
     async fn free(&self) {
         self.cell.wait_free("robot1").await.unwrap();
+        self.cell.wait_packml("robot1", 6).await.unwrap();
     }
 }
 
@@ -174,7 +177,7 @@ async fn a_fault_aborts_the_resource_until_an_operator_clears_resets_and_starts_
         );
         // PackML: the fault aborted the resource; ready again, it stays Aborted (no
         // offers) until an operator clears, resets and starts it.
-        r.free().await;
+        r.cell.wait_free("robot1").await.unwrap();
         let aborted = r
             .cell
             .wait_state("robot1", "Aborted", |s| s["packml"]["state"] == "aborted")
