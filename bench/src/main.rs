@@ -114,9 +114,18 @@ enum Commands {
     },
 }
 
-#[tokio::main(flavor = "multi_thread")]
-async fn main() -> Result<()> {
-    match Args::parse().command {
+fn main() -> Result<()> {
+    // Zenoh's runtimes as the holons set them (before any thread), so that the floors,
+    // the bench's own order and the holons it measures run zenoh alike.
+    ::holon::zenoh_runtime::configure();
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?
+        .block_on(run(Args::parse()))
+}
+
+async fn run(args: Args) -> Result<()> {
+    match args.command {
         Commands::All {
             out,
             samples,

@@ -16,7 +16,7 @@ use holon_node::holon_config::HolonConfig;
 /// reverse order, controller connection closed) with exit code 0. It exits 1 when its
 /// config is invalid or its components fail more often than the restart intensity allows.
 #[derive(Debug, Parser)]
-#[command(name = "holon-node", version)]
+#[command(name = "holon-node", version, after_help = holon::cli::ENVIRONMENT_HELP)]
 struct Args {
     #[command(flatten)]
     common: holon::cli::CommonArgs,

@@ -17,6 +17,7 @@ pub mod supervisor;
 pub mod takeover;
 pub mod tls;
 pub mod zenoh_error;
+pub mod zenoh_runtime;
 
 pub use backoff::Backoff;
 pub use logging::LogFormat;
@@ -73,6 +74,8 @@ where
     // Journals, logs and keys name the plant's orders and identities: every file the
     // process creates is its owner's alone.
     owner_only_files();
+    // Before any thread: zenoh's work on one pool of two threads (see the module).
+    zenoh_runtime::configure();
     // Dropped last (declared first): the runtime's last lines are written out too.
     let _logs = match logging::init(format, log_file, "info") {
         Ok(guard) => guard,

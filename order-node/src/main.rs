@@ -20,7 +20,7 @@ use order_node::config::OrderNodeConfig;
 /// standbys: a standby waits, declaring nothing, until it wins the leader key; a
 /// deposed primary exits with an error (deposed by epoch N).
 #[derive(Debug, Parser)]
-#[command(name = "order-node", version)]
+#[command(name = "order-node", version, after_help = holon::cli::ENVIRONMENT_HELP)]
 struct Args {
     #[command(flatten)]
     common: holon::cli::CommonArgs,

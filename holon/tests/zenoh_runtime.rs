@@ -1,0 +1,155 @@
+//! A holon process's zenoh runs its work on two threads of one pool (`app`), not on its
+//! five runtimes' six threads, and a `ZENOH_RUNTIME` the user set is left alone. Each
+//! test is a process of its own (zenoh reads the variable once per process): this file
+//! runs its one test in a child process per case.
+
+use std::process::Command;
+use std::time::Duration;
+
+/// The names of this process's threads.
+fn thread_names() -> Vec<String> {
+    std::fs::read_dir("/proc/self/task")
+        .expect("/proc/self/task")
+        .flatten()
+        .filter_map(|task| std::fs::read_to_string(task.path().join("comm")).ok())
+        .map(|name| name.trim().to_string())
+        .collect()
+}
+
+/// Opens a session (as a holon does, after `configure`) and prints the zenoh threads.
+#[test]
+fn child_opens_a_session() {
+    let Ok(case) = std::env::var("HOLON_ZENOH_RUNTIME_CASE") else {
+        return; // only as the child of the test below
+    };
+    if case == "user" {
+        std::env::set_var("ZENOH_RUNTIME", "(rx: (worker_threads: 3))");
+    }
+    holon::zenoh_runtime::configure();
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(async {
+        // Two sessions joined by a link, so that zenoh reads and writes one.
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .unwrap()
+            .local_addr()
+            .unwrap()
+            .port();
+        let listening = holon::ZenohSettings {
+            mode: holon::Mode::Peer,
+            listen: vec![format!("tcp/127.0.0.1:{port}")],
+            ..Default::default()
+        };
+        let session = listening
+            .open("zenoh-runtime-test", Duration::from_secs(10))
+            .await
+            .expect("a session opens");
+        let connecting = holon::ZenohSettings {
+            mode: holon::Mode::Peer,
+            connect: vec![format!("tcp/127.0.0.1:{port}")],
+            ..Default::default()
+        };
+        let other = connecting
+            .open("zenoh-runtime-test", Duration::from_secs(10))
+            .await
+            .expect("a second session opens");
+        let echo = session.declare_queryable("t/echo").await.unwrap();
+        let answering = tokio::spawn(async move {
+            while let Ok(query) = echo.recv_async().await {
+                query.reply("t/echo", "pong").await.unwrap();
+            }
+        });
+        // A get before the queryable is known here returns at once with no reply.
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+        loop {
+            let replies = other.get("t/echo").await.unwrap();
+            if let Ok(reply) = replies.recv_async().await {
+                assert!(reply.result().is_ok());
+                break;
+            }
+            assert!(tokio::time::Instant::now() < deadline, "no reply in 10 s");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        answering.abort();
+        // A thread names itself once it runs: read the names once they stop changing.
+        let zenoh_threads = || {
+            let mut names: Vec<String> = thread_names()
+                .into_iter()
+                .filter(|n| {
+                    ["app-", "rx-", "tx-", "acc-", "net-"]
+                        .iter()
+                        .any(|p| n.starts_with(p))
+                })
+                .collect();
+            names.sort();
+            names
+        };
+        let mut names = zenoh_threads();
+        for _ in 0..20 {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            let now = zenoh_threads();
+            if now == names {
+                break;
+            }
+            names = now;
+        }
+        println!("ZENOH_RUNTIME={}", std::env::var("ZENOH_RUNTIME").unwrap());
+        println!("threads={}", names.join(","));
+        other.close().await.unwrap();
+        session.close().await.unwrap();
+    });
+}
+
+/// Runs [`child_opens_a_session`] in a child process for `case`; its output.
+fn child(case: &str) -> String {
+    let out = Command::new(std::env::current_exe().unwrap())
+        .args([
+            "--exact",
+            "child_opens_a_session",
+            "--nocapture",
+            "--test-threads",
+            "1",
+        ])
+        .env("HOLON_ZENOH_RUNTIME_CASE", case)
+        .env_remove("ZENOH_RUNTIME")
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        out.status.success(),
+        "{case}: {text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    text
+}
+
+#[test]
+fn zenoh_runs_on_one_pool_of_two_threads_unless_the_user_says_otherwise() {
+    let ours = child("ours");
+    assert!(
+        ours.contains(&format!(
+            "ZENOH_RUNTIME={}",
+            holon::zenoh_runtime::HOLON_ZENOH_RUNTIME
+        )),
+        "{ours}"
+    );
+    // Two workers (a blocking task may add an app-N thread of the pool's blocking
+    // threads), and none of the other four runtimes.
+    let threads = ours
+        .lines()
+        .find_map(|l| l.strip_prefix("threads="))
+        .unwrap_or_else(|| panic!("{ours}"));
+    assert!(threads.starts_with("app-0,app-1"), "{ours}");
+    assert!(threads.split(',').all(|t| t.starts_with("app-")), "{ours}");
+
+    let user = child("user");
+    assert!(
+        user.contains("ZENOH_RUNTIME=(rx: (worker_threads: 3))"),
+        "{user}"
+    );
+    assert!(user.contains("rx-0,rx-1,rx-2"), "{user}");
+    assert!(user.contains("tx-0"), "{user}");
+}
