@@ -8,7 +8,7 @@
 //! A holon process hands `rx`, `tx`, `acc` and `net` over to `app`, which gets two
 //! threads: the same work on two threads instead of six, each more often already awake.
 //! Measured beside zenoh's default on the same machine (docs/benchmarks.md, "zenoh's
-//! runtimes in one pool"): the zenoh round trip 20% shorter, the service cycle 17%.
+//! runtimes in one pool"): the zenoh round trip about 20% shorter, the service cycle 12-15%.
 //!
 //! The `ZENOH_RUNTIME` environment variable is zenoh's own knob
 //! (<https://docs.rs/zenoh-runtime>, RON, e.g. `(app: (worker_threads: 4))`): when it is

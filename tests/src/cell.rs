@@ -23,21 +23,30 @@ pub struct Cell {
 
 impl Cell {
     pub async fn open(cell: &str) -> Result<Cell> {
-        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-        let settings = holon::ZenohSettings {
-            mode: holon::Mode::Router,
-            listen: vec![endpoint.clone()],
-            ..holon::ZenohSettings::default()
-        };
-        let session = settings
-            .open("router.local", WAIT)
-            .await
-            .map_err(|e| anyhow!("open zenoh: {e}"))?;
-        Ok(Cell {
-            session,
-            keys: CellKeys::new(cell)?,
-            endpoint,
-        })
+        // A free port is closed again before zenoh binds it, and another process's
+        // outgoing connection may take it in between: then another port, a few times.
+        let mut attempts = 0;
+        loop {
+            let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+            let settings = holon::ZenohSettings {
+                mode: holon::Mode::Router,
+                listen: vec![endpoint.clone()],
+                ..holon::ZenohSettings::default()
+            };
+            match settings.open("router.local", WAIT).await {
+                Ok(session) => {
+                    return Ok(Cell {
+                        session,
+                        keys: CellKeys::new(cell)?,
+                        endpoint,
+                    })
+                }
+                Err(e) if e.to_string().contains("Address already in use") && attempts < 5 => {
+                    attempts += 1;
+                }
+                Err(e) => bail!("open zenoh: {e}"),
+            }
+        }
     }
 
     /// Waits until `holon`'s liveliness token appears.
