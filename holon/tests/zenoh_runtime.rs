@@ -16,6 +16,20 @@ fn thread_names() -> Vec<String> {
         .collect()
 }
 
+/// A peer session listening on `listen` and connecting to `connect`.
+async fn peer(listen: Vec<String>, connect: Vec<String>) -> zenoh::Session {
+    let settings = holon::ZenohSettings {
+        mode: holon::Mode::Peer,
+        listen,
+        connect,
+        ..Default::default()
+    };
+    settings
+        .open("zenoh-runtime-test", Duration::from_secs(10))
+        .await
+        .expect("a session opens")
+}
+
 /// Opens a session (as a holon does, after `configure`) and prints the zenoh threads.
 #[test]
 fn child_opens_a_session() {
@@ -38,24 +52,9 @@ fn child_opens_a_session() {
             .local_addr()
             .unwrap()
             .port();
-        let listening = holon::ZenohSettings {
-            mode: holon::Mode::Peer,
-            listen: vec![format!("tcp/127.0.0.1:{port}")],
-            ..Default::default()
-        };
-        let session = listening
-            .open("zenoh-runtime-test", Duration::from_secs(10))
-            .await
-            .expect("a session opens");
-        let connecting = holon::ZenohSettings {
-            mode: holon::Mode::Peer,
-            connect: vec![format!("tcp/127.0.0.1:{port}")],
-            ..Default::default()
-        };
-        let other = connecting
-            .open("zenoh-runtime-test", Duration::from_secs(10))
-            .await
-            .expect("a second session opens");
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let session = peer(vec![endpoint.clone()], vec![]).await;
+        let other = peer(vec![], vec![endpoint]).await;
         let echo = session.declare_queryable("t/echo").await.unwrap();
         let answering = tokio::spawn(async move {
             while let Ok(query) = echo.recv_async().await {
