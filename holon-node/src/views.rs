@@ -128,6 +128,23 @@ impl Views {
         snapshot
     }
 
+    /// Sets the agenda view for readers without waking its watchers: a state read sees it
+    /// at once, and the snapshot's publisher learns of it at [`Views::announce_agenda`],
+    /// which the agenda manager calls once its answers are out, so that the publication
+    /// does not take a CPU from them.
+    pub fn set_agenda_quietly(&self, view: AgendaView) {
+        self.agenda.send_if_modified(|current| {
+            *current = view;
+            false
+        });
+    }
+
+    /// Wakes the agenda view's watchers (the snapshot's publisher, a stopping holon
+    /// waiting for its agenda to empty) for a view set by [`Views::set_agenda_quietly`].
+    pub fn announce_agenda(&self) {
+        self.agenda.send_modify(|_| {});
+    }
+
     /// Whether a job is on its way between the agenda and the execution: the agenda runs
     /// it and the execution has not begun it yet, or the execution has ended it and the
     /// agenda has not learnt that yet. A moment that lasts until the next view change

@@ -12,12 +12,15 @@
 //! 2. the journal records what changed, once, before anything is answered or done; when
 //!    that write fails, the agenda goes back to where it was and the events are taken
 //!    one at a time (a request that cannot be recorded is refused and changes nothing);
-//! 3. the agenda view is republished ([`crate::views`]), so a state read after the
-//!    answer sees the change;
+//! 3. the agenda view is set ([`crate::views`]), so a state read after the answer sees
+//!    the change;
 //! 4. the actions are carried out, here and nowhere else: `Reply` answers the question,
 //!    `Execute` goes to the execution component, `Deliver` to the delivery machine
 //!    ([`crate::delivery`]), whose attempts this task sends out and owns
-//!    ([`crate::component::delivery::Courier`]) until the requester acknowledges.
+//!    ([`crate::component::delivery::Courier`]) until the requester acknowledges;
+//! 5. the view's watchers are woken (the snapshot's publisher among them): after the
+//!    answers, so that the publication does not take a CPU from them, and before a job
+//!    goes to the execution, which is then the next task to run ([`Unannounced`]).
 //!
 //! It owns the undelivered results alone: the agenda holds them (journalled), the
 //! delivery machine their attempts; an acknowledgement goes straight into the agenda.
@@ -452,10 +455,9 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                         actions.extend(more);
                     }
                 }
-                if actions.contains(&AgendaAction::StateChanged) {
-                    links.views.agenda.send_replace(agenda.view());
-                }
-                carry_out(&links, &mut delivery, actions, None).await?;
+                let mut view = Unannounced::set(&links, &agenda, actions.contains(&AgendaAction::StateChanged));
+                carry_out(&links, &mut delivery, actions, None, &mut view).await?;
+                view.announce(&links);
                 continue;
             }
             (conversation_id, outcome) = delivery.courier.next_end() => {
@@ -464,10 +466,9 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                     // Recorded lazily (see `JournalledAgenda::apply`); never refused.
                     let acknowledged = AgendaEvent::ResultAcknowledged { conversation_id };
                     if let Ok(actions) = agenda.apply(holon, acknowledged) {
-                        if actions.contains(&AgendaAction::StateChanged) {
-                            links.views.agenda.send_replace(agenda.view());
-                        }
-                        carry_out(&links, &mut delivery, actions, None).await?;
+                        let mut view = Unannounced::set(&links, &agenda, actions.contains(&AgendaAction::StateChanged));
+                        carry_out(&links, &mut delivery, actions, None, &mut view).await?;
+                        view.announce(&links);
                     }
                 }
                 continue;
@@ -500,17 +501,18 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             .map(|AgendaMessage { event, question }| (event, question))
             .unzip();
         let outcomes = agenda.apply_batch(holon, events);
-        // Published once, before any answer (a state read after an answer sees it).
+        // The view is set once, before any answer (a state read after an answer sees it),
+        // and announced after the answers (see `Unannounced`).
         let changed = outcomes.iter().any(|outcome| match outcome {
             Ok(actions) => actions.contains(&AgendaAction::StateChanged),
             Err(NotRecorded) => true,
         });
-        if changed {
-            links.views.agenda.send_replace(agenda.view());
-        }
+        let mut view = Unannounced::set(&links, &agenda, changed);
         for (outcome, question) in outcomes.into_iter().zip(questions) {
             match outcome {
-                Ok(actions) => carry_out(&links, &mut delivery, actions, question).await?,
+                Ok(actions) => {
+                    carry_out(&links, &mut delivery, actions, question, &mut view).await?
+                }
                 Err(NotRecorded) => {
                     if let Some(question) = question {
                         question
@@ -523,6 +525,30 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                     }
                 }
             }
+        }
+        view.announce(&links);
+    }
+}
+
+/// An agenda view set for readers ([`Views::set_agenda_quietly`]) whose watchers are not
+/// woken yet. They are woken once the answers are out, so that the snapshot's
+/// publication does not take a CPU from them; but before a job goes to the execution
+/// component, so that the execution is the task woken last, and the next to run.
+struct Unannounced(bool);
+
+impl Unannounced {
+    /// Sets the view of `agenda` when it `changed`.
+    fn set(links: &Links, agenda: &JournalledAgenda, changed: bool) -> Unannounced {
+        if changed {
+            links.views.set_agenda_quietly(agenda.view());
+        }
+        Unannounced(changed)
+    }
+
+    /// Wakes the view's watchers, once.
+    fn announce(&mut self, links: &Links) {
+        if std::mem::take(&mut self.0) {
+            links.views.announce_agenda();
         }
     }
 }
@@ -595,6 +621,7 @@ async fn carry_out(
     delivery: &mut Delivery,
     actions: Vec<AgendaAction>,
     mut question: Option<Question>,
+    view: &mut Unannounced,
 ) -> Result<(), ChildError> {
     let holon = &links.holon;
     for action in actions {
@@ -607,10 +634,12 @@ async fn carry_out(
             },
             AgendaAction::Execute(job) => {
                 info!(%holon, component = "agenda", conversation_id = %job.conversation_id, requester = %job.requester, "starting execution");
+                view.announce(links);
                 send_job(links, ExecutionRequest::Start(job))?;
             }
             AgendaAction::Abort => {
                 info!(%holon, component = "agenda", "PackML abort: the running step is aborted");
+                view.announce(links);
                 send_job(links, ExecutionRequest::Abort)?;
             }
             AgendaAction::PackmlReply(reply) => match question.take() {
@@ -627,7 +656,7 @@ async fn carry_out(
                 let acknowledged = deliver(links, delivery, DeliveryEvent::Result(result));
                 debug_assert!(acknowledged.is_empty());
             }
-            // Published before the actions (see `run`).
+            // The view is set before the actions (see `Unannounced`).
             AgendaAction::StateChanged => {}
         }
     }

@@ -61,13 +61,15 @@ impl Question {
                 )
             };
         }
+        // Sent first, then logged: the line is not in the requester's round trip.
+        if let Err(e) = self.query.reply(self.key.as_str(), message.to_json()).await {
+            warn!(%holon, conversation_id = %message.conversation_id, message_type = %message.message_type, error = %e, "cannot send the reply; the requester asks again after its timeout");
+            return;
+        }
         if commitment {
             sent!(info);
         } else {
             sent!(debug);
-        }
-        if let Err(e) = self.query.reply(self.key.as_str(), message.to_json()).await {
-            warn!(%holon, conversation_id = %message.conversation_id, message_type = %message.message_type, error = %e, "cannot send the reply; the requester asks again after its timeout");
         }
     }
 
