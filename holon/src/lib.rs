@@ -55,9 +55,10 @@ pub fn owner_only_files() {
     nix::sys::stat::umask(nix::sys::stat::Mode::from_bits_truncate(0o077));
 }
 
-/// The edge of a holon binary: sets up logging, runs `run` on a multi-thread tokio
-/// runtime with a shutdown token cancelled by SIGTERM / Ctrl-C, and turns its result into
-/// the exit code (errors are logged and printed as `program: error`): 0 on success,
+/// The edge of a holon binary: sets up logging, runs `run` on zenoh's `app` runtime
+/// ([`zenoh_runtime::runtime`], multi-thread) with a shutdown token cancelled by
+/// SIGTERM / Ctrl-C, and turns its result into the exit code (errors are logged and
+/// printed as `program: error`): 0 on success,
 /// [`takeover::EXIT_REFUSED`] when the process was a successor whose predecessor
 /// refused to hand over (nothing changed), 1 on any other error.
 pub fn process_main<F, Fut, E>(
@@ -84,17 +85,8 @@ where
             return std::process::ExitCode::FAILURE;
         }
     };
-    let runtime = match tokio::runtime::Builder::new_multi_thread()
-        .enable_all()
-        .build()
-    {
-        Ok(runtime) => runtime,
-        Err(e) => {
-            eprintln!("{program}: cannot start the tokio runtime: {e}");
-            return std::process::ExitCode::FAILURE;
-        }
-    };
-    let result = runtime.block_on(async { run(shutdown_on_signals()).await });
+    // The holon's tasks share zenoh's pool (see `zenoh_runtime`).
+    let result = zenoh_runtime::runtime().block_on(async { run(shutdown_on_signals()).await });
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(e) => {

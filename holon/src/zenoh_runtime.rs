@@ -10,6 +10,14 @@
 //! Measured beside zenoh's default on the same machine (docs/benchmarks.md, "zenoh's
 //! runtimes in one pool"): the zenoh round trip about 20% shorter, the service cycle 12-15%.
 //!
+//! The holon's own tasks run on the same pool ([`runtime`]): a zenoh callback runs on one
+//! of its threads, and the task it hands a request to (a component's mailbox) then runs
+//! on that thread right after it, where a runtime of the process's own had to wake one
+//! of its threads first (27 us of the 66 a booking spent inside the resource; measured
+//! in docs/benchmarks.md, "One pool for zenoh and the holon"). Two threads whatever
+//! the host's cores: a holon handles a few messages at a time. An order-node hosting
+//! thousands of orders on a large host may want more (`(app: (worker_threads: 8), ...)`).
+//!
 //! The `ZENOH_RUNTIME` environment variable is zenoh's own knob
 //! (<https://docs.rs/zenoh-runtime>, RON, e.g. `(app: (worker_threads: 4))`): when it is
 //! set, it is used as it is and nothing here changes it.
@@ -29,4 +37,11 @@ pub fn configure() {
     if std::env::var_os(ZENOH_RUNTIME_ENV).is_none() {
         std::env::set_var(ZENOH_RUNTIME_ENV, HOLON_ZENOH_RUNTIME);
     }
+}
+
+/// The runtime a holon process runs on: zenoh's `app` pool (see the module). Made by
+/// zenoh at first use, with `ZENOH_RUNTIME`'s setting: call [`configure`] first.
+pub fn runtime() -> tokio::runtime::Handle {
+    use std::ops::Deref;
+    ::zenoh_runtime::ZRuntime::Application.deref().clone()
 }

@@ -143,6 +143,42 @@ async fn books_starts_and_delivers_done_until_acknowledged() {
     );
 }
 
+/// The holon's own tasks and zenoh's work run on one pool of two threads (zenoh's `app`,
+/// `holon/src/zenoh_runtime.rs`): no runtime of its own, none of zenoh's other four.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_holon_and_its_zenoh_share_one_pool() {
+    let r = robot("t-pool", &[], &[], 5000).await;
+    // A job done: requests read, answers and a result written.
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    let done = r.cell.job("robot1", &mut inbox, "o-1", "c1").await.unwrap();
+    assert_eq!(done.message_type, MessageType::Done, "{done:?}");
+    let mut threads: Vec<String> = std::fs::read_dir(format!("/proc/{}/task", r.node.pid()))
+        .unwrap()
+        .flatten()
+        .filter_map(|task| std::fs::read_to_string(task.path().join("comm")).ok())
+        .map(|name| name.trim().to_string())
+        .collect();
+    threads.sort();
+    let workers: Vec<&String> = threads
+        .iter()
+        .filter(|t| {
+            ["app-", "rx-", "tx-", "acc-", "net-", "tokio-"]
+                .iter()
+                .any(|p| t.starts_with(p))
+        })
+        .collect();
+    assert!(
+        workers.iter().all(|t| t.starts_with("app-")),
+        "only zenoh's app pool: {threads:?}"
+    );
+    assert!(
+        ["app-0", "app-1"]
+            .iter()
+            .all(|t| threads.iter().any(|n| n == t)),
+        "{threads:?}"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn bookings_on_turn_start_by_themselves_one_after_another() {
     let r = robot("t-on-turn", &["--delay-ms", "150"], &[], 5000).await;
