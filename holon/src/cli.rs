@@ -8,8 +8,9 @@ use crate::LogFormat;
 /// The environment a holon binary reads, for its `--help` (`after_help`).
 pub const ENVIRONMENT_HELP: &str = "Environment:
   RUST_LOG       log level and filters (default info)
-  ZENOH_RUNTIME  zenoh's threads, in zenoh's own syntax; unset, zenoh's work runs on one
-                 pool of two threads (docs/architecture.md, \"Topology\")";
+  ZENOH_RUNTIME  zenoh's threads, in zenoh's own syntax; unset, zenoh's work and the
+                 holon's run on one pool of two threads (docs/architecture.md,
+                 \"Topology\")";
 
 /// Flattened into each binary's arguments with `#[command(flatten)]`.
 #[derive(Debug, Clone, clap::Args)]

@@ -22,9 +22,15 @@
 //! (<https://docs.rs/zenoh-runtime>, RON, e.g. `(app: (worker_threads: 4))`): when it is
 //! set, it is used as it is and nothing here changes it.
 
-/// The holon processes' setting: every zenoh runtime handed over to `app`, two threads.
+/// The holon processes' setting: every zenoh runtime handed over to `app`, two threads,
+/// and as many blocking threads as tokio's own default (512; zenoh's default is 50). The
+/// journals' calls that may block hand their thread's work to a new one while they
+/// wait (`holon::journal::blocking`): an order-node whose hundred orders write to etcd
+/// at once needs a hundred, and with fewer it stopped, every thread waiting on an etcd
+/// call that no thread was left to drive.
 pub const HOLON_ZENOH_RUNTIME: &str = "(rx: (handover: app), tx: (handover: app), \
-     acc: (handover: app), net: (handover: app), app: (worker_threads: 2))";
+     acc: (handover: app), net: (handover: app), \
+     app: (worker_threads: 2, max_blocking_threads: 512))";
 
 /// zenoh's environment variable for its runtimes.
 pub const ZENOH_RUNTIME_ENV: &str = "ZENOH_RUNTIME";
