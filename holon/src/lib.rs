@@ -77,7 +77,8 @@ where
     owner_only_files();
     // Before any thread: zenoh's work on one pool of two threads (see the module).
     zenoh_runtime::configure();
-    // Dropped last (declared first): the runtime's last lines are written out too.
+    // Dropped at the end: every line logged until then is written out (zenoh's pool,
+    // which the holon runs on, is a static and never dropped).
     let _logs = match logging::init(format, log_file, "info") {
         Ok(guard) => guard,
         Err(e) => {

@@ -202,6 +202,14 @@ impl Cell {
         .await
     }
 
+    /// Waits until `resource` takes work again: free, and in Execute (a holon that
+    /// dropped its controller connection is free at once but Suspended, refusing
+    /// bookings, until it has connected again).
+    pub async fn wait_serving(&self, resource: &str) -> Result<()> {
+        self.wait_free(resource).await?;
+        self.wait_packml(resource, 6).await.map(|_| ())
+    }
+
     /// Waits until `resource` is free again.
     pub async fn wait_free(&self, resource: &str) -> Result<()> {
         self.wait_state(resource, "free again", |s| s["state"] == "free")

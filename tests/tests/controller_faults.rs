@@ -39,11 +39,9 @@ impl Robot {
             .unwrap()
     }
 
-    /// Waits until robot1 takes work again: free, and in Execute (a holon that dropped
-    /// its connection is free at once but Suspended until it has connected again).
+    /// Waits until robot1 takes work again (see `Cell::wait_serving`).
     async fn free(&self) {
-        self.cell.wait_free("robot1").await.unwrap();
-        self.cell.wait_packml("robot1", 6).await.unwrap();
+        self.cell.wait_serving("robot1").await.unwrap();
     }
 }
 
