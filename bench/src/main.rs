@@ -115,13 +115,18 @@ enum Commands {
 }
 
 fn main() -> Result<()> {
+    let args = Args::parse();
     // Zenoh's runtimes as the holons set them (before any thread), so that the floors,
-    // the bench's own order and the holons it measures run zenoh alike.
-    ::holon::zenoh_runtime::configure();
+    // the bench's own order and the holons it measures run zenoh alike: the echo helper
+    // answers as a holon-node does, the bench asks as an order-node does.
+    ::holon::zenoh_runtime::configure(match args.command {
+        Commands::EchoZenoh { .. } => ::holon::zenoh_runtime::Pool::Holon,
+        _ => ::holon::zenoh_runtime::Pool::OrderNode,
+    });
     tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?
-        .block_on(run(Args::parse()))
+        .block_on(run(args))
 }
 
 async fn run(args: Args) -> Result<()> {

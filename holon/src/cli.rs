@@ -9,8 +9,8 @@ use crate::LogFormat;
 pub const ENVIRONMENT_HELP: &str = "Environment:
   RUST_LOG       log level and filters (default info)
   ZENOH_RUNTIME  zenoh's threads, in zenoh's own syntax; unset, zenoh's work and the
-                 holon's run on one pool of two threads (docs/architecture.md,
-                 \"Topology\")";
+                 holon's run on one pool, of one thread in holon-node and of two in
+                 order-node (docs/architecture.md, \"Topology\")";
 
 /// Flattened into each binary's arguments with `#[command(flatten)]`.
 #[derive(Debug, Clone, clap::Args)]

@@ -137,6 +137,9 @@ pub fn blocking<R>(work: impl FnOnce() -> R) -> R {
 /// A holon's journal.
 pub struct Journal {
     path: PathBuf,
+    /// What a commit survives; a `power_loss` commit waits for its fsync in
+    /// [`blocking`].
+    durability: Durability,
     connection: Mutex<Connection>,
     /// Records queued for the next commit, and how the last commits ended.
     queue: Mutex<Queue>,
@@ -298,6 +301,7 @@ impl Journal {
             .map_err(sqlite)?;
         Ok(Journal {
             path,
+            durability,
             connection: Mutex::new(connection),
             queue: Mutex::new(Queue::default()),
         })
@@ -402,7 +406,7 @@ impl Journal {
             (batch, first)
         };
         let end = batch.last().map_or(mine + 1, |r| r.0 + 1);
-        let written = self.commit(&mut connection, &batch);
+        let written = self.committing(|| self.commit(&mut connection, &batch));
         // Told while the connection is still held: the next writer to take it must see
         // whether its record went in this commit.
         let mut queue = self.queue();
@@ -470,7 +474,18 @@ impl Journal {
                 (0, kind.to_string(), id.to_string(), body)
             })
             .collect();
-        self.commit(&mut self.connection(), &batch)
+        self.committing(|| self.commit(&mut self.connection(), &batch))
+    }
+
+    /// Runs a commit: a `power_loss` one in [`blocking`], since its fsync may take long
+    /// on a slow or failing disk and a holon-node's pool has one thread (its links'
+    /// keep-alives and its other components go on meanwhile). A `process_crash` commit
+    /// only writes to the OS's page cache and runs where it is.
+    fn committing<R>(&self, commit: impl FnOnce() -> R) -> R {
+        match self.durability {
+            Durability::PowerLoss => blocking(commit),
+            Durability::ProcessCrash => commit(),
+        }
     }
 
     /// Removes records of `kind` (no error for one that is absent), all in one commit:
@@ -493,7 +508,7 @@ impl Journal {
                     .map_err(|e| self.error(e))?;
             }
         }
-        transaction.commit().map_err(|e| self.error(e))
+        self.committing(|| transaction.commit().map_err(|e| self.error(e)))
     }
 
     /// Reads one record.

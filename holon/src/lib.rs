@@ -63,6 +63,7 @@ pub fn owner_only_files() {
 /// refused to hand over (nothing changed), 1 on any other error.
 pub fn process_main<F, Fut, E>(
     program: &str,
+    pool: zenoh_runtime::Pool,
     format: LogFormat,
     log_file: Option<&std::path::Path>,
     run: F,
@@ -75,8 +76,8 @@ where
     // Journals, logs and keys name the plant's orders and identities: every file the
     // process creates is its owner's alone.
     owner_only_files();
-    // Before any thread: zenoh's work on one pool of two threads (see the module).
-    zenoh_runtime::configure();
+    // Before any thread: zenoh's work and the holon's on one pool (see the module).
+    zenoh_runtime::configure(pool);
     // Dropped at the end: every line logged until then is written out (zenoh's pool,
     // which the holon runs on, is a static and never dropped).
     let _logs = match logging::init(format, log_file, "info") {

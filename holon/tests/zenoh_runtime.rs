@@ -1,5 +1,6 @@
-//! A holon process's zenoh runs its work on two threads of one pool (`app`), not on its
-//! five runtimes' six threads, and a `ZENOH_RUNTIME` the user set is left alone. Each
+//! A holon process's zenoh runs its work on one pool (`app`; one thread in a holon-node,
+//! two in an order-node), not on its five runtimes' six threads; a `ZENOH_RUNTIME` the
+//! user set is left alone, and one a holarchy parent set for itself is not inherited. Each
 //! test is a process of its own (zenoh reads the variable once per process): this file
 //! runs its one test in a child process per case.
 
@@ -36,10 +37,19 @@ fn child_opens_a_session() {
     let Ok(case) = std::env::var("HOLON_ZENOH_RUNTIME_CASE") else {
         return; // only as the child of the test below
     };
-    if case == "user" {
-        std::env::set_var("ZENOH_RUNTIME", "(rx: (worker_threads: 3))");
+    use holon::zenoh_runtime::Pool;
+    match case.as_str() {
+        "user" => std::env::set_var("ZENOH_RUNTIME", "(rx: (worker_threads: 3))"),
+        // An order-node's child (a holon-node started by it): the parent's setting is
+        // in the environment, marked as set by holarchy.
+        "inherited" => holon::zenoh_runtime::configure(Pool::OrderNode),
+        _ => {}
     }
-    holon::zenoh_runtime::configure();
+    let pool = match case.as_str() {
+        "order-node" => Pool::OrderNode,
+        _ => Pool::Holon,
+    };
+    holon::zenoh_runtime::configure(pool);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
@@ -114,6 +124,7 @@ fn child(case: &str) -> String {
         ])
         .env("HOLON_ZENOH_RUNTIME_CASE", case)
         .env_remove("ZENOH_RUNTIME")
+        .env_remove(holon::zenoh_runtime::SET_BY_HOLARCHY_ENV)
         .output()
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout).to_string();
@@ -125,24 +136,47 @@ fn child(case: &str) -> String {
     text
 }
 
-#[test]
-fn zenoh_runs_on_one_pool_of_two_threads_unless_the_user_says_otherwise() {
-    let ours = child("ours");
-    assert!(
-        ours.contains(&format!(
-            "ZENOH_RUNTIME={}",
-            holon::zenoh_runtime::HOLON_ZENOH_RUNTIME
-        )),
-        "{ours}"
-    );
-    // Two workers (a blocking task may add an app-N thread of the pool's blocking
-    // threads), and none of the other four runtimes.
-    let threads = ours
-        .lines()
+/// The zenoh threads a child printed.
+fn threads(out: &str) -> Vec<&str> {
+    out.lines()
         .find_map(|l| l.strip_prefix("threads="))
-        .unwrap_or_else(|| panic!("{ours}"));
-    assert!(threads.starts_with("app-0,app-1"), "{ours}");
-    assert!(threads.split(',').all(|t| t.starts_with("app-")), "{ours}");
+        .unwrap_or_else(|| panic!("{out}"))
+        .split(',')
+        .collect()
+}
+
+#[test]
+fn zenoh_runs_on_one_pool_unless_the_user_says_otherwise() {
+    use holon::zenoh_runtime::Pool;
+    // A holon-node: one worker (a blocking task may add an app-N thread of the pool's
+    // blocking threads), and none of the other four runtimes.
+    let holon = child("ours");
+    assert!(
+        holon.contains(&format!("ZENOH_RUNTIME={}\n", Pool::Holon.setting())),
+        "{holon}"
+    );
+    assert_eq!(threads(&holon).first(), Some(&"app-0"), "{holon}");
+    assert!(
+        threads(&holon).iter().all(|t| t.starts_with("app-")),
+        "{holon}"
+    );
+    // An order-node: two workers.
+    let node = child("order-node");
+    assert!(
+        node.contains(&format!("ZENOH_RUNTIME={}\n", Pool::OrderNode.setting())),
+        "{node}"
+    );
+    assert!(threads(&node).starts_with(&["app-0", "app-1"]), "{node}");
+    assert!(
+        threads(&node).iter().all(|t| t.starts_with("app-")),
+        "{node}"
+    );
+    // A holon-node started by a holarchy process that set its own: its own setting.
+    let inherited = child("inherited");
+    assert!(
+        inherited.contains(&format!("ZENOH_RUNTIME={}\n", Pool::Holon.setting())),
+        "{inherited}"
+    );
 
     let user = child("user");
     assert!(

@@ -43,9 +43,13 @@ struct Args {
 fn main() -> ExitCode {
     let args = Args::parse();
     let (format, log_file) = (args.common.log_format, args.common.log_file.clone());
-    holon::process_main("order-node", format, log_file.as_deref(), |shutdown| {
-        run(args, shutdown)
-    })
+    holon::process_main(
+        "order-node",
+        holon::zenoh_runtime::Pool::OrderNode,
+        format,
+        log_file.as_deref(),
+        |shutdown| run(args, shutdown),
+    )
 }
 
 async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyhow::Result<()> {
