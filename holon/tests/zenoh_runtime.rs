@@ -145,38 +145,30 @@ fn threads(out: &str) -> Vec<&str> {
         .collect()
 }
 
+/// Runs `case` in a child, checks that it ran with `pool`'s setting, on zenoh's `app`
+/// pool alone (none of the other four runtimes), and returns its zenoh threads.
+fn on_pool(case: &str, pool: holon::zenoh_runtime::Pool) -> Vec<String> {
+    let out = child(case);
+    let setting = format!("ZENOH_RUNTIME={}\n", pool.setting());
+    assert!(out.contains(&setting), "{case}: {out}");
+    let names: Vec<String> = threads(&out).into_iter().map(String::from).collect();
+    assert!(names.iter().all(|t| t.starts_with("app-")), "{case}: {out}");
+    names
+}
+
 #[test]
 fn zenoh_runs_on_one_pool_unless_the_user_says_otherwise() {
     use holon::zenoh_runtime::Pool;
     // A holon-node: one worker (a blocking task may add an app-N thread of the pool's
-    // blocking threads), and none of the other four runtimes.
-    let holon = child("ours");
-    assert!(
-        holon.contains(&format!("ZENOH_RUNTIME={}\n", Pool::Holon.setting())),
-        "{holon}"
-    );
-    assert_eq!(threads(&holon).first(), Some(&"app-0"), "{holon}");
-    assert!(
-        threads(&holon).iter().all(|t| t.starts_with("app-")),
-        "{holon}"
+    // blocking threads).
+    assert_eq!(
+        on_pool("ours", Pool::Holon).first().map(String::as_str),
+        Some("app-0")
     );
     // An order-node: two workers.
-    let node = child("order-node");
-    assert!(
-        node.contains(&format!("ZENOH_RUNTIME={}\n", Pool::OrderNode.setting())),
-        "{node}"
-    );
-    assert!(threads(&node).starts_with(&["app-0", "app-1"]), "{node}");
-    assert!(
-        threads(&node).iter().all(|t| t.starts_with("app-")),
-        "{node}"
-    );
+    assert!(on_pool("order-node", Pool::OrderNode).starts_with(&["app-0".into(), "app-1".into()]));
     // A holon-node started by a holarchy process that set its own: its own setting.
-    let inherited = child("inherited");
-    assert!(
-        inherited.contains(&format!("ZENOH_RUNTIME={}\n", Pool::Holon.setting())),
-        "{inherited}"
-    );
+    on_pool("inherited", Pool::Holon);
 
     let user = child("user");
     assert!(
