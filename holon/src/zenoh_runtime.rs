@@ -80,9 +80,10 @@ pub const SET_BY_HOLARCHY_ENV: &str = "HOLARCHY_ZENOH_RUNTIME_SET";
 /// which another thread may be reading) and before zenoh is first used (zenoh reads it
 /// once).
 pub fn configure(pool: Pool) {
-    let set_by_us = std::env::var_os(SET_BY_HOLARCHY_ENV);
-    let users = std::env::var_os(ZENOH_RUNTIME_ENV).is_some_and(|v| Some(&v) != set_by_us.as_ref());
-    if !users {
+    let set_by_holarchy = std::env::var_os(SET_BY_HOLARCHY_ENV);
+    let set_by_the_user = std::env::var_os(ZENOH_RUNTIME_ENV)
+        .is_some_and(|value| Some(&value) != set_by_holarchy.as_ref());
+    if !set_by_the_user {
         let setting = pool.setting();
         std::env::set_var(ZENOH_RUNTIME_ENV, &setting);
         std::env::set_var(SET_BY_HOLARCHY_ENV, &setting);
