@@ -35,20 +35,21 @@ async fn throughput(dir: &Path, robots: usize, orders: u32) -> Result<f64> {
     let t = Instant::now();
     cell.submit("part", orders).await?;
     loop {
+        // The node's counts: a listing page of none (schemas::listing).
+        let request = schemas::OrderListRequest::first(schemas::OrderFilter::All, 0);
         let replies = cell
             .session
-            .get(cell.keys.order_states())
+            .get(cell.keys.node_listing_all())
+            .payload(serde_json::to_vec(&request)?)
             .timeout(Duration::from_secs(2))
             .await
             .map_err(|e| anyhow!("{e}"))?;
         let mut done = 0;
         while let Ok(reply) = replies.recv_async().await {
             if let Ok(sample) = reply.result() {
-                let snapshot: schemas::OrderSnapshot =
+                let page: schemas::OrderPage =
                     serde_json::from_slice(&sample.payload().to_bytes())?;
-                if snapshot.status == schemas::OrderStatus::Done {
-                    done += 1;
-                }
+                done += page.counts.done as u32;
             }
         }
         if done == orders {

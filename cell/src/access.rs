@@ -7,7 +7,7 @@
 //! |---|---|---|
 //! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
-//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>{,/fence/*}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
+//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>{,/fence/*,/orders}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
 //! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, `resource/*/packml` (PackML commands), states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, liveliness |
@@ -125,6 +125,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                     format!("host/order-node/{name}"),
                     // Where each of its processes stands on etcd (holder or standby).
                     format!("host/order-node/{name}/fence/*"),
+                    // Its orders listed a page at a time.
+                    format!("host/order-node/{name}/orders"),
                     format!("order/{name}-$*/inbox"),
                     format!("order/{name}-$*/state"),
                     format!("order/{name}-$*/cancel"),
@@ -337,6 +339,7 @@ mod tests {
         };
         let answers = keys(Role::OrderNode, "orders1", "declare_queryable");
         assert!(answers.contains(&"host/order-node/orders1/fence/*".to_string()));
+        assert!(answers.contains(&"host/order-node/orders1/orders".to_string()));
         assert!(
             answers
                 .iter()

@@ -141,13 +141,24 @@ pub enum Commands {
         #[arg(long, value_name = "NAME", requires = "cell")]
         name: Option<String>,
     },
-    /// List every order of a cell with its status, step, resource, failed attempts,
-    /// rebooks and reworks (from any host).
+    /// List a cell's orders with their status, step, resource, failed attempts, rebooks
+    /// and reworks (from any host): each order-node's running orders, then its newest
+    /// finished ones, asked a page at a time. Exits 1 when the listing is incomplete (an
+    /// order-node that does not answer, none alive) and says why.
     Orders {
         /// Also list every ended attempt of each order below it: conversation id, step,
         /// how it ended (done, rejected, failed, lost, no_resource, cancelled) and why.
         #[arg(long)]
         detail: bool,
+        /// Which orders: all, running, finished, done, scrapped, failed or cancelled.
+        #[arg(long, value_name = "STATUS", default_value = "all", value_parser = schemas::OrderFilter::parse)]
+        status: schemas::OrderFilter,
+        /// How many finished orders of each order-node to show, newest first.
+        #[arg(long, value_name = "N", default_value_t = 20, conflicts_with = "all")]
+        finished: usize,
+        /// Show every finished order (page by page), not only the newest --finished.
+        #[arg(long)]
+        all: bool,
         #[command(flatten)]
         client: ClientArgs,
     },

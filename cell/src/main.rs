@@ -285,16 +285,33 @@ async fn run(args: Args) -> Result<bool> {
             cell::router::run(options, shutdown).await?;
             Ok(true)
         }
-        Commands::Orders { detail, client } => {
+        Commands::Orders {
+            detail,
+            status,
+            finished,
+            all,
+            client,
+        } => {
             let keys = client.keys()?;
             let session = client.session(OBSERVER).await?;
-            let orders = cell::status::orders(&session, &keys, client.timeout()).await?;
-            print!(
-                "{}",
-                cell::status::render_orders(&client.cell, &orders, detail)
-            );
+            let options = cell::orders::OrdersOptions {
+                filter: status,
+                finished: (!all).then_some(finished),
+                detail,
+            };
+            let mut out = std::io::stdout().lock();
+            let complete = cell::orders::print(
+                &session,
+                &keys,
+                &client.cell,
+                &options,
+                client.timeout(),
+                &mut out,
+            )
+            .await;
+            drop(out);
             close(session).await;
-            Ok(true)
+            complete
         }
         Commands::Submit {
             product,

@@ -327,32 +327,6 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
     out
 }
 
-/// Every order of the cell, as the order-nodes report them (`order/*/state`).
-pub async fn orders(
-    session: &zenoh::Session,
-    keys: &CellKeys,
-    timeout: Duration,
-) -> Result<Vec<schemas::OrderSnapshot>> {
-    let replies = session
-        .get(keys.order_states())
-        .timeout(timeout)
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let mut orders = std::collections::BTreeMap::new();
-    while let Ok(reply) = replies.recv_async().await {
-        if let Ok(sample) = reply.result() {
-            if let Ok(order) =
-                serde_json::from_slice::<schemas::OrderSnapshot>(&sample.payload().to_bytes())
-            {
-                orders.insert(order.holon.clone(), order);
-            }
-        }
-    }
-    let mut orders: Vec<schemas::OrderSnapshot> = orders.into_values().collect();
-    orders.sort_by_key(|o| order_sort_key(o.holon.name()));
-    Ok(orders)
-}
-
 /// Orders sort by node, then by number: `orders1-2` before `orders1-10`.
 pub fn order_sort_key(name: &str) -> (String, u64) {
     name.rsplit_once('-')
@@ -361,57 +335,30 @@ pub fn order_sort_key(name: &str) -> (String, u64) {
 }
 
 /// One order-node of the cell and how many of its orders stand where.
-#[derive(Debug, Clone, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct OrderNodeStatus {
     pub name: String,
-    pub running: usize,
-    pub done: usize,
-    /// Scrapped, failed or cancelled.
-    pub ended_otherwise: usize,
+    /// Its counts, or why it did not give them.
+    pub counts: Result<schemas::OrderCounts, String>,
 }
 
 /// The live order-nodes (their `host/order-node/<name>` tokens) with their orders'
-/// counts, from the orders' snapshots.
+/// counts, each asked for a page of none ([`crate::listing::counts`]).
 pub async fn order_nodes(
     session: &zenoh::Session,
     keys: &CellKeys,
     timeout: Duration,
 ) -> Result<Vec<OrderNodeStatus>> {
-    let prefix = keys.host("order-node", "");
-    let names: Vec<String> = holon::presence::tokens(session, &format!("{prefix}*"), timeout)
+    let counts = crate::listing::counts(session, keys, timeout)
         .await
-        .map_err(|e| anyhow!("{e}"))?
+        .map_err(|e| anyhow!("{e}"))?;
+    Ok(counts
         .into_iter()
-        .filter_map(|key| key.strip_prefix(&prefix).map(String::from))
-        .collect();
-    if names.is_empty() {
-        return Ok(Vec::new());
-    }
-    let orders = orders(session, keys, timeout).await?;
-    Ok(count_by_node(names, &orders))
-}
-
-/// Counts `orders` (named `<node>-<n>`) per node of `names`.
-fn count_by_node(names: Vec<String>, orders: &[schemas::OrderSnapshot]) -> Vec<OrderNodeStatus> {
-    let mut nodes: Vec<OrderNodeStatus> = names
-        .into_iter()
-        .map(|name| OrderNodeStatus {
+        .map(|(name, counts)| OrderNodeStatus {
             name,
-            ..Default::default()
+            counts: counts.map_err(|e| e.to_string()),
         })
-        .collect();
-    nodes.sort_by(|a, b| a.name.cmp(&b.name));
-    for order in orders {
-        let (node, _) = order_sort_key(order.holon.name());
-        if let Some(counts) = nodes.iter_mut().find(|n| n.name == node) {
-            match order.status {
-                schemas::OrderStatus::Running => counts.running += 1,
-                schemas::OrderStatus::Done => counts.done += 1,
-                _ => counts.ended_otherwise += 1,
-            }
-        }
-    }
-    nodes
+        .collect())
 }
 
 /// The order-node lines of `cell status`.
@@ -424,10 +371,19 @@ pub fn render_order_nodes(nodes: &[OrderNodeStatus]) -> String {
         "ORDER-NODE", "RUNNING", "DONE", "ENDED"
     );
     for node in nodes {
-        out.push_str(&format!(
-            "{:<28} {:>8} {:>8} {:>8}\n",
-            node.name, node.running, node.done, node.ended_otherwise
-        ));
+        match &node.counts {
+            Ok(c) => out.push_str(&format!(
+                "{:<28} {:>8} {:>8} {:>8}\n",
+                node.name,
+                c.running,
+                c.done,
+                c.finished() - c.done
+            )),
+            Err(why) => out.push_str(&format!(
+                "{:<28} {:>8} {:>8} {:>8}  (its counts: {why})\n",
+                node.name, "?", "?", "?"
+            )),
+        }
     }
     out
 }
@@ -477,18 +433,32 @@ pub fn render_orders_at(
     detail: bool,
     now: u64,
 ) -> String {
-    use schemas::OrderStatus;
-    let count = |s: OrderStatus| orders.iter().filter(|o| o.status == s).count();
-    let mut out = format!(
+    let mut counts = schemas::OrderCounts::default();
+    for order in orders {
+        counts.add(order.status);
+    }
+    let mut out = orders_summary(cell, &counts);
+    out.push_str(&orders_header());
+    out.push_str(&order_rows(orders, detail, now));
+    out
+}
+
+/// The summary line of the orders table.
+pub fn orders_summary(cell: &str, counts: &schemas::OrderCounts) -> String {
+    format!(
         "cell {cell}: {} orders: {} done, {} running, {} scrapped, {} failed, {} cancelled\n",
-        orders.len(),
-        count(OrderStatus::Done),
-        count(OrderStatus::Running),
-        count(OrderStatus::Scrapped),
-        count(OrderStatus::Failed),
-        count(OrderStatus::Cancelled)
-    );
-    out.push_str(&format!(
+        counts.total(),
+        counts.done,
+        counts.running,
+        counts.scrapped,
+        counts.failed,
+        counts.cancelled
+    )
+}
+
+/// The header of the orders table.
+pub fn orders_header() -> String {
+    format!(
         "{:<22} {:<10} {:<9} {:>5} {:>9} {:>5} {:<22} {:>6} {:>7} {:>7}  REASON\n",
         "ORDER",
         "PRODUCT",
@@ -500,7 +470,12 @@ pub fn render_orders_at(
         "FAILED",
         "REBOOKS",
         "REWORKS"
-    ));
+    )
+}
+
+/// The orders table's rows for `orders` (with `detail`, each one's ended attempts).
+pub fn order_rows(orders: &[schemas::OrderSnapshot], detail: bool, now: u64) -> String {
+    let mut out = String::new();
     for o in orders {
         out.push_str(&format!(
             "{:<22} {:<10} {:<9} {:>5} {:>9} {:>5} {:<22} {:>6} {:>7} {:>7}  {}\n",
@@ -722,21 +697,35 @@ mod tests {
     }
 
     #[test]
-    fn orders_are_counted_per_node() {
-        let nodes = count_by_node(
-            vec!["orders2".into(), "orders1".into()],
-            &[
-                order("orders1-1", schemas::OrderStatus::Done),
-                order("orders1-2", schemas::OrderStatus::Running),
-                order("orders2-1", schemas::OrderStatus::Failed),
-                order("orders9-1", schemas::OrderStatus::Done),
-            ],
-        );
-        assert_eq!(nodes[0].name, "orders1");
-        assert_eq!((nodes[0].running, nodes[0].done), (1, 1));
-        assert_eq!(nodes[1].ended_otherwise, 1);
+    fn order_nodes_show_their_counts_or_why_not() {
+        let nodes = [
+            OrderNodeStatus {
+                name: "orders1".into(),
+                counts: Ok(schemas::OrderCounts {
+                    running: 1,
+                    done: 7,
+                    failed: 2,
+                    ..Default::default()
+                }),
+            },
+            OrderNodeStatus {
+                name: "orders2".into(),
+                counts: Err("no answer within 5s".into()),
+            },
+        ];
         let table = render_order_nodes(&nodes);
-        assert!(table.contains("ORDER-NODE"), "{table}");
+        let row =
+            |n: usize| -> Vec<&str> { table.lines().nth(n).unwrap().split_whitespace().collect() };
+        assert_eq!(row(1), ["orders1", "1", "7", "2"], "{table}");
+        assert!(
+            table
+                .lines()
+                .nth(2)
+                .unwrap()
+                .contains("no answer within 5s"),
+            "{table}"
+        );
+        assert_eq!(render_order_nodes(&[]), "no order-node alive\n");
     }
 
     #[test]

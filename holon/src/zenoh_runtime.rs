@@ -61,8 +61,8 @@ impl Pool {
     /// drive.
     pub fn setting(self) -> String {
         format!(
-            "(rx: (handover: app), tx: (handover: app), acc: (handover: app), \
-             net: (handover: app), app: (worker_threads: {}, max_blocking_threads: 512))",
+            "(rx: (handover: app), acc: (handover: app), net: (handover: app), \
+             app: (worker_threads: {}, max_blocking_threads: 512))",
             self.worker_threads()
         )
     }

@@ -146,14 +146,24 @@ fn threads(out: &str) -> Vec<&str> {
 }
 
 /// Runs `case` in a child, checks that it ran with `pool`'s setting, on zenoh's `app`
-/// pool alone (none of the other four runtimes), and returns its zenoh threads.
+/// pool and one `tx` thread of its own (none of the other three runtimes), and returns
+/// its `app` threads.
 fn on_pool(case: &str, pool: holon::zenoh_runtime::Pool) -> Vec<String> {
     let out = child(case);
     let setting = format!("ZENOH_RUNTIME={}\n", pool.setting());
     assert!(out.contains(&setting), "{case}: {out}");
     let names: Vec<String> = threads(&out).into_iter().map(String::from).collect();
-    assert!(names.iter().all(|t| t.starts_with("app-")), "{case}: {out}");
+    assert!(
+        names.iter().all(|t| t.starts_with("app-") || t == "tx-0"),
+        "{case}: {out}"
+    );
+    // The link's writer never waits for the pool: a reply that finds the link's
+    // queue full blocks its thread until the writer drained it.
+    assert!(names.iter().any(|t| t == "tx-0"), "{case}: {out}");
     names
+        .into_iter()
+        .filter(|t| t.starts_with("app-"))
+        .collect()
 }
 
 #[test]

@@ -91,9 +91,18 @@ pub struct Hosted {
     pub cancel_asks: mpsc::Sender<CancelAsk>,
 }
 
-/// The finished orders that are only in the journal: by order number, when each ended
-/// (Unix ms).
-pub type Finished = BTreeMap<u64, u64>;
+/// A finished order that is only in the journal, as memory keeps it: when it ended and
+/// how (16 bytes: enough to count and filter a listing without reading the journal).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Ended {
+    /// When it finished (Unix ms).
+    pub at: u64,
+    /// How it finished.
+    pub status: schemas::OrderStatus,
+}
+
+/// The finished orders that are only in the journal, by order number.
+pub type Finished = BTreeMap<u64, Ended>;
 
 /// The orders of an order-node, and what they share.
 pub struct Host {
@@ -244,7 +253,13 @@ impl Host {
         self.finished
             .lock()
             .unwrap_or_else(|e| e.into_inner())
-            .insert(number, at);
+            .insert(
+                number,
+                Ended {
+                    at,
+                    status: progress.status,
+                },
+            );
         true
     }
 
@@ -424,7 +439,7 @@ impl Host {
             .lock()
             .unwrap_or_else(|e| e.into_inner())
             .iter()
-            .filter(|(_, at)| expired_at(**at))
+            .filter(|(_, ended)| expired_at(ended.at))
             .map(|(number, _)| *number)
             .take(FORGET_AT_ONCE - expired.len())
             .collect();
@@ -530,6 +545,13 @@ impl Host {
                 })
                 .collect()
         };
+        // A wildcard read (`order/*/state`, a dashboard's first look) gets the orders
+        // in memory only: the finished ones of a long history are listed a page at a
+        // time ([`Host::page`]), and read one by one by their own keys.
+        if key.is_wild() {
+            states.sort_by(|a, b| a.0.cmp(&b.0));
+            return states.into_iter().map(|(_, state)| state).collect();
+        }
         let wanted: Vec<String> = {
             let finished = self.finished.lock().unwrap_or_else(|e| e.into_inner());
             finished
@@ -561,6 +583,169 @@ impl Host {
         // In the order of their names, as when every order was in one map.
         states.sort_by(|a, b| a.0.cmp(&b.0));
         states.into_iter().map(|(_, state)| state).collect()
+    }
+}
+
+impl Host {
+    /// A page of this node's orders ([`schemas::listing`]): the running orders oldest
+    /// first, then the finished ones newest first, as `request` filters them, at most
+    /// [`schemas::MAX_PAGE_ORDERS`] and about [`schemas::MAX_PAGE_BYTES`] of them, with
+    /// the node's counts. Finished orders are read from the journal, only those of the
+    /// page; what the journal cannot read is counted in `unreadable` and passed over.
+    pub fn page(&self, request: &schemas::OrderListRequest) -> schemas::OrderPage {
+        use schemas::{OrderCounts, OrderStatus, PageCursor};
+        let filter = request.filter;
+        let size = request.page_size();
+        // What memory holds: (number, status, progress), numbered orders only.
+        let mut in_memory: Vec<(u64, OrderStatus, Arc<Mutex<OrderProgress>>)> = {
+            let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
+            orders
+                .iter()
+                .filter_map(|(name, hosted)| {
+                    let status = hosted
+                        .progress
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .status;
+                    Some((self.number(name)?, status, hosted.progress.clone()))
+                })
+                .collect()
+        };
+        in_memory.sort_by_key(|(number, ..)| *number);
+        let mut counts = OrderCounts::default();
+        for (_, status, _) in &in_memory {
+            counts.add(*status);
+        }
+        let mut page = schemas::OrderPage {
+            v: schemas::LISTING_VERSION,
+            node: self.config.name.clone(),
+            counts,
+            orders: Vec::new(),
+            next: None,
+            unreadable: 0,
+        };
+        // The finished orders of the journal: counted, and the page's candidates.
+        let below = match request.after {
+            Some(PageCursor::AfterFinished(n)) => n,
+            _ => u64::MAX,
+        };
+        let mut from_journal: Vec<u64> = Vec::new();
+        {
+            let finished = self.finished.lock().unwrap_or_else(|e| e.into_inner());
+            for ended in finished.values() {
+                page.counts.add(ended.status);
+            }
+            if size > 0 && filter.admits_finished() {
+                from_journal = finished
+                    .range(..below)
+                    .rev()
+                    .filter(|(_, ended)| filter.admits(ended.status))
+                    .map(|(number, _)| *number)
+                    .take(size + 1)
+                    .collect();
+            }
+        }
+        if size == 0 {
+            return page;
+        }
+        let mut bytes = 0usize;
+        // Whether the page takes another order.
+        let room = |page: &schemas::OrderPage, bytes: usize| {
+            page.orders.len() < size && (page.orders.is_empty() || bytes < schemas::MAX_PAGE_BYTES)
+        };
+        let push =
+            |page: &mut schemas::OrderPage, bytes: &mut usize, snapshot: schemas::OrderSnapshot| {
+                *bytes += serde_json::to_vec(&snapshot).map_or(0, |b| b.len());
+                page.orders.push(snapshot);
+            };
+        // The running orders, oldest first.
+        if filter.admits_running() && !matches!(request.after, Some(PageCursor::AfterFinished(_))) {
+            let after = match request.after {
+                Some(PageCursor::AfterRunning(n)) => Some(n),
+                _ => None,
+            };
+            let running = in_memory.iter().filter(|(number, status, _)| {
+                *status == OrderStatus::Running && after.is_none_or(|a| *number > a)
+            });
+            let mut last = None;
+            for (number, _, progress) in running {
+                if !room(&page, bytes) {
+                    break;
+                }
+                let snapshot = progress
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .snapshot();
+                push(&mut page, &mut bytes, snapshot);
+                last = Some(*number);
+            }
+            if !room(&page, bytes) {
+                // Full: the next page goes on after the last running order (at worst
+                // it finds nothing more to list).
+                page.next = last.map(PageCursor::AfterRunning);
+                return page;
+            }
+        }
+        if !filter.admits_finished() {
+            return page;
+        }
+        // The finished orders, newest first: those memory holds (no journal) and those
+        // the journal holds, merged by number.
+        enum Source {
+            Memory(Arc<Mutex<OrderProgress>>),
+            Journal,
+        }
+        let mut candidates: Vec<(u64, Source)> = in_memory
+            .into_iter()
+            .filter(|(number, status, _)| {
+                status.is_final() && filter.admits(*status) && *number < below
+            })
+            .map(|(number, _, progress)| (number, Source::Memory(progress)))
+            .chain(from_journal.into_iter().map(|n| (n, Source::Journal)))
+            .collect();
+        candidates.sort_by_key(|c| std::cmp::Reverse(c.0));
+        let left = size - page.orders.len();
+        let more = candidates.len() > left;
+        candidates.truncate(left);
+        let names: Vec<String> = candidates
+            .iter()
+            .filter(|(_, source)| matches!(source, Source::Journal))
+            .map(|(number, _)| format!("{}-{number}", self.config.name))
+            .collect();
+        let mut read: BTreeMap<String, OrderProgress> = match self.read_finished(&names) {
+            Ok(read) => read.into_iter().collect(),
+            Err(e) => {
+                warn!(node = %self.config.name, orders = names.len(), error = %e, "cannot read finished orders from the journal for a listing; the page says how many it passed over");
+                BTreeMap::new()
+            }
+        };
+        let mut last = None;
+        for (number, source) in candidates {
+            if !room(&page, bytes) {
+                page.next = last.map(PageCursor::AfterFinished);
+                return page;
+            }
+            let snapshot = match source {
+                Source::Memory(progress) => Some(
+                    progress
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .snapshot(),
+                ),
+                Source::Journal => read
+                    .remove(&format!("{}-{number}", self.config.name))
+                    .map(|progress| progress.snapshot()),
+            };
+            match snapshot {
+                Some(snapshot) => push(&mut page, &mut bytes, snapshot),
+                None => page.unreadable += 1,
+            }
+            last = Some(number);
+        }
+        if more {
+            page.next = last.map(PageCursor::AfterFinished);
+        }
+        page
     }
 }
 
@@ -764,7 +949,19 @@ mod tests {
     /// What the node answers to a read of every order's state, without the time of
     /// the answer (`at`).
     fn states(host: &Host) -> Vec<(String, serde_json::Value)> {
-        let all = KeyExpr::try_from(host.config.keys.node_orders("n1", "state")).unwrap();
+        read_states(host, &host.config.keys.node_orders("n1", "state"))
+    }
+
+    /// What the node answers to a read of one order's state (by its own key).
+    fn state_of(host: &Host, name: &str) -> Vec<(String, serde_json::Value)> {
+        read_states(
+            host,
+            &host.config.keys.state(&HolonId::order(name).unwrap()),
+        )
+    }
+
+    fn read_states(host: &Host, key: &str) -> Vec<(String, serde_json::Value)> {
+        let all = KeyExpr::try_from(key.to_string()).unwrap();
         host.snapshots_matching(&all)
             .into_iter()
             .map(|(key, payload)| {
@@ -846,8 +1043,13 @@ mod tests {
         drop(done);
         assert_eq!(
             states(&host),
-            states_before,
-            "the same states, in the same order"
+            states_before[1..],
+            "a read of every order's state gets the orders in memory"
+        );
+        assert_eq!(
+            state_of(&host, "n1-1"),
+            states_before[..1],
+            "a read of a finished order's own state reads it from the journal"
         );
         assert_eq!(host.progress("n1-1").unwrap().unwrap(), progress_before);
         assert_eq!(
@@ -882,9 +1084,62 @@ mod tests {
         cancel.cancel(); // the unfinished order's task stops at once
         host.resume(recovered, &[], &mut tasks, &cancel);
         assert!(!host.orders.lock().unwrap().contains_key("n1-1"));
-        assert_eq!(states(&host), states_before);
+        assert_eq!(states(&host), states_before[1..]);
+        assert_eq!(state_of(&host, "n1-1"), states_before[..1]);
         assert_eq!(cancel_reply(&host, "n1-1").await, cancel_before);
         while tasks.set.join_next().await.is_some() {}
+    }
+
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_listing_pages_running_orders_then_finished_ones_newest_first() {
+        use schemas::{OrderFilter, OrderListRequest, PageCursor};
+        let dir = TestDir::new("pages");
+        let host = host(Some(&dir.0)).await;
+        for n in 1..=6 {
+            let progress = running(&host, n);
+            if n <= 3 {
+                host.context
+                    .commit(&progress, |p| p.fail("no plan".into()))
+                    .unwrap();
+                host.retire(&format!("n1-{n}"));
+            }
+        }
+        let names = |page: &schemas::OrderPage| -> Vec<String> {
+            page.orders
+                .iter()
+                .map(|o| o.holon.name().to_string())
+                .collect()
+        };
+        let first = OrderListRequest::first(OrderFilter::All, 2);
+        let page = host.page(&first);
+        assert_eq!((page.counts.running, page.counts.failed), (3, 3));
+        assert_eq!(names(&page), ["n1-4", "n1-5"]);
+        assert_eq!(page.next, Some(PageCursor::AfterRunning(5)));
+        let page = host.page(&first.after(page.next.unwrap()));
+        assert_eq!(
+            names(&page),
+            ["n1-6", "n1-3"],
+            "the finished ones newest first"
+        );
+        assert_eq!(page.next, Some(PageCursor::AfterFinished(3)));
+        let page = host.page(&first.after(page.next.unwrap()));
+        assert_eq!(names(&page), ["n1-2", "n1-1"]);
+        assert_eq!(page.next, None, "the last page");
+        assert_eq!(page.unreadable, 0);
+
+        let failed = host.page(&OrderListRequest::first(
+            OrderFilter::Status(schemas::OrderStatus::Failed),
+            10,
+        ));
+        assert_eq!(names(&failed), ["n1-3", "n1-2", "n1-1"]);
+        let running = host.page(&OrderListRequest::first(OrderFilter::Running, 10));
+        assert_eq!(
+            (names(&running), running.next),
+            (vec!["n1-4".into(), "n1-5".into(), "n1-6".into()], None)
+        );
+        let counts = host.page(&OrderListRequest::first(OrderFilter::All, 0));
+        assert!(counts.orders.is_empty() && counts.next.is_none());
+        assert_eq!(counts.counts.total(), 6);
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -921,9 +1176,11 @@ mod tests {
         assert!(!host.forgotten("n1-2"));
         assert_eq!(host.progress("n1-1").unwrap(), None);
         assert!(cancel_reply(&host, "n1-1").await.is_err());
-        let states = states(&host);
-        assert_eq!(states.len(), 1);
-        assert!(states[0].0.ends_with("/order/n1-2/state"), "{states:?}");
+        assert!(state_of(&host, "n1-1").is_empty());
+        assert_eq!(state_of(&host, "n1-2").len(), 1);
+        let listed = host.page(&schemas::OrderListRequest::default());
+        assert_eq!(listed.orders.len(), 1, "{listed:?}");
+        assert_eq!(listed.orders[0].holon.name(), "n1-2");
         assert_eq!(host.forget_finished(Duration::from_secs(5)), 0);
     }
 
@@ -954,7 +1211,7 @@ mod tests {
         let read = host.progress("n1-1").unwrap().unwrap();
         assert!(read.finished_at.is_some(), "stamped in the journal");
         assert_eq!(read.status, old.status);
-        assert_eq!(states(&host).len(), 1);
+        assert_eq!(state_of(&host, "n1-1").len(), 1);
         assert!(!cancel_reply(&host, "n1-1").await.unwrap().is_empty());
     }
 

@@ -343,6 +343,7 @@ impl OrderTask {
                 Some(AttemptEvent::Proposals(ranked))
             }
             AttemptAction::AskBooking(candidate) => {
+                let asked = std::time::Instant::now();
                 let answer = requests::ask(
                     &ctx,
                     &ctx.keys.service(candidate.name()),
@@ -358,7 +359,7 @@ impl OrderTask {
                 }
                 match &answer {
                     Some(a) if a.result == Some(true) => {
-                        info!(holon = %self.holon, %conversation_id, resource = %candidate, service_type = %step.service_type, started = a.started(), "booked")
+                        info!(holon = %self.holon, %conversation_id, resource = %candidate, service_type = %step.service_type, started = a.started(), took_us = asked.elapsed().as_micros() as u64, "booked")
                     }
                     Some(a) => {
                         info!(holon = %self.holon, %conversation_id, resource = %candidate, reason = a.reason.as_ref().map_or("", |r| r.as_str()), "booking refused")

@@ -1,6 +1,7 @@
-//! The order-node's endpoints: `orders/submit`, and its orders' `state`, `cancel` and
-//! `inbox` (for results of orders that are not running). Their callbacks queue every
-//! query for the node's loop, which answers it here.
+//! The order-node's endpoints: `orders/submit`, the listing of its orders
+//! (`host/order-node/<node>/orders`, a page at a time), and its orders' `state`,
+//! `cancel` and `inbox` (for results of orders that are not running). Their callbacks
+//! queue every query for the node's loop, which answers it here.
 
 use std::time::Duration;
 
@@ -25,6 +26,7 @@ pub enum NodeQuery {
     Submit(Query),
     State(Query),
     Inbox(Query),
+    Listing(Query),
 }
 
 /// Queues a query for the node's loop from a queryable's callback (which must not
@@ -37,7 +39,8 @@ fn enqueue(queue: &mpsc::Sender<NodeQuery>, query: NodeQuery) {
             NodeQuery::Cancel(query)
             | NodeQuery::Submit(query)
             | NodeQuery::State(query)
-            | NodeQuery::Inbox(query),
+            | NodeQuery::Inbox(query)
+            | NodeQuery::Listing(query),
         )) => {
             warn!(key = %query.key_expr(), "{QUERY_QUEUE} queries are waiting for the order-node: this one is refused unavailable");
             let busy = schemas::ErrorReply::new(
@@ -62,6 +65,7 @@ pub struct Endpoints {
     _states: zenoh::query::Queryable<()>,
     _inboxes: zenoh::query::Queryable<()>,
     _cancels: zenoh::query::Queryable<()>,
+    _listing: zenoh::query::Queryable<()>,
 }
 
 impl Endpoints {
@@ -104,11 +108,16 @@ impl Endpoints {
             .declare_queryable(keys.node_orders(name, "cancel"))
             .callback(to_queue(NodeQuery::Cancel))
             .await?;
+        let _listing = session
+            .declare_queryable(keys.node_listing(name))
+            .callback(to_queue(NodeQuery::Listing))
+            .await?;
         Ok(Endpoints {
             _submit,
             _states,
             _inboxes,
             _cancels,
+            _listing,
         })
     }
 }
@@ -124,6 +133,7 @@ pub async fn answer(
         NodeQuery::Submit(query) => submit(host, query, tasks, cancel_all).await,
         NodeQuery::Inbox(query) => acknowledge_finished(host, query).await,
         NodeQuery::Cancel(query) => cancel(host, query).await,
+        NodeQuery::Listing(query) => listing(host, query).await,
         NodeQuery::State(query) => {
             for (key, payload) in host.snapshots_matching(query.key_expr()) {
                 if let Err(e) = query.reply(&key, payload).await {
@@ -131,6 +141,35 @@ pub async fn answer(
                 }
             }
         }
+    }
+}
+
+/// Answers a request for a page of the node's orders ([`Host::page`]); a malformed
+/// request is refused `malformed`.
+async fn listing(host: &Host, query: Query) {
+    let payload = query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default();
+    let request = match schemas::OrderListRequest::from_json(&payload) {
+        Ok(request) => request,
+        Err(why) => {
+            warn!(node = %host.config.name, "listing request refused: {why}");
+            let refusal = ErrorReply::new(schemas::ErrorCode::Malformed, why);
+            if let Err(e) = query.reply_err(refusal.to_json()).await {
+                warn!(node = %host.config.name, error = %e, "cannot refuse a listing request; the reader times out");
+            }
+            return;
+        }
+    };
+    let page = host.page(&request);
+    let payload = serde_json::to_vec(&page).expect("serializes");
+    debug!(node = %host.config.name, orders = page.orders.len(), bytes = payload.len(), "listing page answered");
+    if let Err(e) = query
+        .reply(host.config.keys.node_listing(&host.config.name), payload)
+        .await
+    {
+        warn!(node = %host.config.name, error = %e, "cannot answer a listing request; the reader says its listing is incomplete");
     }
 }
 

@@ -13,7 +13,7 @@
 use std::collections::BTreeMap;
 
 use crate::context::ORDER_RECORD;
-use crate::host::{order_number, Finished, NEXT_RECORD};
+use crate::host::{order_number, Ended, Finished, NEXT_RECORD};
 use crate::journal::{OrderJournal, OrderJournalError};
 use crate::progress::OrderProgress;
 
@@ -58,7 +58,8 @@ impl Recovery {
         ) {
             (true, Some(at), Some(number)) => {
                 self.hosted.remove(&name);
-                self.finished.insert(number, at);
+                let status = progress.status;
+                self.finished.insert(number, Ended { at, status });
             }
             _ => {
                 self.hosted.insert(name, progress);
@@ -98,7 +99,7 @@ impl Recovery {
     /// retention sweep removes them from the journal, and a range of changes does not
     /// show removals, so a standby forgets them by the same rule.
     pub fn forget_finished_before(&mut self, before: u64) {
-        self.finished.retain(|_, at| *at >= before);
+        self.finished.retain(|_, ended| ended.at >= before);
     }
 
     /// The first record that could not be read, if any.

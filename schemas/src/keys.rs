@@ -171,6 +171,18 @@ impl CellKeys {
         format!("{}/host/order-node/*/fence/*", self.prefix())
     }
 
+    /// `holarchy/<cell>/host/order-node/<node>/orders`: a page of the node's orders
+    /// (running and finished) for an [`crate::OrderListRequest`], answered with an
+    /// [`crate::OrderPage`].
+    pub fn node_listing(&self, node: &str) -> String {
+        format!("{}/host/order-node/{node}/orders", self.prefix())
+    }
+
+    /// `holarchy/<cell>/host/order-node/*/orders`: the first page of every node.
+    pub fn node_listing_all(&self) -> String {
+        format!("{}/host/order-node/*/orders", self.prefix())
+    }
+
     /// `holarchy/<cell>/*/*/state`: the state of every holon.
     pub fn state_all(&self) -> String {
         format!("{}/*/*/state", self.prefix())

@@ -8,6 +8,7 @@ pub mod advice;
 pub mod fence;
 pub mod id;
 pub mod keys;
+pub mod listing;
 pub mod outcome;
 pub mod packml;
 pub mod plan;
@@ -20,6 +21,10 @@ pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION}
 pub use fence::{FenceReport, FenceRole};
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
+pub use listing::{
+    OrderCounts, OrderFilter, OrderListRequest, OrderPage, PageCursor, LISTING_VERSION,
+    MAX_PAGE_BYTES, MAX_PAGE_ORDERS,
+};
 pub use outcome::{Outcome, OutcomeReply, OutcomeRequest, OutcomeSource};
 pub use packml::{
     PackmlCommand, PackmlReply, PackmlRequest, PackmlState, PackmlStatus, Refusal, StopReason,

@@ -82,24 +82,12 @@ impl Victim {
 }
 
 async fn all_orders(cell: &Cell) -> BTreeMap<HolonId, OrderSnapshot> {
-    let mut orders = BTreeMap::new();
-    if let Ok(replies) = cell
-        .session
-        .get(cell.keys.order_states())
-        .timeout(Duration::from_secs(3))
+    // Every order, finished ones too, a page at a time; none while the listing is
+    // incomplete (an order-node restarting), and the caller asks again.
+    ::cell::listing::all_orders(&cell.session, &cell.keys, Duration::from_secs(3))
         .await
-    {
-        while let Ok(reply) = replies.recv_async().await {
-            if let Ok(sample) = reply.result() {
-                if let Ok(snapshot) =
-                    serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
-                {
-                    orders.insert(snapshot.holon.clone(), snapshot);
-                }
-            }
-        }
-    }
-    orders
+        .map(|orders| orders.into_iter().map(|o| (o.holon.clone(), o)).collect())
+        .unwrap_or_default()
 }
 
 /// The controller simulators' pauses per step, in ms.

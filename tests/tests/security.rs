@@ -60,13 +60,12 @@ async fn answered(
     replies
 }
 
+/// Every order of the cell, listed a page at a time (readers may ask
+/// `host/order-node/*/orders`); the listing must be complete.
 async fn orders(session: &zenoh::Session, keys: &CellKeys) -> Vec<OrderSnapshot> {
-    ask(session, &keys.order_states(), Vec::new())
+    ::cell::listing::all_orders(session, keys, Duration::from_secs(5))
         .await
-        .into_iter()
-        .filter_map(|r| r.ok())
-        .filter_map(|p| serde_json::from_slice(&p).ok())
-        .collect()
+        .expect("an observer lists every order")
 }
 
 async fn wait_orders_final(

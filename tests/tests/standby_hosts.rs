@@ -425,7 +425,7 @@ lease_ttl_ms = 2000
     fn every_order_ends(&self, round: &str) -> (usize, usize) {
         let deadline = Instant::now() + Duration::from_secs(240);
         loop {
-            let out = self.cell(&["orders"]);
+            let out = self.cell(&["orders", "--all"]);
             let mut done = 0;
             let mut failed = 0;
             let mut missing = Vec::new();
@@ -577,7 +577,7 @@ fn round_ends(plant: &Plant, round: &str, stale_before: u64, writes_refused: usi
     let (done, failed) = plant.every_order_ends(round);
     // The orders that needed more than one attempt, and how each attempt ended (shown
     // before the steps are counted, so that a failure there has them).
-    let detail = plant.cell(&["orders", "--detail"]);
+    let detail = plant.cell(&["orders", "--all", "--detail"]);
     let mut retried = detail
         .lines()
         .filter(|l| l.starts_with(' ') && !l.contains(" done"))

@@ -1,0 +1,214 @@
+//! Listing the cell's orders a page at a time (`host/order-node/<node>/orders`,
+//! [`schemas::listing`]): `cell orders`, `cell status`'s order-node lines, the
+//! dashboard's and the OPC UA server's order figures, and tests that need every order.
+//!
+//! The live order-nodes are read from their tokens (`host/order-node/*`); each is asked
+//! its pages one after the other, every page within the timeout. A node that does not
+//! answer a page (busy past the timeout, gone, or a release without listings) makes the
+//! listing [`incomplete`](NodeListing::incomplete), and the reader says so: a listing
+//! never passes a silent "0 orders" off as the cell's.
+
+use std::time::Duration;
+
+use schemas::{CellKeys, OrderCounts, OrderListRequest, OrderPage, OrderSnapshot};
+
+/// Why a page was not had.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PageError {
+    /// No answer within the timeout (the node is busy, cut off or gone; or it does not
+    /// serve listings: a release before them).
+    #[error("no answer within {0:?}")]
+    NoAnswer(Duration),
+    /// The node refused the request.
+    #[error("refused: {0}")]
+    Refused(String),
+    /// The reply could not be read.
+    #[error("unreadable reply: {0}")]
+    Unreadable(String),
+    /// The query could not be sent.
+    #[error("cannot ask: {0}")]
+    Query(String),
+}
+
+/// The live order-nodes of the cell, by name, sorted.
+pub async fn live_nodes(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    timeout: Duration,
+) -> Result<Vec<String>, PageError> {
+    let prefix = keys.host("order-node", "");
+    let mut names: Vec<String> = holon::presence::tokens(session, &format!("{prefix}*"), timeout)
+        .await
+        .map_err(|e| PageError::Query(e.to_string()))?
+        .into_iter()
+        .filter_map(|key| key.strip_prefix(&prefix).map(String::from))
+        .collect();
+    names.sort();
+    names.dedup();
+    Ok(names)
+}
+
+/// Asks `node` for one page. A node whose token is up but whose queryable has not
+/// reached this session yet answers nothing at once: asked again until `timeout`.
+pub async fn page(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    node: &str,
+    request: &OrderListRequest,
+    timeout: Duration,
+) -> Result<OrderPage, PageError> {
+    let deadline = tokio::time::Instant::now() + timeout;
+    let payload = serde_json::to_vec(request).expect("a request serializes");
+    loop {
+        let left = deadline.saturating_duration_since(tokio::time::Instant::now());
+        let replies = session
+            .get(keys.node_listing(node))
+            .payload(payload.clone())
+            .timeout(left.max(Duration::from_millis(1)))
+            .await
+            .map_err(|e| PageError::Query(e.to_string()))?;
+        if let Ok(reply) = replies.recv_async().await {
+            return match reply.result() {
+                Ok(sample) => serde_json::from_slice::<OrderPage>(&sample.payload().to_bytes())
+                    .map_err(|e| PageError::Unreadable(e.to_string())),
+                Err(err) => Err(PageError::Refused(
+                    err.payload()
+                        .try_to_string()
+                        .unwrap_or_default()
+                        .to_string(),
+                )),
+            };
+        }
+        if tokio::time::Instant::now() + Duration::from_millis(50) >= deadline {
+            return Err(PageError::NoAnswer(timeout));
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// What one node's listing gave.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct NodeListing {
+    /// The node.
+    pub node: String,
+    /// Its counts by status, from its first page (none when it did not answer).
+    pub counts: Option<OrderCounts>,
+    /// How many orders the listing went through (all pages, shown or not).
+    pub listed: u64,
+    /// Why the listing of this node is incomplete, if it is.
+    pub incomplete: Option<String>,
+}
+
+/// Runs through `node`'s pages for `request`, handing each page's orders to `each`
+/// (which returns how many more it wants; 0 ends the listing early, which is not
+/// incomplete). At most `pages` pages.
+pub async fn node_orders<F>(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    node: &str,
+    request: &OrderListRequest,
+    timeout: Duration,
+    mut each: F,
+) -> NodeListing
+where
+    F: FnMut(Vec<OrderSnapshot>) -> usize,
+{
+    let mut listing = NodeListing {
+        node: node.to_string(),
+        ..NodeListing::default()
+    };
+    let mut request = request.clone();
+    loop {
+        match page(session, keys, node, &request, timeout).await {
+            Ok(page) => {
+                if listing.counts.is_none() {
+                    listing.counts = Some(page.counts);
+                }
+                if page.unreadable > 0 {
+                    listing.incomplete = Some(format!(
+                        "{} finished orders could not be read from its journal (its log says why)",
+                        page.unreadable
+                    ));
+                }
+                listing.listed += page.orders.len() as u64;
+                let wanted = if page.orders.is_empty() {
+                    usize::MAX
+                } else {
+                    each(page.orders)
+                };
+                match page.next {
+                    Some(next) if wanted > 0 => {
+                        request = request.after(next);
+                        if (wanted as u64) < request.limit as u64 {
+                            request.limit = wanted as u32;
+                        }
+                    }
+                    _ => return listing,
+                }
+            }
+            Err(e) => {
+                listing.incomplete = Some(match &request.after {
+                    None => format!("its orders: {e}"),
+                    Some(_) => format!("its orders after the {}th: {e}", listing.listed),
+                });
+                return listing;
+            }
+        }
+    }
+}
+
+/// Every order of the cell (every node, every page), sorted by node and number; an
+/// error naming the nodes when the listing is incomplete. For tests and tools that
+/// need the whole history at once (`cell orders` prints page by page instead).
+pub async fn all_orders(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    timeout: Duration,
+) -> anyhow::Result<Vec<OrderSnapshot>> {
+    let nodes = live_nodes(session, keys, timeout).await?;
+    let mut orders = std::collections::BTreeMap::new();
+    let mut missing = Vec::new();
+    let request = OrderListRequest::first(schemas::OrderFilter::All, schemas::MAX_PAGE_ORDERS);
+    for node in nodes {
+        let listing = node_orders(session, keys, &node, &request, timeout, |page| {
+            for order in page {
+                // Listed running, then again finished: the later copy wins.
+                orders.insert(order.holon.clone(), order);
+            }
+            usize::MAX
+        })
+        .await;
+        if let Some(why) = listing.incomplete {
+            missing.push(format!("{node}: {why}"));
+        }
+    }
+    if !missing.is_empty() {
+        anyhow::bail!(
+            "the listing of orders is incomplete: {}",
+            missing.join("; ")
+        );
+    }
+    let mut orders: Vec<OrderSnapshot> = orders.into_values().collect();
+    orders.sort_by_key(|o| crate::status::order_sort_key(o.holon.name()));
+    Ok(orders)
+}
+
+/// Every live node's counts (a page of none each): `None` for a node that did not
+/// answer, with why.
+pub async fn counts(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    timeout: Duration,
+) -> Result<Vec<(String, Result<OrderCounts, PageError>)>, PageError> {
+    let nodes = live_nodes(session, keys, timeout).await?;
+    let request = OrderListRequest::first(schemas::OrderFilter::All, 0);
+    let asks = nodes
+        .iter()
+        .map(|node| page(session, keys, node, &request, timeout));
+    let pages = futures_util::future::join_all(asks).await;
+    Ok(nodes
+        .into_iter()
+        .zip(pages)
+        .map(|(node, page)| (node, page.map(|p| p.counts)))
+        .collect())
+}
