@@ -48,6 +48,13 @@ pub async fn print(
         }
     }
     out.write_all(crate::status::orders_summary(cell, &total).as_bytes())?;
+    if !incomplete.is_empty() {
+        writeln!(
+            out,
+            "(not counted above: {}; the listing below is incomplete)",
+            incomplete.join("; ")
+        )?;
+    }
     out.write_all(crate::status::orders_header().as_bytes())?;
     let now = schemas::unix_ms();
     let mut shown_finished_total = 0u64;

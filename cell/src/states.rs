@@ -38,24 +38,24 @@ impl Heard {
     }
 }
 
-/// The subscriptions to every resource's and order's state; dropping it ends them.
+/// The subscriptions to the states followed; dropping it ends them.
 pub struct Following {
-    _resources: zenoh::pubsub::Subscriber<()>,
-    _orders: zenoh::pubsub::Subscriber<()>,
+    _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
 }
 
-/// Subscribes to `resource/*/state` and `order/*/state`: each snapshot goes to `heard`.
-pub async fn follow<F>(session: &zenoh::Session, keys: &CellKeys, heard: F) -> Result<Following>
+/// Subscribes to the states on `which` (e.g. `resource/*/state` and `order/*/state`):
+/// each snapshot goes to `heard`.
+pub async fn follow<F>(session: &zenoh::Session, which: &[String], heard: F) -> Result<Following>
 where
     F: Fn(Heard) + Clone + Send + Sync + 'static,
 {
     let z = |e: zenoh::Error| anyhow!("{}", holon::zenoh_error::describe(&e));
-    let mut subscribers = Vec::with_capacity(2);
-    for key in [keys.resource_states(), keys.order_states()] {
+    let mut subscribers = Vec::with_capacity(which.len());
+    for key in which {
         let heard = heard.clone();
         subscribers.push(
             session
-                .declare_subscriber(key)
+                .declare_subscriber(key.clone())
                 .callback(move |sample| {
                     if let Some(state) = Heard::read(&sample.payload().to_bytes()) {
                         heard(state);
@@ -65,11 +65,8 @@ where
                 .map_err(z)?,
         );
     }
-    let orders = subscribers.pop().expect("two subscribers");
-    let resources = subscribers.pop().expect("two subscribers");
     Ok(Following {
-        _resources: resources,
-        _orders: orders,
+        _subscribers: subscribers,
     })
 }
 

@@ -8,6 +8,7 @@
 //! | `GET /` | logged in | the page (embedded; no external asset) |
 //! | `GET /events` | logged in | server-sent events: `view`, the whole view, at once and after every change (at most every 250 ms); ends with the session |
 //! | `GET /api/view`, `/api/holons`, `/api/orders`, `/api/alarms`, `/api/events` | logged in | JSON |
+//! | `GET /api/orders/history?node=N&status=S&before=B&limit=L` | logged in | a page of order-node N's finished orders from its journal, newest first (`status`: finished, done, scrapped, failed or cancelled; `before`: an order number, the previous page's last; `limit` at most 200): the node's `OrderPage` (`schemas::listing`), 502 with why when it does not answer |
 //! | `GET /metrics` | logged in | Prometheus text format |
 //! | `POST /api/orders` | operator | submit a work order, `{"product", "count", "queue", "priority", "due_in_s"}` |
 //! | `POST /api/orders/{name}/cancel` | operator | cancel an order |
@@ -57,6 +58,7 @@ pub fn router(shared: Arc<Shared>, guard: Arc<super::guard::Guard>) -> Router {
         .route("/api/view", get(view))
         .route("/api/holons", get(holons))
         .route("/api/orders", get(orders).post(actions::submit))
+        .route("/api/orders/history", get(history))
         .route("/api/orders/{name}/cancel", post(actions::cancel))
         .route("/api/alarms", get(alarms))
         .route("/api/alarms/{id}/ack", post(actions::acknowledge))
@@ -131,6 +133,91 @@ async fn orders(State(shared): State<Arc<Shared>>) -> Response {
     Json(&current(&shared).orders).into_response()
 }
 
+/// What `GET /api/orders/history` asks for.
+#[derive(Debug, Default, PartialEq)]
+struct HistoryQuery {
+    /// The order-node.
+    node: String,
+    /// `finished` (default) or one final status.
+    status: Option<String>,
+    /// Orders numbered below this one (the previous page's last).
+    before: Option<u64>,
+    /// At most this many (default 50, at most 200).
+    limit: Option<u32>,
+}
+
+impl HistoryQuery {
+    /// Reads `node=N&status=S&before=B&limit=L` (names, statuses and numbers: nothing
+    /// that needs decoding); an unknown or malformed parameter is refused.
+    fn parse(query: &str) -> Result<HistoryQuery, String> {
+        let mut read = HistoryQuery::default();
+        for pair in query.split('&').filter(|p| !p.is_empty()) {
+            let (key, value) = pair.split_once('=').unwrap_or((pair, ""));
+            let number = |what: &str| {
+                value
+                    .parse::<u64>()
+                    .map_err(|_| format!("{what} must be a number, not {value:?}"))
+            };
+            match key {
+                "node" => read.node = value.to_string(),
+                "status" => read.status = Some(value.to_string()),
+                "before" => read.before = Some(number("before")?),
+                "limit" => read.limit = Some(number("limit")?.min(u32::MAX as u64) as u32),
+                other => {
+                    return Err(format!(
+                        "unknown parameter {other:?} (node, status, before, limit)"
+                    ))
+                }
+            }
+        }
+        Ok(read)
+    }
+}
+
+/// A page of a node's finished orders, read from its journal by the node
+/// ([`crate::listing::page`]): the page shows the newest it heard of, and older ones
+/// a page at a time from here.
+async fn history(State(shared): State<Arc<Shared>>, uri: axum::http::Uri) -> Response {
+    let query = match HistoryQuery::parse(uri.query().unwrap_or("")) {
+        Ok(query) => query,
+        Err(why) => return refused(StatusCode::BAD_REQUEST, &why),
+    };
+    let filter = match query.status.as_deref().unwrap_or("finished") {
+        "running" => Err("the history is of finished orders".to_string()),
+        status => schemas::OrderFilter::parse(status),
+    };
+    let filter = match filter {
+        Ok(filter) => filter,
+        Err(why) => return refused(StatusCode::BAD_REQUEST, &why),
+    };
+    if schemas::validate_name("order-node", &query.node).is_err() {
+        return refused(
+            StatusCode::BAD_REQUEST,
+            &format!("{:?} is not an order-node's name", query.node),
+        );
+    }
+    let mut request = schemas::OrderListRequest::first(filter, query.limit.unwrap_or(50));
+    request.after = query.before.map(schemas::PageCursor::AfterFinished);
+    match crate::listing::page(
+        &shared.session,
+        &shared.keys,
+        &query.node,
+        &request,
+        HISTORY_TIMEOUT,
+    )
+    .await
+    {
+        Ok(page) => Json(page).into_response(),
+        Err(e) => refused(
+            StatusCode::BAD_GATEWAY,
+            &format!("order-node {}: {e}", query.node),
+        ),
+    }
+}
+
+/// How long `GET /api/orders/history` waits for the node's page.
+const HISTORY_TIMEOUT: Duration = Duration::from_secs(5);
+
 async fn alarms(State(shared): State<Arc<Shared>>) -> Response {
     Json(&current(&shared).alarms).into_response()
 }
@@ -201,5 +288,29 @@ async fn audit_export(
             StatusCode::INTERNAL_SERVER_ERROR,
             &format!("cannot read the audit trail {}: {e}", path.display()),
         ),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::HistoryQuery;
+
+    #[test]
+    fn a_history_query_reads_its_parameters_and_refuses_others() {
+        assert_eq!(
+            HistoryQuery::parse("node=orders1&status=failed&before=120&limit=50").unwrap(),
+            HistoryQuery {
+                node: "orders1".into(),
+                status: Some("failed".into()),
+                before: Some(120),
+                limit: Some(50),
+            }
+        );
+        assert!(HistoryQuery::parse("node=orders1&before=x")
+            .unwrap_err()
+            .contains("before must be a number"));
+        assert!(HistoryQuery::parse("node=o&page=2")
+            .unwrap_err()
+            .contains("unknown parameter"));
     }
 }

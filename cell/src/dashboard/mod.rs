@@ -40,7 +40,7 @@ use schemas::{CellKeys, HolonKind, OrderSnapshot};
 use serde::Serialize;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 use model::{Alarm, Event, HolonView, Input, Model, ProcessId, ProcessView};
 
@@ -396,6 +396,25 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
                         warn!(error = %e, "cannot ask the order-nodes on etcd where they stand")
                     }
                 }
+                // Each order-node's counts of its whole history (a listing page of
+                // none): the totals the page shows. A node that does not answer keeps
+                // its last counts out of the totals until it does.
+                match crate::listing::counts(&session, &keys, FENCES_EVERY).await {
+                    Ok(nodes) => {
+                        let counts = nodes
+                            .into_iter()
+                            .filter_map(|(node, counts)| match counts {
+                                Ok(counts) => Some((node, counts)),
+                                Err(e) => {
+                                    debug!(%node, error = %e, "an order-node did not give its counts");
+                                    None
+                                }
+                            })
+                            .collect();
+                        queue(&inputs, &dropped, Input::NodeCounts { counts })
+                    }
+                    Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
+                }
             }
         });
     }
@@ -516,9 +535,11 @@ async fn subscribe(
     };
     let states = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
-        crate::states::follow(session, keys, move |heard| {
-            queue(&inputs, &dropped, input_of(heard))
-        })
+        crate::states::follow(
+            session,
+            &[keys.resource_states(), keys.order_states()],
+            move |heard| queue(&inputs, &dropped, input_of(heard)),
+        )
         .await?
     };
     Ok(Subscriptions {
@@ -596,6 +617,34 @@ async fn own_the_model(
     }
 }
 
+/// How many orders the cell's order-nodes host, by status: as the nodes counted them
+/// (their listings' counts, every whole history), or, until one answered, the orders
+/// this dashboard heard of.
+fn order_counts(model: &Model) -> std::collections::BTreeMap<String, usize> {
+    use schemas::OrderStatus;
+    let mut counts = std::collections::BTreeMap::new();
+    if model.node_counts().is_empty() {
+        for o in model.orders() {
+            *counts.entry(o.status.as_str().to_string()).or_insert(0) += 1;
+        }
+        return counts;
+    }
+    let mut total = schemas::OrderCounts::default();
+    for node in model.node_counts().values() {
+        total.merge(node);
+    }
+    for status in [
+        OrderStatus::Running,
+        OrderStatus::Done,
+        OrderStatus::Scrapped,
+        OrderStatus::Failed,
+        OrderStatus::Cancelled,
+    ] {
+        counts.insert(status.as_str().to_string(), total.of(status) as usize);
+    }
+    counts
+}
+
 /// The page's view of the model, now (`started`: when the dashboard began watching).
 fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, started: u64) -> View {
     let now = schemas::unix_ms();
@@ -609,14 +658,7 @@ fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, started: u64) 
         processes: model.processes().cloned().collect(),
         linked_routers: Vec::new(),
         orders: order_rows(model),
-        order_counts: model.orders().fold(Default::default(), |mut counts, o| {
-            let status = serde_json::to_value(o.status)
-                .ok()
-                .and_then(|v| v.as_str().map(String::from))
-                .unwrap_or_default();
-            *counts.entry(status).or_insert(0) += 1;
-            counts
-        }),
+        order_counts: order_counts(model),
         alarms: model.alarms().to_vec(),
         fences: model.fence_reports().to_vec(),
         node_fences: model.node_fence_reports().to_vec(),

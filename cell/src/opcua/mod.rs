@@ -25,7 +25,7 @@ pub mod ns0;
 pub mod security;
 pub mod users;
 
-use std::collections::{BTreeMap, HashMap, HashSet};
+use std::collections::{HashMap, HashSet};
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -35,7 +35,7 @@ use std::time::Duration;
 use anyhow::{anyhow, bail, Context, Result};
 use opcua::types::{DataValue, StatusCode, Variant};
 use opcua_server::{ServerBuilder, ServerEndpoint, SubscriptionCache};
-use schemas::{CellKeys, HolonKind, OrderSnapshot, OrderStatus, ResourceSnapshot};
+use schemas::{CellKeys, HolonKind, OrderStatus, ResourceSnapshot};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
@@ -101,19 +101,25 @@ fn default_users_file(pki: &std::path::Path) -> Result<PathBuf> {
 enum Input {
     /// A resource's state snapshot.
     Resource(Box<ResourceSnapshot>),
-    /// An order's state snapshot.
-    Order(Box<OrderSnapshot>),
     /// A resource's liveliness token appeared.
     Appeared(String),
     /// A resource's liveliness token went.
     Vanished(String),
+    /// The order-nodes' counts of their orders, summed (a listing page of none from
+    /// each, [`crate::listing::counts`]).
+    Counts(schemas::OrderCounts),
 }
 
-impl From<crate::states::Heard> for Input {
-    fn from(heard: crate::states::Heard) -> Input {
+/// How often the order figures are asked of the order-nodes.
+const COUNTS_EVERY: Duration = Duration::from_secs(1);
+
+impl Input {
+    /// A resource's state as an input; an order's is none (the figures are counted by
+    /// the nodes).
+    fn heard(heard: crate::states::Heard) -> Option<Input> {
         match heard {
-            crate::states::Heard::Resource(snapshot) => Input::Resource(snapshot),
-            crate::states::Heard::Order(snapshot) => Input::Order(snapshot),
+            crate::states::Heard::Resource(snapshot) => Some(Input::Resource(snapshot)),
+            crate::states::Heard::Order(_) => None,
         }
     }
 }
@@ -228,12 +234,46 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
     ));
     // No await between the build and the run: the server is not Send until it runs.
     {
-        let every_state = [config.keys.resource_states(), config.keys.order_states()];
+        let every_state = [config.keys.resource_states()];
         let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
         tokio::spawn(async move {
             ask_states(&session, &every_state, &inputs, &dropped).await;
             tokio::time::sleep(crate::states::ASK_NEWCOMER_AGAIN).await;
             ask_states(&session, &every_state, &inputs, &dropped).await;
+        });
+    }
+    {
+        let (session, keys, inputs, dropped, stop) = (
+            session.clone(),
+            config.keys.clone(),
+            inputs.clone(),
+            dropped.clone(),
+            shutdown.clone(),
+        );
+        tokio::spawn(async move {
+            let mut every = tokio::time::interval(COUNTS_EVERY);
+            every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            loop {
+                tokio::select! {
+                    _ = stop.cancelled() => return,
+                    _ = every.tick() => {}
+                }
+                match crate::listing::counts(&session, &keys, COUNTS_EVERY * 2).await {
+                    Ok(nodes) => {
+                        let mut total = schemas::OrderCounts::default();
+                        for (node, counts) in nodes {
+                            match counts {
+                                Ok(counts) => total.merge(&counts),
+                                Err(e) => {
+                                    debug!(%node, error = %e, "an order-node did not give its counts")
+                                }
+                            }
+                        }
+                        queue(&inputs, &dropped, Input::Counts(total));
+                    }
+                    Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
+                }
+            }
         });
     }
 
@@ -372,14 +412,22 @@ async fn subscribe(
                 };
                 queue(&inputs, &dropped, input);
             },
-            move |heard| queue(&asked, &counter, heard.into()),
+            move |heard| {
+                if let Some(input) = Input::heard(heard) {
+                    queue(&asked, &counter, input)
+                }
+            },
         )
         .await?
     };
     let states = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
-        crate::states::follow(session, keys, move |heard| {
-            queue(&inputs, &dropped, heard.into())
+        // The order figures are the nodes' counts (Input::Counts): no order's state
+        // is followed.
+        crate::states::follow(session, &[keys.resource_states()], move |heard| {
+            if let Some(input) = Input::heard(heard) {
+                queue(&inputs, &dropped, input)
+            }
         })
         .await?
     };
@@ -396,7 +444,12 @@ async fn ask_states(
     inputs: &mpsc::Sender<Input>,
     dropped: &AtomicU64,
 ) {
-    crate::states::ask(session, keys, |heard| queue(inputs, dropped, heard.into())).await;
+    crate::states::ask(session, keys, |heard| {
+        if let Some(input) = Input::heard(heard) {
+            queue(inputs, dropped, input)
+        }
+    })
+    .await;
 }
 
 /// The one owner of the values: adds and removes resources' objects and pushes the
@@ -416,7 +469,6 @@ async fn own_the_values(
         resources: HashSet::new(),
         waiting: HashMap::new(),
         shown_at: HashMap::new(),
-        orders: BTreeMap::new(),
     };
     loop {
         tokio::select! {
@@ -447,8 +499,6 @@ struct Values {
     waiting: HashMap<String, Box<ResourceSnapshot>>,
     /// The `at` of each resource's snapshot shown.
     shown_at: HashMap<String, u64>,
-    /// Every order's status, by order name.
-    orders: BTreeMap<String, OrderStatus>,
 }
 
 impl Values {
@@ -485,12 +535,9 @@ impl Values {
                     self.waiting.insert(resource, snapshot);
                 }
             }
-            Input::Order(snapshot) => {
-                self.orders
-                    .insert(snapshot.holon.name().to_string(), snapshot.status);
+            Input::Counts(counts) => {
                 let count = |status: OrderStatus| {
-                    let n = self.orders.values().filter(|s| **s == status).count();
-                    Variant::Int32(i32::try_from(n).unwrap_or(i32::MAX))
+                    Variant::Int32(i32::try_from(counts.of(status)).unwrap_or(i32::MAX))
                 };
                 let figures = vec![
                     (

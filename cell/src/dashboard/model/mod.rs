@@ -77,7 +77,17 @@ pub enum Input {
         /// Each process's report: holder or standby, epoch, lag.
         reports: Vec<schemas::fence::NodeFenceReport>,
     },
+    /// The order-nodes' counts of their orders by status, as each answered a listing
+    /// (a page of none, [`schemas::listing`]): they replace the previous ones.
+    NodeCounts {
+        counts: BTreeMap<String, schemas::OrderCounts>,
+    },
 }
+
+/// How many finished orders the model keeps (the newest heard): the page shows
+/// [`crate::dashboard::FINISHED_SHOWN`] of them and reads older ones a page at a time
+/// from their order-node, so a dashboard open for a month holds no more than a day's.
+pub const FINISHED_KEPT: usize = 1_000;
 
 /// One holon as the page shows it.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -132,6 +142,11 @@ pub struct Model {
     /// Routers and order-nodes.
     processes: BTreeMap<ProcessId, ProcessView>,
     orders: BTreeMap<HolonId, OrderSnapshot>,
+    /// The finished orders of `orders`, in the order they were heard finished: the
+    /// oldest leave past [`FINISHED_KEPT`].
+    finished: VecDeque<HolonId>,
+    /// The order-nodes' counts, as last asked.
+    node_counts: BTreeMap<String, schemas::OrderCounts>,
     /// Active alarms, and cleared ones not yet acknowledged, oldest first.
     alarms: Vec<Alarm>,
     next_alarm: u64,
@@ -205,7 +220,17 @@ impl Model {
             Input::Acknowledge { id, by, at } => self.acknowledge(id, &by, at),
             Input::Fences { reports, at } => self.fences(reports, at),
             Input::NodeFences { reports } => self.node_fences(reports),
+            Input::NodeCounts { counts } => {
+                let changed = counts != self.node_counts;
+                self.node_counts = counts;
+                changed
+            }
         }
+    }
+
+    /// The order-nodes' counts, as last asked (empty until one answered).
+    pub fn node_counts(&self) -> &BTreeMap<String, schemas::OrderCounts> {
+        &self.node_counts
     }
 
     /// The order-nodes' processes on etcd, holders and standbys (sorted by node).
@@ -639,6 +664,20 @@ impl Model {
             self.log(at, &holon, text);
         }
         let ended_now = before.as_ref().is_none_or(|b| b.status != snapshot.status);
+        if ended_now && snapshot.status.is_final() {
+            self.finished.push_back(holon.clone());
+            while self.finished.len() > FINISHED_KEPT {
+                if let Some(oldest) = self.finished.pop_front() {
+                    if self
+                        .orders
+                        .get(&oldest)
+                        .is_some_and(|o| o.status.is_final())
+                    {
+                        self.orders.remove(&oldest);
+                    }
+                }
+            }
+        }
         if ended_now {
             let reason = snapshot.reason.clone().unwrap_or_default();
             match snapshot.status {
@@ -979,6 +1018,31 @@ mod tests {
             at: 2,
         });
         assert_eq!(active(&m), vec![]);
+    }
+
+    #[test]
+    fn the_model_keeps_the_running_orders_and_only_the_newest_finished_ones() {
+        let mut m = Model::default();
+        m.apply(Input::Order {
+            snapshot: Box::new(order("o-0", OrderStatus::Running, None)),
+            at: 1,
+        });
+        for n in 1..=FINISHED_KEPT + 10 {
+            m.apply(Input::Order {
+                snapshot: Box::new(order(&format!("o-{n}"), OrderStatus::Done, None)),
+                at: 2,
+            });
+        }
+        assert_eq!(m.orders().count(), FINISHED_KEPT + 1);
+        assert!(
+            m.orders().any(|o| o.holon.name() == "o-0"),
+            "the running one stays"
+        );
+        assert!(
+            !m.orders().any(|o| o.holon.name() == "o-1"),
+            "the oldest finished left"
+        );
+        assert_eq!(m.counters().orders_done, (FINISHED_KEPT + 10) as u64);
     }
 
     #[test]
