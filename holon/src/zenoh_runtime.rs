@@ -5,10 +5,20 @@
 //! links, two) and `net` (one). A holon's service round trip crosses several of them:
 //! a query is read on an `rx` thread, its reply written by the `tx` thread, and on a
 //! virtual machine waking an idle thread is what such a round trip mostly waits on.
-//! A holon process hands `rx`, `tx`, `acc` and `net` over to `app`: the same work on
-//! one pool instead of six threads, each more often already awake. Measured beside
+//! A holon process hands `rx`, `acc` and `net` over to `app`: the same work on one
+//! pool instead of five threads, each more often already awake. Measured beside
 //! zenoh's default on the same machine (docs/benchmarks.md, "zenoh's runtimes in one
 //! pool"): the zenoh round trip about 20% shorter, the service cycle 12-15%.
+//!
+//! `tx` keeps its one thread. A reply, a publication or a token sent while the link's
+//! queue is full does not yield: zenoh blocks the sending thread until `tx` has written
+//! a batch out (for at most 5 s, then it closes the link: "Unable to push non
+//! droppable network message ... Closing transport!"). With `tx` handed to `app`, a
+//! pool whose every thread was so blocked had nobody left to drain the queue: an
+//! order-node answering a listing of 1,500 orders while its orders booked lost its link
+//! to the router every 5 s (docs/benchmarks.md, "The link's writer keeps its thread";
+//! `tests/tests/order_node_load.rs` reproduces it). With a thread of its own, `tx`
+//! always runs, and the keep-alives it sends with it.
 //!
 //! The holon's own tasks run on the same pool ([`runtime`]): a zenoh callback runs on one
 //! of its threads, and the task it hands a request to (a component's mailbox) then runs
@@ -52,7 +62,8 @@ impl Pool {
         }
     }
 
-    /// The `ZENOH_RUNTIME` setting: every zenoh runtime handed over to `app`, with
+    /// The `ZENOH_RUNTIME` setting: `rx`, `acc` and `net` handed over to `app` (`tx`
+    /// keeps its own thread, see the module), `app` with
     /// [`worker_threads`](Self::worker_threads), and as many blocking threads as tokio's
     /// own default (512; zenoh's default is 50). The journals' calls that may block hand
     /// their thread's work to a new one while they wait ([`crate::journal::blocking`]):
