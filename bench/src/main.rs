@@ -29,6 +29,7 @@ mod robots;
 mod run;
 mod scale;
 mod schedule;
+mod soak;
 mod stats;
 mod throughput;
 mod tls;
@@ -100,6 +101,27 @@ enum Commands {
         #[arg(long, default_value = "upgrade-results.json")]
         out: PathBuf,
     },
+    /// The soak: two robots, a product and an order-node with a journal on disk, waves
+    /// of orders and an operator listing them every half second, for a long time; every
+    /// process's memory sampled every 10 s (docs/reliability.md, "Memory while
+    /// running").
+    Soak {
+        /// How long waves are submitted.
+        #[arg(long, default_value_t = 30)]
+        minutes: u64,
+        /// Orders per wave.
+        #[arg(long, default_value_t = 40)]
+        wave: u32,
+        /// Seconds between waves.
+        #[arg(long, default_value_t = 5)]
+        every_s: u64,
+        /// Minutes after which memory is expected flat (its growth is fitted after).
+        #[arg(long, default_value_t = 3)]
+        settle: u64,
+        /// Where the summary goes (JSON; the samples beside it as CSV).
+        #[arg(long, default_value = "soak-results.json")]
+        out: PathBuf,
+    },
     /// (helper) A TCP echo server: prints `listening on ADDR`.
     EchoTcp {
         #[arg(long, default_value = "127.0.0.1:0")]
@@ -159,6 +181,21 @@ async fn run(args: Args) -> Result<()> {
             schedule::run(&scenarios, seeds, &out).await
         }
         Commands::Upgrade { rounds, out } => upgrade::run(rounds, &out).await,
+        Commands::Soak {
+            minutes,
+            wave,
+            every_s,
+            settle,
+            out,
+        } => {
+            let soak = soak::Soak {
+                minutes,
+                wave,
+                every_s,
+                settle,
+            };
+            soak::run(&soak, &out).await
+        }
         Commands::EchoTcp { listen } => echo::echo_tcp(&listen).await,
         Commands::EchoZenoh { connect, key } => echo::echo_zenoh(&connect, &key).await,
     }

@@ -2,11 +2,14 @@
 //! [`schemas::listing`]): `cell orders`, `cell status`'s order-node lines, the
 //! dashboard's and the OPC UA server's order figures, and tests that need every order.
 //!
-//! The live order-nodes are read from their tokens (`host/order-node/*`); each is asked
-//! its pages one after the other, every page within the timeout. A node that does not
-//! answer a page (busy past the timeout, gone, or a release without listings) makes the
-//! listing [`incomplete`](NodeListing::incomplete), and the reader says so: a listing
-//! never passes a silent "0 orders" off as the cell's.
+//! The order-nodes are found two ways at once ([`first_pages`]): every node that
+//! answers the first page's `get` on `host/order-node/*/orders`, and every node whose
+//! token (`host/order-node/*`) is alive. A node known by its token that did not answer
+//! is asked again by name until the timeout; each node is then asked its further pages
+//! one after the other, every page within the timeout. A node that does not answer a
+//! page (busy past the timeout, gone, or a release without listings) makes the listing
+//! [`incomplete`](NodeListing::incomplete), and the reader says so: a listing never
+//! passes a silent "0 orders" off as the cell's.
 
 use std::time::Duration;
 
@@ -30,7 +33,7 @@ pub enum PageError {
     Query(String),
 }
 
-/// The live order-nodes of the cell, by name, sorted.
+/// The order-nodes whose tokens are alive, by name, sorted.
 pub async fn live_nodes(
     session: &zenoh::Session,
     keys: &CellKeys,
@@ -46,6 +49,54 @@ pub async fn live_nodes(
     names.sort();
     names.dedup();
     Ok(names)
+}
+
+/// The first page of `request` from every order-node of the cell, by node name, sorted:
+/// those that answered the one `get` on every node's listing, and those whose token is
+/// alive, each of which did not answer asked again by name ([`page`]).
+pub async fn first_pages(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    request: &OrderListRequest,
+    timeout: Duration,
+) -> Result<Vec<(String, Result<OrderPage, PageError>)>, PageError> {
+    let payload = serde_json::to_vec(request).expect("a request serializes");
+    let asked = async {
+        let replies = session
+            .get(keys.node_listing_all())
+            .payload(payload)
+            .consolidation(zenoh::query::ConsolidationMode::None)
+            .timeout(timeout)
+            .await
+            .map_err(|e| PageError::Query(e.to_string()))?;
+        let mut pages = std::collections::BTreeMap::new();
+        while let Ok(reply) = replies.recv_async().await {
+            // Only pages are taken: a refusal names no node, and the node is then
+            // asked again by its token.
+            if let Ok(sample) = reply.result() {
+                let page = serde_json::from_slice::<OrderPage>(&sample.payload().to_bytes())
+                    .map_err(|e| PageError::Unreadable(e.to_string()));
+                let node = sample
+                    .key_expr()
+                    .as_str()
+                    .strip_suffix("/orders")
+                    .and_then(|k| k.rsplit('/').next())
+                    .unwrap_or_default()
+                    .to_string();
+                pages.insert(node, page);
+            }
+        }
+        Ok::<_, PageError>(pages)
+    };
+    let (answered, alive) = tokio::join!(asked, live_nodes(session, keys, timeout));
+    let mut pages = answered?;
+    for node in alive? {
+        if !pages.contains_key(&node) {
+            let page = page(session, keys, &node, request, timeout).await;
+            pages.insert(node, page);
+        }
+    }
+    Ok(pages.into_iter().collect())
 }
 
 /// Asks `node` for one page. A node whose token is up but whose queryable has not
@@ -108,6 +159,23 @@ pub async fn node_orders<F>(
     node: &str,
     request: &OrderListRequest,
     timeout: Duration,
+    each: F,
+) -> NodeListing
+where
+    F: FnMut(Vec<OrderSnapshot>) -> usize,
+{
+    let first = page(session, keys, node, request, timeout).await;
+    node_orders_from(session, keys, node, request, first, timeout, each).await
+}
+
+/// [`node_orders`] from a first page already asked (`first`, [`first_pages`]).
+pub async fn node_orders_from<F>(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    node: &str,
+    request: &OrderListRequest,
+    first: Result<OrderPage, PageError>,
+    timeout: Duration,
     mut each: F,
 ) -> NodeListing
 where
@@ -118,8 +186,13 @@ where
         ..NodeListing::default()
     };
     let mut request = request.clone();
+    let mut next = Some(first);
     loop {
-        match page(session, keys, node, &request, timeout).await {
+        let answer = match next.take() {
+            Some(answer) => answer,
+            None => page(session, keys, node, &request, timeout).await,
+        };
+        match answer {
             Ok(page) => {
                 if listing.counts.is_none() {
                     listing.counts = Some(page.counts);
@@ -165,12 +238,18 @@ pub async fn all_orders(
     keys: &CellKeys,
     timeout: Duration,
 ) -> anyhow::Result<Vec<OrderSnapshot>> {
-    let nodes = live_nodes(session, keys, timeout).await?;
+    let request = OrderListRequest::first(schemas::OrderFilter::All, schemas::MAX_PAGE_ORDERS);
+    let firsts = first_pages(session, keys, &request, timeout).await?;
+    if firsts.is_empty() {
+        anyhow::bail!(
+            "no order-node alive in cell {}: no orders can be listed",
+            keys.cell()
+        );
+    }
     let mut orders = std::collections::BTreeMap::new();
     let mut missing = Vec::new();
-    let request = OrderListRequest::first(schemas::OrderFilter::All, schemas::MAX_PAGE_ORDERS);
-    for node in nodes {
-        let listing = node_orders(session, keys, &node, &request, timeout, |page| {
+    for (node, first) in firsts {
+        let listing = node_orders_from(session, keys, &node, &request, first, timeout, |page| {
             for order in page {
                 // Listed running, then again finished: the later copy wins.
                 orders.insert(order.holon.clone(), order);
@@ -193,22 +272,17 @@ pub async fn all_orders(
     Ok(orders)
 }
 
-/// Every live node's counts (a page of none each): `None` for a node that did not
-/// answer, with why.
+/// Every order-node's counts (a page of none each, [`first_pages`]), or why a node
+/// did not give them.
 pub async fn counts(
     session: &zenoh::Session,
     keys: &CellKeys,
     timeout: Duration,
 ) -> Result<Vec<(String, Result<OrderCounts, PageError>)>, PageError> {
-    let nodes = live_nodes(session, keys, timeout).await?;
     let request = OrderListRequest::first(schemas::OrderFilter::All, 0);
-    let asks = nodes
-        .iter()
-        .map(|node| page(session, keys, node, &request, timeout));
-    let pages = futures_util::future::join_all(asks).await;
-    Ok(nodes
+    Ok(first_pages(session, keys, &request, timeout)
+        .await?
         .into_iter()
-        .zip(pages)
         .map(|(node, page)| (node, page.map(|p| p.counts)))
         .collect())
 }

@@ -30,22 +30,24 @@ pub async fn print(
     timeout: Duration,
     out: &mut dyn Write,
 ) -> anyhow::Result<bool> {
-    let nodes = crate::listing::live_nodes(session, keys, timeout).await?;
-    if nodes.is_empty() {
+    // The counts first, for the summary line: a page of none from each node.
+    let counted = crate::listing::counts(session, keys, timeout).await?;
+    if counted.is_empty() {
         writeln!(
             out,
             "cell {cell}: no order-node alive: no orders can be listed (is the cell up, and is this the right --connect and --cell?)"
         )?;
         return Ok(false);
     }
-    // The counts first, for the summary line: a page of none from each node.
     let mut total = OrderCounts::default();
     let mut incomplete: Vec<String> = Vec::new();
-    for (node, counts) in crate::listing::counts(session, keys, timeout).await? {
+    let mut nodes = Vec::new();
+    for (node, counts) in counted {
         match counts {
             Ok(counts) => total.merge(&counts),
             Err(e) => incomplete.push(format!("{node}: its counts: {e}")),
         }
+        nodes.push(node);
     }
     out.write_all(crate::status::orders_summary(cell, &total).as_bytes())?;
     if !incomplete.is_empty() {

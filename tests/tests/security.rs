@@ -63,9 +63,18 @@ async fn answered(
 /// Every order of the cell, listed a page at a time (readers may ask
 /// `host/order-node/*/orders`); the listing must be complete.
 async fn orders(session: &zenoh::Session, keys: &CellKeys) -> Vec<OrderSnapshot> {
-    ::cell::listing::all_orders(session, keys, Duration::from_secs(5))
-        .await
-        .expect("an observer lists every order")
+    match ::cell::listing::all_orders(session, keys, Duration::from_secs(5)).await {
+        Ok(orders) => orders,
+        Err(e) => {
+            let again = holon::presence::tokens(
+                session,
+                &keys.host("order-node", "*"),
+                Duration::from_secs(5),
+            )
+            .await;
+            panic!("an observer lists every order: {e:#}; the tokens asked again: {again:?}")
+        }
+    }
 }
 
 async fn wait_orders_final(
