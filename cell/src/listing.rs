@@ -91,9 +91,9 @@ pub async fn first_pages(
     let (answered, alive) = tokio::join!(asked, live_nodes(session, keys, timeout));
     let mut pages = answered?;
     for node in alive? {
-        if !pages.contains_key(&node) {
-            let page = page(session, keys, &node, request, timeout).await;
-            pages.insert(node, page);
+        if let std::collections::btree_map::Entry::Vacant(unanswered) = pages.entry(node) {
+            let node = unanswered.key().clone();
+            unanswered.insert(page(session, keys, &node, request, timeout).await);
         }
     }
     Ok(pages.into_iter().collect())
