@@ -8,6 +8,7 @@ pub mod etcd;
 pub mod journal;
 pub mod life;
 pub mod logging;
+pub mod malloc;
 pub mod presence;
 pub mod query;
 pub mod restart;
@@ -76,6 +77,8 @@ where
     // Journals, logs and keys name the plant's orders and identities: every file the
     // process creates is its owner's alone.
     owner_only_files();
+    // Before any thread: a bounded number of allocator arenas (see the module).
+    malloc::limit_arenas();
     // Before any thread: zenoh's work and the holon's on one pool (see the module).
     zenoh_runtime::configure(pool);
     // Dropped at the end: every line logged until then is written out (zenoh's pool,
