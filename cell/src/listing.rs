@@ -286,3 +286,23 @@ pub async fn counts(
         .map(|(node, page)| (node, page.map(|p| p.counts)))
         .collect())
 }
+
+/// The counts of every order-node that gave them ([`counts`]); a node that did not is
+/// left out (logged at debug: a reader that polls asks again soon).
+pub async fn answered_counts(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    timeout: Duration,
+) -> Result<std::collections::BTreeMap<String, OrderCounts>, PageError> {
+    Ok(counts(session, keys, timeout)
+        .await?
+        .into_iter()
+        .filter_map(|(node, counts)| match counts {
+            Ok(counts) => Some((node, counts)),
+            Err(e) => {
+                tracing::debug!(%node, error = %e, "an order-node did not give its counts");
+                None
+            }
+        })
+        .collect())
+}

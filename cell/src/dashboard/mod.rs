@@ -40,7 +40,7 @@ use schemas::{CellKeys, HolonKind, OrderSnapshot};
 use serde::Serialize;
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info, warn};
+use tracing::{info, warn};
 
 use model::{Alarm, Event, HolonView, Input, Model, ProcessId, ProcessView};
 
@@ -399,20 +399,8 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
                 // Each order-node's counts of its whole history (a listing page of
                 // none): the totals the page shows. A node that does not answer keeps
                 // its last counts out of the totals until it does.
-                match crate::listing::counts(&session, &keys, FENCES_EVERY).await {
-                    Ok(nodes) => {
-                        let counts = nodes
-                            .into_iter()
-                            .filter_map(|(node, counts)| match counts {
-                                Ok(counts) => Some((node, counts)),
-                                Err(e) => {
-                                    debug!(%node, error = %e, "an order-node did not give its counts");
-                                    None
-                                }
-                            })
-                            .collect();
-                        queue(&inputs, &dropped, Input::NodeCounts { counts })
-                    }
+                match crate::listing::answered_counts(&session, &keys, FENCES_EVERY).await {
+                    Ok(counts) => queue(&inputs, &dropped, Input::NodeCounts { counts }),
                     Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
                 }
             }

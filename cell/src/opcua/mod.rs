@@ -258,16 +258,11 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
                     _ = stop.cancelled() => return,
                     _ = every.tick() => {}
                 }
-                match crate::listing::counts(&session, &keys, COUNTS_EVERY * 2).await {
+                match crate::listing::answered_counts(&session, &keys, COUNTS_EVERY * 2).await {
                     Ok(nodes) => {
                         let mut total = schemas::OrderCounts::default();
-                        for (node, counts) in nodes {
-                            match counts {
-                                Ok(counts) => total.merge(&counts),
-                                Err(e) => {
-                                    debug!(%node, error = %e, "an order-node did not give its counts")
-                                }
-                            }
+                        for counts in nodes.values() {
+                            total.merge(counts);
                         }
                         queue(&inputs, &dropped, Input::Counts(total));
                     }
