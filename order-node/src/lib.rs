@@ -12,7 +12,8 @@
 //! - [`context`]: what the orders of a node share; [`journal`]: their store (SQLite,
 //!   or etcd for a node with a standby, [`standby`], which says where it stands,
 //!   [`fence_report`]);
-//! - [`host`]: the orders a node hosts and their tasks; [`queries`]: its endpoints;
+//! - [`host`]: the orders a node hosts and their tasks; [`listing`]: a page of them;
+//!   [`queries`]: its endpoints;
 //!   [`node`]: the process, and [`error`]: why it stops with an error.
 
 pub mod advice_pause;
@@ -25,6 +26,7 @@ pub mod fence_report;
 pub mod host;
 pub mod inbox;
 pub mod journal;
+pub mod listing;
 pub mod node;
 pub mod order;
 pub mod order_token;

@@ -109,6 +109,24 @@ pub fn outcome_json_schema() -> String {
     text
 }
 
+/// The JSON Schema of a listing of an order-node's orders (`host/order-node/<name>/orders`,
+/// [`listing`]): the request and the page, checked in as
+/// `schemas/json/listing.schema.json`.
+pub fn listing_json_schema() -> String {
+    let schema = serde_json::json!({
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "holarchy order listing",
+        "description": "A page of an order-node's orders: the request a reader sends on host/order-node/<name>/orders (an empty payload asks for the first page of every order), and the page the node answers.",
+        "$defs": {
+            "OrderListRequest": schemars::schema_for!(OrderListRequest),
+            "OrderPage": schemars::schema_for!(OrderPage),
+        },
+    });
+    let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
+    text.push('\n');
+    text
+}
+
 /// The JSON Schema of a resource's state snapshot (`resource/<name>/state`), checked in
 /// as `schemas/json/resource-state.schema.json`: it names the values `state` and
 /// `controller` take.

@@ -30,6 +30,21 @@ fn outcome_schema_file_is_current_and_names_the_outcomes() {
 }
 
 #[test]
+fn listing_schema_file_is_current_and_names_the_cursors() {
+    let generated = schemas::listing_json_schema();
+    schema_file_is_current("listing.schema.json", generated.clone());
+    for name in [
+        "after_running",
+        "after_finished",
+        "counts",
+        "next",
+        "unreadable",
+    ] {
+        assert!(generated.contains(name), "the schema lacks {name}");
+    }
+}
+
+#[test]
 fn resource_state_schema_file_is_current_and_names_the_states() {
     let generated = schemas::resource_state_json_schema();
     schema_file_is_current("resource-state.schema.json", generated.clone());

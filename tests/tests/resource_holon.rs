@@ -144,9 +144,10 @@ async fn books_starts_and_delivers_done_until_acknowledged() {
 }
 
 /// The holon's own tasks and zenoh's work run on one pool of one thread (zenoh's `app`,
-/// `holon/src/zenoh_runtime.rs`): no runtime of its own, none of zenoh's other four.
-/// Its journal's fsyncs (`power_loss`) hand the thread over while they wait, to one of
-/// the pool's blocking threads (named `app-N` too).
+/// `holon/src/zenoh_runtime.rs`), the link's writer on a thread of its own (`tx-0`): no
+/// runtime of its own, none of zenoh's other three. Its journal's fsyncs (`power_loss`)
+/// hand the thread over while they wait, to one of the pool's blocking threads (named
+/// `app-N` too).
 #[tokio::test(flavor = "multi_thread")]
 async fn the_holon_and_its_zenoh_share_one_pool() {
     let r = robot("t-pool", &[], &[], 5000).await;
@@ -170,10 +171,13 @@ async fn the_holon_and_its_zenoh_share_one_pool() {
         })
         .collect();
     assert!(
-        workers.iter().all(|t| t.starts_with("app-")),
-        "only zenoh's app pool: {threads:?}"
+        workers
+            .iter()
+            .all(|t| t.starts_with("app-") || *t == "tx-0"),
+        "only zenoh's app pool and the link's writer: {threads:?}"
     );
     assert!(threads.iter().any(|n| n == "app-0"), "{threads:?}");
+    assert!(threads.iter().any(|n| n == "tx-0"), "{threads:?}");
 }
 
 #[tokio::test(flavor = "multi_thread")]
