@@ -141,8 +141,14 @@ fn default_kind() -> String {
 #[serde(deny_unknown_fields)]
 pub struct ControllerSection {
     pub address: String,
+    /// The first pause before reconnecting, and the pause after a connection that
+    /// served (docs/dialects.md section 4.6).
     #[serde(default = "default_reconnect_ms")]
     pub reconnect_interval_ms: u64,
+    /// The longest pause before reconnecting: the pause doubles from
+    /// `reconnect_interval_ms` up to it while connections fail or end without serving.
+    #[serde(default = "default_reconnect_max_ms")]
+    pub reconnect_max_ms: u64,
     #[serde(default = "default_command_timeout_ms")]
     pub command_timeout_ms: u64,
     #[serde(default = "default_connect_timeout_ms")]
@@ -163,6 +169,9 @@ fn default_dialect() -> String {
 
 fn default_reconnect_ms() -> u64 {
     1000
+}
+fn default_reconnect_max_ms() -> u64 {
+    10_000
 }
 fn default_command_timeout_ms() -> u64 {
     30_000
@@ -303,6 +312,9 @@ pub struct ResourceConfig {
     pub holon: HolonId,
     pub zenoh: ZenohSettings,
     pub controller: robot_bridge::client::ClientConfig,
+    /// The longest pause before reconnecting to the controller (the backoff's cap; its
+    /// first pause is `controller.reconnect_interval`).
+    pub reconnect_max: Duration,
     pub strategy: Strategy,
     pub intensity: Intensity,
     pub agenda_capacity: usize,
@@ -423,6 +435,7 @@ impl ResourceConfig {
         }
         for (field, value) in [
             ("controller.reconnect_interval_ms", c.reconnect_interval_ms),
+            ("controller.reconnect_max_ms", c.reconnect_max_ms),
             ("controller.command_timeout_ms", c.command_timeout_ms),
             ("controller.connect_timeout_ms", c.connect_timeout_ms),
             ("supervisor.period_ms", file.supervisor.period_ms),
@@ -436,6 +449,12 @@ impl ResourceConfig {
             if value == 0 {
                 return Err(format!("{field} must be greater than 0"));
             }
+        }
+        if c.reconnect_max_ms < c.reconnect_interval_ms {
+            return Err(format!(
+                "controller.reconnect_max_ms ({}) must be at least controller.reconnect_interval_ms ({})",
+                c.reconnect_max_ms, c.reconnect_interval_ms
+            ));
         }
         if file.delivery.retry_max_ms < file.delivery.retry_initial_ms {
             return Err("delivery.retry_max_ms must be at least retry_initial_ms".into());
@@ -517,6 +536,7 @@ impl ResourceConfig {
                 connect_timeout: Duration::from_millis(c.connect_timeout_ms),
                 dialect,
             },
+            reconnect_max: Duration::from_millis(c.reconnect_max_ms),
             strategy: file.supervisor.strategy,
             intensity: Intensity {
                 max_restarts: file.supervisor.max_restarts,
@@ -618,6 +638,16 @@ mod tests {
                 "requester_grace_ms = 60000",
                 "requester_grace_ms = 10",
                 "agenda.requester_grace_ms",
+            ),
+            (
+                "reconnect_max_ms = 10000",
+                "reconnect_max_ms = 500",
+                "controller.reconnect_max_ms (500) must be at least controller.reconnect_interval_ms (1000)",
+            ),
+            (
+                "reconnect_max_ms = 10000",
+                "reconnect_max_ms = 0",
+                "controller.reconnect_max_ms must be greater than 0",
             ),
         ];
         for (from, to, expect) in cases {

@@ -8,10 +8,11 @@ use crate::config::{ConfigError, Overrides, ResourceConfig};
 use crate::product::ProductConfig;
 use crate::staff::config::StaffConfig;
 
-/// The config of whichever holon a file describes (its `kind`).
+/// The config of whichever holon a file describes (its `kind`). A resource's, the
+/// largest by far, is boxed.
 #[derive(Debug, Clone)]
 pub enum HolonConfig {
-    Resource(ResourceConfig),
+    Resource(Box<ResourceConfig>),
     Product(ProductConfig),
     Staff(StaffConfig),
 }
@@ -29,9 +30,8 @@ impl HolonConfig {
             .and_then(|k| k.as_str())
             .unwrap_or("resource")
         {
-            "resource" => {
-                ResourceConfig::parse(&text, &display, overrides).map(HolonConfig::Resource)
-            }
+            "resource" => ResourceConfig::parse(&text, &display, overrides)
+                .map(|c| HolonConfig::Resource(Box::new(c))),
             "product" => ProductConfig::parse(&text, &display, overrides).map(HolonConfig::Product),
             "staff" => StaffConfig::parse(&text, &display, overrides).map(HolonConfig::Staff),
             other => Err(ConfigError::Invalid {

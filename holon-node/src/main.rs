@@ -65,7 +65,7 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
         return Ok(());
     }
     match config {
-        HolonConfig::Resource(config) => holon_node::node::run(config, shutdown).await?,
+        HolonConfig::Resource(config) => holon_node::node::run(*config, shutdown).await?,
         HolonConfig::Product(config) => holon_node::product::run(config, shutdown).await?,
         HolonConfig::Staff(config) => holon_node::staff::node::run(config, shutdown).await?,
     }

@@ -101,6 +101,7 @@ impl Wiring {
                 jobs: jobs.share(),
                 interfacing: interfacing::Links {
                     controller: config.controller.clone(),
+                    reconnect_max: config.reconnect_max,
                     fence: port,
                     fence_view: views.fence.subscribe(),
                 },

@@ -5,7 +5,7 @@ use std::time::Duration;
 mod common;
 
 use common::{reply, start_sim, Harness};
-use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
+use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus, LinkEnd, Reconnect};
 use robot_bridge::sim::SimConfig;
 
 #[tokio::test(flavor = "multi_thread")]
@@ -305,6 +305,94 @@ async fn actions_take_their_own_time_and_a_new_program_costs_a_changeover() {
         stats.to_json().contains("\"changeovers\":2"),
         "{}",
         stats.to_json()
+    );
+    h.stop().await;
+}
+
+/// The client's owner in a test: a mailbox and an event channel.
+struct Mailboxes {
+    commands: tokio::sync::mpsc::Receiver<robot_bridge::client::ControllerRequest>,
+    events: tokio::sync::mpsc::Sender<ControllerEvent>,
+}
+
+impl robot_bridge::client::Owner for Mailboxes {
+    async fn request(&mut self) -> Option<robot_bridge::client::ControllerRequest> {
+        self.commands.recv().await
+    }
+
+    async fn report(&mut self, event: ControllerEvent) -> bool {
+        self.events.send(event).await.is_ok()
+    }
+}
+
+/// A reconnect policy that records how each attempt ended and pauses 50 ms.
+struct Recorded(std::sync::Arc<std::sync::Mutex<Vec<LinkEnd>>>);
+
+impl Reconnect for Recorded {
+    fn pause(&mut self, last: LinkEnd) -> Duration {
+        self.0.lock().unwrap().push(last);
+        Duration::from_millis(50)
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_reconnect_policy_is_told_how_each_attempt_ended() {
+    let config = SimConfig {
+        close_after: Some(1),
+        ..SimConfig::default()
+    };
+    let (address, _stats, sim) = start_sim("127.0.0.1:0", config).await;
+    let (commands, command_rx) = tokio::sync::mpsc::channel(16);
+    let (event_tx, events) = tokio::sync::mpsc::channel(64);
+    let ends = std::sync::Arc::new(std::sync::Mutex::new(Vec::new()));
+    let shutdown = tokio_util::sync::CancellationToken::new();
+    let client = tokio::spawn({
+        let (shutdown, ends) = (shutdown.clone(), ends.clone());
+        let config = robot_bridge::client::ClientConfig::new(address);
+        async move {
+            let mut owner = Mailboxes {
+                commands: command_rx,
+                events: event_tx,
+            };
+            let mut recorded = Recorded(ends);
+            robot_bridge::client::drive(config, &mut owner, &mut recorded, None, shutdown).await
+        }
+    });
+    let mut h = Harness {
+        commands,
+        events,
+        shutdown: shutdown.clone(),
+        client,
+        dialect: "holarchy-xml".into(),
+        program: None,
+    };
+    // The first connection answers a step, then closes at the second: it served.
+    h.wait_ready().await;
+    h.send(1, "pick").await;
+    assert_eq!(h.answer().await, reply(1, "picking_done"));
+    h.send(2, "place").await;
+    assert!(matches!(
+        h.answer().await,
+        ControllerEvent::CommandFailed { id: 2, .. }
+    ));
+    // The second answers nothing and ends with the controller; then it is refused.
+    h.wait_ready().await;
+    sim.cancel();
+    let deadline = tokio::time::Instant::now() + common::WAIT;
+    while !ends.lock().unwrap().contains(&LinkEnd::NotConnected) {
+        assert!(tokio::time::Instant::now() < deadline, "{:?}", ends.lock());
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    // (A connect made while the stopped simulator's socket was still bound would be
+    // one more connection that answered nothing, before the refusals.)
+    let ends = ends.lock().unwrap().clone();
+    assert!(
+        matches!(ends[0], LinkEnd::Ended { answered: 1, .. }),
+        "{ends:?}"
+    );
+    assert!(
+        matches!(ends[1], LinkEnd::Ended { answered: 0, .. }),
+        "{ends:?}"
     );
     h.stop().await;
 }

@@ -83,6 +83,12 @@ impl Sim {
         counts
     }
 
+    /// The connections the simulator has accepted (`connections` in its count file,
+    /// rewritten as each one is accepted).
+    pub fn connections(&self) -> u64 {
+        self.counts()["connections"].as_u64().unwrap_or(0)
+    }
+
     pub fn executed(&self, action: &str) -> u64 {
         self.counts()["by_action"][action].as_u64().unwrap_or(0)
     }
@@ -145,6 +151,7 @@ name = "{name}"
 [controller]
 address = "127.0.0.1:1"
 reconnect_interval_ms = 100
+reconnect_max_ms = 1000
 command_timeout_ms = {command_timeout_ms}
 connect_timeout_ms = 500
 

@@ -196,3 +196,71 @@ async fn a_fault_aborts_the_resource_until_an_operator_clears_resets_and_starts_
         );
     }
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_controller_that_breaks_every_connection_is_reconnected_to_with_a_backoff() {
+    // The simulator answers every status poll with a safety status the holon's dialect
+    // does not know (`HOMING`, outside its `safety` table): each connection ends in a
+    // protocol error at its first poll, and none ever serves.
+    let dir = tempfile::tempdir().unwrap();
+    let shipped = workspace_root().join("deploy/dialects/ur-dashboard.toml");
+    let homing = std::fs::read_to_string(&shipped).unwrap().replacen(
+        r#"ready = ["NORMAL", "REDUCED"]"#,
+        r#"ready = ["HOMING"]"#,
+        1,
+    );
+    assert!(homing.contains("HOMING"));
+    let sim_dialect = dir.path().join("homing.toml");
+    std::fs::write(&sim_dialect, homing).unwrap();
+    let sim = Sim::start(
+        dir.path(),
+        "robot1-sim",
+        "127.0.0.1:0",
+        &["--dialect", sim_dialect.to_str().unwrap()],
+    )
+    .unwrap();
+    let config = resource_config(dir.path(), "robot1", 5000).unwrap();
+    let text = std::fs::read_to_string(&config).unwrap().replacen(
+        "reconnect_interval_ms = 100\nreconnect_max_ms = 1000\n",
+        "reconnect_interval_ms = 200\nreconnect_max_ms = 1600\ndialect = \"ur-dashboard\"\n",
+        1,
+    );
+    assert!(text.contains("reconnect_max_ms = 1600"), "{text}");
+    std::fs::write(&config, text).unwrap();
+    let cell = Cell::open("t-f-backoff").await.unwrap();
+    let _node = start_node(
+        dir.path(),
+        &config,
+        cell.keys.cell(),
+        &cell.endpoint,
+        &sim.address,
+        &[],
+    )
+    .unwrap();
+    // From the first connection on, for a fixed window.
+    let deadline = tokio::time::Instant::now() + std::time::Duration::from_secs(20);
+    while sim.connections() == 0 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the holon never connected"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    let first = sim.connections();
+    tokio::time::sleep(std::time::Duration::from_secs(6)).await;
+    let connections = sim.connections() - first + 1;
+    // Pauses of 200, 400, 800, 1600, 1600, ... ms: connections at about 0, 0.2, 0.6,
+    // 1.4, 3.0, 4.6 and 6.2 s, 6 within 6 s (each a few ms long). Without the backoff
+    // (100 ms after each lost connection) there were 60.
+    println!("{connections} connections within 6 s");
+    assert!(
+        (4..=8).contains(&connections),
+        "{connections} connections within 6 s; a backoff from 200 ms doubling to 1600 ms allows 6"
+    );
+    // The holon reported its controller disconnected throughout.
+    let state = cell
+        .ask_state(&schemas::HolonId::resource("robot1").unwrap())
+        .await
+        .unwrap();
+    assert_eq!(state["controller"], "disconnected", "{state}");
+}

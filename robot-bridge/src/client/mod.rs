@@ -6,9 +6,10 @@
 //! channel for an owner that is a task of its own; a resource holon's execution
 //! component is the owner itself ([`drive`]), so a command and its reply cross no
 //! queue between tasks. It connects (or, when the dialect says the controller
-//! connects, listens and accepts one connection at a time), retries every
-//! `reconnect_interval` while the controller is away (the seed's `socket_connect`), runs
-//! each command's sequence of messages as the dialect says, and reports in order:
+//! connects, listens and accepts one connection at a time), pauses before each further
+//! attempt as its [`Reconnect`] policy says (a holon's backoff, from
+//! `reconnect_interval`, whatever ended the last connection or attempt), runs each
+//! command's sequence of messages as the dialect says, and reports in order:
 //!
 //! - [`ControllerEvent::Status`] on every change of the controller's state (pushed,
 //!   polled, or ready while connected, as the dialect says) and on disconnect;
@@ -56,7 +57,8 @@ pub struct ClientConfig {
     /// `HOST:PORT` of the controller's TCP server, or the address the holon listens on
     /// when the dialect's controller connects.
     pub address: String,
-    /// Pause between connection attempts while the controller is away.
+    /// The shortest pause between connection attempts ([`FixedInterval`]'s pause, a
+    /// holon's backoff's first), and between tries to listen.
     pub reconnect_interval: Duration,
     /// Longest wait for a command's answer (its whole sequence) before the step fails.
     pub command_timeout: Duration,
@@ -147,6 +149,44 @@ pub enum ControllerEvent {
     },
 }
 
+/// How the last attempt at a connection ended: what a [`Reconnect`] policy decides the
+/// next pause on. The client does not judge; the policy says what counts as served.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkEnd {
+    /// No connection was made: refused, unreachable, or the connect timed out.
+    NotConnected,
+    /// A connection was made and ended, whatever ended it: the controller closed or
+    /// reset it, or the client reset it (a protocol error, a timeout, a failed write).
+    Ended {
+        /// How long it was up.
+        lasted: Duration,
+        /// The steps the controller answered on it ([`ControllerEvent::Reply`]: the
+        /// step's result, or its failure in the controller's words).
+        answered: u64,
+    },
+}
+
+/// What decides the pause before each connection attempt after the first (which is made
+/// at once), told how the last attempt ended. Asked once per attempt, on the client's
+/// task; requests that come while it waits are refused as usual (not connected).
+///
+/// A resource holon's is its backoff (holon-node's `component::interfacing`); with the
+/// dialect's controller connecting, the client listens and is not asked.
+pub trait Reconnect: Send {
+    fn pause(&mut self, last: LinkEnd) -> Duration;
+}
+
+/// The same pause whatever ended the last attempt: robot-bridge's own [`run`] and
+/// [`run_fenced`] (tests, benchmarks).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FixedInterval(pub Duration);
+
+impl Reconnect for FixedInterval {
+    fn pause(&mut self, _: LinkEnd) -> Duration {
+        self.0
+    }
+}
+
 /// Who owns the client: where its requests come from and where its events go.
 ///
 /// The client awaits [`Owner::request`] beside the socket and its timers, so that
@@ -177,14 +217,17 @@ impl Owner for Channels<'_> {
 }
 
 /// Runs the client until `shutdown` is cancelled or the event receiver is dropped.
-/// Commands come from `commands`; their `id` comes back in events.
+/// Commands come from `commands`; their `id` comes back in events. It reconnects every
+/// `reconnect_interval` ([`FixedInterval`]).
 pub async fn run(
     config: ClientConfig,
     commands: &mut mpsc::Receiver<ControllerRequest>,
     events: mpsc::Sender<ControllerEvent>,
     shutdown: CancellationToken,
 ) {
-    drive(config, &mut Channels { commands, events }, None, shutdown).await
+    let mut reconnect = FixedInterval(config.reconnect_interval);
+    let owner = &mut Channels { commands, events };
+    drive(config, owner, &mut reconnect, None, shutdown).await
 }
 
 /// [`run`] with the fence of a standby holon: its requests come from `fence` (a
@@ -196,29 +239,28 @@ pub async fn run_fenced(
     events: mpsc::Sender<ControllerEvent>,
     shutdown: CancellationToken,
 ) {
-    drive(
-        config,
-        &mut Channels { commands, events },
-        Some(fence),
-        shutdown,
-    )
-    .await
+    let mut reconnect = FixedInterval(config.reconnect_interval);
+    let owner = &mut Channels { commands, events };
+    drive(config, owner, &mut reconnect, Some(fence), shutdown).await
 }
 
-/// Runs the client for `owner` until `shutdown` is cancelled or the owner is gone; with
-/// a fence's port when the holon is fenced.
+/// Runs the client for `owner` until `shutdown` is cancelled or the owner is gone; its
+/// connection attempts paced by `reconnect`; with a fence's port when the holon is
+/// fenced.
 pub async fn drive<O: Owner>(
     config: ClientConfig,
     owner: &mut O,
+    reconnect: &mut dyn Reconnect,
     fence: Option<&mut FencePort>,
     shutdown: CancellationToken,
 ) {
-    run_with(config, owner, fence, shutdown).await
+    run_with(config, owner, reconnect, fence, shutdown).await
 }
 
 async fn run_with<O: Owner>(
     config: ClientConfig,
     owner: &mut O,
+    reconnect: &mut dyn Reconnect,
     mut fence: Option<&mut FencePort>,
     shutdown: CancellationToken,
 ) {
@@ -226,9 +268,11 @@ async fn run_with<O: Owner>(
     let mut reporter = Reporter {
         owner,
         status: None,
+        answered: 0,
     };
     let mut listener = None;
-    let mut first_attempt = true;
+    // How the last attempt ended (None: none yet, the first is made at once).
+    let mut last_end = None;
     // The last command that reached the controller, across connections.
     let mut last_run = None;
     loop {
@@ -243,11 +287,12 @@ async fn run_with<O: Owner>(
             shutdown: &shutdown,
         };
         let stream = match config.dialect.role {
-            Role::ControllerListens => link.connect(first_attempt).await,
+            Role::ControllerListens => link.connect(reconnect, last_end).await,
             Role::ControllerConnects => link.accept(&mut listener).await,
         };
         let Some(stream) = stream else { return };
-        first_attempt = false;
+        let connected = Instant::now();
+        reporter.answered = 0;
         info!(controller = %config.address, dialect = %config.dialect.name, "connected to the controller");
         let mut connection = Connection::new(&config, &mut reporter, &mut last_run);
         connection.fence = fence.as_deref_mut();
@@ -259,7 +304,10 @@ async fn run_with<O: Owner>(
             }
             ConnectionEnd::OwnerGone => return,
             ConnectionEnd::Lost(why) => {
-                warn!(controller = %config.address, reason = %why, "controller connection lost; reconnecting");
+                let lasted = connected.elapsed();
+                let answered = reporter.answered;
+                warn!(controller = %config.address, reason = %why, lasted_ms = lasted.as_millis() as u64, answered, "controller connection lost; reconnecting");
+                last_end = Some(LinkEnd::Ended { lasted, answered });
             }
         }
     }
@@ -269,6 +317,8 @@ async fn run_with<O: Owner>(
 struct Reporter<'o, O> {
     owner: &'o mut O,
     status: Option<ControllerStatus>,
+    /// The steps answered ([`ControllerEvent::Reply`]) on the current connection.
+    answered: u64,
 }
 
 impl<O: Owner> Reporter<'_, O> {
@@ -279,6 +329,9 @@ impl<O: Owner> Reporter<'_, O> {
 
     /// Sends an event; false when the owner is gone.
     async fn send(&mut self, event: ControllerEvent) -> bool {
+        if matches!(event, ControllerEvent::Reply { .. }) {
+            self.answered += 1;
+        }
         self.owner.report(event).await
     }
 
@@ -347,14 +400,19 @@ impl<O: Owner> Link<'_, '_, O> {
         true
     }
 
-    /// Connects, retrying every `reconnect_interval`.
-    async fn connect(mut self, first_attempt: bool) -> Option<TcpStream> {
+    /// Connects: at once the first time, else after the pause `reconnect` gives for
+    /// how the last connection ended (`last`), and again after each failed attempt
+    /// after the pause it gives for that.
+    async fn connect(
+        mut self,
+        reconnect: &mut dyn Reconnect,
+        last: Option<LinkEnd>,
+    ) -> Option<TcpStream> {
         let config = self.config;
         let mut logged = false;
         let mut next_attempt = Instant::now();
-        if !first_attempt {
-            // A controller that just dropped us is given a moment before we knock again.
-            next_attempt += config.reconnect_interval.min(Duration::from_millis(100));
+        if let Some(last) = last {
+            next_attempt += reconnect.pause(last);
         }
         loop {
             tokio::select! {
@@ -379,16 +437,16 @@ impl<O: Owner> Link<'_, '_, O> {
                             return Some(stream);
                         }
                         Ok(Err(e)) if !logged => {
-                            warn!(controller = %config.address, error = %e, "controller unreachable; retrying every {:?}", config.reconnect_interval);
+                            warn!(controller = %config.address, error = %e, "controller unreachable; retrying");
                             logged = true;
                         }
                         Err(_) if !logged => {
-                            warn!(controller = %config.address, "controller connect timed out; retrying every {:?}", config.reconnect_interval);
+                            warn!(controller = %config.address, timeout_ms = config.connect_timeout.as_millis() as u64, "controller connect timed out; retrying");
                             logged = true;
                         }
                         _ => debug!(controller = %config.address, "controller still unreachable"),
                     }
-                    next_attempt = Instant::now() + config.reconnect_interval;
+                    next_attempt = Instant::now() + reconnect.pause(LinkEnd::NotConnected);
                 }
             }
         }

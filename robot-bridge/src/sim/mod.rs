@@ -54,7 +54,8 @@
 //! The simulator counts the commands it executed (answered with their success result)
 //! and the actions an abort stopped;
 //! [`SimStats`] can be written to a JSON file when each command arrives and after it is
-//! answered, so tests can check that nothing ran twice. A thread of its own writes the
+//! answered (and when a connection is accepted), so tests can check that nothing ran
+//! twice and how often a holon connected. A thread of its own writes the
 //! file, off the command's path (after the reply went out), with the latest counts, at
 //! most one write every 2 ms (the commands of one moment make one write): the count
 //! file is the tests' window, and a controller command's round trip should cost what a real controller's
@@ -374,6 +375,9 @@ impl Simulator {
             }
             let session = self.stats.connections.fetch_add(1, Ordering::SeqCst) + 1;
             info!(%peer, "bridge connected");
+            // The count file counts connections too (a controller a holon reconnects
+            // to, whatever the commands).
+            count_file.update();
             let config = self.config.clone();
             let stats = self.stats.clone();
             let shutdown = shutdown.clone();
