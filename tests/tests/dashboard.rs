@@ -468,6 +468,27 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
     let orders_submitted = submit_from_page(&browser, "breaker", 2, within);
     assert_eq!(orders_submitted.len(), 2, "{orders_submitted:?}");
     wait_done_on_page(&browser, &orders_submitted, Duration::from_secs(60));
+    // The history panel reads the finished orders from the order-node's journal.
+    browser
+        .execute("document.getElementById('history-box').open = true")
+        .unwrap();
+    browser.wait_for("#history-node option", within).unwrap();
+    let (newest, _) = browser.wait_for("#history-first", within).unwrap();
+    browser.click(&newest).unwrap();
+    for order in &orders_submitted {
+        browser
+            .wait_for(&format!("#history tr[data-order=\"{order}\"]"), within)
+            .unwrap();
+    }
+    let (answer, _) = browser.wait_for("#history-answer", within).unwrap();
+    assert!(
+        browser
+            .text(&answer)
+            .unwrap()
+            .contains("orders1: 2 finished"),
+        "{}",
+        browser.text(&answer).unwrap()
+    );
     // The steps were timed: two transports on the conveyor.
     let (_, metrics) = dashboard.http("GET", "/metrics", "");
     assert!(
@@ -626,6 +647,21 @@ fn the_demo_keeps_its_cell_up_with_a_dashboard() {
         };
         live(&router) && live("order-node/orders1")
     });
+    // The totals are the node's counts; older finished orders come a page at a time
+    // from the node's journal, newest first.
+    dashboard.wait("/api/view", "the node's counts", |v| {
+        v["order_counts"]["done"] == 2 && v["order_counts"]["running"] == 0
+    });
+    let page = dashboard.json("/api/orders/history?node=orders1&status=done&limit=1");
+    assert_eq!(page["orders"].as_array().map(Vec::len), Some(1), "{page}");
+    assert_eq!(page["orders"][0]["holon"], "order/orders1-2", "{page}");
+    assert_eq!(page["counts"]["done"], 2, "{page}");
+    assert_eq!(page["next"]["after_finished"], 2, "{page}");
+    let older = dashboard.json("/api/orders/history?node=orders1&status=done&before=2");
+    assert_eq!(older["orders"][0]["holon"], "order/orders1-1", "{older}");
+    assert!(older.get("next").is_none(), "the last page: {older}");
+    let (status, refused) = dashboard.http("GET", "/api/orders/history?node=orders1&page=2", "");
+    assert_eq!(status, 400, "{refused}");
     nix::sys::signal::kill(
         nix::unistd::Pid::from_raw(demo.id() as i32),
         nix::sys::signal::Signal::SIGTERM,
