@@ -115,3 +115,25 @@ pub async fn start_robots(
     }
     Ok(robots)
 }
+
+/// Every order-node's counts of its orders, summed (a listing page of none from each,
+/// `schemas::listing`).
+pub async fn order_counts(cell: &Cell) -> Result<schemas::OrderCounts> {
+    let request = schemas::OrderListRequest::first(schemas::OrderFilter::All, 0);
+    let replies = cell
+        .session
+        .get(cell.keys.node_listing_all())
+        .payload(serde_json::to_vec(&request)?)
+        .consolidation(zenoh::query::ConsolidationMode::None)
+        .timeout(Duration::from_secs(2))
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let mut counts = schemas::OrderCounts::default();
+    while let Ok(reply) = replies.recv_async().await {
+        if let Ok(sample) = reply.result() {
+            let page: schemas::OrderPage = serde_json::from_slice(&sample.payload().to_bytes())?;
+            counts.merge(&page.counts);
+        }
+    }
+    Ok(counts)
+}

@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use anyhow::{anyhow, bail, Result};
 use serde_json::json;
 
-use crate::cells::{router, start_product_and_orders, start_robots};
+use crate::cells::{order_counts, router, start_product_and_orders, start_robots};
 use crate::process::status_field;
 
 /// How often memory is sampled.
@@ -40,18 +40,6 @@ struct Sample {
     t: f64,
     finished: u64,
     rss: Vec<u64>,
-}
-
-/// The node's counts of finished and running orders.
-async fn counts(cell: &holarchy_tests::Cell) -> Result<schemas::OrderCounts> {
-    let request = schemas::OrderListRequest::first(schemas::OrderFilter::All, 0);
-    let payload = crate::cells::get_once(
-        cell,
-        &cell.keys.node_listing("orders1"),
-        serde_json::to_vec(&request)?,
-    )
-    .await?;
-    Ok(serde_json::from_slice::<schemas::OrderPage>(&payload)?.counts)
 }
 
 /// Least-squares slope of `y` over `x`.
@@ -136,7 +124,7 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
             next_wave += Duration::from_secs(soak.every_s);
         }
         if now >= next_sample {
-            let finished = counts(&cell).await.map(|c| c.finished()).unwrap_or(0);
+            let finished = order_counts(&cell).await.map(|c| c.finished()).unwrap_or(0);
             let rss = watched
                 .iter()
                 .map(|(_, pid)| status_field(*pid, "VmRSS:").unwrap_or(0))
@@ -161,7 +149,7 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
     // The last orders finish.
     let deadline = Instant::now() + Duration::from_secs(120);
     let last = loop {
-        let c = counts(&cell).await?;
+        let c = order_counts(&cell).await?;
         if c.running == 0 {
             break c;
         }

@@ -3,10 +3,10 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, bail, Result};
+use anyhow::{bail, Result};
 use serde_json::json;
 
-use crate::cells::{router, start_product_and_orders, start_robots};
+use crate::cells::{order_counts, router, start_product_and_orders, start_robots};
 use crate::run::Run;
 
 /// Cell throughput with 1, 2 and 4 robots, 40 concurrent one-step orders each.
@@ -35,23 +35,7 @@ async fn throughput(dir: &Path, robots: usize, orders: u32) -> Result<f64> {
     let t = Instant::now();
     cell.submit("part", orders).await?;
     loop {
-        // The node's counts: a listing page of none (schemas::listing).
-        let request = schemas::OrderListRequest::first(schemas::OrderFilter::All, 0);
-        let replies = cell
-            .session
-            .get(cell.keys.node_listing_all())
-            .payload(serde_json::to_vec(&request)?)
-            .timeout(Duration::from_secs(2))
-            .await
-            .map_err(|e| anyhow!("{e}"))?;
-        let mut done = 0;
-        while let Ok(reply) = replies.recv_async().await {
-            if let Ok(sample) = reply.result() {
-                let page: schemas::OrderPage =
-                    serde_json::from_slice(&sample.payload().to_bytes())?;
-                done += page.counts.done as u32;
-            }
-        }
+        let done = order_counts(&cell).await?.done as u32;
         if done == orders {
             return Ok(orders as f64 / t.elapsed().as_secs_f64());
         }
