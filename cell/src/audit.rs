@@ -3,8 +3,10 @@
 //! One JSON object per line ([`AuditRecord`]) in an append-only file, `audit.jsonl`
 //! beside the cell's users file (docs/security.md). The dashboard appends every
 //! operator action (logins and logouts, failed logins, submits, cancels, alarm
-//! acknowledgements, PackML commands, user changes) and `cell users` appends the
-//! changes made from the command line. Each line is written with one `write` on a file
+//! acknowledgements, PackML commands, user changes), the OPC UA server its logins,
+//! failed logins and every method call (accepted or refused), and `cell users` the
+//! changes made from the command line; each record says through which door
+//! ([`AuditDoor`]). Each line is written with one `write` on a file
 //! opened for appending, and synced before the call returns: two writers never tear
 //! each other's lines, and a recorded action survives a crash or a power cut.
 //!
@@ -50,6 +52,18 @@ pub enum AuditAction {
     UserRemove,
 }
 
+/// Through which door of the cell an action came.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AuditDoor {
+    /// The web dashboard.
+    Dashboard,
+    /// The OPC UA server (`cell opcua`).
+    Opcua,
+    /// The command line (`cell users`).
+    Cli,
+}
+
 /// How an action ended.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(tag = "outcome", content = "why", rename_all = "snake_case")]
@@ -73,6 +87,9 @@ pub struct AuditRecord {
     pub who: String,
     /// From where: the client's address, or `cell users on <host>`.
     pub from: String,
+    /// Through which door (absent in records written before doors were recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub door: Option<AuditDoor>,
     /// What.
     pub action: AuditAction,
     /// What it was done to: an order, an alarm's id, a resource, a user.
@@ -93,6 +110,7 @@ impl AuditRecord {
             at: schemas::unix_ms(),
             who: who.to_string(),
             from: from.to_string(),
+            door: None,
             action,
             target: None,
             detail: None,
@@ -103,6 +121,12 @@ impl AuditRecord {
     /// The same, about `target`.
     pub fn on(mut self, target: impl Into<String>) -> AuditRecord {
         self.target = Some(target.into());
+        self
+    }
+
+    /// The same, as done through `door`.
+    pub fn through(mut self, door: AuditDoor) -> AuditRecord {
+        self.door = Some(door);
         self
     }
 

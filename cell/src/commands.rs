@@ -254,10 +254,12 @@ pub enum Commands {
     /// OPC 30050 under Objects/PackMLObjects/<resource> (Status, Admin, the methods
     /// Start, Stop, Hold, Unhold, Suspend, Unsuspend, Abort, Clear, Reset and
     /// SetUnitMode), and Objects/Cell (OrdersRunning, OrdersDone, OrdersFailed,
-    /// SubmitWorkOrder), live from what the holons publish. Without --pki: no security,
-    /// anonymous sessions, loopback only. With --pki: SignAndEncrypt only, user names
-    /// and passwords from the users file, unknown client certificates rejected. Stops on
-    /// Ctrl-C or SIGTERM.
+    /// SubmitWorkOrder, Security), live from what the holons publish. Without --pki: no
+    /// security, anonymous sessions, loopback only. With --pki: SignAndEncrypt only (no
+    /// session on any other channel), user names and passwords from the users file (read
+    /// again as it changes; failed logins slowed and locked out as on the dashboard),
+    /// unknown client certificates rejected, every login and method call in the audit
+    /// trail. Stops on Ctrl-C or SIGTERM.
     Opcua {
         /// Where the server listens (HOST:PORT); the endpoint is opc.tcp://HOST:PORT/.
         /// Without --pki only a loopback address is allowed.
@@ -286,6 +288,11 @@ pub enum Commands {
         /// methods. Only with --pki.
         #[arg(long, value_name = "FILE", requires = "pki")]
         users: Option<PathBuf>,
+        /// The audit trail the server appends its logins, failed logins and method calls
+        /// to, JSON lines (default: audit.jsonl beside the users file, the dashboard's
+        /// and `cell users`' own). Only with --pki.
+        #[arg(long, value_name = "FILE", requires = "pki")]
+        audit: Option<PathBuf>,
         /// Trust a client application certificate (DER or PEM) of the server in --pki:
         /// copy it into the store's trusted/ (and out of rejected/), print where, and
         /// exit. A running server sees it at the client's next connect.

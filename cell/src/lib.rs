@@ -9,6 +9,7 @@ pub mod certs;
 pub mod dashboard;
 pub mod demo;
 pub mod listing;
+pub mod logins;
 pub mod manifest;
 pub mod opcua;
 pub mod orders;

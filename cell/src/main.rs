@@ -184,6 +184,7 @@ async fn run(args: Args) -> Result<bool> {
             pki,
             identity,
             users,
+            audit,
             trust,
         } => {
             if let (Some(client), Some(pki)) = (&trust, &pki) {
@@ -218,6 +219,7 @@ async fn run(args: Args) -> Result<bool> {
                 listen,
                 pki,
                 users,
+                audit,
             };
             cell::opcua::run(config, holon::shutdown_on_signals()).await?;
             Ok(true)

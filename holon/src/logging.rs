@@ -3,7 +3,9 @@
 //! and `message_type` as structured fields.
 //!
 //! The terminal (stderr) gets human-readable text, or JSON lines with `--log-format json`;
-//! `--log-file PATH` additionally appends JSON lines to PATH. The level comes from
+//! `--log-file PATH` additionally appends JSON lines to PATH. One event is one line:
+//! control characters in what is logged (a client's product name with a newline) are
+//! written escaped (`log_writer`), so that no client can split or forge a line. The level comes from
 //! `RUST_LOG` (default `info`; set but blank counts as unset).
 //!
 //! Lines are written by a thread of their own per destination (the `log-writer` crate),
@@ -101,7 +103,7 @@ pub fn init(
     let stderr = off_the_path(std::io::stderr(), "log-stderr", &mut guards)?;
     let terminal: BoxedLayer = match format {
         LogFormat::Text => tracing_subscriber::fmt::layer()
-            .with_writer(stderr)
+            .with_writer(stderr.keeping_esc(std::io::stderr().is_terminal()))
             .with_ansi(std::io::stderr().is_terminal())
             .with_target(false)
             .with_filter(not_fatal)

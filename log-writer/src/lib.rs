@@ -15,6 +15,8 @@
 //! thread is woken at once when half that many wait. Dropping the [`WriterGuard`] writes
 //! out what is left and ends the thread.
 
+mod escape;
+
 use std::io::Write;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
@@ -132,6 +134,18 @@ fn write_out<W: Write + ?Sized>(shared: &Shared, destination: &mut W) {
 #[derive(Clone)]
 pub struct LineWriter {
     shared: Arc<Shared>,
+    /// Whether the escape character is written as it is (a colour terminal); every
+    /// other control character of an event is always escaped ([`escape`]).
+    keep_esc: bool,
+}
+
+impl LineWriter {
+    /// The same writer, writing the escape character as it is (for a terminal that
+    /// shows the formatter's colours).
+    pub fn keeping_esc(mut self, keep: bool) -> LineWriter {
+        self.keep_esc = keep;
+        self
+    }
 }
 
 /// Ends the writer thread when dropped, after it wrote out every queued line.
@@ -179,6 +193,7 @@ pub fn spawn<W: Write + Send + 'static>(
     Ok((
         LineWriter {
             shared: Arc::clone(&shared),
+            keep_esc: false,
         },
         WriterGuard {
             shared,
@@ -187,10 +202,11 @@ pub fn spawn<W: Write + Send + 'static>(
     ))
 }
 
-/// One event's line, queued when dropped.
+/// One event's line, queued when dropped, its control characters escaped.
 pub struct EventLine {
     shared: Arc<Shared>,
     line: Vec<u8>,
+    keep_esc: bool,
 }
 
 impl Write for EventLine {
@@ -207,7 +223,8 @@ impl Write for EventLine {
 impl Drop for EventLine {
     fn drop(&mut self) {
         if !self.line.is_empty() {
-            self.shared.push(&self.line);
+            self.shared
+                .push(&escape::escaped(&self.line, self.keep_esc));
         }
     }
 }
@@ -219,6 +236,7 @@ impl<'a> MakeWriter<'a> for LineWriter {
         EventLine {
             shared: Arc::clone(&self.shared),
             line: Vec::with_capacity(256),
+            keep_esc: self.keep_esc,
         }
     }
 }

@@ -23,7 +23,7 @@
 use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
-use std::time::{Instant, SystemTime};
+use std::time::Instant;
 
 use axum::extract::{ConnectInfo, Request, State};
 use axum::http::{header, HeaderMap, StatusCode};
@@ -35,9 +35,9 @@ use tracing::{error, info, warn};
 
 use super::listener::Peer;
 use super::session::{self, Ended, Login, SessionLimits, Sessions};
-use super::throttle::{Throttle, FAILED_LOGIN_DELAY};
-use crate::audit::{AuditAction, AuditOutcome, AuditRecord, AuditTrail};
-use crate::users::{Role, Users};
+use crate::audit::{AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
+use crate::logins::{Logins, Refused};
+use crate::users::{fingerprint, CurrentUsers, Role, Users};
 
 /// How the dashboard lets people in.
 #[derive(Debug, Clone)]
@@ -68,15 +68,6 @@ pub struct Who {
     pub token: Option<String>,
 }
 
-/// The users file as last read, and when it was written.
-#[derive(Debug, Default)]
-struct UsersCache {
-    /// The file's modification time and length when read.
-    stamp: Option<(SystemTime, u64)>,
-    /// Its users (empty when it could not be read).
-    users: Arc<Users>,
-}
-
 /// The dashboard's door: sessions, failed logins, the users file and the audit trail.
 #[derive(Debug)]
 pub struct Gate {
@@ -84,10 +75,10 @@ pub struct Gate {
     pub config: GateConfig,
     /// The live sessions.
     sessions: Mutex<Sessions>,
-    /// The failed logins.
-    throttle: Mutex<Throttle>,
+    /// The password logins: failures, lock-outs, the checks' bound.
+    logins: Logins,
     /// The users file, re-read when it changes (`cell users` may change it any time).
-    users: Mutex<UsersCache>,
+    users: CurrentUsers,
     /// When each certificate identity was last seen (its login is recorded after a
     /// quiet spell of the sessions' idle limit).
     certificates_seen: Mutex<std::collections::HashMap<String, Instant>>,
@@ -105,8 +96,11 @@ impl Gate {
     pub fn new(config: GateConfig, audit: Option<AuditTrail>) -> Gate {
         Gate {
             sessions: Mutex::new(Sessions::new(config.limits)),
-            throttle: Mutex::new(Throttle::default()),
-            users: Mutex::new(UsersCache::default()),
+            logins: Logins::default(),
+            users: match &config.users {
+                Some(path) => CurrentUsers::file(path.clone()),
+                None => CurrentUsers::fixed(Users::default()),
+            },
             certificates_seen: Mutex::new(Default::default()),
             config,
             audit,
@@ -118,16 +112,17 @@ impl Gate {
         self.config.without_login.is_none()
     }
 
-    /// Records `record` in the trail, if the dashboard keeps one.
+    /// Records `record` in the trail (as done through the dashboard), if the dashboard
+    /// keeps one.
     pub fn record(&self, record: AuditRecord) {
         if let Some(trail) = &self.audit {
-            trail.record(&record);
+            trail.record(&record.through(AuditDoor::Dashboard));
         }
     }
 
     /// Logins refused since the start.
     pub fn logins_refused(&self) -> u64 {
-        lock(&self.throttle).refused_total
+        self.logins.refused_total()
     }
 
     /// Live sessions.
@@ -137,28 +132,7 @@ impl Gate {
 
     /// The users file's users, read again if it changed since.
     pub fn users(&self) -> Arc<Users> {
-        let Some(path) = &self.config.users else {
-            return Arc::new(Users::default());
-        };
-        let stamp = std::fs::metadata(path)
-            .ok()
-            .and_then(|m| Some((m.modified().ok()?, m.len())));
-        let mut cache = lock(&self.users);
-        if cache.stamp.is_some() && cache.stamp == stamp {
-            return cache.users.clone();
-        }
-        cache.stamp = stamp;
-        cache.users = match crate::users::load(path) {
-            Ok(users) => {
-                info!(users = users.iter().count(), file = %path.display(), "users file read");
-                Arc::new(users)
-            }
-            Err(e) => {
-                error!(error = %e, "nobody can log in with a password until the users file is fixed");
-                Arc::new(Users::default())
-            }
-        };
-        cache.users.clone()
+        self.users.get()
     }
 
     /// Whether `who` may still be served an open stream: a session still live (not
@@ -270,11 +244,6 @@ impl Gate {
     }
 }
 
-/// What a session remembers of its user: a change of it ends the session.
-fn fingerprint(user: &crate::users::User) -> String {
-    format!("{}:{}", user.role.as_str(), user.password)
-}
-
 /// The paths open without login: the login page and the login itself.
 fn open_path(path: &str) -> bool {
     matches!(path, "/login" | "/api/login")
@@ -382,48 +351,40 @@ pub async fn login(
             .on(name.clone()),
         );
     };
-    let locked = lock(&gate.throttle).check(&name, ip, Instant::now());
-    if let Err(locked) = locked {
-        lock(&gate.throttle).refused_during_lock();
-        let why = format!(
-            "too many failed logins for {}: try again in {} s",
-            locked.what,
-            locked.retry_after.as_secs().max(1)
-        );
-        failed(why.clone());
-        tokio::time::sleep(FAILED_LOGIN_DELAY).await;
-        let mut response = refuse(StatusCode::TOO_MANY_REQUESTS, why);
-        response.headers_mut().insert(
-            header::RETRY_AFTER,
-            locked.retry_after.as_secs().max(1).into(),
-        );
-        return response;
-    }
     let users = gate.users();
-    let verified = {
-        let (users, name, password) = (users.clone(), name.clone(), credentials.password);
-        tokio::task::spawn_blocking(move || users.verify(&name, &password).cloned()).await
-    };
-    let user = match verified {
-        Ok(Some(user)) => user,
-        Ok(None) => {
-            lock(&gate.throttle).failed(&name, ip, Instant::now());
-            failed("wrong user name or password".into());
-            tokio::time::sleep(FAILED_LOGIN_DELAY).await;
-            return refuse(
-                StatusCode::UNAUTHORIZED,
-                "wrong user name or password".into(),
-            );
+    let user = match gate
+        .logins
+        .check(&users, &name, credentials.password, ip)
+        .await
+    {
+        Ok(user) => user,
+        Err(refusal) => {
+            let why = refusal.why();
+            failed(why.clone());
+            return match refusal {
+                Refused::LockedOut(locked) => {
+                    let mut response = refuse(StatusCode::TOO_MANY_REQUESTS, why);
+                    response.headers_mut().insert(
+                        header::RETRY_AFTER,
+                        locked.retry_after.as_secs().max(1).into(),
+                    );
+                    response
+                }
+                Refused::Wrong => refuse(StatusCode::UNAUTHORIZED, why),
+                Refused::Busy => {
+                    let mut response = refuse(StatusCode::SERVICE_UNAVAILABLE, why);
+                    response
+                        .headers_mut()
+                        .insert(header::RETRY_AFTER, 1u64.into());
+                    response
+                }
+                Refused::Broken(e) => {
+                    error!(error = %e, "the password check ended abnormally");
+                    refuse(StatusCode::INTERNAL_SERVER_ERROR, why)
+                }
+            };
         }
-        Err(e) => {
-            error!(error = %e, "the password check ended abnormally");
-            return refuse(
-                StatusCode::INTERNAL_SERVER_ERROR,
-                "the password could not be checked".into(),
-            );
-        }
     };
-    lock(&gate.throttle).succeeded(&name, ip);
     let login = Login {
         who: user.name.clone(),
         role: user.role,

@@ -105,6 +105,7 @@ pub(super) fn start_opcua(
         listen,
         pki: cell.pki.clone(),
         users: None,
+        audit: None,
     };
     let stop = CancellationToken::new();
     let task = tokio::spawn(crate::opcua::run(config, stop.clone()));

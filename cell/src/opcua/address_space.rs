@@ -10,6 +10,8 @@
 //! Objects/Cell                                Cell
 //!   OrdersRunning, OrdersDone, OrdersFailed   Cell.OrdersRunning
 //!   SubmitWorkOrder(String, Int32, Int32)     Cell.SubmitWorkOrder
+//!   Security/LoginsRefused, LoginsInCheck,    Cell.Security.LoginsRefused
+//!            SessionsActivated, SessionsWaiting
 //! ```
 
 use opcua::types::{
@@ -47,6 +49,20 @@ pub const SUBMIT_WORK_ORDER: &str = "SubmitWorkOrder";
 
 /// The cell's order figures.
 pub const ORDER_FIGURES: [&str; 3] = ["OrdersRunning", "OrdersDone", "OrdersFailed"];
+
+/// The OPC UA server's own object under the cell's: its doors' figures.
+pub const SECURITY: &str = "Security";
+
+/// The server's door figures (Int32): logins refused since the start (wrong password,
+/// unknown user, locked out, busy, a token kind not accepted), logins waiting for their
+/// password check or being checked, sessions activated, sessions created and waiting
+/// for activation.
+pub const SECURITY_FIGURES: [&str; 4] = [
+    "LoginsRefused",
+    "LoginsInCheck",
+    "SessionsActivated",
+    "SessionsWaiting",
+];
 
 /// The namespace URI of a cell.
 pub fn namespace_uri(cell: &str) -> String {
@@ -171,6 +187,10 @@ pub fn add_static(space: &mut AddressSpace, ns: u16) {
         .insert(space);
     for figure in ORDER_FIGURES {
         variable(space, ns, CELL, figure, Variant::Int32(0));
+    }
+    let security = object(space, ns, CELL, SECURITY);
+    for figure in SECURITY_FIGURES {
+        variable(space, ns, &security, figure, Variant::Int32(0));
     }
     method(
         space,

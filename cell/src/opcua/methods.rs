@@ -112,28 +112,41 @@ pub fn refusal_status(refusal: &Refusal) -> StatusCode {
 impl CellNodes {
     async fn call_one(&self, context: &RequestContext, call: &mut MethodCall) {
         let who = CellAuth::who(&context.token);
-        // async-opcua asked `is_user_executable` already; this is the second check.
-        if self.auth.role_of(&context.token) != Some(Role::Operator) {
-            warn!(%who, method = %call.method_id(), "method call refused: only operators call methods (BadUserAccessDenied)");
-            call.set_status(StatusCode::BadUserAccessDenied);
-            return;
-        }
         let target = match &call.method_id().identifier {
             Identifier::String(path) if call.method_id().namespace == self.ns => {
                 address_space::method_target(path.as_ref())
             }
             _ => None,
         };
-        let outcome = match target {
-            Some(MethodTarget::Resource { resource, method }) => {
-                self.resource_method(&who, &resource, &method, call.arguments())
-                    .await
+        // async-opcua asked `is_user_executable` already; this is the second check.
+        let outcome = if self.auth.role_of(&context.token) != Some(Role::Operator) {
+            warn!(%who, method = %call.method_id(), "method call refused: only operators call methods (BadUserAccessDenied)");
+            Err(StatusCode::BadUserAccessDenied)
+        } else {
+            match &target {
+                Some(MethodTarget::Resource { resource, method }) => {
+                    self.resource_method(&who, resource, method, call.arguments())
+                        .await
+                }
+                Some(MethodTarget::Cell { method }) if method == address_space::SUBMIT_WORK_ORDER => {
+                    self.submit(&who, call.arguments()).await
+                }
+                _ => Err(StatusCode::BadMethodInvalid),
             }
-            Some(MethodTarget::Cell { method }) if method == address_space::SUBMIT_WORK_ORDER => {
-                self.submit(&who, call.arguments()).await
-            }
-            _ => Err(StatusCode::BadMethodInvalid),
         };
+        let from = context
+            .session
+            .read()
+            .peer_address()
+            .map(|a| a.to_string())
+            .unwrap_or_else(|| "unknown".into());
+        self.auth.record(super::audit::call_record(
+            CellAuth::user_name(&context.token),
+            &from,
+            target.as_ref(),
+            call.arguments(),
+            &outcome,
+        ));
         match outcome {
             Ok(outputs) => {
                 call.set_outputs(outputs);

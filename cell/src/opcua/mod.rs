@@ -20,6 +20,7 @@
 //! subscriptions every [`TICK_MS`] ms and allows publishing intervals down to that.
 
 pub mod address_space;
+pub mod audit;
 pub mod methods;
 pub mod ns0;
 pub mod security;
@@ -71,6 +72,8 @@ pub struct OpcuaConfig {
     pub pki: Option<PathBuf>,
     /// The cell's users file (default `<pki>/users.toml`, [`crate::users`]).
     pub users: Option<PathBuf>,
+    /// The audit trail (default `audit.jsonl` beside the users file; a secure cell only).
+    pub audit: Option<PathBuf>,
 }
 
 /// The server's endpoint URL for a listen address.
@@ -108,6 +111,8 @@ enum Input {
     /// The order-nodes' counts of their orders, summed (a listing page of none from
     /// each, [`crate::listing::counts`]).
     Counts(schemas::OrderCounts),
+    /// The server's door figures ([`address_space::SECURITY_FIGURES`], in their order).
+    Doors([u64; 4]),
 }
 
 /// How often the order figures are asked of the order-nodes.
@@ -145,13 +150,7 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
                     config.listen
                 );
             }
-            (
-                CellAuth {
-                    anonymous: true,
-                    users: Arc::new(crate::users::Users::default()),
-                },
-                None,
-            )
+            (CellAuth::anonymous(), None)
         }
         Some(pki) => {
             let files = security::ServerFiles::in_pki(pki)?;
@@ -174,10 +173,20 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
                 );
             }
             info!(users = users.len(), file = %users_path.display(), "OPC UA users loaded");
+            let audit_path = match &config.audit {
+                Some(path) => path.clone(),
+                None => users_path
+                    .parent()
+                    .unwrap_or(std::path::Path::new("."))
+                    .join(crate::audit::FILE_NAME),
+            };
+            let audit = crate::audit::AuditTrail::open(&audit_path)?;
             (
                 CellAuth {
                     anonymous: false,
-                    users: Arc::new(users),
+                    users: crate::users::CurrentUsers::file(users_path),
+                    logins: crate::logins::Logins::default(),
+                    audit: Some(audit),
                 },
                 Some(files),
             )
@@ -272,6 +281,19 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         });
     }
 
+    tokio::spawn(end_sessions_of_changed_users(
+        auth.clone(),
+        handle.clone(),
+        shutdown.clone(),
+    ));
+    tokio::spawn(count_the_doors(
+        auth.clone(),
+        handle.clone(),
+        inputs.clone(),
+        dropped.clone(),
+        shutdown.clone(),
+    ));
+
     match &server_files {
         None => warn!(
             %cell, endpoint = %url,
@@ -306,6 +328,68 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         }
     }
     served.map_err(|e| anyhow!("the OPC UA server stopped: {e}"))
+}
+
+/// Ends the sessions of users removed or changed in the users file (every
+/// [`users::USERS_CHECKED_EVERY`]), until `shutdown`. Their calls were refused from the
+/// change on already ([`CellAuth::role_of`]).
+async fn end_sessions_of_changed_users(
+    auth: Arc<CellAuth>,
+    handle: opcua_server::ServerHandle,
+    shutdown: CancellationToken,
+) {
+    if auth.users.path().is_none() {
+        return;
+    }
+    let mut last = auth.users.get();
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => return,
+            _ = tokio::time::sleep(users::USERS_CHECKED_EVERY) => {}
+        }
+        let now = auth.users.get();
+        if Arc::ptr_eq(&now, &last) {
+            continue;
+        }
+        last = now;
+        let mut ended = Vec::new();
+        let closed = handle.session_manager().write().close_sessions_where(|session| {
+            let end = session.user_token().is_some_and(|token| auth.ended(token));
+            if end {
+                ended.push(CellAuth::who(session.user_token().expect("checked")));
+            }
+            end
+        });
+        if closed > 0 {
+            info!(sessions = closed, users = ?ended, "OPC UA sessions ended: their users were removed or changed in the users file");
+        }
+    }
+}
+
+/// Counts the server's doors for `Cell/Security` every second, until `shutdown`.
+async fn count_the_doors(
+    auth: Arc<CellAuth>,
+    handle: opcua_server::ServerHandle,
+    inputs: mpsc::Sender<Input>,
+    dropped: Arc<AtomicU64>,
+    shutdown: CancellationToken,
+) {
+    let mut every = tokio::time::interval(Duration::from_secs(1));
+    every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => return,
+            _ = every.tick() => {}
+        }
+        let (activated, waiting) = handle.session_manager().read().counts();
+        let figures = [
+            auth.logins.refused_total(),
+            auth.logins.in_check() as u64,
+            activated as u64,
+            waiting as u64,
+        ];
+        queue(&inputs, &dropped, Input::Doors(figures));
+    }
 }
 
 /// Builds the server (a plain function: the builder is not Send, and `run` is awaited
@@ -529,6 +613,19 @@ impl Values {
                 } else {
                     self.waiting.insert(resource, snapshot);
                 }
+            }
+            Input::Doors(figures) => {
+                let values = address_space::SECURITY_FIGURES
+                    .iter()
+                    .zip(figures)
+                    .map(|(name, value)| {
+                        (
+                            format!("{}.{}.{name}", address_space::CELL, address_space::SECURITY),
+                            Variant::Int32(i32::try_from(value).unwrap_or(i32::MAX)),
+                        )
+                    })
+                    .collect();
+                self.push(values);
             }
             Input::Counts(counts) => {
                 let count = |status: OrderStatus| {

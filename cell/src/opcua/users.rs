@@ -3,20 +3,37 @@
 //!
 //! An observer may browse, read and subscribe; an operator or an admin may also call
 //! methods. The password never reaches the server in clear on the wire: the secure
-//! endpoints encrypt it, and async-opcua hands it to us decrypted. Verifying it (argon2id,
-//! tens of ms of CPU) runs on tokio's blocking threads, never on the server's.
+//! endpoints encrypt it, and async-opcua hands it to us decrypted. Checking it is the
+//! cell's one login policy ([`crate::logins`]): slowed, locked out per name and per
+//! address, never more than a few checks at once, as on the dashboard.
+//!
+//! The users file is read again when it changes ([`CurrentUsers`]): a user added with
+//! `cell users` logs in at once. A session's token carries its user's fingerprint
+//! (`user:anna#<fingerprint>`): once the user is removed, demoted or given a new
+//! password, the session may do nothing more, and [`CellAuth::ended_sessions`] closes
+//! it (the server checks every [`USERS_CHECKED_EVERY`]).
+//!
+//! Every login, failed login and method call goes to the audit trail ([`CellAuth::record`]).
 
-use std::sync::Arc;
+use std::net::{IpAddr, Ipv4Addr, SocketAddr};
+use std::time::Duration;
 
 use async_trait::async_trait;
-use opcua::crypto::SecurityPolicy;
-use opcua::types::{Error, NodeId, StatusCode, UAString, UserTokenPolicy, UserTokenType};
+use opcua::crypto::{SecurityPolicy, Thumbprint};
+use opcua::types::{
+    ByteString, Error, NodeId, StatusCode, UAString, UserTokenPolicy, UserTokenType,
+};
 use opcua_server::address_space::AccessLevel;
 use opcua_server::authenticator::{user_pass_security_policy_id, AuthManager, Password, UserToken};
 use opcua_server::ServerEndpoint;
 use tracing::{info, warn};
 
-use crate::users::Users;
+use crate::audit::{AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
+use crate::logins::{Logins, Refused};
+use crate::users::{fingerprint, CurrentUsers};
+
+/// How often the server looks at the users file for users whose sessions must end.
+pub const USERS_CHECKED_EVERY: Duration = Duration::from_millis(500);
 
 /// What a session may do in the OPC UA server.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -38,7 +55,8 @@ impl From<crate::users::Role> for Role {
     }
 }
 
-/// The prefix of a user-name session's token; the rest is the user's name.
+/// The prefix of a user-name session's token; then the user's name, `#` and the
+/// user's fingerprint at login.
 const USER_PREFIX: &str = "user:";
 
 /// The server's authenticator: anonymous (plain cell only, as an operator) and user
@@ -47,84 +65,169 @@ const USER_PREFIX: &str = "user:";
 pub struct CellAuth {
     /// Whether anonymous sessions are allowed (on None endpoints only): a plain cell.
     pub anonymous: bool,
-    /// The users of the users file (empty in a plain cell).
-    pub users: Arc<Users>,
+    /// The users of the users file, as it changes (none in a plain cell).
+    pub users: CurrentUsers,
+    /// The password logins: failures, lock-outs, the checks' bound.
+    pub logins: Logins,
+    /// Where logins and method calls are recorded (`None`: a plain cell keeps no trail).
+    pub audit: Option<AuditTrail>,
+}
+
+/// A user-name token's name and fingerprint.
+fn token_user(token: &UserToken) -> Option<(&str, &str)> {
+    token.0.strip_prefix(USER_PREFIX)?.split_once('#')
+}
+
+/// The address to count a login against when the server does not know the client's
+/// (never, over TCP).
+const UNKNOWN_ADDRESS: IpAddr = IpAddr::V4(Ipv4Addr::UNSPECIFIED);
+
+/// A client address as the audit trail writes it.
+fn shown(peer: Option<SocketAddr>) -> String {
+    peer.map(|a| a.to_string()).unwrap_or_else(|| "unknown".into())
 }
 
 impl CellAuth {
-    /// The role of a session's user (`None`: no one we know).
+    /// A plain cell's: anonymous operators, no users, no trail.
+    pub fn anonymous() -> CellAuth {
+        CellAuth {
+            anonymous: true,
+            users: CurrentUsers::fixed(Default::default()),
+            logins: Logins::default(),
+            audit: None,
+        }
+    }
+
+    /// The role of a session's user now (`None`: no one we know, or a user who changed
+    /// since the session logged in).
     pub fn role_of(&self, token: &UserToken) -> Option<Role> {
         if token.is_anonymous() {
             return self.anonymous.then_some(Role::Operator);
         }
-        let name = token.0.strip_prefix(USER_PREFIX)?;
-        self.users.get(name).map(|u| u.role.into())
+        let (name, at_login) = token_user(token)?;
+        let users = self.users.get();
+        let user = users.get(name)?;
+        (fingerprint(user) == at_login).then(|| user.role.into())
     }
 
     /// Who a session is, for a PackML request's `by` and the log: `opcua:anna`,
     /// `opcua:anonymous`.
     pub fn who(token: &UserToken) -> String {
-        match token.0.strip_prefix(USER_PREFIX) {
-            Some(name) => format!("opcua:{name}"),
+        match token_user(token) {
+            Some((name, _)) => format!("opcua:{name}"),
             None => "opcua:anonymous".to_string(),
         }
+    }
+
+    /// The user a session is, as the audit trail names people: `anna`, `anonymous`.
+    pub fn user_name(token: &UserToken) -> &str {
+        match token_user(token) {
+            Some((name, _)) => name,
+            None => "anonymous",
+        }
+    }
+
+    /// Records `record` (as done through the OPC UA server) in the trail, if there is one.
+    pub fn record(&self, record: AuditRecord) {
+        if let Some(trail) = &self.audit {
+            trail.record(&record.through(AuditDoor::Opcua));
+        }
+    }
+
+    /// Whether a session of `token` must end: its user was removed or changed.
+    pub fn ended(&self, token: &UserToken) -> bool {
+        !token.is_anonymous() && self.role_of(token).is_none()
+    }
+
+    /// A refused login: logged, recorded, answered with `status`.
+    fn refuse(&self, who: &str, peer: Option<SocketAddr>, why: String, status: StatusCode) -> Error {
+        warn!(user = %who, client = %shown(peer), reason = %why, %status, "OPC UA login refused");
+        self.record(
+            AuditRecord::now(who, &shown(peer), AuditAction::LoginFailed, AuditOutcome::Refused(why.clone()))
+                .on(who),
+        );
+        Error::new(status, why)
     }
 }
 
 #[async_trait]
 impl AuthManager for CellAuth {
-    async fn authenticate_anonymous_token(&self, endpoint: &ServerEndpoint) -> Result<(), Error> {
+    async fn authenticate_anonymous_token_from(
+        &self,
+        endpoint: &ServerEndpoint,
+        peer: Option<SocketAddr>,
+    ) -> Result<(), Error> {
         if self.anonymous && endpoint.security_policy() == SecurityPolicy::None {
             Ok(())
         } else {
-            warn!(endpoint = %endpoint.path, "anonymous session refused: this cell's server wants a user name and password");
-            Err(Error::new(
+            Err(self.refuse(
+                "anonymous",
+                peer,
+                "anonymous sessions are not allowed: this cell's server wants a user name and password".into(),
                 StatusCode::BadIdentityTokenRejected,
-                "anonymous sessions are not allowed",
             ))
         }
     }
 
-    async fn authenticate_username_identity_token(
+    async fn authenticate_username_identity_token_from(
         &self,
         _endpoint: &ServerEndpoint,
         username: &str,
         password: &Password,
+        peer: Option<SocketAddr>,
     ) -> Result<UserToken, Error> {
-        let users = self.users.clone();
-        let (name, password) = (username.to_string(), password.get().to_string());
-        let role =
-            tokio::task::spawn_blocking(move || users.verify(&name, &password).map(|u| u.role))
-                .await
-                .map_err(|e| {
-                    Error::new(
-                        StatusCode::BadInternalError,
-                        format!("the password check failed: {e}"),
-                    )
-                })?;
-        match role {
-            Some(role) => {
-                info!(user = username, role = %role, "OPC UA user authenticated");
-                Ok(UserToken(format!("{USER_PREFIX}{username}")))
-            }
-            None if self.users.get(username).is_some() => {
-                warn!(
-                    user = username,
-                    "OPC UA login refused: wrong password (BadUserAccessDenied)"
+        let users = self.users.get();
+        let from = peer.map(|a| a.ip()).unwrap_or(UNKNOWN_ADDRESS);
+        match self
+            .logins
+            .check(&users, username, password.get().to_string(), from)
+            .await
+        {
+            Ok(user) => {
+                info!(user = %user.name, role = %user.role, client = %shown(peer), "OPC UA user logged in");
+                self.record(
+                    AuditRecord::now(&user.name, &shown(peer), AuditAction::Login, AuditOutcome::Done)
+                        .with(serde_json::json!({ "with": "password", "role": user.role.as_str() })),
                 );
-                Err(Error::new(
-                    StatusCode::BadUserAccessDenied,
-                    "wrong password",
-                ))
+                Ok(UserToken(format!("{USER_PREFIX}{}#{}", user.name, fingerprint(&user))))
             }
-            None => {
-                warn!(
-                    user = username,
-                    "OPC UA login refused: no such user in the users file (BadUserAccessDenied)"
-                );
-                Err(Error::new(StatusCode::BadUserAccessDenied, "unknown user"))
+            Err(refused) => {
+                let status = match refused {
+                    Refused::Busy => StatusCode::BadTooManyOperations,
+                    Refused::Broken(_) => StatusCode::BadInternalError,
+                    Refused::LockedOut(_) | Refused::Wrong => StatusCode::BadUserAccessDenied,
+                };
+                Err(self.refuse(username, peer, refused.why(), status))
             }
         }
+    }
+
+    async fn authenticate_x509_identity_token_from(
+        &self,
+        _endpoint: &ServerEndpoint,
+        _signing_thumbprint: &Thumbprint,
+        peer: Option<SocketAddr>,
+    ) -> Result<UserToken, Error> {
+        Err(self.refuse(
+            "x509",
+            peer,
+            "X509 user tokens are not accepted: log in with a user name and password".into(),
+            StatusCode::BadIdentityTokenRejected,
+        ))
+    }
+
+    async fn authenticate_issued_identity_token_from(
+        &self,
+        _endpoint: &ServerEndpoint,
+        _token: &ByteString,
+        peer: Option<SocketAddr>,
+    ) -> Result<UserToken, Error> {
+        Err(self.refuse(
+            "issued",
+            peer,
+            "issued user tokens are not accepted: log in with a user name and password".into(),
+            StatusCode::BadIdentityTokenRejected,
+        ))
     }
 
     fn user_token_policies(&self, endpoint: &ServerEndpoint) -> Vec<UserTokenPolicy> {
@@ -139,7 +242,7 @@ impl AuthManager for CellAuth {
                 security_policy_uri: UAString::null(),
             });
         }
-        if !self.users.is_empty() {
+        if self.users.path().is_some() {
             policies.push(UserTokenPolicy {
                 policy_id: user_pass_security_policy_id(endpoint),
                 token_type: UserTokenType::UserName,
@@ -176,7 +279,7 @@ impl AuthManager for CellAuth {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::users::Role as UserRole;
+    use crate::users::{Role as UserRole, Users};
 
     #[test]
     fn observers_watch_and_operators_and_admins_operate() {
@@ -192,19 +295,26 @@ mod tests {
         users
             .add("wall", UserRole::Observer, "wall-password")
             .unwrap();
+        let token = |name: &str| {
+            UserToken(format!(
+                "user:{name}#{}",
+                fingerprint(users.get(name).unwrap())
+            ))
+        };
+        let (anna, wall) = (token("anna"), token("wall"));
         let auth = CellAuth {
             anonymous: false,
-            users: Arc::new(users),
+            users: CurrentUsers::fixed(users),
+            logins: Logins::default(),
+            audit: None,
         };
-        assert_eq!(
-            auth.role_of(&UserToken("user:anna".into())),
-            Some(Role::Operator)
-        );
-        assert_eq!(
-            auth.role_of(&UserToken("user:wall".into())),
-            Some(Role::Observer)
-        );
-        assert_eq!(auth.role_of(&UserToken("user:bert".into())), None);
-        assert_eq!(CellAuth::who(&UserToken("user:anna".into())), "opcua:anna");
+        assert_eq!(auth.role_of(&anna), Some(Role::Operator));
+        assert_eq!(auth.role_of(&wall), Some(Role::Observer));
+        assert_eq!(auth.role_of(&UserToken("user:bert#0".into())), None);
+        // A token of anna before a change of her password or role: no role any more.
+        assert_eq!(auth.role_of(&UserToken("user:anna#0".into())), None);
+        assert!(auth.ended(&UserToken("user:anna#0".into())));
+        assert!(!auth.ended(&anna));
+        assert_eq!(CellAuth::who(&anna), "opcua:anna");
     }
 }

@@ -8,7 +8,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::{ArgGroup, Args, Subcommand};
 
 use super::{Role, Users, UsersError};
-use crate::audit::{self, AuditAction, AuditOutcome, AuditRecord, AuditTrail};
+use crate::audit::{self, AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
 
 /// `cell users`: which users file, and what to do with it.
 #[derive(Debug, Args)]
@@ -194,7 +194,9 @@ fn apply(path: &Path, name: &str, change: Change) -> Result<()> {
     });
     match changed {
         Ok((detail, said)) => {
-            let mut record = AuditRecord::now(&who(), &from(), action, AuditOutcome::Done).on(name);
+            let mut record = AuditRecord::now(&who(), &from(), action, AuditOutcome::Done)
+                .on(name)
+                .through(AuditDoor::Cli);
             if let Some(detail) = detail {
                 record = record.with(detail);
             }
@@ -211,7 +213,8 @@ fn apply(path: &Path, name: &str, change: Change) -> Result<()> {
         Err(e) => {
             trail.record(
                 &AuditRecord::now(&who(), &from(), action, AuditOutcome::Failed(e.to_string()))
-                    .on(name),
+                    .on(name)
+                    .through(AuditDoor::Cli),
             );
             Err(e.into())
         }
@@ -227,7 +230,8 @@ fn refused(trail: &AuditTrail, name: &str, action: AuditAction, why: &UsersError
             action,
             AuditOutcome::Refused(why.to_string()),
         )
-        .on(name),
+        .on(name)
+        .through(AuditDoor::Cli),
     );
 }
 

@@ -17,6 +17,7 @@
 //! the file under a lock, atomically.
 
 pub mod cli;
+mod current;
 mod file;
 pub mod password;
 #[cfg(test)]
@@ -28,6 +29,7 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
+pub use current::{fingerprint, CurrentUsers};
 pub use file::{change, load};
 
 /// The users file's name in a cell's PKI directory.

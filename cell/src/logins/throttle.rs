@@ -1,4 +1,4 @@
-//! Failed logins, slowed and counted.
+//! Failed logins, slowed and counted: the policy of every door ([`super::Logins`]).
 //!
 //! - Every refused login is answered only after [`FAILED_LOGIN_DELAY`] (1 s): a guesser
 //!   gets one try per second per connection at most, and a right name costs no more
@@ -8,12 +8,14 @@
 //!   without looking at the password (429, with `Retry-After`) for 30 s, doubling with
 //!   every further failure after the lock-out to at most 15 min. A successful login
 //!   clears the name's and the address's count.
-//! - Every refusal goes to the audit trail and to `/metrics`
-//!   (`holarchy_dashboard_logins_failed_total`).
+//! - Every refusal goes to the audit trail, and is counted: the dashboard's `/metrics`
+//!   (`holarchy_dashboard_logins_failed_total`), the OPC UA server's
+//!   `Cell/Security/LoginsRefused`.
 //!
 //! Locking out by name lets anybody lock a known user out for a while by guessing
 //! wrong; that is the price of stopping a slow guesser spread over many addresses, and
-//! a locked-out operator can use a client certificate meanwhile (docs/security.md).
+//! a locked-out operator can use a client certificate on the dashboard meanwhile
+//! (docs/security.md).
 
 use std::collections::HashMap;
 use std::net::IpAddr;
