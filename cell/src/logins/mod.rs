@@ -4,8 +4,9 @@
 //! an attacker does.
 //!
 //! A check is an argon2id hash of 19 MiB and tens of milliseconds of CPU
-//! ([`crate::users::password`]). At most [`CHECKS_AT_ONCE`] run at a time (about
-//! 40 MiB in all), on tokio's blocking threads; a login waits at most [`LONGEST_WAIT`]
+//! ([`crate::users::password`]). At most [`CHECKS_AT_ONCE`] run at a time, on tokio's
+//! blocking threads, each in working memory kept from one check to the next (about
+//! 40 MiB in all, allocated at the first logins and never again); a login waits at most [`LONGEST_WAIT`]
 //! for its turn and is refused as busy after that (not counted against the name or the
 //! address: the server was busy, nobody guessed wrong). The waiting logins hold only
 //! their name and password.
@@ -25,6 +26,7 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::Semaphore;
 
+use crate::users::password::Memory;
 use crate::users::{User, Users};
 pub use throttle::{LockedOut, FAILED_LOGIN_DELAY, FREE_FAILURES};
 use throttle::Throttle;
@@ -74,6 +76,8 @@ pub struct Logins {
     throttle: Mutex<Throttle>,
     /// The turns to check a password.
     checks: Arc<Semaphore>,
+    /// The working memory of the checks, one per turn (a turn takes one).
+    memories: Arc<Mutex<Vec<Memory>>>,
     /// Logins waiting for a turn or being checked now.
     in_check: AtomicUsize,
     /// Logins refused as busy since the start.
@@ -85,6 +89,9 @@ impl Default for Logins {
         Logins {
             throttle: Mutex::new(Throttle::default()),
             checks: Arc::new(Semaphore::new(CHECKS_AT_ONCE)),
+            memories: Arc::new(Mutex::new(
+                (0..CHECKS_AT_ONCE).map(|_| Memory::default()).collect(),
+            )),
             in_check: AtomicUsize::new(0),
             busy_total: AtomicU64::new(0),
         }
@@ -126,10 +133,22 @@ impl Logins {
                     return Err(Refused::Busy);
                 }
             };
-            let (users, name) = (users.clone(), name.to_string());
+            let (users, name, memories) = (users.clone(), name.to_string(), self.memories.clone());
             tokio::task::spawn_blocking(move || {
                 let _permit = permit;
-                users.verify(&name, &password).cloned()
+                // A turn's memory (there is one per turn; a new one only if a check
+                // panicked with one).
+                let mut memory = memories
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .pop()
+                    .unwrap_or_default();
+                let user = users.verify_in(&name, &password, &mut memory).cloned();
+                memories
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .push(memory);
+                user
             })
             .await
         };

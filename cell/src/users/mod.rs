@@ -221,6 +221,23 @@ impl Users {
         }
     }
 
+    /// [`Users::verify`], in `memory` kept from one check to the next (a server's
+    /// logins, [`crate::logins`]).
+    pub fn verify_in(
+        &self,
+        name: &str,
+        password: &str,
+        memory: &mut password::Memory,
+    ) -> Option<&User> {
+        match self.get(name) {
+            Some(user) => password::verify_in(&user.password, password, memory).then_some(user),
+            None => {
+                password::verify_dummy_in(password, memory);
+                None
+            }
+        }
+    }
+
     /// Adds a user with a new password (hashed here); refuses a bad name, a name
     /// taken, a password shorter than [`password::MIN_LENGTH`] characters.
     pub fn add(&mut self, name: &str, role: Role, password: &str) -> Result<(), UsersError> {

@@ -260,6 +260,13 @@ impl SessionController {
                 }
             }
         }
+        // (holarchy) Sessions that waited for activation on this channel cannot be
+        // activated any more: their places are freed at once, not after their timeout.
+        let closed = trace_write_lock!(self.session_manager)
+            .close_pending_of_channel(self.channel.secure_channel_id());
+        if closed > 0 {
+            debug!("{closed} sessions never activated closed with their channel");
+        }
     }
 
     fn response_metrics(&self, msg: &Response) {

@@ -73,6 +73,8 @@ pub struct Session {
     peer_address: Option<SocketAddr>,
     /// (holarchy) Until when the session may wait to be activated; `None` once it is.
     activation_deadline: Option<Instant>,
+    /// (holarchy) When the session was created.
+    created_at: Instant,
 }
 
 impl Session {
@@ -127,6 +129,7 @@ impl Session {
             message_security_mode,
             is_closed: false,
             peer_address,
+            created_at: Instant::now(),
             activation_deadline: Some(
                 Instant::now() + Duration::from_millis(info.config.limits.pending_session_timeout_ms),
             ),
@@ -156,6 +159,11 @@ impl Session {
             Some(activation) => deadline.min(activation),
             None => deadline,
         }
+    }
+
+    /// (holarchy) When this session was created.
+    pub fn created_at(&self) -> Instant {
+        self.created_at
     }
 
     /// (holarchy) The address of the client that created this session, if known.

@@ -98,50 +98,83 @@ impl SessionManager {
     }
 
     /// (holarchy) Whether one more session may wait for activation on this channel from
-    /// this address: sessions waiting for activation are bounded in all, per channel
-    /// and per address, and never take the places of activated sessions.
+    /// this address: sessions waiting for activation are bounded per channel and per
+    /// address, and never take the places of activated sessions. When all the places
+    /// for waiting sessions are taken, the oldest waiting session of the address that
+    /// holds the most is closed for the newcomer, if that address holds more than the
+    /// newcomer's (a stranger holding places cannot keep an operator from logging in).
     fn admit_pending(
-        &self,
+        &mut self,
         secure_channel_id: u32,
         peer: Option<SocketAddr>,
     ) -> Result<(), StatusCode> {
-        let limits = &self.info.config.limits;
-        let (mut activated, mut pending, mut on_channel, mut from_address) = (0, 0, 0, 0);
-        for session in self.sessions.values() {
+        let limits = self.info.config.limits.clone();
+        let ip = peer.map(|a| a.ip());
+        let mut activated = 0;
+        let mut on_channel = 0;
+        let mut waiting: Vec<(NodeId, Option<std::net::IpAddr>, Instant)> = Vec::new();
+        let mut by_address: HashMap<Option<std::net::IpAddr>, usize> = HashMap::new();
+        for (id, session) in &self.sessions {
             let session = session.read();
             if session.is_activated() {
                 activated += 1;
                 continue;
             }
-            pending += 1;
             if session.secure_channel_id() == secure_channel_id {
                 on_channel += 1;
             }
-            if peer.is_some()
-                && session.peer_address().map(|a| a.ip()) == peer.map(|a| a.ip())
-            {
-                from_address += 1;
-            }
+            let address = session.peer_address().map(|a| a.ip());
+            *by_address.entry(address).or_default() += 1;
+            waiting.push((id.clone(), address, session.created_at()));
         }
-        let address = peer.map(|a| a.to_string()).unwrap_or_else(|| "?".into());
-        let refused = if activated >= limits.max_sessions {
-            Some(format!("{activated} activated sessions, the most the server holds (max_sessions)"))
-        } else if on_channel >= limits.max_pending_sessions_per_channel {
-            Some(format!("{on_channel} sessions not yet activated on this channel, the most allowed (max_pending_sessions_per_channel)"))
-        } else if from_address >= limits.max_pending_sessions_per_address {
-            Some(format!("{from_address} sessions not yet activated from this address, the most allowed (max_pending_sessions_per_address)"))
-        } else if pending >= limits.max_pending_sessions {
-            Some(format!("{pending} sessions not yet activated, the most the server holds (max_pending_sessions)"))
-        } else {
-            None
+        let from_address = by_address.get(&ip).copied().unwrap_or(0);
+        let client = peer.map(|a| a.to_string()).unwrap_or_else(|| "?".into());
+        let refuse = |why: String| {
+            warn!(%client, "CreateSession refused (BadTooManySessions): {why}");
+            Err(StatusCode::BadTooManySessions)
         };
-        match refused {
-            Some(why) => {
-                warn!(client = %address, "CreateSession refused (BadTooManySessions): {why}");
-                Err(StatusCode::BadTooManySessions)
-            }
-            None => Ok(()),
+        if activated >= limits.max_sessions {
+            return refuse(format!("{activated} activated sessions, the most the server holds (max_sessions)"));
         }
+        if on_channel >= limits.max_pending_sessions_per_channel {
+            return refuse(format!("{on_channel} sessions not yet activated on this channel, the most allowed (max_pending_sessions_per_channel)"));
+        }
+        if from_address >= limits.max_pending_sessions_per_address {
+            return refuse(format!("{from_address} sessions not yet activated from this address, the most allowed (max_pending_sessions_per_address)"));
+        }
+        if waiting.len() < limits.max_pending_sessions {
+            return Ok(());
+        }
+        // Full: the oldest waiting session of the address holding the most.
+        let most = by_address.values().copied().max().unwrap_or(0);
+        let victim = waiting
+            .iter()
+            .filter(|(_, address, _)| by_address.get(address).copied() == Some(most))
+            .min_by_key(|(_, _, created)| *created)
+            .cloned();
+        match victim {
+            Some((id, address, _)) if most > from_address => {
+                warn!(
+                    %client,
+                    holder = %address.map(|a| a.to_string()).unwrap_or_else(|| "?".into()),
+                    "{} sessions wait for activation, the most the server holds (max_pending_sessions): the oldest of the address holding the most ({most}) is closed for a newcomer",
+                    waiting.len()
+                );
+                if let Some(session) = self.sessions.remove(&id) {
+                    session.write().close();
+                }
+                Ok(())
+            }
+            _ => refuse(format!("{} sessions not yet activated, the most the server holds (max_pending_sessions), none from an address holding more than this one", waiting.len())),
+        }
+    }
+
+    /// (holarchy) Closes the sessions still waiting for activation on a secure channel
+    /// that closed: only that channel could have activated them.
+    pub(crate) fn close_pending_of_channel(&mut self, secure_channel_id: u32) -> usize {
+        self.close_sessions_where(|session| {
+            !session.is_activated() && session.secure_channel_id() == secure_channel_id
+        })
     }
 
     pub(crate) fn create_session(
