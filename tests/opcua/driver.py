@@ -14,9 +14,9 @@ The first line out is {"connected": true} or {"connected": false, "status": "<Ba
 Commands:
     browse                          -> {"resources": [...]} (Objects/PackMLObjects)
     read RES PATH                   -> {"value": ...}  PATH e.g. Status.StateCurrent
-    readcell NAME                   -> {"value": ...}  e.g. OrdersDone
+    readcell PATH                   -> {"value": ...}  e.g. OrdersDone, Security.LoginsRefused
     call RES METHOD [INT]           -> {"status": "Good" | "Bad..."}
-    submit PRODUCT COUNT PRIORITY   -> {"status": ..., "orders": [...]}
+    submit PRODUCT COUNT PRIORITY   -> {"status": ..., "orders": [...]}  (PRODUCT may hold \n)
     subscribe RES PATH              -> {"status": "Good"} (publishing interval 20 ms)
     changes                         -> {"values": [...], "latency_ms": [...]} since start
                                        (latency: SourceTimestamp to receipt, initial values left out)
@@ -120,7 +120,7 @@ async def main():
                     value = await node.read_value()
                     out = {"value": value.isoformat() if hasattr(value, "isoformat") else value}
                 elif command == "readcell":
-                    node = await objects.get_child([f"{idx}:Cell", f"{idx}:{rest[0]}"])
+                    node = await objects.get_child([f"{idx}:Cell"] + [f"{idx}:{p}" for p in rest[0].split(".")])
                     out = {"value": await node.read_value()}
                 elif command == "call":
                     node = await objects.get_child([f"{idx}:PackMLObjects", f"{idx}:{rest[0]}"])
@@ -129,9 +129,11 @@ async def main():
                     out = {"status": "Good"}
                 elif command == "submit":
                     node = await objects.get_child([f"{idx}:Cell"])
+                    # \n and the like in the product name are sent as the characters.
+                    product = rest[0].encode().decode("unicode_escape")
                     orders = await node.call_method(
                         f"{idx}:SubmitWorkOrder",
-                        ua.Variant(rest[0], ua.VariantType.String),
+                        ua.Variant(product, ua.VariantType.String),
                         ua.Variant(int(rest[1]), ua.VariantType.Int32),
                         ua.Variant(int(rest[2]), ua.VariantType.Int32),
                     )

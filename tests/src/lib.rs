@@ -8,6 +8,7 @@ mod cell_holons;
 mod environment;
 mod etcd;
 pub mod lab;
+pub mod opcua;
 mod paths;
 mod process;
 mod resource;

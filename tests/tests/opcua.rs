@@ -11,98 +11,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
+use holarchy_tests::opcua::{add_user, Driver};
 use holarchy_tests::*;
 use serde_json::Value;
-use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader, Lines};
-use tokio::process::{Child, ChildStdin, ChildStdout};
-
-/// The driver script, connected to a server.
-struct Driver {
-    /// The Python process (killed when dropped).
-    child: Child,
-    /// Where the commands go.
-    stdin: ChildStdin,
-    /// Its answers, one JSON line each.
-    lines: Lines<BufReader<ChildStdout>>,
-}
-
-impl Driver {
-    /// Starts the driver on `url` and returns it with its first line
-    /// (`{"connected": ...}`).
-    async fn start(python: &Path, url: &str, cell: &str, extra: &[&str]) -> (Driver, Value) {
-        let script = workspace_root().join("tests/opcua/driver.py");
-        let mut child = tokio::process::Command::new(python)
-            .arg(script)
-            .args([url, cell])
-            .args(extra)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .kill_on_drop(true)
-            .spawn()
-            .expect("start the OPC UA driver");
-        let stdin = child.stdin.take().unwrap();
-        let lines = BufReader::new(child.stdout.take().unwrap()).lines();
-        let mut driver = Driver {
-            child,
-            stdin,
-            lines,
-        };
-        let first = driver.line().await;
-        (driver, first)
-    }
-
-    async fn line(&mut self) -> Value {
-        let line = tokio::time::timeout(Duration::from_secs(30), self.lines.next_line())
-            .await
-            .expect("the driver answers within 30 s")
-            .expect("the driver's stdout")
-            .expect("the driver still runs (see its stderr above)");
-        serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"))
-    }
-
-    async fn ask(&mut self, command: &str) -> Value {
-        self.stdin
-            .write_all(format!("{command}\n").as_bytes())
-            .await
-            .expect("write to the driver");
-        self.stdin.flush().await.unwrap();
-        self.line().await
-    }
-
-    /// The status of a method call.
-    async fn call(&mut self, command: &str) -> String {
-        let answer = self.ask(command).await;
-        answer["status"].as_str().unwrap_or_default().to_string()
-    }
-
-    /// Reads until `value` is read, at most 5 s (the value is pushed from the resource's
-    /// state publication).
-    async fn wait_read(&mut self, what: &str, value: Value) {
-        let deadline = tokio::time::Instant::now() + Duration::from_secs(5);
-        loop {
-            let read = self.ask(&format!("read {what}")).await;
-            if read["value"] == value {
-                return;
-            }
-            assert!(
-                tokio::time::Instant::now() < deadline,
-                "{what}: never {value}, last {read}"
-            );
-            tokio::time::sleep(Duration::from_millis(50)).await;
-        }
-    }
-
-    async fn resources(&mut self) -> Vec<String> {
-        let answer = self.ask("browse").await;
-        serde_json::from_value(answer["resources"].clone())
-            .unwrap_or_else(|e| panic!("browse: {e}: {answer}"))
-    }
-
-    async fn quit(mut self) {
-        let _ = self.stdin.write_all(b"quit\n").await;
-        let _ = tokio::time::timeout(Duration::from_secs(10), self.child.wait()).await;
-    }
-}
 
 async fn wait_busy(cell: &Cell, resource: &str) {
     cell.wait_state(resource, "busy", |s| s["state"] == "busy")
@@ -382,27 +293,6 @@ impl Drop for Up {
         );
         let _ = self.0.wait();
     }
-}
-
-/// Adds a user to the users file of `pki` with `cell users`, the password piped in.
-fn add_user(pki: &Path, name: &str, role: &str, password: &str) {
-    let mut child = Command::new(bin("cell"))
-        .args(["users", "--pki"])
-        .arg(pki)
-        .args(["add", name, "--role", role])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    use std::io::Write;
-    writeln!(child.stdin.take().unwrap(), "{password}").unwrap();
-    let out = child.wait_with_output().unwrap();
-    assert!(
-        out.status.success(),
-        "cell users add {name}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
 }
 
 /// Runs `cell users --pki PKI ARGS` with `stdin` piped in: whether it succeeded, its

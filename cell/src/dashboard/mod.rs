@@ -28,8 +28,7 @@ pub mod model;
 pub mod people;
 pub mod refusal;
 pub mod session;
-pub 
-use std::net::SocketAddr;
+pub use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;

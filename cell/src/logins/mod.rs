@@ -28,8 +28,8 @@ use tokio::sync::Semaphore;
 
 use crate::users::password::Memory;
 use crate::users::{User, Users};
-pub use throttle::{LockedOut, FAILED_LOGIN_DELAY, FREE_FAILURES};
 use throttle::Throttle;
+pub use throttle::{LockedOut, FAILED_LOGIN_DELAY, FREE_FAILURES};
 
 /// Password checks running at once, in one process (each holds 19 MiB while it runs).
 pub const CHECKS_AT_ONCE: usize = 2;
@@ -120,19 +120,18 @@ impl Logins {
         }
         let verified = {
             let _counted = InCheck::new(&self.in_check);
-            let permit = match tokio::time::timeout(
-                LONGEST_WAIT,
-                self.checks.clone().acquire_owned(),
-            )
-            .await
-            {
-                Ok(Ok(permit)) => permit,
-                Ok(Err(_closed)) => return Err(Refused::Broken("the checks were closed".into())),
-                Err(_late) => {
-                    self.busy_total.fetch_add(1, Ordering::Relaxed);
-                    return Err(Refused::Busy);
-                }
-            };
+            let permit =
+                match tokio::time::timeout(LONGEST_WAIT, self.checks.clone().acquire_owned()).await
+                {
+                    Ok(Ok(permit)) => permit,
+                    Ok(Err(_closed)) => {
+                        return Err(Refused::Broken("the checks were closed".into()))
+                    }
+                    Err(_late) => {
+                        self.busy_total.fetch_add(1, Ordering::Relaxed);
+                        return Err(Refused::Busy);
+                    }
+                };
             let (users, name, memories) = (users.clone(), name.to_string(), self.memories.clone());
             tokio::task::spawn_blocking(move || {
                 let _permit = permit;
@@ -203,7 +202,9 @@ mod tests {
     #[tokio::test(flavor = "multi_thread")]
     async fn a_guesser_is_locked_out_and_the_right_password_then_waits_too() {
         let mut users = Users::default();
-        users.add("anna", Role::Operator, "anna-password-1").unwrap();
+        users
+            .add("anna", Role::Operator, "anna-password-1")
+            .unwrap();
         let users = Arc::new(users);
         let logins = Logins::default();
         for _ in 0..FREE_FAILURES {
@@ -224,7 +225,9 @@ mod tests {
     #[tokio::test(flavor = "multi_thread")]
     async fn parallel_logins_take_turns_and_give_them_back() {
         let mut users = Users::default();
-        users.add("anna", Role::Operator, "anna-password-1").unwrap();
+        users
+            .add("anna", Role::Operator, "anna-password-1")
+            .unwrap();
         let users = Arc::new(users);
         let logins = Arc::new(Logins::default());
         let mut tasks = Vec::new();

@@ -113,7 +113,9 @@ mod tests {
             &[],
             &Err(StatusCode::BadUserAccessDenied),
         );
-        assert!(matches!(refused.outcome, AuditOutcome::Refused(ref why) if why.contains("BadUserAccessDenied")));
+        assert!(
+            matches!(refused.outcome, AuditOutcome::Refused(ref why) if why.contains("BadUserAccessDenied"))
+        );
         let submit = MethodTarget::Cell {
             method: "SubmitWorkOrder".into(),
         };
@@ -122,12 +124,20 @@ mod tests {
             "anna",
             "10.0.0.9:5000",
             Some(&submit),
-            &[Variant::from(long.as_str()), Variant::Int32(1), Variant::Int32(0)],
+            &[
+                Variant::from(long.as_str()),
+                Variant::Int32(1),
+                Variant::Int32(0),
+            ],
             &Err(StatusCode::BadTimeout),
         );
         assert_eq!(failed.action, AuditAction::Submit);
         assert!(matches!(failed.outcome, AuditOutcome::Failed(_)));
         let line = serde_json::to_string(&failed).unwrap();
-        assert!(line.len() < 1000, "the trail keeps no megabyte argument: {} bytes", line.len());
+        assert!(
+            line.len() < 1000,
+            "the trail keeps no megabyte argument: {} bytes",
+            line.len()
+        );
     }
 }

@@ -128,7 +128,9 @@ impl CellNodes {
                     self.resource_method(&who, resource, method, call.arguments())
                         .await
                 }
-                Some(MethodTarget::Cell { method }) if method == address_space::SUBMIT_WORK_ORDER => {
+                Some(MethodTarget::Cell { method })
+                    if method == address_space::SUBMIT_WORK_ORDER =>
+                {
                     self.submit(&who, call.arguments()).await
                 }
                 _ => Err(StatusCode::BadMethodInvalid),

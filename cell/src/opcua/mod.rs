@@ -353,13 +353,16 @@ async fn end_sessions_of_changed_users(
         }
         last = now;
         let mut ended = Vec::new();
-        let closed = handle.session_manager().write().close_sessions_where(|session| {
-            let end = session.user_token().is_some_and(|token| auth.ended(token));
-            if end {
-                ended.push(CellAuth::who(session.user_token().expect("checked")));
-            }
-            end
-        });
+        let closed = handle
+            .session_manager()
+            .write()
+            .close_sessions_where(|session| {
+                let end = session.user_token().is_some_and(|token| auth.ended(token));
+                if end {
+                    ended.push(CellAuth::who(session.user_token().expect("checked")));
+                }
+                end
+            });
         if closed > 0 {
             info!(sessions = closed, users = ?ended, "OPC UA sessions ended: their users were removed or changed in the users file");
         }

@@ -84,7 +84,8 @@ const UNKNOWN_ADDRESS: IpAddr = IpAddr::V4(Ipv4Addr::UNSPECIFIED);
 
 /// A client address as the audit trail writes it.
 fn shown(peer: Option<SocketAddr>) -> String {
-    peer.map(|a| a.to_string()).unwrap_or_else(|| "unknown".into())
+    peer.map(|a| a.to_string())
+        .unwrap_or_else(|| "unknown".into())
 }
 
 impl CellAuth {
@@ -140,11 +141,22 @@ impl CellAuth {
     }
 
     /// A refused login: logged, recorded, answered with `status`.
-    fn refuse(&self, who: &str, peer: Option<SocketAddr>, why: String, status: StatusCode) -> Error {
+    fn refuse(
+        &self,
+        who: &str,
+        peer: Option<SocketAddr>,
+        why: String,
+        status: StatusCode,
+    ) -> Error {
         warn!(user = %who, client = %shown(peer), reason = %why, %status, "OPC UA login refused");
         self.record(
-            AuditRecord::now(who, &shown(peer), AuditAction::LoginFailed, AuditOutcome::Refused(why.clone()))
-                .on(who),
+            AuditRecord::now(
+                who,
+                &shown(peer),
+                AuditAction::LoginFailed,
+                AuditOutcome::Refused(why.clone()),
+            )
+            .on(who),
         );
         Error::new(status, why)
     }
@@ -186,10 +198,19 @@ impl AuthManager for CellAuth {
             Ok(user) => {
                 info!(user = %user.name, role = %user.role, client = %shown(peer), "OPC UA user logged in");
                 self.record(
-                    AuditRecord::now(&user.name, &shown(peer), AuditAction::Login, AuditOutcome::Done)
-                        .with(serde_json::json!({ "with": "password", "role": user.role.as_str() })),
+                    AuditRecord::now(
+                        &user.name,
+                        &shown(peer),
+                        AuditAction::Login,
+                        AuditOutcome::Done,
+                    )
+                    .with(serde_json::json!({ "with": "password", "role": user.role.as_str() })),
                 );
-                Ok(UserToken(format!("{USER_PREFIX}{}#{}", user.name, fingerprint(&user))))
+                Ok(UserToken(format!(
+                    "{USER_PREFIX}{}#{}",
+                    user.name,
+                    fingerprint(&user)
+                )))
             }
             Err(refused) => {
                 let status = match refused {

@@ -113,8 +113,10 @@ mod tests {
         .unwrap();
         let current = CurrentUsers::file(path.clone());
         let before = fingerprint(current.get().get("anna").unwrap());
-        crate::users::change(&path, |users| users.set_role("anna", Role::Observer).map(|_| ()))
-            .unwrap();
+        crate::users::change(&path, |users| {
+            users.set_role("anna", Role::Observer).map(|_| ())
+        })
+        .unwrap();
         let after = current.get();
         assert_eq!(after.get("anna").unwrap().role, Role::Observer);
         assert_ne!(fingerprint(after.get("anna").unwrap()), before);
