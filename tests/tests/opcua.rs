@@ -195,10 +195,22 @@ async fn a_foreign_client_watches_and_commands_the_cell_over_opcua() {
         ua.ask("submit nothing-such 1 0").await["status"],
         "BadInvalidArgument"
     );
-    let done = ua.ask("readcell OrdersDone").await["value"]
-        .as_i64()
-        .unwrap();
-    assert!(done >= 15, "OrdersDone {done}");
+    // The figures are the order-nodes' counts, asked every second: read until they
+    // caught up.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let done = ua.ask("readcell OrdersDone").await["value"]
+            .as_i64()
+            .unwrap();
+        if done >= 15 {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "OrdersDone {done}, never 15"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
     assert_eq!(ua.ask("readcell OrdersFailed").await["value"], 0);
 
     // A resource hot-added appears while the client stays connected, and goes when
