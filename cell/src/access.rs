@@ -5,9 +5,9 @@
 //!
 //! | role | may declare (queryable, token, publication) | may query / subscribe |
 //! |---|---|---|
-//! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `alive/**` (twins, requesters' presence) |
+//! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `host/order-node/*/held` (orders' presence), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
-//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*`, `host/order-node/<n>{,/fence/*,/orders}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
+//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*` (order-nodes of earlier releases), `host/order-node/<n>{,/fence/*,/orders,/held}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
 //! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, `resource/*/packml` (PackML commands), states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, liveliness |
@@ -95,6 +95,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             // Who holds the name (answered on the token's key).
             (DECLARE, vec![format!("alive/resource/{name}")]),
             (&["query"], vec!["order/*/inbox".to_string()]),
+            // Which orders the order-nodes hold (the orders' bookings' lifetime).
+            (&["query"], vec!["host/order-node/*/held".to_string()]),
             // Twins and requesters' presence (the bookings' lifetime).
             (
                 &["query", "declare_liveliness_subscriber", "liveliness_query"],
@@ -127,6 +129,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                     format!("host/order-node/{name}/fence/*"),
                     // Its orders listed a page at a time.
                     format!("host/order-node/{name}/orders"),
+                    // Which of its orders it holds (asked by resources).
+                    format!("host/order-node/{name}/held"),
                     format!("order/{name}-$*/inbox"),
                     format!("order/{name}-$*/state"),
                     format!("order/{name}-$*/cancel"),
@@ -136,6 +140,7 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             (
                 &["liveliness_token"],
                 vec![
+                    // Orders of an order-node of an earlier release held a token each.
                     format!("alive/order/{name}-$*"),
                     format!("host/order-node/{name}"),
                 ],
@@ -340,11 +345,16 @@ mod tests {
         let answers = keys(Role::OrderNode, "orders1", "declare_queryable");
         assert!(answers.contains(&"host/order-node/orders1/fence/*".to_string()));
         assert!(answers.contains(&"host/order-node/orders1/orders".to_string()));
+        assert!(answers.contains(&"host/order-node/orders1/held".to_string()));
         assert!(
             answers
                 .iter()
                 .all(|k| !k.contains("fence") || k.contains("orders1")),
             "{answers:?}"
+        );
+        // A resource asks every node which orders it holds.
+        assert!(
+            keys(Role::Resource, "robot1", "query").contains(&"host/order-node/*/held".to_string())
         );
         // `cell status` and the dashboard ask `host/order-node/*/fence/*`: `host/**`.
         for (role, name) in [(Role::Operator, "default"), (Role::Observer, "default")] {

@@ -7,10 +7,10 @@
 //! | phase | event | actions | next phase |
 //! |---|---|---|---|
 //! | proposing | resumed, woken | ask proposals | proposing |
-//! | proposing | proposals: some | declare token, record booking(first), ask it | booking(first) |
+//! | proposing | proposals: some | record booking(first), ask it | booking(first) |
 //! | proposing | proposals: none, before give-up | wait for a resource (idle) | proposing |
 //! | proposing | proposals: none, past give-up | end: no resource | — |
-//! | booking(c) | resumed | declare token, ask c again (booking is idempotent) | booking(c) |
+//! | booking(c) | resumed | ask c again (booking is idempotent) | booking(c) |
 //! | booking(c) | accepted and started (on its turn) | record started(c), publish, watch (step timeout) | started(c) |
 //! | booking(c) | accepted, asked to start on its turn | record booked(c), publish, watch for the turn (backoff) | booked(c) |
 //! | booking(c) | accepted | record booked(c), publish, ask start | booked(c) |
@@ -19,7 +19,7 @@
 //! | booking(c) | refused or no answer, resumed (no round) | record proposing, ask proposals | proposing |
 //! | booking(c) | refused or no answer, round over, before give-up | record proposing, wait (backoff) | proposing |
 //! | booking(c) | refused or no answer, round over, past give-up | record proposing, end: no resource | — |
-//! | booked(p) | resumed | declare token, ask start | booked(p) |
+//! | booked(p) | resumed | ask start | booked(p) |
 //! | booked(p) | start accepted | record started(p), publish, watch (step timeout) | started(p) |
 //! | booked(p) | `busy`, no answer, `unavailable` before give-up | watch for the turn (backoff) | booked(p) |
 //! | booked(p) | `not_booked` | ask p the outcome | booked(p), asking |
@@ -28,7 +28,7 @@
 //! | booked(p) | began (p published that the step runs) | record started(p), publish, watch (step timeout) | started(p) |
 //! | booked(p) | watched: lost | cancel the booking when p is back, end: lost | — |
 //! | booked(p) | watched: another outcome | end with it | — |
-//! | started(p) | resumed (a restart, or a takeover of the node) | declare token, ask p the outcome (the step timeout starts) | started(p), asking |
+//! | started(p) | resumed (a restart, or a takeover of the node) | ask p the outcome (the step timeout starts) | started(p), asking |
 //! | started(p) | watched: `failed` `interrupted` (p's journal knew only that it ran) | ask p the outcome | started(p), asking |
 //! | started(p) | watched: another outcome | end with it | — |
 //! | started(p) | watched: pause over (the step timeout, or a poll of a running step) | ask p the outcome | started(p), asking |
@@ -125,8 +125,6 @@ enum Asking {
 /// What the order's task must do, in order.
 #[derive(Debug, Clone, PartialEq)]
 pub enum AttemptAction {
-    /// Declare the order's liveliness token, if not yet: it is about to hold a booking.
-    DeclareToken,
     /// Write this phase to the journal before going on.
     Record(Phase),
     /// Publish the order's state.
@@ -235,10 +233,7 @@ impl Attempt {
         match (self.phase.clone(), event) {
             (Phase::Proposing, E::Resumed | E::Woken) => vec![AttemptAction::AskProposals],
             (Phase::Proposing, E::Proposals(candidates)) => self.proposals(candidates, now),
-            (Phase::Booking(candidate), E::Resumed) => vec![
-                AttemptAction::DeclareToken,
-                AttemptAction::AskBooking(candidate),
-            ],
+            (Phase::Booking(candidate), E::Resumed) => vec![AttemptAction::AskBooking(candidate)],
             (Phase::Booking(candidate), E::BookingAnswer(Answer::Started)) => {
                 self.backoff.reset();
                 self.round = None;
@@ -267,10 +262,7 @@ impl Attempt {
                 actions
             }
             (Phase::Booking(_), E::BookingAnswer(_)) => self.next_candidate(now),
-            (Phase::Booked(provider), E::Resumed) => vec![
-                AttemptAction::DeclareToken,
-                AttemptAction::AskStart(provider),
-            ],
+            (Phase::Booked(provider), E::Resumed) => vec![AttemptAction::AskStart(provider)],
             (Phase::Booked(provider), E::StartAnswer(answer)) => {
                 self.start_answer(provider, answer, now)
             }
@@ -294,10 +286,7 @@ impl Attempt {
                 // node) only the resource can say: asked at once.
                 self.deadline = Some(now + self.timing.step_timeout);
                 self.asking = Some(Asking::CameBack);
-                vec![
-                    AttemptAction::DeclareToken,
-                    AttemptAction::AskOutcome(provider),
-                ]
+                vec![AttemptAction::AskOutcome(provider)]
             }
             (Phase::Started(provider), E::Watched(Some(outcome))) if interrupted(&outcome) => {
                 self.asking = Some(Asking::Interrupted(outcome));
@@ -343,10 +332,7 @@ impl Attempt {
             }];
         };
         self.round = Some(round);
-        // Declared before the booking request: the resource must see the requester
-        // alive as soon as it holds the booking.
-        let mut actions = vec![AttemptAction::DeclareToken];
-        actions.extend(self.record(Phase::Booking(first.clone())));
+        let mut actions = self.record(Phase::Booking(first.clone()));
         actions.push(AttemptAction::AskBooking(first));
         actions
     }
@@ -572,16 +558,12 @@ mod tests {
     }
 
     #[test]
-    fn proposals_book_the_best_first_with_the_token_declared_before() {
+    fn proposals_book_the_best_first() {
         let (mut a, now) = attempt(Phase::Proposing);
         let actions = a.handle(E::Proposals(vec![robot(1), robot(2)]), now);
         assert_eq!(
             actions,
-            vec![
-                A::DeclareToken,
-                A::Record(Phase::Booking(robot(1))),
-                A::AskBooking(robot(1))
-            ]
+            vec![A::Record(Phase::Booking(robot(1))), A::AskBooking(robot(1))]
         );
         assert_eq!(a.phase(), &Phase::Booking(robot(1)));
     }
@@ -661,10 +643,7 @@ mod tests {
     #[test]
     fn a_resumed_booking_is_asked_again_and_if_refused_a_new_round_starts_at_once() {
         let (mut a, now) = attempt(Phase::Booking(robot(3)));
-        assert_eq!(
-            a.handle(E::Resumed, now),
-            vec![A::DeclareToken, A::AskBooking(robot(3))]
-        );
+        assert_eq!(a.handle(E::Resumed, now), vec![A::AskBooking(robot(3))]);
         assert_eq!(
             a.handle(E::BookingAnswer(Answer::Refused(None)), now),
             vec![A::Record(Phase::Proposing), A::AskProposals]
@@ -674,10 +653,7 @@ mod tests {
     #[test]
     fn a_started_step_is_recorded_published_and_watched_for_the_step_timeout() {
         let (mut a, now) = attempt(Phase::Booked(robot(1)));
-        assert_eq!(
-            a.handle(E::Resumed, now),
-            vec![A::DeclareToken, A::AskStart(robot(1))]
-        );
+        assert_eq!(a.handle(E::Resumed, now), vec![A::AskStart(robot(1))]);
         assert_eq!(
             a.handle(E::StartAnswer(Answer::Accepted), now),
             vec![
@@ -799,10 +775,7 @@ mod tests {
         let (mut a, now) = attempt(Phase::Started(robot(2)));
         // Resumed (a restart, a takeover of the node): the resource is asked first;
         // nobody can tell, so what is left of the step timeout is watched.
-        assert_eq!(
-            a.handle(E::Resumed, now),
-            vec![A::DeclareToken, A::AskOutcome(robot(2))]
-        );
+        assert_eq!(a.handle(E::Resumed, now), vec![A::AskOutcome(robot(2))]);
         assert_eq!(
             a.handle(E::Outcome(None), now),
             vec![A::Watch {

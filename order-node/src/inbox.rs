@@ -94,6 +94,17 @@ impl Inboxes {
         }
     }
 
+    /// Those of `names` whose order is running here (its inbox is open): the orders the
+    /// node holds ([`schemas::held`]).
+    pub fn held(&self, names: &[String]) -> Vec<String> {
+        let open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        names
+            .iter()
+            .filter(|name| open.contains_key(name.as_str()))
+            .cloned()
+            .collect()
+    }
+
     /// Hands a query on `order/<name>/inbox` to the running order it names; an
     /// undecodable or misaddressed message is refused here. Returns the query when no
     /// running order has that name (the node decides).

@@ -6,9 +6,10 @@
 //! - [`attempt`]: one attempt of one step, proposal to result (a pure state machine);
 //! - [`order`]: an order's task, which performs the attempts' actions;
 //! - [`requests`]: the order's requests over zenoh; [`ranking`]: how a round's offers
-//!   are ranked; [`order_token`]: its presence;
+//!   are ranked;
 //! - [`presence`]: which resources are alive and whose turn it is on each;
-//! - [`inbox`]: where results reach the running orders;
+//! - [`inbox`]: where results reach the running orders, and which orders the node holds
+//!   (a resource keeps an order's bookings while its node holds it);
 //! - [`context`]: what the orders of a node share; [`journal`]: their store (SQLite,
 //!   or etcd for a node with a standby, [`standby`], which says where it stands,
 //!   [`fence_report`]);
@@ -29,7 +30,6 @@ pub mod journal;
 pub mod listing;
 pub mod node;
 pub mod order;
-pub mod order_token;
 pub mod presence;
 pub mod progress;
 pub mod queries;

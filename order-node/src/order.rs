@@ -23,7 +23,6 @@ use crate::attempt::{Attempt, AttemptAction, AttemptEvent, AttemptTiming};
 use crate::cancel::CancelAsk;
 use crate::context::{jittered, lock, IdleOrder, OrderContext, OrderError, Shared, IDLE_POLL};
 use crate::inbox::{Inbox, ResultReport};
-use crate::order_token::OrderToken;
 use crate::progress::{Phase, StepOutcome};
 use crate::ranking::InFlight;
 use crate::requests;
@@ -41,7 +40,6 @@ pub async fn run(
     let holon = lock(&progress).holon.clone();
     let mut order = OrderTask {
         inbox: ctx.inboxes.open(&holon),
-        token: OrderToken::new(&ctx, &holon),
         changes: ctx.presence.changes(),
         appearances: ctx.presence.appearances(),
         in_flight: None,
@@ -68,8 +66,9 @@ pub async fn run(
     let p = lock(&order.progress).snapshot();
     info!(%holon, status = %p.status, reason = p.reason.as_ref().map_or("", |r| r.as_str()), reworks = p.reworks, rebooks = p.rebooks, "order finished");
     // Results still arriving for this order (duplicates, late reports of abandoned
-    // attempts) are acknowledged by the node from now on.
-    order.token.undeclare().await;
+    // attempts) are acknowledged by the node from now on, and the node no longer holds
+    // it (its inbox closes): the resources release what it still has booked.
+    drop(order);
     Ok(())
 }
 
@@ -79,10 +78,9 @@ struct OrderTask {
     /// The order's progress, shared with the node (which reads it for queries).
     progress: Shared,
     holon: HolonId,
-    /// Results for this order.
+    /// Results for this order; while it is open the node holds the order
+    /// (`host/order-node/<node>/held`): its bookings last.
     inbox: Inbox,
-    /// Declared while the order holds (or may hold) a booking.
-    token: OrderToken,
     /// Resources appearing (true) and vanishing (false).
     changes: broadcast::Receiver<(HolonId, bool)>,
     /// Appearances since the last proposal round began: one that happens during the
@@ -274,10 +272,6 @@ impl OrderTask {
                 .with_urgency(priority, due)
         };
         Ok(match action {
-            AttemptAction::DeclareToken => {
-                self.token.declare().await?;
-                None
-            }
             AttemptAction::Record(phase) => {
                 // A booking made on advice counts once, when it is recorded.
                 let on_advice = matches!(&phase, Phase::Booked(p) | Phase::Started(p) if self.advised.as_ref() == Some(p));

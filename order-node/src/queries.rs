@@ -1,7 +1,9 @@
 //! The order-node's endpoints: `orders/submit`, the listing of its orders
-//! (`host/order-node/<node>/orders`, a page at a time), and its orders' `state`,
-//! `cancel` and `inbox` (for results of orders that are not running). Their callbacks
-//! queue every query for the node's loop, which answers it here.
+//! (`host/order-node/<node>/orders`, a page at a time), which orders it holds
+//! (`host/order-node/<node>/held`, answered in its callback from the open inboxes:
+//! the node's loop may be busy, a resource's question must not wait for it), and its
+//! orders' `state`, `cancel` and `inbox` (for results of orders that are not running).
+//! The other callbacks queue every query for the node's loop, which answers it here.
 
 use std::time::Duration;
 
@@ -66,6 +68,7 @@ pub struct Endpoints {
     _inboxes: zenoh::query::Queryable<()>,
     _cancels: zenoh::query::Queryable<()>,
     _listing: zenoh::query::Queryable<()>,
+    _held: zenoh::query::Queryable<()>,
 }
 
 impl Endpoints {
@@ -112,13 +115,63 @@ impl Endpoints {
             .declare_queryable(keys.node_listing(name))
             .callback(to_queue(NodeQuery::Listing))
             .await?;
+        let (inboxes, node, reply_key) = (
+            host.context.inboxes.clone(),
+            name.clone(),
+            keys.node_held(name),
+        );
+        let _held = session
+            .declare_queryable(keys.node_held(name))
+            .callback(move |query| held(&inboxes, &node, &reply_key, query))
+            .await?;
         Ok(Endpoints {
             _submit,
             _states,
             _inboxes,
             _cancels,
             _listing,
+            _held,
         })
+    }
+}
+
+/// Answers a resource's question of which orders the node holds, from the open inboxes
+/// (in the queryable's callback: it does not block); a malformed question is refused
+/// `malformed`.
+fn held(inboxes: &crate::inbox::Inboxes, node: &str, reply_key: &str, query: Query) {
+    use zenoh::Wait;
+    let payload = query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default();
+    let refuse = |query: &Query, why: String| {
+        warn!(%node, "held question refused: {why}");
+        if let Err(e) = query
+            .reply_err(ErrorReply::new(schemas::ErrorCode::Malformed, why).to_json())
+            .wait()
+        {
+            warn!(%node, error = %e, "cannot refuse a held question; the resource times out");
+        }
+    };
+    let asked = match serde_json::from_slice::<schemas::HeldRequest>(&payload) {
+        Ok(asked) if asked.orders.len() <= schemas::MAX_HELD_ASKED => asked,
+        Ok(asked) => {
+            let why = format!(
+                "{} orders asked at once, at most {} (ask in several)",
+                asked.orders.len(),
+                schemas::MAX_HELD_ASKED
+            );
+            return refuse(&query, why);
+        }
+        Err(e) => return refuse(&query, format!("not a held question: {e}")),
+    };
+    let reply = schemas::HeldReply {
+        node: node.to_string(),
+        held: inboxes.held(&asked.orders),
+    };
+    let payload = serde_json::to_vec(&reply).expect("serializes");
+    if let Err(e) = query.reply(reply_key, payload).wait() {
+        warn!(%node, error = %e, "cannot answer a held question; the resource counts this node's orders absent until it asks again");
     }
 }
 

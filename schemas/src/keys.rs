@@ -178,6 +178,17 @@ impl CellKeys {
         format!("{}/host/order-node/{node}/orders", self.prefix())
     }
 
+    /// `holarchy/<cell>/host/order-node/<node>/held`: which orders the node holds
+    /// ([`crate::held`]).
+    pub fn node_held(&self, node: &str) -> String {
+        format!("{}/host/order-node/{node}/held", self.prefix())
+    }
+
+    /// `holarchy/<cell>/host/order-node/*/held`: every node's held orders.
+    pub fn node_held_all(&self) -> String {
+        format!("{}/host/order-node/*/held", self.prefix())
+    }
+
     /// `holarchy/<cell>/host/order-node/*/orders`: the first page of every node.
     pub fn node_listing_all(&self) -> String {
         format!("{}/host/order-node/*/orders", self.prefix())

@@ -6,6 +6,7 @@
 
 pub mod advice;
 pub mod fence;
+pub mod held;
 pub mod id;
 pub mod keys;
 pub mod listing;
@@ -19,6 +20,7 @@ pub mod vocabulary;
 
 pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION};
 pub use fence::{FenceReport, FenceRole};
+pub use held::{HeldReply, HeldRequest, MAX_HELD_ASKED};
 pub use id::{validate_name, HolonId, HolonKind};
 pub use keys::{validate_reply_key, CellKeys};
 pub use listing::{
@@ -116,10 +118,12 @@ pub fn listing_json_schema() -> String {
     let schema = serde_json::json!({
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": "holarchy order listing",
-        "description": "A page of an order-node's orders: the request a reader sends on host/order-node/<name>/orders (an empty payload asks for the first page of every order), and the page the node answers.",
+        "description": "A page of an order-node's orders: the request a reader sends on host/order-node/<name>/orders (an empty payload asks for the first page of every order), and the page the node answers; and which orders a node holds: the question a resource sends on host/order-node/<name>/held (HeldRequest) and the node's answer (HeldReply).",
         "$defs": {
             "OrderListRequest": schemars::schema_for!(OrderListRequest),
             "OrderPage": schemars::schema_for!(OrderPage),
+            "HeldRequest": schemars::schema_for!(HeldRequest),
+            "HeldReply": schemars::schema_for!(HeldReply),
         },
     });
     let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");

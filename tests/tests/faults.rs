@@ -127,14 +127,58 @@ async fn a_twin_order_node_is_refused() {
     assert_eq!(orders, vec!["orders1-1".to_string()]);
 }
 
+/// A fake order-node: answers `host/order-node/tnode/held` with those of the orders
+/// asked that are in `holds`, and counts the questions.
+async fn fake_node(
+    cell: &Cell,
+    holds: std::sync::Arc<std::sync::Mutex<Vec<String>>>,
+    asked: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+) -> zenoh::query::Queryable<()> {
+    let reply_key = cell.keys.node_held("tnode");
+    cell.session
+        .declare_queryable(cell.keys.node_held("tnode"))
+        .callback(move |query| {
+            use zenoh::Wait;
+            asked.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let question: schemas::HeldRequest = serde_json::from_slice(
+                &query
+                    .payload()
+                    .map(|p| p.to_bytes().into_owned())
+                    .unwrap_or_default(),
+            )
+            .expect("a held question");
+            let holds = holds.lock().unwrap().clone();
+            let reply = schemas::HeldReply {
+                node: "tnode".into(),
+                held: question
+                    .orders
+                    .into_iter()
+                    .filter(|o| holds.contains(o))
+                    .collect(),
+            };
+            query
+                .reply(&reply_key, serde_json::to_vec(&reply).unwrap())
+                .wait()
+                .unwrap();
+        })
+        .await
+        .unwrap()
+}
+
+/// An order's bookings last while an order-node holds it (`host/order-node/*/held`),
+/// or, for an order of an earlier release, while its token lives; a requester no node
+/// holds and without a token (a faked or long-gone one) loses them after the grace.
 #[tokio::test(flavor = "multi_thread")]
 async fn bookings_of_a_requester_gone_for_good_are_released() {
     let dir = tempfile::tempdir().unwrap();
     let cell = Cell::open("t-lifetime").await.unwrap();
     let (_sim, _node) =
         robot_with(&cell, dir.path(), "\n[agenda]\nrequester_grace_ms = 2000\n").await;
-    // o-live holds a token while it wants its booking; o-ghost never had one (a faked
-    // or long-gone requester).
+    // o-held is held by its node; o-live holds a token (an order-node of an earlier
+    // release); o-ghost has neither.
+    let holds = std::sync::Arc::new(std::sync::Mutex::new(vec!["o-held".to_string()]));
+    let asked = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let node = fake_node(&cell, holds.clone(), asked.clone()).await;
     let live = HolonId::order("o-live").unwrap();
     let token = cell
         .session
@@ -142,43 +186,65 @@ async fn bookings_of_a_requester_gone_for_good_are_released() {
         .declare_token(cell.keys.alive(&live))
         .await
         .unwrap();
-    for (order, conversation) in [("o-ghost", "g/1/1"), ("o-live", "l/1/1")] {
+    for (order, conversation) in [
+        ("o-ghost", "g/1/1"),
+        ("o-live", "l/1/1"),
+        ("o-held", "h/1/1"),
+    ] {
         let book = pick_n_place(&cell.keys, MessageType::BookingReq, order, conversation);
         assert_eq!(
             cell.service("robot1", &book).await.unwrap().result,
             Some(true)
         );
     }
+    let state = cell
+        .wait_state("robot1", "the ghost's booking released", |s| {
+            s["agenda"].as_array().is_some_and(|a| a.len() == 2)
+        })
+        .await
+        .unwrap();
+    let requesters: Vec<&str> = state["agenda"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|b| b["requester"].as_str().unwrap())
+        .collect();
+    assert_eq!(requesters, ["order/o-live", "order/o-held"], "{state}");
+    assert!(
+        asked.load(std::sync::atomic::Ordering::Relaxed) > 0,
+        "the resource asked the node"
+    );
+    // Still there well after the grace while their requesters are in the cell.
+    tokio::time::sleep(Duration::from_secs(3)).await;
     let state = cell.status("robot1").await.unwrap();
     let agenda = state["agenda"].as_array().unwrap();
     assert_eq!(agenda.len(), 2, "{state}");
     assert!(
-        agenda[0]["requester_absent_since"].is_u64(),
-        "the ghost is shown absent: {state}"
+        agenda
+            .iter()
+            .all(|b| b.get("requester_absent_since").is_none()),
+        "both requesters are present: {state}"
     );
-    assert!(
-        agenda[1].get("requester_absent_since").is_none(),
-        "the live requester is present: {state}"
-    );
+
+    // The requesters end: the node no longer holds o-held, o-live withdraws its token;
+    // their bookings go after the grace.
+    holds.lock().unwrap().clear();
+    token.undeclare().await.unwrap();
     let state = cell
-        .wait_state("robot1", "the ghost's booking released", |s| {
-            s["agenda"].as_array().is_some_and(|a| a.len() == 1)
+        .wait_state("robot1", "the absence shown", |s| {
+            s["agenda"].as_array().is_some_and(|a| {
+                !a.is_empty() && a.iter().all(|b| b["requester_absent_since"].is_u64())
+            })
         })
         .await
         .unwrap();
-    assert_eq!(state["agenda"][0]["requester"], "order/o-live");
-    // Still there well after the grace while its requester lives.
-    tokio::time::sleep(Duration::from_secs(3)).await;
-    let state = cell.status("robot1").await.unwrap();
-    assert_eq!(state["agenda"].as_array().unwrap().len(), 1, "{state}");
-
-    // The requester ends: its booking goes after the grace.
-    token.undeclare().await.unwrap();
-    cell.wait_state("robot1", "the ended order's booking released", |s| {
+    assert_eq!(state["agenda"].as_array().unwrap().len(), 2, "{state}");
+    cell.wait_state("robot1", "the ended orders' bookings released", |s| {
         s["agenda"].as_array().is_some_and(|a| a.is_empty())
     })
     .await
     .unwrap();
+    drop(node);
 }
 
 /// A small tmpfs mounted at a directory for the test's life (needs root, as the
@@ -447,4 +513,50 @@ async fn stopping_while_the_disk_is_full_delivers_the_held_result_and_hands_the_
     assert!(status.success(), "{}", node.stderr());
     println!("stopped {:?} after SIGTERM", stopping.elapsed());
     assert_eq!(sim.executed("pick"), 1);
+}
+
+/// A real order's booking waiting behind another job outlasts the grace: its
+/// order-node says it holds the order (no token per order), so the resource keeps it.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_waiting_booking_of_a_running_order_outlasts_the_grace() {
+    let dir = tempfile::tempdir().unwrap();
+    let dir = dir.path();
+    let cell = Cell::open("t-held").await.unwrap();
+    // Every action takes 1.5 s: a job takes 3, three times the grace.
+    let _robot = cell
+        .resource(dir, "robot1")
+        .sim_flags(&["--delay-ms", "1500"])
+        .command_timeout_ms(10_000)
+        .config("\n[agenda]\nrequester_grace_ms = 1000\n")
+        .start()
+        .await
+        .unwrap();
+    let _part_and_orders = cell
+        .start_part_and_orders(dir, &demo_config("orders1.toml"), &dir.join("orders-data"))
+        .await
+        .unwrap();
+    let orders = cell.submit("part", 2).await.unwrap();
+    cell.wait_state("robot1", "one order running, one waiting", |s| {
+        s["current"].is_object() && s["agenda"].as_array().is_some_and(|a| a.len() == 1)
+    })
+    .await
+    .unwrap();
+    tokio::time::sleep(Duration::from_millis(2000)).await;
+    let state = cell.status("robot1").await.unwrap();
+    let agenda = state["agenda"].as_array().unwrap();
+    assert_eq!(agenda.len(), 1, "the waiting booking is kept: {state}");
+    assert!(
+        agenda[0].get("requester_absent_since").is_none(),
+        "its order is present: {state}"
+    );
+    for order in &orders {
+        cell.wait_order(order, "done", |s| s.is_some_and(|s| s["status"] == "done"))
+            .await
+            .unwrap();
+        let state = cell.order_state(order).await.unwrap();
+        assert_eq!(
+            state["rebooks"], 0,
+            "{order} never lost its booking: {state}"
+        );
+    }
 }
