@@ -49,6 +49,37 @@ impl Cell {
         serde_json::from_slice(&reply.result().ok()?.payload().to_bytes()).ok()
     }
 
+    /// Waits, at most 20 s, until an order-node holds `order` (its task runs, its inbox
+    /// is open: `host/order-node/*/held`, as a resource asks).
+    pub async fn wait_held(&self, order: &str) -> Result<()> {
+        let deadline = tokio::time::Instant::now() + crate::WAIT;
+        let question = serde_json::to_vec(&schemas::HeldRequest {
+            orders: vec![order.to_string()],
+        })?;
+        loop {
+            let replies = self
+                .session
+                .get(self.keys.node_held_all())
+                .payload(question.clone())
+                .consolidation(zenoh::query::ConsolidationMode::None)
+                .timeout(Duration::from_secs(1))
+                .await
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+            while let Ok(reply) = replies.recv_async().await {
+                let Ok(sample) = reply.result() else { continue };
+                let answer: schemas::HeldReply =
+                    serde_json::from_slice(&sample.payload().to_bytes())?;
+                if answer.held.iter().any(|o| o == order) {
+                    return Ok(());
+                }
+            }
+            if tokio::time::Instant::now() >= deadline {
+                bail!("no order-node held {order} within {:?}", crate::WAIT);
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
     /// Waits, at most 30 s, until `check` holds for the order's state as its order-node
     /// answers it (`None`: no node knows the order). The error says what it never did.
     pub async fn wait_order(

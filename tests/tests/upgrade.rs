@@ -111,12 +111,10 @@ async fn a_resource_hands_over_to_its_successor_without_losing_or_repeating_a_st
     let orders = cell.submit("part", 12).await.unwrap();
     // A result in a message version the order-node does not speak is refused, and
     // says so (a holon of another release in a rolling upgrade). The last order's
-    // inbox: it is still there when a loaded machine gets to ask, once the order's
-    // token says its task runs (the inbox is declared before it).
+    // inbox: it is still there when a loaded machine gets to ask, once its node says
+    // it holds the order (its task runs, its inbox is open).
     let last = orders.last().unwrap();
-    cell.wait_alive(&HolonId::order(last).unwrap())
-        .await
-        .unwrap();
+    cell.wait_held(last).await.unwrap();
     let mut other_version = serde_json::to_value(schemas::Service::request(
         schemas::MessageType::Done,
         "pick_n_place",
