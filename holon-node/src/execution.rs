@@ -87,8 +87,9 @@ pub enum ExecutionAction {
     AskStepStatus,
     /// Tell the agenda manager: ready to execute.
     Ready,
-    /// Tell the agenda manager: cannot execute (controller away, fault or estop).
-    Unavailable(ControllerStatus),
+    /// Tell the agenda manager: cannot execute (controller away, fault or estop), with
+    /// what the controller said of it in its own words, if anything.
+    Unavailable(ControllerStatus, Option<String>),
     /// Tell the agenda manager how the job ended.
     Finished {
         conversation_id: String,
@@ -145,6 +146,9 @@ pub struct Execution {
     catalog: Arc<ServiceCatalog>,
     state: ExecutionState,
     controller: ControllerStatus,
+    /// What the controller said of its state in its own words (a status reply's
+    /// `{message}`), if anything.
+    said: Option<String>,
     next_command_id: u64,
     /// Whether the controller fences (a standby resource's): a lost answer is asked.
     fenced: bool,
@@ -156,6 +160,7 @@ impl Execution {
             catalog,
             state: ExecutionState::Init,
             controller: ControllerStatus::Disconnected,
+            said: None,
             next_command_id: 1,
             fenced: false,
         }
@@ -209,7 +214,9 @@ impl Execution {
         match event {
             ExecutionEvent::Start(job) => self.start(job),
             ExecutionEvent::Abort => self.abort(),
-            ExecutionEvent::Controller(ControllerEvent::Status(status)) => self.status(status),
+            ExecutionEvent::Controller(ControllerEvent::Status(status, said)) => {
+                self.status(status, said)
+            }
             ExecutionEvent::Controller(ControllerEvent::Reply {
                 id,
                 result,
@@ -245,6 +252,7 @@ impl Execution {
                     CommandFailure::Protocol(_) => Reason::ControllerProtocol,
                     CommandFailure::Unwritable(_) => Reason::InvalidInfo,
                     CommandFailure::Aborted => Reason::Aborted,
+                    CommandFailure::Stopped(_) => Reason::ControllerFault,
                 };
                 self.fail(why, failure.to_string())
             }
@@ -458,9 +466,15 @@ impl Execution {
         actions
     }
 
-    fn status(&mut self, status: ControllerStatus) -> Vec<ExecutionAction> {
+    fn status(&mut self, status: ControllerStatus, said: Option<String>) -> Vec<ExecutionAction> {
         let was_ready = self.controller.is_ready();
         let previous = std::mem::replace(&mut self.controller, status);
+        let said_before = std::mem::replace(&mut self.said, said.clone());
+        // The controller's own words, where it gave any: `fault: overtravel axis 3`.
+        let reported = match &said {
+            Some(said) => format!("{status}: {said}"),
+            None => status.to_string(),
+        };
         let mut actions = Vec::new();
         let running = matches!(self.state, ExecutionState::Running { .. });
         if running && self.fenced && status == ControllerStatus::Disconnected && !self.is_aborting()
@@ -475,7 +489,7 @@ impl Execution {
             let (why, detail) = match status {
                 _ if self.is_aborting() => (
                     Reason::Aborted,
-                    format!("aborted by an operator; the controller then reported {status}"),
+                    format!("aborted by an operator; the controller then reported {reported}"),
                 ),
                 ControllerStatus::Disconnected => (
                     Reason::ControllerDisconnected,
@@ -483,7 +497,7 @@ impl Execution {
                 ),
                 ControllerStatus::Ready | ControllerStatus::Fault | ControllerStatus::Estop => (
                     Reason::ControllerFault,
-                    format!("the controller reported {status}"),
+                    format!("the controller reported {reported}"),
                 ),
             };
             actions.extend(self.fail(why, detail));
@@ -495,10 +509,12 @@ impl Execution {
             }
             (ExecutionState::Ready, false) => {
                 self.state = ExecutionState::Init;
-                actions.push(ExecutionAction::Unavailable(status));
+                actions.push(ExecutionAction::Unavailable(status, said));
             }
-            (ExecutionState::Init, false) if was_ready || status != previous => {
-                actions.push(ExecutionAction::Unavailable(status));
+            (ExecutionState::Init, false)
+                if was_ready || status != previous || said != said_before =>
+            {
+                actions.push(ExecutionAction::Unavailable(status, said));
             }
             _ => {}
         }
@@ -616,11 +632,11 @@ mod tests {
     }
 
     fn ready() -> ExecutionEvent {
-        ExecutionEvent::Controller(ControllerEvent::Status(ControllerStatus::Ready))
+        ExecutionEvent::Controller(ControllerEvent::Status(ControllerStatus::Ready, None))
     }
 
     fn status(s: ControllerStatus) -> ExecutionEvent {
-        ExecutionEvent::Controller(ControllerEvent::Status(s))
+        ExecutionEvent::Controller(ControllerEvent::Status(s, None))
     }
 
     fn reply(id: u64, result: &str) -> ExecutionEvent {
@@ -666,7 +682,7 @@ mod tests {
         // A fault before it was ever ready is news for the agenda (PackML aborts).
         assert_eq!(
             e.handle(status(ControllerStatus::Fault)),
-            vec![ExecutionAction::Unavailable(ControllerStatus::Fault)]
+            vec![ExecutionAction::Unavailable(ControllerStatus::Fault, None)]
         );
         assert_eq!(
             e.handle(status(ControllerStatus::Fault)),
@@ -802,7 +818,7 @@ mod tests {
         failed_with(&actions, "controller_disconnected");
         assert_eq!(
             actions[1],
-            ExecutionAction::Unavailable(ControllerStatus::Disconnected)
+            ExecutionAction::Unavailable(ControllerStatus::Disconnected, None)
         );
         assert_eq!(e.state(), &ExecutionState::Init);
         // The command's own failure, arriving after, changes nothing.
@@ -823,7 +839,7 @@ mod tests {
             e.handle(ExecutionEvent::Start(job("pick_n_place")));
             let actions = e.handle(status(state));
             failed_with(&actions, "controller_fault");
-            assert_eq!(actions[1], ExecutionAction::Unavailable(state));
+            assert_eq!(actions[1], ExecutionAction::Unavailable(state, None));
         }
     }
 
@@ -832,7 +848,7 @@ mod tests {
         let mut e = ready_execution();
         assert_eq!(
             e.handle(status(ControllerStatus::Estop)),
-            vec![ExecutionAction::Unavailable(ControllerStatus::Estop)]
+            vec![ExecutionAction::Unavailable(ControllerStatus::Estop, None)]
         );
         let actions = e.handle(ExecutionEvent::Start(job("pick_n_place")));
         failed_with(&actions, "unavailable");

@@ -79,7 +79,11 @@ struct Args {
     /// Answer every Nth `inspect` with `inspect_fail` instead of `inspect_pass`.
     #[arg(long, value_name = "N")]
     inspect_fail_every: Option<u64>,
-    /// When the (N+1)th command arrives, report a fault instead of executing it.
+    /// When the (N+1)th command arrives, report a fault instead of executing it: the
+    /// controller is stopped for --fault-for-ms (pushed: it says so at once; polled: its
+    /// status polls are answered with the status reply that says the fault), and refuses
+    /// every command of the sequence meanwhile (answered with its failed reply, counted
+    /// in the count file's refused_while_stopped).
     #[arg(long, value_name = "N")]
     fault_after: Option<u64>,
     /// The state reported by --fault-after: fault or estop.
@@ -90,8 +94,10 @@ struct Args {
     fault_for_ms: u64,
     /// Keep the command counts in this JSON file, rewritten after each command (the
     /// commands of 2 ms share one write; read it once it stays the same for a moment):
-    /// {"executed":N,"received":N,"aborted":N,"connections":N,"changeovers":N,
-    /// "by_action":{"pick":N,...}} (aborted: actions the dialect's abort stopped).
+    /// {"executed":N,"received":N,"aborted":N,"refused_while_stopped":N,"connections":N,
+    /// "changeovers":N,"by_action":{"pick":N,...}} (aborted: actions the dialect's abort
+    /// stopped; refused_while_stopped: commands of the sequence that came during a
+    /// --fault-after fault or e-stop, refused with the failed reply and not executed).
     #[arg(long, value_name = "PATH")]
     count_file: Option<PathBuf>,
     /// Fence for standby holons (docs/controller-protocol.md, "Fencing (standby)"): one

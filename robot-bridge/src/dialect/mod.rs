@@ -402,6 +402,42 @@ impl Dialect {
         })
     }
 
+    /// The reply that may come at any time (`status` or `ignore`) a message is, tried in
+    /// the order of the file, with its values and, for a `status`, its state. A reply
+    /// whose shape fits but whose value is wrong for it (a value outside its enum table,
+    /// a state that is not ready, fault or estop) does not take the message: the next
+    /// is tried. When none takes it, the first such wrong value is the error (the
+    /// message meant to be one of them); when none had its shape, `Ok(None)`.
+    pub fn read_unsolicited(
+        &self,
+        parsed: &Parsed,
+    ) -> Result<Option<(usize, Values, Option<ControllerState>)>, String> {
+        let mut wrong = None;
+        for reply in self.unsolicited() {
+            let values = match self.read_reply(reply, parsed) {
+                Ok(None) => continue,
+                Ok(Some(values)) => values,
+                Err(why) => {
+                    wrong.get_or_insert(why);
+                    continue;
+                }
+            };
+            if self.replies[reply].outcome == Outcome::Ignore {
+                return Ok(Some((reply, values, None)));
+            }
+            match self.state_of(reply, &values) {
+                Ok(state) => return Ok(Some((reply, values, Some(state)))),
+                Err(why) => {
+                    wrong.get_or_insert(why);
+                }
+            }
+        }
+        match wrong {
+            Some(why) => Err(why),
+            None => Ok(None),
+        }
+    }
+
     /// Replies that may come at any time: `status` and `ignore`.
     pub fn unsolicited(&self) -> impl Iterator<Item = usize> + '_ {
         self.replies

@@ -137,6 +137,9 @@ impl SimConfig {
 pub struct SimStats {
     received: AtomicU64,
     executed: AtomicU64,
+    /// Commands of the sequence that came while the controller was in its simulated
+    /// fault or e-stop: refused, not executed.
+    refused: AtomicU64,
     /// Actions stopped by an abort (not executed).
     aborted: AtomicU64,
     inspections: AtomicU64,
@@ -185,6 +188,12 @@ impl SimStats {
         self.aborted.load(Ordering::SeqCst)
     }
 
+    /// Commands of the sequence that came while the controller was stopped (its
+    /// simulated fault or e-stop): refused, not executed.
+    pub fn refused_while_stopped(&self) -> u64 {
+        self.refused.load(Ordering::SeqCst)
+    }
+
     /// Commands received, executed or not.
     pub fn received(&self) -> u64 {
         self.received.load(Ordering::SeqCst)
@@ -224,8 +233,8 @@ impl SimStats {
             .clone()
     }
 
-    /// `{"executed": N, "received": N, "aborted": N, "connections": N, "changeovers": N,
-    /// "by_action": {"pick": N, ...}}`; fenced, with `"epoch": N,
+    /// `{"executed": N, "received": N, "aborted": N, "refused_while_stopped": N,
+    /// "connections": N, "changeovers": N, "by_action": {"pick": N, ...}}`; fenced, with `"epoch": N,
     /// "stale_epoch_refused": N, "by_step": {"STEP ID": N, ...}` too.
     pub fn to_json(&self) -> String {
         let plain = self.plain_json();
@@ -254,10 +263,11 @@ impl SimStats {
             .map(|(k, v)| format!("\"{k}\":{v}"))
             .collect();
         format!(
-            "{{\"executed\":{},\"received\":{},\"aborted\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
+            "{{\"executed\":{},\"received\":{},\"aborted\":{},\"refused_while_stopped\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
             self.executed(),
             self.received(),
             self.aborted(),
+            self.refused_while_stopped(),
             self.connections(),
             self.changeovers(),
             by_action.join(",")

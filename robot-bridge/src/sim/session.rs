@@ -86,7 +86,7 @@ struct Session<'a> {
     /// The values of the action under way, from every message that named them.
     context: Values,
     running: Option<Running>,
-    /// Until when the controller reports a fault (polled state).
+    /// Until when the controller is in a fault or e-stop (`--fault-after`), and which.
     fault_until: Option<(std::time::Instant, ControllerState)>,
     /// Commands begun on this connection.
     on_this_connection: u64,
@@ -119,6 +119,7 @@ pub(super) async fn serve(
         dialect: &dialect,
         config,
         held: BytesMut::new(),
+        state: ControllerState::Ready,
     };
     if let Some(banner) = &dialect.banner {
         let mut framed = BytesMut::new();
@@ -129,7 +130,7 @@ pub(super) async fn serve(
         writer.raw(&framed).await?;
     }
     if dialect.status == Status::Pushed {
-        writer.status(ControllerState::Ready).await?;
+        writer.status().await?;
     }
     let mut session = Session {
         config,
@@ -152,8 +153,18 @@ pub(super) async fn serve(
             .as_ref()
             .map_or_else(std::time::Instant::now, |a| a.until);
         let lease_end = session.lease_end();
+        let fault_end = session.fault_until.map(|(until, _)| until);
         let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
+            _ = tokio::time::sleep_until(fault_end.unwrap_or_else(std::time::Instant::now).into()), if fault_end.is_some() => {
+                session.fault_until = None;
+                writer.state = ControllerState::Ready;
+                info!("ready again");
+                if dialect.status == Status::Pushed {
+                    writer.status().await?;
+                }
+                Flow::Continue
+            }
             _ = tokio::time::sleep_until(lease_end.unwrap_or_else(std::time::Instant::now).into()), if lease_end.is_some() => {
                 if session.lease_expired() {
                     drop(reader);
@@ -343,12 +354,9 @@ impl Session<'_> {
         }
         if let Status::Polled { command, .. } = self.dialect.status {
             if command == index {
-                let state = self.state_now();
-                if let Some(rule) = writer.status_rule() {
-                    let mut v = Values::default();
-                    v.set("state", state.as_str().into());
-                    writer.reply(rule, &v).await?;
-                }
+                // Answered with the status reply that says the state now.
+                writer.state = self.state_now();
+                writer.status().await?;
                 return Ok(Flow::Continue);
             }
         }
@@ -373,6 +381,22 @@ impl Session<'_> {
         self.context.fill_from(&values);
         for (name, value) in values.iter() {
             self.context.set(name, value.to_string());
+        }
+        let state = self.state_now();
+        if state != ControllerState::Ready && element.sending == Sending::Send {
+            // A stopped controller refuses motion, as a real one does: counted, so a
+            // test sees a command that reached it while stopped.
+            let refused = self.stats.refused.fetch_add(1, Ordering::SeqCst) + 1;
+            let command = &self.dialect.commands[index].name;
+            warn!(%command, %state, refused, "a command while stopped: refused, not executed");
+            self.answer_failed(
+                &element,
+                writer,
+                &format!("refused: the robot is in {state}"),
+            )
+            .await?;
+            self.count_file.update();
+            return Ok(Flow::Continue);
         }
         if element.starts {
             return self.begin(&element, writer, shutdown).await;
@@ -437,22 +461,20 @@ impl Session<'_> {
             info!(%id, %state, "reporting a fault (--fault-after)");
             self.count_file.update();
             let one = self.dialect.correlation == Correlation::OneInFlight;
+            // Stopped for `fault_for` (the session's timer reports `ready` again); what
+            // comes meanwhile is refused.
+            self.fault_until = Some((std::time::Instant::now() + config.fault_for, state));
+            writer.state = state;
             match self.dialect.status {
                 Status::Pushed => {
-                    writer.status(state).await?;
+                    // The state first, so the holon knows it before the command's answer.
+                    writer.status().await?;
                     if one {
                         self.answer_failed(element, writer, &format!("{state}"))
                             .await?;
                     }
-                    tokio::select! {
-                        _ = shutdown.cancelled() => return Ok(Flow::Close),
-                        _ = tokio::time::sleep(config.fault_for) => {}
-                    }
-                    info!("ready again");
-                    writer.status(ControllerState::Ready).await?;
                 }
                 _ => {
-                    self.fault_until = Some((std::time::Instant::now() + config.fault_for, state));
                     self.answer_failed(element, writer, &format!("{state}"))
                         .await?;
                 }

@@ -22,6 +22,18 @@ pub(super) struct Writer<'a> {
     pub(super) config: &'a SimConfig,
     /// Messages held to be written with the next one (`merge`).
     pub(super) held: BytesMut,
+    /// The controller's state, as its status replies say it.
+    pub(super) state: ControllerState,
+}
+
+/// What the simulated controller says of its state in its own words, for a status
+/// reply that carries a `{message}`.
+fn said(state: ControllerState) -> &'static str {
+    match state {
+        ControllerState::Ready => "",
+        ControllerState::Fault => "simulated fault (--fault-after)",
+        ControllerState::Estop => "simulated emergency stop (--fault-after)",
+    }
 }
 
 impl Writer<'_> {
@@ -45,10 +57,9 @@ impl Writer<'_> {
     pub(super) async fn reply(&mut self, index: usize, values: &Values) -> Result<(), SimError> {
         let mut framed = self.frame(index, values)?;
         if self.config.merge && self.dialect.status == Status::Pushed {
-            // A state repeated in the same write as the reply.
-            if let Some(status) = self.status_rule() {
-                let mut state = Values::default();
-                state.set("state", ControllerState::Ready.as_str().into());
+            // The state repeated in the same write as the reply (pushed only: a polled
+            // controller says its state when asked, never unprompted).
+            if let Some((status, state)) = self.status_reply(self.state) {
                 let before = self.frame(status, &state)?;
                 self.held.extend_from_slice(&before);
             }
@@ -73,19 +84,47 @@ impl Writer<'_> {
         self.reply(index, values).await
     }
 
-    pub(super) fn status_rule(&self) -> Option<usize> {
+    /// The status reply that says `state`, and its values: the first, in the order of
+    /// the file, whose message the holon reads back as that state (a dialect may have
+    /// one reply per state: `STATE IDLE`, `STATE ERROR {message}`, `STATE ESTOP`).
+    pub(super) fn status_reply(&self, state: ControllerState) -> Option<(usize, Values)> {
+        let mut values = Values::default();
+        values.set("state", state.as_str().into());
+        values.set("message", said(state).into());
         self.dialect
             .replies
             .iter()
-            .position(|r| r.outcome == Outcome::Status)
+            .enumerate()
+            .filter(|(_, r)| r.outcome == Outcome::Status)
+            .find(|&(index, _)| self.says(index, &values, state))
+            .map(|(index, _)| (index, values.clone()))
     }
 
-    pub(super) async fn status(&mut self, state: ControllerState) -> Result<(), SimError> {
-        let Some(index) = self.status_rule() else {
+    /// Whether status reply `index`, written with `values`, is read by the holon as
+    /// `state`.
+    fn says(&self, index: usize, values: &Values, state: ControllerState) -> bool {
+        let Some(body) = &self.dialect.replies[index].body else {
+            return false;
+        };
+        let Ok(bytes) = self.dialect.write(body, values) else {
+            return false;
+        };
+        let Ok(parsed) = self.dialect.parse(&bytes) else {
+            return false;
+        };
+        matches!(
+            self.dialect.read_unsolicited(&parsed),
+            Ok(Some((read, _, Some(read_state)))) if read == index && read_state == state
+        )
+    }
+
+    /// Writes the state (`self.state`) in its status reply, if the dialect has one for it.
+    pub(super) async fn status(&mut self) -> Result<(), SimError> {
+        let state = self.state;
+        let Some((index, values)) = self.status_reply(state) else {
+            tracing::warn!(%state, "the dialect has no status reply for this state: not said");
             return Ok(());
         };
-        let mut values = Values::default();
-        values.set("state", state.as_str().into());
         let framed = self.frame(index, &values)?;
         self.raw(&framed).await
     }

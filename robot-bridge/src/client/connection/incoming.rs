@@ -59,26 +59,23 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 }
             }
         }
-        for reply in self.dialect.unsolicited() {
-            match self.dialect.read_reply(reply, &parsed) {
-                Ok(None) => continue,
-                Err(why) => return self.protocol_error(why).await,
-                Ok(Some(values)) => {
-                    if self.dialect.replies[reply].outcome == Outcome::Ignore {
-                        return Ok(());
-                    }
-                    let state = match self.dialect.state_of(reply, &values) {
-                        Ok(state) => state,
-                        Err(why) => return self.protocol_error(why).await,
-                    };
-                    if matches!(self.awaiting, Some(Awaiting::StatusPoll { .. })) {
-                        self.awaiting = None;
-                        if let Status::Polled { every, .. } = self.dialect.status {
-                            self.next_status_poll = Some(Instant::now() + every);
-                        }
-                    }
-                    return self.status(state).await;
+        match self.dialect.read_unsolicited(&parsed) {
+            Ok(None) => {}
+            Err(why) => return self.protocol_error(why).await,
+            Ok(Some((_, _, None))) => return Ok(()),
+            Ok(Some((_, values, Some(state)))) => {
+                if self.dialect.status != Status::Pushed {
+                    // A status read: the state is known as of now.
+                    self.state_fresh = true;
+                    self.poll_outstanding = false;
                 }
+                if matches!(self.awaiting, Some(Awaiting::StatusPoll { .. })) {
+                    self.awaiting = None;
+                    if let Status::Polled { every, .. } = self.dialect.status {
+                        self.next_status_poll = Some(Instant::now() + every);
+                    }
+                }
+                return self.status(state, values.get("message")).await;
             }
         }
         if keepalive_answered {
