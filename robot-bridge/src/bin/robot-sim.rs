@@ -30,7 +30,8 @@ struct Args {
     dialect: String,
     /// Check the dialect (that it is valid and that robot-sim can speak it), print
     /// `dialect NAME is valid`, and exit: 0 if it is, 2 with the field and the problem
-    /// if not.
+    /// if not. What is valid but likely a mistake (no `abort`) is said on stderr as
+    /// `robot-sim: warning: ...`, and the exit is still 0.
     #[arg(long)]
     check: bool,
     /// Dial the holon at this address instead of listening (for a dialect whose
@@ -141,6 +142,9 @@ async fn main() -> anyhow::Result<()> {
         std::process::exit(2);
     }
     if args.check {
+        for warning in dialect.warnings() {
+            eprintln!("robot-sim: warning: {warning}");
+        }
         println!("dialect {} is valid", dialect.name);
         return Ok(());
     }

@@ -493,6 +493,19 @@ impl Dialect {
         Ok(())
     }
 
+    /// What is valid but likely a mistake, for `--check` to say (it does not refuse the
+    /// dialect): each a sentence.
+    pub fn warnings(&self) -> Vec<String> {
+        let mut warnings = Vec::new();
+        if self.abort.is_none() {
+            warnings.push(format!(
+                "the dialect {} has no `abort`: an operator's Abort (PackML) cannot stop the controller's motion; the step in flight runs to its end (docs/dialects.md, section 4.8)",
+                self.name
+            ));
+        }
+        warnings
+    }
+
     /// Checks that robot-sim can write every reply this dialect needs.
     pub fn check_simulatable(&self) -> Result<(), String> {
         for reply in &self.replies {
