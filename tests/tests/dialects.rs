@@ -179,6 +179,61 @@ async fn no_command_reaches_an_e_stopped_controller_in_any_dialect() {
     }
 }
 
+#[tokio::test(flavor = "multi_thread")]
+async fn the_controllers_own_words_reach_the_order_the_stop_reason_and_the_log() {
+    // The worked case of docs/dialects.md 7.7: STATE ERROR <text> polled. The first job
+    // faults the robot, which leaves it unanswered and says why in its state.
+    let example = workspace_root().join("deploy/dialects/examples/job-ack-end.toml");
+    let r = robot(
+        "t-dialect-words",
+        example.to_str().unwrap(),
+        &["--fault-after", "0", "--fault-for-ms", "1500"],
+    )
+    .await;
+    let words = "simulated fault (--fault-after)";
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    let result = r.job(&mut inbox, "c1").await;
+    assert_eq!(
+        result.reason.as_ref().map(|r| r.as_str()),
+        Some("controller_fault"),
+        "{result:?}"
+    );
+    assert_eq!(
+        result.info["detail"],
+        format!("the controller reported fault: {words}"),
+        "{result:?}"
+    );
+    let state = r
+        .cell
+        .wait_state("robot1", "aborted", |s| s["packml"]["state"] == "aborted")
+        .await
+        .unwrap();
+    let reason = &state["packml"]["stop_reason"];
+    assert_eq!(reason["id"], 100, "{state}");
+    assert_eq!(
+        reason["message"],
+        format!("the controller reported fault: {words}"),
+        "{state}"
+    );
+    let log = r.resource.node.stderr();
+    assert!(
+        log.contains("controller_said") && log.contains(words),
+        "the holon's log: {log}"
+    );
+    // Ready again, cleared, reset and started: it works.
+    r.cell
+        .wait_state("robot1", "controller ready", |s| s["controller"] == "ready")
+        .await
+        .unwrap();
+    for command in ["clear", "reset", "start"] {
+        r.cell.packml("robot1", command).await.unwrap();
+    }
+    r.cell.wait_serving("robot1").await.unwrap();
+    let result = r.job(&mut inbox, "c2").await;
+    assert_eq!(result.message_type, MessageType::Done, "{result:?}");
+    assert_eq!(r.resource.sim.counts()["refused_while_stopped"], 0);
+}
+
 fn check(config: &Path) -> (bool, String) {
     let out = Command::new(bin("holon-node"))
         .arg("--config")

@@ -66,6 +66,11 @@ struct Args {
     /// not executed).
     #[arg(long, value_name = "N")]
     oversize_after: Option<u64>,
+    /// Answer the (N+1)th command's messages with another id than its own (its id with a
+    /// 9 after it: ACK 239 for JOB 23), where the dialect's replies echo one (once;
+    /// executed).
+    #[arg(long, value_name = "N")]
+    wrong_id_after: Option<u64>,
     /// Begin the (N+1)th command and reset the connection (RST) halfway through it
     /// (not executed).
     #[arg(long, value_name = "N")]
@@ -198,6 +203,7 @@ async fn main() -> anyhow::Result<()> {
         dialect: Some(dialect),
         reset_after: args.reset_after,
         oversize_after: args.oversize_after,
+        wrong_id_after: args.wrong_id_after,
         fragment: args.fragment,
         merge: args.merge,
         abort_too_late: false,

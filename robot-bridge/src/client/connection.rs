@@ -56,6 +56,9 @@ struct Exchange {
     deadline: Instant,
     /// Whether an abort has been asked while it was in flight.
     aborted: bool,
+    /// Whether an answer naming its id has come since its message was last sent (an
+    /// answer without an id goes to the oldest exchange without one).
+    echoed: bool,
 }
 
 impl Exchange {
@@ -303,6 +306,7 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             poll_at: None,
             deadline: Instant::now() + self.config.command_timeout,
             aborted: false,
+            echoed: false,
         });
         Ok(())
     }
@@ -420,6 +424,7 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             self.last_traffic = now;
             let exchange = &mut self.exchanges[i];
             exchange.sent = true;
+            exchange.echoed = false;
             exchange.poll_at = None;
             if one {
                 self.awaiting = Some(Awaiting::Command(exchange.command.id));
@@ -428,7 +433,7 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
         if let (Status::Polled { command, every }, Some(at)) =
             (self.dialect.status, self.next_status_poll)
         {
-            if at <= now && self.wire_free() && !self.poll_outstanding {
+            if at <= now && self.wire_free() {
                 let bytes = self
                     .dialect
                     .write_command(command, &Values::default())

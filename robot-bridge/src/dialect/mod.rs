@@ -506,6 +506,26 @@ impl Dialect {
         warnings
     }
 
+    /// Whether command `index`'s message writes the value `name` (`id`: whether an id a
+    /// reply echoes can be compared with the command's).
+    pub fn command_writes(&self, index: usize, name: &str) -> bool {
+        messages::templates_of(&self.commands[index].body)
+            .iter()
+            .any(|t| t.names().iter().any(|(n, _)| n == name))
+    }
+
+    /// Whether reply `index` reads the value `name` (from its text, or its regex's
+    /// named groups when it has one).
+    pub fn reply_reads(&self, index: usize, name: &str) -> bool {
+        let reply = &self.replies[index];
+        match (&reply.regex, &reply.body) {
+            // The holon reads a line through the regex alone when there is one.
+            (Some(regex), _) => regex.capture_names().flatten().any(|n| n == name),
+            (None, Some(body)) => messages::captures(body, None).iter().any(|n| n == name),
+            (None, None) => false,
+        }
+    }
+
     /// Checks that robot-sim can write every reply this dialect needs.
     pub fn check_simulatable(&self) -> Result<(), String> {
         for reply in &self.replies {

@@ -36,10 +36,13 @@
 //!   describe instead of a reply and is not executed; later commands are served normally;
 //! - `oversize_after N`: the (N+1)th command gets a message larger than the dialect's
 //!   `max_message_bytes` and is not executed;
+//! - `wrong_id_after N`: the (N+1)th command's answers echo another id (the command's
+//!   with a `9` after it), where the dialect's replies echo one; it is executed;
 //! - `fault_after N`: the (N+1)th command of the process is not executed: the controller
 //!   reports `fault` (or `estop`) instead, and `ready` after `fault_for` (a dialect with
 //!   one command in flight has the command answered with its `failed` reply too, so the
-//!   wire is free for the state);
+//!   wire is free for the state; with ids it is left unanswered); meanwhile it refuses
+//!   every message of the sequence (counted: [`SimStats::refused_while_stopped`]);
 //! - `fragment`: every message is written in pieces of 1 to 3 bytes;
 //! - `merge`: messages are written together: an `accepted` reply with the `done` that
 //!   follows it, and (where the dialect pushes its state) a `ready` with every reply;
@@ -112,6 +115,9 @@ pub struct SimConfig {
     pub reset_after: Option<u64>,
     /// Answer the (N+1)th command with a message over the dialect's size limit.
     pub oversize_after: Option<u64>,
+    /// The (N+1)th command's answers echo another id than the command's (its id with a
+    /// `9` after it: `ACK 239` for `JOB 23`); the command is executed.
+    pub wrong_id_after: Option<u64>,
     /// Write every message in pieces of 1 to 3 bytes.
     pub fragment: bool,
     /// Write messages together (see the module docs).

@@ -389,10 +389,12 @@ impl Session<'_> {
             let refused = self.stats.refused.fetch_add(1, Ordering::SeqCst) + 1;
             let command = &self.dialect.commands[index].name;
             warn!(%command, %state, refused, "a command while stopped: refused, not executed");
-            self.answer_failed(
+            let why = format!("refused: the robot is in {state}");
+            self.answer_with(
                 &element,
                 writer,
-                &format!("refused: the robot is in {state}"),
+                &why,
+                &[Outcome::Rejected, Outcome::Failed],
             )
             .await?;
             self.count_file.update();
@@ -456,6 +458,12 @@ impl Session<'_> {
             self.count_file.update();
             return Ok(Flow::Continue);
         }
+        if config.wrong_id_after.is_some_and(|limit| n == limit + 1) {
+            if let Some(id) = self.context.get("id").map(str::to_string) {
+                info!(%id, "answering with another id (--wrong-id-after)");
+                self.context.set("id", format!("{id}9"));
+            }
+        }
         if config.fault_after.is_some_and(|limit| n == limit + 1) {
             let state = config.fault_state.unwrap_or(ControllerState::Fault);
             info!(%id, %state, "reporting a fault (--fault-after)");
@@ -465,19 +473,17 @@ impl Session<'_> {
             // comes meanwhile is refused.
             self.fault_until = Some((std::time::Instant::now() + config.fault_for, state));
             writer.state = state;
-            match self.dialect.status {
-                Status::Pushed => {
-                    // The state first, so the holon knows it before the command's answer.
-                    writer.status().await?;
-                    if one {
-                        self.answer_failed(element, writer, &format!("{state}"))
-                            .await?;
-                    }
-                }
-                _ => {
-                    self.answer_failed(element, writer, &format!("{state}"))
-                        .await?;
-                }
+            if self.dialect.status == Status::Pushed {
+                // The state first, so the holon knows it before the command's answer.
+                writer.status().await?;
+            }
+            // One in flight, the command is answered with its failed reply (which frees
+            // the wire for the state); with ids it is left unanswered, as a faulted
+            // controller leaves the job it was given (its state says why), unless its
+            // state cannot be told (a dialect whose state is the connection's).
+            if one || self.dialect.status == Status::Connection {
+                self.answer_failed(element, writer, &format!("{state}"))
+                    .await?;
             }
             return Ok(Flow::Continue);
         }
@@ -518,12 +524,16 @@ impl Session<'_> {
         }
         if result.is_none() && (done_here.is_some() || simulated_error) {
             // Refused or failed without acting.
-            let why = if simulated_error {
-                "simulated error (--error-every)".to_string()
+            if simulated_error {
+                let why = "simulated error (--error-every)";
+                self.answer_failed(element, writer, why).await?;
             } else {
-                format!("unknown action {action:?}")
-            };
-            self.answer_failed(element, writer, &why).await?;
+                // Not understood: refused, as a controller answers a command it cannot
+                // run (its `rejected` reply where the element has one, e.g. a NAK).
+                let why = format!("unknown action {action:?}");
+                self.answer_with(element, writer, &why, &[Outcome::Rejected, Outcome::Failed])
+                    .await?;
+            }
             self.count_file.update();
             return Ok(Flow::Continue);
         }
@@ -567,7 +577,20 @@ impl Session<'_> {
         writer: &mut Writer<'_>,
         why: &str,
     ) -> Result<(), SimError> {
-        if let Some(rule) = self.rule(element, &[Outcome::Failed, Outcome::Rejected]) {
+        self.answer_with(element, writer, why, &[Outcome::Failed, Outcome::Rejected])
+            .await
+    }
+
+    /// Answers with `element`'s first reply of `outcomes` (failed or rejected), message
+    /// `why`.
+    async fn answer_with(
+        &mut self,
+        element: &Element,
+        writer: &mut Writer<'_>,
+        why: &str,
+        outcomes: &[Outcome],
+    ) -> Result<(), SimError> {
+        if let Some(rule) = self.rule(element, outcomes) {
             let mut values = self.context.clone();
             values.set("message", why.to_string());
             self.settle(StepRecord::Failed(why.to_string()));

@@ -104,8 +104,19 @@ impl<O: super::Owner> Connection<'_, '_, O> {
 
     /// Tries `parsed` as the answer an exchange waits for. `Ok(true)`: it was;
     /// `Err(Ok(why))`: it was shaped like one but is wrong.
+    ///
+    /// With ids, an answer carrying an id answers the step of that id; one without an id
+    /// (a `NAK` that names no command) answers the oldest step whose message on the wire
+    /// has had no answer with its id yet, else the oldest on the wire. With one in
+    /// flight, the answer is the request's on the wire; an id it echoes must be the
+    /// command's (when the command writes its id), or the protocol is broken.
     async fn answer(&mut self, parsed: &Parsed) -> Result<bool, Result<String, ConnectionEnd>> {
         let one = self.one_in_flight();
+        let unechoed = self
+            .exchanges
+            .iter()
+            .position(|e| e.sent && !e.echoed)
+            .or_else(|| self.exchanges.iter().position(|e| e.sent));
         for i in 0..self.exchanges.len() {
             let exchange = &self.exchanges[i];
             if one && self.awaiting != Some(Awaiting::Command(exchange.command.id)) {
@@ -121,11 +132,27 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                     Ok(Some(values)) => values,
                     Err(why) => return Err(Ok(why)),
                 };
-                if !one
-                    && values.get("id").and_then(|id| id.parse::<u64>().ok())
-                        != Some(exchange.command.id)
-                {
-                    continue;
+                let echoed = values.get("id");
+                match (one, echoed) {
+                    (false, Some(echoed)) => {
+                        if echoed.parse::<u64>().ok() != Some(exchange.command.id) {
+                            continue;
+                        }
+                    }
+                    (false, None) if unechoed != Some(i) => continue,
+                    (true, Some(echoed))
+                        if self.dialect.command_writes(element.command, "id")
+                            && echoed.parse::<u64>().ok() != Some(exchange.command.id) =>
+                    {
+                        return Err(Ok(format!(
+                            "the answer {} names command {echoed}, but the command on the wire is {}",
+                            self.dialect.replies[reply].name, exchange.command.id
+                        )));
+                    }
+                    _ => {}
+                }
+                if echoed.is_some() {
+                    self.exchanges[i].echoed = true;
                 }
                 self.advance(i, reply, &values).await.map_err(Err)?;
                 return Ok(true);
