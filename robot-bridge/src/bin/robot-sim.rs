@@ -127,8 +127,11 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let dialect = match Dialect::load(&args.dialect, None)
         .map_err(|e| e.to_string())
-        .and_then(|d| d.check_simulatable().map(|()| d))
-    {
+        .and_then(|d| {
+            d.check_simulatable()
+                .map(|()| d)
+                .map_err(|e| format!("{}: {e}", args.dialect))
+        }) {
         Ok(dialect) => dialect,
         Err(why) => {
             eprintln!("robot-sim: {why}");

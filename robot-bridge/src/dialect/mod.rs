@@ -17,6 +17,7 @@ mod compile;
 pub mod file;
 pub mod framing;
 mod messages;
+mod playable;
 pub mod template;
 pub mod values;
 pub mod xml;
@@ -351,9 +352,23 @@ impl Dialect {
                 };
                 let mut values = Values::default();
                 for name in regex.capture_names().flatten() {
-                    if let Some(m) = found.name(name) {
-                        values.set(name, m.as_str().to_string());
-                    }
+                    let Some(m) = found.name(name) else { continue };
+                    // Read through the table the reply's text names for it, as the
+                    // text's placeholder would be: `{state:safety}` and a group
+                    // `(?P<state>...)` read `NORMAL` as `ready`.
+                    let value = match reply
+                        .body
+                        .as_ref()
+                        .and_then(|b| messages::table_of(b, name))
+                    {
+                        Some(table) => self
+                            .enums
+                            .decode(&table, m.as_str())
+                            .map_err(|e| format!("{}: {e}", reply.name))?
+                            .to_string(),
+                        None => m.as_str().to_string(),
+                    };
+                    values.set(name, value);
                 }
                 values
             }
@@ -503,6 +518,12 @@ impl Dialect {
                 self.name
             ));
         }
+        for state in self.unsayable_states() {
+            warnings.push(format!(
+                "no status reply of the dialect {} says {state}: the holon cannot learn that the controller is in {state}, and robot-sim cannot play it (--fault-after)",
+                self.name
+            ));
+        }
         warnings
     }
 
@@ -524,19 +545,6 @@ impl Dialect {
             (None, Some(body)) => messages::captures(body, None).iter().any(|n| n == name),
             (None, None) => false,
         }
-    }
-
-    /// Checks that robot-sim can write every reply this dialect needs.
-    pub fn check_simulatable(&self) -> Result<(), String> {
-        for reply in &self.replies {
-            if reply.body.is_none() {
-                return Err(format!(
-                    "reply {}: robot-sim writes replies from `text`, and this one has only a regex",
-                    reply.name
-                ));
-            }
-        }
-        Ok(())
     }
 }
 

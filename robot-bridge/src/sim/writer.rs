@@ -11,7 +11,7 @@ use tokio_util::codec::Encoder;
 
 use super::{SimConfig, SimError};
 use crate::dialect::framing::{FrameCodec, Framing};
-use crate::dialect::{Dialect, Outcome, Status, Values};
+use crate::dialect::{Dialect, Status, Values};
 
 /// The writing side of a connection: frames messages and writes them (in pieces, or held
 /// to go together, as the faults say).
@@ -84,38 +84,10 @@ impl Writer<'_> {
         self.reply(index, values).await
     }
 
-    /// The status reply that says `state`, and its values: the first, in the order of
-    /// the file, whose message the holon reads back as that state (a dialect may have
-    /// one reply per state: `STATE IDLE`, `STATE ERROR {message}`, `STATE ESTOP`).
+    /// The status reply that says `state` (in the simulated controller's words, where
+    /// it carries a `{message}`), and its values ([`Dialect::status_reply_for`]).
     pub(super) fn status_reply(&self, state: ControllerState) -> Option<(usize, Values)> {
-        let mut values = Values::default();
-        values.set("state", state.as_str().into());
-        values.set("message", said(state).into());
-        self.dialect
-            .replies
-            .iter()
-            .enumerate()
-            .filter(|(_, r)| r.outcome == Outcome::Status)
-            .find(|&(index, _)| self.says(index, &values, state))
-            .map(|(index, _)| (index, values.clone()))
-    }
-
-    /// Whether status reply `index`, written with `values`, is read by the holon as
-    /// `state`.
-    fn says(&self, index: usize, values: &Values, state: ControllerState) -> bool {
-        let Some(body) = &self.dialect.replies[index].body else {
-            return false;
-        };
-        let Ok(bytes) = self.dialect.write(body, values) else {
-            return false;
-        };
-        let Ok(parsed) = self.dialect.parse(&bytes) else {
-            return false;
-        };
-        matches!(
-            self.dialect.read_unsolicited(&parsed),
-            Ok(Some((read, _, Some(read_state)))) if read == index && read_state == state
-        )
+        self.dialect.status_reply_for(state, said(state))
     }
 
     /// Writes the state (`self.state`) in its status reply, if the dialect has one for it.
