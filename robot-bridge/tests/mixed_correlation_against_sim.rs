@@ -153,3 +153,30 @@ async fn an_echoed_id_that_is_not_the_commands_is_never_its_answer() {
     );
     h.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_polled_controller_says_its_state_only_when_asked_even_merged() {
+    use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+    let config = SimConfig {
+        dialect: Some(example()),
+        merge: true,
+        ..SimConfig::default()
+    };
+    let (address, _stats, sim) = start_sim("127.0.0.1:0", config).await;
+    let stream = tokio::net::TcpStream::connect(&address).await.unwrap();
+    let (read, mut write) = stream.into_split();
+    let mut lines = BufReader::new(read);
+    let mut next = async || {
+        let mut line = Vec::new();
+        lines.read_until(b'\r', &mut line).await.unwrap();
+        String::from_utf8(line).unwrap()
+    };
+    assert_eq!(next().await, "JOBSERVER READY\r");
+    write.write_all(b"JOB 1 pick\r").await.unwrap();
+    // The ACK and the END come in one write; no state comes with them.
+    assert_eq!(next().await, "ACK 1\r");
+    assert_eq!(next().await, "END 1 OK\r");
+    write.write_all(b"STATE?\r").await.unwrap();
+    assert_eq!(next().await, "STATE IDLE\r");
+    sim.cancel();
+}

@@ -592,17 +592,3 @@ async fn flush(
         .await
         .map_err(|e| ConnectionEnd::Lost(format!("send failed: {e}")))
 }
-
-/// A message as shown in a log or an error: text as is, bytes in hex; bounded.
-fn shown(frame: &[u8]) -> String {
-    let head = &frame[..frame.len().min(120)];
-    let text = match std::str::from_utf8(head) {
-        Ok(text) if !text.chars().any(|c| c.is_control() && c != '\t') => format!("{text:?}"),
-        _ => head.iter().map(|b| format!("{b:02x}")).collect::<String>(),
-    };
-    if frame.len() > head.len() {
-        format!("{text}... ({} bytes)", frame.len())
-    } else {
-        text
-    }
-}

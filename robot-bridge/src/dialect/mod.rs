@@ -312,7 +312,12 @@ impl Dialect {
             Framing::Xml => parse_tree(frame).map(Parsed::Xml),
             Framing::Line { .. } => String::from_utf8(frame.to_vec())
                 .map(|line| Parsed::Text(line.trim_end_matches(['\r', '\n']).to_string()))
-                .map_err(|_| CodecError::BadMessage("a line that is not UTF-8".into())),
+                .map_err(|_| {
+                    CodecError::BadMessage(format!(
+                        "a line that is not UTF-8: {}",
+                        crate::shown::shown(frame, false)
+                    ))
+                }),
             Framing::LengthPrefix { .. } => Ok(Parsed::Binary(Bytes::copy_from_slice(frame))),
         }
     }

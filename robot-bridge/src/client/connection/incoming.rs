@@ -6,8 +6,10 @@ use tokio::time::Instant;
 use tracing::{debug, warn};
 
 use super::super::{ControllerEvent, ControllerStatus};
-use super::{shown, Awaiting, Connection, ConnectionEnd, Step};
+use super::{Awaiting, Connection, ConnectionEnd, Step};
+use crate::dialect::framing::Framing;
 use crate::dialect::{Correlation, Outcome, Parsed, Sending, Status, Values};
+use crate::shown::shown;
 
 impl<O: super::Owner> Connection<'_, '_, O> {
     /// One message from the controller.
@@ -97,7 +99,10 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         self.protocol_error(format!(
             "a message the dialect {} does not describe: {}",
             self.dialect.name,
-            shown(frame)
+            shown(
+                frame,
+                matches!(self.dialect.framing, Framing::LengthPrefix { .. })
+            )
         ))
         .await
     }
