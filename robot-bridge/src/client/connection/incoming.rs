@@ -139,10 +139,10 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 };
                 let echoed = values.get("id");
                 match (one, echoed) {
-                    (false, Some(echoed)) => {
-                        if echoed.parse::<u64>().ok() != Some(exchange.command.id) {
-                            continue;
-                        }
+                    (false, Some(echoed))
+                        if echoed.parse::<u64>().ok() != Some(exchange.command.id) =>
+                    {
+                        continue
                     }
                     (false, None) if unechoed != Some(i) => continue,
                     (true, Some(echoed))
