@@ -420,6 +420,21 @@ mod tests {
             let reason = u.status().stop_reason.unwrap();
             assert_eq!(reason.id, id);
             assert!(reason.message.contains(status.as_str()), "{reason:?}");
+        }
+        // The controller's own words, when it gave any, are the stop reason's.
+        let mut u = unit();
+        u.controller(ControllerStatus::Fault, Some("overtravel axis 3"), 2_000);
+        assert_eq!(
+            u.status().stop_reason.unwrap().message,
+            "the controller reported fault: overtravel axis 3"
+        );
+        for (status, _) in [
+            (ControllerStatus::Fault, STOP_CONTROLLER_FAULT),
+            (ControllerStatus::Estop, STOP_CONTROLLER_ESTOP),
+        ] {
+            let mut u = unit();
+            u.controller(status, None, 2_000);
+            u.settle(false, status, 2_000);
             // Aborted already: another fault changes nothing.
             assert_eq!(u.controller(status, None, 2_500), Consequence::None);
         }
