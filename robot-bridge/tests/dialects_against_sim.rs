@@ -525,3 +525,29 @@ impl RawLink {
         }
     }
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_fault_outlasts_a_reconnect() {
+    // holarchy-xml leaves the faulting command unanswered: it times out, the client
+    // resets the connection and reconnects, and finds the controller still stopped.
+    let dialect = Dialect::holarchy_xml();
+    let faults = SimConfig {
+        fault_after: Some(0),
+        fault_for: Duration::from_secs(3),
+        ..SimConfig::default()
+    };
+    let (mut h, _stats, _sim) = ready(&dialect, faults, Duration::from_millis(400)).await;
+    h.send(1, "pick").await;
+    h.wait_status(ControllerStatus::Fault).await;
+    h.wait_status(ControllerStatus::Disconnected).await;
+    // The next state, on the new connection: still the fault.
+    loop {
+        match h.next().await {
+            ControllerEvent::Status(ControllerStatus::Fault, _) => break,
+            ControllerEvent::Status(other, _) => panic!("{other:?} before the fault again"),
+            _ => {}
+        }
+    }
+    h.wait_status(ControllerStatus::Ready).await;
+    h.stop().await;
+}

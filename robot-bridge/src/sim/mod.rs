@@ -158,6 +158,9 @@ pub struct SimStats {
     fence: Mutex<Option<fence::FenceBook>>,
     /// Held while the count file is written.
     file_lock: Mutex<()>,
+    /// The controller's simulated fault or e-stop (`--fault-after`) and until when: the
+    /// controller's, not a connection's, so it outlasts a reconnect.
+    stopped: Mutex<Option<(std::time::Instant, ControllerState)>>,
 }
 
 impl SimStats {
@@ -192,6 +195,18 @@ impl SimStats {
     /// Actions stopped by the dialect's abort while under way (not executed).
     pub fn aborted(&self) -> u64 {
         self.aborted.load(Ordering::SeqCst)
+    }
+
+    /// The simulated fault or e-stop under way, and when it ends (None: ready).
+    pub(crate) fn stopped(&self) -> Option<(std::time::Instant, ControllerState)> {
+        let stopped = *self.stopped.lock().unwrap_or_else(|e| e.into_inner());
+        stopped.filter(|(until, _)| std::time::Instant::now() < *until)
+    }
+
+    /// The controller stops in `state` for `time`.
+    pub(crate) fn stop(&self, state: ControllerState, time: Duration) {
+        *self.stopped.lock().unwrap_or_else(|e| e.into_inner()) =
+            Some((std::time::Instant::now() + time, state));
     }
 
     /// Commands of the sequence that came while the controller was stopped (its

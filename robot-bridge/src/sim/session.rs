@@ -86,8 +86,6 @@ struct Session<'a> {
     /// The values of the action under way, from every message that named them.
     context: Values,
     running: Option<Running>,
-    /// Until when the controller is in a fault or e-stop (`--fault-after`), and which.
-    fault_until: Option<(std::time::Instant, ControllerState)>,
     /// Commands begun on this connection.
     on_this_connection: u64,
     /// After `hang_after`: nothing more is answered.
@@ -119,7 +117,10 @@ pub(super) async fn serve(
         dialect: &dialect,
         config,
         held: BytesMut::new(),
-        state: ControllerState::Ready,
+        // A fault outlasts the connection it began on.
+        state: stats
+            .stopped()
+            .map_or(ControllerState::Ready, |(_, state)| state),
     };
     if let Some(banner) = &dialect.banner {
         let mut framed = BytesMut::new();
@@ -139,7 +140,6 @@ pub(super) async fn serve(
         dialect: &dialect,
         context: Values::default(),
         running: None,
-        fault_until: None,
         on_this_connection: 0,
         hung: false,
         acting: None,
@@ -153,11 +153,10 @@ pub(super) async fn serve(
             .as_ref()
             .map_or_else(std::time::Instant::now, |a| a.until);
         let lease_end = session.lease_end();
-        let fault_end = session.fault_until.map(|(until, _)| until);
+        let fault_end = stats.stopped().map(|(until, _)| until);
         let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
             _ = tokio::time::sleep_until(fault_end.unwrap_or_else(std::time::Instant::now).into()), if fault_end.is_some() => {
-                session.fault_until = None;
                 writer.state = ControllerState::Ready;
                 info!("ready again");
                 if dialect.status == Status::Pushed {
@@ -242,10 +241,9 @@ impl Session<'_> {
     }
 
     fn state_now(&self) -> ControllerState {
-        match self.fault_until {
-            Some((until, state)) if std::time::Instant::now() < until => state,
-            _ => ControllerState::Ready,
-        }
+        self.stats
+            .stopped()
+            .map_or(ControllerState::Ready, |(_, state)| state)
     }
 
     /// A message from the holon: answered now, or, while an action is under way, kept
@@ -471,7 +469,7 @@ impl Session<'_> {
             let one = self.dialect.correlation == Correlation::OneInFlight;
             // Stopped for `fault_for` (the session's timer reports `ready` again); what
             // comes meanwhile is refused.
-            self.fault_until = Some((std::time::Instant::now() + config.fault_for, state));
+            self.stats.stop(state, config.fault_for);
             writer.state = state;
             if self.dialect.status == Status::Pushed {
                 // The state first, so the holon knows it before the command's answer.
