@@ -9,7 +9,7 @@ use std::time::Duration;
 
 mod common;
 
-use common::{reply, start_sim, Harness, WAIT};
+use common::{reply, start_sim, wait_received, Harness, WAIT};
 use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
 use robot_bridge::dialect::{Dialect, SHIPPED};
 use robot_bridge::sim::{SimConfig, SimStats, Simulator};
@@ -528,24 +528,26 @@ impl RawLink {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn a_fault_outlasts_a_reconnect() {
-    // holarchy-xml leaves the faulting command unanswered: it times out, the client
-    // resets the connection and reconnects, and finds the controller still stopped.
+    // A first connection faults the controller and goes; the client connecting next
+    // finds it still stopped (holarchy-xml pushes its state on connect).
     let dialect = Dialect::holarchy_xml();
-    let faults = SimConfig {
+    let config = SimConfig {
+        dialect: Some(dialect.clone()),
         fault_after: Some(0),
-        fault_for: Duration::from_secs(3),
+        fault_for: Duration::from_secs(2),
         ..SimConfig::default()
     };
-    let (mut h, _stats, _sim) = ready(&dialect, faults, Duration::from_millis(400)).await;
-    h.send(1, "pick").await;
-    h.wait_status(ControllerStatus::Fault).await;
-    h.wait_status(ControllerStatus::Disconnected).await;
-    // The next state, on the new connection: still the fault.
+    let (address, stats, _sim) = start_sim("127.0.0.1:0", config).await;
+    let mut first = RawLink::connect(&address).await;
+    first.send_step(&dialect, 1, "pick").await;
+    wait_received(&stats, 1).await;
+    drop(first);
+    let mut h = Harness::start_in(dialect, address, Duration::from_secs(5), None);
     loop {
         match h.next().await {
             ControllerEvent::Status(ControllerStatus::Fault, _) => break,
-            ControllerEvent::Status(other, _) => panic!("{other:?} before the fault again"),
-            _ => {}
+            ControllerEvent::Status(ControllerStatus::Disconnected, _) => {}
+            other => panic!("{other:?} before the fault"),
         }
     }
     h.wait_status(ControllerStatus::Ready).await;

@@ -345,10 +345,14 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
         }
     }
 
-    /// Every step not awaiting an answer on the wire fails without a word to a stopped
-    /// controller: nothing more of it is written.
+    /// Every step not awaiting an answer on a one-in-flight wire fails without a word to
+    /// a stopped controller: nothing more of it is written. With ids, one whose message is
+    /// on the wire fails too (its late answer, if any, answers no step): it would
+    /// otherwise wait for an answer a faulted controller may never give, and its timeout
+    /// reset the connection under the steps that follow.
     async fn fail_unsent(&mut self, status: ControllerStatus) -> Step {
-        while let Some(i) = self.exchanges.iter().position(|e| !e.sent) {
+        let one = self.one_in_flight();
+        while let Some(i) = self.exchanges.iter().position(|e| !e.sent || !one) {
             let Some(mut exchange) = self.exchanges.remove(i) else {
                 break;
             };
