@@ -180,3 +180,33 @@ async fn a_polled_controller_says_its_state_only_when_asked_even_merged() {
     assert_eq!(next().await, "STATE IDLE\r");
     sim.cancel();
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn fault_every_rehearses_the_fault_again_and_again() {
+    let faults = SimConfig {
+        fault_every: Some(2),
+        // Longer than the state's poll interval (500 ms), or a poll might not see it.
+        fault_for: Duration::from_millis(700),
+        ..SimConfig::default()
+    };
+    let (mut h, stats, _sim) = ready(example(), faults, Duration::from_secs(5)).await;
+    for round in 0..3u64 {
+        let id = round * 2 + 1;
+        h.send(id, "pick").await;
+        assert_eq!(h.answer().await, reply(id, "picking_done"), "round {round}");
+        h.send(id + 1, "place").await;
+        h.wait_status(ControllerStatus::Fault).await;
+        assert_eq!(
+            h.answer().await,
+            ControllerEvent::CommandFailed {
+                id: id + 1,
+                failure: CommandFailure::Stopped(ControllerStatus::Fault),
+            },
+            "round {round}"
+        );
+        h.wait_status(ControllerStatus::Ready).await;
+    }
+    assert_eq!(stats.executed(), 3);
+    assert_eq!(stats.refused_while_stopped(), 0);
+    h.stop().await;
+}

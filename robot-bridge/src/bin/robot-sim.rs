@@ -92,7 +92,11 @@ struct Args {
     /// in the count file's refused_while_stopped).
     #[arg(long, value_name = "N")]
     fault_after: Option<u64>,
-    /// The state reported by --fault-after: fault or estop.
+    /// Every Nth command faults the controller as --fault-after does (fault, ready
+    /// again after --fault-for-ms, fault again at the next Nth): a rehearsal that goes on.
+    #[arg(long, value_name = "N")]
+    fault_every: Option<u64>,
+    /// The state reported by --fault-after and --fault-every: fault or estop.
     #[arg(long, default_value = "fault", value_name = "fault|estop")]
     fault_state: schemas::ControllerState,
     /// How long the fault lasts before the controller reports ready again, in ms.
@@ -200,6 +204,7 @@ async fn main() -> anyhow::Result<()> {
         garbage_after: args.garbage_after,
         inspect_fail_every: args.inspect_fail_every,
         fault_after: args.fault_after,
+        fault_every: args.fault_every,
         fault_state: Some(args.fault_state),
         fault_for: Duration::from_millis(args.fault_for_ms),
         count_file: args.count_file,

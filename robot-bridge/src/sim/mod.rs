@@ -36,6 +36,7 @@
 //!   describe instead of a reply and is not executed; later commands are served normally;
 //! - `oversize_after N`: the (N+1)th command gets a message larger than the dialect's
 //!   `max_message_bytes` and is not executed;
+//! - `fault_every N`: every Nth command faults the controller as `fault_after` does;
 //! - `wrong_id_after N`: the (N+1)th command's answers echo another id (the command's
 //!   with a `9` after it), where the dialect's replies echo one; it is executed;
 //! - `fault_after N`: the (N+1)th command of the process is not executed: the controller
@@ -104,6 +105,9 @@ pub struct SimConfig {
     /// When the (N+1)th command of the process arrives, report `fault_state` instead of
     /// answering it (it is not executed), then `ready` again after `fault_for`.
     pub fault_after: Option<u64>,
+    /// Every Nth command of the process faults the controller as `fault_after` does (a
+    /// rehearsal that goes on: fault, ready, fault...).
+    pub fault_every: Option<u64>,
     pub fault_state: Option<ControllerState>,
     pub fault_for: Duration,
     /// Rewritten (atomically) with [`SimStats`] as JSON after every command, once its

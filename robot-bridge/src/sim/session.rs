@@ -462,7 +462,11 @@ impl Session<'_> {
                 self.context.set("id", format!("{id}9"));
             }
         }
-        if config.fault_after.is_some_and(|limit| n == limit + 1) {
+        let faults = config.fault_after.is_some_and(|limit| n == limit + 1)
+            || config
+                .fault_every
+                .is_some_and(|every| every > 0 && n.is_multiple_of(every));
+        if faults {
             let state = config.fault_state.unwrap_or(ControllerState::Fault);
             info!(%id, %state, "reporting a fault (--fault-after)");
             self.count_file.update();
