@@ -358,7 +358,7 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             };
             self.remember(&mut exchange);
             let id = exchange.command.id;
-            warn!(id, controller_state = %status, "the controller is stopped: the step's next message is not sent");
+            warn!(id, controller_state = %status, "the controller is stopped: the step ends, nothing more of it is sent");
             self.report(ControllerEvent::CommandFailed {
                 id,
                 failure: CommandFailure::Stopped(status),
