@@ -74,7 +74,7 @@ impl Reporter {
             return true;
         }
         self.status = Some(status);
-        self.send(ControllerEvent::Status(status)).await
+        self.send(ControllerEvent::Status(status, None)).await
     }
 }
 

@@ -129,7 +129,7 @@ impl Client {
         let ready = tokio::time::timeout(Duration::from_secs(10), async {
             loop {
                 match events.recv().await {
-                    Some(ControllerEvent::Status(s)) if s.is_ready() => return Ok(()),
+                    Some(ControllerEvent::Status(s, _)) if s.is_ready() => return Ok(()),
                     Some(_) => continue,
                     None => bail!("controller client stopped"),
                 }

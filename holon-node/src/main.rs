@@ -35,7 +35,9 @@ struct Args {
     /// must fence; else start is refused with the reason. Not with --take-over.
     #[arg(long)]
     standby: bool,
-    /// Check the config and exit without starting.
+    /// Check the config and exit without starting: `FILE: ok (KIND/NAME)` and 0, or 1
+    /// with the reason. What is valid but likely a mistake (a resource's dialect without
+    /// an `abort`) is said on stderr as a warning; the exit is still 0.
     #[arg(long)]
     check: bool,
 }
@@ -61,6 +63,14 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
     };
     let config = HolonConfig::load(&args.common.config, overrides)?;
     if args.check {
+        if let HolonConfig::Resource(resource) = &config {
+            for warning in resource.controller.dialect.warnings() {
+                eprintln!(
+                    "holon-node: {}: warning: controller.dialect: {warning}",
+                    args.common.config.display()
+                );
+            }
+        }
         println!("{}: ok ({})", args.common.config.display(), config.holon());
         return Ok(());
     }

@@ -331,6 +331,9 @@ fn only_absent_requesters_wait(
 
 pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.holon.clone();
+    for warning in config.controller.dialect.warnings() {
+        warn!(%holon, dialect = %config.controller.dialect.name, "{warning}");
+    }
     let life = life(&config);
     let tls_identity = holon::role::identity(holon::role::Role::Resource, holon.name());
     let Some(opened) = life.open(&config.zenoh, &tls_identity, &shutdown).await? else {

@@ -208,7 +208,14 @@ impl PackmlUnit {
     }
 
     /// The controller's state changed; `was_ready` is whether it was ready before.
-    pub fn controller(&mut self, status: ControllerStatus, now: u64) -> Consequence {
+    /// `said`: what the controller said of it in its own words (a status reply's
+    /// `{message}`), kept in the stop reason.
+    pub fn controller(
+        &mut self,
+        status: ControllerStatus,
+        said: Option<&str>,
+        now: u64,
+    ) -> Consequence {
         match status {
             ControllerStatus::Fault | ControllerStatus::Estop => {
                 if matches!(
@@ -222,7 +229,11 @@ impl PackmlUnit {
                 } else {
                     STOP_CONTROLLER_ESTOP
                 };
-                self.stop_reason(id, format!("the controller reported {status}"), now);
+                let message = match said {
+                    Some(said) => format!("the controller reported {status}: {said}"),
+                    None => format!("the controller reported {status}"),
+                };
+                self.stop_reason(id, message, now);
                 self.enter(PackmlState::Aborting, now);
                 Consequence::Abort
             }
@@ -403,32 +414,47 @@ mod tests {
             (ControllerStatus::Estop, STOP_CONTROLLER_ESTOP),
         ] {
             let mut u = unit();
-            assert_eq!(u.controller(status, 2_000), Consequence::Abort);
+            assert_eq!(u.controller(status, None, 2_000), Consequence::Abort);
             u.settle(false, status, 2_000);
             assert_eq!(u.state(), S::Aborted);
             let reason = u.status().stop_reason.unwrap();
             assert_eq!(reason.id, id);
             assert!(reason.message.contains(status.as_str()), "{reason:?}");
+        }
+        // The controller's own words, when it gave any, are the stop reason's.
+        let mut u = unit();
+        u.controller(ControllerStatus::Fault, Some("overtravel axis 3"), 2_000);
+        assert_eq!(
+            u.status().stop_reason.unwrap().message,
+            "the controller reported fault: overtravel axis 3"
+        );
+        for (status, _) in [
+            (ControllerStatus::Fault, STOP_CONTROLLER_FAULT),
+            (ControllerStatus::Estop, STOP_CONTROLLER_ESTOP),
+        ] {
+            let mut u = unit();
+            u.controller(status, None, 2_000);
+            u.settle(false, status, 2_000);
             // Aborted already: another fault changes nothing.
-            assert_eq!(u.controller(status, 2_500), Consequence::None);
+            assert_eq!(u.controller(status, None, 2_500), Consequence::None);
         }
     }
 
     #[test]
     fn the_controller_away_suspends_and_its_return_unsuspends() {
         let mut u = unit();
-        u.controller(ControllerStatus::Disconnected, 2_000);
+        u.controller(ControllerStatus::Disconnected, None, 2_000);
         u.settle(false, ControllerStatus::Disconnected, 2_000);
         assert_eq!(u.state(), S::Suspended);
         assert_eq!(u.status().stop_reason.unwrap().id, STOP_CONTROLLER_AWAY);
-        u.controller(ControllerStatus::Ready, 3_000);
+        u.controller(ControllerStatus::Ready, None, 3_000);
         u.settle(false, ControllerStatus::Ready, 3_000);
         assert_eq!(u.state(), S::Execute);
         // Held: the controller's comings and goings do not move it.
         u.command(PackmlCommand::Hold, "op", 4_000).unwrap();
         u.settle(false, ControllerStatus::Ready, 4_000);
-        u.controller(ControllerStatus::Disconnected, 5_000);
-        u.controller(ControllerStatus::Ready, 6_000);
+        u.controller(ControllerStatus::Disconnected, None, 5_000);
+        u.controller(ControllerStatus::Ready, None, 6_000);
         assert_eq!(u.state(), S::Held);
     }
 

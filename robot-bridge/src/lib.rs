@@ -6,10 +6,12 @@
 //! - [`client`]: the controller client, one persistent connection with reconnection,
 //!   per-command timeouts and `ROBOT_STATUS` tracking;
 //! - [`sim`]: `robot-sim`, a controller simulator that speaks the same protocol;
-//! - [`fence_wire`]: what both ends of the fence for standby holons share.
+//! - [`fence_wire`]: what both ends of the fence for standby holons share;
+//! - [`shown`]: how a controller's message is shown in logs and errors.
 
 pub mod client;
 pub mod codec;
 pub mod dialect;
 pub mod fence_wire;
+pub mod shown;
 pub mod sim;

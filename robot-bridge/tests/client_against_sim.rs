@@ -14,7 +14,7 @@ async fn executes_commands_and_tracks_status() {
     let mut h = Harness::start(address, Duration::from_secs(5));
     assert_eq!(
         h.next().await,
-        ControllerEvent::Status(ControllerStatus::Disconnected)
+        ControllerEvent::Status(ControllerStatus::Disconnected, None)
     );
     h.wait_ready().await;
     h.send(1, "pick").await;
@@ -49,7 +49,7 @@ async fn reconnects_when_the_controller_comes_back() {
     let mut h = Harness::start(address.clone(), Duration::from_secs(5));
     assert_eq!(
         h.next().await,
-        ControllerEvent::Status(ControllerStatus::Disconnected)
+        ControllerEvent::Status(ControllerStatus::Disconnected, None)
     );
     h.send(1, "pick").await;
     assert_eq!(
@@ -77,7 +77,7 @@ async fn reconnects_when_the_controller_comes_back() {
     // The first server's connection is closed, so the client sees a disconnect...
     assert_eq!(
         h.next().await,
-        ControllerEvent::Status(ControllerStatus::Disconnected)
+        ControllerEvent::Status(ControllerStatus::Disconnected, None)
     );
     // ...and comes back to the second one.
     h.wait_ready().await;
@@ -107,7 +107,7 @@ async fn a_dropped_connection_fails_the_command_in_progress() {
     );
     assert_eq!(
         h.next().await,
-        ControllerEvent::Status(ControllerStatus::Disconnected)
+        ControllerEvent::Status(ControllerStatus::Disconnected, None)
     );
     h.wait_ready().await;
     h.send(3, "place").await;
@@ -138,7 +138,7 @@ async fn a_silent_controller_times_out_and_is_reset() {
     );
     assert_eq!(
         h.next().await,
-        ControllerEvent::Status(ControllerStatus::Disconnected)
+        ControllerEvent::Status(ControllerStatus::Disconnected, None)
     );
     h.wait_ready().await;
     assert_eq!(stats.executed(), 1);
@@ -166,7 +166,7 @@ async fn garbage_from_the_controller_resets_the_connection() {
     }
     assert_eq!(
         h.next().await,
-        ControllerEvent::Status(ControllerStatus::Disconnected)
+        ControllerEvent::Status(ControllerStatus::Disconnected, None)
     );
     h.wait_ready().await;
     h.send(2, "pick").await;
@@ -235,7 +235,7 @@ async fn command_fails_as_disconnected(address: String) {
     );
     assert_eq!(
         h.next().await,
-        ControllerEvent::Status(ControllerStatus::Disconnected)
+        ControllerEvent::Status(ControllerStatus::Disconnected, None)
     );
     h.stop().await;
 }

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 mod common;
 
-use common::{reply, start_sim, Harness, WAIT};
+use common::{reply, start_sim, wait_received, Harness, WAIT};
 use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
 use robot_bridge::dialect::{Dialect, SHIPPED};
 use robot_bridge::sim::{SimConfig, SimStats, Simulator};
@@ -393,4 +393,163 @@ async fn a_status_poll_without_an_id_in_a_dialect_with_ids() {
         );
     assert!(text.contains("ROBOT_STATUS_REQ"));
     three_commands(Dialect::from_toml(&text, "polled.toml").unwrap()).await;
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn nothing_goes_to_a_stopped_controller() {
+    for dialect in dialects() {
+        let name = dialect.name.clone();
+        let faults = SimConfig {
+            fault_after: Some(0),
+            fault_state: Some(schemas::ControllerState::Estop),
+            fault_for: Duration::from_millis(1500),
+            ..SimConfig::default()
+        };
+        let (mut h, stats, _sim) = ready(&dialect, faults, Duration::from_secs(5)).await;
+        // The first command e-stops the robot. The next goes as soon as the client has
+        // heard anything of it: the first command's failure (a polled dialect, whose
+        // state the client has not read yet) or the e-stop itself (pushed).
+        h.send(1, "pick").await;
+        loop {
+            match h.next().await {
+                ControllerEvent::Status(ControllerStatus::Estop, _) => break,
+                ControllerEvent::Reply { id: 1, .. }
+                | ControllerEvent::CommandFailed { id: 1, .. } => break,
+                _ => {}
+            }
+        }
+        h.send(2, "place").await;
+        loop {
+            match h.next().await {
+                ControllerEvent::CommandFailed { id: 2, failure } => {
+                    assert_eq!(
+                        failure,
+                        CommandFailure::Stopped(ControllerStatus::Estop),
+                        "{name}"
+                    );
+                    break;
+                }
+                ControllerEvent::Reply { id: 2, .. } => panic!("{name}: command 2 was answered"),
+                _ => {}
+            }
+        }
+        // The controller got nothing while stopped: no command of the sequence refused.
+        assert_eq!(stats.refused_while_stopped(), 0, "{name}");
+        assert_eq!(stats.received(), 1, "{name}");
+        // Ready again, it is served.
+        h.wait_status(ControllerStatus::Ready).await;
+        h.send(3, "pick").await;
+        loop {
+            match h.answer().await {
+                ControllerEvent::Reply { id: 1, .. }
+                | ControllerEvent::CommandFailed { id: 1, .. } => {}
+                other => {
+                    assert_eq!(other, reply(3, "picking_done"), "{name}");
+                    break;
+                }
+            }
+        }
+        assert_eq!(stats.refused_while_stopped(), 0, "{name}");
+        h.stop().await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn robot_sim_refuses_a_command_while_stopped() {
+    // A client that wrote to a stopped controller would have its command refused and
+    // counted: the count a test of the holon checks can fail.
+    for dialect in dialects() {
+        let name = dialect.name.clone();
+        let config = SimConfig {
+            dialect: Some(dialect.clone()),
+            fault_after: Some(0),
+            fault_state: Some(schemas::ControllerState::Fault),
+            fault_for: Duration::from_secs(30),
+            ..SimConfig::default()
+        };
+        let (address, stats, sim) = start_sim("127.0.0.1:0", config).await;
+        let mut link = RawLink::connect(&address).await;
+        // The command that faults the robot, then one while it is stopped.
+        link.send_step(&dialect, 1, "pick").await;
+        link.send_step(&dialect, 2, "place").await;
+        let deadline = tokio::time::Instant::now() + WAIT;
+        while stats.refused_while_stopped() < 1 {
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "{name}: nothing refused"
+            );
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        assert_eq!(stats.executed(), 0, "{name}");
+        sim.cancel();
+    }
+}
+
+/// A bare TCP link that writes a dialect's messages, answers unread: what a careless
+/// client would do.
+struct RawLink {
+    stream: tokio::net::TcpStream,
+}
+
+impl RawLink {
+    async fn connect(address: &str) -> RawLink {
+        RawLink {
+            stream: tokio::net::TcpStream::connect(address).await.unwrap(),
+        }
+    }
+
+    /// Writes every `send` element of the sequence for command `id`.
+    async fn send_step(&mut self, dialect: &Dialect, id: u64, action: &str) {
+        use bytes::BytesMut;
+        use tokio::io::AsyncWriteExt;
+        use tokio_util::codec::Encoder;
+        let command = schemas::RobotCommand {
+            id,
+            action: action.into(),
+            pos: None,
+            program: None,
+            info: Default::default(),
+        };
+        let values = robot_bridge::dialect::command_values(&command, &dialect.format);
+        for element in &dialect.sequence {
+            if element.sending != robot_bridge::dialect::Sending::Send {
+                continue;
+            }
+            let body = dialect.write_command(element.command, &values).unwrap();
+            let mut framed = BytesMut::new();
+            dialect
+                .frame_codec()
+                .encode(body.as_slice(), &mut framed)
+                .unwrap();
+            self.stream.write_all(&framed).await.unwrap();
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_fault_outlasts_a_reconnect() {
+    // A first connection faults the controller and goes; the client connecting next
+    // finds it still stopped (holarchy-xml pushes its state on connect).
+    let dialect = Dialect::holarchy_xml();
+    let config = SimConfig {
+        dialect: Some(dialect.clone()),
+        fault_after: Some(0),
+        fault_for: Duration::from_secs(2),
+        ..SimConfig::default()
+    };
+    let (address, stats, _sim) = start_sim("127.0.0.1:0", config).await;
+    let mut first = RawLink::connect(&address).await;
+    first.send_step(&dialect, 1, "pick").await;
+    wait_received(&stats, 1).await;
+    drop(first);
+    let mut h = Harness::start_in(dialect, address, Duration::from_secs(5), None);
+    loop {
+        match h.next().await {
+            ControllerEvent::Status(ControllerStatus::Fault, _) => break,
+            ControllerEvent::Status(ControllerStatus::Disconnected, _) => {}
+            other => panic!("{other:?} before the fault"),
+        }
+    }
+    h.wait_status(ControllerStatus::Ready).await;
+    h.stop().await;
 }

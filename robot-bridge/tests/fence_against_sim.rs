@@ -89,7 +89,7 @@ impl Fenced {
                 .await
                 .expect("an event in time")
                 .expect("client gone");
-            if !matches!(event, ControllerEvent::Status(_)) {
+            if !matches!(event, ControllerEvent::Status(..)) {
                 return event;
             }
         }

@@ -1,6 +1,7 @@
 //! A real resource holon drives robot-sim in every shipped dialect, chosen by one line
 //! of config: a job is done with each step run once, a controller that answers garbage
-//! fails the step with a clear reason and the holon serves the next job; and a dialect
+//! fails the step with a clear reason and the holon serves the next job, an e-stopped
+//! controller is sent nothing until it is ready again; and a dialect
 //! file that is wrong, or cannot send one of the holon's actions, stops the holon at
 //! `--check`, naming the field.
 
@@ -109,6 +110,128 @@ async fn garbage_in_any_dialect_fails_the_step_and_the_holon_serves_on() {
         assert_eq!(r.resource.sim.executed("pick"), 1, "{dialect}");
         assert_eq!(r.resource.sim.executed("place"), 1, "{dialect}");
     }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn no_command_reaches_an_e_stopped_controller_in_any_dialect() {
+    for (i, dialect) in DIALECTS.iter().enumerate() {
+        // The first command e-stops the robot for 1.5 s; robot-sim refuses (and counts)
+        // any command of the sequence that reaches it meanwhile.
+        let r = robot(
+            &format!("t-dialect-e{i}"),
+            dialect,
+            &[
+                "--fault-after",
+                "0",
+                "--fault-state",
+                "estop",
+                "--fault-for-ms",
+                "1500",
+            ],
+        )
+        .await;
+        let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+        let result = r.job(&mut inbox, "c1").await;
+        assert_eq!(
+            result.message_type,
+            MessageType::Failed,
+            "{dialect}: {result:?}"
+        );
+        // At once the next job: a polled dialect's holon has not read the e-stop yet
+        // (it asks before the step's first message); a pushed one knows and refuses it.
+        match r.cell.job("robot1", &mut inbox, "o-1", "c2").await {
+            Ok(result) => {
+                assert_eq!(
+                    result.reason.as_ref().map(|r| r.as_str()),
+                    Some("controller_fault"),
+                    "{dialect}: {result:?}"
+                );
+                assert!(
+                    result.info["detail"]
+                        .as_str()
+                        .unwrap_or("")
+                        .contains("estop"),
+                    "{dialect}: {result:?}"
+                );
+            }
+            Err(refused) => assert!(refused.to_string().contains("refused"), "{refused}"),
+        }
+        // PackML Aborted by the e-stop; ready again and started by an operator, it works.
+        r.cell
+            .wait_state("robot1", "aborted, controller ready", |s| {
+                s["packml"]["state"] == "aborted" && s["controller"] == "ready"
+            })
+            .await
+            .unwrap();
+        for command in ["clear", "reset", "start"] {
+            r.cell.packml("robot1", command).await.unwrap();
+        }
+        r.cell.wait_serving("robot1").await.unwrap();
+        let result = r.job(&mut inbox, "c3").await;
+        assert_eq!(
+            result.message_type,
+            MessageType::Done,
+            "{dialect}: {result:?}"
+        );
+        let counts = r.resource.sim.counts();
+        assert_eq!(counts["refused_while_stopped"], 0, "{dialect}: {counts}");
+        assert_eq!(r.resource.sim.executed("pick"), 1, "{dialect}: {counts}");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_controllers_own_words_reach_the_order_the_stop_reason_and_the_log() {
+    // The worked case of docs/dialects.md 7.7: STATE ERROR <text> polled. The first job
+    // faults the robot, which leaves it unanswered and says why in its state.
+    let example = workspace_root().join("deploy/dialects/examples/job-ack-end.toml");
+    let r = robot(
+        "t-dialect-words",
+        example.to_str().unwrap(),
+        &["--fault-after", "0", "--fault-for-ms", "1500"],
+    )
+    .await;
+    let words = "simulated fault (--fault-after)";
+    let mut inbox = r.cell.inbox("o-1", 0).await.unwrap();
+    let result = r.job(&mut inbox, "c1").await;
+    assert_eq!(
+        result.reason.as_ref().map(|r| r.as_str()),
+        Some("controller_fault"),
+        "{result:?}"
+    );
+    assert_eq!(
+        result.info["detail"],
+        format!("the controller reported fault: {words}"),
+        "{result:?}"
+    );
+    let state = r
+        .cell
+        .wait_state("robot1", "aborted", |s| s["packml"]["state"] == "aborted")
+        .await
+        .unwrap();
+    let reason = &state["packml"]["stop_reason"];
+    assert_eq!(reason["id"], 100, "{state}");
+    assert_eq!(
+        reason["message"],
+        format!("the controller reported fault: {words}"),
+        "{state}"
+    );
+    let log = r.resource.node.stderr();
+    assert!(
+        log.contains("controller_said") && log.contains(words),
+        "the holon's log: {log}"
+    );
+    // Ready again, cleared, reset and started: it works.
+    r.cell
+        .wait_state("robot1", "controller ready", |s| s["controller"] == "ready")
+        .await
+        .unwrap();
+    for command in ["clear", "reset", "start"] {
+        r.cell.packml("robot1", command).await.unwrap();
+    }
+    r.cell.wait_serving("robot1").await.unwrap();
+    let result = r.job(&mut inbox, "c2").await;
+    assert_eq!(result.message_type, MessageType::Done, "{result:?}");
+    assert_eq!(r.resource.sim.counts()["refused_while_stopped"], 0);
 }
 
 fn check(config: &Path) -> (bool, String) {

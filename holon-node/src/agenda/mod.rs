@@ -215,8 +215,8 @@ pub enum AgendaEvent {
     /// Execution is ready: the controller is connected and ready, nothing runs.
     ExecutionReady,
     /// Execution cannot run services: the controller is away (`disconnected`), in
-    /// `fault` or `estop`.
-    ExecutionUnavailable(ControllerStatus),
+    /// `fault` or `estop`; with what the controller said of it, if anything.
+    ExecutionUnavailable(ControllerStatus, Option<String>),
     /// Execution finished the job of `conversation_id`.
     ExecutionFinished {
         conversation_id: String,
@@ -496,8 +496,10 @@ impl AgendaManager {
     fn transition(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
         match event {
             AgendaEvent::Request(request) => self.request(request),
-            AgendaEvent::ExecutionReady => self.controller_now(ControllerStatus::Ready),
-            AgendaEvent::ExecutionUnavailable(status) => self.controller_now(status),
+            AgendaEvent::ExecutionReady => self.controller_now(ControllerStatus::Ready, None),
+            AgendaEvent::ExecutionUnavailable(status, said) => {
+                self.controller_now(status, said.as_deref())
+            }
             AgendaEvent::Packml(request) => self.packml_request(request),
             AgendaEvent::Tick { now } => self.tick(now),
             AgendaEvent::ExecutionFinished {

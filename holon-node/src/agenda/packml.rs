@@ -34,17 +34,25 @@ impl Default for PackmlSettings {
 impl AgendaManager {
     /// The controller's state as the execution reports it: ready or not, and what
     /// that does to the PackML unit (a fault aborts, hands every booking back).
-    pub(super) fn controller_now(&mut self, status: ControllerStatus) -> Vec<AgendaAction> {
+    pub(super) fn controller_now(
+        &mut self,
+        status: ControllerStatus,
+        said: Option<&str>,
+    ) -> Vec<AgendaAction> {
         let ready = status.is_ready();
         if self.execution_ready == ready && self.controller == status {
             return vec![];
         }
         self.execution_ready = ready;
         self.controller = status;
-        let mut actions = match self.packml.controller(status, unix_ms()) {
+        let reported = match said {
+            Some(said) => format!("{status}: {said}"),
+            None => status.to_string(),
+        };
+        let mut actions = match self.packml.controller(status, said, unix_ms()) {
             Consequence::None => vec![],
             Consequence::HandBack | Consequence::Abort => self.hand_back(&format!(
-                "the resource was aborted: its controller reported {status}; book elsewhere"
+                "the resource was aborted: its controller reported {reported}; book elsewhere"
             )),
         };
         actions.push(AgendaAction::StateChanged);

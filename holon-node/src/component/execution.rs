@@ -167,9 +167,9 @@ impl Driver<'_> {
                 self.commands.push_back(ControllerRequest::Abort);
             }
             ExecutionAction::Ready => self.to_agenda.push_back(AgendaEvent::ExecutionReady),
-            ExecutionAction::Unavailable(status) => self
+            ExecutionAction::Unavailable(status, said) => self
                 .to_agenda
-                .push_back(AgendaEvent::ExecutionUnavailable(status)),
+                .push_back(AgendaEvent::ExecutionUnavailable(status, said)),
             ExecutionAction::Finished {
                 conversation_id,
                 outcome,

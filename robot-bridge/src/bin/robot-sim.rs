@@ -30,7 +30,8 @@ struct Args {
     dialect: String,
     /// Check the dialect (that it is valid and that robot-sim can speak it), print
     /// `dialect NAME is valid`, and exit: 0 if it is, 2 with the field and the problem
-    /// if not.
+    /// if not. What is valid but likely a mistake (no `abort`) is said on stderr as
+    /// `robot-sim: warning: ...`, and the exit is still 0.
     #[arg(long)]
     check: bool,
     /// Dial the holon at this address instead of listening (for a dialect whose
@@ -65,6 +66,11 @@ struct Args {
     /// not executed).
     #[arg(long, value_name = "N")]
     oversize_after: Option<u64>,
+    /// Answer the (N+1)th command's messages with another id than its own (its id with a
+    /// 9 after it: ACK 239 for JOB 23), where the dialect's replies echo one (once;
+    /// executed).
+    #[arg(long, value_name = "N")]
+    wrong_id_after: Option<u64>,
     /// Begin the (N+1)th command and reset the connection (RST) halfway through it
     /// (not executed).
     #[arg(long, value_name = "N")]
@@ -79,10 +85,18 @@ struct Args {
     /// Answer every Nth `inspect` with `inspect_fail` instead of `inspect_pass`.
     #[arg(long, value_name = "N")]
     inspect_fail_every: Option<u64>,
-    /// When the (N+1)th command arrives, report a fault instead of executing it.
+    /// When the (N+1)th command arrives, report a fault instead of executing it: the
+    /// controller is stopped for --fault-for-ms (pushed: it says so at once; polled: its
+    /// status polls are answered with the status reply that says the fault), and refuses
+    /// every command of the sequence meanwhile (answered with its failed reply, counted
+    /// in the count file's refused_while_stopped).
     #[arg(long, value_name = "N")]
     fault_after: Option<u64>,
-    /// The state reported by --fault-after: fault or estop.
+    /// Every Nth command faults the controller as --fault-after does (fault, ready
+    /// again after --fault-for-ms, fault again at the next Nth): a rehearsal that goes on.
+    #[arg(long, value_name = "N")]
+    fault_every: Option<u64>,
+    /// The state reported by --fault-after and --fault-every: fault or estop.
     #[arg(long, default_value = "fault", value_name = "fault|estop")]
     fault_state: schemas::ControllerState,
     /// How long the fault lasts before the controller reports ready again, in ms.
@@ -90,8 +104,10 @@ struct Args {
     fault_for_ms: u64,
     /// Keep the command counts in this JSON file, rewritten after each command (the
     /// commands of 2 ms share one write; read it once it stays the same for a moment):
-    /// {"executed":N,"received":N,"aborted":N,"connections":N,"changeovers":N,
-    /// "by_action":{"pick":N,...}} (aborted: actions the dialect's abort stopped).
+    /// {"executed":N,"received":N,"aborted":N,"refused_while_stopped":N,"connections":N,
+    /// "changeovers":N,"by_action":{"pick":N,...}} (aborted: actions the dialect's abort
+    /// stopped; refused_while_stopped: commands of the sequence that came during a
+    /// --fault-after fault or e-stop, refused with the failed reply and not executed).
     #[arg(long, value_name = "PATH")]
     count_file: Option<PathBuf>,
     /// Fence for standby holons (docs/controller-protocol.md, "Fencing (standby)"): one
@@ -115,8 +131,11 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     let dialect = match Dialect::load(&args.dialect, None)
         .map_err(|e| e.to_string())
-        .and_then(|d| d.check_simulatable().map(|()| d))
-    {
+        .and_then(|d| {
+            d.check_simulatable()
+                .map(|()| d)
+                .map_err(|e| format!("{}: {e}", args.dialect))
+        }) {
         Ok(dialect) => dialect,
         Err(why) => {
             eprintln!("robot-sim: {why}");
@@ -135,6 +154,9 @@ async fn main() -> anyhow::Result<()> {
         std::process::exit(2);
     }
     if args.check {
+        for warning in dialect.warnings() {
+            eprintln!("robot-sim: warning: {warning}");
+        }
         println!("dialect {} is valid", dialect.name);
         return Ok(());
     }
@@ -182,12 +204,14 @@ async fn main() -> anyhow::Result<()> {
         garbage_after: args.garbage_after,
         inspect_fail_every: args.inspect_fail_every,
         fault_after: args.fault_after,
+        fault_every: args.fault_every,
         fault_state: Some(args.fault_state),
         fault_for: Duration::from_millis(args.fault_for_ms),
         count_file: args.count_file,
         dialect: Some(dialect),
         reset_after: args.reset_after,
         oversize_after: args.oversize_after,
+        wrong_id_after: args.wrong_id_after,
         fragment: args.fragment,
         merge: args.merge,
         abort_too_late: false,

@@ -56,6 +56,9 @@ struct Exchange {
     deadline: Instant,
     /// Whether an abort has been asked while it was in flight.
     aborted: bool,
+    /// Whether an answer naming its id has come since its message was last sent (an
+    /// answer without an id goes to the oldest exchange without one).
+    echoed: bool,
 }
 
 impl Exchange {
@@ -98,6 +101,12 @@ pub(super) struct Connection<'a, 'o, O> {
     last_traffic: Instant,
     /// Status messages repeating the last one, since the last change.
     repeats: u64,
+    /// Polled state: whether a status answer has been read since the connection began
+    /// and since the last step that reached the controller ended. A step's first
+    /// message waits for one (the step before may have left the controller stopped).
+    state_fresh: bool,
+    /// Polled state with ids: a status poll is on the wire, its answer not yet read.
+    poll_outstanding: bool,
     /// Messages to write.
     outbox: Vec<Vec<u8>>,
     /// Abort messages whose own replies are awaited, oldest first.
@@ -134,6 +143,8 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             next_status_poll: matches!(dialect.status, Status::Polled { .. }).then_some(now),
             last_traffic: now,
             repeats: 0,
+            state_fresh: false,
+            poll_outstanding: false,
             outbox: Vec::new(),
             abort_waits: VecDeque::new(),
             last_run,
@@ -295,6 +306,7 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             poll_at: None,
             deadline: Instant::now() + self.config.command_timeout,
             aborted: false,
+            echoed: false,
         });
         Ok(())
     }
@@ -304,7 +316,56 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
     fn remember(&mut self, exchange: &mut Exchange) {
         if exchange.reached() {
             *self.last_run = Some(std::mem::take(&mut exchange.values));
+            // What the step did to the controller's state is known from the next status.
+            self.state_fresh = false;
         }
+    }
+
+    /// The controller's state as last reported, when it is stopped (fault or e-stop).
+    fn stopped(&self) -> Option<ControllerStatus> {
+        self.reporter
+            .status
+            .filter(|s| matches!(s, ControllerStatus::Fault | ControllerStatus::Estop))
+    }
+
+    /// Whether a step's message may be written now: the controller's last known state is
+    /// `ready`, and (polled) no status answer that could say otherwise is awaited, and,
+    /// for a step's first message, the state was read after the last step ended.
+    fn may_write_step(&self, first: bool) -> bool {
+        if self.reporter.status != Some(ControllerStatus::Ready) {
+            return false;
+        }
+        match self.dialect.status {
+            Status::Polled { .. } => {
+                !self.poll_outstanding
+                    && !matches!(self.awaiting, Some(Awaiting::StatusPoll { .. }))
+                    && (self.state_fresh || !first)
+            }
+            Status::Pushed | Status::Connection => true,
+        }
+    }
+
+    /// Every step not awaiting an answer on a one-in-flight wire fails without a word to
+    /// a stopped controller: nothing more of it is written. With ids, one whose message is
+    /// on the wire fails too (its late answer, if any, answers no step): it would
+    /// otherwise wait for an answer a faulted controller may never give, and its timeout
+    /// reset the connection under the steps that follow.
+    async fn fail_unsent(&mut self, status: ControllerStatus) -> Step {
+        let one = self.one_in_flight();
+        while let Some(i) = self.exchanges.iter().position(|e| !e.sent || !one) {
+            let Some(mut exchange) = self.exchanges.remove(i) else {
+                break;
+            };
+            self.remember(&mut exchange);
+            let id = exchange.command.id;
+            warn!(id, controller_state = %status, "the controller is stopped: the step ends, nothing more of it is sent");
+            self.report(ControllerEvent::CommandFailed {
+                id,
+                failure: CommandFailure::Stopped(status),
+            })
+            .await?;
+        }
+        Ok(())
     }
 
     async fn report(&mut self, event: ControllerEvent) -> Step {
@@ -331,6 +392,10 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
         }) {
             self.end_aborted(i).await?;
         }
+        // Nothing of a step goes to a controller in fault or e-stop.
+        if let Some(status) = self.stopped() {
+            self.fail_unsent(status).await?;
+        }
         let one = self.one_in_flight();
         for i in 0..self.exchanges.len() {
             if !self.wire_free() {
@@ -338,6 +403,15 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             }
             let exchange = &self.exchanges[i];
             if exchange.sent || exchange.poll_at.is_some_and(|at| at > now) {
+                continue;
+            }
+            if !self.may_write_step(!exchange.reached()) {
+                if !exchange.reached() && !self.state_fresh {
+                    // Polled: ask the state now rather than at the next interval.
+                    if let Some(at) = self.next_status_poll.as_mut() {
+                        *at = (*at).min(now);
+                    }
+                }
                 continue;
             }
             if exchange.aborted
@@ -354,6 +428,7 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             self.last_traffic = now;
             let exchange = &mut self.exchanges[i];
             exchange.sent = true;
+            exchange.echoed = false;
             exchange.poll_at = None;
             if one {
                 self.awaiting = Some(Awaiting::Command(exchange.command.id));
@@ -370,6 +445,7 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
                 self.outbox.push(bytes);
                 self.last_traffic = now;
                 self.next_status_poll = if one { None } else { Some(now + every) };
+                self.poll_outstanding = !one;
                 if one {
                     self.awaiting = Some(Awaiting::StatusPoll {
                         deadline: now + self.config.command_timeout,
@@ -443,17 +519,29 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
         Err(ConnectionEnd::Lost("a command timed out".into()))
     }
 
-    async fn status(&mut self, state: schemas::ControllerState) -> Step {
+    /// A status from the controller, with its words (a status reply's `{message}`).
+    async fn status(&mut self, state: schemas::ControllerState, said: Option<&str>) -> Step {
         // Changes are logged and reported; repeats (a chatty controller sends the same
         // status over and over) are only counted.
         let status = ControllerStatus::from(state);
-        if self.reporter.status == Some(status) {
+        let said = said.filter(|s| !s.is_empty()).map(str::to_string);
+        if self.reporter.status == Some(status) && self.reporter.said == said {
             self.repeats += 1;
             return Ok(());
         }
-        info!(controller_state = %state, repeats_before = self.repeats, "controller status");
+        match (&said, state) {
+            (Some(said), schemas::ControllerState::Ready) => {
+                info!(controller_state = %state, controller_said = %said, repeats_before = self.repeats, "controller status");
+            }
+            (Some(said), _) => {
+                warn!(controller_state = %state, controller_said = %said, repeats_before = self.repeats, "controller status");
+            }
+            (None, _) => {
+                info!(controller_state = %state, repeats_before = self.repeats, "controller status")
+            }
+        }
         self.repeats = 0;
-        if self.reporter.status(status).await {
+        if self.reporter.status_said(status, said).await {
             Ok(())
         } else {
             Err(ConnectionEnd::OwnerGone)
@@ -507,18 +595,4 @@ async fn flush(
         .flush()
         .await
         .map_err(|e| ConnectionEnd::Lost(format!("send failed: {e}")))
-}
-
-/// A message as shown in a log or an error: text as is, bytes in hex; bounded.
-fn shown(frame: &[u8]) -> String {
-    let head = &frame[..frame.len().min(120)];
-    let text = match std::str::from_utf8(head) {
-        Ok(text) if !text.chars().any(|c| c.is_control() && c != '\t') => format!("{text:?}"),
-        _ => head.iter().map(|b| format!("{b:02x}")).collect::<String>(),
-    };
-    if frame.len() > head.len() {
-        format!("{text}... ({} bytes)", frame.len())
-    } else {
-        text
-    }
 }

@@ -12,7 +12,8 @@
 //! command's sequence of messages as the dialect says, and reports in order:
 //!
 //! - [`ControllerEvent::Status`] on every change of the controller's state (pushed,
-//!   polled, or ready while connected, as the dialect says) and on disconnect;
+//!   polled, or ready while connected, as the dialect says) or of the words it gave with
+//!   it (a status reply's `{message}`, e.g. `overtravel axis 3`), and on disconnect;
 //! - [`ControllerEvent::Reply`] when a command's step ends: its result, or `error` with
 //!   the controller's message;
 //! - [`ControllerEvent::CommandFailed`] when a command cannot have an answer: no
@@ -100,6 +101,10 @@ pub enum CommandFailure {
     /// An abort ([`ControllerRequest::Abort`]) ended it on the controller.
     #[error("aborted on the controller")]
     Aborted,
+    /// The controller's last known state was fault or e-stop when the command's next
+    /// message was due: nothing more of it was written.
+    #[error("the controller is in {0}: the command was not sent")]
+    Stopped(ControllerStatus),
 }
 
 /// What the client's owner asks of it.
@@ -132,7 +137,9 @@ impl From<RobotCommand> for ControllerRequest {
 /// What the client reports to its owner, in the order it happened.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ControllerEvent {
-    Status(ControllerStatus),
+    /// The controller's state, and what the controller said of it in its own words (a
+    /// status reply's `{message}`), when it said anything.
+    Status(ControllerStatus, Option<String>),
     Reply {
         id: u64,
         result: String,
@@ -268,6 +275,7 @@ async fn run_with<O: Owner>(
     let mut reporter = Reporter {
         owner,
         status: None,
+        said: None,
         answered: 0,
     };
     let mut listener = None;
@@ -317,6 +325,8 @@ async fn run_with<O: Owner>(
 struct Reporter<'o, O> {
     owner: &'o mut O,
     status: Option<ControllerStatus>,
+    /// The controller's words with that status, as last reported.
+    said: Option<String>,
     /// The steps answered ([`ControllerEvent::Reply`]) on the current connection.
     answered: u64,
 }
@@ -336,11 +346,17 @@ impl<O: Owner> Reporter<'_, O> {
     }
 
     async fn status(&mut self, status: ControllerStatus) -> bool {
-        if self.status == Some(status) {
+        self.status_said(status, None).await
+    }
+
+    /// A status with the controller's words: reported when either changed.
+    async fn status_said(&mut self, status: ControllerStatus, said: Option<String>) -> bool {
+        if self.status == Some(status) && self.said == said {
             return true;
         }
         self.status = Some(status);
-        self.send(ControllerEvent::Status(status)).await
+        self.said = said.clone();
+        self.send(ControllerEvent::Status(status, said)).await
     }
 }
 

@@ -288,8 +288,10 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
             ))
         }
     }
-    // Correlation: with ids, every message of the sequence, and every answer to one,
-    // carries the id (a status poll or keep-alive need not).
+    // Correlation: with ids, every message of the sequence carries the id, and so does at
+    // least one answer of each (a status poll or keep-alive need not). An answer without
+    // it (a `NAK` that names no command) answers the step whose message has had no
+    // answer with its id yet, the oldest such (docs/dialects.md, section 4.4).
     if file.correlation == Correlation::Id {
         for element in &sequence {
             let c = &commands[element.command];
@@ -305,20 +307,21 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
                     "correlation = \"id\": every command of the sequence carries {id}",
                 ));
             }
-            for &r in &element.expect {
+            let with_id = element.expect.iter().any(|&r| {
                 let r = &replies[r];
-                let carries = r
-                    .body
+                r.body
                     .as_ref()
                     .map(|b| captures(b, r.regex.as_ref()))
-                    .unwrap_or_default();
-                if !carries.iter().any(|n| n == "id") {
-                    return Err(invalid(
-                        origin,
-                        format!("reply {:?}", r.name),
-                        "correlation = \"id\": every answer to a command of the sequence carries {id}",
-                    ));
-                }
+                    .unwrap_or_default()
+                    .iter()
+                    .any(|n| n == "id")
+            });
+            if !with_id {
+                return Err(invalid(
+                    origin,
+                    format!("command {:?}", c.name),
+                    "correlation = \"id\": at least one answer of each element of the sequence carries {id} (an answer without it answers the oldest step not yet answered with its id)",
+                ));
             }
         }
     }

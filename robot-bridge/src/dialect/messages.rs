@@ -315,3 +315,12 @@ pub(super) fn compile_command(
         body,
     })
 }
+
+/// The table through which `body` writes (and reads) the value `name`, if it names one.
+pub(super) fn table_of(body: &Body, name: &str) -> Option<String> {
+    templates_of(body)
+        .iter()
+        .flat_map(|t| t.names())
+        .find(|(n, table)| n == name && table.is_some())
+        .and_then(|(_, table)| table)
+}

@@ -17,6 +17,7 @@ mod compile;
 pub mod file;
 pub mod framing;
 mod messages;
+mod playable;
 pub mod template;
 pub mod values;
 pub mod xml;
@@ -311,7 +312,12 @@ impl Dialect {
             Framing::Xml => parse_tree(frame).map(Parsed::Xml),
             Framing::Line { .. } => String::from_utf8(frame.to_vec())
                 .map(|line| Parsed::Text(line.trim_end_matches(['\r', '\n']).to_string()))
-                .map_err(|_| CodecError::BadMessage("a line that is not UTF-8".into())),
+                .map_err(|_| {
+                    CodecError::BadMessage(format!(
+                        "a line that is not UTF-8: {}",
+                        crate::shown::shown(frame, false)
+                    ))
+                }),
             Framing::LengthPrefix { .. } => Ok(Parsed::Binary(Bytes::copy_from_slice(frame))),
         }
     }
@@ -351,9 +357,23 @@ impl Dialect {
                 };
                 let mut values = Values::default();
                 for name in regex.capture_names().flatten() {
-                    if let Some(m) = found.name(name) {
-                        values.set(name, m.as_str().to_string());
-                    }
+                    let Some(m) = found.name(name) else { continue };
+                    // Read through the table the reply's text names for it, as the
+                    // text's placeholder would be: `{state:safety}` and a group
+                    // `(?P<state>...)` read `NORMAL` as `ready`.
+                    let value = match reply
+                        .body
+                        .as_ref()
+                        .and_then(|b| messages::table_of(b, name))
+                    {
+                        Some(table) => self
+                            .enums
+                            .decode(&table, m.as_str())
+                            .map_err(|e| format!("{}: {e}", reply.name))?
+                            .to_string(),
+                        None => m.as_str().to_string(),
+                    };
+                    values.set(name, value);
                 }
                 values
             }
@@ -400,6 +420,42 @@ impl Dialect {
                 self.replies[reply].name
             )
         })
+    }
+
+    /// The reply that may come at any time (`status` or `ignore`) a message is, tried in
+    /// the order of the file, with its values and, for a `status`, its state. A reply
+    /// whose shape fits but whose value is wrong for it (a value outside its enum table,
+    /// a state that is not ready, fault or estop) does not take the message: the next
+    /// is tried. When none takes it, the first such wrong value is the error (the
+    /// message meant to be one of them); when none had its shape, `Ok(None)`.
+    pub fn read_unsolicited(
+        &self,
+        parsed: &Parsed,
+    ) -> Result<Option<(usize, Values, Option<ControllerState>)>, String> {
+        let mut wrong = None;
+        for reply in self.unsolicited() {
+            let values = match self.read_reply(reply, parsed) {
+                Ok(None) => continue,
+                Ok(Some(values)) => values,
+                Err(why) => {
+                    wrong.get_or_insert(why);
+                    continue;
+                }
+            };
+            if self.replies[reply].outcome == Outcome::Ignore {
+                return Ok(Some((reply, values, None)));
+            }
+            match self.state_of(reply, &values) {
+                Ok(state) => return Ok(Some((reply, values, Some(state)))),
+                Err(why) => {
+                    wrong.get_or_insert(why);
+                }
+            }
+        }
+        match wrong {
+            Some(why) => Err(why),
+            None => Ok(None),
+        }
     }
 
     /// Replies that may come at any time: `status` and `ignore`.
@@ -457,17 +513,43 @@ impl Dialect {
         Ok(())
     }
 
-    /// Checks that robot-sim can write every reply this dialect needs.
-    pub fn check_simulatable(&self) -> Result<(), String> {
-        for reply in &self.replies {
-            if reply.body.is_none() {
-                return Err(format!(
-                    "reply {}: robot-sim writes replies from `text`, and this one has only a regex",
-                    reply.name
-                ));
-            }
+    /// What is valid but likely a mistake, for `--check` to say (it does not refuse the
+    /// dialect): each a sentence.
+    pub fn warnings(&self) -> Vec<String> {
+        let mut warnings = Vec::new();
+        if self.abort.is_none() {
+            warnings.push(format!(
+                "the dialect {} has no `abort`: an operator's Abort (PackML) cannot stop the controller's motion; the step in flight runs to its end (docs/dialects.md, section 4.8)",
+                self.name
+            ));
         }
-        Ok(())
+        for state in self.unsayable_states() {
+            warnings.push(format!(
+                "no status reply of the dialect {} says {state}: the holon cannot learn that the controller is in {state}, and robot-sim cannot play it (--fault-after)",
+                self.name
+            ));
+        }
+        warnings
+    }
+
+    /// Whether command `index`'s message writes the value `name` (`id`: whether an id a
+    /// reply echoes can be compared with the command's).
+    pub fn command_writes(&self, index: usize, name: &str) -> bool {
+        messages::templates_of(&self.commands[index].body)
+            .iter()
+            .any(|t| t.names().iter().any(|(n, _)| n == name))
+    }
+
+    /// Whether reply `index` reads the value `name` (from its text, or its regex's
+    /// named groups when it has one).
+    pub fn reply_reads(&self, index: usize, name: &str) -> bool {
+        let reply = &self.replies[index];
+        match (&reply.regex, &reply.body) {
+            // The holon reads a line through the regex alone when there is one.
+            (Some(regex), _) => regex.capture_names().flatten().any(|n| n == name),
+            (None, Some(body)) => messages::captures(body, None).iter().any(|n| n == name),
+            (None, None) => false,
+        }
     }
 }
 

@@ -527,3 +527,150 @@ fn a_bad_fence_names_the_field_and_the_problem() {
         .to_string();
     assert!(e.contains("[fence]"), "{e}");
 }
+
+/// The worked example of docs/dialects.md 7.7 (replies with and without the id, one
+/// status reply per state).
+fn job_ack_end() -> String {
+    std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../deploy/dialects/examples/job-ack-end.toml"
+    ))
+    .unwrap()
+}
+
+#[test]
+fn a_regex_group_is_read_through_the_table_its_text_names() {
+    // The trap: a regex whose group reads the wire form (`NORMAL`) where the text's
+    // placeholder reads it through [enums.safety] (`ready`).
+    let text = SHIPPED
+        .iter()
+        .find(|(n, _)| *n == "ur-dashboard")
+        .unwrap()
+        .1
+        .replace(
+            "text = \"Safetystatus: {state:safety}\"",
+            "text = \"Safetystatus: {state:safety}\"\nregex = '^Safetystatus: (?P<state>\\w+)$'",
+        );
+    let dialect = Dialect::from_toml(&text, "ur.toml").unwrap();
+    dialect.check_simulatable().unwrap();
+    let parsed = dialect.parse(b"Safetystatus: REDUCED").unwrap();
+    let (_, _, state) = dialect.read_unsolicited(&parsed).unwrap().unwrap();
+    assert_eq!(state, Some(ControllerState::Ready));
+    let parsed = dialect.parse(b"Safetystatus: HOMING").unwrap();
+    let err = dialect.read_unsolicited(&parsed).unwrap_err();
+    assert!(
+        err.contains("\"HOMING\" is not a value of [enums.safety]"),
+        "{err}"
+    );
+}
+
+#[test]
+fn status_replies_are_tried_in_order_a_miss_falling_through() {
+    let dialect = Dialect::from_toml(&job_ack_end(), "job-ack-end.toml").unwrap();
+    let read = |line: &[u8]| {
+        let parsed = dialect.parse(line).unwrap();
+        dialect
+            .read_unsolicited(&parsed)
+            .map(|r| r.map(|(i, v, s)| (dialect.replies[i].name.clone(), v, s)))
+    };
+    let (name, values, state) = read(b"STATE ERROR overtravel axis 3").unwrap().unwrap();
+    assert_eq!(name, "state_error");
+    assert_eq!(values.get("message"), Some("overtravel axis 3"));
+    assert_eq!(state, Some(ControllerState::Fault));
+    assert_eq!(
+        read(b"STATE ESTOP").unwrap().unwrap().2,
+        Some(ControllerState::Estop)
+    );
+    assert_eq!(
+        read(b"STATE IDLE").unwrap().unwrap().2,
+        Some(ControllerState::Ready)
+    );
+    assert!(read(b"STATE HOMING").unwrap().is_none());
+    // A table's miss falls through to a later reply for the lines it does not list.
+    let val3 = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../deploy/dialects/examples/staubli-val3-sio.toml"
+    ))
+    .unwrap()
+        + "\n[[reply]]\nname = \"homing\"\noutcome = \"ignore\"\ntext = \"STATE HOMING\"\n";
+    let dialect = Dialect::from_toml(&val3, "val3.toml").unwrap();
+    let parsed = dialect.parse(b"STATE HOMING").unwrap();
+    let (index, _, state) = dialect.read_unsolicited(&parsed).unwrap().unwrap();
+    assert_eq!(
+        (dialect.replies[index].name.as_str(), state),
+        ("homing", None)
+    );
+    let parsed = dialect.parse(b"STATE BOGUS").unwrap();
+    let err = dialect.read_unsolicited(&parsed).unwrap_err();
+    assert!(
+        err.contains("\"BOGUS\" is not a value of [enums.val3_state]"),
+        "{err}"
+    );
+}
+
+#[test]
+fn robot_sim_check_finds_what_would_fail_on_the_first_line() {
+    let example = job_ack_end();
+    Dialect::from_toml(&example, "ok.toml")
+        .unwrap()
+        .check_simulatable()
+        .unwrap();
+    // A regex that does not match what the text writes.
+    let bad = example.replace(
+        "text = \"ACK {id}\"",
+        "text = \"ACK {id}\"\nregex = '^ACK: (?P<id>\\d+)$'",
+    );
+    let err = Dialect::from_toml(&bad, "bad.toml")
+        .unwrap()
+        .check_simulatable()
+        .unwrap_err();
+    assert!(
+        err.contains("reply ack") && err.contains("its regex does not match it"),
+        "{err}"
+    );
+    // No status reply can say ready: the controller would never be used.
+    let bad = example.replace("state = \"ready\"", "state = \"fault\"");
+    let err = Dialect::from_toml(&bad, "bad.toml")
+        .unwrap()
+        .check_simulatable()
+        .unwrap_err();
+    assert!(err.contains("no status reply says ready"), "{err}");
+    // No abort, no estop: warnings, not errors.
+    let no_estop = example.replace(
+        "text = \"STATE ESTOP\"\nstate = \"estop\"",
+        "text = \"STATE ESTOP\"\nstate = \"fault\"",
+    );
+    let dialect = Dialect::from_toml(&no_estop, "w.toml").unwrap();
+    dialect.check_simulatable().unwrap();
+    let warnings = dialect.warnings();
+    assert_eq!(warnings.len(), 2, "{warnings:?}");
+    assert!(warnings[0].contains("has no `abort`"), "{warnings:?}");
+    assert!(warnings[1].contains("says estop"), "{warnings:?}");
+    for (name, _) in SHIPPED {
+        assert!(
+            Dialect::shipped(name).unwrap().warnings().is_empty(),
+            "{name}"
+        );
+    }
+}
+
+#[test]
+fn with_ids_an_element_needs_one_answer_with_the_id() {
+    let example = job_ack_end();
+    // The NAK carries no id: allowed beside replies that do.
+    Dialect::from_toml(&example, "ok.toml").unwrap();
+    let none = example
+        .replace("text = \"ACK {id}\"", "text = \"ACK\"")
+        .replace("text = \"END {id} OK\"", "text = \"END OK\"")
+        .replace(
+            "text = \"END {id} FAIL {message}\"",
+            "text = \"END FAIL {message}\"",
+        );
+    let err = Dialect::from_toml(&none, "none.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("at least one answer of each element of the sequence carries {id}"),
+        "{err}"
+    );
+}

@@ -175,6 +175,11 @@ impl Enums {
             .ok_or_else(|| format!("{value:?} has no entry in [enums.{table}]"))
     }
 
+    /// The first value a table maps (in the order of the file's keys as read).
+    pub fn first_value(&self, table: &str) -> Option<&str> {
+        self.0.get(table)?.keys().next().map(String::as_str)
+    }
+
     pub fn decode<'a>(&'a self, table: &str, wire: &str) -> Result<&'a str, String> {
         let entries = self
             .0

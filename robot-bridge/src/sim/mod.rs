@@ -36,10 +36,14 @@
 //!   describe instead of a reply and is not executed; later commands are served normally;
 //! - `oversize_after N`: the (N+1)th command gets a message larger than the dialect's
 //!   `max_message_bytes` and is not executed;
+//! - `fault_every N`: every Nth command faults the controller as `fault_after` does;
+//! - `wrong_id_after N`: the (N+1)th command's answers echo another id (the command's
+//!   with a `9` after it), where the dialect's replies echo one; it is executed;
 //! - `fault_after N`: the (N+1)th command of the process is not executed: the controller
 //!   reports `fault` (or `estop`) instead, and `ready` after `fault_for` (a dialect with
 //!   one command in flight has the command answered with its `failed` reply too, so the
-//!   wire is free for the state);
+//!   wire is free for the state; with ids it is left unanswered); meanwhile it refuses
+//!   every message of the sequence (counted: [`SimStats::refused_while_stopped`]);
 //! - `fragment`: every message is written in pieces of 1 to 3 bytes;
 //! - `merge`: messages are written together: an `accepted` reply with the `done` that
 //!   follows it, and (where the dialect pushes its state) a `ready` with every reply;
@@ -101,6 +105,9 @@ pub struct SimConfig {
     /// When the (N+1)th command of the process arrives, report `fault_state` instead of
     /// answering it (it is not executed), then `ready` again after `fault_for`.
     pub fault_after: Option<u64>,
+    /// Every Nth command of the process faults the controller as `fault_after` does (a
+    /// rehearsal that goes on: fault, ready, fault...).
+    pub fault_every: Option<u64>,
     pub fault_state: Option<ControllerState>,
     pub fault_for: Duration,
     /// Rewritten (atomically) with [`SimStats`] as JSON after every command, once its
@@ -112,6 +119,9 @@ pub struct SimConfig {
     pub reset_after: Option<u64>,
     /// Answer the (N+1)th command with a message over the dialect's size limit.
     pub oversize_after: Option<u64>,
+    /// The (N+1)th command's answers echo another id than the command's (its id with a
+    /// `9` after it: `ACK 239` for `JOB 23`); the command is executed.
+    pub wrong_id_after: Option<u64>,
     /// Write every message in pieces of 1 to 3 bytes.
     pub fragment: bool,
     /// Write messages together (see the module docs).
@@ -137,6 +147,9 @@ impl SimConfig {
 pub struct SimStats {
     received: AtomicU64,
     executed: AtomicU64,
+    /// Commands of the sequence that came while the controller was in its simulated
+    /// fault or e-stop: refused, not executed.
+    refused: AtomicU64,
     /// Actions stopped by an abort (not executed).
     aborted: AtomicU64,
     inspections: AtomicU64,
@@ -149,6 +162,9 @@ pub struct SimStats {
     fence: Mutex<Option<fence::FenceBook>>,
     /// Held while the count file is written.
     file_lock: Mutex<()>,
+    /// The controller's simulated fault or e-stop (`--fault-after`) and until when: the
+    /// controller's, not a connection's, so it outlasts a reconnect.
+    stopped: Mutex<Option<(std::time::Instant, ControllerState)>>,
 }
 
 impl SimStats {
@@ -183,6 +199,24 @@ impl SimStats {
     /// Actions stopped by the dialect's abort while under way (not executed).
     pub fn aborted(&self) -> u64 {
         self.aborted.load(Ordering::SeqCst)
+    }
+
+    /// The simulated fault or e-stop under way, and when it ends (None: ready).
+    pub(crate) fn stopped(&self) -> Option<(std::time::Instant, ControllerState)> {
+        let stopped = *self.stopped.lock().unwrap_or_else(|e| e.into_inner());
+        stopped.filter(|(until, _)| std::time::Instant::now() < *until)
+    }
+
+    /// The controller stops in `state` for `time`.
+    pub(crate) fn stop(&self, state: ControllerState, time: Duration) {
+        *self.stopped.lock().unwrap_or_else(|e| e.into_inner()) =
+            Some((std::time::Instant::now() + time, state));
+    }
+
+    /// Commands of the sequence that came while the controller was stopped (its
+    /// simulated fault or e-stop): refused, not executed.
+    pub fn refused_while_stopped(&self) -> u64 {
+        self.refused.load(Ordering::SeqCst)
     }
 
     /// Commands received, executed or not.
@@ -224,8 +258,8 @@ impl SimStats {
             .clone()
     }
 
-    /// `{"executed": N, "received": N, "aborted": N, "connections": N, "changeovers": N,
-    /// "by_action": {"pick": N, ...}}`; fenced, with `"epoch": N,
+    /// `{"executed": N, "received": N, "aborted": N, "refused_while_stopped": N,
+    /// "connections": N, "changeovers": N, "by_action": {"pick": N, ...}}`; fenced, with `"epoch": N,
     /// "stale_epoch_refused": N, "by_step": {"STEP ID": N, ...}` too.
     pub fn to_json(&self) -> String {
         let plain = self.plain_json();
@@ -254,10 +288,11 @@ impl SimStats {
             .map(|(k, v)| format!("\"{k}\":{v}"))
             .collect();
         format!(
-            "{{\"executed\":{},\"received\":{},\"aborted\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
+            "{{\"executed\":{},\"received\":{},\"aborted\":{},\"refused_while_stopped\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
             self.executed(),
             self.received(),
             self.aborted(),
+            self.refused_while_stopped(),
             self.connections(),
             self.changeovers(),
             by_action.join(",")

@@ -86,8 +86,6 @@ struct Session<'a> {
     /// The values of the action under way, from every message that named them.
     context: Values,
     running: Option<Running>,
-    /// Until when the controller reports a fault (polled state).
-    fault_until: Option<(std::time::Instant, ControllerState)>,
     /// Commands begun on this connection.
     on_this_connection: u64,
     /// After `hang_after`: nothing more is answered.
@@ -119,6 +117,10 @@ pub(super) async fn serve(
         dialect: &dialect,
         config,
         held: BytesMut::new(),
+        // A fault outlasts the connection it began on.
+        state: stats
+            .stopped()
+            .map_or(ControllerState::Ready, |(_, state)| state),
     };
     if let Some(banner) = &dialect.banner {
         let mut framed = BytesMut::new();
@@ -129,7 +131,7 @@ pub(super) async fn serve(
         writer.raw(&framed).await?;
     }
     if dialect.status == Status::Pushed {
-        writer.status(ControllerState::Ready).await?;
+        writer.status().await?;
     }
     let mut session = Session {
         config,
@@ -138,7 +140,6 @@ pub(super) async fn serve(
         dialect: &dialect,
         context: Values::default(),
         running: None,
-        fault_until: None,
         on_this_connection: 0,
         hung: false,
         acting: None,
@@ -152,8 +153,17 @@ pub(super) async fn serve(
             .as_ref()
             .map_or_else(std::time::Instant::now, |a| a.until);
         let lease_end = session.lease_end();
+        let fault_end = stats.stopped().map(|(until, _)| until);
         let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
+            _ = tokio::time::sleep_until(fault_end.unwrap_or_else(std::time::Instant::now).into()), if fault_end.is_some() => {
+                writer.state = ControllerState::Ready;
+                info!("ready again");
+                if dialect.status == Status::Pushed {
+                    writer.status().await?;
+                }
+                Flow::Continue
+            }
             _ = tokio::time::sleep_until(lease_end.unwrap_or_else(std::time::Instant::now).into()), if lease_end.is_some() => {
                 if session.lease_expired() {
                     drop(reader);
@@ -231,10 +241,9 @@ impl Session<'_> {
     }
 
     fn state_now(&self) -> ControllerState {
-        match self.fault_until {
-            Some((until, state)) if std::time::Instant::now() < until => state,
-            _ => ControllerState::Ready,
-        }
+        self.stats
+            .stopped()
+            .map_or(ControllerState::Ready, |(_, state)| state)
     }
 
     /// A message from the holon: answered now, or, while an action is under way, kept
@@ -343,12 +352,9 @@ impl Session<'_> {
         }
         if let Status::Polled { command, .. } = self.dialect.status {
             if command == index {
-                let state = self.state_now();
-                if let Some(rule) = writer.status_rule() {
-                    let mut v = Values::default();
-                    v.set("state", state.as_str().into());
-                    writer.reply(rule, &v).await?;
-                }
+                // Answered with the status reply that says the state now.
+                writer.state = self.state_now();
+                writer.status().await?;
                 return Ok(Flow::Continue);
             }
         }
@@ -373,6 +379,24 @@ impl Session<'_> {
         self.context.fill_from(&values);
         for (name, value) in values.iter() {
             self.context.set(name, value.to_string());
+        }
+        let state = self.state_now();
+        if state != ControllerState::Ready && element.sending == Sending::Send {
+            // A stopped controller refuses motion, as a real one does: counted, so a
+            // test sees a command that reached it while stopped.
+            let refused = self.stats.refused.fetch_add(1, Ordering::SeqCst) + 1;
+            let command = &self.dialect.commands[index].name;
+            warn!(%command, %state, refused, "a command while stopped: refused, not executed");
+            let why = format!("refused: the robot is in {state}");
+            self.answer_with(
+                &element,
+                writer,
+                &why,
+                &[Outcome::Rejected, Outcome::Failed],
+            )
+            .await?;
+            self.count_file.update();
+            return Ok(Flow::Continue);
         }
         if element.starts {
             return self.begin(&element, writer, shutdown).await;
@@ -432,30 +456,36 @@ impl Session<'_> {
             self.count_file.update();
             return Ok(Flow::Continue);
         }
-        if config.fault_after.is_some_and(|limit| n == limit + 1) {
+        if config.wrong_id_after.is_some_and(|limit| n == limit + 1) {
+            if let Some(id) = self.context.get("id").map(str::to_string) {
+                info!(%id, "answering with another id (--wrong-id-after)");
+                self.context.set("id", format!("{id}9"));
+            }
+        }
+        let faults = config.fault_after.is_some_and(|limit| n == limit + 1)
+            || config
+                .fault_every
+                .is_some_and(|every| every > 0 && n.is_multiple_of(every));
+        if faults {
             let state = config.fault_state.unwrap_or(ControllerState::Fault);
             info!(%id, %state, "reporting a fault (--fault-after)");
             self.count_file.update();
             let one = self.dialect.correlation == Correlation::OneInFlight;
-            match self.dialect.status {
-                Status::Pushed => {
-                    writer.status(state).await?;
-                    if one {
-                        self.answer_failed(element, writer, &format!("{state}"))
-                            .await?;
-                    }
-                    tokio::select! {
-                        _ = shutdown.cancelled() => return Ok(Flow::Close),
-                        _ = tokio::time::sleep(config.fault_for) => {}
-                    }
-                    info!("ready again");
-                    writer.status(ControllerState::Ready).await?;
-                }
-                _ => {
-                    self.fault_until = Some((std::time::Instant::now() + config.fault_for, state));
-                    self.answer_failed(element, writer, &format!("{state}"))
-                        .await?;
-                }
+            // Stopped for `fault_for` (the session's timer reports `ready` again); what
+            // comes meanwhile is refused.
+            self.stats.stop(state, config.fault_for);
+            writer.state = state;
+            if self.dialect.status == Status::Pushed {
+                // The state first, so the holon knows it before the command's answer.
+                writer.status().await?;
+            }
+            // One in flight, the command is answered with its failed reply (which frees
+            // the wire for the state); with ids it is left unanswered, as a faulted
+            // controller leaves the job it was given (its state says why), unless its
+            // state cannot be told (a dialect whose state is the connection's).
+            if one || self.dialect.status == Status::Connection {
+                self.answer_failed(element, writer, &format!("{state}"))
+                    .await?;
             }
             return Ok(Flow::Continue);
         }
@@ -496,12 +526,16 @@ impl Session<'_> {
         }
         if result.is_none() && (done_here.is_some() || simulated_error) {
             // Refused or failed without acting.
-            let why = if simulated_error {
-                "simulated error (--error-every)".to_string()
+            if simulated_error {
+                let why = "simulated error (--error-every)";
+                self.answer_failed(element, writer, why).await?;
             } else {
-                format!("unknown action {action:?}")
-            };
-            self.answer_failed(element, writer, &why).await?;
+                // Not understood: refused, as a controller answers a command it cannot
+                // run (its `rejected` reply where the element has one, e.g. a NAK).
+                let why = format!("unknown action {action:?}");
+                self.answer_with(element, writer, &why, &[Outcome::Rejected, Outcome::Failed])
+                    .await?;
+            }
             self.count_file.update();
             return Ok(Flow::Continue);
         }
@@ -545,7 +579,20 @@ impl Session<'_> {
         writer: &mut Writer<'_>,
         why: &str,
     ) -> Result<(), SimError> {
-        if let Some(rule) = self.rule(element, &[Outcome::Failed, Outcome::Rejected]) {
+        self.answer_with(element, writer, why, &[Outcome::Failed, Outcome::Rejected])
+            .await
+    }
+
+    /// Answers with `element`'s first reply of `outcomes` (failed or rejected), message
+    /// `why`.
+    async fn answer_with(
+        &mut self,
+        element: &Element,
+        writer: &mut Writer<'_>,
+        why: &str,
+        outcomes: &[Outcome],
+    ) -> Result<(), SimError> {
+        if let Some(rule) = self.rule(element, outcomes) {
             let mut values = self.context.clone();
             values.set("message", why.to_string());
             self.settle(StepRecord::Failed(why.to_string()));

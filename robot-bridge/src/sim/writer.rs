@@ -11,7 +11,7 @@ use tokio_util::codec::Encoder;
 
 use super::{SimConfig, SimError};
 use crate::dialect::framing::{FrameCodec, Framing};
-use crate::dialect::{Dialect, Outcome, Status, Values};
+use crate::dialect::{Dialect, Status, Values};
 
 /// The writing side of a connection: frames messages and writes them (in pieces, or held
 /// to go together, as the faults say).
@@ -22,6 +22,18 @@ pub(super) struct Writer<'a> {
     pub(super) config: &'a SimConfig,
     /// Messages held to be written with the next one (`merge`).
     pub(super) held: BytesMut,
+    /// The controller's state, as its status replies say it.
+    pub(super) state: ControllerState,
+}
+
+/// What the simulated controller says of its state in its own words, for a status
+/// reply that carries a `{message}`.
+fn said(state: ControllerState) -> &'static str {
+    match state {
+        ControllerState::Ready => "",
+        ControllerState::Fault => "simulated fault (--fault-after)",
+        ControllerState::Estop => "simulated emergency stop (--fault-after)",
+    }
 }
 
 impl Writer<'_> {
@@ -45,10 +57,9 @@ impl Writer<'_> {
     pub(super) async fn reply(&mut self, index: usize, values: &Values) -> Result<(), SimError> {
         let mut framed = self.frame(index, values)?;
         if self.config.merge && self.dialect.status == Status::Pushed {
-            // A state repeated in the same write as the reply.
-            if let Some(status) = self.status_rule() {
-                let mut state = Values::default();
-                state.set("state", ControllerState::Ready.as_str().into());
+            // The state repeated in the same write as the reply (pushed only: a polled
+            // controller says its state when asked, never unprompted).
+            if let Some((status, state)) = self.status_reply(self.state) {
                 let before = self.frame(status, &state)?;
                 self.held.extend_from_slice(&before);
             }
@@ -73,19 +84,19 @@ impl Writer<'_> {
         self.reply(index, values).await
     }
 
-    pub(super) fn status_rule(&self) -> Option<usize> {
-        self.dialect
-            .replies
-            .iter()
-            .position(|r| r.outcome == Outcome::Status)
+    /// The status reply that says `state` (in the simulated controller's words, where
+    /// it carries a `{message}`), and its values ([`Dialect::status_reply_for`]).
+    pub(super) fn status_reply(&self, state: ControllerState) -> Option<(usize, Values)> {
+        self.dialect.status_reply_for(state, said(state))
     }
 
-    pub(super) async fn status(&mut self, state: ControllerState) -> Result<(), SimError> {
-        let Some(index) = self.status_rule() else {
+    /// Writes the state (`self.state`) in its status reply, if the dialect has one for it.
+    pub(super) async fn status(&mut self) -> Result<(), SimError> {
+        let state = self.state;
+        let Some((index, values)) = self.status_reply(state) else {
+            tracing::warn!(%state, "the dialect has no status reply for this state: not said");
             return Ok(());
         };
-        let mut values = Values::default();
-        values.set("state", state.as_str().into());
         let framed = self.frame(index, &values)?;
         self.raw(&framed).await
     }

@@ -79,7 +79,7 @@ impl Harness {
     pub async fn answer(&mut self) -> ControllerEvent {
         loop {
             match self.next().await {
-                ControllerEvent::Status(_) => continue,
+                ControllerEvent::Status(..) => continue,
                 other => return other,
             }
         }
@@ -87,7 +87,7 @@ impl Harness {
 
     pub async fn wait_status(&mut self, status: ControllerStatus) {
         loop {
-            if self.next().await == ControllerEvent::Status(status) {
+            if matches!(self.next().await, ControllerEvent::Status(s, _) if s == status) {
                 return;
             }
         }

@@ -250,6 +250,7 @@ fn start_while_unavailable_is_refused_and_keeps_the_booking() {
     m.handle(AgendaEvent::Request(book("o-1", "c1")));
     m.handle(AgendaEvent::ExecutionUnavailable(
         ControllerStatus::Disconnected,
+        None,
     ));
     assert_eq!(m.status(), Status::Init);
     assert_refused(
@@ -450,6 +451,7 @@ fn unavailable_while_busy_returns_to_init_after_the_job_ends() {
     m.handle(AgendaEvent::Request(start("o-1", "c1")));
     m.handle(AgendaEvent::ExecutionUnavailable(
         ControllerStatus::Disconnected,
+        None,
     ));
     assert!(matches!(m.status(), Status::Busy(_)));
     m.handle(done("c1"));

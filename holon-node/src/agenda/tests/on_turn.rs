@@ -47,6 +47,7 @@ fn a_booking_on_turn_waits_for_the_running_job_and_starts_when_it_ends() {
     // Not while the controller is away; again when it is back.
     m.handle(AgendaEvent::ExecutionUnavailable(
         ControllerStatus::Disconnected,
+        None,
     ));
     assert!(executed(&m.handle(done("c2"))).is_empty());
     assert_eq!(m.status(), Status::Init);

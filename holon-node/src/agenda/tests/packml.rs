@@ -146,7 +146,10 @@ fn abort_with_nothing_running_goes_straight_to_aborted() {
 fn a_controller_fault_aborts_and_hands_the_bookings_back() {
     let mut m = manager();
     m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    let actions = m.handle(AgendaEvent::ExecutionUnavailable(ControllerStatus::Estop));
+    let actions = m.handle(AgendaEvent::ExecutionUnavailable(
+        ControllerStatus::Estop,
+        None,
+    ));
     assert_eq!(handed_back(&actions), ["c1"]);
     assert_eq!(m.packml().state(), PackmlState::Aborted);
     // Ready again: still Aborted until an operator clears, resets and starts it.

@@ -42,6 +42,7 @@ fn proposals_report_the_expected_wait() {
     assert_eq!(reply(&actions).info["queue_position"], 2);
     m.handle(AgendaEvent::ExecutionUnavailable(
         ControllerStatus::Disconnected,
+        None,
     ));
     let actions = m.handle(AgendaEvent::Request(proposal));
     assert_eq!(

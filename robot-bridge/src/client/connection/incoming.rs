@@ -6,8 +6,10 @@ use tokio::time::Instant;
 use tracing::{debug, warn};
 
 use super::super::{ControllerEvent, ControllerStatus};
-use super::{shown, Awaiting, Connection, ConnectionEnd, Step};
+use super::{Awaiting, Connection, ConnectionEnd, Step};
+use crate::dialect::framing::Framing;
 use crate::dialect::{Correlation, Outcome, Parsed, Sending, Status, Values};
+use crate::shown::shown;
 
 impl<O: super::Owner> Connection<'_, '_, O> {
     /// One message from the controller.
@@ -59,26 +61,23 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 }
             }
         }
-        for reply in self.dialect.unsolicited() {
-            match self.dialect.read_reply(reply, &parsed) {
-                Ok(None) => continue,
-                Err(why) => return self.protocol_error(why).await,
-                Ok(Some(values)) => {
-                    if self.dialect.replies[reply].outcome == Outcome::Ignore {
-                        return Ok(());
-                    }
-                    let state = match self.dialect.state_of(reply, &values) {
-                        Ok(state) => state,
-                        Err(why) => return self.protocol_error(why).await,
-                    };
-                    if matches!(self.awaiting, Some(Awaiting::StatusPoll { .. })) {
-                        self.awaiting = None;
-                        if let Status::Polled { every, .. } = self.dialect.status {
-                            self.next_status_poll = Some(Instant::now() + every);
-                        }
-                    }
-                    return self.status(state).await;
+        match self.dialect.read_unsolicited(&parsed) {
+            Ok(None) => {}
+            Err(why) => return self.protocol_error(why).await,
+            Ok(Some((_, _, None))) => return Ok(()),
+            Ok(Some((_, values, Some(state)))) => {
+                if self.dialect.status != Status::Pushed {
+                    // A status read: the state is known as of now.
+                    self.state_fresh = true;
+                    self.poll_outstanding = false;
                 }
+                if matches!(self.awaiting, Some(Awaiting::StatusPoll { .. })) {
+                    self.awaiting = None;
+                    if let Status::Polled { every, .. } = self.dialect.status {
+                        self.next_status_poll = Some(Instant::now() + every);
+                    }
+                }
+                return self.status(state, values.get("message")).await;
             }
         }
         if keepalive_answered {
@@ -100,15 +99,29 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         self.protocol_error(format!(
             "a message the dialect {} does not describe: {}",
             self.dialect.name,
-            shown(frame)
+            shown(
+                frame,
+                matches!(self.dialect.framing, Framing::LengthPrefix { .. })
+            )
         ))
         .await
     }
 
     /// Tries `parsed` as the answer an exchange waits for. `Ok(true)`: it was;
     /// `Err(Ok(why))`: it was shaped like one but is wrong.
+    ///
+    /// With ids, an answer carrying an id answers the step of that id; one without an id
+    /// (a `NAK` that names no command) answers the oldest step whose message on the wire
+    /// has had no answer with its id yet, else the oldest on the wire. With one in
+    /// flight, the answer is the request's on the wire; an id it echoes must be the
+    /// command's (when the command writes its id), or the protocol is broken.
     async fn answer(&mut self, parsed: &Parsed) -> Result<bool, Result<String, ConnectionEnd>> {
         let one = self.one_in_flight();
+        let unechoed = self
+            .exchanges
+            .iter()
+            .position(|e| e.sent && !e.echoed)
+            .or_else(|| self.exchanges.iter().position(|e| e.sent));
         for i in 0..self.exchanges.len() {
             let exchange = &self.exchanges[i];
             if one && self.awaiting != Some(Awaiting::Command(exchange.command.id)) {
@@ -124,11 +137,27 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                     Ok(Some(values)) => values,
                     Err(why) => return Err(Ok(why)),
                 };
-                if !one
-                    && values.get("id").and_then(|id| id.parse::<u64>().ok())
-                        != Some(exchange.command.id)
-                {
-                    continue;
+                let echoed = values.get("id");
+                match (one, echoed) {
+                    (false, Some(echoed))
+                        if echoed.parse::<u64>().ok() != Some(exchange.command.id) =>
+                    {
+                        continue
+                    }
+                    (false, None) if unechoed != Some(i) => continue,
+                    (true, Some(echoed))
+                        if self.dialect.command_writes(element.command, "id")
+                            && echoed.parse::<u64>().ok() != Some(exchange.command.id) =>
+                    {
+                        return Err(Ok(format!(
+                            "the answer {} names command {echoed}, but the command on the wire is {}",
+                            self.dialect.replies[reply].name, exchange.command.id
+                        )));
+                    }
+                    _ => {}
+                }
+                if echoed.is_some() {
+                    self.exchanges[i].echoed = true;
                 }
                 self.advance(i, reply, &values).await.map_err(Err)?;
                 return Ok(true);
