@@ -317,6 +317,16 @@ async fn a_stranger_cannot_keep_operators_out_guess_passwords_or_exhaust_the_ser
         !logged.lines().any(|l| l.starts_with("injected")),
         "a line was split: {logged}"
     );
+    // A flood of refusals is one line, then a count at most every 10 s: the 30
+    // sessions on the None channel left one or two lines, not 30.
+    let flood_lines = logged
+        .lines()
+        .filter(|l| l.contains("CreateSession refused (BadSecurityPolicyRejected)"))
+        .count();
+    assert!(
+        (1..=2).contains(&flood_lines),
+        "{flood_lines} lines for 30 refused sessions: {logged}"
+    );
 
     // 8. The audit trail has the OPC UA door's logins, failures and calls.
     let audit = std::fs::read_to_string(pki.join("audit.jsonl")).unwrap();

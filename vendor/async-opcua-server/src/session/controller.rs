@@ -316,7 +316,8 @@ impl SessionController {
                     self.info.offers_channel(policy, r.security_mode)
                 };
                 if !offered {
-                    warn!(
+                    crate::refusals::refused!(
+                        "open-mode",
                         client = %self.transport.peer.map(|a| a.to_string()).unwrap_or_else(|| "?".into()),
                         policy = %policy, mode = ?r.security_mode,
                         "OpenSecureChannel refused (BadSecurityModeRejected): no endpoint offers this mode with this policy"

@@ -130,7 +130,7 @@ impl SessionManager {
         let from_address = by_address.get(&ip).copied().unwrap_or(0);
         let client = peer.map(|a| a.to_string()).unwrap_or_else(|| "?".into());
         let refuse = |why: String| {
-            warn!(%client, "CreateSession refused (BadTooManySessions): {why}");
+            crate::refusals::refused!("too-many-sessions", %client, "CreateSession refused (BadTooManySessions): {why}");
             Err(StatusCode::BadTooManySessions)
         };
         if activated >= limits.max_sessions {
@@ -154,7 +154,8 @@ impl SessionManager {
             .cloned();
         match victim {
             Some((id, address, _)) if most > from_address => {
-                warn!(
+                crate::refusals::refused!(
+                    "waiting-session-closed",
                     %client,
                     holder = %address.map(|a| a.to_string()).unwrap_or_else(|| "?".into()),
                     "{} sessions wait for activation, the most the server holds (max_pending_sessions): the oldest of the address holding the most ({most}) is closed for a newcomer",
@@ -191,7 +192,8 @@ impl SessionManager {
             .info
             .offers_channel(channel.security_policy(), channel.security_mode())
         {
-            warn!(
+            crate::refusals::refused!(
+                "session-on-discovery-channel",
                 client = %peer.map(|a| a.to_string()).unwrap_or_else(|| "?".into()),
                 policy = %channel.security_policy(),
                 mode = ?channel.security_mode(),

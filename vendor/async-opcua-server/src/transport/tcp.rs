@@ -301,7 +301,7 @@ impl TcpTransport {
         let policy = SecurityPolicy::from_uri(uri);
         if policy == SecurityPolicy::Unknown || !self.info.opens_channel(policy) {
             let client = self.peer.map(|a| a.to_string()).unwrap_or_else(|| "?".into());
-            tracing::warn!(%client, policy = ?uri, "OpenSecureChannel refused (BadSecurityPolicyRejected): no endpoint offers this security policy");
+            crate::refusals::refused!("open-policy", %client, policy = ?uri, "OpenSecureChannel refused (BadSecurityPolicyRejected): no endpoint offers this security policy");
             return Err(Error::new(
                 StatusCode::BadSecurityPolicyRejected,
                 "no endpoint of this server offers the security policy",
