@@ -5,6 +5,7 @@ mod epoch;
 mod on_turn;
 mod packml;
 mod queue;
+mod refusals;
 mod restore;
 
 const INBOX: &str = "holarchy/t/order/o-1/inbox";
@@ -573,101 +574,6 @@ fn a_requester_gone_for_good_loses_its_bookings_not_its_running_job() {
     assert!(again.is_empty(), "nothing left to release: {again:?}");
 }
 
-fn proposal_req(order: &str, service_type: &str) -> Service {
-    Service::request(
-        MessageType::ProposalReq,
-        service_type,
-        "c0",
-        HolonId::order(order).unwrap(),
-    )
-}
-
-#[test]
-fn proposal_refusals_come_in_the_tables_order() {
-    let mut m = AgendaManager::new(
-        HolonId::resource("robot1").unwrap(),
-        Arc::new(pick_n_place()),
-        1,
-    );
-    // Not offered beats unavailable.
-    let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "weld")));
-    assert_eq!(
-        reply(&r).reason.as_ref().map(|r| r.as_str()),
-        Some("unknown_service")
-    );
-    let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "pick_n_place")));
-    assert_eq!(
-        reply(&r).reason.as_ref().map(|r| r.as_str()),
-        Some("unavailable")
-    );
-    m.handle(AgendaEvent::ExecutionReady);
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    let r = m.handle(AgendaEvent::Request(proposal_req("o-2", "pick_n_place")));
-    assert_eq!(
-        reply(&r).reason.as_ref().map(|r| r.as_str()),
-        Some("agenda_full")
-    );
-    assert_eq!(reply(&r).message_type, MessageType::Proposal);
-    // A proposal changes nothing.
-    assert_eq!(r.len(), 1);
-}
-
-#[test]
-fn a_booking_request_for_the_running_conversation_is_refused_busy() {
-    let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "busy");
-}
-
-#[test]
-fn a_repeated_withdraw_and_an_unknown_acknowledgement_change_nothing() {
-    let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    assert!(!m.handle(AgendaEvent::Withdraw).is_empty());
-    assert_eq!(m.handle(AgendaEvent::Withdraw), vec![]);
-    assert_eq!(
-        m.handle(AgendaEvent::ResultAcknowledged {
-            conversation_id: "nobody".into()
-        }),
-        vec![]
-    );
-    assert_eq!(
-        m.handle(AgendaEvent::RequesterGone {
-            requester: HolonId::order("o-9").unwrap()
-        }),
-        vec![]
-    );
-}
-
-#[test]
-fn requests_that_are_not_for_the_agenda_are_refused() {
-    let mut m = manager();
-    for kind in [
-        MessageType::Status,
-        MessageType::Done,
-        MessageType::Proposal,
-    ] {
-        assert_refused(
-            &m.handle(AgendaEvent::Request(msg(kind, "o-1", "c1"))),
-            "unknown_service",
-        );
-    }
-}
-
-/// An agenda with a job running, a booking waiting and a result undelivered: every
-/// part of the journal's record (for `record`'s tests).
-pub(super) fn agenda_for_record() -> AgendaManager {
-    let mut m = manager();
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1"))));
-    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
-    m.handle(done("c1"));
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2"))));
-    assert_accepted(&m.handle(AgendaEvent::Request(start("o-2", "c2"))));
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-3", "c3"))));
-    m
-}
-
 #[test]
 fn a_deposed_agenda_drops_its_bookings_without_a_word_and_takes_no_work() {
     let mut m = agenda_for_record();
@@ -699,4 +605,17 @@ fn a_job_ended_deposed_leaves_no_result() {
     assert_eq!(actions, vec![AgendaAction::StateChanged]);
     assert!(m.current().is_none());
     assert!(m.undelivered().is_empty(), "nothing to deliver");
+}
+
+/// An agenda with a job running, a booking waiting and a result undelivered: every
+/// part of the journal's record (for `record`'s tests).
+pub(super) fn agenda_for_record() -> AgendaManager {
+    let mut m = manager();
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+    m.handle(done("c1"));
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-2", "c2"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-3", "c3"))));
+    m
 }
