@@ -4,8 +4,8 @@
 
 //! Provides server state information, such as status, configuration, running servers and so on.
 
-use std::sync::atomic::{AtomicU16, AtomicU8, Ordering};
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU16, AtomicU8, Ordering};
 use std::sync::Arc;
 
 use arc_swap::ArcSwap;
@@ -378,7 +378,8 @@ impl ServerInfo {
                     ))
                 }
                 IdentityToken::Anonymous(token) => {
-                    self.authenticate_anonymous_token(endpoint, &token, peer).await
+                    self.authenticate_anonymous_token(endpoint, &token, peer)
+                        .await
                 }
                 IdentityToken::UserName(token) => {
                     self.authenticate_username_identity_token(

@@ -131,7 +131,8 @@ impl Session {
             peer_address,
             created_at: Instant::now(),
             activation_deadline: Some(
-                Instant::now() + Duration::from_millis(info.config.limits.pending_session_timeout_ms),
+                Instant::now()
+                    + Duration::from_millis(info.config.limits.pending_session_timeout_ms),
             ),
         }
     }

@@ -134,7 +134,9 @@ impl SessionManager {
             Err(StatusCode::BadTooManySessions)
         };
         if activated >= limits.max_sessions {
-            return refuse(format!("{activated} activated sessions, the most the server holds (max_sessions)"));
+            return refuse(format!(
+                "{activated} activated sessions, the most the server holds (max_sessions)"
+            ));
         }
         if on_channel >= limits.max_pending_sessions_per_channel {
             return refuse(format!("{on_channel} sessions not yet activated on this channel, the most allowed (max_pending_sessions_per_channel)"));

@@ -300,7 +300,10 @@ impl TcpTransport {
         let uri = security.security_policy_uri.as_ref();
         let policy = SecurityPolicy::from_uri(uri);
         if policy == SecurityPolicy::Unknown || !self.info.opens_channel(policy) {
-            let client = self.peer.map(|a| a.to_string()).unwrap_or_else(|| "?".into());
+            let client = self
+                .peer
+                .map(|a| a.to_string())
+                .unwrap_or_else(|| "?".into());
             crate::refusals::refused!("open-policy", %client, policy = ?uri, "OpenSecureChannel refused (BadSecurityPolicyRejected): no endpoint offers this security policy");
             return Err(Error::new(
                 StatusCode::BadSecurityPolicyRejected,
