@@ -104,20 +104,26 @@ async def open_channel(client):
     await client.open_secure_channel()
 
 
-async def sessions(url, n):
-    client = Client(url=url, timeout=8)
-    client.application_uri = APP_URI
+async def create_sessions(client, n):
+    """N CreateSession on the client's channel, none activated: their statuses."""
     statuses = []
-    try:
-        await open_channel(client)
-    except Exception as e:
-        return {"statuses": ["channel: " + status_name(e)]}
     for _ in range(n):
         try:
             await client.create_session()
             statuses.append("Good")
         except Exception as e:
             statuses.append(status_name(e))
+    return statuses
+
+
+async def sessions(url, n):
+    client = Client(url=url, timeout=8)
+    client.application_uri = APP_URI
+    try:
+        await open_channel(client)
+    except Exception as e:
+        return {"statuses": ["channel: " + status_name(e)]}
+    statuses = await create_sessions(client, n)
     client.disconnect_socket()
     return {"statuses": statuses}
 
@@ -139,14 +145,8 @@ async def channel(url, policy, mode, certdir):
 
 async def pending(url, certdir, n):
     client = await secure_client(url, certdir)
-    statuses = []
     await open_channel(client)
-    for _ in range(n):
-        try:
-            await client.create_session()
-            statuses.append("Good")
-        except Exception as e:
-            statuses.append(status_name(e))
+    statuses = await create_sessions(client, n)
     print(json.dumps({"statuses": statuses}), flush=True)
     loop = asyncio.get_running_loop()
     await loop.run_in_executor(None, sys.stdin.read)

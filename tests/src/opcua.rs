@@ -1,15 +1,15 @@
-//! The OPC UA tests' clients: the foreign client (Python asyncua, tests/opcua/driver.py)
-//! driven one command at a time, and the users of a secure cell's server.
+//! The OPC UA tests' client: the foreign client (Python asyncua, tests/opcua/driver.py)
+//! driven one command at a time.
 
 use std::path::Path;
-use std::process::{Command, Stdio};
+use std::process::Stdio;
 use std::time::Duration;
 
 use serde_json::Value;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader, Lines};
 use tokio::process::{Child, ChildStdin, ChildStdout};
 
-use crate::{bin, workspace_root};
+use crate::workspace_root;
 
 /// The driver script, connected to a server.
 pub struct Driver {
@@ -97,25 +97,4 @@ impl Driver {
         let _ = self.stdin.write_all(b"quit\n").await;
         let _ = tokio::time::timeout(Duration::from_secs(10), self.child.wait()).await;
     }
-}
-
-/// Adds a user to the users file of `pki` with `cell users`, the password piped in.
-pub fn add_user(pki: &Path, name: &str, role: &str, password: &str) {
-    let mut child = Command::new(bin("cell"))
-        .args(["users", "--pki"])
-        .arg(pki)
-        .args(["add", name, "--role", role])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    use std::io::Write;
-    writeln!(child.stdin.take().unwrap(), "{password}").unwrap();
-    let out = child.wait_with_output().unwrap();
-    assert!(
-        out.status.success(),
-        "cell users add {name}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
 }

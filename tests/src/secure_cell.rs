@@ -5,17 +5,33 @@
 
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command};
+use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use schemas::CellKeys;
 
 use crate::{bin, free_port, workspace_root};
 
-/// `cell up` of the secure cell, in a process group of its own with the processes it
-/// starts: stopped (SIGTERM, then SIGKILL) when dropped, and then whatever of its group
-/// is left is killed, so that a `cell up` that had to be killed leaves no process behind.
+/// A cell's supervising process (`cell up` of the secure cell, or a `cell demo`), in a
+/// process group of its own with the processes it starts: stopped (SIGTERM, then
+/// SIGKILL) when dropped, and then whatever of its group is left is killed, so that one
+/// that had to be killed leaves no process behind.
 pub struct Up(Child);
+
+impl Up {
+    /// Starts `command` in a process group of its own.
+    pub fn spawn(command: &mut Command) -> Up {
+        Up(command
+            .process_group(0)
+            .spawn()
+            .expect("start the cell's supervising process"))
+    }
+
+    /// Its process id.
+    pub fn id(&self) -> u32 {
+        self.0.id()
+    }
+}
 
 impl Drop for SecureCell {
     fn drop(&mut self) {
@@ -210,4 +226,26 @@ impl SecureCell {
             .map(|s| self.executed(s))
             .sum()
     }
+}
+
+/// Adds a user to the users file of `pki` with `cell users`, the password piped in (the
+/// people of both doors, the dashboard and the OPC UA server).
+pub fn add_user(pki: &Path, name: &str, role: &str, password: &str) {
+    let mut child = Command::new(bin("cell"))
+        .args(["users", "--pki"])
+        .arg(pki)
+        .args(["add", name, "--role", role])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    use std::io::Write;
+    writeln!(child.stdin.take().unwrap(), "{password}").unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "cell users add {name}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

@@ -8,7 +8,7 @@ use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use holarchy_tests::secure_cell::{secure_cell, SecureCell};
+use holarchy_tests::secure_cell::{add_user, secure_cell, SecureCell};
 use holarchy_tests::web::Web;
 use holarchy_tests::{bin, webdriver, WAIT};
 
@@ -98,26 +98,6 @@ impl Drop for Dashboard {
     }
 }
 
-/// `cell users --pki PKI add NAME --role ROLE`, the password piped in.
-fn add_user(cell: &SecureCell, name: &str, role: &str, password: &str) {
-    use std::io::Write;
-    let pki = cell.pki().display().to_string();
-    let mut child = Command::new(bin("cell"))
-        .args(["users", "--pki", &pki, "add", name, "--role", role])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    writeln!(child.stdin.take().unwrap(), "{password}").unwrap();
-    let out = child.wait_with_output().unwrap();
-    assert!(
-        out.status.success(),
-        "cell users add {name}: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
 fn mode(path: &Path) -> u32 {
     std::fs::metadata(path).unwrap().permissions().mode() & 0o777
 }
@@ -191,9 +171,9 @@ async fn in_a_browser_each_role_does_what_it_may_and_the_audit_trail_names_them(
     }
     let dir = tempfile::tempdir().unwrap();
     let cell = secure_cell(dir.path(), "t-dash-login");
-    add_user(&cell, "olga", "observer", "observer-pw-1");
-    add_user(&cell, "anna", "operator", "operator-pw-1");
-    add_user(&cell, "root", "admin", "admin-pw-123");
+    add_user(&cell.pki(), "olga", "observer", "observer-pw-1");
+    add_user(&cell.pki(), "anna", "operator", "operator-pw-1");
+    add_user(&cell.pki(), "root", "admin", "admin-pw-123");
     let dashboard = Dashboard::start(&cell, "operator.default", "https", &[]);
     // The test's own eyes: an operator's client certificate.
     let eyes = dashboard.web(&cell, Some("operator.default"));
@@ -431,7 +411,7 @@ async fn in_a_browser_each_role_does_what_it_may_and_the_audit_trail_names_them(
 async fn https_logins_certificates_lockouts_and_file_modes() {
     let dir = tempfile::tempdir().unwrap();
     let cell = secure_cell(dir.path(), "t-dash-https");
-    add_user(&cell, "anna", "operator", "operator-pw-1");
+    add_user(&cell.pki(), "anna", "operator", "operator-pw-1");
     let dashboard = Dashboard::start(&cell, "operator.default", "https", &[]);
     let port = dashboard.address.rsplit_once(':').unwrap().1.to_string();
 

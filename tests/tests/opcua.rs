@@ -11,7 +11,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use holarchy_tests::opcua::{add_user, Driver};
+use holarchy_tests::opcua::Driver;
+use holarchy_tests::secure_cell::{add_user, Up};
 use holarchy_tests::*;
 use serde_json::Value;
 
@@ -294,19 +295,6 @@ fn cell_opcua_refuses_an_insecure_or_broken_setup() {
     assert!(said.contains("OPC UA server certificate"), "{said}");
 }
 
-/// `cell up` killed (its processes with it) when dropped.
-struct Up(std::process::Child);
-
-impl Drop for Up {
-    fn drop(&mut self) {
-        let _ = nix::sys::signal::kill(
-            nix::unistd::Pid::from_raw(self.0.id() as i32),
-            nix::sys::signal::Signal::SIGTERM,
-        );
-        let _ = self.0.wait();
-    }
-}
-
 /// Runs `cell users --pki PKI ARGS` with `stdin` piped in: whether it succeeded, its
 /// stdout and its stderr.
 fn cell_users(pki: &Path, args: &[&str], stdin: &str) -> (bool, String, String) {
@@ -522,13 +510,13 @@ args = ["opcua", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", 
         !audit.contains("password") && !audit.contains("argon2"),
         "{audit}"
     );
-    let _up = Up(Command::new(bin("cell"))
-        .arg("up")
-        .arg(dir)
-        .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
-        .stderr(std::fs::File::create(dir.join("up.stderr.log")).unwrap())
-        .spawn()
-        .unwrap());
+    let _up = Up::spawn(
+        Command::new(bin("cell"))
+            .arg("up")
+            .arg(dir)
+            .stdout(std::fs::File::create(dir.join("up.log")).unwrap())
+            .stderr(std::fs::File::create(dir.join("up.stderr.log")).unwrap()),
+    );
     if let Err(e) = wait_listening(&address).await {
         let log = std::fs::read_to_string(dir.join("logs/opcua.log")).unwrap_or_default();
         panic!("{e}; logs/opcua.log:\n{log}");

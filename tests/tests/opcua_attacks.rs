@@ -9,29 +9,13 @@
 //! Skipped (SKIPPED) without the Python, unless HOLARCHY_REQUIRE_OPCUA=1.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
-use holarchy_tests::opcua::{add_user, Driver};
+use holarchy_tests::opcua::Driver;
+use holarchy_tests::secure_cell::{add_user, Up};
 use holarchy_tests::*;
 use serde_json::Value;
-
-/// `cell demo`, stopped (SIGTERM: it stops what it started) when dropped.
-struct Demo(Child);
-
-impl Drop for Demo {
-    fn drop(&mut self) {
-        let pid = nix::unistd::Pid::from_raw(self.0.id() as i32);
-        let _ = nix::sys::signal::kill(pid, nix::sys::signal::Signal::SIGTERM);
-        for _ in 0..400 {
-            if let Ok(Some(_)) = self.0.try_wait() {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        let _ = self.0.kill();
-    }
-}
 
 /// Runs the attacker in `mode` with `args` (and the server's certificate, so that a
 /// channel is opened as asked): its last JSON line.
@@ -106,15 +90,13 @@ async fn a_stranger_cannot_keep_operators_out_guess_passwords_or_exhaust_the_ser
     let address = format!("127.0.0.1:{}", free_port());
     let out = dir.join("demo.out");
     let err = dir.join("demo.err");
-    let demo = Demo(
+    let demo = Up::spawn(
         Command::new(bin("cell"))
             .args(["demo", "--secure", "--opcua", "--opcua-listen", &address])
             .args(["--orders", "1", "--keep", "--delay-ms", "20", "--dir"])
             .arg(dir.join("cell"))
             .stdout(std::fs::File::create(&out).unwrap())
-            .stderr(std::fs::File::create(&err).unwrap())
-            .spawn()
-            .unwrap(),
+            .stderr(std::fs::File::create(&err).unwrap()),
     );
     let password = wait_up(&out).await;
     let pki: PathBuf = dir.join("cell/pki");
@@ -203,7 +185,7 @@ async fn a_stranger_cannot_keep_operators_out_guess_passwords_or_exhaust_the_ser
 
     // 4. Passwords guessed from 32 addresses at once, 4 each: every guess refused, the
     // operator keeps working meanwhile, the server's memory stays flat.
-    let demo_pid = demo.0.id();
+    let demo_pid = demo.id();
     let before = peak_kib(demo_pid);
     let guessers = {
         let (python, pki, url, client) =
