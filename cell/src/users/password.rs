@@ -8,7 +8,7 @@
 //! (measured: 8 parallel guessers took a `cell` process from 117 MB to 566 MB).
 
 use argon2::password_hash::rand_core::OsRng;
-use argon2::password_hash::{PasswordHash, PasswordHasher, PasswordVerifier, SaltString};
+use argon2::password_hash::{PasswordHash, PasswordHasher, SaltString};
 use argon2::{Algorithm, Argon2, Block, Params};
 
 /// The shortest password accepted for a new or changed password, in characters.
@@ -49,19 +49,14 @@ pub fn check(phc: &str) -> Result<(), String> {
 }
 
 /// Whether `password` is the one hashed in `phc` (constant time in the hash; false for
-/// a string that is not a valid hash).
+/// a string that is not a valid hash), in working memory of its own ([`verify_in`]).
 pub fn verify(phc: &str, password: &str) -> bool {
-    match PasswordHash::new(phc) {
-        Ok(parsed) => Argon2::default()
-            .verify_password(password.as_bytes(), &parsed)
-            .is_ok(),
-        Err(_) => false,
-    }
+    verify_in(phc, password, &mut Memory::default())
 }
 
 /// Spends the time of a verification against nothing (an unknown user's login).
 pub fn verify_dummy(password: &str) {
-    let _ = verify(DUMMY, password);
+    verify_dummy_in(password, &mut Memory::default());
 }
 
 /// The working memory of one verification, kept from one to the next.
