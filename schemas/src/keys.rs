@@ -110,6 +110,17 @@ impl CellKeys {
         format!("{}/offer/{service_type}/*", self.prefix())
     }
 
+    /// `holarchy/<cell>/resource/<name>/layout`: the resource's part of the cell's
+    /// layout (`schemas::layout::LayoutPart`), answered while it serves.
+    pub fn layout(&self, resource: &str) -> String {
+        format!("{}/resource/{resource}/layout", self.prefix())
+    }
+
+    /// `holarchy/<cell>/resource/*/layout`: every serving resource's part of the layout.
+    pub fn layout_all(&self) -> String {
+        format!("{}/resource/*/layout", self.prefix())
+    }
+
     /// `holarchy/<cell>/product/<product>/plan`.
     pub fn plan(&self, product: &str) -> String {
         format!("{}/product/{product}/plan", self.prefix())

@@ -9,6 +9,7 @@ pub mod fence;
 pub mod held;
 pub mod id;
 pub mod keys;
+pub mod layout;
 pub mod listing;
 pub mod outcome;
 pub mod packml;
@@ -126,6 +127,16 @@ pub fn listing_json_schema() -> String {
             "HeldReply": schemars::schema_for!(HeldReply),
         },
     });
+    let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
+    text.push('\n');
+    text
+}
+
+/// The JSON Schema of a resource's part of the cell's layout
+/// (`resource/<name>/layout`, [`layout::LayoutPart`]), checked in as
+/// `schemas/json/layout.schema.json`.
+pub fn layout_json_schema() -> String {
+    let schema = schemars::schema_for!(layout::LayoutPart);
     let mut text = serde_json::to_string_pretty(&schema).expect("a schema serializes");
     text.push('\n');
     text

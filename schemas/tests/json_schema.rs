@@ -98,3 +98,25 @@ fn schema_describes_every_field() {
         assert!(props.contains_key(field), "schema lacks {field}");
     }
 }
+
+#[test]
+fn layout_schema_file_is_current_and_names_the_roles() {
+    let generated = schemas::layout_json_schema();
+    schema_file_is_current("layout.schema.json", generated.clone());
+    for value in [
+        "port",
+        "input",
+        "output",
+        "buffer",
+        "entry",
+        "exit",
+        "entry_exit",
+        "conveyor",
+        "transfer",
+    ] {
+        assert!(
+            generated.contains(&format!("\"{value}\"")),
+            "the schema lacks {value}"
+        );
+    }
+}
