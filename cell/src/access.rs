@@ -5,12 +5,12 @@
 //!
 //! | role | may declare (queryable, token, publication) | may query / subscribe |
 //! |---|---|---|
-//! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `host/order-node/*/held` (orders' presence), `alive/**` (twins, requesters' presence) |
+//! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,layout,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `host/order-node/*/held` (orders' presence), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
 //! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*` (order-nodes of earlier releases), `host/order-node/<n>{,/fence/*,/orders,/held}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
 //! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, `resource/*/packml` (PackML commands), states, plans, liveliness |
-//! | `observer.<o>` | nothing | states, plans, liveliness |
+//! | `observer.<o>` | nothing | states, plans, the layout (`resource/*/layout`), liveliness |
 //! | `router.<h>` | everything (routers forward for others; trusted) | everything |
 //! | `etcd.<h>` | nothing (an etcd member, not a zenoh client: not even listed) | nothing |
 //!
@@ -54,6 +54,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             "*/*/state".to_string(),
             // Which process holds a fenced resource's controller, and its standbys.
             "resource/*/fence/*".to_string(),
+            // The cell's layout, each resource's part.
+            "resource/*/layout".to_string(),
             "product/*/plan".to_string(),
             "alive/**".to_string(),
             "host/**".to_string(),
@@ -76,6 +78,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                     format!("resource/{name}/packml"),
                     // What became of a conversation, asked by the order that booked it.
                     format!("resource/{name}/outcome"),
+                    // Its part of the cell's layout.
+                    format!("resource/{name}/layout"),
                     format!("resource/{name}/debug/crash"),
                     format!("resource/{name}/fence/*"),
                     format!("offer/*/{name}"),

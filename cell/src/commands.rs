@@ -81,6 +81,13 @@ pub enum Commands {
         /// Start only what the manifest assigns to this host (its router and processes).
         #[arg(long, default_value = "local")]
         host: String,
+        /// Check the manifest and the cell's layout, as the resource configs of its
+        /// holon-node processes state it together (their `--config`, and `--name` where
+        /// given), print the layout (as `cell layout`) and exit without starting
+        /// anything: 0 if there is no problem, 1 with each problem named by its config
+        /// file and field.
+        #[arg(long)]
+        check: bool,
     },
     /// Upgrade one process of a running `cell up DIR` (on this host) to a new build or
     /// config while the cell runs: the running holon finishes its step, keeps its
@@ -324,6 +331,20 @@ pub enum Commands {
         /// How long to wait for the job's end, in milliseconds.
         #[arg(long, value_name = "MS", requires = "job", default_value_t = 60_000)]
         wait_ms: u64,
+        #[command(flatten)]
+        client: ClientArgs,
+    },
+    /// Show the running cell's layout (docs/material-flow.md): the locations that hold
+    /// parts (their role, capacity and where a conveyor reaches them), the transporters,
+    /// and what is wrong with them together (a dock on a conveyor or stopper that is not
+    /// there, a stopper docked twice, a location nothing reaches, a port no part from an
+    /// entry can get to or that leads to no exit), from the parts the serving resources
+    /// answer: a station started later is in it, one stopped is not. Exits 0, with the
+    /// problems listed (`cell up --check DIR` checks a cell's configs before they run).
+    Layout {
+        /// Print the layout as JSON (its parts by holon, and its problems).
+        #[arg(long)]
+        json: bool,
         #[command(flatten)]
         client: ClientArgs,
     },

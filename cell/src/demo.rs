@@ -25,6 +25,7 @@ mod servers;
 use report::{print_progress, Report};
 
 const ROBOT: &str = include_str!("../../deploy/cells/demo/robot1.toml");
+const ROBOT2: &str = include_str!("../../deploy/cells/demo/robot2.toml");
 const INSPECTION: &str = include_str!("../../deploy/cells/demo/inspect1.toml");
 const CONVEYOR: &str = include_str!("../../deploy/cells/demo/conveyor1.toml");
 const PRODUCT: &str = include_str!("../../deploy/cells/demo/breaker.toml");
@@ -458,7 +459,7 @@ async fn start_holons(cell: &mut Cell, options: &DemoOptions) -> Result<()> {
     };
     let resources: Vec<(&str, &str, Duration, Vec<String>)> = vec![
         ("robot1", ROBOT, robot_delay, vec![]),
-        ("robot2", ROBOT, robot_delay, vec![]),
+        ("robot2", ROBOT2, robot_delay, vec![]),
         ("inspect1", INSPECTION, short_delay, inspect_flags),
         ("conveyor1", CONVEYOR, short_delay, vec![]),
     ];
@@ -516,10 +517,13 @@ async fn start_holons(cell: &mut Cell, options: &DemoOptions) -> Result<()> {
 async fn hot_add_robot3(cell: &mut Cell, options: &DemoOptions, running: usize) -> Result<()> {
     let controller = cell.sim("robot3-sim", options.action_delay, &[]).await?;
     let robot3 = HolonId::resource("robot3")?;
+    // robot1's config, docked at the conveyor's free stopper: it joins the layout by
+    // starting.
+    let config = ROBOT.replace("dock = \"conveyor1.s1\"", "dock = \"conveyor1.s3\"");
     let took = cell
         .holon(
             "holon-node",
-            ROBOT,
+            &config,
             &robot3,
             &["--controller".into(), controller],
             None,

@@ -8,6 +8,7 @@ pub mod audit;
 pub mod certs;
 pub mod dashboard;
 pub mod demo;
+pub mod layout;
 pub mod listing;
 pub mod logins;
 pub mod manifest;

@@ -228,7 +228,15 @@ async fn run(args: Args) -> Result<bool> {
             cell::users::cli::run(args)?;
             Ok(true)
         }
-        Commands::Up { dir, host } => {
+        Commands::Up {
+            dir, check: true, ..
+        } => {
+            let cell = cell::manifest::Manifest::load(&dir)?.cell;
+            let (layout, sources) = cell::layout::from_manifest(&dir)?;
+            print!("{}", cell::layout::render(&cell, &layout, &sources));
+            Ok(layout.problems.is_empty())
+        }
+        Commands::Up { dir, host, .. } => {
             let shutdown = holon::shutdown_on_signals();
             cell::up::run(&dir, &host, shutdown).await
         }
@@ -419,6 +427,22 @@ async fn run(args: Args) -> Result<bool> {
             let reply = reply?;
             println!("{}", cell::packml::render_reply(&resource, &reply));
             Ok(reply.refused.is_none())
+        }
+        Commands::Layout { json, client } => {
+            let keys = client.keys()?;
+            let session = client.session(OBSERVER).await?;
+            let layout = cell::layout::live(&session, &keys, client.timeout()).await;
+            close(session).await;
+            let layout = layout?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&layout)?);
+            } else {
+                print!(
+                    "{}",
+                    cell::layout::render(&client.cell, &layout, &Default::default())
+                );
+            }
+            Ok(true)
         }
         Commands::Status { client } => {
             let keys = client.keys()?;

@@ -38,6 +38,9 @@ pub struct ConfigFile {
     #[serde(default)]
     pub packml: PackmlSection,
     pub services: BTreeMap<String, ServiceSection>,
+    /// `[layout]`: the resource's own part of the cell's layout (docs/material-flow.md).
+    #[serde(default)]
+    pub layout: schemas::layout::LayoutSection,
 }
 
 /// `[packml]`: how the resource's PackML unit starts, and how long a held resource
@@ -339,6 +342,9 @@ pub struct ResourceConfig {
     /// Claim the controller before serving, wait as a standby while another session
     /// holds it, step down when deposed (`[controller] fenced`, `--standby`).
     pub fenced: bool,
+    /// Its part of the cell's layout (`[layout]`), answered on `resource/<name>/layout`;
+    /// None: it takes no part in the cell's material flow.
+    pub layout: Option<schemas::layout::LayoutPart>,
 }
 
 /// What the command line may override.
@@ -515,6 +521,10 @@ impl ResourceConfig {
             ));
         }
         let packml = file.packml.settings()?;
+        let layout = (!file.layout.is_empty())
+            .then(|| file.layout.part(holon.name()))
+            .transpose()
+            .map_err(|e| e.to_string())?;
         for (service_type, definition) in &services {
             for step in &definition.steps {
                 dialect.check_action(&step.action).map_err(|e| {
@@ -558,6 +568,7 @@ impl ResourceConfig {
             allow_fault_injection,
             take_over: None,
             fenced: c.fenced,
+            layout,
         })
     }
 }

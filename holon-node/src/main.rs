@@ -37,7 +37,9 @@ struct Args {
     standby: bool,
     /// Check the config and exit without starting: `FILE: ok (KIND/NAME)` and 0, or 1
     /// with the reason. What is valid but likely a mistake (a resource's dialect without
-    /// an `abort`) is said on stderr as a warning; the exit is still 0.
+    /// an `abort`) is said on stderr as a warning; the exit is still 0. A resource's
+    /// `[layout]` is checked on its own and listed (what it names of other holons is
+    /// checked with theirs: `cell layout --check DIR`).
     #[arg(long)]
     check: bool,
 }
@@ -72,6 +74,15 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
             }
         }
         println!("{}: ok ({})", args.common.config.display(), config.holon());
+        if let HolonConfig::Resource(resource) = &config {
+            for line in resource
+                .layout
+                .iter()
+                .flat_map(schemas::layout::LayoutPart::describe)
+            {
+                println!("  layout: {line}");
+            }
+        }
         return Ok(());
     }
     match config {

@@ -100,11 +100,7 @@ args = ["--listen", "127.0.0.1:{sim_port}", "--delay-ms", "20", "--count-file", 
         ));
     }
     for (name, sim_port) in &sims {
-        let config = if name.starts_with("robot") {
-            "robot1.toml".to_string()
-        } else {
-            format!("{name}.toml")
-        };
+        let config = format!("{name}.toml");
         manifest.push_str(&format!(
             r#"[[process]]
 name = "{name}"

@@ -329,6 +329,19 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         panic!("the observer cannot read robot1's state: {snapshot:?}");
     };
     let state: serde_json::Value = serde_json::from_slice(payload).unwrap();
+    // The observer reads the cell's layout, every resource's part of it (`cell layout`).
+    let mut parts: Vec<String> = ask(&observer, &keys.layout_all(), Vec::new())
+        .await
+        .into_iter()
+        .map(|reply| {
+            let bytes = reply.unwrap_or_else(|e| panic!("a layout part refused: {e}"));
+            schemas::layout::LayoutPart::from_json(&bytes)
+                .unwrap()
+                .holon
+        })
+        .collect();
+    parts.sort();
+    assert_eq!(parts, ["conveyor1", "inspect1", "robot1", "robot2"]);
     let mut cancels = vec![Service::request(
         MessageType::BookingCancel,
         "pick_n_place",

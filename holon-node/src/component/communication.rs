@@ -75,6 +75,8 @@ enum Endpoint {
     State,
     Packml,
     Outcome,
+    /// The resource's part of the cell's layout (only with `[layout]`).
+    Layout,
     Crash,
 }
 
@@ -88,6 +90,7 @@ impl Endpoint {
             Endpoint::State => config.keys.state(&config.holon),
             Endpoint::Packml => config.keys.packml(name),
             Endpoint::Outcome => config.keys.outcome(name),
+            Endpoint::Layout => config.keys.layout(name),
             Endpoint::Crash => config.keys.debug_crash(name),
         }
     }
@@ -101,7 +104,8 @@ struct Arrival {
 
 /// The holon's queryables; dropping one undeclares it.
 struct Queryables {
-    /// Service, state and (with fault injection) crash: for the component's life.
+    /// Service, state, PackML, outcome, (with `[layout]`) layout and (with fault
+    /// injection) crash: for the component's life.
     fixed: Vec<zenoh::query::Queryable<()>>,
     /// One per service type, only while the resource takes work.
     offers: Vec<zenoh::query::Queryable<()>>,
@@ -121,6 +125,9 @@ impl Queryables {
             Endpoint::Packml,
             Endpoint::Outcome,
         ];
+        if config.layout.is_some() {
+            endpoints.push(Endpoint::Layout);
+        }
         if config.allow_fault_injection {
             endpoints.push(Endpoint::Crash);
         }
@@ -391,6 +398,13 @@ async fn answer(links: &Arc<Links>, arrival: Arrival) -> Option<AgendaMessage> {
             let snapshot =
                 serde_json::to_vec(&links.views.snapshot()).expect("a snapshot serializes");
             question.answer_bytes(holon, "state", snapshot).await;
+            return None;
+        }
+        Endpoint::Layout => {
+            let part = links.config.layout.as_ref().map(|part| part.to_json());
+            question
+                .answer_bytes(holon, "layout", part.unwrap_or_default())
+                .await;
             return None;
         }
         Endpoint::Crash => {

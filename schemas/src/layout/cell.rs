@@ -120,15 +120,15 @@ impl CellLayout {
                         }
                     }
                 }
-                Some(TransporterSpec::Transfer(transfer)) => {
-                    if transfer.between.contains(from) && transfer.between.contains(to) {
-                        routes.push(Route {
-                            transporter: part.holon.clone(),
-                            travel_ms: transfer.move_ms,
-                        });
-                    }
+                Some(TransporterSpec::Transfer(transfer))
+                    if transfer.between.contains(from) && transfer.between.contains(to) =>
+                {
+                    routes.push(Route {
+                        transporter: part.holon.clone(),
+                        travel_ms: transfer.move_ms,
+                    });
                 }
-                None => {}
+                _ => {}
             }
         }
         routes.sort_by_key(|r| r.travel_ms);

@@ -315,6 +315,50 @@ impl LayoutPart {
     pub fn to_json(&self) -> Vec<u8> {
         serde_json::to_vec(self).expect("a layout part serializes")
     }
+
+    /// One line per location and one for the transporter, as `holon-node --check` and
+    /// `cell layout` show them.
+    pub fn describe(&self) -> Vec<String> {
+        let mut lines: Vec<String> = self
+            .locations
+            .iter()
+            .map(|l| {
+                let dock = l
+                    .dock
+                    .as_ref()
+                    .map(|d| format!(", at {d}"))
+                    .unwrap_or_default();
+                format!(
+                    "{} ({}, capacity {}{dock})",
+                    l.id,
+                    l.role.as_str(),
+                    l.capacity
+                )
+            })
+            .collect();
+        match &self.transporter {
+            Some(TransporterSpec::Conveyor(c)) => {
+                let stoppers: Vec<String> = c
+                    .stoppers
+                    .iter()
+                    .map(|s| format!("{} at {} mm", s.name, s.at_mm))
+                    .collect();
+                lines.push(format!(
+                    "conveyor: {} pallets on a {} mm loop at {} mm/s, stoppers {}",
+                    c.pallets,
+                    c.length_mm,
+                    c.speed_mm_s,
+                    stoppers.join(", ")
+                ));
+            }
+            Some(TransporterSpec::Transfer(t)) => lines.push(format!(
+                "transfer: between {} and {}, {} ms a move",
+                t.between[0], t.between[1], t.move_ms
+            )),
+            None => {}
+        }
+        lines
+    }
 }
 
 /// What is wrong with a layout: the field (as the config file names it) and why.
