@@ -92,35 +92,12 @@ pub fn from_manifest(dir: &Path) -> Result<(CellLayout, BTreeMap<String, PathBuf
     Ok((layout, sources))
 }
 
-/// A resource config's holon name (`name_override` or its `name`) and `[layout]`; None
-/// for another kind of holon or a resource without a layout.
+/// A resource config's holon name and `[layout]` ([`schemas::layout::from_resource_config`]).
 fn layout_of(path: &Path, name_override: Option<&str>) -> Result<Option<(String, LayoutSection)>> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut table: toml::Table =
-        toml::from_str(&text).with_context(|| path.display().to_string())?;
-    let kind = table
-        .get("kind")
-        .and_then(|k| k.as_str())
-        .unwrap_or("resource");
-    if kind != "resource" {
-        return Ok(None);
-    }
-    let Some(layout) = table.remove("layout") else {
-        return Ok(None);
-    };
-    let section: LayoutSection = layout
-        .try_into()
-        .with_context(|| format!("{}: layout", path.display()))?;
-    let name = match name_override {
-        Some(name) => name.to_string(),
-        None => table
-            .get("name")
-            .and_then(|n| n.as_str())
-            .with_context(|| format!("{}: no name", path.display()))?
-            .to_string(),
-    };
-    Ok(Some((name, section)))
+    schemas::layout::from_resource_config(&text, name_override)
+        .map_err(|e| anyhow!("{}: {e}", path.display()))
 }
 
 /// The layout as `cell layout` prints it: its locations, its transporters, then what is

@@ -418,6 +418,10 @@ fn pose(element: &Element) -> Result<Pose, CodecError> {
     })
 }
 
+/// The elements of a command that carry a job's material flow (docs/material-flow.md)
+/// and the `info` keys they come from: the part, where it is, where it goes.
+pub const MATERIAL_FIELDS: [(&str, &str); 3] = [("PART", "part"), ("FROM", "from"), ("TO", "to")];
+
 /// Parses one complete document into a protocol message.
 pub fn parse_document(doc: &[u8]) -> Result<RobotMessage, CodecError> {
     let root = parse_tree(doc)?;
@@ -441,12 +445,20 @@ pub fn parse_document(doc: &[u8]) -> Result<RobotMessage, CodecError> {
                 }
                 program => program.map(str::to_string),
             };
+            // The part a command is about and where it moves (material flow): the
+            // job's info.part, info.from and info.to.
+            let mut info = std::collections::BTreeMap::new();
+            for (field, key) in MATERIAL_FIELDS {
+                if let Some(value) = root.child(field).map(|e| e.text.trim()) {
+                    info.insert(key.to_string(), serde_json::Value::from(value));
+                }
+            }
             Ok(RobotMessage::Command(RobotCommand {
                 id: id_field(&root, "ROBOT_CMD")?,
                 action: action.to_string(),
                 pos: root.child("POS").map(pose).transpose()?,
                 program,
-                info: Default::default(),
+                info,
             }))
         }
         "ROBOT_REPLY" => {
@@ -492,8 +504,15 @@ pub fn encode_message(message: &RobotMessage) -> String {
                 Some(p) => format!("<PROGRAM>{}</PROGRAM>", escape(p.as_str())),
                 None => String::new(),
             };
+            let material: String = MATERIAL_FIELDS
+                .iter()
+                .filter_map(|(field, key)| {
+                    let value = cmd.info.get(*key)?.as_str()?;
+                    Some(format!("<{field}>{}</{field}>", escape(value)))
+                })
+                .collect();
             format!(
-                "<ROBOT_CMD><ID>{}</ID><ACTION>{}</ACTION>{program}{pos}</ROBOT_CMD>",
+                "<ROBOT_CMD><ID>{}</ID><ACTION>{}</ACTION>{program}{material}{pos}</ROBOT_CMD>",
                 cmd.id,
                 escape(cmd.action.as_str())
             )

@@ -216,6 +216,7 @@ async fn main() -> anyhow::Result<()> {
         merge: args.merge,
         abort_too_late: false,
         fence_lease: args.fenced.then(|| Duration::from_millis(args.lease_ms)),
+        physics: None,
     };
     let simulator = match &args.connect {
         Some(address) => {

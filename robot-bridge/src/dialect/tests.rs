@@ -149,16 +149,26 @@ proptest! {
         coords in proptest::collection::vec(-1e7f64..1e7, 6),
         program in proptest::option::of("[A-Za-z0-9_.-]{1,20}"),
         with_pose in any::<bool>(),
+        material in proptest::collection::vec(proptest::option::of("[a-z0-9][a-z0-9_.-]{0,20}"), 3),
     ) {
         let dialect = Dialect::holarchy_xml();
         let pose = with_pose.then(|| Pose { x: coords[0], y: coords[1], z: coords[2], a: coords[3], b: coords[4], c: coords[5] });
-        let cmd = command(id, &action, pose, program.as_deref());
+        let mut cmd = command(id, &action, pose, program.as_deref());
+        // The part and where it moves (material flow), each where the job names it.
+        for ((_, key), value) in crate::codec::MATERIAL_FIELDS.iter().zip(&material) {
+            if let Some(value) = value {
+                cmd.info.insert(key.to_string(), serde_json::Value::from(value.as_str()));
+            }
+        }
         let values = command_values(&cmd, &dialect.format);
         let written = dialect.write_command(0, &values).unwrap();
-        prop_assert_eq!(String::from_utf8(written.clone()).unwrap(), encode_message(&RobotMessage::Command(cmd)));
+        prop_assert_eq!(String::from_utf8(written.clone()).unwrap(), encode_message(&RobotMessage::Command(cmd.clone())));
         // And robot-sim reads back what the holon wrote.
         let back = dialect.read_command(0, &dialect.parse(&written).unwrap()).unwrap().unwrap();
         prop_assert_eq!(back, values);
+        // And the codec reads the same command back.
+        let RobotMessage::Command(read) = parse_document(&written).unwrap() else { panic!("a command") };
+        prop_assert_eq!(read, cmd);
     }
 }
 

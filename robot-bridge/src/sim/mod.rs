@@ -79,6 +79,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 pub mod fence;
+pub mod physics;
 mod session;
 mod writer;
 
@@ -133,6 +134,9 @@ pub struct SimConfig {
     /// claim, commands carry its epoch and step ids run at most once. None: unfenced,
     /// as without the fence (fence messages are refused `not_fenced`).
     pub fence_lease: Option<Duration>,
+    /// The plant the controller acts in (`plant-sim`): what its actions can do,
+    /// physically, and how long a move takes. None: any action runs.
+    pub physics: Option<physics::PhysicsHook>,
 }
 
 impl SimConfig {

@@ -494,6 +494,20 @@ impl Session<'_> {
             .get(&action)
             .copied()
             .unwrap_or(config.delay);
+        if let Some(physics) = &config.physics {
+            match physics.0.begin(&action, &self.context) {
+                Ok(Some(travel)) => takes = travel,
+                Ok(None) => {}
+                Err(why) => {
+                    // The plant does not allow it (nothing to pick, a full port): failed,
+                    // not executed, as a controller reports a physical error.
+                    info!(%id, %action, %why, "physically impossible");
+                    self.answer_failed(element, writer, &why).await?;
+                    self.count_file.update();
+                    return Ok(Flow::Continue);
+                }
+            }
+        }
         if stats.change_to(self.context.get("program")) {
             info!(%id, program = self.context.get("program").unwrap_or(""), changeover = ?config.changeover, "changing over");
             takes += config.changeover;
@@ -625,6 +639,9 @@ impl Session<'_> {
             .entry(action)
             .or_default() += 1;
         values.set("result", result.into());
+        if let Some(physics) = &self.config.physics {
+            physics.0.end(true);
+        }
         self.settle(StepRecord::Done(result.to_string()));
         writer.reply(rule, &values).await?;
         self.count_file.update();

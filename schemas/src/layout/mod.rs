@@ -20,7 +20,9 @@ mod cell;
 mod section;
 
 pub use cell::{CellLayout, Problem, Route};
-pub use section::{ConveyorSection, LayoutSection, LocationSection, TransferSection};
+pub use section::{
+    from_resource_config, ConveyorSection, LayoutSection, LocationSection, TransferSection,
+};
 
 use std::fmt;
 

@@ -61,6 +61,36 @@ pub struct TransferSection {
     pub move_ms: u64,
 }
 
+/// A resource config's holon name (`name_override`, else its `name`) and `[layout]`,
+/// read from the config's text without the rest of its fields (`cell up --check`, the
+/// plant simulator); None for another kind of holon, or a resource without `[layout]`.
+pub fn from_resource_config(
+    text: &str,
+    name_override: Option<&str>,
+) -> Result<Option<(String, LayoutSection)>, String> {
+    let mut table: toml::Table = toml::from_str(text).map_err(|e| e.to_string())?;
+    let kind = table
+        .get("kind")
+        .and_then(|k| k.as_str())
+        .unwrap_or("resource");
+    if kind != "resource" {
+        return Ok(None);
+    }
+    let Some(layout) = table.remove("layout") else {
+        return Ok(None);
+    };
+    let section: LayoutSection = layout.try_into().map_err(|e| format!("layout: {e}"))?;
+    let name = match name_override {
+        Some(name) => name.to_string(),
+        None => table
+            .get("name")
+            .and_then(|n| n.as_str())
+            .ok_or("name: missing")?
+            .to_string(),
+    };
+    Ok(Some((name, section)))
+}
+
 impl LayoutSection {
     /// Whether the holon takes no part in the layout (no `[layout]`).
     pub fn is_empty(&self) -> bool {

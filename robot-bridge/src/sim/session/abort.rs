@@ -57,6 +57,9 @@ impl Session<'_> {
         } else if under_way {
             self.stats.aborted.fetch_add(1, Ordering::SeqCst);
             info!(%id, %action, "action aborted");
+            if let Some(physics) = &self.config.physics {
+                physics.0.end(false);
+            }
             if let Some(acting) = self.acting.take() {
                 self.answer_failed(&acting.element, writer, "aborted")
                     .await?;

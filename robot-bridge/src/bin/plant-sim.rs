@@ -1,0 +1,91 @@
+//! `plant-sim`: the cell's plant, simulated once for all its controllers.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::Parser;
+use robot_bridge::plant::PlantSim;
+use tokio_util::sync::CancellationToken;
+
+/// The cell's plant, simulated once for all its controllers (docs/material-flow.md,
+/// "The plant"): every controller of the plant file on its own address in its own
+/// dialect, as robot-sim serves one, over one physical state. A transporter's move
+/// (a command naming the part and where it goes: holarchy-xml's PART, FROM and TO)
+/// takes the layout's travel time and puts the part there; a full port refuses it; a
+/// station told to work on a part that is not at its port fails with a physical error.
+///
+/// Prints `controller RESOURCE listening on ADDR` for each controller, then `plant
+/// ready`; where every part and pallet is goes to the state file (JSON, rewritten
+/// after every change). Runs until SIGTERM or Ctrl-C. Exits 2 when the plant file or
+/// its layout is invalid, with the reason.
+#[derive(Debug, Parser)]
+#[command(name = "plant-sim", version)]
+struct Args {
+    /// The plant file (deploy/cells/demo/plant.toml documents it): the resource configs
+    /// whose [layout] make the plant, and its controllers.
+    #[arg(long, value_name = "FILE")]
+    plant: PathBuf,
+    /// Where to write where everything is, overriding the plant file's state_file.
+    #[arg(long, value_name = "PATH")]
+    state_file: Option<PathBuf>,
+    /// Check the plant file, its layout and its controllers' dialects, print `plant
+    /// FILE is valid`, and exit (listening nowhere): 0 if it is, 2 with the reason if not.
+    #[arg(long)]
+    check: bool,
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    if args.check {
+        // Checked as it would start; nothing written, nothing listened on.
+        match robot_bridge::plant::prepare(&args.plant, None) {
+            Ok(_) => {
+                println!("plant {} is valid", args.plant.display());
+                return Ok(());
+            }
+            Err(e) => {
+                eprintln!("plant-sim: {e}");
+                std::process::exit(2);
+            }
+        }
+    }
+    use std::io::IsTerminal;
+    let (stderr, _logs) = log_writer::spawn(std::io::stderr(), "log-stderr")
+        .context("cannot start the log writer thread")?;
+    tracing_subscriber::fmt()
+        .with_writer(stderr)
+        .with_ansi(std::io::stderr().is_terminal())
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .init();
+    let plant = match PlantSim::bind(&args.plant, args.state_file).await {
+        Ok(plant) => plant,
+        Err(e) => {
+            eprintln!("plant-sim: {e}");
+            std::process::exit(2);
+        }
+    };
+    for (resource, address) in plant.addresses() {
+        println!("controller {resource} listening on {address}");
+    }
+    println!("plant ready");
+    let shutdown = CancellationToken::new();
+    tokio::spawn({
+        let shutdown = shutdown.clone();
+        async move {
+            let mut term =
+                tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+                    .expect("SIGTERM handler");
+            tokio::select! {
+                _ = term.recv() => {}
+                _ = tokio::signal::ctrl_c() => {}
+            }
+            shutdown.cancel();
+        }
+    });
+    plant.run(shutdown).await;
+    Ok(())
+}

@@ -1,0 +1,274 @@
+//! `plant-sim`: the cell's plant, simulated once for all its controllers
+//! (docs/material-flow.md, "The plant").
+//!
+//! One process serves every controller of the cell, each on its own address in its own
+//! dialect, as `robot-sim` serves one; behind them is one physical state
+//! ([`model::Plant`]): where every part and pallet is. A conveyor's move takes the
+//! layout's travel time and puts the part at its destination, a full port refuses a
+//! pallet, a station told to work at an empty port fails with a physical error. Where
+//! everything is can be read at any moment from the state file (`state_file`, JSON,
+//! rewritten after every change). The layout is the cell's own: the `[layout]` of the
+//! resource configs the plant file names.
+
+pub mod controller;
+pub mod model;
+
+use std::collections::BTreeMap;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use schemas::layout::CellLayout;
+use serde::Deserialize;
+use tokio_util::sync::CancellationToken;
+use tracing::warn;
+
+use crate::sim::physics::PhysicsHook;
+use crate::sim::{SimConfig, Simulator};
+use controller::{ControllerPhysics, OnChange};
+use model::Plant;
+
+/// The plant file (`deploy/cells/demo/plant.toml` documents it), as written.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlantFile {
+    /// The resource configs whose `[layout]` make the plant's layout (paths relative to
+    /// the plant file).
+    pub layout: Vec<PathBuf>,
+    /// Where the plant writes where everything is, after every change (relative to the
+    /// working directory); None: nowhere.
+    #[serde(default)]
+    pub state_file: Option<PathBuf>,
+    /// The controllers it serves.
+    #[serde(rename = "controller")]
+    pub controllers: Vec<ControllerSection>,
+}
+
+/// `[[controller]]`: one controller of the plant.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ControllerSection {
+    /// The resource whose controller it is: where it works (its layout's ports) or what
+    /// it moves (its conveyor or transfer).
+    pub resource: String,
+    /// Where it listens, HOST:PORT (port 0: a free one, printed).
+    pub listen: String,
+    /// The dialect it speaks (a shipped one's name, or a file relative to the plant
+    /// file); default holarchy-xml.
+    #[serde(default = "default_dialect")]
+    pub dialect: String,
+    /// How long an action takes, in ms, unless `action_ms` names it (a move takes its
+    /// travel time).
+    #[serde(default)]
+    pub delay_ms: u64,
+    /// How long particular actions take, in ms (`{ pick = 300 }`).
+    #[serde(default)]
+    pub action_ms: BTreeMap<String, u64>,
+    /// Every Nth `inspect` is answered `inspect_fail`.
+    #[serde(default)]
+    pub inspect_fail_every: Option<u64>,
+}
+
+fn default_dialect() -> String {
+    "holarchy-xml".into()
+}
+
+/// What keeps the plant from starting.
+#[derive(Debug, thiserror::Error)]
+pub enum PlantError {
+    #[error("cannot read {path}: {why}")]
+    Read { path: String, why: String },
+    #[error("{path}: {why}")]
+    Invalid { path: String, why: String },
+    #[error("{path}: the layout has problems:\n  {}", problems.join("\n  "))]
+    Layout { path: String, problems: Vec<String> },
+    #[error("cannot listen on {address} for {resource}: {why}")]
+    Listen {
+        resource: String,
+        address: String,
+        why: String,
+    },
+}
+
+/// The plant, its controllers bound and ready to run.
+pub struct PlantSim {
+    controllers: Vec<(String, Simulator)>,
+    plant: Arc<Mutex<Plant>>,
+}
+
+/// The plant's layout, from the plant file at `path`.
+pub fn layout_of(path: &Path, file: &PlantFile) -> Result<CellLayout, PlantError> {
+    let base = path.parent().unwrap_or(Path::new("."));
+    let mut parts = Vec::new();
+    for config in &file.layout {
+        let config = base.join(config);
+        let text = std::fs::read_to_string(&config).map_err(|e| PlantError::Read {
+            path: config.display().to_string(),
+            why: e.to_string(),
+        })?;
+        let invalid = |why: String| PlantError::Invalid {
+            path: config.display().to_string(),
+            why,
+        };
+        let (name, section) = schemas::layout::from_resource_config(&text, None)
+            .map_err(invalid)?
+            .ok_or_else(|| invalid("a resource config without [layout]".into()))?;
+        parts.push(section.part(&name).map_err(|e| invalid(e.to_string()))?);
+    }
+    let layout = CellLayout::assemble(parts);
+    if !layout.problems.is_empty() {
+        return Err(PlantError::Layout {
+            path: path.display().to_string(),
+            problems: layout.problems.iter().map(|p| p.to_string()).collect(),
+        });
+    }
+    Ok(layout)
+}
+
+/// Reads the plant file.
+pub fn read(path: &Path) -> Result<PlantFile, PlantError> {
+    let text = std::fs::read_to_string(path).map_err(|e| PlantError::Read {
+        path: path.display().to_string(),
+        why: e.to_string(),
+    })?;
+    let file: PlantFile = toml::from_str(&text).map_err(|e| PlantError::Invalid {
+        path: path.display().to_string(),
+        why: e.to_string(),
+    })?;
+    if file.controllers.is_empty() {
+        return Err(PlantError::Invalid {
+            path: path.display().to_string(),
+            why: "controller: at least one".into(),
+        });
+    }
+    Ok(file)
+}
+
+/// A plant file read and checked, ready to bind.
+pub struct Prepared {
+    /// Each controller's resource, address and simulator settings.
+    controllers: Vec<(String, String, SimConfig)>,
+    /// The plant they share.
+    plant: Arc<Mutex<Plant>>,
+    /// Writes the state file.
+    on_change: OnChange,
+}
+
+/// Reads and checks the plant file at `path` and everything it names (the layout, each
+/// controller's dialect), without listening anywhere.
+pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, PlantError> {
+    let file = read(path)?;
+    let layout = layout_of(path, &file)?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let plant = Arc::new(Mutex::new(Plant::new(layout)));
+    let on_change = state_writer(state_file.or(file.state_file.clone()));
+    let mut controllers = Vec::new();
+    for (i, c) in file.controllers.iter().enumerate() {
+        let invalid = |why: String| PlantError::Invalid {
+            path: path.display().to_string(),
+            why: format!("controller[{i}] ({}): {why}", c.resource),
+        };
+        schemas::validate_name("resource", &c.resource).map_err(|e| invalid(e.to_string()))?;
+        if controllers.iter().any(|(r, _, _)| r == &c.resource) {
+            return Err(invalid("a second controller for the same resource".into()));
+        }
+        let dialect = crate::dialect::Dialect::load(&c.dialect, Some(base))
+            .map_err(|e| invalid(format!("dialect: {e}")))?;
+        dialect
+            .check_simulatable()
+            .map_err(|e| invalid(format!("dialect: {e}")))?;
+        if dialect.role == crate::dialect::Role::ControllerConnects {
+            return Err(invalid(format!(
+                "dialect: in {} the controller connects to the holon; the plant's controllers listen",
+                dialect.name
+            )));
+        }
+        let physics = ControllerPhysics::new(plant.clone(), &c.resource, on_change.clone());
+        let config = SimConfig {
+            delay: Duration::from_millis(c.delay_ms),
+            action_delays: c
+                .action_ms
+                .iter()
+                .map(|(action, ms)| (action.clone(), Duration::from_millis(*ms)))
+                .collect(),
+            inspect_fail_every: c.inspect_fail_every,
+            dialect: Some(dialect),
+            physics: Some(PhysicsHook(Arc::new(physics))),
+            ..SimConfig::default()
+        };
+        controllers.push((c.resource.clone(), c.listen.clone(), config));
+    }
+    Ok(Prepared {
+        controllers,
+        plant,
+        on_change,
+    })
+}
+
+impl PlantSim {
+    /// Reads the plant file at `path` (`state_file` overriding its own) and binds
+    /// every controller.
+    pub async fn bind(path: &Path, state_file: Option<PathBuf>) -> Result<PlantSim, PlantError> {
+        let Prepared {
+            controllers: prepared,
+            plant,
+            on_change,
+        } = prepare(path, state_file)?;
+        let mut controllers = Vec::new();
+        for (resource, listen, config) in prepared {
+            let simulator =
+                Simulator::bind(&listen, config)
+                    .await
+                    .map_err(|e| PlantError::Listen {
+                        resource: resource.clone(),
+                        address: listen.clone(),
+                        why: e.to_string(),
+                    })?;
+            controllers.push((resource, simulator));
+        }
+        // Where everything is from the start: nothing yet, every pallet free.
+        on_change(&plant.lock().unwrap_or_else(|e| e.into_inner()));
+        Ok(PlantSim { controllers, plant })
+    }
+
+    /// Each controller's resource and the address it listens on.
+    pub fn addresses(&self) -> Vec<(String, SocketAddr)> {
+        self.controllers
+            .iter()
+            .filter_map(|(resource, sim)| Some((resource.clone(), sim.local_addr().ok()?)))
+            .collect()
+    }
+
+    /// Where everything is now.
+    pub fn view(&self) -> model::PlantView {
+        self.plant.lock().unwrap_or_else(|e| e.into_inner()).view()
+    }
+
+    /// Serves every controller until `shutdown`.
+    pub async fn run(self, shutdown: CancellationToken) {
+        let running: Vec<_> = self
+            .controllers
+            .into_iter()
+            .map(|(_, sim)| tokio::spawn(sim.run(shutdown.clone())))
+            .collect();
+        for controller in running {
+            if let Err(e) = controller.await {
+                warn!(error = %e, "a controller of the plant ended abnormally");
+            }
+        }
+    }
+}
+
+/// Writes where everything is to `path` (a new file renamed over the old one, so a
+/// reader never sees half of it) after every change.
+fn state_writer(path: Option<PathBuf>) -> OnChange {
+    Arc::new(move |plant: &Plant| {
+        let Some(path) = &path else { return };
+        let json = serde_json::to_vec_pretty(&plant.view()).expect("a plant view serializes");
+        let next = path.with_extension("json.next");
+        if let Err(e) = std::fs::write(&next, json).and_then(|()| std::fs::rename(&next, path)) {
+            warn!(path = %path.display(), error = %e, "cannot write the plant's state file: readers see an older state");
+        }
+    })
+}

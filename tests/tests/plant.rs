@@ -1,0 +1,295 @@
+//! The plant simulator (docs/material-flow.md, "The plant"): one physical truth behind
+//! every controller of the cell. Real holons drive it through their own controller
+//! connections and dialect: a part rides a conveyor pallet to a station, the station
+//! works on it only where it physically is, a full port refuses a pallet, and the state
+//! file says where every part and pallet is.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use holarchy_tests::*;
+use schemas::{HolonId, MessageType, Service};
+
+const CONVEYOR: &str = r#"
+cell = "unset"
+name = "conveyor1"
+
+[controller]
+address = "127.0.0.1:1"
+reconnect_interval_ms = 100
+reconnect_max_ms = 1000
+command_timeout_ms = 5000
+connect_timeout_ms = 500
+
+[services.transport]
+nominal_duration_ms = 300
+steps = [{ action = "move", until = ["arrived"] }]
+
+[[layout.locations]]
+name = "load"
+role = "entry_exit"
+capacity = 2
+dock = "conveyor1.load"
+
+[layout.conveyor]
+length_mm = 2000
+speed_mm_s = 4000
+pallets = 2
+stoppers = [{ name = "load", at_mm = 0 }, { name = "s1", at_mm = 1000 }]
+"#;
+
+/// The plant of conveyor1 and robot1.
+const PLANT: &str = r#"
+layout = ["conveyor1.toml", "robot1.toml"]
+
+[[controller]]
+resource = "conveyor1"
+listen = "127.0.0.1:0"
+
+[[controller]]
+resource = "robot1"
+listen = "127.0.0.1:0"
+delay_ms = 20
+"#;
+
+/// robot1's config: a pick-'n-place robot whose port is on the conveyor's stopper s1.
+fn robot1(dir: &Path) -> PathBuf {
+    let path = resource_config(dir, "robot1", 5000).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    let layout =
+        "\n[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ndock = \"conveyor1.s1\"\n";
+    std::fs::write(&path, format!("{text}{layout}")).unwrap();
+    path
+}
+
+/// Books `service_type` on `resource` for `order` with `info`, starts it, and returns
+/// its result (`done` or `failed`).
+async fn job(
+    cell: &Cell,
+    inbox: &mut Inbox,
+    resource: &str,
+    service_type: &str,
+    conversation: &str,
+    info: serde_json::Value,
+) -> Service {
+    let order = HolonId::order("o-1").unwrap();
+    for kind in [MessageType::BookingReq, MessageType::Start] {
+        let request = Service::request(kind, service_type, conversation, order.clone())
+            .with_reply_to(cell.keys.inbox("o-1"))
+            .with_info(info.as_object().unwrap().clone());
+        let answer = cell.service(resource, &request).await.unwrap();
+        assert_eq!(answer.result, Some(true), "{kind:?} refused: {answer:?}");
+    }
+    inbox.next().await.unwrap()
+}
+
+fn poses() -> serde_json::Value {
+    serde_json::json!({
+        "pick": {"x": 1.0, "y": 2.0, "z": 3.0},
+        "place": {"x": 4.0, "y": 5.0, "z": 6.0},
+    })
+}
+
+fn with(mut info: serde_json::Value, more: serde_json::Value) -> serde_json::Value {
+    for (k, v) in more.as_object().unwrap() {
+        info[k] = v.clone();
+    }
+    info
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn parts_ride_pallets_and_are_worked_on_only_where_they_are() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
+    let robot_config = robot1(dir.path());
+    let plant = PlantProcess::start(dir.path(), PLANT);
+    let cell = Cell::open("t-plant").await.unwrap();
+    let mut nodes = Vec::new();
+    for (name, config) in [
+        ("conveyor1", dir.path().join("conveyor1.toml")),
+        ("robot1", robot_config),
+    ] {
+        let controller = &plant.controllers[name];
+        nodes.push(
+            start_node(
+                dir.path(),
+                &config,
+                "t-plant",
+                &cell.endpoint,
+                controller,
+                &[],
+            )
+            .unwrap(),
+        );
+        cell.wait_alive(&HolonId::resource(name).unwrap())
+            .await
+            .unwrap();
+        cell.wait_serving(name).await.unwrap();
+    }
+    let mut inbox = cell.inbox("o-1", 0).await.unwrap();
+    let state = plant.state();
+    assert_eq!(
+        state["free_pallets"]["conveyor1"].as_array().unwrap().len(),
+        2,
+        "{state:#}"
+    );
+
+    // Nothing at robot1's port: a pick there fails, in the plant's words.
+    let failed = job(
+        &cell,
+        &mut inbox,
+        "robot1",
+        "pick_n_place",
+        "o-1/1/1",
+        with(poses(), serde_json::json!({"part": "p-1"})),
+    )
+    .await;
+    assert_eq!(failed.message_type, MessageType::Failed, "{failed:?}");
+    let said = serde_json::to_string(&failed).unwrap();
+    assert!(
+        said.contains("part p-1 is not at robot1.port (not in the plant)"),
+        "{said}"
+    );
+
+    // The conveyor brings it on a pallet from the loading point.
+    let moved = job(
+        &cell,
+        &mut inbox,
+        "conveyor1",
+        "transport",
+        "o-1/2/1",
+        serde_json::json!({"part": "p-1", "from": "conveyor1.load", "to": "robot1.port"}),
+    )
+    .await;
+    assert_eq!(moved.message_type, MessageType::Done, "{moved:?}");
+    let state = plant.state();
+    let at_robot = state["locations"]["robot1.port"].as_array().unwrap();
+    assert_eq!(at_robot.len(), 1, "{state:#}");
+    assert_eq!(at_robot[0]["part"], "p-1", "{state:#}");
+    assert!(
+        at_robot[0]["carrier"]
+            .as_str()
+            .unwrap()
+            .starts_with("conveyor1/p"),
+        "{state:#}"
+    );
+
+    // Now the robot works on it.
+    let done = job(
+        &cell,
+        &mut inbox,
+        "robot1",
+        "pick_n_place",
+        "o-1/1/2",
+        with(poses(), serde_json::json!({"part": "p-1"})),
+    )
+    .await;
+    assert_eq!(done.message_type, MessageType::Done, "{done:?}");
+
+    // The port holds one: a second part's pallet is refused, the controller says why.
+    let refused = job(
+        &cell,
+        &mut inbox,
+        "conveyor1",
+        "transport",
+        "o-1/3/1",
+        serde_json::json!({"part": "p-2", "from": "conveyor1.load", "to": "robot1.port"}),
+    )
+    .await;
+    assert_eq!(refused.message_type, MessageType::Failed, "{refused:?}");
+    let said = serde_json::to_string(&refused).unwrap();
+    assert!(
+        said.contains("robot1.port is full (1 held, 0 on their way, capacity 1)"),
+        "{said}"
+    );
+
+    // Back to the loading point: it leaves the plant, its pallet free again.
+    let shipped = job(
+        &cell,
+        &mut inbox,
+        "conveyor1",
+        "transport",
+        "o-1/4/1",
+        serde_json::json!({"part": "p-1", "from": "robot1.port", "to": "conveyor1.load"}),
+    )
+    .await;
+    assert_eq!(shipped.message_type, MessageType::Done, "{shipped:?}");
+    let state = plant.state();
+    assert_eq!(state["shipped"], 1, "{state:#}");
+    assert_eq!(
+        state["free_pallets"]["conveyor1"].as_array().unwrap().len(),
+        2,
+        "{state:#}"
+    );
+    assert!(
+        state["locations"]["robot1.port"]
+            .as_array()
+            .unwrap()
+            .is_empty(),
+        "{state:#}"
+    );
+    assert!(
+        state["in_transit"].as_array().unwrap().is_empty(),
+        "{state:#}"
+    );
+    drop(nodes);
+}
+
+#[test]
+fn plant_sim_checks_its_file_and_layout() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
+    robot1(dir.path());
+    let plant = dir.path().join("plant.toml");
+    let check = |text: &str| {
+        std::fs::write(&plant, text).unwrap();
+        let output = Command::new(bin("plant-sim"))
+            .arg("--plant")
+            .arg(&plant)
+            .arg("--check")
+            .output()
+            .unwrap();
+        (
+            output.status.code(),
+            String::from_utf8_lossy(&output.stdout).into_owned()
+                + &String::from_utf8_lossy(&output.stderr),
+        )
+    };
+    // The demo's plant is valid.
+    let demo = Command::new(bin("plant-sim"))
+        .arg("--plant")
+        .arg(workspace_root().join("deploy/cells/demo/plant.toml"))
+        .arg("--check")
+        .output()
+        .unwrap();
+    assert!(
+        demo.status.success(),
+        "{}",
+        String::from_utf8_lossy(&demo.stderr)
+    );
+    let controllers = "[[controller]]\nresource = \"robot1\"\nlisten = \"127.0.0.1:0\"\n";
+    let (code, said) = check(&format!(
+        "layout = [\"conveyor1.toml\", \"robot1.toml\"]\n{controllers}"
+    ));
+    assert_eq!(code, Some(0), "{said}");
+    assert!(said.contains("is valid"), "{said}");
+    // Without the conveyor, robot1's dock names nothing: the plant refuses to start.
+    let (code, said) = check(&format!("layout = [\"robot1.toml\"]\n{controllers}"));
+    assert_eq!(code, Some(2), "{said}");
+    assert!(
+        said.contains(
+            "robot1: layout.locations[0].dock: conveyor1: no conveyor of that name in the layout"
+        ),
+        "{said}"
+    );
+    let (code, said) = check(&format!(
+        "layout = [\"robot1.toml\"]\nwhat = 1\n{controllers}"
+    ));
+    assert_eq!(code, Some(2), "{said}");
+    assert!(said.contains("unknown field `what`"), "{said}");
+    let (code, said) = check(&format!(
+        "layout = [\"conveyor1.toml\", \"robot1.toml\"]\n{controllers}dialect = \"fanuc\"\n"
+    ));
+    assert_eq!(code, Some(2), "{said}");
+    assert!(said.contains("controller[0] (robot1): dialect:"), "{said}");
+}
