@@ -1,6 +1,7 @@
 //! Following the holons' states, as the cell's screens do (the dashboard, the OPC UA
 //! server): every resource's and order's snapshot as it is published, and asked for
-//! once (the subscriptions bring the changes from then on). What is heard is handed to
+//! once (the subscriptions bring the changes from then on); the resources' asked again
+//! every few seconds, so that a publication lost on its way is not shown stale for good. What is heard is handed to
 //! a callback, which must not block (it runs in zenoh's callbacks): it queues it for
 //! the task that owns the screen's model.
 
@@ -18,6 +19,12 @@ const ASK_TIMEOUT: Duration = Duration::from_secs(3);
 /// and zenoh would never route that change to us (seen: a resource turning `free` 1 ms
 /// after its token appeared, shown `init` for good).
 pub const ASK_NEWCOMER_AGAIN: Duration = Duration::from_secs(1);
+
+/// How often the screens ask every resource's state again, whatever they heard: a
+/// publication lost on its way (zenoh drops a sample when a link's queue stays full a
+/// moment, as when a screen's process is starved of CPU) is then shown within this,
+/// instead of at the resource's next change, which may never come (a held robot).
+pub const ASK_RESOURCES_AGAIN: Duration = Duration::from_secs(5);
 
 /// A holon's state, heard.
 #[derive(Debug, Clone)]
@@ -38,14 +45,29 @@ impl Heard {
     }
 }
 
-/// The subscriptions to the states followed; dropping it ends them.
+/// The subscriptions to the states followed, and the task asking the resources' states
+/// again; dropping it ends them.
 pub struct Following {
     _subscribers: Vec<zenoh::pubsub::Subscriber<()>>,
+    asking_again: tokio::task::JoinHandle<()>,
+}
+
+impl Drop for Following {
+    fn drop(&mut self) {
+        self.asking_again.abort();
+    }
 }
 
 /// Subscribes to the states on `which` (e.g. `resource/*/state` and `order/*/state`):
-/// each snapshot goes to `heard`.
-pub async fn follow<F>(session: &zenoh::Session, which: &[String], heard: F) -> Result<Following>
+/// each snapshot goes to `heard`; and asks every resource's state again every
+/// [`ASK_RESOURCES_AGAIN`] (the screen's model keeps what is newest and unchanged
+/// snapshots change nothing).
+pub async fn follow<F>(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    which: &[String],
+    heard: F,
+) -> Result<Following>
 where
     F: Fn(Heard) + Clone + Send + Sync + 'static,
 {
@@ -65,8 +87,21 @@ where
                 .map_err(z)?,
         );
     }
+    let asking_again = {
+        let (session, key, heard) = (session.clone(), keys.resource_states(), heard.clone());
+        tokio::spawn(async move {
+            let mut every = tokio::time::interval(ASK_RESOURCES_AGAIN);
+            every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+            every.tick().await;
+            loop {
+                every.tick().await;
+                ask(&session, std::slice::from_ref(&key), &heard).await;
+            }
+        })
+    };
     Ok(Following {
         _subscribers: subscribers,
+        asking_again,
     })
 }
 

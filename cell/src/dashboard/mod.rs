@@ -523,6 +523,7 @@ async fn subscribe(
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
         crate::states::follow(
             session,
+            keys,
             &[keys.resource_states(), keys.order_states()],
             move |heard| queue(&inputs, &dropped, input_of(heard)),
         )

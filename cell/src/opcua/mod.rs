@@ -442,7 +442,7 @@ async fn subscribe(
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
         // The order figures are the nodes' counts (Input::Counts): no order's state
         // is followed.
-        crate::states::follow(session, &[keys.resource_states()], move |heard| {
+        crate::states::follow(session, keys, &[keys.resource_states()], move |heard| {
             if let Some(input) = Input::heard(heard) {
                 queue(&inputs, &dropped, input)
             }
