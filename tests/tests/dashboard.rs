@@ -438,6 +438,26 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
             .unwrap();
     }
 
+    // The layout the resources state (docs/material-flow.md): the conveyor's loop, a
+    // box per location at its stopper, the stoppers nobody docks at drawn free.
+    for location in ["conveyor1.load", "robot1.port", "inspect1.port"] {
+        browser
+            .wait_for(&format!("#layout [data-location=\"{location}\"]"), within)
+            .unwrap();
+    }
+    browser
+        .wait_for(
+            "#layout [data-stopper=\"conveyor1.s2\"][data-free=\"true\"]",
+            within,
+        )
+        .unwrap();
+    browser
+        .wait_for(
+            "#layout [data-stopper=\"conveyor1.s1\"][data-free=\"false\"]",
+            within,
+        )
+        .unwrap();
+
     // Killed: gone, with an active alarm, without a reload.
     holons[1].kill();
     let (alarm, took) = browser
@@ -450,6 +470,13 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
     assert!(browser.text(&alarm).unwrap().contains("vanished"));
     browser
         .wait_for("tr.gone[data-holon=\"resource/robot1\"]", within)
+        .unwrap();
+    // Its part of the layout left with it: its stopper is free.
+    browser
+        .wait_for(
+            "#layout [data-stopper=\"conveyor1.s1\"][data-free=\"true\"]",
+            within,
+        )
         .unwrap();
 
     // The robot back, two breakers ordered from the page: both done.
@@ -464,6 +491,12 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
     .unwrap();
     browser
         .wait_for("tr[data-holon=\"resource/robot1\"]:not(.gone)", within)
+        .unwrap();
+    browser
+        .wait_for(
+            "#layout [data-stopper=\"conveyor1.s1\"][data-free=\"false\"]",
+            within,
+        )
         .unwrap();
     let orders_submitted = submit_from_page(&browser, "breaker", 2, within);
     assert_eq!(orders_submitted.len(), 2, "{orders_submitted:?}");

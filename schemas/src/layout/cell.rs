@@ -10,7 +10,7 @@ use serde::Serialize;
 use super::{ConveyorSpec, LayoutPart, LocationId, LocationSpec, TransporterSpec};
 
 /// The parts put together.
-#[derive(Debug, Clone, Default, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize)]
 pub struct CellLayout {
     /// Every holon's part, by holon name.
     pub parts: BTreeMap<String, LayoutPart>,

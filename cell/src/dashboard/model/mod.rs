@@ -84,6 +84,9 @@ pub enum Input {
     NodeCounts {
         counts: BTreeMap<String, schemas::OrderCounts>,
     },
+    /// The cell's layout, as the serving resources answered it (docs/material-flow.md):
+    /// it replaces the previous one.
+    Layout(Box<schemas::layout::CellLayout>),
 }
 
 /// How many finished orders the model keeps (the newest heard): the page shows
@@ -168,6 +171,8 @@ pub struct Model {
     fences: Vec<schemas::FenceReport>,
     /// The order-nodes' processes on etcd, holders and standbys, as last asked.
     node_fences: Vec<schemas::fence::NodeFenceReport>,
+    /// The cell's layout, as last asked.
+    layout: schemas::layout::CellLayout,
 }
 
 impl Model {
@@ -188,7 +193,17 @@ impl Model {
                 self.node_counts = counts;
                 changed
             }
+            Input::Layout(layout) => {
+                let changed = *layout != self.layout;
+                self.layout = *layout;
+                changed
+            }
         }
+    }
+
+    /// The cell's layout, as last asked (empty until resources with a layout answered).
+    pub fn layout(&self) -> &schemas::layout::CellLayout {
+        &self.layout
     }
 
     /// The order-nodes' counts, as last asked (empty until one answered).
