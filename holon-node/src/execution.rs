@@ -17,7 +17,7 @@
 //! | step n | reply to its command with a result the step expects, steps left | command of step n+1 | step n+1 |
 //! | step n | the same, last step | finished: done with every step's result | `ready` (or `init`) |
 //! | step n | reply `error` | finished: failed `controller_error` | `ready` (or `init`) |
-//! | step n | reply `error` `stale_epoch` (a fenced resource deposed) | finished: deposed (no result: the new holder's word counts) | `ready` (or `init`) |
+//! | step n | `CommandFailed` `StaleEpoch` (the controller refused a fenced resource's epoch: deposed) | finished: deposed (no result: the new holder's word counts) | `ready` (or `init`) |
 //! | step n | reply with a result the step does not expect | finished: failed `unexpected_result` | `ready` (or `init`) |
 //! | step n | its command timed out / the connection broke / the protocol broke | finished: failed `controller_timeout` / `controller_disconnected` / `controller_protocol_error` | `ready` (or `init`) |
 //! | step n | controller disconnected | finished: failed `controller_disconnected`; unavailable | `init` |
@@ -229,6 +229,17 @@ impl Execution {
                 if !self.is_waiting_for(id) {
                     return vec![];
                 }
+                if let CommandFailure::StaleEpoch { .. } = failure {
+                    // Deposed: the controller has a newer holder and ran nothing of this
+                    // command. Not the controller's error: this resource steps down and
+                    // says nothing of the job (the order may have booked the same
+                    // conversation with the new holder, which then goes on from the
+                    // controller's record of its steps; an order that did not asks the
+                    // new holder what became of it).
+                    let detail =
+                        format!("{failure}; this resource steps down, this step was not run here");
+                    return self.end(Outcome::Deposed { detail });
+                }
                 let unknown_outcome = matches!(
                     failure,
                     CommandFailure::Timeout(_)
@@ -253,6 +264,8 @@ impl Execution {
                     CommandFailure::Unwritable(_) => Reason::InvalidInfo,
                     CommandFailure::Aborted => Reason::Aborted,
                     CommandFailure::Stopped(_) => Reason::ControllerFault,
+                    // Ended deposed above.
+                    CommandFailure::StaleEpoch { .. } => Reason::StaleEpoch,
                 };
                 self.fail(why, failure.to_string())
             }
@@ -363,19 +376,6 @@ impl Execution {
         if !self.is_waiting_for(id) {
             // A late reply to a command whose step already failed: ignored.
             return vec![];
-        }
-        if result == schemas::robot::RESULT_ERROR && message.as_deref().is_some_and(is_stale_epoch)
-        {
-            // Deposed: the controller has a newer holder and ran nothing of this
-            // command. Not the controller's error: this resource steps down and says
-            // nothing of the job (the order may have booked the same conversation with
-            // the new holder, which then goes on from the controller's record of its
-            // steps; an order that did not asks the new holder what became of it).
-            let detail = format!(
-                "the controller refused this resource's epoch ({}); it steps down, this step was not run here",
-                message.unwrap_or_default()
-            );
-            return self.end(Outcome::Deposed { detail });
         }
         let ExecutionState::Running {
             job,
@@ -601,12 +601,6 @@ impl Execution {
             ),
         }
     }
-}
-
-/// Whether a controller's error message is the fence's refusal of a stale epoch
-/// (`docs/controller-protocol.md`, "Fencing (standby)").
-pub fn is_stale_epoch(message: &str) -> bool {
-    message.starts_with("stale_epoch")
 }
 
 #[cfg(test)]

@@ -18,6 +18,12 @@ pub const MAILBOX: usize = 256;
 /// A component that panics leaves a complete state behind: the state machines change
 /// their state only in `handle`, which does no I/O and cannot await.
 pub struct Handover<T> {
+    /// The state. A lock is the right tool here, as a baton, not as shared data: the
+    /// running component holds its owned guard for its whole life and nobody else
+    /// locks it, so it is never contended while a component runs; the guard gives the
+    /// state back when its holder ends, however it ends (a panic's unwinding
+    /// included), and a successor's [`take`](Handover::take) waits for exactly that.
+    /// A channel would need the same guard, written by hand.
     state: Arc<Mutex<T>>,
 }
 
@@ -45,7 +51,9 @@ impl<T> Handover<T> {
 /// running component and taken over by its successor, so no message is lost to a
 /// restart. Bounded: a sender waits while the mailbox is full.
 pub struct Mailbox<T> {
+    /// Where to send the component's messages.
     pub sender: mpsc::Sender<T>,
+    /// The receiving end, held by the running component (see [`Handover`]).
     receiver: Handover<mpsc::Receiver<T>>,
 }
 

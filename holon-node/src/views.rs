@@ -182,7 +182,7 @@ mod tests {
     fn views(current: Option<&str>, running: Option<&str>) -> Views {
         let holon = HolonId::resource("robot1").unwrap();
         let catalog = Arc::new(crate::catalog::pick_n_place());
-        let mut snapshot = AgendaManager::new(holon, catalog, 3).snapshot();
+        let mut snapshot = AgendaManager::new(holon, catalog, 3, schemas::unix_ms()).snapshot();
         snapshot.current = current.map(|conversation| CurrentJobView {
             requester: HolonId::order("o-1").unwrap(),
             conversation_id: conversation.into(),

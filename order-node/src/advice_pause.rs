@@ -8,9 +8,9 @@
 //! contract net without asking for [`PAUSE`]; then one order asks again, and an answer
 //! ends the pause.
 
-use std::sync::Mutex;
 use std::time::Duration;
 
+use tokio::sync::watch;
 use tokio::time::Instant;
 
 /// Unanswered asks in a row before the node stops asking.
@@ -19,10 +19,18 @@ pub const FAILURES_BEFORE_PAUSE: u32 = 3;
 /// How long the node does not ask after that.
 pub const PAUSE: Duration = Duration::from_secs(5);
 
-/// The node's record of how its asks for advice went.
-#[derive(Debug, Default)]
-pub struct AdvicePause(Mutex<Record>);
+/// The node's record of how its asks for advice went: changed in place by the order
+/// that learnt how its ask went, read by every order before it asks.
+#[derive(Debug)]
+pub struct AdvicePause(watch::Sender<Record>);
 
+impl Default for AdvicePause {
+    fn default() -> AdvicePause {
+        AdvicePause(watch::Sender::new(Record::default()))
+    }
+}
+
+/// How the asks went lately.
 #[derive(Debug, Default)]
 struct Record {
     /// Asks in a row that went unanswered.
@@ -34,27 +42,34 @@ struct Record {
 impl AdvicePause {
     /// Whether an order may ask now.
     pub fn may_ask(&self, now: Instant) -> bool {
-        let record = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        record.paused_until.is_none_or(|until| now >= until)
+        self.0
+            .borrow()
+            .paused_until
+            .is_none_or(|until| now >= until)
     }
 
     /// An ask was answered (usable or not, the staff is there): asking goes on.
     pub fn answered(&self) {
-        let mut record = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        record.failures = 0;
-        record.paused_until = None;
+        self.0.send_if_modified(|record| {
+            let news = record.failures != 0 || record.paused_until.is_some();
+            record.failures = 0;
+            record.paused_until = None;
+            news
+        });
     }
 
     /// An ask went unanswered within the timeout. True when this starts a pause.
     pub fn unanswered(&self, now: Instant) -> bool {
-        let mut record = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        record.failures += 1;
-        if record.failures >= FAILURES_BEFORE_PAUSE {
-            record.failures = 0;
-            record.paused_until = Some(now + PAUSE);
-            return true;
-        }
-        false
+        let mut paused = false;
+        self.0.send_modify(|record| {
+            record.failures += 1;
+            if record.failures >= FAILURES_BEFORE_PAUSE {
+                record.failures = 0;
+                record.paused_until = Some(now + PAUSE);
+                paused = true;
+            }
+        });
+        paused
     }
 }
 

@@ -15,7 +15,7 @@ use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use crate::context::{lock, OrderContext, Shared};
+use crate::context::{OrderContext, Progress};
 use crate::progress::{OrderProgress, Phase};
 
 /// How many cancels may wait for one order's task.
@@ -65,7 +65,7 @@ pub async fn ask(
 /// order's attempt.
 pub async fn answer_cancels(
     ctx: &OrderContext,
-    progress: &Shared,
+    progress: &Progress,
     mut asks: mpsc::Receiver<CancelAsk>,
     operator_cancel: &CancellationToken,
 ) {
@@ -75,15 +75,15 @@ pub async fn answer_cancels(
             operator_cancel.cancel();
         }
         if ask.reply.send(answer).is_err() {
-            warn!(holon = %lock(progress).holon, "the cancel's asker left before the answer; it asks again and is answered from the journal");
+            warn!(holon = %progress.get().holon, "the cancel's asker left before the answer; it asks again and is answered from the journal");
         }
     }
 }
 
 /// Records the cancel (once) and says what happens next.
-fn record(ctx: &OrderContext, progress: &Shared) -> Result<CancelReply, (ErrorCode, String)> {
+fn record(ctx: &OrderContext, progress: &Progress) -> Result<CancelReply, (ErrorCode, String)> {
     let (name, ended, requested) = {
-        let p = lock(progress);
+        let p = progress.get();
         (
             p.holon.name().to_string(),
             p.status.is_final(),
@@ -91,7 +91,7 @@ fn record(ctx: &OrderContext, progress: &Shared) -> Result<CancelReply, (ErrorCo
         )
     };
     if ended {
-        return Ok(refused(&name, &lock(progress)));
+        return Ok(refused(&name, &progress.get()));
     }
     if !requested {
         // Written first: on a journal error nothing changed and the cancel is refused.
@@ -102,9 +102,9 @@ fn record(ctx: &OrderContext, progress: &Shared) -> Result<CancelReply, (ErrorCo
                     format!("cannot record the cancel: {e}"),
                 )
             })?;
-        info!(holon = %lock(progress).holon, "cancel requested by an operator, recorded");
+        info!(holon = %progress.get().holon, "cancel requested by an operator, recorded");
     }
-    let p = lock(progress);
+    let p = progress.get();
     Ok(CancelReply {
         order: name,
         cancelled: true,

@@ -2,9 +2,10 @@
 //! resources, the inboxes, the journal, and the pacing of orders that wait.
 
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
+use tokio::sync::watch;
 use tracing::{error, info, warn};
 
 use crate::advice_pause::AdvicePause;
@@ -17,9 +18,13 @@ use crate::ranking::BookingsInFlight;
 
 /// What every order of a node shares.
 pub struct OrderContext {
+    /// The node's zenoh session.
     pub session: zenoh::Session,
+    /// The cell's keys.
     pub keys: schemas::CellKeys,
+    /// How the orders negotiate (`[orders]` of the node's config).
     pub settings: OrderSettings,
+    /// Which resources are alive and whose turn it is on each.
     pub presence: Arc<Presence>,
     /// Where results reach the running orders (one queryable for the node).
     pub inboxes: Arc<Inboxes>,
@@ -42,6 +47,28 @@ pub struct OrderContext {
 pub const ORDER_RECORD: &str = "order";
 
 impl OrderContext {
+    /// What the orders of a node configured by `config` share, on `session`.
+    pub fn new(
+        session: zenoh::Session,
+        config: &crate::config::OrderNodeConfig,
+        presence: Arc<Presence>,
+        journal: Option<Arc<OrderJournal>>,
+    ) -> OrderContext {
+        OrderContext {
+            session,
+            keys: config.keys.clone(),
+            settings: config.orders,
+            presence,
+            inboxes: Default::default(),
+            rounds: tokio::sync::Semaphore::new(MAX_CONCURRENT_ROUNDS),
+            idle: Default::default(),
+            journal,
+            journal_failing: Default::default(),
+            bookings_in_flight: Default::default(),
+            advice_pause: Default::default(),
+        }
+    }
+
     /// The epoch at which this node holds its leader key, on etcd (`None` on SQLite).
     pub fn epoch(&self) -> Option<u64> {
         let epoch = self.journal.as_ref()?.epoch()?;
@@ -82,8 +109,8 @@ impl OrderContext {
     }
 
     /// Publishes an order's state on `order/<name>/state`.
-    pub async fn publish(&self, progress: &Shared) {
-        let snapshot = lock(progress).snapshot();
+    pub async fn publish(&self, progress: &Progress) {
+        let snapshot = progress.get().snapshot();
         let key = self.keys.state(&snapshot.holon);
         let payload = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
         if let Err(e) = self.session.put(&key, payload).await {
@@ -96,17 +123,16 @@ impl OrderContext {
     /// order task resumes from there, and an unacknowledged result comes again).
     pub fn commit(
         &self,
-        progress: &Shared,
+        progress: &Progress,
         change: impl FnOnce(&mut OrderProgress),
     ) -> Result<(), OrderError> {
-        let mut p = lock(progress);
-        let mut next = p.clone();
+        let mut next = progress.get().clone();
         change(&mut next);
         if next.status.is_final() && next.finished_at.is_none() {
             next.finished_at = Some(schemas::unix_ms());
         }
         self.save(&next)?;
-        *p = next;
+        progress.0.send_replace(next);
         Ok(())
     }
 }
@@ -156,12 +182,29 @@ impl From<String> for OrderError {
     }
 }
 
-/// An order's progress, shared by its task and its node.
-pub type Shared = Arc<Mutex<OrderProgress>>;
+/// An order's progress as its writer holds it: the running order's task (each run of
+/// it a writer of its own), or the node while no task runs (an order it creates, or
+/// fails for good). Changed only by [`OrderContext::commit`], once written to the
+/// journal; the node reads it through the [`ProgressView`] that follows this writer.
+/// Not shared: the task's futures (its attempt, its answers to cancels) borrow it in
+/// turn, and a change is whole before the next await.
+pub struct Progress(watch::Sender<OrderProgress>);
 
-/// The progress, even if a task panicked while holding it (it changes only whole).
-pub fn lock(progress: &Shared) -> std::sync::MutexGuard<'_, OrderProgress> {
-    progress.lock().unwrap_or_else(|e| e.into_inner())
+/// An order's progress as the node sees it: what its writer last committed (kept when
+/// the writer ends, as a finished order's last word).
+pub type ProgressView = watch::Receiver<OrderProgress>;
+
+impl Progress {
+    /// A writer of `progress`, and the node's view of what it writes.
+    pub fn new(progress: OrderProgress) -> (Progress, ProgressView) {
+        let (writer, view) = watch::channel(progress);
+        (Progress(writer), view)
+    }
+
+    /// The progress as last committed (not to be held across an await).
+    pub fn get(&self) -> watch::Ref<'_, OrderProgress> {
+        self.0.borrow()
+    }
 }
 
 /// How often an order that no resource could take asks again, at most, when nothing

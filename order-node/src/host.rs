@@ -15,8 +15,7 @@
 //! the retention ends, as they always did.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 use holon::supervisor::{Action, Event, Machine, Scope, Strategy};
@@ -31,7 +30,7 @@ use zenoh::key_expr::KeyExpr;
 
 use crate::cancel::CancelAsk;
 use crate::config::OrderNodeConfig;
-use crate::context::{OrderContext, OrderError, ORDER_RECORD};
+use crate::context::{OrderContext, OrderError, Progress, ProgressView, ORDER_RECORD};
 use crate::journal::OrderJournalError;
 use crate::order;
 use crate::progress::OrderProgress;
@@ -81,8 +80,9 @@ impl Default for Tasks {
 
 /// An order held in memory: unfinished (or finished, without a journal).
 pub struct Hosted {
-    /// The order's progress: written by its task, read for queries.
-    pub progress: Arc<Mutex<OrderProgress>>,
+    /// The order's progress as its writer last committed it (the running task's, or
+    /// the node's while no task runs): read for queries.
+    pub progress: ProgressView,
     /// Cancelled by the order's task once it recorded an operator's cancel (`cell
     /// cancel`); cancelled at the start for an order whose journal says so.
     pub operator_cancel: CancellationToken,
@@ -104,7 +104,9 @@ pub struct Ended {
 /// The finished orders that are only in the journal, by order number.
 pub type Finished = BTreeMap<u64, Ended>;
 
-/// The orders of an order-node, and what they share.
+/// The orders of an order-node, and what they share: owned by the node's loop, which
+/// alone changes it (the order tasks write their own progress, seen here through each
+/// order's [`ProgressView`]).
 pub struct Host {
     /// The node's configuration.
     pub config: OrderNodeConfig,
@@ -113,26 +115,56 @@ pub struct Host {
     /// The orders held in memory, by name: the unfinished ones, and finished ones that
     /// cannot be read from the journal (no journal, or their end could not be recorded)
     /// until the retention ends.
-    pub orders: Mutex<BTreeMap<String, Hosted>>,
+    pub orders: BTreeMap<String, Hosted>,
     /// The finished orders read from the journal when asked for, until the retention
     /// sweep deletes them there (about 20 bytes each: two numbers in a map). An order
     /// is in `orders` or here, never in both.
-    pub finished: Mutex<Finished>,
+    pub finished: Finished,
     /// The number of the next order (journalled before the orders are created).
-    pub next: AtomicU64,
+    pub next: u64,
+}
+
+impl Hosted {
+    /// A writer of the order's progress for whoever writes it next (a new run of its
+    /// task, or the node failing the order for good), seeded with the last committed
+    /// progress: the view follows the new writer from now on.
+    fn writer(&mut self) -> Progress {
+        let (writer, view) = Progress::new(self.progress.borrow().clone());
+        self.progress = view;
+        writer
+    }
 }
 
 impl Host {
+    /// The orders of a node that holds none in memory yet: `finished` (in the journal)
+    /// and the number of the next order as recovered.
+    pub fn new(
+        config: OrderNodeConfig,
+        context: Arc<OrderContext>,
+        finished: Finished,
+        next: u64,
+    ) -> Host {
+        Host {
+            config,
+            context,
+            orders: BTreeMap::new(),
+            finished,
+            next,
+        }
+    }
+
     /// Creates the orders of a work order, written to the journal before they start
     /// (and before the submitter is told their names).
     pub fn create(
-        &self,
+        &mut self,
         work: &WorkOrder,
         tasks: &mut Tasks,
         cancel: &CancellationToken,
     ) -> Result<Vec<String>, String> {
-        let first = self.next.fetch_add(work.count as u64, Ordering::SeqCst);
+        let first = self.next;
         let next = first + work.count as u64;
+        // Used up even when the write below fails: a number is never given twice.
+        self.next = next;
         let created: Vec<(String, OrderProgress)> = (first..next)
             .map(|n| {
                 let name = format!("{}-{n}", self.config.name);
@@ -174,7 +206,7 @@ impl Host {
 
     /// Hosts an order: running ones get a task; finished ones stay in the journal.
     pub fn host(
-        &self,
+        &mut self,
         name: &str,
         progress: OrderProgress,
         tasks: &mut Tasks,
@@ -201,18 +233,14 @@ impl Host {
         if progress.cancel_requested {
             operator_cancel.cancel();
         }
-        let progress = Arc::new(Mutex::new(progress));
-        self.orders
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(
-                name.to_string(),
-                Hosted {
-                    progress: progress.clone(),
-                    operator_cancel,
-                    cancel_asks: crate::cancel::mailbox().0,
-                },
-            );
+        self.orders.insert(
+            name.to_string(),
+            Hosted {
+                progress: Progress::new(progress).1,
+                operator_cancel,
+                cancel_asks: crate::cancel::mailbox().0,
+            },
+        );
         if running {
             let added = Event::Added {
                 child: name.to_string(),
@@ -220,19 +248,10 @@ impl Host {
             };
             for action in tasks.supervision.handle(added, Instant::now()) {
                 if let Action::Start(name) = action {
-                    self.spawn(&name, progress.clone(), tasks, cancel, Duration::ZERO);
+                    self.spawn(&name, tasks, cancel, Duration::ZERO);
                 }
             }
         }
-    }
-
-    /// The progress of an order held in memory.
-    fn progress_of(&self, name: &str) -> Option<Arc<Mutex<OrderProgress>>> {
-        self.orders
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(name)
-            .map(|h| h.progress.clone())
     }
 
     /// The number of `name` if it is the name this node gives its order of that number.
@@ -243,52 +262,41 @@ impl Host {
     /// Lets a finished order's progress go from memory, to be read from the journal
     /// from now on: true when it can be (there is a journal, which holds this very
     /// progress, and the order ended at a known time); the caller drops its copy.
-    fn leave_memory(&self, name: &str, progress: &OrderProgress) -> bool {
+    fn leave_memory(&mut self, name: &str, progress: &OrderProgress) -> bool {
         if self.context.journal.is_none() {
             return false;
         }
         let (Some(number), Some(at)) = (self.number(name), progress.finished_at) else {
             return false;
         };
-        self.finished
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(
-                number,
-                Ended {
-                    at,
-                    status: progress.status,
-                },
-            );
+        self.finished.insert(
+            number,
+            Ended {
+                at,
+                status: progress.status,
+            },
+        );
         true
     }
 
     /// An order's task ended: when its order finished, it leaves memory (its final
     /// progress was written to the journal before it was final in memory). An order
     /// stopped with the node, or waiting to be restarted, stays.
-    pub fn retire(&self, name: &str) {
-        let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-        let Some(hosted) = orders.get(name) else {
+    pub fn retire(&mut self, name: &str) {
+        let Some(hosted) = self.orders.get(name) else {
             return;
         };
-        let left = {
-            let progress = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
-            progress.status.is_final() && self.leave_memory(name, &progress)
-        };
-        if left {
-            orders.remove(name);
+        let progress = hosted.progress.borrow().clone();
+        if progress.status.is_final() && self.leave_memory(name, &progress) {
+            self.orders.remove(name);
             debug!(node = %self.config.name, order = %name, "finished order left memory; read from the journal from now on");
         }
     }
 
     /// Whether `name` is a finished order that is only in the journal.
     fn in_journal(&self, name: &str) -> bool {
-        self.number(name).is_some_and(|n| {
-            self.finished
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .contains_key(&n)
-        })
+        self.number(name)
+            .is_some_and(|n| self.finished.contains_key(&n))
     }
 
     /// Reads finished orders from the journal, without holding a runtime worker.
@@ -308,16 +316,8 @@ impl Host {
     /// The progress of `name` if it is an order of this node: from memory while it is
     /// unfinished, from the journal once it finished.
     pub fn progress(&self, name: &str) -> Result<Option<OrderProgress>, OrderJournalError> {
-        {
-            let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-            if let Some(hosted) = orders.get(name) {
-                let progress = hosted
-                    .progress
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .clone();
-                return Ok(Some(progress));
-            }
+        if let Some(hosted) = self.orders.get(name) {
+            return Ok(Some(hosted.progress.borrow().clone()));
         }
         if !self.in_journal(name) {
             return Ok(None);
@@ -328,29 +328,26 @@ impl Host {
             .map(|(_, progress)| progress))
     }
 
+    /// Starts a run of the task of `name`, a hosted order, after `delay`: the run is
+    /// its progress's writer, and gets a mailbox of its own for cancels.
     pub fn spawn(
-        &self,
+        &mut self,
         name: &str,
-        progress: Arc<Mutex<OrderProgress>>,
         tasks: &mut Tasks,
         cancel: &CancellationToken,
         delay: Duration,
     ) {
+        let Some(hosted) = self.orders.get_mut(name) else {
+            return;
+        };
         let context = self.context.clone();
         let cancel = cancel.child_token();
+        let progress = hosted.writer();
         // This run of the task gets a mailbox of its own: the node's table keeps where
         // to send.
         let (asks, cancel_asks) = crate::cancel::mailbox();
-        let operator_cancel = {
-            let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-            match orders.get_mut(name) {
-                Some(hosted) => {
-                    hosted.cancel_asks = asks;
-                    hosted.operator_cancel.clone()
-                }
-                None => CancellationToken::new(),
-            }
-        };
+        hosted.cancel_asks = asks;
+        let operator_cancel = hosted.operator_cancel.clone();
         let handle = tasks.set.spawn(async move {
             if !delay.is_zero() {
                 tokio::select! {
@@ -366,18 +363,14 @@ impl Host {
     /// Hosts the orders recovered from the journal (resuming the unfinished ones) and
     /// creates those of `--submit`.
     pub fn resume(
-        &self,
+        &mut self,
         recovered: Vec<(String, OrderProgress)>,
         submits: &[WorkOrder],
         tasks: &mut Tasks,
         cancel: &CancellationToken,
     ) {
-        let node = &self.config.name;
-        let finished = self
-            .finished
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .len();
+        let node = self.config.name.clone();
+        let finished = self.finished.len();
         if !recovered.is_empty() || finished > 0 {
             let resumed = recovered
                 .iter()
@@ -405,30 +398,22 @@ impl Host {
         else {
             return false;
         };
-        number < self.next.load(Ordering::SeqCst)
-            && !self
-                .orders
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .contains_key(name)
-            && !self.in_journal(name)
+        number < self.next && !self.orders.contains_key(name) && !self.in_journal(name)
     }
 
     /// Forgets the orders that finished more than `keep` ago (at most
     /// [`FORGET_AT_ONCE`]): out of the journal first, in one commit, then out of memory
     /// (and out of [`Host::finished`]). When the delete fails they stay until the next
     /// sweep. Returns how many went.
-    pub fn forget_finished(&self, keep: Duration) -> usize {
+    pub fn forget_finished(&mut self, keep: Duration) -> usize {
         let now = schemas::unix_ms();
         let keep_ms = keep.as_millis() as u64;
         let expired_at = |at: u64| now.saturating_sub(at) > keep_ms;
         let mut expired: Vec<String> = self
             .orders
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
             .iter()
             .filter(|(_, hosted)| {
-                let p = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
+                let p = hosted.progress.borrow();
                 p.status.is_final() && p.finished_at.is_some_and(expired_at)
             })
             .map(|(name, _)| name.clone())
@@ -436,8 +421,6 @@ impl Host {
             .collect();
         let in_journal: Vec<u64> = self
             .finished
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
             .iter()
             .filter(|(_, ended)| expired_at(ended.at))
             .map(|(number, _)| *number)
@@ -457,13 +440,11 @@ impl Host {
                 return 0;
             }
         }
-        let mut orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
         for name in &expired {
-            orders.remove(name);
+            self.orders.remove(name);
         }
-        let mut finished = self.finished.lock().unwrap_or_else(|e| e.into_inner());
         for number in &in_journal {
-            finished.remove(number);
+            self.finished.remove(number);
         }
         info!(node = %self.config.name, orders = expired.len(), ?keep, "finished orders left the journal");
         expired.len()
@@ -471,34 +452,24 @@ impl Host {
 
     /// Unfinished orders hosted here.
     pub fn unfinished(&self) -> usize {
-        let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-        orders
+        self.orders
             .values()
-            .filter(|h| {
-                !h.progress
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .status
-                    .is_final()
-            })
+            .filter(|h| !h.progress.borrow().status.is_final())
             .count()
     }
 
     /// An operator's cancel of `name`: asked of the order's task, which records it
     /// ([`crate::cancel`]); an ended order's is refused from what is recorded.
     pub async fn cancel(&self, name: &str) -> Result<CancelReply, (ErrorCode, String)> {
-        let asks = {
-            let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-            match orders.get(name) {
-                Some(hosted) => {
-                    let progress = hosted.progress.lock().unwrap_or_else(|e| e.into_inner());
-                    if progress.status.is_final() {
-                        return Ok(crate::cancel::refused(name, &progress));
-                    }
-                    Some(hosted.cancel_asks.clone())
+        let asks = match self.orders.get(name) {
+            Some(hosted) => {
+                let progress = hosted.progress.borrow();
+                if progress.status.is_final() {
+                    return Ok(crate::cancel::refused(name, &progress));
                 }
-                None => None,
+                Some(hosted.cancel_asks.clone())
             }
+            None => None,
         };
         if let Some(asks) = asks {
             return crate::cancel::ask(&asks, name).await;
@@ -531,20 +502,14 @@ impl Host {
             ke.intersects(key)
                 .then(|| (state_key, serde_json::to_vec(snapshot).expect("serializes")))
         };
-        let mut states: Vec<(String, (String, Vec<u8>))> = {
-            let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-            orders
-                .iter()
-                .filter_map(|(name, hosted)| {
-                    let snapshot = hosted
-                        .progress
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .snapshot();
-                    Some((name.clone(), state(&snapshot)?))
-                })
-                .collect()
-        };
+        let mut states: Vec<(String, (String, Vec<u8>))> = self
+            .orders
+            .iter()
+            .filter_map(|(name, hosted)| {
+                let snapshot = hosted.progress.borrow().snapshot();
+                Some((name.clone(), state(&snapshot)?))
+            })
+            .collect();
         // A wildcard read (`order/*/state`, a dashboard's first look) gets the orders
         // in memory only: the finished ones of a long history are listed a page at a
         // time ([`Host::page`]), and read one by one by their own keys.
@@ -552,19 +517,17 @@ impl Host {
             states.sort_by(|a, b| a.0.cmp(&b.0));
             return states.into_iter().map(|(_, state)| state).collect();
         }
-        let wanted: Vec<String> = {
-            let finished = self.finished.lock().unwrap_or_else(|e| e.into_inner());
-            finished
-                .keys()
-                .map(|number| format!("{}-{number}", self.config.name))
-                .filter(|name| {
-                    HolonId::order(name).is_ok_and(|holon| {
-                        KeyExpr::try_from(self.config.keys.state(&holon))
-                            .is_ok_and(|ke| ke.intersects(key))
-                    })
+        let wanted: Vec<String> = self
+            .finished
+            .keys()
+            .map(|number| format!("{}-{number}", self.config.name))
+            .filter(|name| {
+                HolonId::order(name).is_ok_and(|holon| {
+                    KeyExpr::try_from(self.config.keys.state(&holon))
+                        .is_ok_and(|ke| ke.intersects(key))
                 })
-                .collect()
-        };
+            })
+            .collect();
         // A few at a time: only their snapshots are held, not every progress at once.
         for chunk in wanted.chunks(READ_AT_ONCE) {
             match self.read_finished(chunk) {
@@ -574,8 +537,7 @@ impl Host {
                 ),
                 Err(e) => {
                     warn!(node = %self.config.name, orders = wanted.len(), error = %e, "cannot read finished orders from the journal; the reader gets the unfinished ones only");
-                    let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-                    states.retain(|(name, _)| orders.contains_key(name));
+                    states.retain(|(name, _)| self.orders.contains_key(name));
                     break;
                 }
             }
@@ -601,12 +563,11 @@ pub fn order_number(node: &str, name: &str) -> Option<u64> {
 /// a pause, not counted as a failure), or failed (restarted under the restart policy,
 /// or, past it, the order fails).
 pub async fn task_ended(
-    host: &Host,
+    host: &mut Host,
     joined: Result<(tokio::task::Id, Result<(), OrderError>), tokio::task::JoinError>,
     tasks: &mut Tasks,
     cancel_all: &CancellationToken,
 ) {
-    let node = &host.config.name;
     let (id, normally, why) = match joined {
         Ok((id, Ok(()))) => (id, true, String::new()),
         Ok((id, Err(OrderError::Journal(why)))) => {
@@ -616,10 +577,8 @@ pub async fn task_ended(
             let Some(name) = tasks.names.remove(&id) else {
                 return;
             };
-            debug!(%node, order = %name, error = %why, "order waits for the journal");
-            if let Some(progress) = host.progress_of(&name) {
-                host.spawn(&name, progress, tasks, cancel_all, JOURNAL_RETRY);
-            }
+            debug!(node = %host.config.name, order = %name, error = %why, "order waits for the journal");
+            host.spawn(&name, tasks, cancel_all, JOURNAL_RETRY);
             return;
         }
         Ok((id, Err(e))) => (id, false, e.to_string()),
@@ -645,7 +604,7 @@ pub async fn task_ended(
         return;
     };
     if !normally {
-        error!(%node, order = %name, error = %why, "order task failed");
+        error!(node = %host.config.name, order = %name, error = %why, "order task failed");
     }
     let exited = Event::Exited {
         child: name.clone(),
@@ -656,9 +615,9 @@ pub async fn task_ended(
         match action {
             Action::Done(name) => host.retire(&name),
             Action::Start(name) | Action::RestartAfter(name, _) => {
-                if let Some(progress) = host.progress_of(&name) {
+                if host.orders.contains_key(&name) {
                     warn!(order = %name, "restarting order");
-                    host.spawn(&name, progress, tasks, cancel_all, Duration::ZERO);
+                    host.spawn(&name, tasks, cancel_all, Duration::ZERO);
                 }
             }
             Action::GiveUp { child, .. } => fail(host, &child).await,
@@ -670,8 +629,9 @@ pub async fn task_ended(
 
 /// Fails an order whose task failed more often than [`ORDER_RESTARTS`] allows, recorded
 /// in the journal and published, so it does not resume after a restart of the node.
-async fn fail(host: &Host, name: &str) {
-    let Some(progress) = host.progress_of(name) else {
+async fn fail(host: &mut Host, name: &str) {
+    // No task runs it any more: the node writes its end.
+    let Some(progress) = host.orders.get_mut(name).map(Hosted::writer) else {
         return;
     };
     let why = format!(
@@ -690,7 +650,7 @@ async fn fail(host: &Host, name: &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::context::Shared;
+    use crate::context::Progress;
     use crate::journal::OrderJournal;
     use holon::journal::{Durability, Journal};
     use std::path::{Path, PathBuf};
@@ -743,8 +703,9 @@ mod tests {
                 Journal::open(dir, "order-node-n1.sqlite", Durability::ProcessCrash).unwrap(),
             ))
         });
-        Host {
-            context: Arc::new(OrderContext {
+        Host::new(
+            config.clone(),
+            Arc::new(OrderContext {
                 session,
                 keys: config.keys.clone(),
                 settings: config.orders,
@@ -757,30 +718,28 @@ mod tests {
                 bookings_in_flight: Default::default(),
                 advice_pause: Default::default(),
             }),
-            config,
-            orders: Default::default(),
-            finished: Default::default(),
-            next: AtomicU64::new(1),
-        }
+            Finished::new(),
+            1,
+        )
     }
 
     /// Hosts order `n1-<n>` in memory as its creation would (without its task),
-    /// journalled; returns its progress.
-    fn running(host: &Host, n: u64) -> Shared {
+    /// journalled; returns the writer of its progress, as its task would hold it.
+    fn running(host: &mut Host, n: u64) -> Progress {
         let name = format!("n1-{n}");
         let progress = OrderProgress::new(HolonId::order(&name).unwrap(), "breaker", 3);
         host.context.save(&progress).unwrap();
-        let progress = Arc::new(Mutex::new(progress));
-        host.orders.lock().unwrap().insert(
+        let (writer, view) = Progress::new(progress);
+        host.orders.insert(
             name,
             Hosted {
-                progress: progress.clone(),
+                progress: view,
                 operator_cancel: CancellationToken::new(),
                 cancel_asks: crate::cancel::mailbox().0,
             },
         );
-        host.next.fetch_max(n + 1, Ordering::SeqCst);
-        progress
+        host.next = host.next.max(n + 1);
+        writer
     }
 
     /// What the node answers to a read of every order's state, without the time of
@@ -822,26 +781,17 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_cancel_is_recorded_by_the_orders_own_task() {
         let dir = TestDir::new("cancel");
-        let host = host(Some(&dir.0)).await;
-        let progress = running(&host, 1);
+        let mut host = host(Some(&dir.0)).await;
+        let progress = running(&mut host, 1);
         let refused = host.cancel("n1-1").await.unwrap_err();
         assert_eq!(refused.0, ErrorCode::Unavailable, "{refused:?}");
-        assert!(!progress.lock().unwrap().cancel_requested);
+        assert!(!progress.get().cancel_requested);
 
         let (asks, mailbox) = crate::cancel::mailbox();
         let operator_cancel = CancellationToken::new();
-        host.orders
-            .lock()
-            .unwrap()
-            .get_mut("n1-1")
-            .unwrap()
-            .cancel_asks = asks;
+        host.orders.get_mut("n1-1").unwrap().cancel_asks = asks;
         let task = {
-            let (ctx, progress, stop) = (
-                host.context.clone(),
-                progress.clone(),
-                operator_cancel.clone(),
-            );
+            let (ctx, stop) = (host.context.clone(), operator_cancel.clone());
             tokio::spawn(async move {
                 crate::cancel::answer_cancels(&ctx, &progress, mailbox, &stop).await
             })
@@ -855,16 +805,16 @@ mod tests {
         assert!(recorded.cancel_requested, "journalled before the answer");
         // Asked again: the same answer, nothing new to record.
         assert!(host.cancel("n1-1").await.unwrap().cancelled);
-        host.orders.lock().unwrap().remove("n1-1");
+        host.orders.remove("n1-1");
         task.await.unwrap();
     }
 
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_finished_order_leaves_memory_and_is_answered_from_the_journal() {
         let dir = TestDir::new("answered");
-        let host = host(Some(&dir.0)).await;
-        let done = running(&host, 1);
-        running(&host, 2);
+        let mut host = host(Some(&dir.0)).await;
+        let done = running(&mut host, 1);
+        running(&mut host, 2);
         host.context
             .commit(&done, |p| p.fail("no plan".into()))
             .unwrap();
@@ -874,9 +824,9 @@ mod tests {
 
         host.retire("n1-1");
         host.retire("n1-2"); // unfinished: stays
-        assert!(!host.orders.lock().unwrap().contains_key("n1-1"));
-        assert!(host.orders.lock().unwrap().contains_key("n1-2"));
-        assert!(host.finished.lock().unwrap().contains_key(&1));
+        assert!(!host.orders.contains_key("n1-1"));
+        assert!(host.orders.contains_key("n1-2"));
+        assert!(host.finished.contains_key(&1));
         drop(done);
         assert_eq!(
             states(&host),
@@ -905,7 +855,7 @@ mod tests {
 
         // After a restart (the journal reopened), the same answers.
         drop(host);
-        let host = self::host(Some(&dir.0)).await;
+        let mut host = self::host(Some(&dir.0)).await;
         let (recovered, finished, _) =
             crate::recovery::recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
         assert_eq!(
@@ -914,13 +864,13 @@ mod tests {
             "only the unfinished order is read whole"
         );
         assert_eq!(finished.keys().collect::<Vec<_>>(), [&1]);
-        *host.finished.lock().unwrap() = finished;
-        host.next.store(3, Ordering::SeqCst);
+        host.finished = finished;
+        host.next = 3;
         let mut tasks = Tasks::default();
         let cancel = CancellationToken::new();
         cancel.cancel(); // the unfinished order's task stops at once
         host.resume(recovered, &[], &mut tasks, &cancel);
-        assert!(!host.orders.lock().unwrap().contains_key("n1-1"));
+        assert!(!host.orders.contains_key("n1-1"));
         assert_eq!(states(&host), states_before[1..]);
         assert_eq!(state_of(&host, "n1-1"), states_before[..1]);
         assert_eq!(cancel_reply(&host, "n1-1").await, cancel_before);
@@ -931,9 +881,9 @@ mod tests {
     async fn a_listing_pages_running_orders_then_finished_ones_newest_first() {
         use schemas::{OrderFilter, OrderListRequest, PageCursor};
         let dir = TestDir::new("pages");
-        let host = host(Some(&dir.0)).await;
+        let mut host = host(Some(&dir.0)).await;
         for n in 1..=6 {
-            let progress = running(&host, n);
+            let progress = running(&mut host, n);
             if n <= 3 {
                 host.context
                     .commit(&progress, |p| p.fail("no plan".into()))
@@ -982,9 +932,9 @@ mod tests {
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn after_the_retention_the_journal_forgets_a_finished_order() {
         let dir = TestDir::new("forgets");
-        let host = host(Some(&dir.0)).await;
-        let old = running(&host, 1);
-        let recent = running(&host, 2);
+        let mut host = host(Some(&dir.0)).await;
+        let old = running(&mut host, 1);
+        let recent = running(&mut host, 2);
         host.context
             .commit(&old, |p| {
                 p.cancel();
@@ -994,7 +944,7 @@ mod tests {
         host.context.commit(&recent, |p| p.cancel()).unwrap();
         host.retire("n1-1");
         host.retire("n1-2");
-        assert!(host.orders.lock().unwrap().is_empty());
+        assert!(host.orders.is_empty());
 
         assert_eq!(host.forget_finished(Duration::from_secs(5)), 1);
         let journal = host.context.journal.clone().unwrap();
@@ -1036,15 +986,15 @@ mod tests {
                 .put(crate::context::ORDER_RECORD, "n1-1", &old)
                 .unwrap();
         }
-        let host = host(Some(&dir.0)).await;
-        host.next.store(2, Ordering::SeqCst);
+        let mut host = host(Some(&dir.0)).await;
+        host.next = 2;
         let (recovered, finished, _) =
             crate::recovery::recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
         assert!(finished.is_empty(), "its end was not recorded: read whole");
         let mut tasks = Tasks::default();
         host.resume(recovered, &[], &mut tasks, &CancellationToken::new());
         assert!(tasks.set.is_empty());
-        assert!(host.orders.lock().unwrap().is_empty());
+        assert!(host.orders.is_empty());
         let read = host.progress("n1-1").unwrap().unwrap();
         assert!(read.finished_at.is_some(), "stamped in the journal");
         assert_eq!(read.status, old.status);
@@ -1056,13 +1006,13 @@ mod tests {
     /// in memory until the retention ends, as before.
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn without_a_journal_finished_orders_stay_in_memory() {
-        let host = host(None).await;
-        let done = running(&host, 1);
+        let mut host = host(None).await;
+        let done = running(&mut host, 1);
         host.context.commit(&done, |p| p.cancel()).unwrap();
         let before = states(&host);
         host.retire("n1-1");
-        assert!(host.orders.lock().unwrap().contains_key("n1-1"));
-        assert!(host.finished.lock().unwrap().is_empty());
+        assert!(host.orders.contains_key("n1-1"));
+        assert!(host.finished.is_empty());
         assert_eq!(states(&host), before);
         assert_eq!(
             host.forget_finished(Duration::from_secs(3600)),
@@ -1085,9 +1035,9 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread")]
     async fn a_failing_order_is_restarted_within_its_intensity_then_fails_alone() {
-        let host = host(None).await;
-        let failing = running(&host, 1);
-        let other = running(&host, 2);
+        let mut host = host(None).await;
+        let _failing = running(&mut host, 1);
+        let _other = running(&mut host, 2);
         let mut tasks = Tasks::default();
         let now = tokio::time::Instant::now();
         for name in ["n1-1", "n1-2"] {
@@ -1102,9 +1052,9 @@ mod tests {
         for _ in 0..=ORDER_RESTARTS.max_restarts {
             a_failing_task(&mut tasks, "n1-1");
             let joined = tasks.set.join_next_with_id().await.unwrap();
-            task_ended(&host, joined, &mut tasks, &cancel).await;
+            task_ended(&mut host, joined, &mut tasks, &cancel).await;
         }
-        let failed = failing.lock().unwrap().clone();
+        let failed = host.progress("n1-1").unwrap().unwrap();
         assert!(failed.status.is_final(), "{failed:?}");
         assert!(
             failed
@@ -1114,7 +1064,7 @@ mod tests {
             "{failed:?}"
         );
         assert!(
-            !other.lock().unwrap().status.is_final(),
+            !host.progress("n1-2").unwrap().unwrap().status.is_final(),
             "the other order runs on"
         );
         assert_eq!(
@@ -1126,8 +1076,8 @@ mod tests {
 
     #[tokio::test(flavor = "multi_thread")]
     async fn a_journal_fault_is_a_pause_not_a_failure() {
-        let host = host(None).await;
-        let progress = running(&host, 1);
+        let mut host = host(None).await;
+        let _progress = running(&mut host, 1);
         let mut tasks = Tasks::default();
         let added = Event::Added {
             child: "n1-1".to_string(),
@@ -1145,10 +1095,10 @@ mod tests {
                 .spawn(async { Err(OrderError::Journal("disk full".into())) });
             tasks.names.insert(handle.id(), "n1-1".to_string());
             let joined = tasks.set.join_next_with_id().await.unwrap();
-            task_ended(&host, joined, &mut tasks, &cancel).await;
+            task_ended(&mut host, joined, &mut tasks, &cancel).await;
             assert_eq!(tasks.names.len(), 1, "resumed after a pause");
         }
-        assert!(!progress.lock().unwrap().status.is_final());
+        assert!(!host.progress("n1-1").unwrap().unwrap().status.is_final());
         assert_eq!(tasks.supervision.len(), 1);
     }
 }

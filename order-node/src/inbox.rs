@@ -10,10 +10,10 @@
 //! every router and peer).
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use schemas::{HolonId, MessageType, Reason, Service};
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 use tracing::{info, warn};
 use zenoh::query::Query;
 
@@ -21,7 +21,9 @@ use crate::progress::StepOutcome;
 
 /// A result reported to an order, with the query to acknowledge once it is recorded.
 pub struct ResultReport {
+    /// The result (`done` or `failed`).
     pub message: Service,
+    /// The resource's delivery, answered with the acknowledgement (or a refusal).
     pub query: Query,
 }
 
@@ -55,15 +57,30 @@ impl ResultReport {
 /// resource sends them again after its pause).
 pub const INBOX_CAPACITY: usize = 16;
 
+/// The open inboxes, by order name: where to send each running order's results.
+type Open = HashMap<String, mpsc::Sender<ResultReport>>;
+
 /// The inboxes of the running orders, by order name.
-#[derive(Default)]
 pub struct Inboxes {
-    open: Mutex<HashMap<String, mpsc::Sender<ResultReport>>>,
+    /// The open inboxes: each order's task opens and closes its own (one change at a
+    /// time, in place); the zenoh callbacks ([`Inboxes::route`], [`Inboxes::held`]),
+    /// which must answer without waiting for any task, read the latest.
+    open: watch::Sender<Open>,
+}
+
+impl Default for Inboxes {
+    fn default() -> Inboxes {
+        Inboxes {
+            open: watch::Sender::new(Open::new()),
+        }
+    }
 }
 
 /// An open inbox: results for its order arrive here until it is dropped.
 pub struct Inbox {
+    /// The order's name.
     name: String,
+    /// Where it is listed while open.
     inboxes: Arc<Inboxes>,
     /// Results for the order, at most [`INBOX_CAPACITY`] waiting.
     pub reports: mpsc::Receiver<ResultReport>,
@@ -71,11 +88,9 @@ pub struct Inbox {
 
 impl Drop for Inbox {
     fn drop(&mut self) {
-        self.inboxes
-            .open
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .remove(&self.name);
+        self.inboxes.open.send_modify(|open| {
+            open.remove(&self.name);
+        });
     }
 }
 
@@ -83,10 +98,9 @@ impl Inboxes {
     /// Opens the inbox of `order` (replacing one left by an earlier task of it).
     pub fn open(self: &Arc<Self>, order: &HolonId) -> Inbox {
         let (sender, reports) = mpsc::channel(INBOX_CAPACITY);
-        self.open
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .insert(order.name().to_string(), sender);
+        self.open.send_modify(|open| {
+            open.insert(order.name().to_string(), sender);
+        });
         Inbox {
             name: order.name().to_string(),
             inboxes: self.clone(),
@@ -97,7 +111,7 @@ impl Inboxes {
     /// Those of `names` whose order is running here (its inbox is open): the orders the
     /// node holds ([`schemas::held`]).
     pub fn held(&self, names: &[String]) -> Vec<String> {
-        let open = self.open.lock().unwrap_or_else(|e| e.into_inner());
+        let open = self.open.borrow();
         names
             .iter()
             .filter(|name| open.contains_key(name.as_str()))
@@ -111,12 +125,7 @@ impl Inboxes {
     pub fn route(&self, query: Query) -> Option<Query> {
         use zenoh::Wait;
         let name = order_name(query.key_expr().as_str())?.to_string();
-        let sender = self
-            .open
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(&name)
-            .cloned();
+        let sender = self.open.borrow().get(&name).cloned();
         let Some(sender) = sender else {
             return Some(query);
         };

@@ -3,12 +3,44 @@
 //! the page, with the node's counts by status.
 
 use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex};
 
+use schemas::{OrderPage, OrderSnapshot, OrderStatus, PageCursor};
 use tracing::warn;
 
+use crate::context::ProgressView;
 use crate::host::Host;
 use crate::progress::OrderProgress;
+
+/// A page being filled: at most `size` orders, and about [`schemas::MAX_PAGE_BYTES`].
+struct Filling {
+    /// The page so far.
+    page: OrderPage,
+    /// How many orders it takes at most.
+    size: usize,
+    /// The bytes of the orders on it so far.
+    bytes: usize,
+}
+
+impl Filling {
+    /// Whether the page takes another order.
+    fn room(&self) -> bool {
+        self.page.orders.len() < self.size
+            && (self.page.orders.is_empty() || self.bytes < schemas::MAX_PAGE_BYTES)
+    }
+
+    fn push(&mut self, snapshot: OrderSnapshot) {
+        self.bytes += serde_json::to_vec(&snapshot).map_or(0, |b| b.len());
+        self.page.orders.push(snapshot);
+    }
+}
+
+/// Where a finished order on the page is read from.
+enum Source<'a> {
+    /// Memory (no journal, or its end could not be recorded).
+    Memory(&'a ProgressView),
+    /// The journal.
+    Journal,
+}
 
 impl Host {
     /// A page of this node's orders ([`schemas::listing`]): the running orders oldest
@@ -16,72 +48,41 @@ impl Host {
     /// [`schemas::MAX_PAGE_ORDERS`] and about [`schemas::MAX_PAGE_BYTES`] of them, with
     /// the node's counts. Finished orders are read from the journal, only those of the
     /// page; what the journal cannot read is counted in `unreadable` and passed over.
-    pub fn page(&self, request: &schemas::OrderListRequest) -> schemas::OrderPage {
-        use schemas::{OrderCounts, OrderStatus, PageCursor};
+    pub fn page(&self, request: &schemas::OrderListRequest) -> OrderPage {
         let filter = request.filter;
         let size = request.page_size();
         // What memory holds: (number, status, progress), numbered orders only.
-        let mut in_memory: Vec<(u64, OrderStatus, Arc<Mutex<OrderProgress>>)> = {
-            let orders = self.orders.lock().unwrap_or_else(|e| e.into_inner());
-            orders
-                .iter()
-                .filter_map(|(name, hosted)| {
-                    let status = hosted
-                        .progress
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .status;
-                    Some((self.number(name)?, status, hosted.progress.clone()))
-                })
-                .collect()
-        };
+        let mut in_memory: Vec<(u64, OrderStatus, &ProgressView)> = self
+            .orders
+            .iter()
+            .filter_map(|(name, hosted)| {
+                let status = hosted.progress.borrow().status;
+                Some((self.number(name)?, status, &hosted.progress))
+            })
+            .collect();
         in_memory.sort_by_key(|(number, ..)| *number);
-        let mut counts = OrderCounts::default();
+        let mut counts = schemas::OrderCounts::default();
         for (_, status, _) in &in_memory {
             counts.add(*status);
         }
-        let mut page = schemas::OrderPage {
-            v: schemas::LISTING_VERSION,
-            node: self.config.name.clone(),
-            counts,
-            orders: Vec::new(),
-            next: None,
-            unreadable: 0,
-        };
-        // The finished orders of the journal: counted, and the page's candidates.
-        let below = match request.after {
-            Some(PageCursor::AfterFinished(n)) => n,
-            _ => u64::MAX,
-        };
-        let mut from_journal: Vec<u64> = Vec::new();
-        {
-            let finished = self.finished.lock().unwrap_or_else(|e| e.into_inner());
-            for ended in finished.values() {
-                page.counts.add(ended.status);
-            }
-            if size > 0 && filter.admits_finished() {
-                from_journal = finished
-                    .range(..below)
-                    .rev()
-                    .filter(|(_, ended)| filter.admits(ended.status))
-                    .map(|(number, _)| *number)
-                    .take(size + 1)
-                    .collect();
-            }
+        for ended in self.finished.values() {
+            counts.add(ended.status);
         }
+        let mut filling = Filling {
+            page: OrderPage {
+                v: schemas::LISTING_VERSION,
+                node: self.config.name.clone(),
+                counts,
+                orders: Vec::new(),
+                next: None,
+                unreadable: 0,
+            },
+            size,
+            bytes: 0,
+        };
         if size == 0 {
-            return page;
+            return filling.page;
         }
-        let mut bytes = 0usize;
-        // Whether the page takes another order.
-        let room = |page: &schemas::OrderPage, bytes: usize| {
-            page.orders.len() < size && (page.orders.is_empty() || bytes < schemas::MAX_PAGE_BYTES)
-        };
-        let push =
-            |page: &mut schemas::OrderPage, bytes: &mut usize, snapshot: schemas::OrderSnapshot| {
-                *bytes += serde_json::to_vec(&snapshot).map_or(0, |b| b.len());
-                page.orders.push(snapshot);
-            };
         // The running orders, oldest first.
         if filter.admits_running() && !matches!(request.after, Some(PageCursor::AfterFinished(_))) {
             let after = match request.after {
@@ -93,42 +94,56 @@ impl Host {
             });
             let mut last = None;
             for (number, _, progress) in running {
-                if !room(&page, bytes) {
+                if !filling.room() {
                     break;
                 }
-                let snapshot = progress
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .snapshot();
-                push(&mut page, &mut bytes, snapshot);
+                filling.push(progress.borrow().snapshot());
                 last = Some(*number);
             }
-            if !room(&page, bytes) {
+            if !filling.room() {
                 // Full: the next page goes on after the last running order (at worst
                 // it finds nothing more to list).
-                page.next = last.map(PageCursor::AfterRunning);
-                return page;
+                filling.page.next = last.map(PageCursor::AfterRunning);
+                return filling.page;
             }
         }
         if !filter.admits_finished() {
-            return page;
+            return filling.page;
         }
-        // The finished orders, newest first: those memory holds (no journal) and those
-        // the journal holds, merged by number.
-        enum Source {
-            Memory(Arc<Mutex<OrderProgress>>),
-            Journal,
-        }
+        self.finished_part(request, in_memory, &mut filling);
+        filling.page
+    }
+
+    /// The finished orders of the page, newest first: those memory holds (no journal)
+    /// and those the journal holds, merged by number.
+    fn finished_part(
+        &self,
+        request: &schemas::OrderListRequest,
+        in_memory: Vec<(u64, OrderStatus, &ProgressView)>,
+        filling: &mut Filling,
+    ) {
+        let filter = request.filter;
+        let below = match request.after {
+            Some(PageCursor::AfterFinished(n)) => n,
+            _ => u64::MAX,
+        };
+        let left = filling.size - filling.page.orders.len();
+        let from_journal = self
+            .finished
+            .range(..below)
+            .rev()
+            .filter(|(_, ended)| filter.admits(ended.status))
+            .map(|(number, _)| (*number, Source::Journal))
+            .take(left + 1);
         let mut candidates: Vec<(u64, Source)> = in_memory
             .into_iter()
             .filter(|(number, status, _)| {
                 status.is_final() && filter.admits(*status) && *number < below
             })
             .map(|(number, _, progress)| (number, Source::Memory(progress)))
-            .chain(from_journal.into_iter().map(|n| (n, Source::Journal)))
+            .chain(from_journal)
             .collect();
         candidates.sort_by_key(|c| std::cmp::Reverse(c.0));
-        let left = size - page.orders.len();
         let more = candidates.len() > left;
         candidates.truncate(left);
         let names: Vec<String> = candidates
@@ -145,30 +160,24 @@ impl Host {
         };
         let mut last = None;
         for (number, source) in candidates {
-            if !room(&page, bytes) {
-                page.next = last.map(PageCursor::AfterFinished);
-                return page;
+            if !filling.room() {
+                filling.page.next = last.map(PageCursor::AfterFinished);
+                return;
             }
             let snapshot = match source {
-                Source::Memory(progress) => Some(
-                    progress
-                        .lock()
-                        .unwrap_or_else(|e| e.into_inner())
-                        .snapshot(),
-                ),
+                Source::Memory(progress) => Some(progress.borrow().snapshot()),
                 Source::Journal => read
                     .remove(&format!("{}-{number}", self.config.name))
                     .map(|progress| progress.snapshot()),
             };
             match snapshot {
-                Some(snapshot) => push(&mut page, &mut bytes, snapshot),
-                None => page.unreadable += 1,
+                Some(snapshot) => filling.push(snapshot),
+                None => filling.page.unreadable += 1,
             }
             last = Some(number);
         }
         if more {
-            page.next = last.map(PageCursor::AfterFinished);
+            filling.page.next = last.map(PageCursor::AfterFinished);
         }
-        page
     }
 }

@@ -5,9 +5,7 @@
 //! `<node>-<n>`, so several order-nodes in one cell never collide. The orders and their
 //! tasks are [`crate::host`]'s; the queries are answered by [`crate::queries`].
 
-use std::collections::BTreeMap;
-use std::sync::atomic::AtomicU64;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 use holon::journal::Journal;
@@ -17,11 +15,11 @@ use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
 use crate::config::OrderNodeConfig;
-use crate::context::{OrderContext, MAX_CONCURRENT_ROUNDS};
+use crate::context::OrderContext;
 use crate::host::{task_ended, Finished, Host, Tasks};
 use crate::journal::OrderJournal;
 use crate::presence::Presence;
-use crate::queries::{answer, Endpoints, QUERY_QUEUE};
+use crate::queries::{answer, Endpoints, NodeQuery, QUERY_QUEUE};
 use crate::recovery::recover;
 
 pub use crate::error::OrderNodeError;
@@ -71,6 +69,29 @@ pub fn parse_submit(text: &str) -> Result<WorkOrder, OrderNodeError> {
     Ok(work)
 }
 
+/// What gives this process the node's name and orders: a claim of the name (SQLite),
+/// or the leader key on etcd; with the journal and what it holds.
+struct Authority {
+    /// The name claimed in the cell (a node without etcd).
+    claim: Option<holon::presence::Claim>,
+    /// The leader key won on etcd (a node with a standby).
+    elected: Option<crate::standby::Elected>,
+    /// The orders' journal, if any.
+    journal: Option<Arc<OrderJournal>>,
+    /// What the journal holds.
+    recovered: Recovered,
+}
+
+/// Why the node's loop ended.
+enum Ending {
+    /// The node stops (`shutdown`).
+    Stopping,
+    /// A successor takes over: the offer it accepted.
+    HandingOver(Box<holon::takeover::Offer>),
+    /// The leader key on etcd is no longer this process's: why.
+    Deposed(String),
+}
+
 /// Runs the order-node until `shutdown` is cancelled.
 pub async fn run(
     config: OrderNodeConfig,
@@ -91,68 +112,22 @@ pub async fn run(
     else {
         return Ok(());
     };
-    // Followed from the start, a standby's too: an order-node that takes over knows
-    // which resources are fenced before it hears from them again.
-    let presence = match Presence::follow(&session, &config.keys).await {
-        Ok(presence) => presence,
-        Err(e) => {
+    let (presence, authority) = match authority(&config, &life, &session, &shutdown).await {
+        Ok(Some(found)) => found,
+        // Stopped while standing by, or failed.
+        other => {
             holon::life::close(&life.holder, session).await;
-            return Err(zenoh_error(e));
+            return other.map(|_| ());
         }
     };
-    let (claim, elected, journal, (recovered, finished, next)) = match &config.etcd {
-        None => {
-            // A twin (an order-node of the same name alive in the cell) would number its
-            // orders like this one: refused before anything is declared.
-            let claim = match life.claim(&session).await {
-                Ok(claim) => claim,
-                Err(e) => {
-                    holon::life::close(&life.holder, session).await;
-                    return Err(e.into());
-                }
-            };
-            let (journal, recovered) = open_journal(&config)?;
-            (Some(claim), None, journal, recovered)
-        }
-        // With etcd the leader key is the authority, not zenoh's liveliness: no twin
-        // check. A primary that froze or was cut off keeps its token until its link
-        // lease ends, and would be taken for a twin; it cannot act meanwhile (its writes
-        // are fenced on its epoch) and withdraws its token once it hears it is deposed.
-        Some(etcd) => match crate::standby::stand_by(&config, etcd, &session, &shutdown).await {
-            Ok(Some(mut elected)) => {
-                let recovered = std::mem::take(&mut elected.recovered);
-                let journal = Some(elected.journal.clone());
-                (None, Some(elected), journal, recovered)
-            }
-            Ok(None) => {
-                holon::life::close(&life.holder, session).await;
-                return Ok(());
-            }
-            Err(e) => {
-                holon::life::close(&life.holder, session).await;
-                return Err(e);
-            }
-        },
-    };
-    let host = Arc::new(Host {
-        config: config.clone(),
-        context: Arc::new(OrderContext {
-            session: session.clone(),
-            keys: config.keys.clone(),
-            settings: config.orders,
-            presence,
-            inboxes: Default::default(),
-            rounds: tokio::sync::Semaphore::new(MAX_CONCURRENT_ROUNDS),
-            idle: Default::default(),
-            journal,
-            journal_failing: Default::default(),
-            bookings_in_flight: Default::default(),
-            advice_pause: Default::default(),
-        }),
-        orders: Mutex::new(BTreeMap::new()),
-        finished: Mutex::new(finished),
-        next: AtomicU64::new(next),
-    });
+    let Authority {
+        claim,
+        elected,
+        journal,
+        recovered: (recovered, finished, next),
+    } = authority;
+    let context = OrderContext::new(session.clone(), &config, presence, journal);
+    let mut host = Host::new(config.clone(), Arc::new(context), finished, next);
     let (queue, mut queries) = mpsc::channel(QUERY_QUEUE);
     let endpoints = Endpoints::declare(&session, &host, queue)
         .await
@@ -164,75 +139,22 @@ pub async fn run(
     if let Some(elected) = &elected {
         info!(node = %config.name, epoch = elected.leader.epoch(), "serving at epoch {}: the order-node's leader key on etcd is this process's", elected.leader.epoch());
     }
-
     let orders_cancel = CancellationToken::new();
     let mut tasks = Tasks::default();
     host.resume(recovered, &submits, &mut tasks, &orders_cancel);
-    // A short retention is checked more often (at most every RETENTION_SWEEP).
-    let every = config
-        .keep_finished
-        .unwrap_or(RETENTION_SWEEP)
-        .clamp(Duration::from_millis(100), RETENTION_SWEEP);
-    let mut sweep = tokio::time::interval(every);
-    sweep.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    // Never ends without etcd.
-    let mut until_deposed = Box::pin(async {
-        match &elected {
-            Some(elected) => crate::standby::deposed(elected).await,
-            None => std::future::pending().await,
-        }
-    });
-    let (handing_over, deposed) = loop {
-        tokio::select! {
-            _ = shutdown.cancelled() => break (None, None),
-            why = &mut until_deposed => break (None, Some(why)),
-            offer = successors.next() => {
-                let request = &offer.request;
-                info!(node = %config.name, successor = %request.successor, version = %request.version, "a successor asks to take over");
-                if elected.is_some() {
-                    let detail = "its journal is on etcd: start the successor beside it (a standby), then stop this one, which gives its leader key up";
-                    warn!(node = %config.name, detail, "hand-over refused");
-                    offer.refuse(VERSION, detail).await;
-                    continue;
-                }
-                if !life.opens_my_journal(request) {
-                    let detail = format!(
-                        "its data dir {:?} is not this order-node's {:?}: its orders would not resume there",
-                        request.data_dir, config.data_dir
-                    );
-                    warn!(node = %config.name, %detail, "hand-over refused");
-                    offer.refuse(VERSION, detail).await;
-                    continue;
-                }
-                if host.context.journal_failing.load(std::sync::atomic::Ordering::SeqCst) {
-                    let detail = "its journal cannot be written: its successor could not record its orders' progress either; it serves on (its orders wait until the journal can be written)";
-                    warn!(node = %config.name, detail, "hand-over refused");
-                    offer.refuse(VERSION, detail).await;
-                    continue;
-                }
-                break (Some(offer), None);
-            }
-            _ = sweep.tick(), if config.keep_finished.is_some() => {
-                if let Some(keep) = config.keep_finished {
-                    host.forget_finished(keep);
-                }
-            }
-            Some(query) = queries.recv() => answer(&host, query, &mut tasks, &orders_cancel).await,
-            Some(joined) = tasks.set.join_next_with_id(), if !tasks.set.is_empty() => {
-                task_ended(&host, joined, &mut tasks, &orders_cancel).await;
-            }
-        }
+    let mut node = Loop {
+        host: &mut host,
+        tasks: &mut tasks,
+        queries: &mut queries,
+        orders_cancel: &orders_cancel,
     };
-    drop(until_deposed);
-    let refusal = match (&handing_over, &deposed) {
-        (Some(_), _) => "another successor is taking over already",
-        (None, Some(_)) => "the order-node is deposed",
-        (None, None) => "the order-node is stopping",
-    };
-    successors.close(VERSION, refusal).await;
+    let ending = node
+        .serve(&life, &mut successors, elected.as_ref(), &shutdown)
+        .await;
+    successors.close(VERSION, ending.refusal()).await;
     let mut token = Some(token);
     let mut endpoints = Some(endpoints);
-    if let Some(why) = &deposed {
+    if let Ending::Deposed(why) = &ending {
         // Another process may serve this name already: from now on this one answers
         // nothing and shows nothing, before its orders stop.
         error!(node = %config.name, why = %why, "deposed: the order-node's leader key on etcd is no longer this process's; it stops at once (token and queryables withdrawn, order tasks stopped; their writes are refused by etcd anyway)");
@@ -240,63 +162,39 @@ pub async fn run(
         withdraw(&config.name, token.take()).await;
     }
     let started = std::time::Instant::now();
-    info!(node = %config.name, handing_over = handing_over.is_some(), "stopping: orders in progress stop where they stand");
-    orders_cancel.cancel();
-    let stopped = tokio::time::timeout(Duration::from_secs(5), async {
-        while tasks.set.join_next().await.is_some() {}
-    })
-    .await;
-    if stopped.is_err() {
-        // Their progress is in the journal; aborted now, so that they let go of it
-        // (a successor opens it next).
-        warn!(node = %config.name, left = tasks.set.len(), "order tasks did not stop within 5 s; aborted (their progress is in the journal)");
-        tasks.set.abort_all();
-        let aborted = tokio::time::timeout(Duration::from_secs(1), async {
-            while tasks.set.join_next().await.is_some() {}
-        })
-        .await;
-        if aborted.is_err() {
-            warn!(node = %config.name, left = tasks.set.len(), "aborted order tasks have not ended within 1 s");
-        }
-    }
+    let handing_over = matches!(ending, Ending::HandingOver(_));
+    info!(node = %config.name, handing_over, "stopping: orders in progress stop where they stand");
+    stop_orders(&config.name, &mut tasks, &orders_cancel).await;
     // While handed over, submits, cancels and results get `unavailable` with a retry
     // hint from a stand-in (submits and cancels are asked again by `cell`, results
     // delivered again by the resources), until the successor serves.
-    let stand_in = match &handing_over {
-        Some(_) => match holon::takeover::stand_in(
-            &session,
-            &[
-                (config.keys.orders_submit(), true),
-                (config.keys.node_orders(&config.name, "cancel"), false),
-                (config.keys.node_orders(&config.name, "inbox"), false),
-            ],
-            stand_in_answer(config.name.clone()),
-        )
-        .await
-        {
-            Ok(stand_in) => Some(stand_in),
-            Err(e) => {
-                warn!(node = %config.name, error = %e, "cannot stand in for the successor: requests in the gap go unanswered");
-                None
-            }
-        },
-        None => None,
+    let stand_in = match handing_over {
+        true => stand_in(&session, &config).await,
+        false => None,
     };
     drop(endpoints);
     let mut ended = Ok(());
     // A hand-over is refused with etcd: there is a claim (SQLite) whenever there is one.
-    match (handing_over, claim, token.take()) {
-        (Some(offer), Some(claim), Some(token)) => {
+    let deposed = match (ending, claim, token.take()) {
+        (Ending::HandingOver(offer), Some(claim), Some(token)) => {
             // The journal closes with the last holder of the host: the successor opens it.
             drop(queries);
             drop(host);
             ended = life
-                .let_go(&session, token, claim, offer, started, &shutdown)
+                .let_go(&session, token, claim, *offer, started, &shutdown)
                 .await
                 .map_err(OrderNodeError::from);
+            None
         }
-        (_, _, token) => withdraw(&config.name, token).await,
-    }
+        (Ending::Deposed(why), _, token) => {
+            withdraw(&config.name, token).await;
+            Some(why)
+        }
+        (_, _, token) => {
+            withdraw(&config.name, token).await;
+            None
+        }
+    };
     drop(stand_in);
     if let Some(elected) = elected {
         match deposed {
@@ -306,13 +204,203 @@ pub async fn run(
         }
     }
     holon::life::close(&life.holder, session).await;
-    match &ended {
-        Err(e @ OrderNodeError::Deposed { .. }) => {
-            error!(node = %config.name, error = %e, "order-node stopped: deposed")
-        }
-        _ => info!(node = %config.name, "order-node stopped"),
+    if let Err(e @ OrderNodeError::Deposed { .. }) = &ended {
+        error!(node = %config.name, error = %e, "order-node stopped: deposed");
+    } else {
+        info!(node = %config.name, "order-node stopped");
     }
     ended
+}
+
+/// The presence of the resources, followed from the start (a standby's too: an
+/// order-node that takes over knows which resources are fenced before it hears from
+/// them again), and the node's authority over its name. `None` when it stopped while
+/// standing by.
+async fn authority(
+    config: &OrderNodeConfig,
+    life: &holon::life::Life,
+    session: &zenoh::Session,
+    shutdown: &CancellationToken,
+) -> Result<Option<(Arc<Presence>, Authority)>, OrderNodeError> {
+    let presence = Presence::follow(session, &config.keys)
+        .await
+        .map_err(zenoh_error)?;
+    let authority = match &config.etcd {
+        None => {
+            // A twin (an order-node of the same name alive in the cell) would number its
+            // orders like this one: refused before anything is declared.
+            let claim = life.claim(session).await?;
+            let (journal, recovered) = open_journal(config)?;
+            Authority {
+                claim: Some(claim),
+                elected: None,
+                journal,
+                recovered,
+            }
+        }
+        // With etcd the leader key is the authority, not zenoh's liveliness: no twin
+        // check. A primary that froze or was cut off keeps its token until its link
+        // lease ends, and would be taken for a twin; it cannot act meanwhile (its writes
+        // are fenced on its epoch) and withdraws its token once it hears it is deposed.
+        Some(etcd) => match crate::standby::stand_by(config, etcd, session, shutdown).await? {
+            Some(mut elected) => Authority {
+                claim: None,
+                recovered: std::mem::take(&mut elected.recovered),
+                journal: Some(elected.journal.clone()),
+                elected: Some(elected),
+            },
+            None => return Ok(None),
+        },
+    };
+    Ok(Some((presence, authority)))
+}
+
+impl Ending {
+    /// What a successor that asks now is told.
+    fn refusal(&self) -> &'static str {
+        match self {
+            Ending::HandingOver(_) => "another successor is taking over already",
+            Ending::Deposed(_) => "the order-node is deposed",
+            Ending::Stopping => "the order-node is stopping",
+        }
+    }
+}
+
+/// The node's loop: the one owner of its orders ([`Host`]) and of their tasks.
+struct Loop<'a> {
+    /// The orders.
+    host: &'a mut Host,
+    /// Their tasks.
+    tasks: &'a mut Tasks,
+    /// The queries the endpoints' callbacks queued for the loop.
+    queries: &'a mut mpsc::Receiver<NodeQuery>,
+    /// Stops every order task.
+    orders_cancel: &'a CancellationToken,
+}
+
+impl Loop<'_> {
+    /// Serves queries, supervises the order tasks and sweeps finished orders, until
+    /// the node stops, is deposed, or hands over to a successor.
+    async fn serve(
+        &mut self,
+        life: &holon::life::Life,
+        successors: &mut holon::takeover::Listener,
+        elected: Option<&crate::standby::Elected>,
+        shutdown: &CancellationToken,
+    ) -> Ending {
+        let config = self.host.config.clone();
+        // A short retention is checked more often (at most every RETENTION_SWEEP).
+        let every = config
+            .keep_finished
+            .unwrap_or(RETENTION_SWEEP)
+            .clamp(Duration::from_millis(100), RETENTION_SWEEP);
+        let mut sweep = tokio::time::interval(every);
+        sweep.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        // Never ends without etcd.
+        let mut until_deposed = Box::pin(async {
+            match elected {
+                Some(elected) => crate::standby::deposed(elected).await,
+                None => std::future::pending().await,
+            }
+        });
+        loop {
+            tokio::select! {
+                _ = shutdown.cancelled() => return Ending::Stopping,
+                why = &mut until_deposed => return Ending::Deposed(why),
+                offer = successors.next() => {
+                    info!(node = %config.name, successor = %offer.request.successor, version = %offer.request.version, "a successor asks to take over");
+                    match self.hand_over_refusal(life, &offer.request, elected.is_some()) {
+                        Some(detail) => {
+                            warn!(node = %config.name, %detail, "hand-over refused");
+                            offer.refuse(VERSION, detail).await;
+                        }
+                        None => return Ending::HandingOver(Box::new(offer)),
+                    }
+                }
+                _ = sweep.tick(), if config.keep_finished.is_some() => {
+                    if let Some(keep) = config.keep_finished {
+                        self.host.forget_finished(keep);
+                    }
+                }
+                Some(query) = self.queries.recv() => {
+                    answer(self.host, query, self.tasks, self.orders_cancel).await
+                }
+                Some(joined) = self.tasks.set.join_next_with_id(), if !self.tasks.set.is_empty() => {
+                    task_ended(self.host, joined, self.tasks, self.orders_cancel).await;
+                }
+            }
+        }
+    }
+
+    /// Why a successor may not take over now; `None` when it may.
+    fn hand_over_refusal(
+        &self,
+        life: &holon::life::Life,
+        request: &holon::takeover::Request,
+        on_etcd: bool,
+    ) -> Option<String> {
+        let config = &self.host.config;
+        if on_etcd {
+            return Some("its journal is on etcd: start the successor beside it (a standby), then stop this one, which gives its leader key up".into());
+        }
+        if !life.opens_my_journal(request) {
+            return Some(format!(
+                "its data dir {:?} is not this order-node's {:?}: its orders would not resume there",
+                request.data_dir, config.data_dir
+            ));
+        }
+        if self
+            .host
+            .context
+            .journal_failing
+            .load(std::sync::atomic::Ordering::SeqCst)
+        {
+            return Some("its journal cannot be written: its successor could not record its orders' progress either; it serves on (its orders wait until the journal can be written)".into());
+        }
+        None
+    }
+}
+
+/// Stops the order tasks where they stand: cancelled, and aborted if they have not
+/// ended within 5 s (their progress is in the journal).
+async fn stop_orders(node: &str, tasks: &mut Tasks, orders_cancel: &CancellationToken) {
+    orders_cancel.cancel();
+    let stopped = tokio::time::timeout(Duration::from_secs(5), async {
+        while tasks.set.join_next().await.is_some() {}
+    })
+    .await;
+    if stopped.is_err() {
+        // Their progress is in the journal; aborted now, so that they let go of it
+        // (a successor opens it next).
+        warn!(%node, left = tasks.set.len(), "order tasks did not stop within 5 s; aborted (their progress is in the journal)");
+        tasks.set.abort_all();
+        let aborted = tokio::time::timeout(Duration::from_secs(1), async {
+            while tasks.set.join_next().await.is_some() {}
+        })
+        .await;
+        if aborted.is_err() {
+            warn!(%node, left = tasks.set.len(), "aborted order tasks have not ended within 1 s");
+        }
+    }
+}
+
+/// Stands in for the successor on the node's request keys while it is handed over.
+async fn stand_in(
+    session: &zenoh::Session,
+    config: &OrderNodeConfig,
+) -> Option<holon::takeover::StandIn> {
+    let keys = [
+        (config.keys.orders_submit(), true),
+        (config.keys.node_orders(&config.name, "cancel"), false),
+        (config.keys.node_orders(&config.name, "inbox"), false),
+    ];
+    match holon::takeover::stand_in(session, &keys, stand_in_answer(config.name.clone())).await {
+        Ok(stand_in) => Some(stand_in),
+        Err(e) => {
+            warn!(node = %config.name, error = %e, "cannot stand in for the successor: requests in the gap go unanswered");
+            None
+        }
+    }
 }
 
 /// Withdraws the node's token, if it still has one.

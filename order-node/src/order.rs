@@ -13,7 +13,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use schemas::{HolonId, MessageType, PlanStep, Reason};
+use schemas::{HolonId, MessageType, PlanStep, Reason, Service};
 use tokio::sync::{broadcast, mpsc, watch};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -21,7 +21,7 @@ use tracing::info;
 
 use crate::attempt::{Attempt, AttemptAction, AttemptEvent, AttemptTiming};
 use crate::cancel::CancelAsk;
-use crate::context::{jittered, lock, IdleOrder, OrderContext, OrderError, Shared, IDLE_POLL};
+use crate::context::{jittered, IdleOrder, OrderContext, OrderError, Progress, IDLE_POLL};
 use crate::inbox::{Inbox, ResultReport};
 use crate::progress::{Phase, StepOutcome};
 use crate::ranking::InFlight;
@@ -32,12 +32,12 @@ use crate::requests;
 /// records it and answers ([`crate::cancel`]), then `operator_cancel` stops the attempt.
 pub async fn run(
     ctx: Arc<OrderContext>,
-    progress: Shared,
+    progress: Progress,
     cancel: CancellationToken,
     operator_cancel: CancellationToken,
     cancel_asks: mpsc::Receiver<CancelAsk>,
 ) -> Result<(), OrderError> {
-    let holon = lock(&progress).holon.clone();
+    let holon = progress.get().holon.clone();
     let mut order = OrderTask {
         inbox: ctx.inboxes.open(&holon),
         changes: ctx.presence.changes(),
@@ -45,13 +45,14 @@ pub async fn run(
         in_flight: None,
         advised: None,
         ctx,
-        progress,
+        progress: &progress,
         holon: holon.clone(),
     };
     order.publish().await;
-    let (own_ctx, own_progress) = (order.ctx.clone(), order.progress.clone());
+    let own_ctx = order.ctx.clone();
+    // Both borrow the progress, in turn: this task is its only writer.
     let cancels = async {
-        crate::cancel::answer_cancels(&own_ctx, &own_progress, cancel_asks, &operator_cancel).await;
+        crate::cancel::answer_cancels(&own_ctx, &progress, cancel_asks, &operator_cancel).await;
         // The node dropped the mailbox (it replaced this run's): nothing more to answer.
         std::future::pending::<()>().await
     };
@@ -63,7 +64,7 @@ pub async fn run(
             return Ok(());
         }
     }
-    let p = lock(&order.progress).snapshot();
+    let p = order.progress.get().snapshot();
     info!(%holon, status = %p.status, reason = p.reason.as_ref().map_or("", |r| r.as_str()), reworks = p.reworks, rebooks = p.rebooks, "order finished");
     // Results still arriving for this order (duplicates, late reports of abandoned
     // attempts) are acknowledged by the node from now on, and the node no longer holds
@@ -73,10 +74,13 @@ pub async fn run(
 }
 
 /// What one running order's task holds.
-struct OrderTask {
+struct OrderTask<'a> {
+    /// What the orders of the node share.
     ctx: Arc<OrderContext>,
-    /// The order's progress, shared with the node (which reads it for queries).
-    progress: Shared,
+    /// The order's progress, written by this task alone (the node sees it through its
+    /// view).
+    progress: &'a Progress,
+    /// The order.
     holon: HolonId,
     /// Results for this order; while it is open the node holds the order
     /// (`host/order-node/<node>/held`): its bookings last.
@@ -107,21 +111,21 @@ enum Watched {
     Ended(StepOutcome, Option<Box<ResultReport>>),
 }
 
-impl OrderTask {
+impl OrderTask<'_> {
     async fn publish(&self) {
-        self.ctx.publish(&self.progress).await;
+        self.ctx.publish(self.progress).await;
     }
 
     /// The order's life: its plan, then its steps until none is left.
     async fn work(&mut self, operator_cancel: &CancellationToken) -> Result<(), OrderError> {
         // An order that waits for its plan (a queued work order whose product holon is
         // not up yet) ends at an operator's cancel: without a plan it holds no booking.
-        let planned = lock(&self.progress).plan.is_some();
+        let planned = self.progress.get().plan.is_some();
         tokio::select! {
             biased;
             _ = operator_cancel.cancelled(), if !planned => {
                 info!(holon = %self.holon, "cancelled while waiting for its plan");
-                self.ctx.commit(&self.progress, |p| p.cancel())?;
+                self.ctx.commit(self.progress, |p| p.cancel())?;
                 self.publish().await;
                 return Ok(());
             }
@@ -129,7 +133,7 @@ impl OrderTask {
         }
         loop {
             let (step, conversation_id) = {
-                let p = lock(&self.progress);
+                let p = self.progress.get();
                 match p.current_step() {
                     Some(step) => (step.clone(), p.conversation_id()),
                     None => return Ok(()),
@@ -143,12 +147,12 @@ impl OrderTask {
 
     /// Fetches the plan from the product holon unless the order has it already.
     async fn plan(&mut self) -> Result<(), OrderError> {
-        if lock(&self.progress).plan.is_some() {
+        if self.progress.get().plan.is_some() {
             return Ok(());
         }
-        let product = lock(&self.progress).product.clone();
+        let product = self.progress.get().product.clone();
         let plan = requests::fetch_plan(&self.ctx, &product).await;
-        self.ctx.commit(&self.progress, |p| match plan {
+        self.ctx.commit(self.progress, |p| match plan {
             Some(plan) => p.plan = Some(plan),
             None => p.fail(format!("no plan for product {product:?}")),
         })?;
@@ -164,7 +168,7 @@ impl OrderTask {
         conversation_id: &str,
         operator_cancel: &CancellationToken,
     ) -> Result<bool, OrderError> {
-        let progress = self.progress.clone();
+        let progress = self.progress;
         let holon = self.holon.clone();
         // An operator's cancel (also one recorded before a restart) stops the attempt
         // unless its step runs: a running step is let finish and its result recorded.
@@ -176,7 +180,7 @@ impl OrderTask {
                 tokio::select! {
                     biased;
                     _ = operator_cancel.cancelled(), if !finishing => {
-                        if matches!(lock(&progress).phase, Phase::Started(_)) {
+                        if matches!(progress.get().phase, Phase::Started(_)) {
                             info!(%holon, %conversation_id, "cancel requested: the running step finishes first");
                             finishing = true;
                         } else {
@@ -193,7 +197,7 @@ impl OrderTask {
             return Ok(false);
         }
         info!(%holon, %conversation_id, outcome = %outcome, "step attempt ended");
-        self.ctx.commit(&self.progress, |p| {
+        self.ctx.commit(self.progress, |p| {
             p.record(outcome);
             if finishing {
                 p.cancel();
@@ -223,7 +227,7 @@ impl OrderTask {
             no_resource_timeout: settings.no_resource_timeout,
             step_timeout: settings.step_timeout,
         };
-        let phase = lock(&self.progress).phase.clone();
+        let phase = self.progress.get().phase.clone();
         let mut attempt =
             Attempt::new(phase, timing, Instant::now()).starting_on_turn(settings.start_on_turn);
         let mut event = AttemptEvent::Resumed;
@@ -260,160 +264,40 @@ impl OrderTask {
         conversation_id: &str,
         report: &mut Option<Box<ResultReport>>,
     ) -> Result<Option<AttemptEvent>, OrderError> {
-        let ctx = self.ctx.clone();
-        // Every request of the step carries the order's priority and due time: the
-        // resource queues its booking by them (and a proposal says where it would go).
-        let (priority, due) = {
-            let progress = lock(&self.progress);
-            (progress.priority, progress.due)
-        };
-        let request = |kind| {
-            requests::request(&ctx, &self.holon, kind, step, conversation_id)
-                .with_urgency(priority, due)
-        };
         Ok(match action {
             AttemptAction::Record(phase) => {
-                // A booking made on advice counts once, when it is recorded.
-                let on_advice = matches!(&phase, Phase::Booked(p) | Phase::Started(p) if self.advised.as_ref() == Some(p));
-                if !matches!(&phase, Phase::Booking(p) if self.advised.as_ref() == Some(p)) {
-                    // Used up, or the booking moved on to another resource.
-                    self.advised = None;
-                }
-                // A fenced provider is remembered with its booking (see
-                // `OrderProgress::fenced`).
-                let fenced = phase
-                    .resource()
-                    .filter(|resource| ctx.presence.fenced(resource))
-                    .cloned();
-                self.ctx.commit(&self.progress, |p| {
-                    if on_advice {
-                        p.advised += 1;
-                    }
-                    if let Some(resource) = fenced {
-                        p.fenced.insert(resource);
-                    }
-                    p.set_phase(phase)
-                })?;
+                self.record(phase)?;
                 None
             }
             AttemptAction::Publish => {
                 self.publish().await;
                 None
             }
-            AttemptAction::AskProposals => {
-                let avoid = lock(&self.progress).avoid.clone();
-                let ask = request(MessageType::ProposalReq);
-                self.appearances = ctx.presence.appearances();
-                let _turn = ctx.rounds.acquire().await.expect("never closed");
-                // The staff's advice is asked together with the round: it costs no
-                // time unless the staff is slower than the round (then at most
-                // `orders.advice_timeout_ms`), and without a staff nothing at all.
-                let (route, urgency) = {
-                    let p = lock(&self.progress);
-                    (p.route_ahead(), (p.priority, p.due))
-                };
-                let (advised, offers) = tokio::join!(
-                    requests::advice(&ctx, &self.holon, conversation_id, route, urgency, &avoid),
-                    requests::offers(&ctx, &ask, &avoid)
-                );
-                let advised = match advised {
-                    requests::Advised::Resource(resource) => Some(resource),
-                    requests::Advised::NoStaff => None,
-                    requests::Advised::Unusable(why) => {
-                        info!(holon = %self.holon, %conversation_id, why = %why, "no usable advice: contract net alone");
-                        None
-                    }
-                };
-                let (ranked, in_flight) = requests::rank(&ctx, &ask, offers, advised.as_ref());
-                self.in_flight = in_flight;
-                self.advised = match advised {
-                    Some(resource) if ranked.first() == Some(&resource) => Some(resource),
-                    Some(resource) => {
-                        info!(holon = %self.holon, %conversation_id, %resource, "advice ignored: the advised resource did not propose");
-                        None
-                    }
-                    None => None,
-                };
-                Some(AttemptEvent::Proposals(ranked))
-            }
+            AttemptAction::AskProposals => Some(self.ask_proposals(step, conversation_id).await),
             AttemptAction::AskBooking(candidate) => {
-                let asked = std::time::Instant::now();
-                let answer = requests::ask(
-                    &ctx,
-                    &ctx.keys.service(candidate.name()),
-                    &request(MessageType::BookingReq),
-                )
-                .await;
-                if self
-                    .in_flight
-                    .as_ref()
-                    .is_some_and(|counted| counted.resource == candidate)
-                {
-                    self.in_flight = None;
-                }
-                match &answer {
-                    Some(a) if a.result == Some(true) => {
-                        info!(holon = %self.holon, %conversation_id, resource = %candidate, service_type = %step.service_type, started = a.started(), took_us = asked.elapsed().as_micros() as u64, "booked")
-                    }
-                    Some(a) => {
-                        info!(holon = %self.holon, %conversation_id, resource = %candidate, reason = a.reason.as_ref().map_or("", |r| r.as_str()), "booking refused")
-                    }
-                    None => {}
-                }
-                Some(AttemptEvent::BookingAnswer(requests::answer(answer)))
+                Some(self.ask_booking(candidate, step, conversation_id).await)
             }
             AttemptAction::AskStart(provider) => {
-                // On etcd a start is journalled at this node's epoch before it is sent:
-                // a deposed holder's write is refused, and it sends nothing.
-                if let Some(epoch) = ctx.epoch() {
-                    self.ctx
-                        .commit(&self.progress, |p| p.start_epoch = Some(epoch))?;
-                }
-                let answer = requests::ask(
-                    &ctx,
-                    &ctx.keys.service(provider.name()),
-                    &request(MessageType::Start),
-                )
-                .await;
-                if answer.as_ref().is_some_and(|a| a.result == Some(true)) {
-                    info!(holon = %self.holon, %conversation_id, resource = %provider, "started");
-                }
-                Some(AttemptEvent::StartAnswer(requests::answer(answer)))
+                Some(self.ask_start(provider, step, conversation_id).await?)
             }
             AttemptAction::CancelBooking(provider) => {
-                let cancel = request(MessageType::BookingCancel);
-                let key = ctx.keys.service(provider.name());
-                let answer = requests::ask(&ctx, &key, &cancel).await;
-                let handed_over =
-                    answer.as_ref().and_then(|a| a.reason.as_ref()) == Some(&Reason::Unavailable);
-                if answer.is_none() || handed_over {
-                    // Not answered, or by a stand-in while the resource is handed over
-                    // (it keeps its bookings): sent again until the resource answers,
-                    // so that its successor does not run the abandoned booking.
-                    info!(holon = %self.holon, %conversation_id, resource = %provider, handed_over, "the cancel of a booking was not taken; sent again when the resource answers");
-                    tokio::spawn(requests::cancel_when_back(
-                        ctx.session.clone(),
-                        ctx.presence.clone(),
-                        provider.clone(),
-                        key,
-                        cancel,
-                    ));
-                }
+                self.cancel_booking(provider, step, conversation_id).await;
                 None
             }
             AttemptAction::CancelWhenBack(provider) => {
+                let ctx = &self.ctx;
                 tokio::spawn(requests::cancel_when_back(
                     ctx.session.clone(),
                     ctx.presence.clone(),
                     provider.clone(),
                     ctx.keys.service(provider.name()),
-                    request(MessageType::BookingCancel),
+                    self.request(MessageType::BookingCancel, step, conversation_id),
                 ));
                 None
             }
             AttemptAction::AskOutcome(provider) => {
                 let answer =
-                    requests::ask_outcome(&ctx, &self.holon, &provider, step, conversation_id)
+                    requests::ask_outcome(&self.ctx, &self.holon, &provider, step, conversation_id)
                         .await;
                 Some(AttemptEvent::Outcome(answer))
             }
@@ -443,6 +327,156 @@ impl OrderTask {
             }
             AttemptAction::End(_) => unreachable!("the attempt loop ends on End"),
         })
+    }
+
+    /// A request of the step: it carries the order's priority and due time, by which
+    /// the resource queues its booking (and a proposal says where it would go).
+    fn request(&self, kind: MessageType, step: &PlanStep, conversation_id: &str) -> Service {
+        let (priority, due) = {
+            let progress = self.progress.get();
+            (progress.priority, progress.due)
+        };
+        requests::request(&self.ctx, &self.holon, kind, step, conversation_id)
+            .with_urgency(priority, due)
+    }
+
+    /// Records the attempt's new phase.
+    fn record(&mut self, phase: Phase) -> Result<(), OrderError> {
+        // A booking made on advice counts once, when it is recorded.
+        let on_advice = matches!(&phase, Phase::Booked(p) | Phase::Started(p) if self.advised.as_ref() == Some(p));
+        if !matches!(&phase, Phase::Booking(p) if self.advised.as_ref() == Some(p)) {
+            // Used up, or the booking moved on to another resource.
+            self.advised = None;
+        }
+        // A fenced provider is remembered with its booking (see
+        // `OrderProgress::fenced`).
+        let fenced = phase
+            .resource()
+            .filter(|resource| self.ctx.presence.fenced(resource))
+            .cloned();
+        self.ctx.commit(self.progress, |p| {
+            if on_advice {
+                p.advised += 1;
+            }
+            if let Some(resource) = fenced {
+                p.fenced.insert(resource);
+            }
+            p.set_phase(phase)
+        })
+    }
+
+    /// A proposal round, with the staff's advice asked together: the offers ranked.
+    async fn ask_proposals(&mut self, step: &PlanStep, conversation_id: &str) -> AttemptEvent {
+        let ctx = self.ctx.clone();
+        let avoid = self.progress.get().avoid.clone();
+        let ask = self.request(MessageType::ProposalReq, step, conversation_id);
+        self.appearances = ctx.presence.appearances();
+        let _turn = ctx.rounds.acquire().await.expect("never closed");
+        // The staff's advice is asked together with the round: it costs no time unless
+        // the staff is slower than the round (then at most `orders.advice_timeout_ms`),
+        // and without a staff nothing at all.
+        let (route, urgency) = {
+            let p = self.progress.get();
+            (p.route_ahead(), (p.priority, p.due))
+        };
+        let (advised, offers) = tokio::join!(
+            requests::advice(&ctx, &self.holon, conversation_id, route, urgency, &avoid),
+            requests::offers(&ctx, &ask, &avoid)
+        );
+        let advised = match advised {
+            requests::Advised::Resource(resource) => Some(resource),
+            requests::Advised::NoStaff => None,
+            requests::Advised::Unusable(why) => {
+                info!(holon = %self.holon, %conversation_id, why = %why, "no usable advice: contract net alone");
+                None
+            }
+        };
+        let (ranked, in_flight) = requests::rank(&ctx, &ask, offers, advised.as_ref());
+        self.in_flight = in_flight;
+        self.advised = match advised {
+            Some(resource) if ranked.first() == Some(&resource) => Some(resource),
+            Some(resource) => {
+                info!(holon = %self.holon, %conversation_id, %resource, "advice ignored: the advised resource did not propose");
+                None
+            }
+            None => None,
+        };
+        AttemptEvent::Proposals(ranked)
+    }
+
+    /// Asks `candidate` for a booking: its answer.
+    async fn ask_booking(
+        &mut self,
+        candidate: HolonId,
+        step: &PlanStep,
+        conversation_id: &str,
+    ) -> AttemptEvent {
+        let ctx = &self.ctx;
+        let asked = std::time::Instant::now();
+        let request = self.request(MessageType::BookingReq, step, conversation_id);
+        let answer = requests::ask(ctx, &ctx.keys.service(candidate.name()), &request).await;
+        if self
+            .in_flight
+            .as_ref()
+            .is_some_and(|counted| counted.resource == candidate)
+        {
+            self.in_flight = None;
+        }
+        match &answer {
+            Some(a) if a.result == Some(true) => {
+                info!(holon = %self.holon, %conversation_id, resource = %candidate, service_type = %step.service_type, started = a.started(), took_us = asked.elapsed().as_micros() as u64, "booked")
+            }
+            Some(a) => {
+                info!(holon = %self.holon, %conversation_id, resource = %candidate, reason = a.reason.as_ref().map_or("", |r| r.as_str()), "booking refused")
+            }
+            None => {}
+        }
+        AttemptEvent::BookingAnswer(requests::answer(answer))
+    }
+
+    /// Asks `provider` to start the booked step: its answer.
+    async fn ask_start(
+        &mut self,
+        provider: HolonId,
+        step: &PlanStep,
+        conversation_id: &str,
+    ) -> Result<AttemptEvent, OrderError> {
+        let ctx = &self.ctx;
+        // On etcd a start is journalled at this node's epoch before it is sent: a
+        // deposed holder's write is refused, and it sends nothing.
+        if let Some(epoch) = ctx.epoch() {
+            ctx.commit(self.progress, |p| p.start_epoch = Some(epoch))?;
+        }
+        let request = self.request(MessageType::Start, step, conversation_id);
+        let answer = requests::ask(ctx, &ctx.keys.service(provider.name()), &request).await;
+        if answer.as_ref().is_some_and(|a| a.result == Some(true)) {
+            info!(holon = %self.holon, %conversation_id, resource = %provider, "started");
+        }
+        Ok(AttemptEvent::StartAnswer(requests::answer(answer)))
+    }
+
+    /// Cancels the booking on `provider`; when that is not taken, it is sent again
+    /// once the resource answers.
+    async fn cancel_booking(&self, provider: HolonId, step: &PlanStep, conversation_id: &str) {
+        let ctx = &self.ctx;
+        let cancel = self.request(MessageType::BookingCancel, step, conversation_id);
+        let key = ctx.keys.service(provider.name());
+        let answer = requests::ask(ctx, &key, &cancel).await;
+        let handed_over =
+            answer.as_ref().and_then(|a| a.reason.as_ref()) == Some(&Reason::Unavailable);
+        if answer.is_none() || handed_over {
+            // Not answered, or by a stand-in while the resource is handed over (it keeps
+            // its bookings): sent again until the resource answers, so that its
+            // successor does not run the abandoned booking.
+            info!(holon = %self.holon, %conversation_id, resource = %provider, handed_over, "the cancel of a booking was not taken; sent again when the resource answers");
+            tokio::spawn(requests::cancel_when_back(
+                ctx.session.clone(),
+                ctx.presence.clone(),
+                provider,
+                key,
+                cancel,
+            ));
+        }
     }
 
     /// Waits `pause` (jittered; an idle order also spaced with the other idle orders),
@@ -480,7 +514,7 @@ impl OrderTask {
         may_run: bool,
     ) -> Watched {
         let ctx = self.ctx.clone();
-        let worked_with = lock(&self.progress).worked_with.clone();
+        let worked_with = self.progress.get().worked_with.clone();
         let until = Instant::now() + pause;
         // Booked, not started: the pause ends early when the resource says it is our
         // turn, or that our step runs.
@@ -533,7 +567,7 @@ impl OrderTask {
         // from this node's presence, or from the order's journal (a node that took the
         // order over may not have heard the provider before it vanished).
         let fenced = may_run
-            && (ctx.presence.fenced(provider) || lock(&self.progress).fenced.contains(provider));
+            && (ctx.presence.fenced(provider) || self.progress.get().fenced.contains(provider));
         let gone = |alive: bool| (!alive && !fenced).then(|| Instant::now() + grace());
         // Whether the provider was last seen gone, and when its grace ends.
         let mut away = !ctx.presence.is_alive(provider);
@@ -590,7 +624,7 @@ impl OrderTask {
     async fn cancel(&mut self, step: &PlanStep, conversation_id: &str) -> Result<(), OrderError> {
         let ctx = &self.ctx;
         let holon = &self.holon;
-        let phase = lock(&self.progress).phase.clone();
+        let phase = self.progress.get().phase.clone();
         if let Phase::Booking(resource) | Phase::Booked(resource) = &phase {
             let cancel = requests::request(
                 ctx,
@@ -615,7 +649,7 @@ impl OrderTask {
                 }
             }
         }
-        ctx.commit(&self.progress, |p| p.cancel())?;
+        ctx.commit(self.progress, |p| p.cancel())?;
         info!(%holon, "order cancelled by an operator");
         Ok(())
     }

@@ -177,7 +177,7 @@ fn held(inboxes: &crate::inbox::Inboxes, node: &str, reply_key: &str, query: Que
 
 /// Answers one query to the node.
 pub async fn answer(
-    host: &Host,
+    host: &mut Host,
     query: NodeQuery,
     tasks: &mut Tasks,
     cancel_all: &CancellationToken,
@@ -277,7 +277,7 @@ async fn refuse_work(host: &Host, query: &Query, refusal: ErrorReply) {
     }
 }
 
-async fn submit(host: &Host, query: Query, tasks: &mut Tasks, cancel: &CancellationToken) {
+async fn submit(host: &mut Host, query: Query, tasks: &mut Tasks, cancel: &CancellationToken) {
     let payload = query
         .payload()
         .map(|p| p.to_bytes().into_owned())

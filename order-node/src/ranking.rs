@@ -1,7 +1,7 @@
 //! Ranking a proposal round's offers, with the node's bookings in flight counted: the
 //! rule that keeps many orders of one node from all booking the same resource.
 
-use std::sync::{Arc, Mutex};
+use tokio::sync::watch;
 
 /// The bookings this node's orders asked and have no answer to yet, per resource.
 ///
@@ -11,27 +11,36 @@ use std::sync::{Arc, Mutex};
 /// its proposals by the queue as it is when the round ends: the resource's latest
 /// published queue (fresher than its proposal), plus the bookings in flight to it, each
 /// at the proposal's `duration_ms`. Ranking counts the round's own choice as in flight at
-/// once, under one lock ([`BookingsInFlight::rank`]), so rounds that end together see
-/// each other's choices; the booking's answer ends it ([`BookingsInFlight::answered`]).
-#[derive(Default)]
-pub struct BookingsInFlight(Arc<Mutex<InFlightCounts>>);
+/// in the same change of the counts as it reads them ([`BookingsInFlight::rank`]), so
+/// rounds that end together see each other's choices; the booking's answer ends it
+/// (its [`InFlight`] is dropped). The counts are changed in place by the order tasks,
+/// one change at a time.
+pub struct BookingsInFlight(watch::Sender<InFlightCounts>);
+
+impl Default for BookingsInFlight {
+    fn default() -> BookingsInFlight {
+        BookingsInFlight(watch::Sender::new(InFlightCounts::new()))
+    }
+}
 
 type InFlightCounts = std::collections::HashMap<schemas::HolonId, u64>;
 
 /// A booking a ranking counted in flight: it ends when dropped (the booking was
 /// answered, or the order gave up before asking it).
 pub struct InFlight {
-    counts: Arc<Mutex<InFlightCounts>>,
+    /// The counts it is counted in.
+    counts: watch::Sender<InFlightCounts>,
     /// The resource it is asked of.
     pub resource: schemas::HolonId,
 }
 
 impl Drop for InFlight {
     fn drop(&mut self) {
-        let mut counts = self.counts.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(n) = counts.get_mut(&self.resource) {
-            *n = n.saturating_sub(1);
-        }
+        self.counts.send_modify(|counts| {
+            if let Some(n) = counts.get_mut(&self.resource) {
+                *n = n.saturating_sub(1);
+            }
+        });
     }
 }
 
@@ -40,18 +49,17 @@ impl Drop for InFlight {
 pub struct Offer {
     /// The resource failed this step before: tried last.
     pub avoided: bool,
+    /// How long the step would wait there, as the resource proposed.
     pub expected_wait_ms: u64,
+    /// Where the booking would go in its queue, as proposed.
     pub queue_position: u64,
     /// The service's nominal duration on that resource.
     pub duration_ms: u64,
+    /// The resource that proposed.
     pub provider: schemas::HolonId,
 }
 
 impl BookingsInFlight {
-    fn counts(&self) -> std::sync::MutexGuard<'_, InFlightCounts> {
-        self.0.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
     /// The round's offers, best first: not avoided; then the resource a staff holon
     /// advised (`advised`), if it proposed; then the shortest expected wait, then
     /// queue, as they are now (`published`: a resource's latest published queue, if
@@ -63,38 +71,41 @@ impl BookingsInFlight {
         published: impl Fn(&schemas::HolonId) -> Option<u64>,
         advised: Option<&schemas::HolonId>,
     ) -> (Vec<schemas::HolonId>, Option<InFlight>) {
-        let mut in_flight = self.counts();
-        let mut ranked: Vec<(bool, bool, u64, u64, u64, schemas::HolonId)> = offers
-            .into_iter()
-            .map(|o| {
-                let queue = published(&o.provider)
-                    .unwrap_or(o.queue_position)
-                    .saturating_add(in_flight.get(&o.provider).copied().unwrap_or(0));
-                // The proposal's wait, moved by what changed since: its jobs of other
-                // service types keep their own durations.
-                let wait = if queue >= o.queue_position {
-                    o.expected_wait_ms
-                        .saturating_add((queue - o.queue_position).saturating_mul(o.duration_ms))
-                } else {
-                    o.expected_wait_ms
-                        .saturating_sub((o.queue_position - queue).saturating_mul(o.duration_ms))
-                };
-                let not_advised = advised != Some(&o.provider);
-                (o.avoided, not_advised, wait, queue, tie_break(), o.provider)
-            })
-            .collect();
-        ranked.sort();
-        let counted = ranked.first().map(|(_, _, _, _, _, best)| {
-            *in_flight.entry(best.clone()).or_default() += 1;
-            InFlight {
-                counts: self.0.clone(),
-                resource: best.clone(),
+        let mut ranked: Vec<(bool, bool, u64, u64, u64, schemas::HolonId)> = Vec::new();
+        // Read and counted in one change: a round that ends at the same time sees this
+        // choice, or this round sees its.
+        self.0.send_modify(|in_flight| {
+            ranked = offers
+                .into_iter()
+                .map(|o| {
+                    let queue = published(&o.provider)
+                        .unwrap_or(o.queue_position)
+                        .saturating_add(in_flight.get(&o.provider).copied().unwrap_or(0));
+                    // The proposal's wait, moved by what changed since: its jobs of other
+                    // service types keep their own durations.
+                    let wait = if queue >= o.queue_position {
+                        o.expected_wait_ms.saturating_add(
+                            (queue - o.queue_position).saturating_mul(o.duration_ms),
+                        )
+                    } else {
+                        o.expected_wait_ms.saturating_sub(
+                            (o.queue_position - queue).saturating_mul(o.duration_ms),
+                        )
+                    };
+                    let not_advised = advised != Some(&o.provider);
+                    (o.avoided, not_advised, wait, queue, tie_break(), o.provider)
+                })
+                .collect();
+            ranked.sort();
+            if let Some((.., best)) = ranked.first() {
+                *in_flight.entry(best.clone()).or_default() += 1;
             }
         });
-        (
-            ranked.into_iter().map(|(_, _, _, _, _, p)| p).collect(),
-            counted,
-        )
+        let counted = ranked.first().map(|(.., best)| InFlight {
+            counts: self.0.clone(),
+            resource: best.clone(),
+        });
+        (ranked.into_iter().map(|(.., p)| p).collect(), counted)
     }
 }
 

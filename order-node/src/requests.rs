@@ -368,8 +368,42 @@ pub fn answer(reply: Option<Service>) -> Answer {
     }
 }
 
-/// How an ask the staff did not answer in time is logged (and told apart).
-const NO_ADVICE_IN_TIME: &str = "gave no advice in time";
+/// Why an ask for advice brought none.
+#[derive(Debug, thiserror::Error)]
+enum NoAdvice {
+    /// No answer within `orders.advice_timeout_ms`: counts toward the pause of asks
+    /// ([`crate::advice_pause`]).
+    #[error("{staff} gave no advice in time")]
+    NotInTime {
+        /// The staff holon asked.
+        staff: HolonId,
+    },
+    /// The ask could not be sent (not counted toward the pause: the staff was not
+    /// asked).
+    #[error("cannot ask {staff}: {why}")]
+    NotAsked {
+        /// The staff holon asked.
+        staff: HolonId,
+        /// zenoh's error.
+        why: String,
+    },
+    /// The staff refused the ask (it answered: asking goes on).
+    #[error("{staff} refused: {why}")]
+    Refused {
+        /// The staff holon asked.
+        staff: HolonId,
+        /// Its refusal.
+        why: String,
+    },
+    /// The staff's answer is not advice (it answered: asking goes on).
+    #[error("malformed advice from {staff}: {why}")]
+    Malformed {
+        /// The staff holon asked.
+        staff: HolonId,
+        /// What does not parse.
+        why: String,
+    },
+}
 
 /// What came of asking the staff for advice.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -428,37 +462,56 @@ pub async fn advice(
             .timeout(ctx.settings.advice_timeout)
             .with(holon::query::replies())
             .await
-            .map_err(|e| format!("cannot ask {staff}: {e}"))?;
-        let reply = replies
-            .recv()
-            .await
-            .ok_or_else(|| format!("{staff} {NO_ADVICE_IN_TIME}"))?;
+            .map_err(|e| NoAdvice::NotAsked {
+                staff: staff.clone(),
+                why: e.to_string(),
+            })?;
+        let not_in_time = || NoAdvice::NotInTime {
+            staff: staff.clone(),
+        };
+        let reply = replies.recv().await.ok_or_else(not_in_time)?;
         let sample = reply.result().map_err(|e| {
             let why = e.payload().try_to_string().unwrap_or_default();
-            // zenoh ends a query that outlived its timeout with this error reply.
+            // zenoh ends a query that outlived its timeout with this error reply (its
+            // only word for it: zenoh's error replies carry no code).
             if why == "Timeout" {
-                format!("{staff} {NO_ADVICE_IN_TIME}")
+                not_in_time()
             } else {
-                format!("{staff} refused: {why}")
+                NoAdvice::Refused {
+                    staff: staff.clone(),
+                    why: why.into_owned(),
+                }
             }
         })?;
-        serde_json::from_slice::<schemas::Advice>(&sample.payload().to_bytes())
-            .map_err(|e| format!("malformed advice from {staff}: {e}"))
+        serde_json::from_slice::<schemas::Advice>(&sample.payload().to_bytes()).map_err(|e| {
+            NoAdvice::Malformed {
+                staff: staff.clone(),
+                why: e.to_string(),
+            }
+        })
     };
-    let unanswered = |why: String| {
+    let unanswered = |why: NoAdvice| {
         if ctx.advice_pause.unanswered(Instant::now()) {
             warn!(%staff, pause = ?crate::advice_pause::PAUSE, "the staff answered none of the last asks in time: orders go by contract net without asking it for a while");
         }
-        Advised::Unusable(why)
+        Advised::Unusable(why.to_string())
     };
     let advice = match tokio::time::timeout(ctx.settings.advice_timeout, asked).await {
         Ok(Ok(advice)) => advice,
-        Ok(Err(why)) if why.ends_with(NO_ADVICE_IN_TIME) => return unanswered(why),
-        Ok(Err(why)) => {
+        Ok(Err(why @ NoAdvice::NotInTime { .. })) => return unanswered(why),
+        Ok(Err(
+            why @ (NoAdvice::NotAsked { .. }
+            | NoAdvice::Refused { .. }
+            | NoAdvice::Malformed { .. }),
+        )) => {
             ctx.advice_pause.answered();
-            return Advised::Unusable(why);
+            return Advised::Unusable(why.to_string());
         }
-        Err(_) => return unanswered(format!("{staff} {NO_ADVICE_IN_TIME}")),
+        Err(_) => {
+            return unanswered(NoAdvice::NotInTime {
+                staff: staff.clone(),
+            })
+        }
     };
     ctx.advice_pause.answered();
     if advice.v != schemas::ADVICE_VERSION

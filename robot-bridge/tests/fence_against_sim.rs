@@ -8,8 +8,8 @@ use std::time::Duration;
 
 use common::{reply, start_sim, wait_received, WAIT};
 use robot_bridge::client::{
-    self, fence, ClaimError, ClientConfig, ControllerEvent, ControllerRequest, Epoch, FenceEvent,
-    FenceHandle, StepId, StepStatus,
+    self, fence, ClaimError, ClientConfig, CommandFailure, ControllerEvent, ControllerRequest,
+    Epoch, FenceEvent, FenceHandle, StepId, StepStatus,
 };
 use robot_bridge::sim::SimConfig;
 use schemas::RobotCommand;
@@ -148,7 +148,9 @@ async fn one_holder_a_silent_one_is_deposed_and_a_step_runs_once() {
             .await;
         match first.answer().await {
             // Still reconnecting after the controller closed it.
-            ControllerEvent::CommandFailed { .. } => {
+            ControllerEvent::CommandFailed { failure, .. }
+                if !matches!(failure, CommandFailure::StaleEpoch { .. }) =>
+            {
                 tokio::time::sleep(Duration::from_millis(20)).await;
                 id += 1;
             }
@@ -156,12 +158,10 @@ async fn one_holder_a_silent_one_is_deposed_and_a_step_runs_once() {
         }
     };
     match answer {
-        ControllerEvent::Reply {
-            result, message, ..
-        } => {
-            assert_eq!(result, "error");
-            assert!(message.unwrap_or_default().starts_with("stale_epoch"));
-        }
+        ControllerEvent::CommandFailed {
+            failure: CommandFailure::StaleEpoch { current },
+            ..
+        } => assert_eq!(current, Some(Epoch(2))),
         other => panic!("expected stale_epoch, got {other:?}"),
     }
     assert!(matches!(
@@ -249,14 +249,10 @@ async fn an_unfenced_client_is_refused_by_a_fenced_sim() {
     plain.wait_ready().await;
     plain.send(1, "pick").await;
     match plain.answer().await {
-        ControllerEvent::Reply {
+        ControllerEvent::CommandFailed {
             id: 1,
-            result,
-            message,
-        } => {
-            assert_eq!(result, "error");
-            assert!(message.unwrap_or_default().starts_with("stale_epoch"));
-        }
+            failure: CommandFailure::StaleEpoch { .. },
+        } => {}
         other => panic!("expected stale_epoch, got {other:?}"),
     }
     assert_eq!(stats.executed(), 0);

@@ -82,8 +82,8 @@
 use std::sync::Arc;
 
 use schemas::{
-    unix_ms, ControllerStatus, HolonId, MessageType, PackmlReply, PackmlRequest, PackmlState,
-    Reason, ResourceState, Service, UnitMode,
+    ControllerStatus, HolonId, MessageType, PackmlReply, PackmlRequest, PackmlState, Reason,
+    ResourceState, Service, UnitMode,
 };
 use serde_json::{json, Map, Value};
 
@@ -244,8 +244,8 @@ pub enum AgendaEvent {
     RequesterGone { requester: HolonId },
     /// An operator's PackML command or unit mode change (`resource/<name>/packml`).
     Packml(PackmlRequest),
-    /// A second has passed (`now`, Unix ms): bookings held too long are handed back.
-    Tick { now: u64 },
+    /// A second has passed: bookings held too long are handed back.
+    Tick,
 }
 
 /// What the task around the agenda manager must do.
@@ -302,7 +302,8 @@ pub struct AgendaManager {
 }
 
 impl AgendaManager {
-    pub fn new(holon: HolonId, catalog: Arc<ServiceCatalog>, capacity: usize) -> Self {
+    /// An empty agenda, its PackML unit in Execute and Production since `now` (Unix ms).
+    pub fn new(holon: HolonId, catalog: Arc<ServiceCatalog>, capacity: usize, now: u64) -> Self {
         AgendaManager {
             holon,
             catalog,
@@ -314,7 +315,7 @@ impl AgendaManager {
             undelivered: Vec::new(),
             withdrawing: false,
             handing_over: false,
-            packml: PackmlUnit::new(PackmlState::Execute, UnitMode::Production, unix_ms()),
+            packml: PackmlUnit::new(PackmlState::Execute, UnitMode::Production, now),
             packml_restored: false,
             held_bookings_ms: PackmlSettings::default().held_bookings_ms,
             controller: ControllerStatus::Disconnected,
@@ -322,11 +323,13 @@ impl AgendaManager {
     }
 
     /// The same agenda with the holon's PackML settings: a unit restored from the
-    /// journal keeps its state and mode; a new one starts as the settings say.
+    /// journal keeps its state and mode; a new one starts as the settings say (since
+    /// the agenda was made).
     pub fn with_packml(mut self, settings: PackmlSettings) -> Self {
         self.held_bookings_ms = settings.held_bookings_ms;
         if !self.packml_restored {
-            self.packml = PackmlUnit::new(settings.initial_state, settings.initial_mode, unix_ms());
+            let since = self.packml.since();
+            self.packml = PackmlUnit::new(settings.initial_state, settings.initial_mode, since);
         }
         self
     }
@@ -360,8 +363,9 @@ impl AgendaManager {
         capacity: usize,
         record: AgendaRecord,
         inheritance: Inheritance,
+        now: u64,
     ) -> AgendaManager {
-        let mut manager = AgendaManager::new(holon, catalog, capacity);
+        let mut manager = AgendaManager::new(holon, catalog, capacity, now);
         manager.bookings = record.bookings;
         for booking in &mut manager.bookings {
             booking.parameters = manager
@@ -453,10 +457,11 @@ impl AgendaManager {
         self.current.as_ref()
     }
 
-    /// The seed's FSM: one event in, the actions out. No I/O.
-    pub fn handle(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
-        let mut actions = self.transition(event);
-        actions.extend(self.settle());
+    /// The seed's FSM: one event in, at `now` (Unix ms), the actions out. No I/O, no
+    /// clock: the time is the event's.
+    pub fn handle(&mut self, event: AgendaEvent, now: u64) -> Vec<AgendaAction> {
+        let mut actions = self.transition(event, now);
+        actions.extend(self.settle(now));
         actions.extend(self.turn());
         actions
     }
@@ -464,17 +469,17 @@ impl AgendaManager {
     /// The machine without its last row: no booking starts on its turn. For an event
     /// that must be kept while the journal cannot record a job's start (the booking then
     /// waits; its requester's `start` is refused until the journal can be written).
-    pub fn handle_holding_turns(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
-        let mut actions = self.transition(event);
-        actions.extend(self.settle());
+    pub fn handle_holding_turns(&mut self, event: AgendaEvent, now: u64) -> Vec<AgendaAction> {
+        let mut actions = self.transition(event, now);
+        actions.extend(self.settle(now));
         actions
     }
 
     /// The PackML row "after every event": an acting state whose work is done moves on.
-    fn settle(&mut self) -> Vec<AgendaAction> {
+    fn settle(&mut self, now: u64) -> Vec<AgendaAction> {
         if self
             .packml
-            .settle(self.current.is_some(), self.controller, unix_ms())
+            .settle(self.current.is_some(), self.controller, now)
         {
             vec![AgendaAction::StateChanged]
         } else {
@@ -493,15 +498,15 @@ impl AgendaManager {
     }
 
     /// The row of the table for `event`.
-    fn transition(&mut self, event: AgendaEvent) -> Vec<AgendaAction> {
+    fn transition(&mut self, event: AgendaEvent, now: u64) -> Vec<AgendaAction> {
         match event {
             AgendaEvent::Request(request) => self.request(request),
-            AgendaEvent::ExecutionReady => self.controller_now(ControllerStatus::Ready, None),
+            AgendaEvent::ExecutionReady => self.controller_now(ControllerStatus::Ready, None, now),
             AgendaEvent::ExecutionUnavailable(status, said) => {
-                self.controller_now(status, said.as_deref())
+                self.controller_now(status, said.as_deref(), now)
             }
-            AgendaEvent::Packml(request) => self.packml_request(request),
-            AgendaEvent::Tick { now } => self.tick(now),
+            AgendaEvent::Packml(request) => self.packml_request(request, now),
+            AgendaEvent::Tick => self.tick(now),
             AgendaEvent::ExecutionFinished {
                 conversation_id,
                 outcome,

@@ -2,7 +2,7 @@
 //! state as it drives the unit, an operator's command, mode change or single job, and
 //! the tick that hands back the bookings of a resource held too long.
 
-use schemas::{unix_ms, ControllerStatus, PackmlReply, PackmlRequest, PackmlState};
+use schemas::{ControllerStatus, PackmlReply, PackmlRequest, PackmlState};
 use serde_json::{Map, Value};
 
 use super::{AgendaAction, AgendaManager, Job};
@@ -38,6 +38,7 @@ impl AgendaManager {
         &mut self,
         status: ControllerStatus,
         said: Option<&str>,
+        now: u64,
     ) -> Vec<AgendaAction> {
         let ready = status.is_ready();
         if self.execution_ready == ready && self.controller == status {
@@ -49,7 +50,7 @@ impl AgendaManager {
             Some(said) => format!("{status}: {said}"),
             None => status.to_string(),
         };
-        let mut actions = match self.packml.controller(status, said, unix_ms()) {
+        let mut actions = match self.packml.controller(status, said, now) {
             Consequence::None => vec![],
             Consequence::HandBack | Consequence::Abort => self.hand_back(&format!(
                 "the resource was aborted: its controller reported {reported}; book elsewhere"
@@ -61,9 +62,8 @@ impl AgendaManager {
 
     /// An operator's PackML command or mode change: the reply, and what the new state
     /// does to the bookings and the running step.
-    pub(super) fn packml_request(&mut self, request: PackmlRequest) -> Vec<AgendaAction> {
+    pub(super) fn packml_request(&mut self, request: PackmlRequest, now: u64) -> Vec<AgendaAction> {
         let by = request.by.as_deref().unwrap_or("an operator");
-        let now = unix_ms();
         if let Some(job) = request.job {
             return self.operator_job(job, by, now);
         }
@@ -89,7 +89,7 @@ impl AgendaManager {
                         }
                     }
                 }
-                actions.extend(self.settle());
+                actions.extend(self.settle(now));
                 actions.push(AgendaAction::StateChanged);
                 None
             }

@@ -1,6 +1,6 @@
 //! The agenda's part of the state snapshot a resource publishes.
 
-use schemas::{unix_ms, BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot};
+use schemas::{BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot};
 
 use super::AgendaManager;
 
@@ -53,7 +53,8 @@ impl AgendaManager {
             epoch: None,
             version: None,
             v: 0,
-            at: unix_ms(),
+            // Stamped when the view is read (`Views::snapshot`).
+            at: 0,
         }
     }
 }

@@ -33,23 +33,27 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use holon::journal::{Journal, JournalError};
 use holon::ChildError;
-use schemas::{HolonId, PackmlState, Service};
+use schemas::HolonId;
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, error, info, warn};
+use tracing::{debug, info, warn};
 
-use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord, Inheritance};
+use crate::agenda::{AgendaAction, AgendaEvent};
 use crate::component::delivery::Courier;
 use crate::component::question::Question;
-use crate::config::{DeliverySettings, ResourceConfig};
+use crate::config::DeliverySettings;
 use crate::delivery::{repeat_worth_logging, Deliveries, DeliveryAction, DeliveryEvent};
 use crate::execution::ExecutionRequest;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
-use crate::views::{AgendaView, Views};
+use crate::views::Views;
+
+mod journalled;
+
+pub use journalled::JournalledAgenda;
+use journalled::NotRecorded;
 
 /// At most this many waiting events go through the state machine before one journal
 /// write (their answers wait for it).
@@ -57,9 +61,6 @@ const BATCH: usize = 32;
 
 /// How often a journal that cannot be written is tried again.
 const JOURNAL_RETRY: Duration = Duration::from_secs(1);
-
-/// The journal record that holds the agenda.
-const AGENDA_RECORD: (&str, &str) = ("agenda", "agenda");
 
 /// One event for the agenda manager.
 pub struct AgendaMessage {
@@ -74,308 +75,6 @@ impl From<AgendaEvent> for AgendaMessage {
             event,
             question: None,
         }
-    }
-}
-
-/// The journal could not record a request: it is refused and nothing changed.
-#[derive(Debug)]
-struct NotRecorded;
-
-/// The agenda and what keeps it durable; owned by the running agenda manager.
-pub struct JournalledAgenda {
-    /// The state machine.
-    agenda: AgendaManager,
-    /// The durable state, if the holon has a data directory.
-    journal: Option<Journal>,
-    /// Set while the journal cannot be written (a full disk, ...): why. The resource
-    /// then stops offering, refuses requests that would change its agenda, and holds
-    /// results back until a write succeeds (retried every [`JOURNAL_RETRY`]).
-    fault: Option<String>,
-    /// Results that happened while the journal could not record them, oldest first:
-    /// delivered once they are written.
-    held: Vec<Service>,
-}
-
-impl JournalledAgenda {
-    /// The agenda, restored from the journal if the holon has a data directory. Results
-    /// not acknowledged before a restart (and an interrupted job's `failed`) are
-    /// delivered by the agenda manager, which takes them from the agenda when it starts.
-    pub fn open(
-        config: &ResourceConfig,
-        inheritance: Inheritance,
-    ) -> Result<JournalledAgenda, JournalError> {
-        let holon = &config.holon;
-        let journal = match &config.data_dir {
-            Some(dir) => {
-                let file = format!("resource-{}.sqlite", holon.name());
-                // A successor opens the journal its predecessor is closing.
-                let patience = match config.take_over {
-                    Some(_) => holon::takeover::JOURNAL_PATIENCE,
-                    None => std::time::Duration::ZERO,
-                };
-                Some(Journal::open_when_free(
-                    dir,
-                    &file,
-                    config.durability,
-                    patience,
-                )?)
-            }
-            None => None,
-        };
-        let record: AgendaRecord = match &journal {
-            Some(journal) => journal
-                .get(AGENDA_RECORD.0, AGENDA_RECORD.1)?
-                .unwrap_or_default(),
-            None => AgendaRecord::default(),
-        };
-        match &journal {
-            Some(journal) => {
-                info!(%holon, journal = %journal.path().display(), bookings = record.bookings.len(), interrupted = record.current.is_some(), undelivered = record.undelivered.len(), ?inheritance, "journal opened")
-            }
-            None => {
-                warn!(%holon, "no data directory: the agenda is not durable (use --data-dir)")
-            }
-        }
-        let agenda = AgendaManager::restore(
-            holon.clone(),
-            config.catalog.clone(),
-            config.agenda_capacity,
-            record,
-            inheritance,
-        )
-        .with_max_overtakes(config.agenda_max_overtakes)
-        .with_packml(config.packml);
-        if let Some(journal) = &journal {
-            // The interrupted job became an undelivered result: record that at once.
-            journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record_ref())?;
-        }
-        Ok(JournalledAgenda {
-            agenda,
-            journal,
-            fault: None,
-            held: Vec::new(),
-        })
-    }
-
-    /// What the other components see of the agenda.
-    pub fn view(&self) -> AgendaView {
-        let mut snapshot = self.agenda.snapshot();
-        snapshot.journal_fault = self.fault.clone();
-        AgendaView {
-            snapshot,
-            deliverable: self.deliverable(),
-            accepting: self.agenda.takes_work() && self.fault.is_none(),
-            drained: self.agenda.is_drained(),
-        }
-    }
-
-    /// The results not yet acknowledged that may go out: all but those the journal could
-    /// not record yet.
-    fn deliverable(&self) -> Vec<Service> {
-        self.agenda
-            .undelivered()
-            .iter()
-            .filter(|r| !self.held.contains(r))
-            .cloned()
-            .collect()
-    }
-
-    /// One event through the state machine, and the journal write of what changed: the
-    /// actions to carry out, or [`NotRecorded`] when a request could not be recorded
-    /// (then the agenda is as it was).
-    fn apply(
-        &mut self,
-        holon: &HolonId,
-        event: AgendaEvent,
-    ) -> Result<Vec<AgendaAction>, NotRecorded> {
-        let before = (self.agenda.state(), self.agenda.packml().state());
-        // The agenda before the event: what a request the journal cannot record leaves
-        // (the undo), and what tells whether there is anything to write (compared in
-        // place, never copied again).
-        let previous = self.journal.as_ref().map(|_| self.agenda.clone());
-        // An acknowledgement is recorded with the next write, not on its own: if the
-        // process dies first, the result is delivered once more and the order, which
-        // ignores duplicates, acknowledges it again. That saves an fsync per job.
-        let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
-        // A request can be refused when it cannot be recorded; the other events are facts
-        // (a job finished, a requester left) that the agenda must keep even then.
-        let refusable = matches!(event, AgendaEvent::Request(_) | AgendaEvent::Packml(_));
-        // Stopping: the held results go out now, and so do the bookings handed back,
-        // whether or not the journal can record the withdrawal (see `release_held`).
-        let withdraw = matches!(event, AgendaEvent::Withdraw | AgendaEvent::Deposed);
-        let released = if withdraw {
-            self.release_held(holon)
-        } else {
-            vec![]
-        };
-        // Kept for a fact the journal cannot record (see below).
-        let fact = (!refusable).then(|| event.clone());
-        let mut actions = self.agenda.handle(event);
-        let changed = previous
-            .as_ref()
-            .is_some_and(|p| !lazily && !p.same_record(&self.agenda));
-        if let (Some(previous), true) = (previous, changed) {
-            match self.write() {
-                Ok(()) => actions.extend(self.written(holon)),
-                Err(e) if refusable => {
-                    self.failed(holon, &e);
-                    warn!(%holon, component = "agenda", error = %e, "journal write failed; the request is refused");
-                    self.agenda = previous;
-                    return Err(NotRecorded);
-                }
-                Err(e) => {
-                    // Kept in memory; results wait for the write (see `retry`). A job
-                    // must not begin unrecorded (a crash would run it again): the fact
-                    // is kept without a booking starting on its turn.
-                    if let Some(fact) = fact.filter(|_| {
-                        actions
-                            .iter()
-                            .any(|a| matches!(a, AgendaAction::Execute(_)))
-                    }) {
-                        self.agenda = previous;
-                        actions = self.agenda.handle_holding_turns(fact);
-                    }
-                    if self.failed(holon, &e) {
-                        actions.push(AgendaAction::StateChanged);
-                    }
-                    if withdraw {
-                        warn!(%holon, component = "agenda", error = %e, "stopping while the journal cannot be written: the bookings are handed back unrecorded (after a restart the agenda may still list them until their orders end)");
-                        return Ok(actions.into_iter().chain(released).collect());
-                    }
-                    let held = &mut self.held;
-                    actions.retain(|action| match action {
-                        AgendaAction::Deliver(result) => {
-                            held.push(result.clone());
-                            false
-                        }
-                        _ => true,
-                    });
-                }
-            }
-        }
-        actions.extend(released);
-        self.log_transition(holon, before);
-        Ok(actions)
-    }
-
-    /// The events that arrived together, through the state machine one after another
-    /// and into the journal with one write: the outcome of each, in order (as
-    /// [`apply`](Self::apply) gives it). When the write fails, or while the journal is
-    /// failing, or when the holon withdraws, each event is applied on its own instead.
-    fn apply_batch(
-        &mut self,
-        holon: &HolonId,
-        events: Vec<AgendaEvent>,
-    ) -> Vec<Result<Vec<AgendaAction>, NotRecorded>> {
-        let one_by_one = events.len() == 1
-            || self.journal.is_none()
-            || self.fault.is_some()
-            || events
-                .iter()
-                .any(|e| matches!(e, AgendaEvent::Withdraw | AgendaEvent::Deposed));
-        if one_by_one {
-            return events.into_iter().map(|e| self.apply(holon, e)).collect();
-        }
-        let before = (self.agenda.state(), self.agenda.packml().state());
-        let previous = self.agenda.clone();
-        let mut changed = false;
-        let mut outcomes = Vec::with_capacity(events.len());
-        for event in events.iter().cloned() {
-            // Acknowledgements alone are not written (see `apply`).
-            let lazily = matches!(event, AgendaEvent::ResultAcknowledged { .. });
-            let record = (!lazily && !changed).then(|| self.agenda.record());
-            outcomes.push(Ok(self.agenda.handle(event)));
-            changed |= record.is_some_and(|r| !self.agenda.keeps(&r));
-        }
-        if changed {
-            if let Err(e) = self.write() {
-                debug!(%holon, error = %e, events = events.len(), "the journal could not record a batch: its events are taken one at a time");
-                self.agenda = previous;
-                return events.into_iter().map(|e| self.apply(holon, e)).collect();
-            }
-        }
-        self.log_transition(holon, before);
-        outcomes
-    }
-
-    /// Logs a change of the resource's state or PackML state (not every event: most
-    /// leave both as they were).
-    fn log_transition(&self, holon: &HolonId, before: (schemas::ResourceState, PackmlState)) {
-        let after = self.agenda.state();
-        if before.0 != after {
-            info!(%holon, component = "agenda", from = %before.0, to = %after, "transition");
-        }
-        let unit = self.agenda.packml();
-        if before.1 != unit.state() {
-            info!(%holon, component = "packml", from = %before.1, to = %unit.state(), state = unit.state().number(), mode = %unit.mode(), "PackML state");
-        }
-    }
-
-    /// Whether a tick could change the agenda now.
-    fn wants_tick(&self) -> bool {
-        self.agenda.wants_tick()
-    }
-
-    fn write(&self) -> Result<(), JournalError> {
-        match &self.journal {
-            Some(journal) => {
-                journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &self.agenda.record_ref())
-            }
-            None => Ok(()),
-        }
-    }
-
-    /// While the journal cannot be written: tries to write the agenda as it is now; on
-    /// success the fault ends and the held results are released.
-    fn retry(&mut self, holon: &HolonId) -> Vec<AgendaAction> {
-        if self.fault.is_none() {
-            return vec![];
-        }
-        match self.write() {
-            Ok(()) => self.written(holon),
-            Err(e) => {
-                debug!(%holon, error = %e, "the journal still cannot be written");
-                self.failed(holon, &e);
-                vec![]
-            }
-        }
-    }
-
-    /// Records that a journal write failed; true when that is news (the first failure,
-    /// logged; the view then shows the fault and offers stop).
-    fn failed(&mut self, holon: &HolonId, error: &JournalError) -> bool {
-        let news = self.fault.is_none();
-        if news {
-            error!(%holon, component = "agenda", error = %error, "the journal cannot be written: no new work is taken and results are held until a write succeeds (retried every second)");
-        }
-        self.fault = Some(error.to_string());
-        news
-    }
-
-    /// A journal write succeeded: if it was failing, the fault ends and the held results
-    /// are released (to deliver, after a state change).
-    fn written(&mut self, holon: &HolonId) -> Vec<AgendaAction> {
-        if self.fault.take().is_none() {
-            return vec![];
-        }
-        let held = std::mem::take(&mut self.held);
-        info!(%holon, component = "agenda", results = held.len(), "the journal can be written again: held results are delivered, new work is taken");
-        held.into_iter()
-            .map(AgendaAction::Deliver)
-            .chain([AgendaAction::StateChanged])
-            .collect()
-    }
-
-    /// Stopping with results the journal could not record: they are delivered anyway, so
-    /// the orders record the outcomes (and so are the bookings handed back, see `apply`). After a restart this resource reports those
-    /// steps `interrupted` (its journal still shows them running), which the orders
-    /// acknowledge and ignore as late reports of finished conversations.
-    fn release_held(&mut self, holon: &HolonId) -> Vec<AgendaAction> {
-        let held = std::mem::take(&mut self.held);
-        if !held.is_empty() {
-            warn!(%holon, results = held.len(), "shutting down while the journal cannot be written: delivering the held results unrecorded");
-        }
-        held.into_iter().map(AgendaAction::Deliver).collect()
     }
 }
 
@@ -448,10 +147,9 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             _ = token.cancelled() => return Ok(()),
             _ = links.faults.agenda.notified() => panic!("fault injection: agenda manager crashed"),
             _ = journal_retry.tick() => {
-                let mut actions = agenda.retry(holon);
+                let mut actions = retry(&mut agenda, holon);
                 if agenda.wants_tick() {
-                    let tick = AgendaEvent::Tick { now: schemas::unix_ms() };
-                    if let Ok(more) = agenda.apply(holon, tick) {
+                    if let Ok(more) = record(&mut agenda, holon, AgendaEvent::Tick, schemas::unix_ms()) {
                         actions.extend(more);
                     }
                 }
@@ -465,7 +163,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
                 for conversation_id in deliver(&links, &mut delivery, ended) {
                     // Recorded lazily (see `JournalledAgenda::apply`); never refused.
                     let acknowledged = AgendaEvent::ResultAcknowledged { conversation_id };
-                    if let Ok(actions) = agenda.apply(holon, acknowledged) {
+                    if let Ok(actions) = record(&mut agenda, holon, acknowledged, schemas::unix_ms()) {
                         let mut view = Unannounced::set(&links, &agenda, actions.contains(&AgendaAction::StateChanged));
                         carry_out(&links, &mut delivery, actions, None, &mut view).await?;
                         view.announce(&links);
@@ -500,7 +198,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
             .into_iter()
             .map(|AgendaMessage { event, question }| (event, question))
             .unzip();
-        let outcomes = agenda.apply_batch(holon, events);
+        let outcomes = record_batch(&mut agenda, holon, events, schemas::unix_ms());
         // The view is set once, before any answer (a state read after an answer sees it),
         // and announced after the answers (see `Unannounced`).
         let changed = outcomes.iter().any(|outcome| match outcome {
@@ -528,6 +226,50 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
         }
         view.announce(&links);
     }
+}
+
+/// One event through the agenda at `now` (Unix ms), and the journal write it asks for:
+/// the actions to carry out, or [`NotRecorded`] (see [`JournalledAgenda::settle`]).
+fn record(
+    agenda: &mut JournalledAgenda,
+    holon: &HolonId,
+    event: AgendaEvent,
+    now: u64,
+) -> Result<Vec<AgendaAction>, NotRecorded> {
+    let pending = agenda.apply(holon, event, now);
+    let written = pending.must_write().then(|| agenda.write());
+    agenda.settle(holon, pending, written)
+}
+
+/// The events that arrived together through the agenda at `now`, with one journal
+/// write (or each with its own, see [`JournalledAgenda::apply_batch`]): the outcome of
+/// each, in order.
+fn record_batch(
+    agenda: &mut JournalledAgenda,
+    holon: &HolonId,
+    events: Vec<AgendaEvent>,
+    now: u64,
+) -> Vec<Result<Vec<AgendaAction>, NotRecorded>> {
+    if let Some(batch) = agenda.apply_batch(&events, now) {
+        let written = batch.undo.is_some().then(|| agenda.write());
+        if let Some(actions) = agenda.settle_batch(holon, batch, written) {
+            return actions.into_iter().map(Ok).collect();
+        }
+    }
+    events
+        .into_iter()
+        .map(|event| record(agenda, holon, event, now))
+        .collect()
+}
+
+/// While the journal is failing: the agenda written as it is now, and what that
+/// releases.
+fn retry(agenda: &mut JournalledAgenda, holon: &HolonId) -> Vec<AgendaAction> {
+    if !agenda.failing() {
+        return vec![];
+    }
+    let written = agenda.write();
+    agenda.retried(holon, written)
 }
 
 /// An agenda view set for readers ([`Views::set_agenda_quietly`]) whose watchers are not
@@ -667,9 +409,10 @@ async fn carry_out(
 mod tests {
     use std::path::Path;
 
-    use schemas::MessageType;
+    use schemas::{unix_ms, MessageType, Service};
 
     use super::*;
+    use crate::agenda::Inheritance;
     use crate::config::{Overrides, ResourceConfig};
 
     const DEMO: &str = include_str!("../../../deploy/cells/demo/robot1.toml");
@@ -688,9 +431,13 @@ mod tests {
     /// The demo's robot1 with its journal in `data`, its controller ready.
     fn journalled(config: &ResourceConfig) -> JournalledAgenda {
         let mut agenda = JournalledAgenda::open(config, Inheritance::Restarted).unwrap();
-        agenda
-            .apply(&config.holon, AgendaEvent::ExecutionReady)
-            .unwrap();
+        record(
+            &mut agenda,
+            &config.holon,
+            AgendaEvent::ExecutionReady,
+            unix_ms(),
+        )
+        .unwrap();
         agenda
     }
 
@@ -717,7 +464,7 @@ mod tests {
         let mut agenda = journalled(&config);
         let commits = agenda.journal.as_ref().unwrap().commits();
         let eight = (0..8).map(|i| booking(&format!("o{i}"))).collect();
-        let outcomes = agenda.apply_batch(&config.holon, eight);
+        let outcomes = record_batch(&mut agenda, &config.holon, eight, unix_ms());
         assert!(outcomes.iter().all(accepted), "{outcomes:?}");
         assert_eq!(agenda.journal.as_ref().unwrap().commits(), commits + 1);
         drop(agenda);
@@ -741,7 +488,7 @@ mod tests {
             .unwrap();
         let mut agenda = journalled(&config);
         let eight = (0..8).map(|i| booking(&format!("o{i}"))).collect();
-        let outcomes = agenda.apply_batch(&config.holon, eight);
+        let outcomes = record_batch(&mut agenda, &config.holon, eight, unix_ms());
         for (i, outcome) in outcomes.iter().enumerate() {
             if i == 5 {
                 assert!(matches!(outcome, Err(NotRecorded)), "{outcome:?}");
@@ -785,19 +532,19 @@ mod tests {
                     .with_start_on_turn(),
             )
         };
-        let first = agenda.apply(&config.holon, on_turn("o1")).unwrap();
+        let first = record(&mut agenda, &config.holon, on_turn("o1"), unix_ms()).unwrap();
         assert!(
             matches!(&first[0], AgendaAction::Reply(r) if r.started()),
             "{first:?}"
         );
-        agenda.apply(&config.holon, on_turn("o2")).unwrap();
+        record(&mut agenda, &config.holon, on_turn("o2"), unix_ms()).unwrap();
         let finished = AgendaEvent::ExecutionFinished {
             conversation_id: "o1/1/1".into(),
             outcome: crate::agenda::Outcome::Done {
                 results: Default::default(),
             },
         };
-        let actions = agenda.apply(&config.holon, finished).unwrap();
+        let actions = record(&mut agenda, &config.holon, finished, unix_ms()).unwrap();
         assert!(
             !actions
                 .iter()

@@ -448,20 +448,20 @@ fn a_stale_epoch_refusal_ends_the_job_deposed_with_no_result() {
     let actions = e.handle(ExecutionEvent::Start(job("pick_n_place")));
     let id = command(&actions).id;
     assert_eq!(e.current_step_index().map(|(_, i)| i), Some(0));
-    let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::Reply {
+    let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::CommandFailed {
         id,
-        result: "error".into(),
-        message: Some("stale_epoch: the holder's epoch is 2".into()),
+        failure: CommandFailure::StaleEpoch {
+            current: Some(robot_bridge::client::Epoch(2)),
+        },
     }));
     deposed(&actions);
     assert_eq!(e.state(), &ExecutionState::Ready);
     // Refused at its second step: the same (the new holder may go on with it).
     let id = command(&e.handle(ExecutionEvent::Start(job("pick_n_place")))).id;
     let id = command(&e.handle(reply(id, "picking_done"))).id;
-    let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::Reply {
+    let actions = e.handle(ExecutionEvent::Controller(ControllerEvent::CommandFailed {
         id,
-        result: "error".into(),
-        message: Some("stale_epoch".into()),
+        failure: CommandFailure::StaleEpoch { current: None },
     }));
     deposed(&actions);
 }

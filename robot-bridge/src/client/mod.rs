@@ -18,8 +18,9 @@
 //!   the controller's message;
 //! - [`ControllerEvent::CommandFailed`] when a command cannot have an answer: no
 //!   connection, the connection broke, the controller sent what the dialect does not
-//!   describe, the command cannot be written, or no answer came within
-//!   `command_timeout` (which covers a command's whole sequence).
+//!   describe, the command cannot be written, no answer came within `command_timeout`
+//!   (which covers a command's whole sequence), or a fenced controller refused the
+//!   holder's epoch ([`CommandFailure::StaleEpoch`]).
 //!
 //! A controller that misses a deadline or sends something the dialect does not describe
 //! has its connection reset; the client then reconnects as usual.
@@ -84,7 +85,7 @@ impl ClientConfig {
 /// The controller as the client sees it (one type with the snapshot's `controller`).
 pub use schemas::ControllerStatus;
 
-/// Why a command got no reply.
+/// Why a command got no reply (no result of its step).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum CommandFailure {
     #[error("not connected to the controller")]
@@ -105,6 +106,14 @@ pub enum CommandFailure {
     /// message was due: nothing more of it was written.
     #[error("the controller is in {0}: the command was not sent")]
     Stopped(ControllerStatus),
+    /// The controller's fence refused the command (the dialect's `fence.stale` reply):
+    /// a newer holder's epoch is on it. Nothing of the command ran; this holder is
+    /// deposed ([`FenceEvent::Deposed`]).
+    #[error("the controller refused this holder's epoch (stale_epoch{}): the command was not run", current.map(|e| format!(": the controller's epoch is {e}")).unwrap_or_default())]
+    StaleEpoch {
+        /// The controller's epoch, when it said.
+        current: Option<Epoch>,
+    },
 }
 
 /// What the client's owner asks of it.
@@ -339,7 +348,15 @@ impl<O: Owner> Reporter<'_, O> {
 
     /// Sends an event; false when the owner is gone.
     async fn send(&mut self, event: ControllerEvent) -> bool {
-        if matches!(event, ControllerEvent::Reply { .. }) {
+        // A stale epoch's refusal is the controller's answer too.
+        if matches!(
+            event,
+            ControllerEvent::Reply { .. }
+                | ControllerEvent::CommandFailed {
+                    failure: CommandFailure::StaleEpoch { .. },
+                    ..
+                }
+        ) {
             self.answered += 1;
         }
         self.owner.report(event).await

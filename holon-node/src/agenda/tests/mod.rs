@@ -1,5 +1,6 @@
 use super::*;
 use crate::catalog::pick_n_place;
+use schemas::unix_ms;
 
 mod epoch;
 mod on_turn;
@@ -15,8 +16,9 @@ fn manager() -> AgendaManager {
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,
+        unix_ms(),
     );
-    m.handle(AgendaEvent::ExecutionReady);
+    m.handle(AgendaEvent::ExecutionReady, unix_ms());
     m
 }
 
@@ -80,29 +82,30 @@ fn starts_in_init_until_execution_is_ready() {
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,
+        unix_ms(),
     );
     assert_eq!(m.status(), Status::Init);
     assert_refused(
-        &m.handle(AgendaEvent::Request(book("o-1", "c1"))),
+        &m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms()),
         "unavailable",
     );
     assert_eq!(
-        m.handle(AgendaEvent::ExecutionReady),
+        m.handle(AgendaEvent::ExecutionReady, unix_ms()),
         vec![AgendaAction::StateChanged]
     );
     assert_eq!(m.status(), Status::Free);
-    assert_eq!(m.handle(AgendaEvent::ExecutionReady), vec![]);
+    assert_eq!(m.handle(AgendaEvent::ExecutionReady, unix_ms()), vec![]);
 }
 
 #[test]
 fn free_empty_to_free_booked_on_booking_request() {
     let mut m = manager();
-    let actions = m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    let actions = m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
     assert_accepted(&actions);
     assert_eq!(reply(&actions).info["queue_position"], 1);
     assert_eq!(actions[1], AgendaAction::StateChanged);
     assert_eq!(m.bookings().len(), 1);
-    let actions = m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    let actions = m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms());
     assert_eq!(reply(&actions).info["queue_position"], 2);
     assert_eq!(m.status(), Status::Free);
 }
@@ -110,8 +113,8 @@ fn free_empty_to_free_booked_on_booking_request() {
 #[test]
 fn a_repeated_booking_request_books_once() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    let again = m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    let again = m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
     assert_accepted(&again);
     assert_eq!(again.len(), 1);
     assert_eq!(m.bookings().len(), 1);
@@ -120,9 +123,9 @@ fn a_repeated_booking_request_books_once() {
 #[test]
 fn free_booked_to_busy_on_start_from_a_booked_requester() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(book("o-2", "c2")));
-    let actions = m.handle(AgendaEvent::Request(start("o-2", "c2")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms());
+    let actions = m.handle(AgendaEvent::Request(start("o-2", "c2")), unix_ms());
     assert_accepted(&actions);
     match &actions[1] {
         AgendaAction::Execute(job) => {
@@ -163,7 +166,7 @@ fn a_resource_may_not_book() {
         HolonId::resource("robot2").unwrap(),
     )
     .with_reply_to(INBOX);
-    let actions = m.handle(AgendaEvent::Request(by_a_resource));
+    let actions = m.handle(AgendaEvent::Request(by_a_resource), unix_ms());
     assert_refused(&actions, Reason::NotARequester);
     assert!(m.bookings().is_empty());
 }
@@ -171,8 +174,8 @@ fn a_resource_may_not_book() {
 #[test]
 fn start_by_the_last_booked_client_leaves_busy_with_no_bookings() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
     assert!(matches!(m.status(), Status::Busy(_)));
     assert!(m.bookings().is_empty());
 }
@@ -180,8 +183,14 @@ fn start_by_the_last_booked_client_leaves_busy_with_no_bookings() {
 #[test]
 fn start_uses_the_booking_info_when_it_has_none() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1").with_info(poses())));
-    let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
+    m.handle(
+        AgendaEvent::Request(book("o-1", "c1").with_info(poses())),
+        unix_ms(),
+    );
+    let actions = m.handle(
+        AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")),
+        unix_ms(),
+    );
     assert!(matches!(&actions[1], AgendaAction::Execute(job) if job.info == poses()));
 }
 
@@ -189,21 +198,24 @@ fn start_uses_the_booking_info_when_it_has_none() {
 fn a_jobs_info_is_read_at_booking_and_carried_to_its_execution() {
     let mut m = manager();
     let booking = book("o-1", "c1").with_info(poses());
-    m.handle(AgendaEvent::Request(booking));
+    m.handle(AgendaEvent::Request(booking), unix_ms());
     let read = m.bookings()[0].parameters.clone();
     assert!(
         read.as_ref().is_some_and(|p| p.poses.len() == 2),
         "{read:?}"
     );
-    let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
+    let actions = m.handle(
+        AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")),
+        unix_ms(),
+    );
     assert!(matches!(&actions[1], AgendaAction::Execute(job) if job.parameters == read));
     // A start with an info of its own is read when it comes.
-    m.handle(done("c1"));
-    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    m.handle(done("c1"), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms());
     let mut own = poses();
     own.insert("program".into(), serde_json::json!("b2"));
     let start = msg(MessageType::Start, "o-2", "c2").with_info(own);
-    let actions = m.handle(AgendaEvent::Request(start));
+    let actions = m.handle(AgendaEvent::Request(start), unix_ms());
     assert!(
         matches!(&actions[1], AgendaAction::Execute(job) if job.parameters.as_ref().and_then(|p| p.program.as_deref()) == Some("b2")),
         "{actions:?}"
@@ -213,10 +225,13 @@ fn a_jobs_info_is_read_at_booking_and_carried_to_its_execution() {
 #[test]
 fn start_while_busy_is_refused_and_keeps_the_booking() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(book("o-2", "c2")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    assert_refused(&m.handle(AgendaEvent::Request(start("o-2", "c2"))), "busy");
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    assert_refused(
+        &m.handle(AgendaEvent::Request(start("o-2", "c2")), unix_ms()),
+        "busy",
+    );
     assert_eq!(m.bookings().len(), 1);
 }
 
@@ -224,23 +239,23 @@ fn start_while_busy_is_refused_and_keeps_the_booking() {
 fn start_without_a_booking_is_refused() {
     let mut m = manager();
     assert_refused(
-        &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+        &m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms()),
         "not_booked",
     );
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
     // Another requester, or another conversation of the same requester.
     assert_refused(
-        &m.handle(AgendaEvent::Request(start("o-2", "c1"))),
+        &m.handle(AgendaEvent::Request(start("o-2", "c1")), unix_ms()),
         "not_booked",
     );
     assert_refused(
-        &m.handle(AgendaEvent::Request(start("o-1", "c9"))),
+        &m.handle(AgendaEvent::Request(start("o-1", "c9")), unix_ms()),
         "not_booked",
     );
     // Not booked beats busy: a stranger is told it holds no booking.
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
     assert_refused(
-        &m.handle(AgendaEvent::Request(start("o-3", "c3"))),
+        &m.handle(AgendaEvent::Request(start("o-3", "c3")), unix_ms()),
         "not_booked",
     );
 }
@@ -248,26 +263,29 @@ fn start_without_a_booking_is_refused() {
 #[test]
 fn start_while_unavailable_is_refused_and_keeps_the_booking() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::ExecutionUnavailable(
-        ControllerStatus::Disconnected,
-        None,
-    ));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(
+        AgendaEvent::ExecutionUnavailable(ControllerStatus::Disconnected, None),
+        unix_ms(),
+    );
     assert_eq!(m.status(), Status::Init);
     assert_refused(
-        &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+        &m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms()),
         "unavailable",
     );
     assert_eq!(m.bookings().len(), 1);
-    m.handle(AgendaEvent::ExecutionReady);
-    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+    m.handle(AgendaEvent::ExecutionReady, unix_ms());
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms()));
 }
 
 #[test]
 fn start_without_what_the_steps_need_is_refused() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    let actions = m.handle(AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    let actions = m.handle(
+        AgendaEvent::Request(msg(MessageType::Start, "o-1", "c1")),
+        unix_ms(),
+    );
     assert_refused(&actions, "invalid_info");
     assert!(reply(&actions).info["detail"]
         .as_str()
@@ -275,10 +293,13 @@ fn start_without_what_the_steps_need_is_refused() {
         .contains("info.pick"));
     let mut booking_without_reply_to = book("o-2", "c2");
     booking_without_reply_to.reply_to = None;
-    m.handle(AgendaEvent::Request(booking_without_reply_to));
+    m.handle(AgendaEvent::Request(booking_without_reply_to), unix_ms());
     let mut no_reply_to = start("o-2", "c2");
     no_reply_to.reply_to = None;
-    assert_refused(&m.handle(AgendaEvent::Request(no_reply_to)), "invalid_info");
+    assert_refused(
+        &m.handle(AgendaEvent::Request(no_reply_to), unix_ms()),
+        "invalid_info",
+    );
     assert_eq!(m.bookings().len(), 2);
     assert_eq!(m.status(), Status::Free);
 }
@@ -286,9 +307,9 @@ fn start_without_what_the_steps_need_is_refused() {
 #[test]
 fn a_repeated_start_of_the_running_job_is_accepted_without_a_second_execution() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    let again = m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    let again = m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
     assert_accepted(&again);
     assert_eq!(again.len(), 1);
 }
@@ -299,16 +320,16 @@ fn unknown_service_types_are_refused() {
     let mut weld = book("o-1", "c1");
     weld.service_type = "weld".into();
     assert_refused(
-        &m.handle(AgendaEvent::Request(weld.clone())),
+        &m.handle(AgendaEvent::Request(weld.clone()), unix_ms()),
         "unknown_service",
     );
     weld.message_type = MessageType::Start;
     assert_refused(
-        &m.handle(AgendaEvent::Request(weld.clone())),
+        &m.handle(AgendaEvent::Request(weld.clone()), unix_ms()),
         "unknown_service",
     );
     weld.message_type = MessageType::ProposalReq;
-    let proposal = m.handle(AgendaEvent::Request(weld));
+    let proposal = m.handle(AgendaEvent::Request(weld), unix_ms());
     assert_eq!(reply(&proposal).message_type, MessageType::Proposal);
     assert_eq!(
         reply(&proposal).reason.as_ref().map(|r| r.as_str()),
@@ -320,32 +341,33 @@ fn unknown_service_types_are_refused() {
 #[test]
 fn start_for_a_booking_of_another_service_type_is_refused() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
     let mut inspect = start("o-1", "c1");
     inspect.service_type = "inspect".into();
-    assert_refused(&m.handle(AgendaEvent::Request(inspect)), "not_booked");
+    assert_refused(
+        &m.handle(AgendaEvent::Request(inspect), unix_ms()),
+        "not_booked",
+    );
 }
 
 #[test]
 fn booking_cancel_removes_the_booking() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(book("o-2", "c2")));
-    let actions = m.handle(AgendaEvent::Request(msg(
-        MessageType::BookingCancel,
-        "o-1",
-        "c1",
-    )));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms());
+    let actions = m.handle(
+        AgendaEvent::Request(msg(MessageType::BookingCancel, "o-1", "c1")),
+        unix_ms(),
+    );
     assert_accepted(&actions);
     assert_eq!(actions[1], AgendaAction::StateChanged);
     assert_eq!(m.bookings().len(), 1);
     assert_eq!(m.bookings()[0].conversation_id, "c2");
     // Cancel by the last booked client leaves an empty agenda.
-    m.handle(AgendaEvent::Request(msg(
-        MessageType::BookingCancel,
-        "o-2",
-        "c2",
-    )));
+    m.handle(
+        AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c2")),
+        unix_ms(),
+    );
     assert!(m.bookings().is_empty());
     assert_eq!(m.status(), Status::Free);
 }
@@ -354,20 +376,18 @@ fn booking_cancel_removes_the_booking() {
 fn booking_cancel_without_a_booking_is_refused() {
     let mut m = manager();
     assert_refused(
-        &m.handle(AgendaEvent::Request(msg(
-            MessageType::BookingCancel,
-            "o-1",
-            "c1",
-        ))),
+        &m.handle(
+            AgendaEvent::Request(msg(MessageType::BookingCancel, "o-1", "c1")),
+            unix_ms(),
+        ),
         "not_booked",
     );
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
     assert_refused(
-        &m.handle(AgendaEvent::Request(msg(
-            MessageType::BookingCancel,
-            "o-2",
-            "c1",
-        ))),
+        &m.handle(
+            AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c1")),
+            unix_ms(),
+        ),
         "not_booked",
     );
     assert_eq!(m.bookings().len(), 1);
@@ -376,27 +396,29 @@ fn booking_cancel_without_a_booking_is_refused() {
 #[test]
 fn bookings_and_cancels_while_busy_keep_it_busy() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2"))));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms()));
     assert!(matches!(m.status(), Status::Busy(_)));
-    assert_accepted(&m.handle(AgendaEvent::Request(msg(
-        MessageType::BookingCancel,
-        "o-2",
-        "c2",
-    ))));
+    assert_accepted(&m.handle(
+        AgendaEvent::Request(msg(MessageType::BookingCancel, "o-2", "c2")),
+        unix_ms(),
+    ));
     assert!(matches!(m.status(), Status::Busy(_)));
     // The running job cannot be booked again.
-    assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "busy");
+    assert_refused(
+        &m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms()),
+        "busy",
+    );
 }
 
 #[test]
 fn done_from_execution_frees_the_resource_and_delivers_the_result() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(book("o-2", "c2")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    let actions = m.handle(done("c1"));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    let actions = m.handle(done("c1"), unix_ms());
     let AgendaAction::Deliver(result) = &actions[0] else {
         panic!("{actions:?}")
     };
@@ -414,15 +436,18 @@ fn done_from_execution_frees_the_resource_and_delivers_the_result() {
 #[test]
 fn failed_from_execution_carries_the_reason() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    let actions = m.handle(AgendaEvent::ExecutionFinished {
-        conversation_id: "c1".into(),
-        outcome: Outcome::Failed {
-            reason: Reason::ControllerDisconnected,
-            detail: "the connection broke".into(),
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    let actions = m.handle(
+        AgendaEvent::ExecutionFinished {
+            conversation_id: "c1".into(),
+            outcome: Outcome::Failed {
+                reason: Reason::ControllerDisconnected,
+                detail: "the connection broke".into(),
+            },
         },
-    });
+        unix_ms(),
+    );
     let AgendaAction::Deliver(result) = &actions[0] else {
         panic!("{actions:?}")
     };
@@ -438,52 +463,55 @@ fn failed_from_execution_carries_the_reason() {
 #[test]
 fn a_stale_finish_changes_nothing() {
     let mut m = manager();
-    assert_eq!(m.handle(done("c1")), vec![]);
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    assert_eq!(m.handle(done("c9")), vec![]);
+    assert_eq!(m.handle(done("c1"), unix_ms()), vec![]);
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    assert_eq!(m.handle(done("c9"), unix_ms()), vec![]);
     assert!(matches!(m.status(), Status::Busy(_)));
 }
 
 #[test]
 fn unavailable_while_busy_returns_to_init_after_the_job_ends() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    m.handle(AgendaEvent::ExecutionUnavailable(
-        ControllerStatus::Disconnected,
-        None,
-    ));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    m.handle(
+        AgendaEvent::ExecutionUnavailable(ControllerStatus::Disconnected, None),
+        unix_ms(),
+    );
     assert!(matches!(m.status(), Status::Busy(_)));
-    m.handle(done("c1"));
+    m.handle(done("c1"), unix_ms());
     assert_eq!(m.status(), Status::Init);
 }
 
 #[test]
 fn acknowledgement_removes_the_undelivered_result() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    m.handle(done("c1"));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    m.handle(done("c1"), unix_ms());
     let ack = |c: &str| AgendaEvent::ResultAcknowledged {
         conversation_id: c.into(),
     };
-    assert_eq!(m.handle(ack("c9")), vec![]);
-    assert_eq!(m.handle(ack("c1")), vec![AgendaAction::StateChanged]);
+    assert_eq!(m.handle(ack("c9"), unix_ms()), vec![]);
+    assert_eq!(
+        m.handle(ack("c1"), unix_ms()),
+        vec![AgendaAction::StateChanged]
+    );
     assert!(m.undelivered().is_empty());
-    assert_eq!(m.handle(ack("c1")), vec![]);
+    assert_eq!(m.handle(ack("c1"), unix_ms()), vec![]);
 }
 
 #[test]
 fn withdraw_hands_every_booking_back_and_lets_the_running_job_finish() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(book("o-2", "c2")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms());
     let mut silent = book("o-3", "c3");
     silent.reply_to = None;
-    m.handle(AgendaEvent::Request(silent));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    let actions = m.handle(AgendaEvent::Withdraw);
+    m.handle(AgendaEvent::Request(silent), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    let actions = m.handle(AgendaEvent::Withdraw, unix_ms());
     let handed_back: Vec<&Service> = actions
         .iter()
         .filter_map(|a| match a {
@@ -507,24 +535,27 @@ fn withdraw_hands_every_booking_back_and_lets_the_running_job_finish() {
         !m.is_drained(),
         "the running job and the hand-back are pending"
     );
-    assert_eq!(m.handle(AgendaEvent::Withdraw), vec![]);
+    assert_eq!(m.handle(AgendaEvent::Withdraw, unix_ms()), vec![]);
     // No new work.
     assert_refused(
-        &m.handle(AgendaEvent::Request(book("o-4", "c4"))),
+        &m.handle(AgendaEvent::Request(book("o-4", "c4")), unix_ms()),
         "unavailable",
     );
     let mut proposal = book("o-4", "p");
     proposal.message_type = MessageType::ProposalReq;
     assert_eq!(
-        reply(&m.handle(AgendaEvent::Request(proposal))).reason,
+        reply(&m.handle(AgendaEvent::Request(proposal), unix_ms())).reason,
         Some(Reason::Unavailable)
     );
     // The running job finishes and is delivered.
-    m.handle(done("c1"));
+    m.handle(done("c1"), unix_ms());
     for c in ["c1", "c2"] {
-        m.handle(AgendaEvent::ResultAcknowledged {
-            conversation_id: c.into(),
-        });
+        m.handle(
+            AgendaEvent::ResultAcknowledged {
+                conversation_id: c.into(),
+            },
+            unix_ms(),
+        );
     }
     assert!(m.is_drained());
 }
@@ -532,17 +563,20 @@ fn withdraw_hands_every_booking_back_and_lets_the_running_job_finish() {
 #[test]
 fn a_start_of_a_finished_job_whose_result_is_undelivered_is_accepted_again() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    m.handle(done("c1"));
-    let again = m.handle(AgendaEvent::Request(start("o-1", "c1")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    m.handle(done("c1"), unix_ms());
+    let again = m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
     assert_accepted(&again);
     assert_eq!(again.len(), 1, "no second execution");
-    m.handle(AgendaEvent::ResultAcknowledged {
-        conversation_id: "c1".into(),
-    });
+    m.handle(
+        AgendaEvent::ResultAcknowledged {
+            conversation_id: "c1".into(),
+        },
+        unix_ms(),
+    );
     assert_refused(
-        &m.handle(AgendaEvent::Request(start("o-1", "c1"))),
+        &m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms()),
         "not_booked",
     );
 }
@@ -553,13 +587,16 @@ fn a_start_of_a_finished_job_whose_result_is_undelivered_is_accepted_again() {
 #[test]
 fn a_requester_gone_for_good_loses_its_bookings_not_its_running_job() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(book("o-1", "c2")));
-    m.handle(AgendaEvent::Request(book("o-2", "c3")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    let actions = m.handle(AgendaEvent::RequesterGone {
-        requester: HolonId::order("o-1").unwrap(),
-    });
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-1", "c2")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-2", "c3")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    let actions = m.handle(
+        AgendaEvent::RequesterGone {
+            requester: HolonId::order("o-1").unwrap(),
+        },
+        unix_ms(),
+    );
     assert_eq!(actions, vec![AgendaAction::StateChanged]);
     let left: Vec<_> = m
         .bookings()
@@ -568,25 +605,28 @@ fn a_requester_gone_for_good_loses_its_bookings_not_its_running_job() {
         .collect();
     assert_eq!(left, vec!["c3"], "o-2's booking stays");
     assert_eq!(m.current().map(|j| j.conversation_id.as_str()), Some("c1"));
-    let again = m.handle(AgendaEvent::RequesterGone {
-        requester: HolonId::order("o-1").unwrap(),
-    });
+    let again = m.handle(
+        AgendaEvent::RequesterGone {
+            requester: HolonId::order("o-1").unwrap(),
+        },
+        unix_ms(),
+    );
     assert!(again.is_empty(), "nothing left to release: {again:?}");
 }
 
 #[test]
 fn a_deposed_agenda_drops_its_bookings_without_a_word_and_takes_no_work() {
     let mut m = agenda_for_record();
-    let actions = m.handle(AgendaEvent::Deposed);
+    let actions = m.handle(AgendaEvent::Deposed, unix_ms());
     assert_eq!(
         actions,
         vec![AgendaAction::StateChanged],
         "no withdrawn result"
     );
     assert!(m.record().bookings.is_empty());
-    assert_eq!(m.handle(AgendaEvent::Deposed), vec![]);
+    assert_eq!(m.handle(AgendaEvent::Deposed, unix_ms()), vec![]);
     assert_refused(
-        &m.handle(AgendaEvent::Request(book("o-4", "c4"))),
+        &m.handle(AgendaEvent::Request(book("o-4", "c4")), unix_ms()),
         "unavailable",
     );
 }
@@ -594,14 +634,17 @@ fn a_deposed_agenda_drops_its_bookings_without_a_word_and_takes_no_work() {
 #[test]
 fn a_job_ended_deposed_leaves_no_result() {
     let mut m = manager();
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1"))));
-    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
-    let actions = m.handle(AgendaEvent::ExecutionFinished {
-        conversation_id: "c1".into(),
-        outcome: Outcome::Deposed {
-            detail: "stale_epoch".into(),
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms()));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms()));
+    let actions = m.handle(
+        AgendaEvent::ExecutionFinished {
+            conversation_id: "c1".into(),
+            outcome: Outcome::Deposed {
+                detail: "stale_epoch".into(),
+            },
         },
-    });
+        unix_ms(),
+    );
     assert_eq!(actions, vec![AgendaAction::StateChanged]);
     assert!(m.current().is_none());
     assert!(m.undelivered().is_empty(), "nothing to deliver");
@@ -611,11 +654,11 @@ fn a_job_ended_deposed_leaves_no_result() {
 /// part of the journal's record (for `record`'s tests).
 pub(super) fn agenda_for_record() -> AgendaManager {
     let mut m = manager();
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1"))));
-    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
-    m.handle(done("c1"));
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2"))));
-    assert_accepted(&m.handle(AgendaEvent::Request(start("o-2", "c2"))));
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-3", "c3"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms()));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms()));
+    m.handle(done("c1"), unix_ms());
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms()));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-2", "c2")), unix_ms()));
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-3", "c3")), unix_ms()));
     m
 }

@@ -2,10 +2,14 @@
 //! a long hold do to bookings and the running step.
 
 use super::*;
+use schemas::unix_ms;
 use schemas::{PackmlCommand, PackmlRequest, Refusal};
 
 fn command(m: &mut AgendaManager, command: PackmlCommand) -> Vec<AgendaAction> {
-    m.handle(AgendaEvent::Packml(PackmlRequest::command(command, "op")))
+    m.handle(
+        AgendaEvent::Packml(PackmlRequest::command(command, "op")),
+        unix_ms(),
+    )
 }
 
 fn packml_reply(actions: &[AgendaAction]) -> &PackmlReply {
@@ -34,9 +38,9 @@ fn handed_back(actions: &[AgendaAction]) -> Vec<String> {
 fn busy_with_two_booked() -> AgendaManager {
     let mut m = manager();
     for c in ["c1", "c2", "c3"] {
-        assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", c))));
+        assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", c)), unix_ms()));
     }
-    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms()));
     m
 }
 
@@ -47,47 +51,39 @@ fn hold_keeps_the_bookings_and_lets_the_running_step_finish() {
     assert_eq!(packml_reply(&actions).state, PackmlState::Holding);
     assert!(handed_back(&actions).is_empty());
     // No new work while holding: proposals and bookings are refused, naming the state.
-    let proposal = m.handle(AgendaEvent::Request(msg(
-        MessageType::ProposalReq,
-        "o-2",
-        "p",
-    )));
+    let proposal = m.handle(
+        AgendaEvent::Request(msg(MessageType::ProposalReq, "o-2", "p")),
+        unix_ms(),
+    );
     let r = reply(&proposal);
     assert_eq!(r.reason.as_ref().map(|r| r.as_str()), Some("unavailable"));
     assert_eq!(r.info["packml_state"], 10);
     assert_refused(
-        &m.handle(AgendaEvent::Request(book("o-2", "c9"))),
+        &m.handle(AgendaEvent::Request(book("o-2", "c9")), unix_ms()),
         "unavailable",
     );
-    m.handle(done("c1"));
+    m.handle(done("c1"), unix_ms());
     assert_eq!(m.packml().state(), PackmlState::Held);
     // Held: the next booking does not start.
     assert_refused(
-        &m.handle(AgendaEvent::Request(start("o-1", "c2"))),
+        &m.handle(AgendaEvent::Request(start("o-1", "c2")), unix_ms()),
         "unavailable",
     );
     assert_eq!(m.bookings().len(), 2);
     let actions = command(&mut m, PackmlCommand::Unhold);
     assert_eq!(packml_reply(&actions).state, PackmlState::Execute);
-    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c2"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c2")), unix_ms()));
 }
 
 #[test]
 fn a_long_hold_hands_the_bookings_back() {
     let mut m = busy_with_two_booked();
     command(&mut m, PackmlCommand::Hold);
-    m.handle(done("c1"));
+    m.handle(done("c1"), unix_ms());
     let since = m.packml().since();
     assert!(m.wants_tick());
-    assert_eq!(
-        m.handle(AgendaEvent::Tick {
-            now: since + 29_000
-        }),
-        vec![]
-    );
-    let actions = m.handle(AgendaEvent::Tick {
-        now: since + 30_000,
-    });
+    assert_eq!(m.handle(AgendaEvent::Tick, since + 29_000), vec![]);
+    let actions = m.handle(AgendaEvent::Tick, since + 30_000);
     assert_eq!(handed_back(&actions), ["c2", "c3"]);
     assert!(m.bookings().is_empty());
     assert!(!m.wants_tick());
@@ -101,17 +97,17 @@ fn stop_hands_every_booking_back_and_reset_start_bring_it_back() {
     assert_eq!(packml_reply(&actions).state, PackmlState::Stopping);
     assert_eq!(handed_back(&actions), ["c2", "c3"]);
     assert!(!actions.contains(&AgendaAction::Abort), "the step finishes");
-    m.handle(done("c1"));
+    m.handle(done("c1"), unix_ms());
     assert_eq!(m.packml().state(), PackmlState::Stopped);
     command(&mut m, PackmlCommand::Reset);
     assert_eq!(m.packml().state(), PackmlState::Idle);
     assert_refused(
-        &m.handle(AgendaEvent::Request(book("o-2", "c9"))),
+        &m.handle(AgendaEvent::Request(book("o-2", "c9")), unix_ms()),
         "unavailable",
     );
     command(&mut m, PackmlCommand::Start);
     assert_eq!(m.packml().state(), PackmlState::Execute);
-    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c9"))));
+    assert_accepted(&m.handle(AgendaEvent::Request(book("o-2", "c9")), unix_ms()));
 }
 
 #[test]
@@ -121,13 +117,16 @@ fn abort_aborts_the_running_step_and_hands_the_bookings_back() {
     assert_eq!(packml_reply(&actions).state, PackmlState::Aborting);
     assert!(actions.contains(&AgendaAction::Abort));
     assert_eq!(handed_back(&actions), ["c2", "c3"]);
-    m.handle(AgendaEvent::ExecutionFinished {
-        conversation_id: "c1".into(),
-        outcome: Outcome::Failed {
-            reason: "aborted".into(),
-            detail: "aborted by an operator".into(),
+    m.handle(
+        AgendaEvent::ExecutionFinished {
+            conversation_id: "c1".into(),
+            outcome: Outcome::Failed {
+                reason: "aborted".into(),
+                detail: "aborted by an operator".into(),
+            },
         },
-    });
+        unix_ms(),
+    );
     assert_eq!(m.packml().state(), PackmlState::Aborted);
     assert_eq!(m.packml().status().defective, 1);
     command(&mut m, PackmlCommand::Clear);
@@ -145,15 +144,15 @@ fn abort_with_nothing_running_goes_straight_to_aborted() {
 #[test]
 fn a_controller_fault_aborts_and_hands_the_bookings_back() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    let actions = m.handle(AgendaEvent::ExecutionUnavailable(
-        ControllerStatus::Estop,
-        None,
-    ));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    let actions = m.handle(
+        AgendaEvent::ExecutionUnavailable(ControllerStatus::Estop, None),
+        unix_ms(),
+    );
     assert_eq!(handed_back(&actions), ["c1"]);
     assert_eq!(m.packml().state(), PackmlState::Aborted);
     // Ready again: still Aborted until an operator clears, resets and starts it.
-    m.handle(AgendaEvent::ExecutionReady);
+    m.handle(AgendaEvent::ExecutionReady, unix_ms());
     assert_eq!(m.packml().state(), PackmlState::Aborted);
     assert!(!m.takes_work());
     for c in [
@@ -185,10 +184,10 @@ fn a_refused_command_names_the_state_and_changes_nothing() {
     );
     assert_eq!(actions.len(), 1);
     assert_eq!(m.record(), before);
-    let mode = m.handle(AgendaEvent::Packml(PackmlRequest::mode(
-        UnitMode::Maintenance,
-        "op",
-    )));
+    let mode = m.handle(
+        AgendaEvent::Packml(PackmlRequest::mode(UnitMode::Maintenance, "op")),
+        unix_ms(),
+    );
     assert!(packml_reply(&mode).refused.is_some());
 }
 
@@ -196,15 +195,15 @@ fn a_refused_command_names_the_state_and_changes_nothing() {
 fn maintenance_mode_takes_no_orders() {
     let mut m = manager();
     command(&mut m, PackmlCommand::Stop);
-    let actions = m.handle(AgendaEvent::Packml(PackmlRequest::mode(
-        UnitMode::Maintenance,
-        "op",
-    )));
+    let actions = m.handle(
+        AgendaEvent::Packml(PackmlRequest::mode(UnitMode::Maintenance, "op")),
+        unix_ms(),
+    );
     assert_eq!(packml_reply(&actions).mode, UnitMode::Maintenance);
     command(&mut m, PackmlCommand::Reset);
     command(&mut m, PackmlCommand::Start);
     assert_eq!(m.packml().state(), PackmlState::Execute);
-    let refused = m.handle(AgendaEvent::Request(book("o-1", "c1")));
+    let refused = m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
     assert_refused(&refused, "unavailable");
     assert!(reply(&refused).info["detail"]
         .as_str()
@@ -224,6 +223,7 @@ fn a_held_resource_comes_back_held_from_its_journal() {
         3,
         serde_json::from_str(&text).unwrap(),
         Inheritance::Restarted,
+        unix_ms(),
     )
     .with_packml(PackmlSettings::default());
     // The step ran at the crash: reported interrupted; Holding resumes as Held.
@@ -236,6 +236,7 @@ fn a_held_resource_comes_back_held_from_its_journal() {
         3,
         AgendaRecord::default(),
         Inheritance::Restarted,
+        unix_ms(),
     )
     .with_packml(PackmlSettings {
         initial_state: PackmlState::Idle,
@@ -248,10 +249,10 @@ fn a_held_resource_comes_back_held_from_its_journal() {
 fn in_maintenance() -> AgendaManager {
     let mut m = manager();
     command(&mut m, PackmlCommand::Stop);
-    m.handle(AgendaEvent::Packml(PackmlRequest::mode(
-        UnitMode::Maintenance,
-        "op",
-    )));
+    m.handle(
+        AgendaEvent::Packml(PackmlRequest::mode(UnitMode::Maintenance, "op")),
+        unix_ms(),
+    );
     command(&mut m, PackmlCommand::Reset);
     command(&mut m, PackmlCommand::Start);
     assert_eq!(m.packml().state(), PackmlState::Execute);
@@ -259,13 +260,16 @@ fn in_maintenance() -> AgendaManager {
 }
 
 fn operator_job(m: &mut AgendaManager, info: Map<String, Value>) -> Vec<AgendaAction> {
-    m.handle(AgendaEvent::Packml(PackmlRequest::job(
-        schemas::packml::JobRequest {
-            service_type: "pick_n_place".into(),
-            info,
-        },
-        "alice",
-    )))
+    m.handle(
+        AgendaEvent::Packml(PackmlRequest::job(
+            schemas::packml::JobRequest {
+                service_type: "pick_n_place".into(),
+                info,
+            },
+            "alice",
+        )),
+        unix_ms(),
+    )
 }
 
 #[test]
@@ -286,7 +290,7 @@ fn an_operator_runs_a_single_job_in_maintenance_and_it_goes_to_no_inbox() {
         matches!(&packml_reply(&again).refused, Some(Refusal::JobNotAllowed { why, .. }) if why.contains("a job runs")),
         "{again:?}"
     );
-    let ended = m.handle(done("maintenance/1"));
+    let ended = m.handle(done("maintenance/1"), unix_ms());
     assert_eq!(ended, vec![AgendaAction::StateChanged], "no delivery");
     let status = m.packml().status();
     let job = status.operator_job.unwrap();
@@ -338,6 +342,7 @@ fn an_operator_job_running_at_a_crash_is_reported_interrupted_not_delivered() {
         3,
         record,
         Inheritance::Restarted,
+        unix_ms(),
     );
     assert!(restored.undelivered().is_empty());
     let job = restored.packml().status().operator_job.unwrap();

@@ -3,6 +3,7 @@
 //! are not the agenda's.
 
 use super::*;
+use schemas::unix_ms;
 
 fn proposal_req(order: &str, service_type: &str) -> Service {
     Service::request(
@@ -19,21 +20,28 @@ fn proposal_refusals_come_in_the_tables_order() {
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         1,
+        unix_ms(),
     );
     // Not offered beats unavailable.
-    let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "weld")));
+    let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "weld")), unix_ms());
     assert_eq!(
         reply(&r).reason.as_ref().map(|r| r.as_str()),
         Some("unknown_service")
     );
-    let r = m.handle(AgendaEvent::Request(proposal_req("o-1", "pick_n_place")));
+    let r = m.handle(
+        AgendaEvent::Request(proposal_req("o-1", "pick_n_place")),
+        unix_ms(),
+    );
     assert_eq!(
         reply(&r).reason.as_ref().map(|r| r.as_str()),
         Some("unavailable")
     );
-    m.handle(AgendaEvent::ExecutionReady);
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    let r = m.handle(AgendaEvent::Request(proposal_req("o-2", "pick_n_place")));
+    m.handle(AgendaEvent::ExecutionReady, unix_ms());
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    let r = m.handle(
+        AgendaEvent::Request(proposal_req("o-2", "pick_n_place")),
+        unix_ms(),
+    );
     assert_eq!(
         reply(&r).reason.as_ref().map(|r| r.as_str()),
         Some("agenda_full")
@@ -46,27 +54,36 @@ fn proposal_refusals_come_in_the_tables_order() {
 #[test]
 fn a_booking_request_for_the_running_conversation_is_refused_busy() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    assert_refused(&m.handle(AgendaEvent::Request(book("o-1", "c1"))), "busy");
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    assert_refused(
+        &m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms()),
+        "busy",
+    );
 }
 
 #[test]
 fn a_repeated_withdraw_and_an_unknown_acknowledgement_change_nothing() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    assert!(!m.handle(AgendaEvent::Withdraw).is_empty());
-    assert_eq!(m.handle(AgendaEvent::Withdraw), vec![]);
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    assert!(!m.handle(AgendaEvent::Withdraw, unix_ms()).is_empty());
+    assert_eq!(m.handle(AgendaEvent::Withdraw, unix_ms()), vec![]);
     assert_eq!(
-        m.handle(AgendaEvent::ResultAcknowledged {
-            conversation_id: "nobody".into()
-        }),
+        m.handle(
+            AgendaEvent::ResultAcknowledged {
+                conversation_id: "nobody".into()
+            },
+            unix_ms()
+        ),
         vec![]
     );
     assert_eq!(
-        m.handle(AgendaEvent::RequesterGone {
-            requester: HolonId::order("o-9").unwrap()
-        }),
+        m.handle(
+            AgendaEvent::RequesterGone {
+                requester: HolonId::order("o-9").unwrap()
+            },
+            unix_ms()
+        ),
         vec![]
     );
 }
@@ -80,7 +97,7 @@ fn requests_that_are_not_for_the_agenda_are_refused() {
         MessageType::Proposal,
     ] {
         assert_refused(
-            &m.handle(AgendaEvent::Request(msg(kind, "o-1", "c1"))),
+            &m.handle(AgendaEvent::Request(msg(kind, "o-1", "c1")), unix_ms()),
             "unknown_service",
         );
     }

@@ -2,12 +2,13 @@
 //! handed the bookings over.
 
 use super::*;
+use schemas::unix_ms;
 
 fn restored_with_bookings_on_turn(inheritance: Inheritance) -> (AgendaManager, Vec<String>) {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")));
-    m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")));
-    m.handle(AgendaEvent::Request(book_on_turn("o-3", "c3")));
+    m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")), unix_ms());
+    m.handle(AgendaEvent::Request(book_on_turn("o-3", "c3")), unix_ms());
     let json = serde_json::to_string(&m.record()).unwrap();
     let mut restored = AgendaManager::restore(
         HolonId::resource("robot1").unwrap(),
@@ -15,8 +16,9 @@ fn restored_with_bookings_on_turn(inheritance: Inheritance) -> (AgendaManager, V
         3,
         serde_json::from_str(&json).unwrap(),
         inheritance,
+        unix_ms(),
     );
-    let started = executed(&restored.handle(AgendaEvent::ExecutionReady));
+    let started = executed(&restored.handle(AgendaEvent::ExecutionReady, unix_ms()));
     (restored, started)
 }
 
@@ -33,11 +35,11 @@ fn after_a_restart_a_booking_on_turn_waits_for_its_requesters_start() {
     assert_eq!(m.state(), ResourceState::Free);
     // Its order gave up on it while the resource was away: the cancel is taken.
     let cancel = msg(MessageType::BookingCancel, "o-2", "c2");
-    let actions = m.handle(AgendaEvent::Request(cancel));
+    let actions = m.handle(AgendaEvent::Request(cancel), unix_ms());
     assert_accepted(&actions);
     assert!(executed(&actions).is_empty(), "{actions:?}");
     // The other order still holds its booking and asks to start.
-    let actions = m.handle(AgendaEvent::Request(start("o-3", "c3")));
+    let actions = m.handle(AgendaEvent::Request(start("o-3", "c3")), unix_ms());
     assert_accepted(&actions);
     assert_eq!(executed(&actions), ["c3"]);
 }
@@ -45,12 +47,12 @@ fn after_a_restart_a_booking_on_turn_waits_for_its_requesters_start() {
 #[test]
 fn restore_reports_the_interrupted_job_and_redelivers_results() {
     let mut m = manager();
-    m.handle(AgendaEvent::Request(book("o-1", "c1")));
-    m.handle(AgendaEvent::Request(book("o-2", "c2")));
-    m.handle(AgendaEvent::Request(book("o-3", "c3")));
-    m.handle(AgendaEvent::Request(start("o-1", "c1")));
-    m.handle(done("c1"));
-    m.handle(AgendaEvent::Request(start("o-2", "c2")));
+    m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-2", "c2")), unix_ms());
+    m.handle(AgendaEvent::Request(book("o-3", "c3")), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms());
+    m.handle(done("c1"), unix_ms());
+    m.handle(AgendaEvent::Request(start("o-2", "c2")), unix_ms());
     let record = m.record();
     let json = serde_json::to_string(&record).unwrap();
     let record: AgendaRecord = serde_json::from_str(&json).unwrap();
@@ -60,6 +62,7 @@ fn restore_reports_the_interrupted_job_and_redelivers_results() {
         3,
         record,
         Inheritance::Restarted,
+        unix_ms(),
     );
     assert_eq!(restored.bookings().len(), 1);
     assert_eq!(restored.bookings()[0].conversation_id, "c3");
@@ -103,6 +106,7 @@ fn a_journal_keeps_no_parameters_and_its_bookings_are_read_again_when_it_opens()
         3,
         serde_json::from_value(json).unwrap(),
         Inheritance::HandedOver,
+        unix_ms(),
     );
     let parameters = restored.bookings()[0].parameters.as_ref().unwrap();
     assert_eq!(parameters.poses.len(), 2);

@@ -5,7 +5,7 @@
 use tokio::time::Instant;
 use tracing::{debug, warn};
 
-use super::super::{ControllerEvent, ControllerStatus};
+use super::super::{CommandFailure, ControllerEvent, ControllerStatus};
 use super::{Awaiting, Connection, ConnectionEnd, Step};
 use crate::dialect::framing::Framing;
 use crate::dialect::{Correlation, Outcome, Parsed, Sending, Status, Values};
@@ -168,13 +168,19 @@ impl<O: super::Owner> Connection<'_, '_, O> {
 
     /// Exchange `i`'s element was answered by `reply`.
     async fn advance(&mut self, i: usize, reply: usize, values: &Values) -> Step {
-        if self.dialect.fence.is_some_and(|f| f.stale == reply) {
-            let current = values
-                .get("epoch")
-                .and_then(|e| e.parse().ok())
-                .map(super::super::Epoch);
-            self.deposed(current).await;
-        }
+        // A stale epoch's refusal (outcome failed or rejected, as the dialect is
+        // checked): reported as such, not as the step's result.
+        let stale = match self.dialect.fence.is_some_and(|f| f.stale == reply) {
+            true => {
+                let current = values
+                    .get("epoch")
+                    .and_then(|e| e.parse().ok())
+                    .map(super::super::Epoch);
+                self.deposed(current).await;
+                Some(CommandFailure::StaleEpoch { current })
+            }
+            false => None,
+        };
         let rule = &self.dialect.replies[reply];
         let now = Instant::now();
         let exchange = &mut self.exchanges[i];
@@ -231,6 +237,11 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 };
                 if let Some(mut exchange) = self.exchanges.remove(i) {
                     self.remember(&mut exchange);
+                }
+                if let Some(failure) = stale {
+                    return self
+                        .report(ControllerEvent::CommandFailed { id, failure })
+                        .await;
                 }
                 self.report(ControllerEvent::Reply {
                     id,
