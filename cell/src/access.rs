@@ -5,7 +5,7 @@
 //!
 //! | role | may declare (queryable, token, publication) | may query / subscribe |
 //! |---|---|---|
-//! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,layout,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `host/order-node/*/held` (orders' presence), `alive/**` (twins, requesters' presence) |
+//! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,layout,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `host/order-node/*/held` (orders' presence), `resource/*/layout` (a transporter's moves), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
 //! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*` (order-nodes of earlier releases), `host/order-node/<n>{,/fence/*,/orders,/held}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
@@ -101,6 +101,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             (&["query"], vec!["order/*/inbox".to_string()]),
             // Which orders the order-nodes hold (the orders' bookings' lifetime).
             (&["query"], vec!["host/order-node/*/held".to_string()]),
+            // The cell's layout (a transporter times its moves by it).
+            (&["query"], vec!["resource/*/layout".to_string()]),
             // Twins and requesters' presence (the bookings' lifetime).
             (
                 &["query", "declare_liveliness_subscriber", "liveliness_query"],

@@ -21,7 +21,7 @@ use tracing::{error, info, warn};
 use crate::absences::{Absences, Moment};
 use crate::agenda::{AgendaEvent, Inheritance};
 use crate::component::agenda_manager::{self, AgendaMessage, JournalledAgenda};
-use crate::component::{communication, execution, interfacing, requesters};
+use crate::component::{communication, execution, interfacing, layout, requesters};
 use crate::config::ResourceConfig;
 use crate::execution::Execution;
 use crate::fault_injection::Faults;
@@ -64,6 +64,8 @@ struct Wiring {
     agenda_manager: Arc<agenda_manager::Links>,
     requesters: Arc<requesters::Links>,
     communication: Arc<communication::Links>,
+    /// A transporter's: the cell's layout, for its agenda.
+    layout: Option<Arc<layout::Links>>,
 }
 
 /// How long a resource handing over waits for its results to be acknowledged before it
@@ -127,6 +129,19 @@ impl Wiring {
                 agenda: agenda_mail.sender.clone(),
                 views: views.clone(),
             }),
+            layout: config
+                .layout
+                .clone()
+                .filter(|part| part.transporter.is_some())
+                .map(|own| {
+                    Arc::new(layout::Links {
+                        holon: config.holon.clone(),
+                        session: session.clone(),
+                        keys: config.keys.clone(),
+                        own,
+                        agenda: agenda_mail.sender.clone(),
+                    })
+                }),
             communication: Arc::new(communication::Links {
                 config: config.clone(),
                 session: session.clone(),
@@ -152,15 +167,20 @@ impl Wiring {
             let links = links.clone();
             ChildSpec::new(name, move |token| run(links.clone(), token))
         }
-        Supervisor::new(config.holon.to_string(), config.strategy, config.intensity)
-            .child(spec("execution", &self.execution, execution::run))
-            .child(spec("agenda", &self.agenda_manager, agenda_manager::run))
-            .child(spec("requesters", &self.requesters, requesters::run))
-            .child(spec(
-                "communication",
-                &self.communication,
-                communication::run,
-            ))
+        let supervisor =
+            Supervisor::new(config.holon.to_string(), config.strategy, config.intensity)
+                .child(spec("execution", &self.execution, execution::run))
+                .child(spec("agenda", &self.agenda_manager, agenda_manager::run))
+                .child(spec("requesters", &self.requesters, requesters::run));
+        let supervisor = match &self.layout {
+            Some(links) => supervisor.child(spec("layout", links, layout::run)),
+            None => supervisor,
+        };
+        supervisor.child(spec(
+            "communication",
+            &self.communication,
+            communication::run,
+        ))
     }
 
     /// Stops taking work, hands every booking back, and waits (at most `grace`) until

@@ -6,6 +6,7 @@
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::time::Duration;
 
 use holarchy_tests::*;
 use schemas::{HolonId, MessageType, Service};
@@ -292,4 +293,129 @@ fn plant_sim_checks_its_file_and_layout() {
     ));
     assert_eq!(code, Some(2), "{said}");
     assert!(said.contains("controller[0] (robot1): dialect:"), "{said}");
+}
+
+/// A transporter config: `layout` as its part, one `transport` service moving parts.
+fn transporter(dir: &Path, name: &str, layout: &str) -> PathBuf {
+    let path = dir.join(format!("{name}.toml"));
+    let text = CONVEYOR
+        .replace("name = \"conveyor1\"", &format!("name = \"{name}\""))
+        .split("[[layout.locations]]")
+        .next()
+        .unwrap()
+        .to_string();
+    std::fs::write(&path, format!("{text}{layout}")).unwrap();
+    path
+}
+
+/// Transporters propose a move with its travel time from the cell's layout (the queue
+/// ahead and the travel), so an order has a real choice between the conveyor and a
+/// transfer robot; a move a transporter cannot make is refused, saying why.
+#[tokio::test(flavor = "multi_thread")]
+async fn transporters_propose_their_travel_and_refuse_what_they_cannot_reach() {
+    let dir = tempfile::tempdir().unwrap();
+    let station = |name: &str, dock: &str| {
+        let path = resource_config(dir.path(), name, 5000).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let layout = format!(
+            "\n[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ndock = \"{dock}\"\n"
+        );
+        std::fs::write(&path, format!("{text}{layout}")).unwrap();
+        path
+    };
+    let configs = [
+        ("conveyor1", {
+            std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR.replace(
+                "stoppers = [{ name = \"load\", at_mm = 0 }, { name = \"s1\", at_mm = 1000 }]",
+                "stoppers = [{ name = \"load\", at_mm = 0 }, { name = \"s1\", at_mm = 1000 }, { name = \"s2\", at_mm = 1500 }]",
+            )).unwrap();
+            dir.path().join("conveyor1.toml")
+        }),
+        ("robot1", station("robot1", "conveyor1.s1")),
+        ("robot2", station("robot2", "conveyor1.s2")),
+        (
+            "mover1",
+            transporter(
+                dir.path(),
+                "mover1",
+                "[layout.transfer]\nbetween = [\"robot1.port\", \"robot2.port\"]\nmove_ms = 100\n",
+            ),
+        ),
+    ];
+    let cell = Cell::open("t-transporters").await.unwrap();
+    let mut running = Vec::new();
+    for (name, config) in &configs {
+        let sim = Sim::start(dir.path(), &format!("{name}-sim"), "127.0.0.1:0", &[]).unwrap();
+        running.push(
+            start_node(
+                dir.path(),
+                config,
+                "t-transporters",
+                &cell.endpoint,
+                &sim.address,
+                &[],
+            )
+            .unwrap(),
+        );
+        running.push(sim.process);
+        cell.wait_serving(name).await.unwrap();
+    }
+    let ask = |from: &str, to: &str| {
+        let info = serde_json::json!({"part": "p-1", "from": from, "to": to});
+        Service::request(
+            MessageType::ProposalReq,
+            "transport",
+            "o-1/1/1",
+            HolonId::order("o-1").unwrap(),
+        )
+        .with_info(info.as_object().unwrap().clone())
+    };
+    // Between the two robots: the conveyor (500 mm at 4 m/s: 125 ms) and the transfer
+    // robot (100 ms) both propose, each with its own travel, once they know the layout.
+    let deadline = tokio::time::Instant::now() + WAIT;
+    let by = loop {
+        let proposals = cell
+            .wait_proposals(&ask("robot1.port", "robot2.port"), 2)
+            .await
+            .unwrap();
+        let by: std::collections::BTreeMap<String, serde_json::Value> = proposals
+            .iter()
+            .map(|p| {
+                (
+                    p.provider.as_ref().unwrap().name().to_string(),
+                    p.info["duration_ms"].clone(),
+                )
+            })
+            .collect();
+        if by["conveyor1"] == 125 && by["mover1"] == 100 {
+            break by;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the transporters never timed the move by the layout: {by:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    assert_eq!(by.len(), 2, "{by:?}");
+    // From the loading point only the conveyor can: the transfer robot says why not.
+    let proposals = cell
+        .proposals(&ask("conveyor1.load", "robot2.port"))
+        .await
+        .unwrap();
+    let mover = proposals
+        .iter()
+        .find(|p| p.provider.as_ref().is_some_and(|h| h.name() == "mover1"))
+        .unwrap_or_else(|| panic!("{proposals:?}"));
+    assert_eq!(mover.result, Some(false), "{mover:?}");
+    assert_eq!(
+        mover.info["detail"],
+        "mover1 does not move parts from conveyor1.load to robot2.port (as the cell's layout stands)"
+    );
+    let conveyor = proposals
+        .iter()
+        .find(|p| p.provider.as_ref().is_some_and(|h| h.name() == "conveyor1"))
+        .unwrap_or_else(|| panic!("{proposals:?}"));
+    assert_eq!(conveyor.result, Some(true), "{conveyor:?}");
+    assert_eq!(conveyor.info["duration_ms"], 375, "{conveyor:?}");
+    drop(running);
 }

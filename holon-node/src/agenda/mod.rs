@@ -96,6 +96,7 @@ mod queue;
 mod record;
 mod requests;
 mod snapshot;
+mod travel;
 
 pub use packml::{packml_hint, PackmlSettings};
 pub use record::{AgendaRecord, AgendaRecordRef};
@@ -246,6 +247,9 @@ pub enum AgendaEvent {
     Packml(PackmlRequest),
     /// A second has passed: bookings held too long are handed back.
     Tick,
+    /// The cell's layout as it stands (a transporter's: it times its moves by it and
+    /// refuses those it cannot make, [`travel`]).
+    Layout(Arc<schemas::layout::CellLayout>),
 }
 
 /// What the task around the agenda manager must do.
@@ -299,6 +303,8 @@ pub struct AgendaManager {
     held_bookings_ms: u64,
     /// The controller as the execution last reported it.
     controller: ControllerStatus,
+    /// The cell's layout, as last heard (transporters only; None until then).
+    layout: Option<Arc<schemas::layout::CellLayout>>,
 }
 
 impl AgendaManager {
@@ -319,6 +325,7 @@ impl AgendaManager {
             packml_restored: false,
             held_bookings_ms: PackmlSettings::default().held_bookings_ms,
             controller: ControllerStatus::Disconnected,
+            layout: None,
         }
     }
 
@@ -507,6 +514,10 @@ impl AgendaManager {
             }
             AgendaEvent::Packml(request) => self.packml_request(request, now),
             AgendaEvent::Tick => self.tick(now),
+            AgendaEvent::Layout(layout) => {
+                self.layout = Some(layout);
+                vec![]
+            }
             AgendaEvent::ExecutionFinished {
                 conversation_id,
                 outcome,

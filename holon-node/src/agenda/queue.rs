@@ -25,7 +25,7 @@ impl AgendaManager {
     /// An accepted booking: the proposal's figures and the booking's queue position.
     fn queued_reply(&self, request: &Service, queue_position: usize) -> Service {
         let mut reply = request.accepted(&self.holon);
-        reply.info = self.proposal_info(&request.service_type, request.priority().unwrap_or(0));
+        reply.info = self.proposal_info(request, request.priority().unwrap_or(0));
         reply
             .info
             .insert("queue_position".into(), json!(queue_position));
@@ -49,21 +49,20 @@ impl AgendaManager {
         at
     }
 
-    /// What a proposal says: the queue ahead and the expected wait before this service
-    /// could start for a booking of `priority`, from the nominal durations of the jobs
-    /// ahead of where it would go.
-    pub(super) fn proposal_info(&self, service_type: &str, priority: i32) -> Map<String, Value> {
-        let nominal = |t: &str| {
-            self.catalog
-                .get(t)
-                .map(|d| d.nominal_duration.as_millis() as u64)
-                .unwrap_or(0)
-        };
+    /// What a proposal says: the queue ahead and the expected wait before `request`'s
+    /// service could start for a booking of `priority`, from the durations of the jobs
+    /// ahead of where it would go, and its own duration: each a service's nominal
+    /// duration, or a transporter's move its travel time ([`super::travel`]).
+    pub(super) fn proposal_info(&self, request: &Service, priority: i32) -> Map<String, Value> {
         let at = self.insertion_point(priority);
         let ahead: u64 = self.bookings[..at]
             .iter()
-            .map(|b| nominal(&b.service_type))
-            .chain(self.current.iter().map(|j| nominal(&j.service_type)))
+            .map(|b| self.duration_ms(&b.service_type, &b.info))
+            .chain(
+                self.current
+                    .iter()
+                    .map(|j| self.duration_ms(&j.service_type, &j.info)),
+            )
             .sum();
         let mut info = Map::new();
         info.insert("state".into(), json!(self.state()));
@@ -73,7 +72,10 @@ impl AgendaManager {
         );
         info.insert("agenda_length".into(), json!(self.bookings.len()));
         info.insert("expected_wait_ms".into(), json!(ahead));
-        info.insert("duration_ms".into(), json!(nominal(service_type)));
+        info.insert(
+            "duration_ms".into(),
+            json!(self.duration_ms(&request.service_type, &request.info)),
+        );
         info
     }
 }

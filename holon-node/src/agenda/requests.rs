@@ -119,8 +119,11 @@ impl AgendaManager {
     }
 
     fn proposal(&self, request: &Service) -> Vec<AgendaAction> {
+        let unreachable = self.unreachable(&request.info);
         let refusal = if !self.catalog.offers(&request.service_type) {
             Some(Reason::UnknownService)
+        } else if unreachable.is_some() {
+            Some(Reason::InvalidInfo)
         } else if !self.takes_work() {
             Some(Reason::Unavailable)
         } else if self.bookings.len() >= self.capacity {
@@ -138,7 +141,10 @@ impl AgendaManager {
             Ok(priority) => priority,
             Err(detail) => return self.refuse(request, Reason::InvalidInfo, Some(detail)),
         };
-        reply.info = self.proposal_info(&request.service_type, priority);
+        reply.info = self.proposal_info(request, priority);
+        if let Some(why) = unreachable {
+            reply.info.insert("detail".into(), Value::String(why));
+        }
         if refusal == Some(Reason::Unavailable) && self.handing_over {
             handing_over_hint(&mut reply.info);
         } else if refusal == Some(Reason::Unavailable) && !self.packml.takes_orders() {
@@ -154,6 +160,10 @@ impl AgendaManager {
         match (conversation, taking_work, full) {
             _ if !self.catalog.offers(&request.service_type) => {
                 self.refuse(&request, Reason::UnknownService, None)
+            }
+            _ if self.unreachable(&request.info).is_some() => {
+                let why = self.unreachable(&request.info);
+                self.refuse(&request, Reason::InvalidInfo, why)
             }
             _ if request.requester.kind() == HolonKind::Resource => {
                 self.refuse(&request, Reason::NotARequester, None)

@@ -8,6 +8,7 @@ mod packml;
 mod queue;
 mod refusals;
 mod restore;
+mod travel;
 
 const INBOX: &str = "holarchy/t/order/o-1/inbox";
 
