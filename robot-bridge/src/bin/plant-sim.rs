@@ -5,7 +5,6 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::Parser;
 use robot_bridge::plant::PlantSim;
-use tokio_util::sync::CancellationToken;
 
 /// The cell's plant, simulated once for all its controllers (docs/material-flow.md,
 /// "The plant"): every controller of the plant file on its own address in its own
@@ -50,17 +49,8 @@ async fn main() -> anyhow::Result<()> {
             }
         }
     }
-    use std::io::IsTerminal;
-    let (stderr, _logs) = log_writer::spawn(std::io::stderr(), "log-stderr")
+    let _logs = robot_bridge::sim::process::log_to_stderr()
         .context("cannot start the log writer thread")?;
-    tracing_subscriber::fmt()
-        .with_writer(stderr)
-        .with_ansi(std::io::stderr().is_terminal())
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .init();
     let plant = match PlantSim::bind(&args.plant, args.state_file).await {
         Ok(plant) => plant,
         Err(e) => {
@@ -72,20 +62,7 @@ async fn main() -> anyhow::Result<()> {
         println!("controller {resource} listening on {address}");
     }
     println!("plant ready");
-    let shutdown = CancellationToken::new();
-    tokio::spawn({
-        let shutdown = shutdown.clone();
-        async move {
-            let mut term =
-                tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-                    .expect("SIGTERM handler");
-            tokio::select! {
-                _ = term.recv() => {}
-                _ = tokio::signal::ctrl_c() => {}
-            }
-            shutdown.cancel();
-        }
-    });
+    let shutdown = robot_bridge::sim::process::stop_on_signals();
     plant.run(shutdown).await;
     Ok(())
 }

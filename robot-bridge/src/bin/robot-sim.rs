@@ -8,7 +8,6 @@ use anyhow::Context;
 use clap::Parser;
 use robot_bridge::dialect::{Dialect, Role};
 use robot_bridge::sim::{SimConfig, Simulator};
-use tokio_util::sync::CancellationToken;
 
 /// A robot controller simulator: the TCP server a resource holon's bridge connects to
 /// (or, for a dialect whose controller connects, the client that dials the holon).
@@ -175,21 +174,8 @@ async fn main() -> anyhow::Result<()> {
         );
         std::process::exit(2);
     }
-    use std::io::IsTerminal;
-    // Lines are written by a thread of their own, off the command path, as the holons
-    // write theirs: none is dropped, the thread neither spins nor is woken per line, and
-    // the rest are written out when `_logs` drops at the end of `main`.
-    let (stderr, _logs) = log_writer::spawn(std::io::stderr(), "log-stderr")
+    let _logs = robot_bridge::sim::process::log_to_stderr()
         .context("cannot start the log writer thread")?;
-    tracing_subscriber::fmt()
-        .with_writer(stderr)
-        // Colour codes only on a terminal, never in a redirected log file.
-        .with_ansi(std::io::stderr().is_terminal())
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .init();
     let config = SimConfig {
         delay: Duration::from_millis(args.delay_ms),
         action_delays: args
@@ -232,20 +218,7 @@ async fn main() -> anyhow::Result<()> {
         }
     };
     let stats = simulator.stats();
-    let shutdown = CancellationToken::new();
-    tokio::spawn({
-        let shutdown = shutdown.clone();
-        async move {
-            let mut term =
-                tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-                    .expect("SIGTERM handler");
-            tokio::select! {
-                _ = term.recv() => {}
-                _ = tokio::signal::ctrl_c() => {}
-            }
-            shutdown.cancel();
-        }
-    });
+    let shutdown = robot_bridge::sim::process::stop_on_signals();
     simulator.run(shutdown).await;
     // The reader of our stdout may be gone (a launcher that only read the first line).
     let aborted = match stats.aborted() {

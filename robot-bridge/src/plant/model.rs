@@ -344,15 +344,9 @@ impl Plant {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use schemas::layout::LayoutSection;
 
     fn part(holon: &str, toml_text: &str) -> schemas::layout::LayoutPart {
-        #[derive(serde::Deserialize)]
-        struct File {
-            layout: LayoutSection,
-        }
-        let file: File = toml::from_str(toml_text).unwrap_or_else(|e| panic!("{e}"));
-        file.layout.part(holon).unwrap()
+        schemas::layout::part_from_toml(holon, toml_text).unwrap_or_else(|e| panic!("{e}"))
     }
 
     fn id(s: &str) -> LocationId {

@@ -80,6 +80,7 @@ use tracing::{info, warn};
 
 pub mod fence;
 pub mod physics;
+pub mod process;
 mod session;
 mod writer;
 

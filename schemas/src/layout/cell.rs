@@ -333,15 +333,9 @@ impl CellLayout {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::layout::LayoutSection;
 
     fn part(holon: &str, toml_text: &str) -> LayoutPart {
-        #[derive(serde::Deserialize)]
-        struct File {
-            layout: LayoutSection,
-        }
-        let file: File = toml::from_str(toml_text).unwrap_or_else(|e| panic!("{e}"));
-        file.layout.part(holon).unwrap()
+        crate::layout::part_from_toml(holon, toml_text).unwrap_or_else(|e| panic!("{e}"))
     }
 
     fn conveyor() -> LayoutPart {

@@ -21,7 +21,8 @@ mod section;
 
 pub use cell::{CellLayout, Problem, Route};
 pub use section::{
-    from_resource_config, ConveyorSection, LayoutSection, LocationSection, TransferSection,
+    from_resource_config, part_from_toml, ConveyorSection, LayoutSection, LocationSection,
+    TransferSection,
 };
 
 use std::fmt;

@@ -91,6 +91,13 @@ pub fn from_resource_config(
     Ok(Some((name, section)))
 }
 
+/// The part of holon `holon` that a config's text states in its `[layout]` (tests and
+/// tools that hold a config's text).
+pub fn part_from_toml(holon: &str, text: &str) -> Result<LayoutPart, String> {
+    let (_, section) = from_resource_config(text, Some(holon))?.ok_or("no [layout] in the text")?;
+    section.part(holon).map_err(|e| e.to_string())
+}
+
 impl LayoutSection {
     /// Whether the holon takes no part in the layout (no `[layout]`).
     pub fn is_empty(&self) -> bool {

@@ -5,16 +5,11 @@ use std::time::Duration;
 
 use super::*;
 use crate::catalog::{ServiceCatalog, ServiceDefinition, Step};
-use schemas::layout::{CellLayout, LayoutSection};
+use schemas::layout::CellLayout;
 use schemas::unix_ms;
 
 fn part(holon: &str, toml_text: &str) -> schemas::layout::LayoutPart {
-    #[derive(serde::Deserialize)]
-    struct File {
-        layout: LayoutSection,
-    }
-    let file: File = toml::from_str(toml_text).unwrap();
-    file.layout.part(holon).unwrap()
+    schemas::layout::part_from_toml(holon, toml_text).unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// conveyor1: a 4 m loop at 1 m/s, load at 0, robot1's port at 1 m, robot2's at 3 m.
