@@ -14,6 +14,8 @@ pub struct PlantProcess {
     pub controllers: BTreeMap<String, String>,
     /// Where the plant writes where everything is.
     pub state_file: PathBuf,
+    /// The plant's control port.
+    pub control: String,
 }
 
 impl PlantProcess {
@@ -29,6 +31,7 @@ impl PlantProcess {
             .arg(&file)
             .arg("--state-file")
             .arg(&state_file)
+            .args(["--control", "127.0.0.1:0"])
             .stdout(Stdio::piped())
             .stderr(std::fs::File::create(&stderr_path).expect("create the plant's stderr"))
             .spawn()
@@ -40,6 +43,7 @@ impl PlantProcess {
             stderr_path,
         };
         let mut controllers = BTreeMap::new();
+        let mut control = String::new();
         for line in BufReader::new(stdout).lines() {
             let line = line.expect("plant-sim's stdout");
             if line == "plant ready" {
@@ -47,7 +51,12 @@ impl PlantProcess {
                     process,
                     controllers,
                     state_file,
+                    control,
                 };
+            }
+            if let Some(address) = line.strip_prefix("control port listening on ") {
+                control = address.to_string();
+                continue;
             }
             let (resource, address) = line
                 .strip_prefix("controller ")
@@ -56,6 +65,18 @@ impl PlantProcess {
             controllers.insert(resource.to_string(), address.to_string());
         }
         panic!("plant-sim ended before it was ready: {}", process.stderr());
+    }
+
+    /// One command on the plant's control port, and its answer.
+    pub fn command(&self, line: &str) -> String {
+        use std::io::Write;
+        let mut stream = std::net::TcpStream::connect(&self.control).expect("the control port");
+        writeln!(stream, "{line}").expect("a command to the control port");
+        let mut answer = String::new();
+        BufReader::new(stream)
+            .read_line(&mut answer)
+            .expect("the control port's answer");
+        answer.trim_end().to_string()
     }
 
     /// Where everything is, as the plant's state file says.

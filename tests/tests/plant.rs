@@ -419,3 +419,92 @@ async fn transporters_propose_their_travel_and_refuse_what_they_cannot_reach() {
     assert_eq!(conveyor.info["duration_ms"], 375, "{conveyor:?}");
     drop(running);
 }
+
+/// The plant's faults, played on its control port: a jammed track holds a move until it
+/// is cleared; a pallet that stops reporting arrives without its controller saying so,
+/// and the control's view then differs from the plant's truth (the part is there; the
+/// step failed).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_jammed_track_holds_a_move_and_a_silent_pallet_arrives_unreported() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(
+        dir.path().join("conveyor1.toml"),
+        CONVEYOR.replace("command_timeout_ms = 5000", "command_timeout_ms = 2000"),
+    )
+    .unwrap();
+    let robot_config = robot1(dir.path());
+    let plant = PlantProcess::start(dir.path(), PLANT);
+    let cell = Cell::open("t-plant-faults").await.unwrap();
+    let mut nodes = Vec::new();
+    for (name, config) in [
+        ("conveyor1", dir.path().join("conveyor1.toml")),
+        ("robot1", robot_config),
+    ] {
+        let controller = &plant.controllers[name];
+        nodes.push(
+            start_node(
+                dir.path(),
+                &config,
+                "t-plant-faults",
+                &cell.endpoint,
+                controller,
+                &[],
+            )
+            .unwrap(),
+        );
+        cell.wait_serving(name).await.unwrap();
+    }
+    let mut inbox = cell.inbox("o-1", 0).await.unwrap();
+    assert!(plant
+        .command("jam conveyor9.s1")
+        .starts_with("error conveyor9.s1: no such conveyor stopper"));
+    assert!(plant.command("fly away").starts_with("error "));
+    // The track to s1 jammed: the move to robot1's port does not end.
+    assert_eq!(plant.command("jam conveyor1.s1"), "ok");
+    let order = HolonId::order("o-1").unwrap();
+    let info = serde_json::json!({"part": "p-1", "from": "conveyor1.load", "to": "robot1.port"});
+    for kind in [MessageType::BookingReq, MessageType::Start] {
+        let request = Service::request(kind, "transport", "o-1/1/1", order.clone())
+            .with_reply_to(cell.keys.inbox("o-1"))
+            .with_info(info.as_object().unwrap().clone());
+        assert_eq!(
+            cell.service("conveyor1", &request).await.unwrap().result,
+            Some(true)
+        );
+    }
+    assert!(
+        inbox.silent_for(Duration::from_millis(1000)).await,
+        "a move along a jammed track ended"
+    );
+    let state: serde_json::Value = serde_json::from_str(&plant.command("where")).unwrap();
+    assert_eq!(state["in_transit"][0]["load"]["part"], "p-1", "{state:#}");
+    assert_eq!(state["jammed"][0], "conveyor1.s1", "{state:#}");
+    // Cleared: it goes on and arrives.
+    assert_eq!(plant.command("clear conveyor1.s1"), "ok");
+    let done = inbox.next().await.unwrap();
+    assert_eq!(done.message_type, MessageType::Done, "{done:?}");
+    let state = plant.state();
+    let pallet = state["locations"]["robot1.port"][0]["carrier"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    // Its pallet stops reporting: the move back to the loading point happens, unsaid.
+    assert_eq!(plant.command(&format!("silence {pallet}")), "ok");
+    let back = job(
+        &cell,
+        &mut inbox,
+        "conveyor1",
+        "transport",
+        "o-1/2/1",
+        serde_json::json!({"part": "p-1", "from": "robot1.port", "to": "conveyor1.load"}),
+    )
+    .await;
+    assert_eq!(back.message_type, MessageType::Failed, "{back:?}");
+    let state = plant.state();
+    assert_eq!(
+        state["shipped"], 1,
+        "the plant's truth: the part left: {state:#}"
+    );
+    assert_eq!(state["silent"][0], pallet, "{state:#}");
+    drop(nodes);
+}

@@ -27,6 +27,14 @@ struct Args {
     /// Where to write where everything is, overriding the plant file's state_file.
     #[arg(long, value_name = "PATH")]
     state_file: Option<PathBuf>,
+    /// Serve the control port here (HOST:PORT; port 0: a free one, printed): one
+    /// command a line: `where` (the state as JSON), `jam CONVEYOR.STOPPER` and `clear
+    /// ...` (the track ending at that stopper: a move along it does not end while
+    /// jammed), `silence PALLET` and `report PALLET` (a pallet that stops reporting: its
+    /// moves end in the plant without its controller saying so). No access control:
+    /// keep it on loopback.
+    #[arg(long, value_name = "HOST:PORT")]
+    control: Option<String>,
     /// Check the plant file, its layout and its controllers' dialects, print `plant
     /// FILE is valid`, and exit (listening nowhere): 0 if it is, 2 with the reason if not.
     #[arg(long)]
@@ -51,7 +59,7 @@ async fn main() -> anyhow::Result<()> {
     }
     let _logs = robot_bridge::sim::process::log_to_stderr()
         .context("cannot start the log writer thread")?;
-    let plant = match PlantSim::bind(&args.plant, args.state_file).await {
+    let plant = match PlantSim::bind(&args.plant, args.state_file, args.control.as_deref()).await {
         Ok(plant) => plant,
         Err(e) => {
             eprintln!("plant-sim: {e}");
@@ -60,6 +68,9 @@ async fn main() -> anyhow::Result<()> {
     };
     for (resource, address) in plant.addresses() {
         println!("controller {resource} listening on {address}");
+    }
+    if let Some(address) = plant.control_address() {
+        println!("control port listening on {address}");
     }
     println!("plant ready");
     let shutdown = robot_bridge::sim::process::stop_on_signals();

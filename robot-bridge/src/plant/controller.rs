@@ -11,11 +11,11 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use schemas::layout::LocationId;
-use tracing::info;
+use tracing::{debug, info};
 
 use super::model::Plant;
 use crate::dialect::Values;
-use crate::sim::physics::Physics;
+use crate::sim::physics::{Physics, Report};
 
 /// Told after every change of the plant (the state file's writer).
 pub type OnChange = Arc<dyn Fn(&Plant) + Send + Sync>;
@@ -83,17 +83,39 @@ impl Physics for ControllerPhysics {
         Ok(None)
     }
 
-    fn end(&self, done: bool) {
+    fn held(&self) -> bool {
+        let moving = self
+            .moving
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone();
+        let Some(part) = moving else { return false };
+        match self.plant().held_up(&part) {
+            Some(why) => {
+                debug!(resource = %self.resource, part, %why, "the move is held up");
+                true
+            }
+            None => false,
+        }
+    }
+
+    fn end(&self, done: bool) -> Report {
         let Some(part) = self.moving.lock().unwrap_or_else(|e| e.into_inner()).take() else {
-            return;
+            return Report::Said;
         };
         let mut plant = self.plant();
+        let unreported = plant.unreported(&part);
         if done {
             plant.end_move(&part);
         } else {
             plant.stop_move(&part);
         }
-        info!(resource = %self.resource, part, where_it_is = %plant.where_is(&part), "moved");
+        info!(resource = %self.resource, part, where_it_is = %plant.where_is(&part), unreported, "moved");
         (self.on_change)(&plant);
+        if done && unreported {
+            Report::Unsaid
+        } else {
+            Report::Said
+        }
     }
 }

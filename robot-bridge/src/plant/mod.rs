@@ -10,6 +10,7 @@
 //! rewritten after every change). The layout is the cell's own: the `[layout]` of the
 //! resource configs the plant file names.
 
+pub mod control;
 pub mod controller;
 pub mod model;
 
@@ -95,6 +96,10 @@ pub enum PlantError {
 pub struct PlantSim {
     controllers: Vec<(String, Simulator)>,
     plant: Arc<Mutex<Plant>>,
+    /// Writes the state file.
+    on_change: OnChange,
+    /// The control port, if asked for ([`control`]).
+    control: Option<tokio::net::TcpListener>,
 }
 
 /// The plant's layout, from the plant file at `path`.
@@ -208,8 +213,12 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
 
 impl PlantSim {
     /// Reads the plant file at `path` (`state_file` overriding its own) and binds
-    /// every controller.
-    pub async fn bind(path: &Path, state_file: Option<PathBuf>) -> Result<PlantSim, PlantError> {
+    /// every controller, and the control port at `control` if given.
+    pub async fn bind(
+        path: &Path,
+        state_file: Option<PathBuf>,
+        control: Option<&str>,
+    ) -> Result<PlantSim, PlantError> {
         let Prepared {
             controllers: prepared,
             plant,
@@ -227,9 +236,24 @@ impl PlantSim {
                     })?;
             controllers.push((resource, simulator));
         }
+        let control = match control {
+            Some(address) => Some(tokio::net::TcpListener::bind(address).await.map_err(|e| {
+                PlantError::Listen {
+                    resource: "the control port".into(),
+                    address: address.to_string(),
+                    why: e.to_string(),
+                }
+            })?),
+            None => None,
+        };
         // Where everything is from the start: nothing yet, every pallet free.
         on_change(&plant.lock().unwrap_or_else(|e| e.into_inner()));
-        Ok(PlantSim { controllers, plant })
+        Ok(PlantSim {
+            controllers,
+            plant,
+            on_change,
+            control,
+        })
     }
 
     /// Each controller's resource and the address it listens on.
@@ -245,8 +269,21 @@ impl PlantSim {
         self.plant.lock().unwrap_or_else(|e| e.into_inner()).view()
     }
 
-    /// Serves every controller until `shutdown`.
+    /// Where the control port listens, if it does.
+    pub fn control_address(&self) -> Option<SocketAddr> {
+        self.control.as_ref().and_then(|l| l.local_addr().ok())
+    }
+
+    /// Serves every controller, and the control port, until `shutdown`.
     pub async fn run(self, shutdown: CancellationToken) {
+        if let Some(listener) = self.control {
+            tokio::spawn(control::serve(
+                listener,
+                self.plant.clone(),
+                self.on_change.clone(),
+                shutdown.clone(),
+            ));
+        }
         let running: Vec<_> = self
             .controllers
             .into_iter()

@@ -8,11 +8,13 @@
 //! | the move is aborted | | P stays on the transporter, stopped: in transit from A to B until someone puts it somewhere |
 //! | a station works on a part (pick, place, inspect) | a part is at one of its ports (P, where the command names it) | |
 //! | a transfer takes a part off its pallet | | the pallet is free again (back on its conveyor's loop) |
+//! | a track is jammed (`jam conveyor1.s2`: the track that ends at that stopper) | | a move whose way runs along it does not end until it is cleared |
+//! | a pallet stops reporting (`silence conveyor1/p2`) | | a move it carries ends in the plant, but its controller does not say so |
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 
-use schemas::layout::{CellLayout, LocationId, LocationRole, TransporterSpec};
+use schemas::layout::{CellLayout, Dock, LocationId, LocationRole, TransporterSpec};
 use serde::Serialize;
 
 /// A part and the carrier it rides on.
@@ -83,6 +85,10 @@ pub struct Plant {
     free_pallets: BTreeMap<String, Vec<String>>,
     /// Parts that left the plant at an exit.
     shipped: u64,
+    /// Jammed tracks, each named by the stopper it ends at.
+    jammed: BTreeSet<Dock>,
+    /// Pallets that stopped reporting.
+    silent: BTreeSet<String>,
 }
 
 /// Where everything is, as the plant's state file and `--state-file` readers see it.
@@ -96,6 +102,10 @@ pub struct PlantView {
     pub free_pallets: BTreeMap<String, Vec<String>>,
     /// Parts that left the plant at an exit.
     pub shipped: u64,
+    /// Jammed tracks (`conveyor1.s2`: the track that ends at that stopper).
+    pub jammed: Vec<String>,
+    /// Pallets that stopped reporting.
+    pub silent: Vec<String>,
 }
 
 impl Plant {
@@ -121,6 +131,8 @@ impl Plant {
             transit: BTreeMap::new(),
             free_pallets,
             shipped: 0,
+            jammed: BTreeSet::new(),
+            silent: BTreeSet::new(),
         }
     }
 
@@ -337,7 +349,79 @@ impl Plant {
             in_transit: self.transit.values().cloned().collect(),
             free_pallets: self.free_pallets.clone(),
             shipped: self.shipped,
+            jammed: self.jammed.iter().map(Dock::to_string).collect(),
+            silent: self.silent.iter().cloned().collect(),
         }
+    }
+
+    /// Jams the track that ends at `at` (true), or clears it (false). An error if the
+    /// layout has no such conveyor stopper.
+    pub fn jam(&mut self, at: Dock, jammed: bool) -> Result<(), String> {
+        let known = self
+            .layout
+            .conveyor(&at.conveyor)
+            .is_some_and(|c| c.stoppers.iter().any(|s| s.name == at.stopper));
+        if !known {
+            return Err(format!("{at}: no such conveyor stopper in the plant"));
+        }
+        if jammed {
+            self.jammed.insert(at);
+        } else {
+            self.jammed.remove(&at);
+        }
+        Ok(())
+    }
+
+    /// `pallet` stops reporting (true) or reports again (false).
+    pub fn silence(&mut self, pallet: &str, silent: bool) -> Result<(), String> {
+        let known = self.free_pallets.values().flatten().any(|p| p == pallet)
+            || self
+                .held
+                .values()
+                .flatten()
+                .chain(self.transit.values().map(|t| &t.load))
+                .any(|l| l.carrier.as_deref() == Some(pallet));
+        if !known {
+            return Err(format!("{pallet}: no such pallet in the plant"));
+        }
+        if silent {
+            self.silent.insert(pallet.to_string());
+        } else {
+            self.silent.remove(pallet);
+        }
+        Ok(())
+    }
+
+    /// Why `part`'s move cannot end now: a jammed track on its way (its conveyor's
+    /// tracks from the stopper after where it left to the one it goes to).
+    pub fn held_up(&self, part: &str) -> Option<String> {
+        let transit = self.transit.get(part)?;
+        let conveyor = self.layout.conveyor(&transit.transporter)?;
+        let dock_of = |id: &LocationId| self.layout.location(id)?.dock.clone();
+        let (from, to) = (dock_of(&transit.from)?, dock_of(&transit.to)?);
+        let at = |name: &str| conveyor.stoppers.iter().position(|s| s.name == name);
+        let (start, end) = (at(&from.stopper)?, at(&to.stopper)?);
+        let n = conveyor.stoppers.len();
+        let mut i = start;
+        while i != end {
+            i = (i + 1) % n;
+            let track = Dock {
+                conveyor: transit.transporter.clone(),
+                stopper: conveyor.stoppers[i].name.clone(),
+            };
+            if self.jammed.contains(&track) {
+                return Some(format!("the track to {track} is jammed"));
+            }
+        }
+        None
+    }
+
+    /// Whether `part` rides a pallet that stopped reporting.
+    pub fn unreported(&self, part: &str) -> bool {
+        self.transit
+            .get(part)
+            .and_then(|t| t.load.carrier.as_ref())
+            .is_some_and(|pallet| self.silent.contains(pallet))
     }
 }
 
@@ -439,6 +523,38 @@ stoppers = [{ name = "load", at_mm = 0 }, { name = "s1", at_mm = 1000 }, { name 
         assert_eq!(view.free_pallets["conveyor1"].len(), 2);
         assert!(view.locations.values().all(Vec::is_empty), "{view:?}");
         assert_eq!(plant.where_is("o-1"), "not in the plant");
+    }
+
+    #[test]
+    fn a_jammed_track_holds_the_moves_along_it_and_a_silent_pallet_goes_unreported() {
+        let mut plant = plant();
+        let (load, r1, r2) = (id("conveyor1.load"), id("robot1.port"), id("robot2.port"));
+        let dock = |s: &str| Dock::try_from(s.to_string()).unwrap();
+        assert!(plant.jam(dock("conveyor1.s9"), true).is_err());
+        plant.jam(dock("conveyor1.s2"), true).unwrap();
+        // load -> s1 does not pass the track to s2; load -> s2 does.
+        plant.begin_move("conveyor1", "o-1", &load, &r1).unwrap();
+        assert_eq!(plant.held_up("o-1"), None);
+        plant.begin_move("conveyor1", "o-2", &load, &r2).unwrap();
+        assert_eq!(
+            plant.held_up("o-2").as_deref(),
+            Some("the track to conveyor1.s2 is jammed")
+        );
+        plant.jam(dock("conveyor1.s2"), false).unwrap();
+        assert_eq!(plant.held_up("o-2"), None);
+        // A transfer has no tracks.
+        plant.end_move("o-1");
+        plant.end_move("o-2");
+        let pallet = plant.view().locations["robot2.port"][0]
+            .carrier
+            .clone()
+            .unwrap();
+        assert!(plant.silence("conveyor1/p9", true).is_err());
+        plant.silence(&pallet, true).unwrap();
+        plant.begin_move("conveyor1", "o-2", &r2, &load).unwrap();
+        assert!(plant.unreported("o-2"));
+        assert!(!plant.unreported("o-1"));
+        assert_eq!(plant.view().silent, vec![pallet]);
     }
 
     #[test]

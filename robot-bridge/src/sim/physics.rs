@@ -16,9 +16,23 @@ pub trait Physics: Send + Sync {
     /// cannot; the command is answered with its failed reply and not executed.
     fn begin(&self, action: &str, values: &Values) -> Result<Option<Duration>, String>;
 
+    /// Whether the action under way is held up (a jammed track under a move): it does
+    /// not end while it is; asked again shortly.
+    fn held(&self) -> bool {
+        false
+    }
+
     /// The action begun last ended: done (`true`), or stopped before its end (`false`:
-    /// aborted).
-    fn end(&self, done: bool);
+    /// aborted). Returns whether the controller says so ([`Report::Unsaid`]: a pallet
+    /// that stopped reporting arrives without a word).
+    fn end(&self, done: bool) -> Report;
+}
+
+/// Whether the controller tells of an action's end.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Report {
+    Said,
+    Unsaid,
 }
 
 /// A [`Physics`] as a simulator's setting.

@@ -42,6 +42,9 @@ fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<
     }
 }
 
+/// How soon an action held up in the plant is looked at again.
+const HELD_RECHECK: Duration = Duration::from_millis(50);
+
 /// Waits until `done` (an action's end) to within about a tenth of a millisecond.
 /// tokio's timer rounds a sleep up to its next millisecond tick (a 20 ms action took
 /// 21.4 ms, which a benchmark of robots that take time would charge to the control),
@@ -309,6 +312,13 @@ impl Session<'_> {
     }
 
     async fn end_action(&mut self, writer: &mut Writer<'_>) -> Result<(), SimError> {
+        if let (Some(physics), Some(acting)) = (&self.config.physics, &mut self.acting) {
+            if physics.0.held() {
+                // Held up in the plant (a jammed track): it ends once it is not.
+                acting.until = std::time::Instant::now() + HELD_RECHECK;
+                return Ok(());
+            }
+        }
         if let Some(acting) = self.acting.take() {
             self.finish(Some(acting.done), acting.result, writer)
                 .await?;
@@ -639,10 +649,20 @@ impl Session<'_> {
             .entry(action)
             .or_default() += 1;
         values.set("result", result.into());
-        if let Some(physics) = &self.config.physics {
-            physics.0.end(true);
-        }
+        let report = match &self.config.physics {
+            Some(physics) => physics.0.end(true),
+            None => super::physics::Report::Said,
+        };
         self.settle(StepRecord::Done(result.to_string()));
+        if report == super::physics::Report::Unsaid {
+            // Done in the plant, never told (a pallet that stopped reporting).
+            info!(
+                id = self.context.get("id").unwrap_or("-"),
+                "done, but not reported (a silent pallet)"
+            );
+            self.count_file.update();
+            return Ok(());
+        }
         writer.reply(rule, &values).await?;
         self.count_file.update();
         Ok(())

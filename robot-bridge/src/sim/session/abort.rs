@@ -58,6 +58,7 @@ impl Session<'_> {
             self.stats.aborted.fetch_add(1, Ordering::SeqCst);
             info!(%id, %action, "action aborted");
             if let Some(physics) = &self.config.physics {
+                // An aborted move is left where it stopped; the abort itself is said.
                 physics.0.end(false);
             }
             if let Some(acting) = self.acting.take() {
