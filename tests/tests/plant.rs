@@ -508,3 +508,74 @@ async fn a_jammed_track_holds_a_move_and_a_silent_pallet_arrives_unreported() {
     assert_eq!(state["silent"][0], pallet, "{state:#}");
     drop(nodes);
 }
+
+/// A move goes on in the plant when its transporter's holon dies mid-move: the part
+/// arrives where the pallet was going (the plant's truth the control must catch up with).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_move_goes_on_in_the_plant_when_its_holon_is_killed() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
+    let robot_config = robot1(dir.path());
+    let plant = PlantProcess::start(dir.path(), PLANT);
+    let cell = Cell::open("t-plant-kill").await.unwrap();
+    // robot1 serves: its port is in the layout the conveyor knows.
+    let _robot = start_node(
+        dir.path(),
+        &robot_config,
+        "t-plant-kill",
+        &cell.endpoint,
+        &plant.controllers["robot1"],
+        &[],
+    )
+    .unwrap();
+    cell.wait_serving("robot1").await.unwrap();
+    let mut conveyor = start_node(
+        dir.path(),
+        &dir.path().join("conveyor1.toml"),
+        "t-plant-kill",
+        &cell.endpoint,
+        &plant.controllers["conveyor1"],
+        &[],
+    )
+    .unwrap();
+    cell.wait_serving("conveyor1").await.unwrap();
+    let _inbox = cell.inbox("o-1", 0).await.unwrap();
+    // Held on a jammed track, so that it is surely under way when the holon dies.
+    assert_eq!(plant.command("jam conveyor1.s1"), "ok");
+    let info = serde_json::json!({"part": "p-1", "from": "conveyor1.load", "to": "robot1.port"});
+    for kind in [MessageType::BookingReq, MessageType::Start] {
+        let request =
+            Service::request(kind, "transport", "o-1/1/1", HolonId::order("o-1").unwrap())
+                .with_reply_to(cell.keys.inbox("o-1"))
+                .with_info(info.as_object().unwrap().clone());
+        assert_eq!(
+            cell.service("conveyor1", &request).await.unwrap().result,
+            Some(true)
+        );
+    }
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while plant.state()["in_transit"].as_array().unwrap().is_empty() {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the move never began"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    conveyor.kill();
+    assert_eq!(plant.command("clear conveyor1.s1"), "ok");
+    loop {
+        let state = plant.state();
+        if state["locations"]["robot1.port"][0]["part"] == "p-1" {
+            assert!(
+                state["in_transit"].as_array().unwrap().is_empty(),
+                "{state:#}"
+            );
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the part never arrived: {state:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}

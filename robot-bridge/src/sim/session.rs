@@ -297,6 +297,16 @@ impl Session<'_> {
             _ = shutdown.cancelled() => return,
             _ = act_for(acting.until) => {}
         }
+        if let Some(physics) = &self.config.physics {
+            // The plant goes on without the holon: a move held up ends once it is not.
+            while physics.0.held() {
+                tokio::select! {
+                    _ = shutdown.cancelled() => return,
+                    _ = tokio::time::sleep(HELD_RECHECK) => {}
+                }
+            }
+            physics.0.end(true);
+        }
         let action = self.context.get("action").unwrap_or("").to_string();
         info!(%action, "the connection is gone: the action completes unanswered");
         self.settle(StepRecord::Done(acting.result.to_string()));
