@@ -483,6 +483,30 @@ async fn a_jammed_track_holds_a_move_and_a_silent_pallet_arrives_unreported() {
     assert_eq!(plant.command("clear conveyor1.s1"), "ok");
     let done = inbox.next().await.unwrap();
     assert_eq!(done.message_type, MessageType::Done, "{done:?}");
+    // The conveyor's e-stop, pressed for 1.5 s: its holon hears estop at once (on
+    // the connection it has), then ready again.
+    assert!(plant
+        .command("estop conveyor9 100")
+        .starts_with("error conveyor9: no controller"));
+    assert_eq!(plant.command("estop conveyor1 1500"), "ok");
+    cell.wait_state("conveyor1", "its controller in estop", |s| {
+        s["controller"] == "estop"
+    })
+    .await
+    .unwrap();
+    assert_eq!(plant.state()["estopped"][0], "conveyor1");
+    cell.wait_state("conveyor1", "its controller ready again", |s| {
+        s["controller"] == "ready"
+    })
+    .await
+    .unwrap();
+    // An e-stop aborts the PackML unit (docs/packml.md): an operator clears, resets
+    // and starts it again.
+    cell.wait_packml("conveyor1", 9).await.unwrap();
+    for command in ["clear", "reset", "start"] {
+        cell.packml("conveyor1", command).await.unwrap();
+    }
+    cell.wait_serving("conveyor1").await.unwrap();
     let state = plant.state();
     let pallet = state["locations"]["robot1.port"][0]["carrier"]
         .as_str()

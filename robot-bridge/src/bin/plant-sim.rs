@@ -31,8 +31,8 @@ struct Args {
     /// command a line: `where` (the state as JSON), `jam CONVEYOR.STOPPER` and `clear
     /// ...` (the track ending at that stopper: a move along it does not end while
     /// jammed), `silence PALLET` and `report PALLET` (a pallet that stops reporting: its
-    /// moves end in the plant without its controller saying so). No access control:
-    /// keep it on loopback.
+    /// moves end in the plant without its controller saying so), `estop RESOURCE MS`
+    /// (its controller e-stopped for MS ms). No access control: keep it on loopback.
     #[arg(long, value_name = "HOST:PORT")]
     control: Option<String>,
     /// Check the plant file, its layout and its controllers' dialects, print `plant

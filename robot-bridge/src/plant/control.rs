@@ -9,10 +9,13 @@
 //! | `clear CONVEYOR.STOPPER` | `ok`: it is not any more; the moves held up go on |
 //! | `silence PALLET` | `ok`: the pallet (`conveyor1/p2`) stops reporting: a move it carries ends in the plant without its controller saying so |
 //! | `report PALLET` | `ok`: it reports again |
+//! | `estop RESOURCE MS` | `ok`: the resource's controller is e-stopped for MS ms (it says `estop`, refuses every command meanwhile, and a transporter's moves under way do not go on), then ready again |
 //!
 //! Anything else is answered `error ` and why; nothing changes.
 
+use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use schemas::layout::Dock;
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
@@ -22,30 +25,64 @@ use tracing::{info, warn};
 
 use super::controller::OnChange;
 use super::model::Plant;
+use crate::sim::SimStats;
+
+/// What a command asks of the plant besides its state.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Effect {
+    None,
+    /// The plant's state changed.
+    Changed,
+    /// Press `resource`'s e-stop for `time`.
+    Estop {
+        resource: String,
+        time: Duration,
+    },
+}
 
 /// The longest command line read.
 const MAX_LINE: usize = 256;
 
-/// Carries out one command line on `plant`: the answer, and whether the plant changed.
-pub fn command(plant: &mut Plant, line: &str) -> (String, bool) {
+/// Carries out one command line on `plant` (whose controllers are `resources`): the
+/// answer, and what else it asks for.
+pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, Effect) {
     let words: Vec<&str> = line.split_whitespace().collect();
     let done = |result: Result<(), String>| match result {
-        Ok(()) => ("ok".to_string(), true),
-        Err(why) => (format!("error {why}"), false),
+        Ok(()) => ("ok".to_string(), Effect::Changed),
+        Err(why) => (format!("error {why}"), Effect::None),
     };
     let dock = |text: &str| Dock::try_from(text.to_string());
     match words.as_slice() {
         ["where"] => (
             serde_json::to_string(&plant.view()).expect("a plant view serializes"),
-            false,
+            Effect::None,
         ),
+        ["estop", resource, ms] => {
+            match (resources.iter().any(|r| r == resource), ms.parse::<u64>()) {
+                (false, _) => (
+                    format!("error {resource}: no controller of that resource in the plant"),
+                    Effect::None,
+                ),
+                (true, Ok(ms)) if ms > 0 => (
+                    "ok".into(),
+                    Effect::Estop {
+                        resource: resource.to_string(),
+                        time: Duration::from_millis(ms),
+                    },
+                ),
+                (true, _) => (
+                    format!("error {ms:?}: MS is a number of milliseconds above 0"),
+                    Effect::None,
+                ),
+            }
+        }
         ["jam", at] => done(dock(at).and_then(|at| plant.jam(at, true))),
         ["clear", at] => done(dock(at).and_then(|at| plant.jam(at, false))),
         ["silence", pallet] => done(plant.silence(pallet, true)),
         ["report", pallet] => done(plant.silence(pallet, false)),
         _ => (
-            format!("error {line:?}: not a command (where, jam, clear, silence, report)"),
-            false,
+            format!("error {line:?}: not a command (where, jam, clear, silence, report, estop)"),
+            Effect::None,
         ),
     }
 }
@@ -54,9 +91,11 @@ pub fn command(plant: &mut Plant, line: &str) -> (String, bool) {
 pub async fn serve(
     listener: TcpListener,
     plant: Arc<Mutex<Plant>>,
+    controllers: BTreeMap<String, Arc<SimStats>>,
     on_change: OnChange,
     shutdown: CancellationToken,
 ) {
+    let controllers = Arc::new(controllers);
     loop {
         let (stream, peer) = tokio::select! {
             _ = shutdown.cancelled() => return,
@@ -69,6 +108,7 @@ pub async fn serve(
             },
         };
         let (plant, on_change, shutdown) = (plant.clone(), on_change.clone(), shutdown.clone());
+        let controllers = controllers.clone();
         tokio::spawn(async move {
             let (read, mut write) = stream.into_split();
             // A connection reads at most 1 MiB in all: a bounded window, not a stream.
@@ -83,11 +123,19 @@ pub async fn serve(
                     },
                 };
                 let answer = {
-                    let mut plant = plant.lock().unwrap_or_else(|e| e.into_inner());
-                    let (answer, changed) = command(&mut plant, line.trim());
-                    if changed {
+                    let resources: Vec<String> = controllers.keys().cloned().collect();
+                    let mut locked = plant.lock().unwrap_or_else(|e| e.into_inner());
+                    let (answer, effect) = command(&mut locked, &resources, line.trim());
+                    if effect != Effect::None {
                         info!(%peer, command = %line.trim(), "the plant changed by its control port");
-                        on_change(&plant);
+                    }
+                    if let Effect::Estop { resource, time } = &effect {
+                        locked.estop(resource, true);
+                        controllers[resource].stop(schemas::ControllerState::Estop, *time);
+                        release_later(plant.clone(), resource.clone(), *time, on_change.clone());
+                    }
+                    if effect != Effect::None {
+                        on_change(&locked);
                     }
                     answer
                 };
@@ -98,4 +146,16 @@ pub async fn serve(
             }
         });
     }
+}
+
+/// Releases `resource`'s e-stop after `time` (its controller says `ready` again by
+/// itself then).
+fn release_later(plant: Arc<Mutex<Plant>>, resource: String, time: Duration, on_change: OnChange) {
+    tokio::spawn(async move {
+        tokio::time::sleep(time).await;
+        let mut plant = plant.lock().unwrap_or_else(|e| e.into_inner());
+        plant.estop(&resource, false);
+        info!(%resource, "e-stop released");
+        on_change(&plant);
+    });
 }

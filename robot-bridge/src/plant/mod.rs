@@ -277,9 +277,15 @@ impl PlantSim {
     /// Serves every controller, and the control port, until `shutdown`.
     pub async fn run(self, shutdown: CancellationToken) {
         if let Some(listener) = self.control {
+            let controllers = self
+                .controllers
+                .iter()
+                .map(|(resource, sim)| (resource.clone(), sim.stats()))
+                .collect();
             tokio::spawn(control::serve(
                 listener,
                 self.plant.clone(),
+                controllers,
                 self.on_change.clone(),
                 shutdown.clone(),
             ));

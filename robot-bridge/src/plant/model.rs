@@ -10,6 +10,7 @@
 //! | a transfer takes a part off its pallet | | the pallet is free again (back on its conveyor's loop) |
 //! | a track is jammed (`jam conveyor1.s2`: the track that ends at that stopper) | | a move whose way runs along it does not end until it is cleared |
 //! | a pallet stops reporting (`silence conveyor1/p2`) | | a move it carries ends in the plant, but its controller does not say so |
+//! | a transporter's e-stop is pressed (`estop conveyor1 MS`) | | its moves do not go on until it is released |
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
@@ -89,6 +90,8 @@ pub struct Plant {
     jammed: BTreeSet<Dock>,
     /// Pallets that stopped reporting.
     silent: BTreeSet<String>,
+    /// Transporters whose e-stop is pressed: their moves do not go on.
+    estopped: BTreeSet<String>,
 }
 
 /// Where everything is, as the plant's state file and `--state-file` readers see it.
@@ -106,6 +109,8 @@ pub struct PlantView {
     pub jammed: Vec<String>,
     /// Pallets that stopped reporting.
     pub silent: Vec<String>,
+    /// Transporters whose e-stop is pressed.
+    pub estopped: Vec<String>,
 }
 
 impl Plant {
@@ -133,6 +138,7 @@ impl Plant {
             shipped: 0,
             jammed: BTreeSet::new(),
             silent: BTreeSet::new(),
+            estopped: BTreeSet::new(),
         }
     }
 
@@ -351,6 +357,17 @@ impl Plant {
             shipped: self.shipped,
             jammed: self.jammed.iter().map(Dock::to_string).collect(),
             silent: self.silent.iter().cloned().collect(),
+            estopped: self.estopped.iter().cloned().collect(),
+        }
+    }
+
+    /// Presses (true) or releases (false) `resource`'s e-stop: a transporter's moves do
+    /// not go on while it is pressed.
+    pub fn estop(&mut self, resource: &str, pressed: bool) {
+        if pressed {
+            self.estopped.insert(resource.to_string());
+        } else {
+            self.estopped.remove(resource);
         }
     }
 
@@ -396,6 +413,9 @@ impl Plant {
     /// tracks from the stopper after where it left to the one it goes to).
     pub fn held_up(&self, part: &str) -> Option<String> {
         let transit = self.transit.get(part)?;
+        if self.estopped.contains(&transit.transporter) {
+            return Some(format!("{} is e-stopped", transit.transporter));
+        }
         let conveyor = self.layout.conveyor(&transit.transporter)?;
         let dock_of = |id: &LocationId| self.layout.location(id)?.dock.clone();
         let (from, to) = (dock_of(&transit.from)?, dock_of(&transit.to)?);

@@ -170,6 +170,9 @@ pub struct SimStats {
     /// The controller's simulated fault or e-stop (`--fault-after`) and until when: the
     /// controller's, not a connection's, so it outlasts a reconnect.
     stopped: Mutex<Option<(std::time::Instant, ControllerState)>>,
+    /// Woken when the controller is stopped from outside a session (the plant's
+    /// e-stop), so that every session says so at once.
+    stop_changed: tokio::sync::Notify,
 }
 
 impl SimStats {
@@ -216,6 +219,7 @@ impl SimStats {
     pub(crate) fn stop(&self, state: ControllerState, time: Duration) {
         *self.stopped.lock().unwrap_or_else(|e| e.into_inner()) =
             Some((std::time::Instant::now() + time, state));
+        self.stop_changed.notify_waiters();
     }
 
     /// Commands of the sequence that came while the controller was stopped (its

@@ -157,8 +157,21 @@ pub(super) async fn serve(
             .map_or_else(std::time::Instant::now, |a| a.until);
         let lease_end = session.lease_end();
         let fault_end = stats.stopped().map(|(until, _)| until);
+        let stop_changed = stats.stop_changed.notified();
         let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
+            _ = stop_changed => {
+                // Stopped from outside this session (the plant's e-stop): said at once.
+                let state = session.state_now();
+                if writer.state != state {
+                    writer.state = state;
+                    info!(%state, "stopped");
+                    if dialect.status == Status::Pushed {
+                        writer.status().await?;
+                    }
+                }
+                Flow::Continue
+            }
             _ = tokio::time::sleep_until(fault_end.unwrap_or_else(std::time::Instant::now).into()), if fault_end.is_some() => {
                 writer.state = ControllerState::Ready;
                 info!("ready again");
