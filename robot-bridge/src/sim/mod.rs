@@ -110,6 +110,10 @@ pub struct SimConfig {
     pub fault_every: Option<u64>,
     pub fault_state: Option<ControllerState>,
     pub fault_for: Duration,
+    /// Every Nth command of the process takes the controller, for `fault_for`, into a
+    /// state the dialect does not describe (its `ready` status said with `HOMING` for
+    /// the state's word, [`Dialect::undescribed_status`]): as `fault_every` otherwise.
+    pub unknown_state_every: Option<u64>,
     /// Rewritten (atomically) with [`SimStats`] as JSON after every command, once its
     /// reply is sent.
     pub count_file: Option<PathBuf>,
@@ -165,6 +169,9 @@ pub struct SimStats {
     /// The controller's simulated fault or e-stop (`--fault-after`) and until when: the
     /// controller's, not a connection's, so it outlasts a reconnect.
     stopped: Mutex<Option<(std::time::Instant, ControllerState)>>,
+    /// The stop under way is in a state the dialect does not describe
+    /// (`unknown_state_every`): its status says `HOMING`.
+    undescribed: std::sync::atomic::AtomicBool,
 }
 
 impl SimStats {
@@ -211,6 +218,19 @@ impl SimStats {
     pub(crate) fn stop(&self, state: ControllerState, time: Duration) {
         *self.stopped.lock().unwrap_or_else(|e| e.into_inner()) =
             Some((std::time::Instant::now() + time, state));
+        self.undescribed.store(false, Ordering::SeqCst);
+    }
+
+    /// The controller stops for `time` in a state the dialect does not describe (it
+    /// refuses motion as in a fault; its status says [`UNDESCRIBED_STATE`]).
+    pub(crate) fn stop_undescribed(&self, time: Duration) {
+        self.stop(ControllerState::Fault, time);
+        self.undescribed.store(true, Ordering::SeqCst);
+    }
+
+    /// Whether the controller is stopped in a state the dialect does not describe.
+    pub(crate) fn undescribed(&self) -> bool {
+        self.stopped().is_some() && self.undescribed.load(Ordering::SeqCst)
     }
 
     /// Commands of the sequence that came while the controller was stopped (its
@@ -315,6 +335,10 @@ enum SimLink {
     /// The controller connects to the holon at this address.
     Dial(String),
 }
+
+/// The word `--unknown-state-every` says for the controller's state: in no table of a
+/// dialect, as a controller that reports a state its integrator never described.
+pub const UNDESCRIBED_STATE: &str = "HOMING";
 
 /// How long the count file's writer waits after a write before the next: the file lags
 /// the counts by at most this and one write (readers wait for it to settle).

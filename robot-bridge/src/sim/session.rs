@@ -121,6 +121,7 @@ pub(super) async fn serve(
         state: stats
             .stopped()
             .map_or(ControllerState::Ready, |(_, state)| state),
+        stats,
     };
     if let Some(banner) = &dialect.banner {
         let mut framed = BytesMut::new();
@@ -387,7 +388,14 @@ impl Session<'_> {
             let refused = self.stats.refused.fetch_add(1, Ordering::SeqCst) + 1;
             let command = &self.dialect.commands[index].name;
             warn!(%command, %state, refused, "a command while stopped: refused, not executed");
-            let why = format!("refused: the robot is in {state}");
+            let why = if self.stats.undescribed() {
+                format!(
+                    "refused: the robot is {}",
+                    super::UNDESCRIBED_STATE.to_lowercase()
+                )
+            } else {
+                format!("refused: the robot is in {state}")
+            };
             self.answer_with(
                 &element,
                 writer,
@@ -466,14 +474,24 @@ impl Session<'_> {
             || config
                 .fault_every
                 .is_some_and(|every| every > 0 && n.is_multiple_of(every));
-        if faults {
+        let undescribed = !faults
+            && config
+                .unknown_state_every
+                .is_some_and(|every| every > 0 && n.is_multiple_of(every));
+        if faults || undescribed {
             let state = config.fault_state.unwrap_or(ControllerState::Fault);
-            info!(%id, %state, "reporting a fault (--fault-after)");
             self.count_file.update();
             let one = self.dialect.correlation == Correlation::OneInFlight;
             // Stopped for `fault_for` (the session's timer reports `ready` again); what
             // comes meanwhile is refused.
-            self.stats.stop(state, config.fault_for);
+            if undescribed {
+                info!(%id, "in a state the dialect does not describe (--unknown-state-every)");
+                self.stats.stop_undescribed(config.fault_for);
+            } else {
+                info!(%id, %state, "reporting a fault (--fault-after)");
+                self.stats.stop(state, config.fault_for);
+            }
+            let state = self.state_now();
             writer.state = state;
             if self.dialect.status == Status::Pushed {
                 // The state first, so the holon knows it before the command's answer.
@@ -484,8 +502,11 @@ impl Session<'_> {
             // controller leaves the job it was given (its state says why), unless its
             // state cannot be told (a dialect whose state is the connection's).
             if one || self.dialect.status == Status::Connection {
-                self.answer_failed(element, writer, &format!("{state}"))
-                    .await?;
+                let said = match undescribed {
+                    true => super::UNDESCRIBED_STATE.to_lowercase(),
+                    false => state.to_string(),
+                };
+                self.answer_failed(element, writer, &said).await?;
             }
             return Ok(Flow::Continue);
         }
