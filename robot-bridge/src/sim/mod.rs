@@ -37,6 +37,9 @@
 //! - `oversize_after N`: the (N+1)th command gets a message larger than the dialect's
 //!   `max_message_bytes` and is not executed;
 //! - `fault_every N`: every Nth command faults the controller as `fault_after` does;
+//! - `unknown_state_every N`: every Nth command takes the controller, for `fault_for`,
+//!   into a state the dialect does not describe: as `fault_every`, but its status is
+//!   the `ready` one with [`UNDESCRIBED_STATE`] for the state's word (`STATE HOMING`);
 //! - `wrong_id_after N`: the (N+1)th command's answers echo another id (the command's
 //!   with a `9` after it), where the dialect's replies echo one; it is executed;
 //! - `fault_after N`: the (N+1)th command of the process is not executed: the controller
