@@ -125,11 +125,11 @@ impl Rule {
             let least = backoff.next_pause();
             let Some(end) = before.end else { continue };
             let gap = (next.start - end).max(0.0);
-            judged.longest_pause_ms = judged.longest_pause_ms.max((gap * 1000.0) as u64);
+            judged.longest_pause_ms = judged.longest_pause_ms.max((gap * 1000.0).round() as u64);
             if gap + self.tolerance.as_secs_f64() < least.as_secs_f64() {
                 judged
                     .too_soon
-                    .push(((gap * 1000.0) as u64, least.as_millis() as u64));
+                    .push(((gap * 1000.0).round() as u64, least.as_millis() as u64));
             }
         }
         judged.served = connections.iter().filter(|c| self.served(c)).count() as u64;
