@@ -479,36 +479,9 @@ impl Session<'_> {
                 .unknown_state_every
                 .is_some_and(|every| every > 0 && n.is_multiple_of(every));
         if faults || undescribed {
-            let state = config.fault_state.unwrap_or(ControllerState::Fault);
-            self.count_file.update();
-            let one = self.dialect.correlation == Correlation::OneInFlight;
-            // Stopped for `fault_for` (the session's timer reports `ready` again); what
-            // comes meanwhile is refused.
-            if undescribed {
-                info!(%id, "in a state the dialect does not describe (--unknown-state-every)");
-                self.stats.stop_undescribed(config.fault_for);
-            } else {
-                info!(%id, %state, "reporting a fault (--fault-after)");
-                self.stats.stop(state, config.fault_for);
-            }
-            let state = self.state_now();
-            writer.state = state;
-            if self.dialect.status == Status::Pushed {
-                // The state first, so the holon knows it before the command's answer.
-                writer.status().await?;
-            }
-            // One in flight, the command is answered with its failed reply (which frees
-            // the wire for the state); with ids it is left unanswered, as a faulted
-            // controller leaves the job it was given (its state says why), unless its
-            // state cannot be told (a dialect whose state is the connection's).
-            if one || self.dialect.status == Status::Connection {
-                let said = match undescribed {
-                    true => super::UNDESCRIBED_STATE.to_lowercase(),
-                    false => state.to_string(),
-                };
-                self.answer_failed(element, writer, &said).await?;
-            }
-            return Ok(Flow::Continue);
+            return self
+                .stop_controller(element, writer, &id, undescribed)
+                .await;
         }
         let mut takes = config
             .action_delays
@@ -589,6 +562,48 @@ impl Session<'_> {
                     result,
                 });
             }
+        }
+        Ok(Flow::Continue)
+    }
+
+    /// The command stops the controller (`fault_after`, `fault_every`, or, when
+    /// `undescribed`, `unknown_state_every`) for `fault_for` instead of being executed.
+    async fn stop_controller(
+        &mut self,
+        element: &Element,
+        writer: &mut Writer<'_>,
+        id: &str,
+        undescribed: bool,
+    ) -> Result<Flow, SimError> {
+        let config = self.config;
+        let state = config.fault_state.unwrap_or(ControllerState::Fault);
+        self.count_file.update();
+        let one = self.dialect.correlation == Correlation::OneInFlight;
+        // Stopped for `fault_for` (the session's timer reports `ready` again); what
+        // comes meanwhile is refused.
+        if undescribed {
+            info!(%id, "in a state the dialect does not describe (--unknown-state-every)");
+            self.stats.stop_undescribed(config.fault_for);
+        } else {
+            info!(%id, %state, "reporting a fault (--fault-after)");
+            self.stats.stop(state, config.fault_for);
+        }
+        let state = self.state_now();
+        writer.state = state;
+        if self.dialect.status == Status::Pushed {
+            // The state first, so the holon knows it before the command's answer.
+            writer.status().await?;
+        }
+        // One in flight, the command is answered with its failed reply (which frees
+        // the wire for the state); with ids it is left unanswered, as a faulted
+        // controller leaves the job it was given (its state says why), unless its
+        // state cannot be told (a dialect whose state is the connection's).
+        if one || self.dialect.status == Status::Connection {
+            let said = match undescribed {
+                true => super::UNDESCRIBED_STATE.to_lowercase(),
+                false => state.to_string(),
+            };
+            self.answer_failed(element, writer, &said).await?;
         }
         Ok(Flow::Continue)
     }
