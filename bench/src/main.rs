@@ -13,6 +13,7 @@ mod booking;
 mod cells;
 mod codec_client;
 mod controller;
+mod controller_faults;
 mod cycle;
 mod dashboard;
 mod echo;
@@ -122,6 +123,32 @@ enum Commands {
         #[arg(long, default_value = "soak-results.json")]
         out: PathBuf,
     },
+    /// The controller fault campaign (issue 41): a cell's resource on a dialect kept
+    /// busy with orders while robot-sim plays its faults in rotation, one kind per
+    /// phase, restarted every --restart-s; checks that nothing is written to a stopped
+    /// controller, that reconnects keep the backoff, that every failed step's reason
+    /// carries the controller's words, and that every order ends. Exits non-zero on any
+    /// miss (docs/dialects.md, section 7.8; docs/benchmarks.md).
+    ControllerFaults {
+        /// How long the phases run in all (then a clean robot-sim until no order runs).
+        #[arg(long, default_value_t = 60.0)]
+        minutes: f64,
+        /// Seconds per phase (one kind of fault each, in rotation).
+        #[arg(long, default_value_t = 300)]
+        phase_s: u64,
+        /// robot-sim is stopped and started again this often within a phase.
+        #[arg(long, default_value_t = 60)]
+        restart_s: u64,
+        /// Orders kept running.
+        #[arg(long, default_value_t = 3)]
+        in_flight: u64,
+        /// The dialect of the controller (a file, or a shipped name).
+        #[arg(long, default_value = "deploy/dialects/examples/job-ack-end.toml")]
+        dialect: String,
+        /// Where the summary goes (JSON; a row per phase beside it as CSV).
+        #[arg(long, default_value = "controller-faults.json")]
+        out: PathBuf,
+    },
     /// (helper) A TCP echo server: prints `listening on ADDR`.
     EchoTcp {
         #[arg(long, default_value = "127.0.0.1:0")]
@@ -195,6 +222,23 @@ async fn run(args: Args) -> Result<()> {
                 settle,
             };
             soak::run(&soak, &out).await
+        }
+        Commands::ControllerFaults {
+            minutes,
+            phase_s,
+            restart_s,
+            in_flight,
+            dialect,
+            out,
+        } => {
+            let campaign = controller_faults::Campaign {
+                minutes,
+                phase_s: phase_s.max(1),
+                restart_s: restart_s.max(1),
+                in_flight: in_flight.max(1),
+                dialect,
+            };
+            controller_faults::run(&campaign, &out).await
         }
         Commands::EchoTcp { listen } => echo::echo_tcp(&listen).await,
         Commands::EchoZenoh { connect, key } => echo::echo_zenoh(&connect, &key).await,

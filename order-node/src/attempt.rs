@@ -395,6 +395,7 @@ impl Attempt {
                 AttemptAction::End(StepOutcome::Failed {
                     provider,
                     reason: format!("start refused: {other}"),
+                    detail: None,
                 }),
             ],
         }
@@ -420,6 +421,7 @@ impl Attempt {
                 Asking::TimedOut | Asking::CameBack if left.is_zero() => end(StepOutcome::Failed {
                     provider,
                     reason: format!("no result within {:?}", self.timing.step_timeout),
+                    detail: None,
                 }),
                 Asking::TimedOut | Asking::CameBack => vec![AttemptAction::Watch {
                     provider,
@@ -445,6 +447,7 @@ impl Attempt {
                     .reason
                     .as_ref()
                     .map_or_else(|| "failed".to_string(), Reason::to_string),
+                detail: answer.detail.filter(|d| !d.is_empty()),
             }),
             Outcome::NeverReached => end(StepOutcome::Lost {
                 provider,
@@ -716,7 +719,8 @@ mod tests {
                 A::CancelBooking(robot(1)),
                 A::End(StepOutcome::Failed {
                     provider: robot(1),
-                    reason: "start refused: unavailable".into()
+                    reason: "start refused: unavailable".into(),
+                    detail: None,
                 })
             ]
         );
@@ -731,7 +735,8 @@ mod tests {
                 A::CancelBooking(robot(1)),
                 A::End(StepOutcome::Failed {
                     provider: robot(1),
-                    reason: "start refused: refused".into()
+                    reason: "start refused: refused".into(),
+                    detail: None,
                 })
             ]
         );
@@ -794,7 +799,8 @@ mod tests {
             a.handle(E::Outcome(None), now + Duration::from_secs(30)),
             vec![A::End(StepOutcome::Failed {
                 provider: robot(2),
-                reason: "no result within 30s".into()
+                reason: "no result within 30s".into(),
+                detail: None,
             })]
         );
     }
@@ -994,7 +1000,8 @@ mod tests {
             a.handle(E::Outcome(None), past),
             vec![A::End(StepOutcome::Failed {
                 provider: robot(1),
-                reason: "no result within 30s".into()
+                reason: "no result within 30s".into(),
+                detail: None,
             })]
         );
     }
@@ -1047,7 +1054,8 @@ mod tests {
             a.handle(E::Outcome(Some(failed)), now),
             vec![A::End(StepOutcome::Failed {
                 provider: robot(1),
-                reason: "interrupted".into()
+                reason: "interrupted".into(),
+                detail: None,
             })]
         );
         let (mut a, now) = attempt(Phase::Started(robot(1)));
@@ -1117,6 +1125,7 @@ mod tests {
         let interrupted = StepOutcome::Failed {
             provider: robot(1),
             reason: "interrupted".into(),
+            detail: None,
         };
         let (mut a, now) = attempt(Phase::Started(robot(1)));
         assert_eq!(
@@ -1155,6 +1164,7 @@ mod tests {
         let fault = StepOutcome::Failed {
             provider: robot(1),
             reason: "controller_fault".into(),
+            detail: None,
         };
         assert_eq!(
             a.handle(E::Watched(Some(fault.clone())), now),

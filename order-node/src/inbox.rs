@@ -253,6 +253,14 @@ pub async fn judge(
                 .reason
                 .as_ref()
                 .map_or_else(|| "failed".to_string(), Reason::to_string),
+            // The resource's words beyond the reason (the controller's, where it had
+            // any): what the operator reads of the attempt and of a failed order.
+            detail: message
+                .info
+                .get("detail")
+                .and_then(|d| d.as_str())
+                .filter(|d| !d.is_empty())
+                .map(|d| schemas::bounded_detail(d.to_string())),
         },
     };
     Some((outcome, report))

@@ -44,7 +44,14 @@ pub enum StepOutcome {
         results: Map<String, Value>,
     },
     /// The resource reported `failed` (it may have moved the part: counts as a failure).
-    Failed { provider: HolonId, reason: String },
+    /// `detail`: what the resource said of it beyond the reason (a `failed` message's
+    /// `info.detail`, an outcome's `detail`): the controller's own words, where it had
+    /// any (`pick failed: overtravel axis 3`).
+    Failed {
+        provider: HolonId,
+        reason: String,
+        detail: Option<String>,
+    },
     /// The booking ended without the step being attempted to completion: the resource
     /// handed the booking back (`withdrawn`), vanished, or lost the booking. Book
     /// elsewhere; does not count as a failure.
@@ -74,7 +81,16 @@ impl std::fmt::Display for StepOutcome {
                 }
                 Ok(())
             }
-            StepOutcome::Failed { provider, reason } => write!(f, "failed on {provider}: {reason}"),
+            StepOutcome::Failed {
+                provider,
+                reason,
+                detail: None,
+            } => write!(f, "failed on {provider}: {reason}"),
+            StepOutcome::Failed {
+                provider,
+                reason,
+                detail: Some(detail),
+            } => write!(f, "failed on {provider}: {reason} ({detail})"),
             StepOutcome::Lost { provider, why } => write!(f, "lost {provider}: {why}"),
             StepOutcome::NoResource => f.write_str("no resource could be booked"),
             StepOutcome::Cancelled => f.write_str("cancelled by an operator"),
@@ -306,13 +322,20 @@ impl OrderProgress {
                     self.advance();
                 }
             }
-            StepOutcome::Failed { provider, reason } => {
+            StepOutcome::Failed {
+                provider,
+                reason,
+                detail,
+            } => {
                 self.failures += 1;
                 self.failed_attempts += 1;
                 self.avoid.insert(provider.clone());
                 if self.failures >= self.max_attempts {
+                    let said = detail
+                        .as_ref()
+                        .map_or_else(String::new, |d| format!(" ({d})"));
                     self.fail(format!(
-                        "step {} ({}) failed {} times; last on {provider}: {reason}",
+                        "step {} ({}) failed {} times; last on {provider}: {reason}{said}",
                         self.step + 1,
                         current.service_type,
                         self.failures
@@ -465,6 +488,7 @@ mod tests {
         o.record(StepOutcome::Failed {
             provider: robot("robot1"),
             reason: "interrupted".into(),
+            detail: None,
         });
         o.record(done("robot2", "placing_done"));
         o.record(done("inspect1", "inspect_fail"));
@@ -550,6 +574,7 @@ mod tests {
         o.record(StepOutcome::Failed {
             provider: robot("conveyor1"),
             reason: "controller_error".into(),
+            detail: None,
         });
         assert_eq!(o.status, OrderStatus::Running);
         assert_eq!(o.conversation_id(), "n1-1/1/2");
@@ -557,6 +582,7 @@ mod tests {
         o.record(StepOutcome::Failed {
             provider: robot("conveyor2"),
             reason: "controller_timeout".into(),
+            detail: None,
         });
         assert_eq!(o.status, OrderStatus::Failed);
         let reason = o.reason.clone().unwrap();
@@ -601,10 +627,37 @@ mod tests {
         let failed = StepOutcome::Failed {
             provider: robot("robot2"),
             reason: "controller_error".into(),
+            detail: None,
         };
         assert_eq!(
             failed.to_string(),
             "failed on resource/robot2: controller_error"
+        );
+    }
+
+    #[test]
+    fn a_failure_in_the_controllers_words_reaches_the_attempt_and_the_order() {
+        // What the operator reads (`cell orders --detail`): not the reason alone, but
+        // what the controller said (issue 41: "every failure reason shown to the
+        // operator in the controller's own words").
+        let mut o = order();
+        o.max_attempts = 1;
+        o.record(done("conveyor1", "arrived"));
+        o.record(StepOutcome::Failed {
+            provider: robot("robot1"),
+            reason: "controller_error".into(),
+            detail: Some("pick failed: gripper open".into()),
+        });
+        assert_eq!(o.status, OrderStatus::Failed);
+        let said = "failed on resource/robot1: controller_error (pick failed: gripper open)";
+        assert_eq!(o.history.last().unwrap().detail, said);
+        assert!(
+            o.reason
+                .as_ref()
+                .unwrap()
+                .ends_with("last on resource/robot1: controller_error (pick failed: gripper open)"),
+            "{:?}",
+            o.reason
         );
     }
 }

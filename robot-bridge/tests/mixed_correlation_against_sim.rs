@@ -210,3 +210,34 @@ async fn fault_every_rehearses_the_fault_again_and_again() {
     assert_eq!(stats.refused_while_stopped(), 0);
     h.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_state_the_dialect_does_not_describe_breaks_the_protocol_and_nothing_is_sent_meanwhile() {
+    // Every second command takes the controller into HOMING for 1.5 s (robot-sim
+    // --unknown-state-every 2): job 2 is left unanswered, and the state poll is answered
+    // `STATE HOMING`, a line the dialect does not describe.
+    let faults = SimConfig {
+        unknown_state_every: Some(2),
+        fault_for: Duration::from_millis(1500),
+        ..SimConfig::default()
+    };
+    let (mut h, stats, _sim) = ready(example(), faults, Duration::from_secs(5)).await;
+    h.send(1, "pick").await;
+    assert_eq!(h.answer().await, reply(1, "picking_done"));
+    h.send(2, "place").await;
+    match h.answer().await {
+        ControllerEvent::CommandFailed {
+            id: 2,
+            failure: CommandFailure::Protocol(why),
+        } => assert!(why.contains("STATE HOMING"), "{why}"),
+        other => panic!("unexpected {other:?}"),
+    }
+    // The holon reconnects; while the controller is homing every poll breaks the
+    // connection again; once it says STATE IDLE, jobs go on.
+    h.wait_status(ControllerStatus::Ready).await;
+    h.send(3, "pick").await;
+    assert_eq!(h.answer().await, reply(3, "picking_done"));
+    assert!(stats.connections() >= 2, "{}", stats.connections());
+    assert_eq!(stats.refused_while_stopped(), 0);
+    h.stop().await;
+}

@@ -95,6 +95,15 @@ struct Args {
     /// again after --fault-for-ms, fault again at the next Nth): a rehearsal that goes on.
     #[arg(long, value_name = "N")]
     fault_every: Option<u64>,
+    /// Every Nth command takes the controller into a state the dialect does not
+    /// describe, for --fault-for-ms: the command is not executed (as --fault-every),
+    /// and its state is said in the status reply that says ready with HOMING for the
+    /// state's word (`STATE IDLE` -> `STATE HOMING`; a holon reads it as a protocol
+    /// error); commands of the sequence meanwhile are refused and counted in
+    /// refused_while_stopped. Refused at start for a dialect whose status cannot be
+    /// said so (a binary one).
+    #[arg(long, value_name = "N")]
+    unknown_state_every: Option<u64>,
     /// The state reported by --fault-after and --fault-every: fault or estop.
     #[arg(long, default_value = "fault", value_name = "fault|estop")]
     fault_state: schemas::ControllerState,
@@ -148,6 +157,17 @@ async fn main() -> anyhow::Result<()> {
         );
         std::process::exit(2);
     }
+    if args.unknown_state_every.is_some()
+        && dialect
+            .undescribed_status(robot_bridge::sim::UNDESCRIBED_STATE)
+            .is_none()
+    {
+        eprintln!(
+            "robot-sim: --unknown-state-every: the dialect {} has no status reply in words robot-sim can change to a state it does not describe",
+            dialect.name
+        );
+        std::process::exit(2);
+    }
     if args.fenced && args.lease_ms == 0 {
         eprintln!("robot-sim: --lease-ms must be more than 0");
         std::process::exit(2);
@@ -193,6 +213,7 @@ async fn main() -> anyhow::Result<()> {
         fault_every: args.fault_every,
         fault_state: Some(args.fault_state),
         fault_for: Duration::from_millis(args.fault_for_ms),
+        unknown_state_every: args.unknown_state_every,
         count_file: args.count_file,
         dialect: Some(dialect),
         reset_after: args.reset_after,

@@ -44,6 +44,48 @@ impl Dialect {
         found.map(|index| (index, values))
     }
 
+    /// A status message in the controller's shape that says a state the dialect does not
+    /// describe (`robot-sim --unknown-state-every`): the reply that says `ready`, as
+    /// written, with one of its words (the last that works) replaced by `word`, such that
+    /// the result still parses (its framing's bytes are well formed) and no reply of the
+    /// file takes it (each misses it or finds a value outside its table), so the holon
+    /// can only read it as a protocol error (section 4.4). `STATE IDLE` becomes `STATE
+    /// HOMING`. None when no word can be replaced so (a binary dialect).
+    pub fn undescribed_status(&self, word: &str) -> Option<Vec<u8>> {
+        if matches!(
+            self.frame_codec().framing,
+            super::framing::Framing::LengthPrefix { .. }
+        ) {
+            return None;
+        }
+        let (index, values) = self.status_reply_for(ControllerState::Ready, "")?;
+        let bytes = self
+            .write(self.replies[index].body.as_ref()?, &values)
+            .ok()?;
+        let text = String::from_utf8(bytes).ok()?;
+        let is_word = |c: char| c.is_ascii_alphanumeric() || c == '_';
+        let mut words = Vec::new();
+        let mut start = None;
+        for (at, c) in text.char_indices().chain([(text.len(), ' ')]) {
+            match (start, is_word(c)) {
+                (None, true) => start = Some(at),
+                (Some(from), false) => {
+                    words.push(from..at);
+                    start = None;
+                }
+                _ => {}
+            }
+        }
+        words.into_iter().rev().find_map(|range| {
+            let mut candidate = text.clone();
+            candidate.replace_range(range, word);
+            let parsed = self.parse(candidate.as_bytes()).ok()?;
+            let taken = (0..self.replies.len())
+                .any(|reply| matches!(self.read_reply(reply, &parsed), Ok(Some(_))));
+            (!taken).then(|| candidate.into_bytes())
+        })
+    }
+
     /// Checks that robot-sim can write every reply this dialect needs, that the holon
     /// reads each back as that reply (a `regex` that does not match its own `text`, a
     /// value its table cannot read, are found here, not on the first line), and that a
@@ -164,5 +206,35 @@ impl Dialect {
             .into_iter()
             .filter(|&state| self.status_reply_for(state, "text").is_none())
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_undescribed_state_is_the_ready_status_with_another_word_that_no_reply_takes() {
+        let job_ack_end = std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../deploy/dialects/examples/job-ack-end.toml"
+        ))
+        .unwrap();
+        let dialect = Dialect::from_toml(&job_ack_end, "job-ack-end.toml").unwrap();
+        assert_eq!(
+            dialect.undescribed_status("HOMING").as_deref(),
+            Some(&b"STATE HOMING"[..])
+        );
+        // A table's state: the value outside the table.
+        let ur = Dialect::shipped("ur-dashboard").unwrap();
+        let said = String::from_utf8(ur.undescribed_status("HOMING").unwrap()).unwrap();
+        assert!(said.contains("HOMING"), "{said}");
+        let parsed = ur.parse(said.as_bytes()).unwrap();
+        assert!(ur.read_unsolicited(&parsed).is_err(), "{said}");
+        // A binary dialect's status has no word to change.
+        assert!(Dialect::shipped("simple-message")
+            .unwrap()
+            .undescribed_status("HOMING")
+            .is_none());
     }
 }

@@ -37,6 +37,9 @@
 //! - `oversize_after N`: the (N+1)th command gets a message larger than the dialect's
 //!   `max_message_bytes` and is not executed;
 //! - `fault_every N`: every Nth command faults the controller as `fault_after` does;
+//! - `unknown_state_every N`: every Nth command takes the controller, for `fault_for`,
+//!   into a state the dialect does not describe: as `fault_every`, but its status is
+//!   the `ready` one with [`UNDESCRIBED_STATE`] for the state's word (`STATE HOMING`);
 //! - `wrong_id_after N`: the (N+1)th command's answers echo another id (the command's
 //!   with a `9` after it), where the dialect's replies echo one; it is executed;
 //! - `fault_after N`: the (N+1)th command of the process is not executed: the controller
@@ -112,6 +115,10 @@ pub struct SimConfig {
     pub fault_every: Option<u64>,
     pub fault_state: Option<ControllerState>,
     pub fault_for: Duration,
+    /// Every Nth command of the process takes the controller, for `fault_for`, into a
+    /// state the dialect does not describe (its `ready` status said with `HOMING` for
+    /// the state's word, [`Dialect::undescribed_status`]): as `fault_every` otherwise.
+    pub unknown_state_every: Option<u64>,
     /// Rewritten (atomically) with [`SimStats`] as JSON after every command, once its
     /// reply is sent.
     pub count_file: Option<PathBuf>,
@@ -173,6 +180,9 @@ pub struct SimStats {
     /// Woken when the controller is stopped from outside a session (the plant's
     /// e-stop), so that every session says so at once.
     stop_changed: tokio::sync::Notify,
+    /// The stop under way is in a state the dialect does not describe
+    /// (`unknown_state_every`): its status says `HOMING`.
+    undescribed: std::sync::atomic::AtomicBool,
 }
 
 impl SimStats {
@@ -219,7 +229,22 @@ impl SimStats {
     pub(crate) fn stop(&self, state: ControllerState, time: Duration) {
         *self.stopped.lock().unwrap_or_else(|e| e.into_inner()) =
             Some((std::time::Instant::now() + time, state));
+        self.undescribed.store(false, Ordering::SeqCst);
         self.stop_changed.notify_waiters();
+    }
+
+    /// The controller stops for `time` in a state the dialect does not describe (it
+    /// refuses motion as in a fault; its status says [`UNDESCRIBED_STATE`]).
+    pub(crate) fn stop_undescribed(&self, time: Duration) {
+        *self.stopped.lock().unwrap_or_else(|e| e.into_inner()) =
+            Some((std::time::Instant::now() + time, ControllerState::Fault));
+        self.undescribed.store(true, Ordering::SeqCst);
+        self.stop_changed.notify_waiters();
+    }
+
+    /// Whether the controller is stopped in a state the dialect does not describe.
+    pub(crate) fn undescribed(&self) -> bool {
+        self.stopped().is_some() && self.undescribed.load(Ordering::SeqCst)
     }
 
     /// Commands of the sequence that came while the controller was stopped (its
@@ -324,6 +349,10 @@ enum SimLink {
     /// The controller connects to the holon at this address.
     Dial(String),
 }
+
+/// The word `--unknown-state-every` says for the controller's state: in no table of a
+/// dialect, as a controller that reports a state its integrator never described.
+pub const UNDESCRIBED_STATE: &str = "HOMING";
 
 /// How long the count file's writer waits after a write before the next: the file lags
 /// the counts by at most this and one write (readers wait for it to settle).

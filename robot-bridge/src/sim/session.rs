@@ -124,6 +124,7 @@ pub(super) async fn serve(
         state: stats
             .stopped()
             .map_or(ControllerState::Ready, |(_, state)| state),
+        stats,
     };
     if let Some(banner) = &dialect.banner {
         let mut framed = BytesMut::new();
@@ -420,7 +421,14 @@ impl Session<'_> {
             let refused = self.stats.refused.fetch_add(1, Ordering::SeqCst) + 1;
             let command = &self.dialect.commands[index].name;
             warn!(%command, %state, refused, "a command while stopped: refused, not executed");
-            let why = format!("refused: the robot is in {state}");
+            let why = if self.stats.undescribed() {
+                format!(
+                    "refused: the robot is {}",
+                    super::UNDESCRIBED_STATE.to_lowercase()
+                )
+            } else {
+                format!("refused: the robot is in {state}")
+            };
             self.answer_with(
                 &element,
                 writer,
@@ -499,28 +507,14 @@ impl Session<'_> {
             || config
                 .fault_every
                 .is_some_and(|every| every > 0 && n.is_multiple_of(every));
-        if faults {
-            let state = config.fault_state.unwrap_or(ControllerState::Fault);
-            info!(%id, %state, "reporting a fault (--fault-after)");
-            self.count_file.update();
-            let one = self.dialect.correlation == Correlation::OneInFlight;
-            // Stopped for `fault_for` (the session's timer reports `ready` again); what
-            // comes meanwhile is refused.
-            self.stats.stop(state, config.fault_for);
-            writer.state = state;
-            if self.dialect.status == Status::Pushed {
-                // The state first, so the holon knows it before the command's answer.
-                writer.status().await?;
-            }
-            // One in flight, the command is answered with its failed reply (which frees
-            // the wire for the state); with ids it is left unanswered, as a faulted
-            // controller leaves the job it was given (its state says why), unless its
-            // state cannot be told (a dialect whose state is the connection's).
-            if one || self.dialect.status == Status::Connection {
-                self.answer_failed(element, writer, &format!("{state}"))
-                    .await?;
-            }
-            return Ok(Flow::Continue);
+        let undescribed = !faults
+            && config
+                .unknown_state_every
+                .is_some_and(|every| every > 0 && n.is_multiple_of(every));
+        if faults || undescribed {
+            return self
+                .stop_controller(element, writer, &id, undescribed)
+                .await;
         }
         let mut takes = config
             .action_delays
@@ -615,6 +609,48 @@ impl Session<'_> {
                     result,
                 });
             }
+        }
+        Ok(Flow::Continue)
+    }
+
+    /// The command stops the controller (`fault_after`, `fault_every`, or, when
+    /// `undescribed`, `unknown_state_every`) for `fault_for` instead of being executed.
+    async fn stop_controller(
+        &mut self,
+        element: &Element,
+        writer: &mut Writer<'_>,
+        id: &str,
+        undescribed: bool,
+    ) -> Result<Flow, SimError> {
+        let config = self.config;
+        let state = config.fault_state.unwrap_or(ControllerState::Fault);
+        self.count_file.update();
+        let one = self.dialect.correlation == Correlation::OneInFlight;
+        // Stopped for `fault_for` (the session's timer reports `ready` again); what
+        // comes meanwhile is refused.
+        if undescribed {
+            info!(%id, "in a state the dialect does not describe (--unknown-state-every)");
+            self.stats.stop_undescribed(config.fault_for);
+        } else {
+            info!(%id, %state, "reporting a fault (--fault-after)");
+            self.stats.stop(state, config.fault_for);
+        }
+        let state = self.state_now();
+        writer.state = state;
+        if self.dialect.status == Status::Pushed {
+            // The state first, so the holon knows it before the command's answer.
+            writer.status().await?;
+        }
+        // One in flight, the command is answered with its failed reply (which frees
+        // the wire for the state); with ids it is left unanswered, as a faulted
+        // controller leaves the job it was given (its state says why), unless its
+        // state cannot be told (a dialect whose state is the connection's).
+        if one || self.dialect.status == Status::Connection {
+            let said = match undescribed {
+                true => super::UNDESCRIBED_STATE.to_lowercase(),
+                false => state.to_string(),
+            };
+            self.answer_failed(element, writer, &said).await?;
         }
         Ok(Flow::Continue)
     }

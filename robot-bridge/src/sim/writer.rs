@@ -24,6 +24,8 @@ pub(super) struct Writer<'a> {
     pub(super) held: BytesMut,
     /// The controller's state, as its status replies say it.
     pub(super) state: ControllerState,
+    /// The controller's counts (whether its stop is in an undescribed state).
+    pub(super) stats: &'a super::SimStats,
 }
 
 /// What the simulated controller says of its state in its own words, for a status
@@ -93,11 +95,26 @@ impl Writer<'_> {
     /// Writes the state (`self.state`) in its status reply, if the dialect has one for it.
     pub(super) async fn status(&mut self) -> Result<(), SimError> {
         let state = self.state;
+        if state != ControllerState::Ready && self.stats.undescribed() {
+            return self.undescribed().await;
+        }
         let Some((index, values)) = self.status_reply(state) else {
             tracing::warn!(%state, "the dialect has no status reply for this state: not said");
             return Ok(());
         };
         let framed = self.frame(index, &values)?;
+        self.raw(&framed).await
+    }
+
+    /// The state in words the dialect does not describe (`unknown_state_every`): its
+    /// `ready` status with [`super::UNDESCRIBED_STATE`] for the state's word.
+    async fn undescribed(&mut self) -> Result<(), SimError> {
+        let Some(message) = self.dialect.undescribed_status(super::UNDESCRIBED_STATE) else {
+            tracing::warn!("the dialect's status cannot say an undescribed state: not said");
+            return Ok(());
+        };
+        let mut framed = BytesMut::new();
+        self.codec.encode(message.as_slice(), &mut framed)?;
         self.raw(&framed).await
     }
 
