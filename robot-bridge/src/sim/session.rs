@@ -474,34 +474,8 @@ impl Session<'_> {
         let action = self.context.get("action").unwrap_or("").to_string();
         let id = self.context.get("id").unwrap_or("-").to_string();
         info!(%id, %action, n, "command");
-        if matches!(config.close_after, Some(limit) if self.on_this_connection > limit) {
-            info!(%id, "closing the connection (--close-after)");
-            self.count_file.update();
-            return Ok(Flow::Close);
-        }
-        if matches!(config.hang_after, Some(limit) if n > limit) {
-            info!(%id, "not answering (--hang-after)");
-            self.hung = true;
-            self.count_file.update();
-            return Ok(Flow::Continue);
-        }
-        if config.garbage_after.is_some_and(|limit| n == limit + 1) {
-            info!(%id, "answering garbage (--garbage-after)");
-            writer.garbage().await?;
-            self.count_file.update();
-            return Ok(Flow::Continue);
-        }
-        if config.oversize_after.is_some_and(|limit| n == limit + 1) {
-            info!(%id, "answering an oversized message (--oversize-after)");
-            writer.oversize().await?;
-            self.count_file.update();
-            return Ok(Flow::Continue);
-        }
-        if config.wrong_id_after.is_some_and(|limit| n == limit + 1) {
-            if let Some(id) = self.context.get("id").map(str::to_string) {
-                info!(%id, "answering with another id (--wrong-id-after)");
-                self.context.set("id", format!("{id}9"));
-            }
+        if let Some(flow) = self.injected(writer, &id, n).await? {
+            return Ok(flow);
         }
         let faults = config.fault_after.is_some_and(|limit| n == limit + 1)
             || config
@@ -516,29 +490,9 @@ impl Session<'_> {
                 .stop_controller(element, writer, &id, undescribed)
                 .await;
         }
-        let mut takes = config
-            .action_delays
-            .get(&action)
-            .copied()
-            .unwrap_or(config.delay);
-        if let Some(physics) = &config.physics {
-            match physics.0.begin(&action, &self.context) {
-                Ok(Some(travel)) => takes = travel,
-                Ok(None) => {}
-                Err(why) => {
-                    // The plant does not allow it (nothing to pick, a full port): failed,
-                    // not executed, as a controller reports a physical error.
-                    info!(%id, %action, %why, "physically impossible");
-                    self.answer_failed(element, writer, &why).await?;
-                    self.count_file.update();
-                    return Ok(Flow::Continue);
-                }
-            }
-        }
-        if stats.change_to(self.context.get("program")) {
-            info!(%id, program = self.context.get("program").unwrap_or(""), changeover = ?config.changeover, "changing over");
-            takes += config.changeover;
-        }
+        let Some(takes) = self.takes(element, writer, &id, &action).await? else {
+            return Ok(Flow::Continue);
+        };
         if self.step.is_some() && self.config.reset_after.is_some_and(|limit| n == limit + 1) {
             // Reset halfway through: not executed, so not kept as run.
             self.forget_step();
@@ -611,6 +565,84 @@ impl Session<'_> {
             }
         }
         Ok(Flow::Continue)
+    }
+
+    /// The faults injected into the `n`th command (`close_after`, `hang_after`,
+    /// `garbage_after`, `oversize_after`, `wrong_id_after`): what they do to the
+    /// connection, or None for the command to go on.
+    async fn injected(
+        &mut self,
+        writer: &mut Writer<'_>,
+        id: &str,
+        n: u64,
+    ) -> Result<Option<Flow>, SimError> {
+        let config = self.config;
+        if matches!(config.close_after, Some(limit) if self.on_this_connection > limit) {
+            info!(%id, "closing the connection (--close-after)");
+            self.count_file.update();
+            return Ok(Some(Flow::Close));
+        }
+        if matches!(config.hang_after, Some(limit) if n > limit) {
+            info!(%id, "not answering (--hang-after)");
+            self.hung = true;
+            self.count_file.update();
+            return Ok(Some(Flow::Continue));
+        }
+        if config.garbage_after.is_some_and(|limit| n == limit + 1) {
+            info!(%id, "answering garbage (--garbage-after)");
+            writer.garbage().await?;
+            self.count_file.update();
+            return Ok(Some(Flow::Continue));
+        }
+        if config.oversize_after.is_some_and(|limit| n == limit + 1) {
+            info!(%id, "answering an oversized message (--oversize-after)");
+            writer.oversize().await?;
+            self.count_file.update();
+            return Ok(Some(Flow::Continue));
+        }
+        if config.wrong_id_after.is_some_and(|limit| n == limit + 1) {
+            if let Some(id) = self.context.get("id").map(str::to_string) {
+                info!(%id, "answering with another id (--wrong-id-after)");
+                self.context.set("id", format!("{id}9"));
+            }
+        }
+        Ok(None)
+    }
+
+    /// How long the action takes (its delay, the plant's travel time, a changeover), or
+    /// None when the plant does not allow it: then it is answered failed, in the plant's
+    /// words (nothing to pick, a full port), and not executed, as a controller reports a
+    /// physical error.
+    async fn takes(
+        &mut self,
+        element: &Element,
+        writer: &mut Writer<'_>,
+        id: &str,
+        action: &str,
+    ) -> Result<Option<Duration>, SimError> {
+        let config = self.config;
+        let mut takes = config
+            .action_delays
+            .get(action)
+            .copied()
+            .unwrap_or(config.delay);
+        if let Some(physics) = &config.physics {
+            match physics.0.begin(action, &self.context) {
+                Ok(Some(travel)) => takes = travel,
+                Ok(None) => {}
+                Err(why) => {
+                    info!(%id, %action, %why, "physically impossible");
+                    self.answer_failed(element, writer, &why).await?;
+                    self.count_file.update();
+                    return Ok(None);
+                }
+            }
+        }
+        if self.stats.change_to(self.context.get("program")) {
+            info!(%id, program = self.context.get("program").unwrap_or(""), changeover = ?config.changeover, "changing over");
+            takes += config.changeover;
+        }
+        Ok(Some(takes))
     }
 
     /// The command stops the controller (`fault_after`, `fault_every`, or, when
