@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::{anyhow, Context, Result};
-use schemas::layout::{CellLayout, LayoutPart, LayoutSection, Problem, TransporterSpec};
+use schemas::layout::{CellLayout, LayoutSection, Problem, TransporterSpec};
 use schemas::CellKeys;
 
 use crate::manifest::Manifest;
@@ -19,29 +19,15 @@ pub async fn live(
     keys: &CellKeys,
     timeout: Duration,
 ) -> Result<CellLayout> {
-    let mut replies = session
-        .get(keys.layout_all())
-        .consolidation(zenoh::query::ConsolidationMode::None)
-        .timeout(timeout)
-        .with(holon::query::replies())
+    let answered = holon::layout::ask(session, keys, timeout)
         .await
         .map_err(|e| anyhow!("{e}"))?;
-    let mut parts = Vec::new();
-    let mut unreadable = Vec::new();
-    while let Some(reply) = replies.recv().await {
-        let Ok(sample) = reply.result() else { continue };
-        match LayoutPart::from_json(&sample.payload().to_bytes()) {
-            Ok(part) => parts.push(part),
-            Err(e) => unreadable.push(Problem {
-                holon: None,
-                field: None,
-                message: format!(
-                    "{}: an answer that is not a layout part: {e}",
-                    sample.key_expr()
-                ),
-            }),
-        }
-    }
+    let unreadable = answered.unreadable.into_iter().map(|message| Problem {
+        holon: None,
+        field: None,
+        message,
+    });
+    let parts = answered.parts;
     let mut layout = CellLayout::assemble(parts);
     layout.problems.extend(unreadable);
     Ok(layout)

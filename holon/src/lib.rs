@@ -6,6 +6,7 @@ pub mod cli;
 pub mod config_file;
 pub mod etcd;
 pub mod journal;
+pub mod layout;
 pub mod life;
 pub mod logging;
 pub mod malloc;

@@ -38,25 +38,17 @@ pub struct Links {
 
 /// The parts the serving resources answer, this one's own among them.
 async fn ask(links: &Links) -> Result<CellLayout, zenoh::Error> {
-    let mut replies = links
-        .session
-        .get(links.keys.layout_all())
-        .consolidation(zenoh::query::ConsolidationMode::None)
-        .timeout(ASK_TIMEOUT)
-        .with(holon::query::replies())
-        .await?;
-    let mut parts = vec![links.own.clone()];
-    while let Some(reply) = replies.recv().await {
-        let Ok(sample) = reply.result() else { continue };
-        match LayoutPart::from_json(&sample.payload().to_bytes()) {
-            Ok(part) if part.holon != links.own.holon => parts.push(part),
-            Ok(_) => {}
-            Err(e) => {
-                debug!(holon = %links.holon, key = %sample.key_expr(), error = %e, "an answer that is not a layout part: left out")
-            }
-        }
+    let answered = holon::layout::ask(&links.session, &links.keys, ASK_TIMEOUT).await?;
+    for why in &answered.unreadable {
+        debug!(holon = %links.holon, %why, "left out of the layout");
     }
-    Ok(CellLayout::assemble(parts))
+    let others = answered
+        .parts
+        .into_iter()
+        .filter(|part| part.holon != links.own.holon);
+    Ok(CellLayout::assemble(
+        std::iter::once(links.own.clone()).chain(others),
+    ))
 }
 
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {

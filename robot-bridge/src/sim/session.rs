@@ -18,12 +18,16 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 mod abort;
+mod acting;
+mod faults;
 mod fenced;
+
+use acting::act_for;
 
 use super::fence::StepRecord;
 use super::writer::Writer;
 use super::{CountFile, SimConfig, SimError, SimStats};
-use crate::dialect::{Correlation, Dialect, Element, Outcome, Sending, Status, Values};
+use crate::dialect::{Dialect, Element, Outcome, Sending, Status, Values};
 use std::sync::atomic::Ordering;
 
 fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<&'static str> {
@@ -39,25 +43,6 @@ fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<
             }
         }
         _ => None,
-    }
-}
-
-/// How soon an action held up in the plant is looked at again.
-const HELD_RECHECK: Duration = Duration::from_millis(50);
-
-/// Waits until `done` (an action's end) to within about a tenth of a millisecond.
-/// tokio's timer rounds a sleep up to its next millisecond tick (a 20 ms action took
-/// 21.4 ms, which a benchmark of robots that take time would charge to the control),
-/// so the last 2 ms are slept on a blocking thread.
-async fn act_for(done: std::time::Instant) {
-    if let Some(coarse) = done.checked_sub(Duration::from_millis(2)) {
-        tokio::time::sleep_until(coarse.into()).await;
-    }
-    let rest = done.saturating_duration_since(std::time::Instant::now());
-    if !rest.is_zero() {
-        if let Err(e) = tokio::task::spawn_blocking(move || std::thread::sleep(rest)).await {
-            warn!(error = %e, "the action's last moments were cut short");
-        }
     }
 }
 
@@ -303,53 +288,6 @@ impl Session<'_> {
     /// The connection is gone while an action is under way: like a real robot, the
     /// controller completes the motion it began (counted as executed), with nobody to
     /// tell.
-    async fn complete_unanswered(&mut self, shutdown: &CancellationToken) {
-        let Some(acting) = self.acting.take() else {
-            return;
-        };
-        tokio::select! {
-            _ = shutdown.cancelled() => return,
-            _ = act_for(acting.until) => {}
-        }
-        if let Some(physics) = &self.config.physics {
-            // The plant goes on without the holon: a move held up ends once it is not.
-            while physics.0.held() {
-                tokio::select! {
-                    _ = shutdown.cancelled() => return,
-                    _ = tokio::time::sleep(HELD_RECHECK) => {}
-                }
-            }
-            physics.0.end(true);
-        }
-        let action = self.context.get("action").unwrap_or("").to_string();
-        info!(%action, "the connection is gone: the action completes unanswered");
-        self.settle(StepRecord::Done(acting.result.to_string()));
-        self.stats.executed.fetch_add(1, Ordering::SeqCst);
-        *self
-            .stats
-            .by_action
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(action)
-            .or_default() += 1;
-        self.count_file.update();
-    }
-
-    async fn end_action(&mut self, writer: &mut Writer<'_>) -> Result<(), SimError> {
-        if let (Some(physics), Some(acting)) = (&self.config.physics, &mut self.acting) {
-            if physics.0.held() {
-                // Held up in the plant (a jammed track): it ends once it is not.
-                acting.until = std::time::Instant::now() + HELD_RECHECK;
-                return Ok(());
-            }
-        }
-        if let Some(acting) = self.acting.take() {
-            self.finish(Some(acting.done), acting.result, writer)
-                .await?;
-        }
-        Ok(())
-    }
-
     /// The first of `element`'s expected replies with one of `outcomes`.
     fn rule(&self, element: &Element, outcomes: &[Outcome]) -> Option<usize> {
         outcomes.iter().find_map(|o| {
@@ -563,126 +501,6 @@ impl Session<'_> {
                     result,
                 });
             }
-        }
-        Ok(Flow::Continue)
-    }
-
-    /// The faults injected into the `n`th command (`close_after`, `hang_after`,
-    /// `garbage_after`, `oversize_after`, `wrong_id_after`): what they do to the
-    /// connection, or None for the command to go on.
-    async fn injected(
-        &mut self,
-        writer: &mut Writer<'_>,
-        id: &str,
-        n: u64,
-    ) -> Result<Option<Flow>, SimError> {
-        let config = self.config;
-        if matches!(config.close_after, Some(limit) if self.on_this_connection > limit) {
-            info!(%id, "closing the connection (--close-after)");
-            self.count_file.update();
-            return Ok(Some(Flow::Close));
-        }
-        if matches!(config.hang_after, Some(limit) if n > limit) {
-            info!(%id, "not answering (--hang-after)");
-            self.hung = true;
-            self.count_file.update();
-            return Ok(Some(Flow::Continue));
-        }
-        if config.garbage_after.is_some_and(|limit| n == limit + 1) {
-            info!(%id, "answering garbage (--garbage-after)");
-            writer.garbage().await?;
-            self.count_file.update();
-            return Ok(Some(Flow::Continue));
-        }
-        if config.oversize_after.is_some_and(|limit| n == limit + 1) {
-            info!(%id, "answering an oversized message (--oversize-after)");
-            writer.oversize().await?;
-            self.count_file.update();
-            return Ok(Some(Flow::Continue));
-        }
-        if config.wrong_id_after.is_some_and(|limit| n == limit + 1) {
-            if let Some(id) = self.context.get("id").map(str::to_string) {
-                info!(%id, "answering with another id (--wrong-id-after)");
-                self.context.set("id", format!("{id}9"));
-            }
-        }
-        Ok(None)
-    }
-
-    /// How long the action takes (its delay, the plant's travel time, a changeover), or
-    /// None when the plant does not allow it: then it is answered failed, in the plant's
-    /// words (nothing to pick, a full port), and not executed, as a controller reports a
-    /// physical error.
-    async fn takes(
-        &mut self,
-        element: &Element,
-        writer: &mut Writer<'_>,
-        id: &str,
-        action: &str,
-    ) -> Result<Option<Duration>, SimError> {
-        let config = self.config;
-        let mut takes = config
-            .action_delays
-            .get(action)
-            .copied()
-            .unwrap_or(config.delay);
-        if let Some(physics) = &config.physics {
-            match physics.0.begin(action, &self.context) {
-                Ok(Some(travel)) => takes = travel,
-                Ok(None) => {}
-                Err(why) => {
-                    info!(%id, %action, %why, "physically impossible");
-                    self.answer_failed(element, writer, &why).await?;
-                    self.count_file.update();
-                    return Ok(None);
-                }
-            }
-        }
-        if self.stats.change_to(self.context.get("program")) {
-            info!(%id, program = self.context.get("program").unwrap_or(""), changeover = ?config.changeover, "changing over");
-            takes += config.changeover;
-        }
-        Ok(Some(takes))
-    }
-
-    /// The command stops the controller (`fault_after`, `fault_every`, or, when
-    /// `undescribed`, `unknown_state_every`) for `fault_for` instead of being executed.
-    async fn stop_controller(
-        &mut self,
-        element: &Element,
-        writer: &mut Writer<'_>,
-        id: &str,
-        undescribed: bool,
-    ) -> Result<Flow, SimError> {
-        let config = self.config;
-        let state = config.fault_state.unwrap_or(ControllerState::Fault);
-        self.count_file.update();
-        let one = self.dialect.correlation == Correlation::OneInFlight;
-        // Stopped for `fault_for` (the session's timer reports `ready` again); what
-        // comes meanwhile is refused.
-        if undescribed {
-            info!(%id, "in a state the dialect does not describe (--unknown-state-every)");
-            self.stats.stop_undescribed(config.fault_for);
-        } else {
-            info!(%id, %state, "reporting a fault (--fault-after)");
-            self.stats.stop(state, config.fault_for);
-        }
-        let state = self.state_now();
-        writer.state = state;
-        if self.dialect.status == Status::Pushed {
-            // The state first, so the holon knows it before the command's answer.
-            writer.status().await?;
-        }
-        // One in flight, the command is answered with its failed reply (which frees
-        // the wire for the state); with ids it is left unanswered, as a faulted
-        // controller leaves the job it was given (its state says why), unless its
-        // state cannot be told (a dialect whose state is the connection's).
-        if one || self.dialect.status == Status::Connection {
-            let said = match undescribed {
-                true => super::UNDESCRIBED_STATE.to_lowercase(),
-                false => state.to_string(),
-            };
-            self.answer_failed(element, writer, &said).await?;
         }
         Ok(Flow::Continue)
     }
