@@ -494,6 +494,17 @@ pub fn order_rows(orders: &[schemas::OrderSnapshot], detail: bool, now: u64) -> 
             o.reworks,
             o.reason.as_ref().map_or("", |r| r.as_str())
         ));
+        // Where its part is (a plan that moves parts): while it is in the cell, and
+        // always with detail.
+        if let Some(part) = &o.part {
+            let in_cell = !matches!(
+                part,
+                schemas::PartPlace::Outside | schemas::PartPlace::Shipped { .. }
+            );
+            if in_cell || detail {
+                out.push_str(&format!("    part {part}\n"));
+            }
+        }
         if detail {
             for a in &o.attempts {
                 out.push_str(&format!(
@@ -648,8 +659,39 @@ mod tests {
             due: None,
             advised: 0,
             version: None,
+            part: None,
             at: 0,
         }
+    }
+
+    #[test]
+    fn the_orders_table_says_where_each_part_in_the_cell_is() {
+        let mut moving = order("o-1", schemas::OrderStatus::Running);
+        moving.part = Some(schemas::PartPlace::InTransit {
+            transporter: HolonId::resource("conveyor1").unwrap(),
+            from: "conveyor1.load".to_string().try_into().unwrap(),
+            to: "robot1.port".to_string().try_into().unwrap(),
+        });
+        let mut shipped = order("o-2", schemas::OrderStatus::Done);
+        shipped.part = Some(schemas::PartPlace::Shipped {
+            exit: "conveyor1.load".to_string().try_into().unwrap(),
+        });
+        let table = render_orders_at("demo", &[moving.clone(), shipped.clone()], false, 0);
+        assert!(
+            table.contains(
+                "    part in transit on resource/conveyor1 from conveyor1.load to robot1.port\n"
+            ),
+            "{table}"
+        );
+        assert!(
+            !table.contains("shipped"),
+            "only parts in the cell: {table}"
+        );
+        let detailed = render_orders_at("demo", &[moving, shipped], true, 0);
+        assert!(
+            detailed.contains("    part shipped at conveyor1.load\n"),
+            "{detailed}"
+        );
     }
 
     #[test]

@@ -20,6 +20,9 @@ struct ProductFile {
     kind: String,
     #[serde(default)]
     zenoh: ZenohSettings,
+    /// Its parts are moved through the cell's layout (`Plan::moves_parts`).
+    #[serde(default)]
+    moves_parts: bool,
     steps: Vec<PlanStep>,
 }
 
@@ -49,6 +52,7 @@ impl ProductConfig {
         let plan = Plan {
             product: identity.holon.name().to_string(),
             steps: file.steps,
+            moves_parts: file.moves_parts,
         };
         plan.validate()
             .map_err(|e| invalid(format!("steps: {e}")))?;

@@ -41,3 +41,65 @@ pub async fn ask(
     }
     Ok(answered)
 }
+
+/// How often [`follow`] asks again besides when a resource appears or vanishes (a
+/// station started or stopped is in the layout within this).
+pub const ASK_EVERY: Duration = Duration::from_secs(5);
+
+/// How long one of [`follow`]'s asks waits for the parts.
+const ASK_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// Follows the cell's layout until `token` is cancelled: asks every serving resource's
+/// part when it starts, whenever a resource's token appears or vanishes, and every
+/// [`ASK_EVERY`], and writes the assembled layout to `layout` when it changed. `own`,
+/// a resource's own part, is in the layout whether or not it answered yet. An ask that
+/// fails is logged and made again at the next occasion; the error is only the
+/// subscription to the resources' tokens.
+pub async fn follow(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    own: Option<&LayoutPart>,
+    layout: &tokio::sync::watch::Sender<Option<std::sync::Arc<schemas::layout::CellLayout>>>,
+    token: &tokio_util::sync::CancellationToken,
+) -> Result<(), zenoh::Error> {
+    let resources = session
+        .liveliness()
+        .declare_subscriber(keys.alive_kind(schemas::HolonKind::Resource))
+        .await?;
+    let mut every = tokio::time::interval(ASK_EVERY);
+    every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tokio::select! {
+            _ = token.cancelled() => return Ok(()),
+            _ = every.tick() => {}
+            change = resources.recv_async() => {
+                change.map_err(|_| "the resources' liveliness subscription closed")?;
+                // Those of the same moment make one ask.
+                while let Ok(Some(_)) = resources.try_recv() {}
+            }
+        }
+        let answered = match ask(session, keys, ASK_TIMEOUT).await {
+            Ok(answered) => answered,
+            Err(e) => {
+                tracing::debug!(error = %e, "cannot ask for the cell's layout; asked again shortly");
+                continue;
+            }
+        };
+        for why in &answered.unreadable {
+            tracing::debug!(%why, "left out of the layout");
+        }
+        let others = answered
+            .parts
+            .into_iter()
+            .filter(|part| own.is_none_or(|own| part.holon != own.holon));
+        let assembled =
+            schemas::layout::CellLayout::assemble(own.cloned().into_iter().chain(others));
+        layout.send_if_modified(|known| {
+            if known.as_deref() == Some(&assembled) {
+                return false;
+            }
+            *known = Some(std::sync::Arc::new(assembled));
+            true
+        });
+    }
+}

@@ -41,6 +41,21 @@ pub struct OrderContext {
     pub bookings_in_flight: BookingsInFlight,
     /// Whether the staff answers: asking stops for a while when it does not.
     pub advice_pause: AdvicePause,
+    /// The cell's layout, followed from the first order whose plan moves parts
+    /// ([`OrderContext::layout`]) until the node's orders are dropped.
+    pub layout: CellLayoutFollowing,
+}
+
+/// The cell's layout, followed once an order asks for it.
+#[derive(Default)]
+pub struct CellLayoutFollowing(tokio::sync::OnceCell<CellLayoutFollower>);
+
+/// The cell's layout as the node follows it ([`holon::layout::follow`]).
+struct CellLayoutFollower {
+    /// The layout, as last assembled (`None` until the first answer).
+    layout: watch::Receiver<Option<Arc<schemas::layout::CellLayout>>>,
+    /// Stops the following when the context is dropped.
+    _stop: tokio_util::sync::DropGuard,
 }
 
 /// The journal kind of order records.
@@ -66,7 +81,40 @@ impl OrderContext {
             journal_failing: Default::default(),
             bookings_in_flight: Default::default(),
             advice_pause: Default::default(),
+            layout: Default::default(),
         }
+    }
+
+    /// The cell's layout as it stands (`None` while no resource has answered its part):
+    /// the first call starts following it and waits for the first answers (at most a
+    /// few seconds).
+    pub async fn layout(&self) -> Option<Arc<schemas::layout::CellLayout>> {
+        let follower = self
+            .layout
+            .0
+            .get_or_init(|| async {
+                let (sender, mut layout) = watch::channel(None);
+                let stop = tokio_util::sync::CancellationToken::new();
+                let (session, keys, token) = (self.session.clone(), self.keys.clone(), stop.clone());
+                tokio::spawn(async move {
+                    if let Err(e) =
+                        holon::layout::follow(&session, &keys, None, &sender, &token).await
+                    {
+                        error!(error = %e, "cannot follow the cell's layout: orders that move parts wait");
+                    }
+                });
+                // The first ask is made at once; its answers come within its timeout.
+                let first = tokio::time::timeout(Duration::from_secs(3), layout.changed()).await;
+                if first.is_err() {
+                    warn!("no resource answered its part of the cell's layout yet");
+                }
+                CellLayoutFollower {
+                    layout,
+                    _stop: stop.drop_guard(),
+                }
+            })
+            .await;
+        follower.layout.borrow().clone()
     }
 
     /// The epoch at which this node holds its leader key, on etcd (`None` on SQLite).

@@ -717,6 +717,7 @@ mod tests {
                 journal_failing: Default::default(),
                 bookings_in_flight: Default::default(),
                 advice_pause: Default::default(),
+                layout: Default::default(),
             }),
             Finished::new(),
             1,

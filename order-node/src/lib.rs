@@ -30,6 +30,7 @@ pub mod journal;
 pub mod listing;
 pub mod node;
 pub mod order;
+pub mod part;
 pub mod presence;
 pub mod progress;
 pub mod queries;

@@ -27,6 +27,17 @@ use crate::progress::{Phase, StepOutcome};
 use crate::ranking::InFlight;
 use crate::requests;
 
+mod material;
+
+/// Which attempt the order's task runs: its step's, or a move of its part.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Leg {
+    /// The current step's attempt (its phase is the progress's `phase`).
+    Work,
+    /// A move of the part (its phase is the part's `moving.phase`).
+    Move,
+}
+
 /// Runs one order until it is done, scrapped, failed or cancelled by an operator, or
 /// its node stops (`cancel`). An operator's cancel arrives in `cancel_asks`: this task
 /// records it and answers ([`crate::cancel`]), then `operator_cancel` stops the attempt.
@@ -44,6 +55,8 @@ pub async fn run(
         appearances: ctx.presence.appearances(),
         in_flight: None,
         advised: None,
+        leg: Leg::Work,
+        work_at: None,
         ctx,
         progress: &progress,
         holon: holon.clone(),
@@ -95,6 +108,11 @@ struct OrderTask<'a> {
     /// The resource the last round booked first on a staff holon's advice: counted
     /// in the order's `advised` when its booking is recorded.
     advised: Option<HolonId>,
+    /// The attempt under way: the step's, or a move's.
+    leg: Leg,
+    /// For a plan that moves parts: the station whose port holds the part, the only
+    /// one the step is booked on.
+    work_at: Option<HolonId>,
 }
 
 /// How a watch for a result ended.
@@ -136,13 +154,42 @@ impl OrderTask<'_> {
                 let p = self.progress.get();
                 match p.current_step() {
                     Some(step) => (step.clone(), p.conversation_id()),
-                    None => return Ok(()),
+                    None => break,
                 }
             };
+            self.work_at = None;
+            if self.progress.get().part.is_some() {
+                match self
+                    .arrange(&step, &conversation_id, operator_cancel)
+                    .await?
+                {
+                    material::Arranged::At(station) => self.work_at = Some(station),
+                    material::Arranged::Cancelled => continue,
+                    material::Arranged::NoStation => {
+                        self.ctx
+                            .commit(self.progress, |p| p.record(StepOutcome::NoResource))?;
+                        self.publish().await;
+                        continue;
+                    }
+                }
+            }
             if !self.step(&step, &conversation_id, operator_cancel).await? {
-                return Ok(());
+                break;
             }
         }
+        // A part still in the cell leaves it by an exit before the order's end is
+        // recorded.
+        let leaving = self
+            .progress
+            .get()
+            .part
+            .as_ref()
+            .is_some_and(|p| p.leaving.is_some());
+        if leaving {
+            self.leave().await?;
+            self.publish().await;
+        }
+        Ok(())
     }
 
     /// Fetches the plan from the product holon unless the order has it already.
@@ -153,7 +200,7 @@ impl OrderTask<'_> {
         let product = self.progress.get().product.clone();
         let plan = requests::fetch_plan(&self.ctx, &product).await;
         self.ctx.commit(self.progress, |p| match plan {
-            Some(plan) => p.plan = Some(plan),
+            Some(plan) => p.set_plan(plan),
             None => p.fail(format!("no plan for product {product:?}")),
         })?;
         self.publish().await;
@@ -174,7 +221,8 @@ impl OrderTask<'_> {
         // unless its step runs: a running step is let finish and its result recorded.
         let mut finishing = false;
         let (outcome, report) = {
-            let attempt = self.attempt(step, conversation_id);
+            let phase = progress.get().phase.clone();
+            let attempt = self.attempt(step, conversation_id, phase);
             tokio::pin!(attempt);
             loop {
                 tokio::select! {
@@ -218,6 +266,7 @@ impl OrderTask<'_> {
         &mut self,
         step: &PlanStep,
         conversation_id: &str,
+        phase: Phase,
     ) -> Result<(StepOutcome, Option<Box<ResultReport>>), OrderError> {
         let settings = &self.ctx.settings;
         let timing = AttemptTiming {
@@ -227,7 +276,6 @@ impl OrderTask<'_> {
             no_resource_timeout: settings.no_resource_timeout,
             step_timeout: settings.step_timeout,
         };
-        let phase = self.progress.get().phase.clone();
         let mut attempt =
             Attempt::new(phase, timing, Instant::now()).starting_on_turn(settings.start_on_turn);
         let mut event = AttemptEvent::Resumed;
@@ -342,6 +390,17 @@ impl OrderTask<'_> {
 
     /// Records the attempt's new phase.
     fn record(&mut self, phase: Phase) -> Result<(), OrderError> {
+        if self.leg == Leg::Move {
+            // A move's phase is the part's; its transporter is one the order worked with.
+            return self.ctx.commit(self.progress, |p| {
+                if let Some(resource) = phase.resource() {
+                    p.worked_with.insert(resource.clone());
+                }
+                if let Some(part) = &mut p.part {
+                    part.move_phase(phase);
+                }
+            });
+        }
         // A booking made on advice counts once, when it is recorded.
         let on_advice = matches!(&phase, Phase::Booked(p) | Phase::Started(p) if self.advised.as_ref() == Some(p));
         if !matches!(&phase, Phase::Booking(p) if self.advised.as_ref() == Some(p)) {
@@ -379,8 +438,18 @@ impl OrderTask<'_> {
             let p = self.progress.get();
             (p.route_ahead(), (p.priority, p.due))
         };
+        // A move is not the staff's to advise; a step of a part at a station is
+        // worked there.
+        let work = self.leg == Leg::Work && self.work_at.is_none();
         let (advised, offers) = tokio::join!(
-            requests::advice(&ctx, &self.holon, conversation_id, route, urgency, &avoid),
+            async {
+                if work {
+                    requests::advice(&ctx, &self.holon, conversation_id, route, urgency, &avoid)
+                        .await
+                } else {
+                    requests::Advised::NoStaff
+                }
+            },
             requests::offers(&ctx, &ask, &avoid)
         );
         let advised = match advised {
@@ -391,7 +460,10 @@ impl OrderTask<'_> {
                 None
             }
         };
-        let (ranked, in_flight) = requests::rank(&ctx, &ask, offers, advised.as_ref());
+        let (mut ranked, in_flight) = requests::rank(&ctx, &ask, offers, advised.as_ref());
+        if let (Leg::Work, Some(station)) = (self.leg, &self.work_at) {
+            ranked.retain(|r| r == station);
+        }
         self.in_flight = in_flight;
         self.advised = match advised {
             Some(resource) if ranked.first() == Some(&resource) => Some(resource),

@@ -9,6 +9,8 @@ use schemas::{
 };
 use serde_json::{Map, Value};
 
+use crate::part::PartProgress;
+
 /// Where the current attempt stands with its resource. Recorded in the journal before
 /// each request that depends on it, so a restarted order-node resumes the conversation
 /// instead of starting it again (booking and start are idempotent per conversation).
@@ -163,6 +165,9 @@ pub struct OrderProgress {
     /// the step elsewhere).
     #[serde(default, skip_serializing_if = "BTreeSet::is_empty")]
     pub fenced: BTreeSet<HolonId>,
+    /// The order's part, once its plan moves parts ([`crate::part`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub part: Option<PartProgress>,
 }
 
 impl OrderProgress {
@@ -193,6 +198,41 @@ impl OrderProgress {
             advised: 0,
             start_epoch: None,
             fenced: BTreeSet::new(),
+            part: None,
+        }
+    }
+
+    /// Takes the plan: an order whose plan moves parts gets its part, outside the cell.
+    pub fn set_plan(&mut self, plan: Plan) {
+        if plan.moves_parts && self.part.is_none() {
+            self.part = Some(PartProgress::default());
+        }
+        self.plan = Some(plan);
+    }
+
+    /// Ends the order with `status`: at once, unless its part is in the cell, in which
+    /// case the end is recorded once the part has left by an exit.
+    fn end(&mut self, status: OrderStatus, reason: Option<String>) {
+        self.phase = Phase::Proposing;
+        match &mut self.part {
+            Some(part) if part.in_cell() => {
+                if part.leaving.is_none() {
+                    part.leaving = Some((status, reason));
+                }
+            }
+            _ => {
+                self.status = status;
+                self.reason = reason;
+            }
+        }
+    }
+
+    /// The part has left the cell (or never entered it): the end that waited for it is
+    /// recorded.
+    pub fn part_left(&mut self) {
+        if let Some((status, reason)) = self.part.as_mut().and_then(|p| p.leaving.take()) {
+            self.status = status;
+            self.reason = reason;
         }
     }
 
@@ -240,9 +280,10 @@ impl OrderProgress {
     /// Ends a running order as cancelled by an operator.
     pub fn cancel(&mut self) {
         if self.status == OrderStatus::Running {
-            self.status = OrderStatus::Cancelled;
-            self.reason = Some("cancelled by an operator".into());
-            self.phase = Phase::Proposing;
+            self.end(
+                OrderStatus::Cancelled,
+                Some("cancelled by an operator".into()),
+            );
         }
     }
 
@@ -253,16 +294,16 @@ impl OrderProgress {
 
     /// The step to work on, if the order is still running and has its plan.
     pub fn current_step(&self) -> Option<&schemas::PlanStep> {
-        if self.status != OrderStatus::Running {
+        if self.status != OrderStatus::Running
+            || self.part.as_ref().is_some_and(|p| p.leaving.is_some())
+        {
             return None;
         }
         self.plan.as_ref()?.steps.get(self.step)
     }
 
     pub fn fail(&mut self, reason: String) {
-        self.status = OrderStatus::Failed;
-        self.reason = Some(reason);
-        self.phase = Phase::Proposing;
+        self.end(OrderStatus::Failed, Some(reason));
     }
 
     fn next_attempt(&mut self) {
@@ -303,18 +344,15 @@ impl OrderProgress {
                             self.next_step(from_step - 1);
                         }
                         Some(OnReject::Rework { max_reworks, .. }) => {
-                            self.status = OrderStatus::Scrapped;
-                            self.reason = Some(format!(
+                            let reason = format!(
                                 "rejected at step {} ({}) after {max_reworks} reworks",
                                 self.step + 1,
                                 current.service_type
-                            ));
-                            self.phase = Phase::Proposing;
+                            );
+                            self.end(OrderStatus::Scrapped, Some(reason));
                         }
                         Some(OnReject::Scrap { reason }) => {
-                            self.status = OrderStatus::Scrapped;
-                            self.reason = Some(reason.clone());
-                            self.phase = Phase::Proposing;
+                            self.end(OrderStatus::Scrapped, Some(reason.clone()));
                         }
                         None => self.advance(),
                     }
@@ -396,8 +434,7 @@ impl OrderProgress {
     fn advance(&mut self) {
         let steps = self.plan.as_ref().map_or(0, |p| p.steps.len());
         if self.step + 1 >= steps {
-            self.status = OrderStatus::Done;
-            self.phase = Phase::Proposing;
+            self.end(OrderStatus::Done, None);
         } else {
             self.next_step(self.step + 1);
         }
@@ -427,6 +464,7 @@ impl OrderProgress {
             due: self.due,
             advised: self.advised,
             version: Some(env!("CARGO_PKG_VERSION").to_string()),
+            part: self.part.as_ref().map(|p| p.place.clone()),
             at: unix_ms(),
         }
     }

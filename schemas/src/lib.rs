@@ -13,6 +13,7 @@ pub mod layout;
 pub mod listing;
 pub mod outcome;
 pub mod packml;
+pub mod part;
 pub mod plan;
 pub mod robot;
 pub mod service;
@@ -33,6 +34,7 @@ pub use packml::{
     PackmlCommand, PackmlReply, PackmlRequest, PackmlState, PackmlStatus, Refusal, StopReason,
     UnitMode,
 };
+pub use part::PartPlace;
 pub use plan::{
     requested_by, AttemptEnd, AttemptRecord, CancelReply, OnReject, OrderSnapshot, OrderStatus,
     Plan, PlanStep, SubmitReply, WorkOrder, MAX_ATTEMPT_HISTORY, MAX_REQUESTED_BY,
@@ -40,7 +42,7 @@ pub use plan::{
 pub use robot::{ControllerState, Pose, RobotCommand, RobotMessage, RobotReply};
 pub use service::{
     bounded_detail, info_key, ErrorReply, MessageType, Service, MAX_DETAIL_BYTES, MAX_PRIORITY,
-    MIN_PRIORITY, SERVICE_VERSION,
+    MIN_PRIORITY, PLACE_SERVICE, SERVICE_VERSION,
 };
 pub use state::{
     unix_ms, BookingView, ControllerStatus, CurrentJobView, Epochs, ResourceSnapshot, ResourceState,

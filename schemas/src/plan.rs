@@ -42,6 +42,11 @@ pub struct PlanStep {
 pub struct Plan {
     pub product: String,
     pub steps: Vec<PlanStep>,
+    /// The product's parts are moved through the cell's layout: each step is worked
+    /// where the part is, at a station's port, and the order books the moves between
+    /// them (docs/material-flow.md). Absent: no part is moved (a cell without a layout).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub moves_parts: bool,
 }
 
 impl Plan {
@@ -305,6 +310,9 @@ pub struct OrderSnapshot {
     /// The release of the order-node hosting the order (absent from older nodes).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub version: Option<String>,
+    /// Where the order's part is, for a plan that moves parts.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub part: Option<crate::PartPlace>,
     pub at: u64,
 }
 

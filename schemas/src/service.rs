@@ -110,7 +110,26 @@ pub mod info_key {
     /// highest it has seen with the booking and refuses `stale_epoch` a request of a
     /// lower one: it comes from a deposed holder of the order-node.
     pub const EPOCH: &str = "epoch";
+    /// On a booking of a move (a transporter's) or of a place ([`super::PLACE_SERVICE`]):
+    /// the part, by its order's name (`o-1-3`).
+    pub const PART: &str = "part";
+    /// On a booking of a move: where the part is (a location id, `robot1.port`).
+    pub const FROM: &str = "from";
+    /// On a booking of a move: where the part goes.
+    pub const TO: &str = "to";
+    /// On a booking of a place ([`super::PLACE_SERVICE`]): the location, one of the
+    /// resource's own.
+    pub const LOCATION: &str = "location";
 }
+
+/// The service every resource that states locations in its layout answers, without
+/// offering it: a booking of `place` with `info.part` and `info.location` reserves a
+/// place for the part at that location (one of the resource's own), refused
+/// `no_place` when all its places are held; its `booking_cancel` releases it. A place
+/// is never started, and it outlasts its requester's absence, a withdrawal and a
+/// restart (the part is physically there): only its requester (or an operator)
+/// releases it (docs/material-flow.md, "Reservations").
+pub const PLACE_SERVICE: &str = "place";
 
 /// The most urgent priority a work order may have.
 pub const MAX_PRIORITY: i32 = 1000;

@@ -145,6 +145,10 @@ pub struct ResourceSnapshot {
     /// Production.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub packml: Option<crate::packml::PackmlStatus>,
+    /// The places held at its locations (docs/material-flow.md, "Reservations"): each
+    /// location's parts, in the order they were reserved.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub places: std::collections::BTreeMap<String, Vec<String>>,
     /// The machine the holon's process runs on (its hostname).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub host: Option<String>,

@@ -120,6 +120,9 @@ words! {
         /// one the booking was already asked at: it comes from a deposed holder of an
         /// order-node on etcd, and a newer holder has the order.
         StaleEpoch = "stale_epoch",
+        /// A `booking_req` for a place ([`crate::PLACE_SERVICE`]) at a location whose
+        /// places are all held by other parts (`info.detail` names them).
+        NoPlace = "no_place",
     }
 }
 

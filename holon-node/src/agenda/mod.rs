@@ -92,6 +92,7 @@ use crate::packml::PackmlUnit;
 
 mod leaving;
 mod packml;
+mod places;
 mod queue;
 mod record;
 mod requests;
@@ -99,6 +100,7 @@ mod snapshot;
 mod travel;
 
 pub use packml::{packml_hint, PackmlSettings};
+pub use places::{PlaceHold, Places};
 pub use record::{AgendaRecord, AgendaRecordRef};
 
 /// How many later bookings of higher priority may go ahead of a waiting one, unless
@@ -305,6 +307,8 @@ pub struct AgendaManager {
     controller: ControllerStatus,
     /// The cell's layout, as last heard (transporters only; None until then).
     layout: Option<Arc<schemas::layout::CellLayout>>,
+    /// Its own locations and the places held at them ([`places`]).
+    places: Places,
 }
 
 impl AgendaManager {
@@ -326,7 +330,22 @@ impl AgendaManager {
             held_bookings_ms: PackmlSettings::default().held_bookings_ms,
             controller: ControllerStatus::Disconnected,
             layout: None,
+            places: Places::default(),
         }
+    }
+
+    /// The same agenda, holding places at the locations of `part` (the resource's own
+    /// part of the layout); those the journal had held stay held.
+    pub fn with_locations(mut self, part: Option<&schemas::layout::LayoutPart>) -> Self {
+        let held = std::mem::take(&mut self.places.held);
+        self.places = Places::of(part);
+        self.places.restore(held);
+        self
+    }
+
+    /// The places held at its locations.
+    pub fn places(&self) -> &Places {
+        &self.places
     }
 
     /// The same agenda with the holon's PackML settings: a unit restored from the
@@ -387,6 +406,7 @@ impl AgendaManager {
             }
         }
         manager.undelivered = record.undelivered;
+        manager.places.restore(record.places);
         if let Some(unit) = record.packml {
             manager.packml = unit.restored();
             manager.packml_restored = true;
@@ -507,7 +527,7 @@ impl AgendaManager {
     /// The row of the table for `event`.
     fn transition(&mut self, event: AgendaEvent, now: u64) -> Vec<AgendaAction> {
         match event {
-            AgendaEvent::Request(request) => self.request(request),
+            AgendaEvent::Request(request) => self.request(request, now),
             AgendaEvent::ExecutionReady => self.controller_now(ControllerStatus::Ready, None, now),
             AgendaEvent::ExecutionUnavailable(status, said) => {
                 self.controller_now(status, said.as_deref(), now)

@@ -2,10 +2,13 @@
 //! owned ([`AgendaRecord`], read back when the journal is opened) or borrowed
 //! ([`AgendaRecordRef`], what a write serialises, in the same form).
 
+use std::collections::BTreeMap;
+
+use schemas::layout::LocationId;
 use schemas::Service;
 use serde::Serialize;
 
-use super::{AgendaManager, Booking, Job};
+use super::{AgendaManager, Booking, Job, PlaceHold};
 use crate::packml::PackmlUnit;
 
 /// What the journal keeps of the agenda manager.
@@ -19,6 +22,9 @@ pub struct AgendaRecord {
     /// initial state then applies).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub packml: Option<PackmlUnit>,
+    /// The places held at its locations (absent from journals written before them).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub places: BTreeMap<LocationId, Vec<PlaceHold>>,
 }
 
 /// The record borrowed from the agenda manager: written as an [`AgendaRecord`] is,
@@ -29,6 +35,8 @@ pub struct AgendaRecordRef<'a> {
     pub current: Option<&'a Job>,
     pub undelivered: &'a [Service],
     pub packml: &'a PackmlUnit,
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub places: &'a BTreeMap<LocationId, Vec<PlaceHold>>,
 }
 
 impl AgendaManager {
@@ -39,6 +47,7 @@ impl AgendaManager {
             current: self.current.clone(),
             undelivered: self.undelivered.clone(),
             packml: Some(self.packml.clone()),
+            places: self.places.held().clone(),
         }
     }
 
@@ -49,6 +58,7 @@ impl AgendaManager {
             current: self.current.as_ref(),
             undelivered: &self.undelivered,
             packml: &self.packml,
+            places: self.places.held(),
         }
     }
 
@@ -59,6 +69,7 @@ impl AgendaManager {
             && self.current == other.current
             && self.undelivered == other.undelivered
             && self.packml == other.packml
+            && self.places.held() == other.places.held()
     }
 
     /// Whether this is the record it keeps, compared in place.
@@ -67,6 +78,7 @@ impl AgendaManager {
             && self.current == record.current
             && self.undelivered == record.undelivered
             && record.packml.as_ref() == Some(&self.packml)
+            && self.places.held() == &record.places
     }
 }
 

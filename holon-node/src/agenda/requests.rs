@@ -89,8 +89,11 @@ impl AgendaManager {
 
     /// A request from another holon: the rows of the table (in the documentation of
     /// [`crate::agenda`]), in their order.
-    pub(super) fn request(&mut self, request: Service) -> Vec<AgendaAction> {
+    pub(super) fn request(&mut self, request: Service, now: u64) -> Vec<AgendaAction> {
         match request.message_type {
+            MessageType::BookingReq if request.service_type == schemas::PLACE_SERVICE => {
+                self.hold_place(&request, now)
+            }
             MessageType::ProposalReq => self.proposal(&request),
             MessageType::BookingReq => self.book(request),
             MessageType::BookingCancel => self.cancel(&request),
@@ -104,7 +107,12 @@ impl AgendaManager {
         }
     }
 
-    fn refuse(&self, request: &Service, why: Reason, detail: Option<String>) -> Vec<AgendaAction> {
+    pub(super) fn refuse(
+        &self,
+        request: &Service,
+        why: Reason,
+        detail: Option<String>,
+    ) -> Vec<AgendaAction> {
         let unavailable = why == Reason::Unavailable;
         let mut reply = request.refused(&self.holon, why);
         if let Some(detail) = detail {
@@ -270,7 +278,10 @@ impl AgendaManager {
                     AgendaAction::StateChanged,
                 ]
             }
-            None => self.refuse(request, Reason::NotBooked, None),
+            None => match self.release_place(request) {
+                Some(released) => released,
+                None => self.refuse(request, Reason::NotBooked, None),
+            },
         }
     }
 

@@ -49,6 +49,15 @@ impl AgendaManager {
             delivery_retries: 0,
             handing_over: self.handing_over,
             packml: Some(self.packml.status()),
+            places: self
+                .places
+                .held()
+                .iter()
+                .map(|(location, holds)| {
+                    let parts = holds.iter().map(|h| h.part.clone()).collect();
+                    (location.to_string(), parts)
+                })
+                .collect(),
             host: None,
             epoch: None,
             version: None,

@@ -1,30 +1,22 @@
 //! The cell's layout, as a transporter needs it (docs/material-flow.md): where the
-//! locations it moves parts between are is their holons' to state, so a transporter asks
-//! every serving resource's part (`resource/*/layout`) when it starts, whenever a
-//! resource appears or vanishes (its token), and every [`ASK_EVERY`] besides, and hands
-//! the agenda manager the layout when it changed
+//! locations it moves parts between are is their holons' to state, so a transporter
+//! follows every serving resource's part (`resource/*/layout`, [`holon::layout::follow`]:
+//! when it starts, whenever a resource appears or vanishes, and every
+//! [`holon::layout::ASK_EVERY`]) and hands the agenda manager the layout when it changed
 //! ([`AgendaEvent::Layout`]): the agenda times its moves by it and refuses those it
 //! cannot make. Only a resource whose `[layout]` makes it a transporter runs it.
 
 use std::sync::Arc;
-use std::time::Duration;
 
 use holon::ChildError;
-use schemas::layout::{CellLayout, LayoutPart};
-use schemas::{CellKeys, HolonId, HolonKind};
-use tokio::sync::mpsc;
+use schemas::layout::LayoutPart;
+use schemas::{CellKeys, HolonId};
+use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info};
+use tracing::info;
 
 use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
-
-/// How often the layout is asked again (a station started or stopped is in it within
-/// this).
-pub const ASK_EVERY: Duration = Duration::from_secs(5);
-
-/// How long one ask waits for the parts.
-const ASK_TIMEOUT: Duration = Duration::from_secs(2);
 
 pub struct Links {
     pub holon: HolonId,
@@ -36,59 +28,30 @@ pub struct Links {
     pub agenda: mpsc::Sender<AgendaMessage>,
 }
 
-/// The parts the serving resources answer, this one's own among them.
-async fn ask(links: &Links) -> Result<CellLayout, zenoh::Error> {
-    let answered = holon::layout::ask(&links.session, &links.keys, ASK_TIMEOUT).await?;
-    for why in &answered.unreadable {
-        debug!(holon = %links.holon, %why, "left out of the layout");
-    }
-    let others = answered
-        .parts
-        .into_iter()
-        .filter(|part| part.holon != links.own.holon);
-    Ok(CellLayout::assemble(
-        std::iter::once(links.own.clone()).chain(others),
-    ))
-}
-
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
     let holon = &links.holon;
-    // A station started or stopped: its part is in the layout (or out of it) at once,
-    // not at the next tick (its layout is answered before its token appears).
-    let resources = links
-        .session
-        .liveliness()
-        .declare_subscriber(links.keys.alive_kind(HolonKind::Resource))
-        .await?;
-    let mut known: Option<CellLayout> = None;
-    let mut every = tokio::time::interval(ASK_EVERY);
-    every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let (known, mut changes) = watch::channel(None);
+    let follow = holon::layout::follow(
+        &links.session,
+        &links.keys,
+        Some(&links.own),
+        &known,
+        &token,
+    );
+    tokio::pin!(follow);
     loop {
         tokio::select! {
-            _ = token.cancelled() => return Ok(()),
-            _ = every.tick() => {}
-            change = resources.recv_async() => {
-                change.map_err(|_| "the resources' liveliness subscription closed")?;
-                // Those of the same moment make one ask.
-                while let Ok(Some(_)) = resources.try_recv() {}
+            followed = &mut follow => return followed,
+            changed = changes.changed() => {
+                changed.map_err(|_| "the layout's watch closed")?;
+                let Some(layout) = changes.borrow_and_update().clone() else { continue };
+                info!(%holon, holons = layout.parts.len(), problems = layout.problems.len(), "the cell's layout as this transporter knows it");
+                links
+                    .agenda
+                    .send(AgendaEvent::Layout(layout).into())
+                    .await
+                    .map_err(|_| "agenda mailbox closed")?;
             }
         }
-        let layout = match ask(&links).await {
-            Ok(layout) => layout,
-            Err(e) => {
-                debug!(%holon, error = %e, "cannot ask for the cell's layout; asked again shortly");
-                continue;
-            }
-        };
-        if known.as_ref() == Some(&layout) {
-            continue;
-        }
-        info!(%holon, holons = layout.parts.len(), problems = layout.problems.len(), "the cell's layout as this transporter knows it");
-        links
-            .agenda
-            .send(AgendaEvent::Layout(Arc::new(layout.clone())).into())
-            .await
-            .map_err(|_| "agenda mailbox closed")?;
-        known = Some(layout);
     }
 }

@@ -365,6 +365,7 @@ pub(crate) mod tests {
             delivery_retries: 0,
             handing_over: false,
             packml: None,
+            places: Default::default(),
             host: None,
             epoch: None,
             version: None,

@@ -710,6 +710,7 @@ mod tests {
             delivery_retries: 0,
             handing_over: false,
             packml: None,
+            places: Default::default(),
             host: None,
             epoch: None,
             version: None,

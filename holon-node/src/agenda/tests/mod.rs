@@ -5,6 +5,7 @@ use schemas::unix_ms;
 mod epoch;
 mod on_turn;
 mod packml;
+mod places;
 mod queue;
 mod refusals;
 mod restore;

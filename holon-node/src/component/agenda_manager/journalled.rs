@@ -124,7 +124,8 @@ impl JournalledAgenda {
             schemas::unix_ms(),
         )
         .with_max_overtakes(config.agenda_max_overtakes)
-        .with_packml(config.packml);
+        .with_packml(config.packml)
+        .with_locations(config.layout.as_ref());
         if let Some(journal) = &journal {
             // The interrupted job became an undelivered result: record that at once.
             journal.put(AGENDA_RECORD.0, AGENDA_RECORD.1, &agenda.record_ref())?;

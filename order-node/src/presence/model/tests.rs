@@ -46,6 +46,7 @@ pub(in crate::presence) fn snapshot_of(
         delivery_retries: 0,
         handing_over: false,
         packml: None,
+        places: Default::default(),
         host: None,
         epoch: None,
         version: None,

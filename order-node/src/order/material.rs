@@ -1,0 +1,468 @@
+//! An order's part on its way through the cell (docs/material-flow.md, "Orders arrange
+//! their moves"): before a step, the part is brought to a station that works it; after
+//! the last step (or when the order ends otherwise) it leaves by an exit.
+//!
+//! Before each step the order asks the stations for proposals and, best first:
+//! - works the step where the part is, if that station proposed;
+//! - else reserves a place at a proposing station's port and books the move there
+//!   (both or neither: a move that cannot be booked releases the place);
+//! - else, when no station has a place for it and the part is at a station's port,
+//!   takes it back to its home (the buffer place it holds from its entry until it
+//!   leaves): so a part waits for a place only where it blocks no station, and finite
+//!   ports cannot deadlock the cell;
+//! - else waits for a place to free up, or a station to appear.
+//!
+//! A part enters the cell only once a home is reserved for it: no more parts are in the
+//! cell than its buffers hold. Every change of the part ([`crate::part`]) is journalled
+//! before it is acted on; a move is booked and followed as a step is ([`crate::attempt`],
+//! its own phase).
+
+use std::time::Duration;
+
+use schemas::layout::{CellLayout, LocationId, LocationRole};
+use schemas::{info_key, HolonId, MessageType, PartPlace, PlanStep, Reason};
+use serde_json::{Map, Value};
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use super::{Leg, OrderTask};
+use crate::context::{jittered, OrderError};
+use crate::part::{Move, MoveEnd, MoveGoal, PartProgress, TRANSPORT_SERVICE};
+use crate::progress::{Phase, StepOutcome};
+use crate::requests;
+
+/// How long an order waits before asking again for a station place, a home or a
+/// transporter that none had (a place freed or a resource appearing wakes it sooner).
+const PLACE_RETRY: Duration = Duration::from_millis(500);
+
+/// How often an order whose part is lost asks its transporter what became of the move.
+const LOST_ASK_EVERY: Duration = Duration::from_secs(2);
+
+/// Where arranging the part for a step ended.
+pub(super) enum Arranged {
+    /// The part is at a port of this station, which proposed for the step.
+    At(HolonId),
+    /// No station could take the step within the order's no-resource timeout.
+    NoStation,
+    /// An operator cancelled the order meanwhile (recorded: the part leaves next).
+    Cancelled,
+}
+
+impl OrderTask<'_> {
+    /// The order's part (a plan that moves parts has one).
+    fn part(&self) -> PartProgress {
+        self.progress.get().part.clone().unwrap_or_default()
+    }
+
+    /// Brings the part to a station that works `step`.
+    pub(super) async fn arrange(
+        &mut self,
+        step: &PlanStep,
+        conversation_id: &str,
+        operator_cancel: &CancellationToken,
+    ) -> Result<Arranged, OrderError> {
+        let give_up = Instant::now() + self.ctx.settings.no_resource_timeout;
+        loop {
+            let part = self.part();
+            if let Some(moving) = part.moving.clone() {
+                match part.place {
+                    PartPlace::Lost { .. } => self.find_lost(&moving).await?,
+                    _ => self.run_move(moving).await?,
+                }
+                continue;
+            }
+            if operator_cancel.is_cancelled() {
+                self.ctx.commit(self.progress, |p| p.cancel())?;
+                return Ok(Arranged::Cancelled);
+            }
+            let Some(layout) = self.ctx.layout().await else {
+                self.pause(PLACE_RETRY).await;
+                continue;
+            };
+            let ranked = self.station_round(step, conversation_id).await;
+            if let Some(here) = part.place.location() {
+                let station = HolonId::resource(here.holon()).ok();
+                if is_port(&layout, here) && station.as_ref().is_some_and(|s| ranked.contains(s)) {
+                    return Ok(Arranged::At(station.expect("checked")));
+                }
+            }
+            if part.home.is_none() && !self.take_home(&layout).await? {
+                // No place for it in the cell yet: it stays outside.
+            } else if self.place_at_station(&layout, &ranked).await? {
+                continue;
+            } else if let Some(here) = part.place.location().filter(|l| is_port(&layout, l)) {
+                let home = part.home.clone().expect("a part at a port has a home");
+                info!(holon = %self.holon, from = %here, %home, "no station has a place for the part: it goes back to its home");
+                let here = here.clone();
+                self.ctx.commit(self.progress, |p| {
+                    if let Some(part) = &mut p.part {
+                        part.begin_move(&p.holon, here, home, MoveGoal::Home);
+                    }
+                })?;
+                continue;
+            }
+            if Instant::now() >= give_up && ranked.is_empty() {
+                return Ok(Arranged::NoStation);
+            }
+            self.pause(PLACE_RETRY).await;
+        }
+    }
+
+    /// The part leaves the cell by an exit, and the order's end that waited for it is
+    /// recorded. A part that never entered leaves at once (its home released).
+    pub(super) async fn leave(&mut self) -> Result<(), OrderError> {
+        loop {
+            let part = self.part();
+            if let Some(moving) = part.moving.clone() {
+                match part.place {
+                    PartPlace::Lost { .. } => self.find_lost(&moving).await?,
+                    _ => self.run_move(moving).await?,
+                }
+                continue;
+            }
+            let Some(here) = part.place.location().cloned() else {
+                // Outside, or shipped: its places go, and the order ends.
+                let held: Vec<_> = part.held.into_iter().collect();
+                self.ctx.commit(self.progress, |p| {
+                    if let Some(part) = &mut p.part {
+                        part.held.clear();
+                        part.home = None;
+                    }
+                    p.part_left();
+                })?;
+                self.release(held).await;
+                return Ok(());
+            };
+            let Some(layout) = self.ctx.layout().await else {
+                self.pause(PLACE_RETRY).await;
+                continue;
+            };
+            let exit = layout
+                .locations()
+                .map(|(_, l)| l)
+                .filter(|l| matches!(l.role, LocationRole::Exit | LocationRole::EntryExit))
+                .find(|l| !layout.routes(&here, &l.id).is_empty())
+                .map(|l| l.id.clone());
+            let Some(exit) = exit else {
+                warn!(holon = %self.holon, at = %here, "no exit can be reached from where the part is: it waits for the layout to change");
+                self.pause(PLACE_RETRY * 4).await;
+                continue;
+            };
+            self.ctx.commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    part.begin_move(&p.holon, here, exit, MoveGoal::Exit);
+                }
+            })?;
+        }
+    }
+
+    /// A proposal round for `step` among the stations: those that proposed, best first.
+    async fn station_round(&mut self, step: &PlanStep, conversation_id: &str) -> Vec<HolonId> {
+        let avoid = self.progress.get().avoid.clone();
+        let ask = self.request(MessageType::ProposalReq, step, conversation_id);
+        let _turn = self.ctx.rounds.acquire().await.expect("never closed");
+        let offers = requests::offers(&self.ctx, &ask, &avoid).await;
+        let (ranked, _) = requests::rank(&self.ctx, &ask, offers, None);
+        ranked
+    }
+
+    /// Reserves the part's home: a place at a buffer of the cell (a location of role
+    /// `buffer`, the first with a free place). False when every buffer is full (or the
+    /// cell has none: then no part enters).
+    async fn take_home(&mut self, layout: &CellLayout) -> Result<bool, OrderError> {
+        let buffers: Vec<LocationId> = layout
+            .locations()
+            .map(|(_, l)| l)
+            .filter(|l| l.role == LocationRole::Buffer)
+            .map(|l| l.id.clone())
+            .collect();
+        for buffer in buffers {
+            if self.reserve(&buffer).await? {
+                self.ctx.commit(self.progress, |p| {
+                    if let Some(part) = &mut p.part {
+                        part.home = Some(buffer.clone());
+                    }
+                })?;
+                info!(holon = %self.holon, home = %buffer, "the part has a home in the cell");
+                return Ok(true);
+            }
+        }
+        Ok(false)
+    }
+
+    /// Reserves a place at a port of the best proposing station the part can get to,
+    /// and begins the move there. False when none had a place.
+    async fn place_at_station(
+        &mut self,
+        layout: &CellLayout,
+        ranked: &[HolonId],
+    ) -> Result<bool, OrderError> {
+        let part = self.part();
+        let from = match &part.place {
+            PartPlace::At { location } => location.clone(),
+            PartPlace::Outside => match entry_of(layout) {
+                Some(entry) => entry,
+                None => return Ok(false),
+            },
+            _ => return Ok(false),
+        };
+        for station in ranked {
+            let ports = layout.parts.get(station.name()).map(|p| {
+                p.locations
+                    .iter()
+                    .filter(|l| matches!(l.role, LocationRole::Port | LocationRole::Input))
+                    .map(|l| l.id.clone())
+                    .collect::<Vec<_>>()
+            });
+            for port in ports.unwrap_or_default() {
+                if port == from || layout.routes(&from, &port).is_empty() {
+                    continue;
+                }
+                if self.reserve(&port).await? {
+                    info!(holon = %self.holon, %station, %port, %from, "a place at the station is reserved: the part moves there");
+                    let from = from.clone();
+                    self.ctx.commit(self.progress, |p| {
+                        if let Some(part) = &mut p.part {
+                            part.begin_move(&p.holon, from, port, MoveGoal::Station);
+                        }
+                    })?;
+                    return Ok(true);
+                }
+            }
+        }
+        Ok(false)
+    }
+
+    /// Reserves a place for the part at `location` (at the resource that states it):
+    /// journalled as held before it is asked, so that a restart releases it if unused.
+    async fn reserve(&mut self, location: &LocationId) -> Result<bool, OrderError> {
+        let conversation = PartProgress::place_conversation(&self.holon, location);
+        self.ctx.commit(self.progress, |p| {
+            if let Some(part) = &mut p.part {
+                part.held.insert(location.clone(), conversation.clone());
+            }
+        })?;
+        let request = self.place_request(MessageType::BookingReq, location, &conversation);
+        let key = self.ctx.keys.service(location.holon());
+        let answer = requests::ask(&self.ctx, &key, &request).await;
+        if answer.as_ref().is_some_and(|a| a.result == Some(true)) {
+            return Ok(true);
+        }
+        let why = answer.as_ref().and_then(|a| a.reason.clone());
+        if why != Some(Reason::NoPlace) {
+            info!(holon = %self.holon, %location, reason = why.as_ref().map_or("no answer", |r| r.as_str()), "a place could not be reserved");
+        }
+        self.ctx.commit(self.progress, |p| {
+            if let Some(part) = &mut p.part {
+                part.held.remove(location);
+            }
+        })?;
+        if answer.is_none() {
+            // It may have been reserved with the answer lost: released when it answers.
+            self.release(vec![(location.clone(), conversation)]).await;
+        }
+        Ok(false)
+    }
+
+    /// Releases places (each location with its reservation's conversation); one whose
+    /// resource does not answer is released when it is back.
+    async fn release(&self, places: Vec<(LocationId, String)>) {
+        for (location, conversation) in places {
+            let cancel = self.place_request(MessageType::BookingCancel, &location, &conversation);
+            let owner = match HolonId::resource(location.holon()) {
+                Ok(owner) => owner,
+                Err(e) => {
+                    warn!(holon = %self.holon, %location, error = %e, "a place at a location of no resource: nothing to release");
+                    continue;
+                }
+            };
+            let key = self.ctx.keys.service(owner.name());
+            match requests::ask(&self.ctx, &key, &cancel).await {
+                Some(answer) if answer.result == Some(true) => {
+                    info!(holon = %self.holon, %location, "place released")
+                }
+                Some(answer) if answer.reason == Some(Reason::NotBooked) => {}
+                _ => {
+                    info!(holon = %self.holon, %location, "the place's resource did not answer: released when it is back");
+                    tokio::spawn(requests::cancel_when_back(
+                        self.ctx.session.clone(),
+                        self.ctx.presence.clone(),
+                        owner,
+                        key,
+                        cancel,
+                    ));
+                }
+            }
+        }
+    }
+
+    /// A request about a place for this order's part.
+    fn place_request(
+        &self,
+        kind: MessageType,
+        location: &LocationId,
+        conversation: &str,
+    ) -> schemas::Service {
+        let mut info = Map::new();
+        info.insert(info_key::PART.into(), Value::from(self.holon.name()));
+        info.insert(info_key::LOCATION.into(), Value::from(location.as_str()));
+        let step = PlanStep {
+            service_type: schemas::PLACE_SERVICE.into(),
+            info,
+            reject_results: vec![],
+            on_reject: None,
+        };
+        requests::request(&self.ctx, &self.holon, kind, &step, conversation)
+    }
+
+    /// Runs the move under way to its end: booked on a transporter by contract net and
+    /// followed as a step is; its end recorded for the part, the places it left released.
+    async fn run_move(&mut self, moving: Move) -> Result<(), OrderError> {
+        let step = transport_step(&self.holon, &moving);
+        self.leg = Leg::Move;
+        let attempt = self
+            .attempt(&step, &moving.conversation_id, moving.phase.clone())
+            .await;
+        self.leg = Leg::Work;
+        let (outcome, report) = attempt?;
+        let last_phase = self.part().moving.map(|m| m.phase).unwrap_or_default();
+        let transporter = last_phase.resource().cloned();
+        let may_have_begun = match &last_phase {
+            Phase::Started(_) => true,
+            Phase::Booked(_) => self.ctx.settings.start_on_turn,
+            Phase::Proposing | Phase::Booking(_) => false,
+        };
+        let end = move_end(&outcome, may_have_begun);
+        info!(holon = %self.holon, conversation_id = %moving.conversation_id, from = %moving.from, to = %moving.to, outcome = %outcome, "move ended");
+        let layout = self.ctx.layout().await;
+        let mut released = Vec::new();
+        self.ctx.commit(self.progress, |p| {
+            if let Some(part) = &mut p.part {
+                released = part.end_move(end, transporter, layout.as_deref());
+            }
+        })?;
+        if let Some(report) = report {
+            report.acknowledge().await;
+        }
+        self.publish().await;
+        self.release(released).await;
+        if matches!(outcome, StepOutcome::NoResource | StepOutcome::Lost { .. }) {
+            self.pause(PLACE_RETRY).await;
+        }
+        Ok(())
+    }
+
+    /// The part is lost with its move's transporter: asks it, whenever it is there,
+    /// what became of the move, until it says done (the part arrived) or never reached
+    /// (the part is where it was).
+    async fn find_lost(&mut self, moving: &Move) -> Result<(), OrderError> {
+        let Some(transporter) = moving.phase.resource().cloned() else {
+            let layout = self.ctx.layout().await;
+            self.ctx.commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    part.found(false, layout.as_deref());
+                }
+            })?;
+            return Ok(());
+        };
+        let step = transport_step(&self.holon, moving);
+        loop {
+            if self.ctx.presence.is_alive(&transporter) {
+                let answer = requests::ask_outcome(
+                    &self.ctx,
+                    &self.holon,
+                    &transporter,
+                    &step,
+                    &moving.conversation_id,
+                )
+                .await;
+                let arrived = match answer.map(|a| a.outcome) {
+                    Some(schemas::Outcome::Done) => Some(true),
+                    Some(schemas::Outcome::NeverReached) => Some(false),
+                    _ => None,
+                };
+                if let Some(arrived) = arrived {
+                    info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, arrived, "the transporter said where the lost part is");
+                    let layout = self.ctx.layout().await;
+                    let mut released = Vec::new();
+                    self.ctx.commit(self.progress, |p| {
+                        if let Some(part) = &mut p.part {
+                            released = part.found(arrived, layout.as_deref());
+                        }
+                    })?;
+                    self.publish().await;
+                    self.release(released).await;
+                    return Ok(());
+                }
+            }
+            self.pause(LOST_ASK_EVERY).await;
+        }
+    }
+
+    /// Waits `pause` (jittered), or until a resource appears or a place frees up.
+    async fn pause(&mut self, pause: Duration) {
+        tokio::select! {
+            _ = tokio::time::sleep(jittered(pause)) => {}
+            _ = self.ctx.presence.appeared_or_room(&mut self.appearances) => {}
+        }
+    }
+}
+
+/// The step a move is booked as: `transport` of the part from where it is to where it
+/// goes.
+fn transport_step(order: &HolonId, moving: &Move) -> PlanStep {
+    let mut info = Map::new();
+    info.insert(info_key::PART.into(), Value::from(order.name()));
+    info.insert(info_key::FROM.into(), Value::from(moving.from.as_str()));
+    info.insert(info_key::TO.into(), Value::from(moving.to.as_str()));
+    PlanStep {
+        service_type: TRANSPORT_SERVICE.into(),
+        info,
+        reject_results: vec![],
+        on_reject: None,
+    }
+}
+
+/// What a move's outcome means for the part. A failure the transporter's controller
+/// answered at once (it refused the move: `controller_error`, a refused start, info it
+/// could not use) moved nothing; any other (a fault or an abort on the way, a lost
+/// connection, no result in time, the transporter gone while it may have run) may have
+/// moved it: the part is lost until the transporter says.
+fn move_end(outcome: &StepOutcome, may_have_begun: bool) -> MoveEnd {
+    match outcome {
+        StepOutcome::Done { .. } => MoveEnd::Done,
+        StepOutcome::NoResource | StepOutcome::Cancelled => MoveEnd::Unattempted,
+        StepOutcome::Lost { why, .. } if may_have_begun => MoveEnd::Unknown { why: why.clone() },
+        StepOutcome::Lost { .. } => MoveEnd::Unattempted,
+        StepOutcome::Failed { reason, detail, .. } => {
+            let refused = reason == Reason::ControllerError.as_str()
+                || reason == Reason::InvalidInfo.as_str()
+                || reason.starts_with("start refused");
+            if refused {
+                MoveEnd::Unattempted
+            } else {
+                let said = detail.as_ref().map_or(String::new(), |d| format!(": {d}"));
+                MoveEnd::Unknown {
+                    why: format!("{reason}{said}"),
+                }
+            }
+        }
+    }
+}
+
+/// Whether `location` is a station's port (where a step is worked).
+fn is_port(layout: &CellLayout, location: &LocationId) -> bool {
+    layout
+        .location(location)
+        .is_some_and(|l| matches!(l.role, LocationRole::Port | LocationRole::Input))
+}
+
+/// Where raw material enters the cell: the first entry of the layout.
+fn entry_of(layout: &CellLayout) -> Option<LocationId> {
+    layout
+        .locations()
+        .map(|(_, l)| l)
+        .find(|l| matches!(l.role, LocationRole::Entry | LocationRole::EntryExit))
+        .map(|l| l.id.clone())
+}

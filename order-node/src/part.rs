@@ -1,0 +1,225 @@
+//! An order's part, as its order knows it (docs/material-flow.md, "Parts and
+//! carriers"): where it is, the places held for it, the move under way, and the end the
+//! order waits to record until the part has left the cell. Pure: the order's task
+//! ([`crate::order`]) decides with it and journals it with the order's progress before
+//! acting on it.
+//!
+//! | event | part | next |
+//! |---|---|---|
+//! | a move begins (its phase recorded `started`) | at `from` | in transit on the transporter from `from` to `to` |
+//! | the move is done | in transit | at `to` (shipped at an exit); the place at `from` released unless it is the part's home |
+//! | the move ended unattempted (lost before it began, no transporter) | at `from` | at `from` (the place reserved at `to` released) |
+//! | the move failed, or its transporter vanished while it may have run | in transit | lost: in transit on the transporter, last seen at `from`, until it or an operator says |
+//! | the transporter says the lost move was done / never reached the controller | lost | at `to` / at `from` |
+//! | the order's end is decided while the part is in the cell | at a location | the end waits; the part leaves by an exit first |
+
+use std::collections::BTreeMap;
+
+use schemas::layout::{CellLayout, LocationId, LocationRole};
+use schemas::{HolonId, OrderStatus, PartPlace};
+
+use crate::progress::Phase;
+
+/// The service a move is booked as: what transporters offer by convention.
+pub const TRANSPORT_SERVICE: &str = "transport";
+
+/// What a move is for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MoveGoal {
+    /// To the station where the next step is worked (its place reserved there).
+    Station,
+    /// Back to the part's home: no station had a place for it.
+    Home,
+    /// Out of the cell, by an exit: the order's end waits for it.
+    Exit,
+}
+
+/// A move of the part, booked on a transporter like a step.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Move {
+    /// Its conversation: `<order>/m<n>/<attempt>`.
+    pub conversation_id: String,
+    pub from: LocationId,
+    pub to: LocationId,
+    pub goal: MoveGoal,
+    /// Where its attempt stands with a transporter.
+    pub phase: Phase,
+}
+
+/// An order's part.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PartProgress {
+    /// Where the part is.
+    pub place: PartPlace,
+    /// Its home: a buffer place held for it from its entry until it leaves the cell, to
+    /// which it can always go back (why the cell cannot deadlock).
+    pub home: Option<LocationId>,
+    /// The places held for it, each at the resource that states its location, by the
+    /// conversation that reserved it (its `booking_cancel` releases it).
+    pub held: BTreeMap<LocationId, String>,
+    /// The move under way, if any.
+    pub moving: Option<Move>,
+    /// Moves begun so far: each one's conversation is numbered by it.
+    pub moves: u32,
+    /// The order's end, decided while the part was in the cell: recorded once the part
+    /// has left it.
+    pub leaving: Option<(OrderStatus, Option<String>)>,
+}
+
+impl Default for PartProgress {
+    fn default() -> Self {
+        PartProgress {
+            place: PartPlace::Outside,
+            home: None,
+            held: BTreeMap::new(),
+            moving: None,
+            moves: 0,
+            leaving: None,
+        }
+    }
+}
+
+/// How a move's attempt ended, as the part sees it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum MoveEnd {
+    /// The transporter reported it done.
+    Done,
+    /// Nothing of it ran (refused, lost before it began, no transporter).
+    Unattempted,
+    /// It may have moved the part: the transporter failed it or vanished with it.
+    Unknown { why: String },
+}
+
+impl PartProgress {
+    /// Whether the part is in the cell (entered, not shipped).
+    pub fn in_cell(&self) -> bool {
+        !matches!(self.place, PartPlace::Outside | PartPlace::Shipped { .. })
+    }
+
+    /// The reservation's conversation for a place at `location`.
+    pub fn place_conversation(order: &HolonId, location: &LocationId) -> String {
+        format!("{}/place/{location}", order.name())
+    }
+
+    /// A move of the part begins to be booked.
+    pub fn begin_move(
+        &mut self,
+        order: &HolonId,
+        from: LocationId,
+        to: LocationId,
+        goal: MoveGoal,
+    ) {
+        self.moves += 1;
+        self.moving = Some(Move {
+            conversation_id: format!("{}/m{}/1", order.name(), self.moves),
+            from,
+            to,
+            goal,
+            phase: Phase::Proposing,
+        });
+    }
+
+    /// The move's attempt is at `phase`: once started, the part is in transit.
+    pub fn move_phase(&mut self, phase: Phase) {
+        let Some(moving) = &mut self.moving else {
+            return;
+        };
+        if let Phase::Started(transporter) = &phase {
+            self.place = PartPlace::InTransit {
+                transporter: transporter.clone(),
+                from: moving.from.clone(),
+                to: moving.to.clone(),
+            };
+        }
+        moving.phase = phase;
+    }
+
+    /// The move ended: where the part is, and the places to release (each location
+    /// with the conversation that holds it), taken off `held`.
+    pub fn end_move(
+        &mut self,
+        end: MoveEnd,
+        transporter: Option<HolonId>,
+        layout: Option<&CellLayout>,
+    ) -> Vec<(LocationId, String)> {
+        let Some(moving) = self.moving.take() else {
+            return vec![];
+        };
+        let release = |held: &mut BTreeMap<LocationId, String>, at: &LocationId| {
+            held.remove_entry(at).into_iter().collect::<Vec<_>>()
+        };
+        match end {
+            MoveEnd::Done => {
+                let exit = layout
+                    .and_then(|l| l.location(&moving.to))
+                    .is_some_and(|l| {
+                        matches!(l.role, LocationRole::Exit | LocationRole::EntryExit)
+                    })
+                    && moving.goal == MoveGoal::Exit;
+                let mut released = Vec::new();
+                if self.home.as_ref() != Some(&moving.from) {
+                    released.extend(release(&mut self.held, &moving.from));
+                }
+                if exit {
+                    self.place = PartPlace::Shipped { exit: moving.to };
+                    // Out of the cell: every place it held is free.
+                    self.home = None;
+                    released.extend(std::mem::take(&mut self.held));
+                } else {
+                    self.place = PartPlace::At {
+                        location: moving.to,
+                    };
+                }
+                released
+            }
+            MoveEnd::Unattempted => {
+                self.place = match &self.place {
+                    PartPlace::Outside => PartPlace::Outside,
+                    _ => PartPlace::At {
+                        location: moving.from.clone(),
+                    },
+                };
+                if moving.goal == MoveGoal::Station {
+                    release(&mut self.held, &moving.to)
+                } else {
+                    vec![]
+                }
+            }
+            MoveEnd::Unknown { why } => {
+                self.place = PartPlace::Lost {
+                    transporter: transporter
+                        .unwrap_or_else(|| HolonId::resource("unknown").expect("a valid name")),
+                    from: moving.from.clone(),
+                    to: moving.to.clone(),
+                    why,
+                };
+                // Kept to be asked about again.
+                self.moving = Some(moving);
+                vec![]
+            }
+        }
+    }
+
+    /// The transporter (or an operator) said where the lost part is: `arrived` at the
+    /// move's destination, or still where it was. Returns the places to release.
+    pub fn found(
+        &mut self,
+        arrived: bool,
+        layout: Option<&CellLayout>,
+    ) -> Vec<(LocationId, String)> {
+        let end = if arrived {
+            MoveEnd::Done
+        } else {
+            MoveEnd::Unattempted
+        };
+        let transporter = match &self.place {
+            PartPlace::Lost { transporter, .. } => Some(transporter.clone()),
+            _ => None,
+        };
+        self.end_move(end, transporter, layout)
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,174 @@
+use schemas::layout::{CellLayout, LayoutPart};
+
+use super::*;
+
+fn id(s: &str) -> LocationId {
+    LocationId::try_from(s.to_string()).unwrap()
+}
+
+fn order() -> HolonId {
+    HolonId::order("o-1").unwrap()
+}
+
+fn conveyor() -> HolonId {
+    HolonId::resource("conveyor1").unwrap()
+}
+
+/// The demo-like layout: conveyor1 with its loading point and buffer, robot1's port.
+fn layout() -> CellLayout {
+    let part = |holon: &str, text: &str| {
+        schemas::layout::part_from_toml(holon, text).expect("a valid layout part")
+    };
+    let parts: Vec<LayoutPart> = vec![
+        part(
+            "conveyor1",
+            r#"
+[[layout.locations]]
+name = "load"
+role = "entry_exit"
+dock = "conveyor1.load"
+[[layout.locations]]
+name = "buffer"
+role = "buffer"
+capacity = 2
+dock = "conveyor1.b"
+[layout.conveyor]
+length_mm = 2000
+speed_mm_s = 1000
+pallets = 2
+stoppers = [{ name = "load", at_mm = 0 }, { name = "b", at_mm = 500 }, { name = "s1", at_mm = 1000 }]
+"#,
+        ),
+        part(
+            "robot1",
+            "[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ndock = \"conveyor1.s1\"\n",
+        ),
+    ];
+    CellLayout::assemble(parts)
+}
+
+#[test]
+fn a_part_enters_rides_to_a_station_and_leaves_with_every_place_released() {
+    let layout = layout();
+    let mut part = PartProgress {
+        home: Some(id("conveyor1.buffer")),
+        ..PartProgress::default()
+    };
+    part.held
+        .insert(id("conveyor1.buffer"), "o-1/place/conveyor1.buffer".into());
+    part.held
+        .insert(id("robot1.port"), "o-1/place/robot1.port".into());
+    part.begin_move(
+        &order(),
+        id("conveyor1.load"),
+        id("robot1.port"),
+        MoveGoal::Station,
+    );
+    assert_eq!(part.moving.as_ref().unwrap().conversation_id, "o-1/m1/1");
+    part.move_phase(Phase::Booked(conveyor()));
+    assert_eq!(
+        part.place,
+        PartPlace::Outside,
+        "not moving before it starts"
+    );
+    part.move_phase(Phase::Started(conveyor()));
+    assert!(
+        matches!(part.place, PartPlace::InTransit { .. }),
+        "{part:?}"
+    );
+    let released = part.end_move(MoveEnd::Done, Some(conveyor()), Some(&layout));
+    assert!(
+        released.is_empty(),
+        "the entry holds no place: {released:?}"
+    );
+    assert_eq!(part.place.location(), Some(&id("robot1.port")));
+
+    // To the exit: the station's place and the home go.
+    part.begin_move(
+        &order(),
+        id("robot1.port"),
+        id("conveyor1.load"),
+        MoveGoal::Exit,
+    );
+    part.move_phase(Phase::Started(conveyor()));
+    let mut released: Vec<_> = part
+        .end_move(MoveEnd::Done, Some(conveyor()), Some(&layout))
+        .into_iter()
+        .map(|(l, _)| l.to_string())
+        .collect();
+    released.sort();
+    assert_eq!(released, ["conveyor1.buffer", "robot1.port"]);
+    assert_eq!(
+        part.place,
+        PartPlace::Shipped {
+            exit: id("conveyor1.load")
+        }
+    );
+    assert!(!part.in_cell());
+}
+
+#[test]
+fn a_move_that_may_have_run_leaves_the_part_lost_until_its_transporter_says() {
+    let layout = layout();
+    let mut part = PartProgress {
+        place: PartPlace::At {
+            location: id("robot1.port"),
+        },
+        home: Some(id("conveyor1.buffer")),
+        ..PartProgress::default()
+    };
+    part.held
+        .insert(id("robot1.port"), "o-1/place/robot1.port".into());
+    part.begin_move(
+        &order(),
+        id("robot1.port"),
+        id("conveyor1.buffer"),
+        MoveGoal::Home,
+    );
+    part.move_phase(Phase::Started(conveyor()));
+    let released = part.end_move(
+        MoveEnd::Unknown {
+            why: "the resource vanished".into(),
+        },
+        Some(conveyor()),
+        Some(&layout),
+    );
+    assert!(released.is_empty(), "nothing is released while lost");
+    assert_eq!(
+        part.place.to_string(),
+        "in transit on resource/conveyor1, last seen at robot1.port (the resource vanished)"
+    );
+    assert!(part.moving.is_some(), "kept to be asked about");
+
+    // Its transporter says the move never reached the controller: where it was.
+    let released = part.found(false, Some(&layout));
+    assert!(released.is_empty());
+    assert_eq!(part.place.location(), Some(&id("robot1.port")));
+    assert!(part.moving.is_none());
+}
+
+#[test]
+fn a_move_that_never_began_releases_the_place_reserved_for_it() {
+    let layout = layout();
+    let mut part = PartProgress {
+        place: PartPlace::At {
+            location: id("conveyor1.buffer"),
+        },
+        home: Some(id("conveyor1.buffer")),
+        ..PartProgress::default()
+    };
+    part.held
+        .insert(id("robot1.port"), "o-1/place/robot1.port".into());
+    part.begin_move(
+        &order(),
+        id("conveyor1.buffer"),
+        id("robot1.port"),
+        MoveGoal::Station,
+    );
+    let released = part.end_move(MoveEnd::Unattempted, None, Some(&layout));
+    assert_eq!(
+        released,
+        [(id("robot1.port"), "o-1/place/robot1.port".to_string())]
+    );
+    assert_eq!(part.place.location(), Some(&id("conveyor1.buffer")));
+}
