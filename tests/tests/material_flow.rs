@@ -10,6 +10,7 @@
 //! every part in the buffer, every order finishes and the plant ends empty.
 
 use std::path::{Path, PathBuf};
+
 use std::time::Duration;
 
 use holarchy_tests::*;
@@ -108,119 +109,254 @@ fn product(dir: &Path, name: &str, first: &str, second: &str) -> PathBuf {
     path
 }
 
-#[tokio::test(flavor = "multi_thread")]
-async fn crossing_parts_reserve_their_places_and_every_order_finishes() {
-    let dir = tempfile::tempdir().unwrap();
-    let data = dir.path().join("data");
-    std::fs::create_dir_all(&data).unwrap();
-    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
-    let a = station(dir.path(), "station_a", "drill", "sa");
-    let b = station(dir.path(), "station_b", "mill", "sb");
-    let plant = PlantProcess::start(dir.path(), PLANT);
-    let cell = Cell::open("t-flow").await.unwrap();
-    let mut holons = Vec::new();
-    for (name, config) in [
-        ("conveyor1", dir.path().join("conveyor1.toml")),
-        ("station_a", a),
-        ("station_b", b),
-    ] {
-        let data = data.to_str().unwrap();
-        holons.push(
-            start_node(
-                dir.path(),
-                &config,
-                "t-flow",
-                &cell.endpoint,
-                &plant.controllers[name],
-                &["--data-dir", data],
-            )
-            .unwrap(),
-        );
-        cell.wait_alive(&HolonId::resource(name).unwrap())
-            .await
-            .unwrap();
-        cell.wait_serving(name).await.unwrap();
-    }
-    for (name, first, second) in [("ab", "drill", "mill"), ("ba", "mill", "drill")] {
-        let config = product(dir.path(), name, first, second);
-        holons.push(start_holon(dir.path(), "holon-node", &config, name, &cell, &[]).unwrap());
-        cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, name).unwrap())
-            .await
-            .unwrap();
-    }
-    let data_dir = data.to_str().unwrap();
-    let _orders = cell
-        .start_order_node(dir.path(), &["--data-dir", data_dir])
-        .await
-        .unwrap();
+/// The cell on its plant: every holon started and serving.
+struct FlowCell {
+    dir: tempfile::TempDir,
+    plant: PlantProcess,
+    cell: Cell,
+    /// The resource holons, by name (conveyor1, station_a, station_b).
+    resources: std::collections::BTreeMap<String, Process>,
+    /// The product holons.
+    _products: Vec<Process>,
+    /// The order-node orders1.
+    orders: Option<Process>,
+}
 
-    // Three of each, crossing: more parts than the buffer holds, so some wait outside.
-    let mut orders = Vec::new();
-    for product in ["ab", "ba", "ab", "ba", "ab", "ba"] {
-        orders.extend(cell.submit(product, 1).await.unwrap());
+impl FlowCell {
+    /// Starts the cell; `conveyor` is conveyor1's config text.
+    async fn start(tag: &str, conveyor: &str) -> FlowCell {
+        FlowCell::start_on(tag, conveyor, PLANT).await
     }
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
-    for order in &orders {
-        loop {
-            let state = cell.order_state(order).await;
-            let status = state.as_ref().and_then(|s| s["status"].as_str());
-            if status.is_some_and(|s| s != "running") {
-                break;
-            }
-            assert!(
-                tokio::time::Instant::now() < deadline,
-                "{order} did not finish: {state:?}\nplant: {:#}",
-                plant.state()
+
+    /// Starts the cell on the plant file `plant`.
+    async fn start_on(tag: &str, conveyor: &str, plant: &str) -> FlowCell {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(dir.path().join("data")).unwrap();
+        std::fs::write(dir.path().join("conveyor1.toml"), conveyor).unwrap();
+        station(dir.path(), "station_a", "drill", "sa");
+        station(dir.path(), "station_b", "mill", "sb");
+        let plant = PlantProcess::start(dir.path(), plant);
+        let cell = Cell::open(tag).await.unwrap();
+        let mut flow = FlowCell {
+            orders: None,
+            dir,
+            plant,
+            cell,
+            resources: Default::default(),
+            _products: Vec::new(),
+        };
+        for name in ["conveyor1", "station_a", "station_b"] {
+            flow.start_resource(name).await;
+        }
+        for (name, first, second) in [("ab", "drill", "mill"), ("ba", "mill", "drill")] {
+            let config = product(flow.dir.path(), name, first, second);
+            flow._products.push(
+                start_holon(
+                    flow.dir.path(),
+                    "holon-node",
+                    &config,
+                    name,
+                    &flow.cell,
+                    &[],
+                )
+                .unwrap(),
             );
-            tokio::time::sleep(Duration::from_millis(200)).await;
+            flow.cell
+                .wait_alive(&HolonId::new(schemas::HolonKind::Product, name).unwrap())
+                .await
+                .unwrap();
+        }
+        flow.start_orders().await;
+        flow
+    }
+
+    fn data(&self) -> String {
+        self.dir.path().join("data").to_str().unwrap().to_string()
+    }
+
+    /// Starts (or starts again, on its journal) the resource holon `name`.
+    async fn start_resource(&mut self, name: &str) {
+        let config = self.dir.path().join(format!("{name}.toml"));
+        let process = start_node(
+            self.dir.path(),
+            &config,
+            self.cell.keys.cell(),
+            &self.cell.endpoint,
+            &self.plant.controllers[name],
+            &["--data-dir", &self.data()],
+        )
+        .unwrap();
+        let alive = self
+            .cell
+            .wait_alive(&HolonId::resource(name).unwrap())
+            .await;
+        if let Err(e) = alive {
+            let log = std::fs::read_to_string(self.dir.path().join(format!("{name}.log.json")))
+                .unwrap_or_default();
+            let tail: Vec<&str> = log.lines().rev().take(15).collect();
+            panic!("{e}: {}\n{}", process.stderr(), tail.join("\n"));
+        }
+        self.resources.insert(name.to_string(), process);
+        self.cell.wait_serving(name).await.unwrap();
+    }
+
+    /// Starts (or starts again, on its journal) the order-node.
+    async fn start_orders(&mut self) {
+        let data = self.data();
+        let orders = self
+            .cell
+            .start_order_node(self.dir.path(), &["--data-dir", &data])
+            .await
+            .unwrap();
+        self.orders = Some(orders);
+    }
+
+    /// Waits until every order in `orders` has ended (at most `within`).
+    async fn wait_ended(&self, orders: &[String], within: Duration) {
+        let deadline = tokio::time::Instant::now() + within;
+        for order in orders {
+            loop {
+                let state = self.cell.order_state(order).await;
+                let status = state.as_ref().and_then(|s| s["status"].as_str());
+                if status.is_some_and(|s| s != "running") {
+                    break;
+                }
+                assert!(
+                    tokio::time::Instant::now() < deadline,
+                    "{order} did not finish: {state:?}\nplant: {:#}",
+                    self.plant.state()
+                );
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
         }
     }
 
-    // Every order done, each step once, where its part was; every part shipped.
+    /// Every order done, each step once where its part was, every part shipped; the
+    /// plant agrees (nothing anywhere, every pallet free) and no place is held.
+    async fn assert_all_done_and_plant_empty(&self, orders: &[String]) {
+        for order in orders {
+            let state = self.cell.order_state(order).await.unwrap();
+            assert_eq!(state["status"], "done", "{state:#}");
+            assert_eq!(state["completed"].as_array().unwrap().len(), 2, "{state:#}");
+            assert_eq!(state["part"]["state"], "shipped", "{state:#}");
+            assert_eq!(state["part"]["exit"], "conveyor1.load", "{state:#}");
+        }
+        let truth = self.plant.state();
+        assert_eq!(truth["shipped"], orders.len(), "{truth:#}");
+        assert!(
+            truth["in_transit"].as_array().unwrap().is_empty(),
+            "{truth:#}"
+        );
+        for (location, parts) in truth["locations"].as_object().unwrap() {
+            assert!(
+                parts.as_array().unwrap().is_empty(),
+                "{location} still holds parts: {truth:#}"
+            );
+        }
+        assert_eq!(
+            truth["free_pallets"]["conveyor1"].as_array().unwrap().len(),
+            3,
+            "{truth:#}"
+        );
+        for resource in ["conveyor1", "station_a", "station_b"] {
+            let status = self.cell.status(resource).await.unwrap();
+            assert!(
+                status.get("places").is_none(),
+                "{resource} still holds places: {status:#}"
+            );
+        }
+    }
+
+    /// Counts the order-node's log lines containing `what`.
+    fn count_in_orders_log(&self, what: &str) -> usize {
+        let log =
+            std::fs::read_to_string(self.dir.path().join("orders1.log.json")).unwrap_or_default();
+        log.lines().filter(|l| l.contains(what)).count()
+    }
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn crossing_parts_reserve_their_places_and_every_order_finishes() {
+    let flow = FlowCell::start("t-flow", CONVEYOR).await;
+    // Three of each, crossing: more parts than the buffer holds, so some wait outside.
+    let mut orders = Vec::new();
+    for product in ["ab", "ba", "ab", "ba", "ab", "ba"] {
+        orders.extend(flow.cell.submit(product, 1).await.unwrap());
+    }
+    flow.wait_ended(&orders, Duration::from_secs(120)).await;
+    flow.assert_all_done_and_plant_empty(&orders).await;
     for order in &orders {
-        let state = cell.order_state(order).await.unwrap();
-        assert_eq!(state["status"], "done", "{state:#}");
+        let state = flow.cell.order_state(order).await.unwrap();
         assert_eq!(state["failed_attempts"], 0, "{state:#}");
-        assert_eq!(state["completed"].as_array().unwrap().len(), 2, "{state:#}");
-        assert_eq!(state["part"]["state"], "shipped", "{state:#}");
-        assert_eq!(state["part"]["exit"], "conveyor1.load", "{state:#}");
-    }
-    // The plant agrees: every part left, nothing anywhere, every pallet free.
-    let truth = plant.state();
-    assert_eq!(truth["shipped"], orders.len(), "{truth:#}");
-    assert!(
-        truth["in_transit"].as_array().unwrap().is_empty(),
-        "{truth:#}"
-    );
-    for (location, parts) in truth["locations"].as_object().unwrap() {
-        assert!(
-            parts.as_array().unwrap().is_empty(),
-            "{location} still holds parts: {truth:#}"
-        );
-    }
-    assert_eq!(
-        truth["free_pallets"]["conveyor1"].as_array().unwrap().len(),
-        3,
-        "{truth:#}"
-    );
-    // And no place is left held at any resource.
-    for resource in ["conveyor1", "station_a", "station_b"] {
-        let status = cell.status(resource).await.unwrap();
-        assert!(
-            status.get("places").is_none(),
-            "{resource} still holds places: {status:#}"
-        );
     }
     // What the orders did on the way, for whoever reads the test's output.
-    let log = std::fs::read_to_string(dir.path().join("orders1.log.json")).unwrap_or_default();
-    let count = |what: &str| log.lines().filter(|l| l.contains(what)).count();
     eprintln!(
-        "moves ended: {}; places reserved at stations: {}; parts sent home: {}; errors logged: {}",
-        count("move ended"),
-        count("a place at the station is reserved"),
-        count("it goes back to its home"),
-        count("\"ERROR\"")
+        "moves ended: {}; places reserved at stations: {}; parts sent home: {}",
+        flow.count_in_orders_log("move ended"),
+        flow.count_in_orders_log("a place at the station is reserved"),
+        flow.count_in_orders_log("it goes back to its home"),
     );
-    assert_eq!(count("\"ERROR\""), 0, "the order-node logged errors");
-    drop(holons);
+    assert_eq!(
+        flow.count_in_orders_log("\"ERROR\""),
+        0,
+        "the order-node logged errors"
+    );
+}
+
+/// A part in transit when its conveyor's holon is killed is not lost: the conveyor
+/// (fenced, so its controller's record of the move's steps counts) comes back on its
+/// journal and says the move was done; an order-node killed mid-move resumes its
+/// orders where their parts are. Every order finishes and the plant ends empty.
+#[tokio::test(flavor = "multi_thread")]
+async fn parts_survive_their_conveyor_and_order_node_killed_mid_move() {
+    // Slow enough to be caught on the way: a lap takes 4 s.
+    let conveyor = CONVEYOR
+        .replace("speed_mm_s = 4000", "speed_mm_s = 500")
+        .replace(
+            "connect_timeout_ms = 500",
+            "connect_timeout_ms = 500\nfenced = true",
+        );
+    let mut flow = FlowCell::start_on(
+        "t-flow-kill",
+        &conveyor,
+        &PLANT.replace(
+            "resource = \"conveyor1\"\n",
+            "resource = \"conveyor1\"\nfenced_lease_ms = 1000\n",
+        ),
+    )
+    .await;
+    let mut orders = Vec::new();
+    for product in ["ab", "ba", "ab"] {
+        orders.extend(flow.cell.submit(product, 1).await.unwrap());
+    }
+    for victim in ["conveyor1", "orders1", "conveyor1"] {
+        // Wait until a part is on the conveyor, then kill.
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+        'moving: loop {
+            for order in &orders {
+                let state = flow.cell.order_state(order).await;
+                if state.is_some_and(|s| s["part"]["state"] == "in_transit") {
+                    break 'moving;
+                }
+            }
+            assert!(
+                tokio::time::Instant::now() < deadline,
+                "no part was seen in transit"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+        eprintln!(
+            "killing {victim} mid-move; plant: {}",
+            flow.plant.state()["in_transit"]
+        );
+        if victim == "orders1" {
+            flow.orders.as_mut().expect("started").kill();
+            flow.start_orders().await;
+        } else {
+            flow.resources.get_mut(victim).unwrap().kill();
+            flow.start_resource(victim).await;
+        }
+    }
+    flow.wait_ended(&orders, Duration::from_secs(150)).await;
+    flow.assert_all_done_and_plant_empty(&orders).await;
 }

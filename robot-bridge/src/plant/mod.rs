@@ -69,6 +69,12 @@ pub struct ControllerSection {
     /// Every Nth `inspect` is answered `inspect_fail`.
     #[serde(default)]
     pub inspect_fail_every: Option<u64>,
+    /// The controller is fenced, with this session lease in ms (as `robot-sim --fenced
+    /// --lease-ms`): one holder at a time claims it, and it answers the state of each
+    /// step id (`STEP_STATUS`), so a resource holon restarted mid-move learns from it
+    /// what became of the move. The dialect must fence.
+    #[serde(default)]
+    pub fenced_lease_ms: Option<u64>,
 }
 
 fn default_dialect() -> String {
@@ -189,6 +195,15 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
                 dialect.name
             )));
         }
+        if c.fenced_lease_ms == Some(0) {
+            return Err(invalid("fenced_lease_ms: must be more than 0".into()));
+        }
+        if c.fenced_lease_ms.is_some() && !dialect.fencing_supported() {
+            return Err(invalid(format!(
+                "fenced_lease_ms: the dialect {} cannot fence (it has no [fence])",
+                dialect.name
+            )));
+        }
         let physics = ControllerPhysics::new(plant.clone(), &c.resource, on_change.clone());
         let config = SimConfig {
             delay: Duration::from_millis(c.delay_ms),
@@ -200,6 +215,7 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
             inspect_fail_every: c.inspect_fail_every,
             dialect: Some(dialect),
             physics: Some(PhysicsHook(Arc::new(physics))),
+            fence_lease: c.fenced_lease_ms.map(Duration::from_millis),
             ..SimConfig::default()
         };
         controllers.push((c.resource.clone(), c.listen.clone(), config));
