@@ -1,10 +1,12 @@
 //! `cell demo`: a complete demo cell on this machine, with no other install.
 //!
-//! In its own process it runs the cell's zenoh router; it starts, as real processes, a
-//! controller simulator per resource, two robots, an inspection station, a conveyor
-//! (resource holons), the breaker (a product holon), with `--staff` a staff holon that
-//! advises the orders, and an order-node. It submits the
-//! work orders, shows every order's progress, hot-adds a third robot once half of the
+//! In its own process it runs the cell's zenoh router; it starts, as real processes, the
+//! plant simulator (every controller of the cell over one physical state: where each
+//! part and pallet is), two robots, an inspection station, a conveyor (resource holons,
+//! each over its own controller connection), the breaker (a product holon whose parts
+//! ride the conveyor's pallets from station to station), with `--staff` a staff holon
+//! that advises the orders, and an order-node. It submits the work orders, shows every
+//! order's progress and where its part goes, hot-adds a third robot once half of the
 //! orders are finished, prints a summary, stops everything it started (in reverse
 //! order) and exits 0 only if every order completed (`done`, or `scrapped` by its plan).
 
@@ -31,6 +33,9 @@ const CONVEYOR: &str = include_str!("../../deploy/cells/demo/conveyor1.toml");
 const PRODUCT: &str = include_str!("../../deploy/cells/demo/breaker.toml");
 const ORDERS: &str = include_str!("../../deploy/cells/demo/orders1.toml");
 const PLANNER: &str = include_str!("../../deploy/cells/demo/planner.toml");
+
+/// The plant's state file in the demo's directory: where every part and pallet is.
+const PLANT_STATE: &str = "plant-state.json";
 
 /// How long anything the demo starts may take to come up.
 const STARTUP: Duration = Duration::from_secs(15);
@@ -144,36 +149,54 @@ struct Cell {
     keys: CellKeys,
     session: zenoh::Session,
     started: Vec<Managed>,
+    /// Each resource's controller in the plant, by resource.
+    controllers: BTreeMap<String, String>,
 }
 
 impl Cell {
-    async fn sim(&mut self, name: &str, delay: Duration, extra: &[String]) -> Result<String> {
-        let mut child = Command::new(sibling_binary("robot-sim")?)
-            .args(["--listen", "127.0.0.1:0", "--delay-ms"])
-            .arg(delay.as_millis().to_string())
-            .arg("--count-file")
-            .arg(self.dir.join(format!("{name}.counts.json")))
-            .args(extra)
+    /// Starts `plant-sim` on the plant file `plant` (every controller of the cell over
+    /// one physical state, docs/material-flow.md): each controller's address, by
+    /// resource, once it says it is ready.
+    async fn plant(&mut self, plant: &str) -> Result<BTreeMap<String, String>> {
+        let file = self.dir.join("plant.toml");
+        std::fs::write(&file, plant)?;
+        let mut child = Command::new(sibling_binary("plant-sim")?)
+            .arg("--plant")
+            .arg(&file)
+            .arg("--state-file")
+            .arg(self.dir.join(PLANT_STATE))
             .stdout(Stdio::piped())
-            .stderr(std::fs::File::create(self.dir.join(format!("{name}.log")))?)
+            .stderr(std::fs::File::create(self.dir.join("plant-sim.log"))?)
             .kill_on_drop(true)
             .spawn()
-            .context("cannot start robot-sim")?;
+            .context("cannot start plant-sim")?;
         let stdout = child.stdout.take().expect("piped");
-        let mut line = String::new();
-        tokio::time::timeout(STARTUP, BufReader::new(stdout).read_line(&mut line))
-            .await
-            .context("robot-sim did not start in time")??;
-        let address = line
-            .trim()
-            .strip_prefix("listening on ")
-            .ok_or_else(|| anyhow!("robot-sim said {line:?}"))?
-            .to_string();
         self.started.push(Managed {
-            name: name.into(),
+            name: "plant-sim".into(),
             child,
         });
-        Ok(address)
+        let mut lines = BufReader::new(stdout).lines();
+        let mut controllers = BTreeMap::new();
+        loop {
+            let line = tokio::time::timeout(STARTUP, lines.next_line())
+                .await
+                .context("plant-sim did not start in time")??
+                .ok_or_else(|| {
+                    anyhow!(
+                        "plant-sim ended before it was ready; see {}",
+                        self.dir.join("plant-sim.log").display()
+                    )
+                })?;
+            if line == "plant ready" {
+                return Ok(controllers);
+            }
+            if let Some((resource, address)) = line
+                .strip_prefix("controller ")
+                .and_then(|l| l.split_once(" listening on "))
+            {
+                controllers.insert(resource.to_string(), address.to_string());
+            }
+        }
     }
 
     /// Starts `program --config FILE` for a holon and waits for its token.
@@ -307,6 +330,7 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         keys: keys.clone(),
         session: session.clone(),
         started: Vec::new(),
+        controllers: BTreeMap::new(),
     };
     if options.dashboard.is_some() || options.opcua.is_some() {
         servers::demo_operator(&cell)?;
@@ -401,6 +425,14 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
     );
 
     let mut orders: BTreeMap<HolonId, OrderSnapshot> = BTreeMap::new();
+    let mut report = Report {
+        orders: BTreeMap::new(),
+        failed: 0,
+        elapsed: Duration::ZERO,
+        hot_added: None,
+        staff: options.staff,
+        transports: BTreeMap::new(),
+    };
     let mut hot_added = None;
     let mut advised_shown = BTreeMap::new();
     let deadline =
@@ -411,7 +443,7 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
             break;
         }
         if options.hot_add && hot_added.is_none() && finished * 2 >= ids.len() {
-            hot_add_robot3(cell, options, ids.len() - finished).await?;
+            hot_add_robot3(cell, ids.len() - finished).await?;
             hot_added = Some(started.elapsed());
         }
         let sample = match tokio::time::timeout_at(deadline.into(), states.recv_async()).await {
@@ -429,56 +461,79 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
             started.elapsed(),
             &mut advised_shown,
         );
+        report.count_move(orders.get(&snapshot.holon), &snapshot);
         orders.insert(snapshot.holon.clone(), snapshot);
     }
-    let failed = orders
+    report.failed = orders
         .values()
         .filter(|o| o.status == OrderStatus::Failed)
         .count();
-    Ok(Report {
-        orders,
-        failed,
-        elapsed: started.elapsed(),
-        hot_added,
-        staff: options.staff,
-    })
+    report.orders = orders;
+    report.elapsed = started.elapsed();
+    report.hot_added = hot_added;
+    Ok(report)
 }
 
-/// Starts the cell's holons: each resource after its simulator, the product, the
-/// order-node; prints how long each took to appear.
+/// The demo's plant file: the layout of every resource config (robot3's too: its port
+/// on the free stopper is there physically before its holon starts) and a controller
+/// per resource, timed by the demo's options.
+fn plant_file(options: &DemoOptions) -> String {
+    let robot = options.action_delay.as_millis();
+    let short = (options.action_delay / 3).as_millis();
+    let mut text = String::from(
+        "layout = [\"robot1.toml\", \"robot2.toml\", \"robot3.toml\", \"inspect1.toml\", \"conveyor1.toml\"]\n",
+    );
+    for (resource, delay) in [
+        ("robot1", robot),
+        ("robot2", robot),
+        ("robot3", robot),
+        ("inspect1", short),
+        ("conveyor1", short),
+    ] {
+        text.push_str(&format!(
+            "[[controller]]\nresource = \"{resource}\"\nlisten = \"127.0.0.1:0\"\ndelay_ms = {delay}\n"
+        ));
+        if resource == "inspect1" && options.inspect_fail_every > 0 {
+            text.push_str(&format!(
+                "inspect_fail_every = {}\n",
+                options.inspect_fail_every
+            ));
+        }
+    }
+    text
+}
+
+/// robot3's config: robot1's, docked at the conveyor's free stopper (it joins the layout
+/// by starting).
+fn robot3_config() -> String {
+    ROBOT
+        .replace("name = \"robot1\"", "name = \"robot3\"")
+        .replace("dock = \"conveyor1.s1\"", "dock = \"conveyor1.s3\"")
+}
+
+/// Starts the plant, then the cell's holons: each resource on its controller in the
+/// plant, the product, the order-node; prints how long each took to appear.
 async fn start_holons(cell: &mut Cell, options: &DemoOptions) -> Result<()> {
-    let robot_delay = options.action_delay;
-    let short_delay = options.action_delay / 3;
-    let inspect_flags = if options.inspect_fail_every > 0 {
-        vec![
-            "--inspect-fail-every".into(),
-            options.inspect_fail_every.to_string(),
-        ]
-    } else {
-        vec![]
-    };
-    let resources: Vec<(&str, &str, Duration, Vec<String>)> = vec![
-        ("robot1", ROBOT, robot_delay, vec![]),
-        ("robot2", ROBOT2, robot_delay, vec![]),
-        ("inspect1", INSPECTION, short_delay, inspect_flags),
-        ("conveyor1", CONVEYOR, short_delay, vec![]),
+    let robot3 = robot3_config();
+    let resources = [
+        ("robot1", ROBOT),
+        ("robot2", ROBOT2),
+        ("inspect1", INSPECTION),
+        ("conveyor1", CONVEYOR),
+        ("robot3", robot3.as_str()),
     ];
-    for (name, config, delay, sim_flags) in &resources {
-        let controller = cell.sim(&format!("{name}-sim"), *delay, sim_flags).await?;
-        let holon = HolonId::resource(name)?;
-        let took = cell
-            .holon(
-                "holon-node",
-                config,
-                &holon,
-                &["--controller".into(), controller.clone()],
-                None,
-            )
-            .await?;
-        println!(
-            "  {holon:<22} alive after {:>4} ms (controller {controller})",
-            took.as_millis()
-        );
+    // The plant reads the configs' [layout] before any holon starts.
+    for (name, config) in resources {
+        std::fs::write(cell.dir.join(format!("{name}.toml")), config)?;
+    }
+    cell.controllers = cell.plant(&plant_file(options)).await?;
+    println!(
+        "  {:<22} every controller over one physical state ({})",
+        "plant-sim",
+        cell.dir.join(PLANT_STATE).display()
+    );
+    for (name, config) in resources.into_iter().filter(|(n, _)| *n != "robot3") {
+        start_resource(cell, name, config).await?;
     }
     let product = HolonId::new(schemas::HolonKind::Product, "breaker")?;
     let took = cell
@@ -513,24 +568,36 @@ async fn start_holons(cell: &mut Cell, options: &DemoOptions) -> Result<()> {
     Ok(())
 }
 
-/// Hot-adds robot3 (its simulator, then its holon) while `running` orders run.
-async fn hot_add_robot3(cell: &mut Cell, options: &DemoOptions, running: usize) -> Result<()> {
-    let controller = cell.sim("robot3-sim", options.action_delay, &[]).await?;
-    let robot3 = HolonId::resource("robot3")?;
-    // robot1's config, docked at the conveyor's free stopper: it joins the layout by
-    // starting.
-    let config = ROBOT.replace("dock = \"conveyor1.s1\"", "dock = \"conveyor1.s3\"");
+/// Starts the resource holon `name` on its controller in the plant; returns how long
+/// it took to appear.
+async fn start_resource(cell: &mut Cell, name: &str, config: &str) -> Result<Duration> {
+    let controller = cell
+        .controllers
+        .get(name)
+        .cloned()
+        .ok_or_else(|| anyhow!("the plant has no controller for {name}"))?;
+    let holon = HolonId::resource(name)?;
     let took = cell
         .holon(
             "holon-node",
-            &config,
-            &robot3,
-            &["--controller".into(), controller],
+            config,
+            &holon,
+            &["--controller".into(), controller.clone()],
             None,
         )
         .await?;
     println!(
-        "+ hot-added {robot3} while {running} orders run (alive after {} ms)",
+        "  {holon:<22} alive after {:>4} ms (controller {controller})",
+        took.as_millis()
+    );
+    Ok(took)
+}
+
+/// Hot-adds robot3 (its controller is in the plant already) while `running` orders run.
+async fn hot_add_robot3(cell: &mut Cell, running: usize) -> Result<()> {
+    let took = start_resource(cell, "robot3", &robot3_config()).await?;
+    println!(
+        "+ hot-added resource/robot3 while {running} orders run (alive after {} ms)",
         took.as_millis()
     );
     Ok(())

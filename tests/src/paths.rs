@@ -87,3 +87,9 @@ pub fn holon_log_level() -> String {
 pub fn demo_config(file: &str) -> PathBuf {
     workspace_root().join("deploy/cells/demo").join(file)
 }
+
+/// The demo's breaker as it was before parts moved (transport a step of its own): for
+/// tests that run the demo's holons on a robot-sim each, without a plant.
+pub fn stationary_breaker() -> PathBuf {
+    workspace_root().join("tests/fixtures/breaker-stationary.toml")
+}

@@ -123,7 +123,7 @@ identity = "order-node.orders1"
 program = "order-node"
 args = ["--config", "{}", "--cell", "{cell}", "--connect", "{endpoint}", "--pki", "pki", "--data-dir", "data"]
 "#,
-        demo.join("breaker.toml").display(),
+        crate::stationary_breaker().display(),
         demo.join("orders1.toml").display()
     ));
     std::fs::write(dir.join("cell.toml"), manifest).unwrap();

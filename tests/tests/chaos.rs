@@ -202,7 +202,7 @@ impl<'a> Chaos<'a> {
             cell,
             "breaker",
             "holon-node",
-            demo_config("breaker.toml"),
+            stationary_breaker(),
             vec![],
             product_key,
         ));

@@ -413,7 +413,7 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
     let breaker = start_holon(
         dir.path(),
         "holon-node",
-        &demo_config("breaker.toml"),
+        &stationary_breaker(),
         "breaker",
         &cell,
         &[],

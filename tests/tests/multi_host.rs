@@ -146,7 +146,12 @@ fn start_a_router_on_every_host(hosts: &mut Hosts) {
 /// order-node on host c, all with the cell's lease; each a client of its host's router.
 fn start_the_holons(hosts: &mut Hosts, dir: &Path) {
     let with_lease = |file: &str| {
-        let text = std::fs::read_to_string(demo_config(file)).unwrap();
+        // The breaker as it was before parts moved: these hosts run no plant.
+        let source = match file {
+            "breaker.toml" => stationary_breaker(),
+            _ => demo_config(file),
+        };
+        let text = std::fs::read_to_string(source).unwrap();
         let text = text.replacen(
             "multicast_scouting = false",
             &format!("multicast_scouting = false\nlease_ms = {LEASE_MS}"),

@@ -124,7 +124,7 @@ async fn twenty_orders_while_a_robot_is_hot_added_and_another_stopped() {
     let _product = start_holon(
         dir.path(),
         "holon-node",
-        &demo_config("breaker.toml"),
+        &stationary_breaker(),
         "breaker",
         &cell,
         &[],
@@ -220,7 +220,7 @@ async fn a_rejected_part_is_reworked_and_the_product_serves_its_plan() {
     let _product = start_holon(
         dir.path(),
         "holon-node",
-        &demo_config("breaker.toml"),
+        &stationary_breaker(),
         "breaker",
         &cell,
         &[],

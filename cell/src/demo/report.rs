@@ -4,7 +4,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Duration;
 
-use schemas::{HolonId, OrderSnapshot, OrderStatus};
+use schemas::{HolonId, OrderSnapshot, OrderStatus, PartPlace};
 
 /// What the demo saw, for its summary.
 pub(super) struct Report {
@@ -14,6 +14,8 @@ pub(super) struct Report {
     pub(super) hot_added: Option<Duration>,
     /// A staff holon advised the orders.
     pub(super) staff: bool,
+    /// The moves seen to end (a part from in transit to where it went), by transporter.
+    pub(super) transports: BTreeMap<HolonId, usize>,
 }
 
 impl Report {
@@ -69,12 +71,53 @@ impl Report {
         }
         println!("  steps per resource");
         for (resource, n) in &steps {
-            let sim = resource.trim_start_matches("resource/");
-            let counts = std::fs::read_to_string(dir.join(format!("{sim}-sim.counts.json")))
-                .unwrap_or_default();
-            println!("    {resource:<20} {n:>4}   controller {}", counts.trim());
+            println!("    {resource:<20} {n:>4}");
+        }
+        println!("  transports");
+        for (transporter, n) in &self.transports {
+            println!("    {transporter:<20} {n:>4}");
+        }
+        // The plant's own word on where the parts are.
+        let plant = std::fs::read_to_string(dir.join(super::PLANT_STATE))
+            .ok()
+            .and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok());
+        if let Some(plant) = plant {
+            let in_cell: usize = plant["locations"].as_object().map_or(0, |l| {
+                l.values().filter_map(|p| p.as_array()).map(Vec::len).sum()
+            });
+            let moving = plant["in_transit"].as_array().map_or(0, Vec::len);
+            println!(
+                "  the plant says  {} parts shipped, {in_cell} in the cell, {moving} on the move",
+                plant["shipped"]
+            );
         }
     }
+
+    /// Counts a move seen to end: `previous` had the part in transit, `snapshot` has it
+    /// where it went.
+    pub(super) fn count_move(
+        &mut self,
+        previous: Option<&OrderSnapshot>,
+        snapshot: &OrderSnapshot,
+    ) {
+        if let Some(transporter) = move_ended(previous, snapshot) {
+            *self.transports.entry(transporter).or_default() += 1;
+        }
+    }
+}
+
+/// The transporter whose move ended between `previous` and `snapshot`: the part was in
+/// transit on it, and is now at a location or shipped.
+fn move_ended(previous: Option<&OrderSnapshot>, snapshot: &OrderSnapshot) -> Option<HolonId> {
+    let Some(PartPlace::InTransit { transporter, .. }) = previous.and_then(|p| p.part.as_ref())
+    else {
+        return None;
+    };
+    matches!(
+        snapshot.part,
+        Some(PartPlace::At { .. } | PartPlace::Shipped { .. })
+    )
+    .then(|| transporter.clone())
 }
 
 /// Prints what an order's new state says, if it progressed since `previous`: the step
@@ -85,13 +128,22 @@ pub(super) fn print_progress(
     elapsed: Duration,
     advised_shown: &mut BTreeMap<HolonId, u32>,
 ) {
+    let elapsed = elapsed.as_secs_f64();
+    if let Some(transporter) = move_ended(previous, snapshot) {
+        if let Some(part) = &snapshot.part {
+            println!(
+                "{elapsed:7.2}s  {:<14} {:<13} part {part} ({transporter})",
+                snapshot.holon.name(),
+                "move"
+            );
+        }
+    }
     let progressed = previous.is_none_or(|p| {
         p.status != snapshot.status || p.completed.len() != snapshot.completed.len()
     });
     if !progressed {
         return;
     }
-    let elapsed = elapsed.as_secs_f64();
     let steps_before = previous.map_or(0, |p| p.completed.len());
     let reworked = previous.is_some_and(|p| snapshot.reworks > p.reworks);
     // The step was booked on a staff holon's advice: the count grew since the last
