@@ -679,6 +679,13 @@ fn the_demo_keeps_its_cell_up_with_a_dashboard() {
         o.as_array()
             .is_some_and(|o| o.len() == 2 && o.iter().all(|o| o["status"] == "done"))
     });
+    // The demo moves its parts: each order's part left by the loading point, and the
+    // page has where it is to draw.
+    let orders = dashboard.json("/api/orders");
+    for order in orders.as_array().unwrap() {
+        assert_eq!(order["part"]["state"], "shipped", "{order:#}");
+        assert_eq!(order["part"]["exit"], "conveyor1.load", "{order:#}");
+    }
     // The demo's router announces itself by this machine's name, its order-node too.
     let router = format!("router/{}", holon::presence::host_name());
     dashboard.wait("/api/view", "the router and the order-node", |v| {

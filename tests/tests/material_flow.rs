@@ -275,13 +275,81 @@ impl FlowCell {
     }
 }
 
+/// A child process killed when dropped.
+struct Killed(std::process::Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        if let Err(e) = self.0.kill() {
+            eprintln!("cannot kill the dashboard: {e}");
+        }
+        let _reaped = self.0.wait();
+    }
+}
+
+/// `cell dashboard` of the flow's cell: the process (killed when dropped) and its
+/// address.
+fn dashboard(flow: &FlowCell) -> (Killed, String) {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(bin("cell"))
+        .args(["dashboard", "--cell", flow.cell.keys.cell()])
+        .args(["--connect", &flow.cell.endpoint, "--listen", "127.0.0.1:0"])
+        .arg("--operator")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::fs::File::create(flow.dir.path().join("dashboard.stderr")).unwrap())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let address = line
+        .trim()
+        .rsplit("http://")
+        .next()
+        .unwrap()
+        .trim_end_matches('/');
+    (Killed(child), address.to_string())
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn crossing_parts_reserve_their_places_and_every_order_finishes() {
     let flow = FlowCell::start("t-flow", CONVEYOR).await;
+    // The operator's page draws each part where it is, live (in Chromium, where there
+    // is one).
+    let page = match webdriver::browser_available() {
+        Ok(()) => {
+            let (process, address) = dashboard(&flow);
+            let browser = webdriver::Browser::start(&flow.dir.path().join("profile")).unwrap();
+            browser.goto(&format!("http://{address}/")).unwrap();
+            Some((process, browser))
+        }
+        Err(why) => {
+            println!("SKIPPED (the page's part of this test): it needs Chromium ({why})");
+            None
+        }
+    };
     // Three of each, crossing: more parts than the buffer holds, so some wait outside.
     let mut orders = Vec::new();
     for product in ["ab", "ba", "ab", "ba", "ab", "ba"] {
         orders.extend(flow.cell.submit(product, 1).await.unwrap());
+    }
+    if let Some((_, browser)) = &page {
+        let within = Duration::from_secs(30);
+        for state in ["at", "in_transit"] {
+            browser
+                .wait_for(
+                    &format!("#layout circle.part[data-part-state=\"{state}\"]"),
+                    within,
+                )
+                .unwrap_or_else(|e| panic!("no part drawn {state} on the page: {e}"));
+        }
+        browser
+            .wait_for(
+                "#layout circle.part[data-part-where=\"station_a.port\"]",
+                within,
+            )
+            .unwrap();
     }
     flow.wait_ended(&orders, Duration::from_secs(120)).await;
     flow.assert_all_done_and_plant_empty(&orders).await;

@@ -77,6 +77,9 @@ pub struct OrderRow {
     pub priority: i32,
     /// When the order is due (Unix ms), if it is.
     pub due: Option<u64>,
+    /// Where its part is, for a plan that moves parts (drawn on the layout).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub part: Option<schemas::PartPlace>,
     /// When the order last changed (Unix ms).
     pub at: u64,
 }
@@ -97,6 +100,7 @@ impl From<&OrderSnapshot> for OrderRow {
             failed_attempts: o.failed_attempts,
             priority: o.priority,
             due: o.due,
+            part: o.part.clone(),
             at: o.at,
         }
     }
