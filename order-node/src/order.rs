@@ -465,6 +465,11 @@ impl OrderTask<'_> {
             ranked.retain(|r| r == station);
         }
         self.in_flight = in_flight;
+        if !work {
+            // A move, or a step at the station where the part is: the advice (if any)
+            // was the station round's.
+            return AttemptEvent::Proposals(ranked);
+        }
         self.advised = match advised {
             Some(resource) if ranked.first() == Some(&resource) => Some(resource),
             Some(resource) => {

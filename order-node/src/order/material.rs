@@ -157,13 +157,28 @@ impl OrderTask<'_> {
         }
     }
 
-    /// A proposal round for `step` among the stations: those that proposed, best first.
+    /// A proposal round for `step` among the stations, with the staff's advice asked
+    /// together: those that proposed, best first (the advised one first, if it
+    /// proposed; it is then counted as advised once its step is booked).
     async fn station_round(&mut self, step: &PlanStep, conversation_id: &str) -> Vec<HolonId> {
+        let ctx = self.ctx.clone();
         let avoid = self.progress.get().avoid.clone();
         let ask = self.request(MessageType::ProposalReq, step, conversation_id);
-        let _turn = self.ctx.rounds.acquire().await.expect("never closed");
-        let offers = requests::offers(&self.ctx, &ask, &avoid).await;
-        let (ranked, _) = requests::rank(&self.ctx, &ask, offers, None);
+        let (route, urgency) = {
+            let p = self.progress.get();
+            (p.route_ahead(), (p.priority, p.due))
+        };
+        let _turn = ctx.rounds.acquire().await.expect("never closed");
+        let (advised, offers) = tokio::join!(
+            requests::advice(&ctx, &self.holon, conversation_id, route, urgency, &avoid),
+            requests::offers(&ctx, &ask, &avoid)
+        );
+        let advised = match advised {
+            requests::Advised::Resource(resource) => Some(resource),
+            requests::Advised::NoStaff | requests::Advised::Unusable(_) => None,
+        };
+        let (ranked, _) = requests::rank(&ctx, &ask, offers, advised.as_ref());
+        self.advised = advised.filter(|a| ranked.first() == Some(a));
         ranked
     }
 
