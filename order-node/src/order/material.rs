@@ -27,7 +27,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use super::{Leg, OrderTask};
-use crate::context::{jittered, OrderError};
+use crate::context::{jittered, OrderError, IDLE_POLL};
 use crate::part::{Move, MoveEnd, MoveGoal, PartProgress, TRANSPORT_SERVICE};
 use crate::progress::{Phase, StepOutcome};
 use crate::requests;
@@ -63,6 +63,10 @@ impl OrderTask<'_> {
         operator_cancel: &CancellationToken,
     ) -> Result<Arranged, OrderError> {
         let give_up = Instant::now() + self.ctx.settings.no_resource_timeout;
+        // The pause before looking again grows while nothing changes (a freed place or a
+        // resource appearing wakes the order sooner), spaced with the other idle orders:
+        // a thousand parts waiting outside the cell cost next to nothing.
+        let mut backoff = holon::Backoff::new(PLACE_RETRY, IDLE_POLL);
         loop {
             let part = self.part();
             if let Some(moving) = part.moving.clone() {
@@ -90,6 +94,7 @@ impl OrderTask<'_> {
             if part.home.is_none() && !self.take_home(&layout).await? {
                 // No place for it in the cell yet: it stays outside.
             } else if self.place_at_station(&layout, &ranked).await? {
+                backoff.reset();
                 continue;
             } else if let Some(here) = part.place.location().filter(|l| is_port(&layout, l)) {
                 let home = part.home.clone().expect("a part at a port has a home");
@@ -105,7 +110,9 @@ impl OrderTask<'_> {
             if Instant::now() >= give_up && ranked.is_empty() {
                 return Ok(Arranged::NoStation);
             }
-            self.pause(PLACE_RETRY).await;
+            let pause = backoff.next_pause();
+            self.wait_for_resource(pause, true, Instant::now() + IDLE_POLL)
+                .await;
         }
     }
 

@@ -118,6 +118,8 @@ impl PublishedQueue {
 pub struct Published {
     /// Its agenda's length.
     pub length: usize,
+    /// The places held at its locations, in all (docs/material-flow.md).
+    pub held: usize,
     /// It could take orders' work.
     pub ready: bool,
 }
@@ -301,7 +303,7 @@ struct StateNews {
     turn: Option<String>,
     /// The resource has just become able to take work (or is seen ready the first time).
     became_ready: bool,
-    /// Places freed on its agenda since its previous publication.
+    /// Places freed since its previous publication: on its agenda, or at its locations.
     places_freed: usize,
 }
 
@@ -317,15 +319,20 @@ fn read_state(previous: Option<Published>, snapshot: &ResourceSnapshot) -> (Stat
     });
     let ready =
         snapshot.state != ResourceState::Init && snapshot.controller.is_ready() && takes_orders;
+    let held = snapshot.places.values().map(Vec::len).sum();
     let news = StateNews {
         turn: (snapshot.state == ResourceState::Free && takes_orders)
             .then(|| snapshot.agenda.first().map(|b| b.conversation_id.clone()))
             .flatten(),
         became_ready: ready && !before.ready,
-        places_freed: before.length.saturating_sub(snapshot.agenda.len()),
+        // A booking gone from the agenda, or a place released at a location: either
+        // may be what a waiting order needs.
+        places_freed: before.length.saturating_sub(snapshot.agenda.len())
+            + before.held.saturating_sub(held),
     };
     let now = Published {
         length: snapshot.agenda.len(),
+        held,
         ready,
     };
     (news, now)

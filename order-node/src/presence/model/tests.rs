@@ -6,7 +6,11 @@ fn robot() -> HolonId {
 }
 
 fn published(length: usize, ready: bool) -> Option<Published> {
-    Some(Published { length, ready })
+    Some(Published {
+        length,
+        held: 0,
+        ready,
+    })
 }
 
 fn snapshot(state: &str, controller: &str, agenda: &[&str]) -> ResourceSnapshot {
@@ -351,4 +355,20 @@ fn a_deposed_holders_state_is_not_read() {
     assert!(!model.apply(Event::Snapshot(of(2, &[]))).is_empty());
     assert!(!model.apply(Event::Snapshot(of(3, &["d/1/1"]))).is_empty());
     assert_eq!(model.apply(Event::Snapshot(of(2, &[]))), vec![]);
+}
+
+#[test]
+fn a_place_released_at_a_location_is_room_for_a_waiting_order() {
+    let mut held = snapshot("free", "ready", &[]);
+    held.places
+        .insert("robot1.port".into(), vec!["o-1".into(), "o-2".into()]);
+    let (news, before) = read_state(published(0, true), &held);
+    assert_eq!(news.places_freed, 0);
+    assert_eq!(before.held, 2);
+    let mut released = snapshot("free", "ready", &[]);
+    released
+        .places
+        .insert("robot1.port".into(), vec!["o-2".into()]);
+    let (news, _) = read_state(Some(before), &released);
+    assert_eq!(news.places_freed, 1, "one place released");
 }
