@@ -85,3 +85,77 @@ impl PlantProcess {
         serde_json::from_slice(&bytes).expect("the plant's state is JSON")
     }
 }
+
+/// One connection to a controller of the plant, speaking holarchy-xml as a holon does
+/// (docs/controller-protocol.md): for tests that drive the plant without holons.
+pub struct ControllerLink {
+    /// The connection.
+    stream: std::net::TcpStream,
+    /// What the controller sent and the test has not read yet.
+    received: String,
+    /// The next command's ID.
+    next_id: u64,
+}
+
+impl ControllerLink {
+    /// Connects to the controller at `address`.
+    pub fn connect(address: &str) -> ControllerLink {
+        let stream = std::net::TcpStream::connect(address).expect("the controller's address");
+        stream
+            .set_read_timeout(Some(std::time::Duration::from_millis(200)))
+            .expect("a read timeout");
+        ControllerLink {
+            stream,
+            received: String::new(),
+            next_id: 1,
+        }
+    }
+
+    /// Sends a move of `part` from `from` to `to`; returns its command ID.
+    pub fn send_move(&mut self, part: &str, from: &str, to: &str) -> u64 {
+        use std::io::Write;
+        let id = self.next_id;
+        self.next_id += 1;
+        let command = format!(
+            "<ROBOT_CMD><ID>{id}</ID><ACTION>move</ACTION><PART>{part}</PART><FROM>{from}</FROM><TO>{to}</TO></ROBOT_CMD>"
+        );
+        self.stream
+            .write_all(command.as_bytes())
+            .expect("a command to the controller");
+        id
+    }
+
+    /// The reply to command `id` (the whole `ROBOT_REPLY` document), waiting at most
+    /// `within`; None if none came by then.
+    pub fn reply(&mut self, id: u64, within: std::time::Duration) -> Option<String> {
+        use std::io::Read;
+        let deadline = std::time::Instant::now() + within;
+        let start = format!("<ROBOT_REPLY><ID>{id}</ID>");
+        loop {
+            if let Some(at) = self.received.find(&start) {
+                if let Some(end) = self.received[at..].find("</ROBOT_REPLY>") {
+                    let end = at + end + "</ROBOT_REPLY>".len();
+                    let reply = self.received[at..end].to_string();
+                    self.received.replace_range(..end, "");
+                    return Some(reply);
+                }
+            }
+            if std::time::Instant::now() >= deadline {
+                return None;
+            }
+            let mut buffer = [0u8; 4096];
+            match self.stream.read(&mut buffer) {
+                Ok(0) => panic!("the controller closed the connection: {}", self.received),
+                Ok(n) => self
+                    .received
+                    .push_str(&String::from_utf8_lossy(&buffer[..n])),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) => {}
+                Err(e) => panic!("cannot read from the controller: {e}"),
+            }
+        }
+    }
+}

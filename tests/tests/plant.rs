@@ -1,8 +1,9 @@
 //! The plant simulator (docs/material-flow.md, "The plant"): one physical truth behind
 //! every controller of the cell. Real holons drive it through their own controller
 //! connections and dialect: a part rides a conveyor pallet to a station, the station
-//! works on it only where it physically is, a full port refuses a pallet, and the state
-//! file says where every part and pallet is.
+//! works on it only where it physically is, a pallet sent to a full port waits at its
+//! stopper until the port has a place, and the state file says where every part and
+//! pallet is.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -186,23 +187,6 @@ async fn parts_ride_pallets_and_are_worked_on_only_where_they_are() {
     )
     .await;
     assert_eq!(done.message_type, MessageType::Done, "{done:?}");
-
-    // The port holds one: a second part's pallet is refused, the controller says why.
-    let refused = job(
-        &cell,
-        &mut inbox,
-        "conveyor1",
-        "transport",
-        "o-1/3/1",
-        serde_json::json!({"part": "p-2", "from": "conveyor1.load", "to": "robot1.port"}),
-    )
-    .await;
-    assert_eq!(refused.message_type, MessageType::Failed, "{refused:?}");
-    let said = serde_json::to_string(&refused).unwrap();
-    assert!(
-        said.contains("robot1.port is full (1 held, 0 on their way, capacity 1)"),
-        "{said}"
-    );
 
     // Back to the loading point: it leaves the plant, its pallet free again.
     let shipped = job(
@@ -602,4 +586,96 @@ async fn a_move_goes_on_in_the_plant_when_its_holon_is_killed() {
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
+}
+
+/// A pallet sent to a full port is not refused: it rides there and waits at the port's
+/// stopper, first on its track, and the state file says what it waits for and since
+/// when; once the port is emptied (a transfer robot takes its part to a shelf) it docks
+/// and its move ends. Driven through the plant's controllers as holons would, without
+/// holons.
+#[test]
+fn a_pallet_waits_at_a_full_port_and_goes_on_once_it_is_emptied() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
+    robot1(dir.path());
+    let shelf = resource_config(dir.path(), "shelf1", 5000).unwrap();
+    let text = std::fs::read_to_string(&shelf).unwrap();
+    let layout = "\n[[layout.locations]]\nname = \"shelf\"\nrole = \"buffer\"\ncapacity = 2\n";
+    std::fs::write(&shelf, format!("{text}{layout}")).unwrap();
+    transporter(
+        dir.path(),
+        "mover1",
+        "[layout.transfer]\nbetween = [\"robot1.port\", \"shelf1.shelf\"]\nmove_ms = 100\n",
+    );
+    let plant = PlantProcess::start(
+        dir.path(),
+        r#"
+layout = ["conveyor1.toml", "robot1.toml", "shelf1.toml", "mover1.toml"]
+
+[[controller]]
+resource = "conveyor1"
+listen = "127.0.0.1:0"
+
+[[controller]]
+resource = "mover1"
+listen = "127.0.0.1:0"
+"#,
+    );
+    let mut conveyor = ControllerLink::connect(&plant.controllers["conveyor1"]);
+    let mut mover = ControllerLink::connect(&plant.controllers["mover1"]);
+    let first = conveyor.send_move("p-1", "conveyor1.load", "robot1.port");
+    let reply = conveyor.reply(first, WAIT).expect("p-1's move ends");
+    assert!(reply.contains("<RESULT>arrived</RESULT>"), "{reply}");
+    // robot1's port holds p-1: p-2's pallet goes all the same, and waits at s1.
+    let second = conveyor.send_move("p-2", "conveyor1.load", "robot1.port");
+    let deadline = std::time::Instant::now() + WAIT;
+    let (pallet, waiting) = loop {
+        let state = plant.state();
+        let waiting = state["pallets"]
+            .as_object()
+            .unwrap()
+            .iter()
+            .find(|(_, p)| p["part"] == "p-2" && p["waits"].is_string())
+            .map(|(id, p)| (id.clone(), p.clone()));
+        if let Some(found) = waiting {
+            break found;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "p-2's pallet never waited at robot1's stopper: {state:#}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(waiting["waits"], "robot1.port full", "{waiting:#}");
+    assert_eq!(waiting["at"], "track", "{waiting:#}");
+    assert_eq!(waiting["track"], "s1", "{waiting:#}");
+    assert_eq!(waiting["queue_position"], 0, "{waiting:#}");
+    assert_eq!(waiting["to"], "robot1.port", "{waiting:#}");
+    assert!(waiting["waits_since_ms"].is_u64(), "{waiting:#}");
+    let state: serde_json::Value = serde_json::from_str(&plant.command("where")).unwrap();
+    assert_eq!(state["deadlocked"], false, "{state:#}");
+    assert_eq!(state["in_transit"][0]["load"]["part"], "p-2", "{state:#}");
+    let waits: serde_json::Value = serde_json::from_str(&plant.command("waits")).unwrap();
+    assert_eq!(waits["waits"][0]["pallet"], pallet.as_str(), "{waits:#}");
+    assert_eq!(waits["waits"][0]["waits"], "robot1.port full", "{waits:#}");
+    assert_eq!(waits["deadlocked"], false, "{waits:#}");
+    // The port is emptied: the transfer robot takes p-1 to the shelf.
+    let taken = mover.send_move("p-1", "robot1.port", "shelf1.shelf");
+    let reply = mover.reply(taken, WAIT).expect("the transfer ends");
+    assert!(reply.contains("<RESULT>arrived</RESULT>"), "{reply}");
+    // p-2's pallet docks: its move ends.
+    let reply = conveyor.reply(second, WAIT).expect("p-2's move ends");
+    assert!(reply.contains("<RESULT>arrived</RESULT>"), "{reply}");
+    let state = plant.state();
+    let port = &state["locations"]["robot1.port"];
+    assert_eq!(port[0]["part"], "p-2", "{state:#}");
+    assert_eq!(port[0]["carrier"], pallet.as_str(), "{state:#}");
+    assert_eq!(
+        state["locations"]["shelf1.shelf"][0]["part"], "p-1",
+        "{state:#}"
+    );
+    assert_eq!(state["pallets"][&pallet]["at"], "docked", "{state:#}");
+    assert!(state["pallets"][&pallet]["waits"].is_null(), "{state:#}");
+    assert_eq!(state["deadlocked"], false, "{state:#}");
+    assert!(state["longest_wait_ms"].as_u64().unwrap() > 0, "{state:#}");
 }

@@ -10,8 +10,9 @@ use robot_bridge::plant::PlantSim;
 /// "The plant"): every controller of the plant file on its own address in its own
 /// dialect, as robot-sim serves one, over one physical state. A transporter's move
 /// (a command naming the part and where it goes: holarchy-xml's PART, FROM and TO)
-/// takes the layout's travel time and puts the part there; a full port refuses it; a
-/// station told to work on a part that is not at its port fails with a physical error.
+/// runs track by track and ends when the part is there; a pallet sent to a full port
+/// waits at its stopper, holding its track; a station told to work on a part that is
+/// not at its port fails with a physical error.
 ///
 /// Prints `controller RESOURCE listening on ADDR` for each controller, then `plant
 /// ready`; where every part and pallet is goes to the state file (JSON, rewritten
@@ -28,9 +29,10 @@ struct Args {
     #[arg(long, value_name = "PATH")]
     state_file: Option<PathBuf>,
     /// Serve the control port here (HOST:PORT; port 0: a free one, printed): one
-    /// command a line: `where` (the state as JSON), `jam CONVEYOR.STOPPER` and `clear
-    /// ...` (the track ending at that stopper: a move along it does not end while
-    /// jammed), `silence PALLET` and `report PALLET` (a pallet that stops reporting: its
+    /// command a line: `where` (the state as JSON), `waits` (what waits, since when,
+    /// and whether the plant is deadlocked), `jam CONVEYOR.STOPPER` and `clear ...` (the
+    /// track ending at that stopper: no pallet enters or leaves it while jammed),
+    /// `silence PALLET` and `report PALLET` (a pallet that stops reporting: its
     /// moves end in the plant without its controller saying so), `estop RESOURCE MS`
     /// (its controller e-stopped for MS ms). No access control: keep it on loopback.
     #[arg(long, value_name = "HOST:PORT")]

@@ -5,13 +5,15 @@
 //! | command | answer |
 //! |---|---|
 //! | `where` | where everything is: the state file's JSON, on one line |
-//! | `jam CONVEYOR.STOPPER` | `ok`: the track that ends at that stopper is jammed; a move along it does not end |
-//! | `clear CONVEYOR.STOPPER` | `ok`: it is not any more; the moves held up go on |
+//! | `waits` | what waits: `{"now_ms", "deadlocked", "deadlock", "longest_wait_ms", "waits": [{"pallet", "waits", "since_ms", "for_ms"}]}`, on one line |
+//! | `jam CONVEYOR.STOPPER` | `ok`: the track that ends at that stopper is jammed: no pallet enters it or leaves it (it holds its pallets, as a full queue) |
+//! | `clear CONVEYOR.STOPPER` | `ok`: it is not any more; the pallets held up go on |
 //! | `silence PALLET` | `ok`: the pallet (`conveyor1/p2`) stops reporting: a move it carries ends in the plant without its controller saying so |
 //! | `report PALLET` | `ok`: it reports again |
-//! | `estop RESOURCE MS` | `ok`: the resource's controller is e-stopped for MS ms (it says `estop`, refuses every command meanwhile, and a transporter's moves under way do not go on), then ready again |
+//! | `estop RESOURCE MS` | `ok`: the resource's controller is e-stopped for MS ms (it says `estop`, refuses every command meanwhile, and a transporter's pallets stand still), then ready again |
 //!
-//! Anything else is answered `error ` and why; nothing changes.
+//! Anything else is answered `error ` and why; nothing changes. The plant is advanced to
+//! now before every command.
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
@@ -23,8 +25,9 @@ use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use super::controller::OnChange;
-use super::model::Plant;
+use super::controller::{log_happenings, OnChange};
+use super::model::{Plant, WaitView};
+use super::Clock;
 use crate::sim::SimStats;
 
 /// What a command asks of the plant besides its state.
@@ -43,6 +46,21 @@ pub enum Effect {
 /// The longest command line read.
 const MAX_LINE: usize = 256;
 
+/// What waits in the plant, as `waits` answers.
+#[derive(Debug, serde::Serialize)]
+struct Waits {
+    /// The plant's time: ms since it started.
+    now_ms: u64,
+    /// Whether some pallets wait only on one another.
+    deadlocked: bool,
+    /// The pallets that do.
+    deadlock: Vec<String>,
+    /// The longest any pallet has waited, or waits now, in ms.
+    longest_wait_ms: u64,
+    /// Every pallet that waits.
+    waits: Vec<WaitView>,
+}
+
 /// Carries out one command line on `plant` (whose controllers are `resources`): the
 /// answer, and what else it asks for.
 pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, Effect) {
@@ -57,6 +75,20 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
             serde_json::to_string(&plant.view()).expect("a plant view serializes"),
             Effect::None,
         ),
+        ["waits"] => {
+            let view = plant.view();
+            let waits = Waits {
+                now_ms: view.now_ms,
+                deadlocked: view.deadlocked,
+                deadlock: view.deadlock,
+                longest_wait_ms: view.longest_wait_ms,
+                waits: plant.waits(),
+            };
+            (
+                serde_json::to_string(&waits).expect("waits serialize"),
+                Effect::None,
+            )
+        }
         ["estop", resource, ms] => {
             match (resources.iter().any(|r| r == resource), ms.parse::<u64>()) {
                 (false, _) => (
@@ -81,7 +113,9 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
         ["silence", pallet] => done(plant.silence(pallet, true)),
         ["report", pallet] => done(plant.silence(pallet, false)),
         _ => (
-            format!("error {line:?}: not a command (where, jam, clear, silence, report, estop)"),
+            format!(
+                "error {line:?}: not a command (where, waits, jam, clear, silence, report, estop)"
+            ),
             Effect::None,
         ),
     }
@@ -91,6 +125,7 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
 pub async fn serve(
     listener: TcpListener,
     plant: Arc<Mutex<Plant>>,
+    clock: Clock,
     controllers: BTreeMap<String, Arc<SimStats>>,
     on_change: OnChange,
     shutdown: CancellationToken,
@@ -125,6 +160,7 @@ pub async fn serve(
                 let answer = {
                     let resources: Vec<String> = controllers.keys().cloned().collect();
                     let mut locked = plant.lock().unwrap_or_else(|e| e.into_inner());
+                    log_happenings(&locked.advance(clock.now_ms()));
                     let (answer, effect) = command(&mut locked, &resources, line.trim());
                     if effect != Effect::None {
                         info!(%peer, command = %line.trim(), "the plant changed by its control port");
@@ -132,7 +168,13 @@ pub async fn serve(
                     if let Effect::Estop { resource, time } = &effect {
                         locked.estop(resource, true);
                         controllers[resource].stop(schemas::ControllerState::Estop, *time);
-                        release_later(plant.clone(), resource.clone(), *time, on_change.clone());
+                        let release = Release {
+                            plant: plant.clone(),
+                            clock,
+                            resource: resource.clone(),
+                            on_change: on_change.clone(),
+                        };
+                        release.after(*time);
                     }
                     if effect != Effect::None {
                         on_change(&locked);
@@ -148,14 +190,29 @@ pub async fn serve(
     }
 }
 
-/// Releases `resource`'s e-stop after `time` (its controller says `ready` again by
-/// itself then).
-fn release_later(plant: Arc<Mutex<Plant>>, resource: String, time: Duration, on_change: OnChange) {
-    tokio::spawn(async move {
-        tokio::time::sleep(time).await;
-        let mut plant = plant.lock().unwrap_or_else(|e| e.into_inner());
-        plant.estop(&resource, false);
-        info!(%resource, "e-stop released");
-        on_change(&plant);
-    });
+/// A resource's e-stop to release.
+struct Release {
+    /// The plant.
+    plant: Arc<Mutex<Plant>>,
+    /// The plant's time.
+    clock: Clock,
+    /// The resource whose e-stop it is.
+    resource: String,
+    /// Told once it is released.
+    on_change: OnChange,
+}
+
+impl Release {
+    /// Releases the e-stop after `time` (its controller says `ready` again by itself
+    /// then): the pallets go on.
+    fn after(self, time: Duration) {
+        tokio::spawn(async move {
+            tokio::time::sleep(time).await;
+            let mut plant = self.plant.lock().unwrap_or_else(|e| e.into_inner());
+            log_happenings(&plant.advance(self.clock.now_ms()));
+            plant.estop(&self.resource, false);
+            info!(resource = %self.resource, "e-stop released");
+            (self.on_change)(&plant);
+        });
+    }
 }

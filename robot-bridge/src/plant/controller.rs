@@ -3,22 +3,37 @@
 //!
 //! A transporter's controller moves a part when its command names one and where it goes
 //! (`info.part`, `info.from`, `info.to`: holarchy-xml's `PART`, `FROM` and `TO`): the
-//! plant checks the move and times it. A station's controller works on the part at its
-//! port (`info.part` where the command names it, else whichever is there). A command
-//! naming no part is not in the material flow: the plant lets it run as robot-sim would.
+//! plant checks the move and begins it; the simulator waits the move's unobstructed
+//! travel, then asks [`Physics::held`] until the part has arrived in the plant (its
+//! pallet may wait on the way: a full port, a full or jammed track, an e-stop). A
+//! station's controller works on the part at its port (`info.part` where the command
+//! names it, else whichever is there). A command naming no part is not in the material
+//! flow: the plant lets it run as robot-sim would.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use schemas::layout::LocationId;
-use tracing::{debug, info};
+use tracing::{debug, info, warn};
 
-use super::model::Plant;
+use super::model::{Happening, Plant};
+use super::Clock;
 use crate::dialect::Values;
 use crate::sim::physics::{Physics, Report};
 
-/// Told after every change of the plant (the state file's writer).
+/// Told after every change of the plant (writes the state file, wakes the task that
+/// drives the plant's time).
 pub type OnChange = Arc<dyn Fn(&Plant) + Send + Sync>;
+
+/// The move a controller has under way.
+#[derive(Debug, Clone)]
+struct Moving {
+    /// The part it moves.
+    part: String,
+    /// Its pallet when the move began, if it rides one (a silent one's arrival is not
+    /// said).
+    carrier: Option<String>,
+}
 
 /// The physics of the controller of resource `resource`.
 pub struct ControllerPhysics {
@@ -26,17 +41,26 @@ pub struct ControllerPhysics {
     /// controller's session asks it synchronously from its own task, holds it for a few
     /// map operations and never across an await.
     plant: Arc<Mutex<Plant>>,
+    /// The plant's time.
+    clock: Clock,
     /// The resource whose controller this is.
     resource: String,
-    /// The part this controller is moving (the move under way), ended by `end`.
-    moving: Mutex<Option<String>>,
+    /// The move under way, ended by `end`.
+    moving: Mutex<Option<Moving>>,
+    /// Told after every change this controller makes.
     on_change: OnChange,
 }
 
 impl ControllerPhysics {
-    pub fn new(plant: Arc<Mutex<Plant>>, resource: &str, on_change: OnChange) -> ControllerPhysics {
+    pub fn new(
+        plant: Arc<Mutex<Plant>>,
+        clock: Clock,
+        resource: &str,
+        on_change: OnChange,
+    ) -> ControllerPhysics {
         ControllerPhysics {
             plant,
+            clock,
             resource: resource.to_string(),
             moving: Mutex::new(None),
             on_change,
@@ -45,6 +69,28 @@ impl ControllerPhysics {
 
     fn plant(&self) -> std::sync::MutexGuard<'_, Plant> {
         self.plant.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn moving(&self) -> std::sync::MutexGuard<'_, Option<Moving>> {
+        self.moving.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// Logs what happened in the plant as its time went on.
+pub fn log_happenings(happened: &[Happening]) {
+    for happening in happened {
+        match happening {
+            Happening::Arrived {
+                part,
+                at,
+                transporter,
+            } => info!(part, %at, transporter, "arrived"),
+            Happening::Shipped { part, at } => info!(part, %at, "shipped: left the plant"),
+            Happening::Waits { pallet, what } => info!(pallet, waits = %what, "a pallet waits"),
+            Happening::Left { pallet, from } => debug!(pallet, %from, "left onto the loop"),
+            Happening::Passed { pallet, stopper } => debug!(pallet, stopper, "passed a stopper"),
+            Happening::Docking { pallet, at } => debug!(pallet, %at, "docking"),
+        }
     }
 }
 
@@ -59,6 +105,7 @@ impl Physics for ControllerPhysics {
     fn begin(&self, action: &str, values: &Values) -> Result<Option<Duration>, String> {
         let part = values.get("info.part");
         let mut plant = self.plant();
+        log_happenings(&plant.advance(self.clock.now_ms()));
         let transporter = plant
             .layout()
             .parts
@@ -72,8 +119,12 @@ impl Physics for ControllerPhysics {
             let took = plant
                 .begin_move(&self.resource, part, &from, &to)
                 .map_err(|e| e.to_string())?;
-            info!(resource = %self.resource, %action, part, %from, %to, ?took, "moving");
-            *self.moving.lock().unwrap_or_else(|e| e.into_inner()) = Some(part.to_string());
+            let carrier = plant.carrier_of(part);
+            info!(resource = %self.resource, %action, part, %from, %to, ?carrier, ?took, "moving");
+            *self.moving() = Some(Moving {
+                part: part.to_string(),
+                carrier,
+            });
             (self.on_change)(&plant);
             return Ok(Some(took));
         }
@@ -84,15 +135,20 @@ impl Physics for ControllerPhysics {
     }
 
     fn held(&self) -> bool {
-        let moving = self
-            .moving
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .clone();
-        let Some(part) = moving else { return false };
-        match self.plant().held_up(&part) {
+        let Some(moving) = self.moving().clone() else {
+            return false;
+        };
+        let mut plant = self.plant();
+        // A ms of slack: the simulator times the move from the command's receipt, a
+        // moment before the plant began it (its ms may have ticked in between).
+        let happened = plant.advance(self.clock.now_ms() + 1);
+        log_happenings(&happened);
+        if !happened.is_empty() {
+            (self.on_change)(&plant);
+        }
+        match plant.on_its_way(&moving.part, &self.resource) {
             Some(why) => {
-                debug!(resource = %self.resource, part, %why, "the move is held up");
+                debug!(resource = %self.resource, part = moving.part, %why, "the move is held up");
                 true
             }
             None => false,
@@ -100,17 +156,24 @@ impl Physics for ControllerPhysics {
     }
 
     fn end(&self, done: bool) -> Report {
-        let Some(part) = self.moving.lock().unwrap_or_else(|e| e.into_inner()).take() else {
+        let Some(moving) = self.moving().take() else {
             return Report::Said;
         };
+        let part = moving.part.as_str();
         let mut plant = self.plant();
-        let unreported = plant.unreported(&part);
-        if done {
-            plant.end_move(&part);
-        } else {
-            plant.stop_move(&part);
+        log_happenings(&plant.advance(self.clock.now_ms() + 1));
+        if !done {
+            plant.stop_move(part);
+        } else if let Some(why) = plant.on_its_way(part, &self.resource) {
+            // Said done before the plant has it there (a dialect polled for the end):
+            // the plant's truth stands, the part arrives when its pallet does.
+            warn!(resource = %self.resource, part, %why, "the controller says done, the part is not there yet in the plant");
         }
-        info!(resource = %self.resource, part, where_it_is = %plant.where_is(&part), unreported, "moved");
+        let unreported = moving
+            .carrier
+            .as_deref()
+            .is_some_and(|p| plant.is_silent(p));
+        info!(resource = %self.resource, part, where_it_is = %plant.where_is(part), unreported, "moved");
         (self.on_change)(&plant);
         if done && unreported {
             Report::Unsaid

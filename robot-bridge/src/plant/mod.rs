@@ -3,25 +3,28 @@
 //!
 //! One process serves every controller of the cell, each on its own address in its own
 //! dialect, as `robot-sim` serves one; behind them is one physical state
-//! ([`model::Plant`]): where every part and pallet is. A conveyor's move takes the
-//! layout's travel time and puts the part at its destination, a full port refuses a
-//! pallet, a station told to work at an empty port fails with a physical error. Where
+//! ([`model::Plant`]): where every part and pallet is. A conveyor's move runs track by
+//! track at the conveyor's speed, its pallet waiting where the way ahead is full (a
+//! full port, a full or jammed track); a station told to work at an empty port fails
+//! with a physical error. The model is pure; [`drive`] advances its time. Where
 //! everything is can be read at any moment from the state file (`state_file`, JSON,
 //! rewritten after every change). The layout is the cell's own: the `[layout]` of the
 //! resource configs the plant file names.
 
 pub mod control;
 pub mod controller;
+mod drive;
 pub mod model;
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use schemas::layout::CellLayout;
 use serde::Deserialize;
+use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tracing::warn;
 
@@ -98,12 +101,46 @@ pub enum PlantError {
     },
 }
 
+/// The plant's time: ms since it started (the model takes it as an argument).
+#[derive(Debug, Clone, Copy)]
+pub struct Clock {
+    /// When the plant started.
+    started: Instant,
+}
+
+impl Clock {
+    /// A clock from now.
+    pub fn start() -> Clock {
+        Clock {
+            started: Instant::now(),
+        }
+    }
+
+    /// Ms since the plant started.
+    pub fn now_ms(&self) -> u64 {
+        u64::try_from(self.started.elapsed().as_millis()).unwrap_or(u64::MAX)
+    }
+
+    /// The instant `ms` after the plant started.
+    pub fn at(&self, ms: u64) -> Instant {
+        self.started + Duration::from_millis(ms)
+    }
+}
+
 /// The plant, its controllers bound and ready to run.
 pub struct PlantSim {
+    /// Each controller's resource and its simulator.
     controllers: Vec<(String, Simulator)>,
+    /// The plant they share.
     plant: Arc<Mutex<Plant>>,
+    /// The plant's time.
+    clock: Clock,
     /// Writes the state file.
+    write: OnChange,
+    /// Writes the state file and wakes the task that drives the plant's time.
     on_change: OnChange,
+    /// Wakes the task that drives the plant's time.
+    wake: Arc<Notify>,
     /// The control port, if asked for ([`control`]).
     control: Option<tokio::net::TcpListener>,
 }
@@ -162,8 +199,14 @@ pub struct Prepared {
     controllers: Vec<(String, String, SimConfig)>,
     /// The plant they share.
     plant: Arc<Mutex<Plant>>,
+    /// The plant's time.
+    clock: Clock,
     /// Writes the state file.
+    write: OnChange,
+    /// Writes the state file and wakes the task that drives the plant's time.
     on_change: OnChange,
+    /// Wakes the task that drives the plant's time.
+    wake: Arc<Notify>,
 }
 
 /// Reads and checks the plant file at `path` and everything it names (the layout, each
@@ -173,7 +216,16 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
     let layout = layout_of(path, &file)?;
     let base = path.parent().unwrap_or(Path::new("."));
     let plant = Arc::new(Mutex::new(Plant::new(layout)));
-    let on_change = state_writer(state_file.or(file.state_file.clone()));
+    let clock = Clock::start();
+    let write = state_writer(state_file.or(file.state_file.clone()));
+    let wake = Arc::new(Notify::new());
+    let on_change: OnChange = {
+        let (write, wake) = (write.clone(), wake.clone());
+        Arc::new(move |plant: &Plant| {
+            write(plant);
+            wake.notify_one();
+        })
+    };
     let mut controllers = Vec::new();
     for (i, c) in file.controllers.iter().enumerate() {
         let invalid = |why: String| PlantError::Invalid {
@@ -204,7 +256,7 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
                 dialect.name
             )));
         }
-        let physics = ControllerPhysics::new(plant.clone(), &c.resource, on_change.clone());
+        let physics = ControllerPhysics::new(plant.clone(), clock, &c.resource, on_change.clone());
         let config = SimConfig {
             delay: Duration::from_millis(c.delay_ms),
             action_delays: c
@@ -223,7 +275,10 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
     Ok(Prepared {
         controllers,
         plant,
+        clock,
+        write,
         on_change,
+        wake,
     })
 }
 
@@ -238,7 +293,10 @@ impl PlantSim {
         let Prepared {
             controllers: prepared,
             plant,
+            clock,
+            write,
             on_change,
+            wake,
         } = prepare(path, state_file)?;
         let mut controllers = Vec::new();
         for (resource, listen, config) in prepared {
@@ -267,7 +325,10 @@ impl PlantSim {
         Ok(PlantSim {
             controllers,
             plant,
+            clock,
+            write,
             on_change,
+            wake,
             control,
         })
     }
@@ -282,7 +343,9 @@ impl PlantSim {
 
     /// Where everything is now.
     pub fn view(&self) -> model::PlantView {
-        self.plant.lock().unwrap_or_else(|e| e.into_inner()).view()
+        let mut plant = self.plant.lock().unwrap_or_else(|e| e.into_inner());
+        controller::log_happenings(&plant.advance(self.clock.now_ms()));
+        plant.view()
     }
 
     /// Where the control port listens, if it does.
@@ -290,8 +353,16 @@ impl PlantSim {
         self.control.as_ref().and_then(|l| l.local_addr().ok())
     }
 
-    /// Serves every controller, and the control port, until `shutdown`.
+    /// Serves every controller, and the control port, and drives the plant's time,
+    /// until `shutdown`.
     pub async fn run(self, shutdown: CancellationToken) {
+        tokio::spawn(drive::drive(
+            self.plant.clone(),
+            self.clock,
+            self.write.clone(),
+            self.wake.clone(),
+            shutdown.clone(),
+        ));
         if let Some(listener) = self.control {
             let controllers = self
                 .controllers
@@ -301,6 +372,7 @@ impl PlantSim {
             tokio::spawn(control::serve(
                 listener,
                 self.plant.clone(),
+                self.clock,
                 controllers,
                 self.on_change.clone(),
                 shutdown.clone(),

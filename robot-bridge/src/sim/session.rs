@@ -580,8 +580,11 @@ impl Session<'_> {
     /// A poll for the end of the action under way.
     async fn poll(&mut self, element: &Element, writer: &mut Writer<'_>) -> Result<Flow, SimError> {
         let done = self.rule(element, &[Outcome::Done]);
+        // Held up in the plant (a pallet waiting on its way): not ended yet.
+        let held =
+            self.running.is_some() && self.config.physics.as_ref().is_some_and(|p| p.0.held());
         match &self.running {
-            Some(running) if std::time::Instant::now() < running.until => {
+            Some(running) if std::time::Instant::now() < running.until || held => {
                 if let Some(rule) = self.rule(element, &[Outcome::Running, Outcome::Accepted]) {
                     let context = self.context.clone();
                     writer.reply(rule, &context).await?;
