@@ -353,7 +353,7 @@ mod tests {
         let manifest = Manifest::load(dir).unwrap();
         assert_eq!(manifest.cell, "demo");
         let names: Vec<&str> = manifest.processes.iter().map(|p| p.name.as_str()).collect();
-        assert_eq!(names.first(), Some(&"robot1-sim"));
+        assert_eq!(names.first(), Some(&"plant"));
         assert_eq!(names.last(), Some(&"opcua"));
         let opcua = manifest.processes.last().unwrap();
         assert_eq!(

@@ -166,14 +166,16 @@ mod tests {
             .iter()
             .map(|s| s.service_type.as_str())
             .collect();
-        assert_eq!(types, ["transport", "pick_n_place", "inspect"]);
-        assert!(config.plan.steps[1].info.contains_key("pick"));
+        // Its parts move: the plan names the work, the order books the moves.
+        assert!(config.plan.moves_parts);
+        assert_eq!(types, ["pick_n_place", "inspect"]);
+        assert!(config.plan.steps[0].info.contains_key("pick"));
     }
 
     #[test]
     fn bad_plans_are_refused_when_loaded() {
         let cases = [
-            ("from_step = 2", "from_step = 9", "from_step"),
+            ("from_step = 1", "from_step = 9", "from_step"),
             (
                 "service_type = \"inspect\"",
                 "service_type = \"Inspect\"",
