@@ -27,6 +27,8 @@ use crate::session::{SessionError, ZenohSettings};
 use crate::takeover::{self, Listener, NoSuccessor, TakenOver, TakeoverError};
 
 pub mod driver;
+#[cfg(test)]
+mod driver_tests;
 pub mod machine;
 
 pub use driver::{
