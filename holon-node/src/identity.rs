@@ -11,9 +11,11 @@ use crate::node::STARTUP_TIMEOUT;
 /// A plain holon's identity, from its config file.
 #[derive(Debug, Clone)]
 pub struct Identity {
+    /// Its cell's keys.
     pub keys: CellKeys,
     /// `<kind>/<name>`.
     pub holon: HolonId,
+    /// How it joins the cell.
     pub zenoh: ZenohSettings,
     /// Start as the successor of the running process (`--take-over`), waiting this
     /// long at most for it to hand over.

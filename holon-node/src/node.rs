@@ -60,9 +60,13 @@ pub enum NodeError {
 /// The components' links, built once per process: they outlive the components'
 /// restarts, and each component sees only its own.
 struct Wiring {
+    /// The execution component's (with the interfacing module's).
     execution: Arc<execution::Links>,
+    /// The agenda manager's: the agenda and its mailbox.
     agenda_manager: Arc<agenda_manager::Links>,
+    /// The requesters component's: the bookings' lifetime.
     requesters: Arc<requesters::Links>,
+    /// The communication component's: the queryables, the views, the config.
     communication: Arc<communication::Links>,
     /// A transporter's: the cell's layout, for its agenda.
     layout: Option<Arc<layout::Links>>,

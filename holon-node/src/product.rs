@@ -16,11 +16,16 @@ use crate::node::NodeError;
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ProductFile {
+    /// Its cell.
     cell: String,
+    /// Its name (`product/<name>`).
     name: String,
+    /// `product`.
     kind: String,
+    /// How it joins the cell.
     #[serde(default)]
     zenoh: ZenohSettings,
+    /// How the product is made.
     steps: Vec<PlanStep>,
 }
 
@@ -29,6 +34,7 @@ struct ProductFile {
 pub struct ProductConfig {
     /// Its cell, id (`product/<name>`) and zenoh settings.
     pub identity: Identity,
+    /// The process plan it answers.
     pub plan: Plan,
 }
 

@@ -79,6 +79,7 @@ pub enum LifeError {
 
 /// A session opened, and the predecessor's hand-over if there was one.
 pub struct Opened {
+    /// The session, as the process's identity.
     pub session: zenoh::Session,
     /// `Some` when the process was started with `--take-over`: the predecessor's
     /// answer, or `Nobody` when no process held the name.
