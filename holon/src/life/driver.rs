@@ -302,7 +302,7 @@ impl Driver<'_> {
         mut self,
         behaviour: &mut B,
         leadership: &mut L,
-        handed_over: bool,
+        mut handed_over: bool,
     ) -> Result<(), B::Error> {
         if let Err(e) = behaviour.opened(self.session).await {
             self.machine.on(Event::Failed);
@@ -323,7 +323,8 @@ impl Driver<'_> {
             self.machine.on(Event::Won);
             let start = Start {
                 session: self.session.clone(),
-                handed_over,
+                // Only the first round inherits a predecessor's hand-over.
+                handed_over: std::mem::take(&mut handed_over),
                 grant,
             };
             let work = match behaviour.start(start).await {
