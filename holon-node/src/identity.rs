@@ -4,17 +4,18 @@
 
 use holon::ZenohSettings;
 use schemas::{CellKeys, HolonId, HolonKind};
-use tracing::warn;
 
 use crate::config::{ConfigError, Overrides};
-use crate::node::{NodeError, STARTUP_TIMEOUT};
+use crate::node::STARTUP_TIMEOUT;
 
 /// A plain holon's identity, from its config file.
 #[derive(Debug, Clone)]
 pub struct Identity {
+    /// Its cell's keys.
     pub keys: CellKeys,
     /// `<kind>/<name>`.
     pub holon: HolonId,
+    /// How it joins the cell.
     pub zenoh: ZenohSettings,
     /// Start as the successor of the running process (`--take-over`), waiting this
     /// long at most for it to hand over.
@@ -67,75 +68,33 @@ impl Identity {
         }
     }
 
-    /// Opens the holon's session (as `<kind>.<name>` for TLS) and claims its name: a
-    /// twin (the name alive elsewhere in the cell) is refused before this process
-    /// answers anything. Keep the claim for as long as the holon serves. With
-    /// `--take-over`, the running process hands the name over first.
-    /// `None` when `shutdown` came while it was taking over.
-    pub async fn join(
-        &self,
-        shutdown: &tokio_util::sync::CancellationToken,
-    ) -> Result<Option<(zenoh::Session, holon::presence::Claim)>, NodeError> {
+    /// How the holon's process opens its session: as `<kind>.<name>` for TLS.
+    pub fn process(&self) -> holon::life::Process<'_> {
         let holon = &self.holon;
-        let tls_identity =
-            holon::role::identity(holon::role::Role::of_holon(holon.kind()), holon.name());
-        let joined = self
-            .life()
-            .join(&self.zenoh, &tls_identity, shutdown)
-            .await?;
-        Ok(joined.map(|(opened, claim)| (opened.session, claim)))
+        holon::life::Process {
+            life: self.life(),
+            zenoh: &self.zenoh,
+            tls_identity: holon::role::identity(
+                holon::role::Role::of_holon(holon.kind()),
+                holon.name(),
+            ),
+        }
+    }
+
+    /// The stand-in of a plain holon (it has nothing to finish) on `key`, its one
+    /// queryable: `unavailable` with a retry hint. Until its own queryable there goes,
+    /// both answer, and a requester takes the answer that is not `unavailable`, so no
+    /// request in the switch goes unanswered.
+    pub fn stand_in(&self, key: String) -> holon::life::StandInSpec {
+        let holon = &self.holon;
+        holon::life::StandInSpec {
+            keys: vec![(key, false)],
+            answer: holon::life::unavailable_answer(
+                &holon.to_string(),
+                format!(
+                    "{holon} is being handed over to its successor (an upgrade); ask again shortly"
+                ),
+            ),
+        }
     }
 }
-
-/// A plain holon's hand-over to its successor (it has nothing to finish): answers on
-/// `stand_in` keys with `unavailable` and a retry hint, then drops `replaced` (its own
-/// queryables on those keys: until then both answer, and a requester takes the answer
-/// that is not `unavailable`, so no request in the switch goes unanswered), withdraws
-/// the token and the claim, releases the name, and stands in until the successor serves
-/// (or `shutdown`). An error when no successor served: the supervisor starts this holon
-/// again.
-#[allow(clippy::too_many_arguments)]
-pub async fn hand_over<Replaced: Send>(
-    identity: &Identity,
-    session: &zenoh::Session,
-    offer: holon::takeover::Offer,
-    token: zenoh::liveliness::LivelinessToken,
-    claim: holon::presence::Claim,
-    stand_in: &[(String, bool)],
-    replaced: Replaced,
-    shutdown: &tokio_util::sync::CancellationToken,
-) -> Result<(), NodeError> {
-    let holon = &identity.holon;
-    let started = std::time::Instant::now();
-    let refusal = schemas::ErrorReply::unavailable(
-        format!("{holon} is being handed over to its successor (an upgrade); ask again shortly"),
-        HANDOVER_RETRY,
-    )
-    .to_json();
-    let answer: holon::takeover::Answer = {
-        let holon = holon.clone();
-        std::sync::Arc::new(move |query: &zenoh::query::Query| {
-            use zenoh::Wait;
-            if let Err(e) = query.reply_err(refusal.clone()).wait() {
-                warn!(%holon, error = %e, "cannot answer a request while handed over");
-            }
-        })
-    };
-    let stand_in = match holon::takeover::stand_in(session, stand_in, answer).await {
-        Ok(stand_in) => Some(stand_in),
-        Err(e) => {
-            warn!(%holon, error = %e, "cannot stand in for the successor: requests in the gap go unanswered");
-            None
-        }
-    };
-    drop(replaced);
-    let ended = identity
-        .life()
-        .let_go(session, token, claim, offer, started, shutdown)
-        .await;
-    drop(stand_in);
-    Ok(ended?)
-}
-
-/// When a request refused during a hand-over is to be asked again.
-const HANDOVER_RETRY: std::time::Duration = std::time::Duration::from_millis(100);

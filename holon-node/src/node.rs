@@ -11,7 +11,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use holon::takeover::TakenOver;
+use holon::life::{Behaviour, Leaving, LivelinessClaim, Next, StandInSpec, Start, Work};
 use holon::{ChildSpec, Supervisor};
 use robot_bridge::client::{FenceHandle, FencePort};
 use tokio::sync::Notify;
@@ -60,9 +60,13 @@ pub enum NodeError {
 /// The components' links, built once per process: they outlive the components'
 /// restarts, and each component sees only its own.
 struct Wiring {
+    /// The execution component's (with the interfacing module's).
     execution: Arc<execution::Links>,
+    /// The agenda manager's: the agenda and its mailbox.
     agenda_manager: Arc<agenda_manager::Links>,
+    /// The requesters component's: the bookings' lifetime.
     requesters: Arc<requesters::Links>,
+    /// The communication component's: the queryables, the views, the config.
     communication: Arc<communication::Links>,
     /// A transporter's: the cell's layout, for its agenda.
     layout: Option<Arc<layout::Links>>,
@@ -323,17 +327,6 @@ impl Wiring {
     }
 }
 
-/// How a serving holon's life ended.
-enum Ending {
-    /// Shutdown (SIGTERM): bookings handed back, components stopped.
-    Stopped,
-    /// A successor asked and the holon is ready to hand over to it.
-    HandingOver(Box<holon::takeover::Offer>),
-}
-
-/// Runs a resource holon until `shutdown` is cancelled (then it withdraws its token,
-/// stops its components in reverse order, closes the session and returns `Ok`) or its
-/// supervisor gives up (then it returns the error, for a non-zero exit).
 /// Withdrawing: nothing runs, and every result still to be acknowledged is journalled
 /// (none held by a journal fault) and waits for a requester that is gone.
 fn only_absent_requesters_wait(
@@ -349,29 +342,28 @@ fn only_absent_requesters_wait(
             .all(|result| absences.absent_since(&result.requester).is_some())
 }
 
+/// Runs a resource holon until `shutdown` is cancelled (then it withdraws its token,
+/// stops its components in reverse order, closes the session and returns `Ok`), until
+/// it hands over to a successor, or until its supervisor gives up (then it returns the
+/// error, for a non-zero exit). A fenced resource's leadership is its controller's
+/// claim ([`standby::ControllerFence`]), any other's the name's liveliness claim.
 pub async fn run(config: ResourceConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
     let holon = config.holon.clone();
     for warning in config.controller.dialect.warnings() {
         warn!(%holon, dialect = %config.controller.dialect.name, "{warning}");
     }
-    let life = life(&config);
-    let tls_identity = holon::role::identity(holon::role::Role::Resource, holon.name());
-    let Some(opened) = life.open(&config.zenoh, &tls_identity, &shutdown).await? else {
-        return Ok(());
+    let process = holon::life::Process {
+        life: life(&config),
+        zenoh: &config.zenoh,
+        tls_identity: holon::role::identity(holon::role::Role::Resource, holon.name()),
     };
-    // The journal's bookings are a predecessor's hand-over only when one released
-    // them to this process just now.
-    let inheritance = match opened.taken_over {
-        Some(TakenOver::From(_)) => Inheritance::HandedOver,
-        _ => Inheritance::Restarted,
-    };
-    let session = &opened.session;
+    let node = Node { config: &config };
     let outcome = if config.fenced {
-        standby::serve(&config, session, &life.presence_key, shutdown).await
+        let fence = standby::ControllerFence::new(&config);
+        holon::life::run(process, node, fence, shutdown).await
     } else {
-        serve(&config, &life, session, inheritance, shutdown).await
+        holon::life::run(process, node, LivelinessClaim::default(), shutdown).await
     };
-    holon::life::close(&holon.to_string(), opened.session).await;
     info!(%holon, "holon stopped");
     outcome
 }
@@ -388,140 +380,167 @@ fn life(config: &ResourceConfig) -> holon::life::Life {
     }
 }
 
-/// The holon's life on an open session: claim its name, start its components, declare
-/// its token, serve until shutdown or until the supervisor gives up, then stop.
-async fn serve(
-    config: &ResourceConfig,
-    life: &holon::life::Life,
-    session: &zenoh::Session,
-    inheritance: Inheritance,
-    shutdown: CancellationToken,
-) -> Result<(), NodeError> {
-    let holon = &config.holon;
-    let claim = life.claim(session).await?;
-    let wiring = Wiring::new(config, session, inheritance, None)?;
-    let serving = wiring.communication.serving.notified();
-    let components = CancellationToken::new();
-    let mut supervision = tokio::spawn(wiring.supervisor(config).run(components.clone()));
-    let started = tokio::select! {
-        _ = serving => Ok(()),
-        _ = tokio::time::sleep(STARTUP_TIMEOUT) => Err(NodeError::Startup(STARTUP_TIMEOUT)),
-        result = &mut supervision => Err(supervisor_ended(result)
-            .err()
-            .unwrap_or(NodeError::Startup(STARTUP_TIMEOUT))),
-    };
-    if let Err(e) = started {
-        components.cancel();
-        wait_stopped(holon, supervision).await;
-        return Err(e);
-    }
-    let holon::life::Announced {
-        token,
-        mut successors,
-    } = match life.announce(session).await {
-        Ok(announced) => announced,
-        Err(e) => {
-            components.cancel();
-            wait_stopped(holon, supervision).await;
-            return Err(e.into());
-        }
-    };
+/// A resource's own part of its life: it starts its components.
+struct Node<'a> {
+    /// Its config.
+    config: &'a ResourceConfig,
+}
 
-    let outcome = loop {
+/// The supervisor's task.
+type Supervision = tokio::task::JoinHandle<Result<(), holon::supervisor::SupervisorError>>;
+
+impl Behaviour for Node<'_> {
+    /// A fenced resource's controller handle, from its leadership.
+    type Grant = Option<(FenceHandle, FencePort)>;
+    type Work = Resource;
+    type Error = NodeError;
+
+    /// Wires the components (the agenda restored from the journal: a hand-over's when
+    /// a predecessor released it just now) and starts their supervisor.
+    async fn start(&mut self, start: Start<Self::Grant>) -> Result<Resource, NodeError> {
+        let inheritance = match start.handed_over {
+            true => Inheritance::HandedOver,
+            false => Inheritance::Restarted,
+        };
+        let wiring = Wiring::new(self.config, &start.session, inheritance, start.grant)?;
+        let components = CancellationToken::new();
+        let supervision = tokio::spawn(wiring.supervisor(self.config).run(components.clone()));
+        Ok(Resource {
+            wiring,
+            components,
+            supervision: Some(supervision),
+        })
+    }
+}
+
+/// A resource's components at work, under their supervisor.
+struct Resource {
+    /// Their links and owned states (the journal closes when they are dropped).
+    wiring: Wiring,
+    /// Stops the components.
+    components: CancellationToken,
+    /// The supervisor's task, until it ended.
+    supervision: Option<Supervision>,
+}
+
+impl Resource {
+    /// The supervisor's end (pending once it was seen).
+    async fn supervisor_end(&mut self) -> Result<(), NodeError> {
+        match &mut self.supervision {
+            Some(supervision) => {
+                let result = supervision.await;
+                self.supervision = None;
+                supervisor_ended(result)
+            }
+            None => std::future::pending().await,
+        }
+    }
+
+    /// Its config.
+    fn config(&self) -> &ResourceConfig {
+        &self.wiring.communication.config
+    }
+}
+
+impl Work for Resource {
+    /// A resource's events are its components': the driver only sees them end.
+    type Event = std::convert::Infallible;
+    type Error = NodeError;
+
+    /// The components serve (the communication component said so).
+    async fn ready(&mut self) -> Result<(), NodeError> {
+        let serving = self.wiring.communication.serving.clone();
         tokio::select! {
-            _ = shutdown.cancelled() => {
-                wiring.withdraw(config.shutdown_grace).await;
-                break Ok(Ending::Stopped);
-            }
-            offer = successors.next() => {
-                let request = &offer.request;
-                info!(%holon, successor = %request.successor, version = %request.version, "a successor asks to take over");
-                if !life.opens_my_journal(request) {
-                    let detail = format!(
-                        "its data dir {:?} is not this holon's {:?}: it would not take over the agenda",
-                        request.data_dir, config.data_dir
-                    );
-                    warn!(%holon, %detail, "hand-over refused");
-                    offer.refuse(crate::VERSION, detail).await;
-                    continue;
-                }
-                if let Some(fault) = wiring.journal_fault() {
-                    let detail = format!("its journal cannot be written ({fault}): what it holds in memory only would be lost; it serves on");
-                    warn!(%holon, %detail, "hand-over refused");
-                    offer.refuse(crate::VERSION, detail).await;
-                    continue;
-                }
-                // The successor's wait runs from its request; stopping the components
-                // afterwards has its own allowance (holon::takeover::RELEASE_ALLOWANCE).
-                let prepared = tokio::select! {
-                    prepared = wiring.hand_over(offer.remaining()) => prepared,
-                    _ = shutdown.cancelled() => Err("the holon is shutting down".into()),
-                };
-                match prepared {
-                    Ok(()) => break Ok(Ending::HandingOver(Box::new(offer))),
-                    Err(detail) => {
-                        warn!(%holon, %detail, "hand-over abandoned; serving on");
-                        offer.refuse(crate::VERSION, detail).await;
-                        if shutdown.is_cancelled() {
-                            wiring.withdraw(config.shutdown_grace).await;
-                            break Ok(Ending::Stopped);
-                        }
-                    }
-                }
-            }
-            result = &mut supervision => break supervisor_ended(result).map(|()| Ending::Stopped),
+            _ = serving.notified() => Ok(()),
+            _ = tokio::time::sleep(STARTUP_TIMEOUT) => Err(NodeError::Startup(STARTUP_TIMEOUT)),
+            ended = self.supervisor_end() => Err(ended.err().unwrap_or(NodeError::Startup(STARTUP_TIMEOUT))),
         }
-    };
-    let refusal = match &outcome {
-        Ok(Ending::HandingOver(_)) => "another successor is taking over already",
-        _ => "the holon is stopping",
-    };
-    successors.close(crate::VERSION, refusal).await;
-    let offer = match outcome {
-        Ok(Ending::HandingOver(offer)) => offer,
-        Ok(Ending::Stopped) => {
-            // Withdraw presence first: no one should book a holon that is going away.
-            if let Err(e) = token.undeclare().await {
-                error!(%holon, error = %e, "cannot withdraw the liveliness token");
-            }
-            components.cancel();
-            wait_stopped(holon, supervision).await;
-            return Ok(());
-        }
-        Err(e) => {
-            if let Err(undeclare) = token.undeclare().await {
-                error!(%holon, error = %undeclare, "cannot withdraw the liveliness token");
-            }
-            return Err(e);
-        }
-    };
-    // The hand-over. Requesters learn it is planned from this last state (published
-    // here, before the token goes, so it is seen first), and requests that come while
-    // no process serves get `unavailable` with a retry hint from the stand-in.
-    let started = std::time::Instant::now();
-    let last_state =
-        serde_json::to_vec(&wiring.communication.views.snapshot()).expect("a snapshot serializes");
-    if let Err(e) = session.put(config.keys.state(holon), last_state).await {
-        warn!(%holon, error = %e, "cannot publish the hand-over state; requesters see a vanished resource");
     }
-    let stand_in = holon::takeover::stand_in(
-        session,
-        &[(config.keys.service(holon.name()), false)],
-        stand_in_answer(holon.clone()),
-    )
-    .await;
-    if let Err(e) = &stand_in {
-        warn!(%holon, error = %e, "cannot stand in for the successor: requests in the gap go unanswered");
+
+    async fn next(&mut self) -> Next<Self::Event, NodeError> {
+        Next::Ended(self.supervisor_end().await)
     }
-    components.cancel();
-    wait_stopped(holon, supervision).await;
-    // The journal closes with the components' links: the successor opens it next.
-    drop(wiring);
-    let ended = life
-        .let_go(session, token, claim, *offer, started, &shutdown)
-        .await;
-    drop(stand_in);
-    Ok(ended?)
+
+    async fn handle(&mut self, event: Self::Event) {
+        match event {}
+    }
+
+    /// A successor with another data directory would not take over the agenda; a
+    /// journal that cannot be written would lose what is held in memory only.
+    fn refusal(&self, request: &holon::takeover::Request) -> Option<String> {
+        let data_dir = &self.config().data_dir;
+        if !holon::life::same_data_dir(data_dir.as_deref(), request.data_dir.as_deref()) {
+            return Some(format!(
+                "its data dir {:?} is not this holon's {:?}: it would not take over the agenda",
+                request.data_dir, data_dir
+            ));
+        }
+        self.wiring.journal_fault().map(|fault| format!("its journal cannot be written ({fault}): what it holds in memory only would be lost; it serves on"))
+    }
+
+    async fn prepare(&mut self, wait: Duration) -> Result<(), String> {
+        self.wiring.hand_over(wait).await
+    }
+
+    async fn leave(&mut self, how: &Leaving) {
+        let config = self.config();
+        let holon = &config.holon;
+        match how {
+            Leaving::Stopping => self.wiring.withdraw(config.shutdown_grace).await,
+            // Requesters learn the hand-over is planned from this last state, published
+            // before the token goes, so it is seen first.
+            Leaving::HandingOver => {
+                let last_state = serde_json::to_vec(&self.wiring.communication.views.snapshot())
+                    .expect("a snapshot serializes");
+                if let Err(e) = self
+                    .wiring
+                    .communication
+                    .session
+                    .put(config.keys.state(holon), last_state)
+                    .await
+                {
+                    warn!(%holon, error = %e, "cannot publish the hand-over state; requesters see a vanished resource");
+                }
+            }
+            // No one may book it from now on.
+            Leaving::Deposed(_) => {
+                self.wiring
+                    .communication
+                    .views
+                    .fence
+                    .send_replace(FenceView::Standby);
+            }
+            Leaving::WorkEnded => {}
+        }
+    }
+
+    /// On its Service key: `unavailable` with a retry hint, in a Service reply.
+    fn stand_in(&self) -> StandInSpec {
+        let holon = &self.config().holon;
+        StandInSpec {
+            keys: vec![(self.config().keys.service(holon.name()), false)],
+            answer: stand_in_answer(holon.clone()),
+        }
+    }
+
+    /// Stops the components in reverse order; deposed, it first drops its bookings
+    /// ([`standby::step_down`]). The journal closes with the links.
+    async fn stop(mut self, how: &Leaving) -> Result<(), NodeError> {
+        let holon = self.config().holon.clone();
+        if let Leaving::Deposed(_) = how {
+            let grace = self.config().shutdown_grace.min(standby::STEP_DOWN_GRACE);
+            standby::step_down(&self.wiring, grace).await;
+        }
+        self.components.cancel();
+        if let Some(supervision) = self.supervision.take() {
+            wait_stopped(&holon, supervision).await;
+        }
+        drop(self.wiring);
+        if let Leaving::Deposed(_) = how {
+            info!(%holon, "stepped down: a standby again");
+        }
+        Ok(())
+    }
 }
 
 /// What the supervisor's end means for the holon.

@@ -1,6 +1,7 @@
 //! The product holon: knows how its product is made and answers
 //! `product/<product>/plan` with the process plan from its config.
 
+use holon::life::{Behaviour, Leaving, LivelinessClaim, Next, StandInSpec, Start, Work};
 use holon::ZenohSettings;
 use schemas::{unix_ms, HolonKind, Plan, PlanStep};
 use serde::Deserialize;
@@ -15,14 +16,19 @@ use crate::node::NodeError;
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct ProductFile {
+    /// Its cell.
     cell: String,
+    /// Its name (`product/<name>`).
     name: String,
+    /// `product`.
     kind: String,
+    /// How it joins the cell.
     #[serde(default)]
     zenoh: ZenohSettings,
     /// Its parts are moved through the cell's layout (`Plan::moves_parts`).
     #[serde(default)]
     moves_parts: bool,
+    /// How the product is made.
     steps: Vec<PlanStep>,
 }
 
@@ -31,6 +37,7 @@ struct ProductFile {
 pub struct ProductConfig {
     /// Its cell, id (`product/<name>`) and zenoh settings.
     pub identity: Identity,
+    /// The process plan it answers.
     pub plan: Plan,
 }
 
@@ -60,93 +67,115 @@ impl ProductConfig {
     }
 }
 
-/// Serves the plan until `shutdown` is cancelled.
+/// Serves the plan until `shutdown` is cancelled, or until it hands over to a successor.
 pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
-    let holon = config.identity.holon.clone();
-    let Some((session, claim)) = config.identity.join(&shutdown).await? else {
-        return Ok(());
-    };
-    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
-    let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
-    let snapshot = serde_json::json!({
-        "holon": holon,
-        "state": "serving",
-        "version": crate::VERSION,
-        "v": schemas::SERVICE_VERSION,
-        "product": config.plan.product,
-        "steps": config.plan.steps.len(),
-        "at": unix_ms(),
-    });
-    let snapshot = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
-    let plan_key = config.identity.keys.plan(holon.name());
-    let _plan_queryable = session
-        .declare_queryable(&plan_key)
-        .callback({
-            let holon = holon.clone();
-            let plan_key = plan_key.clone();
-            move |query| {
-                use zenoh::Wait;
-                info!(holon = %holon, message_type = "plan", "plan requested");
-                if let Err(e) = query.reply(&plan_key, plan.clone()).wait() {
-                    error!(holon = %holon, error = %e, "cannot send the plan");
+    let process = config.identity.process();
+    holon::life::run(process, &config, LivelinessClaim::default(), shutdown).await
+}
+
+impl Behaviour for &ProductConfig {
+    type Grant = ();
+    type Work = Serving;
+    type Error = NodeError;
+
+    /// Answers the plan and the state on their keys, and publishes the state.
+    async fn start(&mut self, start: Start<()>) -> Result<Serving, NodeError> {
+        let config = *self;
+        let session = start.session;
+        let holon = config.identity.holon.clone();
+        let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
+        let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
+        let snapshot = serde_json::json!({
+            "holon": holon,
+            "state": "serving",
+            "version": crate::VERSION,
+            "v": schemas::SERVICE_VERSION,
+            "product": config.plan.product,
+            "steps": config.plan.steps.len(),
+            "at": unix_ms(),
+        });
+        let snapshot = serde_json::to_vec(&snapshot).expect("a snapshot serializes");
+        let plan_key = config.identity.keys.plan(holon.name());
+        let plan_queryable = session
+            .declare_queryable(&plan_key)
+            .callback({
+                let holon = holon.clone();
+                let plan_key = plan_key.clone();
+                move |query| {
+                    use zenoh::Wait;
+                    info!(holon = %holon, message_type = "plan", "plan requested");
+                    if let Err(e) = query.reply(&plan_key, plan.clone()).wait() {
+                        error!(holon = %holon, error = %e, "cannot send the plan");
+                    }
                 }
-            }
-        })
-        .await
-        .map_err(zenoh_error)?;
-    let state_key = config.identity.keys.state(&holon);
-    let _state_queryable = session
-        .declare_queryable(&state_key)
-        .callback({
-            let snapshot = snapshot.clone();
-            let state_key = state_key.clone();
-            let holon = holon.clone();
-            move |query| {
-                use zenoh::Wait;
-                // Replied on the concrete key, whatever wildcard the query used.
-                if let Err(e) = query.reply(&state_key, snapshot.clone()).wait() {
-                    warn!(holon = %holon, error = %e, "cannot reply with the state");
-                }
-            }
-        })
-        .await
-        .map_err(zenoh_error)?;
-    session
-        .put(&state_key, snapshot)
-        .await
-        .map_err(zenoh_error)?;
-    let holon::life::Announced {
-        token,
-        mut successors,
-    } = config.identity.life().announce(&session).await?;
-    info!(holon = %holon, key = %plan_key, steps = config.plan.steps.len(), "plan offered");
-    let ended = tokio::select! {
-        _ = shutdown.cancelled() => {
-            successors.close(crate::VERSION, "the holon is stopping").await;
-            if let Err(e) = token.undeclare().await {
-                error!(holon = %holon, error = %e, "cannot withdraw the liveliness token");
-            }
-            Ok(())
-        }
-        offer = successors.next() => {
-            info!(holon = %holon, successor = %offer.request.successor, version = %offer.request.version, "a successor asks to take over");
-            successors.close(crate::VERSION, "another successor is taking over already").await;
-            crate::identity::hand_over(
-                &config.identity,
-                &session,
-                offer,
-                token,
-                claim,
-                &[(plan_key.clone(), false)],
-                _plan_queryable,
-                &shutdown,
-            )
+            })
             .await
-        }
-    };
-    holon::life::close(&holon.to_string(), session).await;
-    info!(holon = %holon, "holon stopped");
-    ended
+            .map_err(zenoh_error)?;
+        let state_key = config.identity.keys.state(&holon);
+        let state_queryable = session
+            .declare_queryable(&state_key)
+            .callback({
+                let snapshot = snapshot.clone();
+                let state_key = state_key.clone();
+                let holon = holon.clone();
+                move |query| {
+                    use zenoh::Wait;
+                    // Replied on the concrete key, whatever wildcard the query used.
+                    if let Err(e) = query.reply(&state_key, snapshot.clone()).wait() {
+                        warn!(holon = %holon, error = %e, "cannot reply with the state");
+                    }
+                }
+            })
+            .await
+            .map_err(zenoh_error)?;
+        session
+            .put(&state_key, snapshot)
+            .await
+            .map_err(zenoh_error)?;
+        info!(holon = %holon, key = %plan_key, steps = config.plan.steps.len(), "plan offered");
+        Ok(Serving {
+            stand_in: config.identity.stand_in(plan_key),
+            holon,
+            _plan: plan_queryable,
+            _state: state_queryable,
+        })
+    }
+}
+
+/// A product serving its plan: its queryables, while it serves.
+pub struct Serving {
+    /// Its stand-in on the plan's key, for a hand-over.
+    stand_in: holon::life::StandInSpec,
+    /// `product/<name>`, for the log.
+    holon: schemas::HolonId,
+    /// Answers `product/<name>/plan`.
+    _plan: zenoh::query::Queryable<()>,
+    /// Answers `product/<name>/state`.
+    _state: zenoh::query::Queryable<()>,
+}
+
+impl Work for Serving {
+    type Event = std::convert::Infallible;
+    type Error = NodeError;
+
+    /// A product has no events of its own: its queryables answer by themselves.
+    async fn next(&mut self) -> Next<Self::Event, NodeError> {
+        std::future::pending().await
+    }
+
+    async fn handle(&mut self, event: Self::Event) {
+        match event {}
+    }
+
+    fn stand_in(&self) -> StandInSpec {
+        self.stand_in.clone()
+    }
+
+    /// Its queryables go (on a hand-over, after the stand-in is declared).
+    async fn stop(self, _how: &Leaving) -> Result<(), NodeError> {
+        info!(holon = %self.holon, "holon stopped");
+        Ok(())
+    }
 }
 
 #[cfg(test)]

@@ -1,28 +1,40 @@
 //! The life cycle every holon process shares, written once: resources, products, staff
-//! holons and order-nodes each say who they are ([`Life`]) and call these steps in order.
+//! holons and order-nodes each say who they are ([`Life`]), what is their own
+//! ([`Behaviour`], [`Work`]) and who may serve ([`Leadership`]), and [`run`] drives
+//! their whole life, along the phases of [`machine`]:
 //!
 //! | step | what happens | here |
 //! |---|---|---|
 //! | open | the zenoh session, as the process's TLS identity | [`Life::open`] |
 //! | take over | with `--take-over`, the running process of the name hands over first ([`crate::takeover`]) | [`Life::open`] |
-//! | claim | a twin (the name alive elsewhere in the cell) is refused before anything is answered | [`Life::claim`] |
-//! | serve | the holon's own work: its components, its queryables | the holon |
+//! | claim | the leadership: a twin refused ([`LivelinessClaim`]), the etcd leader key campaigned for | [`Leadership::win`] |
+//! | start | the holon's own work: its components, its queryables, its journal | [`Behaviour::start`] |
+//! | hold | the leadership once the work runs: a fenced resource claims its controller | [`Leadership::hold`] |
 //! | announce | the liveliness token, and the listener for successors | [`Life::announce`] |
-//! | stand in | handing over: the holon stops its work and closes its journal; then the token and the claim go, the successor is released, and the process stands in until the successor serves | [`Life::let_go`] |
+//! | serve | the holon's events; a successor refused, or prepared for ([`Work::prepare`]) | [`run`] |
+//! | stand in | handing over: the stand-in declared, the work stopped and its journal closed; then the token and the claim go, the successor is released, and the process stands in until the successor serves | [`run`] |
+//! | leave | stopped: work handed back, token withdrawn, work stopped; deposed: the same, then claim again or end | [`run`] |
 //! | close | the session, bounded | [`close`] |
-//!
-//! A fenced resource on standby (`holon-node --standby`) claims its controller, not the
-//! name, before it announces itself; it uses [`Life::open`] and [`Life::announce`] the same.
 
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::presence::{Claim, ClaimError, Holder};
 use crate::session::{SessionError, ZenohSettings};
-use crate::takeover::{self, Listener, NoSuccessor, Offer, StandInEnd, TakenOver, TakeoverError};
+use crate::takeover::{self, Listener, NoSuccessor, TakenOver, TakeoverError};
+
+pub mod driver;
+#[cfg(test)]
+mod driver_tests;
+pub mod machine;
+
+pub use driver::{
+    run, unavailable_answer, Behaviour, Held, Leadership, Leaving, LivelinessClaim, Next, Process,
+    StandInSpec, Start, Work, HANDOVER_RETRY,
+};
 
 /// How long closing a session may take before the process goes on without it.
 const CLOSE_WITHIN: Duration = Duration::from_secs(5);
@@ -67,6 +79,7 @@ pub enum LifeError {
 
 /// A session opened, and the predecessor's hand-over if there was one.
 pub struct Opened {
+    /// The session, as the process's identity.
     pub session: zenoh::Session,
     /// `Some` when the process was started with `--take-over`: the predecessor's
     /// answer, or `Nobody` when no process held the name.
@@ -76,8 +89,10 @@ pub struct Opened {
 /// What the holon shows the cell while it serves: its token, and the listener that
 /// hears a successor ask to take over.
 pub struct Announced {
+    /// The name's liveliness token: withdrawn when the holon leaves.
     pub token: zenoh::liveliness::LivelinessToken,
-    pub successors: Listener,
+    /// The take-over queryable, when the holon takes successors.
+    pub successors: Option<Listener>,
 }
 
 impl Life {
@@ -127,15 +142,6 @@ impl Life {
         }
     }
 
-    /// Whether a successor's data directory is this process's: it would open the same
-    /// journal (a hand-over to one that would not is refused).
-    pub fn opens_my_journal(&self, request: &takeover::Request) -> bool {
-        let canonical = |dir: Option<&std::path::Path>| {
-            dir.map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.to_path_buf()))
-        };
-        canonical(self.data_dir.as_deref()) == canonical(request.data_dir.as_deref())
-    }
-
     /// Claims the name: a twin is refused, naming the process that holds it. Keep the
     /// claim for as long as the holon serves.
     pub async fn claim(&self, session: &zenoh::Session) -> Result<Claim, LifeError> {
@@ -148,85 +154,42 @@ impl Life {
         .await?)
     }
 
-    /// [`Life::open`], then [`Life::claim`]: a holon that has nothing to set up
-    /// between the two. The session is closed if the claim is refused.
-    pub async fn join(
+    /// Declares the token (the holon serves: others may book it, ask it, watch it) and,
+    /// if it takes successors, listens for them.
+    pub async fn announce(
         &self,
-        zenoh: &ZenohSettings,
-        tls_identity: &str,
-        shutdown: &CancellationToken,
-    ) -> Result<Option<(Opened, Claim)>, LifeError> {
-        let Some(opened) = self.open(zenoh, tls_identity, shutdown).await? else {
-            return Ok(None);
-        };
-        match self.claim(&opened.session).await {
-            Ok(claim) => Ok(Some((opened, claim))),
-            Err(e) => {
-                close(&self.holder, opened.session).await;
-                Err(e)
-            }
-        }
-    }
-
-    /// Declares the token (the holon serves: others may book it, ask it, watch it) and
-    /// listens for successors.
-    pub async fn announce(&self, session: &zenoh::Session) -> Result<Announced, LifeError> {
+        session: &zenoh::Session,
+        takes_successors: bool,
+    ) -> Result<Announced, LifeError> {
         let described = |e: zenoh::Error| LifeError::Zenoh(crate::zenoh_error::describe(&e));
         let token = session
             .liveliness()
             .declare_token(&self.presence_key)
             .await
             .map_err(described)?;
+        if !takes_successors {
+            return Ok(Announced {
+                token,
+                successors: None,
+            });
+        }
         let successors = takeover::listen(session, &self.presence_key)
             .await
             .map_err(described)?;
         info!(holon = %self.holder, key = %self.presence_key, "holon ready");
-        Ok(Announced { token, successors })
+        Ok(Announced {
+            token,
+            successors: Some(successors),
+        })
     }
+}
 
-    /// The end of a hand-over, once the holon has stopped its work and closed its
-    /// journal (its stand-in answers meanwhile): withdraws the token and the claim,
-    /// releases the successor, and stands in until the successor serves, for at most
-    /// [`takeover::STAND_IN_LIMIT`], or until `shutdown`. `started` is when the hand-
-    /// over began, for the logs. An error when no successor served: the supervisor
-    /// starts this process again, on its journal.
-    pub async fn let_go(
-        &self,
-        session: &zenoh::Session,
-        token: zenoh::liveliness::LivelinessToken,
-        claim: Claim,
-        offer: Offer,
-        started: Instant,
-        shutdown: &CancellationToken,
-    ) -> Result<(), LifeError> {
-        let holon = &self.holder;
-        if let Err(e) = token.undeclare().await {
-            warn!(%holon, error = %e, "cannot withdraw the liveliness token; it goes with the session");
-        }
-        drop(claim);
-        let successor = offer.request.successor.clone();
-        offer.release(self.version).await;
-        info!(%holon, %successor, released_in_ms = started.elapsed().as_millis() as u64, "handed over: work stopped, journal closed, token withdrawn; standing in until the successor serves");
-        let end = takeover::stand_by(session, &self.presence_key, shutdown).await;
-        let gap_ms = started.elapsed().as_millis() as u64;
-        match end {
-            StandInEnd::Served => {
-                info!(%holon, gap_ms, "the successor serves; this process ends");
-                Ok(())
-            }
-            StandInEnd::Shutdown => {
-                warn!(%holon, gap_ms, "told to stop while standing in for the successor");
-                Ok(())
-            }
-            StandInEnd::NoSuccessor => {
-                warn!(%holon, gap_ms, "the successor did not serve within the stand-in limit; this process ends with an error, so that its supervisor starts it again (on its journal, where it left off)");
-                Err(NoSuccessor {
-                    successor: successor.to_string(),
-                }
-                .into())
-            }
-        }
-    }
+/// Whether two data directories are one (canonicalized where they exist): a successor
+/// whose is not its predecessor's would not open its journal.
+pub fn same_data_dir(mine: Option<&std::path::Path>, theirs: Option<&std::path::Path>) -> bool {
+    let canonical =
+        |d: &std::path::Path| std::fs::canonicalize(d).unwrap_or_else(|_| d.to_path_buf());
+    mine.map(canonical) == theirs.map(canonical)
 }
 
 /// Closes `session`, waiting at most [`CLOSE_WITHIN`]: a process that stops does not

@@ -9,6 +9,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use holon::journal::Journal;
+use holon::life::{Behaviour, Leaving, LivelinessClaim, Next, StandInSpec, Start, Work};
 use schemas::WorkOrder;
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
@@ -31,9 +32,6 @@ const RETENTION_SWEEP: Duration = Duration::from_secs(60);
 
 /// This build's release, published in its orders' states and named in hand-overs.
 pub const VERSION: &str = env!("CARGO_PKG_VERSION");
-
-/// When a request refused during a hand-over is to be asked again.
-const HANDOVER_RETRY: Duration = Duration::from_millis(100);
 
 /// Parses `PRODUCT[:COUNT[:PRIORITY]]` (count 1 and priority 0 when left out) from
 /// the command line.
@@ -69,141 +67,45 @@ pub fn parse_submit(text: &str) -> Result<WorkOrder, OrderNodeError> {
     Ok(work)
 }
 
-/// What gives this process the node's name and orders: a claim of the name (SQLite),
-/// or the leader key on etcd; with the journal and what it holds.
-struct Authority {
-    /// The name claimed in the cell (a node without etcd).
-    claim: Option<holon::presence::Claim>,
-    /// The leader key won on etcd (a node with a standby).
-    elected: Option<crate::standby::Elected>,
-    /// The orders' journal, if any.
-    journal: Option<Arc<OrderJournal>>,
-    /// What the journal holds.
-    recovered: Recovered,
-}
-
-/// Why the node's loop ended.
-enum Ending {
-    /// The node stops (`shutdown`).
-    Stopping,
-    /// A successor takes over: the offer it accepted.
-    HandingOver(Box<holon::takeover::Offer>),
-    /// The leader key on etcd is no longer this process's: why.
-    Deposed(String),
-}
-
-/// Runs the order-node until `shutdown` is cancelled.
+/// Runs the order-node until `shutdown` is cancelled, until it hands over to a
+/// successor, or until it is deposed (its journal on etcd). Its leadership is the
+/// leader key on etcd when its journal is there ([`crate::standby::EtcdLeader`]), else
+/// the name's liveliness claim.
 pub async fn run(
     config: OrderNodeConfig,
     submits: Vec<WorkOrder>,
     shutdown: CancellationToken,
 ) -> Result<(), OrderNodeError> {
-    let life = holon::life::Life {
-        presence_key: config.keys.host("order-node", &config.name),
-        holder: format!("order-node {}", config.name),
-        version: VERSION,
-        take_over: config.take_over,
-        data_dir: config.data_dir.clone(),
-        startup_timeout: Duration::from_secs(10),
+    let process = holon::life::Process {
+        life: holon::life::Life {
+            presence_key: config.keys.host("order-node", &config.name),
+            holder: format!("order-node {}", config.name),
+            version: VERSION,
+            take_over: config.take_over,
+            data_dir: config.data_dir.clone(),
+            startup_timeout: Duration::from_secs(10),
+        },
+        zenoh: &config.zenoh,
+        tls_identity: holon::role::identity(holon::role::Role::OrderNode, &config.name),
     };
-    let tls_identity = holon::role::identity(holon::role::Role::OrderNode, &config.name);
-    let Some(holon::life::Opened { session, .. }) =
-        life.open(&config.zenoh, &tls_identity, &shutdown).await?
-    else {
-        return Ok(());
+    let node = OrderNode {
+        config: &config,
+        submits,
+        presence: None,
     };
-    let (presence, authority) = match authority(&config, &life, &session, &shutdown).await {
-        Ok(Some(found)) => found,
-        // Stopped while standing by, or failed.
-        other => {
-            holon::life::close(&life.holder, session).await;
-            return other.map(|_| ());
+    let ended = match &config.etcd {
+        // With etcd the leader key is the authority, not zenoh's liveliness: no twin
+        // check. A primary that froze or was cut off keeps its token until its link
+        // lease ends, and would be taken for a twin; it cannot act meanwhile (its writes
+        // are fenced on its epoch) and withdraws its token once it hears it is deposed.
+        Some(etcd) => {
+            let leader = crate::standby::EtcdLeader::new(&config, etcd);
+            holon::life::run(process, node, leader, shutdown).await
         }
+        // A twin (an order-node of the same name alive in the cell) would number its
+        // orders like this one: refused before anything is declared.
+        None => holon::life::run(process, node, LivelinessClaim::default(), shutdown).await,
     };
-    let Authority {
-        claim,
-        elected,
-        journal,
-        recovered: (recovered, finished, next),
-    } = authority;
-    let context = OrderContext::new(session.clone(), &config, presence, journal);
-    let mut host = Host::new(config.clone(), Arc::new(context), finished, next);
-    let (queue, mut queries) = mpsc::channel(QUERY_QUEUE);
-    let endpoints = Endpoints::declare(&session, &host, queue)
-        .await
-        .map_err(zenoh_error)?;
-    let holon::life::Announced {
-        token,
-        mut successors,
-    } = life.announce(&session).await?;
-    if let Some(elected) = &elected {
-        info!(node = %config.name, epoch = elected.leader.epoch(), "serving at epoch {}: the order-node's leader key on etcd is this process's", elected.leader.epoch());
-    }
-    let orders_cancel = CancellationToken::new();
-    let mut tasks = Tasks::default();
-    host.resume(recovered, &submits, &mut tasks, &orders_cancel);
-    let mut node = Loop {
-        host: &mut host,
-        tasks: &mut tasks,
-        queries: &mut queries,
-        orders_cancel: &orders_cancel,
-    };
-    let ending = node
-        .serve(&life, &mut successors, elected.as_ref(), &shutdown)
-        .await;
-    successors.close(VERSION, ending.refusal()).await;
-    let mut token = Some(token);
-    let mut endpoints = Some(endpoints);
-    if let Ending::Deposed(why) = &ending {
-        // Another process may serve this name already: from now on this one answers
-        // nothing and shows nothing, before its orders stop.
-        error!(node = %config.name, why = %why, "deposed: the order-node's leader key on etcd is no longer this process's; it stops at once (token and queryables withdrawn, order tasks stopped; their writes are refused by etcd anyway)");
-        drop(endpoints.take());
-        withdraw(&config.name, token.take()).await;
-    }
-    let started = std::time::Instant::now();
-    let handing_over = matches!(ending, Ending::HandingOver(_));
-    info!(node = %config.name, handing_over, "stopping: orders in progress stop where they stand");
-    stop_orders(&config.name, &mut tasks, &orders_cancel).await;
-    // While handed over, submits, cancels and results get `unavailable` with a retry
-    // hint from a stand-in (submits and cancels are asked again by `cell`, results
-    // delivered again by the resources), until the successor serves.
-    let stand_in = match handing_over {
-        true => stand_in(&session, &config).await,
-        false => None,
-    };
-    drop(endpoints);
-    let mut ended = Ok(());
-    // A hand-over is refused with etcd: there is a claim (SQLite) whenever there is one.
-    let deposed = match (ending, claim, token.take()) {
-        (Ending::HandingOver(offer), Some(claim), Some(token)) => {
-            // The journal closes with the last holder of the host: the successor opens it.
-            drop(queries);
-            drop(host);
-            ended = life
-                .let_go(&session, token, claim, *offer, started, &shutdown)
-                .await
-                .map_err(OrderNodeError::from);
-            None
-        }
-        (Ending::Deposed(why), _, token) => {
-            withdraw(&config.name, token).await;
-            Some(why)
-        }
-        (_, _, token) => {
-            withdraw(&config.name, token).await;
-            None
-        }
-    };
-    drop(stand_in);
-    if let Some(elected) = elected {
-        match deposed {
-            Some(why) => ended = Err(crate::standby::deposed_error(&elected, why).await),
-            // Stopped: the key is given up, so that a standby serves at once.
-            None => crate::standby::resign(&config.name, elected.leader).await,
-        }
-    }
-    holon::life::close(&life.holder, session).await;
     if let Err(e @ OrderNodeError::Deposed { .. }) = &ended {
         error!(node = %config.name, error = %e, "order-node stopped: deposed");
     } else {
@@ -212,83 +114,54 @@ pub async fn run(
     ended
 }
 
-/// The presence of the resources, followed from the start (a standby's too: an
-/// order-node that takes over knows which resources are fenced before it hears from
-/// them again), and the node's authority over its name. `None` when it stopped while
-/// standing by.
-async fn authority(
-    config: &OrderNodeConfig,
-    life: &holon::life::Life,
-    session: &zenoh::Session,
-    shutdown: &CancellationToken,
-) -> Result<Option<(Arc<Presence>, Authority)>, OrderNodeError> {
-    let presence = Presence::follow(session, &config.keys)
-        .await
-        .map_err(zenoh_error)?;
-    let authority = match &config.etcd {
-        None => {
-            // A twin (an order-node of the same name alive in the cell) would number its
-            // orders like this one: refused before anything is declared.
-            let claim = life.claim(session).await?;
-            let (journal, recovered) = open_journal(config)?;
-            Authority {
-                claim: Some(claim),
-                elected: None,
-                journal,
-                recovered,
-            }
-        }
-        // With etcd the leader key is the authority, not zenoh's liveliness: no twin
-        // check. A primary that froze or was cut off keeps its token until its link
-        // lease ends, and would be taken for a twin; it cannot act meanwhile (its writes
-        // are fenced on its epoch) and withdraws its token once it hears it is deposed.
-        Some(etcd) => match crate::standby::stand_by(config, etcd, session, shutdown).await? {
-            Some(mut elected) => Authority {
-                claim: None,
-                recovered: std::mem::take(&mut elected.recovered),
-                journal: Some(elected.journal.clone()),
-                elected: Some(elected),
-            },
-            None => return Ok(None),
-        },
-    };
-    Ok(Some((presence, authority)))
+/// The orders' journal and what it holds, from the leadership (etcd's), or `None`:
+/// the node opens its own.
+pub type Grant = Option<(Arc<OrderJournal>, Recovered)>;
+
+/// The order-node's own part of its life: it hosts orders.
+pub struct OrderNode<'a> {
+    /// Its config.
+    config: &'a OrderNodeConfig,
+    /// The work orders of the command line, submitted when it serves.
+    submits: Vec<WorkOrder>,
+    /// The resources' presence, followed from the start.
+    presence: Option<Arc<Presence>>,
 }
 
-impl Ending {
-    /// What a successor that asks now is told.
-    fn refusal(&self) -> &'static str {
-        match self {
-            Ending::HandingOver(_) => "another successor is taking over already",
-            Ending::Deposed(_) => "the order-node is deposed",
-            Ending::Stopping => "the order-node is stopping",
-        }
+impl Behaviour for OrderNode<'_> {
+    type Grant = Grant;
+    type Work = Hosting;
+    type Error = OrderNodeError;
+
+    /// The presence of the resources, followed from the start (a standby's too: an
+    /// order-node that takes over knows which resources are fenced before it hears
+    /// from them again).
+    async fn opened(&mut self, session: &zenoh::Session) -> Result<(), OrderNodeError> {
+        let presence = Presence::follow(session, &self.config.keys)
+            .await
+            .map_err(zenoh_error)?;
+        self.presence = Some(presence);
+        Ok(())
     }
-}
 
-/// The node's loop: the one owner of its orders ([`Host`]) and of their tasks.
-struct Loop<'a> {
-    /// The orders.
-    host: &'a mut Host,
-    /// Their tasks.
-    tasks: &'a mut Tasks,
-    /// The queries the endpoints' callbacks queued for the loop.
-    queries: &'a mut mpsc::Receiver<NodeQuery>,
-    /// Stops every order task.
-    orders_cancel: &'a CancellationToken,
-}
-
-impl Loop<'_> {
-    /// Serves queries, supervises the order tasks and sweeps finished orders, until
-    /// the node stops, is deposed, or hands over to a successor.
-    async fn serve(
-        &mut self,
-        life: &holon::life::Life,
-        successors: &mut holon::takeover::Listener,
-        elected: Option<&crate::standby::Elected>,
-        shutdown: &CancellationToken,
-    ) -> Ending {
-        let config = self.host.config.clone();
+    /// Opens the journal (unless the leadership gave it), restores the orders and
+    /// declares the node's queryables.
+    async fn start(&mut self, start: Start<Grant>) -> Result<Hosting, OrderNodeError> {
+        let config = self.config;
+        let (journal, (recovered, finished, next)) = match start.grant {
+            Some((journal, recovered)) => (Some(journal), recovered),
+            None => open_journal(config)?,
+        };
+        let presence = self
+            .presence
+            .clone()
+            .expect("presence is followed once opened");
+        let context = OrderContext::new(start.session.clone(), config, presence, journal);
+        let host = Host::new(config.clone(), Arc::new(context), finished, next);
+        let (queue, queries) = mpsc::channel(QUERY_QUEUE);
+        let endpoints = Endpoints::declare(&start.session, &host, queue)
+            .await
+            .map_err(zenoh_error)?;
         // A short retention is checked more often (at most every RETENTION_SWEEP).
         let every = config
             .keep_finished
@@ -296,54 +169,114 @@ impl Loop<'_> {
             .clamp(Duration::from_millis(100), RETENTION_SWEEP);
         let mut sweep = tokio::time::interval(every);
         sweep.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-        // Never ends without etcd.
-        let mut until_deposed = Box::pin(async {
-            match elected {
-                Some(elected) => crate::standby::deposed(elected).await,
-                None => std::future::pending().await,
+        Ok(Hosting {
+            host,
+            tasks: Tasks::default(),
+            queries,
+            orders_cancel: CancellationToken::new(),
+            endpoints: Some(endpoints),
+            sweep,
+            resume: Some((recovered, std::mem::take(&mut self.submits))),
+            orders_stopped: false,
+        })
+    }
+}
+
+/// The orders to resume and the work orders to submit once the node serves.
+type Resume = (
+    Vec<(String, crate::progress::OrderProgress)>,
+    Vec<WorkOrder>,
+);
+
+/// The node at work: the one owner of its orders ([`Host`]) and of their tasks.
+pub struct Hosting {
+    /// The orders.
+    host: Host,
+    /// Their tasks.
+    tasks: Tasks,
+    /// The queries the endpoints' callbacks queued for the node.
+    queries: mpsc::Receiver<NodeQuery>,
+    /// Stops every order task.
+    orders_cancel: CancellationToken,
+    /// Its queryables, until they go.
+    endpoints: Option<Endpoints>,
+    /// When finished orders are checked against their retention.
+    sweep: tokio::time::Interval,
+    /// What it resumes once it serves.
+    resume: Option<Resume>,
+    /// Whether its order tasks were stopped.
+    orders_stopped: bool,
+}
+
+/// What the node handles next.
+pub enum Turn {
+    /// Finished orders are checked against their retention.
+    Sweep,
+    /// A query its endpoints queued.
+    Query(NodeQuery),
+    /// An order's task ended.
+    Joined(
+        Result<(tokio::task::Id, Result<(), crate::context::OrderError>), tokio::task::JoinError>,
+    ),
+}
+
+impl Hosting {
+    /// Stops the order tasks where they stand, once.
+    async fn stop_orders(&mut self, how: &Leaving) {
+        if self.orders_stopped {
+            return;
+        }
+        self.orders_stopped = true;
+        let handing_over = *how == Leaving::HandingOver;
+        let node = &self.host.config.name;
+        info!(%node, handing_over, "stopping: orders in progress stop where they stand");
+        stop_orders(node, &mut self.tasks, &self.orders_cancel).await;
+    }
+}
+
+impl Work for Hosting {
+    type Event = Turn;
+    type Error = OrderNodeError;
+
+    /// Resumes the orders its journal held and submits the command line's.
+    async fn serving(&mut self) {
+        if let Some((recovered, submits)) = self.resume.take() {
+            self.host
+                .resume(recovered, &submits, &mut self.tasks, &self.orders_cancel);
+        }
+    }
+
+    async fn next(&mut self) -> Next<Turn, OrderNodeError> {
+        let keep = self.host.config.keep_finished.is_some();
+        tokio::select! {
+            _ = self.sweep.tick(), if keep => Next::Event(Turn::Sweep),
+            Some(query) = self.queries.recv() => Next::Event(Turn::Query(query)),
+            Some(joined) = self.tasks.set.join_next_with_id(), if !self.tasks.set.is_empty() => Next::Event(Turn::Joined(joined)),
+            else => std::future::pending().await,
+        }
+    }
+
+    async fn handle(&mut self, turn: Turn) {
+        match turn {
+            Turn::Sweep => {
+                if let Some(keep) = self.host.config.keep_finished {
+                    self.host.forget_finished(keep);
+                }
             }
-        });
-        loop {
-            tokio::select! {
-                _ = shutdown.cancelled() => return Ending::Stopping,
-                why = &mut until_deposed => return Ending::Deposed(why),
-                offer = successors.next() => {
-                    info!(node = %config.name, successor = %offer.request.successor, version = %offer.request.version, "a successor asks to take over");
-                    match self.hand_over_refusal(life, &offer.request, elected.is_some()) {
-                        Some(detail) => {
-                            warn!(node = %config.name, %detail, "hand-over refused");
-                            offer.refuse(VERSION, detail).await;
-                        }
-                        None => return Ending::HandingOver(Box::new(offer)),
-                    }
-                }
-                _ = sweep.tick(), if config.keep_finished.is_some() => {
-                    if let Some(keep) = config.keep_finished {
-                        self.host.forget_finished(keep);
-                    }
-                }
-                Some(query) = self.queries.recv() => {
-                    answer(self.host, query, self.tasks, self.orders_cancel).await
-                }
-                Some(joined) = self.tasks.set.join_next_with_id(), if !self.tasks.set.is_empty() => {
-                    task_ended(self.host, joined, self.tasks, self.orders_cancel).await;
-                }
+            Turn::Query(query) => {
+                answer(&mut self.host, query, &mut self.tasks, &self.orders_cancel).await
+            }
+            Turn::Joined(joined) => {
+                task_ended(&mut self.host, joined, &mut self.tasks, &self.orders_cancel).await
             }
         }
     }
 
-    /// Why a successor may not take over now; `None` when it may.
-    fn hand_over_refusal(
-        &self,
-        life: &holon::life::Life,
-        request: &holon::takeover::Request,
-        on_etcd: bool,
-    ) -> Option<String> {
+    /// A successor with another data directory would not resume its orders; a journal
+    /// that cannot be written could not record their progress there either.
+    fn refusal(&self, request: &holon::takeover::Request) -> Option<String> {
         let config = &self.host.config;
-        if on_etcd {
-            return Some("its journal is on etcd: start the successor beside it (a standby), then stop this one, which gives its leader key up".into());
-        }
-        if !life.opens_my_journal(request) {
+        if !holon::life::same_data_dir(config.data_dir.as_deref(), request.data_dir.as_deref()) {
             return Some(format!(
                 "its data dir {:?} is not this order-node's {:?}: its orders would not resume there",
                 request.data_dir, config.data_dir
@@ -358,6 +291,53 @@ impl Loop<'_> {
             return Some("its journal cannot be written: its successor could not record its orders' progress either; it serves on (its orders wait until the journal can be written)".into());
         }
         None
+    }
+
+    async fn leave(&mut self, how: &Leaving) {
+        match how {
+            Leaving::Deposed(why) => {
+                // Another process may serve this name already: from now on this one
+                // answers nothing and shows nothing, before its orders stop.
+                error!(node = %self.host.config.name, why = %why, "deposed: the order-node's leader key on etcd is no longer this process's; it stops at once (token and queryables withdrawn, order tasks stopped; their writes are refused by etcd anyway)");
+                drop(self.endpoints.take());
+            }
+            Leaving::Stopping => {
+                self.stop_orders(how).await;
+                drop(self.endpoints.take());
+            }
+            // While handed over, submits, cancels and results get `unavailable` with a
+            // retry hint from a stand-in (submits and cancels are asked again by
+            // `cell`, results delivered again by the resources), until the successor
+            // serves.
+            Leaving::HandingOver => self.stop_orders(how).await,
+            Leaving::WorkEnded => {}
+        }
+    }
+
+    /// On `orders/submit` and its orders' `cancel` and `inbox`.
+    fn stand_in(&self) -> StandInSpec {
+        let config = &self.host.config;
+        StandInSpec {
+            keys: vec![
+                (config.keys.orders_submit(), true),
+                (config.keys.node_orders(&config.name, "cancel"), false),
+                (config.keys.node_orders(&config.name, "inbox"), false),
+            ],
+            answer: holon::life::unavailable_answer(
+                &format!("order-node {}", config.name),
+                "the order-node is being handed over to its successor (an upgrade); ask again shortly".into(),
+            ),
+        }
+    }
+
+    /// Its orders stopped and its queryables gone; the journal closes with the host
+    /// (the successor opens it).
+    async fn stop(mut self, how: &Leaving) -> Result<(), OrderNodeError> {
+        self.stop_orders(how).await;
+        drop(self.endpoints.take());
+        drop(self.queries);
+        drop(self.host);
+        Ok(())
     }
 }
 
@@ -382,49 +362,6 @@ async fn stop_orders(node: &str, tasks: &mut Tasks, orders_cancel: &Cancellation
             warn!(%node, left = tasks.set.len(), "aborted order tasks have not ended within 1 s");
         }
     }
-}
-
-/// Stands in for the successor on the node's request keys while it is handed over.
-async fn stand_in(
-    session: &zenoh::Session,
-    config: &OrderNodeConfig,
-) -> Option<holon::takeover::StandIn> {
-    let keys = [
-        (config.keys.orders_submit(), true),
-        (config.keys.node_orders(&config.name, "cancel"), false),
-        (config.keys.node_orders(&config.name, "inbox"), false),
-    ];
-    match holon::takeover::stand_in(session, &keys, stand_in_answer(config.name.clone())).await {
-        Ok(stand_in) => Some(stand_in),
-        Err(e) => {
-            warn!(node = %config.name, error = %e, "cannot stand in for the successor: requests in the gap go unanswered");
-            None
-        }
-    }
-}
-
-/// Withdraws the node's token, if it still has one.
-async fn withdraw(node: &str, token: Option<zenoh::liveliness::LivelinessToken>) {
-    if let Some(token) = token {
-        if let Err(e) = token.undeclare().await {
-            warn!(%node, error = %e, "cannot withdraw the order-node's token; it goes with the session");
-        }
-    }
-}
-
-/// The stand-in's answer while the node is handed over: `unavailable`, ask again.
-fn stand_in_answer(node: String) -> holon::takeover::Answer {
-    let refusal = schemas::ErrorReply::unavailable(
-        "the order-node is being handed over to its successor (an upgrade); ask again shortly",
-        HANDOVER_RETRY,
-    )
-    .to_json();
-    Arc::new(move |query: &zenoh::query::Query| {
-        use zenoh::Wait;
-        if let Err(e) = query.reply_err(refusal.clone()).wait() {
-            warn!(%node, error = %e, "cannot answer a request while handed over; the requester asks again after its timeout");
-        }
-    })
 }
 
 fn zenoh_error(e: zenoh::Error) -> OrderNodeError {

@@ -21,6 +21,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use holon::etcd::{Candidate, Client, ClientConfig, ElectionConfig, Leader};
+use holon::life::Leadership;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
@@ -28,6 +29,7 @@ use crate::config::{EtcdSettings, OrderNodeConfig};
 use crate::error::OrderNodeError;
 use crate::fence_report::Reporter;
 use crate::journal::{OrderJournal, Replicated};
+use crate::node::{Grant, OrderNode};
 use crate::recovery::{recover, Recovered, Recovery};
 
 /// How long a deposed node asks etcd who deposed it, at most, for its exit message.
@@ -65,9 +67,89 @@ pub struct Elected {
     pub recovered: Recovered,
 }
 
+/// The etcd leader key as an order-node's leadership: campaigned for before the node
+/// starts (a standby follows the journal meanwhile), lost when etcd says so, given up
+/// when the node stops.
+pub struct EtcdLeader<'a> {
+    /// The node's config.
+    config: &'a OrderNodeConfig,
+    /// Where its journal and leader key are.
+    etcd: &'a EtcdSettings,
+    /// The key won, while held.
+    elected: Option<Elected>,
+}
+
+impl<'a> EtcdLeader<'a> {
+    /// A candidate for the node's leader key on `etcd`.
+    pub fn new(config: &'a OrderNodeConfig, etcd: &'a EtcdSettings) -> EtcdLeader<'a> {
+        EtcdLeader {
+            config,
+            etcd,
+            elected: None,
+        }
+    }
+}
+
+impl<'a> Leadership<OrderNode<'a>> for EtcdLeader<'a> {
+    /// Stands by until it wins the key; its orders, read from etcd, are the grant.
+    async fn win(
+        &mut self,
+        _life: &holon::life::Life,
+        session: &zenoh::Session,
+        shutdown: &CancellationToken,
+    ) -> Result<Option<Grant>, OrderNodeError> {
+        let Some(mut elected) = stand_by(self.config, self.etcd, session, shutdown).await? else {
+            return Ok(None);
+        };
+        let grant = (
+            elected.journal.clone(),
+            std::mem::take(&mut elected.recovered),
+        );
+        self.elected = Some(elected);
+        Ok(Some(Some(grant)))
+    }
+
+    fn refusal(&self) -> Option<String> {
+        Some("its journal is on etcd: start the successor beside it (a standby), then stop this one, which gives its leader key up".into())
+    }
+
+    async fn serving(&mut self, _life: &holon::life::Life) {
+        if let Some(elected) = &self.elected {
+            let epoch = elected.leader.epoch();
+            info!(node = %self.config.name, epoch, "serving at epoch {epoch}: the order-node's leader key on etcd is this process's");
+        }
+    }
+
+    async fn lost(&mut self) -> String {
+        match &self.elected {
+            Some(elected) => deposed(elected).await,
+            None => std::future::pending().await,
+        }
+    }
+
+    /// Stopped: the key is given up, so that a standby serves at once.
+    async fn resign(&mut self) {
+        if let Some(elected) = self.elected.take() {
+            resign(&self.config.name, elected.leader).await;
+        }
+    }
+
+    /// Deposed: the node ends, naming who holds the key now.
+    async fn deposed(&mut self, why: &str) -> Result<(), OrderNodeError> {
+        match self.elected.take() {
+            Some(elected) => Err(deposed_error(&elected, why.to_string()).await),
+            None => Err(OrderNodeError::Deposed {
+                epoch: 0,
+                by: "an unknown holder".into(),
+                why: why.to_string(),
+            }),
+        }
+    }
+}
+
 /// Campaigns for the node's leader key until it wins (then reads its orders) or
 /// `shutdown` (`Ok(None)`). While another holds the key the node is a standby.
-pub async fn stand_by(
+async fn stand_by(
     config: &OrderNodeConfig,
     etcd: &EtcdSettings,
     session: &zenoh::Session,
@@ -286,7 +368,7 @@ async fn catch_up(
 }
 
 /// Waits until the node is deposed: its keep-alive says so, or etcd refused a write.
-pub async fn deposed(elected: &Elected) -> String {
+async fn deposed(elected: &Elected) -> String {
     let refused = elected.journal.deposed().unwrap_or_default();
     tokio::select! {
         why = elected.leader.deposed() => why,
@@ -296,7 +378,7 @@ pub async fn deposed(elected: &Elected) -> String {
 
 /// The error a deposed node exits with, naming who holds the key now (asked of etcd,
 /// bounded).
-pub async fn deposed_error(elected: &Elected, why: String) -> OrderNodeError {
+async fn deposed_error(elected: &Elected, why: String) -> OrderNodeError {
     let by = match tokio::time::timeout(ASK_HOLDER_WITHIN, elected.candidate.holder()).await {
         Ok(Ok(Some(holder))) => format!("epoch {} ({})", holder.epoch, holder.candidate),
         Ok(Ok(None)) => "no holder yet (the key is free)".into(),
@@ -311,7 +393,7 @@ pub async fn deposed_error(elected: &Elected, why: String) -> OrderNodeError {
 }
 
 /// Gives the leader key up (bounded): a standby takes over within its next ask.
-pub async fn resign(node: &str, leader: Leader) {
+async fn resign(node: &str, leader: Leader) {
     let epoch = leader.epoch();
     match tokio::time::timeout(RESIGN_WITHIN, leader.resign()).await {
         Ok(Ok(())) => info!(%node, epoch, "gave the leader key up: a standby may serve now"),

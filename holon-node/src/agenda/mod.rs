@@ -666,7 +666,7 @@ impl AgendaManager {
 }
 
 /// When a requester refused `unavailable` during a hand-over is told to ask again.
-pub const HANDOVER_RETRY: std::time::Duration = std::time::Duration::from_millis(100);
+pub use holon::life::HANDOVER_RETRY;
 
 /// Says, on a refusal `unavailable`, that the resource is being handed over.
 pub fn handing_over_hint(info: &mut Map<String, Value>) {

@@ -18,195 +18,231 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use robot_bridge::client::{fence, FenceHandle, StepId};
+use holon::life::{Held, Leadership, Next, Work};
+use robot_bridge::client::{fence, Epoch, FenceEvent, FenceHandle, FencePort, StepId};
 use schemas::Reason;
-use tokio::task::JoinHandle;
+use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, error, info, warn};
 
 use super::fence_report::Reporter;
-use super::{supervisor_ended, wait_stopped, NodeError, Wiring, STARTUP_TIMEOUT};
-use crate::agenda::{AgendaEvent, Inheritance};
+use super::{Node, NodeError, Resource, Wiring};
+use crate::agenda::AgendaEvent;
 use crate::config::ResourceConfig;
 use crate::fence::{Claim, ClaimAction, ClaimEvent, CLAIM_RETRY};
 use crate::views::FenceView;
 
-/// The supervisor's task.
-type Supervision = JoinHandle<Result<(), holon::supervisor::SupervisorError>>;
-
-/// How a round of claiming and serving ended.
-enum Round {
-    /// Stopped (SIGTERM) or the supervisor gave up: the process ends with this.
-    End(Result<(), NodeError>),
-    /// Deposed: claim again.
-    SteppedDown,
+/// The controller fence as a resource's leadership: the controller's claim decides
+/// whether this process serves, and a deposed holder claims again.
+pub(super) struct ControllerFence<'a> {
+    /// The resource's config.
+    config: &'a ResourceConfig,
+    /// What this process says of itself (declared once the session is open).
+    reporter: Option<Reporter>,
+    /// The fence of the round under way.
+    round: Option<Round>,
 }
 
-/// Runs a fenced resource until `shutdown` is cancelled or its supervisor gives up.
-pub(super) async fn serve(
-    config: &ResourceConfig,
-    session: &zenoh::Session,
-    alive_key: &str,
-    shutdown: CancellationToken,
-) -> Result<(), NodeError> {
-    let reporter = Reporter::declare(config, session).await;
-    loop {
-        match round(config, session, alive_key, &shutdown, &reporter).await? {
-            Round::End(outcome) => return outcome,
-            Round::SteppedDown => continue,
+/// One round's fence: the controller client's handle and what it says.
+struct Round {
+    /// Claims the controller, asks the outcome of steps.
+    handle: FenceHandle,
+    /// What the controller client says of the fence (granted, deposed, lost).
+    events: mpsc::Receiver<FenceEvent>,
+    /// The claim's pure machine.
+    claim: Claim,
+    /// The epoch held, once granted.
+    epoch: Option<u64>,
+}
+
+impl<'a> ControllerFence<'a> {
+    /// A fence for `config`'s controller, not claimed yet.
+    pub(super) fn new(config: &'a ResourceConfig) -> ControllerFence<'a> {
+        ControllerFence {
+            config,
+            reporter: None,
+            round: None,
+        }
+    }
+
+    /// Reports this process a standby; `holder_epoch` when the controller said it.
+    async fn report_standby(&self, holder_epoch: Option<u64>) {
+        if let Some(reporter) = &self.reporter {
+            reporter.standby(holder_epoch).await;
         }
     }
 }
 
-/// One round: components up, claim, serve while holding, step down.
-async fn round(
-    config: &ResourceConfig,
-    session: &zenoh::Session,
-    alive_key: &str,
-    shutdown: &CancellationToken,
-    reporter: &Reporter,
-) -> Result<Round, NodeError> {
-    let holon = &config.holon;
-    let (handle, port, mut events) = fence::channel(&config.controller);
-    if !handle.fencing_supported() {
-        return Err(NodeError::Fence(format!(
-            "the dialect {} has no fence (claim, epochs, step ids)",
-            config.controller.dialect.name
-        )));
+impl<'a> Leadership<Node<'a>> for ControllerFence<'a> {
+    /// A new round: the controller client in fenced mode, for the components to start
+    /// with (the claim goes through their controller connection).
+    async fn win(
+        &mut self,
+        _life: &holon::life::Life,
+        session: &zenoh::Session,
+        _shutdown: &CancellationToken,
+    ) -> Result<Option<Option<(FenceHandle, FencePort)>>, NodeError> {
+        if self.reporter.is_none() {
+            self.reporter = Some(Reporter::declare(self.config, session).await);
+        }
+        let (handle, port, events) = fence::channel(&self.config.controller);
+        if !handle.fencing_supported() {
+            return Err(NodeError::Fence(format!(
+                "the dialect {} has no fence (claim, epochs, step ids)",
+                self.config.controller.dialect.name
+            )));
+        }
+        self.round = Some(Round {
+            handle: handle.clone(),
+            events,
+            claim: Claim::default(),
+            epoch: None,
+        });
+        Ok(Some(Some((handle, port))))
     }
-    let wiring = Wiring::new(
-        config,
-        session,
-        Inheritance::Restarted,
-        Some((handle.clone(), port)),
-    )?;
-    let components = CancellationToken::new();
-    let mut supervision = tokio::spawn(wiring.supervisor(config).run(components.clone()));
-    let mut claim = Claim::default();
 
-    // Claiming: a standby until the controller grants the claim.
-    let epoch = loop {
-        let event = tokio::select! {
-            _ = shutdown.cancelled() => {
-                info!(%holon, "stopping while not holding the controller");
-                return Ok(Round::End(stop(holon, components, supervision).await));
-            }
-            result = &mut supervision => return Ok(Round::End(supervisor_ended(result))),
-            Some(event) = events.recv() => ClaimEvent::Fence(event),
-            answer = handle.claim(holon.name()) => ClaimEvent::Answer(answer),
+    /// Claims the controller, every [`CLAIM_RETRY`] while another session holds it (a
+    /// standby meanwhile); once granted, learns what the journal left in flight.
+    async fn hold(
+        &mut self,
+        work: &mut Resource,
+        shutdown: &CancellationToken,
+    ) -> Result<Held<NodeError>, NodeError> {
+        let holon = &self.config.holon;
+        let epoch = match self.claim(work, shutdown).await? {
+            Ok(epoch) => epoch,
+            Err(held) => return Ok(held),
         };
-        let mut granted = None;
-        let mut retry = false;
-        for action in claim.handle(event) {
-            match action {
-                ClaimAction::Serve(epoch) => granted = Some(epoch),
-                ClaimAction::Standby(holder) => {
-                    reporter.standby(Some(holder.0)).await;
-                    info!(%holon, holder_epoch = holder.0, "standby: another session holds the controller; claiming every 200 ms, serving nothing until granted")
-                }
-                ClaimAction::Retry(reason) => {
-                    if let Some(reason) = reason {
-                        info!(%holon, %reason, "standby: cannot claim the controller yet; retrying");
-                    }
-                    retry = true;
-                }
-                ClaimAction::Refuse(why) => {
-                    error!(%holon, %why, "standby refused: the controller cannot fence");
-                    // A stop's outcome is secondary to the refusal.
-                    let _ = stop(holon, components, supervision).await;
-                    return Err(NodeError::Fence(why));
-                }
-                ClaimAction::StepDown { .. } => {}
-            }
-        }
-        if let Some(epoch) = granted {
-            break epoch;
-        }
-        if retry {
-            tokio::select! {
-                _ = tokio::time::sleep(CLAIM_RETRY) => {}
-                _ = shutdown.cancelled() => {}
-            }
-        }
-    };
-
-    // Granted: learn what the journal left in flight, then serve.
-    in_flight_outcomes(config, &wiring, &handle).await;
-    let serving = wiring.communication.serving.notified();
-    wiring
-        .communication
-        .views
-        .fence
-        .send_replace(FenceView::Holding(epoch.0));
-    let started = tokio::select! {
-        _ = serving => Ok(()),
-        _ = tokio::time::sleep(STARTUP_TIMEOUT) => Err(NodeError::Startup(STARTUP_TIMEOUT)),
-        result = &mut supervision => Err(supervisor_ended(result).err().unwrap_or(NodeError::Startup(STARTUP_TIMEOUT))),
-    };
-    if let Err(e) = started {
-        components.cancel();
-        wait_stopped(holon, supervision).await;
-        return Err(e);
+        let round = self.round.as_mut().expect("a round is under way");
+        round.epoch = Some(epoch.0);
+        // Granted: learn what the journal left in flight, then serve.
+        in_flight_outcomes(self.config, &work.wiring, &round.handle).await;
+        work.wiring
+            .communication
+            .views
+            .fence
+            .send_replace(FenceView::Holding(epoch.0));
+        debug!(%holon, epoch = epoch.0, "granted");
+        Ok(Held::Held)
     }
-    let token = session
-        .liveliness()
-        .declare_token(alive_key)
-        .await
-        .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
-    reporter.holder(epoch.0).await;
-    info!(%holon, epoch = epoch.0, key = %alive_key, "holding the controller: holon ready, serving");
 
-    // Serving, until stopped or deposed.
-    let why = loop {
-        tokio::select! {
-            _ = shutdown.cancelled() => {
-                wiring.withdraw(config.shutdown_grace).await;
-                undeclare(holon, token).await;
-                return Ok(Round::End(stop(holon, components, supervision).await));
-            }
-            result = &mut supervision => {
-                undeclare(holon, token).await;
-                return Ok(Round::End(supervisor_ended(result)));
-            }
-            Some(event) = events.recv() => {
-                let stepped_down = claim.handle(ClaimEvent::Fence(event)).into_iter().find_map(|action| match action {
+    /// A standby takes no successor (`--standby` is not with `--take-over`).
+    fn takes_successors(&self) -> bool {
+        false
+    }
+
+    async fn serving(&mut self, life: &holon::life::Life) {
+        let epoch = self
+            .round
+            .as_ref()
+            .and_then(|r| r.epoch)
+            .unwrap_or_default();
+        if let Some(reporter) = &self.reporter {
+            reporter.holder(epoch).await;
+        }
+        info!(holon = %self.config.holon, epoch, key = %life.presence_key, "holding the controller: holon ready, serving");
+    }
+
+    /// Deposed (a command refused `stale_epoch`) or its connection lost.
+    async fn lost(&mut self) -> String {
+        let Some(round) = self.round.as_mut() else {
+            return std::future::pending().await;
+        };
+        loop {
+            let Some(event) = round.events.recv().await else {
+                return std::future::pending().await;
+            };
+            let stepped_down = round
+                .claim
+                .handle(ClaimEvent::Fence(event))
+                .into_iter()
+                .find_map(|action| match action {
                     ClaimAction::StepDown { why, .. } => Some(why),
                     _ => None,
                 });
-                if let Some(why) = stepped_down {
-                    break why;
+            if let Some(why) = stepped_down {
+                warn!(holon = %self.config.holon, epoch = round.epoch.unwrap_or_default(), %why, "deposed: stepping down (token withdrawn, no offers, bookings dropped: the new holder's agenda is the truth); claiming again");
+                return why;
+            }
+        }
+    }
+
+    /// A standby again: it says so, and a new round claims.
+    async fn deposed(&mut self, _why: &str) -> Result<(), NodeError> {
+        self.report_standby(None).await;
+        Ok(())
+    }
+}
+
+impl ControllerFence<'_> {
+    /// The claim, until granted (its epoch) or ended otherwise (how).
+    async fn claim(
+        &mut self,
+        work: &mut Resource,
+        shutdown: &CancellationToken,
+    ) -> Result<Result<Epoch, Held<NodeError>>, NodeError> {
+        let holon = &self.config.holon;
+        let round = self.round.as_mut().expect("a round is under way");
+        loop {
+            let event = tokio::select! {
+                _ = shutdown.cancelled() => {
+                    info!(%holon, "stopping while not holding the controller");
+                    return Ok(Err(Held::Stopped));
+                }
+                next = work.next() => match next {
+                    Next::Ended(result) => return Ok(Err(Held::Ended(result))),
+                    Next::Event(never) => match never {},
+                },
+                Some(event) = round.events.recv() => ClaimEvent::Fence(event),
+                answer = round.handle.claim(holon.name()) => ClaimEvent::Answer(answer),
+            };
+            let mut granted = None;
+            let mut retry = false;
+            for action in round.claim.handle(event) {
+                match action {
+                    ClaimAction::Serve(epoch) => granted = Some(epoch),
+                    ClaimAction::Standby(holder) => {
+                        if let Some(reporter) = &self.reporter {
+                            reporter.standby(Some(holder.0)).await;
+                        }
+                        info!(%holon, holder_epoch = holder.0, "standby: another session holds the controller; claiming every 200 ms, serving nothing until granted")
+                    }
+                    ClaimAction::Retry(reason) => {
+                        if let Some(reason) = reason {
+                            info!(%holon, %reason, "standby: cannot claim the controller yet; retrying");
+                        }
+                        retry = true;
+                    }
+                    ClaimAction::Refuse(why) => {
+                        error!(%holon, %why, "standby refused: the controller cannot fence");
+                        return Err(NodeError::Fence(why));
+                    }
+                    ClaimAction::StepDown { .. } => {}
+                }
+            }
+            if let Some(epoch) = granted {
+                return Ok(Ok(epoch));
+            }
+            if retry {
+                tokio::select! {
+                    _ = tokio::time::sleep(CLAIM_RETRY) => {}
+                    _ = shutdown.cancelled() => {}
                 }
             }
         }
-    };
-
-    // Deposed: no one may book it from now on; its bookings are dropped.
-    warn!(%holon, epoch = epoch.0, %why, "deposed: stepping down (token withdrawn, no offers, bookings dropped: the new holder's agenda is the truth); claiming again");
-    wiring
-        .communication
-        .views
-        .fence
-        .send_replace(FenceView::Standby);
-    undeclare(holon, token).await;
-    reporter.standby(None).await;
-    step_down(&wiring, config.shutdown_grace.min(STEP_DOWN_GRACE)).await;
-    let stopped = stop(holon, components, supervision).await;
-    drop(wiring);
-    stopped?;
-    info!(%holon, "stepped down: a standby again");
-    Ok(Round::SteppedDown)
+    }
 }
 
 /// The longest a deposed holder waits for its running job to end and its
 /// results acknowledged (or its shutdown grace, if shorter); what is not acknowledged
 /// stays in its journal and goes out when it serves again.
-const STEP_DOWN_GRACE: Duration = Duration::from_secs(2);
+pub(super) const STEP_DOWN_GRACE: Duration = Duration::from_secs(2);
 
 /// Drops every booking without a word ([`AgendaEvent::Deposed`]: an order may have
 /// booked the same conversation with the new holder, which a `withdrawn` would cancel)
 /// and waits, at most `grace`, until the agenda is drained: nothing runs and every
 /// result is acknowledged. Unlike a shutdown it waits for the agenda itself to say so.
-async fn step_down(wiring: &Wiring, grace: Duration) {
+pub(super) async fn step_down(wiring: &Wiring, grace: Duration) {
     let links = &wiring.agenda_manager;
     let holon = &links.holon;
     let mut agenda = links.views.agenda.subscribe();
@@ -229,24 +265,6 @@ async fn step_down(wiring: &Wiring, grace: Duration) {
             let view = links.views.agenda.borrow();
             warn!(%holon, running = view.snapshot.current.is_some(), undelivered = view.snapshot.undelivered, ?grace, "step-down grace elapsed; stopping anyway (what is left stays in the journal)");
         }
-    }
-}
-
-/// Stops the components (each within its shutdown timeout).
-async fn stop(
-    holon: &schemas::HolonId,
-    components: CancellationToken,
-    supervision: Supervision,
-) -> Result<(), NodeError> {
-    components.cancel();
-    wait_stopped(holon, supervision).await;
-    Ok(())
-}
-
-/// Withdraws the name's liveliness token.
-async fn undeclare(holon: &schemas::HolonId, token: zenoh::liveliness::LivelinessToken) {
-    if let Err(e) = token.undeclare().await {
-        error!(%holon, error = %e, "cannot withdraw the liveliness token");
     }
 }
 

@@ -17,13 +17,14 @@
 use std::collections::BTreeSet;
 use std::time::Duration;
 
+use holon::life::{Behaviour, Leaving, LivelinessClaim, StandInSpec, Start, Work};
 use schemas::{
     unix_ms, AdviceRequest, ErrorReply, HolonId, HolonKind, OrderSnapshot, OrderStatus,
     ResourceSnapshot,
 };
 use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, error, info, warn};
+use tracing::{debug, info, warn};
 use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 
@@ -36,12 +37,16 @@ use crate::staff::planner;
 pub const MAILBOX: usize = 1024;
 
 /// What the staff's task reacts to.
-enum StaffEvent {
+pub enum StaffEvent {
     /// Boxed: a snapshot is large, the other events are small.
     Resource(Box<ResourceSnapshot>),
+    /// A resource's token went.
     ResourceGone(HolonId),
+    /// A resource's token came (again).
     ResourceBack(HolonId),
+    /// An order ended: its intentions are forgotten.
     OrderEnded(HolonId),
+    /// A request for advice, to be answered.
     Advice(Query),
 }
 
@@ -51,212 +56,304 @@ struct Published {
     advised: u64,
     /// Requests refused as invalid.
     refused: u64,
+    /// Whether it changed since it was last published.
     changed: bool,
 }
 
-/// Runs the staff holon until `shutdown` is cancelled.
+/// Runs the staff holon until `shutdown` is cancelled, or until it hands over to a
+/// successor (what it learned goes with it: the successor learns again, from nominal
+/// durations until it has measured).
 pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
-    let holon = config.identity.holon.clone();
-    let Some((session, claim)) = config.identity.join(&shutdown).await? else {
-        return Ok(());
-    };
-    let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
-    let (events, mut mailbox) = mpsc::channel::<StaffEvent>(MAILBOX);
-    let keys = &config.identity.keys;
+    let process = config.identity.process();
+    holon::life::run(process, &config, LivelinessClaim::default(), shutdown).await
+}
 
-    let snapshots = events.clone();
-    let _resource_states = session
-        .declare_subscriber(keys.resource_states())
-        .callback({
-            let holon = holon.clone();
-            move |sample| {
-                match serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes()) {
-                    Ok(snapshot) => {
-                        if snapshots.try_send(StaffEvent::Resource(Box::new(snapshot))).is_err() {
-                            warn!(%holon, "the staff's mailbox is full: a resource's state was dropped (the next one supersedes it)");
-                        }
+/// What the staff's task reacts to next: one of its events, or the state interval.
+pub enum Turn {
+    /// An event from its mailbox.
+    Event(StaffEvent),
+    /// The state interval passed.
+    Republish,
+}
+
+impl Behaviour for &StaffConfig {
+    type Grant = ();
+    type Work = Staff;
+    type Error = NodeError;
+
+    /// Subscribes to what the cell publishes, answers advice and the state, learns
+    /// what the resources published before it came, and publishes its state.
+    async fn start(&mut self, start: Start<()>) -> Result<Staff, NodeError> {
+        let config = *self;
+        let session = start.session;
+        let holon = config.identity.holon.clone();
+        let (events, mailbox) = mpsc::channel::<StaffEvent>(MAILBOX);
+        let sources = Sources::declare(&session, config, events).await?;
+        let state_key = config.identity.keys.state(&holon);
+        let (state, state_view) = watch::channel(Vec::new());
+        let state_queryable = session
+            .declare_queryable(&state_key)
+            .callback({
+                let state_key = state_key.clone();
+                let holon = holon.clone();
+                move |query| {
+                    use zenoh::Wait;
+                    let snapshot = state_view.borrow().clone();
+                    if let Err(e) = query.reply(&state_key, snapshot).wait() {
+                        warn!(%holon, error = %e, "cannot reply with the state");
                     }
-                    Err(e) => debug!(%holon, error = %e, "an unreadable resource state ignored"),
                 }
-            }
-        })
-        .await
-        .map_err(zenoh_error)?;
-    let presence = events.clone();
-    let _resources_alive = session
-        .liveliness()
-        .declare_subscriber(keys.alive_kind(HolonKind::Resource))
-        .history(true)
-        .callback({
-            let keys = keys.clone();
-            let holon = holon.clone();
-            move |sample| {
-                let Some(resource) = keys.holon_from_alive(sample.key_expr().as_str()) else {
+            })
+            .await
+            .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
+        let mut model = CellModel::default();
+        // What the resources published before the staff came: asked once.
+        seed(&session, config, &mut model).await;
+        let mut republish = tokio::time::interval(config.state_interval);
+        republish.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut staff = Staff {
+            config: config.clone(),
+            session,
+            mailbox,
+            model,
+            published: Published {
+                advised: 0,
+                refused: 0,
+                changed: true,
+            },
+            departed: BTreeSet::new(),
+            republish,
+            state,
+            state_key,
+            sources,
+            _state_queryable: state_queryable,
+        };
+        staff.publish().await;
+        info!(%holon, key = %staff.sources.advice_key, resources = staff.model.resources().count(), "advising");
+        Ok(staff)
+    }
+}
+
+/// Where the staff's events come from: zenoh's callbacks, each feeding its mailbox
+/// without waiting. Dropping them undeclares them.
+struct Sources {
+    /// `staff/<name>/advice`.
+    advice_key: String,
+    /// The resources' states.
+    _resource_states: zenoh::pubsub::Subscriber<()>,
+    /// The resources' tokens.
+    _resources_alive: zenoh::pubsub::Subscriber<()>,
+    /// The orders' states (their ends).
+    _order_states: zenoh::pubsub::Subscriber<()>,
+    /// The advice requests.
+    _advice: zenoh::query::Queryable<()>,
+}
+
+impl Sources {
+    async fn declare(
+        session: &zenoh::Session,
+        config: &StaffConfig,
+        events: mpsc::Sender<StaffEvent>,
+    ) -> Result<Sources, NodeError> {
+        let holon = config.identity.holon.clone();
+        let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
+        let keys = &config.identity.keys;
+        let snapshots = events.clone();
+        let resource_states = session
+            .declare_subscriber(keys.resource_states())
+            .callback({
+                let holon = holon.clone();
+                move |sample| {
+                    match serde_json::from_slice::<ResourceSnapshot>(&sample.payload().to_bytes()) {
+                        Ok(snapshot) => {
+                            if snapshots.try_send(StaffEvent::Resource(Box::new(snapshot))).is_err() {
+                                warn!(%holon, "the staff's mailbox is full: a resource's state was dropped (the next one supersedes it)");
+                            }
+                        }
+                        Err(e) => debug!(%holon, error = %e, "an unreadable resource state ignored"),
+                    }
+                }
+            })
+            .await
+            .map_err(zenoh_error)?;
+        let presence = events.clone();
+        let resources_alive = session
+            .liveliness()
+            .declare_subscriber(keys.alive_kind(HolonKind::Resource))
+            .history(true)
+            .callback({
+                let keys = keys.clone();
+                let holon = holon.clone();
+                move |sample| {
+                    let Some(resource) = keys.holon_from_alive(sample.key_expr().as_str()) else {
+                        return;
+                    };
+                    let event = match sample.kind() {
+                        SampleKind::Put => StaffEvent::ResourceBack(resource),
+                        SampleKind::Delete => StaffEvent::ResourceGone(resource),
+                    };
+                    if presence.try_send(event).is_err() {
+                        warn!(%holon, "the staff's mailbox is full: a resource's presence change was dropped");
+                    }
+                }
+            })
+            .await
+            .map_err(zenoh_error)?;
+        let ended = events.clone();
+        let order_states = session
+            .declare_subscriber(keys.order_states())
+            .callback(move |sample| {
+                let Ok(order) =
+                    serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
+                else {
                     return;
                 };
-                let event = match sample.kind() {
-                    SampleKind::Put => StaffEvent::ResourceBack(resource),
-                    SampleKind::Delete => StaffEvent::ResourceGone(resource),
-                };
-                if presence.try_send(event).is_err() {
-                    warn!(%holon, "the staff's mailbox is full: a resource's presence change was dropped");
+                if order.status != OrderStatus::Running {
+                    // Dropped when full: the intentions lapse by themselves.
+                    let _lapse_instead = ended.try_send(StaffEvent::OrderEnded(order.holon));
                 }
-            }
-        })
-        .await
-        .map_err(zenoh_error)?;
-    let ended = events.clone();
-    let _order_states = session
-        .declare_subscriber(keys.order_states())
-        .callback(move |sample| {
-            let Ok(order) = serde_json::from_slice::<OrderSnapshot>(&sample.payload().to_bytes())
-            else {
-                return;
-            };
-            if order.status != OrderStatus::Running {
-                // Dropped when full: the intentions lapse by themselves.
-                let _lapse_instead = ended.try_send(StaffEvent::OrderEnded(order.holon));
-            }
-        })
-        .await
-        .map_err(zenoh_error)?;
-    let advice_key = keys.advice(holon.name());
-    let asks = events.clone();
-    let _advice = session
-        .declare_queryable(&advice_key)
-        .callback({
-            let holon = holon.clone();
-            move |query| match asks.try_send(StaffEvent::Advice(query)) {
-                Ok(()) => {}
-                Err(mpsc::error::TrySendError::Full(StaffEvent::Advice(query)))
-                | Err(mpsc::error::TrySendError::Closed(StaffEvent::Advice(query))) => {
-                    use zenoh::Wait;
-                    let busy = ErrorReply::new(schemas::ErrorCode::Unavailable, "the staff is busy; go by contract net");
-                    if let Err(e) = query.reply_err(busy.to_json()).wait() {
-                        warn!(%holon, error = %e, "cannot refuse an advice request; the order's wait ends it");
-                    }
-                }
-                Err(_) => {}
-            }
-        })
-        .await
-        .map_err(zenoh_error)?;
-    drop(events);
-
-    let state_key = keys.state(&holon);
-    let (state, state_view) = watch::channel(Vec::new());
-    let _state_queryable = session
-        .declare_queryable(&state_key)
-        .callback({
-            let state_key = state_key.clone();
-            let holon = holon.clone();
-            move |query| {
-                use zenoh::Wait;
-                let snapshot = state_view.borrow().clone();
-                if let Err(e) = query.reply(&state_key, snapshot).wait() {
-                    warn!(%holon, error = %e, "cannot reply with the state");
-                }
-            }
-        })
-        .await
-        .map_err(zenoh_error)?;
-
-    let mut model = CellModel::default();
-    // What the resources published before the staff came: asked once.
-    seed(&session, &config, &mut model).await;
-    let mut published = Published {
-        advised: 0,
-        refused: 0,
-        changed: true,
-    };
-    state.send_replace(state_json(&holon, &model, &published));
-    if let Err(e) = session.put(&state_key, state.borrow().clone()).await {
-        warn!(%holon, error = %e, "cannot publish the state");
-    }
-    let holon::life::Announced {
-        token,
-        mut successors,
-    } = config.identity.life().announce(&session).await?;
-    info!(%holon, key = %advice_key, resources = model.resources().count(), "advising");
-    let mut successor = None;
-
-    let mut departed: BTreeSet<HolonId> = BTreeSet::new();
-    let mut republish = tokio::time::interval(config.state_interval);
-    republish.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tokio::select! {
-            _ = shutdown.cancelled() => break,
-            offer = successors.next() => {
-                info!(%holon, successor = %offer.request.successor, version = %offer.request.version, "a successor asks to take over");
-                successor = Some(offer);
-                break;
-            }
-            _ = republish.tick() => {
-                if published.changed {
-                    published.changed = false;
-                    state.send_replace(state_json(&holon, &model, &published));
-                    if let Err(e) = session.put(&state_key, state.borrow().clone()).await {
-                        warn!(%holon, error = %e, "cannot publish the state");
-                    }
-                }
-            }
-            event = mailbox.recv() => {
-                let Some(event) = event else { break };
-                match event {
-                    StaffEvent::Resource(snapshot) => {
-                        if !departed.contains(&snapshot.holon) {
-                            model.observe(*snapshot);
-                            published.changed = true;
+            })
+            .await
+            .map_err(zenoh_error)?;
+        let advice_key = keys.advice(holon.name());
+        let advice = session
+            .declare_queryable(&advice_key)
+            .callback({
+                let holon = holon.clone();
+                move |query| match events.try_send(StaffEvent::Advice(query)) {
+                    Ok(()) => {}
+                    Err(mpsc::error::TrySendError::Full(StaffEvent::Advice(query)))
+                    | Err(mpsc::error::TrySendError::Closed(StaffEvent::Advice(query))) => {
+                        use zenoh::Wait;
+                        let busy = ErrorReply::new(schemas::ErrorCode::Unavailable, "the staff is busy; go by contract net");
+                        if let Err(e) = query.reply_err(busy.to_json()).wait() {
+                            warn!(%holon, error = %e, "cannot refuse an advice request; the order's wait ends it");
                         }
                     }
-                    StaffEvent::ResourceGone(resource) => {
-                        info!(%holon, %resource, "resource gone: no longer advised");
-                        model.gone(&resource);
-                        departed.insert(resource);
-                        published.changed = true;
-                    }
-                    StaffEvent::ResourceBack(resource) => {
-                        departed.remove(&resource);
-                    }
-                    StaffEvent::OrderEnded(order) => model.forget(&order),
-                    StaffEvent::Advice(query) => {
-                        answer(&holon, &config, &mut model, &mut published, query).await;
-                    }
+                    Err(_) => {}
                 }
+            })
+            .await
+            .map_err(zenoh_error)?;
+        Ok(Sources {
+            advice_key,
+            _resource_states: resource_states,
+            _resources_alive: resources_alive,
+            _order_states: order_states,
+            _advice: advice,
+        })
+    }
+}
+
+/// The staff while it serves: the one owner of its cell model.
+pub struct Staff {
+    /// Its config.
+    config: StaffConfig,
+    /// Its session: the state is put there.
+    session: zenoh::Session,
+    /// What its sources fed it.
+    mailbox: mpsc::Receiver<StaffEvent>,
+    /// What it learned of the cell.
+    model: CellModel,
+    /// Its own figures.
+    published: Published,
+    /// Resources whose token went: their late snapshots are not observed.
+    departed: BTreeSet<HolonId>,
+    /// When the state is republished, if it changed.
+    republish: tokio::time::Interval,
+    /// The latest state, answered by its queryable.
+    state: watch::Sender<Vec<u8>>,
+    /// `staff/<name>/state`.
+    state_key: String,
+    /// Its subscribers and the advice queryable.
+    sources: Sources,
+    /// Answers `staff/<name>/state`.
+    _state_queryable: zenoh::query::Queryable<()>,
+}
+
+impl Staff {
+    /// Publishes its state now.
+    async fn publish(&mut self) {
+        let holon = &self.config.identity.holon;
+        self.state
+            .send_replace(state_json(holon, &self.model, &self.published));
+        if let Err(e) = self
+            .session
+            .put(&self.state_key, self.state.borrow().clone())
+            .await
+        {
+            warn!(%holon, error = %e, "cannot publish the state");
+        }
+    }
+}
+
+impl Work for Staff {
+    type Event = Turn;
+    type Error = NodeError;
+
+    async fn next(&mut self) -> holon::life::Next<Turn, NodeError> {
+        tokio::select! {
+            _ = self.republish.tick() => holon::life::Next::Event(Turn::Republish),
+            event = self.mailbox.recv() => match event {
+                Some(event) => holon::life::Next::Event(Turn::Event(event)),
+                None => holon::life::Next::Ended(Ok(())),
+            },
+        }
+    }
+
+    async fn handle(&mut self, next: Turn) {
+        let holon = self.config.identity.holon.clone();
+        let event = match next {
+            Turn::Republish => {
+                if self.published.changed {
+                    self.published.changed = false;
+                    self.publish().await;
+                }
+                return;
+            }
+            Turn::Event(event) => event,
+        };
+        match event {
+            StaffEvent::Resource(snapshot) => {
+                if !self.departed.contains(&snapshot.holon) {
+                    self.model.observe(*snapshot);
+                    self.published.changed = true;
+                }
+            }
+            StaffEvent::ResourceGone(resource) => {
+                info!(%holon, %resource, "resource gone: no longer advised");
+                self.model.gone(&resource);
+                self.departed.insert(resource);
+                self.published.changed = true;
+            }
+            StaffEvent::ResourceBack(resource) => {
+                self.departed.remove(&resource);
+            }
+            StaffEvent::OrderEnded(order) => self.model.forget(&order),
+            StaffEvent::Advice(query) => {
+                answer(
+                    &holon,
+                    &self.config,
+                    &mut self.model,
+                    &mut self.published,
+                    query,
+                )
+                .await;
             }
         }
     }
-    let refusal = match &successor {
-        Some(_) => "another successor is taking over already",
-        None => "the holon is stopping",
-    };
-    successors.close(crate::VERSION, refusal).await;
-    let ended = match successor {
-        Some(offer) => {
-            // What it learned goes with it: the successor learns again (nominal
-            // durations until it has measured).
-            crate::identity::hand_over(
-                &config.identity,
-                &session,
-                offer,
-                token,
-                claim,
-                &[(advice_key.clone(), false)],
-                _advice,
-                &shutdown,
-            )
-            .await
-        }
-        None => {
-            if let Err(e) = token.undeclare().await {
-                error!(%holon, error = %e, "cannot withdraw the liveliness token");
-            }
-            Ok(())
-        }
-    };
-    holon::life::close(&holon.to_string(), session).await;
-    info!(%holon, advised = published.advised, "holon stopped");
-    ended
+
+    /// On its advice key. What it learned goes with it: the successor learns again.
+    fn stand_in(&self) -> StandInSpec {
+        self.config
+            .identity
+            .stand_in(self.sources.advice_key.clone())
+    }
+
+    async fn stop(self, _how: &Leaving) -> Result<(), NodeError> {
+        info!(holon = %self.config.identity.holon, advised = self.published.advised, "holon stopped");
+        Ok(())
+    }
 }
 
 /// Asks every resource for its state once, at start.
