@@ -28,6 +28,9 @@ use crate::ranking::InFlight;
 use crate::requests;
 
 mod material;
+mod watching;
+
+use watching::Watched;
 
 /// Which attempt the order's task runs: its step's, or a move of its part.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -113,20 +116,6 @@ struct OrderTask<'a> {
     /// For a plan that moves parts: the station whose port holds the part, the only
     /// one the step is booked on.
     work_at: Option<HolonId>,
-}
-
-/// How a watch for a result ended.
-enum Watched {
-    /// The pause is over (or, before the start, it is this order's turn).
-    Elapsed,
-    /// Before the start: the resource published that the step runs (it began on its
-    /// turn).
-    Began,
-    /// Started: the provider came back (its token returned, or a holder of a higher
-    /// epoch serves it): it is asked what became of the step.
-    CameBack,
-    /// Something ended the attempt; a result to acknowledge once recorded.
-    Ended(StepOutcome, Option<Box<ResultReport>>),
 }
 
 impl OrderTask<'_> {
@@ -571,129 +560,6 @@ impl OrderTask<'_> {
         tokio::select! {
             _ = tokio::time::sleep(pause) => {}
             _ = self.ctx.presence.appeared_or_room(&mut self.appearances) => {}
-        }
-    }
-
-    /// Pauses `pause`, watching the inbox (results of this conversation) and the
-    /// provider's presence. A provider that vanishes while the step `may_run` (started,
-    /// or booked to start on its turn) gets `vanished_grace` to come back and report
-    /// before the attempt counts as lost.
-    /// Before `started`, the pause also ends when the provider publishes that it is
-    /// free with this conversation first; once `started`, when the provider comes back
-    /// after it was gone, or a holder of a higher epoch than when the watch began
-    /// publishes its state (it may not know the step: the order asks).
-    async fn await_outcome(
-        &mut self,
-        provider: &HolonId,
-        conversation_id: &str,
-        pause: Duration,
-        started: bool,
-        may_run: bool,
-    ) -> Watched {
-        let ctx = self.ctx.clone();
-        let worked_with = self.progress.get().worked_with.clone();
-        let until = Instant::now() + pause;
-        // Booked, not started: the pause ends early when the resource says it is our
-        // turn, or that our step runs.
-        let turn = async {
-            if started {
-                std::future::pending().await
-            } else {
-                ctx.presence.turn(provider, conversation_id).await
-            }
-        };
-        tokio::pin!(turn);
-        let new_holder = async {
-            if started {
-                ctx.presence
-                    .new_holder(provider, ctx.presence.epoch(provider))
-                    .await
-            } else {
-                std::future::pending().await
-            }
-        };
-        tokio::pin!(new_holder);
-        let lost = |why: &str| {
-            Watched::Ended(
-                StepOutcome::Lost {
-                    provider: provider.clone(),
-                    why: why.into(),
-                },
-                None,
-            )
-        };
-        // How long a provider that is gone may take to come back: one that runs the
-        // step may report it; one handed over to its successor (an upgrade) keeps the
-        // booking, for the handover grace.
-        let grace = || {
-            let running = if may_run {
-                ctx.settings.vanished_grace
-            } else {
-                Duration::ZERO
-            };
-            if ctx.presence.handing_over(provider) {
-                running.max(ctx.settings.handover_grace)
-            } else {
-                running
-            }
-        };
-        // A fenced provider that vanished may still run the step (its holder cut from
-        // the cell, not from the controller, or frozen with the step on the
-        // controller): the step is not given up, it waits for a holder's word (its
-        // result, or a holder that never ran it) as if the provider were there. Known
-        // from this node's presence, or from the order's journal (a node that took the
-        // order over may not have heard the provider before it vanished).
-        let fenced = may_run
-            && (ctx.presence.fenced(provider) || self.progress.get().fenced.contains(provider));
-        let gone = |alive: bool| (!alive && !fenced).then(|| Instant::now() + grace());
-        // Whether the provider was last seen gone, and when its grace ends.
-        let mut away = !ctx.presence.is_alive(provider);
-        let mut gone_until = gone(!away);
-        loop {
-            // While the provider is gone, asking it is pointless: a booked step waits
-            // out the grace whatever its pause (a pause that ended it would start the
-            // grace over with the next watch), a started one at most its step timeout.
-            let deadline = match gone_until {
-                None => until,
-                Some(gone) if started => gone.min(until),
-                Some(gone) => gone,
-            };
-            tokio::select! {
-                news = &mut turn => return match news {
-                    crate::presence::TurnNews::Turn => Watched::Elapsed,
-                    crate::presence::TurnNews::Began => Watched::Began,
-                },
-                () = &mut new_holder => return Watched::CameBack,
-                _ = tokio::time::sleep_until(deadline) => {
-                    if gone_until.is_some_and(|g| Instant::now() >= g) {
-                        return lost("the resource vanished");
-                    }
-                    return Watched::Elapsed;
-                }
-                report = self.inbox.reports.recv() => {
-                    let Some(report) = report else { return lost("inbox closed") };
-                    if let Some((outcome, report)) = crate::inbox::judge(report, provider, &worked_with, conversation_id).await {
-                        return Watched::Ended(outcome, Some(Box::new(report)));
-                    }
-                }
-                change = self.changes.recv() => match change {
-                    Ok((holon, alive)) if &holon == provider => {
-                        // A started step's provider back after being away: ask it.
-                        if alive && started && away {
-                            return Watched::CameBack;
-                        }
-                        away = !alive;
-                        gone_until = gone(alive);
-                    }
-                    Ok(_) => {}
-                    Err(broadcast::error::RecvError::Lagged(_)) => {
-                        if gone_until.is_none() {
-                            gone_until = gone(ctx.presence.is_alive(provider));
-                        }
-                    }
-                    Err(broadcast::error::RecvError::Closed) => return Watched::Elapsed,
-                },
-            }
         }
     }
 

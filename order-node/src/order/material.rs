@@ -68,14 +68,10 @@ impl OrderTask<'_> {
         // a thousand parts waiting outside the cell cost next to nothing.
         let mut backoff = holon::Backoff::new(PLACE_RETRY, IDLE_POLL);
         loop {
-            let part = self.part();
-            if let Some(moving) = part.moving.clone() {
-                match part.place {
-                    PartPlace::Lost { .. } => self.find_lost(&moving).await?,
-                    _ => self.run_move(moving).await?,
-                }
+            if self.end_move_under_way().await? {
                 continue;
             }
+            let part = self.part();
             if operator_cancel.is_cancelled() {
                 self.ctx.commit(self.progress, |p| p.cancel())?;
                 return Ok(Arranged::Cancelled);
@@ -120,14 +116,10 @@ impl OrderTask<'_> {
     /// recorded. A part that never entered leaves at once (its home released).
     pub(super) async fn leave(&mut self) -> Result<(), OrderError> {
         loop {
-            let part = self.part();
-            if let Some(moving) = part.moving.clone() {
-                match part.place {
-                    PartPlace::Lost { .. } => self.find_lost(&moving).await?,
-                    _ => self.run_move(moving).await?,
-                }
+            if self.end_move_under_way().await? {
                 continue;
             }
+            let part = self.part();
             let Some(here) = part.place.location().cloned() else {
                 // Outside, or shipped: its places go, and the order ends.
                 let held: Vec<_> = part.held.into_iter().collect();
@@ -162,6 +154,20 @@ impl OrderTask<'_> {
                 }
             })?;
         }
+    }
+
+    /// Runs the move under way to its end, if there is one (or, with the part lost,
+    /// waits until its transporter says where it is): whether there was one.
+    async fn end_move_under_way(&mut self) -> Result<bool, OrderError> {
+        let part = self.part();
+        let Some(moving) = part.moving else {
+            return Ok(false);
+        };
+        match part.place {
+            PartPlace::Lost { .. } => self.find_lost(&moving).await?,
+            _ => self.run_move(moving).await?,
+        }
+        Ok(true)
     }
 
     /// A proposal round for `step` among the stations, with the staff's advice asked
