@@ -54,6 +54,9 @@ pub enum AlarmKind {
     OrderFailed,
     /// An order's part was scrapped.
     OrderScrapped,
+    /// An order's part is lost: its move ended without its transporter saying where
+    /// the part is (docs/material-flow.md, "Parts and carriers"); raised while it is.
+    PartLost,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -288,6 +288,23 @@ impl Model {
         });
     }
 
+    /// The `part_lost` alarm of an order: raised while its part is lost, cleared once
+    /// its transporter (or an operator) has said where it is.
+    fn part_alarm(&mut self, snapshot: &OrderSnapshot, at: u64) {
+        match &snapshot.part {
+            Some(lost @ schemas::PartPlace::Lost { .. }) => {
+                let message = format!(
+                    "{}'s part is {lost}: it waits until its transporter, once back, or an operator says where it is",
+                    snapshot.holon
+                );
+                self.raise(AlarmKind::PartLost, &snapshot.holon, message, at);
+            }
+            _ => {
+                self.clear(AlarmKind::PartLost, &snapshot.holon, at);
+            }
+        }
+    }
+
     /// Raises an alarm of `kind` on `source` unless one is active already.
     fn raise(
         &mut self,
@@ -596,6 +613,7 @@ impl Model {
             };
             self.log(at, &holon, text);
         }
+        self.part_alarm(&snapshot, at);
         let ended_now = before.as_ref().is_none_or(|b| b.status != snapshot.status);
         if ended_now && snapshot.status.is_final() {
             self.finished.push_back(holon.clone());
@@ -977,6 +995,43 @@ mod tests {
             "the oldest finished left"
         );
         assert_eq!(m.counters().orders_done, (FINISHED_KEPT + 10) as u64);
+    }
+
+    #[test]
+    fn a_lost_part_raises_an_alarm_until_it_is_found() {
+        let mut m = Model::default();
+        let mut lost = order("o-1", OrderStatus::Running, None);
+        lost.part = Some(schemas::PartPlace::Lost {
+            transporter: HolonId::resource("conveyor1").unwrap(),
+            from: "robot1.port".to_string().try_into().unwrap(),
+            to: "conveyor1.buffer".to_string().try_into().unwrap(),
+            why: "the resource vanished".into(),
+        });
+        lost.at = 1;
+        m.apply(Input::Order {
+            snapshot: Box::new(lost),
+            at: 1,
+        });
+        assert_eq!(m.alarms().len(), 1);
+        assert_eq!(m.alarms()[0].kind, AlarmKind::PartLost);
+        assert!(m.alarms()[0].active());
+        assert!(
+            m.alarms()[0]
+                .message
+                .contains("last seen at robot1.port (the resource vanished)"),
+            "{}",
+            m.alarms()[0].message
+        );
+        let mut found = order("o-1", OrderStatus::Running, None);
+        found.part = Some(schemas::PartPlace::At {
+            location: "conveyor1.buffer".to_string().try_into().unwrap(),
+        });
+        found.at = 2;
+        m.apply(Input::Order {
+            snapshot: Box::new(found),
+            at: 2,
+        });
+        assert!(!m.alarms()[0].active(), "cleared once the part is found");
     }
 
     #[test]
