@@ -36,6 +36,16 @@ pub struct Process {
 }
 
 impl Process {
+    /// A child the test started itself, its stderr in `stderr_path`: killed when dropped
+    /// as the others are.
+    pub fn of(name: &str, child: Child, stderr_path: PathBuf) -> Process {
+        Process {
+            name: name.to_string(),
+            child: Some(child),
+            stderr_path,
+        }
+    }
+
     pub fn pid(&self) -> i32 {
         self.child.as_ref().map(|c| c.id() as i32).unwrap_or(0)
     }

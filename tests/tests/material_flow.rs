@@ -275,21 +275,9 @@ impl FlowCell {
     }
 }
 
-/// A child process killed when dropped.
-struct Killed(std::process::Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        if let Err(e) = self.0.kill() {
-            eprintln!("cannot kill the dashboard: {e}");
-        }
-        let _reaped = self.0.wait();
-    }
-}
-
 /// `cell dashboard` of the flow's cell: the process (killed when dropped) and its
 /// address.
-fn dashboard(flow: &FlowCell) -> (Killed, String) {
+fn dashboard(flow: &FlowCell) -> (Process, String) {
     use std::io::BufRead;
     let mut child = std::process::Command::new(bin("cell"))
         .args(["dashboard", "--cell", flow.cell.keys.cell()])
@@ -309,7 +297,8 @@ fn dashboard(flow: &FlowCell) -> (Killed, String) {
         .next()
         .unwrap()
         .trim_end_matches('/');
-    (Killed(child), address.to_string())
+    let stderr = flow.dir.path().join("dashboard.stderr");
+    (Process::of("dashboard", child, stderr), address.to_string())
 }
 
 #[tokio::test(flavor = "multi_thread")]

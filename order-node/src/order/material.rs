@@ -335,12 +335,7 @@ impl OrderTask<'_> {
         let mut info = Map::new();
         info.insert(info_key::PART.into(), Value::from(self.holon.name()));
         info.insert(info_key::LOCATION.into(), Value::from(location.as_str()));
-        let step = PlanStep {
-            service_type: schemas::PLACE_SERVICE.into(),
-            info,
-            reject_results: vec![],
-            on_reject: None,
-        };
+        let step = service_step(schemas::PLACE_SERVICE, info);
         requests::request(&self.ctx, &self.holon, kind, &step, conversation)
     }
 
@@ -444,8 +439,14 @@ fn transport_step(order: &HolonId, moving: &Move) -> PlanStep {
     info.insert(info_key::PART.into(), Value::from(order.name()));
     info.insert(info_key::FROM.into(), Value::from(moving.from.as_str()));
     info.insert(info_key::TO.into(), Value::from(moving.to.as_str()));
+    service_step(TRANSPORT_SERVICE, info)
+}
+
+/// A request's step that is the order's own, not its plan's (a move, a place): the
+/// service and its info, nothing to reject.
+fn service_step(service_type: &str, info: Map<String, Value>) -> PlanStep {
     PlanStep {
-        service_type: TRANSPORT_SERVICE.into(),
+        service_type: service_type.into(),
         info,
         reject_results: vec![],
         on_reject: None,
