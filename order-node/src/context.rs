@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::watch;
-use tracing::{error, info, warn};
+use tracing::{debug, error, info, warn};
 
 use crate::advice_pause::AdvicePause;
 use crate::config::OrderSettings;
@@ -97,10 +97,15 @@ impl OrderContext {
                 let stop = tokio_util::sync::CancellationToken::new();
                 let (session, keys, token) = (self.session.clone(), self.keys.clone(), stop.clone());
                 tokio::spawn(async move {
-                    if let Err(e) =
-                        holon::layout::follow(&session, &keys, None, &sender, &token).await
-                    {
-                        error!(error = %e, "cannot follow the cell's layout: orders that move parts wait");
+                    match holon::layout::follow(&session, &keys, None, &sender, &token).await {
+                        Ok(()) => {}
+                        // The node is stopping: its session closed under the follower.
+                        Err(e) if session.is_closed() => {
+                            debug!(error = %e, "the session closed: the layout is no longer followed")
+                        }
+                        Err(e) => {
+                            error!(error = %e, "cannot follow the cell's layout: orders that move parts wait")
+                        }
                     }
                 });
                 // The first ask is made at once; its answers come within its timeout.
