@@ -7,9 +7,9 @@
 //! |---|---|---|
 //! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,layout,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `host/order-node/*/held` (orders' presence), `resource/*/layout` (a transporter's moves), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
-//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel}`, `alive/order/<n>-*` (order-nodes of earlier releases), `host/order-node/<n>{,/fence/*,/orders,/held}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
+//! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel,part}`, `alive/order/<n>-*` (order-nodes of earlier releases), `host/order-node/<n>{,/fence/*,/orders,/held}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
-//! | `operator.<o>` | nothing | `orders/submit`, `order/*/cancel`, `resource/*/packml` (PackML commands), states, plans, liveliness |
+//! | `operator.<o>` | nothing | `orders/submit`, `order/*/{cancel,part}` (a lost part's place), `resource/*/packml` (PackML commands), states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, the layout (`resource/*/layout`), liveliness |
 //! | `router.<h>` | everything (routers forward for others; trusted) | everything |
 //! | `etcd.<h>` | nothing (an etcd member, not a zenoh client: not even listed) | nothing |
@@ -140,6 +140,8 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
                     format!("order/{name}-$*/inbox"),
                     format!("order/{name}-$*/state"),
                     format!("order/{name}-$*/cancel"),
+                    // Operators' words on where its orders' lost parts are.
+                    format!("order/{name}-$*/part"),
                 ],
             ),
             (&["put"], vec![format!("order/{name}-$*/state")]),
@@ -181,6 +183,7 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
             keys.extend([
                 "orders/submit".to_string(),
                 "order/*/cancel".to_string(),
+                "order/*/part".to_string(),
                 "resource/*/packml".to_string(),
             ]);
             keys

@@ -200,6 +200,20 @@ pub enum Commands {
         #[command(flatten)]
         client: ClientArgs,
     },
+    /// Say where an order's lost part is (operators only): a part whose transporter
+    /// vanished mid-move, or whose move failed on the way, is lost ("in transit on X,
+    /// last seen at Y") until its transporter or an operator says where it is. Name the
+    /// lost move's origin (it never left) or its destination (it arrived); the order
+    /// records the word with who said it (`cell orders --detail` shows it) and goes on.
+    Part {
+        /// The order, e.g. orders1-17.
+        order: String,
+        /// Where the part is, as HOLON.NAME (e.g. robot1.port).
+        #[arg(long, value_name = "LOCATION")]
+        at: String,
+        #[command(flatten)]
+        client: ClientArgs,
+    },
     /// Manage the cell's users (one file per cell, read by the dashboard and `cell
     /// opcua`): add, passwd, role, remove, list. Every change is recorded in audit.jsonl
     /// beside the file. See docs/opcua.md, "Users".

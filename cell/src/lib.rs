@@ -15,6 +15,7 @@ pub mod manifest;
 pub mod opcua;
 pub mod orders;
 pub mod packml;
+pub mod part_word;
 pub mod private_file;
 pub mod router;
 pub mod states;

@@ -358,6 +358,19 @@ async fn run(args: Args) -> Result<bool> {
             println!("{}: {}", reply.order, reply.detail);
             Ok(true)
         }
+        Commands::Part { order, at, client } => {
+            let keys = client.keys()?;
+            schemas::HolonId::order(&order)?;
+            let at = schemas::layout::LocationId::try_from(at).map_err(|e| anyhow!("--at: {e}"))?;
+            let session = client.session(OPERATOR).await?;
+            let by = client.who_asks();
+            let told =
+                cell::part_word::tell(&session, &keys, &order, &at, &by, client.timeout()).await;
+            close(session).await;
+            let reply = told?;
+            println!("{}: {}", reply.order, reply.detail);
+            Ok(true)
+        }
         Commands::Packml {
             resource,
             command,

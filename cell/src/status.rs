@@ -506,6 +506,9 @@ pub fn order_rows(orders: &[schemas::OrderSnapshot], detail: bool, now: u64) -> 
             }
         }
         if detail {
+            for found in &o.part_found {
+                out.push_str(&format!("    part {found}\n"));
+            }
             for a in &o.attempts {
                 out.push_str(&format!(
                     "    {:<24} {:<14} {:<10} {}\n",
@@ -660,6 +663,7 @@ mod tests {
             advised: 0,
             version: None,
             part: None,
+            part_found: vec![],
             at: 0,
         }
     }
@@ -676,6 +680,13 @@ mod tests {
         shipped.part = Some(schemas::PartPlace::Shipped {
             exit: "conveyor1.load".to_string().try_into().unwrap(),
         });
+        shipped.part_found = vec![schemas::PartFound {
+            conversation_id: "o-2/m2/1".into(),
+            transporter: HolonId::resource("conveyor1").unwrap(),
+            location: "robot1.port".to_string().try_into().unwrap(),
+            by: "cell operator.default on host1 (user kim)".into(),
+            at: 0,
+        }];
         let table = render_orders_at("demo", &[moving.clone(), shipped.clone()], false, 0);
         assert!(
             table.contains(
@@ -691,6 +702,10 @@ mod tests {
         assert!(
             detailed.contains("    part shipped at conveyor1.load\n"),
             "{detailed}"
+        );
+        assert!(
+            detailed.contains("    part found at robot1.port by cell operator.default on host1 (user kim) (lost on resource/conveyor1, move o-2/m2/1)\n"),
+            "the operator's word, in the order's audit trail: {detailed}"
         );
     }
 

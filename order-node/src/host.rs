@@ -20,6 +20,7 @@ use std::time::Duration;
 
 use holon::supervisor::{Action, Event, Machine, Scope, Strategy};
 use holon::{Intensity, RestartType};
+use schemas::layout::LocationId;
 use schemas::{CancelReply, ErrorCode, HolonId, WorkOrder};
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
@@ -33,6 +34,7 @@ use crate::config::OrderNodeConfig;
 use crate::context::{OrderContext, OrderError, Progress, ProgressView, ORDER_RECORD};
 use crate::journal::OrderJournalError;
 use crate::order;
+use crate::part_word::{WordAnswer, WordAsk};
 use crate::progress::OrderProgress;
 
 /// An order task may fail and be restarted at most this often (the project's one
@@ -89,6 +91,9 @@ pub struct Hosted {
     /// The mailbox of the order's running task for cancels ([`crate::cancel`]); closed
     /// while no task runs.
     pub cancel_asks: mpsc::Sender<CancelAsk>,
+    /// The mailbox of the order's running task for operators' words on its lost part
+    /// ([`crate::part_word`]); closed while no task runs.
+    pub part_words: mpsc::Sender<WordAsk>,
 }
 
 /// A finished order that is only in the journal, as memory keeps it: when it ended and
@@ -239,6 +244,7 @@ impl Host {
                 progress: Progress::new(progress).1,
                 operator_cancel,
                 cancel_asks: crate::cancel::mailbox().0,
+                part_words: crate::part_word::mailbox().0,
             },
         );
         if running {
@@ -347,6 +353,8 @@ impl Host {
         // to send.
         let (asks, cancel_asks) = crate::cancel::mailbox();
         hosted.cancel_asks = asks;
+        let (words, part_words) = crate::part_word::mailbox();
+        hosted.part_words = words;
         let operator_cancel = hosted.operator_cancel.clone();
         let handle = tasks.set.spawn(async move {
             if !delay.is_zero() {
@@ -355,7 +363,11 @@ impl Host {
                     _ = cancel.cancelled() => return Ok(()),
                 }
             }
-            order::run(context, progress, cancel, operator_cancel, cancel_asks).await
+            let mailboxes = order::Mailboxes {
+                cancel_asks,
+                part_words,
+            };
+            order::run(context, progress, cancel, operator_cancel, mailboxes).await
         });
         tasks.names.insert(handle.id(), name.to_string());
     }
@@ -490,6 +502,19 @@ impl Host {
                 )
             })?;
         Ok(crate::cancel::refused(name, &progress))
+    }
+
+    /// An operator's word that the lost part of `name` is at `location` (`by` says who):
+    /// checked against what the order last committed, then taken by the order's task,
+    /// which records it ([`crate::part_word`]).
+    pub async fn part_word(&self, name: &str, location: LocationId, by: String) -> WordAnswer {
+        let Some(hosted) = self.orders.get(name) else {
+            let ended = self.progress(name).ok().flatten().is_some();
+            return Err(crate::part_word::not_hosted(name, &self.config.name, ended));
+        };
+        let conversation_id = crate::part_word::check(name, &hosted.progress.borrow(), &location)?;
+        let words = hosted.part_words.clone();
+        crate::part_word::ask(&words, name, conversation_id, location, by).await
     }
 
     /// The states of the orders whose `order/<name>/state` intersects `key`, by name:
@@ -737,6 +762,7 @@ mod tests {
                 progress: view,
                 operator_cancel: CancellationToken::new(),
                 cancel_asks: crate::cancel::mailbox().0,
+                part_words: crate::part_word::mailbox().0,
             },
         );
         host.next = host.next.max(n + 1);

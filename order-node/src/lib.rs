@@ -31,6 +31,7 @@ pub mod listing;
 pub mod node;
 pub mod order;
 pub mod part;
+pub mod part_word;
 pub mod presence;
 pub mod progress;
 pub mod queries;

@@ -314,13 +314,14 @@ impl Work for Hosting {
         }
     }
 
-    /// On `orders/submit` and its orders' `cancel` and `inbox`.
+    /// On `orders/submit` and its orders' `cancel`, `part` and `inbox`.
     fn stand_in(&self) -> StandInSpec {
         let config = &self.host.config;
         StandInSpec {
             keys: vec![
                 (config.keys.orders_submit(), true),
                 (config.keys.node_orders(&config.name, "cancel"), false),
+                (config.keys.node_orders(&config.name, "part"), false),
                 (config.keys.node_orders(&config.name, "inbox"), false),
             ],
             answer: holon::life::unavailable_answer(

@@ -23,6 +23,7 @@ use crate::attempt::{Attempt, AttemptAction, AttemptEvent, AttemptTiming};
 use crate::cancel::CancelAsk;
 use crate::context::{jittered, IdleOrder, OrderContext, OrderError, Progress, IDLE_POLL};
 use crate::inbox::{Inbox, ResultReport};
+use crate::part_word::WordAsk;
 use crate::progress::{Phase, StepOutcome};
 use crate::ranking::InFlight;
 use crate::requests;
@@ -41,16 +42,29 @@ enum Leg {
     Move,
 }
 
+/// What operators ask of one run of an order's task.
+pub struct Mailboxes {
+    /// Cancels: this task records each and answers ([`crate::cancel`]).
+    pub cancel_asks: mpsc::Receiver<CancelAsk>,
+    /// Words on where the order's lost part is: taken while the order waits for it
+    /// ([`crate::part_word`]).
+    pub part_words: mpsc::Receiver<WordAsk>,
+}
+
 /// Runs one order until it is done, scrapped, failed or cancelled by an operator, or
-/// its node stops (`cancel`). An operator's cancel arrives in `cancel_asks`: this task
+/// its node stops (`cancel`). An operator's cancel arrives in its mailbox: this task
 /// records it and answers ([`crate::cancel`]), then `operator_cancel` stops the attempt.
 pub async fn run(
     ctx: Arc<OrderContext>,
     progress: Progress,
     cancel: CancellationToken,
     operator_cancel: CancellationToken,
-    cancel_asks: mpsc::Receiver<CancelAsk>,
+    mailboxes: Mailboxes,
 ) -> Result<(), OrderError> {
+    let Mailboxes {
+        cancel_asks,
+        part_words,
+    } = mailboxes;
     let holon = progress.get().holon.clone();
     let mut order = OrderTask {
         inbox: ctx.inboxes.open(&holon),
@@ -60,6 +74,7 @@ pub async fn run(
         advised: None,
         leg: Leg::Work,
         work_at: None,
+        part_words,
         ctx,
         progress: &progress,
         holon: holon.clone(),
@@ -116,6 +131,8 @@ struct OrderTask<'a> {
     /// For a plan that moves parts: the station whose port holds the part, the only
     /// one the step is booked on.
     work_at: Option<HolonId>,
+    /// Operators' words on where the part is, taken while it is lost.
+    part_words: mpsc::Receiver<WordAsk>,
 }
 
 impl OrderTask<'_> {

@@ -11,12 +11,13 @@
 //! | the move ended unattempted (lost before it began, no transporter) | at `from` | at `from` (the place reserved at `to` released) |
 //! | the move failed, or its transporter vanished while it may have run | in transit | lost: in transit on the transporter, last seen at `from`, until it or an operator says |
 //! | the transporter says the lost move was done / never reached the controller | lost | at `to` / at `from` |
+//! | an operator says the lost part is at `to` / at `from` (recorded with who said it) | lost | at `to` / at `from` |
 //! | the order's end is decided while the part is in the cell | at a location | the end waits; the part leaves by an exit first |
 
 use std::collections::BTreeMap;
 
 use schemas::layout::{CellLayout, LocationId, LocationRole};
-use schemas::{HolonId, OrderStatus, PartPlace};
+use schemas::{HolonId, OrderStatus, PartFound, PartPlace};
 
 use crate::progress::Phase;
 
@@ -65,6 +66,10 @@ pub struct PartProgress {
     /// The order's end, decided while the part was in the cell: recorded once the part
     /// has left it.
     pub leaving: Option<(OrderStatus, Option<String>)>,
+    /// Operators' words on where the part was while it was lost, oldest first: the
+    /// order's audit trail of them (at most [`schemas::MAX_ATTEMPT_HISTORY`]).
+    #[serde(default)]
+    pub found: Vec<PartFound>,
 }
 
 impl Default for PartProgress {
@@ -76,6 +81,7 @@ impl Default for PartProgress {
             moving: None,
             moves: 0,
             leaving: None,
+            found: Vec::new(),
         }
     }
 }
@@ -218,6 +224,47 @@ impl PartProgress {
             _ => None,
         };
         self.end_move(end, transporter, layout)
+    }
+
+    /// An operator said where the lost part is: `location`, the lost move's origin or
+    /// its destination (checked before: [`crate::part_word::check`]). Recorded with who
+    /// said it and when; returns the places to release. Nothing changes when the part
+    /// is not lost or the location is neither end of its move.
+    pub fn found_by_operator(
+        &mut self,
+        location: &LocationId,
+        by: &str,
+        at: u64,
+        layout: Option<&CellLayout>,
+    ) -> Vec<(LocationId, String)> {
+        let (
+            PartPlace::Lost {
+                transporter,
+                from,
+                to,
+                ..
+            },
+            Some(moving),
+        ) = (&self.place, &self.moving)
+        else {
+            return vec![];
+        };
+        if location != from && location != to {
+            return vec![];
+        }
+        let word = PartFound {
+            conversation_id: moving.conversation_id.clone(),
+            transporter: transporter.clone(),
+            location: location.clone(),
+            by: by.to_string(),
+            at,
+        };
+        let arrived = location == to;
+        if self.found.len() >= schemas::MAX_ATTEMPT_HISTORY {
+            self.found.remove(0);
+        }
+        self.found.push(word);
+        self.found(arrived, layout)
     }
 }
 

@@ -465,6 +465,10 @@ impl OrderProgress {
             advised: self.advised,
             version: Some(env!("CARGO_PKG_VERSION").to_string()),
             part: self.part.as_ref().map(|p| p.place.clone()),
+            part_found: self
+                .part
+                .as_ref()
+                .map_or_else(Vec::new, |p| p.found.clone()),
             at: unix_ms(),
         }
     }

@@ -25,6 +25,7 @@ const PRODUCT_GRACE: Duration = Duration::from_secs(2);
 /// A query to the node, by the queryable it came to.
 pub enum NodeQuery {
     Cancel(Query),
+    PartWord(Query),
     Submit(Query),
     State(Query),
     Inbox(Query),
@@ -39,6 +40,7 @@ fn enqueue(queue: &mpsc::Sender<NodeQuery>, query: NodeQuery) {
         Ok(()) => {}
         Err(mpsc::error::TrySendError::Full(
             NodeQuery::Cancel(query)
+            | NodeQuery::PartWord(query)
             | NodeQuery::Submit(query)
             | NodeQuery::State(query)
             | NodeQuery::Inbox(query)
@@ -67,12 +69,14 @@ pub struct Endpoints {
     _states: zenoh::query::Queryable<()>,
     _inboxes: zenoh::query::Queryable<()>,
     _cancels: zenoh::query::Queryable<()>,
+    _part_words: zenoh::query::Queryable<()>,
     _listing: zenoh::query::Queryable<()>,
     _held: zenoh::query::Queryable<()>,
 }
 
 impl Endpoints {
-    /// Declares `orders/submit`, and the node's orders' `state`, `inbox` and `cancel`;
+    /// Declares `orders/submit`, and the node's orders' `state`, `inbox`, `cancel` and
+    /// `part`;
     /// every query goes to `queue` (results for running orders straight to them).
     pub async fn declare(
         session: &zenoh::Session,
@@ -111,6 +115,10 @@ impl Endpoints {
             .declare_queryable(keys.node_orders(name, "cancel"))
             .callback(to_queue(NodeQuery::Cancel))
             .await?;
+        let _part_words = session
+            .declare_queryable(keys.node_orders(name, "part"))
+            .callback(to_queue(NodeQuery::PartWord))
+            .await?;
         let _listing = session
             .declare_queryable(keys.node_listing(name))
             .callback(to_queue(NodeQuery::Listing))
@@ -129,6 +137,7 @@ impl Endpoints {
             _states,
             _inboxes,
             _cancels,
+            _part_words,
             _listing,
             _held,
         })
@@ -186,6 +195,7 @@ pub async fn answer(
         NodeQuery::Submit(query) => submit(host, query, tasks, cancel_all).await,
         NodeQuery::Inbox(query) => acknowledge_finished(host, query).await,
         NodeQuery::Cancel(query) => cancel(host, query).await,
+        NodeQuery::PartWord(query) => part_word(host, query).await,
         NodeQuery::Listing(query) => listing(host, query).await,
         NodeQuery::State(query) => {
             for (key, payload) in host.snapshots_matching(query.key_expr()) {
@@ -388,6 +398,45 @@ async fn cancel(host: &Host, query: Query) {
     };
     if let Err(e) = answer {
         warn!(node = %host.config.name, order = %name, error = %e, "cannot answer a cancel");
+    }
+}
+
+/// An operator's word on where an order's lost part is (`order/<name>/part`): a
+/// malformed one is refused `malformed`, and nothing changes.
+async fn part_word(host: &Host, query: Query) {
+    let key = query.key_expr().as_str().to_string();
+    let name = key
+        .strip_suffix("/part")
+        .and_then(|k| k.rsplit('/').next())
+        .unwrap_or_default()
+        .to_string();
+    let by = requested_by(&query).unwrap_or_else(|| "(not said)".to_string());
+    let payload = query
+        .payload()
+        .map(|p| p.to_bytes().into_owned())
+        .unwrap_or_default();
+    let answer = match serde_json::from_slice::<schemas::PartWord>(&payload) {
+        Err(e) => Err((
+            schemas::ErrorCode::Malformed,
+            format!("not a word on a part (`{{\"location\": \"HOLON.NAME\"}}`): {e}"),
+        )),
+        Ok(word) => {
+            info!(node = %host.config.name, order = %name, %by, location = %word.location, "an operator says where a lost part is");
+            host.part_word(&name, word.location, by).await
+        }
+    };
+    let answered = match answer {
+        Ok(reply) => {
+            let payload = serde_json::to_vec(&reply).expect("serializes");
+            query.reply(host.config.keys.part(&name), payload).await
+        }
+        Err((code, why)) => {
+            warn!(node = %host.config.name, order = %name, %code, "word on a part not taken: {why}");
+            query.reply_err(ErrorReply::new(code, why).to_json()).await
+        }
+    };
+    if let Err(e) = answered {
+        warn!(node = %host.config.name, order = %name, error = %e, "cannot answer a word on a part; the operator asks again");
     }
 }
 

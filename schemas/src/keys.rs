@@ -136,7 +136,13 @@ impl CellKeys {
         format!("{}/order/{order}/cancel", self.prefix())
     }
 
-    /// `holarchy/<cell>/order/<node>-$*/<leaf>`: `leaf` (`inbox`, `state`, `cancel`) of
+    /// `holarchy/<cell>/order/<name>/part`: an operator says where the order's lost part
+    /// is ([`crate::PartWord`]).
+    pub fn part(&self, order: &str) -> String {
+        format!("{}/order/{order}/part", self.prefix())
+    }
+
+    /// `holarchy/<cell>/order/<node>-$*/<leaf>`: `leaf` (`inbox`, `state`, `cancel`, `part`) of
     /// every order an order-node hosts (its orders are named `<node>-<n>`). The node
     /// declares its queryables on these, so it never answers for another node's orders
     /// and access control can grant each node its own orders' keys.

@@ -34,7 +34,7 @@ pub use packml::{
     PackmlCommand, PackmlReply, PackmlRequest, PackmlState, PackmlStatus, Refusal, StopReason,
     UnitMode,
 };
-pub use part::PartPlace;
+pub use part::{PartFound, PartPlace, PartWord, PartWordReply};
 pub use plan::{
     requested_by, AttemptEnd, AttemptRecord, CancelReply, OnReject, OrderSnapshot, OrderStatus,
     Plan, PlanStep, SubmitReply, WorkOrder, MAX_ATTEMPT_HISTORY, MAX_REQUESTED_BY,

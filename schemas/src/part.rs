@@ -76,6 +76,54 @@ impl fmt::Display for PartPlace {
     }
 }
 
+/// An operator's word on where a lost part is (`cell part ORDER --at LOCATION`), as the
+/// query on `order/<name>/part` carries it; who says it travels in the query's
+/// attachment ([`crate::requested_by`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PartWord {
+    /// Where the part is: the lost move's origin (it never left) or its destination
+    /// (it arrived). Any other location is refused: the part's places are reserved
+    /// there and nowhere else.
+    pub location: LocationId,
+}
+
+/// The order's answer to an operator's word on its part.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct PartWordReply {
+    pub order: String,
+    /// Where the part is now, as the order recorded it.
+    pub part: PartPlace,
+    /// What happens next, as an operator reads it.
+    pub detail: String,
+}
+
+/// An operator's word on a lost part, as the order's journal keeps it (its audit
+/// trail, shown by `cell orders --detail`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct PartFound {
+    /// The lost move's conversation (`<order>/m<n>/<attempt>`).
+    pub conversation_id: String,
+    /// The transporter the part was lost on.
+    pub transporter: HolonId,
+    /// Where the operator said the part is.
+    pub location: LocationId,
+    /// Who said it (the asking identity, as `cell` or the dashboard names it).
+    pub by: String,
+    /// When the order recorded it (Unix ms).
+    pub at: u64,
+}
+
+impl fmt::Display for PartFound {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "found at {} by {} (lost on {}, move {})",
+            self.location, self.by, self.transporter, self.conversation_id
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -313,6 +313,10 @@ pub struct OrderSnapshot {
     /// Where the order's part is, for a plan that moves parts.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub part: Option<crate::PartPlace>,
+    /// Operators' words on where the part was while it was lost, oldest first (at most
+    /// [`MAX_ATTEMPT_HISTORY`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub part_found: Vec<crate::PartFound>,
     pub at: u64,
 }
 

@@ -417,3 +417,126 @@ async fn parts_survive_their_conveyor_and_order_node_killed_mid_move() {
     flow.wait_ended(&orders, Duration::from_secs(150)).await;
     flow.assert_all_done_and_plant_empty(&orders).await;
 }
+
+/// `cell part ORDER --at LOCATION` as an operator runs it: its output.
+fn say_where(flow: &FlowCell, order: &str, at: &str) -> std::process::Output {
+    std::process::Command::new(bin("cell"))
+        .args(["part", order, "--at", at, "--cell", flow.cell.keys.cell()])
+        .args(["--connect", &flow.cell.endpoint, "--timeout-ms", "5000"])
+        .output()
+        .unwrap()
+}
+
+/// A part whose pallet stops reporting is lost: its move ended in the plant, but the
+/// conveyor's controller never said so, the step timed out, and the conveyor cannot say
+/// where the part is. The order holds ("in transit on X, last seen at Y") until an
+/// operator, who looked, says where it is: a word that names neither end of the lost
+/// move is refused and changes nothing; the right one is recorded with who said it, the
+/// order goes on from there, and the plant agrees at the end.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_lost_part_waits_for_an_operators_word_and_goes_on_from_there() {
+    let conveyor = CONVEYOR.replace("command_timeout_ms = 10000", "command_timeout_ms = 2000");
+    let flow = FlowCell::start("t-flow-word", &conveyor).await;
+    let pallets = ["conveyor1/p1", "conveyor1/p2", "conveyor1/p3"];
+    for pallet in pallets {
+        assert_eq!(flow.plant.command(&format!("silence {pallet}")), "ok");
+    }
+    let orders = flow.cell.submit("ab", 1).await.unwrap();
+    let order = &orders[0];
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    let lost = loop {
+        let state = flow.cell.order_state(order).await;
+        if let Some(state) = state.filter(|s| s["part"]["state"] == "lost") {
+            break state;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the part was never lost; plant: {:#}",
+            flow.plant.state()
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let (from, to) = (
+        lost["part"]["from"].as_str().unwrap().to_string(),
+        lost["part"]["to"].as_str().unwrap().to_string(),
+    );
+    // Where the plant says the part is: what the operator sees on the floor.
+    let truth = flow.plant.state();
+    let at = truth["locations"]
+        .as_object()
+        .unwrap()
+        .iter()
+        .find(|(_, parts)| {
+            parts
+                .as_array()
+                .unwrap()
+                .iter()
+                .any(|p| p["part"] == order.as_str())
+        })
+        .map(|(location, _)| location.clone())
+        .unwrap_or_else(|| panic!("the plant has {order} nowhere at rest: {truth:#}"));
+    assert_eq!(
+        at, to,
+        "a silent pallet's move ends in the plant: {truth:#}"
+    );
+
+    // A location that is neither end of the lost move: refused, nothing changes.
+    let elsewhere = ["conveyor1.buffer", "station_a.port", "station_b.port"]
+        .into_iter()
+        .find(|l| *l != from && *l != to)
+        .unwrap();
+    let refused = say_where(&flow, order, elsewhere);
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success(), "{stderr}");
+    assert!(
+        stderr.contains(&format!("was moving from {from} to {to}"))
+            && stderr.contains("nothing changed"),
+        "{stderr}"
+    );
+    let still = flow.cell.order_state(order).await.unwrap();
+    assert_eq!(still["part"], lost["part"], "{still:#}");
+    assert!(still.get("part_found").is_none(), "{still:#}");
+
+    for pallet in pallets {
+        assert_eq!(flow.plant.command(&format!("report {pallet}")), "ok");
+    }
+    let said = say_where(&flow, order, &at);
+    let stdout = String::from_utf8_lossy(&said.stdout);
+    assert!(
+        said.status.success(),
+        "{}",
+        String::from_utf8_lossy(&said.stderr)
+    );
+    assert!(
+        stdout.contains(&format!("recorded: its part is at {at}")),
+        "{stdout}"
+    );
+    // Said again: the part is no longer lost, and the refusal says where it is.
+    let again = say_where(&flow, order, &at);
+    let stderr = String::from_utf8_lossy(&again.stderr);
+    assert!(!again.status.success(), "{stderr}");
+    assert!(stderr.contains("its part is not lost"), "{stderr}");
+
+    flow.wait_ended(&orders, Duration::from_secs(90)).await;
+    flow.assert_all_done_and_plant_empty(&orders).await;
+    let state = flow.cell.order_state(order).await.unwrap();
+    let words = state["part_found"].as_array().unwrap();
+    assert_eq!(words.len(), 1, "{state:#}");
+    assert_eq!(words[0]["location"], at.as_str());
+    assert_eq!(words[0]["transporter"], "resource/conveyor1");
+    assert!(
+        words[0]["by"].as_str().unwrap().starts_with("cell "),
+        "who said it: {state:#}"
+    );
+    // The order's audit trail shows the word.
+    let detail = std::process::Command::new(bin("cell"))
+        .args(["orders", "--detail", "--cell", flow.cell.keys.cell()])
+        .args(["--connect", &flow.cell.endpoint])
+        .output()
+        .unwrap();
+    let table = String::from_utf8_lossy(&detail.stdout);
+    assert!(
+        table.contains(&format!("    part found at {at} by cell ")),
+        "{table}"
+    );
+}

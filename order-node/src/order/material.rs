@@ -20,7 +20,9 @@
 use std::time::Duration;
 
 use schemas::layout::{CellLayout, LocationId, LocationRole};
-use schemas::{info_key, HolonId, MessageType, PartPlace, PlanStep, Reason};
+use schemas::{
+    info_key, unix_ms, ErrorCode, HolonId, MessageType, PartPlace, PartWordReply, PlanStep, Reason,
+};
 use serde_json::{Map, Value};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -29,6 +31,7 @@ use tracing::{info, warn};
 use super::{Leg, OrderTask};
 use crate::context::{jittered, OrderError, IDLE_POLL};
 use crate::part::{Move, MoveEnd, MoveGoal, PartProgress, TRANSPORT_SERVICE};
+use crate::part_word::WordAsk;
 use crate::progress::{Phase, StepOutcome};
 use crate::requests;
 
@@ -378,7 +381,7 @@ impl OrderTask<'_> {
 
     /// The part is lost with its move's transporter: asks it, whenever it is there,
     /// what became of the move, until it says done (the part arrived) or never reached
-    /// (the part is where it was).
+    /// (the part is where it was), or an operator says where the part is.
     async fn find_lost(&mut self, moving: &Move) -> Result<(), OrderError> {
         let Some(transporter) = moving.phase.resource().cloned() else {
             let layout = self.ctx.layout().await;
@@ -389,38 +392,100 @@ impl OrderTask<'_> {
             })?;
             return Ok(());
         };
-        let step = transport_step(&self.holon, moving);
         loop {
-            if self.ctx.presence.is_alive(&transporter) {
-                let answer = requests::ask_outcome(
-                    &self.ctx,
-                    &self.holon,
-                    &transporter,
-                    &step,
-                    &moving.conversation_id,
-                )
-                .await;
-                let arrived = match answer.map(|a| a.outcome) {
-                    Some(schemas::Outcome::Done) => Some(true),
-                    Some(schemas::Outcome::NeverReached) => Some(false),
-                    _ => None,
-                };
-                if let Some(arrived) = arrived {
-                    info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, arrived, "the transporter said where the lost part is");
-                    let layout = self.ctx.layout().await;
-                    let mut released = Vec::new();
-                    self.ctx.commit(self.progress, |p| {
-                        if let Some(part) = &mut p.part {
-                            released = part.found(arrived, layout.as_deref());
-                        }
-                    })?;
-                    self.publish().await;
-                    self.release(released).await;
-                    return Ok(());
+            if let Some(arrived) = self.ask_transporter(&transporter, moving).await {
+                info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, arrived, "the transporter said where the lost part is");
+                let layout = self.ctx.layout().await;
+                let mut released = Vec::new();
+                self.ctx.commit(self.progress, |p| {
+                    if let Some(part) = &mut p.part {
+                        released = part.found(arrived, layout.as_deref());
+                    }
+                })?;
+                self.publish().await;
+                self.release(released).await;
+                return Ok(());
+            }
+            tokio::select! {
+                _ = tokio::time::sleep(jittered(LOST_ASK_EVERY)) => {}
+                _ = self.ctx.presence.appeared_or_room(&mut self.appearances) => {}
+                Some(word) = self.part_words.recv() => {
+                    if self.take_word(word, moving).await? {
+                        return Ok(());
+                    }
                 }
             }
-            self.pause(LOST_ASK_EVERY).await;
         }
+    }
+
+    /// Asks the lost move's transporter, if it is there, what became of the move:
+    /// whether the part arrived, once it knows.
+    async fn ask_transporter(&self, transporter: &HolonId, moving: &Move) -> Option<bool> {
+        if !self.ctx.presence.is_alive(transporter) {
+            return None;
+        }
+        let step = transport_step(&self.holon, moving);
+        let answer = requests::ask_outcome(
+            &self.ctx,
+            &self.holon,
+            transporter,
+            &step,
+            &moving.conversation_id,
+        )
+        .await;
+        match answer.map(|a| a.outcome) {
+            Some(schemas::Outcome::Done) => Some(true),
+            Some(schemas::Outcome::NeverReached) => Some(false),
+            _ => None,
+        }
+    }
+
+    /// An operator's word on where the lost part is: recorded with who said it, then
+    /// answered. Whether the part is found (a word about another move, or one whose
+    /// asker has left, changes nothing).
+    async fn take_word(&mut self, word: WordAsk, moving: &Move) -> Result<bool, OrderError> {
+        let name = self.holon.name().to_string();
+        if word.conversation_id != moving.conversation_id || word.reply.is_closed() {
+            let why = format!("{name}: the word was about another move of its part; ask again");
+            if word.reply.send(Err((ErrorCode::Invalid, why))).is_err() {
+                info!(holon = %self.holon, "a stale word on the part was dropped: its asker has left");
+            }
+            return Ok(false);
+        }
+        if let Err(refused) = crate::part_word::check(&name, &self.progress.get(), &word.location) {
+            if word.reply.send(Err(refused)).is_err() {
+                info!(holon = %self.holon, "a refused word on the part was not answered: its asker has left");
+            }
+            return Ok(false);
+        }
+        let layout = self.ctx.layout().await;
+        let mut released = Vec::new();
+        let recorded = self.ctx.commit(self.progress, |p| {
+            if let Some(part) = &mut p.part {
+                released =
+                    part.found_by_operator(&word.location, &word.by, unix_ms(), layout.as_deref());
+            }
+        });
+        if let Err(e) = recorded {
+            let why = format!("{name}: cannot record the word: {e}");
+            if word.reply.send(Err((ErrorCode::Internal, why))).is_err() {
+                info!(holon = %self.holon, "the word's asker left before it heard the word was not recorded");
+            }
+            return Err(e);
+        }
+        let part = self.part().place;
+        info!(holon = %self.holon, by = %word.by, location = %word.location, conversation_id = %moving.conversation_id, "an operator said where the lost part is, recorded");
+        let reply = PartWordReply {
+            order: name,
+            detail: format!("recorded: its part is {part}; the order goes on from there"),
+            part,
+        };
+        if word.reply.send(Ok(reply)).is_err() {
+            warn!(holon = %self.holon, "the word's asker left before the answer; the order's state shows it was recorded");
+        }
+        self.publish().await;
+        self.release(released).await;
+        Ok(true)
     }
 
     /// Waits `pause` (jittered), or until a resource appears or a place frees up.

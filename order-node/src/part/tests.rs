@@ -172,3 +172,68 @@ fn a_move_that_never_began_releases_the_place_reserved_for_it() {
     );
     assert_eq!(part.place.location(), Some(&id("conveyor1.buffer")));
 }
+
+#[test]
+fn an_operators_word_places_a_lost_part_at_one_end_of_its_move_and_is_kept() {
+    let layout = layout();
+    let lost = || {
+        let mut part = PartProgress {
+            place: PartPlace::At {
+                location: id("conveyor1.buffer"),
+            },
+            home: Some(id("conveyor1.buffer")),
+            ..PartProgress::default()
+        };
+        part.held
+            .insert(id("robot1.port"), "o-1/place/robot1.port".into());
+        part.begin_move(
+            &order(),
+            id("conveyor1.buffer"),
+            id("robot1.port"),
+            MoveGoal::Station,
+        );
+        part.move_phase(Phase::Started(conveyor()));
+        part.end_move(
+            MoveEnd::Unknown {
+                why: "the resource vanished".into(),
+            },
+            Some(conveyor()),
+            Some(&layout),
+        );
+        part
+    };
+
+    // A location that is neither end of the move changes nothing.
+    let mut part = lost();
+    let before = part.clone();
+    assert!(part
+        .found_by_operator(&id("robot2.port"), "kim", 7, Some(&layout))
+        .is_empty());
+    assert_eq!(part, before);
+
+    // At its destination: it arrived, and the place there stays held for the step.
+    let released = part.found_by_operator(&id("robot1.port"), "kim", 7, Some(&layout));
+    assert!(released.is_empty(), "its home is kept: {released:?}");
+    assert_eq!(part.place.location(), Some(&id("robot1.port")));
+    assert!(part.moving.is_none());
+    assert_eq!(part.found.len(), 1);
+    assert_eq!(
+        part.found[0].to_string(),
+        "found at robot1.port by kim (lost on resource/conveyor1, move o-1/m1/1)"
+    );
+    // Said again, once it is no longer lost: nothing changes.
+    let before = part.clone();
+    part.found_by_operator(&id("robot1.port"), "kim", 8, Some(&layout));
+    assert_eq!(part, before);
+
+    // At its origin: it never left, and the place reserved at the destination is
+    // released.
+    let mut part = lost();
+    let released = part.found_by_operator(&id("conveyor1.buffer"), "lee", 9, Some(&layout));
+    assert_eq!(
+        released,
+        [(id("robot1.port"), "o-1/place/robot1.port".to_string())]
+    );
+    assert_eq!(part.place.location(), Some(&id("conveyor1.buffer")));
+    assert_eq!(part.found[0].by, "lee");
+}
