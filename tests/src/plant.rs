@@ -125,6 +125,29 @@ impl ControllerLink {
         id
     }
 
+    /// Whether the controller closes the connection within `within` (what it sends
+    /// meanwhile is kept).
+    pub fn closed(&mut self, within: std::time::Duration) -> bool {
+        use std::io::Read;
+        let deadline = std::time::Instant::now() + within;
+        while std::time::Instant::now() < deadline {
+            let mut buffer = [0u8; 4096];
+            match self.stream.read(&mut buffer) {
+                Ok(0) => return true,
+                Ok(n) => self
+                    .received
+                    .push_str(&String::from_utf8_lossy(&buffer[..n])),
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                    ) => {}
+                Err(_) => return true,
+            }
+        }
+        false
+    }
+
     /// The reply to command `id` (the whole `ROBOT_REPLY` document), waiting at most
     /// `within`; None if none came by then.
     pub fn reply(&mut self, id: u64, within: std::time::Duration) -> Option<String> {

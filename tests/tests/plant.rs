@@ -679,3 +679,52 @@ listen = "127.0.0.1:0"
     assert_eq!(state["deadlocked"], false, "{state:#}");
     assert!(state["longest_wait_ms"].as_u64().unwrap() > 0, "{state:#}");
 }
+
+/// A controller's links cut (`cut RESOURCE`, as a failed network between it and its
+/// holon): every connection to it closes at once, the move it was running goes on in
+/// the plant and ends there, and it takes a new connection at once. An unknown resource
+/// is refused and nothing changes.
+#[test]
+fn a_cut_closes_the_controllers_links_and_its_move_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
+    robot1(dir.path());
+    let plant = PlantProcess::start(dir.path(), PLANT);
+    let mut link = ControllerLink::connect(&plant.controllers["conveyor1"]);
+    // Held on a jammed track, so that it is surely under way when the link is cut.
+    assert_eq!(plant.command("jam conveyor1.s1"), "ok");
+    link.send_move("p-1", "conveyor1.load", "robot1.port");
+    let deadline = std::time::Instant::now() + Duration::from_secs(5);
+    while plant.state()["in_transit"][0]["load"]["part"] != "p-1" {
+        assert!(std::time::Instant::now() < deadline, "the move never began");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(plant
+        .command("cut conveyor9")
+        .starts_with("error conveyor9: no controller"));
+    assert!(!link.closed(Duration::from_millis(300)), "closed unasked");
+    assert_eq!(plant.command("cut conveyor1"), "ok");
+    assert!(link.closed(Duration::from_secs(5)), "the link stayed open");
+    let state = plant.state();
+    assert_eq!(state["in_transit"][0]["load"]["part"], "p-1", "{state:#}");
+    assert_eq!(plant.command("clear conveyor1.s1"), "ok");
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    loop {
+        let state = plant.state();
+        if state["locations"]["robot1.port"][0]["part"] == "p-1" {
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the move did not end in the plant: {state:#}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // Connected again, it works: the part goes back to the loading point.
+    let mut again = ControllerLink::connect(&plant.controllers["conveyor1"]);
+    let back = again.send_move("p-1", "robot1.port", "conveyor1.load");
+    let reply = again
+        .reply(back, Duration::from_secs(10))
+        .expect("the move back ends");
+    assert!(reply.contains("<RESULT>arrived</RESULT>"), "{reply}");
+}

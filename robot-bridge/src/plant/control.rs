@@ -11,6 +11,7 @@
 //! | `silence PALLET` | `ok`: the pallet (`conveyor1/p2`) stops reporting: a move it carries ends in the plant without its controller saying so |
 //! | `report PALLET` | `ok`: it reports again |
 //! | `estop RESOURCE MS` | `ok`: the resource's controller is e-stopped for MS ms (it says `estop`, refuses every command meanwhile, and a transporter's pallets stand still), then ready again |
+//! | `cut RESOURCE` | `ok`: every connection to the resource's controller is closed at once, as a failed network between it and its holon; what the controller was doing goes on (a move ends in the plant), and it takes connections again at once |
 //!
 //! Anything else is answered `error ` and why; nothing changes. The plant is advanced to
 //! now before every command.
@@ -40,6 +41,10 @@ pub enum Effect {
     Estop {
         resource: String,
         time: Duration,
+    },
+    /// Cut every link to `resource`'s controller.
+    Cut {
+        resource: String,
     },
 }
 
@@ -108,13 +113,23 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
                 ),
             }
         }
+        ["cut", resource] if resources.iter().any(|r| r == resource) => (
+            "ok".into(),
+            Effect::Cut {
+                resource: resource.to_string(),
+            },
+        ),
+        ["cut", resource] => (
+            format!("error {resource}: no controller of that resource in the plant"),
+            Effect::None,
+        ),
         ["jam", at] => done(dock(at).and_then(|at| plant.jam(at, true))),
         ["clear", at] => done(dock(at).and_then(|at| plant.jam(at, false))),
         ["silence", pallet] => done(plant.silence(pallet, true)),
         ["report", pallet] => done(plant.silence(pallet, false)),
         _ => (
             format!(
-                "error {line:?}: not a command (where, waits, jam, clear, silence, report, estop)"
+                "error {line:?}: not a command (where, waits, jam, clear, silence, report, estop, cut)"
             ),
             Effect::None,
         ),
@@ -175,6 +190,9 @@ pub async fn serve(
                             on_change: on_change.clone(),
                         };
                         release.after(*time);
+                    }
+                    if let Effect::Cut { resource } = &effect {
+                        controllers[resource].cut_links();
                     }
                     if effect != Effect::None {
                         on_change(&locked);

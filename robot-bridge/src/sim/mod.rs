@@ -180,6 +180,9 @@ pub struct SimStats {
     /// Woken when the controller is stopped from outside a session (the plant's
     /// e-stop), so that every session says so at once.
     stop_changed: tokio::sync::Notify,
+    /// Woken when the controller's links are cut from outside (the plant's `cut`):
+    /// every session ends at once, as if the network between it and its holon failed.
+    links_cut: tokio::sync::Notify,
     /// The stop under way is in a state the dialect does not describe
     /// (`unknown_state_every`): its status says `HOMING`.
     undescribed: std::sync::atomic::AtomicBool,
@@ -231,6 +234,12 @@ impl SimStats {
             Some((std::time::Instant::now() + time, state));
         self.undescribed.store(false, Ordering::SeqCst);
         self.stop_changed.notify_waiters();
+    }
+
+    /// Cuts every link to the controller: each session ends at once (the holon sees its
+    /// connection drop and reconnects); what the controller was doing goes on.
+    pub(crate) fn cut_links(&self) {
+        self.links_cut.notify_waiters();
     }
 
     /// The controller stops for `time` in a state the dialect does not describe (it

@@ -144,8 +144,13 @@ pub(super) async fn serve(
         let lease_end = session.lease_end();
         let fault_end = stats.stopped().map(|(until, _)| until);
         let stop_changed = stats.stop_changed.notified();
+        let links_cut = stats.links_cut.notified();
         let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
+            _ = links_cut => {
+                info!("the link is cut (the plant's control port): the connection ends, what runs goes on");
+                return Ok(());
+            }
             _ = stop_changed => {
                 // Stopped from outside this session (the plant's e-stop): said at once.
                 let state = session.state_now();
