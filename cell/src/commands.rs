@@ -252,6 +252,11 @@ pub enum Commands {
         /// A session ends this many seconds after its login, however busy.
         #[arg(long, default_value_t = 28_800, value_name = "SECONDS")]
         session_max_s: u64,
+        /// Raise the `part_waits` alarm when a running order's part in the cell stays
+        /// where it is longer than this many seconds (a deadlock, a station that never
+        /// frees a place, a move nobody ends); cleared once it moves.
+        #[arg(long, default_value_t = 300, value_name = "SECONDS", value_parser = clap::value_parser!(u64).range(1..))]
+        part_wait_alarm_s: u64,
         /// Serve HTTPS (plain HTTP on the same port then only redirects). On by default
         /// with --pki, with the certificate of the dashboard's identity
         /// (<pki>/<identity>.pem and .key) and client certificates of the cell CA as

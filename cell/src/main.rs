@@ -132,6 +132,7 @@ async fn run(args: Args) -> Result<bool> {
             audit,
             session_idle_s,
             session_max_s,
+            part_wait_alarm_s,
             tls,
             no_tls,
             tls_cert,
@@ -173,6 +174,7 @@ async fn run(args: Args) -> Result<bool> {
                     absolute: Duration::from_secs(session_max_s),
                 },
                 tls,
+                part_wait_alarm: Duration::from_secs(part_wait_alarm_s),
             };
             cell::dashboard::run(config, holon::shutdown_on_signals()).await?;
             Ok(true)

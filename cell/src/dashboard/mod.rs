@@ -79,7 +79,14 @@ pub struct DashboardConfig {
     /// HTTPS: the certificate, its key and the CA of client certificates that log in
     /// (`None`: plain HTTP).
     pub tls: Option<listener::TlsFiles>,
+    /// A running order's part in the cell that stays where it is longer than this
+    /// raises `part_waits` (`--part-wait-alarm-s`).
+    pub part_wait_alarm: Duration,
 }
+
+/// The `part_waits` bound unless told otherwise.
+pub const DEFAULT_PART_WAIT_ALARM: Duration =
+    Duration::from_millis(model::DEFAULT_PART_WAIT_BOUND_MS);
 
 impl DashboardConfig {
     /// Who logs in and how, from the users file, HTTPS and the dashboard's own role;
@@ -272,6 +279,13 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
                     _ = stop.cancelled() => return,
                     _ = every.tick() => {}
                 }
+                queue(
+                    &inputs,
+                    &dropped,
+                    Input::Tick {
+                        at: schemas::unix_ms(),
+                    },
+                );
                 match crate::status::fences(&session, &keys, FENCES_EVERY).await {
                     Ok(reports) => queue(
                         &inputs,
@@ -468,7 +482,7 @@ async fn own_the_model(
     dropped: Arc<AtomicU64>,
     shutdown: CancellationToken,
 ) {
-    let mut model = Model::default();
+    let mut model = Model::with_part_wait_bound(config.part_wait_alarm.as_millis() as u64);
     let started = schemas::unix_ms();
     let mut changed = true;
     let mut linked_routers = Vec::new();

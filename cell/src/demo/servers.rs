@@ -72,6 +72,7 @@ pub(super) async fn start_dashboard(
                 .join(crate::audit::FILE_NAME),
         ),
         sessions: Default::default(),
+        part_wait_alarm: crate::dashboard::DEFAULT_PART_WAIT_ALARM,
         tls: crate::dashboard::https_files(
             cell.pki.as_deref(),
             "operator.default",

@@ -57,6 +57,10 @@ pub enum AlarmKind {
     /// An order's part is lost: its move ended without its transporter saying where
     /// the part is (docs/material-flow.md, "Parts and carriers"); raised while it is.
     PartLost,
+    /// An order's part in the cell has stayed where it is beyond the dashboard's bound
+    /// (`--part-wait-alarm-s`): it waits for something that does not come; cleared
+    /// once it moves or leaves.
+    PartWaits,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]

@@ -51,4 +51,6 @@ pub enum Input {
     /// The cell's layout, as the serving resources answered it (docs/material-flow.md):
     /// it replaces the previous one.
     Layout(Box<schemas::layout::CellLayout>),
+    /// Time passes (every few seconds): what waits too long is alarmed.
+    Tick { at: u64 },
 }

@@ -13,6 +13,8 @@
 //! | a router's or order-node's token vanishes | it is gone; `vanished` is raised (an order-node's orders wait for it) |
 //! | an operator's acknowledgement | the alarm is acknowledged; one that is cleared and acknowledged leaves the list |
 //! | the fenced resources' reports | who holds each controller, who stands by; a new holder is an event |
+//! | an order's snapshot whose part moved, left the cell, or whose order ended | its `part_waits` alarm clears |
+//! | time passes (a tick) | a running order's part in the cell that has stayed where it is beyond the bound raises `part_waits` |
 //!
 //! Every change of a holon's presence or state, an order's status or step, and every
 //! alarm raised or cleared is one entry of the event log (the last [`EVENTS_KEPT`]).
@@ -28,6 +30,9 @@ use serde::Serialize;
 mod alarms;
 mod counters;
 mod input;
+mod part_waits;
+
+pub use part_waits::DEFAULT_BOUND_MS as DEFAULT_PART_WAIT_BOUND_MS;
 
 pub use alarms::{Alarm, AlarmKind, Event, Source};
 pub use counters::{Counters, StepHistogram, STEP_BUCKETS};
@@ -128,9 +133,20 @@ pub struct Model {
     node_fences: Vec<schemas::fence::NodeFenceReport>,
     /// The cell's layout, as last asked.
     layout: schemas::layout::CellLayout,
+    /// How long each running order's part has stayed where it is (`part_waits`).
+    part_waits: part_waits::PartWaits,
 }
 
 impl Model {
+    /// A model whose `part_waits` alarm is raised for a part in the cell that stays
+    /// where it is longer than `bound_ms`.
+    pub fn with_part_wait_bound(bound_ms: u64) -> Model {
+        Model {
+            part_waits: part_waits::PartWaits::new(bound_ms),
+            ..Model::default()
+        }
+    }
+
     /// One input in; true if the page's view changed.
     pub fn apply(&mut self, input: Input) -> bool {
         match input {
@@ -153,7 +169,18 @@ impl Model {
                 self.layout = *layout;
                 changed
             }
+            Input::Tick { at } => self.tick(at),
         }
+    }
+
+    /// Time passes: a part in the cell that has stayed where it is beyond the bound
+    /// raises `part_waits`.
+    fn tick(&mut self, at: u64) -> bool {
+        let mut changed = false;
+        for (order, message) in self.part_waits.overdue(at) {
+            changed |= self.raise(AlarmKind::PartWaits, &order, message, at);
+        }
+        changed
     }
 
     /// The cell's layout, as last asked (empty until resources with a layout answered).
@@ -614,6 +641,9 @@ impl Model {
             self.log(at, &holon, text);
         }
         self.part_alarm(&snapshot, at);
+        if self.part_waits.seen(&snapshot, at) {
+            self.clear(AlarmKind::PartWaits, &holon, at);
+        }
         let ended_now = before.as_ref().is_none_or(|b| b.status != snapshot.status);
         if ended_now && snapshot.status.is_final() {
             self.finished.push_back(holon.clone());
@@ -995,6 +1025,54 @@ mod tests {
             "the oldest finished left"
         );
         assert_eq!(m.counters().orders_done, (FINISHED_KEPT + 10) as u64);
+    }
+
+    #[test]
+    fn a_part_that_stays_where_it_is_beyond_the_bound_raises_part_waits_until_it_moves() {
+        let mut m = Model::with_part_wait_bound(60_000);
+        let at = |location: &str, t: u64| {
+            let mut o = order("o-1", OrderStatus::Running, None);
+            o.part = Some(schemas::PartPlace::At {
+                location: location.to_string().try_into().unwrap(),
+            });
+            o.at = t;
+            Input::Order {
+                snapshot: Box::new(o),
+                at: t,
+            }
+        };
+        m.apply(at("conveyor1.buffer", 1_000));
+        // Another snapshot with the part where it was does not restart its wait.
+        m.apply(at("conveyor1.buffer", 30_000));
+        assert!(!m.apply(Input::Tick { at: 61_000 }), "within the bound");
+        assert!(active(&m).is_empty());
+        assert!(m.apply(Input::Tick { at: 61_001 }));
+        assert_eq!(active(&m), [AlarmKind::PartWaits]);
+        assert!(
+            m.alarms()[0]
+                .message
+                .contains("at conveyor1.buffer for 60 s"),
+            "{}",
+            m.alarms()[0].message
+        );
+        // Raised once, however long it waits.
+        assert!(!m.apply(Input::Tick { at: 90_000 }));
+        // It moves: cleared, and its new wait starts then.
+        m.apply(at("robot1.port", 100_000));
+        assert!(active(&m).is_empty());
+        assert!(!m.apply(Input::Tick { at: 150_000 }));
+        // An order that ends (its part shipped) waits no more.
+        let mut shipped = order("o-1", OrderStatus::Done, None);
+        shipped.part = Some(schemas::PartPlace::Shipped {
+            exit: "conveyor1.load".to_string().try_into().unwrap(),
+        });
+        shipped.at = 151_000;
+        m.apply(Input::Order {
+            snapshot: Box::new(shipped),
+            at: 151_000,
+        });
+        assert!(!m.apply(Input::Tick { at: 1_000_000 }));
+        assert!(active(&m).is_empty());
     }
 
     #[test]
