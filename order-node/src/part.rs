@@ -16,7 +16,7 @@
 
 use std::collections::BTreeMap;
 
-use schemas::layout::{CellLayout, LocationId, LocationRole};
+use schemas::layout::LocationId;
 use schemas::{HolonId, OrderStatus, PartFound, PartPlace};
 
 use crate::progress::Phase;
@@ -147,7 +147,6 @@ impl PartProgress {
         &mut self,
         end: MoveEnd,
         transporter: Option<HolonId>,
-        layout: Option<&CellLayout>,
     ) -> Vec<(LocationId, String)> {
         let Some(moving) = self.moving.take() else {
             return vec![];
@@ -157,12 +156,10 @@ impl PartProgress {
         };
         match end {
             MoveEnd::Done => {
-                let exit = layout
-                    .and_then(|l| l.location(&moving.to))
-                    .is_some_and(|l| {
-                        matches!(l.role, LocationRole::Exit | LocationRole::EntryExit)
-                    })
-                    && moving.goal == MoveGoal::Exit;
+                // A move to an exit was begun as one (its goal), whatever the layout
+                // says now: the transporter that states the exit may be away while its
+                // move's end is learnt (restarted mid-move), and the part has left.
+                let exit = moving.goal == MoveGoal::Exit;
                 let mut released = Vec::new();
                 if self.home.as_ref() != Some(&moving.from) {
                     released.extend(release(&mut self.held, &moving.from));
@@ -209,11 +206,7 @@ impl PartProgress {
 
     /// The transporter (or an operator) said where the lost part is: `arrived` at the
     /// move's destination, or still where it was. Returns the places to release.
-    pub fn found(
-        &mut self,
-        arrived: bool,
-        layout: Option<&CellLayout>,
-    ) -> Vec<(LocationId, String)> {
+    pub fn found(&mut self, arrived: bool) -> Vec<(LocationId, String)> {
         let end = if arrived {
             MoveEnd::Done
         } else {
@@ -223,7 +216,7 @@ impl PartProgress {
             PartPlace::Lost { transporter, .. } => Some(transporter.clone()),
             _ => None,
         };
-        self.end_move(end, transporter, layout)
+        self.end_move(end, transporter)
     }
 
     /// An operator said where the lost part is: `location`, the lost move's origin or
@@ -235,7 +228,6 @@ impl PartProgress {
         location: &LocationId,
         by: &str,
         at: u64,
-        layout: Option<&CellLayout>,
     ) -> Vec<(LocationId, String)> {
         let (
             PartPlace::Lost {
@@ -264,7 +256,7 @@ impl PartProgress {
             self.found.remove(0);
         }
         self.found.push(word);
-        self.found(arrived, layout)
+        self.found(arrived)
     }
 }
 

@@ -5,6 +5,7 @@
 
 mod cell;
 mod cell_holons;
+mod dashboard;
 mod environment;
 mod etcd;
 pub mod lab;
@@ -19,6 +20,7 @@ pub mod web;
 pub mod webdriver;
 
 pub use cell::*;
+pub use dashboard::*;
 pub use environment::*;
 pub use etcd::*;
 pub use paths::*;

@@ -275,32 +275,6 @@ impl FlowCell {
     }
 }
 
-/// `cell dashboard` of the flow's cell: the process (killed when dropped) and its
-/// address.
-fn dashboard(flow: &FlowCell) -> (Process, String) {
-    use std::io::BufRead;
-    let mut child = std::process::Command::new(bin("cell"))
-        .args(["dashboard", "--cell", flow.cell.keys.cell()])
-        .args(["--connect", &flow.cell.endpoint, "--listen", "127.0.0.1:0"])
-        .arg("--operator")
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::fs::File::create(flow.dir.path().join("dashboard.stderr")).unwrap())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    std::io::BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let address = line
-        .trim()
-        .rsplit("http://")
-        .next()
-        .unwrap()
-        .trim_end_matches('/');
-    let stderr = flow.dir.path().join("dashboard.stderr");
-    (Process::of("dashboard", child, stderr), address.to_string())
-}
-
 #[tokio::test(flavor = "multi_thread")]
 async fn crossing_parts_reserve_their_places_and_every_order_finishes() {
     let flow = FlowCell::start("t-flow", CONVEYOR).await;
@@ -308,7 +282,12 @@ async fn crossing_parts_reserve_their_places_and_every_order_finishes() {
     // is one).
     let page = match webdriver::browser_available() {
         Ok(()) => {
-            let (process, address) = dashboard(&flow);
+            let (process, address) = start_dashboard(
+                flow.dir.path(),
+                flow.cell.keys.cell(),
+                &flow.cell.endpoint,
+                &[],
+            );
             let browser = webdriver::Browser::start(&flow.dir.path().join("profile")).unwrap();
             browser.goto(&format!("http://{address}/")).unwrap();
             Some((process, browser))

@@ -361,11 +361,10 @@ impl OrderTask<'_> {
         };
         let end = move_end(&outcome, may_have_begun);
         info!(holon = %self.holon, conversation_id = %moving.conversation_id, from = %moving.from, to = %moving.to, outcome = %outcome, "move ended");
-        let layout = self.ctx.layout().await;
         let mut released = Vec::new();
         self.ctx.commit(self.progress, |p| {
             if let Some(part) = &mut p.part {
-                released = part.end_move(end, transporter, layout.as_deref());
+                released = part.end_move(end, transporter);
             }
         })?;
         if let Some(report) = report {
@@ -384,10 +383,9 @@ impl OrderTask<'_> {
     /// (the part is where it was), or an operator says where the part is.
     async fn find_lost(&mut self, moving: &Move) -> Result<(), OrderError> {
         let Some(transporter) = moving.phase.resource().cloned() else {
-            let layout = self.ctx.layout().await;
             self.ctx.commit(self.progress, |p| {
                 if let Some(part) = &mut p.part {
-                    part.found(false, layout.as_deref());
+                    part.found(false);
                 }
             })?;
             return Ok(());
@@ -395,11 +393,10 @@ impl OrderTask<'_> {
         loop {
             if let Some(arrived) = self.ask_transporter(&transporter, moving).await {
                 info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, arrived, "the transporter said where the lost part is");
-                let layout = self.ctx.layout().await;
                 let mut released = Vec::new();
                 self.ctx.commit(self.progress, |p| {
                     if let Some(part) = &mut p.part {
-                        released = part.found(arrived, layout.as_deref());
+                        released = part.found(arrived);
                     }
                 })?;
                 self.publish().await;
@@ -458,12 +455,10 @@ impl OrderTask<'_> {
             }
             return Ok(false);
         }
-        let layout = self.ctx.layout().await;
         let mut released = Vec::new();
         let recorded = self.ctx.commit(self.progress, |p| {
             if let Some(part) = &mut p.part {
-                released =
-                    part.found_by_operator(&word.location, &word.by, unix_ms(), layout.as_deref());
+                released = part.found_by_operator(&word.location, &word.by, unix_ms());
             }
         });
         if let Err(e) = recorded {

@@ -30,7 +30,8 @@ struct Args {
     state_file: Option<PathBuf>,
     /// Serve the control port here (HOST:PORT; port 0: a free one, printed): one
     /// command a line: `where` (the state as JSON), `waits` (what waits, since when,
-    /// and whether the plant is deadlocked), `jam CONVEYOR.STOPPER` and `clear ...` (the
+    /// and whether the plant is deadlocked), `counts` (what each controller executed),
+    /// `jam CONVEYOR.STOPPER` and `clear ...` (the
     /// track ending at that stopper: no pallet enters or leaves it while jammed),
     /// `silence PALLET` and `report PALLET` (a pallet that stops reporting: its
     /// moves end in the plant without its controller saying so), `estop RESOURCE MS`

@@ -11,6 +11,7 @@
 //! | `silence PALLET` | `ok`: the pallet (`conveyor1/p2`) stops reporting: a move it carries ends in the plant without its controller saying so |
 //! | `report PALLET` | `ok`: it reports again |
 //! | `estop RESOURCE MS` | `ok`: the resource's controller is e-stopped for MS ms (it says `estop`, refuses every command meanwhile, and a transporter's pallets stand still), then ready again |
+//! | `counts` | what each controller did, as robot-sim's count file says it: `{"robot1": {"executed", "received", "aborted", "connections", "by_action", ...; fenced: "epoch", "by_step"}, ...}`, on one line |
 //! | `cut RESOURCE` | `ok`: every connection to the resource's controller is closed at once, as a failed network between it and its holon; what the controller was doing goes on (a move ends in the plant), and it takes connections again at once |
 //!
 //! Anything else is answered `error ` and why; nothing changes. The plant is advanced to
@@ -129,7 +130,7 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
         ["report", pallet] => done(plant.silence(pallet, false)),
         _ => (
             format!(
-                "error {line:?}: not a command (where, waits, jam, clear, silence, report, estop, cut)"
+                "error {line:?}: not a command (where, waits, counts, jam, clear, silence, report, estop, cut)"
             ),
             Effect::None,
         ),
@@ -172,6 +173,18 @@ pub async fn serve(
                         _ => return,
                     },
                 };
+                if line.trim() == "counts" {
+                    let counts: Vec<String> = controllers
+                        .iter()
+                        .map(|(resource, stats)| format!("\"{resource}\":{}", stats.to_json()))
+                        .collect();
+                    let answer = format!("{{{}}}\n", counts.join(","));
+                    if let Err(e) = write.write_all(answer.as_bytes()).await {
+                        warn!(%peer, error = %e, "cannot answer on the control port: the connection is gone");
+                        return;
+                    }
+                    continue;
+                }
                 let answer = {
                     let resources: Vec<String> = controllers.keys().cloned().collect();
                     let mut locked = plant.lock().unwrap_or_else(|e| e.into_inner());
