@@ -83,7 +83,6 @@ impl MoveCell {
         let Written {
             plant_file,
             resources: names,
-            ..
         } = write(dir, spec)?;
         let plant = PlantProcess::start(dir, &plant_file);
         let data = dir.join("data");
@@ -116,7 +115,7 @@ impl MoveCell {
             cell.wait_alive(&HolonId::new(schemas::HolonKind::Product, name)?)
                 .await?;
         }
-        let orders = cell.start_order_node(dir, &["--data-dir", data]).await?;
+        let orders = start_orders(&cell, dir, "power_loss").await?;
         Ok(MoveCell {
             cell,
             plant,
@@ -125,6 +124,14 @@ impl MoveCell {
             orders,
             dir: dir.to_path_buf(),
         })
+    }
+
+    /// Stops the order-node and starts it again with its journal's `durability`, on a
+    /// journal of its own (nothing to recover).
+    pub async fn restart_orders(&mut self, durability: &str) -> Result<()> {
+        self.orders.kill();
+        self.orders = start_orders(&self.cell, &self.dir, durability).await?;
+        Ok(())
     }
 
     /// Every process of the cell, named: the order-node, the plant, the products, the
@@ -145,8 +152,6 @@ impl MoveCell {
 pub struct Written {
     /// The plant file's text (its layout names the configs beside it).
     pub plant_file: String,
-    /// The configs that state a part of the layout, as the plant file names them.
-    pub layout: Vec<String>,
     /// Every resource holon, in the order they start.
     pub resources: Vec<String>,
 }
@@ -182,9 +187,36 @@ pub fn write(dir: &Path, spec: &Spec) -> Result<Written> {
         .collect();
     Ok(Written {
         plant_file,
-        layout,
         resources,
     })
+}
+
+/// The demo's order-node `orders1` with its journal's `durability` (the demo's is
+/// `power_loss`), its journal in `DIR/data-orders-<durability>`, serving.
+async fn start_orders(cell: &Cell, dir: &Path, durability: &str) -> Result<Process> {
+    let demo = std::fs::read_to_string(holarchy_tests::demo_config("orders1.toml"))?;
+    let config = dir.join(format!("orders1-{durability}.toml"));
+    std::fs::write(
+        &config,
+        demo.replace(
+            "durability = \"power_loss\"",
+            &format!("durability = \"{durability}\""),
+        ),
+    )?;
+    let data = dir.join(format!("data-orders-{durability}"));
+    std::fs::create_dir_all(&data)?;
+    let data = data.to_str().context("a data directory that is UTF-8")?;
+    let process = start_holon(
+        dir,
+        "order-node",
+        &config,
+        "orders1",
+        cell,
+        &["--data-dir", data],
+    )?;
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await?;
+    Ok(process)
 }
 
 /// The transfer that serves station `station` (`st3` -> `tr3`).
@@ -338,9 +370,12 @@ mod tests {
                 products: vec![],
             };
             let written = write(dir.path(), &spec).unwrap();
-            let parts: Vec<_> = written
-                .layout
+            let plant: toml::Value = toml::from_str(&written.plant_file).unwrap();
+            let parts: Vec<_> = plant["layout"]
+                .as_array()
+                .unwrap()
                 .iter()
+                .map(|file| file.as_str().unwrap())
                 .map(|file| {
                     let text = std::fs::read_to_string(dir.path().join(file)).unwrap();
                     let (name, section) = schemas::layout::from_resource_config(&text, None)

@@ -20,7 +20,7 @@ mod cycle;
 mod load;
 mod rows;
 
-use anyhow::{anyhow, Result};
+use anyhow::{anyhow, Context, Result};
 
 use crate::echo::{spawn_helper, ECHO_KEY};
 use crate::run::Run;
@@ -70,28 +70,42 @@ pub async fn section(run: &mut Run, sizes: &Sizes) -> Result<()> {
             ("still".into(), "work_still".into(), false),
         ],
     };
-    let flow = MoveCell::start(&run.dir.join("moves"), &spec).await?;
+    let mut flow = MoveCell::start(&run.dir.join("moves"), &spec)
+        .await
+        .context("starting the cycle's cell")?;
     let (mut echo, _) = spawn_helper(&[
         "echo-zenoh",
         "--connect",
         &flow.cell.endpoint,
         "--key",
         ECHO_KEY,
-    ])?;
+    ])
+    .context("starting the echo helper")?;
     let measured = async {
         flow.cell.wait_token(&format!("{ECHO_KEY}/alive")).await?;
         booking::wait_transport_bookable(&flow.cell, "st0.port").await?;
-        let series = booking::series(&flow.cell, "st0", "work", "st0.port", run.samples).await?;
-        let cycles =
-            cycle::cycles(&flow.cell, "moved", "still", (run.samples / 50).max(10)).await?;
-        Ok::<_, anyhow::Error>((series, cycles))
+        let series = booking::series(&flow.cell, "st0", "work", "st0.port", run.samples)
+            .await
+            .context("the booking series")?;
+        let n = (run.samples / 50).max(10);
+        let cycles = cycle::cycles(&flow.cell, "moved", "still", n)
+            .await
+            .context("the order cycles")?;
+        // The same with the order-node's journal on `process_crash`: what its fsyncs
+        // (one per recorded change of the order and its part) cost the moves.
+        flow.restart_orders("process_crash").await?;
+        let unsynced = cycle::cycles(&flow.cell, "moved", "still", n)
+            .await
+            .context("the order cycles, process_crash")?;
+        Ok::<_, anyhow::Error>((series, cycles, unsynced))
     }
     .await;
     let _ = echo.kill();
     let _ = echo.wait();
-    let (series, cycles) = measured?;
+    let (series, cycles, unsynced) = measured?;
     rows::bookings(run, &series);
-    rows::cycles(run, &series, &cycles, cycle_travel_ms());
+    rows::cycles(run, &series, &cycles, cycle_travel_ms(), "power_loss");
+    rows::cycles(run, &series, &unsynced, cycle_travel_ms(), "process_crash");
     drop(flow);
 
     // 3: one transfer per station, the parts in waves.
@@ -111,7 +125,9 @@ pub async fn section(run: &mut Run, sizes: &Sizes) -> Result<()> {
         buffer: sizes.in_flight,
         products: vec![("flow".into(), "work".into(), true)],
     };
-    let flow = MoveCell::start(&run.dir.join("flow"), &spec).await?;
+    let flow = MoveCell::start(&run.dir.join("flow"), &spec)
+        .await
+        .context("starting the parts-in-flight cell")?;
     let processes = flow.processes();
     let load = load::waves(&flow.cell, &processes, "flow", sizes.in_flight, sizes.waves)
         .await

@@ -45,10 +45,17 @@ pub fn bookings(run: &mut Run, series: &TransportSeries) {
 }
 
 /// The order's cycle with moves against without, and what the moves add.
-pub fn cycles(run: &mut Run, series: &TransportSeries, cycles: &Cycles, travel_ms: f64) {
+/// `journal`: the order-node's journal durability in these cycles.
+pub fn cycles(
+    run: &mut Run,
+    series: &TransportSeries,
+    cycles: &Cycles,
+    travel_ms: f64,
+    journal: &str,
+) {
     let (moved, still) = (cycles.moved.pct(0.5) / 1e3, cycles.still.pct(0.5) / 1e3);
     run.table.add(
-        "moves: order cycle, its part moved in and out (2 moves)",
+        &format!("moves: order cycle, its part moved in and out (2 moves), order-node {journal}"),
         format!(
             "p50 {moved:.1} ms, p99 {:.1} ms",
             cycles.moved.pct(0.99) / 1e3
@@ -64,7 +71,7 @@ pub fn cycles(run: &mut Run, series: &TransportSeries, cycles: &Cycles, travel_m
     let booking = series.transport.pct(0.5);
     let ratio = per_move_us / booking;
     run.table.add(
-        "moves: coordination a move adds (beyond travel)",
+        &format!("moves: coordination a move adds (beyond travel), order-node {journal}"),
         format!("{:.2} ms per move at p50 ({added:.2} ms for 2)", per_move_us / 1e3),
         format!(
             "{ratio:.1}x a transport booking's p50 ({booking:.0} us); target <= {TARGET_BOOKINGS:.0}x: {}",
