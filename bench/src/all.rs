@@ -6,8 +6,8 @@ use anyhow::{bail, Context, Result};
 use serde_json::{json, Value};
 
 use crate::{
-    booking, cycle, dashboard, erlang, etcd, floors::floors, holon, lease, opcua, orders, rebook,
-    robots, scale, throughput, tls,
+    booking, cycle, dashboard, erlang, etcd, floors::floors, holon, lease, moves, opcua, orders,
+    rebook, robots, scale, throughput, tls,
 };
 
 /// The most resource holons the dashboard section runs (`--scale` beyond it still
@@ -29,6 +29,7 @@ const SECTIONS: &[&str] = &[
     "dashboard",
     "opcua",
     "etcd",
+    "moves",
     "erlang",
 ];
 
@@ -40,6 +41,7 @@ pub async fn run(
     scale: usize,
     only: &[String],
     erlang_peer: Option<&Path>,
+    moves: &moves::Sizes,
 ) -> Result<()> {
     for section in only {
         if !SECTIONS.contains(&section.as_str()) {
@@ -105,6 +107,9 @@ pub async fn run(
     }
     if wants("etcd") {
         etcd::section(&mut run).await?;
+    }
+    if wants("moves") {
+        moves::section(&mut run, moves).await?;
     }
 
     let machine = json!({

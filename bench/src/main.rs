@@ -22,6 +22,7 @@ mod etcd;
 mod floors;
 mod holon;
 mod lease;
+mod moves;
 mod opcua;
 mod orders;
 mod process;
@@ -68,14 +69,31 @@ enum Commands {
         scale: usize,
         /// Run only these sections (comma-separated; the floors always run): booking,
         /// tls, cycle, erlang, holon, rebook, lease, throughput, robots, orders, scale,
-        /// dashboard, opcua, etcd.
+        /// dashboard, opcua, etcd, moves.
         #[arg(long, value_delimiter = ',')]
         only: Vec<String>,
+        #[command(flatten)]
+        moves: MovesArgs,
         /// The seed's resource holon in Erlang/OTP (a directory with its run.sh): run it
         /// in the same sitting and set our booking and cycle beside it (needs `erl`;
         /// skipped with a note otherwise).
         #[arg(long, value_name = "DIR")]
         erlang_peer: Option<PathBuf>,
+    },
+    /// What material flow costs (docs/benchmarks.md, "Material flow's costs"): the
+    /// floors, today's booking and cycle rows, then the moves section (a transport
+    /// booking, an order's cycle with moves against without, many parts in flight),
+    /// all in one sitting. The same as `all --only booking,cycle,moves`.
+    Moves {
+        /// Where the JSON goes.
+        #[arg(long, default_value = "moves-results.json")]
+        out: PathBuf,
+        /// Round trips per latency figure (the order cycles are a fiftieth of it, at
+        /// least 10 of each).
+        #[arg(long, default_value_t = 2000)]
+        samples: usize,
+        #[command(flatten)]
+        moves: MovesArgs,
     },
     /// The scheduling benchmark: each scenario's order stream run by contract net alone
     /// and with a staff holon, for several seeds (docs/scheduling.md).
@@ -163,6 +181,32 @@ enum Commands {
     },
 }
 
+/// How the moves section is sized.
+#[derive(Debug, clap::Args)]
+struct MovesArgs {
+    /// Moves section: transporters (one transfer per station) of the parts-in-flight
+    /// figure.
+    #[arg(long, default_value_t = 20)]
+    transporters: usize,
+    /// Moves section: parts (one-step orders whose parts move) submitted at once, per
+    /// wave.
+    #[arg(long, default_value_t = 200)]
+    in_flight: u32,
+    /// Moves section: waves of them, one after the other (memory is read after each).
+    #[arg(long, default_value_t = 3)]
+    waves: usize,
+}
+
+impl MovesArgs {
+    fn sizes(&self) -> moves::Sizes {
+        moves::Sizes {
+            transporters: self.transporters.max(1),
+            in_flight: self.in_flight.max(1),
+            waves: self.waves.max(1),
+        }
+    }
+}
+
 fn main() -> Result<()> {
     let args = Args::parse();
     // Zenoh's runtimes as the holons set them (before any thread), so that the floors,
@@ -185,8 +229,27 @@ async fn run(args: Args) -> Result<()> {
             samples,
             scale,
             only,
+            moves,
             erlang_peer,
-        } => all::run(&out, samples, scale, &only, erlang_peer.as_deref()).await,
+        } => {
+            all::run(
+                &out,
+                samples,
+                scale,
+                &only,
+                erlang_peer.as_deref(),
+                &moves.sizes(),
+            )
+            .await
+        }
+        Commands::Moves {
+            out,
+            samples,
+            moves,
+        } => {
+            let only = ["booking", "cycle", "moves"].map(String::from);
+            all::run(&out, samples, 0, &only, None, &moves.sizes()).await
+        }
         Commands::Schedule {
             scenarios,
             seeds,
