@@ -148,7 +148,14 @@ pub(super) async fn serve(
         let mut flow = tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
             _ = links_cut => {
+                // As when the holon's socket closes: the claim is free at once, and the
+                // action under way goes on and settles its step, after the connection
+                // is gone.
                 info!("the link is cut (the plant's control port): the connection ends, what runs goes on");
+                session.release();
+                drop(reader);
+                drop(writer);
+                session.complete_unanswered(&shutdown).await;
                 return Ok(());
             }
             _ = stop_changed => {
