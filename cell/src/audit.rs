@@ -2,8 +2,8 @@
 //!
 //! One JSON object per line ([`AuditRecord`]) in an append-only file, `audit.jsonl`
 //! beside the cell's users file (docs/security.md). The dashboard appends every
-//! operator action (logins and logouts, failed logins, submits, cancels, alarm
-//! acknowledgements, PackML commands, user changes), the OPC UA server its logins,
+//! operator action (logins and logouts, failed logins, submits, cancels, where a lost
+//! part is, alarm acknowledgements, PackML commands, user changes), the OPC UA server its logins,
 //! failed logins and every method call (accepted or refused), and `cell users` the
 //! changes made from the command line; each record says through which door
 //! ([`AuditDoor`]). Each line is written with one `write` on a file
@@ -38,6 +38,8 @@ pub enum AuditAction {
     Submit,
     /// An order was cancelled.
     Cancel,
+    /// An operator said where an order's lost part is (`{"at": LOCATION}`).
+    PartFound,
     /// An alarm was acknowledged.
     AcknowledgeAlarm,
     /// A resource was sent a PackML command, unit mode or operator job.

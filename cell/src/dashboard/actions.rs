@@ -230,6 +230,52 @@ pub async fn cancel(
     }
 }
 
+/// `POST /api/orders/{name}/part`'s body.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PartForm {
+    /// Where the lost part is: one end of its lost move (`robot1.port`).
+    at: String,
+}
+
+/// `POST /api/orders/{name}/part`: an operator says where the order's lost part is
+/// (docs/material-flow.md, section 2); the order-node's answer, or its refusal (409).
+pub async fn part_found(
+    State(shared): State<Arc<Shared>>,
+    Extension(who): Extension<Who>,
+    Path(name): Path<String>,
+    Json(form): Json<PartForm>,
+) -> Response {
+    let detail = Some(serde_json::json!({ "at": form.at }));
+    let act = match Act::begin(&shared, &who, AuditAction::PartFound, Some(&name), detail) {
+        Ok(act) => act,
+        Err(refusal) => return refusal.into_response(),
+    };
+    if let Err(e) = schemas::HolonId::order(&name) {
+        return act.refuse(StatusCode::BAD_REQUEST, e.to_string());
+    }
+    let at = match schemas::layout::LocationId::try_from(form.at) {
+        Ok(at) => at,
+        Err(e) => return act.refuse(StatusCode::BAD_REQUEST, e),
+    };
+    let by = act.by();
+    let told = crate::part_word::tell(
+        &shared.session,
+        &shared.keys,
+        &name,
+        &at,
+        &by,
+        ANSWER_WITHIN,
+    );
+    match told.await {
+        Ok(reply) => {
+            info!(user = %who.who, %by, order = %name, %at, "said where a lost part is");
+            act.done(Json(reply).into_response())
+        }
+        Err(e) => act.asked(e),
+    }
+}
+
 /// `POST /api/resources/{name}/packml`'s body.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -60,6 +60,7 @@ pub fn router(shared: Arc<Shared>, guard: Arc<super::guard::Guard>) -> Router {
         .route("/api/orders", get(orders).post(actions::submit))
         .route("/api/orders/history", get(history))
         .route("/api/orders/{name}/cancel", post(actions::cancel))
+        .route("/api/orders/{name}/part", post(actions::part_found))
         .route("/api/alarms", get(alarms))
         .route("/api/alarms/{id}/ack", post(actions::acknowledge))
         .route("/api/resources/{name}/packml", post(actions::packml))
