@@ -289,7 +289,7 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
             dir.join("cell.toml"),
             secure_manifest(&options.cell, &endpoint, options.opcua.is_some()),
         )?;
-        crate::certs::run(&dir, &crate::certs::CertsOptions::default())?;
+        crate::security::certs::run(&dir, &crate::security::certs::CertsOptions::default())?;
         Some(dir.join("pki"))
     } else {
         None
@@ -416,7 +416,8 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         due: None,
         queue: false,
     };
-    let ids = crate::submit::submit(&cell.session, &cell.keys, &work, "cell demo", STARTUP).await?;
+    let ids = crate::client::submit::submit(&cell.session, &cell.keys, &work, "cell demo", STARTUP)
+        .await?;
     println!(
         "submitted {} orders of breaker: {} .. {}",
         ids.len(),

@@ -11,7 +11,7 @@
 //! dashboard that has just subscribed) can publish a change before the subscription
 //! reached it, and that change would never arrive (seen: a resource turning `free`
 //! 1 ms after its token appeared, shown `init` for good). So the dashboard asks again,
-//! once, [`crate::states::ASK_NEWCOMER_AGAIN`] after it starts and after each resource's token
+//! once, [`crate::client::states::ASK_NEWCOMER_AGAIN`] after it starts and after each resource's token
 //! appears; a snapshot older than the one held changes nothing. One task owns the model;
 //! the zenoh callbacks queue what they hear for it (bounded; when full, a sample is
 //! dropped and counted: the next snapshot of that holon brings the model up to date),
@@ -88,9 +88,9 @@ impl DashboardConfig {
     fn gate(&self) -> Result<gate::GateConfig> {
         let certificates = self.tls.as_ref().is_some_and(|t| t.client_ca.is_some());
         let without_login = (self.users.is_none() && !certificates).then_some(if self.operator {
-            crate::users::Role::Operator
+            crate::security::users::Role::Operator
         } else {
-            crate::users::Role::Observer
+            crate::security::users::Role::Observer
         });
         if without_login.is_some() && !self.listen.ip().is_loopback() {
             return Err(anyhow!(
@@ -132,13 +132,13 @@ pub fn connect_as(secure: bool, identity: Option<&str>, operator: bool) -> Resul
     if !secure {
         return Ok((identity, operator));
     }
-    let (role, _) = crate::access::parse_identity(&identity)?;
+    let (role, _) = crate::security::access::parse_identity(&identity)?;
     match role {
-        crate::access::Role::Operator => Ok((identity, true)),
-        crate::access::Role::Observer if operator => Err(anyhow!(
+        crate::security::access::Role::Operator => Ok((identity, true)),
+        crate::security::access::Role::Observer if operator => Err(anyhow!(
             "--operator needs an operator identity: {identity} may only watch the cell (leave out --operator for a read-only page)"
         )),
-        crate::access::Role::Observer => Ok((identity, false)),
+        crate::security::access::Role::Observer => Ok((identity, false)),
         _ => Err(anyhow!(
             "a dashboard connects as an operator or an observer, not as {identity}"
         )),
@@ -224,7 +224,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
         .map_err(|e| anyhow!("{e}"))?;
     if let Some(users) = &config.users {
         if users.exists() {
-            crate::users::load(users)?;
+            crate::security::users::load(users)?;
         } else {
             warn!(file = %users.display(), "no users file yet: nobody logs in with a password (add users with `cell users`)");
         }
@@ -232,7 +232,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
     let audit = config
         .audit
         .as_deref()
-        .map(crate::audit::AuditTrail::open)
+        .map(crate::security::audit::AuditTrail::open)
         .transpose()?;
     if gate_config.without_login.is_some() {
         warn!("this dashboard has no login: everybody who reaches it on this machine is `local`");
@@ -253,7 +253,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
     {
         let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
         tokio::spawn(async move {
-            tokio::time::sleep(crate::states::ASK_NEWCOMER_AGAIN).await;
+            tokio::time::sleep(crate::client::states::ASK_NEWCOMER_AGAIN).await;
             ask_states(&session, &every_state, &inputs, &dropped).await;
         });
     }
@@ -272,7 +272,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
                     _ = stop.cancelled() => return,
                     _ = every.tick() => {}
                 }
-                match crate::status::fences(&session, &keys, FENCES_EVERY).await {
+                match crate::client::status::fences(&session, &keys, FENCES_EVERY).await {
                     Ok(reports) => queue(
                         &inputs,
                         &dropped,
@@ -283,7 +283,7 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
                     ),
                     Err(e) => warn!(error = %e, "cannot ask the fenced resources where they stand"),
                 }
-                match crate::status::node_fences(&session, &keys, FENCES_EVERY).await {
+                match crate::client::status::node_fences(&session, &keys, FENCES_EVERY).await {
                     Ok(reports) => queue(&inputs, &dropped, Input::NodeFences { reports }),
                     Err(e) => {
                         warn!(error = %e, "cannot ask the order-nodes on etcd where they stand")
@@ -292,11 +292,11 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
                 // Each order-node's counts of its whole history (a listing page of
                 // none): the totals the page shows. A node that does not answer keeps
                 // its last counts out of the totals until it does.
-                match crate::layout::live(&session, &keys, FENCES_EVERY).await {
+                match crate::client::layout::live(&session, &keys, FENCES_EVERY).await {
                     Ok(layout) => queue(&inputs, &dropped, Input::Layout(Box::new(layout))),
                     Err(e) => warn!(error = %e, "cannot ask the resources for the layout"),
                 }
-                match crate::listing::answered_counts(&session, &keys, FENCES_EVERY).await {
+                match crate::client::listing::answered_counts(&session, &keys, FENCES_EVERY).await {
                     Ok(counts) => queue(&inputs, &dropped, Input::NodeCounts { counts }),
                     Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
                 }
@@ -360,7 +360,7 @@ fn queue(inputs: &mpsc::Sender<Input>, dropped: &AtomicU64, input: Input) {
 struct Subscriptions {
     _alive: zenoh::pubsub::Subscriber<()>,
     _processes: zenoh::pubsub::Subscriber<()>,
-    _states: crate::states::Following,
+    _states: crate::client::states::Following,
 }
 
 async fn subscribe(
@@ -373,7 +373,7 @@ async fn subscribe(
     let alive = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
         let (asked, counter) = (inputs.clone(), dropped.clone());
-        crate::states::follow_tokens(
+        crate::client::states::follow_tokens(
             session,
             keys,
             move |holon, appeared| {
@@ -420,7 +420,7 @@ async fn subscribe(
     };
     let states = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
-        crate::states::follow(
+        crate::client::states::follow(
             session,
             keys,
             &[keys.resource_states(), keys.order_states()],
@@ -442,18 +442,18 @@ async fn ask_states(
     inputs: &mpsc::Sender<Input>,
     dropped: &AtomicU64,
 ) {
-    crate::states::ask(session, keys, |heard| {
+    crate::client::states::ask(session, keys, |heard| {
         queue(inputs, dropped, input_of(heard))
     })
     .await;
 }
 
 /// A state heard, as the model's input, stamped now.
-fn input_of(heard: crate::states::Heard) -> Input {
+fn input_of(heard: crate::client::states::Heard) -> Input {
     let at = schemas::unix_ms();
     match heard {
-        crate::states::Heard::Resource(snapshot) => Input::Resource { snapshot, at },
-        crate::states::Heard::Order(snapshot) => Input::Order { snapshot, at },
+        crate::client::states::Heard::Resource(snapshot) => Input::Resource { snapshot, at },
+        crate::client::states::Heard::Order(snapshot) => Input::Order { snapshot, at },
     }
 }
 

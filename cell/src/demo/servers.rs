@@ -19,12 +19,16 @@ pub(super) fn demo_operator(cell: &Cell) -> Result<()> {
         .fill(&mut bytes)
         .map_err(|_| anyhow!("no random source for the demo's password"))?;
     let password: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
-    let users = crate::users::default_path(pki);
-    crate::users::change(&users, |users| {
+    let users = crate::security::users::default_path(pki);
+    crate::security::users::change(&users, |users| {
         if users.get("operator").is_some() {
             users.set_password("operator", &password)
         } else {
-            users.add("operator", crate::users::Role::Operator, &password)
+            users.add(
+                "operator",
+                crate::security::users::Role::Operator,
+                &password,
+            )
         }
     })?;
     println!(
@@ -64,12 +68,15 @@ pub(super) async fn start_dashboard(
         // A secure demo's dashboard: HTTPS, people log in with the users file (the
         // demo's operator) or an operator.* certificate, and an audit trail beside it.
         // An open demo's: no login on loopback, its trail in the demo's directory.
-        users: cell.pki.as_deref().map(crate::users::default_path),
+        users: cell
+            .pki
+            .as_deref()
+            .map(crate::security::users::default_path),
         audit: Some(
             cell.pki
                 .as_deref()
                 .unwrap_or(&cell.dir)
-                .join(crate::audit::FILE_NAME),
+                .join(crate::security::audit::FILE_NAME),
         ),
         sessions: Default::default(),
         tls: crate::dashboard::https_files(

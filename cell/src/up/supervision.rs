@@ -25,8 +25,8 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use super::control::{failed, Upgrade};
-use crate::manifest::{Manifest, ProcessSection};
-use crate::upgrade::UpgradeOutcome;
+use crate::up::manifest::{Manifest, ProcessSection};
+use crate::up::upgrade::UpgradeOutcome;
 use upgrade::{Checked, Retired, Successor};
 
 /// A program named in a manifest: a binary next to `cell` if there is one, else as given.
@@ -283,7 +283,7 @@ impl<'a> Processes<'a> {
             let message = format!(
                 "the successor of {name} exited ({}) before {name} ended; {what}. The end of logs/{name}.log:\n{}",
                 describe(status),
-                crate::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
+                crate::up::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
             );
             self.clock
                 .say(format!("upgrade of {name} failed: its successor exited"));

@@ -10,7 +10,7 @@ use tokio::time::Instant;
 
 use super::{resolve, Processes};
 use crate::up::control::failed;
-use crate::upgrade::{UpgradeOutcome, UpgradeRequest};
+use crate::up::upgrade::{UpgradeOutcome, UpgradeRequest};
 
 /// How long a successor's `--check` may take.
 const CHECK_WITHIN: Duration = Duration::from_secs(30);
@@ -87,7 +87,7 @@ impl Processes<'_> {
         if slot.pid.is_none() {
             return refuse(reply, not_running(&spec.name));
         }
-        let (program, args) = match crate::upgrade::successor_command(
+        let (program, args) = match crate::up::upgrade::successor_command(
             &spec.program,
             &spec.args,
             request.binary.as_deref(),
@@ -191,7 +191,7 @@ impl Processes<'_> {
             },
             successor.pid.unwrap_or(0),
             holon::takeover::STAND_IN_LIMIT,
-            crate::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
+            crate::up::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
         );
         self.clock.say(format!(
             "upgrade of {name} failed: its successor did not serve; starting {name} again as it was"

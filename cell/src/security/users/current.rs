@@ -101,26 +101,26 @@ pub fn fingerprint(user: &User) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::users::Role;
+    use crate::security::users::Role;
 
     #[test]
     fn a_changed_file_is_read_again_and_a_changed_user_has_another_fingerprint() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("users.toml");
-        crate::users::change(&path, |users| {
+        crate::security::users::change(&path, |users| {
             users.add("anna", Role::Operator, "anna-password-1")
         })
         .unwrap();
         let current = CurrentUsers::file(path.clone());
         let before = fingerprint(current.get().get("anna").unwrap());
-        crate::users::change(&path, |users| {
+        crate::security::users::change(&path, |users| {
             users.set_role("anna", Role::Observer).map(|_| ())
         })
         .unwrap();
         let after = current.get();
         assert_eq!(after.get("anna").unwrap().role, Role::Observer);
         assert_ne!(fingerprint(after.get("anna").unwrap()), before);
-        crate::users::change(&path, |users| users.remove("anna").map(|_| ())).unwrap();
+        crate::security::users::change(&path, |users| users.remove("anna").map(|_| ())).unwrap();
         assert!(current.get().get("anna").is_none());
     }
 }

@@ -11,7 +11,7 @@ use anyhow::{anyhow, Context, Result};
 use schemas::layout::{CellLayout, LayoutSection, Problem, TransporterSpec};
 use schemas::CellKeys;
 
-use crate::manifest::Manifest;
+use crate::up::manifest::Manifest;
 
 /// The parts every serving resource answers within `timeout`, put together.
 pub async fn live(

@@ -1,5 +1,5 @@
 //! `cell orders`: the table of the cell's orders, printed a page at a time as each
-//! order-node answers ([`crate::listing`]): each node's running orders (oldest first),
+//! order-node answers ([`crate::client::listing`]): each node's running orders (oldest first),
 //! then its newest finished ones, as many as asked. Neither the node nor this command
 //! holds the whole history at once, and a listing that could not be had whole says so
 //! (and the command exits 1).
@@ -31,7 +31,7 @@ pub async fn print(
     out: &mut dyn Write,
 ) -> anyhow::Result<bool> {
     // The counts first, for the summary line: a page of none from each node.
-    let counted = crate::listing::counts(session, keys, timeout).await?;
+    let counted = crate::client::listing::counts(session, keys, timeout).await?;
     if counted.is_empty() {
         writeln!(
             out,
@@ -49,7 +49,7 @@ pub async fn print(
         }
         nodes.push(node);
     }
-    out.write_all(crate::status::orders_summary(cell, &total).as_bytes())?;
+    out.write_all(crate::client::status::orders_summary(cell, &total).as_bytes())?;
     if !incomplete.is_empty() {
         writeln!(
             out,
@@ -57,7 +57,7 @@ pub async fn print(
             incomplete.join("; ")
         )?;
     }
-    out.write_all(crate::status::orders_header().as_bytes())?;
+    out.write_all(crate::client::status::orders_header().as_bytes())?;
     let now = schemas::unix_ms();
     let mut shown_finished_total = 0u64;
     for node in &nodes {
@@ -66,29 +66,30 @@ pub async fn print(
         let limit = options.finished;
         let first = OrderListRequest::first(options.filter, schemas::MAX_PAGE_ORDERS);
         let mut failed_write = None;
-        let listing = crate::listing::node_orders(session, keys, node, &first, timeout, |page| {
-            let mut rows = Vec::with_capacity(page.len());
-            for order in page {
-                if order.status.is_final() {
-                    if limit.is_some_and(|l| shown_finished >= l) {
-                        break;
+        let listing =
+            crate::client::listing::node_orders(session, keys, node, &first, timeout, |page| {
+                let mut rows = Vec::with_capacity(page.len());
+                for order in page {
+                    if order.status.is_final() {
+                        if limit.is_some_and(|l| shown_finished >= l) {
+                            break;
+                        }
+                        shown_finished += 1;
                     }
-                    shown_finished += 1;
+                    rows.push(order);
                 }
-                rows.push(order);
-            }
-            if let Err(e) =
-                out.write_all(crate::status::order_rows(&rows, options.detail, now).as_bytes())
-            {
-                failed_write = Some(e);
-                return 0;
-            }
-            match limit {
-                Some(l) if shown_finished >= l => 0,
-                _ => usize::MAX,
-            }
-        })
-        .await;
+                if let Err(e) = out.write_all(
+                    crate::client::status::order_rows(&rows, options.detail, now).as_bytes(),
+                ) {
+                    failed_write = Some(e);
+                    return 0;
+                }
+                match limit {
+                    Some(l) if shown_finished >= l => 0,
+                    _ => usize::MAX,
+                }
+            })
+            .await;
         if let Some(e) = failed_write {
             return Err(e.into());
         }

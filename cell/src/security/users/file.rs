@@ -47,7 +47,7 @@ fn read(path: &Path) -> Result<Option<Users>, UsersError> {
             })
         }
     };
-    if let Some(mode) = crate::private_file::open_to_others(path) {
+    if let Some(mode) = crate::security::private_file::open_to_others(path) {
         return Err(UsersError::Open { path: shown, mode });
     }
     let invalid = |message: String| UsersError::Invalid {

@@ -9,7 +9,7 @@
 //!   `--peer-cert-file`/`--peer-key-file`, with the CA as its trusted CA): issued when
 //!   missing, not issued by the current CA, expiring within 30 days, or named by
 //!   `--renew`;
-//! - `access_control.json5`: the cell's zenoh access control (see `crate::access`),
+//! - `access_control.json5`: the cell's zenoh access control (see `crate::security::access`),
 //!   rewritten every time; etcd members are not in it (they are no zenoh clients);
 //! - `router-<host>.json5`: a zenohd config per router of the manifest (listen,
 //!   connect, TLS, access control), for the stock `zenohd -c` or `cell router --config`;
@@ -26,8 +26,8 @@ use rcgen::{
     Issuer, KeyPair, KeyUsagePurpose,
 };
 
-use crate::access;
-use crate::manifest::Manifest;
+use crate::security::access;
+use crate::up::manifest::Manifest;
 
 #[derive(Debug, Clone, Default)]
 pub struct CertsOptions {
@@ -297,7 +297,7 @@ pub fn run(dir: &Path, options: &CertsOptions) -> Result<Vec<String>> {
             );
         }
         let (pem, key) = new_ca(&manifest.cell)?;
-        crate::private_file::write_private(&ca_key_path, &key.serialize_pem())?;
+        crate::security::private_file::write_private(&ca_key_path, &key.serialize_pem())?;
         std::fs::write(&ca_pem_path, pem)?;
         said.push(format!("new cell CA {}", ca_pem_path.display()));
         true
@@ -322,7 +322,10 @@ pub fn run(dir: &Path, options: &CertsOptions) -> Result<Vec<String>> {
             continue;
         }
         let (cert, key) = issue(identity, manifest.pki.days, &issuer)?;
-        crate::private_file::write_private(&pki.join(format!("{}.key", identity.name)), &key)?;
+        crate::security::private_file::write_private(
+            &pki.join(format!("{}.key", identity.name)),
+            &key,
+        )?;
         std::fs::write(pki.join(format!("{}.pem", identity.name)), cert)?;
         said.push(format!(
             "issued {} ({})",
@@ -383,7 +386,7 @@ pub fn run(dir: &Path, options: &CertsOptions) -> Result<Vec<String>> {
 pub const OPCUA_SERVER: &str = "opcua-server";
 
 /// The manifest's `cell opcua` process, if it has one: its certificate is issued too.
-fn opcua_server(manifest: &Manifest) -> Option<&crate::manifest::ProcessSection> {
+fn opcua_server(manifest: &Manifest) -> Option<&crate::up::manifest::ProcessSection> {
     manifest.processes.iter().find(|p| {
         Path::new(&p.program).file_name().and_then(|n| n.to_str()) == Some("cell")
             && p.args.first().map(String::as_str) == Some("opcua")

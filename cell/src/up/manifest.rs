@@ -254,7 +254,7 @@ impl Manifest {
             schemas::validate_name("process name", &p.name)
                 .with_context(|| format!("{}: process", path.display()))?;
             if let Some(identity) = &p.identity {
-                crate::access::parse_identity(identity)
+                crate::security::access::parse_identity(identity)
                     .with_context(|| format!("{}: process {}", path.display(), p.name))?;
             }
             if !names.insert(&p.name) {
@@ -433,7 +433,7 @@ standby_args = ["--config", "robot1.toml", "--data-dir", "data-b"]"#,
             1
         );
         // Its certificate names both hosts.
-        let identities = crate::certs::identities(&manifest).unwrap();
+        let identities = crate::security::certs::identities(&manifest).unwrap();
         let robot = identities
             .iter()
             .find(|i| i.name == "resource.robot1")

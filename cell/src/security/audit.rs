@@ -181,7 +181,7 @@ impl AuditTrail {
                 path: shown.clone(),
                 source,
             })?;
-        if let Some(mode) = crate::private_file::open_to_others(path) {
+        if let Some(mode) = crate::security::private_file::open_to_others(path) {
             return Err(AuditError::OpenToOthers { path: shown, mode });
         }
         Ok(AuditTrail {

@@ -216,7 +216,7 @@ impl Users {
     }
 
     /// [`Users::verify`], in `memory` kept from one check to the next (a server's
-    /// logins, [`crate::logins`]).
+    /// logins, [`crate::security::logins`]).
     pub fn verify_in(
         &self,
         name: &str,

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use schemas::{CellKeys, SubmitReply, WorkOrder};
 
-use crate::ask::AskError;
+use crate::client::ask::AskError;
 
 /// Submits a work order to the cell's order-nodes (a default `get` reaches one); `by`
 /// says who asks, for the order-node's log.
@@ -19,7 +19,7 @@ pub async fn submit(
     let key = keys.orders_submit();
     let failed = |e: &dyn std::fmt::Display| AskError::Failed(format!("{e:#}"));
     let work = serde_json::to_vec(work).map_err(|e| failed(&e))?;
-    let Some(reply) = crate::ask::until_answered(session, &key, Some(work), by, timeout)
+    let Some(reply) = crate::client::ask::until_answered(session, &key, Some(work), by, timeout)
         .await
         .map_err(|e| failed(&e))?
     else {

@@ -4,7 +4,7 @@
 //! an attacker does.
 //!
 //! A check is an argon2id hash of 19 MiB and tens of milliseconds of CPU
-//! ([`crate::users::password`]). At most [`CHECKS_AT_ONCE`] run at a time, on tokio's
+//! ([`crate::security::users::password`]). At most [`CHECKS_AT_ONCE`] run at a time, on tokio's
 //! blocking threads, each in working memory kept from one check to the next (about
 //! 40 MiB in all, allocated at the first logins and never again); a login waits at most [`LONGEST_WAIT`]
 //! for its turn and is refused as busy after that (not counted against the name or the
@@ -26,8 +26,8 @@ use std::time::{Duration, Instant};
 
 use tokio::sync::Semaphore;
 
-use crate::users::password::Memory;
-use crate::users::{User, Users};
+use crate::security::users::password::Memory;
+use crate::security::users::{User, Users};
 use throttle::Throttle;
 pub use throttle::{LockedOut, FAILED_LOGIN_DELAY, FREE_FAILURES};
 
@@ -195,7 +195,7 @@ impl Drop for InCheck<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::users::Role;
+    use crate::security::users::Role;
 
     const A: IpAddr = IpAddr::V4(std::net::Ipv4Addr::new(10, 0, 0, 9));
 

@@ -8,7 +8,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use clap::{ArgGroup, Args, Subcommand};
 
 use super::{Role, Users, UsersError};
-use crate::audit::{self, AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
+use crate::security::audit::{self, AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
 
 /// `cell users`: which users file, and what to do with it.
 #[derive(Debug, Args)]

@@ -268,8 +268,15 @@ pub async fn all_orders(
         );
     }
     let mut orders: Vec<OrderSnapshot> = orders.into_values().collect();
-    orders.sort_by_key(|o| crate::status::order_sort_key(o.holon.name()));
+    orders.sort_by_key(|o| order_sort_key(o.holon.name()));
     Ok(orders)
+}
+
+/// Orders sort by node, then by number: `orders1-2` before `orders1-10`.
+pub fn order_sort_key(name: &str) -> (String, u64) {
+    name.rsplit_once('-')
+        .and_then(|(node, n)| Some((node.to_string(), n.parse::<u64>().ok()?)))
+        .unwrap_or_else(|| (name.to_string(), 0))
 }
 
 /// Every order-node's counts (a page of none each, [`first_pages`]), or why a node

@@ -327,13 +327,6 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
     out
 }
 
-/// Orders sort by node, then by number: `orders1-2` before `orders1-10`.
-pub fn order_sort_key(name: &str) -> (String, u64) {
-    name.rsplit_once('-')
-        .and_then(|(node, n)| Some((node.to_string(), n.parse::<u64>().ok()?)))
-        .unwrap_or_else(|| (name.to_string(), 0))
-}
-
 /// One order-node of the cell and how many of its orders stand where.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct OrderNodeStatus {
@@ -343,13 +336,13 @@ pub struct OrderNodeStatus {
 }
 
 /// The live order-nodes (their `host/order-node/<name>` tokens) with their orders'
-/// counts, each asked for a page of none ([`crate::listing::counts`]).
+/// counts, each asked for a page of none ([`crate::client::listing::counts`]).
 pub async fn order_nodes(
     session: &zenoh::Session,
     keys: &CellKeys,
     timeout: Duration,
 ) -> Result<Vec<OrderNodeStatus>> {
-    let counts = crate::listing::counts(session, keys, timeout)
+    let counts = crate::client::listing::counts(session, keys, timeout)
         .await
         .map_err(|e| anyhow!("{e}"))?;
     Ok(counts
@@ -396,12 +389,12 @@ pub async fn cancel(
     order: &str,
     by: &str,
     timeout: Duration,
-) -> Result<schemas::CancelReply, crate::ask::AskError> {
-    use crate::ask::AskError;
+) -> Result<schemas::CancelReply, crate::client::ask::AskError> {
+    use crate::client::ask::AskError;
     let failed = |e: &dyn std::fmt::Display| AskError::Failed(format!("{e:#}"));
     // A cancel is idempotent (journalled before its reply; asked again it answers the
     // order's state), so it is asked until an order-node answers.
-    let asked = crate::ask::until_answered(session, &keys.cancel(order), None, by, timeout)
+    let asked = crate::client::ask::until_answered(session, &keys.cancel(order), None, by, timeout)
         .await
         .map_err(|e| failed(&e))?;
     match asked {
@@ -551,7 +544,7 @@ mod tests {
     #[test]
     fn orders_sort_by_number_within_their_node() {
         let mut names = vec!["orders1-10", "orders2-1", "orders1-2", "orders1-1"];
-        names.sort_by_key(|n| order_sort_key(n));
+        names.sort_by_key(|n| crate::client::listing::order_sort_key(n));
         assert_eq!(names, ["orders1-1", "orders1-2", "orders1-10", "orders2-1"]);
     }
 
