@@ -6,8 +6,11 @@ use clap::Parser;
 use holon::LogFormat;
 
 mod cli;
+mod client_args;
+mod commands;
 
-use cli::commands::{Args, Commands};
+use anyhow::Result;
+use commands::{Args, Commands};
 
 fn main() -> ExitCode {
     // Keys, journals, logs and the files `cell up` writes for its processes are their
@@ -70,12 +73,44 @@ fn main() -> ExitCode {
             return ExitCode::FAILURE;
         }
     };
-    match runtime.block_on(cli::run(args)) {
+    match runtime.block_on(run(args)) {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::FAILURE,
         Err(e) => {
             eprintln!("cell: {e:#}");
             ExitCode::FAILURE
+        }
+    }
+}
+
+/// Runs the command; true: exit 0, false: exit 1 (what failed is already printed).
+async fn run(args: Args) -> Result<bool> {
+    match args.command {
+        Commands::Demo(args) => cli::demo::run(args).await,
+        Commands::Dashboard(args) => cli::dashboard::run(args).await,
+        Commands::Opcua(args) => cli::opcua::run(args).await,
+        Commands::Users(args) => {
+            cell::security::users::cli::run(args)?;
+            Ok(true)
+        }
+        Commands::Up {
+            dir, check: true, ..
+        } => cli::up::check(&dir),
+        Commands::Up { dir, host, .. } => cli::up::run(&dir, &host).await,
+        Commands::Upgrade(args) => cli::up::upgrade(args).await,
+        Commands::Router(args) => cli::router::run(args).await,
+        Commands::Orders(args) => cli::orders::list(args).await,
+        Commands::Submit(args) => cli::orders::submit(args).await,
+        Commands::Cancel { order, client } => cli::orders::cancel(&order, &client).await,
+        Commands::Packml(args) => cli::packml::run(args).await,
+        Commands::Layout { json, client } => cli::status::layout(json, &client).await,
+        Commands::Status { client } => cli::status::status(&client).await,
+        Commands::Certs { dir, force, renew } => {
+            let options = cell::security::certs::CertsOptions { force, renew };
+            for line in cell::security::certs::run(&dir, &options)? {
+                println!("{line}");
+            }
+            Ok(true)
         }
     }
 }

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use anyhow::Result;
 
-use super::client_args::ClientArgs;
+use crate::client_args::ClientArgs;
 
 /// `cell dashboard`: where it listens, who may use it, and how.
 #[derive(Debug, clap::Args)]

@@ -3,7 +3,7 @@
 
 use anyhow::Result;
 
-use super::client_args::{close, parse_due_in, ClientArgs, OBSERVER, OPERATOR};
+use crate::client_args::{close, parse_due_in, ClientArgs, OBSERVER, OPERATOR};
 
 /// `cell orders`: which orders, and how much of each.
 #[derive(Debug, clap::Args)]

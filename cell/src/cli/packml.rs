@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use anyhow::{anyhow, Result};
 
-use super::client_args::{close, ClientArgs, OBSERVER, OPERATOR};
+use crate::client_args::{close, ClientArgs, OBSERVER, OPERATOR};
 
 /// `cell packml`: the resource, and what to show or command.
 #[derive(Debug, clap::Args)]

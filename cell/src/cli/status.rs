@@ -2,7 +2,7 @@
 
 use anyhow::Result;
 
-use super::client_args::{close, ClientArgs, OBSERVER};
+use crate::client_args::{close, ClientArgs, OBSERVER};
 
 /// Prints the live holons, the fenced resources and order-nodes, and the order-nodes.
 pub async fn status(client: &ClientArgs) -> Result<bool> {

@@ -1,18 +1,18 @@
 //! The command line of `cell`: every subcommand, as `cell --help` shows them; the flags
-//! of a command with many are in its own file beside this one.
+//! of a command with many are in its handler's file (`cli/`).
 
 use std::path::PathBuf;
 
 use clap::{Parser, Subcommand};
 
-use super::client_args::ClientArgs;
-use super::dashboard::DashboardArgs;
-use super::demo::DemoArgs;
-use super::opcua::OpcuaArgs;
-use super::orders::{OrdersArgs, SubmitArgs};
-use super::packml::PackmlArgs;
-use super::router::RouterArgs;
-use super::up::UpgradeArgs;
+use crate::cli::dashboard::DashboardArgs;
+use crate::cli::demo::DemoArgs;
+use crate::cli::opcua::OpcuaArgs;
+use crate::cli::orders::{OrdersArgs, SubmitArgs};
+use crate::cli::packml::PackmlArgs;
+use crate::cli::router::RouterArgs;
+use crate::cli::up::UpgradeArgs;
+use crate::client_args::ClientArgs;
 
 /// The operator's command for a holarchy cell.
 #[derive(Debug, Parser)]
