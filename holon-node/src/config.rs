@@ -406,6 +406,8 @@ impl ResourceConfig {
         Ok(config)
     }
 
+    /// Checks the file section by section (the first problem is the one reported) and
+    /// makes the resource's config of it.
     fn validate(
         file: ConfigFile,
         header: holon::config_file::CheckedHeader,
@@ -419,122 +421,17 @@ impl ResourceConfig {
         }
         let holon = HolonId::resource(&header.name).map_err(|e| format!("name: {e}"))?;
         let c = &file.controller;
-        let port = c
-            .address
-            .rsplit_once(':')
-            .filter(|(host, _)| !host.trim().is_empty())
-            .map(|(_, port)| port);
-        match port.map(str::parse::<u16>) {
-            Some(Ok(port)) if port > 0 => {}
-            Some(_) => {
-                return Err(format!(
-                    "controller.address: {:?}: the port must be a number from 1 to 65535",
-                    c.address
-                ))
-            }
-            None => {
-                return Err(format!(
-                    "controller.address: {:?} is not HOST:PORT",
-                    c.address
-                ))
-            }
-        }
-        for (field, value) in [
-            ("controller.reconnect_interval_ms", c.reconnect_interval_ms),
-            ("controller.reconnect_max_ms", c.reconnect_max_ms),
-            ("controller.command_timeout_ms", c.command_timeout_ms),
-            ("controller.connect_timeout_ms", c.connect_timeout_ms),
-            ("supervisor.period_ms", file.supervisor.period_ms),
-            ("delivery.retry_initial_ms", file.delivery.retry_initial_ms),
-            ("delivery.retry_max_ms", file.delivery.retry_max_ms),
-            (
-                "delivery.attempt_timeout_ms",
-                file.delivery.attempt_timeout_ms,
-            ),
-        ] {
-            if value == 0 {
-                return Err(format!("{field} must be greater than 0"));
-            }
-        }
-        if c.reconnect_max_ms < c.reconnect_interval_ms {
-            return Err(format!(
-                "controller.reconnect_max_ms ({}) must be at least controller.reconnect_interval_ms ({})",
-                c.reconnect_max_ms, c.reconnect_interval_ms
-            ));
-        }
-        if file.delivery.retry_max_ms < file.delivery.retry_initial_ms {
-            return Err("delivery.retry_max_ms must be at least retry_initial_ms".into());
-        }
-        if file.agenda.capacity == 0 {
-            return Err("agenda.capacity must be greater than 0".into());
-        }
-        if file.agenda.requester_grace_ms < 1000 {
-            return Err("agenda.requester_grace_ms must be at least 1000".into());
-        }
-        if file.services.is_empty() {
-            return Err("services: a resource must offer at least one service type".into());
-        }
-        let mut services = BTreeMap::new();
-        for (service_type, section) in file.services {
-            validate_name("service type", &service_type)
-                .map_err(|e| format!("services.{service_type}: {e}"))?;
-            if section.steps.is_empty() {
-                return Err(format!("services.{service_type}.steps: at least one step"));
-            }
-            let mut steps = Vec::new();
-            for (i, step) in section.steps.into_iter().enumerate() {
-                let at = format!("services.{service_type}.steps[{i}]");
-                validate_name("action", &step.action).map_err(|e| format!("{at}.action: {e}"))?;
-                if step.until.is_empty() {
-                    return Err(format!("{at}.until: at least one result"));
-                }
-                for result in &step.until {
-                    validate_name("result", result).map_err(|e| format!("{at}.until: {e}"))?;
-                    if result == schemas::robot::RESULT_ERROR {
-                        return Err(format!("{at}.until: \"error\" always fails a step"));
-                    }
-                }
-                if let Some(position) = &step.position {
-                    validate_name("position", position)
-                        .map_err(|e| format!("{at}.position: {e}"))?;
-                }
-                steps.push(Step {
-                    action: step.action,
-                    until: step.until,
-                    position: step.position,
-                });
-            }
-            services.insert(
-                service_type,
-                ServiceDefinition {
-                    steps,
-                    nominal_duration: Duration::from_millis(section.nominal_duration_ms),
-                },
-            );
-        }
-        let dialect = robot_bridge::dialect::Dialect::load(&c.dialect, None)
-            .map_err(|e| format!("controller.dialect: {e}"))?;
-        if c.fenced && !dialect.fencing_supported() {
-            return Err(format!(
-                "controller.fenced (--standby): the dialect {} has no fence (claim, epochs, step ids): standby is refused",
-                dialect.name
-            ));
-        }
+        check_address(&c.address)?;
+        check_periods(&file)?;
+        check_limits(&file)?;
+        let services = services(file.services)?;
+        let dialect = dialect(c)?;
         let packml = file.packml.settings()?;
         let layout = (!file.layout.is_empty())
             .then(|| file.layout.part(holon.name()))
             .transpose()
             .map_err(|e| e.to_string())?;
-        for (service_type, definition) in &services {
-            for step in &definition.steps {
-                dialect.check_action(&step.action).map_err(|e| {
-                    format!(
-                        "services.{service_type}: the action {:?} cannot be sent in the dialect {}: {e}",
-                        step.action, dialect.name
-                    )
-                })?;
-            }
-        }
+        check_actions(&services, &dialect)?;
         Ok(ResourceConfig {
             keys: header.keys,
             holon,
@@ -571,6 +468,149 @@ impl ResourceConfig {
             layout,
         })
     }
+}
+
+/// `controller.address`: HOST:PORT, the port from 1 to 65535.
+fn check_address(address: &str) -> Result<(), String> {
+    let port = address
+        .rsplit_once(':')
+        .filter(|(host, _)| !host.trim().is_empty())
+        .map(|(_, port)| port);
+    match port.map(str::parse::<u16>) {
+        Some(Ok(port)) if port > 0 => Ok(()),
+        Some(_) => Err(format!(
+            "controller.address: {address:?}: the port must be a number from 1 to 65535"
+        )),
+        None => Err(format!("controller.address: {address:?} is not HOST:PORT")),
+    }
+}
+
+/// The periods and timeouts: none is 0, and no maximum is below its minimum.
+fn check_periods(file: &ConfigFile) -> Result<(), String> {
+    let c = &file.controller;
+    for (field, value) in [
+        ("controller.reconnect_interval_ms", c.reconnect_interval_ms),
+        ("controller.reconnect_max_ms", c.reconnect_max_ms),
+        ("controller.command_timeout_ms", c.command_timeout_ms),
+        ("controller.connect_timeout_ms", c.connect_timeout_ms),
+        ("supervisor.period_ms", file.supervisor.period_ms),
+        ("delivery.retry_initial_ms", file.delivery.retry_initial_ms),
+        ("delivery.retry_max_ms", file.delivery.retry_max_ms),
+        (
+            "delivery.attempt_timeout_ms",
+            file.delivery.attempt_timeout_ms,
+        ),
+    ] {
+        if value == 0 {
+            return Err(format!("{field} must be greater than 0"));
+        }
+    }
+    if c.reconnect_max_ms < c.reconnect_interval_ms {
+        return Err(format!(
+            "controller.reconnect_max_ms ({}) must be at least controller.reconnect_interval_ms ({})",
+            c.reconnect_max_ms, c.reconnect_interval_ms
+        ));
+    }
+    if file.delivery.retry_max_ms < file.delivery.retry_initial_ms {
+        return Err("delivery.retry_max_ms must be at least retry_initial_ms".into());
+    }
+    Ok(())
+}
+
+/// The agenda's limits, and at least one service.
+fn check_limits(file: &ConfigFile) -> Result<(), String> {
+    if file.agenda.capacity == 0 {
+        return Err("agenda.capacity must be greater than 0".into());
+    }
+    if file.agenda.requester_grace_ms < 1000 {
+        return Err("agenda.requester_grace_ms must be at least 1000".into());
+    }
+    if file.services.is_empty() {
+        return Err("services: a resource must offer at least one service type".into());
+    }
+    Ok(())
+}
+
+/// `[services]`: each service type's steps, their actions, results and positions named.
+fn services(
+    sections: BTreeMap<String, ServiceSection>,
+) -> Result<BTreeMap<String, ServiceDefinition>, String> {
+    let mut services = BTreeMap::new();
+    for (service_type, section) in sections {
+        validate_name("service type", &service_type)
+            .map_err(|e| format!("services.{service_type}: {e}"))?;
+        if section.steps.is_empty() {
+            return Err(format!("services.{service_type}.steps: at least one step"));
+        }
+        let mut steps = Vec::new();
+        for (i, step) in section.steps.into_iter().enumerate() {
+            steps.push(service_step(
+                &format!("services.{service_type}.steps[{i}]"),
+                step,
+            )?);
+        }
+        services.insert(
+            service_type,
+            ServiceDefinition {
+                steps,
+                nominal_duration: Duration::from_millis(section.nominal_duration_ms),
+            },
+        );
+    }
+    Ok(services)
+}
+
+/// One step of a service (`at` names it): an action until one of its results.
+fn service_step(at: &str, step: StepSection) -> Result<Step, String> {
+    validate_name("action", &step.action).map_err(|e| format!("{at}.action: {e}"))?;
+    if step.until.is_empty() {
+        return Err(format!("{at}.until: at least one result"));
+    }
+    for result in &step.until {
+        validate_name("result", result).map_err(|e| format!("{at}.until: {e}"))?;
+        if result == schemas::robot::RESULT_ERROR {
+            return Err(format!("{at}.until: \"error\" always fails a step"));
+        }
+    }
+    if let Some(position) = &step.position {
+        validate_name("position", position).map_err(|e| format!("{at}.position: {e}"))?;
+    }
+    Ok(Step {
+        action: step.action,
+        until: step.until,
+        position: step.position,
+    })
+}
+
+/// `controller.dialect`, loaded; a fenced resource's dialect must have a fence.
+fn dialect(c: &ControllerSection) -> Result<Arc<robot_bridge::dialect::Dialect>, String> {
+    let dialect = robot_bridge::dialect::Dialect::load(&c.dialect, None)
+        .map_err(|e| format!("controller.dialect: {e}"))?;
+    if c.fenced && !dialect.fencing_supported() {
+        return Err(format!(
+            "controller.fenced (--standby): the dialect {} has no fence (claim, epochs, step ids): standby is refused",
+            dialect.name
+        ));
+    }
+    Ok(dialect)
+}
+
+/// Every step's action can be sent in the dialect.
+fn check_actions(
+    services: &BTreeMap<String, ServiceDefinition>,
+    dialect: &robot_bridge::dialect::Dialect,
+) -> Result<(), String> {
+    for (service_type, definition) in services {
+        for step in &definition.steps {
+            dialect.check_action(&step.action).map_err(|e| {
+                format!(
+                    "services.{service_type}: the action {:?} cannot be sent in the dialect {}: {e}",
+                    step.action, dialect.name
+                )
+            })?;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
