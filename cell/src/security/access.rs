@@ -46,136 +46,16 @@ const ALL: &[&str] = &[
     "liveliness_query",
 ];
 
+/// One rule: the messages it allows, on key expressions under `holarchy/<cell>/`.
+type Rule = (&'static [&'static str], Vec<String>);
+
 /// The rules of one identity: (messages, key expressions under `holarchy/<cell>/`).
-fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)> {
-    // What every reader may read: states, plans, presence.
-    let reading = || {
-        vec![
-            "*/*/state".to_string(),
-            // Which process holds a fenced resource's controller, and its standbys.
-            "resource/*/fence/*".to_string(),
-            // The cell's layout, each resource's part.
-            "resource/*/layout".to_string(),
-            "product/*/plan".to_string(),
-            "alive/**".to_string(),
-            "host/**".to_string(),
-        ]
-    };
-    // A successor (the same identity) asks the running process to hand over.
-    let takeover = |role: &str| {
-        (
-            &["declare_queryable", "reply", "query"][..],
-            vec![format!("takeover/{role}/{name}")],
-        )
-    };
+fn grants(role: Role, name: &str) -> Vec<Rule> {
     let mut rules = match role {
-        Role::Resource => vec![
-            (
-                DECLARE,
-                vec![
-                    format!("resource/{name}/service"),
-                    format!("resource/{name}/state"),
-                    format!("resource/{name}/packml"),
-                    // What became of a conversation, asked by the order that booked it.
-                    format!("resource/{name}/outcome"),
-                    // Its part of the cell's layout.
-                    format!("resource/{name}/layout"),
-                    format!("resource/{name}/debug/crash"),
-                    format!("resource/{name}/fence/*"),
-                    format!("offer/*/{name}"),
-                ],
-            ),
-            (
-                &["put"],
-                vec![
-                    format!("resource/{name}/state"),
-                    format!("resource/{name}/fence/*"),
-                ],
-            ),
-            (
-                &["liveliness_token"],
-                vec![format!("alive/resource/{name}")],
-            ),
-            // Who holds the name (answered on the token's key).
-            (DECLARE, vec![format!("alive/resource/{name}")]),
-            (&["query"], vec!["order/*/inbox".to_string()]),
-            // Which orders the order-nodes hold (the orders' bookings' lifetime).
-            (&["query"], vec!["host/order-node/*/held".to_string()]),
-            // The cell's layout (a transporter times its moves by it).
-            (&["query"], vec!["resource/*/layout".to_string()]),
-            // Twins and requesters' presence (the bookings' lifetime).
-            (
-                &["query", "declare_liveliness_subscriber", "liveliness_query"],
-                vec!["alive/**".to_string()],
-            ),
-        ],
-        Role::Product => vec![
-            (
-                DECLARE,
-                vec![
-                    format!("product/{name}/plan"),
-                    format!("product/{name}/state"),
-                ],
-            ),
-            (&["put"], vec![format!("product/{name}/state")]),
-            (&["liveliness_token"], vec![format!("alive/product/{name}")]),
-            (DECLARE, vec![format!("alive/product/{name}")]),
-            (
-                &["query", "liveliness_query", "declare_liveliness_subscriber"],
-                vec!["alive/**".to_string()],
-            ),
-        ],
-        Role::OrderNode => vec![
-            (
-                DECLARE,
-                vec![
-                    "orders/submit".to_string(),
-                    format!("host/order-node/{name}"),
-                    // Where each of its processes stands on etcd (holder or standby).
-                    format!("host/order-node/{name}/fence/*"),
-                    // Its orders listed a page at a time.
-                    format!("host/order-node/{name}/orders"),
-                    // Which of its orders it holds (asked by resources).
-                    format!("host/order-node/{name}/held"),
-                    format!("order/{name}-$*/inbox"),
-                    format!("order/{name}-$*/state"),
-                    format!("order/{name}-$*/cancel"),
-                ],
-            ),
-            (&["put"], vec![format!("order/{name}-$*/state")]),
-            (
-                &["liveliness_token"],
-                vec![
-                    // Orders of an order-node of an earlier release held a token each.
-                    format!("alive/order/{name}-$*"),
-                    format!("host/order-node/{name}"),
-                ],
-            ),
-            (READ, {
-                let mut keys = reading();
-                keys.extend([
-                    "resource/*/service".to_string(),
-                    "resource/*/outcome".to_string(),
-                    "offer/**".to_string(),
-                    "staff/*/advice".to_string(),
-                ]);
-                keys
-            }),
-        ],
-        Role::Staff => vec![
-            (
-                DECLARE,
-                vec![
-                    format!("staff/{name}/advice"),
-                    format!("staff/{name}/state"),
-                    // Who holds the name (answered on the token's key).
-                    format!("alive/staff/{name}"),
-                ],
-            ),
-            (&["put"], vec![format!("staff/{name}/state")]),
-            (&["liveliness_token"], vec![format!("alive/staff/{name}")]),
-            (READ, reading()),
-        ],
+        Role::Resource => resource(name),
+        Role::Product => product(name),
+        Role::OrderNode => order_node(name),
+        Role::Staff => staff(name),
         Role::Operator => vec![(READ, {
             let mut keys = reading();
             keys.extend([
@@ -191,13 +71,158 @@ fn grants(role: Role, name: &str) -> Vec<(&'static [&'static str], Vec<String>)>
         Role::Etcd => Vec::new(),
     };
     match role {
-        Role::Resource => rules.push(takeover("resource")),
-        Role::Product => rules.push(takeover("product")),
-        Role::OrderNode => rules.push(takeover("order-node")),
-        Role::Staff => rules.push(takeover("staff")),
+        Role::Resource => rules.push(takeover("resource", name)),
+        Role::Product => rules.push(takeover("product", name)),
+        Role::OrderNode => rules.push(takeover("order-node", name)),
+        Role::Staff => rules.push(takeover("staff", name)),
         Role::Operator | Role::Observer | Role::Router | Role::Etcd => {}
     }
     rules
+}
+
+/// What every reader may read: states, plans, presence.
+fn reading() -> Vec<String> {
+    vec![
+        "*/*/state".to_string(),
+        // Which process holds a fenced resource's controller, and its standbys.
+        "resource/*/fence/*".to_string(),
+        // The cell's layout, each resource's part.
+        "resource/*/layout".to_string(),
+        "product/*/plan".to_string(),
+        "alive/**".to_string(),
+        "host/**".to_string(),
+    ]
+}
+
+/// A successor (the same identity) asks the running process to hand over.
+fn takeover(role: &str, name: &str) -> Rule {
+    (
+        &["declare_queryable", "reply", "query"][..],
+        vec![format!("takeover/{role}/{name}")],
+    )
+}
+
+/// A resource holon's rules.
+fn resource(name: &str) -> Vec<Rule> {
+    vec![
+        (
+            DECLARE,
+            vec![
+                format!("resource/{name}/service"),
+                format!("resource/{name}/state"),
+                format!("resource/{name}/packml"),
+                // What became of a conversation, asked by the order that booked it.
+                format!("resource/{name}/outcome"),
+                // Its part of the cell's layout.
+                format!("resource/{name}/layout"),
+                format!("resource/{name}/debug/crash"),
+                format!("resource/{name}/fence/*"),
+                format!("offer/*/{name}"),
+            ],
+        ),
+        (
+            &["put"],
+            vec![
+                format!("resource/{name}/state"),
+                format!("resource/{name}/fence/*"),
+            ],
+        ),
+        (
+            &["liveliness_token"],
+            vec![format!("alive/resource/{name}")],
+        ),
+        // Who holds the name (answered on the token's key).
+        (DECLARE, vec![format!("alive/resource/{name}")]),
+        (&["query"], vec!["order/*/inbox".to_string()]),
+        // Which orders the order-nodes hold (the orders' bookings' lifetime).
+        (&["query"], vec!["host/order-node/*/held".to_string()]),
+        // The cell's layout (a transporter times its moves by it).
+        (&["query"], vec!["resource/*/layout".to_string()]),
+        // Twins and requesters' presence (the bookings' lifetime).
+        (
+            &["query", "declare_liveliness_subscriber", "liveliness_query"],
+            vec!["alive/**".to_string()],
+        ),
+    ]
+}
+
+/// A product holon's rules.
+fn product(name: &str) -> Vec<Rule> {
+    vec![
+        (
+            DECLARE,
+            vec![
+                format!("product/{name}/plan"),
+                format!("product/{name}/state"),
+            ],
+        ),
+        (&["put"], vec![format!("product/{name}/state")]),
+        (&["liveliness_token"], vec![format!("alive/product/{name}")]),
+        (DECLARE, vec![format!("alive/product/{name}")]),
+        (
+            &["query", "liveliness_query", "declare_liveliness_subscriber"],
+            vec!["alive/**".to_string()],
+        ),
+    ]
+}
+
+/// An order-node's rules.
+fn order_node(name: &str) -> Vec<Rule> {
+    vec![
+        (
+            DECLARE,
+            vec![
+                "orders/submit".to_string(),
+                format!("host/order-node/{name}"),
+                // Where each of its processes stands on etcd (holder or standby).
+                format!("host/order-node/{name}/fence/*"),
+                // Its orders listed a page at a time.
+                format!("host/order-node/{name}/orders"),
+                // Which of its orders it holds (asked by resources).
+                format!("host/order-node/{name}/held"),
+                format!("order/{name}-$*/inbox"),
+                format!("order/{name}-$*/state"),
+                format!("order/{name}-$*/cancel"),
+            ],
+        ),
+        (&["put"], vec![format!("order/{name}-$*/state")]),
+        (
+            &["liveliness_token"],
+            vec![
+                // Orders of an order-node of an earlier release held a token each.
+                format!("alive/order/{name}-$*"),
+                format!("host/order-node/{name}"),
+            ],
+        ),
+        (READ, {
+            let mut keys = reading();
+            keys.extend([
+                "resource/*/service".to_string(),
+                "resource/*/outcome".to_string(),
+                "offer/**".to_string(),
+                "staff/*/advice".to_string(),
+            ]);
+            keys
+        }),
+    ]
+}
+
+/// A staff holon's rules.
+fn staff(name: &str) -> Vec<Rule> {
+    vec![
+        (
+            DECLARE,
+            vec![
+                format!("staff/{name}/advice"),
+                format!("staff/{name}/state"),
+                // Who holds the name (answered on the token's key).
+                format!("alive/staff/{name}"),
+            ],
+        ),
+        (&["put"], vec![format!("staff/{name}/state")]),
+        (&["liveliness_token"], vec![format!("alive/staff/{name}")]),
+        (READ, reading()),
+    ]
 }
 
 /// The `access_control` section for a cell and its identities, as a zenoh config
