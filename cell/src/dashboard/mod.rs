@@ -215,29 +215,7 @@ pub struct Shared {
 /// Runs the dashboard until `shutdown`.
 pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result<()> {
     // Everything that can be wrong with the settings is found before joining the cell.
-    let gate_config = config.gate()?;
-    let tls = config
-        .tls
-        .as_ref()
-        .map(listener::server_config)
-        .transpose()
-        .map_err(|e| anyhow!("{e}"))?;
-    if let Some(users) = &config.users {
-        if users.exists() {
-            crate::security::users::load(users)?;
-        } else {
-            warn!(file = %users.display(), "no users file yet: nobody logs in with a password (add users with `cell users`)");
-        }
-    }
-    let audit = config
-        .audit
-        .as_deref()
-        .map(crate::security::audit::AuditTrail::open)
-        .transpose()?;
-    if gate_config.without_login.is_some() {
-        warn!("this dashboard has no login: everybody who reaches it on this machine is `local`");
-    }
-    let gate = Arc::new(gate::Gate::new(gate_config, audit));
+    let (gate, tls) = gate_and_tls(&config)?;
     let session = config
         .zenoh
         .open(&config.identity, Duration::from_secs(10))
@@ -257,52 +235,13 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
             ask_states(&session, &every_state, &inputs, &dropped).await;
         });
     }
-    {
-        let (session, keys, inputs, dropped, stop) = (
-            session.clone(),
-            config.keys.clone(),
-            inputs.clone(),
-            dropped.clone(),
-            shutdown.clone(),
-        );
-        tokio::spawn(async move {
-            let mut every = tokio::time::interval(FENCES_EVERY);
-            loop {
-                tokio::select! {
-                    _ = stop.cancelled() => return,
-                    _ = every.tick() => {}
-                }
-                match crate::client::status::fences(&session, &keys, FENCES_EVERY).await {
-                    Ok(reports) => queue(
-                        &inputs,
-                        &dropped,
-                        Input::Fences {
-                            reports,
-                            at: schemas::unix_ms(),
-                        },
-                    ),
-                    Err(e) => warn!(error = %e, "cannot ask the fenced resources where they stand"),
-                }
-                match crate::client::status::node_fences(&session, &keys, FENCES_EVERY).await {
-                    Ok(reports) => queue(&inputs, &dropped, Input::NodeFences { reports }),
-                    Err(e) => {
-                        warn!(error = %e, "cannot ask the order-nodes on etcd where they stand")
-                    }
-                }
-                // Each order-node's counts of its whole history (a listing page of
-                // none): the totals the page shows. A node that does not answer keeps
-                // its last counts out of the totals until it does.
-                match crate::client::layout::live(&session, &keys, FENCES_EVERY).await {
-                    Ok(layout) => queue(&inputs, &dropped, Input::Layout(Box::new(layout))),
-                    Err(e) => warn!(error = %e, "cannot ask the resources for the layout"),
-                }
-                match crate::client::listing::answered_counts(&session, &keys, FENCES_EVERY).await {
-                    Ok(counts) => queue(&inputs, &dropped, Input::NodeCounts { counts }),
-                    Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
-                }
-            }
-        });
-    }
+    tokio::spawn(ask_the_cell_every_while(
+        session.clone(),
+        config.keys.clone(),
+        inputs.clone(),
+        dropped.clone(),
+        shutdown.clone(),
+    ));
     let (view_tx, view_rx) = watch::channel(Arc::new(View::default()));
     let (commands, command_rx) = mpsc::channel(64);
     let owner = tokio::spawn(own_the_model(
@@ -347,6 +286,82 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
         warn!(error = %e, "cannot close the zenoh session");
     }
     served.context("the web server stopped")
+}
+
+/// The gate (who is let in, the audit trail) and the HTTPS settings, checked before the
+/// dashboard joins the cell.
+fn gate_and_tls(
+    config: &DashboardConfig,
+) -> Result<(Arc<gate::Gate>, Option<Arc<rustls::ServerConfig>>)> {
+    let gate_config = config.gate()?;
+    let tls = config
+        .tls
+        .as_ref()
+        .map(listener::server_config)
+        .transpose()
+        .map_err(|e| anyhow!("{e}"))?;
+    if let Some(users) = &config.users {
+        if users.exists() {
+            crate::security::users::load(users)?;
+        } else {
+            warn!(file = %users.display(), "no users file yet: nobody logs in with a password (add users with `cell users`)");
+        }
+    }
+    let audit = config
+        .audit
+        .as_deref()
+        .map(crate::security::audit::AuditTrail::open)
+        .transpose()?;
+    if gate_config.without_login.is_some() {
+        warn!("this dashboard has no login: everybody who reaches it on this machine is `local`");
+    }
+    Ok((Arc::new(gate::Gate::new(gate_config, audit)), tls))
+}
+
+/// Asks the cell every [`FENCES_EVERY`], until `stop`, what it does not publish: where
+/// the fenced resources and order-nodes stand, the layout, the order-nodes' counts.
+async fn ask_the_cell_every_while(
+    session: zenoh::Session,
+    keys: CellKeys,
+    inputs: mpsc::Sender<Input>,
+    dropped: Arc<AtomicU64>,
+    stop: CancellationToken,
+) {
+    let mut every = tokio::time::interval(FENCES_EVERY);
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => return,
+            _ = every.tick() => {}
+        }
+        match crate::client::status::fences(&session, &keys, FENCES_EVERY).await {
+            Ok(reports) => queue(
+                &inputs,
+                &dropped,
+                Input::Fences {
+                    reports,
+                    at: schemas::unix_ms(),
+                },
+            ),
+            Err(e) => warn!(error = %e, "cannot ask the fenced resources where they stand"),
+        }
+        match crate::client::status::node_fences(&session, &keys, FENCES_EVERY).await {
+            Ok(reports) => queue(&inputs, &dropped, Input::NodeFences { reports }),
+            Err(e) => {
+                warn!(error = %e, "cannot ask the order-nodes on etcd where they stand")
+            }
+        }
+        // Each order-node's counts of its whole history (a listing page of
+        // none): the totals the page shows. A node that does not answer keeps
+        // its last counts out of the totals until it does.
+        match crate::client::layout::live(&session, &keys, FENCES_EVERY).await {
+            Ok(layout) => queue(&inputs, &dropped, Input::Layout(Box::new(layout))),
+            Err(e) => warn!(error = %e, "cannot ask the resources for the layout"),
+        }
+        match crate::client::listing::answered_counts(&session, &keys, FENCES_EVERY).await {
+            Ok(counts) => queue(&inputs, &dropped, Input::NodeCounts { counts }),
+            Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
+        }
+    }
 }
 
 /// Queues an input for the model from a zenoh callback (which must not block).
