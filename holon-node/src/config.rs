@@ -11,6 +11,7 @@ use schemas::{validate_name, CellKeys, HolonId};
 use serde::Deserialize;
 
 use crate::catalog::{ServiceCatalog, ServiceDefinition, Step};
+use crate::identity::Overrides;
 
 pub use holon::config_file::ConfigError;
 
@@ -83,7 +84,7 @@ impl Default for PackmlSection {
 }
 
 impl PackmlSection {
-    fn settings(&self) -> Result<crate::agenda::PackmlSettings, String> {
+    fn settings(&self) -> Result<crate::machine::agenda::PackmlSettings, String> {
         use schemas::PackmlState;
         let initial_state = match self.initial_state.to_ascii_lowercase().as_str() {
             "execute" => PackmlState::Execute,
@@ -99,7 +100,7 @@ impl PackmlSection {
             .initial_mode
             .parse::<schemas::UnitMode>()
             .map_err(|e| format!("packml.initial_mode: {e}"))?;
-        Ok(crate::agenda::PackmlSettings {
+        Ok(crate::machine::agenda::PackmlSettings {
             initial_state,
             initial_mode,
             held_bookings_ms: self.held_bookings_ms,
@@ -227,7 +228,7 @@ pub struct AgendaSection {
 }
 
 fn default_max_overtakes() -> u32 {
-    crate::agenda::DEFAULT_MAX_OVERTAKES
+    crate::machine::agenda::DEFAULT_MAX_OVERTAKES
 }
 
 fn default_requester_grace_ms() -> u64 {
@@ -324,7 +325,7 @@ pub struct ResourceConfig {
     /// How many later bookings of higher priority may go ahead of a waiting one.
     pub agenda_max_overtakes: u32,
     /// How the PackML unit starts, and how long a held resource keeps its bookings.
-    pub packml: crate::agenda::PackmlSettings,
+    pub packml: crate::machine::agenda::PackmlSettings,
     /// How long a requester may be absent before its bookings are released.
     pub requester_grace: Duration,
     pub delivery: DeliverySettings,
@@ -345,17 +346,6 @@ pub struct ResourceConfig {
     /// Its part of the cell's layout (`[layout]`), answered on `resource/<name>/layout`;
     /// None: it takes no part in the cell's material flow.
     pub layout: Option<schemas::layout::LayoutPart>,
-}
-
-/// What the command line may override.
-#[derive(Debug, Clone, Default)]
-pub struct Overrides {
-    /// Cell, name, zenoh endpoints, data directory.
-    pub common: holon::session::CommandLine,
-    pub controller: Option<String>,
-    pub allow_fault_injection: bool,
-    /// `--standby`: fenced, whatever the file says.
-    pub standby: bool,
 }
 
 impl ResourceConfig {

@@ -5,7 +5,8 @@
 use holon::ZenohSettings;
 use schemas::{CellKeys, HolonId, HolonKind};
 
-use crate::config::{ConfigError, Overrides};
+use holon::config_file::ConfigError;
+
 use crate::node::STARTUP_TIMEOUT;
 
 /// A plain holon's identity, from its config file.
@@ -23,6 +24,20 @@ pub struct Identity {
 }
 
 pub use holon::config_file::Header;
+
+/// What holon-node's command line may override, for every kind of holon (the
+/// controller, fault injection and standby only apply to a resource).
+#[derive(Debug, Clone, Default)]
+pub struct Overrides {
+    /// Cell, name, zenoh endpoints, data directory.
+    pub common: holon::session::CommandLine,
+    /// `--controller`: the controller's HOST:PORT, instead of `controller.address`.
+    pub controller: Option<String>,
+    /// `--allow-fault-injection`: declare the crash queryable.
+    pub allow_fault_injection: bool,
+    /// `--standby`: fenced, whatever the file says.
+    pub standby: bool,
+}
 
 impl Identity {
     /// Checks `header` (of the file at `path`, whose `kind` field says `written_kind`)

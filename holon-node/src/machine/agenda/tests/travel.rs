@@ -27,7 +27,7 @@ fn layout() -> Arc<CellLayout> {
     ]))
 }
 
-fn conveyor() -> AgendaManager {
+fn conveyor() -> AgendaMachine {
     let transport = ServiceDefinition {
         steps: vec![Step {
             action: "move".into(),
@@ -37,7 +37,7 @@ fn conveyor() -> AgendaManager {
         nominal_duration: Duration::from_millis(500),
     };
     let catalog = ServiceCatalog::new(BTreeMap::from([("transport".to_string(), transport)]));
-    let mut m = AgendaManager::new(
+    let mut m = AgendaMachine::new(
         HolonId::resource("conveyor1").unwrap(),
         Arc::new(catalog),
         8,
@@ -62,7 +62,7 @@ fn transport(kind: MessageType, conversation: &str, from: &str, to: &str) -> Ser
 #[test]
 fn a_transporter_proposes_its_travel_time_and_the_moves_ahead() {
     let mut m = conveyor();
-    let ask = |m: &mut AgendaManager, from: &str, to: &str| {
+    let ask = |m: &mut AgendaMachine, from: &str, to: &str| {
         let actions = m.handle(
             AgendaEvent::Request(transport(MessageType::ProposalReq, "p", from, to)),
             unix_ms(),

@@ -5,7 +5,7 @@ use super::*;
 use schemas::unix_ms;
 
 /// robot1 with one port of capacity 1.
-fn station() -> AgendaManager {
+fn station() -> AgendaMachine {
     let part = schemas::layout::part_from_toml(
         "robot1",
         "[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ncapacity = 1\ndock = \"conveyor1.s1\"\n",
@@ -62,7 +62,7 @@ fn a_place_is_held_for_one_part_until_its_requester_releases_it() {
     m.handle(AgendaEvent::Withdraw, unix_ms());
     let record = m.record();
     assert_eq!(record.places[&id("robot1.port")].len(), 1, "{record:?}");
-    let restored = AgendaManager::restore(
+    let restored = AgendaMachine::restore(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,

@@ -56,8 +56,8 @@ fn proposals_report_the_expected_wait() {
 }
 
 /// A ready agenda of room for 16 bookings, running `c0` so the others wait.
-fn busy_manager(max_overtakes: u32) -> AgendaManager {
-    let mut m = AgendaManager::new(
+fn busy_manager(max_overtakes: u32) -> AgendaMachine {
+    let mut m = AgendaMachine::new(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         16,
@@ -74,7 +74,7 @@ fn urgent(order: &str, conversation: &str, priority: i32) -> Service {
     book(order, conversation).with_urgency(priority, None)
 }
 
-fn waiting(m: &AgendaManager) -> Vec<(&str, i32, u32)> {
+fn waiting(m: &AgendaMachine) -> Vec<(&str, i32, u32)> {
     m.bookings()
         .iter()
         .map(|b| (b.conversation_id.as_str(), b.priority, b.overtaken))

@@ -8,8 +8,8 @@ use schemas::layout::LocationId;
 use schemas::Service;
 use serde::Serialize;
 
-use super::{AgendaManager, Booking, Job, PlaceHold};
-use crate::packml::PackmlUnit;
+use super::{AgendaMachine, Booking, Job, PlaceHold};
+use crate::machine::packml::PackmlUnit;
 
 /// What the journal keeps of the agenda manager.
 #[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
@@ -39,7 +39,7 @@ pub struct AgendaRecordRef<'a> {
     pub places: &'a BTreeMap<LocationId, Vec<PlaceHold>>,
 }
 
-impl AgendaManager {
+impl AgendaMachine {
     /// What the journal keeps, as a copy.
     pub fn record(&self) -> AgendaRecord {
         AgendaRecord {
@@ -64,7 +64,7 @@ impl AgendaManager {
 
     /// Whether `other` keeps the same record, compared in place: whether a journal
     /// write would change anything.
-    pub fn same_record(&self, other: &AgendaManager) -> bool {
+    pub fn same_record(&self, other: &AgendaMachine) -> bool {
         self.bookings == other.bookings
             && self.current == other.current
             && self.undelivered == other.undelivered
@@ -88,7 +88,7 @@ mod tests {
 
     #[test]
     fn the_borrowed_record_is_written_as_the_owned_one_is() {
-        let agenda = crate::agenda::tests::agenda_for_record();
+        let agenda = crate::machine::agenda::tests::agenda_for_record();
         let owned = serde_json::to_value(agenda.record()).unwrap();
         let borrowed = serde_json::to_value(agenda.record_ref()).unwrap();
         assert_eq!(owned, borrowed);

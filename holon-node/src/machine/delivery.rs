@@ -2,11 +2,11 @@
 //! `reply_to` again and again, with a doubling pause, until the requester acknowledges
 //! it.
 //!
-//! [`Deliveries`] belongs to the agenda manager, the one owner of the undelivered
+//! [`DeliveryMachine`] belongs to the agenda manager, the one owner of the undelivered
 //! results (they are part of the agenda and journalled with it): it feeds the machine
 //! every result the agenda hands out, the moment the resource serves, the ticks of its
 //! timer and each attempt's end, and carries out the actions: an [`Attempt`] goes out as
-//! a future the agenda manager owns ([`crate::component::delivery`]), an
+//! a future the agenda manager owns ([`crate::component::agenda_manager::courier`]), an
 //! [`Acknowledged`] becomes the agenda's `ResultAcknowledged`. No task waits on another
 //! for a result or its acknowledgement.
 //!
@@ -113,7 +113,7 @@ struct Delivery {
 
 /// Every result not yet acknowledged, by `conversation_id`.
 #[derive(Debug)]
-pub struct Deliveries {
+pub struct DeliveryMachine {
     /// The pauses between attempts.
     settings: DeliverySettings,
     /// The results waiting for their acknowledgement.
@@ -125,11 +125,11 @@ pub struct Deliveries {
     retries: u64,
 }
 
-impl Deliveries {
+impl DeliveryMachine {
     /// No result yet, not serving; `retries` counted so far in this process (a
     /// restarted owner goes on counting).
-    pub fn new(settings: DeliverySettings, retries: u64) -> Deliveries {
-        Deliveries {
+    pub fn new(settings: DeliverySettings, retries: u64) -> DeliveryMachine {
+        DeliveryMachine {
             settings,
             pending: BTreeMap::new(),
             serving: false,
@@ -283,8 +283,8 @@ mod tests {
         .with_reply_to("holarchy/test/inbox/o-1")
     }
 
-    fn serving() -> (Deliveries, Instant) {
-        let mut deliveries = Deliveries::new(settings(), 0);
+    fn serving() -> (DeliveryMachine, Instant) {
+        let mut deliveries = DeliveryMachine::new(settings(), 0);
         let now = Instant::now();
         assert_eq!(deliveries.handle(DeliveryEvent::Serving, now), vec![]);
         (deliveries, now)
@@ -380,7 +380,7 @@ mod tests {
 
     #[test]
     fn nothing_goes_out_before_the_resource_serves() {
-        let mut d = Deliveries::new(settings(), 7);
+        let mut d = DeliveryMachine::new(settings(), 7);
         let now = Instant::now();
         assert_eq!(d.handle(DeliveryEvent::Result(done("c1")), now), vec![]);
         assert_eq!(d.handle(DeliveryEvent::Result(done("c2")), now), vec![]);

@@ -7,7 +7,7 @@
 use schemas::layout::LocationId;
 use serde_json::{Map, Value};
 
-use super::AgendaManager;
+use super::AgendaMachine;
 
 /// A move a booking's info asks for: where the part is and where it goes.
 fn move_of(info: &Map<String, Value>) -> Option<(LocationId, LocationId)> {
@@ -18,7 +18,7 @@ fn move_of(info: &Map<String, Value>) -> Option<(LocationId, LocationId)> {
     Some((location("from")?, location("to")?))
 }
 
-impl AgendaManager {
+impl AgendaMachine {
     /// How long a job of `service_type` with `info` takes, as far as the agenda can
     /// tell: a move's travel time from the layout, else the service's nominal duration.
     pub(super) fn duration_ms(&self, service_type: &str, info: &Map<String, Value>) -> u64 {

@@ -2,9 +2,9 @@
 
 use schemas::{BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot};
 
-use super::AgendaManager;
+use super::AgendaMachine;
 
-impl AgendaManager {
+impl AgendaMachine {
     /// The agenda's part of the snapshot published on `resource/<name>/state`: the
     /// controller, the step in progress and the requesters' absences are the other
     /// components' to fill in (see [`crate::views::Views::snapshot`]).

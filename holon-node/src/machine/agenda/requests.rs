@@ -5,7 +5,7 @@
 use schemas::{HolonId, HolonKind, MessageType, Reason, ResourceState, Service};
 use serde_json::Value;
 
-use super::{handing_over_hint, packml_hint, AgendaAction, AgendaManager, Booking};
+use super::{handing_over_hint, packml_hint, AgendaAction, AgendaMachine, Booking};
 
 /// Where one conversation (a requester and a `conversation_id`) stands on the agenda.
 #[derive(Debug, Clone, Copy)]
@@ -29,7 +29,7 @@ enum Epoch {
     Stale { asked: u64, booked: u64 },
 }
 
-impl AgendaManager {
+impl AgendaMachine {
     /// How `request`'s epoch stands against that of the booking at `index`; an error
     /// saying why when its epoch is not a whole number.
     fn epoch(&self, request: &Service, index: usize) -> Result<Epoch, String> {
@@ -88,7 +88,7 @@ impl AgendaManager {
     }
 
     /// A request from another holon: the rows of the table (in the documentation of
-    /// [`crate::agenda`]), in their order.
+    /// [`crate::machine::agenda`]), in their order.
     pub(super) fn request(&mut self, request: Service, now: u64) -> Vec<AgendaAction> {
         match request.message_type {
             MessageType::BookingReq if request.service_type == schemas::PLACE_SERVICE => {

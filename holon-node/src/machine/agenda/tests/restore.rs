@@ -4,13 +4,13 @@
 use super::*;
 use schemas::unix_ms;
 
-fn restored_with_bookings_on_turn(inheritance: Inheritance) -> (AgendaManager, Vec<String>) {
+fn restored_with_bookings_on_turn(inheritance: Inheritance) -> (AgendaMachine, Vec<String>) {
     let mut m = manager();
     m.handle(AgendaEvent::Request(book_on_turn("o-1", "c1")), unix_ms());
     m.handle(AgendaEvent::Request(book_on_turn("o-2", "c2")), unix_ms());
     m.handle(AgendaEvent::Request(book_on_turn("o-3", "c3")), unix_ms());
     let json = serde_json::to_string(&m.record()).unwrap();
-    let mut restored = AgendaManager::restore(
+    let mut restored = AgendaMachine::restore(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,
@@ -56,7 +56,7 @@ fn restore_reports_the_interrupted_job_and_redelivers_results() {
     let record = m.record();
     let json = serde_json::to_string(&record).unwrap();
     let record: AgendaRecord = serde_json::from_str(&json).unwrap();
-    let restored = AgendaManager::restore(
+    let restored = AgendaMachine::restore(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,
@@ -100,7 +100,7 @@ fn a_journal_keeps_no_parameters_and_its_bookings_are_read_again_when_it_opens()
     assert!(booking.get("parameters").is_none(), "{booking}");
     assert!(booking["info"]["pick"].is_object(), "{booking}");
     // Opened again, each booking has what its steps need, read from its info.
-    let restored = AgendaManager::restore(
+    let restored = AgendaMachine::restore(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,

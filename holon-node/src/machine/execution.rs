@@ -1,4 +1,6 @@
-//! The Execution component: the seed's Figure 5 as a pure state machine.
+//! The execution machine ([`ExecutionMachine`]): the seed's Figure 5 (the Execution
+//! component's behaviour) as a pure state machine, owned by the execution component
+//! ([`crate::component::execution`]).
 //!
 //! `init` until the controller reports `ready`; then `ready -> step 1 -> ... -> ready`,
 //! the steps of each service type coming from the holon's config (pick_n_place: `pick`
@@ -52,8 +54,8 @@ use robot_bridge::client::{
 use schemas::{Reason, RobotCommand};
 use serde_json::{Map, Value};
 
-use crate::agenda::{Job, Outcome};
 use crate::catalog::ServiceCatalog;
+use crate::machine::agenda::{Job, Outcome};
 
 /// What the execution component reacts to.
 #[derive(Debug, Clone, PartialEq)]
@@ -142,7 +144,7 @@ impl std::fmt::Display for ExecutionState {
 }
 
 #[derive(Debug, Clone)]
-pub struct Execution {
+pub struct ExecutionMachine {
     catalog: Arc<ServiceCatalog>,
     state: ExecutionState,
     controller: ControllerStatus,
@@ -154,9 +156,9 @@ pub struct Execution {
     fenced: bool,
 }
 
-impl Execution {
+impl ExecutionMachine {
     pub fn new(catalog: Arc<ServiceCatalog>) -> Self {
-        Execution {
+        ExecutionMachine {
             catalog,
             state: ExecutionState::Init,
             controller: ControllerStatus::Disconnected,
@@ -525,7 +527,7 @@ impl Execution {
     }
 }
 
-impl Execution {
+impl ExecutionMachine {
     fn is_unsettled(&self) -> bool {
         matches!(
             &self.state,

@@ -1,12 +1,12 @@
-//! The agenda's PackML rows (see the table in [`crate::agenda`]): the controller's
+//! The agenda's PackML rows (see the table in [`crate::machine::agenda`]): the controller's
 //! state as it drives the unit, an operator's command, mode change or single job, and
 //! the tick that hands back the bookings of a resource held too long.
 
 use schemas::{ControllerStatus, PackmlReply, PackmlRequest, PackmlState};
 use serde_json::{Map, Value};
 
-use super::{AgendaAction, AgendaManager, Job};
-use crate::packml::{Consequence, PackmlUnit};
+use super::{AgendaAction, AgendaMachine, Job};
+use crate::machine::packml::{Consequence, PackmlUnit};
 use schemas::UnitMode;
 
 /// How the PackML unit starts when the journal has none, and how long a held resource
@@ -31,7 +31,7 @@ impl Default for PackmlSettings {
     }
 }
 
-impl AgendaManager {
+impl AgendaMachine {
     /// The controller's state as the execution reports it: ready or not, and what
     /// that does to the PackML unit (a fault aborts, hands every booking back).
     pub(super) fn controller_now(

@@ -18,7 +18,7 @@ use std::collections::BTreeMap;
 use schemas::layout::{LayoutPart, LocationId};
 use schemas::{info_key, HolonId, HolonKind, Reason, Service};
 
-use super::{AgendaAction, AgendaManager};
+use super::{AgendaAction, AgendaMachine};
 
 /// A place held at a location for a part.
 #[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -70,7 +70,7 @@ impl Places {
     }
 }
 
-impl AgendaManager {
+impl AgendaMachine {
     /// A `booking_req` of a place: the rows of the table above.
     pub(super) fn hold_place(&mut self, request: &Service, now: u64) -> Vec<AgendaAction> {
         if request.requester.kind() == HolonKind::Resource {

@@ -36,8 +36,8 @@ fn reply(id: u64, result: &str) -> ExecutionEvent {
     })
 }
 
-fn ready_execution() -> Execution {
-    let mut e = Execution::new(Arc::new(pick_n_place()));
+fn ready_execution() -> ExecutionMachine {
+    let mut e = ExecutionMachine::new(Arc::new(pick_n_place()));
     assert_eq!(e.handle(ready()), vec![ExecutionAction::Ready]);
     e
 }
@@ -62,7 +62,7 @@ fn failed_with(actions: &[ExecutionAction], why: impl AsRef<str>) {
 
 #[test]
 fn init_to_ready_when_the_controller_is_ready() {
-    let mut e = Execution::new(Arc::new(pick_n_place()));
+    let mut e = ExecutionMachine::new(Arc::new(pick_n_place()));
     assert_eq!(e.state(), &ExecutionState::Init);
     assert_eq!(
         e.handle(status(ControllerStatus::Disconnected)),
@@ -470,8 +470,8 @@ mod fenced {
     use super::*;
     use robot_bridge::client::StepId;
 
-    fn fenced_running() -> (Execution, RobotCommand) {
-        let mut e = Execution::new(Arc::new(pick_n_place())).fenced(true);
+    fn fenced_running() -> (ExecutionMachine, RobotCommand) {
+        let mut e = ExecutionMachine::new(Arc::new(pick_n_place())).fenced(true);
         e.handle(ready());
         let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
         (e, pick)
@@ -492,7 +492,7 @@ mod fenced {
     }
 
     /// The connection breaks: the step's state is asked once the controller is back.
-    fn unsettled() -> (Execution, RobotCommand) {
+    fn unsettled() -> (ExecutionMachine, RobotCommand) {
         let (mut e, pick) = fenced_running();
         let asked = e.handle(lost(pick.id));
         assert_eq!(

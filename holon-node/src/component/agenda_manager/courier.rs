@@ -1,7 +1,7 @@
 //! The attempts to deliver results, carried out for the agenda manager.
 //!
 //! The agenda manager owns the undelivered results and the machine that schedules their
-//! delivery ([`crate::delivery`]); a [`Courier`] holds the attempts it has sent out, each
+//! delivery ([`crate::machine::delivery`]); a [`Courier`] holds the attempts it has sent out, each
 //! a future owned by the agenda manager's task and polled by its loop (no task, no
 //! channel: an attempt never waits on the agenda manager, and the agenda manager never
 //! waits on an attempt).
@@ -15,7 +15,7 @@ use schemas::Service;
 use tracing::{debug, warn};
 use zenoh::query::ConsolidationMode;
 
-use crate::delivery::AttemptOutcome;
+use crate::machine::delivery::AttemptOutcome;
 
 /// An attempt out: it ends with the result's conversation and how it went.
 type Attempt = Pin<Box<dyn Future<Output = (String, AttemptOutcome)> + Send>>;
@@ -122,7 +122,7 @@ mod tests {
 
     use super::*;
     use crate::config::DeliverySettings;
-    use crate::delivery::{Deliveries, DeliveryAction, DeliveryEvent};
+    use crate::machine::delivery::{DeliveryAction, DeliveryEvent, DeliveryMachine};
 
     const INBOX: &str = "holarchy/test/inbox/o-1";
 
@@ -198,14 +198,14 @@ mod tests {
 
     /// The machine and its courier.
     struct Owner {
-        deliveries: Deliveries,
+        deliveries: DeliveryMachine,
         courier: Courier,
     }
 
     impl Owner {
         fn new(session: &zenoh::Session) -> Owner {
             let mut owner = Owner {
-                deliveries: Deliveries::new(settings(), 0),
+                deliveries: DeliveryMachine::new(settings(), 0),
                 courier: Courier::new(session.clone(), settings().attempt_timeout),
             };
             owner.handle(DeliveryEvent::Serving);

@@ -13,8 +13,8 @@ mod travel;
 
 const INBOX: &str = "holarchy/t/order/o-1/inbox";
 
-fn manager() -> AgendaManager {
-    let mut m = AgendaManager::new(
+fn manager() -> AgendaMachine {
+    let mut m = AgendaMachine::new(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,
@@ -80,7 +80,7 @@ fn done(conversation: &str) -> AgendaEvent {
 
 #[test]
 fn starts_in_init_until_execution_is_ready() {
-    let mut m = AgendaManager::new(
+    let mut m = AgendaMachine::new(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,
@@ -654,7 +654,7 @@ fn a_job_ended_deposed_leaves_no_result() {
 
 /// An agenda with a job running, a booking waiting and a result undelivered: every
 /// part of the journal's record (for `record`'s tests).
-pub(super) fn agenda_for_record() -> AgendaManager {
+pub(super) fn agenda_for_record() -> AgendaMachine {
     let mut m = manager();
     assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", "c1")), unix_ms()));
     assert_accepted(&m.handle(AgendaEvent::Request(start("o-1", "c1")), unix_ms()));

@@ -5,7 +5,7 @@ use super::*;
 use schemas::unix_ms;
 use schemas::{PackmlCommand, PackmlRequest, Refusal};
 
-fn command(m: &mut AgendaManager, command: PackmlCommand) -> Vec<AgendaAction> {
+fn command(m: &mut AgendaMachine, command: PackmlCommand) -> Vec<AgendaAction> {
     m.handle(
         AgendaEvent::Packml(PackmlRequest::command(command, "op")),
         unix_ms(),
@@ -35,7 +35,7 @@ fn handed_back(actions: &[AgendaAction]) -> Vec<String> {
 }
 
 /// robot1 running c1 with c2 and c3 booked.
-fn busy_with_two_booked() -> AgendaManager {
+fn busy_with_two_booked() -> AgendaMachine {
     let mut m = manager();
     for c in ["c1", "c2", "c3"] {
         assert_accepted(&m.handle(AgendaEvent::Request(book("o-1", c)), unix_ms()));
@@ -217,7 +217,7 @@ fn a_held_resource_comes_back_held_from_its_journal() {
     command(&mut m, PackmlCommand::Hold);
     let record = m.record();
     let text = serde_json::to_string(&record).unwrap();
-    let restored = AgendaManager::restore(
+    let restored = AgendaMachine::restore(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,
@@ -230,7 +230,7 @@ fn a_held_resource_comes_back_held_from_its_journal() {
     assert_eq!(restored.packml().state(), PackmlState::Held);
     assert_eq!(restored.bookings().len(), 2);
     // A journal from before PackML: the settings' initial state.
-    let old = AgendaManager::restore(
+    let old = AgendaMachine::restore(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,
@@ -246,7 +246,7 @@ fn a_held_resource_comes_back_held_from_its_journal() {
 }
 
 /// robot1 stopped, put in Maintenance, reset and started: Execute in Maintenance.
-fn in_maintenance() -> AgendaManager {
+fn in_maintenance() -> AgendaMachine {
     let mut m = manager();
     command(&mut m, PackmlCommand::Stop);
     m.handle(
@@ -259,7 +259,7 @@ fn in_maintenance() -> AgendaManager {
     m
 }
 
-fn operator_job(m: &mut AgendaManager, info: Map<String, Value>) -> Vec<AgendaAction> {
+fn operator_job(m: &mut AgendaMachine, info: Map<String, Value>) -> Vec<AgendaAction> {
     m.handle(
         AgendaEvent::Packml(PackmlRequest::job(
             schemas::packml::JobRequest {
@@ -336,7 +336,7 @@ fn an_operator_job_running_at_a_crash_is_reported_interrupted_not_delivered() {
     let mut m = in_maintenance();
     operator_job(&mut m, poses());
     let record = m.record();
-    let restored = AgendaManager::restore(
+    let restored = AgendaMachine::restore(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         3,

@@ -1,4 +1,6 @@
-//! The Agenda Manager: the seed's Figure 4 as a pure state machine.
+//! The agenda machine ([`AgendaMachine`]): the seed's Figure 4 (the Agenda Manager's
+//! decisions) as a pure state machine, owned by the agenda manager component
+//! ([`crate::component::agenda_manager`]).
 //!
 //! Its state is the execution status (`init`, `free`, `busy`), the bookings in the order
 //! they were made, the results not yet acknowledged, and whether the holon is
@@ -56,7 +58,7 @@
 //! | requester gone (absent longer than the grace) | | its bookings removed; its running job and undelivered results stay | same − bookings |
 //! | restored from the journal | handed over by a predecessor just now | bookings as they were | `init` |
 //! | | otherwise (a restart) | bookings kept, none starts on its turn: each waits for its requester's `start` ([`Inheritance::Restarted`]) | `init` |
-//! | PackML command (`resource/<name>/packml`) | the unit refuses it ([`crate::packml`]) | the refusal, naming the state | same |
+//! | PackML command (`resource/<name>/packml`) | the unit refuses it ([`crate::machine::packml`]) | the refusal, naming the state | same |
 //! | | Hold | accepted; bookings kept, the running job finishes | Holding, then Held |
 //! | | Stop | accepted; every booking with a `reply_to` gets `failed` `withdrawn`; the running job finishes | Stopping, then Stopped |
 //! | | Abort | accepted; bookings handed back as for Stop; the execution aborts the running job | Aborting, then Aborted |
@@ -88,7 +90,7 @@ use schemas::{
 use serde_json::{json, Map, Value};
 
 use crate::catalog::{Parameters, ServiceCatalog};
-use crate::packml::PackmlUnit;
+use crate::machine::packml::PackmlUnit;
 
 mod leaving;
 mod packml;
@@ -282,7 +284,7 @@ pub enum Status {
 
 /// The Agenda Manager's state.
 #[derive(Debug, Clone)]
-pub struct AgendaManager {
+pub struct AgendaMachine {
     holon: HolonId,
     catalog: Arc<ServiceCatalog>,
     capacity: usize,
@@ -311,10 +313,10 @@ pub struct AgendaManager {
     places: Places,
 }
 
-impl AgendaManager {
+impl AgendaMachine {
     /// An empty agenda, its PackML unit in Execute and Production since `now` (Unix ms).
     pub fn new(holon: HolonId, catalog: Arc<ServiceCatalog>, capacity: usize, now: u64) -> Self {
-        AgendaManager {
+        AgendaMachine {
             holon,
             catalog,
             capacity,
@@ -390,8 +392,8 @@ impl AgendaManager {
         record: AgendaRecord,
         inheritance: Inheritance,
         now: u64,
-    ) -> AgendaManager {
-        let mut manager = AgendaManager::new(holon, catalog, capacity, now);
+    ) -> AgendaMachine {
+        let mut manager = AgendaMachine::new(holon, catalog, capacity, now);
         manager.bookings = record.bookings;
         for booking in &mut manager.bookings {
             booking.parameters = manager

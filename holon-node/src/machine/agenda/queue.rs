@@ -5,9 +5,9 @@
 use schemas::Service;
 use serde_json::{json, Map, Value};
 
-use super::AgendaManager;
+use super::AgendaMachine;
 
-impl AgendaManager {
+impl AgendaMachine {
     /// The answer to a booking whose job has begun (queue position 0).
     pub(super) fn started_reply(&self, request: &Service) -> Service {
         let mut reply = self.queued_reply(request, 0);

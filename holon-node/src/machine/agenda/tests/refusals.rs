@@ -16,7 +16,7 @@ fn proposal_req(order: &str, service_type: &str) -> Service {
 
 #[test]
 fn proposal_refusals_come_in_the_tables_order() {
-    let mut m = AgendaManager::new(
+    let mut m = AgendaMachine::new(
         HolonId::resource("robot1").unwrap(),
         Arc::new(pick_n_place()),
         1,

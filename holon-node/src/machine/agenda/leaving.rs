@@ -5,9 +5,9 @@
 use schemas::{HolonId, Reason};
 use serde_json::Map;
 
-use super::{AgendaAction, AgendaManager, Job, Outcome};
+use super::{AgendaAction, AgendaMachine, Job, Outcome};
 
-impl AgendaManager {
+impl AgendaMachine {
     pub(super) fn hand_over(&mut self, handing_over: bool) -> Vec<AgendaAction> {
         if self.withdrawing || self.handing_over == handing_over {
             return vec![];

@@ -21,7 +21,7 @@ use schemas::{
 };
 use tracing::{debug, info, warn};
 
-use super::question::Question;
+use crate::component::question::Question;
 use crate::views::{AgendaView, FenceView};
 
 /// What an answer is made of: the resource's name and catalog, what its components
