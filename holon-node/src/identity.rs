@@ -1,13 +1,13 @@
 //! Who a holon without hardware or journal (a product, a staff holon) is in the cell:
 //! the `cell`, `name`, `kind` and `[zenoh]` of its config with the command line applied
-//! and checked, and its session opened as that identity with its name claimed.
+//! and checked, and its session opened as that identity with its name claimed; and what
+//! holon-node's command line overrides, for every kind of holon.
 
-use holon::ZenohSettings;
-use schemas::{CellKeys, HolonId, HolonKind};
+use std::time::Duration;
 
 use holon::config_file::ConfigError;
-
-use crate::node::STARTUP_TIMEOUT;
+use holon::ZenohSettings;
+use schemas::{CellKeys, HolonId, HolonKind};
 
 /// A plain holon's identity, from its config file.
 #[derive(Debug, Clone)]
@@ -24,6 +24,9 @@ pub struct Identity {
 }
 
 pub use holon::config_file::Header;
+
+/// How long a holon waits for zenoh to open and for its components to come up.
+pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// What holon-node's command line may override, for every kind of holon (the
 /// controller, fault injection and standby only apply to a resource).

@@ -34,8 +34,7 @@ mod standby;
 
 use stand_in::stand_in_answer;
 
-/// How long a holon waits for zenoh to open and for its components to come up.
-pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
+pub use crate::identity::STARTUP_TIMEOUT;
 
 /// Why a holon process stops with an error.
 #[derive(Debug, thiserror::Error)]
