@@ -415,7 +415,8 @@ mod tests {
     use schemas::{unix_ms, MessageType, Service};
 
     use super::*;
-    use crate::config::{Overrides, ResourceConfig};
+    use crate::config::ResourceConfig;
+    use crate::identity::Overrides;
     use crate::machine::agenda::Inheritance;
 
     const DEMO: &str = include_str!("../../../deploy/cells/demo/robot1.toml");
