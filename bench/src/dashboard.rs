@@ -180,143 +180,30 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
     let cell = router("bench-dash", None).await?;
     let dir = run.dir.join("dashboard");
     std::fs::create_dir_all(&dir)?;
-    // Four controllers with 5 ms actions: the orders take a few seconds to run, so the
-    // page is watched while the cell works, not after.
-    let sims: Vec<holarchy_tests::Sim> = (0..4)
-        .map(|i| {
-            holarchy_tests::Sim::start(
-                &dir,
-                &format!("sim{i}"),
-                "127.0.0.1:0",
-                &["--delay-ms", "5"],
-            )
-        })
-        .collect::<Result<_>>()?;
-    let mut nodes = Vec::new();
-    for i in 0..holons {
-        let name = format!("r{i}");
-        let config = resource_config(&dir, &name, 5000)?;
-        nodes.push(holarchy_tests::start_node(
-            &dir,
-            &config,
-            "bench-dash",
-            &cell.endpoint,
-            &sims[i % 4].address,
-            &[],
-        )?);
-    }
-    let ask = pick_n_place(&cell.keys, MessageType::ProposalReq, "bench", "dash/1/1");
-    cell.wait_proposals(&ask, holons).await?;
+    let (sims, nodes) = start_resources(&dir, &cell, holons).await?;
     let (_product, _orders) =
         start_product_and_orders(&dir, &cell, &holarchy_tests::demo_config("orders1.toml")).await?;
 
     let dashboard = Dashboard::start("bench-dash", &cell.endpoint)?;
-    let t = Instant::now();
-    loop {
-        let shown = dashboard.json("/api/holons")?;
-        let live = shown
-            .as_array()
-            .map_or(0, |h| h.iter().filter(|h| h["live"] == true).count());
-        if live > holons {
-            break;
-        }
-        if t.elapsed() > Duration::from_secs(60) {
-            bail!(
-                "the dashboard shows {live} of {} holons after 60 s",
-                holons + 1
-            );
-        }
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    }
-    let all_shown = t.elapsed();
+    let all_shown = all_shown(&dashboard, holons).await?;
     tokio::time::sleep(Duration::from_secs(1)).await;
     let (idle_rss, _) = footprint(dashboard.pid())?;
 
-    let browser = match webdriver::browser_available() {
-        Ok(()) => {
-            let browser = webdriver::Browser::start(&dir.join("profile"))?;
-            browser.goto(&format!("http://{}/", dashboard.address))?;
-            browser.wait_for("tr[data-holon=\"resource/r0\"]", Duration::from_secs(10))?;
-            let idle_waits = script_waits(&browser, 30)?;
-            // The renders so far (the idle cell's views) are the baseline; count anew.
-            let idle_renders = browser.execute(
-                "const r = window.holarchyRenders; const idle = Object.assign({}, r); \
-                 r.count = 0; r.total_ms = 0; r.max_ms = 0; return idle",
-            )?;
-            Some((browser, idle_waits, idle_renders))
-        }
-        Err(why) => {
-            println!("(the page's figures need Chromium: {why})");
-            None
-        }
-    };
+    let browser = open_the_page(&dir, &dashboard)?;
     let stop = Arc::new(AtomicBool::new(false));
     let pushed = Arc::new(Pushed::default());
     let events = {
         let (address, pushed, stop) = (dashboard.address.clone(), pushed.clone(), stop.clone());
         std::thread::spawn(move || follow_events(address, pushed, stop))
     };
-    let peak = {
-        let (pid, stop) = (dashboard.pid(), stop.clone());
-        std::thread::spawn(move || {
-            let mut peak = 0;
-            while !stop.load(Ordering::Relaxed) {
-                if let Ok((rss, _)) = footprint(pid) {
-                    peak = peak.max(rss);
-                }
-                std::thread::sleep(Duration::from_millis(100));
-            }
-            peak
-        })
-    };
+    let peak = sample_peak_rss(dashboard.pid(), stop.clone());
     let page = browser.map(|(browser, idle_waits, idle_renders)| {
-        let stop = stop.clone();
-        std::thread::spawn(move || -> Result<PageFigures> {
-            let started = Instant::now();
-            let mut waits = Vec::new();
-            while !stop.load(Ordering::Relaxed) {
-                let t = Instant::now();
-                browser.execute("return document.readyState")?;
-                waits.push(t.elapsed());
-                std::thread::sleep(Duration::from_millis(100));
-            }
-            let renders = browser.execute("return window.holarchyRenders")?;
-            let heap_bytes = browser
-                .execute("return performance.memory ? performance.memory.usedJSHeapSize : null")?
-                .as_u64();
-            Ok(PageFigures {
-                idle_waits,
-                idle_renders,
-                waits: Latency::new(waits, started.elapsed()),
-                renders,
-                heap_bytes,
-            })
-        })
+        sample_the_page(browser, idle_waits, idle_renders, stop.clone())
     });
 
-    // The orders, in batches of 100 (one reply each).
     let browser_cpu_before = browser_cpu();
     let t = Instant::now();
-    let run_orders = async {
-        let mut submitted = 0;
-        while submitted < orders {
-            let batch = (orders - submitted).min(100);
-            cell.submit("part", batch).await?;
-            submitted += batch;
-        }
-        loop {
-            let view = dashboard.json("/api/view")?;
-            let done = view["order_counts"]["done"].as_u64().unwrap_or(0);
-            if done >= orders as u64 {
-                return Ok(t.elapsed());
-            }
-            if t.elapsed() > Duration::from_secs(600) {
-                bail!("the dashboard shows {done} of {orders} orders done after 600 s");
-            }
-            tokio::time::sleep(Duration::from_millis(250)).await;
-        }
-    };
-    let done: Result<Duration> = run_orders.await;
+    let done: Result<Duration> = run_the_orders(&cell, &dashboard, orders, t).await;
     if done.is_ok() {
         // A last view settles; then everything stops.
         tokio::time::sleep(Duration::from_secs(1)).await;
@@ -342,18 +229,8 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
     let (after_rss, _) = footprint(dashboard.pid())?;
     let browser_share =
         browser_cpu_since(&browser_cpu_before).as_secs_f64() / t.elapsed().as_secs_f64();
-    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
-    let load_1min: f64 = load
-        .split_whitespace()
-        .next()
-        .and_then(|l| l.parse().ok())
-        .unwrap_or(f64::NAN);
-    let views = pushed.views.load(Ordering::Relaxed);
-    let mean_kb = pushed.bytes.load(Ordering::Relaxed) as f64 / views.max(1) as f64 / 1e3;
-    let largest_kb = pushed.largest.load(Ordering::Relaxed) as f64 / 1e3;
-    let mib = |kib: u64| kib as f64 / 1024.0;
-
     let name = format!("dashboard: {holons} holons, {orders} orders");
+    let mib = |kib: u64| kib as f64 / 1024.0;
     run.table.add(
         &format!("{name}: process"),
         format!(
@@ -365,6 +242,167 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
         "bound 50 MiB".into(),
         json!({"holons": holons, "orders": orders, "idle_rss_kib": idle_rss, "peak_rss_kib": peak_rss, "after_rss_kib": after_rss, "all_shown_s": all_shown.as_secs_f64(), "orders_done_s": done.as_secs_f64()}),
     );
+    report_views(run, &name, &pushed, done, all_shown);
+    report_page(run, &name, page, browser_share)?;
+    drop(dashboard);
+    drop(nodes);
+    drop(sims);
+    Ok(())
+}
+
+/// Four controllers and `holons` resources on them, until every resource answers a
+/// proposal. Their 5 ms actions make the orders take a few seconds to run, so the page
+/// is watched while the cell works, not after.
+async fn start_resources(
+    dir: &std::path::Path,
+    cell: &holarchy_tests::Cell,
+    holons: usize,
+) -> Result<(Vec<holarchy_tests::Sim>, Vec<holarchy_tests::Process>)> {
+    let sims: Vec<holarchy_tests::Sim> = (0..4)
+        .map(|i| {
+            holarchy_tests::Sim::start(dir, &format!("sim{i}"), "127.0.0.1:0", &["--delay-ms", "5"])
+        })
+        .collect::<Result<_>>()?;
+    let mut nodes = Vec::new();
+    for i in 0..holons {
+        let name = format!("r{i}");
+        let config = resource_config(dir, &name, 5000)?;
+        nodes.push(holarchy_tests::start_node(
+            dir,
+            &config,
+            "bench-dash",
+            &cell.endpoint,
+            &sims[i % 4].address,
+            &[],
+        )?);
+    }
+    let ask = pick_n_place(&cell.keys, MessageType::ProposalReq, "bench", "dash/1/1");
+    cell.wait_proposals(&ask, holons).await?;
+    Ok((sims, nodes))
+}
+
+/// How long the dashboard took to show every holon live (the resources and the product).
+async fn all_shown(dashboard: &Dashboard, holons: usize) -> Result<Duration> {
+    let t = Instant::now();
+    loop {
+        let shown = dashboard.json("/api/holons")?;
+        let live = shown
+            .as_array()
+            .map_or(0, |h| h.iter().filter(|h| h["live"] == true).count());
+        if live > holons {
+            return Ok(t.elapsed());
+        }
+        if t.elapsed() > Duration::from_secs(60) {
+            bail!(
+                "the dashboard shows {live} of {} holons after 60 s",
+                holons + 1
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// The page in Chromium, if there is one, with its idle cell's script waits and renders.
+fn open_the_page(
+    dir: &std::path::Path,
+    dashboard: &Dashboard,
+) -> Result<Option<(webdriver::Browser, Latency, Value)>> {
+    match webdriver::browser_available() {
+        Ok(()) => {
+            let browser = webdriver::Browser::start(&dir.join("profile"))?;
+            browser.goto(&format!("http://{}/", dashboard.address))?;
+            browser.wait_for("tr[data-holon=\"resource/r0\"]", Duration::from_secs(10))?;
+            let idle_waits = script_waits(&browser, 30)?;
+            // The renders so far (the idle cell's views) are the baseline; count anew.
+            let idle_renders = browser.execute(
+                "const r = window.holarchyRenders; const idle = Object.assign({}, r); \
+                 r.count = 0; r.total_ms = 0; r.max_ms = 0; return idle",
+            )?;
+            Ok(Some((browser, idle_waits, idle_renders)))
+        }
+        Err(why) => {
+            println!("(the page's figures need Chromium: {why})");
+            Ok(None)
+        }
+    }
+}
+
+/// The dashboard's peak resident memory (KiB) until `stop`, sampled every 100 ms.
+fn sample_peak_rss(pid: i32, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<u64> {
+    std::thread::spawn(move || {
+        let mut peak = 0;
+        while !stop.load(Ordering::Relaxed) {
+            if let Ok((rss, _)) = footprint(pid) {
+                peak = peak.max(rss);
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        peak
+    })
+}
+
+/// The page's script waits until `stop`, then its renders and heap.
+fn sample_the_page(
+    browser: webdriver::Browser,
+    idle_waits: Latency,
+    idle_renders: Value,
+    stop: Arc<AtomicBool>,
+) -> std::thread::JoinHandle<Result<PageFigures>> {
+    std::thread::spawn(move || -> Result<PageFigures> {
+        let started = Instant::now();
+        let mut waits = Vec::new();
+        while !stop.load(Ordering::Relaxed) {
+            let t = Instant::now();
+            browser.execute("return document.readyState")?;
+            waits.push(t.elapsed());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let renders = browser.execute("return window.holarchyRenders")?;
+        let heap_bytes = browser
+            .execute("return performance.memory ? performance.memory.usedJSHeapSize : null")?
+            .as_u64();
+        Ok(PageFigures {
+            idle_waits,
+            idle_renders,
+            waits: Latency::new(waits, started.elapsed()),
+            renders,
+            heap_bytes,
+        })
+    })
+}
+
+/// The orders, in batches of 100 (one reply each), until the dashboard shows them done;
+/// how long from `t`.
+async fn run_the_orders(
+    cell: &holarchy_tests::Cell,
+    dashboard: &Dashboard,
+    orders: u32,
+    t: Instant,
+) -> Result<Duration> {
+    let mut submitted = 0;
+    while submitted < orders {
+        let batch = (orders - submitted).min(100);
+        cell.submit("part", batch).await?;
+        submitted += batch;
+    }
+    loop {
+        let view = dashboard.json("/api/view")?;
+        let done = view["order_counts"]["done"].as_u64().unwrap_or(0);
+        if done >= orders as u64 {
+            return Ok(t.elapsed());
+        }
+        if t.elapsed() > Duration::from_secs(600) {
+            bail!("the dashboard shows {done} of {orders} orders done after 600 s");
+        }
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+}
+
+/// The views the dashboard pushed while the orders ran.
+fn report_views(run: &mut Run, name: &str, pushed: &Pushed, done: Duration, all_shown: Duration) {
+    let views = pushed.views.load(Ordering::Relaxed);
+    let mean_kb = pushed.bytes.load(Ordering::Relaxed) as f64 / views.max(1) as f64 / 1e3;
+    let largest_kb = pushed.largest.load(Ordering::Relaxed) as f64 / 1e3;
     run.table.add(
         &format!("{name}: views pushed"),
         format!(
@@ -377,6 +415,21 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
         ),
         json!({"views": views, "mean_kb": mean_kb, "largest_kb": largest_kb}),
     );
+}
+
+/// The page's figures in Chromium, or that there was none.
+fn report_page(
+    run: &mut Run,
+    name: &str,
+    page: Option<std::thread::JoinHandle<Result<PageFigures>>>,
+    browser_share: f64,
+) -> Result<()> {
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    let load_1min: f64 = load
+        .split_whitespace()
+        .next()
+        .and_then(|l| l.parse().ok())
+        .unwrap_or(f64::NAN);
     match page {
         Some(page) => {
             let page = page
@@ -414,8 +467,5 @@ pub async fn section(run: &mut Run, holons: usize, orders: u32) -> Result<()> {
             json!(null),
         ),
     }
-    drop(dashboard);
-    drop(nodes);
-    drop(sims);
     Ok(())
 }

@@ -98,25 +98,7 @@ pub async fn section(run: &mut Run) -> Result<()> {
     let _robot = cell
         .start_free_resource(&dir, &config, &sim.address, &[])
         .await?;
-    let port = holarchy_tests::free_port();
-    let listen = format!("127.0.0.1:{port}");
-    let server = Killed(
-        Command::new(holarchy_tests::bin("cell"))
-            .args(["opcua", "--cell", cell.keys.cell(), "--connect"])
-            .arg(&cell.endpoint)
-            .args(["--listen", &listen])
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(dir.join("opcua.stderr"))?)
-            .spawn()
-            .context("cannot start cell opcua")?,
-    );
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while std::net::TcpStream::connect(&listen).is_err() {
-        if Instant::now() > deadline {
-            bail!("cell opcua did not listen on {listen} within 20 s");
-        }
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    let (server, listen) = start_the_server(&dir, cell).await?;
     let script = dir.join("subscribe.py");
     std::fs::write(&script, CLIENT)?;
     let mut client = Killed(
@@ -138,6 +120,67 @@ pub async fn section(run: &mut Run) -> Result<()> {
             }
         }
     });
+    let latency = changes_seen(cell, name, &lines).await?;
+    let status = cell_status_times(cell)?;
+    drop(client);
+    drop(server);
+    std::io::stdout().flush()?;
+    run.table.add(
+        "OPC UA: a state change seen by a subscriber",
+        format!(
+            "p50 {:.1} ms, p90 {:.1} ms, max {:.1} ms ({} changes)",
+            latency.pct(0.5) / 1e3,
+            latency.pct(0.9) / 1e3,
+            latency.pct(1.0) / 1e3,
+            2 * CHANGES
+        ),
+        format!(
+            "target 100 ms; cell status takes {:.0} ms (p50 of 5)",
+            status.pct(0.5) / 1e3
+        ),
+        json!({
+            "latency": latency.json(),
+            "cell_status": status.json(),
+            "publishing_interval_ms": 20,
+        }),
+    );
+    Ok(())
+}
+
+/// `cell opcua` on a free port of loopback, once it listens; the process and where.
+async fn start_the_server(
+    dir: &std::path::Path,
+    cell: &holarchy_tests::Cell,
+) -> Result<(Killed, String)> {
+    let port = holarchy_tests::free_port();
+    let listen = format!("127.0.0.1:{port}");
+    let server = Killed(
+        Command::new(holarchy_tests::bin("cell"))
+            .args(["opcua", "--cell", cell.keys.cell(), "--connect"])
+            .arg(&cell.endpoint)
+            .args(["--listen", &listen])
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(dir.join("opcua.stderr"))?)
+            .spawn()
+            .context("cannot start cell opcua")?,
+    );
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while std::net::TcpStream::connect(&listen).is_err() {
+        if Instant::now() > deadline {
+            bail!("cell opcua did not listen on {listen} within 20 s");
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    Ok((server, listen))
+}
+
+/// Holds and unholds the resource [`CHANGES`] times each; for each change, from its
+/// publication arriving here to the client's notification of it.
+async fn changes_seen(
+    cell: &holarchy_tests::Cell,
+    name: &str,
+    lines: &mpsc::Receiver<String>,
+) -> Result<Latency> {
     let next_line = |within: Duration| {
         lines
             .recv_timeout(within)
@@ -190,7 +233,11 @@ pub async fn section(run: &mut Run) -> Result<()> {
     }
     let total = started.elapsed();
     let latency = Latency::new(samples, total);
-    // Beside it: `cell status`, a process that joins the cell and asks.
+    Ok(latency)
+}
+
+/// Beside it: `cell status`, a process that joins the cell and asks, 5 times.
+fn cell_status_times(cell: &holarchy_tests::Cell) -> Result<Latency> {
     let mut status_times = Vec::new();
     for _ in 0..5 {
         let t = Instant::now();
@@ -207,27 +254,5 @@ pub async fn section(run: &mut Run) -> Result<()> {
         status_times.push(t.elapsed());
     }
     let status = Latency::new(status_times, Duration::ZERO);
-    drop(client);
-    drop(server);
-    std::io::stdout().flush()?;
-    run.table.add(
-        "OPC UA: a state change seen by a subscriber",
-        format!(
-            "p50 {:.1} ms, p90 {:.1} ms, max {:.1} ms ({} changes)",
-            latency.pct(0.5) / 1e3,
-            latency.pct(0.9) / 1e3,
-            latency.pct(1.0) / 1e3,
-            2 * CHANGES
-        ),
-        format!(
-            "target 100 ms; cell status takes {:.0} ms (p50 of 5)",
-            status.pct(0.5) / 1e3
-        ),
-        json!({
-            "latency": latency.json(),
-            "cell_status": status.json(),
-            "publishing_interval_ms": 20,
-        }),
-    );
-    Ok(())
+    Ok(status)
 }

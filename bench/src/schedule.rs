@@ -23,6 +23,10 @@ use serde_json::{json, Value};
 
 use crate::cells::router;
 
+mod arrivals;
+
+use arrivals::{arrivals, Arrival};
+
 /// A scenario file (`deploy/scenarios/*.toml` documents the format).
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -152,66 +156,6 @@ impl Mode {
             Mode::InBookingOrder => "fifo",
         }
     }
-}
-
-/// One order of the stream.
-#[derive(Debug, Clone)]
-struct Arrival {
-    /// When it is submitted, from the start of the stream.
-    at: Duration,
-    product: String,
-    rush: bool,
-}
-
-/// SplitMix64: the orders of a seed, the same in both modes.
-struct Random(u64);
-
-impl Random {
-    fn next(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in [0, 1).
-    fn unit(&mut self) -> f64 {
-        (self.next() >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
-fn arrivals(scenario: &Scenario, seed: u64) -> Vec<Arrival> {
-    let mut random = Random(seed);
-    let total: u32 = scenario.products.iter().map(|p| p.weight).sum();
-    let mut at = Duration::ZERO;
-    (0..scenario.orders.count)
-        .map(|n| {
-            let gap = -(1.0 - random.unit()).ln() * scenario.orders.mean_interval_ms as f64;
-            if n > 0 {
-                at += Duration::from_secs_f64(gap / 1000.0);
-            }
-            let mut pick = (random.unit() * total as f64) as u32;
-            let product = scenario
-                .products
-                .iter()
-                .find(|p| {
-                    if pick < p.weight {
-                        true
-                    } else {
-                        pick -= p.weight;
-                        false
-                    }
-                })
-                .unwrap_or(&scenario.products[0]);
-            let rush_every = scenario.orders.rush_every;
-            Arrival {
-                at,
-                product: product.name.clone(),
-                rush: rush_every > 0 && (n + 1) % rush_every == 0,
-            }
-        })
-        .collect()
 }
 
 /// What one run measured.
@@ -465,6 +409,32 @@ fn product_config(dir: &Path, spec: &ProductSpec) -> Result<PathBuf> {
 async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Result<Outcome> {
     let cell_name = format!("sched-{}", scenario.name.replace('_', "-"));
     let cell = router(&cell_name, None).await?;
+    let (mut processes, sims) = start_resources(scenario, mode, dir, &cell).await?;
+    start_the_rest(scenario, mode, dir, &cell, &mut processes).await?;
+    let states = cell
+        .session
+        .declare_subscriber(cell.keys.order_states())
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let stream = arrivals(scenario, seed);
+    let total = stream.len();
+    let submitter = submit_as_they_arrive(&cell, stream, scenario.orders.rush_priority);
+    let done = await_all_done(&states, total).await?;
+    let submitted = submitter.await??;
+    let outcome = figures(scenario, &submitted, &done, &sims)?;
+    drop(processes);
+    drop(sims);
+    Ok(outcome)
+}
+
+/// The scenario's resources, each on a controller simulator of its own, until each is
+/// alive and free.
+async fn start_resources(
+    scenario: &Scenario,
+    mode: Mode,
+    dir: &Path,
+    cell: &holarchy_tests::Cell,
+) -> Result<(Vec<Process>, Vec<(String, Sim)>)> {
     let mut processes: Vec<Process> = Vec::new();
     let mut sims: Vec<(String, Sim)> = Vec::new();
     for spec in &scenario.resources {
@@ -494,6 +464,18 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
         cell.wait_state(&spec.name, "free", |s| s["state"] == "free")
             .await?;
     }
+    Ok((processes, sims))
+}
+
+/// The scenario's products, the planner (in `Mode::Staff`) and the order-node, each
+/// alive before the next.
+async fn start_the_rest(
+    scenario: &Scenario,
+    mode: Mode,
+    dir: &Path,
+    cell: &holarchy_tests::Cell,
+    processes: &mut Vec<Process>,
+) -> Result<()> {
     for spec in &scenario.products {
         let config = product_config(dir, spec)?;
         processes.push(start_holon(
@@ -501,7 +483,7 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
             "holon-node",
             &config,
             &spec.name,
-            &cell,
+            cell,
             &[],
         )?);
         cell.wait_alive(&HolonId::new(HolonKind::Product, &spec.name)?)
@@ -513,7 +495,7 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
             "holon-node",
             &demo_config("planner.toml"),
             "planner",
-            &cell,
+            cell,
             &[],
         )?);
         cell.wait_alive(&HolonId::staff("planner")?).await?;
@@ -525,7 +507,7 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
         "order-node",
         &demo_config("orders1.toml"),
         "orders1",
-        &cell,
+        cell,
         &["--data-dir", data],
     )?);
     cell.wait_token(&cell.keys.host("order-node", "orders1"))
@@ -533,40 +515,46 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
     // The order-node sees the staff before the first order asks.
     tokio::time::sleep(Duration::from_millis(300)).await;
 
-    let states = cell
-        .session
-        .declare_subscriber(cell.keys.order_states())
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let stream = arrivals(scenario, seed);
-    let rush_priority = scenario.orders.rush_priority;
+    Ok(())
+}
+
+/// Submits the stream's orders in a task of its own, at the stream's moments, whatever
+/// the cell does; each order's name, when it was submitted and whether it was a rush.
+fn submit_as_they_arrive(
+    cell: &holarchy_tests::Cell,
+    stream: Vec<Arrival>,
+    rush_priority: i32,
+) -> tokio::task::JoinHandle<Result<Vec<(String, Instant, bool)>>> {
     let started = Instant::now();
-    // Submitted in a task of its own, at the stream's moments, whatever the cell does.
-    let submitter = {
-        let session = cell.session.clone();
-        let keys = cell.keys.clone();
-        let stream = stream.clone();
-        tokio::spawn(async move {
-            let mut submitted: Vec<(String, Instant, bool)> = Vec::new();
-            for arrival in stream {
-                tokio::time::sleep_until((started + arrival.at).into()).await;
-                let work = WorkOrder {
-                    product: arrival.product.clone(),
-                    count: 1,
-                    priority: if arrival.rush { rush_priority } else { 0 },
-                    due: None,
-                    queue: false,
-                };
-                let at = Instant::now();
-                let names = holarchy_tests::submit_on(&session, &keys, &work).await?;
-                for name in names {
-                    submitted.push((name, at, arrival.rush));
-                }
+    let session = cell.session.clone();
+    let keys = cell.keys.clone();
+    tokio::spawn(async move {
+        let mut submitted: Vec<(String, Instant, bool)> = Vec::new();
+        for arrival in stream {
+            tokio::time::sleep_until((started + arrival.at).into()).await;
+            let work = WorkOrder {
+                product: arrival.product.clone(),
+                count: 1,
+                priority: if arrival.rush { rush_priority } else { 0 },
+                due: None,
+                queue: false,
+            };
+            let at = Instant::now();
+            let names = holarchy_tests::submit_on(&session, &keys, &work).await?;
+            for name in names {
+                submitted.push((name, at, arrival.rush));
             }
-            anyhow::Ok(submitted)
-        })
-    };
-    let total = stream.len();
+        }
+        anyhow::Ok(submitted)
+    })
+}
+
+/// Each order's end (when it was seen done, and its last snapshot), once all `total` are
+/// done; an order that ends otherwise fails the run.
+async fn await_all_done(
+    states: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    total: usize,
+) -> Result<BTreeMap<String, (Instant, OrderSnapshot)>> {
     let mut done: BTreeMap<String, (Instant, OrderSnapshot)> = BTreeMap::new();
     let deadline = Instant::now() + Duration::from_secs(300);
     while done.len() < total {
@@ -591,7 +579,16 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
                 .or_insert((Instant::now(), order));
         }
     }
-    let submitted = submitter.await??;
+    Ok(done)
+}
+
+/// The run's figures: makespan, flow times, each resource's utilisation, changeovers.
+fn figures(
+    scenario: &Scenario,
+    submitted: &[(String, Instant, bool)],
+    done: &BTreeMap<String, (Instant, OrderSnapshot)>,
+    sims: &[(String, Sim)],
+) -> Result<Outcome> {
     let first = submitted
         .iter()
         .map(|(_, at, _)| *at)
@@ -601,7 +598,7 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
     let makespan = last - first;
     let mut flows: Vec<Duration> = Vec::new();
     let mut rush: Vec<Duration> = Vec::new();
-    for (name, at, is_rush) in &submitted {
+    for (name, at, is_rush) in submitted {
         let (end, _) = done.get(name).with_context(|| format!("{name} not done"))?;
         flows.push(*end - *at);
         if *is_rush {
@@ -613,7 +610,7 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
     let p95 = flows[((flows.len() as f64 * 0.95).ceil() as usize).clamp(1, flows.len()) - 1];
     let mut utilisation = BTreeMap::new();
     let mut changeovers = 0;
-    for (name, sim) in &sims {
+    for (name, sim) in sims {
         let counts = sim.counts();
         let spec = scenario
             .resources
@@ -634,8 +631,6 @@ async fn run_once(scenario: &Scenario, seed: u64, mode: Mode, dir: &Path) -> Res
     }
     let advised = done.values().map(|(_, o)| o.advised).sum();
     let steps = done.values().map(|(_, o)| o.completed.len()).sum();
-    drop(processes);
-    drop(sims);
     Ok(Outcome {
         makespan,
         mean_flow: mean(&flows),

@@ -63,14 +63,7 @@ fn slope(points: &[(f64, f64)]) -> f64 {
 }
 
 pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
-    let dir = tempfile::Builder::new().prefix("holarchy-soak").tempdir()?;
-    let dir = if std::env::var_os("HOLARCHY_BENCH_KEEP").is_some() {
-        let kept = dir.keep();
-        println!("keeping the soak's directory: {}", kept.display());
-        kept
-    } else {
-        dir.path().to_path_buf()
-    };
+    let dir = soak_dir()?;
     let cell = router("soak", None).await?;
     let robots = start_robots(&cell, &dir, 2, &["--delay-ms", "5"]).await?;
     let (product, node) =
@@ -82,28 +75,86 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
     for (i, (_, robot)) in robots.iter().enumerate() {
         watched.push((format!("robot{i}"), robot.pid()));
     }
-    // The operator's screen: `cell orders` every half second.
     let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (listings, incomplete) = (Arc::new(AtomicU64::new(0)), Arc::new(AtomicU64::new(0)));
-    let screen = {
-        let (stop, listings, incomplete) = (stop.clone(), listings.clone(), incomplete.clone());
-        let (name, endpoint) = (cell.keys.cell().to_string(), cell.endpoint.clone());
-        tokio::spawn(async move {
-            while !stop.load(Ordering::SeqCst) {
-                let began = Instant::now();
-                let output = tokio::process::Command::new(holarchy_tests::bin("cell"))
-                    .args(["orders", "--cell", &name, "--connect", &endpoint])
-                    .output()
-                    .await;
-                listings.fetch_add(1, Ordering::SeqCst);
-                if !output.is_ok_and(|o| o.status.success()) {
-                    incomplete.fetch_add(1, Ordering::SeqCst);
-                }
-                tokio::time::sleep(Duration::from_millis(500).saturating_sub(began.elapsed()))
-                    .await;
+    let screen = operators_screen(&cell, stop.clone(), listings.clone(), incomplete.clone());
+    let (samples, submitted) = waves(soak, &cell, &watched).await;
+    let last = last_orders_finished(&cell).await?;
+    stop.store(true, Ordering::SeqCst);
+    screen.await.map_err(|e| anyhow!("{e}"))?;
+
+    let csv_path = write_samples(out, &watched, &samples)?;
+    let processes = per_process(soak, &watched, &samples);
+    println!(
+        "orders: {submitted} submitted, {} done, {} failed, {} scrapped, {} cancelled; {} listings, {} incomplete",
+        last.done,
+        last.failed,
+        last.scrapped,
+        last.cancelled,
+        listings.load(Ordering::SeqCst),
+        incomplete.load(Ordering::SeqCst)
+    );
+    let summary = json!({
+        "minutes": soak.minutes,
+        "wave": soak.wave,
+        "every_s": soak.every_s,
+        "submitted": submitted,
+        "counts": last,
+        "listings": listings.load(Ordering::SeqCst),
+        "incomplete_listings": incomplete.load(Ordering::SeqCst),
+        "processes": processes,
+        "samples_csv": csv_path.display().to_string(),
+    });
+    std::fs::write(out, serde_json::to_string_pretty(&summary)?)?;
+    println!("wrote {} and {}", out.display(), csv_path.display());
+    drop((robots, product, node));
+    Ok(())
+}
+
+/// The soak's directory: a temporary one, kept with `HOLARCHY_BENCH_KEEP`.
+fn soak_dir() -> Result<std::path::PathBuf> {
+    let dir = tempfile::Builder::new().prefix("holarchy-soak").tempdir()?;
+    Ok(if std::env::var_os("HOLARCHY_BENCH_KEEP").is_some() {
+        let kept = dir.keep();
+        println!("keeping the soak's directory: {}", kept.display());
+        kept
+    } else {
+        dir.path().to_path_buf()
+    })
+}
+
+/// The operator's screen: `cell orders` every half second until `stop`, counting the
+/// listings and the incomplete ones.
+fn operators_screen(
+    cell: &holarchy_tests::Cell,
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    listings: Arc<AtomicU64>,
+    incomplete: Arc<AtomicU64>,
+) -> tokio::task::JoinHandle<()> {
+    let (name, endpoint) = (cell.keys.cell().to_string(), cell.endpoint.clone());
+    tokio::spawn(async move {
+        while !stop.load(Ordering::SeqCst) {
+            let began = Instant::now();
+            let output = tokio::process::Command::new(holarchy_tests::bin("cell"))
+                .args(["orders", "--cell", &name, "--connect", &endpoint])
+                .output()
+                .await;
+            listings.fetch_add(1, Ordering::SeqCst);
+            if !output.is_ok_and(|o| o.status.success()) {
+                incomplete.fetch_add(1, Ordering::SeqCst);
             }
-        })
-    };
+            tokio::time::sleep(Duration::from_millis(500).saturating_sub(began.elapsed())).await;
+        }
+    })
+}
+
+/// The waves of orders for the soak's minutes, and the watched processes' memory every
+/// [`SAMPLE_EVERY`]; the samples and how many orders were submitted.
+async fn waves(
+    soak: &Soak,
+    cell: &holarchy_tests::Cell,
+    watched: &[(String, i32)],
+) -> (Vec<Sample>, u64) {
     let started = Instant::now();
     let until = started + Duration::from_secs(soak.minutes * 60);
     let mut samples: Vec<Sample> = Vec::new();
@@ -124,7 +175,7 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
             next_wave += Duration::from_secs(soak.every_s);
         }
         if now >= next_sample {
-            let finished = order_counts(&cell).await.map(|c| c.finished()).unwrap_or(0);
+            let finished = order_counts(cell).await.map(|c| c.finished()).unwrap_or(0);
             let rss = watched
                 .iter()
                 .map(|(_, pid)| status_field(*pid, "VmRSS:").unwrap_or(0))
@@ -146,12 +197,16 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
         }
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    // The last orders finish.
+    (samples, submitted)
+}
+
+/// The counts once no order runs (the last wave's orders finish), within 120 s.
+async fn last_orders_finished(cell: &holarchy_tests::Cell) -> Result<schemas::OrderCounts> {
     let deadline = Instant::now() + Duration::from_secs(120);
-    let last = loop {
-        let c = order_counts(&cell).await?;
+    loop {
+        let c = order_counts(cell).await?;
         if c.running == 0 {
-            break c;
+            return Ok(c);
         }
         if Instant::now() > deadline {
             bail!(
@@ -160,10 +215,15 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
             );
         }
         tokio::time::sleep(Duration::from_secs(1)).await;
-    };
-    stop.store(true, Ordering::SeqCst);
-    screen.await.map_err(|e| anyhow!("{e}"))?;
+    }
+}
 
+/// Writes the samples as CSV beside `out`; its path.
+fn write_samples(
+    out: &Path,
+    watched: &[(String, i32)],
+    samples: &[Sample],
+) -> Result<std::path::PathBuf> {
     let mut csv = format!(
         "t_s,finished,{}\n",
         watched
@@ -172,7 +232,7 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
             .collect::<Vec<_>>()
             .join(",")
     );
-    for s in &samples {
+    for s in samples {
         csv.push_str(&format!(
             "{:.0},{},{}\n",
             s.t,
@@ -186,6 +246,16 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
     }
     let csv_path = out.with_extension("csv");
     std::fs::write(&csv_path, csv)?;
+    Ok(csv_path)
+}
+
+/// Each watched process's memory at marked minutes and its growth per 1,000 finished
+/// orders once settled, printed and as JSON.
+fn per_process(
+    soak: &Soak,
+    watched: &[(String, i32)],
+    samples: &[Sample],
+) -> Vec<serde_json::Value> {
     let at_minute = |m: u64| {
         samples
             .iter()
@@ -220,28 +290,5 @@ pub async fn run(soak: &Soak, out: &Path) -> Result<()> {
             "kib_per_1000_finished_after_settle": per_thousand,
         }));
     }
-    println!(
-        "orders: {submitted} submitted, {} done, {} failed, {} scrapped, {} cancelled; {} listings, {} incomplete",
-        last.done,
-        last.failed,
-        last.scrapped,
-        last.cancelled,
-        listings.load(Ordering::SeqCst),
-        incomplete.load(Ordering::SeqCst)
-    );
-    let summary = json!({
-        "minutes": soak.minutes,
-        "wave": soak.wave,
-        "every_s": soak.every_s,
-        "submitted": submitted,
-        "counts": last,
-        "listings": listings.load(Ordering::SeqCst),
-        "incomplete_listings": incomplete.load(Ordering::SeqCst),
-        "processes": processes,
-        "samples_csv": csv_path.display().to_string(),
-    });
-    std::fs::write(out, serde_json::to_string_pretty(&summary)?)?;
-    println!("wrote {} and {}", out.display(), csv_path.display());
-    drop((robots, product, node));
-    Ok(())
+    processes
 }

@@ -118,37 +118,7 @@ async fn one_round(way: Way, round: usize) -> Result<Round> {
     let product_config = dir.join("part.toml");
 
     let watch = Arc::new(Mutex::new(Watch::default()));
-    let tokens = {
-        let watch = watch.clone();
-        let prefix = format!("holarchy/{}/", cell.keys.cell());
-        cell.session
-            .liveliness()
-            .declare_subscriber(format!("{prefix}**"))
-            .callback(move |sample| {
-                let key = sample
-                    .key_expr()
-                    .as_str()
-                    .trim_start_matches(&prefix)
-                    .to_string();
-                let put = sample.kind() == zenoh::sample::SampleKind::Put;
-                lock(&watch).tokens.push((Instant::now(), key, put));
-            })
-            .await
-            .map_err(|e| anyhow::anyhow!("{e}"))?
-    };
-    let states = {
-        let watch = watch.clone();
-        cell.session
-            .declare_subscriber(cell.keys.state(&HolonId::resource("robot1")?))
-            .callback(move |sample| {
-                if let Ok(state) = serde_json::from_slice::<Value>(&sample.payload().to_bytes()) {
-                    let running = !state["current"].is_null();
-                    lock(&watch).robot.push((Instant::now(), running));
-                }
-            })
-            .await
-            .map_err(|e| anyhow::anyhow!("{e}"))?
-    };
+    let (tokens, states) = watch_the_cell(&cell, &watch).await?;
 
     let names = cell.submit("part", ORDERS).await?;
     sim.wait_executed("pick", 3).await?;
@@ -203,7 +173,54 @@ async fn one_round(way: Way, round: usize) -> Result<Round> {
 
     let ended = wait_done(&cell, &names).await?;
     drop((tokens, states));
-    let watch = lock(&watch);
+    let figures = round_figures(&lock(&watch), &sim, &ended, robot_from)?;
+    drop((robot, orders, product));
+    Ok(figures)
+}
+
+/// What the round watches of the cell: every liveliness token's comings and goings,
+/// and whether robot1 runs a step, each with when it was seen.
+async fn watch_the_cell(
+    cell: &holarchy_tests::Cell,
+    watch: &Arc<Mutex<Watch>>,
+) -> Result<(zenoh::pubsub::Subscriber<()>, zenoh::pubsub::Subscriber<()>)> {
+    let tokens = {
+        let watch = watch.clone();
+        let prefix = format!("holarchy/{}/", cell.keys.cell());
+        cell.session
+            .liveliness()
+            .declare_subscriber(format!("{prefix}**"))
+            .callback(move |sample| {
+                let key = sample
+                    .key_expr()
+                    .as_str()
+                    .trim_start_matches(&prefix)
+                    .to_string();
+                let put = sample.kind() == zenoh::sample::SampleKind::Put;
+                lock(&watch).tokens.push((Instant::now(), key, put));
+            })
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?
+    };
+    let states = {
+        let watch = watch.clone();
+        cell.session
+            .declare_subscriber(cell.keys.state(&HolonId::resource("robot1")?))
+            .callback(move |sample| {
+                if let Ok(state) = serde_json::from_slice::<Value>(&sample.payload().to_bytes()) {
+                    let running = !state["current"].is_null();
+                    lock(&watch).robot.push((Instant::now(), running));
+                }
+            })
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}"))?
+    };
+    Ok((tokens, states))
+}
+
+/// The round's figures from what was watched: robot1's idle time, the steps run, how
+/// long each holon's token was away, the rebooks and failed attempts.
+fn round_figures(watch: &Watch, sim: &Sim, ended: &[Value], robot_from: Instant) -> Result<Round> {
     let mut figures = Round {
         robot_idle_ms: longest_idle(&watch.robot, robot_from),
         robot_usual_idle_ms: usual_idle(&watch.robot, robot_from),
@@ -220,11 +237,10 @@ async fn one_round(way: Way, round: usize) -> Result<Round> {
             .away_ms
             .insert(holon.to_string(), away(&watch.tokens, key)?);
     }
-    for state in &ended {
+    for state in ended {
         figures.rebooks += state["rebooks"].as_u64().unwrap_or(0);
         figures.failed_attempts += state["failed_attempts"].as_u64().unwrap_or(0);
     }
-    drop((robot, orders, product));
     Ok(figures)
 }
 

@@ -269,69 +269,8 @@ async fn wait_token(session: &zenoh::Session, key: &str, timeout: Duration) -> R
 /// Runs the demo; returns whether every order completed.
 pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bool> {
     let keys = CellKeys::new(&options.cell)?;
-    let mut temp = None;
-    let dir = match &options.dir {
-        Some(dir) => {
-            std::fs::create_dir_all(dir)?;
-            dir.clone()
-        }
-        None => {
-            let made = tempdir()?;
-            let path = made.path.clone();
-            temp = Some(made);
-            path
-        }
-    };
-    let scheme = if options.secure { "tls" } else { "tcp" };
-    let endpoint = format!("{scheme}/127.0.0.1:{}", free_port()?);
-    let pki = if options.secure {
-        std::fs::write(
-            dir.join("cell.toml"),
-            secure_manifest(&options.cell, &endpoint, options.opcua.is_some()),
-        )?;
-        crate::certs::run(&dir, &crate::certs::CertsOptions::default())?;
-        Some(dir.join("pki"))
-    } else {
-        None
-    };
-    let settings = holon::ZenohSettings {
-        mode: holon::Mode::Router,
-        listen: vec![endpoint.clone()],
-        tls: pki.as_ref().map(|pki| holon::tls::TlsSettings {
-            pki: Some(pki.clone()),
-            ..holon::tls::TlsSettings::default()
-        }),
-        ..holon::ZenohSettings::default()
-    };
-    let session = settings
-        .open(
-            &holon::role::identity(holon::role::Role::Router, "local"),
-            STARTUP,
-        )
-        .await
-        .map_err(|e| anyhow!("{e}"))?;
-    let _announced =
-        crate::router::announce(&session, &keys, &holon::presence::host_name()).await?;
-    println!(
-        "cell {}: zenoh router on {endpoint}; configs and logs in {}",
-        options.cell,
-        dir.display()
-    );
-    if options.secure {
-        println!(
-            "mutual TLS and access control on: identities in {}",
-            dir.join("pki").display()
-        );
-    }
-    let mut cell = Cell {
-        dir: dir.clone(),
-        endpoint,
-        pki,
-        keys: keys.clone(),
-        session: session.clone(),
-        started: Vec::new(),
-        controllers: BTreeMap::new(),
-    };
+    let (dir, mut temp) = working_dir(&options)?;
+    let (mut cell, _announced) = open_the_cell(&options, &dir, keys).await?;
     if options.dashboard.is_some() || options.opcua.is_some() {
         servers::demo_operator(&cell)?;
     }
@@ -352,41 +291,13 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         (Ok(report), true) => {
             report.print(&dir);
             println!();
-            // Every hint must work when pasted: a secure cell needs its PKI.
-            let pki = cell
-                .pki
-                .as_ref()
-                .map(|pki| format!(" --pki {}", pki.display()))
-                .unwrap_or_default();
-            println!(
-                "the cell stays up (--keep): submit more with `cell submit breaker --count 5 --cell {} --connect {}{pki}`{}; Ctrl-C stops it",
-                options.cell,
-                cell.endpoint,
-                if dashboard.is_some() { " or from the dashboard" } else { "" }
-            );
-            shutdown.cancelled().await;
+            stay_up(&cell, &options, dashboard.is_some(), &shutdown).await;
             true
         }
         _ => false,
     };
     println!("stopping everything the demo started, in reverse order ...");
-    if let Some((stop, task)) = opcua {
-        stop.cancel();
-        match tokio::time::timeout(Duration::from_secs(10), task).await {
-            Ok(Ok(Ok(()))) => {}
-            Ok(Ok(Err(e))) => println!("the OPC UA server stopped with an error: {e:#}"),
-            Ok(Err(e)) => println!("the OPC UA server's task ended abnormally: {e}"),
-            Err(_) => println!("the OPC UA server did not stop within 10 s"),
-        }
-    }
-    if let Some((stop, task)) = dashboard {
-        stop.cancel();
-        match task.await {
-            Ok(Ok(())) => {}
-            Ok(Err(e)) => println!("the dashboard stopped with an error: {e:#}"),
-            Err(e) => println!("the dashboard's task ended abnormally: {e}"),
-        }
-    }
+    servers::stop(opcua, dashboard).await;
     cell.stop_all().await;
     let report = outcome?;
     if !printed {
@@ -398,6 +309,101 @@ pub async fn run(options: DemoOptions, shutdown: CancellationToken) -> Result<bo
         println!("  logs kept in    {}", dir.display());
     }
     Ok(success)
+}
+
+/// Where the demo keeps its configs and logs: `--dir`, or a new temporary directory.
+fn working_dir(options: &DemoOptions) -> Result<(PathBuf, Option<TempDir>)> {
+    match &options.dir {
+        Some(dir) => {
+            std::fs::create_dir_all(dir)?;
+            Ok((dir.clone(), None))
+        }
+        None => {
+            let made = tempdir()?;
+            Ok((made.path.clone(), Some(made)))
+        }
+    }
+}
+
+/// The cell's router, embedded in this process (with its identities issued first in a
+/// secure demo) and announced in the cell; the announcement lasts while the guard does.
+async fn open_the_cell(
+    options: &DemoOptions,
+    dir: &std::path::Path,
+    keys: CellKeys,
+) -> Result<(Cell, zenoh::liveliness::LivelinessToken)> {
+    let scheme = if options.secure { "tls" } else { "tcp" };
+    let endpoint = format!("{scheme}/127.0.0.1:{}", free_port()?);
+    let pki = if options.secure {
+        std::fs::write(
+            dir.join("cell.toml"),
+            secure_manifest(&options.cell, &endpoint, options.opcua.is_some()),
+        )?;
+        crate::security::certs::run(dir, &crate::security::certs::CertsOptions::default())?;
+        Some(dir.join("pki"))
+    } else {
+        None
+    };
+    let settings = holon::ZenohSettings {
+        mode: holon::Mode::Router,
+        listen: vec![endpoint.clone()],
+        tls: pki.as_ref().map(|pki| holon::tls::TlsSettings {
+            pki: Some(pki.clone()),
+            ..holon::tls::TlsSettings::default()
+        }),
+        ..holon::ZenohSettings::default()
+    };
+    let session = settings
+        .open(
+            &holon::role::identity(holon::role::Role::Router, "local"),
+            STARTUP,
+        )
+        .await
+        .map_err(|e| anyhow!("{e}"))?;
+    let announced = crate::router::announce(&session, &keys, &holon::presence::host_name()).await?;
+    println!(
+        "cell {}: zenoh router on {endpoint}; configs and logs in {}",
+        options.cell,
+        dir.display()
+    );
+    if options.secure {
+        println!(
+            "mutual TLS and access control on: identities in {}",
+            dir.join("pki").display()
+        );
+    }
+    let cell = Cell {
+        dir: dir.to_path_buf(),
+        endpoint,
+        pki,
+        keys,
+        session,
+        started: Vec::new(),
+        controllers: BTreeMap::new(),
+    };
+    Ok((cell, announced))
+}
+
+/// `--keep`: says how to use the cell that stays up, and waits for Ctrl-C.
+async fn stay_up(
+    cell: &Cell,
+    options: &DemoOptions,
+    dashboard: bool,
+    shutdown: &CancellationToken,
+) {
+    // Every hint must work when pasted: a secure cell needs its PKI.
+    let pki = cell
+        .pki
+        .as_ref()
+        .map(|pki| format!(" --pki {}", pki.display()))
+        .unwrap_or_default();
+    println!(
+        "the cell stays up (--keep): submit more with `cell submit breaker --count 5 --cell {} --connect {}{pki}`{}; Ctrl-C stops it",
+        options.cell,
+        cell.endpoint,
+        if dashboard { " or from the dashboard" } else { "" }
+    );
+    shutdown.cancelled().await;
 }
 
 async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
@@ -416,7 +422,8 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         due: None,
         queue: false,
     };
-    let ids = crate::submit::submit(&cell.session, &cell.keys, &work, "cell demo", STARTUP).await?;
+    let ids = crate::client::submit::submit(&cell.session, &cell.keys, &work, "cell demo", STARTUP)
+        .await?;
     println!(
         "submitted {} orders of breaker: {} .. {}",
         ids.len(),

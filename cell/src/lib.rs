@@ -1,26 +1,23 @@
 //! `cell`: the operator's command. `cell demo` runs a demo cell on this machine;
 //! `cell status` lists the live holons of a running cell; `cell dashboard` shows it live
 //! in a browser.
+//!
+//! Where each part lives:
+//! - the command line: `src/main.rs` and `src/cli/` (one file per command, with its
+//!   flags), calling this library;
+//! - asking a running cell as a client (status, orders, submit, PackML, layout):
+//!   [`client`];
+//! - the process supervisor of a cell host (`cell up`, its manifest, `cell upgrade`):
+//!   [`up`]; a zenoh router of its own: [`router`];
+//! - the live web page: [`dashboard`];
+//! - the OPC UA server: [`opcua`];
+//! - users, roles, logins, the audit trail and certificates: [`security`];
+//! - the demo cell: [`demo`].
 
-pub mod access;
-pub mod ask;
-pub mod audit;
-pub mod certs;
+pub mod client;
 pub mod dashboard;
 pub mod demo;
-pub mod layout;
-pub mod listing;
-pub mod logins;
-pub mod manifest;
 pub mod opcua;
-pub mod orders;
-pub mod packml;
-pub mod part_word;
-pub mod private_file;
 pub mod router;
-pub mod states;
-pub mod status;
-pub mod submit;
+pub mod security;
 pub mod up;
-pub mod upgrade;
-pub mod users;

@@ -11,6 +11,7 @@ use schemas::{validate_name, CellKeys, HolonId};
 use serde::Deserialize;
 
 use crate::catalog::{ServiceCatalog, ServiceDefinition, Step};
+use crate::identity::Overrides;
 
 pub use holon::config_file::ConfigError;
 
@@ -83,7 +84,7 @@ impl Default for PackmlSection {
 }
 
 impl PackmlSection {
-    fn settings(&self) -> Result<crate::agenda::PackmlSettings, String> {
+    fn settings(&self) -> Result<crate::machine::agenda::PackmlSettings, String> {
         use schemas::PackmlState;
         let initial_state = match self.initial_state.to_ascii_lowercase().as_str() {
             "execute" => PackmlState::Execute,
@@ -99,7 +100,7 @@ impl PackmlSection {
             .initial_mode
             .parse::<schemas::UnitMode>()
             .map_err(|e| format!("packml.initial_mode: {e}"))?;
-        Ok(crate::agenda::PackmlSettings {
+        Ok(crate::machine::agenda::PackmlSettings {
             initial_state,
             initial_mode,
             held_bookings_ms: self.held_bookings_ms,
@@ -227,7 +228,7 @@ pub struct AgendaSection {
 }
 
 fn default_max_overtakes() -> u32 {
-    crate::agenda::DEFAULT_MAX_OVERTAKES
+    crate::machine::agenda::DEFAULT_MAX_OVERTAKES
 }
 
 fn default_requester_grace_ms() -> u64 {
@@ -324,7 +325,7 @@ pub struct ResourceConfig {
     /// How many later bookings of higher priority may go ahead of a waiting one.
     pub agenda_max_overtakes: u32,
     /// How the PackML unit starts, and how long a held resource keeps its bookings.
-    pub packml: crate::agenda::PackmlSettings,
+    pub packml: crate::machine::agenda::PackmlSettings,
     /// How long a requester may be absent before its bookings are released.
     pub requester_grace: Duration,
     pub delivery: DeliverySettings,
@@ -345,17 +346,6 @@ pub struct ResourceConfig {
     /// Its part of the cell's layout (`[layout]`), answered on `resource/<name>/layout`;
     /// None: it takes no part in the cell's material flow.
     pub layout: Option<schemas::layout::LayoutPart>,
-}
-
-/// What the command line may override.
-#[derive(Debug, Clone, Default)]
-pub struct Overrides {
-    /// Cell, name, zenoh endpoints, data directory.
-    pub common: holon::session::CommandLine,
-    pub controller: Option<String>,
-    pub allow_fault_injection: bool,
-    /// `--standby`: fenced, whatever the file says.
-    pub standby: bool,
 }
 
 impl ResourceConfig {
@@ -406,6 +396,8 @@ impl ResourceConfig {
         Ok(config)
     }
 
+    /// Checks the file section by section (the first problem is the one reported) and
+    /// makes the resource's config of it.
     fn validate(
         file: ConfigFile,
         header: holon::config_file::CheckedHeader,
@@ -419,122 +411,17 @@ impl ResourceConfig {
         }
         let holon = HolonId::resource(&header.name).map_err(|e| format!("name: {e}"))?;
         let c = &file.controller;
-        let port = c
-            .address
-            .rsplit_once(':')
-            .filter(|(host, _)| !host.trim().is_empty())
-            .map(|(_, port)| port);
-        match port.map(str::parse::<u16>) {
-            Some(Ok(port)) if port > 0 => {}
-            Some(_) => {
-                return Err(format!(
-                    "controller.address: {:?}: the port must be a number from 1 to 65535",
-                    c.address
-                ))
-            }
-            None => {
-                return Err(format!(
-                    "controller.address: {:?} is not HOST:PORT",
-                    c.address
-                ))
-            }
-        }
-        for (field, value) in [
-            ("controller.reconnect_interval_ms", c.reconnect_interval_ms),
-            ("controller.reconnect_max_ms", c.reconnect_max_ms),
-            ("controller.command_timeout_ms", c.command_timeout_ms),
-            ("controller.connect_timeout_ms", c.connect_timeout_ms),
-            ("supervisor.period_ms", file.supervisor.period_ms),
-            ("delivery.retry_initial_ms", file.delivery.retry_initial_ms),
-            ("delivery.retry_max_ms", file.delivery.retry_max_ms),
-            (
-                "delivery.attempt_timeout_ms",
-                file.delivery.attempt_timeout_ms,
-            ),
-        ] {
-            if value == 0 {
-                return Err(format!("{field} must be greater than 0"));
-            }
-        }
-        if c.reconnect_max_ms < c.reconnect_interval_ms {
-            return Err(format!(
-                "controller.reconnect_max_ms ({}) must be at least controller.reconnect_interval_ms ({})",
-                c.reconnect_max_ms, c.reconnect_interval_ms
-            ));
-        }
-        if file.delivery.retry_max_ms < file.delivery.retry_initial_ms {
-            return Err("delivery.retry_max_ms must be at least retry_initial_ms".into());
-        }
-        if file.agenda.capacity == 0 {
-            return Err("agenda.capacity must be greater than 0".into());
-        }
-        if file.agenda.requester_grace_ms < 1000 {
-            return Err("agenda.requester_grace_ms must be at least 1000".into());
-        }
-        if file.services.is_empty() {
-            return Err("services: a resource must offer at least one service type".into());
-        }
-        let mut services = BTreeMap::new();
-        for (service_type, section) in file.services {
-            validate_name("service type", &service_type)
-                .map_err(|e| format!("services.{service_type}: {e}"))?;
-            if section.steps.is_empty() {
-                return Err(format!("services.{service_type}.steps: at least one step"));
-            }
-            let mut steps = Vec::new();
-            for (i, step) in section.steps.into_iter().enumerate() {
-                let at = format!("services.{service_type}.steps[{i}]");
-                validate_name("action", &step.action).map_err(|e| format!("{at}.action: {e}"))?;
-                if step.until.is_empty() {
-                    return Err(format!("{at}.until: at least one result"));
-                }
-                for result in &step.until {
-                    validate_name("result", result).map_err(|e| format!("{at}.until: {e}"))?;
-                    if result == schemas::robot::RESULT_ERROR {
-                        return Err(format!("{at}.until: \"error\" always fails a step"));
-                    }
-                }
-                if let Some(position) = &step.position {
-                    validate_name("position", position)
-                        .map_err(|e| format!("{at}.position: {e}"))?;
-                }
-                steps.push(Step {
-                    action: step.action,
-                    until: step.until,
-                    position: step.position,
-                });
-            }
-            services.insert(
-                service_type,
-                ServiceDefinition {
-                    steps,
-                    nominal_duration: Duration::from_millis(section.nominal_duration_ms),
-                },
-            );
-        }
-        let dialect = robot_bridge::dialect::Dialect::load(&c.dialect, None)
-            .map_err(|e| format!("controller.dialect: {e}"))?;
-        if c.fenced && !dialect.fencing_supported() {
-            return Err(format!(
-                "controller.fenced (--standby): the dialect {} has no fence (claim, epochs, step ids): standby is refused",
-                dialect.name
-            ));
-        }
+        check_address(&c.address)?;
+        check_periods(&file)?;
+        check_limits(&file)?;
+        let services = services(file.services)?;
+        let dialect = dialect(c)?;
         let packml = file.packml.settings()?;
         let layout = (!file.layout.is_empty())
             .then(|| file.layout.part(holon.name()))
             .transpose()
             .map_err(|e| e.to_string())?;
-        for (service_type, definition) in &services {
-            for step in &definition.steps {
-                dialect.check_action(&step.action).map_err(|e| {
-                    format!(
-                        "services.{service_type}: the action {:?} cannot be sent in the dialect {}: {e}",
-                        step.action, dialect.name
-                    )
-                })?;
-            }
-        }
+        check_actions(&services, &dialect)?;
         Ok(ResourceConfig {
             keys: header.keys,
             holon,
@@ -571,6 +458,149 @@ impl ResourceConfig {
             layout,
         })
     }
+}
+
+/// `controller.address`: HOST:PORT, the port from 1 to 65535.
+fn check_address(address: &str) -> Result<(), String> {
+    let port = address
+        .rsplit_once(':')
+        .filter(|(host, _)| !host.trim().is_empty())
+        .map(|(_, port)| port);
+    match port.map(str::parse::<u16>) {
+        Some(Ok(port)) if port > 0 => Ok(()),
+        Some(_) => Err(format!(
+            "controller.address: {address:?}: the port must be a number from 1 to 65535"
+        )),
+        None => Err(format!("controller.address: {address:?} is not HOST:PORT")),
+    }
+}
+
+/// The periods and timeouts: none is 0, and no maximum is below its minimum.
+fn check_periods(file: &ConfigFile) -> Result<(), String> {
+    let c = &file.controller;
+    for (field, value) in [
+        ("controller.reconnect_interval_ms", c.reconnect_interval_ms),
+        ("controller.reconnect_max_ms", c.reconnect_max_ms),
+        ("controller.command_timeout_ms", c.command_timeout_ms),
+        ("controller.connect_timeout_ms", c.connect_timeout_ms),
+        ("supervisor.period_ms", file.supervisor.period_ms),
+        ("delivery.retry_initial_ms", file.delivery.retry_initial_ms),
+        ("delivery.retry_max_ms", file.delivery.retry_max_ms),
+        (
+            "delivery.attempt_timeout_ms",
+            file.delivery.attempt_timeout_ms,
+        ),
+    ] {
+        if value == 0 {
+            return Err(format!("{field} must be greater than 0"));
+        }
+    }
+    if c.reconnect_max_ms < c.reconnect_interval_ms {
+        return Err(format!(
+            "controller.reconnect_max_ms ({}) must be at least controller.reconnect_interval_ms ({})",
+            c.reconnect_max_ms, c.reconnect_interval_ms
+        ));
+    }
+    if file.delivery.retry_max_ms < file.delivery.retry_initial_ms {
+        return Err("delivery.retry_max_ms must be at least retry_initial_ms".into());
+    }
+    Ok(())
+}
+
+/// The agenda's limits, and at least one service.
+fn check_limits(file: &ConfigFile) -> Result<(), String> {
+    if file.agenda.capacity == 0 {
+        return Err("agenda.capacity must be greater than 0".into());
+    }
+    if file.agenda.requester_grace_ms < 1000 {
+        return Err("agenda.requester_grace_ms must be at least 1000".into());
+    }
+    if file.services.is_empty() {
+        return Err("services: a resource must offer at least one service type".into());
+    }
+    Ok(())
+}
+
+/// `[services]`: each service type's steps, their actions, results and positions named.
+fn services(
+    sections: BTreeMap<String, ServiceSection>,
+) -> Result<BTreeMap<String, ServiceDefinition>, String> {
+    let mut services = BTreeMap::new();
+    for (service_type, section) in sections {
+        validate_name("service type", &service_type)
+            .map_err(|e| format!("services.{service_type}: {e}"))?;
+        if section.steps.is_empty() {
+            return Err(format!("services.{service_type}.steps: at least one step"));
+        }
+        let mut steps = Vec::new();
+        for (i, step) in section.steps.into_iter().enumerate() {
+            steps.push(service_step(
+                &format!("services.{service_type}.steps[{i}]"),
+                step,
+            )?);
+        }
+        services.insert(
+            service_type,
+            ServiceDefinition {
+                steps,
+                nominal_duration: Duration::from_millis(section.nominal_duration_ms),
+            },
+        );
+    }
+    Ok(services)
+}
+
+/// One step of a service (`at` names it): an action until one of its results.
+fn service_step(at: &str, step: StepSection) -> Result<Step, String> {
+    validate_name("action", &step.action).map_err(|e| format!("{at}.action: {e}"))?;
+    if step.until.is_empty() {
+        return Err(format!("{at}.until: at least one result"));
+    }
+    for result in &step.until {
+        validate_name("result", result).map_err(|e| format!("{at}.until: {e}"))?;
+        if result == schemas::robot::RESULT_ERROR {
+            return Err(format!("{at}.until: \"error\" always fails a step"));
+        }
+    }
+    if let Some(position) = &step.position {
+        validate_name("position", position).map_err(|e| format!("{at}.position: {e}"))?;
+    }
+    Ok(Step {
+        action: step.action,
+        until: step.until,
+        position: step.position,
+    })
+}
+
+/// `controller.dialect`, loaded; a fenced resource's dialect must have a fence.
+fn dialect(c: &ControllerSection) -> Result<Arc<robot_bridge::dialect::Dialect>, String> {
+    let dialect = robot_bridge::dialect::Dialect::load(&c.dialect, None)
+        .map_err(|e| format!("controller.dialect: {e}"))?;
+    if c.fenced && !dialect.fencing_supported() {
+        return Err(format!(
+            "controller.fenced (--standby): the dialect {} has no fence (claim, epochs, step ids): standby is refused",
+            dialect.name
+        ));
+    }
+    Ok(dialect)
+}
+
+/// Every step's action can be sent in the dialect.
+fn check_actions(
+    services: &BTreeMap<String, ServiceDefinition>,
+    dialect: &robot_bridge::dialect::Dialect,
+) -> Result<(), String> {
+    for (service_type, definition) in services {
+        for step in &definition.steps {
+            dialect.check_action(&step.action).map_err(|e| {
+                format!(
+                    "services.{service_type}: the action {:?} cannot be sent in the dialect {}: {e}",
+                    step.action, dialect.name
+                )
+            })?;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

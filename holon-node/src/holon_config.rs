@@ -4,7 +4,10 @@ use std::path::Path;
 
 use schemas::HolonId;
 
-use crate::config::{ConfigError, Overrides, ResourceConfig};
+use holon::config_file::ConfigError;
+
+use crate::config::ResourceConfig;
+use crate::identity::Overrides;
 use crate::product::ProductConfig;
 use crate::staff::config::StaffConfig;
 

@@ -1,12 +1,13 @@
 //! Who a holon without hardware or journal (a product, a staff holon) is in the cell:
 //! the `cell`, `name`, `kind` and `[zenoh]` of its config with the command line applied
-//! and checked, and its session opened as that identity with its name claimed.
+//! and checked, and its session opened as that identity with its name claimed; and what
+//! holon-node's command line overrides, for every kind of holon.
 
+use std::time::Duration;
+
+use holon::config_file::ConfigError;
 use holon::ZenohSettings;
 use schemas::{CellKeys, HolonId, HolonKind};
-
-use crate::config::{ConfigError, Overrides};
-use crate::node::STARTUP_TIMEOUT;
 
 /// A plain holon's identity, from its config file.
 #[derive(Debug, Clone)]
@@ -23,6 +24,23 @@ pub struct Identity {
 }
 
 pub use holon::config_file::Header;
+
+/// How long a holon waits for zenoh to open and for its components to come up.
+pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// What holon-node's command line may override, for every kind of holon (the
+/// controller, fault injection and standby only apply to a resource).
+#[derive(Debug, Clone, Default)]
+pub struct Overrides {
+    /// Cell, name, zenoh endpoints, data directory.
+    pub common: holon::session::CommandLine,
+    /// `--controller`: the controller's HOST:PORT, instead of `controller.address`.
+    pub controller: Option<String>,
+    /// `--allow-fault-injection`: declare the crash queryable.
+    pub allow_fault_injection: bool,
+    /// `--standby`: fenced, whatever the file says.
+    pub standby: bool,
+}
 
 impl Identity {
     /// Checks `header` (of the file at `path`, whose `kind` field says `written_kind`)

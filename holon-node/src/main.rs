@@ -3,8 +3,8 @@
 use std::process::ExitCode;
 
 use clap::Parser;
-use holon_node::config::Overrides;
 use holon_node::holon_config::HolonConfig;
+use holon_node::identity::Overrides;
 
 /// Runs one holon: a resource (a robot, an inspection station, a conveyor) that takes
 /// Service requests over zenoh and drives its controller over TCP/XML, a product that

@@ -18,14 +18,14 @@ use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
-use crate::absences::{Absences, Moment};
-use crate::agenda::{AgendaEvent, Inheritance};
 use crate::component::agenda_manager::{self, AgendaMessage, JournalledAgenda};
 use crate::component::{communication, execution, interfacing, layout, requesters};
 use crate::config::ResourceConfig;
-use crate::execution::Execution;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
+use crate::machine::absences::{Absences, Moment};
+use crate::machine::agenda::{AgendaEvent, Inheritance};
+use crate::machine::execution::ExecutionMachine;
 use crate::views::{FenceView, Views};
 
 mod fence_report;
@@ -34,8 +34,7 @@ mod standby;
 
 use stand_in::stand_in_answer;
 
-/// How long a holon waits for zenoh to open and for its components to come up.
-pub const STARTUP_TIMEOUT: Duration = Duration::from_secs(10);
+pub use crate::identity::STARTUP_TIMEOUT;
 
 /// Why a holon process stops with an error.
 #[derive(Debug, thiserror::Error)]
@@ -97,12 +96,12 @@ impl Wiring {
         // waited for the communication component before (see `communication`).
         let agenda_mail: Mailbox<AgendaMessage> =
             Mailbox::with_capacity(communication::QUERY_QUEUE);
-        let jobs: Mailbox<crate::execution::ExecutionRequest> = Mailbox::new();
+        let jobs: Mailbox<crate::machine::execution::ExecutionRequest> = Mailbox::new();
         Ok(Wiring {
             execution: Arc::new(execution::Links {
                 holon: holon.clone(),
                 execution: Handover::new(
-                    Execution::new(config.catalog.clone()).fenced(port.is_some()),
+                    ExecutionMachine::new(config.catalog.clone()).fenced(port.is_some()),
                 ),
                 jobs: jobs.share(),
                 interfacing: interfacing::Links {
@@ -331,7 +330,7 @@ impl Wiring {
 /// (none held by a journal fault) and waits for a requester that is gone.
 fn only_absent_requesters_wait(
     view: &crate::views::AgendaView,
-    absences: &crate::absences::Absences,
+    absences: &crate::machine::absences::Absences,
 ) -> bool {
     view.snapshot.current.is_none()
         && view.snapshot.journal_fault.is_none()

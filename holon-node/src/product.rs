@@ -8,9 +8,10 @@ use serde::Deserialize;
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
-use crate::config::{ConfigError, Overrides};
-use crate::identity::{Header, Identity};
-use crate::node::NodeError;
+use holon::config_file::ConfigError;
+
+use crate::identity::{Header, Identity, Overrides};
+use crate::HolonError;
 
 /// The product config file as written (`deploy/cells/demo/breaker.toml` documents it).
 #[derive(Debug, Clone, Deserialize)]
@@ -68,7 +69,7 @@ impl ProductConfig {
 }
 
 /// Serves the plan until `shutdown` is cancelled, or until it hands over to a successor.
-pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
+pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(), HolonError> {
     let process = config.identity.process();
     holon::life::run(process, &config, LivelinessClaim::default(), shutdown).await
 }
@@ -76,14 +77,14 @@ pub async fn run(config: ProductConfig, shutdown: CancellationToken) -> Result<(
 impl Behaviour for &ProductConfig {
     type Grant = ();
     type Work = Serving;
-    type Error = NodeError;
+    type Error = HolonError;
 
     /// Answers the plan and the state on their keys, and publishes the state.
-    async fn start(&mut self, start: Start<()>) -> Result<Serving, NodeError> {
+    async fn start(&mut self, start: Start<()>) -> Result<Serving, HolonError> {
         let config = *self;
         let session = start.session;
         let holon = config.identity.holon.clone();
-        let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
+        let zenoh_error = |e: zenoh::Error| HolonError::Zenoh(holon::zenoh_error::describe(&e));
         let plan = serde_json::to_vec(&config.plan).expect("a plan serializes");
         let snapshot = serde_json::json!({
             "holon": holon,
@@ -156,10 +157,10 @@ pub struct Serving {
 
 impl Work for Serving {
     type Event = std::convert::Infallible;
-    type Error = NodeError;
+    type Error = HolonError;
 
     /// A product has no events of its own: its queryables answer by themselves.
-    async fn next(&mut self) -> Next<Self::Event, NodeError> {
+    async fn next(&mut self) -> Next<Self::Event, HolonError> {
         std::future::pending().await
     }
 
@@ -172,7 +173,7 @@ impl Work for Serving {
     }
 
     /// Its queryables go (on a hand-over, after the stand-in is declared).
-    async fn stop(self, _how: &Leaving) -> Result<(), NodeError> {
+    async fn stop(self, _how: &Leaving) -> Result<(), HolonError> {
         info!(holon = %self.holon, "holon stopped");
         Ok(())
     }

@@ -11,7 +11,7 @@
 use schemas::{ControllerStatus, ResourceSnapshot, Service};
 use tokio::sync::watch;
 
-use crate::absences::Absences;
+use crate::machine::absences::Absences;
 
 /// What the agenda manager publishes after every change of the agenda.
 #[derive(Debug, Clone)]
@@ -175,14 +175,14 @@ mod tests {
     use schemas::{CurrentJobView, HolonId};
 
     use super::*;
-    use crate::absences::Moment;
-    use crate::agenda::AgendaManager;
+    use crate::machine::absences::Moment;
+    use crate::machine::agenda::AgendaMachine;
 
     /// The views with the agenda running `current`, and the execution running `running`.
     fn views(current: Option<&str>, running: Option<&str>) -> Views {
         let holon = HolonId::resource("robot1").unwrap();
         let catalog = Arc::new(crate::catalog::pick_n_place());
-        let mut snapshot = AgendaManager::new(holon, catalog, 3, schemas::unix_ms()).snapshot();
+        let mut snapshot = AgendaMachine::new(holon, catalog, 3, schemas::unix_ms()).snapshot();
         snapshot.current = current.map(|conversation| CurrentJobView {
             requester: HolonId::order("o-1").unwrap(),
             conversation_id: conversation.into(),

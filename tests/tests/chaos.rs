@@ -84,7 +84,7 @@ impl Victim {
 async fn all_orders(cell: &Cell) -> BTreeMap<HolonId, OrderSnapshot> {
     // Every order, finished ones too, a page at a time; none while the listing is
     // incomplete (an order-node restarting), and the caller asks again.
-    ::cell::listing::all_orders(&cell.session, &cell.keys, Duration::from_secs(3))
+    ::cell::client::listing::all_orders(&cell.session, &cell.keys, Duration::from_secs(3))
         .await
         .map(|orders| orders.into_iter().map(|o| (o.holon.clone(), o)).collect())
         .unwrap_or_default()

@@ -522,7 +522,8 @@ fn cell_pki(dir: &std::path::Path) -> std::path::PathBuf {
          program = \"order-node\"\nidentity = \"order-node.orders1\"\n",
     )
     .unwrap();
-    let said = cell::certs::run(dir, &cell::certs::CertsOptions::default()).unwrap();
+    let said =
+        cell::security::certs::run(dir, &cell::security::certs::CertsOptions::default()).unwrap();
     assert!(
         said.iter().any(|l| l.starts_with("issued etcd.local")),
         "{said:?}"

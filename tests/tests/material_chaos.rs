@@ -284,7 +284,7 @@ fn resting_place(truth: &serde_json::Value, part: &str) -> Option<String> {
 
 async fn all_orders(cell: &Cell) -> BTreeMap<HolonId, OrderSnapshot> {
     // None while the listing is incomplete (the order-node restarting): asked again.
-    ::cell::listing::all_orders(&cell.session, &cell.keys, Duration::from_secs(3))
+    ::cell::client::listing::all_orders(&cell.session, &cell.keys, Duration::from_secs(3))
         .await
         .map(|orders| orders.into_iter().map(|o| (o.holon.clone(), o)).collect())
         .unwrap_or_default()

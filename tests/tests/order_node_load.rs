@@ -66,7 +66,7 @@ async fn counts(cell: &Cell) -> schemas::OrderCounts {
     let deadline = Instant::now() + Duration::from_secs(30);
     loop {
         if let Ok(nodes) =
-            ::cell::listing::counts(&cell.session, &cell.keys, Duration::from_secs(5)).await
+            ::cell::client::listing::counts(&cell.session, &cell.keys, Duration::from_secs(5)).await
         {
             if let Some((_, Ok(counts))) = nodes.into_iter().next() {
                 return counts;
@@ -341,9 +341,10 @@ async fn an_order_node_with_a_long_history_stays_on_the_cell_while_operators_lis
         );
     }
     println!("dashboard: {dashboard_reads} reads of /api/orders");
-    let orders = ::cell::listing::all_orders(&cell.session, &cell.keys, Duration::from_secs(5))
-        .await
-        .expect("a complete listing");
+    let orders =
+        ::cell::client::listing::all_orders(&cell.session, &cell.keys, Duration::from_secs(5))
+            .await
+            .expect("a complete listing");
     let advised: u32 = orders.iter().map(|o| o.advised).sum();
     println!(
         "staff: {advised} of {} steps booked on its advice",

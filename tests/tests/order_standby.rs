@@ -372,7 +372,7 @@ async fn an_order_node_on_etcd_over_mutual_tls_serves_and_a_stranger_is_refused(
              program = \"order-node\"\nidentity = \"order-node.orders1\"\n",
         )
         .unwrap();
-        cell::certs::run(dir, &cell::certs::CertsOptions::default()).unwrap();
+        cell::security::certs::run(dir, &cell::security::certs::CertsOptions::default()).unwrap();
         dir.join("pki")
     };
     let pki = pki_of(&root.join("cell"));

@@ -63,7 +63,7 @@ async fn answered(
 /// Every order of the cell, listed a page at a time (readers may ask
 /// `host/order-node/*/orders`); the listing must be complete.
 async fn orders(session: &zenoh::Session, keys: &CellKeys) -> Vec<OrderSnapshot> {
-    match ::cell::listing::all_orders(session, keys, Duration::from_secs(5)).await {
+    match ::cell::client::listing::all_orders(session, keys, Duration::from_secs(5)).await {
         Ok(orders) => orders,
         Err(e) => {
             let again = holon::presence::tokens(

@@ -16,8 +16,8 @@ use tracing::info;
 use super::gate::Who;
 use super::refusal::{refused, Refusal};
 use super::{Command, Shared};
-use crate::ask::AskError;
-use crate::audit::{AuditAction, AuditOutcome, AuditRecord};
+use crate::client::ask::AskError;
+use crate::security::audit::{AuditAction, AuditOutcome, AuditRecord};
 
 /// How long the cell has to answer an action.
 const ANSWER_WITHIN: Duration = Duration::from_secs(5);
@@ -192,7 +192,9 @@ pub async fn submit(
         return act.refuse(StatusCode::BAD_REQUEST, e.to_string());
     }
     let by = act.by();
-    match crate::submit::submit(&shared.session, &shared.keys, &work, &by, ANSWER_WITHIN).await {
+    match crate::client::submit::submit(&shared.session, &shared.keys, &work, &by, ANSWER_WITHIN)
+        .await
+    {
         Ok(orders) => {
             info!(user = %who.who, %by, orders = ?orders, product = %work.product, "work order submitted");
             act.target = Some(orders.join(","));
@@ -216,7 +218,9 @@ pub async fn cancel(
         return act.refuse(StatusCode::BAD_REQUEST, e.to_string());
     }
     let by = act.by();
-    match crate::status::cancel(&shared.session, &shared.keys, &name, &by, ANSWER_WITHIN).await {
+    match crate::client::status::cancel(&shared.session, &shared.keys, &name, &by, ANSWER_WITHIN)
+        .await
+    {
         Ok(reply) => {
             info!(user = %who.who, %by, order = %name, cancelled = reply.cancelled, "cancel asked");
             if reply.cancelled {
@@ -259,7 +263,7 @@ pub async fn part_found(
         Err(e) => return act.refuse(StatusCode::BAD_REQUEST, e),
     };
     let by = act.by();
-    let told = crate::part_word::tell(
+    let told = crate::client::part_word::tell(
         &shared.session,
         &shared.keys,
         &name,
@@ -299,7 +303,7 @@ pub async fn packml(
         return act.refuse(StatusCode::BAD_REQUEST, e.to_string());
     }
     let request = schemas::PackmlRequest::command(form.command, &act.by());
-    match crate::packml::ask(
+    match crate::client::packml::ask(
         &shared.session,
         &shared.keys,
         &name,

@@ -35,9 +35,9 @@ use tracing::{error, info, warn};
 
 use super::listener::Peer;
 use super::session::{self, Ended, Login, SessionLimits, Sessions};
-use crate::audit::{AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
-use crate::logins::{Logins, Refused};
-use crate::users::{fingerprint, CurrentUsers, Role, Users};
+use crate::security::audit::{AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
+use crate::security::logins::{Logins, Refused};
+use crate::security::users::{fingerprint, CurrentUsers, Role, Users};
 
 /// How the dashboard lets people in.
 #[derive(Debug, Clone)]
@@ -216,9 +216,9 @@ impl Gate {
             return None;
         }
         let identity = peer.certificate_identity.as_deref()?;
-        let role = match crate::access::parse_identity(identity).ok()?.0 {
-            crate::access::Role::Operator => Role::Operator,
-            crate::access::Role::Observer => Role::Observer,
+        let role = match crate::security::access::parse_identity(identity).ok()?.0 {
+            crate::security::access::Role::Operator => Role::Operator,
+            crate::security::access::Role::Observer => Role::Observer,
             _ => return None,
         };
         let who = format!("cert:{identity}");

@@ -176,7 +176,7 @@ impl HistoryQuery {
 }
 
 /// A page of a node's finished orders, read from its journal by the node
-/// ([`crate::listing::page`]): the page shows the newest it heard of, and older ones
+/// ([`crate::client::listing::page`]): the page shows the newest it heard of, and older ones
 /// a page at a time from here.
 async fn history(State(shared): State<Arc<Shared>>, uri: axum::http::Uri) -> Response {
     let query = match HistoryQuery::parse(uri.query().unwrap_or("")) {
@@ -199,7 +199,7 @@ async fn history(State(shared): State<Arc<Shared>>, uri: axum::http::Uri) -> Res
     }
     let mut request = schemas::OrderListRequest::first(filter, query.limit.unwrap_or(50));
     request.after = query.before.map(schemas::PageCursor::AfterFinished);
-    match crate::listing::page(
+    match crate::client::listing::page(
         &shared.session,
         &shared.keys,
         &query.node,
@@ -258,7 +258,9 @@ async fn audit(State(shared): State<Arc<Shared>>, Extension(who): Extension<Who>
         Ok(path) => path.to_path_buf(),
         Err(refusal) => return refusal.into_response(),
     };
-    match tokio::task::spawn_blocking(move || crate::audit::newest(&path, AUDIT_SHOWN)).await {
+    match tokio::task::spawn_blocking(move || crate::security::audit::newest(&path, AUDIT_SHOWN))
+        .await
+    {
         Ok(Ok(records)) => Json(records).into_response(),
         Ok(Err(e)) => refused(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),
         Err(e) => refused(StatusCode::INTERNAL_SERVER_ERROR, &e.to_string()),

@@ -24,13 +24,38 @@ pub fn render_gate(gate: &Gate) -> String {
 
 /// The metrics of `view`, one family after the other, each with its HELP and TYPE.
 pub fn render(view: &View) -> String {
-    let mut out = String::new();
-    let mut family = |name: &str, kind: &str, help: &str, samples: Vec<(String, f64)>| {
-        out.push_str(&format!("# HELP {name} {help}\n# TYPE {name} {kind}\n"));
+    let mut metrics = Exposition::default();
+    the_cell_now(&mut metrics, view);
+    per_resource(&mut metrics, view);
+    metrics.family(
+        "holarchy_dashboard_dropped_samples_total",
+        "counter",
+        "Samples the dashboard dropped because its model was behind.",
+        vec![(String::new(), view.dropped as f64)],
+    );
+    metrics.out
+}
+
+/// The text being written: families of samples, each a label set and a value.
+#[derive(Default)]
+struct Exposition {
+    /// The families written so far.
+    out: String,
+}
+
+impl Exposition {
+    /// One family: its HELP and TYPE lines, then a line per sample.
+    fn family(&mut self, name: &str, kind: &str, help: &str, samples: Vec<(String, f64)>) {
+        self.out
+            .push_str(&format!("# HELP {name} {help}\n# TYPE {name} {kind}\n"));
         for (labels, value) in samples {
-            out.push_str(&format!("{name}{labels} {value}\n"));
+            self.out.push_str(&format!("{name}{labels} {value}\n"));
         }
-    };
+    }
+}
+
+/// The cell as it is: its live holons, its orders and its alarms.
+fn the_cell_now(metrics: &mut Exposition, view: &View) {
     let mut holons: BTreeMap<(String, String), f64> = BTreeMap::new();
     for holon in view.holons.iter().filter(|h| h.live) {
         let state = holon
@@ -39,7 +64,7 @@ pub fn render(view: &View) -> String {
             .map_or("live".to_string(), |r| r.state.to_string());
         *holons.entry((holon.kind.to_string(), state)).or_default() += 1.0;
     }
-    family(
+    metrics.family(
         "holarchy_holons",
         "gauge",
         "Live holons by kind and state (a resource's state: init, free, busy).",
@@ -61,7 +86,7 @@ pub fn render(view: &View) -> String {
     for (status, count) in &view.order_counts {
         *orders.entry(status.clone()).or_default() += *count as f64;
     }
-    family(
+    metrics.family(
         "holarchy_orders",
         "gauge",
         "Orders the cell's order-nodes host, by status.",
@@ -70,7 +95,7 @@ pub fn render(view: &View) -> String {
             .map(|(status, n)| (format!("{{status=\"{status}\"}}"), n))
             .collect(),
     );
-    family(
+    metrics.family(
         "holarchy_alarms_active",
         "gauge",
         "Alarms whose condition holds.",
@@ -79,7 +104,7 @@ pub fn render(view: &View) -> String {
             view.alarms.iter().filter(|a| a.active()).count() as f64,
         )],
     );
-    family(
+    metrics.family(
         "holarchy_alarms_unacknowledged",
         "gauge",
         "Alarms no operator acknowledged yet.",
@@ -91,8 +116,12 @@ pub fn render(view: &View) -> String {
                 .count() as f64,
         )],
     );
+}
+
+/// What ended since the dashboard started, and each resource's work and deliveries.
+fn per_resource(metrics: &mut Exposition, view: &View) {
     let counters = &view.counters;
-    family(
+    metrics.family(
         "holarchy_orders_ended_total",
         "counter",
         "Orders seen ending since the dashboard started, by how.",
@@ -102,7 +131,7 @@ pub fn render(view: &View) -> String {
             ("{how=\"scrapped\"}".into(), counters.orders_scrapped as f64),
         ],
     );
-    family(
+    metrics.family(
         "holarchy_resource_busy_seconds_total",
         "counter",
         "Seconds each resource was busy since the dashboard started.",
@@ -112,37 +141,26 @@ pub fn render(view: &View) -> String {
             .map(|(r, s)| (format!("{{resource=\"{r}\"}}"), *s))
             .collect(),
     );
-    family(
+    let of_each_resource = |value: fn(&schemas::ResourceSnapshot) -> f64| {
+        view.holons
+            .iter()
+            .filter_map(|h| h.resource.as_ref())
+            .map(|r| (format!("{{resource=\"{}\"}}", r.holon.name()), value(r)))
+            .collect()
+    };
+    metrics.family(
         "holarchy_resource_undelivered",
         "gauge",
         "Results each resource sent and its orders have not acknowledged yet.",
-        view.holons
-            .iter()
-            .filter_map(|h| h.resource.as_ref())
-            .map(|r| {
-                (
-                    format!("{{resource=\"{}\"}}", r.holon.name()),
-                    r.undelivered as f64,
-                )
-            })
-            .collect(),
+        of_each_resource(|r| r.undelivered as f64),
     );
-    family(
+    metrics.family(
         "holarchy_delivery_retries_total",
         "counter",
         "Times each resource sent a result again because it was not acknowledged, since its process started (resets when it restarts).",
-        view.holons
-            .iter()
-            .filter_map(|h| h.resource.as_ref())
-            .map(|r| {
-                (
-                    format!("{{resource=\"{}\"}}", r.holon.name()),
-                    r.delivery_retries as f64,
-                )
-            })
-            .collect(),
+        of_each_resource(|r| r.delivery_retries as f64),
     );
-    family(
+    metrics.family(
         "holarchy_controller_faults_total",
         "counter",
         "Times each resource's controller went into fault or estop since the dashboard started.",
@@ -152,7 +170,7 @@ pub fn render(view: &View) -> String {
             .map(|(r, n)| (format!("{{resource=\"{r}\"}}"), *n as f64))
             .collect(),
     );
-    family(
+    metrics.family(
         "holarchy_bookings_total",
         "counter",
         "Bookings seen on each resource's agenda since the dashboard started.",
@@ -162,8 +180,19 @@ pub fn render(view: &View) -> String {
             .map(|(r, n)| (format!("{{resource=\"{r}\"}}"), *n as f64))
             .collect(),
     );
+    metrics.family(
+        "holarchy_step_duration_seconds",
+        "histogram",
+        "How long jobs took on each resource, by service type (seen from start to end).",
+        step_durations(view),
+    );
+}
+
+/// The step-duration histograms' samples: cumulative buckets, sum and count per service
+/// type and resource.
+fn step_durations(view: &View) -> Vec<(String, f64)> {
     let mut steps = Vec::new();
-    for ((service_type, resource), histogram) in &counters.steps {
+    for ((service_type, resource), histogram) in &view.counters.steps {
         let labels = format!("service_type=\"{service_type}\",resource=\"{resource}\"");
         let mut cumulative = 0;
         for (i, count) in histogram.buckets.iter().enumerate() {
@@ -179,19 +208,7 @@ pub fn render(view: &View) -> String {
         steps.push((format!("_sum{{{labels}}}"), histogram.sum_seconds));
         steps.push((format!("_count{{{labels}}}"), histogram.count as f64));
     }
-    family(
-        "holarchy_step_duration_seconds",
-        "histogram",
-        "How long jobs took on each resource, by service type (seen from start to end).",
-        steps,
-    );
-    family(
-        "holarchy_dashboard_dropped_samples_total",
-        "counter",
-        "Samples the dashboard dropped because its model was behind.",
-        vec![(String::new(), view.dropped as f64)],
-    );
-    out
+    steps
 }
 
 fn status_name(status: OrderStatus) -> String {

@@ -11,7 +11,7 @@
 //! dashboard that has just subscribed) can publish a change before the subscription
 //! reached it, and that change would never arrive (seen: a resource turning `free`
 //! 1 ms after its token appeared, shown `init` for good). So the dashboard asks again,
-//! once, [`crate::states::ASK_NEWCOMER_AGAIN`] after it starts and after each resource's token
+//! once, [`crate::client::states::ASK_NEWCOMER_AGAIN`] after it starts and after each resource's token
 //! appears; a snapshot older than the one held changes nothing. One task owns the model;
 //! the zenoh callbacks queue what they hear for it (bounded; when full, a sample is
 //! dropped and counted: the next snapshot of that holon brings the model up to date),
@@ -95,9 +95,9 @@ impl DashboardConfig {
     fn gate(&self) -> Result<gate::GateConfig> {
         let certificates = self.tls.as_ref().is_some_and(|t| t.client_ca.is_some());
         let without_login = (self.users.is_none() && !certificates).then_some(if self.operator {
-            crate::users::Role::Operator
+            crate::security::users::Role::Operator
         } else {
-            crate::users::Role::Observer
+            crate::security::users::Role::Observer
         });
         if without_login.is_some() && !self.listen.ip().is_loopback() {
             return Err(anyhow!(
@@ -139,13 +139,13 @@ pub fn connect_as(secure: bool, identity: Option<&str>, operator: bool) -> Resul
     if !secure {
         return Ok((identity, operator));
     }
-    let (role, _) = crate::access::parse_identity(&identity)?;
+    let (role, _) = crate::security::access::parse_identity(&identity)?;
     match role {
-        crate::access::Role::Operator => Ok((identity, true)),
-        crate::access::Role::Observer if operator => Err(anyhow!(
+        crate::security::access::Role::Operator => Ok((identity, true)),
+        crate::security::access::Role::Observer if operator => Err(anyhow!(
             "--operator needs an operator identity: {identity} may only watch the cell (leave out --operator for a read-only page)"
         )),
-        crate::access::Role::Observer => Ok((identity, false)),
+        crate::security::access::Role::Observer => Ok((identity, false)),
         _ => Err(anyhow!(
             "a dashboard connects as an operator or an observer, not as {identity}"
         )),
@@ -222,29 +222,7 @@ pub struct Shared {
 /// Runs the dashboard until `shutdown`.
 pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result<()> {
     // Everything that can be wrong with the settings is found before joining the cell.
-    let gate_config = config.gate()?;
-    let tls = config
-        .tls
-        .as_ref()
-        .map(listener::server_config)
-        .transpose()
-        .map_err(|e| anyhow!("{e}"))?;
-    if let Some(users) = &config.users {
-        if users.exists() {
-            crate::users::load(users)?;
-        } else {
-            warn!(file = %users.display(), "no users file yet: nobody logs in with a password (add users with `cell users`)");
-        }
-    }
-    let audit = config
-        .audit
-        .as_deref()
-        .map(crate::audit::AuditTrail::open)
-        .transpose()?;
-    if gate_config.without_login.is_some() {
-        warn!("this dashboard has no login: everybody who reaches it on this machine is `local`");
-    }
-    let gate = Arc::new(gate::Gate::new(gate_config, audit));
+    let (gate, tls) = gate_and_tls(&config)?;
     let session = config
         .zenoh
         .open(&config.identity, Duration::from_secs(10))
@@ -260,63 +238,17 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
     {
         let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
         tokio::spawn(async move {
-            tokio::time::sleep(crate::states::ASK_NEWCOMER_AGAIN).await;
+            tokio::time::sleep(crate::client::states::ASK_NEWCOMER_AGAIN).await;
             ask_states(&session, &every_state, &inputs, &dropped).await;
         });
     }
-    {
-        let (session, keys, inputs, dropped, stop) = (
-            session.clone(),
-            config.keys.clone(),
-            inputs.clone(),
-            dropped.clone(),
-            shutdown.clone(),
-        );
-        tokio::spawn(async move {
-            let mut every = tokio::time::interval(FENCES_EVERY);
-            loop {
-                tokio::select! {
-                    _ = stop.cancelled() => return,
-                    _ = every.tick() => {}
-                }
-                queue(
-                    &inputs,
-                    &dropped,
-                    Input::Tick {
-                        at: schemas::unix_ms(),
-                    },
-                );
-                match crate::status::fences(&session, &keys, FENCES_EVERY).await {
-                    Ok(reports) => queue(
-                        &inputs,
-                        &dropped,
-                        Input::Fences {
-                            reports,
-                            at: schemas::unix_ms(),
-                        },
-                    ),
-                    Err(e) => warn!(error = %e, "cannot ask the fenced resources where they stand"),
-                }
-                match crate::status::node_fences(&session, &keys, FENCES_EVERY).await {
-                    Ok(reports) => queue(&inputs, &dropped, Input::NodeFences { reports }),
-                    Err(e) => {
-                        warn!(error = %e, "cannot ask the order-nodes on etcd where they stand")
-                    }
-                }
-                // Each order-node's counts of its whole history (a listing page of
-                // none): the totals the page shows. A node that does not answer keeps
-                // its last counts out of the totals until it does.
-                match crate::layout::live(&session, &keys, FENCES_EVERY).await {
-                    Ok(layout) => queue(&inputs, &dropped, Input::Layout(Box::new(layout))),
-                    Err(e) => warn!(error = %e, "cannot ask the resources for the layout"),
-                }
-                match crate::listing::answered_counts(&session, &keys, FENCES_EVERY).await {
-                    Ok(counts) => queue(&inputs, &dropped, Input::NodeCounts { counts }),
-                    Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
-                }
-            }
-        });
-    }
+    tokio::spawn(ask_the_cell_every_while(
+        session.clone(),
+        config.keys.clone(),
+        inputs.clone(),
+        dropped.clone(),
+        shutdown.clone(),
+    ));
     let (view_tx, view_rx) = watch::channel(Arc::new(View::default()));
     let (commands, command_rx) = mpsc::channel(64);
     let owner = tokio::spawn(own_the_model(
@@ -363,6 +295,90 @@ pub async fn run(config: DashboardConfig, shutdown: CancellationToken) -> Result
     served.context("the web server stopped")
 }
 
+/// The gate (who is let in, the audit trail) and the HTTPS settings, checked before the
+/// dashboard joins the cell.
+fn gate_and_tls(
+    config: &DashboardConfig,
+) -> Result<(Arc<gate::Gate>, Option<Arc<rustls::ServerConfig>>)> {
+    let gate_config = config.gate()?;
+    let tls = config
+        .tls
+        .as_ref()
+        .map(listener::server_config)
+        .transpose()
+        .map_err(|e| anyhow!("{e}"))?;
+    if let Some(users) = &config.users {
+        if users.exists() {
+            crate::security::users::load(users)?;
+        } else {
+            warn!(file = %users.display(), "no users file yet: nobody logs in with a password (add users with `cell users`)");
+        }
+    }
+    let audit = config
+        .audit
+        .as_deref()
+        .map(crate::security::audit::AuditTrail::open)
+        .transpose()?;
+    if gate_config.without_login.is_some() {
+        warn!("this dashboard has no login: everybody who reaches it on this machine is `local`");
+    }
+    Ok((Arc::new(gate::Gate::new(gate_config, audit)), tls))
+}
+
+/// Asks the cell every [`FENCES_EVERY`], until `stop`, what it does not publish: where
+/// the fenced resources and order-nodes stand, the layout, the order-nodes' counts.
+async fn ask_the_cell_every_while(
+    session: zenoh::Session,
+    keys: CellKeys,
+    inputs: mpsc::Sender<Input>,
+    dropped: Arc<AtomicU64>,
+    stop: CancellationToken,
+) {
+    let mut every = tokio::time::interval(FENCES_EVERY);
+    loop {
+        tokio::select! {
+            _ = stop.cancelled() => return,
+            _ = every.tick() => {}
+        }
+        // Time passes for the model: what waits too long is alarmed.
+        queue(
+            &inputs,
+            &dropped,
+            Input::Tick {
+                at: schemas::unix_ms(),
+            },
+        );
+        match crate::client::status::fences(&session, &keys, FENCES_EVERY).await {
+            Ok(reports) => queue(
+                &inputs,
+                &dropped,
+                Input::Fences {
+                    reports,
+                    at: schemas::unix_ms(),
+                },
+            ),
+            Err(e) => warn!(error = %e, "cannot ask the fenced resources where they stand"),
+        }
+        match crate::client::status::node_fences(&session, &keys, FENCES_EVERY).await {
+            Ok(reports) => queue(&inputs, &dropped, Input::NodeFences { reports }),
+            Err(e) => {
+                warn!(error = %e, "cannot ask the order-nodes on etcd where they stand")
+            }
+        }
+        // Each order-node's counts of its whole history (a listing page of
+        // none): the totals the page shows. A node that does not answer keeps
+        // its last counts out of the totals until it does.
+        match crate::client::layout::live(&session, &keys, FENCES_EVERY).await {
+            Ok(layout) => queue(&inputs, &dropped, Input::Layout(Box::new(layout))),
+            Err(e) => warn!(error = %e, "cannot ask the resources for the layout"),
+        }
+        match crate::client::listing::answered_counts(&session, &keys, FENCES_EVERY).await {
+            Ok(counts) => queue(&inputs, &dropped, Input::NodeCounts { counts }),
+            Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
+        }
+    }
+}
+
 /// Queues an input for the model from a zenoh callback (which must not block).
 fn queue(inputs: &mpsc::Sender<Input>, dropped: &AtomicU64, input: Input) {
     if inputs.try_send(input).is_err() {
@@ -374,7 +390,7 @@ fn queue(inputs: &mpsc::Sender<Input>, dropped: &AtomicU64, input: Input) {
 struct Subscriptions {
     _alive: zenoh::pubsub::Subscriber<()>,
     _processes: zenoh::pubsub::Subscriber<()>,
-    _states: crate::states::Following,
+    _states: crate::client::states::Following,
 }
 
 async fn subscribe(
@@ -387,7 +403,7 @@ async fn subscribe(
     let alive = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
         let (asked, counter) = (inputs.clone(), dropped.clone());
-        crate::states::follow_tokens(
+        crate::client::states::follow_tokens(
             session,
             keys,
             move |holon, appeared| {
@@ -434,7 +450,7 @@ async fn subscribe(
     };
     let states = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
-        crate::states::follow(
+        crate::client::states::follow(
             session,
             keys,
             &[keys.resource_states(), keys.order_states()],
@@ -456,18 +472,18 @@ async fn ask_states(
     inputs: &mpsc::Sender<Input>,
     dropped: &AtomicU64,
 ) {
-    crate::states::ask(session, keys, |heard| {
+    crate::client::states::ask(session, keys, |heard| {
         queue(inputs, dropped, input_of(heard))
     })
     .await;
 }
 
 /// A state heard, as the model's input, stamped now.
-fn input_of(heard: crate::states::Heard) -> Input {
+fn input_of(heard: crate::client::states::Heard) -> Input {
     let at = schemas::unix_ms();
     match heard {
-        crate::states::Heard::Resource(snapshot) => Input::Resource { snapshot, at },
-        crate::states::Heard::Order(snapshot) => Input::Order { snapshot, at },
+        crate::client::states::Heard::Resource(snapshot) => Input::Resource { snapshot, at },
+        crate::client::states::Heard::Order(snapshot) => Input::Order { snapshot, at },
     }
 }
 

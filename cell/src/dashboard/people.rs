@@ -15,8 +15,8 @@ use tracing::info;
 use super::gate::Who;
 use super::refusal::{refused, Refusal};
 use super::Shared;
-use crate::audit::{AuditAction, AuditOutcome, AuditRecord};
-use crate::users::{self, Role};
+use crate::security::audit::{AuditAction, AuditOutcome, AuditRecord};
+use crate::security::users::{self, Role};
 
 /// The users file, if `who` may manage users: or the refusal (recorded when it refuses
 /// a change, `action`).

@@ -18,7 +18,7 @@ use std::collections::HashMap;
 use std::net::IpAddr;
 use std::time::{Duration, Instant};
 
-use crate::users::Role;
+use crate::security::users::Role;
 
 /// The session cookie's name.
 pub const COOKIE: &str = "holarchy_session";

@@ -7,7 +7,7 @@
 use opcua::types::{StatusCode, Variant};
 
 use super::address_space::{MethodTarget, SET_UNIT_MODE};
-use crate::audit::{AuditAction, AuditOutcome, AuditRecord};
+use crate::security::audit::{AuditAction, AuditOutcome, AuditRecord};
 
 /// The longest text of an argument the trail keeps (a client may send a megabyte).
 const LONGEST_ARGUMENT: usize = 200;

@@ -259,7 +259,7 @@ impl CellNodes {
         };
         let key = self.keys.orders_submit();
         let payload = serde_json::to_vec(&work).map_err(|_| StatusCode::BadInternalError)?;
-        let reply = match crate::ask::until_answered(
+        let reply = match crate::client::ask::until_answered(
             &self.session,
             &key,
             Some(payload),

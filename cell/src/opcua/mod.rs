@@ -5,7 +5,7 @@
 //! (`Objects/PackMLObjects/<resource>`: Status, Admin, the command methods) and the
 //! cell as `Objects/Cell` (order figures, SubmitWorkOrder). The values come from what
 //! the holons publish: `resource/*/state` and `order/*/state`, subscribed and asked for
-//! at the start (and once more [`crate::states::ASK_NEWCOMER_AGAIN`] later, and after each resource's
+//! at the start (and once more [`crate::client::states::ASK_NEWCOMER_AGAIN`] later, and after each resource's
 //! liveliness token appears, as the dashboard does: a change published before the
 //! subscription reached its publisher would be lost otherwise). A resource's token
 //! appearing adds its object; its token going marks its variables
@@ -71,7 +71,7 @@ pub struct OpcuaConfig {
     /// A secure cell's PKI directory: the server's certificate, its store of trusted
     /// client certificates, and the users file's default place. None: a plain cell.
     pub pki: Option<PathBuf>,
-    /// The cell's users file (default `<pki>/users.toml`, [`crate::users`]).
+    /// The cell's users file (default `<pki>/users.toml`, [`crate::security::users`]).
     pub users: Option<PathBuf>,
     /// The audit trail (default `audit.jsonl` beside the users file; a secure cell only).
     pub audit: Option<PathBuf>,
@@ -80,24 +80,6 @@ pub struct OpcuaConfig {
 /// The server's endpoint URL for a listen address.
 pub fn endpoint_url(listen: &SocketAddr) -> String {
     format!("opc.tcp://{listen}/")
-}
-
-/// The users file of a secure cell without `--users`: `<pki>/users.toml`. Refuses a
-/// PKI directory that still has only the old OPC UA users file (`opcua-users.toml`,
-/// PBKDF2 hashes): its users must be added again.
-fn default_users_file(pki: &std::path::Path) -> Result<PathBuf> {
-    let path = crate::users::default_path(pki);
-    let old = pki.join(security::USERS_FILE);
-    if old.exists() && !path.exists() {
-        bail!(
-            "{} is no longer read: the cell's users now live in {} (one file for the dashboard and the OPC UA server, argon2id hashes); add them again with `cell users --pki {} add NAME --role observer|operator|admin`, then remove {}",
-            old.display(),
-            path.display(),
-            pki.display(),
-            old.display()
-        );
-    }
-    Ok(path)
 }
 
 /// What the zenoh callbacks tell the values' owner.
@@ -110,7 +92,7 @@ enum Input {
     /// A resource's liveliness token went.
     Vanished(String),
     /// The order-nodes' counts of their orders, summed (a listing page of none from
-    /// each, [`crate::listing::counts`]).
+    /// each, [`crate::client::listing::counts`]).
     Counts(schemas::OrderCounts),
     /// The server's door figures ([`address_space::SECURITY_FIGURES`], in their order).
     Doors([u64; 4]),
@@ -122,10 +104,10 @@ const COUNTS_EVERY: Duration = Duration::from_secs(1);
 impl Input {
     /// A resource's state as an input; an order's is none (the figures are counted by
     /// the nodes).
-    fn heard(heard: crate::states::Heard) -> Option<Input> {
+    fn heard(heard: crate::client::states::Heard) -> Option<Input> {
         match heard {
-            crate::states::Heard::Resource(snapshot) => Some(Input::Resource(snapshot)),
-            crate::states::Heard::Order(_) => None,
+            crate::client::states::Heard::Resource(snapshot) => Some(Input::Resource(snapshot)),
+            crate::client::states::Heard::Order(_) => None,
         }
     }
 }
@@ -143,56 +125,7 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
     let cell = config.keys.cell().to_string();
     let url = endpoint_url(&config.listen);
     // Decide the security first: a bad setup must not join the cell at all.
-    let (auth, server_files) = match &config.pki {
-        None => {
-            if !security::is_loopback(&config.listen) {
-                bail!(
-                    "refusing to serve OPC UA without security on {} (not a loopback address): anyone on that network could command the cell's resources; run with --pki DIR (a secure cell, docs/opcua.md) or listen on 127.0.0.1",
-                    config.listen
-                );
-            }
-            (CellAuth::anonymous(), None)
-        }
-        Some(pki) => {
-            let files = security::ServerFiles::in_pki(pki)?;
-            files.check()?;
-            let users_path = match &config.users {
-                Some(path) => path.clone(),
-                None => default_users_file(pki)?,
-            };
-            let users = crate::users::load(&users_path).with_context(|| {
-                format!(
-                    "a secure cell's OPC UA server needs its users (docs/opcua.md, \"Users\"): add them with `cell users --pki {} add NAME --role observer|operator|admin`",
-                    pki.display()
-                )
-            })?;
-            if users.is_empty() {
-                bail!(
-                    "the users file {} names no user: no one could log in (`cell users --pki {} add NAME --role operator`)",
-                    users_path.display(),
-                    pki.display()
-                );
-            }
-            info!(users = users.len(), file = %users_path.display(), "OPC UA users loaded");
-            let audit_path = match &config.audit {
-                Some(path) => path.clone(),
-                None => users_path
-                    .parent()
-                    .unwrap_or(std::path::Path::new("."))
-                    .join(crate::audit::FILE_NAME),
-            };
-            let audit = crate::audit::AuditTrail::open(&audit_path)?;
-            (
-                CellAuth {
-                    anonymous: false,
-                    users: crate::users::CurrentUsers::file(users_path),
-                    logins: crate::logins::Logins::default(),
-                    audit: Some(audit),
-                },
-                Some(files),
-            )
-        }
-    };
+    let (auth, server_files) = security::auth_and_files(&config)?;
     let auth = Arc::new(auth);
     // Fail early and clearly if the port is taken (async-opcua only logs it).
     drop(
@@ -221,67 +154,11 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
         auth.clone(),
         shutdown.child_token(),
     )?;
-    if server_files.is_some()
-        && (handle.info().server_certificate.is_none() || handle.info().server_pkey.is_none())
-    {
-        bail!("the OPC UA server's certificate or key did not load: refusing to run without encryption");
-    }
-    let ns = handle
-        .get_namespace_index(&uri)
-        .ok_or_else(|| anyhow!("the namespace {uri} was not registered"))?;
-    let nodes = handle
-        .node_managers()
-        .get_of_type::<CellNodeManager>()
-        .ok_or_else(|| anyhow!("the cell's node manager is missing"))?;
-    let subscriptions = handle.subscriptions().clone();
-
-    let owner = tokio::spawn(own_the_values(
-        nodes,
-        subscriptions,
-        ns,
-        input_rx,
-        shutdown.clone(),
-    ));
+    let owner = start_the_values_owner(&handle, &uri, server_files.is_some(), input_rx, &shutdown)?;
     // No await between the build and the run: the server is not Send until it runs.
-    {
-        let every_state = [config.keys.resource_states()];
-        let (session, inputs, dropped) = (session.clone(), inputs.clone(), dropped.clone());
-        tokio::spawn(async move {
-            ask_states(&session, &every_state, &inputs, &dropped).await;
-            tokio::time::sleep(crate::states::ASK_NEWCOMER_AGAIN).await;
-            ask_states(&session, &every_state, &inputs, &dropped).await;
-        });
-    }
-    {
-        let (session, keys, inputs, dropped, stop) = (
-            session.clone(),
-            config.keys.clone(),
-            inputs.clone(),
-            dropped.clone(),
-            shutdown.clone(),
-        );
-        tokio::spawn(async move {
-            let mut every = tokio::time::interval(COUNTS_EVERY);
-            every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-            loop {
-                tokio::select! {
-                    _ = stop.cancelled() => return,
-                    _ = every.tick() => {}
-                }
-                match crate::listing::answered_counts(&session, &keys, COUNTS_EVERY * 2).await {
-                    Ok(nodes) => {
-                        let mut total = schemas::OrderCounts::default();
-                        for counts in nodes.values() {
-                            total.merge(counts);
-                        }
-                        queue(&inputs, &dropped, Input::Counts(total));
-                    }
-                    Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
-                }
-            }
-        });
-    }
-
+    let owner_queue = InputQueue { inputs, dropped };
+    spawn_state_asks(&session, &config.keys, &owner_queue);
+    spawn_order_counts(&session, &config.keys, &owner_queue, &shutdown);
     tokio::spawn(doors::end_sessions_of_changed_users(
         auth.clone(),
         handle.clone(),
@@ -290,21 +167,11 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
     tokio::spawn(doors::count_the_doors(
         auth.clone(),
         handle.clone(),
-        inputs.clone(),
-        dropped.clone(),
+        owner_queue.inputs.clone(),
+        owner_queue.dropped.clone(),
         shutdown.clone(),
     ));
-
-    match &server_files {
-        None => warn!(
-            %cell, endpoint = %url,
-            "OPC UA server without security (None/None; anonymous sessions may browse and call methods): allowed because it listens on loopback only; a secure cell uses --pki"
-        ),
-        Some(files) => info!(
-            %cell, endpoint = %url, store = %files.store.display(),
-            "OPC UA server, SignAndEncrypt only (Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss); user names and passwords; unknown client certificates are rejected into the store's rejected/ (trust one with `cell opcua --trust`)"
-        ),
-    }
+    announce(&cell, &url, server_files.as_ref());
     if let (Some(files), Some(pki)) = (&server_files, &config.pki) {
         tokio::spawn(security::watch_rejected(
             pki.clone(),
@@ -318,6 +185,113 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
     if let Err(e) = owner.await {
         warn!(error = %e, "the values' task ended abnormally");
     }
+    close(session, plain_store).await;
+    served.map_err(|e| anyhow!("the OPC UA server stopped: {e}"))
+}
+
+/// Checks the built server (its certificate loaded in a secure cell, the cell's
+/// namespace registered) and spawns the one owner of its values.
+fn start_the_values_owner(
+    handle: &opcua_server::ServerHandle,
+    uri: &str,
+    secure: bool,
+    input_rx: mpsc::Receiver<Input>,
+    shutdown: &CancellationToken,
+) -> Result<tokio::task::JoinHandle<()>> {
+    if secure && (handle.info().server_certificate.is_none() || handle.info().server_pkey.is_none())
+    {
+        bail!("the OPC UA server's certificate or key did not load: refusing to run without encryption");
+    }
+    let ns = handle
+        .get_namespace_index(uri)
+        .ok_or_else(|| anyhow!("the namespace {uri} was not registered"))?;
+    let nodes = handle
+        .node_managers()
+        .get_of_type::<CellNodeManager>()
+        .ok_or_else(|| anyhow!("the cell's node manager is missing"))?;
+    let subscriptions = handle.subscriptions().clone();
+    Ok(tokio::spawn(own_the_values(
+        nodes,
+        subscriptions,
+        ns,
+        input_rx,
+        shutdown.clone(),
+    )))
+}
+
+/// The values' owner's queue, as the tasks and callbacks that feed it hold it.
+#[derive(Clone)]
+struct InputQueue {
+    /// Where inputs wait for the values' owner.
+    inputs: mpsc::Sender<Input>,
+    /// How many inputs a full queue dropped.
+    dropped: Arc<AtomicU64>,
+}
+
+/// Asks every resource's state now and once more a little later (a newcomer's first
+/// snapshot may be published before the subscription reaches it).
+fn spawn_state_asks(session: &zenoh::Session, keys: &CellKeys, owner: &InputQueue) {
+    let every_state = [keys.resource_states()];
+    let (session, InputQueue { inputs, dropped }) = (session.clone(), owner.clone());
+    tokio::spawn(async move {
+        ask_states(&session, &every_state, &inputs, &dropped).await;
+        tokio::time::sleep(crate::client::states::ASK_NEWCOMER_AGAIN).await;
+        ask_states(&session, &every_state, &inputs, &dropped).await;
+    });
+}
+
+/// Asks the order-nodes for their counts every [`COUNTS_EVERY`] until `shutdown`, and
+/// queues their sum.
+fn spawn_order_counts(
+    session: &zenoh::Session,
+    keys: &CellKeys,
+    owner: &InputQueue,
+    shutdown: &CancellationToken,
+) {
+    let (session, keys, InputQueue { inputs, dropped }, stop) = (
+        session.clone(),
+        keys.clone(),
+        owner.clone(),
+        shutdown.clone(),
+    );
+    tokio::spawn(async move {
+        let mut every = tokio::time::interval(COUNTS_EVERY);
+        every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        loop {
+            tokio::select! {
+                _ = stop.cancelled() => return,
+                _ = every.tick() => {}
+            }
+            match crate::client::listing::answered_counts(&session, &keys, COUNTS_EVERY * 2).await {
+                Ok(nodes) => {
+                    let mut total = schemas::OrderCounts::default();
+                    for counts in nodes.values() {
+                        total.merge(counts);
+                    }
+                    queue(&inputs, &dropped, Input::Counts(total));
+                }
+                Err(e) => warn!(error = %e, "cannot ask the order-nodes for their counts"),
+            }
+        }
+    });
+}
+
+/// Says in the log how the server is secured.
+fn announce(cell: &str, url: &str, server_files: Option<&security::ServerFiles>) {
+    match server_files {
+        None => warn!(
+            %cell, endpoint = %url,
+            "OPC UA server without security (None/None; anonymous sessions may browse and call methods): allowed because it listens on loopback only; a secure cell uses --pki"
+        ),
+        Some(files) => info!(
+            %cell, endpoint = %url, store = %files.store.display(),
+            "OPC UA server, SignAndEncrypt only (Basic256Sha256, Aes128_Sha256_RsaOaep, Aes256_Sha256_RsaPss); user names and passwords; unknown client certificates are rejected into the store's rejected/ (trust one with `cell opcua --trust`)"
+        ),
+    }
+}
+
+/// Leaves the cell (within 5 s) and removes the plain server's certificate store.
+async fn close(session: zenoh::Session, plain_store: Option<PathBuf>) {
     match tokio::time::timeout(Duration::from_secs(5), session.close()).await {
         Ok(Ok(())) => {}
         Ok(Err(e)) => warn!(error = %e, "cannot close the zenoh session"),
@@ -328,7 +302,6 @@ pub async fn run(config: OpcuaConfig, shutdown: CancellationToken) -> Result<()>
             debug!(error = %e, store = %store.display(), "cannot remove the plain server's certificate store");
         }
     }
-    served.map_err(|e| anyhow!("the OPC UA server stopped: {e}"))
 }
 
 /// Builds the server (a plain function: the builder is not Send, and `run` is awaited
@@ -403,7 +376,7 @@ struct Subscriptions {
     /// The holons' liveliness tokens (`alive/**`, with history).
     _alive: zenoh::pubsub::Subscriber<()>,
     /// `resource/*/state` and `order/*/state`.
-    _states: crate::states::Following,
+    _states: crate::client::states::Following,
 }
 
 async fn subscribe(
@@ -415,7 +388,7 @@ async fn subscribe(
     let alive = {
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
         let (asked, counter) = (inputs.clone(), dropped.clone());
-        crate::states::follow_tokens(
+        crate::client::states::follow_tokens(
             session,
             keys,
             move |holon, appeared| {
@@ -442,7 +415,7 @@ async fn subscribe(
         let (inputs, dropped) = (inputs.clone(), dropped.clone());
         // The order figures are the nodes' counts (Input::Counts): no order's state
         // is followed.
-        crate::states::follow(session, keys, &[keys.resource_states()], move |heard| {
+        crate::client::states::follow(session, keys, &[keys.resource_states()], move |heard| {
             if let Some(input) = Input::heard(heard) {
                 queue(&inputs, &dropped, input)
             }
@@ -462,7 +435,7 @@ async fn ask_states(
     inputs: &mpsc::Sender<Input>,
     dropped: &AtomicU64,
 ) {
-    crate::states::ask(session, keys, |heard| {
+    crate::client::states::ask(session, keys, |heard| {
         if let Some(input) = Input::heard(heard) {
             queue(inputs, dropped, input)
         }

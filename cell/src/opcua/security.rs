@@ -1,6 +1,7 @@
 //! The OPC UA server's security: which endpoints it offers, its application certificate
 //! (issued by the cell CA, `cell certs`), and which client application certificates it
-//! trusts (`cell opcua --trust`). docs/opcua.md, "Security".
+//! trusts (`cell opcua --trust`); and who may log in ([`auth_and_files`]).
+//! docs/opcua.md, "Security".
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -9,6 +10,10 @@ use anyhow::{anyhow, bail, Context, Result};
 use opcua::crypto::{CertificateStore, SecurityPolicy};
 use opcua::types::MessageSecurityMode;
 use opcua_server::ServerEndpoint;
+use tracing::info;
+
+use super::users::CellAuth;
+use super::OpcuaConfig;
 
 /// The server certificate's file in the PKI directory (DER).
 pub const SERVER_CERT: &str = "opcua-server.der";
@@ -57,7 +62,7 @@ impl ServerFiles {
     /// starts (async-opcua would otherwise run without encryption, with a log line).
     pub fn check(&self) -> Result<()> {
         let hint = "issue it with `cell certs DIR` (a manifest with a `cell opcua` process) or see docs/opcua.md";
-        if let Some(mode) = crate::private_file::open_to_others(&self.key) {
+        if let Some(mode) = crate::security::private_file::open_to_others(&self.key) {
             bail!(
                 "the OPC UA server key {} is readable by other users (mode {mode:o}); a private key must be 0600 or stricter: chmod 600 {}",
                 self.key.display(),
@@ -194,7 +199,7 @@ pub fn issue_server_certificate(
     params.not_before = now - time::Duration::hours(1);
     params.not_after = now + time::Duration::days(days as i64);
     let cert = params.signed_by(&key, issuer)?;
-    crate::private_file::write_private(&pki.join(SERVER_KEY), &key.serialize_pem())?;
+    crate::security::private_file::write_private(&pki.join(SERVER_KEY), &key.serialize_pem())?;
     std::fs::write(pki.join(SERVER_CERT), cert.der())?;
     std::fs::write(pki.join(SERVER_CERT_PEM), cert.pem())?;
     Ok(())
@@ -229,4 +234,71 @@ pub async fn watch_rejected(
         }
         seen = now;
     }
+}
+
+/// Who may log in, and the server's certificate files: anonymous on loopback in a plain
+/// cell; the users file, the logins' throttle and the audit trail in a secure one.
+pub(super) fn auth_and_files(config: &OpcuaConfig) -> Result<(CellAuth, Option<ServerFiles>)> {
+    let Some(pki) = &config.pki else {
+        if !is_loopback(&config.listen) {
+            bail!(
+                "refusing to serve OPC UA without security on {} (not a loopback address): anyone on that network could command the cell's resources; run with --pki DIR (a secure cell, docs/opcua.md) or listen on 127.0.0.1",
+                config.listen
+            );
+        }
+        return Ok((CellAuth::anonymous(), None));
+    };
+    let files = ServerFiles::in_pki(pki)?;
+    files.check()?;
+    let users_path = match &config.users {
+        Some(path) => path.clone(),
+        None => default_users_file(pki)?,
+    };
+    let users = crate::security::users::load(&users_path).with_context(|| {
+        format!(
+            "a secure cell's OPC UA server needs its users (docs/opcua.md, \"Users\"): add them with `cell users --pki {} add NAME --role observer|operator|admin`",
+            pki.display()
+        )
+    })?;
+    if users.is_empty() {
+        bail!(
+            "the users file {} names no user: no one could log in (`cell users --pki {} add NAME --role operator`)",
+            users_path.display(),
+            pki.display()
+        );
+    }
+    info!(users = users.len(), file = %users_path.display(), "OPC UA users loaded");
+    let audit_path = match &config.audit {
+        Some(path) => path.clone(),
+        None => users_path
+            .parent()
+            .unwrap_or(std::path::Path::new("."))
+            .join(crate::security::audit::FILE_NAME),
+    };
+    let audit = crate::security::audit::AuditTrail::open(&audit_path)?;
+    let auth = CellAuth {
+        anonymous: false,
+        users: crate::security::users::CurrentUsers::file(users_path),
+        logins: crate::security::logins::Logins::default(),
+        audit: Some(audit),
+    };
+    Ok((auth, Some(files)))
+}
+
+/// The users file of a secure cell without `--users`: `<pki>/users.toml`. Refuses a
+/// PKI directory that still has only the old OPC UA users file (`opcua-users.toml`,
+/// PBKDF2 hashes): its users must be added again.
+fn default_users_file(pki: &std::path::Path) -> Result<PathBuf> {
+    let path = crate::security::users::default_path(pki);
+    let old = pki.join(USERS_FILE);
+    if old.exists() && !path.exists() {
+        bail!(
+            "{} is no longer read: the cell's users now live in {} (one file for the dashboard and the OPC UA server, argon2id hashes); add them again with `cell users --pki {} add NAME --role observer|operator|admin`, then remove {}",
+            old.display(),
+            path.display(),
+            pki.display(),
+            old.display()
+        );
+    }
+    Ok(path)
 }

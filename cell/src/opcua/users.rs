@@ -1,10 +1,10 @@
 //! Who may use `cell opcua`: the server's [`AuthManager`] on the cell's users file
-//! ([`crate::users`], docs/opcua.md "Users"), and the operator/observer split.
+//! ([`crate::security::users`], docs/opcua.md "Users"), and the operator/observer split.
 //!
 //! An observer may browse, read and subscribe; an operator or an admin may also call
 //! methods. The password never reaches the server in clear on the wire: the secure
 //! endpoints encrypt it, and async-opcua hands it to us decrypted. Checking it is the
-//! cell's one login policy ([`crate::logins`]): slowed, locked out per name and per
+//! cell's one login policy ([`crate::security::logins`]): slowed, locked out per name and per
 //! address, never more than a few checks at once, as on the dashboard.
 //!
 //! The users file is read again when it changes ([`CurrentUsers`]): a user added with
@@ -28,9 +28,9 @@ use opcua_server::authenticator::{user_pass_security_policy_id, AuthManager, Pas
 use opcua_server::ServerEndpoint;
 use tracing::{info, warn};
 
-use crate::audit::{AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
-use crate::logins::{Logins, Refused};
-use crate::users::{fingerprint, CurrentUsers};
+use crate::security::audit::{AuditAction, AuditDoor, AuditOutcome, AuditRecord, AuditTrail};
+use crate::security::logins::{Logins, Refused};
+use crate::security::users::{fingerprint, CurrentUsers};
 
 /// How often the server looks at the users file for users whose sessions must end.
 pub const USERS_CHECKED_EVERY: Duration = Duration::from_millis(500);
@@ -45,8 +45,8 @@ pub enum Role {
     Observer,
 }
 
-impl From<crate::users::Role> for Role {
-    fn from(role: crate::users::Role) -> Role {
+impl From<crate::security::users::Role> for Role {
+    fn from(role: crate::security::users::Role) -> Role {
         if role.may_operate() {
             Role::Operator
         } else {
@@ -300,7 +300,7 @@ impl AuthManager for CellAuth {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::users::{Role as UserRole, Users};
+    use crate::security::users::{Role as UserRole, Users};
 
     #[test]
     fn observers_watch_and_operators_and_admins_operate() {

@@ -7,7 +7,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use tokio::sync::{mpsc, oneshot};
 
-use crate::upgrade::{UpgradeOutcome, UpgradeRequest};
+use crate::up::upgrade::{UpgradeOutcome, UpgradeRequest};
 
 /// An upgrade asked on the control socket, and where its outcome goes.
 pub(super) type Upgrade = (UpgradeRequest, oneshot::Sender<UpgradeOutcome>);
@@ -23,7 +23,7 @@ impl Control {
     /// carries one upgrade request, answered with its outcome.
     pub(super) fn listen(dir: &Path, host: &str) -> Result<(Control, mpsc::Receiver<Upgrade>)> {
         use std::os::unix::fs::PermissionsExt;
-        let path = crate::upgrade::socket_path(dir, host);
+        let path = crate::up::upgrade::socket_path(dir, host);
         let run = path.parent().expect("the socket is in DIR/run");
         std::fs::create_dir_all(run)?;
         std::fs::set_permissions(run, std::fs::Permissions::from_mode(0o700))?;

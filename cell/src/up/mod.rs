@@ -10,15 +10,19 @@
 //!
 //! The manifest format is documented in `deploy/cells/demo/cell.toml`.
 //!
-//! It also listens on `DIR/run/<host>.sock` for `cell upgrade` ([`crate::upgrade`]):
+//! It also listens on `DIR/run/<host>.sock` for `cell upgrade` ([`crate::up::upgrade`]):
 //! one process at a time is replaced by its successor through a planned hand-over,
 //! and the successor is supervised in its place.
 
-//! Its parts: [`supervision`] (the processes and their restarts, and the upgrades the
-//! supervisor carries out), [`control`] (the control socket `cell upgrade` talks to).
+//! Its parts: [`manifest`] (the file it runs), [`supervision`] (the processes and their
+//! restarts, and the upgrades the supervisor carries out), [`control`] (the control
+//! socket `cell upgrade` talks to) and [`upgrade`] (what `cell upgrade` asks and is
+//! answered).
 
 mod control;
+pub mod manifest;
 mod supervision;
+pub mod upgrade;
 
 use std::path::Path;
 use std::time::Duration;
@@ -27,7 +31,7 @@ use anyhow::{anyhow, Result};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-use crate::manifest::{Manifest, RouterSection};
+use crate::up::manifest::{Manifest, RouterSection};
 use control::Control;
 use supervision::{Clock, Processes};
 
@@ -60,7 +64,7 @@ async fn start_router(
     router: &RouterSection,
     clock: Clock,
 ) -> Result<Router> {
-    let settings = router.settings(&crate::certs::pki_dir(dir, manifest));
+    let settings = router.settings(&crate::security::certs::pki_dir(dir, manifest));
     let session = settings
         .open(
             &holon::role::identity(holon::role::Role::Router, host),

@@ -25,8 +25,7 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 use super::control::{failed, Upgrade};
-use crate::manifest::{Manifest, ProcessSection};
-use crate::upgrade::UpgradeOutcome;
+use crate::up::manifest::{Manifest, ProcessSection};
 use upgrade::{Checked, Retired, Successor};
 
 /// A program named in a manifest: a binary next to `cell` if there is one, else as given.
@@ -250,10 +249,13 @@ impl<'a> Processes<'a> {
     }
 
     /// Decides on an exit after its restart type and the intensity: false to give up.
+    /// The exits that are no restart decision come first: a retired successor's, a
+    /// successor's before its predecessor ended, an older start's, and the predecessor's
+    /// that handed over.
     fn exited(&mut self, (index, generation, status): Ended) -> bool {
-        let name = self.specs[index].name.clone();
         if let Some(at) = self.retired.iter().position(|r| r.generation == generation) {
             self.retired.swap_remove(at);
+            let name = &self.specs[index].name;
             self.clock.say(format!(
                 "stopped the successor of {name} ({})",
                 describe(status)
@@ -267,29 +269,7 @@ impl<'a> Processes<'a> {
             .is_some_and(|s| s.generation == generation)
         {
             let successor = slot.successor.take().expect("checked");
-            // Exit code 3: the running process refused (it said so, and serves on).
-            // Any other end may come after the running process let go: it then stands
-            // in for a while and exits, and is started again as before.
-            let refused = status
-                .as_ref()
-                .is_ok_and(|s| s.code() == Some(i32::from(holon::takeover::EXIT_REFUSED)));
-            let what = match refused {
-                true => format!("{name} refused to hand over and runs on unchanged"),
-                false => format!(
-                    "if {name} had already let go, it stands in for up to {:?}, exits, and is started again from its previous binary and config on its journal",
-                    holon::takeover::STAND_IN_LIMIT
-                ),
-            };
-            let message = format!(
-                "the successor of {name} exited ({}) before {name} ended; {what}. The end of logs/{name}.log:\n{}",
-                describe(status),
-                crate::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
-            );
-            self.clock
-                .say(format!("upgrade of {name} failed: its successor exited"));
-            if successor.reply.send(failed(&message)).is_err() {
-                tracing::warn!(%name, "cell upgrade went away before its answer");
-            }
+            self.successor_exited(index, successor, status);
             return true;
         }
         if slot.generation != generation {
@@ -298,28 +278,7 @@ impl<'a> Processes<'a> {
         let predecessor_ok = status.as_ref().is_ok_and(ExitStatus::success);
         let mut successor = slot.successor.take();
         if let Some(successor) = successor.take_if(|_| predecessor_ok) {
-            let before = slot.pid.unwrap_or(0);
-            slot.generation = successor.generation;
-            slot.pid = successor.pid;
-            let replaced = Event::Replaced {
-                child: index,
-                started_at: successor.started_at,
-            };
-            self.machine.handle(replaced, Instant::now());
-            let spec = &mut self.specs[index];
-            spec.program = successor.program;
-            spec.args = successor.args;
-            let message = format!(
-                "upgraded {name}: pid {before} ({}) handed over to pid {} in {} ms",
-                describe(status),
-                successor.pid.unwrap_or(0),
-                successor.started_at.elapsed().as_millis()
-            );
-            self.clock.say(&message);
-            let outcome = UpgradeOutcome { ok: true, message };
-            if successor.reply.send(outcome).is_err() {
-                tracing::warn!(%name, "cell upgrade went away before its answer");
-            }
+            self.handed_over(index, successor, status);
             return true;
         }
         if let Some(successor) = successor {
@@ -328,6 +287,12 @@ impl<'a> Processes<'a> {
             // again below, from its previous command line, on its journal.
             self.retire(index, successor, &status);
         }
+        self.child_exited(index, status)
+    }
+
+    /// A supervised process exited: the machine decides whether and when it restarts,
+    /// or that the supervisor gives up (false).
+    fn child_exited(&mut self, index: usize, status: std::io::Result<ExitStatus>) -> bool {
         self.slots[index].pid = None;
         let normally = status.as_ref().is_ok_and(ExitStatus::success);
         let status = describe(status);

@@ -8,7 +8,7 @@
 //! (up to [`BATCH`]), so that requests arriving at once (eight orders booking at the
 //! same moment) share one journal write and its fsync. For each batch, in this order:
 //!
-//! 1. the pure state machine ([`crate::agenda`]) makes the transition of each event;
+//! 1. the pure state machine ([`crate::machine::agenda`]) makes the transition of each event;
 //! 2. the journal records what changed, once, before anything is answered or done; when
 //!    that write fails, the agenda goes back to where it was and the events are taken
 //!    one at a time (a request that cannot be recorded is refused and changes nothing);
@@ -16,8 +16,8 @@
 //!    the change;
 //! 4. the actions are carried out, here and nowhere else: `Reply` answers the question,
 //!    `Execute` goes to the execution component, `Deliver` to the delivery machine
-//!    ([`crate::delivery`]), whose attempts this task sends out and owns
-//!    ([`crate::component::delivery::Courier`]) until the requester acknowledges;
+//!    ([`crate::machine::delivery`]), whose attempts this task sends out and owns
+//!    ([`courier::Courier`]) until the requester acknowledges;
 //! 5. the view's watchers are woken (the snapshot's publisher among them): after the
 //!    answers, so that the publication does not take a CPU from them, and before a job
 //!    goes to the execution, which is then the next task to run ([`Unannounced`]).
@@ -40,16 +40,19 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use crate::agenda::{AgendaAction, AgendaEvent};
-use crate::component::delivery::Courier;
 use crate::component::question::Question;
 use crate::config::DeliverySettings;
-use crate::delivery::{repeat_worth_logging, Deliveries, DeliveryAction, DeliveryEvent};
-use crate::execution::ExecutionRequest;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
+use crate::machine::agenda::{AgendaAction, AgendaEvent};
+use crate::machine::delivery::{
+    repeat_worth_logging, DeliveryAction, DeliveryEvent, DeliveryMachine,
+};
+use crate::machine::execution::ExecutionRequest;
 use crate::views::Views;
+use courier::Courier;
 
+pub mod courier;
 mod journalled;
 
 pub use journalled::JournalledAgenda;
@@ -101,7 +104,7 @@ pub struct Links {
 /// agenda's undelivered results (an attempt lost with its predecessor goes out again).
 struct Delivery {
     /// When each result goes out (again).
-    deliveries: Deliveries,
+    deliveries: DeliveryMachine,
     /// The attempts out.
     courier: Courier,
 }
@@ -116,7 +119,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
     // its publication.
     links.views.agenda.send_replace(agenda.view());
     let mut delivery = Delivery {
-        deliveries: Deliveries::new(links.delivery, *links.views.delivery_retries.borrow()),
+        deliveries: DeliveryMachine::new(links.delivery, *links.views.delivery_retries.borrow()),
         courier: Courier::new(links.session.clone(), links.delivery.attempt_timeout),
     };
     // Results not yet acknowledged (from before a restart of the process or of this
@@ -412,8 +415,9 @@ mod tests {
     use schemas::{unix_ms, MessageType, Service};
 
     use super::*;
-    use crate::agenda::Inheritance;
-    use crate::config::{Overrides, ResourceConfig};
+    use crate::config::ResourceConfig;
+    use crate::identity::Overrides;
+    use crate::machine::agenda::Inheritance;
 
     const DEMO: &str = include_str!("../../../deploy/cells/demo/robot1.toml");
 
@@ -540,7 +544,7 @@ mod tests {
         record(&mut agenda, &config.holon, on_turn("o2"), unix_ms()).unwrap();
         let finished = AgendaEvent::ExecutionFinished {
             conversation_id: "o1/1/1".into(),
-            outcome: crate::agenda::Outcome::Done {
+            outcome: crate::machine::agenda::Outcome::Done {
                 results: Default::default(),
             },
         };

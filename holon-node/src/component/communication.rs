@@ -13,7 +13,7 @@
 //!
 //! It also publishes the state snapshot on `resource/<name>/state` whenever a view
 //! changes. Results are not its business: the agenda manager, which owns them, delivers
-//! them ([`crate::component::delivery`]).
+//! them ([`crate::component::agenda_manager::courier`]).
 //!
 //! A request to `service` or to an offer of an unfenced resource is decoded and checked
 //! in the queryable's callback and goes from there straight into the agenda manager's
@@ -28,6 +28,8 @@
 //! this component's task waits, and queries queue up here. The agenda manager never
 //! waits on this component (it sends it nothing), so that wait ends.
 
+pub mod outcome;
+
 use std::sync::Arc;
 
 use holon::ChildError;
@@ -36,11 +38,11 @@ use tokio::sync::{mpsc, Notify};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
 use crate::component::question::Question;
 use crate::config::ResourceConfig;
 use crate::fault_injection::Faults;
+use crate::machine::agenda::AgendaEvent;
 use crate::views::Views;
 
 /// How many queries wait for this component before new ones are refused `unavailable`.
@@ -442,7 +444,7 @@ async fn answer(links: &Arc<Links>, arrival: Arrival) -> Option<AgendaMessage> {
         }
         Endpoint::Outcome => {
             // It may ask the controller: answered by a task of its own.
-            tokio::spawn(super::outcome::answer(Arc::clone(links), question));
+            tokio::spawn(outcome::answer(Arc::clone(links), question));
             return None;
         }
         Endpoint::Service | Endpoint::Offer(_) => {}
@@ -555,7 +557,7 @@ fn decode(
 }
 
 /// The outcome of a conversation is answered from these links.
-impl super::outcome::Sources for Links {
+impl outcome::Sources for Links {
     fn config(&self) -> &ResourceConfig {
         &self.config
     }

@@ -1,5 +1,5 @@
 //! The execution component: the one owner of the execution state machine
-//! ([`crate::execution`]) and, through the interfacing module, of the controller
+//! ([`crate::machine::execution`]) and, through the interfacing module, of the controller
 //! connection.
 //!
 //! Its task runs the controller client ([`interfacing::serve`]) with itself as the
@@ -24,19 +24,21 @@ use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info};
 
-use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
 use crate::component::interfacing;
-use crate::execution::{Execution, ExecutionAction, ExecutionEvent, ExecutionRequest};
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
+use crate::machine::agenda::AgendaEvent;
+use crate::machine::execution::{
+    ExecutionAction, ExecutionEvent, ExecutionMachine, ExecutionRequest,
+};
 use crate::views::{ExecutionView, Views};
 
 /// What the execution component is linked to.
 pub struct Links {
     pub holon: HolonId,
     /// The state machine it owns.
-    pub execution: Handover<Execution>,
+    pub execution: Handover<ExecutionMachine>,
     /// Jobs (and aborts) from the agenda manager.
     pub jobs: Mailbox<ExecutionRequest>,
     /// The controller connection it runs.
@@ -77,7 +79,7 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
 /// its actions left to do.
 struct Driver<'a> {
     links: &'a Links,
-    execution: &'a mut Execution,
+    execution: &'a mut ExecutionMachine,
     jobs: &'a mut mpsc::Receiver<ExecutionRequest>,
     /// Requests for the controller client, oldest first (at most a step's command and
     /// an abort).

@@ -15,8 +15,8 @@ use tokio::sync::{mpsc, watch};
 use tokio_util::sync::CancellationToken;
 use tracing::info;
 
-use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
+use crate::machine::agenda::AgendaEvent;
 
 pub struct Links {
     pub holon: HolonId,

@@ -32,9 +32,9 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use crate::absences::{Absences, Moment};
-use crate::agenda::AgendaEvent;
 use crate::component::agenda_manager::AgendaMessage;
+use crate::machine::absences::{Absences, Moment};
+use crate::machine::agenda::AgendaEvent;
 use crate::views::Views;
 
 /// The kinds of holon that may book a resource: every kind but resources.

@@ -15,7 +15,7 @@ pub(super) fn stand_in_answer(holon: schemas::HolonId) -> holon::takeover::Answe
         let sent = match Service::from_json(&payload) {
             Ok(request) => {
                 let mut refusal = request.refused(&holon, schemas::Reason::Unavailable);
-                crate::agenda::handing_over_hint(&mut refusal.info);
+                crate::machine::agenda::handing_over_hint(&mut refusal.info);
                 query
                     .reply(query.key_expr().clone(), refusal.to_json())
                     .wait()

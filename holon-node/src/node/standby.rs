@@ -3,7 +3,7 @@
 //!
 //! Each round starts the five components with the controller client in fenced mode
 //! ([`robot_bridge::client::run_fenced`]) and claims the controller as the holon's name,
-//! every [`CLAIM_RETRY`] while another session holds it ([`crate::fence::Claim`]). Until
+//! every [`CLAIM_RETRY`] while another session holds it ([`crate::machine::fence::Claim`]). Until
 //! it holds the claim the resource is a standby: the communication component declares
 //! nothing and the name's liveliness token is not declared, so it may wait beside a live
 //! primary of the same name (the twin check of an unfenced resource is not made: the
@@ -27,9 +27,9 @@ use tracing::{debug, error, info, warn};
 
 use super::fence_report::Reporter;
 use super::{Node, NodeError, Resource, Wiring};
-use crate::agenda::AgendaEvent;
 use crate::config::ResourceConfig;
-use crate::fence::{Claim, ClaimAction, ClaimEvent, CLAIM_RETRY};
+use crate::machine::agenda::AgendaEvent;
+use crate::machine::fence::{Claim, ClaimAction, ClaimEvent, CLAIM_RETRY};
 use crate::views::FenceView;
 
 /// The controller fence as a resource's leadership: the controller's claim decides

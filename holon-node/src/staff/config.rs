@@ -6,8 +6,9 @@ use holon::ZenohSettings;
 use schemas::HolonKind;
 use serde::Deserialize;
 
-use crate::config::{ConfigError, Overrides};
-use crate::identity::{Header, Identity};
+use holon::config_file::ConfigError;
+
+use crate::identity::{Header, Identity, Overrides};
 
 /// The file as written.
 #[derive(Debug, Clone, Deserialize)]

@@ -28,10 +28,10 @@ use tracing::{debug, info, warn};
 use zenoh::query::Query;
 use zenoh::sample::SampleKind;
 
-use crate::node::NodeError;
 use crate::staff::config::StaffConfig;
 use crate::staff::model::CellModel;
 use crate::staff::planner;
+use crate::HolonError;
 
 /// How many events may wait for the staff's task.
 pub const MAILBOX: usize = 1024;
@@ -63,7 +63,7 @@ struct Published {
 /// Runs the staff holon until `shutdown` is cancelled, or until it hands over to a
 /// successor (what it learned goes with it: the successor learns again, from nominal
 /// durations until it has measured).
-pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(), NodeError> {
+pub async fn run(config: StaffConfig, shutdown: CancellationToken) -> Result<(), HolonError> {
     let process = config.identity.process();
     holon::life::run(process, &config, LivelinessClaim::default(), shutdown).await
 }
@@ -79,11 +79,11 @@ pub enum Turn {
 impl Behaviour for &StaffConfig {
     type Grant = ();
     type Work = Staff;
-    type Error = NodeError;
+    type Error = HolonError;
 
     /// Subscribes to what the cell publishes, answers advice and the state, learns
     /// what the resources published before it came, and publishes its state.
-    async fn start(&mut self, start: Start<()>) -> Result<Staff, NodeError> {
+    async fn start(&mut self, start: Start<()>) -> Result<Staff, HolonError> {
         let config = *self;
         let session = start.session;
         let holon = config.identity.holon.clone();
@@ -105,7 +105,7 @@ impl Behaviour for &StaffConfig {
                 }
             })
             .await
-            .map_err(|e| NodeError::Zenoh(holon::zenoh_error::describe(&e)))?;
+            .map_err(|e| HolonError::Zenoh(holon::zenoh_error::describe(&e)))?;
         let mut model = CellModel::default();
         // What the resources published before the staff came: asked once.
         seed(&session, config, &mut model).await;
@@ -154,9 +154,9 @@ impl Sources {
         session: &zenoh::Session,
         config: &StaffConfig,
         events: mpsc::Sender<StaffEvent>,
-    ) -> Result<Sources, NodeError> {
+    ) -> Result<Sources, HolonError> {
         let holon = config.identity.holon.clone();
-        let zenoh_error = |e: zenoh::Error| NodeError::Zenoh(holon::zenoh_error::describe(&e));
+        let zenoh_error = |e: zenoh::Error| HolonError::Zenoh(holon::zenoh_error::describe(&e));
         let keys = &config.identity.keys;
         let snapshots = events.clone();
         let resource_states = session
@@ -289,9 +289,9 @@ impl Staff {
 
 impl Work for Staff {
     type Event = Turn;
-    type Error = NodeError;
+    type Error = HolonError;
 
-    async fn next(&mut self) -> holon::life::Next<Turn, NodeError> {
+    async fn next(&mut self) -> holon::life::Next<Turn, HolonError> {
         tokio::select! {
             _ = self.republish.tick() => holon::life::Next::Event(Turn::Republish),
             event = self.mailbox.recv() => match event {
@@ -350,7 +350,7 @@ impl Work for Staff {
             .stand_in(self.sources.advice_key.clone())
     }
 
-    async fn stop(self, _how: &Leaving) -> Result<(), NodeError> {
+    async fn stop(self, _how: &Leaving) -> Result<(), HolonError> {
         info!(holon = %self.config.identity.holon, advised = self.published.advised, "holon stopped");
         Ok(())
     }

@@ -1,17 +1,28 @@
 //! Checking a dialect file and compiling it into a [`Dialect`]: every error names the
 //! field and the problem.
+//!
+//! [`compile`] takes the file's sections in the order a reader meets them, one step
+//! each: the framing, the values and enums, the messages, the sequence
+//! ([`sequence`]), the controller's state and keep-alive ([`status`]), the abort
+//! ([`abort`]), the fence ([`fence`]) and the banner. The first error found is the one
+//! reported.
 
-use super::file::{Correlation, DialectFile, FramingKind, Outcome, StatusSource};
+mod abort;
+mod fence;
+mod sequence;
+mod status;
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use super::file::{
+    DialectFile, FramingKind, FramingSection, MessageSection, OneOrMany, ReplySection,
+    ValuesSection,
+};
 use super::framing::{ByteOrder, Framing};
-use super::messages::{
-    captures, compile_command, compile_reply, invalid, templates_of, valid_name,
-};
+use super::messages::{compile_command, compile_reply, invalid, valid_name};
 use super::values::{Enums, ValueFormat};
-use super::{
-    Abort, Command, Dialect, DialectError, Element, Fence, Keepalive, Reply, Sending, Status,
-};
+use super::{Command, Dialect, DialectError, Reply};
 use crate::codec::parse_tree;
-use std::time::Duration;
 
 /// Reads escapes in a terminator: `\n`, `\r`, `\t`, `\0`, `\xHH`.
 fn unescape_bytes(text: &str) -> Result<Vec<u8>, String> {
@@ -45,8 +56,94 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
     if !valid_name(&file.name) {
         return Err(invalid(origin, "name", "1 to 64 letters, digits, _ or -"));
     }
-    // Framing.
-    let f = &file.framing;
+    let (framing, max, order) = framing(&file.framing, origin)?;
+    let format = value_format(&file.values, origin)?;
+    let enums = enums(file.enums, origin)?;
+    let kind = file.framing.kind;
+    let (commands, replies) = messages(&file.command, &file.reply, kind, order, &enums, origin)?;
+    let named = Named {
+        origin,
+        commands: &commands,
+        replies: &replies,
+    };
+    let sequence = sequence::compile(&file.sequence, &named)?;
+    sequence::check_correlation(file.correlation, &sequence, &named)?;
+    let status = status::compile(&file.status, &named)?;
+    let keepalive = status::keepalive(file.connection.keepalive.as_ref(), &named)?;
+    let abort = abort::compile(
+        file.abort.as_ref(),
+        &sequence,
+        &status,
+        keepalive.as_ref(),
+        &named,
+    )?;
+    let fence = fence::compile(file.fence.as_ref(), &sequence, abort.as_ref(), &named)?;
+    if let Some(banner) = &file.connection.banner {
+        check_banner(banner, kind, &framing, max, origin)?;
+    }
+    Ok(Dialect {
+        name: file.name,
+        description: file.description,
+        role: file.connection.role,
+        framing,
+        max_message_bytes: max,
+        format,
+        correlation: file.correlation,
+        status,
+        banner: file.connection.banner,
+        keepalive,
+        enums,
+        commands,
+        replies,
+        sequence,
+        abort,
+        fence,
+    })
+}
+
+/// The compiled messages, found by the names the rest of the file gives them.
+struct Named<'a> {
+    /// Where the dialect comes from, for errors.
+    origin: &'a str,
+    /// The `[[command]]` messages, in the file's order.
+    commands: &'a [Command],
+    /// The `[[reply]]` messages, in the file's order.
+    replies: &'a [Reply],
+}
+
+impl Named<'_> {
+    /// The index of the command called `name`, or an error naming `field`.
+    fn command(&self, field: &str, name: &str) -> Result<usize, DialectError> {
+        self.commands
+            .iter()
+            .position(|c| c.name == name)
+            .ok_or_else(|| {
+                invalid(
+                    self.origin,
+                    field,
+                    format!("no [[command]] is named {name:?}"),
+                )
+            })
+    }
+
+    /// The index of the reply called `name`, or an error naming `field`.
+    fn reply(&self, field: &str, name: &str) -> Result<usize, DialectError> {
+        self.replies
+            .iter()
+            .position(|r| r.name == name)
+            .ok_or_else(|| {
+                invalid(
+                    self.origin,
+                    field,
+                    format!("no [[reply]] is named {name:?}"),
+                )
+            })
+    }
+}
+
+/// The `[framing]` section: the framing, the largest message and the byte order of
+/// binary fields.
+fn framing(f: &FramingSection, origin: &str) -> Result<(Framing, usize, ByteOrder), DialectError> {
     let max = f.max_message_bytes.unwrap_or(64 * 1024);
     if !(16..=16 * 1024 * 1024).contains(&max) {
         return Err(invalid(
@@ -56,6 +153,34 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
         ));
     }
     let order = f.byte_order.unwrap_or(ByteOrder::Big);
+    only_for_its_kind(f, origin)?;
+    let framing = match f.kind {
+        FramingKind::Xml => Framing::Xml,
+        FramingKind::Line => {
+            let terminator = unescape_bytes(f.terminator.as_deref().unwrap_or("\n"))
+                .map_err(|e| invalid(origin, "framing.terminator", e))?;
+            if terminator.is_empty() || terminator.len() > 4 {
+                return Err(invalid(origin, "framing.terminator", "1 to 4 bytes"));
+            }
+            Framing::Line { terminator }
+        }
+        FramingKind::LengthPrefix => {
+            let bytes = f.prefix_bytes.unwrap_or(4);
+            if bytes != 2 && bytes != 4 {
+                return Err(invalid(origin, "framing.prefix_bytes", "2 or 4"));
+            }
+            Framing::LengthPrefix {
+                bytes,
+                order,
+                counts_itself: f.prefix_counts_itself.unwrap_or(false),
+            }
+        }
+    };
+    Ok((framing, max, order))
+}
+
+/// A framing field given for a kind it does not belong to is an error.
+fn only_for_its_kind(f: &FramingSection, origin: &str) -> Result<(), DialectError> {
     let only = |field: &str, given: bool, kind: &str| -> Result<(), DialectError> {
         if given {
             Err(invalid(
@@ -79,47 +204,29 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
     if f.kind != FramingKind::Line {
         only("terminator", f.terminator.is_some(), "line")?;
     }
-    let framing = match f.kind {
-        FramingKind::Xml => Framing::Xml,
-        FramingKind::Line => {
-            let terminator = unescape_bytes(f.terminator.as_deref().unwrap_or("\n"))
-                .map_err(|e| invalid(origin, "framing.terminator", e))?;
-            if terminator.is_empty() || terminator.len() > 4 {
-                return Err(invalid(origin, "framing.terminator", "1 to 4 bytes"));
-            }
-            Framing::Line { terminator }
-        }
-        FramingKind::LengthPrefix => {
-            let bytes = f.prefix_bytes.unwrap_or(4);
-            if bytes != 2 && bytes != 4 {
-                return Err(invalid(origin, "framing.prefix_bytes", "2 or 4"));
-            }
-            Framing::LengthPrefix {
-                bytes,
-                order,
-                counts_itself: f.prefix_counts_itself.unwrap_or(false),
-            }
-        }
-    };
-    // Values and enums.
+    Ok(())
+}
+
+/// The `[values]` section: how numbers and booleans are written.
+fn value_format(values: &ValuesSection, origin: &str) -> Result<ValueFormat, DialectError> {
     let format = ValueFormat {
-        decimals: file.values.decimals,
-        true_text: file
-            .values
-            .true_text
-            .clone()
-            .unwrap_or_else(|| "true".into()),
-        false_text: file
-            .values
-            .false_text
-            .clone()
-            .unwrap_or_else(|| "false".into()),
+        decimals: values.decimals,
+        true_text: values.true_text.clone().unwrap_or_else(|| "true".into()),
+        false_text: values.false_text.clone().unwrap_or_else(|| "false".into()),
     };
     if format.decimals.is_some_and(|d| d > 17) {
         return Err(invalid(origin, "values.decimals", "at most 17"));
     }
+    Ok(format)
+}
+
+/// The `[enums]` tables: each value's wire forms, none standing for two values.
+fn enums(
+    tables: BTreeMap<String, BTreeMap<String, OneOrMany>>,
+    origin: &str,
+) -> Result<Enums, DialectError> {
     let mut enums = Enums::default();
-    for (table, entries) in file.enums {
+    for (table, entries) in tables {
         if !template_name(&table) {
             return Err(invalid(
                 origin,
@@ -130,7 +237,7 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
         if entries.is_empty() {
             return Err(invalid(origin, format!("enums.{table}"), "an empty table"));
         }
-        let mut seen = std::collections::BTreeSet::new();
+        let mut seen = BTreeSet::new();
         for (value, wire) in entries {
             let wire = wire.into_vec();
             if wire.is_empty() || wire.iter().any(String::is_empty) {
@@ -148,16 +255,27 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
             enums.insert(&table, &value, wire);
         }
     }
-    // Messages.
+    Ok(enums)
+}
+
+/// The `[[command]]` and `[[reply]]` messages; no two replies share a name.
+fn messages(
+    command: &[MessageSection],
+    reply: &[ReplySection],
+    kind: FramingKind,
+    order: ByteOrder,
+    enums: &Enums,
+    origin: &str,
+) -> Result<(Vec<Command>, Vec<Reply>), DialectError> {
     let mut commands = Vec::new();
-    for (i, c) in file.command.iter().enumerate() {
+    for (i, c) in command.iter().enumerate() {
         commands.push(compile_command(
-            origin, i, c, f.kind, order, &enums, &commands,
+            origin, i, c, kind, order, enums, &commands,
         )?);
     }
     let mut replies: Vec<Reply> = Vec::new();
-    for (i, r) in file.reply.iter().enumerate() {
-        let reply = compile_reply(origin, i, r, f.kind, order, &enums)?;
+    for (i, r) in reply.iter().enumerate() {
+        let reply = compile_reply(origin, i, r, kind, order, enums)?;
         if replies.iter().any(|o| o.name == reply.name) {
             return Err(invalid(
                 origin,
@@ -167,384 +285,52 @@ pub(super) fn compile(file: DialectFile, origin: &str) -> Result<Dialect, Dialec
         }
         replies.push(reply);
     }
-    let command_named = |field: &str, name: &str| {
-        commands
-            .iter()
-            .position(|c: &Command| c.name == name)
-            .ok_or_else(|| invalid(origin, field, format!("no [[command]] is named {name:?}")))
-    };
-    let reply_named = |field: &str, name: &str| {
-        replies
-            .iter()
-            .position(|r| r.name == name)
-            .ok_or_else(|| invalid(origin, field, format!("no [[reply]] is named {name:?}")))
-    };
-    // The sequence.
-    if file.sequence.is_empty() {
-        return Err(invalid(origin, "sequence", "at least one element"));
-    }
-    let mut sequence = Vec::new();
-    for (i, e) in file.sequence.iter().enumerate() {
-        let at = format!("sequence[{i}]");
-        let (sending, name) = match (&e.send, &e.poll, e.every_ms) {
-            (Some(name), None, None) => (Sending::Send, name),
-            (None, Some(name), Some(ms)) if ms > 0 => {
-                (Sending::Poll(Duration::from_millis(ms)), name)
-            }
-            (None, Some(_), _) => {
-                return Err(invalid(
-                    origin,
-                    format!("{at}.every_ms"),
-                    "a poll needs every_ms > 0",
-                ))
-            }
-            (Some(_), None, Some(_)) => {
-                return Err(invalid(
-                    origin,
-                    format!("{at}.every_ms"),
-                    "only a poll repeats",
-                ))
-            }
-            _ => return Err(invalid(origin, &at, "give send or poll")),
-        };
-        let command = command_named(
-            &format!("{at}.{}", if e.send.is_some() { "send" } else { "poll" }),
-            name,
-        )?;
-        if e.expect.is_empty() {
-            return Err(invalid(
-                origin,
-                format!("{at}.expect"),
-                "at least one reply",
-            ));
-        }
-        let mut expect = Vec::new();
-        for name in &e.expect {
-            let r = reply_named(&format!("{at}.expect"), name)?;
-            if matches!(
-                replies[r].outcome,
-                Outcome::Status | Outcome::Ignore | Outcome::Fence
-            ) {
-                return Err(invalid(
-                    origin,
-                    format!("{at}.expect"),
-                    format!(
-                        "{name:?} is a {:?} reply, which may come at any time; expect answers only",
-                        replies[r].outcome
-                    )
-                    .to_lowercase(),
-                ));
-            }
-            expect.push(r);
-        }
-        let outcomes: Vec<Outcome> = expect.iter().map(|&r| replies[r].outcome).collect();
-        if let Sending::Poll(_) = sending {
-            if !outcomes.contains(&Outcome::Running) {
-                return Err(invalid(
-                    origin,
-                    format!("{at}.expect"),
-                    "a poll expects a `running` reply (the action goes on)",
-                ));
-            }
-        }
-        sequence.push(Element {
-            sending,
-            command,
-            expect,
-            starts: e.starts,
-        });
-    }
-    let last = sequence.last().expect("not empty");
-    if !last
-        .expect
-        .iter()
-        .any(|&r| replies[r].outcome == Outcome::Done)
-    {
+    Ok((commands, replies))
+}
+
+/// `connection.banner`: what the controller says first, one message of its framing.
+fn check_banner(
+    banner: &str,
+    kind: FramingKind,
+    framing: &Framing,
+    max: usize,
+    origin: &str,
+) -> Result<(), DialectError> {
+    if banner.is_empty() || banner.len() > max {
         return Err(invalid(
             origin,
-            format!("sequence[{}].expect", sequence.len() - 1),
-            "the last element must expect a `done` reply, or no step could end",
+            "connection.banner",
+            "1 byte up to max_message_bytes",
         ));
     }
-    match sequence.iter().filter(|e| e.starts).count() {
-        0 => {
-            // The last `send` begins the action.
-            if let Some(e) = sequence
-                .iter_mut()
-                .rev()
-                .find(|e| e.sending == Sending::Send)
-            {
-                e.starts = true;
-            } else {
-                sequence[0].starts = true;
-            }
-        }
-        1 => {}
-        _ => {
-            return Err(invalid(
-                origin,
-                "sequence",
-                "only one element starts the action",
-            ))
-        }
-    }
-    // Correlation: with ids, every message of the sequence carries the id, and so does at
-    // least one answer of each (a status poll or keep-alive need not). An answer without
-    // it (a `NAK` that names no command) answers the step whose message has had no
-    // answer with its id yet, the oldest such (docs/dialects.md, section 4.4).
-    if file.correlation == Correlation::Id {
-        for element in &sequence {
-            let c = &commands[element.command];
-            let names: Vec<String> = templates_of(&c.body)
-                .iter()
-                .flat_map(|t| t.names())
-                .map(|(n, _)| n)
-                .collect();
-            if !names.iter().any(|n| n == "id") {
-                return Err(invalid(
-                    origin,
-                    format!("command {:?}", c.name),
-                    "correlation = \"id\": every command of the sequence carries {id}",
-                ));
-            }
-            let with_id = element.expect.iter().any(|&r| {
-                let r = &replies[r];
-                r.body
-                    .as_ref()
-                    .map(|b| captures(b, r.regex.as_ref()))
-                    .unwrap_or_default()
-                    .iter()
-                    .any(|n| n == "id")
-            });
-            if !with_id {
-                return Err(invalid(
-                    origin,
-                    format!("command {:?}", c.name),
-                    "correlation = \"id\": at least one answer of each element of the sequence carries {id} (an answer without it answers the oldest step not yet answered with its id)",
-                ));
-            }
-        }
-    }
-    // Status.
-    let status = match (file.status.source, &file.status.poll, file.status.every_ms) {
-        (StatusSource::Pushed, None, None) => Status::Pushed,
-        (StatusSource::Connection, None, None) => Status::Connection,
-        (StatusSource::Polled, Some(name), Some(ms)) if ms > 0 => Status::Polled {
-            command: command_named("status.poll", name)?,
-            every: Duration::from_millis(ms),
-        },
-        (StatusSource::Polled, _, _) => {
-            return Err(invalid(
-                origin,
-                "status",
-                "source = \"polled\" needs poll (a command) and every_ms > 0",
-            ))
-        }
-        _ => {
-            return Err(invalid(
-                origin,
-                "status",
-                "poll and every_ms are for source = \"polled\" only",
-            ))
-        }
-    };
-    if status != Status::Connection && !replies.iter().any(|r| r.outcome == Outcome::Status) {
+    if kind == FramingKind::LengthPrefix {
         return Err(invalid(
             origin,
-            "status",
-            "a pushed or polled state needs a [[reply]] with outcome = \"status\"",
+            "connection.banner",
+            "a banner is text, not for length_prefix framing",
         ));
     }
-    let keepalive = match &file.connection.keepalive {
-        None => None,
-        Some(k) => {
-            if k.every_ms == 0 {
-                return Err(invalid(
-                    origin,
-                    "connection.keepalive.every_ms",
-                    "more than 0",
-                ));
-            }
-            let mut expect = Vec::new();
-            for name in &k.expect {
-                expect.push(reply_named("connection.keepalive.expect", name)?);
-            }
-            Some(Keepalive {
-                command: command_named("connection.keepalive.send", &k.send)?,
-                every: Duration::from_millis(k.every_ms),
-                expect,
-            })
-        }
-    };
-    let abort = match &file.abort {
-        None => None,
-        Some(a) => {
-            let command = command_named("abort.send", &a.send)?;
-            let mut users = sequence
-                .iter()
-                .enumerate()
-                .filter(|(_, e)| e.command == command)
-                .map(|(i, _)| format!("sequence[{i}]"))
-                .collect::<Vec<_>>();
-            if matches!(status, Status::Polled { command: c, .. } if c == command) {
-                users.push("status.poll".into());
-            }
-            if keepalive.as_ref().is_some_and(|k| k.command == command) {
-                users.push("connection.keepalive".into());
-            }
-            if let Some(user) = users.first() {
-                return Err(invalid(
-                    origin,
-                    "abort.send",
-                    format!("{:?} is also sent by {user}: the abort needs a message of its own, or the controller could not tell it", a.send),
-                ));
-            }
-            let mut expect = Vec::new();
-            for name in &a.expect {
-                let r = reply_named("abort.expect", name)?;
-                let outcome = replies[r].outcome;
-                if !matches!(outcome, Outcome::Accepted | Outcome::Rejected) {
-                    return Err(invalid(
-                        origin,
-                        "abort.expect",
-                        format!("{name:?} is a {} reply; the abort's own answer is `accepted` (the controller stopped) or `rejected` (it had nothing to stop)", format!("{outcome:?}").to_lowercase()),
-                    ));
-                }
-                let step = sequence
-                    .iter()
-                    .position(|e| e.expect.contains(&r))
-                    .map(|i| format!("sequence[{i}]"));
-                let keep = keepalive
-                    .as_ref()
-                    .is_some_and(|k| k.expect.contains(&r))
-                    .then(|| "connection.keepalive".to_string());
-                if let Some(other) = step.or(keep) {
-                    return Err(invalid(
-                        origin,
-                        "abort.expect",
-                        format!("{name:?} also answers {other}: the abort's answer must be told apart from the other answers"),
-                    ));
-                }
-                expect.push(r);
-            }
-            Some(Abort { command, expect })
-        }
-    };
-    let fence = match &file.fence {
-        None => None,
-        Some(f) => {
-            let fence = Fence {
-                claim: command_named("fence.claim", &f.claim)?,
-                heartbeat: command_named("fence.heartbeat", &f.heartbeat)?,
-                step_status: command_named("fence.step_status", &f.step_status)?,
-                granted: reply_named("fence.granted", &f.granted)?,
-                refused: reply_named("fence.refused", &f.refused)?,
-                step_state: reply_named("fence.step_state", &f.step_state)?,
-                stale: reply_named("fence.stale", &f.stale)?,
-            };
-            for (field, r) in [
-                ("fence.granted", fence.granted),
-                ("fence.refused", fence.refused),
-                ("fence.step_state", fence.step_state),
-            ] {
-                if replies[r].outcome != Outcome::Fence {
-                    return Err(invalid(
-                        origin,
-                        field,
-                        "a fence reply has outcome = \"fence\"",
-                    ));
-                }
-            }
-            if !matches!(
-                replies[fence.stale].outcome,
-                Outcome::Failed | Outcome::Rejected
-            ) {
-                return Err(invalid(
-                    origin,
-                    "fence.stale",
-                    "the stale-epoch refusal has outcome = \"failed\" or \"rejected\"",
-                ));
-            }
-            if !sequence.iter().any(|e| e.expect.contains(&fence.stale)) {
-                return Err(invalid(
-                    origin,
-                    "fence.stale",
-                    "the stale-epoch refusal answers a command: put it in the sequence's expect",
-                ));
-            }
-            let used = sequence
-                .iter()
-                .map(|e| e.command)
-                .chain(abort.as_ref().map(|a| a.command));
-            for c in used {
-                if [fence.claim, fence.heartbeat, fence.step_status].contains(&c) {
-                    return Err(invalid(origin, "fence", format!("{:?} is also a step's or the abort's message: the fence needs messages of its own", commands[c].name)));
-                }
-            }
-            Some(fence)
-        }
-    };
-    if replies.iter().any(|r| r.outcome == Outcome::Fence) && fence.is_none() {
+    if kind == FramingKind::Xml && parse_tree(banner.as_bytes()).is_err() {
         return Err(invalid(
             origin,
-            "reply",
-            "an outcome = \"fence\" reply needs a [fence] section",
+            "connection.banner",
+            "with xml framing the banner is one XML document",
         ));
     }
-    if let Some(banner) = &file.connection.banner {
-        if banner.is_empty() || banner.len() > max {
+    if let Framing::Line { terminator } = framing {
+        if banner
+            .as_bytes()
+            .windows(terminator.len())
+            .any(|w| w == terminator.as_slice())
+        {
             return Err(invalid(
                 origin,
                 "connection.banner",
-                "1 byte up to max_message_bytes",
+                "one line: it holds the terminator",
             ));
-        }
-        if f.kind == FramingKind::LengthPrefix {
-            return Err(invalid(
-                origin,
-                "connection.banner",
-                "a banner is text, not for length_prefix framing",
-            ));
-        }
-        if f.kind == FramingKind::Xml && parse_tree(banner.as_bytes()).is_err() {
-            return Err(invalid(
-                origin,
-                "connection.banner",
-                "with xml framing the banner is one XML document",
-            ));
-        }
-        if let Framing::Line { terminator } = &framing {
-            if banner
-                .as_bytes()
-                .windows(terminator.len())
-                .any(|w| w == terminator.as_slice())
-            {
-                return Err(invalid(
-                    origin,
-                    "connection.banner",
-                    "one line: it holds the terminator",
-                ));
-            }
         }
     }
-    Ok(Dialect {
-        name: file.name,
-        description: file.description,
-        role: file.connection.role,
-        framing,
-        max_message_bytes: max,
-        format,
-        correlation: file.correlation,
-        status,
-        banner: file.connection.banner,
-        keepalive,
-        enums,
-        commands,
-        replies,
-        sequence,
-        abort,
-        fence,
-    })
+    Ok(())
 }
 
 fn template_name(name: &str) -> bool {

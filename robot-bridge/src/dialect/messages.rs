@@ -155,30 +155,7 @@ pub(super) fn compile_reply(
             "1 to 64 letters, digits, _ or -",
         ));
     }
-    let regex = match &section.regex {
-        Some(_) if kind != FramingKind::Line => {
-            return Err(invalid(
-                origin,
-                format!("{at}.regex"),
-                "a regex reads text lines only (framing kind line)",
-            ))
-        }
-        Some(r) => {
-            let regex =
-                Regex::new(r).map_err(|e| invalid(origin, format!("{at}.regex"), e.to_string()))?;
-            for name in regex.capture_names().flatten() {
-                if !values::is_reply_name(name) {
-                    return Err(invalid(
-                        origin,
-                        format!("{at}.regex"),
-                        format!("the group (?P<{name}>) is not a value a reply has"),
-                    ));
-                }
-            }
-            Some(regex)
-        }
-        None => None,
-    };
+    let regex = reply_regex(origin, &at, section.regex.as_deref(), kind)?;
     let body = body_of(
         origin,
         &at,
@@ -240,19 +217,7 @@ pub(super) fn compile_reply(
         Outcome::Done if !reachable(&result) => {
             return Err(invalid(origin, format!("{at}.result"), format!("{:?} uses a value the message does not carry (give `result`, e.g. \"{{action:done}}\" or a literal)", result.source)))
         }
-        Outcome::Status => {
-            if !reachable(&state) || state.names().iter().any(|(n, _)| values::is_command_name(n)) {
-                return Err(invalid(origin, format!("{at}.state"), format!("{:?}: the state must come from the message (a {{state}} or {{state:TABLE}} it carries) or be a literal", state.source)));
-            }
-            if let Some(literal) = state.literal() {
-                literal.parse::<ControllerState>().map_err(|_| invalid(origin, format!("{at}.state"), format!("{literal:?} is not ready, fault or estop")))?;
-            }
-            if let Some((_, Some(table))) = state.single_value() {
-                for key in enums.keys(table) {
-                    key.parse::<ControllerState>().map_err(|_| invalid(origin, format!("enums.{table}"), format!("{key:?}: a state table maps ready, fault and estop only")))?;
-                }
-            }
-        }
+        Outcome::Status => check_state(origin, &at, &state, reachable(&state), enums)?,
         _ => {}
     }
     Ok(Reply {
@@ -264,6 +229,77 @@ pub(super) fn compile_reply(
         message,
         state,
     })
+}
+
+/// A reply's `regex`: for text lines only, each named group a value a reply has.
+fn reply_regex(
+    origin: &str,
+    at: &str,
+    regex: Option<&str>,
+    kind: FramingKind,
+) -> Result<Option<Regex>, DialectError> {
+    match regex {
+        Some(_) if kind != FramingKind::Line => Err(invalid(
+            origin,
+            format!("{at}.regex"),
+            "a regex reads text lines only (framing kind line)",
+        )),
+        Some(r) => {
+            let regex =
+                Regex::new(r).map_err(|e| invalid(origin, format!("{at}.regex"), e.to_string()))?;
+            for name in regex.capture_names().flatten() {
+                if !values::is_reply_name(name) {
+                    return Err(invalid(
+                        origin,
+                        format!("{at}.regex"),
+                        format!("the group (?P<{name}>) is not a value a reply has"),
+                    ));
+                }
+            }
+            Ok(Some(regex))
+        }
+        None => Ok(None),
+    }
+}
+
+/// A `status` reply's state: from the message (`reachable`) or a literal, and only
+/// ready, fault or estop.
+fn check_state(
+    origin: &str,
+    at: &str,
+    state: &Template,
+    reachable: bool,
+    enums: &Enums,
+) -> Result<(), DialectError> {
+    if !reachable
+        || state
+            .names()
+            .iter()
+            .any(|(n, _)| values::is_command_name(n))
+    {
+        return Err(invalid(origin, format!("{at}.state"), format!("{:?}: the state must come from the message (a {{state}} or {{state:TABLE}} it carries) or be a literal", state.source)));
+    }
+    if let Some(literal) = state.literal() {
+        literal.parse::<ControllerState>().map_err(|_| {
+            invalid(
+                origin,
+                format!("{at}.state"),
+                format!("{literal:?} is not ready, fault or estop"),
+            )
+        })?;
+    }
+    if let Some((_, Some(table))) = state.single_value() {
+        for key in enums.keys(table) {
+            key.parse::<ControllerState>().map_err(|_| {
+                invalid(
+                    origin,
+                    format!("enums.{table}"),
+                    format!("{key:?}: a state table maps ready, fault and estop only"),
+                )
+            })?;
+        }
+    }
+    Ok(())
 }
 
 pub(super) fn compile_command(

@@ -13,7 +13,7 @@ use bytes::BytesMut;
 use futures_util::StreamExt;
 use schemas::ControllerState;
 use tokio::net::TcpStream;
-use tokio_util::codec::{Encoder, FramedRead};
+use tokio_util::codec::FramedRead;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
@@ -111,17 +111,7 @@ pub(super) async fn serve(
             .map_or(ControllerState::Ready, |(_, state)| state),
         stats,
     };
-    if let Some(banner) = &dialect.banner {
-        let mut framed = BytesMut::new();
-        writer
-            .codec
-            .clone()
-            .encode(banner.as_bytes(), &mut framed)?;
-        writer.raw(&framed).await?;
-    }
-    if dialect.status == Status::Pushed {
-        writer.status().await?;
-    }
+    writer.greet().await?;
     let mut session = Session {
         config,
         stats,
@@ -160,22 +150,11 @@ pub(super) async fn serve(
             }
             _ = stop_changed => {
                 // Stopped from outside this session (the plant's e-stop): said at once.
-                let state = session.state_now();
-                if writer.state != state {
-                    writer.state = state;
-                    info!(%state, "stopped");
-                    if dialect.status == Status::Pushed {
-                        writer.status().await?;
-                    }
-                }
+                stopped(&mut writer, session.state_now()).await?;
                 Flow::Continue
             }
             _ = tokio::time::sleep_until(fault_end.unwrap_or_else(std::time::Instant::now).into()), if fault_end.is_some() => {
-                writer.state = ControllerState::Ready;
-                info!("ready again");
-                if dialect.status == Status::Pushed {
-                    writer.status().await?;
-                }
+                ready_again(&mut writer).await?;
                 Flow::Continue
             }
             _ = tokio::time::sleep_until(lease_end.unwrap_or_else(std::time::Instant::now).into()), if lease_end.is_some() => {
@@ -215,19 +194,47 @@ pub(super) async fn serve(
         match flow {
             Flow::Continue => {}
             Flow::Close => return Ok(()),
-            Flow::Reset => {
-                let stream = reader
-                    .into_inner()
-                    .reunite(writer.half)
-                    .map_err(|e| SimError::Write(e.to_string()))?;
-                // A zero linger sends RST on close and never blocks the drop.
-                #[allow(deprecated)]
-                stream.set_linger(Some(Duration::ZERO))?;
-                drop(stream);
-                return Ok(());
-            }
+            Flow::Reset => return reset(reader.into_inner(), writer.half),
         }
     }
+}
+
+/// Stopped from outside the session (the plant's e-stop): said at once if the state
+/// changed.
+async fn stopped(writer: &mut Writer<'_>, state: ControllerState) -> Result<(), SimError> {
+    if writer.state != state {
+        writer.state = state;
+        info!(%state, "stopped");
+        if writer.dialect.status == Status::Pushed {
+            writer.status().await?;
+        }
+    }
+    Ok(())
+}
+
+/// The simulated fault is over: ready, and said so if the state is pushed.
+async fn ready_again(writer: &mut Writer<'_>) -> Result<(), SimError> {
+    writer.state = ControllerState::Ready;
+    info!("ready again");
+    if writer.dialect.status == Status::Pushed {
+        writer.status().await?;
+    }
+    Ok(())
+}
+
+/// Resets the connection (RST) and drops it.
+fn reset(
+    read: tokio::net::tcp::OwnedReadHalf,
+    write: tokio::net::tcp::OwnedWriteHalf,
+) -> Result<(), SimError> {
+    let stream = read
+        .reunite(write)
+        .map_err(|e| SimError::Write(e.to_string()))?;
+    // A zero linger sends RST on close and never blocks the drop.
+    #[allow(deprecated)]
+    stream.set_linger(Some(Duration::ZERO))?;
+    drop(stream);
+    Ok(())
 }
 
 /// What a message does to the connection.

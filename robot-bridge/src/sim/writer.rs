@@ -39,6 +39,20 @@ fn said(state: ControllerState) -> &'static str {
 }
 
 impl Writer<'_> {
+    /// What the controller says first on a connection: its banner, then its state if
+    /// it pushes it.
+    pub(super) async fn greet(&mut self) -> Result<(), SimError> {
+        if let Some(banner) = &self.dialect.banner {
+            let mut framed = BytesMut::new();
+            self.codec.clone().encode(banner.as_bytes(), &mut framed)?;
+            self.raw(&framed).await?;
+        }
+        if self.dialect.status == Status::Pushed {
+            self.status().await?;
+        }
+        Ok(())
+    }
+
     /// Frames the reply `index` with `values`.
     fn frame(&mut self, index: usize, values: &Values) -> Result<BytesMut, SimError> {
         let reply = &self.dialect.replies[index];

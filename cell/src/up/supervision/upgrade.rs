@@ -8,9 +8,11 @@ use tokio::process::Command;
 use tokio::sync::oneshot;
 use tokio::time::Instant;
 
-use super::{resolve, Processes};
+use holon::supervisor::Event;
+
+use super::{describe, resolve, Processes};
 use crate::up::control::failed;
-use crate::upgrade::{UpgradeOutcome, UpgradeRequest};
+use crate::up::upgrade::{UpgradeOutcome, UpgradeRequest};
 
 /// How long a successor's `--check` may take.
 const CHECK_WITHIN: Duration = Duration::from_secs(30);
@@ -87,7 +89,7 @@ impl Processes<'_> {
         if slot.pid.is_none() {
             return refuse(reply, not_running(&spec.name));
         }
-        let (program, args) = match crate::upgrade::successor_command(
+        let (program, args) = match crate::up::upgrade::successor_command(
             &spec.program,
             &spec.args,
             request.binary.as_deref(),
@@ -174,6 +176,74 @@ impl Processes<'_> {
         }
     }
 
+    /// The successor of process `index` exited before its predecessor ended: the
+    /// upgrade failed, and `cell upgrade` is told why.
+    pub(super) fn successor_exited(
+        &mut self,
+        index: usize,
+        successor: Successor,
+        status: std::io::Result<ExitStatus>,
+    ) {
+        let name = &self.specs[index].name;
+        // Exit code 3: the running process refused (it said so, and serves on).
+        // Any other end may come after the running process let go: it then stands
+        // in for a while and exits, and is started again as before.
+        let refused = status
+            .as_ref()
+            .is_ok_and(|s| s.code() == Some(i32::from(holon::takeover::EXIT_REFUSED)));
+        let what = match refused {
+            true => format!("{name} refused to hand over and runs on unchanged"),
+            false => format!(
+                "if {name} had already let go, it stands in for up to {:?}, exits, and is started again from its previous binary and config on its journal",
+                holon::takeover::STAND_IN_LIMIT
+            ),
+        };
+        let message = format!(
+            "the successor of {name} exited ({}) before {name} ended; {what}. The end of logs/{name}.log:\n{}",
+            describe(status),
+            crate::up::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
+        );
+        self.clock
+            .say(format!("upgrade of {name} failed: its successor exited"));
+        if successor.reply.send(failed(&message)).is_err() {
+            tracing::warn!(%name, "cell upgrade went away before its answer");
+        }
+    }
+
+    /// Process `index` exited well after its successor took over: the successor is
+    /// supervised in its place, and `cell upgrade` is told.
+    pub(super) fn handed_over(
+        &mut self,
+        index: usize,
+        successor: Successor,
+        status: std::io::Result<ExitStatus>,
+    ) {
+        let slot = &mut self.slots[index];
+        let before = slot.pid.unwrap_or(0);
+        slot.generation = successor.generation;
+        slot.pid = successor.pid;
+        let replaced = Event::Replaced {
+            child: index,
+            started_at: successor.started_at,
+        };
+        self.machine.handle(replaced, Instant::now());
+        let spec = &mut self.specs[index];
+        spec.program = successor.program;
+        spec.args = successor.args;
+        let name = &spec.name;
+        let message = format!(
+            "upgraded {name}: pid {before} ({}) handed over to pid {} in {} ms",
+            describe(status),
+            successor.pid.unwrap_or(0),
+            successor.started_at.elapsed().as_millis()
+        );
+        self.clock.say(&message);
+        let outcome = UpgradeOutcome { ok: true, message };
+        if successor.reply.send(outcome).is_err() {
+            tracing::warn!(%name, "cell upgrade went away before its answer");
+        }
+    }
+
     /// Stops the successor of process `index`, whose predecessor exited (`status`)
     /// without handing over to it, and tells `cell upgrade`.
     pub(super) fn retire(
@@ -191,7 +261,7 @@ impl Processes<'_> {
             },
             successor.pid.unwrap_or(0),
             holon::takeover::STAND_IN_LIMIT,
-            crate::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
+            crate::up::upgrade::log_tail(&self.logs.join(format!("{name}.log")), 15)
         );
         self.clock.say(format!(
             "upgrade of {name} failed: its successor did not serve; starting {name} again as it was"

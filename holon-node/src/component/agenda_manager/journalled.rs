@@ -7,8 +7,8 @@ use holon::journal::{Journal, JournalError};
 use schemas::{HolonId, PackmlState, Service};
 use tracing::{debug, error, info, warn};
 
-use crate::agenda::{AgendaAction, AgendaEvent, AgendaManager, AgendaRecord, Inheritance};
 use crate::config::ResourceConfig;
+use crate::machine::agenda::{AgendaAction, AgendaEvent, AgendaMachine, AgendaRecord, Inheritance};
 use crate::views::AgendaView;
 
 /// The journal record that holds the agenda.
@@ -26,7 +26,7 @@ pub(super) struct Pending {
     actions: Vec<AgendaAction>,
     /// The agenda before the event, when the journal is to record the agenda as it is
     /// now (the undo of a request the write refuses).
-    pub(super) undo: Option<AgendaManager>,
+    pub(super) undo: Option<AgendaMachine>,
     /// A request, refused when it cannot be recorded.
     refusable: bool,
     /// A fact (not a request), kept even when it cannot be recorded.
@@ -55,7 +55,7 @@ pub(super) struct Batch {
     /// Each event's actions, in order.
     actions: Vec<Vec<AgendaAction>>,
     /// The agenda before the batch, when the journal is to record it as it is now.
-    pub(super) undo: Option<AgendaManager>,
+    pub(super) undo: Option<AgendaMachine>,
     /// The resource's state and PackML state before the batch (for the log).
     before: (schemas::ResourceState, PackmlState),
 }
@@ -63,7 +63,7 @@ pub(super) struct Batch {
 /// The agenda and what keeps it durable; owned by the running agenda manager.
 pub struct JournalledAgenda {
     /// The state machine.
-    pub(super) agenda: AgendaManager,
+    pub(super) agenda: AgendaMachine,
     /// The durable state, if the holon has a data directory.
     pub(super) journal: Option<Journal>,
     /// Set while the journal cannot be written (a full disk, ...): why. The resource
@@ -115,7 +115,7 @@ impl JournalledAgenda {
                 warn!(%holon, "no data directory: the agenda is not durable (use --data-dir)")
             }
         }
-        let agenda = AgendaManager::restore(
+        let agenda = AgendaMachine::restore(
             holon.clone(),
             config.catalog.clone(),
             config.agenda_capacity,

@@ -1,0 +1,105 @@
+//! What the journal keeps of the agenda manager: everything that must survive a crash,
+//! owned ([`AgendaRecord`], read back when the journal is opened) or borrowed
+//! ([`AgendaRecordRef`], what a write serialises, in the same form).
+
+use std::collections::BTreeMap;
+
+use schemas::layout::LocationId;
+use schemas::Service;
+use serde::Serialize;
+
+use super::{AgendaMachine, Booking, Job, PlaceHold};
+use crate::machine::packml::PackmlUnit;
+
+/// What the journal keeps of the agenda manager.
+#[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct AgendaRecord {
+    pub bookings: Vec<Booking>,
+    /// The job that was executing: after a crash it is reported `interrupted`.
+    pub current: Option<Job>,
+    pub undelivered: Vec<Service>,
+    /// The PackML unit; absent from journals written before PackML (the config's
+    /// initial state then applies).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub packml: Option<PackmlUnit>,
+    /// The places held at its locations (absent from journals written before them).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub places: BTreeMap<LocationId, Vec<PlaceHold>>,
+}
+
+/// The record borrowed from the agenda manager: written as an [`AgendaRecord`] is,
+/// without copying it first.
+#[derive(Debug, Serialize)]
+pub struct AgendaRecordRef<'a> {
+    pub bookings: &'a [Booking],
+    pub current: Option<&'a Job>,
+    pub undelivered: &'a [Service],
+    pub packml: &'a PackmlUnit,
+    #[serde(skip_serializing_if = "BTreeMap::is_empty")]
+    pub places: &'a BTreeMap<LocationId, Vec<PlaceHold>>,
+}
+
+impl AgendaMachine {
+    /// What the journal keeps, as a copy.
+    pub fn record(&self) -> AgendaRecord {
+        AgendaRecord {
+            bookings: self.bookings.clone(),
+            current: self.current.clone(),
+            undelivered: self.undelivered.clone(),
+            packml: Some(self.packml.clone()),
+            places: self.places.held().clone(),
+        }
+    }
+
+    /// What the journal keeps, borrowed (for a write).
+    pub fn record_ref(&self) -> AgendaRecordRef<'_> {
+        AgendaRecordRef {
+            bookings: &self.bookings,
+            current: self.current.as_ref(),
+            undelivered: &self.undelivered,
+            packml: &self.packml,
+            places: self.places.held(),
+        }
+    }
+
+    /// Whether `other` keeps the same record, compared in place: whether a journal
+    /// write would change anything.
+    pub fn same_record(&self, other: &AgendaMachine) -> bool {
+        self.bookings == other.bookings
+            && self.current == other.current
+            && self.undelivered == other.undelivered
+            && self.packml == other.packml
+            && self.places.held() == other.places.held()
+    }
+
+    /// Whether this is the record it keeps, compared in place.
+    pub fn keeps(&self, record: &AgendaRecord) -> bool {
+        self.bookings == record.bookings
+            && self.current == record.current
+            && self.undelivered == record.undelivered
+            && record.packml.as_ref() == Some(&self.packml)
+            && self.places.held() == &record.places
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_borrowed_record_is_written_as_the_owned_one_is() {
+        let agenda = crate::machine::agenda::tests::agenda_for_record();
+        let owned = serde_json::to_value(agenda.record()).unwrap();
+        let borrowed = serde_json::to_value(agenda.record_ref()).unwrap();
+        assert_eq!(owned, borrowed);
+        // (A job's parameters are not written: they are read again from its `info`.)
+        let _: AgendaRecord = serde_json::from_value(borrowed).unwrap();
+        let record = agenda.record();
+        assert!(agenda.keeps(&record));
+        assert!(agenda.same_record(&agenda.clone()));
+        let mut other = agenda.clone();
+        other.bookings.pop();
+        assert!(!agenda.same_record(&other));
+        assert!(!other.keeps(&record));
+    }
+}

@@ -1,0 +1,81 @@
+//! The agenda's part of the state snapshot a resource publishes.
+
+use schemas::{BookingView, ControllerStatus, CurrentJobView, ResourceSnapshot};
+
+use super::AgendaMachine;
+
+impl AgendaMachine {
+    /// The agenda's part of the snapshot published on `resource/<name>/state`: the
+    /// controller, the step in progress and the requesters' absences are the other
+    /// components' to fill in (see [`crate::views::Views::snapshot`]).
+    pub fn snapshot(&self) -> ResourceSnapshot {
+        ResourceSnapshot {
+            holon: self.holon.clone(),
+            state: self.state(),
+            controller: ControllerStatus::Disconnected,
+            agenda: self
+                .bookings
+                .iter()
+                .map(|b| BookingView {
+                    requester: b.requester.clone(),
+                    conversation_id: b.conversation_id.clone(),
+                    service_type: b.service_type.clone(),
+                    requester_absent_since: None,
+                    priority: b.priority,
+                    due: b.due,
+                    overtaken: b.overtaken,
+                    program: program_of(b.parameters.as_deref(), &b.info),
+                })
+                .collect(),
+            current: self.current.as_ref().map(|j| CurrentJobView {
+                requester: j.requester.clone(),
+                conversation_id: j.conversation_id.clone(),
+                service_type: j.service_type.clone(),
+                step: None,
+                program: program_of(j.parameters.as_deref(), &j.info),
+                started_at: None,
+            }),
+            undelivered: self.undelivered.len(),
+            services: self.catalog.service_types().map(String::from).collect(),
+            nominal_ms: self
+                .catalog
+                .service_types()
+                .filter_map(|t| {
+                    let nominal = self.catalog.get(t)?.nominal_duration.as_millis() as u64;
+                    Some((t.to_string(), nominal))
+                })
+                .collect(),
+            journal_fault: None,
+            delivery_retries: 0,
+            handing_over: self.handing_over,
+            packml: Some(self.packml.status()),
+            places: self
+                .places
+                .held()
+                .iter()
+                .map(|(location, holds)| {
+                    let parts = holds.iter().map(|h| h.part.clone()).collect();
+                    (location.to_string(), parts)
+                })
+                .collect(),
+            host: None,
+            epoch: None,
+            version: None,
+            v: 0,
+            // Stamped when the view is read (`Views::snapshot`).
+            at: 0,
+        }
+    }
+}
+
+/// A booking's or job's program: as read when it was booked, else (its `info` does not
+/// fit the steps, or it came from the journal as the job that ran) from its `info`.
+fn program_of(
+    parameters: Option<&crate::catalog::Parameters>,
+    info: &serde_json::Map<String, serde_json::Value>,
+) -> Option<String> {
+    match parameters {
+        Some(parameters) => parameters.program.clone(),
+        None => crate::catalog::program(info).ok().flatten(),
+    }
+}
