@@ -30,6 +30,24 @@ pub enum AskError {
     Failed(String),
 }
 
+/// An order-node's answer read as a `T` (its reply), or why there is none: its refusal,
+/// `no_answer` when nobody answered, or an answer that could not be read.
+pub fn answer_of<T: serde::de::DeserializeOwned>(
+    asked: Option<Reply>,
+    no_answer: impl FnOnce() -> String,
+) -> Result<T, AskError> {
+    match asked {
+        Some(reply) => match reply.result() {
+            Ok(sample) => serde_json::from_slice(&sample.payload().to_bytes())
+                .map_err(|e| AskError::Failed(format!("{e:#}"))),
+            Err(err) => Err(AskError::refusal(
+                &err.payload().try_to_string().unwrap_or_default(),
+            )),
+        },
+        None => Err(AskError::NoAnswer(no_answer())),
+    }
+}
+
 impl AskError {
     /// The refusal in an error reply's body (`{"code", "message"}`), or its raw text.
     pub fn refusal(text: &str) -> AskError {

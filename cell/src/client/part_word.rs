@@ -32,19 +32,11 @@ pub async fn tell(
         crate::client::ask::until_answered(session, &keys.part(order), Some(payload), by, timeout)
             .await
             .map_err(|e| failed(&e))?;
-    match asked {
-        Some(reply) => match reply.result() {
-            Ok(sample) => {
-                serde_json::from_slice(&sample.payload().to_bytes()).map_err(|e| failed(&e))
-            }
-            Err(err) => Err(AskError::refusal(
-                &err.payload().try_to_string().unwrap_or_default(),
-            )),
-        },
-        None => Err(AskError::NoAnswer(format!(
+    crate::client::ask::answer_of(asked, || {
+        format!(
             "{} ({order}: unknown order, its order-node is down, or this identity may not say \
              where parts are)",
             keys.part(order)
-        ))),
-    }
+        )
+    })
 }

@@ -83,6 +83,15 @@ impl OrderTask<'_> {
                 self.pause(PLACE_RETRY).await;
                 continue;
             };
+            // A part without a home waits outside for one first: no station can take
+            // it before it may enter, and its station rounds would only delay those of
+            // the parts in the cell (a freed place wakes every waiting order).
+            if part.home.is_none() && !self.take_home(&layout).await? {
+                let pause = backoff.next_pause();
+                self.wait_for_resource(pause, true, Instant::now() + IDLE_POLL)
+                    .await;
+                continue;
+            }
             let ranked = self.station_round(step, conversation_id).await;
             if let Some(here) = part.place.location() {
                 let station = HolonId::resource(here.holon()).ok();
@@ -90,9 +99,7 @@ impl OrderTask<'_> {
                     return Ok(Arranged::At(station.expect("checked")));
                 }
             }
-            if part.home.is_none() && !self.take_home(&layout).await? {
-                // No place for it in the cell yet: it stays outside.
-            } else if self.place_at_station(&layout, &ranked).await? {
+            if self.place_at_station(&layout, &ranked).await? {
                 backoff.reset();
                 continue;
             } else if let Some(here) = part.place.location().filter(|l| is_port(&layout, l)) {
@@ -109,8 +116,10 @@ impl OrderTask<'_> {
             if Instant::now() >= give_up && ranked.is_empty() {
                 return Ok(Arranged::NoStation);
             }
+            // A part with a home is one of the few the buffers hold: it looks again at
+            // its own pace, not spaced with the orders waiting outside.
             let pause = backoff.next_pause();
-            self.wait_for_resource(pause, true, Instant::now() + IDLE_POLL)
+            self.wait_for_resource(pause, false, Instant::now() + IDLE_POLL)
                 .await;
         }
     }

@@ -31,6 +31,7 @@ mod alarms;
 mod counters;
 mod input;
 mod part_waits;
+mod parts;
 
 pub use part_waits::DEFAULT_BOUND_MS as DEFAULT_PART_WAIT_BOUND_MS;
 
@@ -173,16 +174,6 @@ impl Model {
         }
     }
 
-    /// Time passes: a part in the cell that has stayed where it is beyond the bound
-    /// raises `part_waits`.
-    fn tick(&mut self, at: u64) -> bool {
-        let mut changed = false;
-        for (order, message) in self.part_waits.overdue(at) {
-            changed |= self.raise(AlarmKind::PartWaits, &order, message, at);
-        }
-        changed
-    }
-
     /// The cell's layout, as last asked (empty until resources with a layout answered).
     pub fn layout(&self) -> &schemas::layout::CellLayout {
         &self.layout
@@ -313,23 +304,6 @@ impl Model {
             source: source.into(),
             text,
         });
-    }
-
-    /// The `part_lost` alarm of an order: raised while its part is lost, cleared once
-    /// its transporter (or an operator) has said where it is.
-    fn part_alarm(&mut self, snapshot: &OrderSnapshot, at: u64) {
-        match &snapshot.part {
-            Some(lost @ schemas::PartPlace::Lost { .. }) => {
-                let message = format!(
-                    "{}'s part is {lost}: it waits until its transporter, once back, or an operator says where it is",
-                    snapshot.holon
-                );
-                self.raise(AlarmKind::PartLost, &snapshot.holon, message, at);
-            }
-            _ => {
-                self.clear(AlarmKind::PartLost, &snapshot.holon, at);
-            }
-        }
     }
 
     /// Raises an alarm of `kind` on `source` unless one is active already.
