@@ -229,8 +229,9 @@ impl Dialect {
     }
 
     /// A shipped dialect, compiled once per process, when first asked for: a holon on
-    /// one dialect compiles that one only (all four took a resource's start from 7 to
-    /// 20 ms and 2.7 MB of heap, docs/benchmarks.md).
+    /// one dialect compiles that one only (compiling all four at a resource's start
+    /// took about 12 ms and 2.7 MB of heap: docs/benchmarks.md, "The start path and
+    /// footprint again").
     pub fn shipped(name: &str) -> Result<Arc<Dialect>, DialectError> {
         static COMPILED: [OnceLock<Arc<Dialect>>; SHIPPED.len()] =
             [const { OnceLock::new() }; SHIPPED.len()];
