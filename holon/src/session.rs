@@ -267,17 +267,11 @@ impl ZenohSettings {
     }
 }
 
-/// A zenoh config file, read as JSON5 (the format docs/security.md names). Not
-/// `zenoh::Config::from_file`: that one reads YAML too, and its YAML reader of zenoh's
-/// whole config (0.5 MB of code) would be in every holon's binary for a format no holon
-/// config uses (docs/benchmarks.md, "The start path and footprint again").
 fn load_file(path: &Path) -> Result<zenoh::Config, SessionError> {
-    let invalid = |message: String| SessionError::ConfigFile {
+    zenoh::Config::from_file(path).map_err(|e| SessionError::ConfigFile {
         path: path.display().to_string(),
-        message,
-    };
-    let text = std::fs::read_to_string(path).map_err(|e| invalid(e.to_string()))?;
-    zenoh::Config::from_json5(&text).map_err(|e| invalid(e.to_string()))
+        message: e.to_string(),
+    })
 }
 
 /// Waits until the session is connected to at least one router or peer; false if it

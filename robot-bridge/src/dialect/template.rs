@@ -54,9 +54,8 @@ pub struct Template {
     pub source: String,
     /// The literals, placeholders and sections, in order.
     pieces: Vec<Piece>,
-    /// The anchored matcher's expression; group `i + 1` captures `captures[i]`.
-    expression: String,
-    /// The matcher, compiled from `expression` when first needed.
+    /// The anchored matcher, compiled from `pieces` when first needed; group `i + 1`
+    /// captures `captures[i]`.
     matcher: OnceLock<Regex>,
     /// The placeholder of each capture group, in order: (name, table).
     captures: Vec<(String, Option<String>)>,
@@ -181,18 +180,24 @@ fn pattern(pieces: &[Piece], captures: &mut Vec<(String, Option<String>)>, out: 
     }
 }
 
+/// The anchored expression that matches `pieces` whole, and the placeholder each of its
+/// groups captures, in order.
+fn expression(pieces: &[Piece]) -> (String, Vec<(String, Option<String>)>) {
+    let mut captures = Vec::new();
+    let mut expression = String::from("(?s)^");
+    pattern(pieces, &mut captures, &mut expression);
+    expression.push('$');
+    (expression, captures)
+}
+
 impl Template {
     /// Parses `text`.
     pub fn parse(text: &str) -> Result<Template, TemplateError> {
         let pieces = parse_pieces(text)?;
-        let mut captures = Vec::new();
-        let mut expression = String::from("(?s)^");
-        pattern(&pieces, &mut captures, &mut expression);
-        expression.push('$');
+        let (_, captures) = expression(&pieces);
         Ok(Template {
             source: text.to_string(),
             pieces,
-            expression,
             matcher: OnceLock::new(),
             captures,
         })
@@ -201,7 +206,8 @@ impl Template {
     /// The anchored matcher, compiled on first use.
     fn matcher(&self) -> &Regex {
         self.matcher.get_or_init(|| {
-            Regex::new(&self.expression).expect("escaped literals and fixed groups")
+            let (expression, _) = expression(&self.pieces);
+            Regex::new(&expression).expect("escaped literals and fixed groups")
         })
     }
 
