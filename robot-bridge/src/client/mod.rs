@@ -165,6 +165,16 @@ pub enum ControllerEvent {
     },
 }
 
+/// Ready at `at`, at once when it has passed. Not `sleep_until`: tokio's timer fires on
+/// its next millisecond tick even for a deadline already past, and the first connect
+/// (due at once) waited for it, 1-2 ms of every holon's start (docs/benchmarks.md, "The
+/// start path and footprint again").
+async fn due(at: Instant) {
+    if at > Instant::now() {
+        tokio::time::sleep_until(at).await;
+    }
+}
+
 /// How the last attempt at a connection ended: what a [`Reconnect`] policy decides the
 /// next pause on. The client does not judge; the policy says what counts as served.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -460,7 +470,7 @@ impl<O: Owner> Link<'_, '_, O> {
                         return None;
                     }
                 }
-                _ = tokio::time::sleep_until(next_attempt) => {
+                _ = due(next_attempt) => {
                     let attempt = tokio::time::timeout(config.connect_timeout, TcpStream::connect(&config.address)).await;
                     match attempt {
                         Ok(Ok(stream)) => {

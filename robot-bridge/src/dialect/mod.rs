@@ -228,24 +228,24 @@ impl Dialect {
         Dialect::from_toml(&text, &path.display().to_string()).map(Arc::new)
     }
 
-    /// A shipped dialect, compiled once per process.
+    /// A shipped dialect, compiled once per process, when first asked for: a holon on
+    /// one dialect compiles that one only (compiling all four at a resource's start
+    /// took about 12 ms and 2.7 MB of heap: docs/benchmarks.md, "The start path and
+    /// footprint again").
     pub fn shipped(name: &str) -> Result<Arc<Dialect>, DialectError> {
-        static COMPILED: OnceLock<Vec<(&'static str, Arc<Dialect>)>> = OnceLock::new();
-        let compiled = COMPILED.get_or_init(|| {
-            SHIPPED
-                .iter()
-                .map(|(name, text)| {
-                    let dialect = Dialect::from_toml(text, &format!("deploy/dialects/{name}.toml"))
-                        .unwrap_or_else(|e| panic!("the shipped dialect {name} is invalid: {e}"));
-                    (*name, Arc::new(dialect))
-                })
-                .collect()
-        });
-        compiled
+        static COMPILED: [OnceLock<Arc<Dialect>>; SHIPPED.len()] =
+            [const { OnceLock::new() }; SHIPPED.len()];
+        let index = SHIPPED
             .iter()
-            .find(|(n, _)| *n == name)
-            .map(|(_, d)| d.clone())
-            .ok_or_else(|| DialectError::Unknown(name.to_string()))
+            .position(|(n, _)| *n == name)
+            .ok_or_else(|| DialectError::Unknown(name.to_string()))?;
+        let (name, text) = SHIPPED[index];
+        let dialect = COMPILED[index].get_or_init(|| {
+            let dialect = Dialect::from_toml(text, &format!("deploy/dialects/{name}.toml"))
+                .unwrap_or_else(|e| panic!("the shipped dialect {name} is invalid: {e}"));
+            Arc::new(dialect)
+        });
+        Ok(dialect.clone())
     }
 
     /// holarchy's own protocol.

@@ -11,7 +11,12 @@
 //! Rendering fills the placeholders (a value outside a section that has none is an
 //! error); matching compiles the template to an anchored regular expression whose groups
 //! capture the placeholders, so a reply the dialect describes as `Loading program:
-//! {action:urp}` gives back the action it names.
+//! {action:urp}` gives back the action it names. The expression is compiled when a
+//! template is first matched, not when it is parsed: it is made of escaped literals and
+//! fixed groups, so it cannot fail, and most templates (those a process only writes, a
+//! literal, a lone value) are never matched by one. A holon's start compiles none.
+
+use std::sync::OnceLock;
 
 use regex::Regex;
 
@@ -47,9 +52,11 @@ pub enum Escape {
 pub struct Template {
     /// The text as written in the dialect file (for messages).
     pub source: String,
+    /// The literals, placeholders and sections, in order.
     pieces: Vec<Piece>,
-    /// The anchored matcher; group `i + 1` captures `captures[i]`.
-    matcher: Regex,
+    /// The anchored matcher, compiled from `pieces` when first needed; group `i + 1`
+    /// captures `captures[i]`.
+    matcher: OnceLock<Regex>,
     /// The placeholder of each capture group, in order: (name, table).
     captures: Vec<(String, Option<String>)>,
 }
@@ -173,20 +180,34 @@ fn pattern(pieces: &[Piece], captures: &mut Vec<(String, Option<String>)>, out: 
     }
 }
 
+/// The anchored expression that matches `pieces` whole, and the placeholder each of its
+/// groups captures, in order.
+fn expression(pieces: &[Piece]) -> (String, Vec<(String, Option<String>)>) {
+    let mut captures = Vec::new();
+    let mut expression = String::from("(?s)^");
+    pattern(pieces, &mut captures, &mut expression);
+    expression.push('$');
+    (expression, captures)
+}
+
 impl Template {
     /// Parses `text`.
     pub fn parse(text: &str) -> Result<Template, TemplateError> {
         let pieces = parse_pieces(text)?;
-        let mut captures = Vec::new();
-        let mut expression = String::from("(?s)^");
-        pattern(&pieces, &mut captures, &mut expression);
-        expression.push('$');
-        let matcher = Regex::new(&expression).expect("escaped literals and fixed groups");
+        let (_, captures) = expression(&pieces);
         Ok(Template {
             source: text.to_string(),
             pieces,
-            matcher,
+            matcher: OnceLock::new(),
             captures,
+        })
+    }
+
+    /// The anchored matcher, compiled on first use.
+    fn matcher(&self) -> &Regex {
+        self.matcher.get_or_init(|| {
+            let (expression, _) = expression(&self.pieces);
+            Regex::new(&expression).expect("escaped literals and fixed groups")
         })
     }
 
@@ -306,7 +327,7 @@ impl Template {
             }
             _ => {}
         }
-        let Some(found) = self.matcher.captures(text) else {
+        let Some(found) = self.matcher().captures(text) else {
             return Ok(false);
         };
         for (i, (name, table)) in self.captures.iter().enumerate() {
