@@ -15,6 +15,7 @@ use crate::journal::OrderJournal;
 use crate::presence::Presence;
 use crate::progress::OrderProgress;
 use crate::ranking::BookingsInFlight;
+use crate::station_line::StationLine;
 
 /// What every order of a node shares.
 pub struct OrderContext {
@@ -41,6 +42,9 @@ pub struct OrderContext {
     pub bookings_in_flight: BookingsInFlight,
     /// Whether the staff answers: asking stops for a while when it does not.
     pub advice_pause: AdvicePause,
+    /// The line at the stations: parts in the cell take turns to look for a station
+    /// place, oldest first.
+    pub line: StationLine,
     /// The cell's layout, followed from the first order whose plan moves parts
     /// ([`OrderContext::layout`]) until the node's orders are dropped.
     pub layout: CellLayoutFollowing,
@@ -69,7 +73,9 @@ impl OrderContext {
         presence: Arc<Presence>,
         journal: Option<Arc<OrderJournal>>,
     ) -> OrderContext {
+        let (freed, appeared) = presence.room_news();
         OrderContext {
+            line: StationLine::start(freed, appeared),
             session,
             keys: config.keys.clone(),
             settings: config.orders,

@@ -728,9 +728,11 @@ mod tests {
                 Journal::open(dir, "order-node-n1.sqlite", Durability::ProcessCrash).unwrap(),
             ))
         });
+        let (freed, appeared) = presence.room_news();
         Host::new(
             config.clone(),
             Arc::new(OrderContext {
+                line: crate::station_line::StationLine::start(freed, appeared),
                 session,
                 keys: config.keys.clone(),
                 settings: config.orders,

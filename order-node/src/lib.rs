@@ -8,6 +8,7 @@
 //! - [`requests`]: the order's requests over zenoh; [`ranking`]: how a round's offers
 //!   are ranked;
 //! - [`presence`]: which resources are alive and whose turn it is on each;
+//!   [`station_line`]: parts in the cell take turns to look for a station place;
 //! - [`inbox`]: where results reach the running orders, and which orders the node holds
 //!   (a resource keeps an order's bookings while its node holds it);
 //! - [`context`]: what the orders of a node share; [`journal`]: their store (SQLite,
@@ -39,3 +40,4 @@ pub mod ranking;
 pub mod recovery;
 pub mod requests;
 pub mod standby;
+pub mod station_line;

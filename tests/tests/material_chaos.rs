@@ -387,10 +387,13 @@ async fn parts_and_orders_survive_kills_mid_move() {
         .iter()
         .filter(|a| a["kind"] == "part_waits")
         .collect();
-    assert!(
-        waited.is_empty(),
-        "parts waited beyond {WAIT_BOUND_S} s: {waited:#?}"
-    );
+    if !waited.is_empty() {
+        let kept = dir.keep();
+        panic!(
+            "parts waited beyond {WAIT_BOUND_S} s (the run's files kept in {}): {waited:#?}",
+            kept.display()
+        );
+    }
 
     let count_of = |status| orders.values().filter(|o| o.status == status).count();
     let rebooks: u32 = orders.values().map(|o| o.rebooks).sum();

@@ -10,7 +10,10 @@
 //!   takes it back to its home (the buffer place it holds from its entry until it
 //!   leaves): so a part waits for a place only where it blocks no station, and finite
 //!   ports cannot deadlock the cell;
-//! - else waits for a place to free up, or a station to appear.
+//! - else waits for a place to free up, or a station to appear, in line with the other
+//!   parts of the node's orders that wait for a station of the step's service: they
+//!   look in turn, oldest first ([`crate::station_line`]), and a part at a port that
+//!   finds older parts waiting goes home rather than take the place they wait for.
 //!
 //! A part enters the cell only once a home is reserved for it: no more parts are in the
 //! cell than its buffers hold. Every change of the part ([`crate::part`]) is journalled
@@ -70,6 +73,7 @@ impl OrderTask<'_> {
         // resource appearing wakes the order sooner), spaced with the other idle orders:
         // a thousand parts waiting outside the cell cost next to nothing.
         let mut backoff = holon::Backoff::new(PLACE_RETRY, IDLE_POLL);
+        let mut ticket = self.ctx.line.ticket(&self.holon, &step.service_type);
         loop {
             if self.end_move_under_way().await? {
                 continue;
@@ -92,20 +96,37 @@ impl OrderTask<'_> {
                     .await;
                 continue;
             }
+            // In the cell, the parts waiting for a station of this service take turns,
+            // oldest first (crate::station_line): a part that looked before waits for
+            // its turn; one at a port, or looking for the first time, looks at once
+            // only if no older part waits.
+            let at_port = part.place.location().filter(|l| is_port(&layout, l)).cloned();
+            let waited = ticket.in_line() && at_port.is_none();
+            if waited {
+                tokio::select! {
+                    _ = ticket.turn() => {}
+                    _ = operator_cancel.cancelled() => continue,
+                }
+            }
             let ranked = self.station_round(step, conversation_id).await;
-            if let Some(here) = part.place.location() {
+            if let Some(here) = &at_port {
                 let station = HolonId::resource(here.holon()).ok();
-                if is_port(&layout, here) && station.as_ref().is_some_and(|s| ranked.contains(s)) {
+                if station.as_ref().is_some_and(|s| ranked.contains(s)) {
                     return Ok(Arranged::At(station.expect("checked")));
                 }
             }
-            if self.place_at_station(&layout, &ranked).await? {
-                backoff.reset();
+            let placed = if waited || ticket.turn_now().await {
+                let placed = self.place_at_station(&layout, &ranked).await?;
+                ticket.tried(placed);
+                placed
+            } else {
+                false
+            };
+            if placed {
                 continue;
-            } else if let Some(here) = part.place.location().filter(|l| is_port(&layout, l)) {
+            } else if let Some(here) = at_port {
                 let home = part.home.clone().expect("a part at a port has a home");
-                info!(holon = %self.holon, from = %here, %home, "no station has a place for the part: it goes back to its home");
-                let here = here.clone();
+                info!(holon = %self.holon, from = %here, %home, "no station has a place for the part, or older parts wait for one: it goes back to its home");
                 self.ctx.commit(self.progress, |p| {
                     if let Some(part) = &mut p.part {
                         part.begin_move(&p.holon, here, home, MoveGoal::Home);
@@ -116,11 +137,6 @@ impl OrderTask<'_> {
             if Instant::now() >= give_up && ranked.is_empty() {
                 return Ok(Arranged::NoStation);
             }
-            // A part with a home is one of the few the buffers hold: it looks again at
-            // its own pace, not spaced with the orders waiting outside.
-            let pause = backoff.next_pause();
-            self.wait_for_resource(pause, false, Instant::now() + IDLE_POLL)
-                .await;
         }
     }
 

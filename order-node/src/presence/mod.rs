@@ -52,6 +52,9 @@ pub struct Presence {
     /// One waiting order is woken per booking that leaves an agenda (started or
     /// cancelled), so a freed place goes to one order, not to a stampede of them.
     room: Arc<Notify>,
+    /// Moves whenever places free up (on an agenda or at a location): the line at the
+    /// stations sweeps ([`crate::station_line`]).
+    freed: watch::Receiver<u64>,
     /// The events lost to a full mailbox, counted.
     overflow: Arc<task::Overflow>,
 }
@@ -197,6 +200,12 @@ impl Presence {
         let mut appearances = self.appeared.clone();
         appearances.mark_unchanged();
         appearances
+    }
+
+    /// The news the line at the stations sweeps on: places freed, and resources
+    /// appeared or ready.
+    pub fn room_news(&self) -> (watch::Receiver<u64>, watch::Receiver<u64>) {
+        (self.freed.clone(), self.appeared.clone())
     }
 
     /// Completes when a resource appeared (or became ready) since `appearances` was

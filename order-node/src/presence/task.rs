@@ -93,6 +93,8 @@ struct Owner {
     changes: broadcast::Sender<(HolonId, bool)>,
     /// Counts appearances and resources become ready.
     appeared: watch::Sender<u64>,
+    /// Moves whenever places free up (see [`Presence::room_news`]).
+    freed: watch::Sender<u64>,
     /// One wake-up per freed place.
     room: Arc<Notify>,
     /// Where the callbacks count the events lost to a full mailbox.
@@ -121,6 +123,7 @@ pub(super) async fn start(
     let (changes, changes_rx) = broadcast::channel(4096);
     let (view, view_rx) = watch::channel(Arc::new(PresenceView::default()));
     let (appeared, appeared_rx) = watch::channel(0);
+    let (freed, freed_rx) = watch::channel(0);
     let room = Arc::new(Notify::new());
     let mut owner = Owner {
         model: PresenceModel::default(),
@@ -129,6 +132,7 @@ pub(super) async fn start(
         turns: HashMap::new(),
         changes,
         appeared,
+        freed,
         room: room.clone(),
         overflow: post.overflow.clone(),
         lost_answered: 0,
@@ -151,6 +155,7 @@ pub(super) async fn start(
         changes: changes_rx,
         appeared: appeared_rx,
         room,
+        freed: freed_rx,
         overflow,
     })
 }
@@ -316,6 +321,7 @@ impl Owner {
                 for _ in 0..places {
                     self.room.notify_one();
                 }
+                self.freed.send_modify(|n| *n += places as u64);
             }
             Notice::Turn { resource, turns } => {
                 self.turns_of(&resource).send_replace(turns);

@@ -1,0 +1,353 @@
+//! The line at the stations, as a pure machine: which waiting part has the turn to look
+//! for a station place, per service, oldest first. No I/O and no clock: the times come
+//! with the events, the task ([`super`]) performs the actions.
+//!
+//! | state of the service's line | event | actions, next state |
+//! |---|---|---|
+//! | idle, nobody older waits | `Wait` of a part new to the line | `Turn` to it (a sweep that began with it) |
+//! | anything else | `Wait { now_only }` | `NotNow` to it; it keeps its place |
+//! | anything else | `Wait` (blocking) | it waits for a sweep to reach it |
+//! | idle, parts wait | `Room` | `Turn` to the oldest waiting: a sweep begins |
+//! | sweeping | `Room` | swept again from the oldest once this sweep ends |
+//! | the part has the turn | `Tried` / `Left` | `Turn` to the next younger waiting part, or the sweep ends (and begins again if a room came meanwhile) |
+//!
+//! A freed place reaches the part that has waited longest for a station of its service
+//! before any younger one; a part that has just finished a step at a station's port and
+//! finds older parts waiting goes home rather than take the place they wait for
+//! (docs/material-flow.md, "Orders arrange their moves").
+
+use std::collections::{BTreeMap, HashMap};
+
+use schemas::HolonId;
+use tokio::time::Instant;
+
+/// A part's place in its line: since when it waits, and its order (so two parts that
+/// joined at the same instant are still ordered).
+type Place = (Instant, HolonId);
+
+/// What happens to the lines.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Event {
+    /// `order`'s part looks for a place at a station of `service`, waiting since
+    /// `since` if it is new to the line (a part in line keeps its place). `now_only`:
+    /// it takes a turn only if it can have one at once (a part at a port, which goes
+    /// home rather than block the port).
+    Wait {
+        order: HolonId,
+        service: String,
+        since: Instant,
+        now_only: bool,
+    },
+    /// A place freed up, a resource appeared or became ready, or the fallback's time
+    /// came: every line with parts waiting is swept from its oldest.
+    Room,
+    /// The part that had the turn looked; `placed`: it has a place and leaves the line.
+    Tried { order: HolonId, placed: bool },
+    /// The order no longer waits for a station (its part is at one, it ended, or its
+    /// task stopped).
+    Left { order: HolonId },
+}
+
+/// What the task does.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Action {
+    /// It is `order`'s turn to look for a place.
+    Turn(HolonId),
+    /// `order` asked for a turn at once and has none: older parts wait.
+    NotNow(HolonId),
+}
+
+/// One service's line.
+#[derive(Debug, Default)]
+struct Line {
+    /// The parts in line, oldest first; true while the part waits for its turn (false
+    /// while it has the turn, or does something else, such as going home).
+    waiting: BTreeMap<Place, bool>,
+    /// The part that has the turn now.
+    holder: Option<Place>,
+    /// The sweep under way: the last part it gave the turn to.
+    sweep: Option<Place>,
+    /// A room came during the sweep: sweep again from the oldest when it ends.
+    again: bool,
+}
+
+/// Every service's line on a node.
+#[derive(Debug, Default)]
+pub struct Lines {
+    /// The lines, by service type.
+    lines: BTreeMap<String, Line>,
+    /// Where each order stands: its service and its place.
+    of: HashMap<HolonId, (String, Place)>,
+}
+
+impl Lines {
+    /// Whether any part waits for its turn (the fallback's sweeps are needed).
+    pub fn any_waiting(&self) -> bool {
+        self.lines.values().any(|l| l.waiting.values().any(|w| *w))
+    }
+
+    /// How many parts stand in line, all services together.
+    pub fn len(&self) -> usize {
+        self.of.len()
+    }
+
+    /// Whether nobody stands in line.
+    pub fn is_empty(&self) -> bool {
+        self.of.is_empty()
+    }
+
+    pub fn handle(&mut self, event: Event) -> Vec<Action> {
+        match event {
+            Event::Wait {
+                order,
+                service,
+                since,
+                now_only,
+            } => self.wait(order, service, since, now_only),
+            Event::Room => self.room(),
+            Event::Tried { order, placed } => self.tried(&order, placed),
+            Event::Left { order } => self.leave(&order),
+        }
+    }
+
+    fn wait(
+        &mut self,
+        order: HolonId,
+        service: String,
+        since: Instant,
+        now_only: bool,
+    ) -> Vec<Action> {
+        let mut actions = Vec::new();
+        // A part that now looks for another service leaves its former line.
+        if self.of.get(&order).is_some_and(|(s, _)| *s != service) {
+            actions.extend(self.leave(&order));
+        }
+        let new = !self.of.contains_key(&order);
+        let place = match self.of.get(&order) {
+            Some((_, place)) => place.clone(),
+            None => {
+                let place = (since, order.clone());
+                self.of.insert(order.clone(), (service.clone(), place.clone()));
+                place
+            }
+        };
+        let line = self.lines.entry(service).or_default();
+        if line.holder.as_ref() == Some(&place) {
+            // It has the turn already (asked again after a wake of its own).
+            actions.push(Action::Turn(order));
+            return actions;
+        }
+        let idle = line.holder.is_none() && line.sweep.is_none();
+        let oldest = line.waiting.keys().next().is_none_or(|first| *first > place);
+        line.waiting.insert(place.clone(), !now_only);
+        if new && idle && oldest {
+            line.waiting.insert(place.clone(), false);
+            line.holder = Some(place.clone());
+            line.sweep = Some(place);
+            actions.push(Action::Turn(order));
+        } else if now_only {
+            actions.push(Action::NotNow(order));
+        }
+        // Else it waits: a sweep under way reaches it if it has not passed it yet (a
+        // newcomer is the youngest); a part it passed (it looked and found no place)
+        // waits for the next room, which is news it could use.
+        actions
+    }
+
+    fn room(&mut self) -> Vec<Action> {
+        let mut actions = Vec::new();
+        for line in self.lines.values_mut() {
+            if line.holder.is_some() || line.sweep.is_some() {
+                line.again = true;
+            } else if let Some(next) = line.next_after(None) {
+                actions.push(line.give(next));
+            }
+        }
+        actions
+    }
+
+    fn tried(&mut self, order: &HolonId, placed: bool) -> Vec<Action> {
+        if placed {
+            return self.leave(order);
+        }
+        let Some((service, place)) = self.of.get(order).cloned() else {
+            return Vec::new();
+        };
+        let line = self.lines.get_mut(&service).expect("an order's line exists");
+        if line.holder.as_ref() != Some(&place) {
+            return Vec::new();
+        }
+        line.holder = None;
+        line.pass().into_iter().collect()
+    }
+
+    fn leave(&mut self, order: &HolonId) -> Vec<Action> {
+        let Some((service, place)) = self.of.remove(order) else {
+            return Vec::new();
+        };
+        let line = self.lines.get_mut(&service).expect("an order's line exists");
+        line.waiting.remove(&place);
+        let mut actions = Vec::new();
+        if line.holder.as_ref() == Some(&place) {
+            line.holder = None;
+            actions.extend(line.pass());
+        }
+        if line.waiting.is_empty() && line.holder.is_none() {
+            self.lines.remove(&service);
+        }
+        actions
+    }
+}
+
+impl Line {
+    /// The first part waiting for its turn after `after` (from the oldest with `None`).
+    fn next_after(&self, after: Option<&Place>) -> Option<Place> {
+        self.waiting
+            .iter()
+            .filter(|(place, waits)| **waits && after.is_none_or(|after| *place > after))
+            .map(|(place, _)| place.clone())
+            .next()
+    }
+
+    /// Gives the turn to `place`'s part.
+    fn give(&mut self, place: Place) -> Action {
+        self.waiting.insert(place.clone(), false);
+        self.holder = Some(place.clone());
+        self.sweep = Some(place.clone());
+        Action::Turn(place.1)
+    }
+
+    /// The turn goes on to the next younger part waiting; at the end of the line the
+    /// sweep ends, and begins again from the oldest if a room came meanwhile.
+    fn pass(&mut self) -> Option<Action> {
+        if let Some(next) = self.next_after(self.sweep.as_ref()) {
+            return Some(self.give(next));
+        }
+        self.sweep = None;
+        if std::mem::take(&mut self.again) {
+            if let Some(next) = self.next_after(None) {
+                return Some(self.give(next));
+            }
+        }
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    fn order(n: u32) -> HolonId {
+        HolonId::order(&format!("orders1-{n}")).unwrap()
+    }
+
+    fn wait(lines: &mut Lines, n: u32, at: Instant, now_only: bool) -> Vec<Action> {
+        lines.handle(Event::Wait {
+            order: order(n),
+            service: "inspect".into(),
+            since: at,
+            now_only,
+        })
+    }
+
+    fn tried(lines: &mut Lines, n: u32, placed: bool) -> Vec<Action> {
+        lines.handle(Event::Tried {
+            order: order(n),
+            placed,
+        })
+    }
+
+    #[test]
+    fn a_part_alone_has_its_turn_at_once_and_again_only_after_a_room() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        assert_eq!(wait(&mut lines, 1, t0, false), vec![Action::Turn(order(1))]);
+        assert_eq!(tried(&mut lines, 1, false), vec![]);
+        // Waiting again: no place has freed since it looked.
+        assert_eq!(wait(&mut lines, 1, t0, false), vec![]);
+        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
+        assert_eq!(tried(&mut lines, 1, true), vec![]);
+        assert!(lines.is_empty());
+    }
+
+    #[test]
+    fn a_room_goes_to_the_oldest_part_first_however_often_the_young_look() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        // The oldest looked and found no place.
+        assert_eq!(wait(&mut lines, 15, t0, false), vec![Action::Turn(order(15))]);
+        assert_eq!(tried(&mut lines, 15, false), vec![]);
+        wait(&mut lines, 15, t0, false);
+        // A younger part off a station's port asks for a turn at once: none.
+        let t1 = t0 + Duration::from_secs(3);
+        assert_eq!(wait(&mut lines, 16, t1, true), vec![Action::NotNow(order(16))]);
+        // It went home and waits there.
+        assert_eq!(wait(&mut lines, 16, t1, false), vec![]);
+        // A place frees: the oldest looks first, then the younger.
+        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(15))]);
+        assert_eq!(tried(&mut lines, 15, false), vec![Action::Turn(order(16))]);
+        assert_eq!(tried(&mut lines, 16, true), vec![]);
+        assert_eq!(lines.len(), 1);
+    }
+
+    #[test]
+    fn a_room_during_a_sweep_sweeps_again_from_the_oldest() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        wait(&mut lines, 1, t0, false);
+        tried(&mut lines, 1, false);
+        wait(&mut lines, 1, t0, false);
+        wait(&mut lines, 2, t0 + Duration::from_secs(1), false);
+        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
+        assert_eq!(lines.handle(Event::Room), vec![]);
+        // 1 looked and waits again before the sweep ends.
+        assert_eq!(tried(&mut lines, 1, false), vec![Action::Turn(order(2))]);
+        wait(&mut lines, 1, t0, false);
+        assert_eq!(tried(&mut lines, 2, false), vec![Action::Turn(order(1))]);
+    }
+
+    #[test]
+    fn a_holder_that_leaves_passes_the_turn_on() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        wait(&mut lines, 1, t0, false);
+        tried(&mut lines, 1, false);
+        wait(&mut lines, 1, t0, false);
+        wait(&mut lines, 2, t0 + Duration::from_secs(1), false);
+        lines.handle(Event::Room);
+        assert_eq!(
+            lines.handle(Event::Left { order: order(1) }),
+            vec![Action::Turn(order(2))]
+        );
+        assert_eq!(lines.handle(Event::Left { order: order(2) }), vec![]);
+        assert!(lines.is_empty() && !lines.any_waiting());
+    }
+
+    #[test]
+    fn a_part_that_looks_for_another_service_leaves_its_line() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        wait(&mut lines, 1, t0, false);
+        let actions = lines.handle(Event::Wait {
+            order: order(1),
+            service: "pick_n_place".into(),
+            since: t0 + Duration::from_secs(5),
+            now_only: false,
+        });
+        assert_eq!(actions, vec![Action::Turn(order(1))]);
+        assert_eq!(lines.len(), 1);
+    }
+
+    #[test]
+    fn a_newcomer_waits_behind_older_parts_even_when_the_line_is_idle() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        wait(&mut lines, 1, t0, false);
+        tried(&mut lines, 1, false);
+        wait(&mut lines, 1, t0, false);
+        assert_eq!(wait(&mut lines, 2, t0 + Duration::from_secs(1), false), vec![]);
+        assert!(lines.any_waiting());
+        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
+    }
+}
