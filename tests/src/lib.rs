@@ -5,6 +5,7 @@
 
 mod cell;
 mod cell_holons;
+pub mod chaos;
 mod dashboard;
 mod environment;
 mod etcd;

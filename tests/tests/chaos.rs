@@ -9,77 +9,16 @@
 //! printed; `HOLARCHY_CHAOS_SEED=N` replays one.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::{Duration, Instant};
 
+use holarchy_tests::chaos::{Rng, Victim};
 use holarchy_tests::*;
 use schemas::{HolonId, HolonKind, OrderSnapshot, OrderStatus};
 
 const ORDERS: u32 = 100;
 const KILLS: usize = 12;
 const RUN_LIMIT: Duration = Duration::from_secs(240);
-
-/// xorshift64*: enough randomness for choosing victims and moments.
-struct Rng(u64);
-
-impl Rng {
-    fn next(&mut self) -> u64 {
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-    }
-
-    fn below(&mut self, n: u64) -> u64 {
-        self.next() % n
-    }
-}
-
-/// A holon process the driver may kill, and how to start it again.
-struct Victim {
-    name: String,
-    program: &'static str,
-    config: PathBuf,
-    extra: Vec<String>,
-    ready_key: String,
-    process: Process,
-    kills: usize,
-}
-
-impl Victim {
-    fn start(
-        dir: &Path,
-        cell: &Cell,
-        name: &str,
-        program: &'static str,
-        config: PathBuf,
-        extra: Vec<String>,
-        ready_key: String,
-    ) -> Victim {
-        let args: Vec<&str> = extra.iter().map(String::as_str).collect();
-        let process = start_holon(dir, program, &config, name, cell, &args).unwrap();
-        Victim {
-            name: name.into(),
-            program,
-            config,
-            extra,
-            ready_key,
-            process,
-            kills: 0,
-        }
-    }
-
-    fn restart(&mut self, dir: &Path, cell: &Cell) {
-        let args: Vec<&str> = self.extra.iter().map(String::as_str).collect();
-        // Keep each incarnation's log.
-        let _ = std::fs::rename(
-            &self.process.stderr_path,
-            dir.join(format!("{}.stderr.{}", self.name, self.kills)),
-        );
-        self.process =
-            start_holon(dir, self.program, &self.config, &self.name, cell, &args).unwrap();
-    }
-}
 
 async fn all_orders(cell: &Cell) -> BTreeMap<HolonId, OrderSnapshot> {
     // Every order, finished ones too, a page at a time; none while the listing is
@@ -100,12 +39,8 @@ const SIMULATORS: [(&str, &str); 4] = [
 
 #[tokio::test(flavor = "multi_thread")]
 async fn orders_survive_random_kills() {
-    let seed = std::env::var("HOLARCHY_CHAOS_SEED")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| schemas::unix_ms() | 1);
+    let (mut rng, seed) = Rng::seeded();
     println!("chaos seed {seed} (HOLARCHY_CHAOS_SEED={seed} replays it)");
-    let mut rng = Rng(seed);
     // The binaries are built (if they need it) before the clock starts: a build must
     // not eat the run's time limit and leave the driver no time to kill anything.
     for program in ["holon-node", "order-node", "robot-sim"] {

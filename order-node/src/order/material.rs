@@ -100,7 +100,11 @@ impl OrderTask<'_> {
             // oldest first (crate::station_line): a part that looked before waits for
             // its turn; one at a port, or looking for the first time, looks at once
             // only if no older part waits.
-            let at_port = part.place.location().filter(|l| is_port(&layout, l)).cloned();
+            let at_port = part
+                .place
+                .location()
+                .filter(|l| is_port(&layout, l))
+                .cloned();
             let waited = ticket.in_line() && at_port.is_none();
             if waited {
                 tokio::select! {

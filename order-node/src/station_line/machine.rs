@@ -127,7 +127,8 @@ impl Lines {
             Some((_, place)) => place.clone(),
             None => {
                 let place = (since, order.clone());
-                self.of.insert(order.clone(), (service.clone(), place.clone()));
+                self.of
+                    .insert(order.clone(), (service.clone(), place.clone()));
                 place
             }
         };
@@ -138,7 +139,11 @@ impl Lines {
             return actions;
         }
         let idle = line.holder.is_none() && line.sweep.is_none();
-        let oldest = line.waiting.keys().next().is_none_or(|first| *first > place);
+        let oldest = line
+            .waiting
+            .keys()
+            .next()
+            .is_none_or(|first| *first > place);
         line.waiting.insert(place.clone(), !now_only);
         if new && idle && oldest {
             line.waiting.insert(place.clone(), false);
@@ -173,7 +178,10 @@ impl Lines {
         let Some((service, place)) = self.of.get(order).cloned() else {
             return Vec::new();
         };
-        let line = self.lines.get_mut(&service).expect("an order's line exists");
+        let line = self
+            .lines
+            .get_mut(&service)
+            .expect("an order's line exists");
         if line.holder.as_ref() != Some(&place) {
             return Vec::new();
         }
@@ -185,7 +193,10 @@ impl Lines {
         let Some((service, place)) = self.of.remove(order) else {
             return Vec::new();
         };
-        let line = self.lines.get_mut(&service).expect("an order's line exists");
+        let line = self
+            .lines
+            .get_mut(&service)
+            .expect("an order's line exists");
         line.waiting.remove(&place);
         let mut actions = Vec::new();
         if line.holder.as_ref() == Some(&place) {
@@ -276,12 +287,18 @@ mod tests {
         let t0 = Instant::now();
         let mut lines = Lines::default();
         // The oldest looked and found no place.
-        assert_eq!(wait(&mut lines, 15, t0, false), vec![Action::Turn(order(15))]);
+        assert_eq!(
+            wait(&mut lines, 15, t0, false),
+            vec![Action::Turn(order(15))]
+        );
         assert_eq!(tried(&mut lines, 15, false), vec![]);
         wait(&mut lines, 15, t0, false);
         // A younger part off a station's port asks for a turn at once: none.
         let t1 = t0 + Duration::from_secs(3);
-        assert_eq!(wait(&mut lines, 16, t1, true), vec![Action::NotNow(order(16))]);
+        assert_eq!(
+            wait(&mut lines, 16, t1, true),
+            vec![Action::NotNow(order(16))]
+        );
         // It went home and waits there.
         assert_eq!(wait(&mut lines, 16, t1, false), vec![]);
         // A place frees: the oldest looks first, then the younger.
@@ -346,7 +363,10 @@ mod tests {
         wait(&mut lines, 1, t0, false);
         tried(&mut lines, 1, false);
         wait(&mut lines, 1, t0, false);
-        assert_eq!(wait(&mut lines, 2, t0 + Duration::from_secs(1), false), vec![]);
+        assert_eq!(
+            wait(&mut lines, 2, t0 + Duration::from_secs(1), false),
+            vec![]
+        );
         assert!(lines.any_waiting());
         assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
     }
