@@ -103,3 +103,53 @@ pub async fn follow(
         });
     }
 }
+
+/// The cell's layout as a task of its own follows it ([`follow`]), until dropped: for
+/// holons that read the layout now and then (an order-node's orders, a staff holon).
+pub struct Follower {
+    /// The layout as last assembled (`None` until the first answers).
+    layout: tokio::sync::watch::Receiver<Option<std::sync::Arc<schemas::layout::CellLayout>>>,
+    /// Stops the following when dropped.
+    _stop: tokio_util::sync::DropGuard,
+}
+
+impl Follower {
+    /// Starts following on `session`; the first ask goes at once, its answers come
+    /// within a few seconds.
+    pub fn start(session: &zenoh::Session, keys: &CellKeys) -> Follower {
+        let (sender, layout) = tokio::sync::watch::channel(None);
+        let stop = tokio_util::sync::CancellationToken::new();
+        let (session, keys, token) = (session.clone(), keys.clone(), stop.clone());
+        tokio::spawn(async move {
+            match follow(&session, &keys, None, &sender, &token).await {
+                Ok(()) => {}
+                // The holon is stopping: its session closed under the follower.
+                Err(e) if session.is_closed() => {
+                    tracing::debug!(error = %e, "the session closed: the layout is no longer followed")
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, "cannot follow the cell's layout: what needs it waits or goes without")
+                }
+            }
+        });
+        Follower {
+            layout,
+            _stop: stop.drop_guard(),
+        }
+    }
+
+    /// Waits at most `within` for the first answers: whether they came.
+    pub async fn first(&mut self, within: Duration) -> bool {
+        if self.layout.borrow().is_some() {
+            return true;
+        }
+        tokio::time::timeout(within, self.layout.changed())
+            .await
+            .is_ok_and(|changed| changed.is_ok())
+    }
+
+    /// The layout as it stands (`None` while no resource has answered its part).
+    pub fn latest(&self) -> Option<std::sync::Arc<schemas::layout::CellLayout>> {
+        self.layout.borrow().clone()
+    }
+}

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::watch;
-use tracing::{debug, error, info, warn};
+use tracing::{error, info, warn};
 
 use crate::advice_pause::AdvicePause;
 use crate::config::OrderSettings;
@@ -52,15 +52,7 @@ pub struct OrderContext {
 
 /// The cell's layout, followed once an order asks for it.
 #[derive(Default)]
-pub struct CellLayoutFollowing(tokio::sync::OnceCell<CellLayoutFollower>);
-
-/// The cell's layout as the node follows it ([`holon::layout::follow`]).
-struct CellLayoutFollower {
-    /// The layout, as last assembled (`None` until the first answer).
-    layout: watch::Receiver<Option<Arc<schemas::layout::CellLayout>>>,
-    /// Stops the following when the context is dropped.
-    _stop: tokio_util::sync::DropGuard,
-}
+pub struct CellLayoutFollowing(tokio::sync::OnceCell<holon::layout::Follower>);
 
 /// The journal kind of order records.
 pub const ORDER_RECORD: &str = "order";
@@ -99,33 +91,14 @@ impl OrderContext {
             .layout
             .0
             .get_or_init(|| async {
-                let (sender, mut layout) = watch::channel(None);
-                let stop = tokio_util::sync::CancellationToken::new();
-                let (session, keys, token) = (self.session.clone(), self.keys.clone(), stop.clone());
-                tokio::spawn(async move {
-                    match holon::layout::follow(&session, &keys, None, &sender, &token).await {
-                        Ok(()) => {}
-                        // The node is stopping: its session closed under the follower.
-                        Err(e) if session.is_closed() => {
-                            debug!(error = %e, "the session closed: the layout is no longer followed")
-                        }
-                        Err(e) => {
-                            error!(error = %e, "cannot follow the cell's layout: orders that move parts wait")
-                        }
-                    }
-                });
-                // The first ask is made at once; its answers come within its timeout.
-                let first = tokio::time::timeout(Duration::from_secs(3), layout.changed()).await;
-                if first.is_err() {
+                let mut follower = holon::layout::Follower::start(&self.session, &self.keys);
+                if !follower.first(Duration::from_secs(3)).await {
                     warn!("no resource answered its part of the cell's layout yet");
                 }
-                CellLayoutFollower {
-                    layout,
-                    _stop: stop.drop_guard(),
-                }
+                follower
             })
             .await;
-        follower.layout.borrow().clone()
+        follower.latest()
     }
 
     /// The epoch at which this node holds its leader key, on etcd (`None` on SQLite).

@@ -450,8 +450,16 @@ impl OrderTask<'_> {
         let (advised, offers) = tokio::join!(
             async {
                 if work {
-                    requests::advice(&ctx, &self.holon, conversation_id, route, urgency, &avoid)
-                        .await
+                    requests::advice(
+                        &ctx,
+                        &self.holon,
+                        conversation_id,
+                        route,
+                        urgency,
+                        &avoid,
+                        None,
+                    )
+                    .await
                 } else {
                     requests::Advised::NoStaff
                 }

@@ -417,7 +417,8 @@ pub enum Advised {
 }
 
 /// Asks the staff holon alive, if any, which resource to book for the next of `route`
-/// (the steps still ahead of the order), waiting at most `orders.advice_timeout_ms`.
+/// (the steps still ahead of the order; `at`, where its part is, if it has one), waiting
+/// at most `orders.advice_timeout_ms`.
 /// Anything but an answer to this order's conversation naming a resource is unusable.
 pub async fn advice(
     ctx: &OrderContext,
@@ -426,6 +427,7 @@ pub async fn advice(
     route: Vec<schemas::RouteStep>,
     urgency: (i32, Option<u64>),
     avoid: &BTreeSet<HolonId>,
+    at: Option<schemas::layout::LocationId>,
 ) -> Advised {
     let Some(staff) = ctx.presence.staff() else {
         return Advised::NoStaff;
@@ -451,6 +453,7 @@ pub async fn advice(
             .take(schemas::advice::MAX_AVOIDED)
             .cloned()
             .collect(),
+        at,
     };
     let payload = serde_json::to_vec(&request).expect("a request serializes");
     let asked = async {

@@ -6,6 +6,7 @@
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use crate::layout::LocationId;
 use crate::{HolonId, SchemaError, MAX_PRIORITY, MIN_PRIORITY};
 
 /// The version of the advice messages.
@@ -52,6 +53,13 @@ pub struct AdviceRequest {
     /// Resources that failed the next step for this order: not to be advised.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub avoid: Vec<HolonId>,
+    /// Where the order's part is (a plan that moves parts), e.g. `conveyor1.buffer`:
+    /// the staff counts the travel from there to each station, and between the
+    /// stations of the route, from the cell's layout. Absent: no part to move (or an
+    /// order-node of an earlier release).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(with = "Option<String>")]
+    pub at: Option<LocationId>,
 }
 
 impl AdviceRequest {
@@ -104,6 +112,18 @@ pub struct ForecastStep {
     /// The forecast counts a changeover before the step.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub changeover: bool,
+    /// The move before the step, for a part that is elsewhere: the station's port it
+    /// goes to ...
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(with = "Option<String>")]
+    pub to: Option<LocationId>,
+    /// ... and its travel, as the layout times it (ms), counted before the step starts.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub travel_ms: u64,
+}
+
+fn is_zero(ms: &u64) -> bool {
+    *ms == 0
 }
 
 /// The staff's answer.
@@ -182,6 +202,8 @@ mod tests {
                 start: 1,
                 end: 5,
                 changeover: true,
+                to: Some(crate::layout::LocationId::new("robot1", "port").unwrap()),
+                travel_ms: 1200,
             }],
             why: "fastest".into(),
         };

@@ -79,12 +79,14 @@ listen = "127.0.0.1:0"
 delay_ms = 150
 "#;
 
-/// A station offering `service` (a pick and a place), its one port on `stopper`.
-fn station(dir: &Path, name: &str, service: &str, stopper: &str) -> PathBuf {
+/// A station offering `service` (a pick and a place; nominally 1000 ms unless
+/// `nominal_ms` says), its one port on `stopper`.
+fn station(dir: &Path, name: &str, service: &str, stopper: &str, nominal_ms: u64) -> PathBuf {
     let path = resource_config(dir, name, 10_000).unwrap();
-    let text = std::fs::read_to_string(&path)
-        .unwrap()
-        .replace("[services.pick_n_place]", &format!("[services.{service}]"));
+    let text = std::fs::read_to_string(&path).unwrap().replace(
+        "[services.pick_n_place]\nnominal_duration_ms = 1000",
+        &format!("[services.{service}]\nnominal_duration_ms = {nominal_ms}"),
+    );
     let layout = format!(
         "\n[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ncapacity = 1\ndock = \"conveyor1.{stopper}\"\n"
     );
@@ -114,7 +116,7 @@ struct FlowCell {
     dir: tempfile::TempDir,
     plant: PlantProcess,
     cell: Cell,
-    /// The resource holons, by name (conveyor1, station_a, station_b).
+    /// The resource holons, by name (conveyor1 and the stations).
     resources: std::collections::BTreeMap<String, Process>,
     /// The product holons.
     _products: Vec<Process>,
@@ -130,11 +132,29 @@ impl FlowCell {
 
     /// Starts the cell on the plant file `plant`.
     async fn start_on(tag: &str, conveyor: &str, plant: &str) -> FlowCell {
+        let stations = [
+            ("station_a", "drill", "sa", 1000),
+            ("station_b", "mill", "sb", 1000),
+        ];
+        let products = [("ab", "drill", "mill"), ("ba", "mill", "drill")];
+        FlowCell::start_with(tag, conveyor, plant, &stations, &products).await
+    }
+
+    /// Starts the cell on the plant file `plant` with `stations` (name, service,
+    /// stopper, nominal duration) and `products` (name, first and second service).
+    async fn start_with(
+        tag: &str,
+        conveyor: &str,
+        plant: &str,
+        stations: &[(&str, &str, &str, u64)],
+        products: &[(&str, &str, &str)],
+    ) -> FlowCell {
         let dir = tempfile::tempdir().unwrap();
         std::fs::create_dir_all(dir.path().join("data")).unwrap();
         std::fs::write(dir.path().join("conveyor1.toml"), conveyor).unwrap();
-        station(dir.path(), "station_a", "drill", "sa");
-        station(dir.path(), "station_b", "mill", "sb");
+        for &(name, service, stopper, nominal_ms) in stations {
+            station(dir.path(), name, service, stopper, nominal_ms);
+        }
         let plant = PlantProcess::start(dir.path(), plant);
         let cell = Cell::open(tag).await.unwrap();
         let mut flow = FlowCell {
@@ -145,10 +165,11 @@ impl FlowCell {
             resources: Default::default(),
             _products: Vec::new(),
         };
-        for name in ["conveyor1", "station_a", "station_b"] {
+        flow.start_resource("conveyor1").await;
+        for (name, _, _, _) in stations {
             flow.start_resource(name).await;
         }
-        for (name, first, second) in [("ab", "drill", "mill"), ("ba", "mill", "drill")] {
+        for &(name, first, second) in products {
             let config = product(flow.dir.path(), name, first, second);
             flow._products.push(
                 start_holon(
@@ -258,7 +279,7 @@ impl FlowCell {
             3,
             "{truth:#}"
         );
-        for resource in ["conveyor1", "station_a", "station_b"] {
+        for resource in self.resources.keys() {
             let status = self.cell.status(resource).await.unwrap();
             assert!(
                 status.get("places").is_none(),
@@ -572,4 +593,130 @@ async fn a_lost_part_waits_for_an_operators_word_and_goes_on_from_there() {
         table.contains(&format!("    part found at {at} by {by}")),
         "{table}"
     );
+}
+
+/// A slow loop (0.5 m/s): the buffer at 0.25 m, `station_near`'s stopper 0.5 m further
+/// on, `station_far`'s 1.5 m.
+const SLOW_LOOP: &str = r#"
+cell = "unset"
+name = "conveyor1"
+
+[controller]
+address = "127.0.0.1:1"
+reconnect_interval_ms = 100
+reconnect_max_ms = 1000
+command_timeout_ms = 10000
+connect_timeout_ms = 500
+
+[agenda]
+capacity = 32
+
+[services.transport]
+nominal_duration_ms = 500
+steps = [{ action = "move", until = ["arrived"] }]
+
+[[layout.locations]]
+name = "load"
+role = "entry_exit"
+capacity = 1
+dock = "conveyor1.load"
+
+[[layout.locations]]
+name = "buffer"
+role = "buffer"
+capacity = 2
+dock = "conveyor1.b"
+
+[layout.conveyor]
+length_mm = 2000
+speed_mm_s = 500
+pallets = 3
+dock_ms = 50
+stoppers = [
+  { name = "load", at_mm = 0 },
+  { name = "b", at_mm = 250 },
+  { name = "sa", at_mm = 750 },
+  { name = "sb", at_mm = 1750 },
+]
+"#;
+
+const NEAR_AND_FAR: &str = r#"
+layout = ["conveyor1.toml", "station_near.toml", "station_far.toml"]
+
+[[controller]]
+resource = "conveyor1"
+listen = "127.0.0.1:0"
+
+[[controller]]
+resource = "station_near"
+listen = "127.0.0.1:0"
+delay_ms = 100
+
+[[controller]]
+resource = "station_far"
+listen = "127.0.0.1:0"
+delay_ms = 100
+"#;
+
+/// The stations an order's steps ran on, in order.
+fn stations_of(state: &serde_json::Value) -> Vec<String> {
+    state["completed"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|step| step[1].as_str().unwrap().to_string())
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn the_staff_counts_the_travel_and_sends_the_part_to_the_near_station() {
+    // station_far says it drills in 200 ms, station_near in 1000 ms (their nominal
+    // durations); but a part needs 2 s more to get to station_far. (Contract net alone
+    // ranks by the wait, the same at both: either.)
+    let stations = [
+        ("station_near", "drill", "sa", 1000),
+        ("station_far", "drill", "sb", 200),
+    ];
+    let flow = FlowCell::start_with(
+        "t-flow-travel",
+        SLOW_LOOP,
+        NEAR_AND_FAR,
+        &stations,
+        &[("dd", "drill", "drill")],
+    )
+    .await;
+    let planner = HolonId::staff("planner").unwrap();
+    let _staff = start_holon(
+        flow.dir.path(),
+        "holon-node",
+        &demo_config("planner.toml"),
+        "planner",
+        &flow.cell,
+        &[],
+    )
+    .unwrap();
+    flow.cell.wait_alive(&planner).await.unwrap();
+    let deadline = tokio::time::Instant::now() + WAIT;
+    while flow.count_in_orders_log("staff appeared") == 0 {
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "the order-node did not see the staff"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    // Without the travel the staff would advise station_far, by its 200 ms.
+    let mut orders = Vec::new();
+    for _ in 0..3 {
+        let order = flow.cell.submit("dd", 1).await.unwrap().remove(0);
+        flow.wait_ended(std::slice::from_ref(&order), WAIT).await;
+        let state = flow.cell.order_state(&order).await.unwrap();
+        assert_eq!(
+            stations_of(&state),
+            vec!["resource/station_near"; 2],
+            "{state:#}"
+        );
+        assert!(state["advised"].as_u64() >= Some(1), "{state:#}");
+        orders.push(order);
+    }
+    flow.assert_all_done_and_plant_empty(&orders).await;
 }

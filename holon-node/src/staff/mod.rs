@@ -2,7 +2,7 @@
 //!
 //! It keeps a model of the cell from what the holons publish ([`model`]), forecasts an
 //! order's whole remaining route from it and the other orders' intentions
-//! ([`planner`]), and answers `staff/<name>/advice` ([`node`]). It never books, starts
+//! ([`planner`]; the part's moves timed from the cell's layout, [`travel`]), and answers `staff/<name>/advice` ([`node`]). It never books, starts
 //! or cancels on an order's behalf: orders take its advice when it fits what the
 //! resources proposed, and the cell runs the same without it.
 
@@ -10,3 +10,4 @@ pub mod config;
 pub mod model;
 pub mod node;
 pub mod planner;
+pub mod travel;

@@ -106,6 +106,7 @@ impl Behaviour for &StaffConfig {
             })
             .await
             .map_err(|e| HolonError::Zenoh(holon::zenoh_error::describe(&e)))?;
+        let layout = holon::layout::Follower::start(&session, &config.identity.keys);
         let mut model = CellModel::default();
         // What the resources published before the staff came: asked once.
         seed(&session, config, &mut model).await;
@@ -127,6 +128,7 @@ impl Behaviour for &StaffConfig {
             state_key,
             sources,
             _state_queryable: state_queryable,
+            layout,
         };
         staff.publish().await;
         info!(%holon, key = %staff.sources.advice_key, resources = staff.model.resources().count(), "advising");
@@ -269,6 +271,8 @@ pub struct Staff {
     sources: Sources,
     /// Answers `staff/<name>/state`.
     _state_queryable: zenoh::query::Queryable<()>,
+    /// The cell's layout, followed from the start: the travel times of parts' moves.
+    layout: holon::layout::Follower,
 }
 
 impl Staff {
@@ -283,6 +287,48 @@ impl Staff {
             .await
         {
             warn!(%holon, error = %e, "cannot publish the state");
+        }
+    }
+
+    /// Answers one advice request from the model, and keeps the order's route as its
+    /// intentions; an order's part's moves timed by the cell's layout as it stands.
+    async fn answer(&mut self, query: Query) {
+        let holon = &self.config.identity.holon;
+        let request = query
+            .payload()
+            .map(|p| p.to_bytes().to_vec())
+            .unwrap_or_default();
+        let request = serde_json::from_slice::<AdviceRequest>(&request)
+            .map_err(|e| ErrorReply::new(schemas::ErrorCode::Malformed, e.to_string()))
+            .and_then(|r| {
+                r.validate()
+                    .map(|()| r)
+                    .map_err(|e| ErrorReply::new(schemas::ErrorCode::Invalid, e.to_string()))
+            });
+        let request = match request {
+            Ok(request) => request,
+            Err(refusal) => {
+                self.published.refused += 1;
+                self.published.changed = true;
+                warn!(%holon, code = %refusal.code, why = %refusal.message, "advice request refused");
+                if let Err(e) = query.reply_err(refusal.to_json()).await {
+                    warn!(%holon, error = %e, "cannot refuse an advice request; the order's wait ends it");
+                }
+                return;
+            }
+        };
+        let layout = self.layout.latest();
+        let now = unix_ms();
+        let ttl = self.config.intention_ttl.as_millis() as u64;
+        let (advice, intentions) =
+            planner::advise(&self.model, layout.as_deref(), holon, &request, now, ttl);
+        self.model.intend(&request.order, intentions, now);
+        self.published.advised += 1;
+        self.published.changed = true;
+        debug!(%holon, order = %request.order, conversation_id = %request.conversation_id, resource = ?advice.resource.as_ref().map(|r| r.to_string()), why = %advice.why, message_type = "advice", "advised");
+        let payload = serde_json::to_vec(&advice).expect("advice serializes");
+        if let Err(e) = query.reply(query.key_expr().clone(), payload).await {
+            warn!(%holon, order = %request.order, error = %e, "cannot send advice; the order goes by contract net");
         }
     }
 }
@@ -330,16 +376,7 @@ impl Work for Staff {
                 self.departed.remove(&resource);
             }
             StaffEvent::OrderEnded(order) => self.model.forget(&order),
-            StaffEvent::Advice(query) => {
-                answer(
-                    &holon,
-                    &self.config,
-                    &mut self.model,
-                    &mut self.published,
-                    query,
-                )
-                .await;
-            }
+            StaffEvent::Advice(query) => self.answer(query).await,
         }
     }
 
@@ -375,51 +412,6 @@ async fn seed(session: &zenoh::Session, config: &StaffConfig, model: &mut CellMo
         {
             model.observe(snapshot);
         }
-    }
-}
-
-/// Answers one advice request from the model, and keeps the order's route as its
-/// intentions.
-async fn answer(
-    holon: &HolonId,
-    config: &StaffConfig,
-    model: &mut CellModel,
-    published: &mut Published,
-    query: Query,
-) {
-    let request = query
-        .payload()
-        .map(|p| p.to_bytes().to_vec())
-        .unwrap_or_default();
-    let request = serde_json::from_slice::<AdviceRequest>(&request)
-        .map_err(|e| ErrorReply::new(schemas::ErrorCode::Malformed, e.to_string()))
-        .and_then(|r| {
-            r.validate()
-                .map(|()| r)
-                .map_err(|e| ErrorReply::new(schemas::ErrorCode::Invalid, e.to_string()))
-        });
-    let request = match request {
-        Ok(request) => request,
-        Err(refusal) => {
-            published.refused += 1;
-            published.changed = true;
-            warn!(%holon, code = %refusal.code, why = %refusal.message, "advice request refused");
-            if let Err(e) = query.reply_err(refusal.to_json()).await {
-                warn!(%holon, error = %e, "cannot refuse an advice request; the order's wait ends it");
-            }
-            return;
-        }
-    };
-    let now = unix_ms();
-    let ttl = config.intention_ttl.as_millis() as u64;
-    let (advice, intentions) = planner::advise(model, holon, &request, now, ttl);
-    model.intend(&request.order, intentions, now);
-    published.advised += 1;
-    published.changed = true;
-    debug!(%holon, order = %request.order, conversation_id = %request.conversation_id, resource = ?advice.resource.as_ref().map(|r| r.to_string()), why = %advice.why, message_type = "advice", "advised");
-    let payload = serde_json::to_vec(&advice).expect("advice serializes");
-    if let Err(e) = query.reply(query.key_expr().clone(), payload).await {
-        warn!(%holon, order = %request.order, error = %e, "cannot send advice; the order goes by contract net");
     }
 }
 

@@ -12,9 +12,11 @@
 //! then done soonest, then frees the next step soonest. Its route becomes the order's
 //! intentions, so orders that ask together are spread over the resources.
 
+use schemas::layout::CellLayout;
 use schemas::{Advice, AdviceRequest, ForecastStep, HolonId, RouteStep, ADVICE_VERSION};
 
 use crate::staff::model::{CellModel, Intention, ResourceModel};
+use crate::staff::travel::{self, Reach};
 
 /// A route as forecast from one candidate for the next step.
 #[derive(Debug, Clone)]
@@ -38,6 +40,7 @@ impl Forecast {
 /// each step lapsing `intention_ttl_ms` after its forecast end unless booked).
 pub fn advise(
     model: &CellModel,
+    layout: Option<&CellLayout>,
     staff: &HolonId,
     request: &AdviceRequest,
     now: u64,
@@ -58,10 +61,16 @@ pub fn advise(
     let mut forecasts: Vec<Forecast> = model
         .resources()
         .filter(|r| can_take(r, next) && !request.avoid.contains(&r.snapshot.holon))
-        .map(|first| forecast(model, request, first, now))
+        .filter_map(|first| forecast(model, layout, request, first, now))
         .collect();
     if forecasts.is_empty() {
-        advice.why = format!("no resource alive and ready offers {}", next.service_type);
+        advice.why = match &request.at {
+            Some(at) => format!(
+                "no resource alive and ready offers {} where the part can get from {at}",
+                next.service_type
+            ),
+            None => format!("no resource alive and ready offers {}", next.service_type),
+        };
         return (advice, vec![]);
     }
     let late = |f: &Forecast| match request.due {
@@ -94,7 +103,12 @@ pub fn advise(
         .map(|f| {
             let when = f.done().saturating_sub(now) as f64 / 1000.0;
             let done = if f.complete { "done" } else { "partly planned" };
-            format!("{} {done} at +{when:.1} s", f.route[0].resource)
+            let travel = f.route.iter().map(|s| s.travel_ms).sum::<u64>();
+            let travel = match travel {
+                0 => String::new(),
+                ms => format!(" (travel {:.1} s)", ms as f64 / 1000.0),
+            };
+            format!("{} {done} at +{when:.1} s{travel}", f.route[0].resource)
         })
         .collect::<Vec<_>>()
         .join("; ");
@@ -121,33 +135,53 @@ fn can_take(resource: &ResourceModel, step: &RouteStep) -> bool {
     resource.takes_work() && resource.offers(&step.service_type)
 }
 
-/// The route with the next step on `first` and every later step where it ends soonest.
+/// The route with the next step on `first` and every later step where it ends soonest,
+/// each step after the part's move to it (travel times from the layout, from where the
+/// part is). `None` when the part cannot get to `first`.
 fn forecast(
     model: &CellModel,
+    layout: Option<&CellLayout>,
     request: &AdviceRequest,
     first: &ResourceModel,
     now: u64,
-) -> Forecast {
+) -> Option<Forecast> {
     let mut own: Vec<Intention> = Vec::new();
     let mut route = Vec::new();
     let mut ready = now;
+    let mut at = request.at.clone();
     for (index, step) in request.steps.iter().enumerate() {
-        let placed = if index == 0 {
-            Some(place(model, first, step, request, ready, now, &own))
+        let candidates: Vec<&ResourceModel> = if index == 0 {
+            vec![first]
         } else {
-            model
-                .resources()
-                .filter(|r| can_take(r, step))
-                .map(|r| place(model, r, step, request, ready, now, &own))
-                .min_by(|a, b| (a.end, &a.resource).cmp(&(b.end, &b.resource)))
+            model.resources().filter(|r| can_take(r, step)).collect()
         };
+        let placed = candidates
+            .into_iter()
+            .filter_map(|r| {
+                let (to, travel_ms) =
+                    match travel::reach(layout, at.as_ref(), r.snapshot.holon.name()) {
+                        Reach::There => (None, 0),
+                        Reach::Move { to, travel_ms } => (Some(to), travel_ms),
+                        Reach::Unreachable => return None,
+                    };
+                let placed = place(model, r, step, request, ready + travel_ms, now, &own);
+                Some(ForecastStep {
+                    to,
+                    travel_ms,
+                    ..placed
+                })
+            })
+            .min_by(|a, b| (a.end, &a.resource).cmp(&(b.end, &b.resource)));
         let Some(placed) = placed else {
-            return Forecast {
+            return (index > 0).then_some(Forecast {
                 route,
                 complete: false,
-            };
+            });
         };
         ready = placed.end;
+        if let Some(to) = placed.to.clone() {
+            at = Some(travel::departure(layout, placed.resource.name(), to));
+        }
         own.push(Intention {
             order: request.order.clone(),
             service_type: step.service_type.clone(),
@@ -160,10 +194,10 @@ fn forecast(
         });
         route.push(placed);
     }
-    Forecast {
+    Some(Forecast {
         route,
         complete: true,
-    }
+    })
 }
 
 /// The earliest a step can run on `resource`: after `ready`, once the resource is free
@@ -218,6 +252,8 @@ fn place(
         start,
         end: start + job.ms,
         changeover: job.changeover,
+        to: None,
+        travel_ms: 0,
     }
 }
 
@@ -241,6 +277,7 @@ mod tests {
                 })
                 .collect(),
             avoid: vec![],
+            at: None,
         }
     }
 
@@ -275,7 +312,7 @@ mod tests {
     fn the_resource_that_finishes_the_route_first_is_advised() {
         let model = cell();
         let ask = request("o-1", &[("pick_n_place", None), ("inspect", None)]);
-        let (advice, intentions) = advise(&model, &staff(), &ask, 10_000, 5000);
+        let (advice, intentions) = advise(&model, None, &staff(), &ask, 10_000, 5000);
         assert_eq!(advised(&advice), "fast", "{advice:?}");
         assert_eq!(advice.forecast_done, Some(10_000 + 200 + 500));
         assert_eq!(advice.route.len(), 2);
@@ -295,7 +332,7 @@ mod tests {
         let mut chosen = Vec::new();
         for n in 0..5 {
             let ask = request(&format!("o-{n}"), &[("pick_n_place", None)]);
-            let (advice, intentions) = advise(&model, &staff(), &ask, 10_000, 5000);
+            let (advice, intentions) = advise(&model, None, &staff(), &ask, 10_000, 5000);
             chosen.push(advised(&advice).to_string());
             model.intend(&ask.order, intentions, 10_000);
         }
@@ -328,11 +365,11 @@ mod tests {
             }
         }
         let ask = request("o-1", &[("pick_n_place", Some("y"))]);
-        let (advice, _) = advise(&model, &staff(), &ask, 10_000, 5000);
+        let (advice, _) = advise(&model, None, &staff(), &ask, 10_000, 5000);
         assert_eq!(advised(&advice), "b", "{advice:?}");
         assert!(!advice.route[0].changeover);
         let ask = request("o-2", &[("pick_n_place", Some("x"))]);
-        let (advice, _) = advise(&model, &staff(), &ask, 10_000, 5000);
+        let (advice, _) = advise(&model, None, &staff(), &ask, 10_000, 5000);
         assert_eq!(advised(&advice), "a", "{advice:?}");
     }
 
@@ -345,12 +382,12 @@ mod tests {
             .collect();
         model.observe(busy);
         let ordinary = request("o-8", &[("pick_n_place", None)]);
-        let (advice, _) = advise(&model, &staff(), &ordinary, 10_000, 5000);
+        let (advice, _) = advise(&model, None, &staff(), &ordinary, 10_000, 5000);
         assert_eq!(advised(&advice), "slow", "behind five jobs, fast is later");
         let mut rush = request("o-9", &[("pick_n_place", None)]);
         rush.priority = 100;
         rush.due = Some(10_150);
-        let (advice, _) = advise(&model, &staff(), &rush, 10_000, 5000);
+        let (advice, _) = advise(&model, None, &staff(), &rush, 10_000, 5000);
         assert_eq!(advised(&advice), "fast", "{advice:?}");
         assert_eq!(advice.forecast_done, Some(10_300));
         assert_eq!(advice.late_by_ms, Some(150));
@@ -360,17 +397,97 @@ mod tests {
     fn no_advice_without_a_resource_that_could_take_the_step() {
         let model = cell();
         let ask = request("o-1", &[("weld", None)]);
-        let (advice, intentions) = advise(&model, &staff(), &ask, 0, 5000);
+        let (advice, intentions) = advise(&model, None, &staff(), &ask, 0, 5000);
         assert_eq!(advice.resource, None);
         assert!(advice.why.contains("weld"), "{}", advice.why);
         assert!(intentions.is_empty());
         let mut ask = request("o-1", &[("pick_n_place", None)]);
         ask.avoid = vec![HolonId::resource("fast").unwrap()];
-        let (advice, _) = advise(&model, &staff(), &ask, 0, 5000);
+        let (advice, _) = advise(&model, None, &staff(), &ask, 0, 5000);
         assert_eq!(
             advised(&advice),
             "slow",
             "an avoided resource is never advised"
+        );
+    }
+
+    /// conveyor1: a 4 m loop at 1 m/s, its load point at 0; `slow`'s port at 1 m,
+    /// `fast`'s at 3 m, `inspect1`'s at 2 m.
+    fn layout() -> CellLayout {
+        let part = |holon: &str, text: &str| {
+            schemas::layout::part_from_toml(holon, text).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let station = |holon: &str, dock: &str| {
+            part(
+                holon,
+                &format!(
+                    "[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ndock = \"{dock}\"\n"
+                ),
+            )
+        };
+        CellLayout::assemble([
+            part(
+                "conveyor1",
+                "[[layout.locations]]\nname = \"load\"\nrole = \"entry_exit\"\ndock = \"conveyor1.load\"\n[layout.conveyor]\nlength_mm = 4000\nspeed_mm_s = 1000\npallets = 2\nstoppers = [{ name = \"load\", at_mm = 0 }, { name = \"s1\", at_mm = 1000 }, { name = \"s2\", at_mm = 2000 }, { name = \"s3\", at_mm = 3000 }]\n",
+            ),
+            station("slow", "conveyor1.s1"),
+            station("inspect1", "conveyor1.s2"),
+            station("fast", "conveyor1.s3"),
+        ])
+    }
+
+    #[test]
+    fn the_travel_to_each_station_counts_and_the_advice_names_the_move() {
+        let model = cell();
+        let layout = layout();
+        assert!(layout.problems.is_empty(), "{:?}", layout.problems);
+        let mut ask = request("o-1", &[("pick_n_place", None), ("inspect", None)]);
+        ask.at = Some(schemas::layout::LocationId::new("conveyor1", "load").unwrap());
+        let (advice, _) = advise(&model, Some(&layout), &staff(), &ask, 10_000, 5000);
+        // fast works in 200 ms but is 3 s away; slow in 800 ms, 1 s away.
+        assert_eq!(advised(&advice), "slow", "{advice:?}");
+        let first = &advice.route[0];
+        assert_eq!(first.to.as_ref().map(|l| l.as_str()), Some("slow.port"));
+        assert!(first.travel_ms >= 1000, "{first:?}");
+        assert_eq!(first.start, 10_000 + first.travel_ms);
+        // Then on to inspect1, 1 m further on.
+        let second = &advice.route[1];
+        assert_eq!(
+            second.to.as_ref().map(|l| l.as_str()),
+            Some("inspect1.port")
+        );
+        assert!(second.travel_ms >= 1000, "{second:?}");
+        assert_eq!(second.start, first.end + second.travel_ms);
+        assert!(advice.why.contains("travel"), "{}", advice.why);
+        // Without the part's place, as before: the fastest worker.
+        ask.at = None;
+        let (advice, _) = advise(&model, Some(&layout), &staff(), &ask, 10_000, 5000);
+        assert_eq!(advised(&advice), "fast");
+        assert_eq!(advice.route[0].travel_ms, 0);
+    }
+
+    #[test]
+    fn a_station_the_part_cannot_get_to_is_not_advised() {
+        let model = cell();
+        let layout = layout();
+        let mut ask = request("o-1", &[("pick_n_place", None)]);
+        // A place no transporter serves: neither station can be reached.
+        ask.at = Some(schemas::layout::LocationId::new("nowhere", "shelf").unwrap());
+        let (advice, _) = advise(&model, Some(&layout), &staff(), &ask, 10_000, 5000);
+        // Unknown to the layout: the staff cannot tell, and counts no travel.
+        assert_eq!(advised(&advice), "fast");
+        // At a station's port with no route onward (an exit-only place): unreachable.
+        let mut cut = layout.clone();
+        cut.parts.remove("conveyor1");
+        ask.at = Some(schemas::layout::LocationId::new("inspect1", "port").unwrap());
+        let (advice, _) = advise(&model, Some(&cut), &staff(), &ask, 10_000, 5000);
+        assert_eq!(advice.resource, None, "{advice:?}");
+        assert!(
+            advice
+                .why
+                .contains("where the part can get from inspect1.port"),
+            "{}",
+            advice.why
         );
     }
 }

@@ -112,7 +112,7 @@ impl OrderTask<'_> {
                     _ = operator_cancel.cancelled() => continue,
                 }
             }
-            let ranked = self.station_round(step, conversation_id).await;
+            let ranked = self.station_round(step, conversation_id, &layout).await;
             if let Some(here) = &at_port {
                 let station = HolonId::resource(here.holon()).ok();
                 if station.as_ref().is_some_and(|s| ranked.contains(s)) {
@@ -205,7 +205,12 @@ impl OrderTask<'_> {
     /// A proposal round for `step` among the stations, with the staff's advice asked
     /// together: those that proposed, best first (the advised one first, if it
     /// proposed; it is then counted as advised once its step is booked).
-    async fn station_round(&mut self, step: &PlanStep, conversation_id: &str) -> Vec<HolonId> {
+    async fn station_round(
+        &mut self,
+        step: &PlanStep,
+        conversation_id: &str,
+        layout: &CellLayout,
+    ) -> Vec<HolonId> {
         let ctx = self.ctx.clone();
         let avoid = self.progress.get().avoid.clone();
         let ask = self.request(MessageType::ProposalReq, step, conversation_id);
@@ -213,9 +218,23 @@ impl OrderTask<'_> {
             let p = self.progress.get();
             (p.route_ahead(), (p.priority, p.due))
         };
+        // Where the part is, so that the staff counts its travel (outside: from the
+        // cell's entry, where it will enter).
+        let at = match self.part().place {
+            PartPlace::Outside => entry_of(layout),
+            place => place.location().cloned(),
+        };
         let _turn = ctx.rounds.acquire().await.expect("never closed");
         let (advised, offers) = tokio::join!(
-            requests::advice(&ctx, &self.holon, conversation_id, route, urgency, &avoid),
+            requests::advice(
+                &ctx,
+                &self.holon,
+                conversation_id,
+                route,
+                urgency,
+                &avoid,
+                at
+            ),
             requests::offers(&ctx, &ask, &avoid)
         );
         let advised = match advised {
