@@ -33,6 +33,7 @@ pub mod node;
 pub mod order;
 pub mod part;
 pub mod part_word;
+pub mod phase;
 pub mod presence;
 pub mod progress;
 pub mod queries;

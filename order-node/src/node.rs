@@ -22,6 +22,7 @@ use crate::journal::OrderJournal;
 use crate::presence::Presence;
 use crate::queries::{answer, Endpoints, NodeQuery, QUERY_QUEUE};
 use crate::recovery::recover;
+pub use crate::standby::Grant;
 
 pub use crate::error::OrderNodeError;
 pub use crate::recovery::Recovered;
@@ -113,10 +114,6 @@ pub async fn run(
     }
     ended
 }
-
-/// The orders' journal and what it holds, from the leadership (etcd's), or `None`:
-/// the node opens its own.
-pub type Grant = Option<(Arc<OrderJournal>, Recovered)>;
 
 /// The order-node's own part of its life: it hosts orders.
 pub struct OrderNode<'a> {

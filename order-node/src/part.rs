@@ -19,7 +19,7 @@ use std::collections::BTreeMap;
 use schemas::layout::LocationId;
 use schemas::{HolonId, OrderStatus, PartFound, PartPlace};
 
-use crate::progress::Phase;
+use crate::phase::Phase;
 
 /// The service a move is booked as: what transporters offer by convention.
 pub const TRANSPORT_SERVICE: &str = "transport";

@@ -11,31 +11,7 @@ use serde_json::{Map, Value};
 
 use crate::part::PartProgress;
 
-/// Where the current attempt stands with its resource. Recorded in the journal before
-/// each request that depends on it, so a restarted order-node resumes the conversation
-/// instead of starting it again (booking and start are idempotent per conversation).
-#[derive(Debug, Clone, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Phase {
-    /// Looking for a resource.
-    #[default]
-    Proposing,
-    /// A booking request to this resource may have been sent.
-    Booking(HolonId),
-    /// Booked on this resource, not started.
-    Booked(HolonId),
-    /// Started on this resource: waiting for its result.
-    Started(HolonId),
-}
-
-impl Phase {
-    pub fn resource(&self) -> Option<&HolonId> {
-        match self {
-            Phase::Proposing => None,
-            Phase::Booking(r) | Phase::Booked(r) | Phase::Started(r) => Some(r),
-        }
-    }
-}
+pub use crate::phase::Phase;
 
 /// How a step attempt ended.
 #[derive(Debug, Clone, PartialEq)]

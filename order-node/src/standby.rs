@@ -29,8 +29,11 @@ use crate::config::{EtcdSettings, OrderNodeConfig};
 use crate::error::OrderNodeError;
 use crate::fence_report::Reporter;
 use crate::journal::{OrderJournal, Replicated};
-use crate::node::{Grant, OrderNode};
 use crate::recovery::{recover, Recovered, Recovery};
+
+/// The orders' journal and what it holds, from the leadership (etcd's), or `None`:
+/// the node opens its own.
+pub type Grant = Option<(Arc<OrderJournal>, Recovered)>;
 
 /// How long a deposed node asks etcd who deposed it, at most, for its exit message.
 const ASK_HOLDER_WITHIN: Duration = Duration::from_secs(2);
@@ -90,7 +93,10 @@ impl<'a> EtcdLeader<'a> {
     }
 }
 
-impl<'a> Leadership<OrderNode<'a>> for EtcdLeader<'a> {
+impl<B> Leadership<B> for EtcdLeader<'_>
+where
+    B: holon::life::Behaviour<Grant = Grant, Error = OrderNodeError>,
+{
     /// Stands by until it wins the key; its orders, read from etcd, are the grant.
     async fn win(
         &mut self,
