@@ -54,7 +54,8 @@ const ASK_TIMEOUT: Duration = Duration::from_secs(2);
 /// [`ASK_EVERY`], and writes the assembled layout to `layout` when it changed. `own`,
 /// a resource's own part, is in the layout whether or not it answered yet. An ask that
 /// fails is logged and made again at the next occasion; the error is only the
-/// subscription to the resources' tokens.
+/// subscription to the resources' tokens, which cannot be declared. It ends too when the
+/// session closes.
 pub async fn follow(
     session: &zenoh::Session,
     keys: &CellKeys,
@@ -62,9 +63,13 @@ pub async fn follow(
     layout: &tokio::sync::watch::Sender<Option<std::sync::Arc<schemas::layout::CellLayout>>>,
     token: &tokio_util::sync::CancellationToken,
 ) -> Result<(), zenoh::Error> {
+    // With the tokens already there (history): zenoh 1.10.2's client routing knows a
+    // token only once declared to it, and logs `Unknown token` at ERROR for each
+    // departure of one that was not (docs/operations.md, "zenoh's own log lines").
     let resources = session
         .liveliness()
         .declare_subscriber(keys.alive_kind(schemas::HolonKind::Resource))
+        .history(true)
         .await?;
     let mut every = tokio::time::interval(ASK_EVERY);
     every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -73,7 +78,12 @@ pub async fn follow(
             _ = token.cancelled() => return Ok(()),
             _ = every.tick() => {}
             change = resources.recv_async() => {
-                change.map_err(|_| "the resources' liveliness subscription closed")?;
+                if change.is_err() {
+                    // Only a closing session ends the subscription (it is not undeclared
+                    // while following): nothing left to follow.
+                    tracing::debug!("the resources' liveliness subscription closed: the layout is no longer followed");
+                    return Ok(());
+                }
                 // Those of the same moment make one ask.
                 while let Ok(Some(_)) = resources.try_recv() {}
             }
