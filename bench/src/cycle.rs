@@ -156,7 +156,8 @@ async fn cycle_on(run: &mut Run, robot: &str, durability: &str, ways: &[Starting
             cycle.json(),
         );
         run.table.add(
-            &format!("  where it goes: {parts}"),
+            // The row names its durability: it is the JSON key too, one per way.
+            &format!("  where it goes, {durability}: {parts}"),
             split,
             "the last: 2 controller steps + result delivery".into(),
             json!({"book": book.json(), "start": start.json(), "until_done": until_done.json()}),
