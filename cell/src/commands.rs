@@ -25,7 +25,8 @@ pub struct Args {
 #[derive(Debug, Subcommand)]
 pub enum Commands {
     /// Run a complete demo cell on this machine: an embedded zenoh router, two robots,
-    /// an inspection station and a conveyor (each with its controller simulator), the
+    /// an inspection station, a conveyor and a transfer robot (each with its controller
+    /// in one plant simulator), the
     /// breaker product and an order-node, all as real processes; submit the orders, show
     /// their progress, hot-add a third robot midway, print a summary and stop
     /// everything. Exits 0 only if every order completed (done, or scrapped by its plan).

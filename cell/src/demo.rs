@@ -2,9 +2,10 @@
 //!
 //! In its own process it runs the cell's zenoh router; it starts, as real processes, the
 //! plant simulator (every controller of the cell over one physical state: where each
-//! part and pallet is), two robots, an inspection station, a conveyor (resource holons,
-//! each over its own controller connection), the breaker (a product holon whose parts
-//! ride the conveyor's pallets from station to station), with `--staff` a staff holon
+//! part and pallet is), two robots, an inspection station, a conveyor and a transfer
+//! robot between robot2 and the inspection station (resource holons, each over its own
+//! controller connection), the breaker (a product holon whose parts ride the conveyor's
+//! pallets from station to station, or the transfer robot between its two), with `--staff` a staff holon
 //! that advises the orders, and an order-node. It submits the work orders, shows every
 //! order's progress and where its part goes, hot-adds a third robot once half of the
 //! orders are finished, prints a summary, stops everything it started (in reverse
@@ -30,6 +31,7 @@ const ROBOT: &str = include_str!("../../deploy/cells/demo/robot1.toml");
 const ROBOT2: &str = include_str!("../../deploy/cells/demo/robot2.toml");
 const INSPECTION: &str = include_str!("../../deploy/cells/demo/inspect1.toml");
 const CONVEYOR: &str = include_str!("../../deploy/cells/demo/conveyor1.toml");
+const TRANSFER: &str = include_str!("../../deploy/cells/demo/transfer1.toml");
 const PRODUCT: &str = include_str!("../../deploy/cells/demo/breaker.toml");
 const ORDERS: &str = include_str!("../../deploy/cells/demo/orders1.toml");
 const PLANNER: &str = include_str!("../../deploy/cells/demo/planner.toml");
@@ -78,6 +80,7 @@ fn secure_manifest(cell: &str, endpoint: &str, opcua: bool) -> String {
         "resource.robot2",
         "resource.inspect1",
         "resource.conveyor1",
+        "resource.transfer1",
         "product.breaker",
         "order-node.orders1",
     ] {
@@ -488,7 +491,7 @@ fn plant_file(options: &DemoOptions) -> String {
     let robot = options.action_delay.as_millis();
     let short = (options.action_delay / 3).as_millis();
     let mut text = String::from(
-        "layout = [\"robot1.toml\", \"robot2.toml\", \"robot3.toml\", \"inspect1.toml\", \"conveyor1.toml\"]\n",
+        "layout = [\"robot1.toml\", \"robot2.toml\", \"robot3.toml\", \"inspect1.toml\", \"conveyor1.toml\", \"transfer1.toml\"]\n",
     );
     for (resource, delay) in [
         ("robot1", robot),
@@ -496,6 +499,7 @@ fn plant_file(options: &DemoOptions) -> String {
         ("robot3", robot),
         ("inspect1", short),
         ("conveyor1", short),
+        ("transfer1", short),
     ] {
         text.push_str(&format!(
             "[[controller]]\nresource = \"{resource}\"\nlisten = \"127.0.0.1:0\"\ndelay_ms = {delay}\n"
@@ -527,6 +531,7 @@ async fn start_holons(cell: &mut Cell, options: &DemoOptions) -> Result<()> {
         ("robot2", ROBOT2),
         ("inspect1", INSPECTION),
         ("conveyor1", CONVEYOR),
+        ("transfer1", TRANSFER),
         ("robot3", robot3.as_str()),
     ];
     // The plant reads the configs' [layout] before any holon starts.
