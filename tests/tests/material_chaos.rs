@@ -1,6 +1,6 @@
 //! Chaos with material flow (docs/material-flow.md): 200 orders of the demo's breaker
 //! ride pallets through the demo's layout on the plant simulator, while a driver kills
-//! holon processes with SIGKILL (the stations, the conveyor while a part is on it, the
+//! holon processes with SIGKILL (the stations, a transporter while a part is on it, the
 //! order-node) and starts them again on their journals, and cuts the links of the
 //! plant's controllers. An operator's duty is played too: a part the control has lost is
 //! looked up in the plant and its place said (`cell part`).
@@ -38,7 +38,7 @@ const RUN_LIMIT: Duration = Duration::from_secs(1500);
 /// The demo's plant, on free ports; the conveyor's controller fenced, so that a
 /// conveyor restarted mid-move learns what became of it.
 const PLANT: &str = r#"
-layout = ["conveyor1.toml", "robot1.toml", "robot2.toml", "inspect1.toml"]
+layout = ["conveyor1.toml", "robot1.toml", "robot2.toml", "inspect1.toml", "transfer1.toml"]
 
 [[controller]]
 resource = "robot1"
@@ -60,6 +60,11 @@ inspect_fail_every = 7
 resource = "conveyor1"
 listen = "127.0.0.1:0"
 fenced_lease_ms = 1000
+
+[[controller]]
+resource = "transfer1"
+listen = "127.0.0.1:0"
+fenced_lease_ms = 1000
 "#;
 
 /// The cell on its plant, and what the driver did to it.
@@ -68,7 +73,8 @@ struct Run {
     plant: PlantProcess,
     victims: BTreeMap<String, Victim>,
     kills: usize,
-    /// Kills of the conveyor while the plant had a part on it.
+    /// Kills of a transporter (the conveyor, the transfer robot) while the plant had a
+    /// part on it.
     mid_move: usize,
     cuts: usize,
     /// Operators' words said on lost parts.
@@ -91,7 +97,13 @@ impl Run {
                 "address = \"127.0.0.1:7621\"\nfenced = true",
             )
         });
-        let mut configs = vec![("conveyor1", conveyor)];
+        let transfer = demo_copy(dir, "transfer1.toml", |t| {
+            t.replace(
+                "address = \"127.0.0.1:7622\"",
+                "address = \"127.0.0.1:7622\"\nfenced = true",
+            )
+        });
+        let mut configs = vec![("conveyor1", conveyor), ("transfer1", transfer)];
         for name in ["robot1", "robot2", "inspect1"] {
             configs.push((name, demo_copy(dir, &format!("{name}.toml"), |t| t)));
         }
@@ -139,7 +151,7 @@ impl Run {
             cell.wait_token(&victim.ready_key).await.unwrap();
             started.insert(name, victim);
         }
-        for resource in ["conveyor1", "robot1", "robot2", "inspect1"] {
+        for resource in ["conveyor1", "transfer1", "robot1", "robot2", "inspect1"] {
             cell.wait_serving(resource).await.unwrap();
         }
         Run {
@@ -169,21 +181,27 @@ impl Run {
     /// one).
     async fn kill_mid_move(&mut self, cell: &Cell, pause: Duration, started: Instant) {
         let deadline = Instant::now() + Duration::from_secs(20);
+        let mut victim = "conveyor1";
         while Instant::now() < deadline {
-            let moving = self.plant.state()["in_transit"]
-                .as_array()
-                .is_some_and(|moves| {
-                    moves
-                        .iter()
-                        .any(|m| m["transporter"] == "conveyor1" && m["stopped"] != true)
-                });
-            if moving {
+            let truth = self.plant.state();
+            let moving = truth["in_transit"].as_array().and_then(|moves| {
+                moves
+                    .iter()
+                    .filter(|m| m["stopped"] != true)
+                    .find_map(|m| m["transporter"].as_str().map(str::to_string))
+            });
+            if let Some(transporter) = moving {
+                victim = if transporter == "transfer1" {
+                    "transfer1"
+                } else {
+                    "conveyor1"
+                };
                 self.mid_move += 1;
                 break;
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
-        self.kill(cell, "conveyor1", pause, started).await;
+        self.kill(cell, victim, pause, started).await;
     }
 
     /// The operator's duty: each lost part is looked up in the plant and, once it is at
@@ -308,7 +326,8 @@ async fn parts_and_orders_survive_kills_mid_move() {
         round += 1;
         match round % 6 {
             0 => {
-                let resource = ["conveyor1", "robot1", "robot2", "inspect1"][rng.below(4) as usize];
+                let resource = ["conveyor1", "transfer1", "robot1", "robot2", "inspect1"]
+                    [rng.below(5) as usize];
                 assert_eq!(run.plant.command(&format!("cut {resource}")), "ok");
                 run.cuts += 1;
                 println!(
@@ -319,7 +338,8 @@ async fn parts_and_orders_survive_kills_mid_move() {
             1 | 4 => run.kill_mid_move(&cell, pause, started).await,
             3 => run.kill(&cell, "orders1", pause, started).await,
             _ => {
-                let victim = ["robot1", "robot2", "inspect1", "breaker"][rng.below(4) as usize];
+                let victim =
+                    ["robot1", "robot2", "inspect1", "transfer1", "breaker"][rng.below(5) as usize];
                 run.kill(&cell, victim, pause, started).await
             }
         }
@@ -352,7 +372,7 @@ async fn parts_and_orders_survive_kills_mid_move() {
         .map(|v| format!("{}={}", v.name, v.kills))
         .collect();
     println!(
-        "material chaos figures: orders {count}, done {}, scrapped {}, failed {}, kills {} ({}), of them the conveyor mid-move {}, cuts {}, operators' words {}, rebooks {rebooks}, parts shipped {}, took {:.1}s",
+        "material chaos figures: orders {count}, done {}, scrapped {}, failed {}, kills {} ({}), of them a transporter mid-move {}, cuts {}, operators' words {}, rebooks {rebooks}, parts shipped {}, took {:.1}s",
         count_of(OrderStatus::Done),
         count_of(OrderStatus::Scrapped),
         count_of(OrderStatus::Failed),
