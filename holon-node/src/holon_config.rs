@@ -66,6 +66,7 @@ mod tests {
             "robot1.toml",
             "inspect1.toml",
             "conveyor1.toml",
+            "transfer1.toml",
             "breaker.toml",
         ] {
             let path = Path::new(dir).join(file);

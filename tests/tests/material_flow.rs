@@ -595,50 +595,26 @@ async fn a_lost_part_waits_for_an_operators_word_and_goes_on_from_there() {
     );
 }
 
-/// A slow loop (0.5 m/s): the buffer at 0.25 m, `station_near`'s stopper 0.5 m further
-/// on, `station_far`'s 1.5 m.
-const SLOW_LOOP: &str = r#"
-cell = "unset"
-name = "conveyor1"
-
-[controller]
-address = "127.0.0.1:1"
-reconnect_interval_ms = 100
-reconnect_max_ms = 1000
-command_timeout_ms = 10000
-connect_timeout_ms = 500
-
-[agenda]
-capacity = 32
-
-[services.transport]
-nominal_duration_ms = 500
-steps = [{ action = "move", until = ["arrived"] }]
-
-[[layout.locations]]
-name = "load"
-role = "entry_exit"
-capacity = 1
-dock = "conveyor1.load"
-
-[[layout.locations]]
-name = "buffer"
-role = "buffer"
-capacity = 2
-dock = "conveyor1.b"
-
-[layout.conveyor]
-length_mm = 2000
-speed_mm_s = 500
-pallets = 3
-dock_ms = 50
-stoppers = [
-  { name = "load", at_mm = 0 },
-  { name = "b", at_mm = 250 },
-  { name = "sa", at_mm = 750 },
-  { name = "sb", at_mm = 1750 },
-]
-"#;
+/// A slow loop: the buffer at 0.25 m, `station_near`'s stopper 0.5 m further on,
+/// `station_far`'s 1.5 m, at 0.5 m/s (CONVEYOR's loop otherwise).
+fn slow_loop() -> String {
+    let text = CONVEYOR
+        .replace("speed_mm_s = 4000", "speed_mm_s = 500")
+        .replace(
+            "{ name = \"b\", at_mm = 500 }",
+            "{ name = \"b\", at_mm = 250 }",
+        )
+        .replace(
+            "{ name = \"sa\", at_mm = 1000 }",
+            "{ name = \"sa\", at_mm = 750 }",
+        )
+        .replace(
+            "{ name = \"sb\", at_mm = 1500 }",
+            "{ name = \"sb\", at_mm = 1750 }",
+        );
+    assert!(text.contains("at_mm = 1750") && text.contains("speed_mm_s = 500"));
+    text
+}
 
 const NEAR_AND_FAR: &str = r#"
 layout = ["conveyor1.toml", "station_near.toml", "station_far.toml"]
@@ -679,7 +655,7 @@ async fn the_staff_counts_the_travel_and_sends_the_part_to_the_near_station() {
     ];
     let flow = FlowCell::start_with(
         "t-flow-travel",
-        SLOW_LOOP,
+        &slow_loop(),
         NEAR_AND_FAR,
         &stations,
         &[("dd", "drill", "drill")],

@@ -205,6 +205,7 @@ mod tests {
             "robot2.toml",
             "inspect1.toml",
             "conveyor1.toml",
+            "transfer1.toml",
             "breaker.toml",
             "planner.toml",
             "orders1.toml",

@@ -269,6 +269,13 @@ mod tests {
         })
     }
 
+    /// Part `n` alone in line looks, finds no place, and waits again.
+    fn looked_and_waits(lines: &mut Lines, n: u32, at: Instant) {
+        assert_eq!(wait(lines, n, at, false), vec![Action::Turn(order(n))]);
+        assert_eq!(tried(lines, n, false), vec![]);
+        assert_eq!(wait(lines, n, at, false), vec![]);
+    }
+
     #[test]
     fn a_part_alone_has_its_turn_at_once_and_again_only_after_a_room() {
         let t0 = Instant::now();
@@ -312,9 +319,7 @@ mod tests {
     fn a_room_during_a_sweep_sweeps_again_from_the_oldest() {
         let t0 = Instant::now();
         let mut lines = Lines::default();
-        wait(&mut lines, 1, t0, false);
-        tried(&mut lines, 1, false);
-        wait(&mut lines, 1, t0, false);
+        looked_and_waits(&mut lines, 1, t0);
         wait(&mut lines, 2, t0 + Duration::from_secs(1), false);
         assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
         assert_eq!(lines.handle(Event::Room), vec![]);
@@ -328,9 +333,7 @@ mod tests {
     fn a_holder_that_leaves_passes_the_turn_on() {
         let t0 = Instant::now();
         let mut lines = Lines::default();
-        wait(&mut lines, 1, t0, false);
-        tried(&mut lines, 1, false);
-        wait(&mut lines, 1, t0, false);
+        looked_and_waits(&mut lines, 1, t0);
         wait(&mut lines, 2, t0 + Duration::from_secs(1), false);
         lines.handle(Event::Room);
         assert_eq!(
@@ -360,9 +363,7 @@ mod tests {
     fn a_newcomer_waits_behind_older_parts_even_when_the_line_is_idle() {
         let t0 = Instant::now();
         let mut lines = Lines::default();
-        wait(&mut lines, 1, t0, false);
-        tried(&mut lines, 1, false);
-        wait(&mut lines, 1, t0, false);
+        looked_and_waits(&mut lines, 1, t0);
         assert_eq!(
             wait(&mut lines, 2, t0 + Duration::from_secs(1), false),
             vec![]
