@@ -368,11 +368,12 @@ lease_ttl_ms = 2000
         let router = self.router("c");
         all.extend(["--cell", CELL, "--connect", &router]);
         let asked = Instant::now();
-        let out = loop {
+        let (out, said) = loop {
             let run = self.lab.run("c", &bin("cell"), &all);
             let errors = String::from_utf8_lossy(&run.stderr).into_owned();
             if run.status.success() || !errors.contains("no product holon") {
-                break String::from_utf8_lossy(&run.stdout).into_owned();
+                let said = format!("{} (stderr: {errors})", run.status);
+                break (String::from_utf8_lossy(&run.stdout).into_owned(), said);
             }
             assert!(
                 asked.elapsed() < Duration::from_secs(60),
@@ -395,7 +396,7 @@ lease_ttl_ms = 2000
         assert_eq!(
             names.len(),
             n,
-            "submit acknowledged {} of {n}: {out}",
+            "submit acknowledged {} of {n}: {out}; cell submit ended {said}",
             names.len()
         );
         self.submitted.extend(names);
