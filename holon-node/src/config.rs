@@ -165,6 +165,15 @@ pub struct ControllerSection {
     /// "Standby resources"); `--standby` sets it too. The dialect must fence.
     #[serde(default)]
     pub fenced: bool,
+    /// How many jobs the controller runs at once: 1 (a robot), or a transporter's moves
+    /// at once (a conveyor moving several pallets). More than 1 needs a dialect whose
+    /// replies carry the command's id (`correlation = "id"`).
+    #[serde(default = "default_jobs_at_once")]
+    pub jobs_at_once: usize,
+}
+
+fn default_jobs_at_once() -> usize {
+    1
 }
 
 fn default_dialect() -> String {
@@ -343,6 +352,8 @@ pub struct ResourceConfig {
     /// Claim the controller before serving, wait as a standby while another session
     /// holds it, step down when deposed (`[controller] fenced`, `--standby`).
     pub fenced: bool,
+    /// How many jobs its controller runs at once (`[controller] jobs_at_once`).
+    pub jobs_at_once: usize,
     /// Its part of the cell's layout (`[layout]`), answered on `resource/<name>/layout`;
     /// None: it takes no part in the cell's material flow.
     pub layout: Option<schemas::layout::LayoutPart>,
@@ -455,6 +466,7 @@ impl ResourceConfig {
             allow_fault_injection,
             take_over: None,
             fenced: c.fenced,
+            jobs_at_once: c.jobs_at_once,
             layout,
         })
     }
@@ -582,6 +594,15 @@ fn dialect(c: &ControllerSection) -> Result<Arc<robot_bridge::dialect::Dialect>,
             dialect.name
         ));
     }
+    if c.jobs_at_once == 0 {
+        return Err("controller.jobs_at_once must be at least 1".into());
+    }
+    if c.jobs_at_once > 1 && dialect.correlation != robot_bridge::dialect::Correlation::Id {
+        return Err(format!(
+            "controller.jobs_at_once = {}: the dialect {} has one request in flight at a time (its replies carry no id), so its controller runs one job at a time",
+            c.jobs_at_once, dialect.name
+        ));
+    }
     Ok(dialect)
 }
 
@@ -651,6 +672,16 @@ mod tests {
                 "strategy",
             ),
             ("capacity = 64", "capacity = 0", "agenda.capacity"),
+            (
+                "address = \"127.0.0.1:7601\"",
+                "address = \"127.0.0.1:7601\"\njobs_at_once = 0",
+                "controller.jobs_at_once must be at least 1",
+            ),
+            (
+                "dialect = \"holarchy-xml\"",
+                "dialect = \"kuka-eki\"\njobs_at_once = 2",
+                "controller.jobs_at_once = 2: the dialect kuka-eki has one request in flight",
+            ),
             (
                 "command_timeout_ms = 30000",
                 "command_timeout_ms = 0",

@@ -25,7 +25,7 @@ use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
 use crate::machine::absences::{Absences, Moment};
 use crate::machine::agenda::{AgendaEvent, Inheritance};
-use crate::machine::execution::ExecutionMachine;
+use crate::machine::execution::lanes::Executions;
 use crate::views::{FenceView, Views};
 
 mod fence_report;
@@ -100,9 +100,11 @@ impl Wiring {
         Ok(Wiring {
             execution: Arc::new(execution::Links {
                 holon: holon.clone(),
-                execution: Handover::new(
-                    ExecutionMachine::new(config.catalog.clone()).fenced(port.is_some()),
-                ),
+                execution: Handover::new(Executions::new(
+                    config.catalog.clone(),
+                    port.is_some(),
+                    config.jobs_at_once,
+                )),
                 jobs: jobs.share(),
                 interfacing: interfacing::Links {
                     controller: config.controller.clone(),

@@ -34,10 +34,20 @@ pub struct AgendaView {
 pub struct ExecutionView {
     /// The controller as the interfacing component last reported it.
     pub controller: ControllerStatus,
-    /// The action of the step in progress, e.g. `pick`.
+    /// The jobs running, in the order of their lanes (one, unless the controller runs
+    /// several jobs at once).
+    pub running: Vec<RunningView>,
+}
+
+/// A job the execution runs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RunningView {
+    /// Its conversation.
+    pub conversation_id: String,
+    /// The action of its step in progress, e.g. `pick`.
     pub step: Option<String>,
-    /// The conversation of the job running and when it began (Unix ms).
-    pub running_since: Option<(String, u64)>,
+    /// When it began (Unix ms): its measured duration is what a staff holon learns from.
+    pub since: u64,
 }
 
 /// Where a resource stands with its controller's fence (docs/reliability.md, "Standby
@@ -86,8 +96,7 @@ impl Views {
             agenda: watch::Sender::new(agenda),
             execution: watch::Sender::new(ExecutionView {
                 controller: ControllerStatus::Disconnected,
-                step: None,
-                running_since: None,
+                running: Vec::new(),
             }),
             absences: watch::Sender::new(absences),
             delivery_retries: watch::Sender::new(0),
@@ -102,13 +111,17 @@ impl Views {
         let mut snapshot = self.agenda.borrow().snapshot.clone();
         let execution = self.execution.borrow();
         snapshot.controller = execution.controller;
-        if let Some(current) = &mut snapshot.current {
-            current.step = execution.step.clone();
-            current.started_at = execution
-                .running_since
-                .as_ref()
-                .filter(|(conversation, _)| *conversation == current.conversation_id)
-                .map(|(_, since)| *since);
+        for job in snapshot
+            .current
+            .iter_mut()
+            .chain(&mut snapshot.more_running)
+        {
+            let running = execution
+                .running
+                .iter()
+                .find(|running| running.conversation_id == job.conversation_id);
+            job.step = running.and_then(|running| running.step.clone());
+            job.started_at = running.map(|running| running.since);
         }
         let absences = self.absences.borrow();
         for booking in &mut snapshot.agenda {
@@ -152,14 +165,18 @@ impl Views {
     /// again (a job's beginning and its step together, its end and its result together).
     pub fn job_in_passage(&self) -> bool {
         let agenda = self.agenda.borrow();
-        let Some(current) = &agenda.snapshot.current else {
-            return false;
-        };
         let execution = self.execution.borrow();
-        execution
-            .running_since
-            .as_ref()
-            .is_none_or(|(running, _)| *running != current.conversation_id)
+        let snapshot = &agenda.snapshot;
+        snapshot
+            .current
+            .iter()
+            .chain(&snapshot.more_running)
+            .any(|job| {
+                !execution
+                    .running
+                    .iter()
+                    .any(|running| running.conversation_id == job.conversation_id)
+            })
     }
 
     /// Whether the resource takes new work (see [`AgendaView::accepting`]).
@@ -199,7 +216,14 @@ mod tests {
         };
         let views = Views::new(agenda, Absences::new(Moment::now()));
         views.execution.send_modify(|view| {
-            view.running_since = running.map(|conversation| (conversation.to_string(), 1));
+            view.running = running
+                .map(|conversation| RunningView {
+                    conversation_id: conversation.to_string(),
+                    step: None,
+                    since: 1,
+                })
+                .into_iter()
+                .collect();
         });
         views
     }

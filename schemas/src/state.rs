@@ -117,6 +117,11 @@ pub struct ResourceSnapshot {
     pub agenda: Vec<BookingView>,
     /// The job being executed, if any, and its step.
     pub current: Option<CurrentJobView>,
+    /// The other jobs being executed at the same time, on a resource whose controller
+    /// runs several at once (a conveyor moving several pallets, `[controller]
+    /// jobs_at_once`), in the order they began; `current` is the first.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub more_running: Vec<CurrentJobView>,
     /// Results (`done` / `failed`) sent but not yet acknowledged.
     pub undelivered: usize,
     /// Service types offered.

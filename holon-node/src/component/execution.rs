@@ -29,16 +29,15 @@ use crate::component::interfacing;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
 use crate::machine::agenda::AgendaEvent;
-use crate::machine::execution::{
-    ExecutionAction, ExecutionEvent, ExecutionMachine, ExecutionRequest,
-};
-use crate::views::{ExecutionView, Views};
+use crate::machine::execution::lanes::Executions;
+use crate::machine::execution::{ExecutionAction, ExecutionEvent, ExecutionRequest};
+use crate::views::{ExecutionView, RunningView, Views};
 
 /// What the execution component is linked to.
 pub struct Links {
     pub holon: HolonId,
-    /// The state machine it owns.
-    pub execution: Handover<ExecutionMachine>,
+    /// The state machines it owns: one per job its controller runs at once.
+    pub execution: Handover<Executions>,
     /// Jobs (and aborts) from the agenda manager.
     pub jobs: Mailbox<ExecutionRequest>,
     /// The controller connection it runs.
@@ -79,10 +78,10 @@ pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), Chil
 /// its actions left to do.
 struct Driver<'a> {
     links: &'a Links,
-    execution: &'a mut ExecutionMachine,
+    execution: &'a mut Executions,
     jobs: &'a mut mpsc::Receiver<ExecutionRequest>,
-    /// Requests for the controller client, oldest first (at most a step's command and
-    /// an abort).
+    /// Requests for the controller client, oldest first (at most a step's command per
+    /// lane and an abort).
     commands: VecDeque<ControllerRequest>,
     /// Events for the agenda manager, oldest first.
     to_agenda: VecDeque<AgendaEvent>,
@@ -128,25 +127,25 @@ impl Driver<'_> {
     fn handle(&mut self, event: ExecutionEvent) {
         let holon = &self.links.holon;
         debug!(%holon, component = "execution", event = ?event, "event");
-        let before = self.execution.state().to_string();
+        let before = self.execution.describe();
         let actions = self.execution.handle(event);
-        let after = self.execution.state().to_string();
+        let after = self.execution.describe();
         if before != after {
             info!(%holon, component = "execution", from = %before, to = %after, "transition");
         }
         self.publish();
-        for action in actions {
-            self.carry_out(action);
+        for (lane, action) in actions {
+            self.carry_out(lane, action);
         }
     }
 
-    /// Queues one action.
-    fn carry_out(&mut self, action: ExecutionAction) {
+    /// Queues one action of lane `lane`.
+    fn carry_out(&mut self, lane: usize, action: ExecutionAction) {
         let holon = &self.links.holon;
         match action {
             ExecutionAction::Command(command) => {
                 info!(%holon, component = "execution", command_id = command.id, action = %command.action, "command to controller");
-                let request = match self.step_id() {
+                let request = match self.step_id(lane) {
                     Ok(Some(step)) => ControllerRequest::Step { command, step },
                     Ok(None) => ControllerRequest::Command(command),
                     Err(failure) => {
@@ -156,7 +155,7 @@ impl Driver<'_> {
                 };
                 self.commands.push_back(request);
             }
-            ExecutionAction::AskStepStatus => match self.step_id() {
+            ExecutionAction::AskStepStatus => match self.step_id(lane) {
                 Ok(Some(step)) => {
                     info!(%holon, component = "execution", step = step.as_str(), "the step's answer was lost: its outcome is asked of the controller");
                     self.commands.push_back(ControllerRequest::StepStatus(step));
@@ -187,13 +186,13 @@ impl Driver<'_> {
         }
     }
 
-    /// The step id of the running job's step in progress, for a fenced resource:
+    /// The step id of lane `lane`'s step in progress, for a fenced resource:
     /// `<conversation>#<index>`.
-    fn step_id(&self) -> Result<Option<StepId>, ChildError> {
+    fn step_id(&self, lane: usize) -> Result<Option<StepId>, ChildError> {
         if !self.links.interfacing.fenced() {
             return Ok(None);
         }
-        let Some((conversation, index)) = self.execution.current_step_index() else {
+        let Some((conversation, index)) = self.execution.lane(lane).current_step_index() else {
             return Ok(None);
         };
         StepId::of(conversation, index)
@@ -220,16 +219,23 @@ impl Driver<'_> {
     /// time is stamped with the time now: its measured duration is what a staff holon
     /// learns from.
     fn publish(&self) {
-        let running = self.execution.current_conversation();
         self.links.views.execution.send_if_modified(|published| {
-            let running_since = running.map(|conversation| match &published.running_since {
-                Some((same, since)) if same == conversation => (same.clone(), *since),
-                _ => (conversation.to_string(), schemas::unix_ms()),
-            });
+            let running = self
+                .execution
+                .running()
+                .map(|job| RunningView {
+                    since: published
+                        .running
+                        .iter()
+                        .find(|seen| seen.conversation_id == job.conversation_id)
+                        .map_or_else(schemas::unix_ms, |seen| seen.since),
+                    conversation_id: job.conversation_id.to_string(),
+                    step: job.step,
+                })
+                .collect();
             let view = ExecutionView {
                 controller: self.execution.controller(),
-                step: self.execution.current_step(),
-                running_since,
+                running,
             };
             let changed = *published != view;
             *published = view;

@@ -152,6 +152,9 @@ pub struct ExecutionMachine {
     /// `{message}`), if anything.
     said: Option<String>,
     next_command_id: u64,
+    /// How far apart its command ids are: 1, or the number of lanes when it is one lane
+    /// of several ([`lanes::Executions`]), each lane's ids its own.
+    command_id_stride: u64,
     /// Whether the controller fences (a standby resource's): a lost answer is asked.
     fenced: bool,
 }
@@ -164,8 +167,22 @@ impl ExecutionMachine {
             controller: ControllerStatus::Disconnected,
             said: None,
             next_command_id: 1,
+            command_id_stride: 1,
             fenced: false,
         }
+    }
+
+    /// The same machine numbering its commands `first`, `first + stride`, ...: one lane
+    /// of several on one controller connection, whose replies are told apart by id.
+    pub fn with_command_ids(mut self, first: u64, stride: u64) -> Self {
+        self.next_command_id = first.max(1);
+        self.command_id_stride = stride.max(1);
+        self
+    }
+
+    /// Whether its running step waits for the answer to command `id`.
+    pub fn waits_for(&self, id: u64) -> bool {
+        self.is_waiting_for(id)
     }
 
     /// The same machine for a fenced controller: a step whose answer was lost is asked
@@ -361,7 +378,7 @@ impl ExecutionMachine {
             return self.fail(Reason::InvalidInfo, "the service has no such step".into());
         };
         *command_id = self.next_command_id;
-        self.next_command_id += 1;
+        self.next_command_id += self.command_id_stride;
         vec![
             ExecutionAction::Command(RobotCommand {
                 id: *command_id,
@@ -605,5 +622,6 @@ impl ExecutionMachine {
     }
 }
 
+pub mod lanes;
 #[cfg(test)]
 mod tests;

@@ -358,6 +358,7 @@ pub(crate) mod tests {
             controller: ControllerStatus::Ready,
             agenda: vec![],
             current: None,
+            more_running: Vec::new(),
             undelivered: 0,
             services: vec!["pick_n_place".into()],
             nominal_ms: [("pick_n_place".to_string(), 1000)].into(),

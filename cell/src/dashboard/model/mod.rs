@@ -717,6 +717,7 @@ mod tests {
                     program: None,
                 })
                 .collect(),
+            more_running: Vec::new(),
             current: (state == ResourceState::Busy).then(|| CurrentJobView {
                 requester: HolonId::order("o-1").unwrap(),
                 conversation_id: "o-1/1/1".into(),

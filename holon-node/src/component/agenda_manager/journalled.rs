@@ -124,6 +124,7 @@ impl JournalledAgenda {
             schemas::unix_ms(),
         )
         .with_max_overtakes(config.agenda_max_overtakes)
+        .with_jobs_at_once(config.jobs_at_once)
         .with_packml(config.packml)
         .with_locations(config.layout.as_ref());
         if let Some(journal) = &journal {

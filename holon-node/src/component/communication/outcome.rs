@@ -81,8 +81,9 @@ pub fn from_agenda(
     let snapshot = &view.snapshot;
     let running = snapshot
         .current
-        .as_ref()
-        .is_some_and(|c| ours(&c.requester, &c.conversation_id));
+        .iter()
+        .chain(&snapshot.more_running)
+        .any(|c| ours(&c.requester, &c.conversation_id));
     let waiting = snapshot
         .agenda
         .iter()

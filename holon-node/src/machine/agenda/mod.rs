@@ -9,6 +9,13 @@
 //! goes back to `init` when the execution component reports the controller unavailable.
 //! A booking (and its job) is identified by its requester and `conversation_id`.
 //!
+//! A controller that runs several jobs at once (`[controller] jobs_at_once`, a conveyor
+//! moving several pallets) runs that many: `busy` then means every one of them runs,
+//! and `free` that another may begin beside those running; "the running job" in the
+//! rows below reads "a running job", each ending on its own, and the last row begins
+//! as many bookings as there is room for. With one (the default) it is the seed's
+//! agenda.
+//!
 //! Every event, with the checks of a request in the order they are made (the first
 //! that applies answers; "the conversation" is the request's requester and
 //! `conversation_id`):
@@ -291,7 +298,11 @@ pub struct AgendaMachine {
     /// How many later bookings of higher priority may go ahead of a waiting one.
     max_overtakes: u32,
     execution_ready: bool,
-    current: Option<Job>,
+    /// The jobs executing, in the order they began (at most `jobs_at_once`).
+    running: Vec<Job>,
+    /// How many jobs its controller runs at once (`[controller] jobs_at_once`): 1, or
+    /// a transporter's moves at once.
+    jobs_at_once: usize,
     bookings: Vec<Booking>,
     /// `done` / `failed` not yet acknowledged, oldest first.
     undelivered: Vec<Service>,
@@ -322,7 +333,8 @@ impl AgendaMachine {
             capacity,
             max_overtakes: DEFAULT_MAX_OVERTAKES,
             execution_ready: false,
-            current: None,
+            running: Vec::new(),
+            jobs_at_once: 1,
             bookings: Vec::new(),
             undelivered: Vec::new(),
             withdrawing: false,
@@ -373,6 +385,12 @@ impl AgendaMachine {
         self.execution_ready && !self.leaving() && self.packml.takes_orders()
     }
 
+    /// The same agenda, running up to `jobs_at_once` jobs at once (at least one).
+    pub fn with_jobs_at_once(mut self, jobs_at_once: usize) -> Self {
+        self.jobs_at_once = jobs_at_once.max(1);
+        self
+    }
+
     /// The same agenda, letting at most `max_overtakes` later bookings of higher
     /// priority go ahead of a waiting one (0: first come, first served).
     pub fn with_max_overtakes(mut self, max_overtakes: u32) -> Self {
@@ -413,17 +431,15 @@ impl AgendaMachine {
             manager.packml = unit.restored();
             manager.packml_restored = true;
         }
-        if let Some(job) = record.current.filter(|job| {
-            if job.operator.is_none() {
-                return true;
+        for job in record.current.into_iter().chain(record.more_running) {
+            if job.operator.is_some() {
+                manager.packml.operator_job_ended(
+                    &job.conversation_id,
+                    "failed interrupted: the resource holon stopped while the job ran".into(),
+                    false,
+                );
+                continue;
             }
-            manager.packml.operator_job_ended(
-                &job.conversation_id,
-                "failed interrupted: the resource holon stopped while the job ran".into(),
-                false,
-            );
-            false
-        }) {
             let message = manager.result_message(
                 job,
                 Outcome::Failed {
@@ -454,23 +470,33 @@ impl AgendaMachine {
 
     /// True once withdrawing and nothing is left to finish or deliver.
     pub fn is_drained(&self) -> bool {
-        self.withdrawing && self.current.is_none() && self.undelivered.is_empty()
+        self.withdrawing && self.running.is_empty() && self.undelivered.is_empty()
+    }
+
+    /// Whether another job may begin beside those running (with one job at once:
+    /// whether none runs).
+    fn has_room(&self) -> bool {
+        self.running.len() < self.jobs_at_once
     }
 
     pub fn status(&self) -> Status {
-        match (&self.current, self.execution_ready) {
-            (Some(job), _) => Status::Busy(job.clone()),
-            (None, true) => Status::Free,
+        match (self.running.first(), self.execution_ready) {
+            (Some(job), _) if !self.has_room() => Status::Busy(job.clone()),
+            (_, true) => Status::Free,
+            (Some(job), false) => Status::Busy(job.clone()),
             (None, false) => Status::Init,
         }
     }
 
-    /// The status as the snapshot shows it.
+    /// The status as the snapshot shows it: `busy` while no other job can begin
+    /// (every job it runs at once runs), `free` while one can, `init` while the
+    /// controller is not ready and nothing runs.
     pub fn state(&self) -> ResourceState {
-        match (&self.current, self.execution_ready) {
-            (Some(_), _) => ResourceState::Busy,
-            (None, true) => ResourceState::Free,
-            (None, false) => ResourceState::Init,
+        match (self.running.is_empty(), self.execution_ready) {
+            (false, _) if !self.has_room() => ResourceState::Busy,
+            (_, true) => ResourceState::Free,
+            (false, false) => ResourceState::Busy,
+            (true, false) => ResourceState::Init,
         }
     }
 
@@ -482,8 +508,14 @@ impl AgendaMachine {
         &self.undelivered
     }
 
+    /// The job executing (the first begun, when several run).
     pub fn current(&self) -> Option<&Job> {
-        self.current.as_ref()
+        self.running.first()
+    }
+
+    /// The jobs executing, in the order they began.
+    pub fn running(&self) -> &[Job] {
+        &self.running
     }
 
     /// The seed's FSM: one event in, at `now` (Unix ms), the actions out. No I/O, no
@@ -508,7 +540,7 @@ impl AgendaMachine {
     fn settle(&mut self, now: u64) -> Vec<AgendaAction> {
         if self
             .packml
-            .settle(self.current.is_some(), self.controller, now)
+            .settle(!self.running.is_empty(), self.controller, now)
         {
             vec![AgendaAction::StateChanged]
         } else {
@@ -516,10 +548,11 @@ impl AgendaMachine {
         }
     }
 
-    /// The last row of the table, as actions.
+    /// The last row of the table, as actions: as many bookings begin as there is room
+    /// for.
     fn turn(&mut self) -> Vec<AgendaAction> {
         let mut actions = Vec::new();
-        if let Some(job) = self.start_on_turn() {
+        while let Some(job) = self.start_on_turn() {
             actions.push(AgendaAction::Execute(job));
             actions.push(AgendaAction::StateChanged);
         }
@@ -600,18 +633,20 @@ impl AgendaMachine {
             parameters,
             operator: None,
         };
-        self.current = Some(job.clone());
+        self.running.push(job.clone());
         job
     }
 
     fn finished(&mut self, conversation_id: &str, outcome: Outcome) -> Vec<AgendaAction> {
-        let Some(job) = self
-            .current
-            .take_if(|job| job.conversation_id == conversation_id)
+        let Some(index) = self
+            .running
+            .iter()
+            .position(|job| job.conversation_id == conversation_id)
         else {
-            // Not the running job (a stale report): nothing changes.
+            // Not a running job (a stale report): nothing changes.
             return vec![];
         };
+        let job = self.running.remove(index);
         if let Outcome::Deposed { detail } = &outcome {
             tracing::info!(holon = %self.holon, conversation_id, %detail, "the job is left to the new holder: no result from here");
             return vec![AgendaAction::StateChanged];

@@ -84,7 +84,7 @@ impl AgendaMachine {
                         actions.extend(self.hand_back(&format!(
                             "the resource was aborted ({by}); book elsewhere"
                         )));
-                        if self.current.is_some() {
+                        if !self.running.is_empty() {
                             actions.push(AgendaAction::Abort);
                         }
                     }
@@ -117,7 +117,11 @@ impl AgendaMachine {
         by: &str,
         now: u64,
     ) -> Vec<AgendaAction> {
-        let why = match (self.execution_ready, self.current.is_some(), self.leaving()) {
+        let why = match (
+            self.execution_ready,
+            !self.running.is_empty(),
+            self.leaving(),
+        ) {
             (_, true, _) => Some(", a job runs"),
             (false, _, _) => Some(", its controller is not ready"),
             (_, _, true) => Some(", it is stopping"),
@@ -167,7 +171,7 @@ impl AgendaMachine {
             parameters: parameters.ok().map(std::sync::Arc::new),
             operator: Some(by.to_string()),
         };
-        self.current = Some(job.clone());
+        self.running.push(job.clone());
         reply.job = Some(conversation_id);
         vec![
             AgendaAction::PackmlReply(reply),

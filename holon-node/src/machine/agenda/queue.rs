@@ -19,7 +19,7 @@ impl AgendaMachine {
 
     /// The answer to a booking at `position` on the agenda.
     pub(super) fn booked_reply(&self, request: &Service, position: usize) -> Service {
-        self.queued_reply(request, position + 1 + self.current.is_some() as usize)
+        self.queued_reply(request, position + 1 + !self.has_room() as usize)
     }
 
     /// An accepted booking: the proposal's figures and the booking's queue position.
@@ -55,20 +55,12 @@ impl AgendaMachine {
     /// duration, or a transporter's move its travel time ([`super::travel`]).
     pub(super) fn proposal_info(&self, request: &Service, priority: i32) -> Map<String, Value> {
         let at = self.insertion_point(priority);
-        let ahead: u64 = self.bookings[..at]
-            .iter()
-            .map(|b| self.duration_ms(&b.service_type, &b.info))
-            .chain(
-                self.current
-                    .iter()
-                    .map(|j| self.duration_ms(&j.service_type, &j.info)),
-            )
-            .sum();
+        let ahead = self.wait_behind(at);
         let mut info = Map::new();
         info.insert("state".into(), json!(self.state()));
         info.insert(
             "queue_position".into(),
-            json!(at + self.current.is_some() as usize),
+            json!(at + !self.has_room() as usize),
         );
         info.insert("agenda_length".into(), json!(self.bookings.len()));
         info.insert("expected_wait_ms".into(), json!(ahead));
@@ -77,5 +69,27 @@ impl AgendaMachine {
             json!(self.duration_ms(&request.service_type, &request.info)),
         );
         info
+    }
+
+    /// How long a job behind the first `at` bookings waits before it begins: the jobs
+    /// running and those bookings, each begun on the first of the `jobs_at_once` lanes
+    /// to be free (with one lane, their durations added up). A running job is counted
+    /// whole: the agenda does not know how far it is.
+    fn wait_behind(&self, at: usize) -> u64 {
+        let mut lanes: Vec<u64> = vec![0; self.jobs_at_once.max(1)];
+        let durations = self
+            .running
+            .iter()
+            .map(|j| self.duration_ms(&j.service_type, &j.info))
+            .chain(
+                self.bookings[..at]
+                    .iter()
+                    .map(|b| self.duration_ms(&b.service_type, &b.info)),
+            );
+        for duration in durations {
+            let first_free = lanes.iter_mut().min().expect("at least one lane");
+            *first_free += duration;
+        }
+        lanes.into_iter().min().unwrap_or(0)
     }
 }

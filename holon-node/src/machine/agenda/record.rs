@@ -15,8 +15,13 @@ use crate::machine::packml::PackmlUnit;
 #[derive(Debug, Clone, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct AgendaRecord {
     pub bookings: Vec<Booking>,
-    /// The job that was executing: after a crash it is reported `interrupted`.
+    /// The job that was executing (the first begun, when several were): after a crash
+    /// it is reported `interrupted`.
     pub current: Option<Job>,
+    /// The other jobs that were executing at the same time (a controller that runs
+    /// several at once); absent when none was.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub more_running: Vec<Job>,
     pub undelivered: Vec<Service>,
     /// The PackML unit; absent from journals written before PackML (the config's
     /// initial state then applies).
@@ -33,6 +38,8 @@ pub struct AgendaRecord {
 pub struct AgendaRecordRef<'a> {
     pub bookings: &'a [Booking],
     pub current: Option<&'a Job>,
+    #[serde(skip_serializing_if = "<[Job]>::is_empty")]
+    pub more_running: &'a [Job],
     pub undelivered: &'a [Service],
     pub packml: &'a PackmlUnit,
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
@@ -44,7 +51,8 @@ impl AgendaMachine {
     pub fn record(&self) -> AgendaRecord {
         AgendaRecord {
             bookings: self.bookings.clone(),
-            current: self.current.clone(),
+            current: self.running.first().cloned(),
+            more_running: self.running.iter().skip(1).cloned().collect(),
             undelivered: self.undelivered.clone(),
             packml: Some(self.packml.clone()),
             places: self.places.held().clone(),
@@ -55,7 +63,8 @@ impl AgendaMachine {
     pub fn record_ref(&self) -> AgendaRecordRef<'_> {
         AgendaRecordRef {
             bookings: &self.bookings,
-            current: self.current.as_ref(),
+            current: self.running.first(),
+            more_running: self.running.get(1..).unwrap_or_default(),
             undelivered: &self.undelivered,
             packml: &self.packml,
             places: self.places.held(),
@@ -66,7 +75,7 @@ impl AgendaMachine {
     /// write would change anything.
     pub fn same_record(&self, other: &AgendaMachine) -> bool {
         self.bookings == other.bookings
-            && self.current == other.current
+            && self.running == other.running
             && self.undelivered == other.undelivered
             && self.packml == other.packml
             && self.places.held() == other.places.held()
@@ -75,7 +84,8 @@ impl AgendaMachine {
     /// Whether this is the record it keeps, compared in place.
     pub fn keeps(&self, record: &AgendaRecord) -> bool {
         self.bookings == record.bookings
-            && self.current == record.current
+            && self.running.first() == record.current.as_ref()
+            && self.running.get(1..).unwrap_or_default() == record.more_running.as_slice()
             && self.undelivered == record.undelivered
             && record.packml.as_ref() == Some(&self.packml)
             && self.places.held() == &record.places

@@ -77,9 +77,9 @@ impl AgendaMachine {
                 .iter()
                 .position(|b| same(&b.requester, &b.conversation_id)),
             running: self
-                .current
-                .as_ref()
-                .is_some_and(|job| same(&job.requester, &job.conversation_id)),
+                .running
+                .iter()
+                .any(|job| same(&job.requester, &job.conversation_id)),
             finished: self
                 .undelivered
                 .iter()

@@ -27,14 +27,8 @@ impl AgendaMachine {
                     program: program_of(b.parameters.as_deref(), &b.info),
                 })
                 .collect(),
-            current: self.current.as_ref().map(|j| CurrentJobView {
-                requester: j.requester.clone(),
-                conversation_id: j.conversation_id.clone(),
-                service_type: j.service_type.clone(),
-                step: None,
-                program: program_of(j.parameters.as_deref(), &j.info),
-                started_at: None,
-            }),
+            current: self.running.first().map(job_view),
+            more_running: self.running.iter().skip(1).map(job_view).collect(),
             undelivered: self.undelivered.len(),
             services: self.catalog.service_types().map(String::from).collect(),
             nominal_ms: self
@@ -65,6 +59,19 @@ impl AgendaMachine {
             // Stamped when the view is read (`Views::snapshot`).
             at: 0,
         }
+    }
+}
+
+/// A running job as the snapshot shows it (its step and start are the execution's to
+/// fill in).
+fn job_view(job: &super::Job) -> CurrentJobView {
+    CurrentJobView {
+        requester: job.requester.clone(),
+        conversation_id: job.conversation_id.clone(),
+        service_type: job.service_type.clone(),
+        step: None,
+        program: program_of(job.parameters.as_deref(), &job.info),
+        started_at: None,
     }
 }
 

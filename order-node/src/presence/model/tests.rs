@@ -43,6 +43,7 @@ pub(in crate::presence) fn snapshot_of(
             })
             .collect(),
         current: None,
+        more_running: Vec::new(),
         undelivered: 0,
         services: vec!["pick_n_place".into()],
         nominal_ms: Default::default(),

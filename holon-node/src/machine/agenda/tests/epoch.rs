@@ -28,7 +28,7 @@ fn a_request_of_a_lower_epoch_than_its_booking_is_refused_stale_and_changes_noth
         "stale_epoch",
     );
     assert_eq!(m.bookings.len(), 1);
-    assert!(m.current.is_none());
+    assert!(m.current().is_none());
     // A newer holder books again (idempotent): the booking keeps its epoch, and that
     // change is journalled.
     let again = m.handle(AgendaEvent::Request(at(book("o-1", "c1"), 3)), unix_ms());
@@ -68,7 +68,7 @@ fn requests_without_an_epoch_are_not_fenced() {
     let bare = at(msg(MessageType::Start, "o-1", "c1"), 1);
     let started = n.handle(AgendaEvent::Request(bare), unix_ms());
     assert_accepted(&started);
-    assert!(n.current.is_some());
+    assert!(n.current().is_some());
 }
 
 #[test]

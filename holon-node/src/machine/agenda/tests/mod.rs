@@ -2,6 +2,7 @@ use super::*;
 use crate::catalog::pick_n_place;
 use schemas::unix_ms;
 
+mod at_once;
 mod epoch;
 mod on_turn;
 mod packml;
