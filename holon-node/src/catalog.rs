@@ -49,6 +49,11 @@ impl ServiceCatalog {
         ServiceCatalog { services }
     }
 
+    /// Every service type's definition.
+    pub fn definitions(&self) -> &BTreeMap<String, ServiceDefinition> {
+        &self.services
+    }
+
     pub fn get(&self, service_type: &str) -> Option<&ServiceDefinition> {
         self.services.get(service_type)
     }

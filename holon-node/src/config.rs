@@ -354,6 +354,9 @@ pub struct ResourceConfig {
     pub fenced: bool,
     /// How many jobs its controller runs at once (`[controller] jobs_at_once`).
     pub jobs_at_once: usize,
+    /// How many times faster than real time its plant runs (`--time-scale`); the
+    /// catalog's nominal durations and the layout are already in its wall time.
+    pub time_scale: schemas::TimeScale,
     /// Its part of the cell's layout (`[layout]`), answered on `resource/<name>/layout`;
     /// None: it takes no part in the cell's material flow.
     pub layout: Option<schemas::layout::LayoutPart>,
@@ -398,6 +401,7 @@ impl ResourceConfig {
         let mut config =
             Self::validate(file, header, overrides.allow_fault_injection).map_err(&invalid)?;
         config.take_over = overrides.common.take_over;
+        config.scale_plant_time(overrides.time_scale);
         if config.fenced && config.take_over.is_some() {
             return Err(ConfigError::Invalid {
                 path: path.to_string(),
@@ -405,6 +409,22 @@ impl ResourceConfig {
             });
         }
         Ok(config)
+    }
+
+    /// Counts the durations the config gives in plant time in the wall time of a plant
+    /// run at `scale`: each service's nominal duration, its part of the layout's travel
+    /// (`holon-node --time-scale`).
+    fn scale_plant_time(&mut self, scale: schemas::TimeScale) {
+        self.time_scale = scale;
+        if scale.is_real() {
+            return;
+        }
+        let mut services = self.catalog.definitions().clone();
+        for definition in services.values_mut() {
+            definition.nominal_duration = scale.wall(definition.nominal_duration);
+        }
+        self.catalog = Arc::new(ServiceCatalog::new(services));
+        self.layout = self.layout.take().map(|part| part.at_scale(scale));
     }
 
     /// Checks the file section by section (the first problem is the one reported) and
@@ -467,6 +487,7 @@ impl ResourceConfig {
             take_over: None,
             fenced: c.fenced,
             jobs_at_once: c.jobs_at_once,
+            time_scale: schemas::TimeScale::REAL,
             layout,
         })
     }
@@ -640,6 +661,43 @@ mod tests {
         assert_eq!(pnp.steps[0].action, "pick");
         assert_eq!(pnp.steps[0].until, vec!["picking_done".to_string()]);
         assert!(!config.zenoh.multicast_scouting);
+    }
+
+    #[test]
+    fn a_scaled_plant_counts_the_configs_plant_times_in_wall_time() {
+        const CONVEYOR: &str = include_str!("../../deploy/cells/demo/conveyor1.toml");
+        let travel = |config: &ResourceConfig| {
+            let Some(schemas::layout::TransporterSpec::Conveyor(c)) =
+                &config.layout.as_ref().unwrap().transporter
+            else {
+                panic!("conveyor1 is a conveyor");
+            };
+            (c.travel_ms("load", "s1").unwrap(), c.dock_ms)
+        };
+        let nominal = |config: &ResourceConfig| {
+            config
+                .catalog
+                .get("transport")
+                .unwrap()
+                .nominal_duration
+                .as_millis() as u64
+        };
+        let real = ResourceConfig::parse(CONVEYOR, "conveyor1.toml", Overrides::default()).unwrap();
+        let scaled = ResourceConfig::parse(
+            CONVEYOR,
+            "conveyor1.toml",
+            Overrides {
+                time_scale: "20".parse().unwrap(),
+                ..Overrides::default()
+            },
+        )
+        .unwrap();
+        assert_eq!(nominal(&scaled), nominal(&real) / 20);
+        let ((real_travel, real_dock), (travel_20, dock_20)) = (travel(&real), travel(&scaled));
+        assert!(real_travel > 0);
+        assert!(real_travel / 20 - 1 <= travel_20 && travel_20 <= real_travel / 20 + 1);
+        assert_eq!(dock_20, (real_dock as f64 / 20.0).round() as u64);
+        assert_eq!(scaled.time_scale.factor(), 20.0);
     }
 
     #[test]

@@ -40,6 +40,9 @@ pub struct Overrides {
     pub allow_fault_injection: bool,
     /// `--standby`: fenced, whatever the file says.
     pub standby: bool,
+    /// `--time-scale`: the plant runs this many times faster than real time (a
+    /// resource's nominal durations and travel follow it).
+    pub time_scale: schemas::TimeScale,
 }
 
 impl Identity {

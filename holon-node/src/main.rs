@@ -42,6 +42,16 @@ struct Args {
     /// checked with theirs: `cell layout --check DIR`).
     #[arg(long)]
     check: bool,
+    /// (Resources) The plant this resource drives runs FACTOR times faster than real time (a
+    /// simulated plant, `plant-sim --time-scale`; from 1 to 1000, default 1): the
+    /// durations the config gives in plant time (each service's `nominal_duration_ms`,
+    /// the `[layout]`'s conveyor speed and `dock_ms`, a transfer's `move_ms`) are
+    /// counted in 1/FACTOR of them, so that proposals and travel estimates are in the
+    /// wall time the plant takes. Network timers (timeouts, leases, retries) are not
+    /// plant time and stay as configured. Every resource of a cell must run at its
+    /// plant's factor (`cell up` passes the manifest's `time_scale`).
+    #[arg(long, value_name = "FACTOR", default_value = "1")]
+    time_scale: schemas::TimeScale,
 }
 
 fn main() -> ExitCode {
@@ -62,6 +72,7 @@ async fn run(args: Args, shutdown: tokio_util::sync::CancellationToken) -> anyho
         controller: args.controller,
         allow_fault_injection: args.allow_fault_injection,
         standby: args.standby,
+        time_scale: args.time_scale,
     };
     let config = HolonConfig::load(&args.common.config, overrides)?;
     if args.check {

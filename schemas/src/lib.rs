@@ -18,6 +18,7 @@ pub mod plan;
 pub mod robot;
 pub mod service;
 pub mod state;
+pub mod time_scale;
 pub mod vocabulary;
 
 pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION};
@@ -47,6 +48,7 @@ pub use service::{
 pub use state::{
     unix_ms, BookingView, ControllerStatus, CurrentJobView, Epochs, ResourceSnapshot, ResourceState,
 };
+pub use time_scale::TimeScale;
 pub use vocabulary::{ErrorCode, Reason};
 
 /// Everything that can be wrong with a message, an id or a key.

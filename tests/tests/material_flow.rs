@@ -696,3 +696,88 @@ async fn the_staff_counts_the_travel_and_sends_the_part_to_the_near_station() {
     }
     flow.assert_all_done_and_plant_empty(&orders).await;
 }
+
+/// The loop's plant with its conveyor's controller running three moves at once.
+const PLANT_THREE_AT_ONCE: &str = r#"
+layout = ["conveyor1.toml", "station_a.toml", "station_b.toml"]
+
+[[controller]]
+resource = "conveyor1"
+listen = "127.0.0.1:0"
+actions_at_once = 3
+
+[[controller]]
+resource = "station_a"
+listen = "127.0.0.1:0"
+delay_ms = 150
+
+[[controller]]
+resource = "station_b"
+listen = "127.0.0.1:0"
+delay_ms = 150
+"#;
+
+/// A conveyor whose holon runs three moves at once (`[controller] jobs_at_once = 3`,
+/// its plant controller `actions_at_once = 3`) has several pallets on their way at one
+/// moment, as the plant sees it, and every order still finishes with each part where
+/// the control believes it is. With one move at a time (the default) the plant never
+/// has more than one of its moves under way: that is what the count below tells apart.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_conveyor_moves_several_pallets_at_once() {
+    // A slow loop (a lap takes 4 s), so that moves last long enough to overlap.
+    let conveyor = slow_loop().replace(
+        "connect_timeout_ms = 500",
+        "connect_timeout_ms = 500\njobs_at_once = 3",
+    );
+    assert!(conveyor.contains("jobs_at_once = 3"));
+    let flow = FlowCell::start_on("t-flow-at-once", &conveyor, PLANT_THREE_AT_ONCE).await;
+    let mut orders = Vec::new();
+    for product in ["ab", "ba", "ab", "ba", "ab", "ba"] {
+        orders.extend(flow.cell.submit(product, 1).await.unwrap());
+    }
+    // Watch the plant's truth while the orders run: the most of conveyor1's moves under
+    // way at one moment.
+    let started = std::time::Instant::now();
+    let mut most_at_once = 0;
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(120);
+    loop {
+        let truth = flow.plant.state();
+        let moving = truth["in_transit"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|t| t["transporter"] == "conveyor1" && t["stopped"] != true)
+            .count();
+        most_at_once = most_at_once.max(moving);
+        let mut running = 0;
+        for order in &orders {
+            let state = flow.cell.order_state(order).await;
+            if state.as_ref().and_then(|s| s["status"].as_str()) == Some("running") {
+                running += 1;
+            }
+        }
+        if running == 0 {
+            break;
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{running} orders still run after 120 s; the plant: {truth:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(25)).await;
+    }
+    flow.assert_all_done_and_plant_empty(&orders).await;
+    eprintln!(
+        "6 orders in {:.1} s; at most {most_at_once} of conveyor1's moves under way at once; moves ended: {}",
+        started.elapsed().as_secs_f64(),
+        flow.count_in_orders_log("move ended"),
+    );
+    assert!(
+        most_at_once >= 2,
+        "conveyor1 never had two moves under way at once (at most {most_at_once})"
+    );
+    assert_eq!(
+        flow.count_in_orders_log("\"ERROR\""),
+        0,
+        "the order-node logged errors"
+    );
+}

@@ -319,6 +319,23 @@ impl LayoutPart {
         serde_json::to_vec(self).expect("a layout part serializes")
     }
 
+    /// The same part with its times in the wall time of a plant run at `scale`
+    /// ([`crate::TimeScale`]): a conveyor `scale` times as fast with its docking in
+    /// 1/`scale` of the time, a transfer's move in 1/`scale`. What a holon of a scaled
+    /// cell answers, so that every holon's travel estimates are in one time.
+    pub fn at_scale(mut self, scale: crate::TimeScale) -> LayoutPart {
+        match &mut self.transporter {
+            Some(TransporterSpec::Conveyor(c)) => {
+                let faster = (f64::from(c.speed_mm_s) * scale.factor()).round();
+                c.speed_mm_s = faster.min(f64::from(u32::MAX)) as u32;
+                c.dock_ms = scale.wall_ms(c.dock_ms);
+            }
+            Some(TransporterSpec::Transfer(t)) => t.move_ms = scale.wall_ms(t.move_ms),
+            None => {}
+        }
+        self
+    }
+
     /// One line per location and one for the transporter, as `holon-node --check` and
     /// `cell layout` show them.
     pub fn describe(&self) -> Vec<String> {
