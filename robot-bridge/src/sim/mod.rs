@@ -79,7 +79,7 @@ use std::time::Duration;
 use schemas::ControllerState;
 use tokio::net::{TcpListener, TcpStream};
 use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 
 pub mod fence;
 pub mod physics;
@@ -91,7 +91,7 @@ use crate::dialect::Dialect;
 use session::serve;
 
 /// How the simulator behaves.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 pub struct SimConfig {
     /// How long each action takes, unless `action_delays` names it.
     pub delay: Duration,
@@ -145,6 +145,44 @@ pub struct SimConfig {
     /// The plant the controller acts in (`plant-sim`): what its actions can do,
     /// physically, and how long a move takes. None: any action runs.
     pub physics: Option<physics::PhysicsHook>,
+    /// How many actions one connection has under way at once (default 1, at least 1):
+    /// each ends at its own time and is answered with its own `done` (or `failed`)
+    /// reply, matched to its command by id, so more than 1 needs a dialect whose replies
+    /// carry the command's id (`correlation = "id"`) and whose actions end by a reply,
+    /// not a poll. A command that comes while this many are under way waits until one
+    /// ends (see the session's table).
+    pub actions_at_once: usize,
+}
+
+impl Default for SimConfig {
+    fn default() -> SimConfig {
+        SimConfig {
+            delay: Duration::ZERO,
+            action_delays: BTreeMap::new(),
+            changeover: Duration::ZERO,
+            error_every: None,
+            close_after: None,
+            hang_after: None,
+            garbage_after: None,
+            inspect_fail_every: None,
+            fault_after: None,
+            fault_every: None,
+            fault_state: None,
+            fault_for: Duration::ZERO,
+            unknown_state_every: None,
+            count_file: None,
+            dialect: None,
+            reset_after: None,
+            oversize_after: None,
+            wrong_id_after: None,
+            fragment: false,
+            merge: false,
+            abort_too_late: false,
+            fence_lease: None,
+            physics: None,
+            actions_at_once: 1,
+        }
+    }
 }
 
 impl SimConfig {
@@ -152,6 +190,69 @@ impl SimConfig {
     pub fn dialect(&self) -> Arc<Dialect> {
         self.dialect.clone().unwrap_or_else(Dialect::holarchy_xml)
     }
+
+    /// Whether the simulator can serve as configured: [`Simulator::bind`] and
+    /// [`Simulator::run`] refuse what this refuses.
+    pub fn check(&self) -> Result<(), SimConfigError> {
+        SimConfig::check_actions_at_once(self.actions_at_once, &self.dialect())
+    }
+
+    /// Whether `actions_at_once` = `n` can be served in `dialect`: at least 1, and more
+    /// than 1 only where each reply names its command (`correlation = "id"`) and an
+    /// action's end is a reply of its own (no poll, which names no action).
+    pub fn check_actions_at_once(n: usize, dialect: &Dialect) -> Result<(), SimConfigError> {
+        if n == 0 {
+            return Err(SimConfigError::NoActionAtOnce);
+        }
+        if n == 1 {
+            return Ok(());
+        }
+        if dialect.correlation == crate::dialect::Correlation::OneInFlight {
+            return Err(SimConfigError::OneInFlight {
+                n,
+                dialect: dialect.name.clone(),
+            });
+        }
+        let polled = dialect
+            .sequence
+            .iter()
+            .any(|e| matches!(e.sending, crate::dialect::Sending::Poll(_)));
+        if polled {
+            return Err(SimConfigError::PolledEnd {
+                n,
+                dialect: dialect.name.clone(),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// Why a simulator's settings are refused before it serves.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SimConfigError {
+    /// `actions_at_once` is 0.
+    #[error("actions_at_once must be at least 1 (it is 0)")]
+    NoActionAtOnce,
+    /// `actions_at_once` is more than 1 in a dialect with one request on the wire.
+    #[error(
+        "actions_at_once = {n}: several actions at once need a dialect whose replies carry the command's id (correlation = \"id\"); {dialect} has correlation = \"one_in_flight\""
+    )]
+    OneInFlight {
+        /// The setting.
+        n: usize,
+        /// The dialect's name.
+        dialect: String,
+    },
+    /// `actions_at_once` is more than 1 in a dialect that polls for an action's end.
+    #[error(
+        "actions_at_once = {n}: {dialect} polls for an action's end, and a poll names no action: one action at a time"
+    )]
+    PolledEnd {
+        /// The setting.
+        n: usize,
+        /// The dialect's name.
+        dialect: String,
+    },
 }
 
 /// What the simulator did.
@@ -413,7 +514,11 @@ impl CountFile {
 
 impl Simulator {
     /// Listens on `address`, for a dialect whose controller is the TCP server.
+    /// Refused (`InvalidInput`) when [`SimConfig::check`] refuses the config.
     pub async fn bind(address: &str, config: SimConfig) -> std::io::Result<Simulator> {
+        config
+            .check()
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
         let listener = TcpListener::bind(address).await?;
         let stats = fenced_stats(&config);
         Ok(Simulator {
@@ -423,7 +528,8 @@ impl Simulator {
         })
     }
 
-    /// Dials the holon at `address`, for a dialect whose controller connects.
+    /// Dials the holon at `address`, for a dialect whose controller connects (a config
+    /// that [`SimConfig::check`] refuses is refused by [`Simulator::run`]).
     pub fn dialing(address: &str, config: SimConfig) -> Simulator {
         let stats = fenced_stats(&config);
         Simulator {
@@ -447,8 +553,13 @@ impl Simulator {
         self.stats.clone()
     }
 
-    /// Serves connections until `shutdown` is cancelled.
+    /// Serves connections until `shutdown` is cancelled; at once returns, serving
+    /// nothing, when [`SimConfig::check`] refuses the config (logged).
     pub async fn run(self, shutdown: CancellationToken) {
+        if let Err(e) = self.config.check() {
+            error!(error = %e, "the simulator's settings are refused: it serves nothing");
+            return;
+        }
         let (count_file, writer) = CountFile::start(&self.config, &self.stats);
         let connections = tokio_util::task::TaskTracker::new();
         let serve_one = |stream: TcpStream, peer: String| {
