@@ -53,6 +53,11 @@ fn plant_file(dir: &Path, actions_at_once: usize) -> std::path::PathBuf {
 
 /// One command on the plant's control port, and its answer as JSON.
 async fn control(address: &str, line: &str) -> serde_json::Value {
+    serde_json::from_str(&control_line(address, line).await).unwrap()
+}
+
+/// One command on the plant's control port, and its answer.
+async fn control_line(address: &str, line: &str) -> String {
     let mut stream = tokio::net::TcpStream::connect(address).await.unwrap();
     stream
         .write_all(format!("{line}\n").as_bytes())
@@ -60,7 +65,7 @@ async fn control(address: &str, line: &str) -> serde_json::Value {
         .unwrap();
     let mut answer = String::new();
     BufReader::new(stream).read_line(&mut answer).await.unwrap();
-    serde_json::from_str(&answer).unwrap()
+    answer.trim_end().to_string()
 }
 
 /// Reads from `stream` until `received` holds `needle`.
@@ -107,19 +112,7 @@ async fn two_moves_on_one_conveyor_begun_at_once_both_arrive() {
         .await
         .unwrap();
     // Both on their way in the plant at once, each on a pallet of its own.
-    let deadline = Instant::now() + WAIT;
-    let riding = loop {
-        let view = control(&control_port, "where").await;
-        let riding = view["in_transit"].as_array().unwrap().clone();
-        if riding.len() == 2 {
-            break riding;
-        }
-        assert!(
-            Instant::now() < deadline,
-            "the two moves never travelled together: {view:#}"
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    };
+    let riding = both_riding(&control_port).await;
     let mut carriers: Vec<&str> = riding
         .iter()
         .map(|t| t["load"]["carrier"].as_str().unwrap())
@@ -160,6 +153,83 @@ async fn two_moves_on_one_conveyor_begun_at_once_both_arrive() {
     assert_eq!(view["shipped"], 2, "{view:#}");
     let counts = control(&control_port, "counts").await;
     assert_eq!(counts["conveyor1"]["executed"], 4, "{counts:#}");
+    shutdown.cancel();
+}
+
+/// Both moves on their way in the plant (polled on the control port): each one's
+/// transit.
+async fn both_riding(control_port: &str) -> Vec<serde_json::Value> {
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let view = control(control_port, "where").await;
+        let riding = view["in_transit"].as_array().unwrap().clone();
+        if riding.len() == 2 {
+            return riding;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the two moves never travelled together: {view:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+/// Two moves under way when the controller's links are cut (held on a jammed track, so
+/// that both surely are): each goes on in the plant and its part arrives once the track
+/// is cleared, each counted executed, neither answered.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_cut_leaves_each_move_under_way_to_end_in_the_plant() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = plant_file(dir.path(), 2);
+    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"))
+        .await
+        .unwrap();
+    let conveyor = plant.addresses()[0].1.to_string();
+    let control_port = plant.control_address().unwrap().to_string();
+    let shutdown = CancellationToken::new();
+    tokio::spawn(plant.run(shutdown.clone()));
+    assert_eq!(control_line(&control_port, "jam conveyor1.buf").await, "ok");
+    let mut link = tokio::net::TcpStream::connect(&conveyor).await.unwrap();
+    let mv = |id: u64, part: &str| {
+        format!("<ROBOT_CMD><ID>{id}</ID><ACTION>move</ACTION><PART>{part}</PART><FROM>conveyor1.load</FROM><TO>conveyor1.buffer</TO></ROBOT_CMD>")
+    };
+    link.write_all(format!("{}{}", mv(1, "p-1"), mv(2, "p-2")).as_bytes())
+        .await
+        .unwrap();
+    both_riding(&control_port).await;
+    assert_eq!(control_line(&control_port, "cut conveyor1").await, "ok");
+    let mut received = String::new();
+    loop {
+        let mut buffer = [0u8; 4096];
+        let n = tokio::time::timeout(WAIT, link.read(&mut buffer))
+            .await
+            .expect("the link closed in time")
+            .unwrap_or(0);
+        if n == 0 {
+            break;
+        }
+        received.push_str(&String::from_utf8_lossy(&buffer[..n]));
+    }
+    assert!(!received.contains("ROBOT_REPLY"), "{received}");
+    assert_eq!(
+        control_line(&control_port, "clear conveyor1.buf").await,
+        "ok"
+    );
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let view = control(&control_port, "where").await;
+        let counts = control(&control_port, "counts").await;
+        if parts_in(&view, "conveyor1.buffer") == ["p-1", "p-2"]
+            && counts["conveyor1"]["executed"] == 2
+        {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the moves did not end in the plant: {view:#} {counts:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
     shutdown.cancel();
 }
 
