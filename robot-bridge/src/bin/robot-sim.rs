@@ -128,6 +128,14 @@ struct Args {
     /// ignored. Needs a dialect with a [fence] (holarchy-xml).
     #[arg(long)]
     fenced: bool,
+    /// How many actions the controller runs at once on one connection (at least 1), as
+    /// a conveyor's PLC moves several pallets at once: each ends at its own time and is
+    /// answered with its own reply, matched to its command by ID; a command that comes
+    /// while N are under way waits until one ends. More than 1 needs a dialect whose
+    /// replies carry the command's id (correlation "id", e.g. holarchy-xml) and whose
+    /// actions end by a reply, not a poll; else refused at start.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    actions_at_once: usize,
     /// With --fenced: the session lease in ms: a holder silent this long (no heartbeat,
     /// no command) loses the claim and its connection is closed.
     #[arg(long, default_value_t = 1000, value_name = "MS")]
@@ -170,6 +178,10 @@ async fn main() -> anyhow::Result<()> {
     }
     if args.fenced && args.lease_ms == 0 {
         eprintln!("robot-sim: --lease-ms must be more than 0");
+        std::process::exit(2);
+    }
+    if let Err(e) = SimConfig::check_actions_at_once(args.actions_at_once, &dialect) {
+        eprintln!("robot-sim: --actions-at-once: {e}");
         std::process::exit(2);
     }
     if args.check {
@@ -224,6 +236,7 @@ async fn main() -> anyhow::Result<()> {
         abort_too_late: false,
         fence_lease: args.fenced.then(|| Duration::from_millis(args.lease_ms)),
         physics: None,
+        actions_at_once: args.actions_at_once,
     };
     let simulator = match &args.connect {
         Some(address) => {

@@ -9,7 +9,13 @@
 //! station's controller works on the part at its port (`info.part` where the command
 //! names it, else whichever is there). A command naming no part is not in the material
 //! flow: the plant lets it run as robot-sim would.
+//!
+//! A transporter's controller may move several parts at once (`actions_at_once` in the
+//! plant file): each move is known by its part, begun, looked at ([`Physics::held`]) and
+//! ended on its own; the plant's pallets ride together, each waiting where the way ahead
+//! of it is full.
 
+use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -25,11 +31,9 @@ use crate::sim::physics::{Physics, Report};
 /// drives the plant's time).
 pub type OnChange = Arc<dyn Fn(&Plant) + Send + Sync>;
 
-/// The move a controller has under way.
+/// A move a controller has under way (known by the part it moves).
 #[derive(Debug, Clone)]
 struct Moving {
-    /// The part it moves.
-    part: String,
     /// Its pallet when the move began, if it rides one (a silent one's arrival is not
     /// said).
     carrier: Option<String>,
@@ -45,8 +49,8 @@ pub struct ControllerPhysics {
     clock: Clock,
     /// The resource whose controller this is.
     resource: String,
-    /// The move under way, ended by `end`.
-    moving: Mutex<Option<Moving>>,
+    /// The moves under way, by the part each moves; each ended by `end`.
+    moving: Mutex<BTreeMap<String, Moving>>,
     /// Told after every change this controller makes.
     on_change: OnChange,
 }
@@ -62,7 +66,7 @@ impl ControllerPhysics {
             plant,
             clock,
             resource: resource.to_string(),
-            moving: Mutex::new(None),
+            moving: Mutex::new(BTreeMap::new()),
             on_change,
         }
     }
@@ -71,7 +75,7 @@ impl ControllerPhysics {
         self.plant.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    fn moving(&self) -> std::sync::MutexGuard<'_, Option<Moving>> {
+    fn moving(&self) -> std::sync::MutexGuard<'_, BTreeMap<String, Moving>> {
         self.moving.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
@@ -121,10 +125,7 @@ impl Physics for ControllerPhysics {
                 .map_err(|e| e.to_string())?;
             let carrier = plant.carrier_of(part);
             info!(resource = %self.resource, %action, part, %from, %to, ?carrier, ?took, "moving");
-            *self.moving() = Some(Moving {
-                part: part.to_string(),
-                carrier,
-            });
+            self.moving().insert(part.to_string(), Moving { carrier });
             (self.on_change)(&plant);
             return Ok(Some(took));
         }
@@ -134,10 +135,13 @@ impl Physics for ControllerPhysics {
         Ok(None)
     }
 
-    fn held(&self) -> bool {
-        let Some(moving) = self.moving().clone() else {
+    fn held(&self, values: &Values) -> bool {
+        let Some(part) = values.get("info.part") else {
             return false;
         };
+        if !self.moving().contains_key(part) {
+            return false;
+        }
         let mut plant = self.plant();
         // A ms of slack: the simulator times the move from the command's receipt, a
         // moment before the plant began it (its ms may have ticked in between).
@@ -146,20 +150,22 @@ impl Physics for ControllerPhysics {
         if !happened.is_empty() {
             (self.on_change)(&plant);
         }
-        match plant.on_its_way(&moving.part, &self.resource) {
+        match plant.on_its_way(part, &self.resource) {
             Some(why) => {
-                debug!(resource = %self.resource, part = moving.part, %why, "the move is held up");
+                debug!(resource = %self.resource, part, %why, "the move is held up");
                 true
             }
             None => false,
         }
     }
 
-    fn end(&self, done: bool) -> Report {
-        let Some(moving) = self.moving().take() else {
+    fn end(&self, values: &Values, done: bool) -> Report {
+        let Some(part) = values.get("info.part") else {
             return Report::Said;
         };
-        let part = moving.part.as_str();
+        let Some(moving) = self.moving().remove(part) else {
+            return Report::Said;
+        };
         let mut plant = self.plant();
         log_happenings(&plant.advance(self.clock.now_ms() + 1));
         if !done {

@@ -78,10 +78,20 @@ pub struct ControllerSection {
     /// what became of the move. The dialect must fence.
     #[serde(default)]
     pub fenced_lease_ms: Option<u64>,
+    /// How many actions the controller runs at once on one connection (as `robot-sim
+    /// --actions-at-once`; default 1, at least 1): a conveyor's PLC moving several
+    /// pallets at once, each move answered with its own reply, matched by id. More than
+    /// 1 needs a dialect whose replies carry the command's id (`correlation = "id"`).
+    #[serde(default = "one_action_at_once")]
+    pub actions_at_once: usize,
 }
 
 fn default_dialect() -> String {
     "holarchy-xml".into()
+}
+
+fn one_action_at_once() -> usize {
+    1
 }
 
 /// What keeps the plant from starting.
@@ -256,6 +266,8 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
                 dialect.name
             )));
         }
+        SimConfig::check_actions_at_once(c.actions_at_once, &dialect)
+            .map_err(|e| invalid(e.to_string()))?;
         let physics = ControllerPhysics::new(plant.clone(), clock, &c.resource, on_change.clone());
         let config = SimConfig {
             delay: Duration::from_millis(c.delay_ms),
@@ -268,6 +280,7 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
             dialect: Some(dialect),
             physics: Some(PhysicsHook(Arc::new(physics))),
             fence_lease: c.fenced_lease_ms.map(Duration::from_millis),
+            actions_at_once: c.actions_at_once,
             ..SimConfig::default()
         };
         controllers.push((c.resource.clone(), c.listen.clone(), config));

@@ -23,6 +23,15 @@
 //! abort naming another command's id) nothing stops, and the abort gets its `rejected`
 //! reply, if it has one.
 //!
+//! One action runs at a time on a connection unless `actions_at_once` (N) says more
+//! (`robot-sim --actions-at-once N`, a plant file's `actions_at_once`), as a conveyor's
+//! PLC moves several pallets at once: up to N are under way together, each ends at its
+//! own time with its own `done` reply (its own id: a dialect with `correlation = "id"`
+//! only), the abort stops each it names, and a message that comes while N are under way
+//! (other than the abort and the fence's) waits until one ends. 0, or more than 1 in a
+//! dialect with one request on the wire or whose actions end by a poll, is refused at
+//! start ([`SimConfig::check`]).
+//!
 //! Faults, for tests (command numbers count every action begun, from 1):
 //! - `error_every N`: every Nth command is answered with a `failed` (or `rejected`)
 //!   reply and not executed;
@@ -71,7 +80,6 @@
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -79,80 +87,17 @@ use std::time::Duration;
 use schemas::ControllerState;
 use tokio::net::{TcpListener, TcpStream};
 use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
+use tracing::{error, info, warn};
 
+mod config;
 pub mod fence;
 pub mod physics;
 pub mod process;
 mod session;
 mod writer;
 
-use crate::dialect::Dialect;
+pub use config::{SimConfig, SimConfigError};
 use session::serve;
-
-/// How the simulator behaves.
-#[derive(Debug, Clone, Default)]
-pub struct SimConfig {
-    /// How long each action takes, unless `action_delays` names it.
-    pub delay: Duration,
-    /// How long particular actions take (`pick` -> 300 ms): a robot that is fast at
-    /// some work and slow at other.
-    pub action_delays: BTreeMap<String, Duration>,
-    /// What a change of program costs: added to the first command whose `PROGRAM`
-    /// differs from the last program run (a command without one changes nothing).
-    pub changeover: Duration,
-    pub error_every: Option<u64>,
-    pub close_after: Option<u64>,
-    pub hang_after: Option<u64>,
-    pub garbage_after: Option<u64>,
-    /// Every Nth `inspect` is answered `inspect_fail`.
-    pub inspect_fail_every: Option<u64>,
-    /// When the (N+1)th command of the process arrives, report `fault_state` instead of
-    /// answering it (it is not executed), then `ready` again after `fault_for`.
-    pub fault_after: Option<u64>,
-    /// Every Nth command of the process faults the controller as `fault_after` does (a
-    /// rehearsal that goes on: fault, ready, fault...).
-    pub fault_every: Option<u64>,
-    pub fault_state: Option<ControllerState>,
-    pub fault_for: Duration,
-    /// Every Nth command of the process takes the controller, for `fault_for`, into a
-    /// state the dialect does not describe (its `ready` status said with `HOMING` for
-    /// the state's word, [`Dialect::undescribed_status`]): as `fault_every` otherwise.
-    pub unknown_state_every: Option<u64>,
-    /// Rewritten (atomically) with [`SimStats`] as JSON after every command, once its
-    /// reply is sent.
-    pub count_file: Option<PathBuf>,
-    /// The protocol spoken (None: holarchy-xml).
-    pub dialect: Option<Arc<Dialect>>,
-    /// Begin the (N+1)th command, then reset the connection halfway through it.
-    pub reset_after: Option<u64>,
-    /// Answer the (N+1)th command with a message over the dialect's size limit.
-    pub oversize_after: Option<u64>,
-    /// The (N+1)th command's answers echo another id than the command's (its id with a
-    /// `9` after it: `ACK 239` for `JOB 23`); the command is executed.
-    pub wrong_id_after: Option<u64>,
-    /// Write every message in pieces of 1 to 3 bytes.
-    pub fragment: bool,
-    /// Write messages together (see the module docs).
-    pub merge: bool,
-    /// An abort that comes while an action runs finds it just ended: its `done` reply
-    /// goes first (crossing the abort on the wire) and the abort has nothing to stop.
-    pub abort_too_late: bool,
-    /// Fenced mode (`--fenced`) with this session lease: one live session holds the
-    /// claim, commands carry its epoch and step ids run at most once. None: unfenced,
-    /// as without the fence (fence messages are refused `not_fenced`).
-    pub fence_lease: Option<Duration>,
-    /// The plant the controller acts in (`plant-sim`): what its actions can do,
-    /// physically, and how long a move takes. None: any action runs.
-    pub physics: Option<physics::PhysicsHook>,
-}
-
-impl SimConfig {
-    /// The dialect spoken.
-    pub fn dialect(&self) -> Arc<Dialect> {
-        self.dialect.clone().unwrap_or_else(Dialect::holarchy_xml)
-    }
-}
 
 /// What the simulator did.
 #[derive(Debug, Default)]
@@ -413,7 +358,11 @@ impl CountFile {
 
 impl Simulator {
     /// Listens on `address`, for a dialect whose controller is the TCP server.
+    /// Refused (`InvalidInput`) when [`SimConfig::check`] refuses the config.
     pub async fn bind(address: &str, config: SimConfig) -> std::io::Result<Simulator> {
+        config
+            .check()
+            .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?;
         let listener = TcpListener::bind(address).await?;
         let stats = fenced_stats(&config);
         Ok(Simulator {
@@ -423,7 +372,8 @@ impl Simulator {
         })
     }
 
-    /// Dials the holon at `address`, for a dialect whose controller connects.
+    /// Dials the holon at `address`, for a dialect whose controller connects (a config
+    /// that [`SimConfig::check`] refuses is refused by [`Simulator::run`]).
     pub fn dialing(address: &str, config: SimConfig) -> Simulator {
         let stats = fenced_stats(&config);
         Simulator {
@@ -447,8 +397,13 @@ impl Simulator {
         self.stats.clone()
     }
 
-    /// Serves connections until `shutdown` is cancelled.
+    /// Serves connections until `shutdown` is cancelled; at once returns, serving
+    /// nothing, when [`SimConfig::check`] refuses the config (logged).
     pub async fn run(self, shutdown: CancellationToken) {
+        if let Err(e) = self.config.check() {
+            error!(error = %e, "the simulator's settings are refused: it serves nothing");
+            return;
+        }
         let (count_file, writer) = CountFile::start(&self.config, &self.stats);
         let connections = tokio_util::task::TaskTracker::new();
         let serve_one = |stream: TcpStream, peer: String| {

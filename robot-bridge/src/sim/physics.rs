@@ -10,22 +10,34 @@ use std::time::Duration;
 use crate::dialect::Values;
 
 /// What a controller's actions do to the plant around it.
+///
+/// An action is known by the values of the command that began it (`values`; in the
+/// plant, a move by the part it moves, `info.part`: a part is moved by one move at a
+/// time, the plant refuses a second while the first is under way). Several actions may
+/// be under way at once on one controller (`SimConfig::actions_at_once`), each asked
+/// and told with its own values:
+///
+/// | call | when | says |
+/// |---|---|---|
+/// | `begin(action, values)` | the command arrives | whether it can run, and how long it takes |
+/// | `held(values)` | its time is up, and again every 50 ms while held | whether it is held up |
+/// | `end(values, done)` | it ends (`true`) or is aborted (`false`) | whether its end is told |
 pub trait Physics: Send + Sync {
     /// Whether the action the command `values` begins can run, physically, and how long
     /// it takes (None: as the simulator's own settings say). Err: the physical reason it
     /// cannot; the command is answered with its failed reply and not executed.
     fn begin(&self, action: &str, values: &Values) -> Result<Option<Duration>, String>;
 
-    /// Whether the action under way is held up (a jammed track under a move): it does
-    /// not end while it is; asked again shortly.
-    fn held(&self) -> bool {
+    /// Whether the action the command `values` began is held up (a jammed track under a
+    /// move): it does not end while it is; asked again shortly.
+    fn held(&self, _values: &Values) -> bool {
         false
     }
 
-    /// The action begun last ended: done (`true`), or stopped before its end (`false`:
-    /// aborted). Returns whether the controller says so ([`Report::Unsaid`]: a pallet
-    /// that stopped reporting arrives without a word).
-    fn end(&self, done: bool) -> Report;
+    /// The action the command `values` began ended: done (`true`), or stopped before its
+    /// end (`false`: aborted). Returns whether the controller says so
+    /// ([`Report::Unsaid`]: a pallet that stopped reporting arrives without a word).
+    fn end(&self, values: &Values, done: bool) -> Report;
 }
 
 /// Whether the controller tells of an action's end.

@@ -2,9 +2,19 @@
 //! dialect's commands and answered as its sequence says, with the faults of the config.
 //!
 //! An action whose `done` reply goes in the same exchange is under way ([`Acting`])
-//! while the connection goes on reading: the loop waits for the action's end and for
-//! the next message together. The dialect's abort stops it at once; any other message
-//! waits until the action ends, as on a controller that runs one command at a time.
+//! while the connection goes on reading: the loop waits for the first end of the
+//! actions under way and for the next message together. Up to N
+//! ([`SimConfig::actions_at_once`], default 1) are under way at once, each with the
+//! values (its id) and step id of the command that began it:
+//!
+//! | under way | what comes | what the session does |
+//! |---|---|---|
+//! | fewer than N | any message | answers it now (one that begins an action adds it) |
+//! | N | the dialect's abort, or a fence message | answers it now |
+//! | N | any other message | keeps it (deferred); kept ones are answered in order as soon as fewer than N are under way, as on a controller that runs N commands at a time |
+//! | any | an action's time is up | its own `done` reply (its id), or, held up in the plant, looks again in 50 ms |
+//! | any | the abort | each action it names (all, where it names none) stops: its own `failed` reply, `aborted` |
+//! | any | the connection ends, is cut, or its lease is lost | each action goes on unanswered to its own end and settles its own step |
 
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -21,8 +31,9 @@ mod abort;
 mod acting;
 mod faults;
 mod fenced;
+mod poll;
 
-use acting::act_for;
+use acting::{act_for, Acting};
 
 use super::fence::StepRecord;
 use super::writer::Writer;
@@ -46,20 +57,10 @@ fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<
     }
 }
 
-/// An action under way whose `done` reply answers the message that began it.
-struct Acting {
-    /// When it ends.
-    until: std::time::Instant,
-    /// The element that began it: its `done` and `failed` replies answer it.
-    element: Element,
-    /// The `done` reply.
-    done: usize,
-    /// Its result.
-    result: &'static str,
-}
-
-/// The action under way on a connection whose dialect polls for its end.
+/// The action under way on a connection whose dialect polls for its end (one at a
+/// time: a poll names no action).
 struct Running {
+    /// When it ends.
     until: std::time::Instant,
     /// The success result, or why the action fails.
     result: Result<&'static str, String>,
@@ -67,24 +68,33 @@ struct Running {
 
 /// One connection's state.
 struct Session<'a> {
+    /// The simulator's settings.
     config: &'a SimConfig,
+    /// The controller's counts, shared by its connections.
     stats: &'a SimStats,
+    /// Asks for the count file to be written.
     count_file: &'a CountFile,
+    /// The dialect spoken.
     dialect: &'a Dialect,
-    /// The values of the action under way, from every message that named them.
+    /// The values of the last command, from every message that named them (an action
+    /// under way keeps its own: [`Acting::values`]).
     context: Values,
+    /// The polled action under way, if any.
     running: Option<Running>,
     /// Commands begun on this connection.
     on_this_connection: u64,
     /// After `hang_after`: nothing more is answered.
     hung: bool,
-    /// The action under way, answered when it ends (or is aborted).
-    acting: Option<Acting>,
-    /// Messages that came while an action was under way, answered after it.
+    /// The actions under way (at most `config.actions_at_once`), each answered when it
+    /// ends (or is aborted).
+    acting: Vec<Acting>,
+    /// Messages that came while `config.actions_at_once` actions were under way,
+    /// answered once fewer are.
     deferred: VecDeque<bytes::Bytes>,
     /// This connection's number (the fence's session).
     session: u64,
-    /// (Fenced) the step id of the action under way, recorded as running.
+    /// (Fenced) the step id of the command being begun (or of the polled action under
+    /// way), recorded as running; an action under way keeps its own ([`Acting::step`]).
     step: Option<String>,
 }
 
@@ -121,16 +131,13 @@ pub(super) async fn serve(
         running: None,
         on_this_connection: 0,
         hung: false,
-        acting: None,
+        acting: Vec::new(),
         deferred: VecDeque::new(),
         session: session_number,
         step: None,
     };
     loop {
-        let ends = session
-            .acting
-            .as_ref()
-            .map_or_else(std::time::Instant::now, |a| a.until);
+        let ends = session.next_end();
         let lease_end = session.lease_end();
         let fault_end = stats.stopped().map(|(until, _)| until);
         let stop_changed = stats.stop_changed.notified();
@@ -179,13 +186,13 @@ pub(super) async fn serve(
                 }
                 Some(Ok(frame)) => session.receive(frame, &mut writer, &shutdown).await?,
             },
-            _ = act_for(ends), if session.acting.is_some() => {
+            _ = act_for(ends.unwrap_or_else(std::time::Instant::now)), if ends.is_some() => {
                 session.end_action(&mut writer).await?;
                 Flow::Continue
             }
         };
-        // What waited for the action, now that none is under way.
-        while matches!(flow, Flow::Continue) && session.acting.is_none() {
+        // What waited for an action to end, now that fewer are under way.
+        while matches!(flow, Flow::Continue) && session.has_room() {
             let Some(frame) = session.deferred.pop_front() else {
                 break;
             };
@@ -193,8 +200,18 @@ pub(super) async fn serve(
         }
         match flow {
             Flow::Continue => {}
-            Flow::Close => return Ok(()),
-            Flow::Reset => return reset(reader.into_inner(), writer.half),
+            Flow::Close => {
+                // What runs goes on, as when the holon's socket closes.
+                drop(reader);
+                drop(writer);
+                session.complete_unanswered(&shutdown).await;
+                return Ok(());
+            }
+            Flow::Reset => {
+                let reset = reset(reader.into_inner(), writer.half);
+                session.complete_unanswered(&shutdown).await;
+                return reset;
+            }
         }
     }
 }
@@ -267,8 +284,8 @@ impl Session<'_> {
             .map_or(ControllerState::Ready, |(_, state)| state)
     }
 
-    /// A message from the holon: answered now, or, while an action is under way, kept
-    /// for after it (an abort is answered now).
+    /// A message from the holon: answered now, or, while `actions_at_once` actions are
+    /// under way, kept until one ends (an abort or a fence message is answered now).
     async fn receive(
         &mut self,
         frame: bytes::Bytes,
@@ -276,7 +293,7 @@ impl Session<'_> {
         shutdown: &CancellationToken,
     ) -> Result<Flow, SimError> {
         self.seen();
-        if self.acting.is_some() && !self.hung {
+        if !self.has_room() && !self.hung {
             let (index, _) = self.identify(&frame)?;
             if self.dialect.abort.as_ref().map(|a| a.command) != Some(index)
                 && self.fence_command(index).is_none()
@@ -303,10 +320,6 @@ impl Session<'_> {
         ))
     }
 
-    /// The action under way ends: its `done` reply.
-    /// The connection is gone while an action is under way: like a real robot, the
-    /// controller completes the motion it began (counted as executed), with nobody to
-    /// tell.
     /// The first of `element`'s expected replies with one of `outcomes`.
     fn rule(&self, element: &Element, outcomes: &[Outcome]) -> Option<usize> {
         outcomes.iter().find_map(|o| {
@@ -320,6 +333,7 @@ impl Session<'_> {
         })
     }
 
+    /// Answers one message (not deferred) as the dialect says.
     async fn message(
         &mut self,
         frame: &[u8],
@@ -509,15 +523,19 @@ impl Session<'_> {
             return Ok(Flow::Continue);
         }
         if let (Some(done), Some(result)) = (done_here, result) {
+            let (values, step) = (self.context.clone(), self.step.take());
             if takes.is_zero() {
-                self.finish(Some(done), result, writer).await?;
+                self.finish(Some(done), result, &values, step, writer)
+                    .await?;
             } else {
                 // It ends (or is aborted) while the connection goes on reading.
-                self.acting = Some(Acting {
+                self.acting.push(Acting {
                     until: received + takes,
                     element: element.clone(),
                     done,
                     result,
+                    values,
+                    step,
                 });
             }
         }
@@ -553,81 +571,5 @@ impl Session<'_> {
             warn!("the dialect has no failed reply here: the command is not answered");
         }
         Ok(())
-    }
-
-    /// Reports an action's end with the `done` reply `rule`: the action counted as
-    /// executed.
-    async fn finish(
-        &mut self,
-        rule: Option<usize>,
-        result: &'static str,
-        writer: &mut Writer<'_>,
-    ) -> Result<(), SimError> {
-        let Some(rule) = rule else {
-            return Ok(());
-        };
-        let mut values = self.context.clone();
-        let stats = self.stats;
-        stats.executed.fetch_add(1, Ordering::SeqCst);
-        let action = self.context.get("action").unwrap_or("").to_string();
-        *stats
-            .by_action
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(action)
-            .or_default() += 1;
-        values.set("result", result.into());
-        let report = match &self.config.physics {
-            Some(physics) => physics.0.end(true),
-            None => super::physics::Report::Said,
-        };
-        self.settle(StepRecord::Done(result.to_string()));
-        if report == super::physics::Report::Unsaid {
-            // Done in the plant, never told (a pallet that stopped reporting).
-            info!(
-                id = self.context.get("id").unwrap_or("-"),
-                "done, but not reported (a silent pallet)"
-            );
-            self.count_file.update();
-            return Ok(());
-        }
-        writer.reply(rule, &values).await?;
-        self.count_file.update();
-        Ok(())
-    }
-
-    /// A poll for the end of the action under way.
-    async fn poll(&mut self, element: &Element, writer: &mut Writer<'_>) -> Result<Flow, SimError> {
-        let done = self.rule(element, &[Outcome::Done]);
-        // Held up in the plant (a pallet waiting on its way): not ended yet.
-        let held =
-            self.running.is_some() && self.config.physics.as_ref().is_some_and(|p| p.0.held());
-        match &self.running {
-            Some(running) if std::time::Instant::now() < running.until || held => {
-                if let Some(rule) = self.rule(element, &[Outcome::Running, Outcome::Accepted]) {
-                    let context = self.context.clone();
-                    writer.reply(rule, &context).await?;
-                }
-            }
-            Some(_) => {
-                let result = self.running.take().expect("matched").result;
-                match result {
-                    Ok(result) => self.finish(done, result, writer).await?,
-                    Err(why) => {
-                        self.answer_failed(element, writer, &why).await?;
-                        self.count_file.update();
-                    }
-                }
-            }
-            None => {
-                // Nothing under way: the last action has ended.
-                if let Some(rule) = done {
-                    let mut values = self.context.clone();
-                    values.set("result", "idle".into());
-                    writer.reply(rule, &values).await?;
-                }
-            }
-        }
-        Ok(Flow::Continue)
     }
 }

@@ -1,5 +1,5 @@
 //! The dialect's abort on a simulated controller's connection (PackML Abort): the
-//! action under way stops at once and is not executed.
+//! actions under way that it names stop at once and are not executed.
 
 use std::sync::atomic::Ordering;
 
@@ -11,11 +11,16 @@ use super::{Flow, Session};
 use crate::dialect::{Outcome, Values};
 
 impl Session<'_> {
-    /// The dialect's abort, with the values it carries: the action under way (the one it
-    /// names, where it names one) stops at once and is not executed; its command is
-    /// answered with its `failed` reply (`aborted`), or, polled, its program just stops;
-    /// the abort is answered with its `accepted` reply when something stopped, its
-    /// `rejected` reply when nothing ran.
+    /// The dialect's abort, with the values it carries. It names the actions it stops:
+    /// where it carries an id, the one with that id; where it carries none, every one
+    /// under way.
+    ///
+    /// | under way | what it does |
+    /// |---|---|
+    /// | actions it names | each stops at once, not executed (counted aborted, each), its command answered with its own `failed` reply (`aborted`); the abort gets its `accepted` reply |
+    /// | a polled program | it just stops (or, where the abort has no reply, its next poll finds it failed) |
+    /// | (`abort_too_late`) actions it names | each ends just before: its `done` crosses the abort on the wire |
+    /// | nothing it names | nothing stops; the abort gets its `rejected` reply |
     pub(super) async fn abort(
         &mut self,
         values: &Values,
@@ -35,42 +40,41 @@ impl Session<'_> {
         let mut answer = values.clone();
         answer.fill_from(&self.context);
         // Where the dialect has ids, the abort names the command it stops.
-        let this_one = values
-            .get("id")
-            .is_none_or(|id| Some(id) == self.context.get("id"));
+        let names = |of: &Values| values.get("id").is_none_or(|id| Some(id) == of.get("id"));
         let now = std::time::Instant::now();
-        let under_way = this_one
-            && (self.acting.is_some()
-                || self
-                    .running
-                    .as_ref()
-                    .is_some_and(|r| now < r.until && r.result.is_ok()));
-        let id = self.context.get("id").unwrap_or("-").to_string();
-        let action = self.context.get("action").unwrap_or("").to_string();
-        if under_way && self.config.abort_too_late {
-            // The action ends as the abort comes: its done crosses the abort on the wire.
-            info!(%id, %action, "the action ended before the abort (abort_too_late)");
-            self.end_action(writer).await?;
+        let (named, others) = std::mem::take(&mut self.acting)
+            .into_iter()
+            .partition::<Vec<_>, _>(|a| names(&a.values));
+        self.acting = others;
+        let polled = names(&self.context)
+            && self
+                .running
+                .as_ref()
+                .is_some_and(|r| now < r.until && r.result.is_ok());
+        if (polled || !named.is_empty()) && self.config.abort_too_late {
+            // Each ends as the abort comes: its done crosses the abort on the wire.
+            for acting in named {
+                let id = acting.values.get("id").unwrap_or("-").to_string();
+                info!(%id, "the action ended before the abort (abort_too_late)");
+                self.end_or_keep(acting, writer).await?;
+            }
             if let Some(running) = &mut self.running {
                 running.until = now;
             }
-        } else if under_way {
-            self.stats.aborted.fetch_add(1, Ordering::SeqCst);
-            info!(%id, %action, "action aborted");
-            if let Some(physics) = &self.config.physics {
-                // An aborted move is left where it stopped; the abort itself is said.
-                physics.0.end(false);
+        } else if polled || !named.is_empty() {
+            for acting in named {
+                let id = acting.values.get("id").unwrap_or("-");
+                let action = acting.values.get("action").unwrap_or("");
+                info!(%id, %action, "action aborted");
+                self.stats.aborted.fetch_add(1, Ordering::SeqCst);
+                if let Some(physics) = &self.config.physics {
+                    // An aborted move is left where it stopped; the abort itself is said.
+                    physics.0.end(&acting.values, false);
+                }
+                self.answer_aborted(acting, writer).await?;
             }
-            if let Some(acting) = self.acting.take() {
-                self.answer_failed(&acting.element, writer, "aborted")
-                    .await?;
-            } else if stopped.is_some() {
-                // The program stops; the abort's answer says so.
-                self.running = None;
-            } else if let Some(running) = &mut self.running {
-                // The next poll finds it failed.
-                running.until = now;
-                running.result = Err("aborted".into());
+            if polled {
+                self.abort_polled(stopped.is_some());
             }
             if let Some(rule) = stopped {
                 writer.reply(rule, &answer).await?;
@@ -78,6 +82,7 @@ impl Session<'_> {
             self.count_file.update();
             return Ok(Flow::Continue);
         } else {
+            let id = self.context.get("id").unwrap_or("-");
             info!(%id, "abort with nothing under way");
         }
         if let Some(rule) = nothing {
@@ -85,5 +90,25 @@ impl Session<'_> {
             writer.reply(rule, &answer).await?;
         }
         Ok(Flow::Continue)
+    }
+
+    /// The polled program under way is aborted: it stops (`said`: the abort's own reply
+    /// says so), or its next poll finds it failed.
+    fn abort_polled(&mut self, said: bool) {
+        self.stats.aborted.fetch_add(1, Ordering::SeqCst);
+        let id = self.context.get("id").unwrap_or("-");
+        let action = self.context.get("action").unwrap_or("");
+        info!(%id, %action, "action aborted");
+        if let Some(physics) = &self.config.physics {
+            physics.0.end(&self.context, false);
+        }
+        if said {
+            // The program stops; the abort's answer says so.
+            self.running = None;
+        } else if let Some(running) = &mut self.running {
+            // The next poll finds it failed.
+            running.until = std::time::Instant::now();
+            running.result = Err("aborted".into());
+        }
     }
 }

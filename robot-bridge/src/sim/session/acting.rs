@@ -1,6 +1,7 @@
 //! How long an action takes and how it ends: its delay, the plant's say in it (a move's
-//! travel, a physical refusal, a move held up), and an action that completes after its
-//! connection is gone.
+//! travel, a physical refusal, a move held up), the actions under way at once
+//! ([`Acting`]), each ended on its own, and actions that complete after their connection
+//! is gone.
 
 use std::sync::atomic::Ordering;
 use std::time::Duration;
@@ -9,10 +10,28 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use super::super::fence::StepRecord;
+use super::super::physics::Report;
 use super::super::writer::Writer;
 use super::super::SimError;
 use super::Session;
-use crate::dialect::Element;
+use crate::dialect::{Element, Outcome, Values};
+
+/// An action under way whose `done` reply answers the message that began it.
+pub(super) struct Acting {
+    /// When its time is up (it ends then, unless held up in the plant).
+    pub(super) until: std::time::Instant,
+    /// The element that began it: its `done` and `failed` replies answer it.
+    pub(super) element: Element,
+    /// The `done` reply.
+    pub(super) done: usize,
+    /// Its result.
+    pub(super) result: &'static str,
+    /// The values of the command that began it (its id, action, part): its replies
+    /// say them, and the plant knows it by them.
+    pub(super) values: Values,
+    /// (Fenced) its step id, recorded as running until it ends.
+    pub(super) step: Option<String>,
+}
 
 /// How soon an action held up in the plant is looked at again.
 pub(super) const HELD_RECHECK: Duration = Duration::from_millis(50);
@@ -70,27 +89,64 @@ impl Session<'_> {
         Ok(Some(takes))
     }
 
+    /// When the first action under way is due to end (None: none is under way).
+    pub(super) fn next_end(&self) -> Option<std::time::Instant> {
+        self.acting.iter().map(|a| a.until).min()
+    }
+
+    /// Whether another action may begin: fewer than `actions_at_once` are under way.
+    pub(super) fn has_room(&self) -> bool {
+        self.acting.len() < self.config.actions_at_once
+    }
+
+    /// Whether the plant holds `acting` up (a jammed track under its move).
+    fn held(&self, acting: &Acting) -> bool {
+        self.config
+            .physics
+            .as_ref()
+            .is_some_and(|p| p.0.held(&acting.values))
+    }
+
+    /// The connection is gone while actions are under way: like a real robot, the
+    /// controller completes each motion it began (counted as executed), each at its own
+    /// end (a move held up in the plant ends once it is not), with nobody to tell.
     pub(super) async fn complete_unanswered(&mut self, shutdown: &CancellationToken) {
-        let Some(acting) = self.acting.take() else {
-            return;
-        };
-        tokio::select! {
-            _ = shutdown.cancelled() => return,
-            _ = act_for(acting.until) => {}
-        }
-        if let Some(physics) = &self.config.physics {
-            // The plant goes on without the holon: a move held up ends once it is not.
-            while physics.0.held() {
-                tokio::select! {
-                    _ = shutdown.cancelled() => return,
-                    _ = tokio::time::sleep(HELD_RECHECK) => {}
+        loop {
+            let now = std::time::Instant::now();
+            let mut index = 0;
+            while index < self.acting.len() {
+                if self.acting[index].until <= now && !self.held(&self.acting[index]) {
+                    let acting = self.acting.remove(index);
+                    self.complete_one(acting);
+                } else {
+                    index += 1;
                 }
             }
-            physics.0.end(true);
+            // The next to look at: one not due yet at its end, one held up shortly.
+            let Some(next) = self
+                .acting
+                .iter()
+                .map(|a| a.until.max(now + HELD_RECHECK))
+                .min()
+            else {
+                return;
+            };
+            tokio::select! {
+                _ = shutdown.cancelled() => return,
+                _ = act_for(next) => {}
+            }
         }
-        let action = self.context.get("action").unwrap_or("").to_string();
-        info!(%action, "the connection is gone: the action completes unanswered");
-        self.settle(StepRecord::Done(acting.result.to_string()));
+    }
+
+    /// `acting` ended with nobody to tell: counted as executed, its step settled.
+    fn complete_one(&mut self, acting: Acting) {
+        if let Some(physics) = &self.config.physics {
+            physics.0.end(&acting.values, true);
+        }
+        let action = acting.values.get("action").unwrap_or("").to_string();
+        let id = acting.values.get("id").unwrap_or("-");
+        info!(%id, %action, "the connection is gone: the action completes unanswered");
+        self.settle_step(acting.step, StepRecord::Done(acting.result.to_string()));
         self.stats.executed.fetch_add(1, Ordering::SeqCst);
         *self
             .stats
@@ -102,18 +158,96 @@ impl Session<'_> {
         self.count_file.update();
     }
 
+    /// The first action under way is due: it ends ([`Session::end_or_keep`]).
     pub(super) async fn end_action(&mut self, writer: &mut Writer<'_>) -> Result<(), SimError> {
-        if let (Some(physics), Some(acting)) = (&self.config.physics, &mut self.acting) {
-            if physics.0.held() {
-                // Held up in the plant (a jammed track): it ends once it is not.
-                acting.until = std::time::Instant::now() + HELD_RECHECK;
-                return Ok(());
-            }
+        let first = (0..self.acting.len()).min_by_key(|&i| self.acting[i].until);
+        if let Some(first) = first {
+            let acting = self.acting.remove(first);
+            self.end_or_keep(acting, writer).await?;
         }
-        if let Some(acting) = self.acting.take() {
-            self.finish(Some(acting.done), acting.result, writer)
-                .await?;
+        Ok(())
+    }
+
+    /// `acting`'s time is up: its `done` reply; held up in the plant (a jammed track),
+    /// it stays under way and is looked at again shortly.
+    pub(super) async fn end_or_keep(
+        &mut self,
+        mut acting: Acting,
+        writer: &mut Writer<'_>,
+    ) -> Result<(), SimError> {
+        if self.held(&acting) {
+            acting.until = std::time::Instant::now() + HELD_RECHECK;
+            self.acting.push(acting);
+            return Ok(());
         }
+        self.finish(
+            Some(acting.done),
+            acting.result,
+            &acting.values,
+            acting.step,
+            writer,
+        )
+        .await
+    }
+
+    /// `acting` stopped by the abort: its own `failed` (or `rejected`) reply, message
+    /// `aborted`, and its step settled failed.
+    pub(super) async fn answer_aborted(
+        &mut self,
+        acting: Acting,
+        writer: &mut Writer<'_>,
+    ) -> Result<(), SimError> {
+        let why = "aborted";
+        let Some(rule) = self.rule(&acting.element, &[Outcome::Failed, Outcome::Rejected]) else {
+            warn!("the dialect has no failed reply here: the command is not answered");
+            return Ok(());
+        };
+        let mut values = acting.values;
+        values.set("message", why.to_string());
+        self.settle_step(acting.step, StepRecord::Failed(why.to_string()));
+        writer.reply(rule, &values).await
+    }
+
+    /// Reports the end of the action the command `values` (step `step`) began with the
+    /// `done` reply `rule`: the action counted as executed, its step settled done.
+    pub(super) async fn finish(
+        &mut self,
+        rule: Option<usize>,
+        result: &'static str,
+        values: &Values,
+        step: Option<String>,
+        writer: &mut Writer<'_>,
+    ) -> Result<(), SimError> {
+        let Some(rule) = rule else {
+            return Ok(());
+        };
+        let stats = self.stats;
+        stats.executed.fetch_add(1, Ordering::SeqCst);
+        let action = values.get("action").unwrap_or("").to_string();
+        *stats
+            .by_action
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(action)
+            .or_default() += 1;
+        let mut answer = values.clone();
+        answer.set("result", result.into());
+        let report = match &self.config.physics {
+            Some(physics) => physics.0.end(values, true),
+            None => Report::Said,
+        };
+        self.settle_step(step, StepRecord::Done(result.to_string()));
+        if report == Report::Unsaid {
+            // Done in the plant, never told (a pallet that stopped reporting).
+            info!(
+                id = values.get("id").unwrap_or("-"),
+                "done, but not reported (a silent pallet)"
+            );
+            self.count_file.update();
+            return Ok(());
+        }
+        writer.reply(rule, &answer).await?;
+        self.count_file.update();
         Ok(())
     }
 }

@@ -1,6 +1,7 @@
 //! The fence on a simulated controller's connection (`--fenced`): claims, heartbeats and
-//! step status answered at once (even while an action is under way), every command's
-//! epoch checked and its step id run at most once ([`crate::sim::fence`]).
+//! step status answered at once (even while actions are under way), every command's
+//! epoch checked and its step id run at most once ([`crate::sim::fence`]). Each action
+//! under way keeps its own step id, recorded as running until that action ends.
 
 use tracing::{info, warn};
 
@@ -212,9 +213,16 @@ impl Session<'_> {
         }
     }
 
-    /// The step under way ended (`Done` counts as its execution).
+    /// The step of the command being begun ended (`Done` counts as its execution).
     pub(super) fn settle(&mut self, record: StepRecord) {
-        let Some(step) = self.step.take() else { return };
+        let step = self.step.take();
+        self.settle_step(step, record);
+    }
+
+    /// The step `step` (an action's, if it has one) ended (`Done` counts as its
+    /// execution).
+    pub(super) fn settle_step(&self, step: Option<String>, record: StepRecord) {
+        let Some(step) = step else { return };
         if let Some(book) = self.stats.fence().as_mut() {
             book.settle(&step, record);
         }

@@ -1,0 +1,247 @@
+//! A conveyor whose controller moves several pallets at once (`actions_at_once` in the
+//! plant file), against the plant simulator over TCP: two moves begun at once on one
+//! conveyor travel together in the plant, each is answered with its own reply when its
+//! own part arrives, and the plant's control port (`where`) finds both parts where they
+//! went. A plant file that sets it to 0 is refused, naming it.
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use robot_bridge::plant::{PlantError, PlantSim};
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio_util::sync::CancellationToken;
+
+/// The longest wait for anything.
+const WAIT: Duration = Duration::from_secs(10);
+
+/// conveyor1: a loop of 2000 mm at 1000 mm/s, its loading point at 0 mm and a buffer
+/// at 1000 mm (a move between them rides about a second), three pallets.
+const CONVEYOR: &str = r#"
+name = "conveyor1"
+
+[[layout.locations]]
+name = "load"
+role = "entry_exit"
+capacity = 2
+dock = "conveyor1.load"
+
+[[layout.locations]]
+name = "buffer"
+role = "buffer"
+capacity = 3
+dock = "conveyor1.buf"
+
+[layout.conveyor]
+length_mm = 2000
+speed_mm_s = 1000
+pallets = 3
+stoppers = [{ name = "load", at_mm = 0 }, { name = "buf", at_mm = 1000 }]
+"#;
+
+fn plant_file(dir: &Path, actions_at_once: usize) -> std::path::PathBuf {
+    std::fs::write(dir.join("conveyor1.toml"), CONVEYOR).unwrap();
+    let path = dir.join("plant.toml");
+    std::fs::write(
+        &path,
+        format!(
+            "layout = [\"conveyor1.toml\"]\n\n[[controller]]\nresource = \"conveyor1\"\nlisten = \"127.0.0.1:0\"\nactions_at_once = {actions_at_once}\n"
+        ),
+    )
+    .unwrap();
+    path
+}
+
+/// One command on the plant's control port, and its answer as JSON.
+async fn control(address: &str, line: &str) -> serde_json::Value {
+    serde_json::from_str(&control_line(address, line).await).unwrap()
+}
+
+/// One command on the plant's control port, and its answer.
+async fn control_line(address: &str, line: &str) -> String {
+    let mut stream = tokio::net::TcpStream::connect(address).await.unwrap();
+    stream
+        .write_all(format!("{line}\n").as_bytes())
+        .await
+        .unwrap();
+    let mut answer = String::new();
+    BufReader::new(stream).read_line(&mut answer).await.unwrap();
+    answer.trim_end().to_string()
+}
+
+/// Reads from `stream` until `received` holds `needle`.
+async fn read_until(stream: &mut tokio::net::TcpStream, received: &mut String, needle: &str) {
+    while !received.contains(needle) {
+        let mut buffer = [0u8; 4096];
+        let n = tokio::time::timeout(WAIT, stream.read(&mut buffer))
+            .await
+            .unwrap_or_else(|_| panic!("no {needle} in time: {received}"))
+            .unwrap();
+        assert!(n > 0, "the controller closed: {received}");
+        received.push_str(&String::from_utf8_lossy(&buffer[..n]));
+    }
+}
+
+fn parts_in(view: &serde_json::Value, location: &str) -> Vec<String> {
+    let mut parts: Vec<String> = view["locations"][location]
+        .as_array()
+        .unwrap_or_else(|| panic!("no {location}: {view:#}"))
+        .iter()
+        .map(|held| held["part"].as_str().unwrap().to_string())
+        .collect();
+    parts.sort();
+    parts
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn two_moves_on_one_conveyor_begun_at_once_both_arrive() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = plant_file(dir.path(), 2);
+    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"))
+        .await
+        .unwrap();
+    let conveyor = plant.addresses()[0].1.to_string();
+    let control_port = plant.control_address().unwrap().to_string();
+    let shutdown = CancellationToken::new();
+    tokio::spawn(plant.run(shutdown.clone()));
+
+    let mut link = tokio::net::TcpStream::connect(&conveyor).await.unwrap();
+    let mv = |id: u64, part: &str| {
+        format!("<ROBOT_CMD><ID>{id}</ID><ACTION>move</ACTION><PART>{part}</PART><FROM>conveyor1.load</FROM><TO>conveyor1.buffer</TO></ROBOT_CMD>")
+    };
+    link.write_all(format!("{}{}", mv(1, "p-1"), mv(2, "p-2")).as_bytes())
+        .await
+        .unwrap();
+    // Both on their way in the plant at once, each on a pallet of its own.
+    let riding = both_riding(&control_port).await;
+    let mut carriers: Vec<&str> = riding
+        .iter()
+        .map(|t| t["load"]["carrier"].as_str().unwrap())
+        .collect();
+    carriers.dedup();
+    assert_eq!(carriers.len(), 2, "{riding:#?}");
+    // Each is answered with its own reply, once its own part has arrived.
+    let mut received = String::new();
+    for id in [1, 2] {
+        let reply = format!("<ROBOT_REPLY><ID>{id}</ID><RESULT>arrived</RESULT></ROBOT_REPLY>");
+        read_until(&mut link, &mut received, &reply).await;
+    }
+    assert!(!received.contains("error"), "{received}");
+    let view = control(&control_port, "where").await;
+    assert_eq!(
+        parts_in(&view, "conveyor1.buffer"),
+        ["p-1", "p-2"],
+        "{view:#}"
+    );
+    assert!(
+        view["in_transit"].as_array().unwrap().is_empty(),
+        "{view:#}"
+    );
+
+    // Both back at once, and out of the plant at the loading point.
+    let back = |id: u64, part: &str| {
+        format!("<ROBOT_CMD><ID>{id}</ID><ACTION>move</ACTION><PART>{part}</PART><FROM>conveyor1.buffer</FROM><TO>conveyor1.load</TO></ROBOT_CMD>")
+    };
+    link.write_all(format!("{}{}", back(3, "p-2"), back(4, "p-1")).as_bytes())
+        .await
+        .unwrap();
+    for id in [3, 4] {
+        let reply = format!("<ROBOT_REPLY><ID>{id}</ID><RESULT>arrived</RESULT></ROBOT_REPLY>");
+        read_until(&mut link, &mut received, &reply).await;
+    }
+    let view = control(&control_port, "where").await;
+    assert!(parts_in(&view, "conveyor1.buffer").is_empty(), "{view:#}");
+    assert_eq!(view["shipped"], 2, "{view:#}");
+    let counts = control(&control_port, "counts").await;
+    assert_eq!(counts["conveyor1"]["executed"], 4, "{counts:#}");
+    shutdown.cancel();
+}
+
+/// Both moves on their way in the plant (polled on the control port): each one's
+/// transit.
+async fn both_riding(control_port: &str) -> Vec<serde_json::Value> {
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let view = control(control_port, "where").await;
+        let riding = view["in_transit"].as_array().unwrap().clone();
+        if riding.len() == 2 {
+            return riding;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the two moves never travelled together: {view:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+}
+
+/// Two moves under way when the controller's links are cut (held on a jammed track, so
+/// that both surely are): each goes on in the plant and its part arrives once the track
+/// is cleared, each counted executed, neither answered.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_cut_leaves_each_move_under_way_to_end_in_the_plant() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = plant_file(dir.path(), 2);
+    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"))
+        .await
+        .unwrap();
+    let conveyor = plant.addresses()[0].1.to_string();
+    let control_port = plant.control_address().unwrap().to_string();
+    let shutdown = CancellationToken::new();
+    tokio::spawn(plant.run(shutdown.clone()));
+    assert_eq!(control_line(&control_port, "jam conveyor1.buf").await, "ok");
+    let mut link = tokio::net::TcpStream::connect(&conveyor).await.unwrap();
+    let mv = |id: u64, part: &str| {
+        format!("<ROBOT_CMD><ID>{id}</ID><ACTION>move</ACTION><PART>{part}</PART><FROM>conveyor1.load</FROM><TO>conveyor1.buffer</TO></ROBOT_CMD>")
+    };
+    link.write_all(format!("{}{}", mv(1, "p-1"), mv(2, "p-2")).as_bytes())
+        .await
+        .unwrap();
+    both_riding(&control_port).await;
+    assert_eq!(control_line(&control_port, "cut conveyor1").await, "ok");
+    let mut received = String::new();
+    loop {
+        let mut buffer = [0u8; 4096];
+        let n = tokio::time::timeout(WAIT, link.read(&mut buffer))
+            .await
+            .expect("the link closed in time")
+            .unwrap_or(0);
+        if n == 0 {
+            break;
+        }
+        received.push_str(&String::from_utf8_lossy(&buffer[..n]));
+    }
+    assert!(!received.contains("ROBOT_REPLY"), "{received}");
+    assert_eq!(
+        control_line(&control_port, "clear conveyor1.buf").await,
+        "ok"
+    );
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let view = control(&control_port, "where").await;
+        let counts = control(&control_port, "counts").await;
+        if parts_in(&view, "conveyor1.buffer") == ["p-1", "p-2"]
+            && counts["conveyor1"]["executed"] == 2
+        {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the moves did not end in the plant: {view:#} {counts:#}"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    shutdown.cancel();
+}
+
+#[test]
+fn a_plant_file_with_no_action_at_once_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = plant_file(dir.path(), 0);
+    match robot_bridge::plant::prepare(&path, None) {
+        Err(PlantError::Invalid { why, .. }) => {
+            assert!(why.contains("actions_at_once"), "{why}")
+        }
+        Err(other) => panic!("{other}"),
+        Ok(_) => panic!("a plant with actions_at_once = 0 was prepared"),
+    }
+}
