@@ -504,6 +504,10 @@ fn plant_file(options: &DemoOptions) -> String {
         text.push_str(&format!(
             "[[controller]]\nresource = \"{resource}\"\nlisten = \"127.0.0.1:0\"\ndelay_ms = {delay}\n"
         ));
+        if resource == "conveyor1" {
+            // As many moves at once as its holon runs (conveyor1.toml's jobs_at_once).
+            text.push_str("actions_at_once = 4\n");
+        }
         if resource == "inspect1" && options.inspect_fail_every > 0 {
             text.push_str(&format!(
                 "inspect_fail_every = {}\n",
