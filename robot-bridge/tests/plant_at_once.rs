@@ -96,7 +96,7 @@ fn parts_in(view: &serde_json::Value, location: &str) -> Vec<String> {
 async fn two_moves_on_one_conveyor_begun_at_once_both_arrive() {
     let dir = tempfile::tempdir().unwrap();
     let path = plant_file(dir.path(), 2);
-    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"))
+    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"), schemas::TimeScale::REAL)
         .await
         .unwrap();
     let conveyor = plant.addresses()[0].1.to_string();
@@ -181,7 +181,7 @@ async fn both_riding(control_port: &str) -> Vec<serde_json::Value> {
 async fn a_cut_leaves_each_move_under_way_to_end_in_the_plant() {
     let dir = tempfile::tempdir().unwrap();
     let path = plant_file(dir.path(), 2);
-    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"))
+    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"), schemas::TimeScale::REAL)
         .await
         .unwrap();
     let conveyor = plant.addresses()[0].1.to_string();
@@ -237,7 +237,7 @@ async fn a_cut_leaves_each_move_under_way_to_end_in_the_plant() {
 fn a_plant_file_with_no_action_at_once_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let path = plant_file(dir.path(), 0);
-    match robot_bridge::plant::prepare(&path, None) {
+    match robot_bridge::plant::prepare(&path, None, schemas::TimeScale::REAL) {
         Err(PlantError::Invalid { why, .. }) => {
             assert!(why.contains("actions_at_once"), "{why}")
         }

@@ -44,6 +44,15 @@ struct Args {
     /// FILE is valid`, and exit (listening nowhere): 0 if it is, 2 with the reason if not.
     #[arg(long)]
     check: bool,
+    /// Run the plant FACTOR times faster than real time (from 1 to 1000; default 1):
+    /// every action's time (`delay_ms`, `action_ms`) and every move's travel take
+    /// 1/FACTOR of their plant time, and e-stops of the control port (MS) too. What the
+    /// plant reports (the state file's and `waits`' times) is plant time. The fenced
+    /// controllers' leases and the protocol's timeouts are not plant time and stay as
+    /// configured. The resource holons driving it must run at the same factor
+    /// (`holon-node --time-scale`).
+    #[arg(long, value_name = "FACTOR", default_value = "1")]
+    time_scale: schemas::TimeScale,
 }
 
 #[tokio::main]
@@ -51,7 +60,7 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     if args.check {
         // Checked as it would start; nothing written, nothing listened on.
-        match robot_bridge::plant::prepare(&args.plant, None) {
+        match robot_bridge::plant::prepare(&args.plant, None, args.time_scale) {
             Ok(_) => {
                 println!("plant {} is valid", args.plant.display());
                 return Ok(());
@@ -64,7 +73,14 @@ async fn main() -> anyhow::Result<()> {
     }
     let _logs = robot_bridge::sim::process::log_to_stderr()
         .context("cannot start the log writer thread")?;
-    let plant = match PlantSim::bind(&args.plant, args.state_file, args.control.as_deref()).await {
+    let plant = match PlantSim::bind(
+        &args.plant,
+        args.state_file,
+        args.control.as_deref(),
+        args.time_scale,
+    )
+    .await
+    {
         Ok(plant) => plant,
         Err(e) => {
             eprintln!("plant-sim: {e}");

@@ -194,15 +194,17 @@ pub async fn serve(
                         info!(%peer, command = %line.trim(), "the plant changed by its control port");
                     }
                     if let Effect::Estop { resource, time } = &effect {
+                        // MS is plant time; the controller and the release wait wall time.
+                        let time = clock.wall(*time);
                         locked.estop(resource, true);
-                        controllers[resource].stop(schemas::ControllerState::Estop, *time);
+                        controllers[resource].stop(schemas::ControllerState::Estop, time);
                         let release = Release {
                             plant: plant.clone(),
                             clock,
                             resource: resource.clone(),
                             on_change: on_change.clone(),
                         };
-                        release.after(*time);
+                        release.after(time);
                     }
                     if let Effect::Cut { resource } = &effect {
                         controllers[resource].cut_links();

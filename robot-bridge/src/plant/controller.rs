@@ -127,7 +127,8 @@ impl Physics for ControllerPhysics {
             info!(resource = %self.resource, %action, part, %from, %to, ?carrier, ?took, "moving");
             self.moving().insert(part.to_string(), Moving { carrier });
             (self.on_change)(&plant);
-            return Ok(Some(took));
+            // The plant's travel, in the wall time the simulator waits.
+            return Ok(Some(self.clock.wall(took)));
         }
         plant
             .check_work(&self.resource, part)
@@ -143,9 +144,9 @@ impl Physics for ControllerPhysics {
             return false;
         }
         let mut plant = self.plant();
-        // A ms of slack: the simulator times the move from the command's receipt, a
+        // A wall ms of slack: the simulator times the move from the command's receipt, a
         // moment before the plant began it (its ms may have ticked in between).
-        let happened = plant.advance(self.clock.now_ms() + 1);
+        let happened = plant.advance(self.clock.now_ms() + self.clock.one_wall_ms());
         log_happenings(&happened);
         if !happened.is_empty() {
             (self.on_change)(&plant);
@@ -167,7 +168,7 @@ impl Physics for ControllerPhysics {
             return Report::Said;
         };
         let mut plant = self.plant();
-        log_happenings(&plant.advance(self.clock.now_ms() + 1));
+        log_happenings(&plant.advance(self.clock.now_ms() + self.clock.one_wall_ms()));
         if !done {
             plant.stop_move(part);
         } else if let Some(why) = plant.on_its_way(part, &self.resource) {

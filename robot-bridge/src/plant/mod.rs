@@ -23,6 +23,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use schemas::layout::CellLayout;
+use schemas::TimeScale;
 use serde::Deserialize;
 use tokio::sync::Notify;
 use tokio_util::sync::CancellationToken;
@@ -111,29 +112,46 @@ pub enum PlantError {
     },
 }
 
-/// The plant's time: ms since it started (the model takes it as an argument).
+/// The plant's time: ms of plant time since it started (the model takes it as an
+/// argument), running `scale` times as fast as the wall clock (`plant-sim
+/// --time-scale`).
 #[derive(Debug, Clone, Copy)]
 pub struct Clock {
     /// When the plant started.
     started: Instant,
+    /// How many times faster than real time the plant runs.
+    scale: TimeScale,
 }
 
 impl Clock {
-    /// A clock from now.
-    pub fn start() -> Clock {
+    /// A clock from now, at `scale`.
+    pub fn start(scale: TimeScale) -> Clock {
         Clock {
             started: Instant::now(),
+            scale,
         }
     }
 
-    /// Ms since the plant started.
+    /// Plant ms since the plant started.
     pub fn now_ms(&self) -> u64 {
-        u64::try_from(self.started.elapsed().as_millis()).unwrap_or(u64::MAX)
+        let wall_us = self.started.elapsed().as_micros() as f64;
+        (wall_us * self.scale.factor() / 1000.0) as u64
     }
 
-    /// The instant `ms` after the plant started.
+    /// The plant ms that pass in one wall ms (at least 1): the slack a controller
+    /// allows between its own timing of an action and the plant's.
+    pub fn one_wall_ms(&self) -> u64 {
+        self.scale.factor().ceil() as u64
+    }
+
+    /// The wall time a plant duration takes.
+    pub fn wall(&self, plant: Duration) -> Duration {
+        self.scale.wall(plant)
+    }
+
+    /// The instant `ms` of plant time after the plant started.
     pub fn at(&self, ms: u64) -> Instant {
-        self.started + Duration::from_millis(ms)
+        self.started + self.scale.wall(Duration::from_millis(ms))
     }
 }
 
@@ -221,12 +239,18 @@ pub struct Prepared {
 
 /// Reads and checks the plant file at `path` and everything it names (the layout, each
 /// controller's dialect), without listening anywhere.
-pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, PlantError> {
+/// The plant runs at `scale`: each controller's action times (`delay_ms`,
+/// `action_ms`) and every move's travel take 1/`scale` of their plant time.
+pub fn prepare(
+    path: &Path,
+    state_file: Option<PathBuf>,
+    scale: TimeScale,
+) -> Result<Prepared, PlantError> {
     let file = read(path)?;
     let layout = layout_of(path, &file)?;
     let base = path.parent().unwrap_or(Path::new("."));
     let plant = Arc::new(Mutex::new(Plant::new(layout)));
-    let clock = Clock::start();
+    let clock = Clock::start(scale);
     let write = state_writer(state_file.or(file.state_file.clone()));
     let wake = Arc::new(Notify::new());
     let on_change: OnChange = {
@@ -270,11 +294,11 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
             .map_err(|e| invalid(e.to_string()))?;
         let physics = ControllerPhysics::new(plant.clone(), clock, &c.resource, on_change.clone());
         let config = SimConfig {
-            delay: Duration::from_millis(c.delay_ms),
+            delay: clock.wall(Duration::from_millis(c.delay_ms)),
             action_delays: c
                 .action_ms
                 .iter()
-                .map(|(action, ms)| (action.clone(), Duration::from_millis(*ms)))
+                .map(|(action, ms)| (action.clone(), clock.wall(Duration::from_millis(*ms))))
                 .collect(),
             inspect_fail_every: c.inspect_fail_every,
             dialect: Some(dialect),
@@ -297,11 +321,13 @@ pub fn prepare(path: &Path, state_file: Option<PathBuf>) -> Result<Prepared, Pla
 
 impl PlantSim {
     /// Reads the plant file at `path` (`state_file` overriding its own) and binds
-    /// every controller, and the control port at `control` if given.
+    /// every controller, and the control port at `control` if given; the plant runs at
+    /// `scale` ([`prepare`]).
     pub async fn bind(
         path: &Path,
         state_file: Option<PathBuf>,
         control: Option<&str>,
+        scale: TimeScale,
     ) -> Result<PlantSim, PlantError> {
         let Prepared {
             controllers: prepared,
@@ -310,7 +336,7 @@ impl PlantSim {
             write,
             on_change,
             wake,
-        } = prepare(path, state_file)?;
+        } = prepare(path, state_file, scale)?;
         let mut controllers = Vec::new();
         for (resource, listen, config) in prepared {
             let simulator =
