@@ -126,7 +126,10 @@ async fn at_fifty_times_a_move_and_an_action_take_a_fiftieth_and_the_plant_count
     assert!(picked < Duration::from_secs(5), "the pick took {picked:?}");
     let waits = control(&control_port, "waits").await;
     let now_ms = waits["now_ms"].as_u64().unwrap();
-    assert!(now_ms >= 20_000, "the plant's time is plant time: {waits:#}");
+    assert!(
+        now_ms >= 20_000,
+        "the plant's time is plant time: {waits:#}"
+    );
     eprintln!("at 50x: move {moved:?}, pick {picked:?} of wall time; plant time now {now_ms} ms");
     shutdown.cancel();
 }
