@@ -49,6 +49,12 @@ pub enum Commands {
         /// file and field.
         #[arg(long)]
         check: bool,
+        /// Run the cell's plant FACTOR times faster than real time (from 1 to 1000),
+        /// overriding the manifest's `time_scale`: every `plant-sim` and `holon-node`
+        /// process gets `--time-scale FACTOR` (docs/scheduling.md, "Scaled time"). A
+        /// process whose args already give `--time-scale` keeps its own.
+        #[arg(long, value_name = "FACTOR")]
+        time_scale: Option<schemas::TimeScale>,
     },
     /// Upgrade one process of a running `cell up DIR` (on this host) to a new build or
     /// config while the cell runs: the running holon finishes its step, keeps its

@@ -97,7 +97,12 @@ async fn run(args: Args) -> Result<bool> {
         Commands::Up {
             dir, check: true, ..
         } => cli::up::check(&dir),
-        Commands::Up { dir, host, .. } => cli::up::run(&dir, &host).await,
+        Commands::Up {
+            dir,
+            host,
+            time_scale,
+            ..
+        } => cli::up::run(&dir, &host, time_scale).await,
         Commands::Upgrade(args) => cli::up::upgrade(args).await,
         Commands::Router(args) => cli::router::run(args).await,
         Commands::Orders(args) => cli::orders::list(args).await,

@@ -14,10 +14,11 @@ pub fn check(dir: &Path) -> Result<bool> {
     Ok(layout.problems.is_empty())
 }
 
-/// `cell up DIR`: supervises this host's processes until Ctrl-C or SIGTERM.
-pub async fn run(dir: &Path, host: &str) -> Result<bool> {
+/// `cell up DIR`: supervises this host's processes until Ctrl-C or SIGTERM, the plant
+/// at `time_scale` if given (else as the manifest says).
+pub async fn run(dir: &Path, host: &str, time_scale: Option<schemas::TimeScale>) -> Result<bool> {
     let shutdown = holon::shutdown_on_signals();
-    cell::up::run(dir, host, shutdown).await
+    cell::up::run_scaled(dir, host, time_scale, shutdown).await
 }
 
 /// `cell upgrade`: which process, and its new build or config.

@@ -25,7 +25,15 @@ pub struct Manifest {
     pub pki: PkiSection,
     #[serde(rename = "process")]
     pub processes: Vec<ProcessSection>,
+    /// The plant runs this many times faster than real time (docs/scheduling.md,
+    /// "Scaled time"): `cell up` gives every `plant-sim` and `holon-node` process
+    /// `--time-scale` with it. None: real time (or `cell up --time-scale`).
+    #[serde(default)]
+    pub time_scale: Option<f64>,
 }
+
+/// The programs that take `--time-scale`: the plant and the resource holons.
+const SCALED_PROGRAMS: [&str; 2] = ["plant-sim", "holon-node"];
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -312,6 +320,16 @@ impl Manifest {
                 p.args.push(STANDBY_FLAG.into());
             }
         }
+        if let Some(factor) = self.time_scale {
+            let scale = schemas::TimeScale::new(factor).map_err(|e| anyhow::anyhow!("time_scale: {e}"))?;
+            for p in &mut self.processes {
+                let program = Path::new(&p.program).file_name().and_then(|n| n.to_str());
+                let scaled = program.is_some_and(|name| SCALED_PROGRAMS.contains(&name));
+                if scaled && !p.args.iter().any(|a| a == "--time-scale") {
+                    p.args.extend(["--time-scale".to_string(), scale.to_string()]);
+                }
+            }
+        }
         if self.processes.is_empty() && router.is_none() {
             bail!(
                 "the manifest gives host {host:?} nothing to run; {}",
@@ -391,6 +409,51 @@ program = "robot-sim"
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("cell.toml"), text).unwrap();
         Manifest::load(dir.path())
+    }
+
+    #[test]
+    fn a_scaled_cell_gives_its_plant_and_its_holons_the_factor() {
+        let text = r#"cell = "fast"
+time_scale = 20
+[router]
+listen = ["tcp/127.0.0.1:7447"]
+[[process]]
+name = "plant"
+program = "target/debug/plant-sim"
+args = ["--plant", "plant.toml"]
+[[process]]
+name = "robot1"
+program = "holon-node"
+args = ["--config", "robot1.toml"]
+[[process]]
+name = "orders1"
+program = "order-node"
+args = ["--config", "orders1.toml"]
+[[process]]
+name = "slow"
+program = "holon-node"
+args = ["--config", "slow.toml", "--time-scale", "5"]
+"#;
+        let (local, _) = load(text).unwrap().for_host("local").unwrap();
+        let args = |name: &str| {
+            local
+                .processes
+                .iter()
+                .find(|p| p.name == name)
+                .unwrap()
+                .args
+                .join(" ")
+        };
+        assert_eq!(args("plant"), "--plant plant.toml --time-scale 20");
+        assert_eq!(args("robot1"), "--config robot1.toml --time-scale 20");
+        assert_eq!(args("orders1"), "--config orders1.toml");
+        assert_eq!(args("slow"), "--config slow.toml --time-scale 5");
+        let err = load(&text.replace("time_scale = 20", "time_scale = 0.5"))
+            .unwrap()
+            .for_host("local")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("time_scale"), "{err}");
     }
 
     #[test]

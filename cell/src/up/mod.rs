@@ -37,7 +37,21 @@ use supervision::{Clock, Processes};
 
 /// Runs the cell until `shutdown`; Ok(false) when the restart intensity was exceeded.
 pub async fn run(dir: &Path, host: &str, shutdown: CancellationToken) -> Result<bool> {
-    let (manifest, router) = Manifest::load(dir)?.for_host(host)?;
+    run_scaled(dir, host, None, shutdown).await
+}
+
+/// [`run`], the plant at `time_scale` when given (overriding the manifest's).
+pub async fn run_scaled(
+    dir: &Path,
+    host: &str,
+    time_scale: Option<schemas::TimeScale>,
+    shutdown: CancellationToken,
+) -> Result<bool> {
+    let mut manifest = Manifest::load(dir)?;
+    if let Some(scale) = time_scale {
+        manifest.time_scale = Some(scale.factor());
+    }
+    let (manifest, router) = manifest.for_host(host)?;
     let clock = Clock(Instant::now());
     let logs = dir.join("logs");
     std::fs::create_dir_all(&logs)?;
