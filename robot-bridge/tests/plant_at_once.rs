@@ -8,8 +8,11 @@ use std::path::Path;
 use std::time::{Duration, Instant};
 
 use robot_bridge::plant::{PlantError, PlantSim};
-use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_util::sync::CancellationToken;
+
+mod common;
+use common::plant::{control, control_line};
 
 /// The longest wait for anything.
 const WAIT: Duration = Duration::from_secs(10);
@@ -49,23 +52,6 @@ fn plant_file(dir: &Path, actions_at_once: usize) -> std::path::PathBuf {
     )
     .unwrap();
     path
-}
-
-/// One command on the plant's control port, and its answer as JSON.
-async fn control(address: &str, line: &str) -> serde_json::Value {
-    serde_json::from_str(&control_line(address, line).await).unwrap()
-}
-
-/// One command on the plant's control port, and its answer.
-async fn control_line(address: &str, line: &str) -> String {
-    let mut stream = tokio::net::TcpStream::connect(address).await.unwrap();
-    stream
-        .write_all(format!("{line}\n").as_bytes())
-        .await
-        .unwrap();
-    let mut answer = String::new();
-    BufReader::new(stream).read_line(&mut answer).await.unwrap();
-    answer.trim_end().to_string()
 }
 
 /// Reads from `stream` until `received` holds `needle`.

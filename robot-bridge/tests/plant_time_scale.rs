@@ -8,8 +8,11 @@ use std::time::{Duration, Instant};
 
 use robot_bridge::plant::PlantSim;
 use schemas::TimeScale;
-use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_util::sync::CancellationToken;
+
+mod common;
+use common::plant::control;
 
 /// A 2000 mm loop at 100 mm/s: from the loading point to the station's port at 1000 mm
 /// is 10 s of plant time.
@@ -51,17 +54,6 @@ fn plant_file(dir: &Path) -> std::path::PathBuf {
     )
     .unwrap();
     path
-}
-
-async fn control(address: &str, line: &str) -> serde_json::Value {
-    let mut stream = tokio::net::TcpStream::connect(address).await.unwrap();
-    stream
-        .write_all(format!("{line}\n").as_bytes())
-        .await
-        .unwrap();
-    let mut answer = String::new();
-    BufReader::new(stream).read_line(&mut answer).await.unwrap();
-    serde_json::from_str(answer.trim_end()).unwrap()
 }
 
 /// Sends `command` on a new link to `address` and reads until `reply` (at most 20 s).

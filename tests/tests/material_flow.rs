@@ -697,26 +697,6 @@ async fn the_staff_counts_the_travel_and_sends_the_part_to_the_near_station() {
     flow.assert_all_done_and_plant_empty(&orders).await;
 }
 
-/// The loop's plant with its conveyor's controller running three moves at once.
-const PLANT_THREE_AT_ONCE: &str = r#"
-layout = ["conveyor1.toml", "station_a.toml", "station_b.toml"]
-
-[[controller]]
-resource = "conveyor1"
-listen = "127.0.0.1:0"
-actions_at_once = 3
-
-[[controller]]
-resource = "station_a"
-listen = "127.0.0.1:0"
-delay_ms = 150
-
-[[controller]]
-resource = "station_b"
-listen = "127.0.0.1:0"
-delay_ms = 150
-"#;
-
 /// A conveyor whose holon runs three moves at once (`[controller] jobs_at_once = 3`,
 /// its plant controller `actions_at_once = 3`) has several pallets on their way at one
 /// moment, as the plant sees it, and every order still finishes with each part where
@@ -730,7 +710,14 @@ async fn the_conveyor_moves_several_pallets_at_once() {
         "connect_timeout_ms = 500\njobs_at_once = 3",
     );
     assert!(conveyor.contains("jobs_at_once = 3"));
-    let flow = FlowCell::start_on("t-flow-at-once", &conveyor, PLANT_THREE_AT_ONCE).await;
+    // The plant's conveyor1 (its first controller) runs as many.
+    let plant = PLANT.replacen(
+        "listen = \"127.0.0.1:0\"",
+        "listen = \"127.0.0.1:0\"\nactions_at_once = 3",
+        1,
+    );
+    assert!(plant.contains("conveyor1\"\nlisten = \"127.0.0.1:0\"\nactions_at_once = 3"));
+    let flow = FlowCell::start_on("t-flow-at-once", &conveyor, &plant).await;
     let mut orders = Vec::new();
     for product in ["ab", "ba", "ab", "ba", "ab", "ba"] {
         orders.extend(flow.cell.submit(product, 1).await.unwrap());

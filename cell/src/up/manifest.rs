@@ -321,12 +321,14 @@ impl Manifest {
             }
         }
         if let Some(factor) = self.time_scale {
-            let scale = schemas::TimeScale::new(factor).map_err(|e| anyhow::anyhow!("time_scale: {e}"))?;
+            let scale =
+                schemas::TimeScale::new(factor).map_err(|e| anyhow::anyhow!("time_scale: {e}"))?;
             for p in &mut self.processes {
                 let program = Path::new(&p.program).file_name().and_then(|n| n.to_str());
                 let scaled = program.is_some_and(|name| SCALED_PROGRAMS.contains(&name));
                 if scaled && !p.args.iter().any(|a| a == "--time-scale") {
-                    p.args.extend(["--time-scale".to_string(), scale.to_string()]);
+                    p.args
+                        .extend(["--time-scale".to_string(), scale.to_string()]);
                 }
             }
         }

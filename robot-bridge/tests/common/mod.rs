@@ -3,6 +3,8 @@
 
 #![allow(dead_code)] // each test file uses its own part
 
+pub mod plant;
+
 use std::sync::Arc;
 use std::time::Duration;
 

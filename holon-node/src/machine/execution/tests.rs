@@ -5,7 +5,7 @@ use crate::catalog::pick_n_place;
 use schemas::{HolonId, Pose};
 use serde_json::json;
 
-fn job(service_type: &str) -> Job {
+pub(super) fn job(service_type: &str) -> Job {
     Job {
         requester: HolonId::order("o-1").unwrap(),
         conversation_id: "c1".into(),
@@ -24,11 +24,11 @@ fn ready() -> ExecutionEvent {
     ExecutionEvent::Controller(ControllerEvent::Status(ControllerStatus::Ready, None))
 }
 
-fn status(s: ControllerStatus) -> ExecutionEvent {
+pub(super) fn status(s: ControllerStatus) -> ExecutionEvent {
     ExecutionEvent::Controller(ControllerEvent::Status(s, None))
 }
 
-fn reply(id: u64, result: &str) -> ExecutionEvent {
+pub(super) fn reply(id: u64, result: &str) -> ExecutionEvent {
     ExecutionEvent::Controller(ControllerEvent::Reply {
         id,
         result: result.into(),

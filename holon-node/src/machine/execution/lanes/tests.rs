@@ -3,39 +3,20 @@
 use std::sync::Arc;
 
 use robot_bridge::client::{CommandFailure, ControllerEvent, StepId, StepStatus};
-use schemas::{ControllerStatus, HolonId};
-use serde_json::json;
+use schemas::ControllerStatus;
 
 use super::Executions;
 use crate::catalog::pick_n_place;
 use crate::machine::agenda::{Job, Outcome};
+use crate::machine::execution::tests::{reply, status};
 use crate::machine::execution::{ExecutionAction, ExecutionEvent};
 
+/// A pick_n_place job of conversation `conversation`.
 fn job(conversation: &str) -> Job {
     Job {
-        requester: HolonId::order("o-1").unwrap(),
         conversation_id: conversation.into(),
-        service_type: "pick_n_place".into(),
-        reply_to: "holarchy/t/order/o-1/inbox".into(),
-        info: json!({"pick": {"x": 1, "y": 2, "z": 3}, "place": {"x": 4, "y": 5, "z": 6}})
-            .as_object()
-            .unwrap()
-            .clone(),
-        parameters: None,
-        operator: None,
+        ..crate::machine::execution::tests::job("pick_n_place")
     }
-}
-
-fn status(s: ControllerStatus) -> ExecutionEvent {
-    ExecutionEvent::Controller(ControllerEvent::Status(s, None))
-}
-
-fn reply(id: u64, result: &str) -> ExecutionEvent {
-    ExecutionEvent::Controller(ControllerEvent::Reply {
-        id,
-        result: result.into(),
-        message: None,
-    })
 }
 
 /// The command ids (and lanes) among `actions`.
