@@ -1,6 +1,8 @@
 use super::*;
 use crate::catalog::pick_n_place;
 use schemas::unix_ms;
+use schemas::MessageType;
+use serde_json::json;
 
 mod at_once;
 mod epoch;
