@@ -2,6 +2,7 @@
 
 use std::io::Write;
 use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -208,36 +209,7 @@ async fn main() -> anyhow::Result<()> {
     }
     let _logs = robot_bridge::sim::process::log_to_stderr()
         .context("cannot start the log writer thread")?;
-    let config = SimConfig {
-        delay: Duration::from_millis(args.delay_ms),
-        action_delays: args
-            .action_ms
-            .iter()
-            .map(|(action, ms)| (action.clone(), Duration::from_millis(*ms)))
-            .collect(),
-        changeover: Duration::from_millis(args.changeover_ms),
-        error_every: args.error_every,
-        close_after: args.close_after,
-        hang_after: args.hang_after,
-        garbage_after: args.garbage_after,
-        inspect_fail_every: args.inspect_fail_every,
-        fault_after: args.fault_after,
-        fault_every: args.fault_every,
-        fault_state: Some(args.fault_state),
-        fault_for: Duration::from_millis(args.fault_for_ms),
-        unknown_state_every: args.unknown_state_every,
-        count_file: args.count_file,
-        dialect: Some(dialect),
-        reset_after: args.reset_after,
-        oversize_after: args.oversize_after,
-        wrong_id_after: args.wrong_id_after,
-        fragment: args.fragment,
-        merge: args.merge,
-        abort_too_late: false,
-        fence_lease: args.fenced.then(|| Duration::from_millis(args.lease_ms)),
-        physics: None,
-        actions_at_once: args.actions_at_once,
-    };
+    let config = sim_config(&args, dialect);
     let simulator = match &args.connect {
         Some(address) => {
             println!("dialling {address}");
@@ -279,4 +251,38 @@ fn parse_action_ms(text: &str) -> Result<(String, u64), String> {
         .parse()
         .map_err(|_| format!("{text:?}: MS must be a whole number of milliseconds"))?;
     Ok((action.to_string(), ms))
+}
+
+/// The simulator's settings as the command line gives them, speaking `dialect`.
+fn sim_config(args: &Args, dialect: Arc<Dialect>) -> SimConfig {
+    SimConfig {
+        delay: Duration::from_millis(args.delay_ms),
+        action_delays: args
+            .action_ms
+            .iter()
+            .map(|(action, ms)| (action.clone(), Duration::from_millis(*ms)))
+            .collect(),
+        changeover: Duration::from_millis(args.changeover_ms),
+        error_every: args.error_every,
+        close_after: args.close_after,
+        hang_after: args.hang_after,
+        garbage_after: args.garbage_after,
+        inspect_fail_every: args.inspect_fail_every,
+        fault_after: args.fault_after,
+        fault_every: args.fault_every,
+        fault_state: Some(args.fault_state),
+        fault_for: Duration::from_millis(args.fault_for_ms),
+        unknown_state_every: args.unknown_state_every,
+        count_file: args.count_file.clone(),
+        dialect: Some(dialect),
+        reset_after: args.reset_after,
+        oversize_after: args.oversize_after,
+        wrong_id_after: args.wrong_id_after,
+        fragment: args.fragment,
+        merge: args.merge,
+        abort_too_late: false,
+        fence_lease: args.fenced.then(|| Duration::from_millis(args.lease_ms)),
+        physics: None,
+        actions_at_once: args.actions_at_once,
+    }
 }
