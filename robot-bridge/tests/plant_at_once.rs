@@ -7,12 +7,11 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use robot_bridge::plant::{PlantError, PlantSim};
+use robot_bridge::plant::PlantError;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio_util::sync::CancellationToken;
 
 mod common;
-use common::plant::{control, control_line};
+use common::plant::{control, control_line, start_plant};
 
 /// The longest wait for anything.
 const WAIT: Duration = Duration::from_secs(10);
@@ -82,13 +81,12 @@ fn parts_in(view: &serde_json::Value, location: &str) -> Vec<String> {
 async fn two_moves_on_one_conveyor_begun_at_once_both_arrive() {
     let dir = tempfile::tempdir().unwrap();
     let path = plant_file(dir.path(), 2);
-    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"), schemas::TimeScale::REAL)
-        .await
-        .unwrap();
-    let conveyor = plant.addresses()[0].1.to_string();
-    let control_port = plant.control_address().unwrap().to_string();
-    let shutdown = CancellationToken::new();
-    tokio::spawn(plant.run(shutdown.clone()));
+    let plant = start_plant(&path, schemas::TimeScale::REAL).await;
+    let (conveyor, control_port) = (
+        plant.address("conveyor1").to_string(),
+        plant.control.clone(),
+    );
+    let shutdown = plant.shutdown.clone();
 
     let mut link = tokio::net::TcpStream::connect(&conveyor).await.unwrap();
     let mv = |id: u64, part: &str| {
@@ -167,13 +165,12 @@ async fn both_riding(control_port: &str) -> Vec<serde_json::Value> {
 async fn a_cut_leaves_each_move_under_way_to_end_in_the_plant() {
     let dir = tempfile::tempdir().unwrap();
     let path = plant_file(dir.path(), 2);
-    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"), schemas::TimeScale::REAL)
-        .await
-        .unwrap();
-    let conveyor = plant.addresses()[0].1.to_string();
-    let control_port = plant.control_address().unwrap().to_string();
-    let shutdown = CancellationToken::new();
-    tokio::spawn(plant.run(shutdown.clone()));
+    let plant = start_plant(&path, schemas::TimeScale::REAL).await;
+    let (conveyor, control_port) = (
+        plant.address("conveyor1").to_string(),
+        plant.control.clone(),
+    );
+    let shutdown = plant.shutdown.clone();
     assert_eq!(control_line(&control_port, "jam conveyor1.buf").await, "ok");
     let mut link = tokio::net::TcpStream::connect(&conveyor).await.unwrap();
     let mv = |id: u64, part: &str| {

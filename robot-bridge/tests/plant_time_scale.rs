@@ -6,13 +6,11 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use robot_bridge::plant::PlantSim;
 use schemas::TimeScale;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio_util::sync::CancellationToken;
 
 mod common;
-use common::plant::control;
+use common::plant::{control, start_plant};
 
 /// A 2000 mm loop at 100 mm/s: from the loading point to the station's port at 1000 mm
 /// is 10 s of plant time.
@@ -80,30 +78,18 @@ async fn at_fifty_times_a_move_and_an_action_take_a_fiftieth_and_the_plant_count
     let dir = tempfile::tempdir().unwrap();
     let path = plant_file(dir.path());
     let scale: TimeScale = "50".parse().unwrap();
-    let plant = PlantSim::bind(&path, None, Some("127.0.0.1:0"), scale)
-        .await
-        .unwrap();
-    let address = |resource: &str| {
-        plant
-            .addresses()
-            .iter()
-            .find(|(r, _)| r == resource)
-            .map(|(_, a)| a.to_string())
-            .unwrap()
-    };
-    let (conveyor, station) = (address("conveyor1"), address("station1"));
-    let control_port = plant.control_address().unwrap().to_string();
-    let shutdown = CancellationToken::new();
-    tokio::spawn(plant.run(shutdown.clone()));
+    let plant = start_plant(&path, scale).await;
+    let (conveyor, station) = (plant.address("conveyor1"), plant.address("station1"));
+    let control_port = plant.control.clone();
 
     let moved = exchange(
-        &conveyor,
+        conveyor,
         "<ROBOT_CMD><ID>1</ID><ACTION>move</ACTION><PART>p-1</PART><FROM>conveyor1.load</FROM><TO>station1.port</TO></ROBOT_CMD>",
         "<RESULT>arrived</RESULT>",
     )
     .await;
     let picked = exchange(
-        &station,
+        station,
         "<ROBOT_CMD><ID>1</ID><ACTION>pick</ACTION><PART>p-1</PART></ROBOT_CMD>",
         "<RESULT>picking_done</RESULT>",
     )
@@ -123,5 +109,5 @@ async fn at_fifty_times_a_move_and_an_action_take_a_fiftieth_and_the_plant_count
         "the plant's time is plant time: {waits:#}"
     );
     eprintln!("at 50x: move {moved:?}, pick {picked:?} of wall time; plant time now {now_ms} ms");
-    shutdown.cancel();
+    plant.shutdown.cancel();
 }

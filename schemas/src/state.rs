@@ -13,9 +13,11 @@ use crate::robot::ControllerState;
 pub enum ResourceState {
     /// The controller is not ready (not connected yet, in fault or estop): no new work.
     Init,
-    /// Ready, nothing running.
+    /// Ready, and a job may begin: nothing runs (or, on a resource that runs several
+    /// jobs at once, fewer than it can).
     Free,
-    /// A job is running.
+    /// A job is running, and no other can begin beside it (on a resource that runs
+    /// several at once: all it can run are running).
     Busy,
 }
 

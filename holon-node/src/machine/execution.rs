@@ -180,11 +180,6 @@ impl ExecutionMachine {
         self
     }
 
-    /// Whether its running step waits for the answer to command `id`.
-    pub fn waits_for(&self, id: u64) -> bool {
-        self.is_waiting_for(id)
-    }
-
     /// The same machine for a fenced controller: a step whose answer was lost is asked
     /// of the controller, not failed.
     pub fn fenced(mut self, fenced: bool) -> Self {
@@ -309,7 +304,8 @@ impl ExecutionMachine {
         }
     }
 
-    fn is_waiting_for(&self, id: u64) -> bool {
+    /// Whether its running step waits for the answer to command `id`.
+    pub fn is_waiting_for(&self, id: u64) -> bool {
         matches!(&self.state, ExecutionState::Running { command_id, .. } if *command_id == id)
     }
 

@@ -480,12 +480,12 @@ impl AgendaMachine {
         self.running.len() < self.jobs_at_once
     }
 
+    /// The status, with the first job begun when it is `busy`.
     pub fn status(&self) -> Status {
-        match (self.running.first(), self.execution_ready) {
-            (Some(job), _) if !self.has_room() => Status::Busy(job.clone()),
-            (_, true) => Status::Free,
-            (Some(job), false) => Status::Busy(job.clone()),
-            (None, false) => Status::Init,
+        match (self.state(), self.running.first()) {
+            (ResourceState::Busy, Some(job)) => Status::Busy(job.clone()),
+            (ResourceState::Free, _) => Status::Free,
+            (ResourceState::Init | ResourceState::Busy, _) => Status::Init,
         }
     }
 

@@ -97,7 +97,7 @@ impl Executions {
             ExecutionEvent::Controller(ControllerEvent::Status(..)) => self.every_lane(event),
             ExecutionEvent::Controller(
                 ControllerEvent::Reply { id, .. } | ControllerEvent::CommandFailed { id, .. },
-            ) => match self.lanes.iter().position(|l| l.waits_for(id)) {
+            ) => match self.lanes.iter().position(|l| l.is_waiting_for(id)) {
                 Some(lane) => tagged(lane, self.lanes[lane].handle(event)),
                 None => vec![],
             },
