@@ -8,7 +8,7 @@
 //! |---|---|---|
 //! | a move begins (its phase recorded `started`) | at `from` | in transit on the transporter from `from` to `to` |
 //! | the move is done | in transit | at `to` (shipped at an exit); the place at `from` released unless it is the part's home |
-//! | the move ended unattempted (lost before it began, no transporter) | at `from` | at `from` (the place reserved at `to` released) |
+//! | the move ended unattempted (refused, lost before it began, `not_begun`, no transporter) | at `from` | at `from` (the place reserved at `to` released) |
 //! | the move failed, or its transporter vanished while it may have run | in transit | lost: in transit on the transporter, last seen at `from`, until it or an operator says |
 //! | the transporter says the lost move was done / never reached the controller | lost | at `to` / at `from` |
 //! | an operator says the lost part is at `to` / at `from` (recorded with who said it) | lost | at `to` / at `from` |

@@ -99,6 +99,10 @@ words! {
         ControllerError = "controller_error",
         /// The connection to the controller broke during the step.
         ControllerDisconnected = "controller_disconnected",
+        /// The connection to the controller broke before it began the job's first step,
+        /// and its fenced controller says it never had it: nothing of the job ran, it
+        /// is safe to book again (a part the job would have moved has not moved).
+        NotBegun = "not_begun",
         /// The controller did not answer a command within its timeout.
         ControllerTimeout = "controller_timeout",
         /// The controller sent something that is not the protocol.

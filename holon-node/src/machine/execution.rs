@@ -27,7 +27,8 @@
 //! | step n, unsettled | controller `ready` | its step's state asked | step n, unsettled |
 //! | step n, unsettled | step state `done` with a result | as that reply (the next step's command, or finished: done) | step n+1, or `ready` |
 //! | step n, unsettled | step state `failed` | as a reply `error` | `ready` (or `init`) |
-//! | step n, unsettled | step state unknown (the controller never began it) | finished: failed `controller_disconnected` | `ready` (or `init`) |
+//! | step 1, unsettled | step state unknown (the controller never began it: nothing of the job ran) | finished: failed `not_begun` | `ready` (or `init`) |
+//! | step n > 1, unsettled | step state unknown (the controller never began it) | finished: failed `controller_disconnected` | `ready` (or `init`) |
 //! | step n, unsettled | the state cannot be asked now (not connected, no answer in time) | asked again once the controller is ready | step n, unsettled |
 //! | step n, unsettled | the controller cannot tell (no fence, refused) | finished: failed `controller_disconnected` | `ready` (or `init`) |
 //! | step n | controller `fault` / `estop` | finished: failed `controller_fault`; unavailable | `init` |
@@ -599,6 +600,10 @@ impl ExecutionMachine {
                 *unsettled = false;
                 self.reply(id, schemas::robot::RESULT_ERROR.into(), Some(message))
             }
+            Ok(StepStatus::Unknown) if *index == 0 => self.fail(
+                Reason::NotBegun,
+                format!("the connection broke before the controller began step {step}, the job's first: nothing of it ran"),
+            ),
             Ok(StepStatus::Unknown) => self.fail(
                 Reason::ControllerDisconnected,
                 format!("the connection broke before the controller began step {step}"),

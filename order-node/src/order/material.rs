@@ -428,7 +428,9 @@ impl OrderTask<'_> {
 
     /// The part is lost with its move's transporter: asks it, whenever it is there,
     /// what became of the move, until it says done (the part arrived) or never reached
-    /// (the part is where it was), or an operator says where the part is.
+    /// (the part is where it was), or an operator says where the part is. A result the
+    /// transporter sends again meanwhile is read as its answer would be (and
+    /// acknowledged), so that it does not wait in the order's inbox.
     async fn find_lost(&mut self, moving: &Move) -> Result<(), OrderError> {
         let Some(transporter) = moving.phase.resource().cloned() else {
             self.ctx.commit(self.progress, |p| {
@@ -441,15 +443,7 @@ impl OrderTask<'_> {
         loop {
             if let Some(arrived) = self.ask_transporter(&transporter, moving).await {
                 info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, arrived, "the transporter said where the lost part is");
-                let mut released = Vec::new();
-                self.ctx.commit(self.progress, |p| {
-                    if let Some(part) = &mut p.part {
-                        released = part.found(arrived);
-                    }
-                })?;
-                self.publish().await;
-                self.release(released).await;
-                return Ok(());
+                return self.lost_part_found(arrived).await;
             }
             tokio::select! {
                 _ = tokio::time::sleep(jittered(LOST_ASK_EVERY)) => {}
@@ -459,8 +453,41 @@ impl OrderTask<'_> {
                         return Ok(());
                     }
                 }
+                Some(report) = self.inbox.reports.recv() => {
+                    let worked_with = self.progress.get().worked_with.clone();
+                    let judged = crate::inbox::judge(report, &transporter, &worked_with, &moving.conversation_id).await;
+                    let Some((outcome, report)) = judged else { continue };
+                    let arrived = match move_end(&outcome, true) {
+                        MoveEnd::Done => Some(true),
+                        MoveEnd::Unattempted => Some(false),
+                        MoveEnd::Unknown { .. } => None,
+                    };
+                    if let Some(arrived) = arrived {
+                        info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, arrived, %outcome, "the transporter's result says where the lost part is");
+                        self.lost_part_found(arrived).await?;
+                    }
+                    // Recorded (or still unknown, as the part's place says): the
+                    // transporter need not send it again.
+                    report.acknowledge().await;
+                    if arrived.is_some() {
+                        return Ok(());
+                    }
+                }
             }
         }
+    }
+
+    /// The lost part is found: at its move's destination (`arrived`) or its origin.
+    async fn lost_part_found(&mut self, arrived: bool) -> Result<(), OrderError> {
+        let mut released = Vec::new();
+        self.ctx.commit(self.progress, |p| {
+            if let Some(part) = &mut p.part {
+                released = part.found(arrived);
+            }
+        })?;
+        self.publish().await;
+        self.release(released).await;
+        Ok(())
     }
 
     /// Asks the lost move's transporter, if it is there, what became of the move:
@@ -563,9 +590,10 @@ fn service_step(service_type: &str, info: Map<String, Value>) -> PlanStep {
 
 /// What a move's outcome means for the part. A failure the transporter's controller
 /// answered at once (it refused the move: `controller_error`, a refused start, info it
-/// could not use) moved nothing; any other (a fault or an abort on the way, a lost
-/// connection, no result in time, the transporter gone while it may have run) may have
-/// moved it: the part is lost until the transporter says.
+/// could not use) moved nothing, nor did one the controller never began (`not_begun`:
+/// its fenced controller says it never had the move); any other (a fault or an abort
+/// on the way, a lost connection, no result in time, the transporter gone while it may
+/// have run) may have moved it: the part is lost until the transporter says.
 fn move_end(outcome: &StepOutcome, may_have_begun: bool) -> MoveEnd {
     match outcome {
         StepOutcome::Done { .. } => MoveEnd::Done,
@@ -574,6 +602,7 @@ fn move_end(outcome: &StepOutcome, may_have_begun: bool) -> MoveEnd {
         StepOutcome::Lost { .. } => MoveEnd::Unattempted,
         StepOutcome::Failed { reason, detail, .. } => {
             let refused = reason == Reason::ControllerError.as_str()
+                || reason == Reason::NotBegun.as_str()
                 || reason == Reason::InvalidInfo.as_str()
                 || reason.starts_with("start refused");
             if refused {
@@ -603,3 +632,6 @@ fn entry_of(layout: &CellLayout) -> Option<LocationId> {
         .find(|l| matches!(l.role, LocationRole::Entry | LocationRole::EntryExit))
         .map(|l| l.id.clone())
 }
+
+#[cfg(test)]
+mod tests;

@@ -65,7 +65,9 @@ pub fn from_agenda(
                     .unwrap_or_default();
             }
             (_, Some(Reason::Interrupted)) if fenced => return None,
-            (_, Some(Reason::Withdrawn)) => reply.outcome = Outcome::NeverReached,
+            (_, Some(Reason::Withdrawn | Reason::NotBegun)) => {
+                reply.outcome = Outcome::NeverReached
+            }
             (_, reason) => {
                 reply.outcome = Outcome::Failed;
                 reply.reason = Some(reason.clone().unwrap_or(Reason::Other("failed".into())));
@@ -339,6 +341,18 @@ mod tests {
         )
         .unwrap();
         assert_eq!(withdrawn.outcome, Outcome::NeverReached);
+        // Failed before the controller began its first step: nothing ran either.
+        let not_begun = from_agenda(
+            &view(
+                vec![result(MessageType::Failed, Some(Reason::NotBegun))],
+                None,
+            ),
+            &asked,
+            &robot(),
+            true,
+        )
+        .unwrap();
+        assert_eq!(not_begun.outcome, Outcome::NeverReached);
         let running = from_agenda(&view(vec![], Some("orders1-1/1/1")), &asked, &robot(), true);
         assert_eq!(running.unwrap().outcome, Outcome::Running);
         // Another conversation, or nothing: the agenda does not know it.

@@ -537,9 +537,30 @@ mod fenced {
     }
 
     #[test]
-    fn a_step_the_controller_never_began_fails_disconnected() {
+    fn a_first_step_the_controller_never_began_fails_not_begun() {
         let (mut e, _) = unsettled();
         let actions = e.handle(step_state("c1#0", Ok(StepStatus::Unknown)));
+        // Nothing of the job ran: the order may book it again (a part has not moved).
+        failed_with(&actions, "not_begun");
+        assert_eq!(e.state(), &ExecutionState::Ready);
+    }
+
+    #[test]
+    fn a_later_step_the_controller_never_began_fails_disconnected() {
+        let (mut e, _) = unsettled();
+        let done = Ok(StepStatus::Done {
+            result: "picking_done".into(),
+        });
+        let place = command(&e.handle(step_state("c1#0", done)));
+        assert_eq!(
+            e.handle(lost(place.id)),
+            vec![
+                ExecutionAction::AskStepStatus,
+                ExecutionAction::StateChanged
+            ]
+        );
+        // Step 1 ran: the job ran in part, not "not begun".
+        let actions = e.handle(step_state("c1#1", Ok(StepStatus::Unknown)));
         failed_with(&actions, "controller_disconnected");
         assert_eq!(e.state(), &ExecutionState::Ready);
     }
