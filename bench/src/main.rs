@@ -39,7 +39,7 @@ mod upgrade;
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::{Parser, Subcommand};
 
 #[derive(Debug, Parser)]
@@ -107,6 +107,16 @@ enum Commands {
         /// Where the JSON goes.
         #[arg(long, default_value = "schedule-results.json")]
         out: PathBuf,
+        /// A cell scenario's time scale (1 to 1000), overriding the scenario's
+        /// `time_scale`: plant time runs FACTOR times as fast as the wall clock.
+        #[arg(long, value_name = "FACTOR")]
+        time_scale: Option<u32>,
+        /// Run a cell scenario in this mode only: contract-net or staff (default both).
+        #[arg(long, value_name = "MODE")]
+        mode: Option<String>,
+        /// Where a cell scenario's Gantt charts go (one SVG per run).
+        #[arg(long, value_name = "DIR", default_value = "schedule-charts")]
+        charts: PathBuf,
     },
     /// The upgrade benchmark: robot1, the order-node and the product replaced while
     /// orders run, by a planned hand-over (--take-over) and, as the baseline, by SIGTERM
@@ -254,7 +264,24 @@ async fn run(args: Args) -> Result<()> {
             scenarios,
             seeds,
             out,
+            time_scale,
+            mode,
+            charts,
         } => {
+            let modes = match mode.as_deref() {
+                None => vec![schedule::CellMode::ContractNet, schedule::CellMode::Staff],
+                Some("contract-net") => vec![schedule::CellMode::ContractNet],
+                Some("staff") => vec![schedule::CellMode::Staff],
+                Some(other) => bail!("--mode {other}: contract-net or staff"),
+            };
+            if time_scale.is_some_and(|f| !(1..=1000).contains(&f)) {
+                bail!("--time-scale: from 1 to 1000");
+            }
+            let cells = schedule::CellOptions {
+                time_scale,
+                modes,
+                charts,
+            };
             let scenarios = if scenarios.is_empty() {
                 let dir = holarchy_tests::workspace_root().join("deploy/scenarios");
                 let mut found: Vec<PathBuf> = std::fs::read_dir(&dir)
@@ -268,7 +295,7 @@ async fn run(args: Args) -> Result<()> {
             } else {
                 scenarios
             };
-            schedule::run(&scenarios, seeds, &out).await
+            schedule::run(&scenarios, seeds, &out, &cells).await
         }
         Commands::Upgrade { rounds, out } => upgrade::run(rounds, &out).await,
         Commands::Soak {

@@ -24,8 +24,11 @@ use serde_json::{json, Value};
 use crate::cells::router;
 
 mod arrivals;
+pub mod cell;
 
 use arrivals::{arrivals, Arrival};
+pub use cell::scenario::CellScenario;
+pub use cell::CellMode;
 
 /// A scenario file (`deploy/scenarios/*.toml` documents the format).
 #[derive(Debug, Clone, Deserialize)]
@@ -173,9 +176,47 @@ pub struct Outcome {
     pub steps: usize,
 }
 
-/// Runs every scenario in `paths` for `seeds` seeds in both modes; prints the table and
+/// What a run of cell scenarios is asked (`bench schedule` on a cell).
+#[derive(Debug, Clone)]
+pub struct CellOptions {
+    /// Its time scale, overriding each scenario's.
+    pub time_scale: Option<u32>,
+    /// The modes to run, each once.
+    pub modes: Vec<CellMode>,
+    /// Where the Gantt charts go.
+    pub charts: PathBuf,
+}
+
+/// Runs every scenario in `paths`: one on a cell (it names one) in each of the cell
+/// options' modes, any other for `seeds` seeds in every mode; prints the tables and
 /// writes the JSON to `out`.
-pub async fn run(paths: &[PathBuf], seeds: u64, out: &Path) -> Result<()> {
+pub async fn run(paths: &[PathBuf], seeds: u64, out: &Path, cells: &CellOptions) -> Result<()> {
+    let (on_cells, simulated): (Vec<PathBuf>, Vec<PathBuf>) =
+        paths.iter().cloned().partition(|p| CellScenario::is_one(p));
+    let mut json = serde_json::Map::new();
+    if !simulated.is_empty() {
+        json.insert(
+            "scenarios".into(),
+            Value::from(run_simulated(&simulated, seeds).await?),
+        );
+    }
+    if !on_cells.is_empty() {
+        println!();
+        cell::print_header();
+        let mut runs = Vec::new();
+        for path in &on_cells {
+            runs.extend(cell::run(path, &cells.modes, cells.time_scale, &cells.charts).await?);
+        }
+        json.insert("cells".into(), serde_json::to_value(&runs)?);
+    }
+    std::fs::write(out, serde_json::to_string_pretty(&Value::Object(json))?)?;
+    println!("written to {}", out.display());
+    Ok(())
+}
+
+/// Runs the scenarios on simulated robots (`resources`, `products`) for `seeds` seeds
+/// in every mode: their summaries.
+async fn run_simulated(paths: &[PathBuf], seeds: u64) -> Result<Vec<Value>> {
     let dir = tempfile::Builder::new()
         .prefix("holarchy-schedule")
         .tempdir()?;
@@ -247,15 +288,10 @@ pub async fn run(paths: &[PathBuf], seeds: u64, out: &Path) -> Result<()> {
                 .unwrap_or_else(|| "-".into()),
         );
     }
-    std::fs::write(
-        out,
-        serde_json::to_string_pretty(&json!({ "scenarios": results }))?,
-    )?;
-    println!("written to {}", out.display());
     if keep {
         println!("logs kept in {}", dir.keep().display());
     }
-    Ok(())
+    Ok(results)
 }
 
 fn ms(d: Duration) -> f64 {

@@ -220,7 +220,7 @@ async fn a_cut_leaves_each_move_under_way_to_end_in_the_plant() {
 fn a_plant_file_with_no_action_at_once_is_refused() {
     let dir = tempfile::tempdir().unwrap();
     let path = plant_file(dir.path(), 0);
-    match robot_bridge::plant::prepare(&path, None, schemas::TimeScale::REAL) {
+    match robot_bridge::plant::prepare(&path, Default::default(), schemas::TimeScale::REAL) {
         Err(PlantError::Invalid { why, .. }) => {
             assert!(why.contains("actions_at_once"), "{why}")
         }

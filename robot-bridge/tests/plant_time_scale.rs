@@ -6,6 +6,7 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use robot_bridge::plant::trace::TraceRecord;
 use schemas::TimeScale;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
@@ -46,9 +47,11 @@ fn plant_file(dir: &Path) -> std::path::PathBuf {
     let path = dir.join("plant.toml");
     std::fs::write(
         &path,
-        "layout = [\"conveyor1.toml\", \"station1.toml\"]\n\n\
+        format!("layout = [\"conveyor1.toml\", \"station1.toml\"]\ntrace_file = {:?}\n\n\
          [[controller]]\nresource = \"conveyor1\"\nlisten = \"127.0.0.1:0\"\n\n\
-         [[controller]]\nresource = \"station1\"\nlisten = \"127.0.0.1:0\"\naction_ms = { pick = 10000 }\n",
+         [[controller]]\nresource = \"station1\"\nlisten = \"127.0.0.1:0\"\naction_ms = {{ pick = 10000 }}\n",
+            dir.join("trace.jsonl")
+        ),
     )
     .unwrap();
     path
@@ -108,6 +111,45 @@ async fn at_fifty_times_a_move_and_an_action_take_a_fiftieth_and_the_plant_count
         now_ms >= 20_000,
         "the plant's time is plant time: {waits:#}"
     );
+    // A command naming no part works on the part at the port.
+    exchange(
+        station,
+        "<ROBOT_CMD><ID>2</ID><ACTION>place</ACTION></ROBOT_CMD>",
+        "<RESULT>placing_done</RESULT>",
+    )
+    .await;
     eprintln!("at 50x: move {moved:?}, pick {picked:?} of wall time; plant time now {now_ms} ms");
     plant.shutdown.cancel();
+
+    // The trace has each action in plant time: the move's 10 s of travel, the pick's
+    // 10 s, one after the other.
+    let trace: Vec<TraceRecord> = std::fs::read_to_string(dir.path().join("trace.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    let [moving, picking, placing] = &trace[..] else {
+        panic!("three actions traced: {trace:#?}");
+    };
+    assert_eq!(
+        (
+            moving.resource.as_str(),
+            moving.action.as_str(),
+            moving.part.as_deref()
+        ),
+        ("conveyor1", "move", Some("p-1"))
+    );
+    assert!(moving.carrier.is_some() && moving.done, "{moving:?}");
+    assert!(moving.end_ms - moving.begin_ms >= 10_000, "{moving:?}");
+    assert_eq!(
+        (
+            picking.resource.as_str(),
+            picking.action.as_str(),
+            picking.part.as_deref()
+        ),
+        ("station1", "pick", Some("p-1"))
+    );
+    assert!(picking.end_ms - picking.begin_ms >= 10_000, "{picking:?}");
+    assert!(picking.begin_ms >= moving.end_ms, "{trace:#?}");
+    assert_eq!(placing.part.as_deref(), Some("p-1"), "{placing:?}");
 }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::Parser;
-use robot_bridge::plant::PlantSim;
+use robot_bridge::plant::{Outputs, PlantSim};
 
 /// The cell's plant, simulated once for all its controllers (docs/material-flow.md,
 /// "The plant"): every controller of the plant file on its own address in its own
@@ -28,6 +28,12 @@ struct Args {
     /// Where to write where everything is, overriding the plant file's state_file.
     #[arg(long, value_name = "PATH")]
     state_file: Option<PathBuf>,
+    /// Write every action the controllers run here, one JSON line each as it ends
+    /// (resource, action, part, carrier, begin_ms and end_ms in plant time, done),
+    /// overriding the plant file's trace_file; the file is emptied at start
+    /// (docs/material-flow.md, "The plant's trace").
+    #[arg(long, value_name = "PATH")]
+    trace: Option<PathBuf>,
     /// Serve the control port here (HOST:PORT; port 0: a free one, printed): one
     /// command a line: `where` (the state as JSON), `waits` (what waits, since when,
     /// and whether the plant is deadlocked), `counts` (what each controller executed),
@@ -60,7 +66,7 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     if args.check {
         // Checked as it would start; nothing written, nothing listened on.
-        match robot_bridge::plant::prepare(&args.plant, None, args.time_scale) {
+        match robot_bridge::plant::prepare(&args.plant, Outputs::default(), args.time_scale) {
             Ok(_) => {
                 println!("plant {} is valid", args.plant.display());
                 return Ok(());
@@ -75,7 +81,10 @@ async fn main() -> anyhow::Result<()> {
         .context("cannot start the log writer thread")?;
     let plant = match PlantSim::bind(
         &args.plant,
-        args.state_file,
+        Outputs {
+            state_file: args.state_file,
+            trace_file: args.trace,
+        },
         args.control.as_deref(),
         args.time_scale,
     )

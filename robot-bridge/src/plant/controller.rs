@@ -23,6 +23,7 @@ use schemas::layout::LocationId;
 use tracing::{debug, info, warn};
 
 use super::model::{Happening, Plant};
+use super::trace::{Trace, TraceRecord};
 use super::Clock;
 use crate::dialect::Values;
 use crate::sim::physics::{Physics, Report};
@@ -37,6 +38,19 @@ struct Moving {
     /// Its pallet when the move began, if it rides one (a silent one's arrival is not
     /// said).
     carrier: Option<String>,
+    /// Its action, and when it began (plant ms), for the trace.
+    action: String,
+    begin_ms: u64,
+}
+
+/// A station's action under way, for the trace (known by the part its command names,
+/// or "" when it names none).
+#[derive(Debug, Clone)]
+struct Working {
+    action: String,
+    /// The part at its port when it began.
+    part: Option<String>,
+    begin_ms: u64,
 }
 
 /// The physics of the controller of resource `resource`.
@@ -51,8 +65,12 @@ pub struct ControllerPhysics {
     resource: String,
     /// The moves under way, by the part each moves; each ended by `end`.
     moving: Mutex<BTreeMap<String, Moving>>,
+    /// A station's actions under way, by the part each command names ("" for none).
+    working: Mutex<BTreeMap<String, Working>>,
     /// Told after every change this controller makes.
     on_change: OnChange,
+    /// Where every ended action is written.
+    trace: Trace,
 }
 
 impl ControllerPhysics {
@@ -61,13 +79,16 @@ impl ControllerPhysics {
         clock: Clock,
         resource: &str,
         on_change: OnChange,
+        trace: Trace,
     ) -> ControllerPhysics {
         ControllerPhysics {
             plant,
             clock,
             resource: resource.to_string(),
             moving: Mutex::new(BTreeMap::new()),
+            working: Mutex::new(BTreeMap::new()),
             on_change,
+            trace,
         }
     }
 
@@ -77,6 +98,27 @@ impl ControllerPhysics {
 
     fn moving(&self) -> std::sync::MutexGuard<'_, BTreeMap<String, Moving>> {
         self.moving.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn working(&self) -> std::sync::MutexGuard<'_, BTreeMap<String, Working>> {
+        self.working.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// A station's action ended: traced.
+    fn end_work(&self, values: &Values, done: bool) {
+        let key = values.get("info.part").unwrap_or_default().to_string();
+        let Some(working) = self.working().remove(&key) else {
+            return;
+        };
+        self.trace.record(&TraceRecord {
+            resource: self.resource.clone(),
+            action: working.action,
+            part: working.part,
+            carrier: None,
+            begin_ms: working.begin_ms,
+            end_ms: self.clock.now_ms(),
+            done,
+        });
     }
 }
 
@@ -125,7 +167,12 @@ impl Physics for ControllerPhysics {
                 .map_err(|e| e.to_string())?;
             let carrier = plant.carrier_of(part);
             info!(resource = %self.resource, %action, part, %from, %to, ?carrier, ?took, "moving");
-            self.moving().insert(part.to_string(), Moving { carrier });
+            let moving = Moving {
+                carrier,
+                action: action.to_string(),
+                begin_ms: self.clock.now_ms(),
+            };
+            self.moving().insert(part.to_string(), moving);
             (self.on_change)(&plant);
             // The plant's travel, in the wall time the simulator waits.
             return Ok(Some(self.clock.wall(took)));
@@ -133,6 +180,15 @@ impl Physics for ControllerPhysics {
         plant
             .check_work(&self.resource, part)
             .map_err(|e| e.to_string())?;
+        let working = Working {
+            action: action.to_string(),
+            part: part
+                .map(str::to_string)
+                .or_else(|| plant.part_at_station(&self.resource)),
+            begin_ms: self.clock.now_ms(),
+        };
+        self.working()
+            .insert(part.unwrap_or_default().to_string(), working);
         Ok(None)
     }
 
@@ -161,10 +217,11 @@ impl Physics for ControllerPhysics {
     }
 
     fn end(&self, values: &Values, done: bool) -> Report {
-        let Some(part) = values.get("info.part") else {
-            return Report::Said;
-        };
-        let Some(moving) = self.moving().remove(part) else {
+        let moving = values
+            .get("info.part")
+            .and_then(|part| Some((part, self.moving().remove(part)?)));
+        let Some((part, moving)) = moving else {
+            self.end_work(values, done);
             return Report::Said;
         };
         let mut plant = self.plant();
@@ -182,6 +239,15 @@ impl Physics for ControllerPhysics {
             .is_some_and(|p| plant.is_silent(p));
         info!(resource = %self.resource, part, where_it_is = %plant.where_is(part), unreported, "moved");
         (self.on_change)(&plant);
+        self.trace.record(&TraceRecord {
+            resource: self.resource.clone(),
+            action: moving.action,
+            part: Some(part.to_string()),
+            carrier: moving.carrier,
+            begin_ms: moving.begin_ms,
+            end_ms: self.clock.now_ms(),
+            done,
+        });
         if done && unreported {
             Report::Unsaid
         } else {

@@ -15,6 +15,7 @@ pub mod control;
 pub mod controller;
 mod drive;
 pub mod model;
+pub mod trace;
 
 use std::collections::BTreeMap;
 use std::net::SocketAddr;
@@ -33,6 +34,7 @@ use crate::sim::physics::PhysicsHook;
 use crate::sim::{SimConfig, Simulator};
 use controller::{ControllerPhysics, OnChange};
 use model::Plant;
+use trace::Trace;
 
 /// The plant file (`deploy/cells/demo/plant.toml` documents it), as written.
 #[derive(Debug, Clone, Deserialize)]
@@ -45,6 +47,11 @@ pub struct PlantFile {
     /// working directory); None: nowhere.
     #[serde(default)]
     pub state_file: Option<PathBuf>,
+    /// Where the plant writes every action its controllers ran, a JSON line each as it
+    /// ends, in plant time ([`trace`]; relative to the working directory); None:
+    /// nowhere.
+    #[serde(default)]
+    pub trace_file: Option<PathBuf>,
     /// The controllers it serves.
     #[serde(rename = "controller")]
     pub controllers: Vec<ControllerSection>,
@@ -221,6 +228,16 @@ pub fn read(path: &Path) -> Result<PlantFile, PlantError> {
     Ok(file)
 }
 
+/// Where the plant writes, overriding its plant file's `state_file` and `trace_file`
+/// (None: as the plant file says).
+#[derive(Debug, Clone, Default)]
+pub struct Outputs {
+    /// Where everything is, rewritten after every change.
+    pub state_file: Option<PathBuf>,
+    /// Every action its controllers ran ([`trace`]).
+    pub trace_file: Option<PathBuf>,
+}
+
 /// A plant file read and checked, ready to bind.
 pub struct Prepared {
     /// Each controller's resource, address and simulator settings.
@@ -241,17 +258,24 @@ pub struct Prepared {
 /// controller's dialect), without listening anywhere.
 /// The plant runs at `scale`: each controller's action times (`delay_ms`,
 /// `action_ms`) and every move's travel take 1/`scale` of their plant time.
-pub fn prepare(
-    path: &Path,
-    state_file: Option<PathBuf>,
-    scale: TimeScale,
-) -> Result<Prepared, PlantError> {
+pub fn prepare(path: &Path, files: Outputs, scale: TimeScale) -> Result<Prepared, PlantError> {
     let file = read(path)?;
+    let Outputs {
+        state_file,
+        trace_file,
+    } = files;
     let layout = layout_of(path, &file)?;
     let base = path.parent().unwrap_or(Path::new("."));
     let plant = Arc::new(Mutex::new(Plant::new(layout)));
     let clock = Clock::start(scale);
     let write = state_writer(state_file.or(file.state_file.clone()));
+    let trace = match trace_file.or(file.trace_file.clone()) {
+        Some(path) => Trace::create(&path).map_err(|e| PlantError::Read {
+            path: path.display().to_string(),
+            why: format!("cannot write the trace: {e}"),
+        })?,
+        None => Trace::none(),
+    };
     let wake = Arc::new(Notify::new());
     let on_change: OnChange = {
         let (write, wake) = (write.clone(), wake.clone());
@@ -292,7 +316,13 @@ pub fn prepare(
         }
         SimConfig::check_actions_at_once(c.actions_at_once, &dialect)
             .map_err(|e| invalid(e.to_string()))?;
-        let physics = ControllerPhysics::new(plant.clone(), clock, &c.resource, on_change.clone());
+        let physics = ControllerPhysics::new(
+            plant.clone(),
+            clock,
+            &c.resource,
+            on_change.clone(),
+            trace.clone(),
+        );
         let config = SimConfig {
             delay: clock.wall(Duration::from_millis(c.delay_ms)),
             action_delays: c
@@ -320,12 +350,12 @@ pub fn prepare(
 }
 
 impl PlantSim {
-    /// Reads the plant file at `path` (`state_file` overriding its own) and binds
-    /// every controller, and the control port at `control` if given; the plant runs at
+    /// Reads the plant file at `path` (`files` overriding its own) and binds every
+    /// controller, and the control port at `control` if given; the plant runs at
     /// `scale` ([`prepare`]).
     pub async fn bind(
         path: &Path,
-        state_file: Option<PathBuf>,
+        files: Outputs,
         control: Option<&str>,
         scale: TimeScale,
     ) -> Result<PlantSim, PlantError> {
@@ -336,7 +366,7 @@ impl PlantSim {
             write,
             on_change,
             wake,
-        } = prepare(path, state_file, scale)?;
+        } = prepare(path, files, scale)?;
         let mut controllers = Vec::new();
         for (resource, listen, config) in prepared {
             let simulator =

@@ -31,7 +31,7 @@ impl RunningPlant {
 /// Binds the plant file at `path` at `scale`, its control port on a free port, and runs
 /// it until the returned plant's `shutdown`.
 pub async fn start_plant(path: &Path, scale: TimeScale) -> RunningPlant {
-    let plant = PlantSim::bind(path, None, Some("127.0.0.1:0"), scale)
+    let plant = PlantSim::bind(path, Default::default(), Some("127.0.0.1:0"), scale)
         .await
         .unwrap();
     let addresses = plant

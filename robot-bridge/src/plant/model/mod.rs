@@ -565,6 +565,18 @@ impl Plant {
             .and_then(|l| l.carrier.clone())
     }
 
+    /// The part at one of `station`'s ports (the first, by location), if any: the one
+    /// a command naming no part works on.
+    pub fn part_at_station(&self, station: &str) -> Option<String> {
+        let layout = self.layout.parts.get(station)?;
+        layout
+            .locations
+            .iter()
+            .filter(|l| matches!(l.role, LocationRole::Port | LocationRole::Input))
+            .find_map(|l| self.held.get(&l.id).and_then(|loads| loads.first()))
+            .map(|load| load.part.clone())
+    }
+
     /// Whether `station` can work on a part now: one is at one of its ports (`part`,
     /// where the command names it). A station without ports in the layout is not in the
     /// material flow: anything goes.

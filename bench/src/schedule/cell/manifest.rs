@@ -1,0 +1,123 @@
+//! A copy of a shipped cell for one run: its files in a directory of the run's own,
+//! its manifest told to trace the plant, serve the plant's control port, and (for
+//! contract net alone) start no staff holon.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{anyhow, Context, Result};
+
+/// What the run needs to know of its copy of the cell.
+#[derive(Debug, Clone)]
+pub struct CellCopy {
+    /// The copy's directory (`cell up` runs it).
+    pub dir: PathBuf,
+    /// The cell's name.
+    pub cell: String,
+    /// Its router's endpoint (`tcp/...`), where the bench connects.
+    pub endpoint: String,
+    /// The plant's control port.
+    pub control: String,
+    /// The plant's trace file.
+    pub trace: PathBuf,
+    /// The resource holons it starts (the manifest's holon-node processes whose
+    /// config is a resource), the product holons and the staff holons.
+    pub resources: Vec<String>,
+    pub products: Vec<String>,
+    pub staff: Vec<String>,
+}
+
+/// Copies the cell in `from` to `to` (its files, not its data, logs or run
+/// directories) with its manifest rewritten: the plant traced and controlled at
+/// `control`, and its staff holons left out unless `with_staff`.
+pub fn copy(from: &Path, to: &Path, control: &str, with_staff: bool) -> Result<CellCopy> {
+    std::fs::create_dir_all(to)?;
+    for entry in std::fs::read_dir(from).with_context(|| format!("{}", from.display()))? {
+        let entry = entry?;
+        if entry.file_type()?.is_file() {
+            std::fs::copy(entry.path(), to.join(entry.file_name()))?;
+        }
+    }
+    let path = to.join("cell.toml");
+    let mut manifest: toml::Table = toml::from_str(&std::fs::read_to_string(&path)?)
+        .with_context(|| format!("{}", path.display()))?;
+    let cell = manifest
+        .get("cell")
+        .and_then(|c| c.as_str())
+        .ok_or_else(|| anyhow!("{}: no cell", path.display()))?
+        .to_string();
+    let endpoint = manifest
+        .get("router")
+        .and_then(|r| r.get("listen"))
+        .and_then(|l| l.as_array())
+        .and_then(|l| l.first())
+        .and_then(|e| e.as_str())
+        .ok_or_else(|| anyhow!("{}: no [router] listen to connect to", path.display()))?
+        .to_string();
+    let mut copy = CellCopy {
+        dir: to.to_path_buf(),
+        cell,
+        endpoint,
+        control: control.to_string(),
+        trace: to.join("plant-trace.jsonl"),
+        resources: Vec::new(),
+        products: Vec::new(),
+        staff: Vec::new(),
+    };
+    let processes = manifest
+        .get_mut("process")
+        .and_then(|p| p.as_array_mut())
+        .ok_or_else(|| anyhow!("{}: no [[process]]", path.display()))?;
+    let mut kept = Vec::new();
+    for mut process in processes.drain(..) {
+        let program = process
+            .get("program")
+            .and_then(|p| p.as_str())
+            .unwrap_or("");
+        let args: Vec<String> = process
+            .get("args")
+            .and_then(|a| a.as_array())
+            .into_iter()
+            .flatten()
+            .filter_map(|a| a.as_str().map(str::to_string))
+            .collect();
+        if program == "plant-sim" {
+            let mut traced = args.clone();
+            traced.extend(["--trace", "plant-trace.jsonl", "--control", control].map(String::from));
+            if let Some(table) = process.as_table_mut() {
+                table.insert("args".into(), toml::Value::from(traced));
+            }
+        } else if program == "holon-node" {
+            let (name, kind) = holon_of(to, &args)?;
+            match kind.as_str() {
+                "staff" if !with_staff => continue,
+                "staff" => copy.staff.push(name),
+                "product" => copy.products.push(name),
+                _ => copy.resources.push(name),
+            }
+        }
+        kept.push(process);
+    }
+    *processes = kept;
+    std::fs::write(&path, toml::to_string(&manifest)?)?;
+    Ok(copy)
+}
+
+/// The name and kind of the holon a holon-node process runs (from its `--config`).
+fn holon_of(dir: &Path, args: &[String]) -> Result<(String, String)> {
+    let config = args
+        .iter()
+        .position(|a| a == "--config")
+        .and_then(|i| args.get(i + 1))
+        .ok_or_else(|| anyhow!("a holon-node process without --config: {args:?}"))?;
+    let path = dir.join(config);
+    let table: toml::Table = toml::from_str(&std::fs::read_to_string(&path)?)
+        .with_context(|| format!("{}", path.display()))?;
+    let field = |key: &str| {
+        table
+            .get(key)
+            .and_then(|v| v.as_str())
+            .map(str::to_string)
+            .ok_or_else(|| anyhow!("{}: no {key}", path.display()))
+    };
+    Ok((field("name")?, field("kind")?))
+}
