@@ -119,6 +119,19 @@ fn the_aip_primeca_cell_checks_with_m7_away_and_hot_added() {
         assert_eq!(hop, expected, "{from} -> {to}");
     }
     assert_eq!(monorail.pallets, 10);
+    // Every shuttle moves on its own: the holon runs as many moves at once as there are
+    // shuttles, and so does its controller in the plant (else the plant would run the
+    // holon's moves one after the other).
+    let holon = read_toml("monorail.toml");
+    assert_eq!(holon["controller"]["jobs_at_once"].as_integer(), Some(10));
+    let plant = read_toml("plant.toml");
+    let controller = plant["controller"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|c| c["resource"].as_str() == Some("monorail"))
+        .unwrap();
+    assert_eq!(controller["actions_at_once"].as_integer(), Some(10));
     let buffer = layout
         .locations()
         .map(|(_, l)| l)
