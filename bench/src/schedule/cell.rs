@@ -30,7 +30,7 @@ pub mod scenario;
 use bound::{Bound, CellModel};
 use manifest::CellCopy;
 use metrics::{CellFigures, Released};
-use scenario::{CellScenario, Event};
+use scenario::{CellScenario, Event, Happening};
 
 /// How the orders were scheduled on the cell.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -362,18 +362,17 @@ async fn drive(
     wait_ready(&session, &keys, copy).await?;
     let start_ms = plant.now_ms().await?;
     let started = Instant::now();
-    // The timeline: releases and events by their moment.
-    let mut timeline: Vec<(f64, Option<usize>, Option<&Event>)> = scenario
-        .releases
-        .iter()
-        .enumerate()
-        .map(|(i, r)| (r.at_s, Some(i), None))
-        .chain(scenario.events.iter().map(|e| (e.at_s(), None, Some(e))))
-        .collect();
-    timeline.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut released = Vec::new();
-    for (at_s, release, event) in timeline {
+    // The releases of one moment are submitted together (each `cell submit` takes a
+    // tenth of a second of wall time: one after the other, the seventh of seven would
+    // be released 35 s of plant time late at 50x), and their ids read before the next
+    // moment's.
+    let mut submitting = Vec::new();
+    for (at_s, happening) in scenario.timeline() {
         let at_ms = start_ms + (at_s * 1000.0) as u64;
+        if plant.now_ms().await? < at_ms {
+            released.extend(submitted(scenario, std::mem::take(&mut submitting))?);
+        }
         loop {
             let now = plant.now_ms().await?;
             if now >= at_ms {
@@ -382,23 +381,18 @@ async fn drive(
             let wall = (at_ms - now) / u64::from(scenario.time_scale);
             tokio::time::sleep(Duration::from_millis(wall.clamp(1, 1000))).await;
         }
-        if let Some(i) = release {
-            let r = &scenario.releases[i];
-            let now = plant.now_ms().await?;
-            let due_ms = r.due_s.map(|d| start_ms + (d * 1000.0) as u64);
-            let due_in = due_ms.map(|d| d.saturating_sub(now) / u64::from(scenario.time_scale));
-            for order in submit(copy, &r.product, r.count, r.priority, due_in)? {
-                released.push(Released {
-                    order,
-                    product: r.product.clone(),
-                    at_ms: now,
-                    due_ms,
-                    rush: r.priority > 0,
-                });
+        match happening {
+            Happening::Release(i) => {
+                let r = &scenario.releases[i];
+                let now = plant.now_ms().await?;
+                let due_ms = r.due_s.map(|d| start_ms + (d * 1000.0) as u64);
+                let due_in =
+                    due_ms.map(|d| d.saturating_sub(now) / u64::from(scenario.time_scale));
+                let child = submit(copy, &r.product, r.count, r.priority, due_in)?;
+                submitting.push((child, i, now, due_ms));
+                continue;
             }
-        }
-        match event {
-            Some(Event::Breakdown {
+            Happening::Event(Event::Breakdown {
                 station, repair_s, ..
             }) => {
                 let ms = (repair_s * 1000.0) as u64;
@@ -407,15 +401,47 @@ async fn drive(
                     bail!("the plant refused the breakdown of {station}: {answer}");
                 }
             }
-            Some(Event::HotAdd { station, .. }) => cell.hot_add(station, &copy.endpoint)?,
-            None => {}
+            Happening::Event(Event::HotAdd { station, .. }) => {
+                cell.hot_add(&station, &copy.endpoint)?
+            }
+            Happening::Repaired { station } => {
+                for command in ["clear", "reset", "start"] {
+                    packml(copy, &station, command).await?;
+                }
+            }
         }
     }
+    released.extend(submitted(scenario, submitting)?);
     wait_ended(&session, &keys, &released, scenario).await?;
     Ok((released, started.elapsed()))
 }
 
-/// Waits until every holon of the cell copy is alive.
+/// Commands `station`'s PackML unit as its operator would (`cell packml`), asked
+/// again while the unit is not yet in a state that allows it (a controller that is
+/// not yet ready again after its e-stop keeps it in Clearing).
+async fn packml(copy: &CellCopy, station: &str, command: &str) -> Result<()> {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let output = Command::new(bin("cell"))
+            .args(["packml", station, command])
+            .args(["--cell", &copy.cell, "--connect", &copy.endpoint])
+            .stdin(Stdio::null())
+            .output()?;
+        if output.status.success() {
+            return Ok(());
+        }
+        if Instant::now() > deadline {
+            bail!(
+                "cell packml {station} {command} refused for 60 s: {}{}",
+                String::from_utf8_lossy(&output.stdout),
+                String::from_utf8_lossy(&output.stderr)
+            );
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+}
+
+/// Waits until every holon of the cell copy is alive, and an order-node serves.
 async fn wait_ready(session: &zenoh::Session, keys: &CellKeys, copy: &CellCopy) -> Result<()> {
     let holons = copy
         .resources
@@ -436,17 +462,28 @@ async fn wait_ready(session: &zenoh::Session, keys: &CellKeys, copy: &CellCopy) 
             bail!("{holon} did not start within 120 s (see logs/ in the run's directory)");
         }
     }
+    // An order-node answers the listing once it serves.
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while ::cell::client::listing::all_orders(session, keys, Duration::from_secs(2))
+        .await
+        .is_err()
+    {
+        if Instant::now() > deadline {
+            bail!("no order-node served within 120 s (see logs/ in the run's directory)");
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
     Ok(())
 }
 
-/// Submits `count` orders of `product` with `cell submit`: their names.
+/// Starts submitting `count` orders of `product` with `cell submit`.
 fn submit(
     copy: &CellCopy,
     product: &str,
     count: u32,
     priority: i32,
     due_in_ms: Option<u64>,
-) -> Result<Vec<String>> {
+) -> Result<Child> {
     let mut command = Command::new(bin("cell"));
     command
         .args(["submit", product, "--count", &count.to_string()])
@@ -455,33 +492,45 @@ fn submit(
     if let Some(ms) = due_in_ms {
         command.args(["--due-in", &format!("{}ms", ms.max(1))]);
     }
-    // The order-node may still be joining: asked again for a while.
-    let deadline = Instant::now() + Duration::from_secs(60);
-    loop {
-        let output = command.stdin(Stdio::null()).output()?;
-        if output.status.success() {
-            let ids: Vec<String> = String::from_utf8_lossy(&output.stdout)
-                .split_whitespace()
-                .filter(|w| w.contains('-'))
-                .map(str::to_string)
-                .collect();
-            if ids.len() != count as usize {
-                bail!(
-                    "cell submit printed {} ids for {count} orders: {}",
-                    ids.len(),
-                    String::from_utf8_lossy(&output.stdout)
-                );
-            }
-            return Ok(ids);
-        }
-        if Instant::now() > deadline {
+    command
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .context("cannot run cell submit")
+}
+
+/// The orders of the submissions under way (each with its release's index, plant ms
+/// and due time), once each has answered: an error naming the first refused.
+fn submitted(
+    scenario: &CellScenario,
+    submitting: Vec<(Child, usize, u64, Option<u64>)>,
+) -> Result<Vec<Released>> {
+    let mut released = Vec::new();
+    for (child, i, at_ms, due_ms) in submitting {
+        let r = &scenario.releases[i];
+        let output = child.wait_with_output()?;
+        let stdout = String::from_utf8_lossy(&output.stdout);
+        if !output.status.success() {
             bail!(
-                "cell submit {product} failed: {}",
+                "cell submit {} failed: {}{stdout}",
+                r.product,
                 String::from_utf8_lossy(&output.stderr)
             );
         }
-        std::thread::sleep(Duration::from_millis(500));
+        let ids: Vec<&str> = stdout.split_whitespace().filter(|w| w.contains('-')).collect();
+        if ids.len() != r.count as usize {
+            bail!("cell submit printed {} ids for {} orders: {stdout}", ids.len(), r.count);
+        }
+        released.extend(ids.into_iter().map(|order| Released {
+            order: order.to_string(),
+            product: r.product.clone(),
+            at_ms,
+            due_ms,
+            rush: r.priority > 0,
+        }));
     }
+    Ok(released)
 }
 
 /// Waits until every released order has ended (done, scrapped, failed or

@@ -60,8 +60,10 @@ fn one() -> u32 {
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Event {
     /// A station breaks down: its controller is e-stopped for `repair_s` plant seconds
-    /// (it refuses every command meanwhile, and its holon says it is unavailable),
-    /// then is ready again.
+    /// (it refuses every command meanwhile, its holon says it is unavailable and its
+    /// PackML unit goes to Aborted); then it is ready again and the maintenance
+    /// operator clears, resets and starts its unit (`cell packml`), as after any
+    /// e-stop.
     Breakdown {
         at_s: f64,
         station: String,
@@ -78,6 +80,43 @@ impl Event {
         match self {
             Event::Breakdown { at_s, .. } | Event::HotAdd { at_s, .. } => *at_s,
         }
+    }
+}
+
+/// What the bench does at a moment of a run.
+#[derive(Debug, Clone)]
+pub enum Happening {
+    /// Releases `releases[i]`.
+    Release(usize),
+    /// Plays an event.
+    Event(Event),
+    /// The repaired station's unit cleared, reset and started by the operator.
+    Repaired { station: String },
+}
+
+impl CellScenario {
+    /// Everything the bench does, with its plant seconds from the start, in order.
+    pub fn timeline(&self) -> Vec<(f64, Happening)> {
+        let mut timeline: Vec<(f64, Happening)> = self
+            .releases
+            .iter()
+            .enumerate()
+            .map(|(i, r)| (r.at_s, Happening::Release(i)))
+            .collect();
+        for event in &self.events {
+            timeline.push((event.at_s(), Happening::Event(event.clone())));
+            if let Event::Breakdown {
+                at_s,
+                station,
+                repair_s,
+            } = event
+            {
+                let station = station.clone();
+                timeline.push((at_s + repair_s, Happening::Repaired { station }));
+            }
+        }
+        timeline.sort_by(|a, b| a.0.total_cmp(&b.0));
+        timeline
     }
 }
 
