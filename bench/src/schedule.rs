@@ -28,7 +28,7 @@ pub mod cell;
 
 use arrivals::{arrivals, Arrival};
 pub use cell::scenario::CellScenario;
-pub use cell::CellMode;
+pub use cell::{CellMode, CellOptions};
 
 /// A scenario file (`deploy/scenarios/*.toml` documents the format).
 #[derive(Debug, Clone, Deserialize)]
@@ -176,17 +176,6 @@ pub struct Outcome {
     pub steps: usize,
 }
 
-/// What a run of cell scenarios is asked (`bench schedule` on a cell).
-#[derive(Debug, Clone)]
-pub struct CellOptions {
-    /// Its time scale, overriding each scenario's.
-    pub time_scale: Option<u32>,
-    /// The modes to run, each once.
-    pub modes: Vec<CellMode>,
-    /// Where the Gantt charts go.
-    pub charts: PathBuf,
-}
-
 /// Runs every scenario in `paths`: one on a cell (it names one) in each of the cell
 /// options' modes, any other for `seeds` seeds in every mode; prints the tables and
 /// writes the JSON to `out`.
@@ -201,12 +190,7 @@ pub async fn run(paths: &[PathBuf], seeds: u64, out: &Path, cells: &CellOptions)
         );
     }
     if !on_cells.is_empty() {
-        println!();
-        cell::print_header();
-        let mut runs = Vec::new();
-        for path in &on_cells {
-            runs.extend(cell::run(path, &cells.modes, cells.time_scale, &cells.charts).await?);
-        }
+        let runs = cell::run_all(&on_cells, cells).await?;
         json.insert("cells".into(), serde_json::to_value(&runs)?);
     }
     std::fs::write(out, serde_json::to_string_pretty(&Value::Object(json))?)?;

@@ -75,6 +75,28 @@ pub struct CellRun {
     pub gantt: PathBuf,
 }
 
+/// What a run of cell scenarios is asked (`bench schedule` on a cell).
+#[derive(Debug, Clone)]
+pub struct CellOptions {
+    /// Its time scale, overriding each scenario's.
+    pub time_scale: Option<u32>,
+    /// The modes to run, each once.
+    pub modes: Vec<CellMode>,
+    /// Where the Gantt charts go.
+    pub charts: PathBuf,
+}
+
+/// Runs every cell scenario of `paths` as `options` say, printing a row per run.
+pub async fn run_all(paths: &[PathBuf], options: &CellOptions) -> Result<Vec<CellRun>> {
+    println!();
+    print_header();
+    let mut runs = Vec::new();
+    for path in paths {
+        runs.extend(run(path, &options.modes, options.time_scale, &options.charts).await?);
+    }
+    Ok(runs)
+}
+
 /// Runs the cell scenario at `path` in each of `modes`; `scale` overrides its time
 /// scale. Charts go to `charts`.
 pub async fn run(
@@ -119,7 +141,7 @@ pub async fn run(
 }
 
 /// The table's header.
-pub fn print_header() {
+fn print_header() {
     println!(
         "{:<14} {:<13} {:>5} {:>10} {:>9} {:>7} {:>10} {:>10} {:>10} {:>8}  utilisation",
         "scenario",
@@ -386,8 +408,7 @@ async fn drive(
                 let r = &scenario.releases[i];
                 let now = plant.now_ms().await?;
                 let due_ms = r.due_s.map(|d| start_ms + (d * 1000.0) as u64);
-                let due_in =
-                    due_ms.map(|d| d.saturating_sub(now) / u64::from(scenario.time_scale));
+                let due_in = due_ms.map(|d| d.saturating_sub(now) / u64::from(scenario.time_scale));
                 let child = submit(copy, &r.product, r.count, r.priority, due_in)?;
                 submitting.push((child, i, now, due_ms));
                 continue;
@@ -518,9 +539,16 @@ fn submitted(
                 String::from_utf8_lossy(&output.stderr)
             );
         }
-        let ids: Vec<&str> = stdout.split_whitespace().filter(|w| w.contains('-')).collect();
+        let ids: Vec<&str> = stdout
+            .split_whitespace()
+            .filter(|w| w.contains('-'))
+            .collect();
         if ids.len() != r.count as usize {
-            bail!("cell submit printed {} ids for {} orders: {stdout}", ids.len(), r.count);
+            bail!(
+                "cell submit printed {} ids for {} orders: {stdout}",
+                ids.len(),
+                r.count
+            );
         }
         released.extend(ids.into_iter().map(|order| Released {
             order: order.to_string(),

@@ -30,35 +30,7 @@ pub fn svg(
         .max()
         .unwrap_or(start)
         .max(start + 1);
-    // Rows: the stations by name, then the shuttles by name.
-    let mut rows: Vec<String> = Vec::new();
-    let mut row_of = |name: String| match rows.iter().position(|r| *r == name) {
-        Some(i) => i,
-        None => {
-            rows.push(name);
-            rows.len() - 1
-        }
-    };
-    let mut stations: Vec<&str> = trace
-        .iter()
-        .filter(|r| r.resource != transporter)
-        .map(|r| r.resource.as_str())
-        .collect();
-    stations.sort();
-    stations.dedup();
-    for station in &stations {
-        row_of(station.to_string());
-    }
-    let mut shuttles: Vec<String> = trace
-        .iter()
-        .filter(|r| r.resource == transporter)
-        .map(shuttle_row)
-        .collect();
-    shuttles.sort();
-    shuttles.dedup();
-    for shuttle in &shuttles {
-        row_of(shuttle.clone());
-    }
+    let rows = rows_of(trace, transporter);
     let mut products: Vec<&String> = product_of.values().collect();
     products.sort();
     products.dedup();
@@ -141,10 +113,43 @@ pub fn svg(
             ),
         );
     }
+    legend(&mut out, &products, axis);
+    out.push_str("</svg>\n");
+    out
+}
+
+/// Appends `text` and a line break.
+fn line(out: &mut String, text: String) {
+    out.push_str(&text);
+    out.push('\n');
+}
+
+/// The chart's rows: the stations by name, then the shuttles by name.
+fn rows_of(trace: &[TraceRecord], transporter: &str) -> Vec<String> {
+    let mut stations: Vec<String> = trace
+        .iter()
+        .filter(|r| r.resource != transporter)
+        .map(|r| r.resource.clone())
+        .collect();
+    stations.sort();
+    stations.dedup();
+    let mut shuttles: Vec<String> = trace
+        .iter()
+        .filter(|r| r.resource == transporter)
+        .map(shuttle_row)
+        .collect();
+    shuttles.sort();
+    shuttles.dedup();
+    stations.extend(shuttles);
+    stations
+}
+
+/// The products' colours, below the axis at `axis`.
+fn legend(out: &mut String, products: &[&String], axis: f64) {
     let mut legend = LEFT;
     for (i, product) in products.iter().enumerate() {
         line(
-            &mut out,
+            out,
             format!(
                 r##"<rect x="{legend}" y="{}" width="10" height="10" fill="{}"/><text x="{}" y="{}">{}</text>"##,
                 axis + 8.0,
@@ -156,14 +161,6 @@ pub fn svg(
         );
         legend += 24.0 + 7.0 * product.len() as f64;
     }
-    out.push_str("</svg>\n");
-    out
-}
-
-/// Appends `text` and a line break.
-fn line(out: &mut String, text: String) {
-    out.push_str(&text);
-    out.push('\n');
 }
 
 /// A move's row: its shuttle (the transporter's own name when it carried none).
@@ -178,4 +175,38 @@ fn escape(text: &str) -> String {
     text.replace('&', "&amp;")
         .replace('<', "&lt;")
         .replace('>', "&gt;")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_chart_has_a_row_per_station_and_shuttle_and_a_bar_per_action() {
+        let record = |resource: &str, carrier: Option<&str>, begin_ms, end_ms| TraceRecord {
+            resource: resource.into(),
+            action: "x".into(),
+            part: Some("o-1".into()),
+            carrier: carrier.map(String::from),
+            begin_ms,
+            end_ms,
+            done: true,
+        };
+        let trace = vec![
+            record("belt", Some("belt/p2"), 1_000, 2_000),
+            record("m2", None, 2_000, 4_000),
+            record("m1", None, 4_000, 5_000),
+        ];
+        let products = BTreeMap::from([("o-1".to_string(), "b".to_string())]);
+        let chart = svg("a <run>", &trace, 1_000, &products, "belt");
+        assert_eq!(rows_of(&trace, "belt"), ["m1", "m2", "belt/p2"]);
+        assert_eq!(chart.matches("<title>o-1 ").count(), 3);
+        assert!(chart.contains("a &lt;run&gt;"), "{chart}");
+        // Its first bar starts at the left edge, its last ends at the right one.
+        assert!(
+            chart.contains(&format!(r#"<rect x="{LEFT:.1}""#)),
+            "{chart}"
+        );
+        assert!(chart.starts_with("<svg") && chart.trim_end().ends_with("</svg>"));
+    }
 }
