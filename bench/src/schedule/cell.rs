@@ -123,8 +123,7 @@ pub async fn run(
                 runs.push(run);
             }
             Err(e) => {
-                let kept = work.path().to_path_buf();
-                std::mem::forget(work);
+                let kept = work.keep();
                 return Err(e.context(format!(
                     "{} {}: the run's files kept in {}",
                     scenario.name,
@@ -317,8 +316,9 @@ impl Running {
                     }
                     _ => {
                         eprintln!("process {} did not stop: killed", child.id());
-                        let _killed = child.kill();
-                        let _reaped = child.wait();
+                        if let Err(e) = child.kill().and_then(|()| child.wait().map(drop)) {
+                            eprintln!("cannot kill process {}: {e}", child.id());
+                        }
                         break;
                     }
                 }
