@@ -4,6 +4,7 @@
 
 use std::path::{Path, PathBuf};
 
+use ::cell::up::manifest::Manifest;
 use anyhow::{anyhow, Context, Result};
 
 /// What the run needs to know of its copy of the cell.
@@ -37,25 +38,18 @@ pub fn copy(from: &Path, to: &Path, control: &str, with_staff: bool) -> Result<C
             std::fs::copy(entry.path(), to.join(entry.file_name()))?;
         }
     }
-    let path = to.join("cell.toml");
-    let mut manifest: toml::Table = toml::from_str(&std::fs::read_to_string(&path)?)
-        .with_context(|| format!("{}", path.display()))?;
-    let cell = manifest
-        .get("cell")
-        .and_then(|c| c.as_str())
-        .ok_or_else(|| anyhow!("{}: no cell", path.display()))?
-        .to_string();
-    let endpoint = manifest
-        .get("router")
-        .and_then(|r| r.get("listen"))
-        .and_then(|l| l.as_array())
-        .and_then(|l| l.first())
-        .and_then(|e| e.as_str())
-        .ok_or_else(|| anyhow!("{}: no [router] listen to connect to", path.display()))?
-        .to_string();
+    // What the manifest says, read (and checked) as `cell up` reads it; the copy's
+    // file is then rewritten as a plain table, so that everything else in it stays.
+    let read = Manifest::load(to)?;
+    let endpoint = read
+        .router
+        .as_ref()
+        .and_then(|r| r.listen.first())
+        .ok_or_else(|| anyhow!("{}: no [router] listen to connect to", to.display()))?
+        .clone();
     let mut copy = CellCopy {
         dir: to.to_path_buf(),
-        cell,
+        cell: read.cell.clone(),
         endpoint,
         control: control.to_string(),
         trace: to.join("plant-trace.jsonl"),
@@ -63,31 +57,24 @@ pub fn copy(from: &Path, to: &Path, control: &str, with_staff: bool) -> Result<C
         products: Vec::new(),
         staff: Vec::new(),
     };
+    let path = to.join("cell.toml");
+    let mut manifest: toml::Table = toml::from_str(&std::fs::read_to_string(&path)?)
+        .with_context(|| format!("{}", path.display()))?;
     let processes = manifest
         .get_mut("process")
         .and_then(|p| p.as_array_mut())
         .ok_or_else(|| anyhow!("{}: no [[process]]", path.display()))?;
     let mut kept = Vec::new();
-    for mut process in processes.drain(..) {
-        let program = process
-            .get("program")
-            .and_then(|p| p.as_str())
-            .unwrap_or("");
-        let args: Vec<String> = process
-            .get("args")
-            .and_then(|a| a.as_array())
-            .into_iter()
-            .flatten()
-            .filter_map(|a| a.as_str().map(str::to_string))
-            .collect();
-        if program == "plant-sim" {
-            let mut traced = args.clone();
+    // The table's processes, in the manifest's order, beside what each says.
+    for (mut process, section) in processes.drain(..).zip(&read.processes) {
+        if section.program == "plant-sim" {
+            let mut traced = section.args.clone();
             traced.extend(["--trace", "plant-trace.jsonl", "--control", control].map(String::from));
             if let Some(table) = process.as_table_mut() {
                 table.insert("args".into(), toml::Value::from(traced));
             }
-        } else if program == "holon-node" {
-            let (name, kind) = holon_of(to, &args)?;
+        } else if section.program == "holon-node" {
+            let (name, kind) = holon_of(to, &section.args)?;
             match kind.as_str() {
                 "staff" if !with_staff => continue,
                 "staff" => copy.staff.push(name),
@@ -120,4 +107,41 @@ fn holon_of(dir: &Path, args: &[String]) -> Result<(String, String)> {
             .ok_or_else(|| anyhow!("{}: no {key}", path.display()))
     };
     Ok((field("name")?, field("kind")?))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_copy_without_staff_traces_its_plant_and_starts_no_staff_holon() {
+        let from = holarchy_tests::workspace_root().join("deploy/cells/aip-primeca");
+        let dir = tempfile::tempdir().unwrap();
+        let copy = copy(&from, dir.path(), "127.0.0.1:9", false).unwrap();
+        assert_eq!(copy.cell, "aip-primeca");
+        assert_eq!(copy.endpoint, "tcp/127.0.0.1:7747");
+        assert!(copy.staff.is_empty());
+        assert_eq!(copy.products.len(), 7);
+        assert!(copy.resources.iter().any(|r| r == "monorail"));
+        let written = Manifest::load(dir.path()).unwrap();
+        assert!(!written.processes.iter().any(|p| p.name == "planner"));
+        let plant = written
+            .processes
+            .iter()
+            .find(|p| p.program == "plant-sim")
+            .unwrap();
+        assert!(plant.args.ends_with(&[
+            "--trace".to_string(),
+            "plant-trace.jsonl".into(),
+            "--control".into(),
+            "127.0.0.1:9".into()
+        ]));
+        let with_staff = copy_with_staff(&from);
+        assert_eq!(with_staff.staff, ["planner"]);
+    }
+
+    fn copy_with_staff(from: &Path) -> CellCopy {
+        let dir = tempfile::tempdir().unwrap();
+        copy(from, dir.path(), "127.0.0.1:9", true).unwrap()
+    }
 }
