@@ -86,7 +86,9 @@ impl Wiring {
     ) -> Result<Wiring, NodeError> {
         let holon = config.holon.clone();
         let agenda = JournalledAgenda::open(config, inheritance)?;
-        let views = Arc::new(Views::new(agenda.view(), Absences::new(Moment::now())));
+        let mut views = Views::new(agenda.view(), Absences::new(Moment::now()));
+        views.time_scale = config.time_scale;
+        let views = Arc::new(views);
         if fence.is_some() {
             views.fence.send_replace(FenceView::Standby);
         }

@@ -88,6 +88,8 @@ pub struct Views {
     pub answering: watch::Sender<bool>,
     /// The machine this process runs on, named in every snapshot.
     host: String,
+    /// The plant's time scale, named in every snapshot when it is not real time.
+    pub time_scale: schemas::TimeScale,
 }
 
 impl Views {
@@ -103,6 +105,7 @@ impl Views {
             fence: watch::Sender::new(FenceView::Unfenced),
             answering: watch::Sender::new(false),
             host: holon::presence::host_name(),
+            time_scale: schemas::TimeScale::REAL,
         }
     }
 
@@ -136,6 +139,7 @@ impl Views {
             FenceView::Unfenced | FenceView::Standby => None,
         };
         snapshot.version = Some(crate::VERSION.to_string());
+        snapshot.time_scale = (!self.time_scale.is_real()).then(|| self.time_scale.factor());
         snapshot.v = schemas::SERVICE_VERSION;
         snapshot.at = schemas::unix_ms();
         snapshot

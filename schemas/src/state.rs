@@ -169,6 +169,10 @@ pub struct ResourceSnapshot {
     /// from holons built before versions were published.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub version: Option<String>,
+    /// The plant's time scale the resource runs at (`holon-node --time-scale`), when
+    /// it is not real time: the dashboard draws its schedule in plant time by it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_scale: Option<f64>,
     /// The Service message version the holon speaks ([`crate::SERVICE_VERSION`]); 0
     /// from holons built before it was published.
     #[serde(default)]

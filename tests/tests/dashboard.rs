@@ -501,6 +501,22 @@ async fn in_a_browser_the_page_follows_the_cell_and_submits_work() {
     let orders_submitted = submit_from_page(&browser, "breaker", 2, within);
     assert_eq!(orders_submitted.len(), 2, "{orders_submitted:?}");
     wait_done_on_page(&browser, &orders_submitted, Duration::from_secs(60));
+    // The running schedule: each order's jobs drawn on the robot's and the conveyor's
+    // rows, ended (none running), and nothing waiting.
+    for order in &orders_submitted {
+        for (resource, service) in [("robot1", "pick_n_place"), ("conveyor1", "transport")] {
+            let bar = format!(
+                "#schedule .gantt-row[data-resource=\"{resource}\"] rect.job[data-job-order=\"{order}\"][data-service=\"{service}\"]:not(.running)"
+            );
+            browser.wait_for(&bar, within).unwrap();
+        }
+    }
+    browser
+        .wait_for(
+            "#schedule .gantt-row[data-resource=\"robot1\"] [data-waiting=\"0\"]",
+            within,
+        )
+        .unwrap();
     // The history panel reads the finished orders from the order-node's journal.
     browser
         .execute("document.getElementById('history-box').open = true")

@@ -26,11 +26,13 @@ pub mod gantt;
 pub mod manifest;
 pub mod metrics;
 pub mod scenario;
+pub mod usage;
 
 use bound::{Bound, CellModel};
 use manifest::CellCopy;
 use metrics::{CellFigures, Released};
 use scenario::{CellScenario, Event, Happening};
+use usage::{ProcessUsage, Sampler};
 
 /// How the orders were scheduled on the cell.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
@@ -73,6 +75,8 @@ pub struct CellRun {
     pub wall_s: f64,
     /// Its Gantt chart.
     pub gantt: PathBuf,
+    /// What each of the cell's processes used over the run.
+    pub processes: Vec<ProcessUsage>,
 }
 
 /// What a run of cell scenarios is asked (`bench schedule` on a cell).
@@ -178,6 +182,23 @@ fn print_row(run: &CellRun) {
         f.shuttle_utilisation * 100.0,
         utilisation.join(" ")
     );
+    let processes: Vec<String> = run
+        .processes
+        .iter()
+        .map(|p| {
+            format!(
+                "{} {:.1}s/{:.0}MiB",
+                p.name,
+                p.cpu_s,
+                p.peak_rss_kib as f64 / 1024.0
+            )
+        })
+        .collect();
+    println!(
+        "    wall {:.1}s; CPU time / peak resident memory: {}",
+        run.wall_s,
+        processes.join(", ")
+    );
 }
 
 /// One run of the scenario in `mode`, in `dir`.
@@ -194,7 +215,7 @@ async fn run_once(
     let model = CellModel::load(dir, &stations, &copy.products)?;
     let mut cell = Running::start(&copy, scenario.time_scale)?;
     let outcome = drive(scenario, &copy, &mut cell).await;
-    cell.stop();
+    let processes = cell.stop();
     let (released, wall) = outcome?;
     let trace = metrics::read_trace(&copy.trace)?;
     let figures = metrics::figures(
@@ -243,15 +264,22 @@ async fn run_once(
         gap,
         wall_s: wall.as_secs_f64(),
         gantt,
+        processes,
     })
 }
 
 /// The cell's processes: `cell up` and any station hot-added.
 struct Running {
+    /// `cell up`, which runs the cell's router and starts its processes.
     up: Child,
+    /// The stations the bench hot-added.
     added: Vec<Child>,
+    /// The cell's copy.
     dir: PathBuf,
+    /// The plant's time scale, given to a hot-added station.
     scale: u32,
+    /// Samples what every process uses.
+    sampler: Option<Sampler>,
 }
 
 impl Running {
@@ -264,11 +292,13 @@ impl Running {
             .stderr(log)
             .spawn()
             .context("cannot start cell up")?;
+        let sampler = Sampler::start(up.id(), copy.dir.join("cell-up.log"));
         Ok(Running {
             up,
             added: Vec::new(),
             dir: copy.dir.clone(),
             scale,
+            sampler: Some(sampler),
         })
     }
 
@@ -295,12 +325,21 @@ impl Running {
             .stderr(log)
             .spawn()
             .with_context(|| format!("cannot start {station}"))?;
+        if let Some(sampler) = &self.sampler {
+            sampler.add(child.id(), station);
+        }
         self.added.push(child);
         Ok(())
     }
 
-    /// Stops everything as Ctrl-C would: SIGTERM, then a wait.
-    fn stop(&mut self) {
+    /// Stops everything as Ctrl-C would: SIGTERM, then a wait. What each process used
+    /// until then.
+    fn stop(&mut self) -> Vec<ProcessUsage> {
+        let usage = self
+            .sampler
+            .take()
+            .map(|s| s.finish(&self.dir.join("cell-up.log")))
+            .unwrap_or_default();
         for child in self.added.iter_mut().chain(std::iter::once(&mut self.up)) {
             if let Err(e) = kill(Pid::from_raw(child.id() as i32), Signal::SIGTERM) {
                 eprintln!("cannot stop process {}: {e}", child.id());
@@ -324,6 +363,7 @@ impl Running {
                 }
             }
         }
+        usage
     }
 }
 

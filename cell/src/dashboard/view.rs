@@ -44,6 +44,9 @@ pub struct View {
     /// The cell's layout (docs/material-flow.md): each serving resource's part, and
     /// what is wrong with them together.
     pub layout: schemas::layout::CellLayout,
+    /// The running schedule, per resource: its jobs of the last
+    /// [`model::WINDOW_PLANT_MS`] of plant time, for the page's Gantt chart.
+    pub schedule: model::ScheduleView,
 }
 
 #[derive(Debug, Clone, Serialize, Default)]
@@ -180,5 +183,6 @@ pub(super) fn view_of(config: &DashboardConfig, model: &Model, dropped: u64, sta
         counters: model.counters().clone(),
         dropped,
         layout: model.layout().clone(),
+        schedule: model.schedule(now),
     }
 }

@@ -370,6 +370,7 @@ pub(crate) mod tests {
             host: None,
             epoch: None,
             version: None,
+            time_scale: None,
             v: 0,
             at,
         }

@@ -14,6 +14,7 @@
 //! | an operator's acknowledgement | the alarm is acknowledged; one that is cleared and acknowledged leaves the list |
 //! | the fenced resources' reports | who holds each controller, who stands by; a new holder is an event |
 //! | an order's snapshot whose part moved, left the cell, or whose order ended | its `part_waits` alarm clears |
+//! | a resource's snapshot, a resource vanishing | the running schedule's bars open and close ([`schedule`]) |
 //! | time passes (a tick) | a running order's part in the cell that has stayed where it is beyond the bound raises `part_waits` |
 //!
 //! Every change of a holon's presence or state, an order's status or step, and every
@@ -32,12 +33,14 @@ mod counters;
 mod input;
 mod part_waits;
 mod parts;
+mod schedule;
 
 pub use part_waits::DEFAULT_BOUND_MS as DEFAULT_PART_WAIT_BOUND_MS;
 
 pub use alarms::{Alarm, AlarmKind, Event, Source};
 pub use counters::{Counters, StepHistogram, STEP_BUCKETS};
 pub use input::Input;
+pub use schedule::{ScheduleView, WINDOW_PLANT_MS};
 
 /// How many entries the event log keeps.
 pub const EVENTS_KEPT: usize = 500;
@@ -136,6 +139,8 @@ pub struct Model {
     layout: schemas::layout::CellLayout,
     /// How long each running order's part has stayed where it is (`part_waits`).
     part_waits: part_waits::PartWaits,
+    /// The running schedule: each resource's jobs, drawn as a Gantt chart.
+    schedule: schedule::Schedule,
 }
 
 impl Model {
@@ -172,6 +177,12 @@ impl Model {
             }
             Input::Tick { at } => self.tick(at),
         }
+    }
+
+    /// The running schedule's rows as of `now` (each resource's jobs in the chart's
+    /// window).
+    pub fn schedule(&self, now: u64) -> ScheduleView {
+        self.schedule.view(now)
     }
 
     /// The cell's layout, as last asked (empty until resources with a layout answered).
@@ -446,6 +457,7 @@ impl Model {
             *total += since.take().map_or(0, |s| at.saturating_sub(s));
         }
         self.log(at, &holon, "vanished".into());
+        self.schedule.vanished(&holon, at);
         if holon.kind() == HolonKind::Resource {
             let message = format!("{holon} vanished: its process stopped or its host is cut off");
             self.raise(AlarmKind::Vanished, &holon, message, at);
@@ -477,6 +489,7 @@ impl Model {
         {
             return false;
         }
+        self.schedule.resource(&snapshot, at);
         let (was_state, was_controller, was_agenda) =
             before.as_ref().map_or((None, None, Vec::new()), |b| {
                 (
@@ -737,6 +750,7 @@ mod tests {
             host: None,
             epoch: None,
             version: None,
+            time_scale: None,
             v: 0,
             at: 0,
         }

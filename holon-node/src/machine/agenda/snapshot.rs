@@ -55,6 +55,7 @@ impl AgendaMachine {
             host: None,
             epoch: None,
             version: None,
+            time_scale: None,
             v: 0,
             // Stamped when the view is read (`Views::snapshot`).
             at: 0,

@@ -55,6 +55,7 @@ pub(in crate::presence) fn snapshot_of(
         host: None,
         epoch: None,
         version: None,
+        time_scale: None,
         v: 0,
         at: 0,
     }
