@@ -105,6 +105,12 @@ struct OrdersSection {
     start_on_turn: bool,
     #[serde(default = "default_advice_timeout")]
     advice_timeout_ms: u64,
+    #[serde(default = "default_wait_at_port")]
+    wait_at_port: bool,
+}
+
+fn default_wait_at_port() -> bool {
+    true
 }
 
 fn default_advice_timeout() -> u64 {
@@ -170,6 +176,7 @@ impl Default for OrdersSection {
             max_unfinished_orders: default_max_unfinished(),
             start_on_turn: default_start_on_turn(),
             advice_timeout_ms: default_advice_timeout(),
+            wait_at_port: default_wait_at_port(),
         }
     }
 }
@@ -215,6 +222,12 @@ pub struct OrderSettings {
     /// How long an order waits for a staff holon's advice, asked together with the
     /// proposals (the round usually takes longer); `ZERO`: never asks.
     pub advice_timeout: Duration,
+    /// A part at a station's port whose next station has no place yet may wait there
+    /// rather than go home, for at most the time its move home would take, while no
+    /// part of this node waits for the service it was just worked for
+    /// (docs/material-flow.md, "Orders arrange their moves"). False: it goes home at
+    /// once.
+    pub wait_at_port: bool,
 }
 
 #[derive(Debug, Clone)]
@@ -360,6 +373,7 @@ impl OrderNodeConfig {
                 max_unfinished_orders: o.max_unfinished_orders,
                 start_on_turn: o.start_on_turn,
                 advice_timeout: Duration::from_millis(o.advice_timeout_ms),
+                wait_at_port: o.wait_at_port,
             },
             data_dir: file.journal.dir,
             durability: file.journal.durability,

@@ -37,6 +37,8 @@ pub struct StationLine {
 enum Request {
     /// An event of the lines; a `Wait` comes with where its answer goes.
     Event(Event, Option<oneshot::Sender<bool>>),
+    /// How many parts other than the order's stand in line for the service.
+    WaitingFor(String, HolonId, oneshot::Sender<usize>),
 }
 
 impl StationLine {
@@ -58,6 +60,18 @@ impl StationLine {
             since: Instant::now(),
             in_line: false,
         }
+    }
+
+    /// How many parts of the node's orders other than `order`'s wait in line for a
+    /// station of `service` (0 once the line has stopped).
+    pub async fn waiting_for(&self, service: &str, order: &HolonId) -> usize {
+        let (answer, answered) = oneshot::channel();
+        let request = Request::WaitingFor(service.to_string(), order.clone(), answer);
+        if self.requests.send(request).is_err() {
+            debug!("the station line has stopped");
+            return 0;
+        }
+        answered.await.unwrap_or(0)
     }
 
     fn send(&self, event: Event, answer: Option<oneshot::Sender<bool>>) {
@@ -153,6 +167,12 @@ async fn run(
                         answers.insert(order.clone(), answer);
                     }
                     event
+                }
+                Some(Request::WaitingFor(service, order, answer)) => {
+                    if answer.send(lines.waiting_for(&service, &order)).is_err() {
+                        debug!(holon = %order, "the count of parts in line was not waited for");
+                    }
+                    continue;
                 }
                 None => return,
             },

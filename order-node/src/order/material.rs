@@ -7,9 +7,11 @@
 //! - else reserves a place at a proposing station's port and books the move there
 //!   (both or neither: a move that cannot be booked releases the place);
 //! - else, when no station has a place for it and the part is at a station's port,
-//!   takes it back to its home (the buffer place it holds from its entry until it
-//!   leaves): so a part waits for a place only where it blocks no station, and finite
-//!   ports cannot deadlock the cell;
+//!   waits there for at most the time its move home would take, while no other part
+//!   of the node waits for the service it was just worked for
+//!   (`orders.wait_at_port`); then takes it back to its home (the buffer place it
+//!   holds from its entry until it leaves): so a part waits for a place for long only
+//!   where it blocks no station, and finite ports cannot deadlock the cell;
 //! - else waits for a place to free up, or a station to appear, in line with the other
 //!   parts of the node's orders that wait for a station of the step's service: they
 //!   look in turn, oldest first ([`crate::station_line`]), and a part at a port that
@@ -74,6 +76,8 @@ impl OrderTask<'_> {
         // a thousand parts waiting outside the cell cost next to nothing.
         let mut backoff = holon::Backoff::new(PLACE_RETRY, IDLE_POLL);
         let mut ticket = self.ctx.line.ticket(&self.holon, &step.service_type);
+        // The port the part has waited at for its next station, and since when.
+        let mut port_wait: Option<(LocationId, Instant)> = None;
         loop {
             if self.end_move_under_way().await? {
                 continue;
@@ -130,6 +134,19 @@ impl OrderTask<'_> {
                 continue;
             } else if let Some(here) = at_port {
                 let home = part.home.clone().expect("a part at a port has a home");
+                let (since, first) = match &port_wait {
+                    Some((at, since)) if *at == here => (*since, false),
+                    _ => (port_wait.insert((here.clone(), Instant::now())).1, true),
+                };
+                if let Some(left) = self.may_wait_at_port(&layout, &here, &home, since).await {
+                    if first {
+                        info!(holon = %self.holon, at = %here, most = ?left, "no station has a place for the part yet, and no part waits for this one: it waits at its port");
+                    }
+                    let pause = backoff.next_pause().min(left);
+                    self.wait_for_resource(pause, false, Instant::now() + pause)
+                        .await;
+                    continue;
+                }
                 info!(holon = %self.holon, from = %here, %home, "no station has a place for the part, or older parts wait for one: it goes back to its home");
                 self.ctx.commit(self.progress, |p| {
                     if let Some(part) = &mut p.part {
@@ -142,6 +159,33 @@ impl OrderTask<'_> {
                 return Ok(Arranged::NoStation);
             }
         }
+    }
+
+    /// Whether the part, at the port `here` of a station, may wait there for a place at
+    /// its next station rather than go `home`, and for how long at most: while it has
+    /// waited (since `since`) less than its move home would take (after that the lap
+    /// home and back is no slower), and no other part of this node waits in line for
+    /// the service it was just worked for (which the station at `here` offers: the
+    /// part would keep them from it). The waiting is bounded, so two parts each at the
+    /// port the other needs cannot block each other for longer than a move home.
+    async fn may_wait_at_port(
+        &self,
+        layout: &CellLayout,
+        here: &LocationId,
+        home: &LocationId,
+        since: Instant,
+    ) -> Option<Duration> {
+        if !self.ctx.settings.wait_at_port {
+            return None;
+        }
+        let lap = Duration::from_millis(layout.routes(here, home).first()?.travel_ms);
+        let left = lap.checked_sub(since.elapsed()).filter(|l| !l.is_zero())?;
+        let worked_for = {
+            let p = self.progress.get();
+            let plan = p.plan.as_ref()?;
+            plan.steps.get(p.step.checked_sub(1)?)?.service_type.clone()
+        };
+        (self.ctx.line.waiting_for(&worked_for, &self.holon).await == 0).then_some(left)
     }
 
     /// The part leaves the cell by an exit, and the order's end that waited for it is

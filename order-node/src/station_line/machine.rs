@@ -96,6 +96,13 @@ impl Lines {
         self.of.is_empty()
     }
 
+    /// How many parts other than `order`'s stand in line for a station of `service`.
+    pub fn waiting_for(&self, service: &str, order: &HolonId) -> usize {
+        self.lines.get(service).map_or(0, |line| {
+            line.waiting.keys().filter(|(_, o)| o != order).count()
+        })
+    }
+
     pub fn handle(&mut self, event: Event) -> Vec<Action> {
         match event {
             Event::Wait {
@@ -287,6 +294,20 @@ mod tests {
         assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
         assert_eq!(tried(&mut lines, 1, true), vec![]);
         assert!(lines.is_empty());
+    }
+
+    #[test]
+    fn the_parts_waiting_for_a_service_are_counted_without_the_asker() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        assert_eq!(lines.waiting_for("inspect", &order(1)), 0);
+        looked_and_waits(&mut lines, 1, t0);
+        wait(&mut lines, 2, t0 + Duration::from_secs(1), false);
+        assert_eq!(lines.waiting_for("inspect", &order(1)), 1);
+        assert_eq!(lines.waiting_for("inspect", &order(3)), 2);
+        assert_eq!(lines.waiting_for("drill", &order(3)), 0);
+        lines.handle(Event::Left { order: order(2) });
+        assert_eq!(lines.waiting_for("inspect", &order(3)), 1);
     }
 
     #[test]
