@@ -50,13 +50,15 @@ impl StationLine {
         StationLine { requests }
     }
 
-    /// A ticket for `order`'s part, which looks for a place at a station of `service`:
-    /// it joins the line when it first asks for a turn, and leaves when dropped.
-    pub fn ticket(&self, order: &HolonId, service: &str) -> Ticket {
+    /// A ticket for `order`'s part, which looks for a place at a station of `service`
+    /// with the order's `priority`: it joins the line when it first asks for a turn,
+    /// and leaves when dropped.
+    pub fn ticket(&self, order: &HolonId, service: &str, priority: i32) -> Ticket {
         Ticket {
             line: self.clone(),
             order: order.clone(),
             service: service.to_string(),
+            priority,
             since: Instant::now(),
             in_line: false,
         }
@@ -90,8 +92,10 @@ pub struct Ticket {
     order: HolonId,
     /// The service of the step its part is to be brought to a station for.
     service: String,
-    /// When the part began to look (its place in line).
+    /// When the part began to look (its place in line, after its priority).
     since: Instant,
+    /// Its order's priority: a part of a higher priority has its turn first.
+    priority: i32,
     /// Whether it has asked for a turn (it is then in line until placed or dropped).
     in_line: bool,
 }
@@ -130,6 +134,7 @@ impl Ticket {
             order: self.order.clone(),
             service: self.service.clone(),
             since: self.since,
+            priority: self.priority,
             now_only,
         };
         self.line.send(event, Some(answer));

@@ -75,7 +75,11 @@ impl OrderTask<'_> {
         // resource appearing wakes the order sooner), spaced with the other idle orders:
         // a thousand parts waiting outside the cell cost next to nothing.
         let mut backoff = holon::Backoff::new(PLACE_RETRY, IDLE_POLL);
-        let mut ticket = self.ctx.line.ticket(&self.holon, &step.service_type);
+        let priority = self.progress.get().priority;
+        let mut ticket = self
+            .ctx
+            .line
+            .ticket(&self.holon, &step.service_type, priority);
         // The port the part has waited at for its next station, and since when.
         let mut port_wait: Option<(LocationId, Instant)> = None;
         loop {

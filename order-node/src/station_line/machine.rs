@@ -1,41 +1,48 @@
 //! The line at the stations, as a pure machine: which waiting part has the turn to look
-//! for a station place, per service, oldest first. No I/O and no clock: the times come
-//! with the events, the task ([`super`]) performs the actions.
+//! for a station place, per service: the highest priority first, then the oldest
+//! ("ahead" below). No I/O and no clock: the times come with the events, the task
+//! ([`super`]) performs the actions.
 //!
 //! | state of the service's line | event | actions, next state |
 //! |---|---|---|
-//! | idle, nobody older waits | `Wait` of a part new to the line | `Turn` to it (a sweep that began with it) |
+//! | idle, nobody ahead waits | `Wait` of a part new to the line | `Turn` to it (a sweep that began with it) |
 //! | anything else | `Wait { now_only }` | `NotNow` to it; it keeps its place |
 //! | anything else | `Wait` (blocking) | it waits for a sweep to reach it |
-//! | idle, parts wait | `Room` | `Turn` to the oldest waiting: a sweep begins |
-//! | sweeping | `Room` | swept again from the oldest once this sweep ends |
-//! | the part has the turn | `Tried` / `Left` | `Turn` to the next younger waiting part, or the sweep ends (and begins again if a room came meanwhile) |
+//! | idle, parts wait | `Room` | `Turn` to the first waiting: a sweep begins |
+//! | sweeping, past the newcomer's place | `Wait` of a part new to the line, of a higher priority | swept again from the first once this sweep ends |
+//! | sweeping | `Room` | swept again from the first once this sweep ends |
+//! | the part has the turn | `Tried` / `Left` | `Turn` to the next waiting part behind it, or the sweep ends (and begins again if a room came meanwhile) |
 //!
-//! A freed place reaches the part that has waited longest for a station of its service
-//! before any younger one; a part that has just finished a step at a station's port and
-//! finds older parts waiting goes home rather than take the place they wait for
+//! A freed place reaches the rush orders' parts first, and among parts of one priority
+//! the part that has waited longest for a station of its service before any younger
+//! one; a part that has just finished a step at a station's port and finds parts ahead
+//! of it waiting goes home rather than take the place they wait for
 //! (docs/material-flow.md, "Orders arrange their moves").
 
+use std::cmp::Reverse;
 use std::collections::{BTreeMap, HashMap};
 
 use schemas::HolonId;
 use tokio::time::Instant;
 
-/// A part's place in its line: since when it waits, and its order (so two parts that
-/// joined at the same instant are still ordered).
-type Place = (Instant, HolonId);
+/// A part's place in its line: its order's priority (the highest first), since when
+/// it waits, and its order (so two parts that joined at the same instant are still
+/// ordered).
+type Place = (Reverse<i32>, Instant, HolonId);
 
 /// What happens to the lines.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Event {
     /// `order`'s part looks for a place at a station of `service`, waiting since
-    /// `since` if it is new to the line (a part in line keeps its place). `now_only`:
+    /// `since` with its order's `priority` if it is new to the line (a part in line
+    /// keeps its place). `now_only`:
     /// it takes a turn only if it can have one at once (a part at a port, which goes
     /// home rather than block the port).
     Wait {
         order: HolonId,
         service: String,
         since: Instant,
+        priority: i32,
         now_only: bool,
     },
     /// A place freed up, a resource appeared or became ready, or the fallback's time
@@ -99,7 +106,7 @@ impl Lines {
     /// How many parts other than `order`'s stand in line for a station of `service`.
     pub fn waiting_for(&self, service: &str, order: &HolonId) -> usize {
         self.lines.get(service).map_or(0, |line| {
-            line.waiting.keys().filter(|(_, o)| o != order).count()
+            line.waiting.keys().filter(|(_, _, o)| o != order).count()
         })
     }
 
@@ -109,8 +116,9 @@ impl Lines {
                 order,
                 service,
                 since,
+                priority,
                 now_only,
-            } => self.wait(order, service, since, now_only),
+            } => self.wait(order, service, (Reverse(priority), since), now_only),
             Event::Room => self.room(),
             Event::Tried { order, placed } => self.tried(&order, placed),
             Event::Left { order } => self.leave(&order),
@@ -121,7 +129,7 @@ impl Lines {
         &mut self,
         order: HolonId,
         service: String,
-        since: Instant,
+        (priority, since): (Reverse<i32>, Instant),
         now_only: bool,
     ) -> Vec<Action> {
         let mut actions = Vec::new();
@@ -133,7 +141,7 @@ impl Lines {
         let place = match self.of.get(&order) {
             Some((_, place)) => place.clone(),
             None => {
-                let place = (since, order.clone());
+                let place = (priority, since, order.clone());
                 self.of
                     .insert(order.clone(), (service.clone(), place.clone()));
                 place
@@ -152,6 +160,11 @@ impl Lines {
             .next()
             .is_none_or(|first| *first > place);
         line.waiting.insert(place.clone(), !now_only);
+        // A newcomer of a higher priority than the part a sweep under way has reached
+        // has the line swept again from its head once this sweep ends.
+        if new && line.sweep.as_ref().is_some_and(|at| place < *at) {
+            line.again = true;
+        }
         if new && idle && oldest {
             line.waiting.insert(place.clone(), false);
             line.holder = Some(place.clone());
@@ -161,8 +174,8 @@ impl Lines {
             actions.push(Action::NotNow(order));
         }
         // Else it waits: a sweep under way reaches it if it has not passed it yet (a
-        // newcomer is the youngest); a part it passed (it looked and found no place)
-        // waits for the next room, which is news it could use.
+        // newcomer is the youngest of its priority); a part it passed (it looked and
+        // found no place) waits for the next room, which is news it could use.
         actions
     }
 
@@ -232,7 +245,7 @@ impl Line {
         self.waiting.insert(place.clone(), false);
         self.holder = Some(place.clone());
         self.sweep = Some(place.clone());
-        Action::Turn(place.1)
+        Action::Turn(place.2)
     }
 
     /// The turn goes on to the next younger part waiting; at the end of the line the
@@ -261,10 +274,21 @@ mod tests {
     }
 
     fn wait(lines: &mut Lines, n: u32, at: Instant, now_only: bool) -> Vec<Action> {
+        wait_with(lines, n, at, 0, now_only)
+    }
+
+    fn wait_with(
+        lines: &mut Lines,
+        n: u32,
+        at: Instant,
+        priority: i32,
+        now_only: bool,
+    ) -> Vec<Action> {
         lines.handle(Event::Wait {
             order: order(n),
             service: "inspect".into(),
             since: at,
+            priority,
             now_only,
         })
     }
@@ -294,6 +318,38 @@ mod tests {
         assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
         assert_eq!(tried(&mut lines, 1, true), vec![]);
         assert!(lines.is_empty());
+    }
+
+    #[test]
+    fn a_rush_part_has_its_turn_before_older_parts_of_lower_priority() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        looked_and_waits(&mut lines, 1, t0);
+        wait(&mut lines, 2, t0 + Duration::from_secs(1), false);
+        // A rush order's part comes later: ahead of both, it looks at once, then the
+        // turn goes on to the others.
+        let t1 = t0 + Duration::from_secs(5);
+        assert_eq!(
+            wait_with(&mut lines, 3, t1, 10, false),
+            vec![Action::Turn(order(3))]
+        );
+        assert_eq!(tried(&mut lines, 3, false), vec![Action::Turn(order(1))]);
+        // One that comes while the sweep is past its place has the line swept again
+        // from its head when the sweep ends, before the parts of lower priority.
+        assert_eq!(wait_with(&mut lines, 4, t1, 10, false), vec![]);
+        assert_eq!(tried(&mut lines, 1, false), vec![Action::Turn(order(2))]);
+        assert_eq!(tried(&mut lines, 2, false), vec![Action::Turn(order(4))]);
+        // A place frees with all four waiting: the rush parts look first.
+        assert_eq!(tried(&mut lines, 4, false), vec![]);
+        for n in 1..=2 {
+            wait(&mut lines, n, t0, false);
+        }
+        for n in 3..=4 {
+            wait_with(&mut lines, n, t1, 10, false);
+        }
+        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(3))]);
+        assert_eq!(tried(&mut lines, 3, false), vec![Action::Turn(order(4))]);
+        assert_eq!(tried(&mut lines, 4, false), vec![Action::Turn(order(1))]);
     }
 
     #[test]
@@ -374,6 +430,7 @@ mod tests {
             order: order(1),
             service: "pick_n_place".into(),
             since: t0 + Duration::from_secs(5),
+            priority: 0,
             now_only: false,
         });
         assert_eq!(actions, vec![Action::Turn(order(1))]);
