@@ -768,3 +768,63 @@ async fn the_conveyor_moves_several_pallets_at_once() {
         "the order-node logged errors"
     );
 }
+
+/// A part whose next station is still busy when its step ends waits at its port for
+/// that station (`orders.wait_at_port`, on by default) rather than ride the loop to
+/// its home and back, while no other part waits for the station it is at: here the
+/// second of two parts drills on station_a while the first mills on station_b (a slow
+/// mill), and takes station_b once the first has left, without going home. Its move
+/// home would take 6 s, more than twice what it waits.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
+    // 250 mm/s: from station_a's stopper to the buffer's (1500 mm) 6 s, station_a to
+    // station_b 2 s, station_b to the exit 2 s.
+    let conveyor = CONVEYOR.replace("speed_mm_s = 4000", "speed_mm_s = 250");
+    assert!(conveyor.contains("speed_mm_s = 250"));
+    let plant = PLANT
+        .replacen("delay_ms = 150", "delay_ms = 200", 1)
+        .replacen("delay_ms = 150", "delay_ms = 1500", 1);
+    assert!(plant.contains("delay_ms = 200") && plant.contains("delay_ms = 1500"));
+    let stations = [
+        ("station_a", "drill", "sa", 400),
+        ("station_b", "mill", "sb", 3000),
+    ];
+    let flow = FlowCell::start_with(
+        "t-flow-port-wait",
+        &conveyor,
+        &plant,
+        &stations,
+        &[("ab", "drill", "mill")],
+    )
+    .await;
+    let orders = flow.cell.submit("ab", 2).await.unwrap();
+    flow.wait_ended(&orders, Duration::from_secs(120)).await;
+    flow.assert_all_done_and_plant_empty(&orders).await;
+    let waited = flow.count_in_orders_log("it waits at its port");
+    let home = flow.count_in_orders_log("it goes back to its home");
+    eprintln!("parts that waited at their port: {waited}; parts sent home: {home}");
+    if home > 0 {
+        let log =
+            std::fs::read_to_string(flow.dir.path().join("orders1.log.json")).unwrap_or_default();
+        for line in log.lines().filter(|l| {
+            ["port", "home", "move ended", "reserved", "step"]
+                .iter()
+                .any(|w| l.contains(w))
+        }) {
+            eprintln!("{line}");
+        }
+    }
+    assert!(
+        waited >= 1,
+        "no part waited at its port for station_b (parts sent home: {home})"
+    );
+    assert_eq!(
+        home, 0,
+        "a part rode home while station_b was about to free"
+    );
+    assert_eq!(
+        flow.count_in_orders_log("\"ERROR\""),
+        0,
+        "the order-node logged errors"
+    );
+}

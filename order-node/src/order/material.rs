@@ -40,6 +40,9 @@ use crate::part_word::WordAsk;
 use crate::progress::{Phase, StepOutcome};
 use crate::requests;
 
+mod port_wait;
+use port_wait::PORT_RECHECK;
+
 /// How long an order waits before asking again for a station place, a home or a
 /// transporter that none had (a place freed or a resource appearing wakes it sooner).
 const PLACE_RETRY: Duration = Duration::from_millis(500);
@@ -80,7 +83,7 @@ impl OrderTask<'_> {
             .ctx
             .line
             .ticket(&self.holon, &step.service_type, priority);
-        // The port the part has waited at for its next station, and since when.
+        // The port the part waits at for its next station, and until when at most.
         let mut port_wait: Option<(LocationId, Instant)> = None;
         loop {
             if self.end_move_under_way().await? {
@@ -104,19 +107,40 @@ impl OrderTask<'_> {
                     .await;
                 continue;
             }
-            // In the cell, the parts waiting for a station of this service take turns,
-            // oldest first (crate::station_line): a part that looked before waits for
-            // its turn; one at a port, or looking for the first time, looks at once
-            // only if no older part waits.
+            // In the cell, the parts waiting for a station of this service take turns
+            // (crate::station_line): a part that looked before waits for its turn (at
+            // its home, or at its port up to its bound); one just worked at a port, or
+            // looking for the first time, looks at once only if no part ahead waits.
             let at_port = part
                 .place
                 .location()
                 .filter(|l| is_port(&layout, l))
                 .cloned();
-            let waited = ticket.in_line() && at_port.is_none();
+            let port_until = port_wait
+                .as_ref()
+                .filter(|(at, _)| Some(at) == at_port.as_ref())
+                .map(|(_, until)| *until);
+            let waited = ticket.in_line() && (at_port.is_none() || port_until.is_some());
             if waited {
+                let recheck = async {
+                    match port_until {
+                        Some(until) => {
+                            let next = Instant::now() + PORT_RECHECK;
+                            tokio::time::sleep_until(until.min(next)).await
+                        }
+                        None => std::future::pending().await,
+                    }
+                };
                 tokio::select! {
                     _ = ticket.turn() => {}
+                    _ = recheck => {
+                        // No turn yet: the part waits on at its port, or goes home.
+                        if !self.keeps_waiting_at_port(port_until).await {
+                            port_wait = None;
+                            self.go_home(at_port.expect("waiting at a port"), &part)?;
+                        }
+                        continue;
+                    }
                     _ = operator_cancel.cancelled() => continue,
                 }
             }
@@ -137,59 +161,23 @@ impl OrderTask<'_> {
             if placed {
                 continue;
             } else if let Some(here) = at_port {
-                let home = part.home.clone().expect("a part at a port has a home");
-                let (since, first) = match &port_wait {
-                    Some((at, since)) if *at == here => (*since, false),
-                    _ => (port_wait.insert((here.clone(), Instant::now())).1, true),
-                };
-                if let Some(left) = self.may_wait_at_port(&layout, &here, &home, since).await {
-                    if first {
-                        info!(holon = %self.holon, at = %here, most = ?left, "no station has a place for the part yet, and no part waits for this one: it waits at its port");
+                if port_until.is_none() {
+                    if let Some(until) = self.port_wait_until(&layout, &here, &part).await {
+                        info!(holon = %self.holon, at = %here, most = ?until.duration_since(Instant::now()), "no station has a place for the part yet, and no part waits for this one: it waits at its port");
+                        port_wait = Some((here, until));
+                        continue;
                     }
-                    let pause = backoff.next_pause().min(left);
-                    self.wait_for_resource(pause, false, Instant::now() + pause)
-                        .await;
+                } else if self.keeps_waiting_at_port(port_until).await {
                     continue;
                 }
-                info!(holon = %self.holon, from = %here, %home, "no station has a place for the part, or older parts wait for one: it goes back to its home");
-                self.ctx.commit(self.progress, |p| {
-                    if let Some(part) = &mut p.part {
-                        part.begin_move(&p.holon, here, home, MoveGoal::Home);
-                    }
-                })?;
+                port_wait = None;
+                self.go_home(here, &part)?;
                 continue;
             }
             if Instant::now() >= give_up && ranked.is_empty() {
                 return Ok(Arranged::NoStation);
             }
         }
-    }
-
-    /// Whether the part, at the port `here` of a station, may wait there for a place at
-    /// its next station rather than go `home`, and for how long at most: while it has
-    /// waited (since `since`) less than its move home would take (after that the lap
-    /// home and back is no slower), and no other part of this node waits in line for
-    /// the service it was just worked for (which the station at `here` offers: the
-    /// part would keep them from it). The waiting is bounded, so two parts each at the
-    /// port the other needs cannot block each other for longer than a move home.
-    async fn may_wait_at_port(
-        &self,
-        layout: &CellLayout,
-        here: &LocationId,
-        home: &LocationId,
-        since: Instant,
-    ) -> Option<Duration> {
-        if !self.ctx.settings.wait_at_port {
-            return None;
-        }
-        let lap = Duration::from_millis(layout.routes(here, home).first()?.travel_ms);
-        let left = lap.checked_sub(since.elapsed()).filter(|l| !l.is_zero())?;
-        let worked_for = {
-            let p = self.progress.get();
-            let plan = p.plan.as_ref()?;
-            plan.steps.get(p.step.checked_sub(1)?)?.service_type.clone()
-        };
-        (self.ctx.line.waiting_for(&worked_for, &self.holon).await == 0).then_some(left)
     }
 
     /// The part leaves the cell by an exit, and the order's end that waited for it is
