@@ -10,6 +10,7 @@ use tracing::{error, info, warn};
 
 use crate::advice_pause::AdvicePause;
 use crate::config::OrderSettings;
+use crate::home_line::HomeLine;
 use crate::inbox::Inboxes;
 use crate::journal::OrderJournal;
 use crate::presence::Presence;
@@ -45,6 +46,9 @@ pub struct OrderContext {
     /// The line at the stations: parts in the cell take turns to look for a station
     /// place, oldest first.
     pub line: StationLine,
+    /// The parts waiting outside the cell for a home, with their priorities: a part
+    /// leaves a freed home to a part of a higher priority.
+    pub homes: HomeLine,
     /// The cell's layout, followed from the first order whose plan moves parts
     /// ([`OrderContext::layout`]) until the node's orders are dropped.
     pub layout: CellLayoutFollowing,
@@ -68,6 +72,7 @@ impl OrderContext {
         let (freed, appeared) = presence.room_news();
         OrderContext {
             line: StationLine::start(freed, appeared),
+            homes: HomeLine::default(),
             session,
             keys: config.keys.clone(),
             settings: config.orders,

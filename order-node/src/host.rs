@@ -733,6 +733,7 @@ mod tests {
             config.clone(),
             Arc::new(OrderContext {
                 line: crate::station_line::StationLine::start(freed, appeared),
+                homes: Default::default(),
                 session,
                 keys: config.keys.clone(),
                 settings: config.orders,

@@ -25,6 +25,7 @@ pub mod config;
 pub mod context;
 pub mod error;
 pub mod fence_report;
+pub mod home_line;
 pub mod host;
 pub mod inbox;
 pub mod journal;

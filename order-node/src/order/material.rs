@@ -18,7 +18,8 @@
 //!   finds older parts waiting goes home rather than take the place they wait for.
 //!
 //! A part enters the cell only once a home is reserved for it: no more parts are in the
-//! cell than its buffers hold. Every change of the part ([`crate::part`]) is journalled
+//! cell than its buffers hold; a part leaves a freed home to a waiting part of a higher
+//! priority ([`crate::home_line`]). Every change of the part ([`crate::part`]) is journalled
 //! before it is acted on; a move is booked and followed as a step is ([`crate::attempt`],
 //! its own phase).
 
@@ -40,6 +41,7 @@ use crate::part_word::WordAsk;
 use crate::progress::{Phase, StepOutcome};
 use crate::requests;
 
+mod home;
 mod port_wait;
 use port_wait::PORT_RECHECK;
 
@@ -83,6 +85,8 @@ impl OrderTask<'_> {
             .ctx
             .line
             .ticket(&self.holon, &step.service_type, priority);
+        // The part's place among those waiting outside for a home, while it waits.
+        let mut home_wait = None;
         // The port the part waits at for its next station, and until when at most.
         let mut port_wait: Option<(LocationId, Instant)> = None;
         loop {
@@ -100,11 +104,9 @@ impl OrderTask<'_> {
             };
             // A part without a home waits outside for one first: no station can take
             // it before it may enter, and its station rounds would only delay those of
-            // the parts in the cell (a freed place wakes every waiting order).
-            if part.home.is_none() && !self.take_home(&layout).await? {
-                let pause = backoff.next_pause();
-                self.wait_for_resource(pause, true, Instant::now() + IDLE_POLL)
-                    .await;
+            // the parts in the cell (a freed place wakes a waiting order). It leaves a
+            // freed home to a part of a higher priority (crate::home_line).
+            if part.home.is_none() && !self.enter(&layout, &mut home_wait, &mut backoff).await? {
                 continue;
             }
             // In the cell, the parts waiting for a station of this service take turns
@@ -280,30 +282,6 @@ impl OrderTask<'_> {
         let (ranked, _) = requests::rank(&ctx, &ask, offers, advised.as_ref());
         self.advised = advised.filter(|a| ranked.first() == Some(a));
         ranked
-    }
-
-    /// Reserves the part's home: a place at a buffer of the cell (a location of role
-    /// `buffer`, the first with a free place). False when every buffer is full (or the
-    /// cell has none: then no part enters).
-    async fn take_home(&mut self, layout: &CellLayout) -> Result<bool, OrderError> {
-        let buffers: Vec<LocationId> = layout
-            .locations()
-            .map(|(_, l)| l)
-            .filter(|l| l.role == LocationRole::Buffer)
-            .map(|l| l.id.clone())
-            .collect();
-        for buffer in buffers {
-            if self.reserve(&buffer).await? {
-                self.ctx.commit(self.progress, |p| {
-                    if let Some(part) = &mut p.part {
-                        part.home = Some(buffer.clone());
-                    }
-                })?;
-                info!(holon = %self.holon, home = %buffer, "the part has a home in the cell");
-                return Ok(true);
-            }
-        }
-        Ok(false)
     }
 
     /// Reserves a place at a port of the best proposing station the part can get to,
