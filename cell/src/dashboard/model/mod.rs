@@ -33,6 +33,7 @@ mod counters;
 mod input;
 mod part_waits;
 mod parts;
+mod processes;
 mod schedule;
 
 pub use part_waits::DEFAULT_BOUND_MS as DEFAULT_PART_WAIT_BOUND_MS;
@@ -40,6 +41,7 @@ pub use part_waits::DEFAULT_BOUND_MS as DEFAULT_PART_WAIT_BOUND_MS;
 pub use alarms::{Alarm, AlarmKind, Event, Source};
 pub use counters::{Counters, StepHistogram, STEP_BUCKETS};
 pub use input::Input;
+pub use processes::{ProcessId, ProcessView};
 pub use schedule::{ScheduleView, WINDOW_PLANT_MS};
 
 /// How many entries the event log keeps.
@@ -71,37 +73,6 @@ pub struct HolonView {
     /// A resource's last snapshot.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub resource: Option<ResourceSnapshot>,
-}
-
-/// A process that serves the cell without being a holon, as its token names it:
-/// `router/<host>`, `order-node/<name>`.
-#[derive(Debug, Clone, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct ProcessId {
-    /// `router` or `order-node`.
-    pub program: String,
-    pub name: String,
-}
-
-impl std::fmt::Display for ProcessId {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}/{}", self.program, self.name)
-    }
-}
-
-impl Serialize for ProcessId {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.collect_str(self)
-    }
-}
-
-/// One router or order-node as the page shows it.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct ProcessView {
-    pub process: ProcessId,
-    /// Its token is visible.
-    pub live: bool,
-    /// Since when it is live or gone (Unix ms).
-    pub since: u64,
 }
 
 /// The cell as the dashboard knows it.
