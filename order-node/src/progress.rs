@@ -144,6 +144,19 @@ pub struct OrderProgress {
     /// The order's part, once its plan moves parts ([`crate::part`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub part: Option<PartProgress>,
+    /// The recovery under way of a part that its step rejected (the plan's
+    /// `on_reject` `recover`): worked before the order goes on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub recovering: Option<Recovering>,
+}
+
+/// A rejected part's recovery: one step that is not in the plan, then the plan again.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Recovering {
+    /// The recovery step: its service, with the rejected step's `info`.
+    pub step: schemas::PlanStep,
+    /// The plan's step the order goes on from once the part is recovered (0-based).
+    pub then_step: usize,
 }
 
 impl OrderProgress {
@@ -175,6 +188,7 @@ impl OrderProgress {
             start_epoch: None,
             fenced: BTreeSet::new(),
             part: None,
+            recovering: None,
         }
     }
 
@@ -218,9 +232,14 @@ impl OrderProgress {
         let Some(plan) = &self.plan else {
             return Vec::new();
         };
-        plan.steps
-            .iter()
-            .skip(self.step)
+        let ahead: Vec<&schemas::PlanStep> = match &self.recovering {
+            Some(recovering) => std::iter::once(&recovering.step)
+                .chain(plan.steps.iter().skip(recovering.then_step))
+                .collect(),
+            None => plan.steps.iter().skip(self.step).collect(),
+        };
+        ahead
+            .into_iter()
             .map(|step| schemas::RouteStep {
                 service_type: step.service_type.clone(),
                 program: step
@@ -275,7 +294,15 @@ impl OrderProgress {
         {
             return None;
         }
+        if let Some(recovering) = &self.recovering {
+            return Some(&recovering.step);
+        }
         self.plan.as_ref()?.steps.get(self.step)
+    }
+
+    /// The service the part was last worked for, if it was.
+    pub fn last_worked_for(&self) -> Option<&str> {
+        self.completed.last().map(|(service, _)| service.as_str())
     }
 
     pub fn fail(&mut self, reason: String) {
@@ -291,6 +318,17 @@ impl OrderProgress {
         self.last_attempts.insert(self.step, self.attempt);
         self.step = step;
         self.attempt = self.last_attempts.get(&step).map_or(1, |a| a + 1);
+        self.failures = 0;
+        self.avoid.clear();
+        self.phase = Phase::Proposing;
+    }
+
+    /// The rejected part is recovered by `step` before the order goes on from
+    /// `then_step`: the recovery counts as the next attempt of the rejected step (its
+    /// own conversation), and the step after it continues that count.
+    fn recover(&mut self, step: schemas::PlanStep, then_step: usize) {
+        self.recovering = Some(Recovering { step, then_step });
+        self.attempt += 1;
         self.failures = 0;
         self.avoid.clear();
         self.phase = Phase::Proposing;
@@ -329,6 +367,28 @@ impl OrderProgress {
                         }
                         Some(OnReject::Scrap { reason }) => {
                             self.end(OrderStatus::Scrapped, Some(reason.clone()));
+                        }
+                        Some(OnReject::Recover {
+                            service_type,
+                            then_step,
+                            max_recoveries,
+                        }) if self.reworks < *max_recoveries => {
+                            self.reworks += 1;
+                            let step = schemas::PlanStep {
+                                service_type: service_type.clone(),
+                                info: current.info.clone(),
+                                reject_results: vec![],
+                                on_reject: None,
+                            };
+                            self.recover(step, then_step - 1);
+                        }
+                        Some(OnReject::Recover { max_recoveries, .. }) => {
+                            let reason = format!(
+                                "rejected at step {} ({}) after {max_recoveries} recoveries",
+                                self.step + 1,
+                                current.service_type
+                            );
+                            self.end(OrderStatus::Scrapped, Some(reason));
                         }
                         None => self.advance(),
                     }
@@ -408,6 +468,10 @@ impl OrderProgress {
     }
 
     fn advance(&mut self) {
+        if let Some(recovering) = self.recovering.take() {
+            self.next_step(recovering.then_step);
+            return;
+        }
         let steps = self.plan.as_ref().map_or(0, |p| p.steps.len());
         if self.step + 1 >= steps {
             self.end(OrderStatus::Done, None);
@@ -572,6 +636,74 @@ mod tests {
         o.record(done("inspect1", "inspect_fail"));
         assert_eq!(o.status, OrderStatus::Scrapped);
         assert!(o.reason.as_deref().unwrap().contains("after 1 reworks"));
+    }
+
+    #[test]
+    fn a_rejected_part_is_recovered_then_checked_again_then_scrapped() {
+        let mut o = order();
+        o.plan.as_mut().unwrap().steps[2].on_reject = Some(OnReject::Recover {
+            service_type: "recovery".into(),
+            then_step: 3,
+            max_recoveries: 1,
+        });
+        o.plan.as_mut().unwrap().steps[2].info =
+            json!({"program": "b"}).as_object().unwrap().clone();
+        o.record(done("conveyor1", "arrived"));
+        o.record(done("robot1", "placing_done"));
+        assert_eq!(o.last_worked_for(), Some("pick_n_place"));
+        o.record(done("inspect1", "inspect_fail"));
+        assert_eq!(o.status, OrderStatus::Running);
+        let recovery = o.current_step().unwrap().clone();
+        assert_eq!(recovery.service_type, "recovery");
+        assert_eq!(recovery.info["program"], "b", "the rejected step's info");
+        assert_eq!(o.conversation_id(), "n1-1/3/2", "its own conversation");
+        let ahead: Vec<String> = o
+            .route_ahead()
+            .into_iter()
+            .map(|s| s.service_type)
+            .collect();
+        assert_eq!(ahead, ["recovery", "inspect"]);
+        assert_eq!(o.snapshot().service_type.as_deref(), Some("recovery"));
+        // A failed recovery is tried again, as any step.
+        o.record(StepOutcome::Failed {
+            provider: robot("m6"),
+            reason: "interrupted".into(),
+            detail: None,
+        });
+        assert_eq!(o.current_step().unwrap().service_type, "recovery");
+        assert_eq!(o.conversation_id(), "n1-1/3/3");
+        o.record(done("m6", "placing_done"));
+        assert_eq!(o.last_worked_for(), Some("recovery"));
+        assert_eq!(o.current_step().unwrap().service_type, "inspect");
+        assert_eq!(o.conversation_id(), "n1-1/3/4", "checked again, a new one");
+        o.record(done("inspect1", "inspect_fail"));
+        assert_eq!(o.status, OrderStatus::Scrapped);
+        assert!(o.reason.as_deref().unwrap().contains("after 1 recoveries"));
+        assert!(o.recovering.is_none());
+    }
+
+    #[test]
+    fn a_recovered_part_goes_on_to_the_end() {
+        let mut o = order();
+        o.plan.as_mut().unwrap().steps[2].on_reject = Some(OnReject::Recover {
+            service_type: "recovery".into(),
+            then_step: 3,
+            max_recoveries: 2,
+        });
+        o.step = 2;
+        o.record(done("inspect1", "inspect_fail"));
+        o.record(done("m6", "placing_done"));
+        o.record(done("inspect1", "inspect_pass"));
+        assert_eq!(o.status, OrderStatus::Done);
+        assert_eq!(o.reworks, 1);
+        // The journal's copy reads back the same, mid-recovery included.
+        let mut mid = order();
+        mid.plan = o.plan.clone();
+        mid.step = 2;
+        mid.record(done("inspect1", "inspect_fail"));
+        let back: OrderProgress =
+            serde_json::from_str(&serde_json::to_string(&mid).unwrap()).unwrap();
+        assert_eq!(back, mid);
     }
 
     #[test]

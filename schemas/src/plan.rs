@@ -15,6 +15,16 @@ pub enum OnReject {
     Rework { from_step: usize, max_reworks: u32 },
     /// Scrap the part: the order ends `scrapped` with `reason`.
     Scrap { reason: String },
+    /// Send the part to be recovered: one extra step of `service_type` (on any
+    /// resource that offers it, e.g. a manual recovery station), with the rejected
+    /// step's `info`; then go on from step `then_step` (1-based: the rejected step
+    /// itself to check the part again, or a later one). At most `max_recoveries` times
+    /// for this order, reworks included; past that, scrap the part.
+    Recover {
+        service_type: String,
+        then_step: usize,
+        max_recoveries: u32,
+    },
 }
 
 /// One step of a process plan.
@@ -66,6 +76,24 @@ impl Plan {
                     field: "on_reject",
                     why: format!("step {} has reject_results but no on_reject", i + 1),
                 });
+            }
+            if let Some(OnReject::Recover {
+                service_type,
+                then_step,
+                ..
+            }) = &step.on_reject
+            {
+                validate_name("service type", service_type)?;
+                if *then_step == 0 || *then_step > self.steps.len() {
+                    return Err(SchemaError::InvalidField {
+                        field: "on_reject",
+                        why: format!(
+                            "step {}: recover then_step must be between 1 and {}",
+                            i + 1,
+                            self.steps.len()
+                        ),
+                    });
+                }
             }
             if let Some(OnReject::Rework { from_step, .. }) = &step.on_reject {
                 if *from_step == 0 || *from_step > i + 1 {
@@ -350,6 +378,25 @@ mod tests {
         assert!(
             plan(json!({"product": "b", "steps": [{"service_type": "x", "colour": 1}]})).is_err()
         );
+    }
+
+    #[test]
+    fn a_recovery_names_a_service_and_a_step_of_the_plan() {
+        let recover = |service: &str, then_step: usize| {
+            plan(json!({"product": "b", "steps": [
+                {"service_type": "axis"},
+                {"service_type": "inspection", "reject_results": ["inspect_fail"],
+                 "on_reject": {"recover": {"service_type": service, "then_step": then_step,
+                                           "max_recoveries": 1}}},
+                {"service_type": "unload"}
+            ]}))
+        };
+        recover("recovery", 2).unwrap();
+        recover("recovery", 3).unwrap();
+        let beyond = recover("recovery", 4).unwrap_err();
+        assert!(beyond.contains("between 1 and 3"), "{beyond}");
+        assert!(recover("recovery", 0).is_err());
+        assert!(recover("Recovery", 2).is_err());
     }
 
     #[test]

@@ -30,7 +30,7 @@ pub mod usage;
 
 use bound::{Bound, CellModel};
 use manifest::CellCopy;
-use metrics::{CellFigures, Released};
+use metrics::{CellFigures, Endings, Released};
 use scenario::{CellScenario, Event, Happening};
 use usage::{ProcessUsage, Sampler};
 
@@ -77,6 +77,8 @@ pub struct CellRun {
     pub gantt: PathBuf,
     /// What each of the cell's processes used over the run.
     pub processes: Vec<ProcessUsage>,
+    /// How its orders ended.
+    pub endings: Endings,
 }
 
 /// What a run of cell scenarios is asked (`bench schedule` on a cell).
@@ -195,7 +197,8 @@ fn print_row(run: &CellRun) {
         })
         .collect();
     println!(
-        "    wall {:.1}s; CPU time / peak resident memory: {}",
+        "    orders: {}; wall {:.1}s; CPU time / peak resident memory: {}",
+        run.endings.summary(),
         run.wall_s,
         processes.join(", ")
     );
@@ -216,7 +219,7 @@ async fn run_once(
     let mut cell = Running::start(&copy, scenario.time_scale)?;
     let outcome = drive(scenario, &copy, &mut cell).await;
     let processes = cell.stop();
-    let (released, wall) = outcome?;
+    let (released, endings, wall) = outcome?;
     let trace = metrics::read_trace(&copy.trace)?;
     let figures = metrics::figures(
         &trace,
@@ -265,6 +268,7 @@ async fn run_once(
         wall_s: wall.as_secs_f64(),
         gantt,
         processes,
+        endings,
     })
 }
 
@@ -402,13 +406,13 @@ impl PlantControl {
 }
 
 /// Waits for the cell, releases the orders and plays the events at their moments,
-/// and waits until every order has ended: the releases, and the wall time from the
-/// first release.
+/// and waits until every order has ended: the releases, how they ended, and the wall
+/// time from the first release.
 async fn drive(
     scenario: &CellScenario,
     copy: &CellCopy,
     cell: &mut Running,
-) -> Result<(Vec<Released>, Duration)> {
+) -> Result<(Vec<Released>, Endings, Duration)> {
     let plant = PlantControl {
         address: copy.control.clone(),
     };
@@ -462,6 +466,12 @@ async fn drive(
                     bail!("the plant refused the breakdown of {station}: {answer}");
                 }
             }
+            Happening::Event(Event::InspectionFail { station, count, .. }) => {
+                let answer = plant.command(&format!("fail {station} {count}")).await?;
+                if answer != "ok" {
+                    bail!("the plant refused to fail {station}'s inspections: {answer}");
+                }
+            }
             Happening::Event(Event::HotAdd { station, .. }) => {
                 cell.hot_add(&station, &copy.endpoint)?
             }
@@ -473,8 +483,8 @@ async fn drive(
         }
     }
     released.extend(submitted(scenario, submitting)?);
-    wait_ended(&session, &keys, &released, scenario).await?;
-    Ok((released, started.elapsed()))
+    let endings = wait_ended(&session, &keys, &released, scenario).await?;
+    Ok((released, endings, started.elapsed()))
 }
 
 /// Commands `station`'s PackML unit as its operator would (`cell packml`), asked
@@ -602,13 +612,13 @@ fn submitted(
 }
 
 /// Waits until every released order has ended (done, scrapped, failed or
-/// cancelled); an error after a generous bound of wall time.
+/// cancelled): how they ended. An error after a generous bound of wall time.
 async fn wait_ended(
     session: &zenoh::Session,
     keys: &CellKeys,
     released: &[Released],
     scenario: &CellScenario,
-) -> Result<()> {
+) -> Result<Endings> {
     // Every order alone in the cell, one after another, at the slowest plausible
     // pace: far beyond any real run.
     let limit = Duration::from_secs(
@@ -620,19 +630,17 @@ async fn wait_ended(
         let listed =
             ::cell::client::listing::all_orders(session, keys, Duration::from_secs(5)).await;
         if let Ok(orders) = listed {
-            let ended = orders
-                .iter()
-                .filter(|o| {
-                    o.status.is_final() && released.iter().any(|r| r.order == o.holon.name())
-                })
-                .count();
-            if ended == released.len() {
-                return Ok(());
+            if let Some(endings) = Endings::of(&orders, released) {
+                return Ok(endings);
             }
             if started.elapsed() > limit {
+                let running = orders
+                    .iter()
+                    .filter(|o| !o.status.is_final())
+                    .filter(|o| released.iter().any(|r| r.order == o.holon.name()))
+                    .count();
                 bail!(
-                    "{} of {} orders ended after {:?}",
-                    ended,
+                    "{running} of {} orders still running after {:?}",
                     released.len(),
                     started.elapsed()
                 );

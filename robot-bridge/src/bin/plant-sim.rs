@@ -42,8 +42,8 @@ struct Args {
     /// `silence PALLET` and `report PALLET` (a pallet that stops reporting: its
     /// moves end in the plant without its controller saying so), `estop RESOURCE MS`
     /// (its controller e-stopped for MS ms), `cut RESOURCE` (every link to its
-    /// controller closed at once; what it does goes on). No access control: keep it on
-    /// loopback.
+    /// controller closed at once; what it does goes on), `fail RESOURCE N` (its next N
+    /// inspections answered `inspect_fail`). No access control: keep it on loopback.
     #[arg(long, value_name = "HOST:PORT")]
     control: Option<String>,
     /// Check the plant file, its layout and its controllers' dialects, print `plant

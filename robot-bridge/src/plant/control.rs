@@ -12,6 +12,7 @@
 //! | `report PALLET` | `ok`: it reports again |
 //! | `estop RESOURCE MS` | `ok`: the resource's controller is e-stopped for MS ms (it says `estop`, refuses every command meanwhile, and a transporter's pallets stand still), then ready again |
 //! | `counts` | what each controller did, as robot-sim's count file says it: `{"robot1": {"executed", "received", "aborted", "connections", "by_action", ...; fenced: "epoch", "by_step"}, ...}`, on one line |
+//! | `fail RESOURCE N` | `ok`: the resource's controller answers its next N inspections `inspect_fail` (a fault of the part, as an inspection finds it; the plant's `inspect_fail_every` goes on counting beside it) |
 //! | `cut RESOURCE` | `ok`: every connection to the resource's controller is closed at once, as a failed network between it and its holon; what the controller was doing goes on (a move ends in the plant), and it takes connections again at once |
 //!
 //! Anything else is answered `error ` and why; nothing changes. The plant is advanced to
@@ -46,6 +47,11 @@ pub enum Effect {
     /// Cut every link to `resource`'s controller.
     Cut {
         resource: String,
+    },
+    /// Fail `resource`'s next `count` inspections.
+    FailInspections {
+        resource: String,
+        count: u64,
     },
 }
 
@@ -124,13 +130,32 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
             format!("error {resource}: no controller of that resource in the plant"),
             Effect::None,
         ),
+        ["fail", resource, count] => {
+            match (resources.iter().any(|r| r == resource), count.parse::<u64>()) {
+                (false, _) => (
+                    format!("error {resource}: no controller of that resource in the plant"),
+                    Effect::None,
+                ),
+                (true, Ok(count)) if count > 0 => (
+                    "ok".into(),
+                    Effect::FailInspections {
+                        resource: resource.to_string(),
+                        count,
+                    },
+                ),
+                (true, _) => (
+                    format!("error {count:?}: N is a number of inspections above 0"),
+                    Effect::None,
+                ),
+            }
+        }
         ["jam", at] => done(dock(at).and_then(|at| plant.jam(at, true))),
         ["clear", at] => done(dock(at).and_then(|at| plant.jam(at, false))),
         ["silence", pallet] => done(plant.silence(pallet, true)),
         ["report", pallet] => done(plant.silence(pallet, false)),
         _ => (
             format!(
-                "error {line:?}: not a command (where, waits, counts, jam, clear, silence, report, estop, cut)"
+                "error {line:?}: not a command (where, waits, counts, jam, clear, silence, report, estop, cut, fail)"
             ),
             Effect::None,
         ),
@@ -208,6 +233,9 @@ pub async fn serve(
                     }
                     if let Effect::Cut { resource } = &effect {
                         controllers[resource].cut_links();
+                    }
+                    if let Effect::FailInspections { resource, count } = &effect {
+                        controllers[resource].fail_inspections(*count);
                     }
                     if effect != Effect::None {
                         on_change(&locked);

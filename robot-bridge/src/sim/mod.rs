@@ -110,6 +110,9 @@ pub struct SimStats {
     /// Actions stopped by an abort (not executed).
     aborted: AtomicU64,
     inspections: AtomicU64,
+    /// Inspections still to be answered `inspect_fail` whatever `inspect_fail_every`
+    /// says (the plant's `fail` command: a fault played on a running cell).
+    failing_inspections: AtomicU64,
     by_action: Mutex<BTreeMap<String, u64>>,
     connections: AtomicU64,
     /// The program of the last command run that named one.
@@ -185,6 +188,18 @@ impl SimStats {
     /// connection drop and reconnects); what the controller was doing goes on.
     pub(crate) fn cut_links(&self) {
         self.links_cut.notify_waiters();
+    }
+
+    /// The controller's next `count` inspections fail (`inspect_fail`).
+    pub(crate) fn fail_inspections(&self, count: u64) {
+        self.failing_inspections.fetch_add(count, Ordering::SeqCst);
+    }
+
+    /// Whether this inspection is one of those told to fail: it is counted off.
+    pub(crate) fn takes_failing_inspection(&self) -> bool {
+        self.failing_inspections
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
+            .is_ok()
     }
 
     /// The controller stops for `time` in a state the dialect does not describe (it

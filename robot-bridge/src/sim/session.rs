@@ -48,6 +48,9 @@ fn success_result(action: &str, config: &SimConfig, stats: &SimStats) -> Option<
         "move" => Some("arrived"),
         "inspect" => {
             let n = stats.inspections.fetch_add(1, Ordering::SeqCst) + 1;
+            if stats.takes_failing_inspection() {
+                return Some("inspect_fail");
+            }
             match config.inspect_fail_every {
                 Some(every) if every > 0 && n.is_multiple_of(every) => Some("inspect_fail"),
                 _ => Some("inspect_pass"),

@@ -21,6 +21,44 @@ pub struct Released {
     pub rush: bool,
 }
 
+/// How the released orders ended: each status's count (`done`, `scrapped`, ...), and
+/// how often their parts were sent back (reworked or recovered), from the orders'
+/// snapshots.
+#[derive(Debug, Clone, Default, PartialEq, serde::Serialize)]
+pub struct Endings {
+    pub by_status: BTreeMap<String, usize>,
+    pub reworks: u32,
+}
+
+impl Endings {
+    /// The endings of the `released` orders among `orders`, if every one has ended.
+    pub fn of(orders: &[schemas::OrderSnapshot], released: &[Released]) -> Option<Endings> {
+        let mut endings = Endings::default();
+        let mut ended = 0;
+        for order in orders {
+            if order.status.is_final() && released.iter().any(|r| r.order == order.holon.name()) {
+                ended += 1;
+                *endings
+                    .by_status
+                    .entry(order.status.as_str().to_string())
+                    .or_default() += 1;
+                endings.reworks += order.reworks;
+            }
+        }
+        (ended == released.len()).then_some(endings)
+    }
+
+    /// As the bench prints it: `13 done, 1 scrapped; 3 sent back`.
+    pub fn summary(&self) -> String {
+        let statuses: Vec<String> = self
+            .by_status
+            .iter()
+            .map(|(status, n)| format!("{n} {status}"))
+            .collect();
+        format!("{}; {} sent back", statuses.join(", "), self.reworks)
+    }
+}
+
 /// What one run of a cell scenario measured, in plant time.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct CellFigures {

@@ -73,12 +73,23 @@ pub enum Event {
     /// `<station>.toml` in the cell's directory (its controller is in plant.toml
     /// already), and joins the layout by starting.
     HotAdd { at_s: f64, station: String },
+    /// An inspection station finds faulty parts: its controller answers its next
+    /// `count` inspections `inspect_fail` (the plant's `fail STATION N`), and each
+    /// rejected part goes where its plan's `on_reject` says (on the AIP-PRIMECA cell:
+    /// recovery on M6, then inspected again).
+    InspectionFail {
+        at_s: f64,
+        station: String,
+        count: u32,
+    },
 }
 
 impl Event {
     pub fn at_s(&self) -> f64 {
         match self {
-            Event::Breakdown { at_s, .. } | Event::HotAdd { at_s, .. } => *at_s,
+            Event::Breakdown { at_s, .. }
+            | Event::HotAdd { at_s, .. }
+            | Event::InspectionFail { at_s, .. } => *at_s,
         }
     }
 }
@@ -169,8 +180,13 @@ impl CellScenario {
         }
         for (i, event) in scenario.events.iter().enumerate() {
             let station = match event {
-                Event::Breakdown { station, .. } | Event::HotAdd { station, .. } => station,
+                Event::Breakdown { station, .. }
+                | Event::HotAdd { station, .. }
+                | Event::InspectionFail { station, .. } => station,
             };
+            if matches!(event, Event::InspectionFail { count: 0, .. }) {
+                bail!(at(format!("events[{i}].count: at least 1")));
+            }
             if !scenario.cell.join(format!("{station}.toml")).is_file() {
                 bail!(at(format!(
                     "events[{i}].station: no {station}.toml in the cell"
@@ -194,7 +210,7 @@ impl CellScenario {
             .iter()
             .filter_map(|e| match e {
                 Event::HotAdd { station, .. } => Some(station.clone()),
-                Event::Breakdown { .. } => None,
+                Event::Breakdown { .. } | Event::InspectionFail { .. } => None,
             })
             .collect()
     }

@@ -50,13 +50,7 @@ impl OrderTask<'_> {
     /// Whether another part of the node waits in line for the service the part was
     /// just worked for (so for the station whose port it holds).
     async fn station_wanted(&self) -> bool {
-        let worked_for = {
-            let p = self.progress.get();
-            p.step
-                .checked_sub(1)
-                .and_then(|i| p.plan.as_ref()?.steps.get(i))
-                .map(|s| s.service_type.clone())
-        };
+        let worked_for = self.progress.get().last_worked_for().map(str::to_string);
         match worked_for {
             Some(service) => self.ctx.line.waiting_for(&service, &self.holon).await > 0,
             None => false,
