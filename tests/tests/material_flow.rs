@@ -79,14 +79,23 @@ listen = "127.0.0.1:0"
 delay_ms = 150
 "#;
 
-/// A station offering `service` (a pick and a place; nominally 1000 ms unless
-/// `nominal_ms` says), its one port on `stopper`.
+/// A station offering `service` (a pick and a place, or for `inspect` one inspection
+/// that passes or fails the part; nominally 1000 ms unless `nominal_ms` says), its one
+/// port on `stopper`.
 fn station(dir: &Path, name: &str, service: &str, stopper: &str, nominal_ms: u64) -> PathBuf {
     let path = resource_config(dir, name, 10_000).unwrap();
-    let text = std::fs::read_to_string(&path).unwrap().replace(
+    let mut text = std::fs::read_to_string(&path).unwrap().replace(
         "[services.pick_n_place]\nnominal_duration_ms = 1000",
         &format!("[services.{service}]\nnominal_duration_ms = {nominal_ms}"),
     );
+    if service == "inspect" {
+        let pick = text.find("  { action = \"pick\"").expect("a pick step");
+        let end = pick + text[pick..].find("\n]").expect("the steps' end");
+        text.replace_range(
+            pick..end,
+            "  { action = \"inspect\", until = [\"inspect_pass\", \"inspect_fail\"] },",
+        );
+    }
     let layout = format!(
         "\n[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ncapacity = 1\ndock = \"conveyor1.{stopper}\"\n"
     );
@@ -95,11 +104,17 @@ fn station(dir: &Path, name: &str, service: &str, stopper: &str, nominal_ms: u64
 }
 
 /// A product whose parts are moved, its steps the services `first` then `second`.
+/// A step written `S>R` is one of service S whose `inspect_fail` sends the part to be
+/// recovered by service R, then to S again (once; a second failure scraps it).
 fn product(dir: &Path, name: &str, first: &str, second: &str) -> PathBuf {
     let path = dir.join(format!("{name}.toml"));
     let step = |service: &str| {
+        let (service, recover) = match service.split_once('>') {
+            Some((service, by)) => (service, format!("reject_results = [\"inspect_fail\"]\non_reject = {{ recover = {{ service_type = \"{by}\", then_step = 2, max_recoveries = 1 }} }}\n")),
+            None => (service, String::new()),
+        };
         format!(
-            "[[steps]]\nservice_type = \"{service}\"\ninfo = {{ pick = {{ x = 1.0, y = 2.0, z = 3.0 }}, place = {{ x = 4.0, y = 5.0, z = 6.0 }} }}\n"
+            "[[steps]]\nservice_type = \"{service}\"\ninfo = {{ pick = {{ x = 1.0, y = 2.0, z = 3.0 }}, place = {{ x = 4.0, y = 5.0, z = 6.0 }} }}\n{recover}"
         )
     };
     let text = format!(
@@ -822,6 +837,71 @@ async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
         home, 0,
         "a part rode home while station_b was about to free"
     );
+    assert_eq!(
+        flow.count_in_orders_log("\"ERROR\""),
+        0,
+        "the order-node logged errors"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_part_that_fails_its_inspection_is_recovered_and_inspected_again() {
+    // station_b inspects; a failed part is recovered by station_a's drill (the plan's
+    // on_reject), then inspected again.
+    let stations = [
+        ("station_a", "drill", "sa", 1000),
+        ("station_b", "inspect", "sb", 1000),
+    ];
+    let flow = FlowCell::start_with(
+        "t-flow-recover",
+        CONVEYOR,
+        PLANT,
+        &stations,
+        &[("ai", "drill", "inspect>drill")],
+    )
+    .await;
+    assert_eq!(flow.plant.command("fail station_b 1"), "ok");
+    assert!(flow.plant.command("fail nobody 1").starts_with("error"));
+    assert!(flow.plant.command("fail station_b 0").starts_with("error"));
+    let orders = flow.cell.submit("ai", 2).await.unwrap();
+    flow.wait_ended(&orders, Duration::from_secs(120)).await;
+    let mut services = Vec::new();
+    for order in &orders {
+        let state = flow.cell.order_state(order).await.unwrap();
+        assert_eq!(state["status"], "done", "{state:#}");
+        assert_eq!(state["part"]["state"], "shipped", "{state:#}");
+        let completed: Vec<String> = state["completed"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c[0].as_str().unwrap_or_default().to_string())
+            .collect();
+        services.push((completed, state["reworks"].as_u64()));
+    }
+    services.sort();
+    assert_eq!(
+        services,
+        [
+            (vec!["drill".to_string(), "inspect".into()], Some(0)),
+            (
+                vec![
+                    "drill".to_string(),
+                    "inspect".into(),
+                    "drill".into(),
+                    "inspect".into()
+                ],
+                Some(1)
+            ),
+        ],
+        "one part recovered and inspected again, the other passed at once"
+    );
+    // The plant did each step where the part was, once: three drills, three
+    // inspections, and every part shipped.
+    let counts: serde_json::Value = serde_json::from_str(&flow.plant.command("counts")).unwrap();
+    assert_eq!(counts["station_b"]["by_action"]["inspect"], 3, "{counts:#}");
+    assert_eq!(counts["station_a"]["by_action"]["place"], 3, "{counts:#}");
+    let truth = flow.plant.state();
+    assert_eq!(truth["shipped"], 2, "{truth:#}");
     assert_eq!(
         flow.count_in_orders_log("\"ERROR\""),
         0,
