@@ -846,6 +846,7 @@ async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
 
 #[tokio::test(flavor = "multi_thread")]
 async fn a_part_that_fails_its_inspection_is_recovered_and_inspected_again() {
+    // (With one of the conveyor's three pallets taken out meanwhile.)
     // station_b inspects; a failed part is recovered by station_a's drill (the plan's
     // on_reject), then inspected again.
     let stations = [
@@ -861,6 +862,13 @@ async fn a_part_that_fails_its_inspection_is_recovered_and_inspected_again() {
     )
     .await;
     assert_eq!(flow.plant.command("fail station_b 1"), "ok");
+    // One of the three pallets is taken out of service (two stay, as many as the
+    // buffer's homes, so no part waits for one long).
+    assert_eq!(flow.plant.command("retire conveyor1/p3"), "ok");
+    assert!(flow
+        .plant
+        .command("retire conveyor1/p9")
+        .starts_with("error"));
     assert!(flow.plant.command("fail nobody 1").starts_with("error"));
     assert!(flow.plant.command("fail station_b 0").starts_with("error"));
     let orders = flow.cell.submit("ai", 2).await.unwrap();
@@ -902,6 +910,22 @@ async fn a_part_that_fails_its_inspection_is_recovered_and_inspected_again() {
     assert_eq!(counts["station_a"]["by_action"]["place"], 3, "{counts:#}");
     let truth = flow.plant.state();
     assert_eq!(truth["shipped"], 2, "{truth:#}");
+    assert_eq!(
+        truth["pallets"]["conveyor1/p3"]["at"], "retired",
+        "{truth:#}"
+    );
+    assert_eq!(
+        truth["free_pallets"]["conveyor1"].as_array().unwrap().len(),
+        2,
+        "{truth:#}"
+    );
+    assert_eq!(flow.plant.command("restore conveyor1/p3"), "ok");
+    let truth = flow.plant.state();
+    assert_eq!(
+        truth["free_pallets"]["conveyor1"].as_array().unwrap().len(),
+        3,
+        "{truth:#}"
+    );
     assert_eq!(
         flow.count_in_orders_log("\"ERROR\""),
         0,

@@ -472,6 +472,18 @@ async fn drive(
                     bail!("the plant refused to fail {station}'s inspections: {answer}");
                 }
             }
+            Happening::Event(Event::ShuttleOut { shuttle, .. }) => {
+                let answer = plant.command(&format!("retire {shuttle}")).await?;
+                if answer != "ok" {
+                    bail!("the plant refused to take {shuttle} out: {answer}");
+                }
+            }
+            Happening::ShuttleBack { shuttle } => {
+                let answer = plant.command(&format!("restore {shuttle}")).await?;
+                if answer != "ok" {
+                    bail!("the plant refused to put {shuttle} back: {answer}");
+                }
+            }
             Happening::Event(Event::HotAdd { station, .. }) => {
                 cell.hot_add(&station, &copy.endpoint)?
             }

@@ -40,7 +40,9 @@ struct Args {
     /// `jam CONVEYOR.STOPPER` and `clear ...` (the
     /// track ending at that stopper: no pallet enters or leaves it while jammed),
     /// `silence PALLET` and `report PALLET` (a pallet that stops reporting: its
-    /// moves end in the plant without its controller saying so), `estop RESOURCE MS`
+    /// moves end in the plant without its controller saying so), `retire PALLET` and
+    /// `restore PALLET` (a pallet out of service once free, and back; a move that
+    /// finds no free pallet waits for one), `estop RESOURCE MS`
     /// (its controller e-stopped for MS ms), `cut RESOURCE` (every link to its
     /// controller closed at once; what it does goes on), `fail RESOURCE N` (its next N
     /// inspections answered `inspect_fail`). No access control: keep it on loopback.

@@ -12,6 +12,8 @@
 //! | `report PALLET` | `ok`: it reports again |
 //! | `estop RESOURCE MS` | `ok`: the resource's controller is e-stopped for MS ms (it says `estop`, refuses every command meanwhile, and a transporter's pallets stand still), then ready again |
 //! | `counts` | what each controller did, as robot-sim's count file says it: `{"robot1": {"executed", "received", "aborted", "connections", "by_action", ...; fenced: "epoch", "by_step"}, ...}`, on one line |
+//! | `retire PALLET` | `ok`: the pallet (`conveyor1/p2`) is taken out of service: at once if it is free, else once the part it carries has left it; a move that finds no free pallet waits for one (its part at its `from`) |
+//! | `restore PALLET` | `ok`: it is back in service, free |
 //! | `fail RESOURCE N` | `ok`: the resource's controller answers its next N inspections `inspect_fail` (a fault of the part, as an inspection finds it; the plant's `inspect_fail_every` goes on counting beside it) |
 //! | `cut RESOURCE` | `ok`: every connection to the resource's controller is closed at once, as a failed network between it and its holon; what the controller was doing goes on (a move ends in the plant), and it takes connections again at once |
 //!
@@ -153,9 +155,11 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
         ["clear", at] => done(dock(at).and_then(|at| plant.jam(at, false))),
         ["silence", pallet] => done(plant.silence(pallet, true)),
         ["report", pallet] => done(plant.silence(pallet, false)),
+        ["retire", pallet] => done(plant.retire(pallet, true)),
+        ["restore", pallet] => done(plant.retire(pallet, false)),
         _ => (
             format!(
-                "error {line:?}: not a command (where, waits, counts, jam, clear, silence, report, estop, cut, fail)"
+                "error {line:?}: not a command (where, waits, counts, jam, clear, silence, report, retire, restore, estop, cut, fail)"
             ),
             Effect::None,
         ),

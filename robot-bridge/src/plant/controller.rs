@@ -136,6 +136,11 @@ pub fn log_happenings(happened: &[Happening]) {
             Happening::Left { pallet, from } => debug!(pallet, %from, "left onto the loop"),
             Happening::Passed { pallet, stopper } => debug!(pallet, stopper, "passed a stopper"),
             Happening::Docking { pallet, at } => debug!(pallet, %at, "docking"),
+            Happening::AwaitsPallet { part, conveyor, at } => {
+                info!(part, conveyor, %at, "no pallet is free: the part waits for one")
+            }
+            Happening::Retired { pallet, out: true } => info!(pallet, "taken out of service"),
+            Happening::Retired { pallet, out: false } => info!(pallet, "back in service"),
         }
     }
 }

@@ -82,6 +82,16 @@ pub enum Event {
         station: String,
         count: u32,
     },
+    /// A shuttle (a pallet of a conveyor, `monorail/p3`) is taken out of service (the
+    /// plant's `retire`): at once if it is free, else once its part has left it; moves
+    /// that find no free shuttle wait for one. Put back `back_s` plant seconds later
+    /// (the plant's `restore`), if it says.
+    ShuttleOut {
+        at_s: f64,
+        shuttle: String,
+        #[serde(default)]
+        back_s: Option<f64>,
+    },
 }
 
 impl Event {
@@ -89,7 +99,8 @@ impl Event {
         match self {
             Event::Breakdown { at_s, .. }
             | Event::HotAdd { at_s, .. }
-            | Event::InspectionFail { at_s, .. } => *at_s,
+            | Event::InspectionFail { at_s, .. }
+            | Event::ShuttleOut { at_s, .. } => *at_s,
         }
     }
 }
@@ -103,6 +114,8 @@ pub enum Happening {
     Event(Event),
     /// The repaired station's unit cleared, reset and started by the operator.
     Repaired { station: String },
+    /// The shuttle taken out is put back.
+    ShuttleBack { shuttle: String },
 }
 
 impl CellScenario {
@@ -124,6 +137,15 @@ impl CellScenario {
             {
                 let station = station.clone();
                 timeline.push((at_s + repair_s, Happening::Repaired { station }));
+            }
+            if let Event::ShuttleOut {
+                at_s,
+                shuttle,
+                back_s: Some(back_s),
+            } = event
+            {
+                let shuttle = shuttle.clone();
+                timeline.push((at_s + back_s, Happening::ShuttleBack { shuttle }));
             }
         }
         timeline.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -179,17 +201,32 @@ impl CellScenario {
             }
         }
         for (i, event) in scenario.events.iter().enumerate() {
-            let station = match event {
+            let (field, holon) = match event {
                 Event::Breakdown { station, .. }
                 | Event::HotAdd { station, .. }
-                | Event::InspectionFail { station, .. } => station,
+                | Event::InspectionFail { station, .. } => ("station", station.as_str()),
+                Event::ShuttleOut { shuttle, .. } => {
+                    let conveyor = shuttle
+                        .split_once("/p")
+                        .filter(|(_, n)| n.parse::<u32>().is_ok_and(|n| n > 0))
+                        .map(|(conveyor, _)| conveyor);
+                    let Some(conveyor) = conveyor else {
+                        bail!(at(format!(
+                            "events[{i}].shuttle: {shuttle:?} is not CONVEYOR/pN"
+                        )));
+                    };
+                    ("shuttle", conveyor)
+                }
             };
             if matches!(event, Event::InspectionFail { count: 0, .. }) {
                 bail!(at(format!("events[{i}].count: at least 1")));
             }
-            if !scenario.cell.join(format!("{station}.toml")).is_file() {
+            if matches!(event, Event::ShuttleOut { back_s: Some(b), .. } if *b <= 0.0) {
+                bail!(at(format!("events[{i}].back_s: above 0")));
+            }
+            if !scenario.cell.join(format!("{holon}.toml")).is_file() {
                 bail!(at(format!(
-                    "events[{i}].station: no {station}.toml in the cell"
+                    "events[{i}].{field}: no {holon}.toml in the cell"
                 )));
             }
             if event.at_s() < 0.0 {
@@ -210,7 +247,9 @@ impl CellScenario {
             .iter()
             .filter_map(|e| match e {
                 Event::HotAdd { station, .. } => Some(station.clone()),
-                Event::Breakdown { .. } | Event::InspectionFail { .. } => None,
+                Event::Breakdown { .. }
+                | Event::InspectionFail { .. }
+                | Event::ShuttleOut { .. } => None,
             })
             .collect()
     }
@@ -257,6 +296,15 @@ mod tests {
             "[[releases]]\nproduct = \"b\"\n[[events]]\nkind = \"hot_add\"\nat_s = 1\nstation = \"m9\"\n",
         );
         assert!(no_station.contains("events[0].station"), "{no_station}");
+        let shuttle = |name: &str| {
+            write(&format!(
+                "[[releases]]\nproduct = \"b\"\n[[events]]\nkind = \"shuttle_out\"\nat_s = 1\nshuttle = \"{name}\"\n"
+            ))
+        };
+        for bad in ["monorail", "monorail/p0", "monorail/x", "tram/p1"] {
+            let said = shuttle(bad);
+            assert!(said.contains("events[0].shuttle"), "{bad}: {said}");
+        }
         let unknown = write("[[releases]]\nproduct = \"b\"\nwhen = 3\n");
         assert!(unknown.contains("when"), "{unknown}");
         let scale = write("time_scale = 0\n[[releases]]\nproduct = \"b\"\n");

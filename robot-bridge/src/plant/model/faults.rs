@@ -1,5 +1,5 @@
 //! The plant's faults, played on its control port: a jammed track, a pallet that stops
-//! reporting, a transporter's e-stop.
+//! reporting, a transporter's e-stop, a pallet taken out of service.
 
 use schemas::layout::Dock;
 
@@ -71,6 +71,43 @@ impl Plant {
         } else {
             self.silent.remove(pallet);
         }
+        Ok(())
+    }
+
+    /// Takes `pallet` out of service (true) or puts it back (false), at the plant's
+    /// time. A free pallet goes at once; one carrying a part, or on its way to fetch
+    /// one, once it is free again (it finishes what it carries). One put back is free
+    /// at once, for the part that has waited longest for a pallet.
+    pub fn retire(&mut self, pallet: &str, out: bool) -> Result<(), String> {
+        let Some(p) = self.pallets.get_mut(pallet) else {
+            return Err(format!("{pallet}: no such pallet in the plant"));
+        };
+        let happened = match (out, &p.place) {
+            (true, Place::Parked) => {
+                p.place = Place::Retired;
+                true
+            }
+            (true, Place::Retired) => false,
+            (true, _) => {
+                p.retiring = true;
+                false
+            }
+            (false, Place::Retired) => {
+                p.place = Place::Parked;
+                true
+            }
+            (false, _) => {
+                p.retiring = false;
+                false
+            }
+        };
+        if happened {
+            self.happened.push(super::Happening::Retired {
+                pallet: pallet.to_string(),
+                out,
+            });
+        }
+        self.settle();
         Ok(())
     }
 

@@ -71,6 +71,7 @@ impl Plant {
     /// which pallets wait, since when.
     pub(super) fn settle(&mut self) {
         self.transfers_arrive();
+        self.pallets_found();
         let conveyors: Vec<String> = self
             .loops
             .keys()
@@ -81,6 +82,8 @@ impl Plant {
             // Non-short-circuit `|`: each kind of step gets its turn every round.
             while self.dockings_end(conveyor) | self.stoppers(conveyor) | self.departures(conveyor)
             {
+                // A pallet freed on the way (a part shipped) takes a waiting part.
+                self.pallets_found();
             }
         }
         self.note_waits();

@@ -11,7 +11,7 @@
 //!
 //! | what happens | what the plant checks | what changes |
 //! |---|---|---|
-//! | a transporter begins a move of part P from A to B | the transporter reaches A to B; P is at A (a part unknown to the plant at an entry is new raw material), not moving already; on a conveyor, P has a pallet docked at A or one is parked (a transfer: B has a place, counting the parts on their way) | P is in transit; on a conveyor its pallet is bound for B, docked at A until it can leave; a transfer takes P off its pallet (parked again) |
+//! | a transporter begins a move of part P from A to B | the transporter reaches A to B; P is at A (a part unknown to the plant at an entry is new raw material), not moving already; a transfer: B has a place, counting the parts on their way | P is in transit; on a conveyor its pallet (docked at A, or a parked one brought there) is bound for B, docked at A until it can leave, and with no pallet free (all carry parts, or some are retired) P waits at A for the first freed, the longest waiting first; a transfer takes P off its pallet (parked again) |
 //! | a pallet leaves A (docked at stopper Sa) | nothing waits at Sa (a pallet stopped there holds the spot where A's pallets come back onto the loop) and the track after Sa has room (not full, not jammed) | P leaves A; the pallet is at the back of that track, riding for `dock_ms` and the track's length at the conveyor's speed |
 //! | a pallet reaches the stopper at the end of its track, first in the queue | the track is not jammed; at B's stopper: B has a place; elsewhere: the next track has room | it docks into B (`dock_ms`), or passes onto the next track; else it **waits** there, holding its place in the queue and the pallets behind it |
 //! | a pallet has docked into B | | P is at B; at an exit P leaves the plant (shipped) and the pallet is parked |
@@ -21,6 +21,7 @@
 //! | a track is jammed (`jam conveyor1.s2`: the track that ends at that stopper) | | no pallet enters it or leaves it (as if full) until it is cleared |
 //! | a pallet stops reporting (`silence conveyor1/p2`) | | a move it carries ends in the plant, but its controller does not say so |
 //! | a transporter's e-stop is pressed (`estop conveyor1 MS`) | | its pallets (or its transfer) stand still until it is released, then go on with the time they had left |
+//! | a pallet is taken out of service (`retire conveyor1/p2`), or put back (`restore`) | | a free one is retired at once, one carrying a part once it is free; a retired pallet takes no part; one put back is free |
 //!
 //! Every pallet that cannot go on **waits**, since the moment it stopped: for a full
 //! location, a full or jammed track, the stopper's spot, or the pallet ahead of it. The
@@ -68,6 +69,14 @@ pub struct Transit {
     /// pallet says where it is).
     #[serde(skip)]
     arrives_ms: Option<u64>,
+    /// On a conveyor: no pallet was free when the move began (some are taken out, or
+    /// all carry parts), so the part waits at `from` for one; the first to free up
+    /// takes the part that has waited longest.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub awaits_pallet: bool,
+    /// When the move began (plant ms).
+    #[serde(skip)]
+    began_ms: u64,
 }
 
 /// What the plant refuses, physically.
@@ -93,8 +102,6 @@ pub enum PhysicalError {
         coming: usize,
         capacity: u32,
     },
-    #[error("no free pallet on {conveyor}")]
-    NoPallet { conveyor: String },
     #[error("nothing to work on at {ports}: the port is empty")]
     Empty { ports: String },
     #[error("part {part} is not at {ports} ({where_it_is})")]
@@ -121,6 +128,9 @@ enum Place {
     Track { track: usize, due: u64 },
     /// Leaving the loop into location `at`; inside at `due`.
     Docking { at: LocationId, due: u64 },
+    /// Taken out of service by an operator (`retire`): off the loop, holding nothing;
+    /// no move takes it until it is put back.
+    Retired,
 }
 
 /// Where a pallet takes its part: the move under way.
@@ -150,6 +160,8 @@ struct Pallet {
     stopped: bool,
     /// Since when (plant ms) it waits, if it does.
     waiting_since: Option<u64>,
+    /// To be taken out of service once it is free (`retire` while it carried a part).
+    retiring: bool,
 }
 
 /// A conveyor's loop: its layout and what is on its tracks.
@@ -182,6 +194,14 @@ pub enum Happening {
     Shipped { part: String, at: LocationId },
     /// `pallet` began to wait, for `what`.
     Waits { pallet: String, what: String },
+    /// `part`, to be moved by `conveyor`, waits at `at` for a free pallet.
+    AwaitsPallet {
+        part: String,
+        conveyor: String,
+        at: LocationId,
+    },
+    /// `pallet` was taken out of service (true) or put back (false).
+    Retired { pallet: String, out: bool },
 }
 
 /// The plant's physical state.
@@ -260,6 +280,7 @@ impl Plant {
                         bound: None,
                         stopped: false,
                         waiting_since: None,
+                        retiring: false,
                     };
                     pallets.insert(format!("{}/p{n}", part.holon), pallet);
                 }
@@ -393,15 +414,26 @@ impl Plant {
                 stopped: false,
                 arrives_ms: (!self.loops.contains_key(transporter))
                     .then_some(self.clock + route.travel_ms),
+                awaits_pallet: load.carrier.is_none() && self.loops.contains_key(transporter),
+                began_ms: self.clock,
             },
         );
+        if self.transit[part].awaits_pallet {
+            self.happened.push(Happening::AwaitsPallet {
+                part: part.into(),
+                conveyor: transporter.into(),
+                at: from.clone(),
+            });
+        }
         // A pallet that can leave at once does.
         self.settle();
         Ok(Duration::from_millis(route.travel_ms))
     }
 
     /// A conveyor's move begins: the part's pallet docked at `from` (or a parked one,
-    /// brought there) is bound for `to`. Returns the part on its pallet.
+    /// brought there) is bound for `to`. Returns the part on its pallet, or without a
+    /// pallet (its old carrier parked) when none is free: it waits at `from` for one
+    /// ([`Plant::pallets_found`]).
     fn board(
         &mut self,
         conveyor: &str,
@@ -417,19 +449,35 @@ impl Plant {
         let pallet = match docked_here {
             Some(pallet) => pallet.clone(),
             None => {
-                let parked = self
-                    .pallets
-                    .iter()
-                    .find(|(_, p)| p.conveyor == conveyor && p.place == Place::Parked)
-                    .map(|(id, _)| id.clone())
-                    .ok_or_else(|| PhysicalError::NoPallet {
-                        conveyor: conveyor.into(),
-                    })?;
-                // Off its old pallet (parked again), onto this one, brought to `from`.
+                // Off its old pallet (parked again), onto a free one, brought to `from`.
                 self.park(load.carrier.take());
-                parked
+                match self.parked(conveyor) {
+                    Some(parked) => parked,
+                    None => return Ok(load),
+                }
             }
         };
+        Ok(self.board_onto(conveyor, &pallet, load, from, to))
+    }
+
+    /// A free pallet of `conveyor`, if one is parked.
+    fn parked(&self, conveyor: &str) -> Option<String> {
+        self.pallets
+            .iter()
+            .find(|(_, p)| p.conveyor == conveyor && p.place == Place::Parked)
+            .map(|(id, _)| id.clone())
+    }
+
+    /// `pallet`, docked at `from`, takes the part of `load` to `to`.
+    fn board_onto(
+        &mut self,
+        conveyor: &str,
+        pallet: &str,
+        mut load: Load,
+        from: &LocationId,
+        to: &LocationId,
+    ) -> Load {
+        let pallet = pallet.to_string();
         let stopper = self.stopper_of(conveyor, to).expect("a routed location");
         let p = self
             .pallets
@@ -451,7 +499,32 @@ impl Plant {
         {
             at.carrier = load.carrier.clone();
         }
-        Ok(load)
+        load
+    }
+
+    /// Parts waiting for a pallet get the free ones, the longest waiting first (a
+    /// conveyor's e-stop holds them back too).
+    pub(super) fn pallets_found(&mut self) {
+        let mut waiting: Vec<(u64, String)> = self
+            .transit
+            .iter()
+            .filter(|(_, t)| t.awaits_pallet && !t.stopped)
+            .filter(|(_, t)| !self.estopped.contains_key(&t.transporter))
+            .map(|(part, t)| (t.began_ms, part.clone()))
+            .collect();
+        waiting.sort();
+        for (_, part) in waiting {
+            let t = &self.transit[&part];
+            let (conveyor, from, to) = (t.transporter.clone(), t.from.clone(), t.to.clone());
+            let Some(pallet) = self.parked(&conveyor) else {
+                continue;
+            };
+            let load = self.transit[&part].load.clone();
+            let load = self.board_onto(&conveyor, &pallet, load, &from, &to);
+            let t = self.transit.get_mut(&part).expect("found above");
+            t.load = load;
+            t.awaits_pallet = false;
+        }
     }
 
     /// A transfer's move begins: `to` has a place (a transfer does not wait at a full
@@ -483,11 +556,21 @@ impl Plant {
         Ok(load)
     }
 
-    /// `pallet` is free: back in its conveyor's park.
+    /// `pallet` is free: back in its conveyor's park (or out of service, if it is to
+    /// be taken out).
     fn park(&mut self, pallet: Option<String>) {
         let Some(pallet) = pallet else { return };
         if let Some(p) = self.pallets.get_mut(&pallet) {
-            p.place = Place::Parked;
+            p.place = if p.retiring {
+                p.retiring = false;
+                self.happened.push(Happening::Retired {
+                    pallet: pallet.clone(),
+                    out: true,
+                });
+                Place::Retired
+            } else {
+                Place::Parked
+            };
             p.part = None;
             p.bound = None;
             p.stopped = false;
@@ -544,6 +627,9 @@ impl Plant {
         }
         if transit.stopped {
             return Some("stopped".into());
+        }
+        if transit.awaits_pallet {
+            return Some(format!("waits at {} for a free pallet", transit.from));
         }
         let pallet = transit.load.carrier.as_deref();
         let waits = pallet.and_then(|p| self.waits_for(p));

@@ -208,12 +208,7 @@ fn a_pallet_waits_at_a_full_port_blocking_the_pallets_behind_it_until_there_is_a
         plant.on_its_way("o-2", "conveyor1"),
         Some(format!("{p2} waits: robot1.port full"))
     );
-    // Three pallets under way: a fourth part has none.
     plant.advance(2600);
-    assert!(matches!(
-        plant.begin_move("conveyor1", "o-4", &load, &r2),
-        Err(PhysicalError::NoPallet { .. })
-    ));
     // The port is emptied (a transfer takes its part to the shelf): the pallet docks at
     // once, and the one behind goes on to robot2.
     plant.begin_move("mover2", "o-1", &r1, &shelf).unwrap();
@@ -308,13 +303,8 @@ fn the_plant_refuses_what_cannot_happen() {
     let mut plant = plant();
     let (load, r1, r2) = (id("conveyor1.load"), id("robot1.port"), id("robot2.port"));
     plant.begin_move("conveyor1", "o-1", &load, &r1).unwrap();
-    // A full port does not refuse a pallet (it waits there); two pallets: the third
-    // part has none.
+    // A full port does not refuse a pallet (it waits there).
     plant.begin_move("conveyor1", "o-2", &load, &r1).unwrap();
-    assert!(matches!(
-        plant.begin_move("conveyor1", "o-3", &load, &r2),
-        Err(PhysicalError::NoPallet { .. })
-    ));
     plant.advance(1000);
     // A part is moved from where it is, by a transporter that reaches both ends.
     assert!(matches!(
@@ -480,4 +470,56 @@ fn parts_crossing_between_two_ports_each_way_deadlock_without_reservation() {
     let (deadlocked, plant) = run(plant_of(2, 2, 0), orders, true);
     assert!(!deadlocked);
     assert!(plant.waits().is_empty(), "{:?}", plant.view());
+}
+
+#[test]
+fn a_part_waits_for_a_free_pallet_and_a_retired_pallet_takes_none() {
+    let mut plant = plant();
+    let (load, r1, r2) = (id("conveyor1.load"), id("robot1.port"), id("robot2.port"));
+    assert!(plant.retire("conveyor1/p9", true).is_err());
+    // One of the two pallets is taken out: it is free, so at once.
+    plant.retire("conveyor1/p2", true).unwrap();
+    let view = plant.view();
+    assert_eq!(view.pallets["conveyor1/p2"].at, "retired");
+    assert_eq!(view.free_pallets["conveyor1"], ["conveyor1/p1"]);
+    plant.begin_move("conveyor1", "o-1", &load, &r1).unwrap();
+    assert_eq!(plant.carrier_of("o-1").as_deref(), Some("conveyor1/p1"));
+    // No pallet is free: the second part waits at the entry for one.
+    plant.begin_move("conveyor1", "o-2", &load, &r2).unwrap();
+    assert_eq!(plant.carrier_of("o-2"), None);
+    assert_eq!(
+        plant.on_its_way("o-2", "conveyor1").as_deref(),
+        Some("waits at conveyor1.load for a free pallet")
+    );
+    assert!(plant.view().in_transit.iter().any(|t| t.awaits_pallet));
+    // o-1 arrives, is worked, and leaves by the exit: its pallet is freed there, and
+    // the waiting part takes it (brought to the entry).
+    plant.advance(1000);
+    assert_eq!(plant.where_is("o-1"), "at robot1.port");
+    // The pallet carrying a part is to be retired: it finishes what it carries.
+    plant.retire("conveyor1/p1", true).unwrap();
+    plant.begin_move("conveyor1", "o-1", &r1, &load).unwrap();
+    plant.advance(3000);
+    assert_eq!(plant.view().shipped, 1);
+    assert_eq!(plant.view().pallets["conveyor1/p1"].at, "retired");
+    assert_eq!(
+        plant.on_its_way("o-2", "conveyor1").as_deref(),
+        Some("waits at conveyor1.load for a free pallet"),
+        "a retired pallet takes no part"
+    );
+    // Put back: the waiting part takes it at once and rides.
+    let happened = {
+        plant.retire("conveyor1/p2", false).unwrap();
+        plant.advance(3000)
+    };
+    assert!(
+        happened.contains(&Happening::Retired {
+            pallet: "conveyor1/p2".into(),
+            out: false
+        }),
+        "{happened:?}"
+    );
+    assert_eq!(plant.carrier_of("o-2").as_deref(), Some("conveyor1/p2"));
+    plant.advance(5000);
+    assert_eq!(plant.where_is("o-2"), "at robot2.port");
 }

@@ -30,7 +30,8 @@ enum Blocker {
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
 pub struct PalletView {
     /// `parked` (free, off the loop), `docked` (in `location`), `docking` (into
-    /// `location`) or `track` (on the track that ends at stopper `track`).
+    /// `location`), `track` (on the track that ends at stopper `track`) or `retired`
+    /// (taken out of service: `retire`).
     pub at: &'static str,
     /// The location it is docked in or docking into.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -285,6 +286,7 @@ impl Plant {
                         view.queue_position = lp.tracks[*track].iter().position(|q| q == id);
                         view.riding = *due > self.clock;
                     }
+                    Place::Retired => view.at = "retired",
                 }
                 (id.clone(), view)
             })

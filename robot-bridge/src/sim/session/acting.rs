@@ -55,7 +55,7 @@ pub(super) async fn act_for(done: std::time::Instant) {
 impl Session<'_> {
     /// How long the action takes (its delay, the plant's travel time, a changeover), or
     /// None when the plant does not allow it: then it is answered failed, in the plant's
-    /// words (nothing to pick, no free pallet), and not executed, as a controller reports a
+    /// words (nothing to pick, a full place), and not executed, as a controller reports a
     /// physical error.
     pub(super) async fn takes(
         &mut self,
