@@ -181,6 +181,36 @@ pub struct ResourceSnapshot {
     pub at: u64,
 }
 
+impl ResourceSnapshot {
+    /// The state of `holon` before it knows anything: initialising, no controller
+    /// connection, nothing booked, running or offered, at time 0. Whoever publishes or
+    /// builds a state sets what it knows over it (`..ResourceSnapshot::blank(holon)`).
+    pub fn blank(holon: HolonId) -> ResourceSnapshot {
+        ResourceSnapshot {
+            holon,
+            state: ResourceState::Init,
+            controller: ControllerStatus::Disconnected,
+            agenda: Vec::new(),
+            current: None,
+            more_running: Vec::new(),
+            undelivered: 0,
+            services: Vec::new(),
+            nominal_ms: Default::default(),
+            journal_fault: None,
+            delivery_retries: 0,
+            handing_over: false,
+            packml: None,
+            places: Default::default(),
+            host: None,
+            epoch: None,
+            version: None,
+            time_scale: None,
+            v: 0,
+            at: 0,
+        }
+    }
+}
+
 /// The highest epoch seen of each fenced resource: a state published by a process of a
 /// lower epoch is a deposed holder's (frozen or cut off, then thawed), and whoever reads
 /// the resources' states ignores it rather than read the cell backwards.

@@ -353,26 +353,12 @@ pub(crate) mod tests {
 
     pub fn snapshot(name: &str, at: u64) -> ResourceSnapshot {
         ResourceSnapshot {
-            holon: HolonId::resource(name).unwrap(),
             state: ResourceState::Free,
             controller: ControllerStatus::Ready,
-            agenda: vec![],
-            current: None,
-            more_running: Vec::new(),
-            undelivered: 0,
             services: vec!["pick_n_place".into()],
             nominal_ms: [("pick_n_place".to_string(), 1000)].into(),
-            journal_fault: None,
-            delivery_retries: 0,
-            handing_over: false,
-            packml: None,
-            places: Default::default(),
-            host: None,
-            epoch: None,
-            version: None,
-            time_scale: None,
-            v: 0,
             at,
+            ..ResourceSnapshot::blank(HolonId::resource(name).unwrap())
         }
     }
 

@@ -186,26 +186,12 @@ mod tests {
     fn snapshot(running: Vec<CurrentJobView>, scale: Option<f64>) -> ResourceSnapshot {
         let mut running = running.into_iter();
         ResourceSnapshot {
-            holon: robot(),
             state: schemas::ResourceState::Free,
             controller: schemas::ControllerStatus::Ready,
-            agenda: Vec::new(),
             current: running.next(),
             more_running: running.collect(),
-            undelivered: 0,
-            services: Vec::new(),
-            nominal_ms: BTreeMap::new(),
-            journal_fault: None,
-            delivery_retries: 0,
-            handing_over: false,
-            packml: None,
-            places: BTreeMap::new(),
-            host: None,
-            epoch: None,
-            version: None,
             time_scale: scale,
-            v: 0,
-            at: 0,
+            ..ResourceSnapshot::blank(robot())
         }
     }
 

@@ -13,7 +13,6 @@ fn snapshot(
     agenda: &[&str],
 ) -> ResourceSnapshot {
     ResourceSnapshot {
-        holon: robot(),
         state,
         controller,
         agenda: agenda
@@ -29,7 +28,6 @@ fn snapshot(
                 program: None,
             })
             .collect(),
-        more_running: Vec::new(),
         current: (state == ResourceState::Busy).then(|| CurrentJobView {
             requester: HolonId::order("o-1").unwrap(),
             conversation_id: "o-1/1/1".into(),
@@ -38,20 +36,8 @@ fn snapshot(
             program: None,
             started_at: None,
         }),
-        undelivered: 0,
         services: vec!["pick_n_place".into()],
-        nominal_ms: Default::default(),
-        journal_fault: None,
-        delivery_retries: 0,
-        handing_over: false,
-        packml: None,
-        places: Default::default(),
-        host: None,
-        epoch: None,
-        version: None,
-        time_scale: None,
-        v: 0,
-        at: 0,
+        ..ResourceSnapshot::blank(robot())
     }
 }
 

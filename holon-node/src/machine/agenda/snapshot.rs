@@ -10,7 +10,6 @@ impl AgendaMachine {
     /// components' to fill in (see [`crate::views::Views::snapshot`]).
     pub fn snapshot(&self) -> ResourceSnapshot {
         ResourceSnapshot {
-            holon: self.holon.clone(),
             state: self.state(),
             controller: ControllerStatus::Disconnected,
             agenda: self
@@ -39,8 +38,6 @@ impl AgendaMachine {
                     Some((t.to_string(), nominal))
                 })
                 .collect(),
-            journal_fault: None,
-            delivery_retries: 0,
             handing_over: self.handing_over,
             packml: Some(self.packml.status()),
             places: self
@@ -52,13 +49,9 @@ impl AgendaMachine {
                     (location.to_string(), parts)
                 })
                 .collect(),
-            host: None,
-            epoch: None,
-            version: None,
-            time_scale: None,
-            v: 0,
-            // Stamped when the view is read (`Views::snapshot`).
-            at: 0,
+            // Host, epoch, version, time scale, `v` and `at` are stamped when the view
+            // is read (`Views::snapshot`).
+            ..ResourceSnapshot::blank(self.holon.clone())
         }
     }
 }

@@ -26,7 +26,6 @@ pub(in crate::presence) fn snapshot_of(
     agenda: &[&str],
 ) -> ResourceSnapshot {
     ResourceSnapshot {
-        holon: resource.clone(),
         state: serde_json::from_value(state.into()).expect("a resource state"),
         controller: serde_json::from_value(controller.into()).expect("a controller status"),
         agenda: agenda
@@ -43,21 +42,8 @@ pub(in crate::presence) fn snapshot_of(
             })
             .collect(),
         current: None,
-        more_running: Vec::new(),
-        undelivered: 0,
         services: vec!["pick_n_place".into()],
-        nominal_ms: Default::default(),
-        journal_fault: None,
-        delivery_retries: 0,
-        handing_over: false,
-        packml: None,
-        places: Default::default(),
-        host: None,
-        epoch: None,
-        version: None,
-        time_scale: None,
-        v: 0,
-        at: 0,
+        ..ResourceSnapshot::blank(resource.clone())
     }
 }
 
