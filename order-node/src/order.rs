@@ -29,6 +29,7 @@ use crate::ranking::InFlight;
 use crate::requests;
 
 mod material;
+mod round;
 mod watching;
 
 use watching::Watched;
@@ -432,49 +433,16 @@ impl OrderTask<'_> {
 
     /// A proposal round, with the staff's advice asked together: the offers ranked.
     async fn ask_proposals(&mut self, step: &PlanStep, conversation_id: &str) -> AttemptEvent {
-        let ctx = self.ctx.clone();
-        let avoid = self.progress.get().avoid.clone();
         let ask = self.request(MessageType::ProposalReq, step, conversation_id);
-        self.appearances = ctx.presence.appearances();
-        let _turn = ctx.rounds.acquire().await.expect("never closed");
-        // The staff's advice is asked together with the round: it costs no time unless
-        // the staff is slower than the round (then at most `orders.advice_timeout_ms`),
-        // and without a staff nothing at all.
-        let (route, urgency) = {
-            let p = self.progress.get();
-            (p.route_ahead(), (p.priority, p.due))
-        };
+        self.appearances = self.ctx.presence.appearances();
         // A move is not the staff's to advise; a step of a part at a station is
         // worked there.
         let work = self.leg == Leg::Work && self.work_at.is_none();
-        let (advised, offers) = tokio::join!(
-            async {
-                if work {
-                    requests::advice(
-                        &ctx,
-                        &self.holon,
-                        conversation_id,
-                        route,
-                        urgency,
-                        &avoid,
-                        None,
-                    )
-                    .await
-                } else {
-                    requests::Advised::NoStaff
-                }
-            },
-            requests::offers(&ctx, &ask, &avoid)
-        );
-        let advised = match advised {
-            requests::Advised::Resource(resource) => Some(resource),
-            requests::Advised::NoStaff => None,
-            requests::Advised::Unusable(why) => {
-                info!(holon = %self.holon, %conversation_id, why = %why, "no usable advice: contract net alone");
-                None
-            }
-        };
-        let (mut ranked, in_flight) = requests::rank(&ctx, &ask, offers, advised.as_ref());
+        let round::Round {
+            mut ranked,
+            advised,
+            in_flight,
+        } = self.round(&ask, work, None).await;
         if let (Leg::Work, Some(station)) = (self.leg, &self.work_at) {
             ranked.retain(|r| r == station);
         }

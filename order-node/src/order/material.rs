@@ -249,37 +249,16 @@ impl OrderTask<'_> {
         conversation_id: &str,
         layout: &CellLayout,
     ) -> Vec<HolonId> {
-        let ctx = self.ctx.clone();
-        let avoid = self.progress.get().avoid.clone();
         let ask = self.request(MessageType::ProposalReq, step, conversation_id);
-        let (route, urgency) = {
-            let p = self.progress.get();
-            (p.route_ahead(), (p.priority, p.due))
-        };
         // Where the part is, so that the staff counts its travel (outside: from the
         // cell's entry, where it will enter).
         let at = match self.part().place {
             PartPlace::Outside => entry_of(layout),
             place => place.location().cloned(),
         };
-        let _turn = ctx.rounds.acquire().await.expect("never closed");
-        let (advised, offers) = tokio::join!(
-            requests::advice(
-                &ctx,
-                &self.holon,
-                conversation_id,
-                route,
-                urgency,
-                &avoid,
-                at
-            ),
-            requests::offers(&ctx, &ask, &avoid)
-        );
-        let advised = match advised {
-            requests::Advised::Resource(resource) => Some(resource),
-            requests::Advised::NoStaff | requests::Advised::Unusable(_) => None,
-        };
-        let (ranked, _) = requests::rank(&ctx, &ask, offers, advised.as_ref());
+        let super::round::Round {
+            ranked, advised, ..
+        } = self.round(&ask, true, at).await;
         self.advised = advised.filter(|a| ranked.first() == Some(a));
         ranked
     }
