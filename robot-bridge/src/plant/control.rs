@@ -103,25 +103,16 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
                 Effect::None,
             )
         }
-        ["estop", resource, ms] => {
-            match (resources.iter().any(|r| r == resource), ms.parse::<u64>()) {
-                (false, _) => (
-                    format!("error {resource}: no controller of that resource in the plant"),
-                    Effect::None,
-                ),
-                (true, Ok(ms)) if ms > 0 => (
-                    "ok".into(),
-                    Effect::Estop {
-                        resource: resource.to_string(),
-                        time: Duration::from_millis(ms),
-                    },
-                ),
-                (true, _) => (
-                    format!("error {ms:?}: MS is a number of milliseconds above 0"),
-                    Effect::None,
-                ),
-            }
-        }
+        ["estop", resource, ms] => match resource_and_count(resources, resource, ms) {
+            Ok(ms) => (
+                "ok".into(),
+                Effect::Estop {
+                    resource: resource.to_string(),
+                    time: Duration::from_millis(ms),
+                },
+            ),
+            Err(why) => (format!("error {why}"), Effect::None),
+        },
         ["cut", resource] if resources.iter().any(|r| r == resource) => (
             "ok".into(),
             Effect::Cut {
@@ -132,25 +123,16 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
             format!("error {resource}: no controller of that resource in the plant"),
             Effect::None,
         ),
-        ["fail", resource, count] => {
-            match (resources.iter().any(|r| r == resource), count.parse::<u64>()) {
-                (false, _) => (
-                    format!("error {resource}: no controller of that resource in the plant"),
-                    Effect::None,
-                ),
-                (true, Ok(count)) if count > 0 => (
-                    "ok".into(),
-                    Effect::FailInspections {
-                        resource: resource.to_string(),
-                        count,
-                    },
-                ),
-                (true, _) => (
-                    format!("error {count:?}: N is a number of inspections above 0"),
-                    Effect::None,
-                ),
-            }
-        }
+        ["fail", resource, count] => match resource_and_count(resources, resource, count) {
+            Ok(count) => (
+                "ok".into(),
+                Effect::FailInspections {
+                    resource: resource.to_string(),
+                    count,
+                },
+            ),
+            Err(why) => (format!("error {why}"), Effect::None),
+        },
         ["jam", at] => done(dock(at).and_then(|at| plant.jam(at, true))),
         ["clear", at] => done(dock(at).and_then(|at| plant.jam(at, false))),
         ["silence", pallet] => done(plant.silence(pallet, true)),
@@ -163,6 +145,20 @@ pub fn command(plant: &mut Plant, resources: &[String], line: &str) -> (String, 
             ),
             Effect::None,
         ),
+    }
+}
+
+/// A command's resource, which must have a controller in the plant, and its count
+/// (milliseconds, inspections), a number above 0: the count, or why not.
+fn resource_and_count(resources: &[String], resource: &str, count: &str) -> Result<u64, String> {
+    if !resources.iter().any(|r| r == resource) {
+        return Err(format!(
+            "{resource}: no controller of that resource in the plant"
+        ));
+    }
+    match count.parse::<u64>() {
+        Ok(n) if n > 0 => Ok(n),
+        _ => Err(format!("{count:?}: not a number above 0")),
     }
 }
 
