@@ -157,13 +157,20 @@ impl OrderTask<'_> {
             planned = self.plan() => planned?,
         }
         loop {
-            let (step, conversation_id) = {
+            let (mut step, conversation_id) = {
                 let p = self.progress.get();
                 match p.current_step() {
                     Some(step) => (step.clone(), p.conversation_id()),
                     None => break,
                 }
             };
+            if self.progress.get().part.is_some() {
+                // The step names its part: the station's controller works on that part,
+                // one of those at its ports (a port may hold several).
+                step.info
+                    .entry(schemas::info_key::PART)
+                    .or_insert_with(|| self.holon.name().into());
+            }
             self.work_at = None;
             if self.progress.get().part.is_some() {
                 match self
