@@ -13,7 +13,7 @@
 
 use std::collections::BTreeMap;
 
-use schemas::{HolonId, ResourceSnapshot, ResourceState};
+use schemas::{CurrentJobView, HolonId, ResourceSnapshot, ResourceState};
 use serde::Serialize;
 
 /// What a service is assumed to take on a resource that says nothing of it.
@@ -61,8 +61,9 @@ pub struct ResourceModel {
     pub snapshot: ResourceSnapshot,
     /// The program of the last job seen running there that named one.
     last_program: Option<String>,
-    /// The job seen running, once its start time is known.
-    running: Option<RunningJob>,
+    /// The jobs seen running, once their start times are known, in the order they
+    /// were first seen (a resource that runs several at once shows them all).
+    running: Vec<RunningJob>,
     /// Measured durations per service type (without changeovers).
     learned: BTreeMap<String, Learned>,
     /// What a change of program adds to a job, measured.
@@ -115,41 +116,52 @@ impl CellModel {
             .or_insert_with(|| ResourceModel {
                 snapshot: snapshot.clone(),
                 last_program: None,
-                running: None,
+                running: Vec::new(),
                 learned: BTreeMap::new(),
                 changeover: Learned::default(),
             });
         if snapshot.at < model.snapshot.at {
             return; // an older snapshot overtaken by a newer one
         }
-        let now_running = snapshot
+        let now_running: Vec<(&CurrentJobView, u64)> = snapshot
             .current
-            .as_ref()
-            .and_then(|c| c.started_at.map(|at| (c, at)));
-        // The job seen running has ended if it is not the one running now.
-        if let Some(job) = &model.running {
-            let same = now_running
-                .as_ref()
-                .is_some_and(|(c, _)| c.conversation_id == job.conversation_id);
-            if !same {
-                let job = model.running.take().expect("checked");
-                model.measure(&job, snapshot.at);
-            }
+            .iter()
+            .chain(&snapshot.more_running)
+            .filter_map(|c| c.started_at.map(|at| (c, at)))
+            .collect();
+        // A job seen running has ended if it is not among those running now.
+        let (ended, still): (Vec<RunningJob>, Vec<RunningJob>) = std::mem::take(&mut model.running)
+            .into_iter()
+            .partition(|job| {
+                !now_running
+                    .iter()
+                    .any(|(c, _)| c.conversation_id == job.conversation_id)
+            });
+        for job in &ended {
+            model.measure(job, snapshot.at);
         }
-        if let Some(job) = &mut model.running {
+        model.running = still;
+        for job in &mut model.running {
             job.seen_until = job.seen_until.max(snapshot.at);
         }
-        if let (None, Some((current, started_at))) = (&model.running, now_running) {
-            let changed_over = match (&current.program, &model.last_program) {
+        for (job, started_at) in now_running {
+            if model
+                .running
+                .iter()
+                .any(|seen| seen.conversation_id == job.conversation_id)
+            {
+                continue;
+            }
+            let changed_over = match (&job.program, &model.last_program) {
                 (Some(program), Some(last)) => program != last,
                 _ => false,
             };
-            if current.program.is_some() {
-                model.last_program = current.program.clone();
+            if job.program.is_some() {
+                model.last_program = job.program.clone();
             }
-            model.running = Some(RunningJob {
-                conversation_id: current.conversation_id.clone(),
-                service_type: current.service_type.clone(),
+            model.running.push(RunningJob {
+                conversation_id: job.conversation_id.clone(),
+                service_type: job.service_type.clone(),
                 started_at,
                 seen_until: snapshot.at.max(started_at),
                 changed_over,
@@ -164,6 +176,7 @@ impl CellModel {
                 snapshot
                     .current
                     .iter()
+                    .chain(&snapshot.more_running)
                     .map(|c| (&c.requester, c.service_type.as_str())),
             )
             .collect();
@@ -277,9 +290,11 @@ impl ResourceModel {
             .unwrap_or(UNKNOWN_DURATION_MS as f64);
         let running_for = self
             .running
-            .as_ref()
+            .iter()
             .filter(|job| job.service_type == service_type && !job.changed_over)
-            .map_or(0, |job| job.seen_until.saturating_sub(job.started_at));
+            .map(|job| job.seen_until.saturating_sub(job.started_at))
+            .max()
+            .unwrap_or(0);
         believed.max(running_for as f64)
     }
 
@@ -307,7 +322,7 @@ impl ResourceModel {
     pub fn free_for(&self, priority: i32, now: u64) -> (u64, Option<String>) {
         let mut program = self.last_program.clone();
         let mut free = now;
-        if let Some(job) = &self.running {
+        if let Some(job) = self.running.first() {
             let took = self.duration(&job.service_type, None, None).ms
                 + if job.changed_over {
                     self.changeover_ms().round() as u64
@@ -349,7 +364,7 @@ pub struct Job {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use schemas::{BookingView, ControllerStatus, CurrentJobView};
+    use schemas::{BookingView, ControllerStatus};
 
     pub fn snapshot(name: &str, at: u64) -> ResourceSnapshot {
         ResourceSnapshot {
@@ -454,6 +469,28 @@ pub(crate) mod tests {
             4
         );
         assert_eq!(learned["resource/robot1"].changeover.samples, 2);
+    }
+
+    #[test]
+    fn every_job_a_resource_runs_at_once_is_measured() {
+        // A transporter running two moves at once: both are timed, each from its own
+        // start to the first state without it, the one that is not `current` too.
+        let mut model = CellModel::default();
+        let mut both = running(snapshot("monorail", 1000), "m1", None, 0);
+        both.more_running = running(snapshot("monorail", 1000), "m2", None, 500)
+            .current
+            .into_iter()
+            .collect();
+        model.observe(both);
+        // m2 ends at 2000 while m1 runs on.
+        model.observe(running(snapshot("monorail", 2000), "m1", None, 0));
+        let learned = &model.learned()["resource/monorail"].services;
+        assert_eq!(learned["pick_n_place"].samples, 1, "{learned:?}");
+        assert_eq!(learned["pick_n_place"].mean_ms, 1500.0);
+        model.observe(snapshot("monorail", 3500));
+        let learned = &model.learned()["resource/monorail"].services;
+        assert_eq!(learned["pick_n_place"].samples, 2, "m1 measured too");
+        assert_eq!(learned["pick_n_place"].mean_ms, 2500.0, "(1500 + 3500) / 2");
     }
 
     #[test]
