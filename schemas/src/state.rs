@@ -106,6 +106,23 @@ pub struct BookingView {
     pub program: Option<String>,
 }
 
+impl BookingView {
+    /// A booking of `requester`'s that waits on the agenda: its requester present, of
+    /// priority 0, not due, never overtaken, no program; set over it what differs.
+    pub fn waiting(requester: HolonId, conversation_id: &str, service_type: &str) -> BookingView {
+        BookingView {
+            requester,
+            conversation_id: conversation_id.to_string(),
+            service_type: service_type.to_string(),
+            requester_absent_since: None,
+            priority: 0,
+            due: None,
+            overtaken: 0,
+            program: None,
+        }
+    }
+}
+
 /// A resource holon's state after a change.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ResourceSnapshot {

@@ -397,14 +397,13 @@ pub(crate) mod tests {
 
     pub fn booking(order: &str, priority: i32, program: Option<&str>) -> BookingView {
         BookingView {
-            requester: HolonId::order(order).unwrap(),
-            conversation_id: format!("{order}/1/1"),
-            service_type: "pick_n_place".into(),
-            requester_absent_since: None,
             priority,
-            due: None,
-            overtaken: 0,
             program: program.map(str::to_string),
+            ..BookingView::waiting(
+                HolonId::order(order).unwrap(),
+                &format!("{order}/1/1"),
+                "pick_n_place",
+            )
         }
     }
 

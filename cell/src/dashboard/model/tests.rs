@@ -17,16 +17,7 @@ fn snapshot(
         controller,
         agenda: agenda
             .iter()
-            .map(|c| BookingView {
-                requester: HolonId::order("o-1").unwrap(),
-                conversation_id: c.to_string(),
-                service_type: "pick_n_place".into(),
-                requester_absent_since: None,
-                priority: 0,
-                due: None,
-                overtaken: 0,
-                program: None,
-            })
+            .map(|c| BookingView::waiting(HolonId::order("o-1").unwrap(), c, "pick_n_place"))
             .collect(),
         current: (state == ResourceState::Busy).then(|| CurrentJobView {
             requester: HolonId::order("o-1").unwrap(),

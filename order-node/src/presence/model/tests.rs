@@ -30,15 +30,12 @@ pub(in crate::presence) fn snapshot_of(
         controller: serde_json::from_value(controller.into()).expect("a controller status"),
         agenda: agenda
             .iter()
-            .map(|c| BookingView {
-                requester: HolonId::new(schemas::HolonKind::Order, "o-1").unwrap(),
-                conversation_id: c.to_string(),
-                service_type: "pick_n_place".into(),
-                requester_absent_since: None,
-                priority: 0,
-                due: None,
-                overtaken: 0,
-                program: None,
+            .map(|c| {
+                BookingView::waiting(
+                    HolonId::new(schemas::HolonKind::Order, "o-1").unwrap(),
+                    c,
+                    "pick_n_place",
+                )
             })
             .collect(),
         current: None,
