@@ -20,20 +20,56 @@ pub struct PlantProcess {
 
 impl PlantProcess {
     /// Writes `plant` as DIR/plant.toml and starts plant-sim on it, its state file
-    /// DIR/plant-state.json; returns once it says it is ready.
+    /// DIR/plant-state.json and its trace DIR/plant-trace.jsonl; returns once it says
+    /// it is ready.
     pub fn start(dir: &Path, plant: &str) -> PlantProcess {
+        std::fs::write(dir.join("plant.toml"), plant).expect("write the plant file");
+        PlantProcess::launch(dir, "127.0.0.1:0")
+    }
+
+    /// Kills plant-sim with SIGKILL and starts it again on the same state file, each
+    /// controller and the control port on the address it had: the plant resumes from
+    /// its memory.
+    pub fn kill_and_restart(&mut self, dir: &Path) {
+        self.process.kill();
+        let file = dir.join("plant.toml");
+        let text = std::fs::read_to_string(&file).expect("the plant file");
+        let mut plant: toml::Table = toml::from_str(&text).expect("the plant file is TOML");
+        for controller in plant["controller"].as_array_mut().expect("[[controller]]") {
+            let table = controller.as_table_mut().expect("a controller table");
+            let resource = table["resource"].as_str().expect("resource").to_string();
+            table.insert(
+                "listen".into(),
+                toml::Value::String(self.controllers[&resource].clone()),
+            );
+        }
+        std::fs::write(&file, toml::to_string(&plant).expect("TOML")).expect("the plant file");
+        let control = self.control.clone();
+        let again = PlantProcess::launch(dir, &control);
+        assert_eq!(again.controllers, self.controllers, "the same addresses");
+        *self = again;
+    }
+
+    /// Starts plant-sim on DIR/plant.toml, its control port at `control`.
+    fn launch(dir: &Path, control: &str) -> PlantProcess {
         let file = dir.join("plant.toml");
         let state_file = dir.join("plant-state.json");
-        std::fs::write(&file, plant).expect("write the plant file");
         let stderr_path = dir.join("plant.stderr");
+        let stderr = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&stderr_path)
+            .expect("open the plant's stderr");
         let mut child = Command::new(bin("plant-sim"))
             .arg("--plant")
             .arg(&file)
             .arg("--state-file")
             .arg(&state_file)
-            .args(["--control", "127.0.0.1:0"])
+            .arg("--trace")
+            .arg(dir.join("plant-trace.jsonl"))
+            .args(["--control", control])
             .stdout(Stdio::piped())
-            .stderr(std::fs::File::create(&stderr_path).expect("create the plant's stderr"))
+            .stderr(stderr)
             .spawn()
             .expect("start plant-sim");
         let stdout = child.stdout.take().expect("piped");
@@ -65,6 +101,22 @@ impl PlantProcess {
             controllers.insert(resource.to_string(), address.to_string());
         }
         panic!("plant-sim ended before it was ready: {}", process.stderr());
+    }
+
+    /// Every action the plant's controllers ran to its end, across its lives (its
+    /// trace): how many of `action` each resource did.
+    pub fn done_in_trace(dir: &Path, action: &str) -> BTreeMap<String, u64> {
+        let text = std::fs::read_to_string(dir.join("plant-trace.jsonl")).unwrap_or_default();
+        let mut done = BTreeMap::new();
+        for line in text.lines() {
+            let record: serde_json::Value =
+                serde_json::from_str(line).unwrap_or_else(|e| panic!("{e}: {line}"));
+            if record["done"] == true && record["action"] == action {
+                let resource = record["resource"].as_str().unwrap_or("").to_string();
+                *done.entry(resource).or_default() += 1;
+            }
+        }
+        done
     }
 
     /// One command on the plant's control port, and its answer.
@@ -148,16 +200,35 @@ impl ControllerLink {
         false
     }
 
+    /// Sends `text` as it is (a claim, a fenced command, a `STEP_STATUS`).
+    pub fn send_raw(&mut self, text: &str) {
+        use std::io::Write;
+        self.stream
+            .write_all(text.as_bytes())
+            .expect("a message to the controller");
+    }
+
     /// The reply to command `id` (the whole `ROBOT_REPLY` document), waiting at most
     /// `within`; None if none came by then.
     pub fn reply(&mut self, id: u64, within: std::time::Duration) -> Option<String> {
+        let start = format!("<ROBOT_REPLY><ID>{id}</ID>");
+        self.message(&start, "</ROBOT_REPLY>", within)
+    }
+
+    /// The first message that begins with `start` and ends with `end` (what came before
+    /// it is dropped), waiting at most `within`; None if none came by then.
+    pub fn message(
+        &mut self,
+        start: &str,
+        end_tag: &str,
+        within: std::time::Duration,
+    ) -> Option<String> {
         use std::io::Read;
         let deadline = std::time::Instant::now() + within;
-        let start = format!("<ROBOT_REPLY><ID>{id}</ID>");
         loop {
-            if let Some(at) = self.received.find(&start) {
-                if let Some(end) = self.received[at..].find("</ROBOT_REPLY>") {
-                    let end = at + end + "</ROBOT_REPLY>".len();
+            if let Some(at) = self.received.find(start) {
+                if let Some(end) = self.received[at..].find(end_tag) {
+                    let end = at + end + end_tag.len();
                     let reply = self.received[at..end].to_string();
                     self.received.replace_range(..end, "");
                     return Some(reply);

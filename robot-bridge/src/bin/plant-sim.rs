@@ -16,8 +16,11 @@ use robot_bridge::plant::{Outputs, PlantSim};
 ///
 /// Prints `controller RESOURCE listening on ADDR` for each controller, then `plant
 /// ready`; where every part and pallet is goes to the state file (JSON, rewritten
-/// after every change). Runs until SIGTERM or Ctrl-C. Exits 2 when the plant file or
-/// its layout is invalid, with the reason.
+/// after every change), with the plant's memory: killed and started again on the same
+/// state file, the plant goes on from where it was (pallets on their way go on; each
+/// fenced controller knows its steps again; docs/material-flow.md, "When the plant
+/// simulator dies"). Runs until SIGTERM or Ctrl-C. Exits 2 when the plant file, its
+/// layout or the memory in its state file is invalid, with the reason.
 #[derive(Debug, Parser)]
 #[command(name = "plant-sim", version)]
 struct Args {
@@ -25,13 +28,20 @@ struct Args {
     /// whose [layout] make the plant, and its controllers.
     #[arg(long, value_name = "FILE")]
     plant: PathBuf,
-    /// Where to write where everything is, overriding the plant file's state_file.
+    /// Where to write where everything is, overriding the plant file's state_file. If
+    /// the file is there, the plant resumes from the memory in it (unless --fresh); one
+    /// that holds no plant memory, or a memory that does not fit the layout, is refused.
     #[arg(long, value_name = "PATH")]
     state_file: Option<PathBuf>,
+    /// Start an empty plant (no part anywhere, every pallet free, plant time 0),
+    /// forgetting the memory in the state file, which is written anew.
+    #[arg(long)]
+    fresh: bool,
     /// Write every action the controllers run here, one JSON line each as it ends
     /// (resource, action, part, carrier, begin_ms and end_ms in plant time, done),
-    /// overriding the plant file's trace_file; the file is emptied at start
-    /// (docs/material-flow.md, "The plant's trace").
+    /// overriding the plant file's trace_file; the file is emptied at start, unless the
+    /// plant resumes from its memory: then it is written on (docs/material-flow.md,
+    /// "The plant's trace").
     #[arg(long, value_name = "PATH")]
     trace: Option<PathBuf>,
     /// Serve the control port here (HOST:PORT; port 0: a free one, printed): one
@@ -68,7 +78,12 @@ async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     if args.check {
         // Checked as it would start; nothing written, nothing listened on.
-        match robot_bridge::plant::prepare(&args.plant, Outputs::default(), args.time_scale) {
+        let files = Outputs {
+            state_file: args.state_file,
+            trace_file: None,
+            fresh: args.fresh,
+        };
+        match robot_bridge::plant::prepare(&args.plant, files, args.time_scale) {
             Ok(_) => {
                 println!("plant {} is valid", args.plant.display());
                 return Ok(());
@@ -86,6 +101,7 @@ async fn main() -> anyhow::Result<()> {
         Outputs {
             state_file: args.state_file,
             trace_file: args.trace,
+            fresh: args.fresh,
         },
         args.control.as_deref(),
         args.time_scale,

@@ -104,7 +104,9 @@ impl ControllerPhysics {
         self.working.lock().unwrap_or_else(|e| e.into_inner())
     }
 
-    /// A station's action ended: traced.
+    /// A station's action ended: traced. A fenced one's step (settled already) is
+    /// written to the plant's memory before its reply goes out, so that a plant started
+    /// again knows it is done.
     fn end_work(&self, values: &Values, done: bool) {
         let key = values.get("info.part").unwrap_or_default().to_string();
         let Some(working) = self.working().remove(&key) else {
@@ -119,6 +121,9 @@ impl ControllerPhysics {
             end_ms: self.clock.now_ms(),
             done,
         });
+        if values.get("step").is_some() {
+            (self.on_change)(&self.plant());
+        }
     }
 }
 
@@ -170,6 +175,7 @@ impl Physics for ControllerPhysics {
             let took = plant
                 .begin_move(&self.resource, part, &from, &to)
                 .map_err(|e| e.to_string())?;
+            plant.note_command(part, action, values.get("step"));
             let carrier = plant.carrier_of(part);
             info!(resource = %self.resource, %action, part, %from, %to, ?carrier, ?took, "moving");
             let moving = Moving {
@@ -243,16 +249,20 @@ impl Physics for ControllerPhysics {
             .as_deref()
             .is_some_and(|p| plant.is_silent(p));
         info!(resource = %self.resource, part, where_it_is = %plant.where_is(part), unreported, "moved");
-        (self.on_change)(&plant);
+        if let Some(step) = values.get("step") {
+            plant.end_told(&self.resource, step);
+        }
+        // Traced before the memory is written (resume.rs, `end_resumed_move`).
         self.trace.record(&TraceRecord {
             resource: self.resource.clone(),
             action: moving.action,
             part: Some(part.to_string()),
-            carrier: moving.carrier,
+            carrier: moving.carrier.clone(),
             begin_ms: moving.begin_ms,
             end_ms: self.clock.now_ms(),
             done,
         });
+        (self.on_change)(&plant);
         if done && unreported {
             Report::Unsaid
         } else {

@@ -15,6 +15,7 @@ pub mod control;
 pub mod controller;
 mod drive;
 pub mod model;
+mod resume;
 pub mod trace;
 
 use std::collections::BTreeMap;
@@ -111,6 +112,8 @@ pub enum PlantError {
     Invalid { path: String, why: String },
     #[error("{path}: the layout has problems:\n  {}", problems.join("\n  "))]
     Layout { path: String, problems: Vec<String> },
+    #[error("{path}: the plant's memory does not fit its layout (remove the file or start plant-sim with --fresh):\n  {}", problems.join("\n  "))]
+    Memory { path: String, problems: Vec<String> },
     #[error("cannot listen on {address} for {resource}: {why}")]
     Listen {
         resource: String,
@@ -119,13 +122,15 @@ pub enum PlantError {
     },
 }
 
-/// The plant's time: ms of plant time since it started (the model takes it as an
-/// argument), running `scale` times as fast as the wall clock (`plant-sim
-/// --time-scale`).
+/// The plant's time: ms of plant time since it first started (the model takes it as
+/// an argument), running `scale` times as fast as the wall clock (`plant-sim
+/// --time-scale`). A plant resumed after its death goes on from the plant time it had.
 #[derive(Debug, Clone, Copy)]
 pub struct Clock {
-    /// When the plant started.
+    /// When this process's plant started.
     started: Instant,
+    /// The plant time it started at (0, or the time a resumed plant had).
+    from_ms: u64,
     /// How many times faster than real time the plant runs.
     scale: TimeScale,
 }
@@ -133,16 +138,22 @@ pub struct Clock {
 impl Clock {
     /// A clock from now, at `scale`.
     pub fn start(scale: TimeScale) -> Clock {
+        Clock::resume(scale, 0)
+    }
+
+    /// A clock from now, at `scale`, going on from plant time `from_ms`.
+    pub fn resume(scale: TimeScale, from_ms: u64) -> Clock {
         Clock {
             started: Instant::now(),
+            from_ms,
             scale,
         }
     }
 
-    /// Plant ms since the plant started.
+    /// Plant ms since the plant first started.
     pub fn now_ms(&self) -> u64 {
         let wall_us = self.started.elapsed().as_micros() as f64;
-        (wall_us * self.scale.factor() / 1000.0) as u64
+        self.from_ms + (wall_us * self.scale.factor() / 1000.0) as u64
     }
 
     /// The plant ms that pass in one wall ms (at least 1): the slack a controller
@@ -156,9 +167,13 @@ impl Clock {
         self.scale.wall(plant)
     }
 
-    /// The instant `ms` of plant time after the plant started.
+    /// The instant `ms` of plant time after the plant first started (now, for a time
+    /// before this process's start).
     pub fn at(&self, ms: u64) -> Instant {
-        self.started + self.scale.wall(Duration::from_millis(ms))
+        self.started
+            + self
+                .scale
+                .wall(Duration::from_millis(ms.saturating_sub(self.from_ms)))
     }
 }
 
@@ -178,6 +193,10 @@ pub struct PlantSim {
     wake: Arc<Notify>,
     /// The control port, if asked for ([`control`]).
     control: Option<tokio::net::TcpListener>,
+    /// The moves under way when the plant died, resumed: each ends in the plant.
+    resumed: Vec<model::ResumedMove>,
+    /// Where every ended action is written (a resumed move's end too).
+    trace: Trace,
 }
 
 /// The plant's layout, from the plant file at `path`.
@@ -229,13 +248,16 @@ pub fn read(path: &Path) -> Result<PlantFile, PlantError> {
 }
 
 /// Where the plant writes, overriding its plant file's `state_file` and `trace_file`
-/// (None: as the plant file says).
+/// (None: as the plant file says), and whether it resumes.
 #[derive(Debug, Clone, Default)]
 pub struct Outputs {
-    /// Where everything is, rewritten after every change.
+    /// Where everything is, rewritten after every change; the plant resumes from the
+    /// memory in it when it is there ([`resume`]).
     pub state_file: Option<PathBuf>,
     /// Every action its controllers ran ([`trace`]).
     pub trace_file: Option<PathBuf>,
+    /// Start an empty plant, forgetting the state file's memory.
+    pub fresh: bool,
 }
 
 /// A plant file read and checked, ready to bind.
@@ -252,10 +274,18 @@ pub struct Prepared {
     on_change: OnChange,
     /// Wakes the task that drives the plant's time.
     wake: Arc<Notify>,
+    /// Each controller's fence as the memory had it (empty: a new plant).
+    fences: BTreeMap<String, crate::sim::fence::FenceMemory>,
+    /// Filled with each controller's counts once bound: the state file's writer reads
+    /// their fences.
+    bound: resume::Fences,
+    /// Where every ended action is written.
+    trace: Trace,
 }
 
 /// Reads and checks the plant file at `path` and everything it names (the layout, each
-/// controller's dialect), without listening anywhere.
+/// controller's dialect, the memory in its state file unless `files.fresh`), without
+/// listening anywhere.
 /// The plant runs at `scale`: each controller's action times (`delay_ms`,
 /// `action_ms`) and every move's travel take 1/`scale` of their plant time.
 pub fn prepare(path: &Path, files: Outputs, scale: TimeScale) -> Result<Prepared, PlantError> {
@@ -263,17 +293,43 @@ pub fn prepare(path: &Path, files: Outputs, scale: TimeScale) -> Result<Prepared
     let Outputs {
         state_file,
         trace_file,
+        fresh,
     } = files;
     let layout = layout_of(path, &file)?;
     let base = path.parent().unwrap_or(Path::new("."));
-    let plant = Arc::new(Mutex::new(Plant::new(layout)));
-    let clock = Clock::start(scale);
-    let write = state_writer(state_file.or(file.state_file.clone()));
+    let state_file = state_file.or(file.state_file.clone());
+    let memory = match &state_file {
+        Some(state) if !fresh => resume::read_memory(state)?,
+        _ => None,
+    };
+    let resuming = memory.is_some();
+    let (plant, fences) = match memory {
+        Some(memory) => {
+            let plant =
+                Plant::resume(layout, memory.plant).map_err(|problems| PlantError::Memory {
+                    path: state_file.clone().unwrap_or_default().display().to_string(),
+                    problems,
+                })?;
+            (plant, memory.fences)
+        }
+        None => (Plant::new(layout), BTreeMap::new()),
+    };
+    let clock = Clock::resume(scale, plant.now_ms());
+    let plant = Arc::new(Mutex::new(plant));
+    let bound = resume::Fences::default();
+    let write = resume::state_writer(state_file, bound.clone());
     let trace = match trace_file.or(file.trace_file.clone()) {
-        Some(path) => Trace::create(&path).map_err(|e| PlantError::Read {
-            path: path.display().to_string(),
-            why: format!("cannot write the trace: {e}"),
-        })?,
+        Some(path) => {
+            let opened = if resuming {
+                Trace::append(&path)
+            } else {
+                Trace::create(&path)
+            };
+            opened.map_err(|e| PlantError::Read {
+                path: path.display().to_string(),
+                why: format!("cannot write the trace: {e}"),
+            })?
+        }
         None => Trace::none(),
     };
     let wake = Arc::new(Notify::new());
@@ -346,6 +402,9 @@ pub fn prepare(path: &Path, files: Outputs, scale: TimeScale) -> Result<Prepared
         write,
         on_change,
         wake,
+        fences,
+        bound,
+        trace,
     })
 }
 
@@ -366,6 +425,9 @@ impl PlantSim {
             write,
             on_change,
             wake,
+            fences,
+            bound,
+            trace,
         } = prepare(path, files, scale)?;
         let mut controllers = Vec::new();
         for (resource, listen, config) in prepared {
@@ -389,8 +451,21 @@ impl PlantSim {
             })?),
             None => None,
         };
-        // Where everything is from the start: nothing yet, every pallet free.
-        on_change(&plant.lock().unwrap_or_else(|e| e.into_inner()));
+        let counts: Vec<_> = controllers
+            .iter()
+            .map(|(resource, sim)| (resource.clone(), sim.stats()))
+            .collect();
+        let resumed = {
+            let mut plant = plant.lock().unwrap_or_else(|e| e.into_inner());
+            let resumed = resume::resume_controllers(&mut plant, &counts, fences);
+            if bound.set(counts).is_err() {
+                unreachable!("the controllers are bound once");
+            }
+            // Where everything is from the start: nothing yet and every pallet free, or
+            // as the memory had it.
+            on_change(&plant);
+            resumed
+        };
         Ok(PlantSim {
             controllers,
             plant,
@@ -399,6 +474,8 @@ impl PlantSim {
             on_change,
             wake,
             control,
+            resumed,
+            trace,
         })
     }
 
@@ -425,6 +502,26 @@ impl PlantSim {
     /// Serves every controller, and the control port, and drives the plant's time,
     /// until `shutdown`.
     pub async fn run(self, shutdown: CancellationToken) {
+        for resumed in self.resumed {
+            let Some(stats) = self
+                .controllers
+                .iter()
+                .find(|(resource, _)| *resource == resumed.transporter)
+                .map(|(_, sim)| sim.stats())
+            else {
+                warn!(part = %resumed.part, transporter = %resumed.transporter, "a move under way when the plant died has no controller now: it goes on in the plant, untraced");
+                continue;
+            };
+            tokio::spawn(resume::end_resumed_move(
+                resumed,
+                self.plant.clone(),
+                self.clock,
+                stats,
+                self.trace.clone(),
+                self.on_change.clone(),
+                shutdown.clone(),
+            ));
+        }
         tokio::spawn(drive::drive(
             self.plant.clone(),
             self.clock,
@@ -458,17 +555,4 @@ impl PlantSim {
             }
         }
     }
-}
-
-/// Writes where everything is to `path` (a new file renamed over the old one, so a
-/// reader never sees half of it) after every change.
-fn state_writer(path: Option<PathBuf>) -> OnChange {
-    Arc::new(move |plant: &Plant| {
-        let Some(path) = &path else { return };
-        let json = serde_json::to_vec_pretty(&plant.view()).expect("a plant view serializes");
-        let next = path.with_extension("json.next");
-        if let Err(e) = std::fs::write(&next, json).and_then(|()| std::fs::rename(&next, path)) {
-            warn!(path = %path.display(), error = %e, "cannot write the plant's state file: readers see an older state");
-        }
-    })
 }

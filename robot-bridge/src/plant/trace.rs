@@ -55,6 +55,18 @@ impl Trace {
         })
     }
 
+    /// A trace written on at the end of `path` (created if it is not there): a plant
+    /// that resumes after its death adds to the trace of its life before.
+    pub fn append(path: &Path) -> std::io::Result<Trace> {
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)?;
+        Ok(Trace {
+            file: Some(Arc::new(Mutex::new(BufWriter::new(file)))),
+        })
+    }
+
     /// No trace.
     pub fn none() -> Trace {
         Trace::default()

@@ -23,7 +23,8 @@ struct Holder {
 }
 
 /// A step id's state on the controller.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum StepRecord {
     /// Begun, not ended.
     Running,
@@ -56,6 +57,17 @@ pub enum CommandCheck {
     Stale { epoch: u64 },
 }
 
+/// What a fence keeps across a restart of its controller (the plant simulator's
+/// memory): the last epoch granted and the latest steps' states, oldest first.
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FenceMemory {
+    /// The last epoch granted.
+    pub epoch: u64,
+    /// The latest step ids and their states, oldest first.
+    pub steps: Vec<(String, StepRecord)>,
+}
+
 /// The fence's state, shared by the controller's sessions.
 #[derive(Debug)]
 pub struct FenceBook {
@@ -85,6 +97,41 @@ impl FenceBook {
             order: VecDeque::new(),
             stale_refused: 0,
         }
+    }
+
+    /// A fence as `memory` left it: its epochs go on from the last granted, its steps'
+    /// states are known again (nobody holds the claim).
+    pub fn resume(lease: Duration, memory: FenceMemory) -> FenceBook {
+        let mut book = FenceBook::new(lease, memory.epoch);
+        for (step, record) in memory.steps {
+            if book.begin_step(&step) {
+                book.steps.insert(step, record);
+            }
+        }
+        book
+    }
+
+    /// What the fence keeps across a restart: its epoch and its latest `last` steps.
+    pub fn memory(&self, last: usize) -> FenceMemory {
+        let skip = self.order.len().saturating_sub(last);
+        FenceMemory {
+            epoch: self.epoch,
+            steps: self
+                .order
+                .iter()
+                .skip(skip)
+                .filter_map(|step| Some((step.clone(), self.steps.get(step)?.clone())))
+                .collect(),
+        }
+    }
+
+    /// The step ids recorded as running.
+    pub fn running(&self) -> Vec<String> {
+        self.order
+            .iter()
+            .filter(|step| self.steps.get(*step) == Some(&StepRecord::Running))
+            .cloned()
+            .collect()
     }
 
     /// The last epoch granted.
@@ -225,6 +272,43 @@ mod tests {
     use super::*;
 
     const LEASE: Duration = Duration::from_millis(1000);
+
+    #[test]
+    fn a_resumed_fence_keeps_its_epoch_and_its_latest_steps() {
+        let mut book = FenceBook::new(LEASE, 0);
+        let now = Instant::now();
+        assert_eq!(
+            book.claim(1, "robot1", now),
+            ClaimAnswer::Granted { epoch: 1 }
+        );
+        for step in ["a#0", "b#0", "c#0"] {
+            assert!(book.begin_step(step));
+        }
+        book.settle("a#0", StepRecord::Done("arrived".into()));
+        book.settle("b#0", StepRecord::Failed("aborted".into()));
+        let memory = book.memory(2);
+        assert_eq!(
+            memory.steps,
+            vec![
+                ("b#0".to_string(), StepRecord::Failed("aborted".into())),
+                ("c#0".to_string(), StepRecord::Running)
+            ]
+        );
+        let json = serde_json::to_string(&memory).unwrap();
+        let mut resumed = FenceBook::resume(LEASE, serde_json::from_str(&json).unwrap());
+        assert_eq!(resumed.epoch(), 1);
+        assert_eq!(resumed.running(), vec!["c#0".to_string()]);
+        assert_eq!(resumed.step("a#0"), None, "beyond the kept ones");
+        assert!(
+            !resumed.begin_step("b#0"),
+            "a known step does not run again"
+        );
+        // Nobody holds the claim: the next gets a new epoch.
+        assert_eq!(
+            resumed.claim(7, "robot1", now),
+            ClaimAnswer::Granted { epoch: 2 }
+        );
+    }
 
     #[test]
     fn one_live_holder_and_increasing_epochs() {

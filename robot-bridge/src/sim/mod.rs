@@ -165,6 +165,18 @@ impl SimStats {
         self.executed.load(Ordering::SeqCst)
     }
 
+    /// An `action` executed away from any session (a move the plant simulator resumed
+    /// after its death and ended): counted as a session counts one.
+    pub(crate) fn count_executed(&self, action: &str) {
+        self.executed.fetch_add(1, Ordering::SeqCst);
+        *self
+            .by_action
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .entry(action.to_string())
+            .or_default() += 1;
+    }
+
     /// Actions stopped by the dialect's abort while under way (not executed).
     pub fn aborted(&self) -> u64 {
         self.aborted.load(Ordering::SeqCst)

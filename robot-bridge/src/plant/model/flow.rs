@@ -102,6 +102,7 @@ impl Plant {
             .collect();
         for part in due {
             let transit = self.transit.remove(&part).expect("found above");
+            self.note_arrival(&transit);
             self.put(transit.load, &transit.to, &transit.transporter);
         }
     }
@@ -146,7 +147,9 @@ impl Plant {
             p.place = Place::Docked(at.clone());
             p.bound = None;
             let Some(part) = p.part.clone() else { continue };
-            self.transit.remove(&part);
+            if let Some(transit) = self.transit.remove(&part) {
+                self.note_arrival(&transit);
+            }
             let load = Load {
                 part,
                 carrier: Some(pallet.clone()),

@@ -31,6 +31,7 @@
 mod boarding;
 mod faults;
 mod flow;
+mod memory;
 #[cfg(test)]
 mod tests;
 mod waits;
@@ -39,12 +40,13 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::time::Duration;
 
 use schemas::layout::{CellLayout, ConveyorSpec, Dock, LocationId, LocationRole, TransporterSpec};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
+pub use memory::{PlantMemory, ResumedMove};
 pub use waits::{PalletView, WaitView};
 
 /// A part and the carrier it rides on.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Load {
     /// The part (its order's id, `o-1`).
     pub part: String,
@@ -54,7 +56,7 @@ pub struct Load {
 }
 
 /// A part on a transporter.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Transit {
     /// The part and its pallet.
     pub load: Load,
@@ -68,16 +70,30 @@ pub struct Transit {
     pub stopped: bool,
     /// A transfer's move: when (plant ms) the part is at `to`. None on a conveyor (its
     /// pallet says where it is).
-    #[serde(skip)]
+    #[serde(skip_serializing_if = "Option::is_none", default)]
     arrives_ms: Option<u64>,
     /// On a conveyor: no pallet was free when the move began (some are taken out, or
     /// all carry parts), so the part waits at `from` for one; the first to free up
     /// takes the part that has waited longest.
-    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    #[serde(skip_serializing_if = "std::ops::Not::not", default)]
     pub awaits_pallet: bool,
     /// When the move began (plant ms).
-    #[serde(skip)]
-    began_ms: u64,
+    pub began_ms: u64,
+    /// The controller command that began it ([`Plant::note_command`]): what a plant
+    /// started again after its death needs to end the move as its controller would.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub command: Option<MoveCommand>,
+}
+
+/// The controller command that began a move.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MoveCommand {
+    /// Its action (`move`), for the trace.
+    pub action: String,
+    /// Its step id (fenced controllers: `STEP`), if it has one.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub step: Option<String>,
 }
 
 /// What the plant refuses, physically.
@@ -116,7 +132,8 @@ pub enum PhysicalError {
 }
 
 /// Where a pallet is.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
 enum Place {
     /// Free, off the loop in its conveyor's park: it holds no track place and no
     /// location's place; a move that needs a pallet takes one from here.
@@ -135,7 +152,8 @@ enum Place {
 }
 
 /// Where a pallet takes its part: the move under way.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 struct Bound {
     /// The location it goes to.
     to: LocationId,
@@ -147,7 +165,8 @@ struct Bound {
 }
 
 /// A conveyor's pallet.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 struct Pallet {
     /// The conveyor it rides.
     conveyor: String,
@@ -232,6 +251,10 @@ pub struct Plant {
     clock: u64,
     /// The longest any pallet waited, of the waits that are over, in ms.
     longest_wait_ms: u64,
+    /// Moves that have ended in the plant and whose controller has not said so yet
+    /// ([`Plant::end_told`]), by transporter: their step ids, so that a plant started
+    /// again after its death knows those steps are done.
+    arrived_steps: BTreeSet<(String, String)>,
     /// What happened since the last [`Plant::advance`] returned.
     happened: Vec<Happening>,
 }
@@ -306,6 +329,7 @@ impl Plant {
             estopped: BTreeMap::new(),
             clock: 0,
             longest_wait_ms: 0,
+            arrived_steps: BTreeSet::new(),
             happened: Vec::new(),
         }
     }
@@ -417,6 +441,7 @@ impl Plant {
                     .then_some(self.clock + route.travel_ms),
                 awaits_pallet: load.carrier.is_none() && self.loops.contains_key(transporter),
                 began_ms: self.clock,
+                command: None,
             },
         );
         if self.transit[part].awaits_pallet {

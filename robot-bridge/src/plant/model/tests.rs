@@ -523,3 +523,52 @@ fn a_part_waits_for_a_free_pallet_and_a_retired_pallet_takes_none() {
     plant.advance(5000);
     assert_eq!(plant.where_is("o-2"), "at robot2.port");
 }
+
+#[test]
+fn a_plant_resumed_from_its_memory_goes_on_as_the_one_that_wrote_it() {
+    let mut plant = plant_of(3, 2, 100);
+    plant
+        .begin_move(
+            "conveyor1",
+            "o-1",
+            &id("conveyor1.load"),
+            &id("robot2.port"),
+        )
+        .unwrap();
+    plant.note_command("o-1", "move", Some("c-1#0"));
+    plant
+        .begin_move(
+            "conveyor1",
+            "o-2",
+            &id("conveyor1.load"),
+            &id("robot1.port"),
+        )
+        .unwrap();
+    plant.advance(700);
+    plant.silence("conveyor1/p1", true).unwrap();
+    let json = serde_json::to_string(&plant.memory()).unwrap();
+    let memory: PlantMemory = serde_json::from_str(&json).unwrap();
+    let mut resumed = Plant::resume(plant.layout().clone(), memory.clone()).unwrap();
+    let view = |p: &Plant| serde_json::to_value(p.view()).unwrap();
+    assert_eq!(view(&resumed), view(&plant));
+    assert_eq!(resumed.moves_under_way().len(), 2);
+    // Both go on alike.
+    for now in [1500, 2600, 4000] {
+        assert_eq!(resumed.advance(now), plant.advance(now), "at {now} ms");
+        assert_eq!(view(&resumed), view(&plant), "at {now} ms");
+    }
+    assert_eq!(resumed.where_is("o-1"), "at robot2.port");
+    assert_eq!(resumed.where_is("o-2"), "at robot1.port");
+    assert!(resumed.is_silent("conveyor1/p1"));
+    // o-1's end is not told yet: the plant knows its step is done.
+    assert!(resumed.arrived_untold("conveyor1", "c-1#0"));
+    resumed.end_told("conveyor1", "c-1#0");
+    assert!(!resumed.arrived_untold("conveyor1", "c-1#0"));
+    // A memory that does not fit the layout is refused, naming what does not fit.
+    let smaller = plant_of(2, 2, 100);
+    let problems = Plant::resume(smaller.layout().clone(), memory).unwrap_err();
+    assert!(
+        problems.iter().any(|p| p.contains("conveyor1/p3")),
+        "{problems:?}"
+    );
+}

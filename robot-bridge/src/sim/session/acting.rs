@@ -140,13 +140,15 @@ impl Session<'_> {
 
     /// `acting` ended with nobody to tell: counted as executed, its step settled.
     fn complete_one(&mut self, acting: Acting) {
+        // Its step is settled before the plant is told: the plant keeps both in its
+        // memory with the end (a plant started again knows the step is done).
+        self.settle_step(acting.step, StepRecord::Done(acting.result.to_string()));
         if let Some(physics) = &self.config.physics {
             physics.0.end(&acting.values, true);
         }
         let action = acting.values.get("action").unwrap_or("").to_string();
         let id = acting.values.get("id").unwrap_or("-");
         info!(%id, %action, "the connection is gone: the action completes unanswered");
-        self.settle_step(acting.step, StepRecord::Done(acting.result.to_string()));
         self.stats.executed.fetch_add(1, Ordering::SeqCst);
         *self
             .stats
@@ -232,11 +234,12 @@ impl Session<'_> {
             .or_default() += 1;
         let mut answer = values.clone();
         answer.set("result", result.into());
+        // Settled before the plant is told, as in `complete_one`.
+        self.settle_step(step, StepRecord::Done(result.to_string()));
         let report = match &self.config.physics {
             Some(physics) => physics.0.end(values, true),
             None => Report::Said,
         };
-        self.settle_step(step, StepRecord::Done(result.to_string()));
         if report == Report::Unsaid {
             // Done in the plant, never told (a pallet that stopped reporting).
             info!(
