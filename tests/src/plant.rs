@@ -31,7 +31,14 @@ impl PlantProcess {
     /// controller and the control port on the address it had: the plant resumes from
     /// its memory.
     pub fn kill_and_restart(&mut self, dir: &Path) {
+        self.kill_and_restart_after(dir, std::time::Duration::ZERO);
+    }
+
+    /// As [`PlantProcess::kill_and_restart`], started again once `pause` has passed
+    /// (the plant dead meanwhile: its controllers refuse connections).
+    pub fn kill_and_restart_after(&mut self, dir: &Path, pause: std::time::Duration) {
         self.process.kill();
+        std::thread::sleep(pause);
         let file = dir.join("plant.toml");
         let text = std::fs::read_to_string(&file).expect("the plant file");
         let mut plant: toml::Table = toml::from_str(&text).expect("the plant file is TOML");

@@ -1,14 +1,16 @@
 //! Chaos with material flow (docs/material-flow.md): 200 orders of the demo's breaker
 //! ride pallets through the demo's layout on the plant simulator, while a driver kills
 //! holon processes with SIGKILL (the stations, a transporter while a part is on it, the
-//! order-node) and starts them again on their journals, and cuts the links of the
-//! plant's controllers. An operator's duty is played too: a part the control has lost is
-//! looked up in the plant and its place said (`cell part`).
+//! order-node) and starts them again on their journals, kills the plant simulator
+//! itself (every controller at once; it resumes from its memory) and cuts the links of
+//! the plant's controllers. An operator's duty is played too: a part the control has
+//! lost is looked up in the plant and its place said (`cell part`).
 //!
 //! At the end: every order ended done (each step once, in order, with its reworks) or
 //! with a stated reason; the control's view of every part equals the plant's physical
 //! truth (every part that entered left by the exit, the plant holds none, every pallet
-//! is free, no place is held); the controllers executed no step recorded done twice;
+//! is free, no place is held); the controllers executed no step recorded done twice
+//! (the plant's trace, across its lives);
 //! the plant never deadlocked, and no part waited beyond the dashboard's bound (its
 //! `part_waits` alarm, which the run counts as a failure).
 //!
@@ -27,7 +29,9 @@ use schemas::{HolonId, HolonKind, OrderSnapshot, OrderStatus, PartPlace};
 /// SIGKILLs of holon processes, at least.
 const KILLS: usize = 24;
 /// Cut links of the plant's controllers, at least.
-const CUTS: usize = 6;
+const CUTS: usize = 3;
+/// SIGKILLs of the plant simulator (all its controllers at once), at least.
+const PLANT_KILLS: usize = 3;
 /// The dashboard's bound on a part's wait in one place, in seconds.
 const WAIT_BOUND_S: u64 = 90;
 /// The longest the cell may go without an order ending.
@@ -77,6 +81,8 @@ struct Run {
     /// part on it.
     mid_move: usize,
     cuts: usize,
+    /// SIGKILLs of the plant simulator.
+    plant_kills: usize,
     /// Operators' words said on lost parts.
     words: usize,
 }
@@ -161,6 +167,7 @@ impl Run {
             kills: 0,
             mid_move: 0,
             cuts: 0,
+            plant_kills: 0,
             words: 0,
         }
     }
@@ -175,6 +182,21 @@ impl Run {
         tokio::time::sleep(pause).await;
         victim.restart(&self.dir, cell);
         cell.wait_token(&victim.ready_key).await.unwrap();
+    }
+
+    /// Kills the plant simulator with SIGKILL (every controller of the cell at once,
+    /// whatever it was doing) and starts it again on its state file after `pause`.
+    fn kill_plant(&mut self, pause: Duration, started: Instant) {
+        let moving = self.plant.state()["in_transit"]
+            .as_array()
+            .map_or(0, |m| m.len());
+        self.plant.kill_and_restart_after(&self.dir, pause);
+        self.kills += 1;
+        self.plant_kills += 1;
+        println!(
+            "{:7.2}s kill -9 plant-sim ({moving} parts in transit), started again",
+            started.elapsed().as_secs_f64()
+        );
     }
 
     /// Kills the conveyor while the plant has a part on it (waiting at most 20 s for
@@ -319,12 +341,13 @@ async fn parts_and_orders_survive_kills_mid_move() {
                 run.plant.command("waits")
             );
         }
-        if run.kills >= KILLS && run.cuts >= CUTS {
+        if run.kills >= KILLS && run.cuts >= CUTS && run.plant_kills >= PLANT_KILLS {
             continue;
         }
         let pause = Duration::from_millis(50 + rng.below(400));
         round += 1;
         match round % 6 {
+            0 if run.plant_kills < run.cuts => run.kill_plant(pause, started),
             0 => {
                 let resource = ["conveyor1", "transfer1", "robot1", "robot2", "inspect1"]
                     [rng.below(5) as usize];
@@ -348,7 +371,7 @@ async fn parts_and_orders_survive_kills_mid_move() {
     every_order_ended_properly(&orders, &ids);
     let truth = run.plant.state();
     the_control_agrees_with_the_plant(&cell, &orders, &truth).await;
-    no_done_step_ran_twice(&run.plant, &orders);
+    no_done_step_ran_twice(dir.path(), &run.plant, &orders);
     let alarms = Web::plain(&address).call("GET", "/api/alarms", "").json();
     let waited: Vec<&serde_json::Value> = alarms
         .as_array()
@@ -372,12 +395,13 @@ async fn parts_and_orders_survive_kills_mid_move() {
         .map(|v| format!("{}={}", v.name, v.kills))
         .collect();
     println!(
-        "material chaos figures: orders {count}, done {}, scrapped {}, failed {}, kills {} ({}), of them a transporter mid-move {}, cuts {}, operators' words {}, rebooks {rebooks}, parts shipped {}, took {:.1}s",
+        "material chaos figures: orders {count}, done {}, scrapped {}, failed {}, kills {} ({} plant-sim={}), of them a transporter mid-move {}, cuts {}, operators' words {}, rebooks {rebooks}, parts shipped {}, took {:.1}s",
         count_of(OrderStatus::Done),
         count_of(OrderStatus::Scrapped),
         count_of(OrderStatus::Failed),
         run.kills,
         kills.join(" "),
+        run.plant_kills,
         run.mid_move,
         run.cuts,
         run.words,
@@ -385,11 +409,12 @@ async fn parts_and_orders_survive_kills_mid_move() {
         started.elapsed().as_secs_f64()
     );
     assert!(
-        run.kills >= 20 && run.mid_move >= 4 && run.cuts >= 3,
-        "the driver did too little: {} kills, {} mid-move, {} cuts",
+        run.kills >= 20 && run.mid_move >= 4 && run.cuts >= CUTS && run.plant_kills >= PLANT_KILLS,
+        "the driver did too little: {} kills, {} mid-move, {} cuts, {} of the plant",
         run.kills,
         run.mid_move,
-        run.cuts
+        run.cuts,
+        run.plant_kills
     );
 }
 
@@ -460,15 +485,18 @@ async fn the_control_agrees_with_the_plant(
     }
 }
 
-/// The controllers' counts: every step recorded as done was executed, and nothing
-/// beyond the attempts the orders abandoned (interrupted, failed, rebooked) ran.
-fn no_done_step_ran_twice(plant: &PlantProcess, orders: &BTreeMap<HolonId, OrderSnapshot>) {
-    let counts: serde_json::Value = serde_json::from_str(&plant.command("counts")).unwrap();
+/// What the controllers ran, from the plant's trace (every action a controller ran
+/// to its end, written before its reply, across the plant's lives): every step
+/// recorded as done was executed, and nothing beyond the attempts the orders abandoned
+/// (interrupted, failed, rebooked) ran.
+fn no_done_step_ran_twice(
+    dir: &Path,
+    plant: &PlantProcess,
+    orders: &BTreeMap<HolonId, OrderSnapshot>,
+) {
     let executed = |resources: &[&str], action: &str| -> u64 {
-        resources
-            .iter()
-            .map(|r| counts[r]["by_action"][action].as_u64().unwrap_or(0))
-            .sum()
+        let done = PlantProcess::done_in_trace(dir, action);
+        resources.iter().filter_map(|r| done.get(*r)).sum()
     };
     let done = |service: &str| -> u64 {
         orders
@@ -502,5 +530,8 @@ fn no_done_step_ran_twice(plant: &PlantProcess, orders: &BTreeMap<HolonId, Order
             "{what}: {executed} executed > {recorded} done + {abandoned} abandoned attempts"
         );
     }
-    println!("controllers: {counts}");
+    println!(
+        "controllers (this life of the plant): {}",
+        plant.command("counts")
+    );
 }
