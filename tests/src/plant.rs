@@ -5,7 +5,7 @@ use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use crate::{bin, Process};
+use crate::{bin, resource_config, Process};
 
 /// A running plant-sim and its controllers' addresses.
 pub struct PlantProcess {
@@ -259,4 +259,58 @@ impl ControllerLink {
             }
         }
     }
+}
+
+/// A small plant's conveyor (conveyor1: the loading point `load`, entry and exit, and the
+/// stopper `s1`; two pallets), its controller's address to be set.
+pub const SMALL_CONVEYOR: &str = r#"
+cell = "unset"
+name = "conveyor1"
+
+[controller]
+address = "127.0.0.1:1"
+reconnect_interval_ms = 100
+reconnect_max_ms = 1000
+command_timeout_ms = 5000
+connect_timeout_ms = 500
+
+[services.transport]
+nominal_duration_ms = 300
+steps = [{ action = "move", until = ["arrived"] }]
+
+[[layout.locations]]
+name = "load"
+role = "entry_exit"
+capacity = 2
+dock = "conveyor1.load"
+
+[layout.conveyor]
+length_mm = 2000
+speed_mm_s = 4000
+pallets = 2
+stoppers = [{ name = "load", at_mm = 0 }, { name = "s1", at_mm = 1000 }]
+"#;
+
+/// The plant of conveyor1 and robot1.
+pub const SMALL_PLANT: &str = r#"
+layout = ["conveyor1.toml", "robot1.toml"]
+
+[[controller]]
+resource = "conveyor1"
+listen = "127.0.0.1:0"
+
+[[controller]]
+resource = "robot1"
+listen = "127.0.0.1:0"
+delay_ms = 20
+"#;
+
+/// robot1's config in `dir` for [`SMALL_PLANT`]: a pick-'n-place robot whose port is on the conveyor's stopper s1.
+pub fn small_robot1(dir: &Path) -> PathBuf {
+    let path = resource_config(dir, "robot1", 5000).unwrap();
+    let text = std::fs::read_to_string(&path).unwrap();
+    let layout =
+        "\n[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ndock = \"conveyor1.s1\"\n";
+    std::fs::write(&path, format!("{text}{layout}")).unwrap();
+    path
 }

@@ -12,58 +12,6 @@ use std::time::Duration;
 use holarchy_tests::*;
 use schemas::{HolonId, MessageType, Service};
 
-const CONVEYOR: &str = r#"
-cell = "unset"
-name = "conveyor1"
-
-[controller]
-address = "127.0.0.1:1"
-reconnect_interval_ms = 100
-reconnect_max_ms = 1000
-command_timeout_ms = 5000
-connect_timeout_ms = 500
-
-[services.transport]
-nominal_duration_ms = 300
-steps = [{ action = "move", until = ["arrived"] }]
-
-[[layout.locations]]
-name = "load"
-role = "entry_exit"
-capacity = 2
-dock = "conveyor1.load"
-
-[layout.conveyor]
-length_mm = 2000
-speed_mm_s = 4000
-pallets = 2
-stoppers = [{ name = "load", at_mm = 0 }, { name = "s1", at_mm = 1000 }]
-"#;
-
-/// The plant of conveyor1 and robot1.
-const PLANT: &str = r#"
-layout = ["conveyor1.toml", "robot1.toml"]
-
-[[controller]]
-resource = "conveyor1"
-listen = "127.0.0.1:0"
-
-[[controller]]
-resource = "robot1"
-listen = "127.0.0.1:0"
-delay_ms = 20
-"#;
-
-/// robot1's config: a pick-'n-place robot whose port is on the conveyor's stopper s1.
-fn robot1(dir: &Path) -> PathBuf {
-    let path = resource_config(dir, "robot1", 5000).unwrap();
-    let text = std::fs::read_to_string(&path).unwrap();
-    let layout =
-        "\n[[layout.locations]]\nname = \"port\"\nrole = \"port\"\ndock = \"conveyor1.s1\"\n";
-    std::fs::write(&path, format!("{text}{layout}")).unwrap();
-    path
-}
-
 /// Books `service_type` on `resource` for `order` with `info`, starts it, and returns
 /// its result (`done` or `failed`).
 async fn job(
@@ -102,9 +50,9 @@ fn with(mut info: serde_json::Value, more: serde_json::Value) -> serde_json::Val
 #[tokio::test(flavor = "multi_thread")]
 async fn parts_ride_pallets_and_are_worked_on_only_where_they_are() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
-    let robot_config = robot1(dir.path());
-    let plant = PlantProcess::start(dir.path(), PLANT);
+    std::fs::write(dir.path().join("conveyor1.toml"), SMALL_CONVEYOR).unwrap();
+    let robot_config = small_robot1(dir.path());
+    let plant = PlantProcess::start(dir.path(), SMALL_PLANT);
     let cell = Cell::open("t-plant").await.unwrap();
     let mut nodes = Vec::new();
     for (name, config) in [
@@ -223,8 +171,8 @@ async fn parts_ride_pallets_and_are_worked_on_only_where_they_are() {
 #[test]
 fn plant_sim_checks_its_file_and_layout() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
-    robot1(dir.path());
+    std::fs::write(dir.path().join("conveyor1.toml"), SMALL_CONVEYOR).unwrap();
+    small_robot1(dir.path());
     let plant = dir.path().join("plant.toml");
     let check = |text: &str| {
         std::fs::write(&plant, text).unwrap();
@@ -282,7 +230,7 @@ fn plant_sim_checks_its_file_and_layout() {
 /// A transporter config: `layout` as its part, one `transport` service moving parts.
 fn transporter(dir: &Path, name: &str, layout: &str) -> PathBuf {
     let path = dir.join(format!("{name}.toml"));
-    let text = CONVEYOR
+    let text = SMALL_CONVEYOR
         .replace("name = \"conveyor1\"", &format!("name = \"{name}\""))
         .split("[[layout.locations]]")
         .next()
@@ -309,7 +257,7 @@ async fn transporters_propose_their_travel_and_refuse_what_they_cannot_reach() {
     };
     let configs = [
         ("conveyor1", {
-            std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR.replace(
+            std::fs::write(dir.path().join("conveyor1.toml"), SMALL_CONVEYOR.replace(
                 "stoppers = [{ name = \"load\", at_mm = 0 }, { name = \"s1\", at_mm = 1000 }]",
                 "stoppers = [{ name = \"load\", at_mm = 0 }, { name = \"s1\", at_mm = 1000 }, { name = \"s2\", at_mm = 1500 }]",
             )).unwrap();
@@ -413,11 +361,11 @@ async fn a_jammed_track_holds_a_move_and_a_silent_pallet_arrives_unreported() {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(
         dir.path().join("conveyor1.toml"),
-        CONVEYOR.replace("command_timeout_ms = 5000", "command_timeout_ms = 2000"),
+        SMALL_CONVEYOR.replace("command_timeout_ms = 5000", "command_timeout_ms = 2000"),
     )
     .unwrap();
-    let robot_config = robot1(dir.path());
-    let plant = PlantProcess::start(dir.path(), PLANT);
+    let robot_config = small_robot1(dir.path());
+    let plant = PlantProcess::start(dir.path(), SMALL_PLANT);
     let cell = Cell::open("t-plant-faults").await.unwrap();
     let mut nodes = Vec::new();
     for (name, config) in [
@@ -522,9 +470,9 @@ async fn a_jammed_track_holds_a_move_and_a_silent_pallet_arrives_unreported() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_move_goes_on_in_the_plant_when_its_holon_is_killed() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
-    let robot_config = robot1(dir.path());
-    let plant = PlantProcess::start(dir.path(), PLANT);
+    std::fs::write(dir.path().join("conveyor1.toml"), SMALL_CONVEYOR).unwrap();
+    let robot_config = small_robot1(dir.path());
+    let plant = PlantProcess::start(dir.path(), SMALL_PLANT);
     let cell = Cell::open("t-plant-kill").await.unwrap();
     // robot1 serves: its port is in the layout the conveyor knows.
     let _robot = start_node(
@@ -596,8 +544,8 @@ async fn a_move_goes_on_in_the_plant_when_its_holon_is_killed() {
 #[test]
 fn a_pallet_waits_at_a_full_port_and_goes_on_once_it_is_emptied() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
-    robot1(dir.path());
+    std::fs::write(dir.path().join("conveyor1.toml"), SMALL_CONVEYOR).unwrap();
+    small_robot1(dir.path());
     let shelf = resource_config(dir.path(), "shelf1", 5000).unwrap();
     let text = std::fs::read_to_string(&shelf).unwrap();
     let layout = "\n[[layout.locations]]\nname = \"shelf\"\nrole = \"buffer\"\ncapacity = 2\n";
@@ -687,9 +635,9 @@ listen = "127.0.0.1:0"
 #[test]
 fn a_cut_closes_the_controllers_links_and_its_move_goes_on() {
     let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
-    robot1(dir.path());
-    let plant = PlantProcess::start(dir.path(), PLANT);
+    std::fs::write(dir.path().join("conveyor1.toml"), SMALL_CONVEYOR).unwrap();
+    small_robot1(dir.path());
+    let plant = PlantProcess::start(dir.path(), SMALL_PLANT);
     let mut link = ControllerLink::connect(&plant.controllers["conveyor1"]);
     // Held on a jammed track, so that it is surely under way when the link is cut.
     assert_eq!(plant.command("jam conveyor1.s1"), "ok");
@@ -727,201 +675,4 @@ fn a_cut_closes_the_controllers_links_and_its_move_goes_on() {
         .reply(back, Duration::from_secs(10))
         .expect("the move back ends");
     assert!(reply.contains("<RESULT>arrived</RESULT>"), "{reply}");
-}
-
-/// The plant simulator killed with SIGKILL and started again on its state file goes on
-/// from where it was (docs/material-flow.md, "When the plant simulator dies"): a move
-/// under way (held on a jammed track) is still under way, the jam still there, the
-/// plant's time goes on; cleared, the move ends in the plant once, in the trace once;
-/// the fenced conveyor's epochs go on, and its step is known: running, then done. A
-/// step done before the kill is still done, and a repeat of it is answered from the
-/// record, not run again.
-#[test]
-fn a_killed_plant_resumes_where_it_was() {
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
-    robot1(dir.path());
-    let fenced = PLANT.replace(
-        "resource = \"conveyor1\"\nlisten = \"127.0.0.1:0\"",
-        "resource = \"conveyor1\"\nlisten = \"127.0.0.1:0\"\nfenced_lease_ms = 60000",
-    );
-    let mut plant = PlantProcess::start(dir.path(), &fenced);
-    let mut link = ControllerLink::connect(&plant.controllers["conveyor1"]);
-    let claim = |link: &mut ControllerLink| -> u64 {
-        link.send_raw("<CLAIM><NAME>conveyor1</NAME></CLAIM>");
-        let granted = link
-            .message("<CLAIM_GRANTED>", "</CLAIM_GRANTED>", WAIT)
-            .expect("the claim is granted");
-        let epoch = granted
-            .split("<EPOCH>")
-            .nth(1)
-            .and_then(|e| e.split("</EPOCH>").next())
-            .and_then(|e| e.parse().ok())
-            .unwrap_or_else(|| panic!("{granted}"));
-        epoch
-    };
-    let fenced_move = |link: &mut ControllerLink,
-                       id: u64,
-                       epoch: u64,
-                       step: &str,
-                       part: &str,
-                       from: &str,
-                       to: &str| {
-        link.send_raw(&format!(
-            "<ROBOT_CMD><ID>{id}</ID><EPOCH>{epoch}</EPOCH><STEP>{step}</STEP><ACTION>move</ACTION><PART>{part}</PART><FROM>{from}</FROM><TO>{to}</TO></ROBOT_CMD>"
-        ));
-    };
-    let step_state = |link: &mut ControllerLink, step: &str| -> String {
-        link.send_raw(&format!("<STEP_STATUS><STEP>{step}</STEP></STEP_STATUS>"));
-        link.message("<STEP_STATE>", "</STEP_STATE>", WAIT)
-            .expect("the step's state")
-    };
-    let epoch = claim(&mut link);
-    // A move done before the kill.
-    fenced_move(
-        &mut link,
-        1,
-        epoch,
-        "c-1#0",
-        "p-1",
-        "conveyor1.load",
-        "robot1.port",
-    );
-    let reply = link.reply(1, WAIT).expect("p-1's move ends");
-    assert!(reply.contains("<RESULT>arrived</RESULT>"), "{reply}");
-    // One under way when it dies: back to the loading point (the exit), held on a
-    // jammed track.
-    assert_eq!(plant.command("jam conveyor1.load"), "ok");
-    fenced_move(
-        &mut link,
-        2,
-        epoch,
-        "c-2#0",
-        "p-1",
-        "robot1.port",
-        "conveyor1.load",
-    );
-    let deadline = std::time::Instant::now() + WAIT;
-    while plant.state()["in_transit"][0]["load"]["part"] != "p-1" {
-        assert!(std::time::Instant::now() < deadline, "the move never began");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    std::thread::sleep(Duration::from_millis(300));
-    let before = plant.state();
-    plant.kill_and_restart(dir.path());
-    assert!(link.closed(WAIT), "the old link outlived its controller");
-    let after = plant.state();
-    assert_eq!(after["in_transit"][0]["load"]["part"], "p-1", "{after:#}");
-    assert_eq!(
-        after["in_transit"][0]["command"]["step"], "c-2#0",
-        "{after:#}"
-    );
-    assert_eq!(
-        after["jammed"],
-        serde_json::json!(["conveyor1.load"]),
-        "{after:#}"
-    );
-    assert_eq!(after["pallets"], before["pallets"], "{after:#}");
-    assert!(
-        after["now_ms"].as_u64() >= before["now_ms"].as_u64(),
-        "the plant's time went back: {} then {}",
-        before["now_ms"],
-        after["now_ms"]
-    );
-    let mut link = ControllerLink::connect(&plant.controllers["conveyor1"]);
-    let again = claim(&mut link);
-    assert!(again > epoch, "epoch {again} granted again after {epoch}");
-    let running = step_state(&mut link, "c-2#0");
-    assert!(running.contains("<STATE>running</STATE>"), "{running}");
-    let done = step_state(&mut link, "c-1#0");
-    assert!(done.contains("<STATE>done</STATE>"), "{done}");
-    // A repeat of the step done before the kill is answered from its record.
-    fenced_move(
-        &mut link,
-        3,
-        again,
-        "c-1#0",
-        "p-1",
-        "conveyor1.load",
-        "robot1.port",
-    );
-    let repeat = link.reply(3, WAIT).expect("the repeat is answered");
-    assert!(repeat.contains("<RESULT>arrived</RESULT>"), "{repeat}");
-    assert_eq!(plant.command("clear conveyor1.load"), "ok");
-    let deadline = std::time::Instant::now() + WAIT;
-    loop {
-        let state = step_state(&mut link, "c-2#0");
-        if state.contains("<STATE>done</STATE>") {
-            assert!(state.contains("<RESULT>arrived</RESULT>"), "{state}");
-            break;
-        }
-        assert!(
-            std::time::Instant::now() < deadline,
-            "the resumed move never ended: {state}; {:#}",
-            plant.state()
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    // Back at the loading point, which is the exit too: p-1 has left the plant.
-    let state = plant.state();
-    assert_eq!(state["shipped"], 1, "{state:#}");
-    assert_eq!(state["in_transit"], serde_json::json!([]), "{state:#}");
-    let moves = PlantProcess::done_in_trace(dir.path(), "move");
-    assert_eq!(moves["conveyor1"], 2, "each move traced once: {moves:?}");
-    // --fresh forgets it all.
-    plant.process.kill();
-    let fresh = std::process::Command::new(bin("plant-sim"))
-        .arg("--plant")
-        .arg(dir.path().join("plant.toml"))
-        .arg("--state-file")
-        .arg(&plant.state_file)
-        .args(["--fresh", "--check"])
-        .output()
-        .unwrap();
-    assert!(fresh.status.success(), "{fresh:?}");
-}
-
-/// A state file the plant cannot resume from is refused at start, with the reason and
-/// what to do; nothing is overwritten.
-#[test]
-fn a_plant_refuses_a_state_file_it_cannot_resume_from() {
-    let dir = tempfile::tempdir().unwrap();
-    std::fs::write(dir.path().join("conveyor1.toml"), CONVEYOR).unwrap();
-    robot1(dir.path());
-    let plant = dir.path().join("plant.toml");
-    std::fs::write(&plant, PLANT).unwrap();
-    let state = dir.path().join("plant-state.json");
-    let check = |text: &str| {
-        std::fs::write(&state, text).unwrap();
-        let out = std::process::Command::new(bin("plant-sim"))
-            .arg("--plant")
-            .arg(&plant)
-            .arg("--state-file")
-            .arg(&state)
-            .output()
-            .unwrap();
-        assert_eq!(out.status.code(), Some(2), "{out:?}");
-        assert_eq!(
-            std::fs::read_to_string(&state).unwrap(),
-            text,
-            "overwritten"
-        );
-        String::from_utf8_lossy(&out.stderr).to_string()
-    };
-    let garbage = check("{not json");
-    assert!(garbage.contains("not a plant's state file"), "{garbage}");
-    assert!(garbage.contains("--fresh"), "{garbage}");
-    let old = check("{\"now_ms\": 5, \"locations\": {}}");
-    assert!(old.contains("has no memory"), "{old}");
-    // A memory of another layout: a pallet this conveyor does not have.
-    std::fs::remove_file(&state).unwrap();
-    let first = PlantProcess::start(dir.path(), PLANT);
-    drop(first);
-    let written = std::fs::read_to_string(&state).unwrap();
-    let other = written.replace("conveyor1/p2", "conveyor1/p9");
-    let refused = check(&other);
-    assert!(
-        refused.contains("conveyor1/p9 is not in the layout"),
-        "{refused}"
-    );
 }
