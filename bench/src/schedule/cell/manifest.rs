@@ -27,6 +27,15 @@ pub struct CellCopy {
     pub staff: Vec<String>,
 }
 
+/// Files a cell's directory gets from running it (`cell up` by hand), which a run's
+/// copy must not start from: the plant's state file (a plant resumes from the memory in
+/// it) and its trace.
+const RUNS_OWN_FILES: [&str; 3] = [
+    "plant-state.json",
+    "plant-state.json.next",
+    "plant-trace.jsonl",
+];
+
 /// Copies the cell in `from` to `to` (its files, not its data, logs or run
 /// directories) with its manifest rewritten: the plant traced and controlled at
 /// `control`, and its staff holons left out unless `with_staff`.
@@ -34,7 +43,8 @@ pub fn copy(from: &Path, to: &Path, control: &str, with_staff: bool) -> Result<C
     std::fs::create_dir_all(to)?;
     for entry in std::fs::read_dir(from).with_context(|| format!("{}", from.display()))? {
         let entry = entry?;
-        if entry.file_type()?.is_file() {
+        let runs_own = RUNS_OWN_FILES.iter().any(|f| entry.file_name() == *f);
+        if entry.file_type()?.is_file() && !runs_own {
             std::fs::copy(entry.path(), to.join(entry.file_name()))?;
         }
     }
@@ -112,6 +122,22 @@ fn holon_of(dir: &Path, args: &[String]) -> Result<(String, String)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_copy_leaves_a_run_by_hand_behind() {
+        let shipped = holarchy_tests::workspace_root().join("deploy/cells/aip-primeca");
+        let ran = tempfile::tempdir().unwrap();
+        copy(&shipped, ran.path(), "127.0.0.1:9", false).unwrap();
+        for file in RUNS_OWN_FILES {
+            std::fs::write(ran.path().join(file), "{}").unwrap();
+        }
+        let dir = tempfile::tempdir().unwrap();
+        copy(ran.path(), dir.path(), "127.0.0.1:9", false).unwrap();
+        for file in RUNS_OWN_FILES {
+            assert!(!dir.path().join(file).exists(), "{file} copied");
+        }
+        assert!(dir.path().join("monorail.toml").exists());
+    }
 
     #[test]
     fn a_copy_without_staff_traces_its_plant_and_starts_no_staff_holon() {
