@@ -62,25 +62,37 @@ impl Cell {
 
     /// Waits until `holon`'s liveliness token is gone.
     pub async fn wait_gone(&self, holon: &HolonId) -> Result<()> {
+        self.wait_token_gone(&self.keys.alive(holon)).await
+    }
+
+    /// Waits until the liveliness token on `key` is gone (at once if it is not there):
+    /// a process killed is not gone from the cell until the router has seen its link
+    /// close, and a successor started meanwhile under the same key is not told apart.
+    pub async fn wait_token_gone(&self, key: &str) -> Result<()> {
+        // Subscribed before asking, so that a Delete after the answer is not missed.
         let subscriber = self
             .session
             .liveliness()
-            .declare_subscriber(self.keys.alive(holon))
-            .history(true)
+            .declare_subscriber(key)
             .await
             .map_err(|e| anyhow!("{e}"))?;
+        let there = self
+            .session
+            .liveliness()
+            .get(key)
+            .timeout(Duration::from_secs(2))
+            .await
+            .map_err(|e| anyhow!("{e}"))?;
+        if there.recv_async().await.is_err() {
+            return Ok(());
+        }
         let deadline = tokio::time::Instant::now() + WAIT;
-        let mut alive = false;
-        // History tells whether it is there now; then wait for its Delete.
         loop {
             match tokio::time::timeout_at(deadline, subscriber.recv_async()).await {
-                Ok(Ok(sample)) => match sample.kind() {
-                    SampleKind::Put => alive = true,
-                    SampleKind::Delete => return Ok(()),
-                },
+                Ok(Ok(sample)) if sample.kind() == SampleKind::Delete => return Ok(()),
+                Ok(Ok(_)) => {}
                 Ok(Err(e)) => bail!("{e}"),
-                Err(_) if !alive => return Ok(()),
-                Err(_) => bail!("{holon} still alive after {WAIT:?}"),
+                Err(_) => bail!("{key} still alive after {WAIT:?}"),
             }
         }
     }

@@ -9,7 +9,8 @@ use holarchy_tests::*;
 /// The plant simulator killed with SIGKILL and started again on its state file goes on
 /// from where it was (docs/material-flow.md, "When the plant simulator dies"): a move
 /// under way (held on a jammed track) is still under way, the jam still there, the
-/// plant's time goes on; cleared, the move ends in the plant once, in the trace once;
+/// plant's time goes on, an e-stop whose timer died with it is released; cleared, the
+/// move ends in the plant once, in the trace once;
 /// the fenced conveyor's epochs go on, and its step is known: running, then done. A
 /// step done before the kill is still done, and a repeat of it is answered from the
 /// record, not run again.
@@ -83,8 +84,15 @@ fn a_killed_plant_resumes_where_it_was() {
         assert!(std::time::Instant::now() < deadline, "the move never began");
         std::thread::sleep(Duration::from_millis(20));
     }
+    // An e-stop pressed for ten minutes: its timer dies with the plant.
+    assert_eq!(plant.command("estop robot1 600000"), "ok");
     std::thread::sleep(Duration::from_millis(300));
     let before = plant.state();
+    assert_eq!(
+        before["estopped"],
+        serde_json::json!(["robot1"]),
+        "{before:#}"
+    );
     plant.kill_and_restart(dir.path());
     assert!(link.closed(WAIT), "the old link outlived its controller");
     let after = plant.state();
@@ -99,6 +107,11 @@ fn a_killed_plant_resumes_where_it_was() {
         "{after:#}"
     );
     assert_eq!(after["pallets"], before["pallets"], "{after:#}");
+    assert_eq!(
+        after["estopped"],
+        serde_json::json!([]),
+        "released: {after:#}"
+    );
     assert!(
         after["now_ms"].as_u64() >= before["now_ms"].as_u64(),
         "the plant's time went back: {} then {}",

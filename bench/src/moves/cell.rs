@@ -130,6 +130,12 @@ impl MoveCell {
     /// journal of its own (nothing to recover).
     pub async fn restart_orders(&mut self, durability: &str) -> Result<()> {
         self.orders.kill();
+        // Until the router has seen the killed node's link close, its token is there:
+        // the new node's, waited for below, would be taken for it, and a work order
+        // sent meanwhile would find no order-node.
+        self.cell
+            .wait_token_gone(&self.cell.keys.host("order-node", "orders1"))
+            .await?;
         self.orders = start_orders(&self.cell, &self.dir, durability).await?;
         Ok(())
     }

@@ -19,6 +19,11 @@
 //! | a move stopped on the way (aborted) | failed (`aborted`) | the part stays where it stopped |
 //! | a station's action under way, or a command that had not begun | failed: the controller restarted before it ended | the action did not happen: nothing changes |
 //!
+//! Faults played on the control port: jams, silent and retired pallets stay as they
+//! were; an e-stop is released (its timer died with the plant, and every controller
+//! comes back ready); inspections told to fail (`fail`) and the count behind
+//! `inspect_fail_every` start again from nothing.
+//!
 //! Every connection is gone: each holon sees its controller go and come back, and a
 //! fenced one asks what became of its steps (`STEP_STATUS`). `plant-sim --fresh` forgets
 //! the memory and starts an empty plant.
@@ -186,6 +191,12 @@ pub fn resume_controllers(
             resource,
             "the memory has a fence for a controller that is not fenced now: forgotten"
         );
+    }
+    // An e-stop played on the control port is released when its time is up, by a
+    // timer that died with the plant; every controller comes back ready.
+    for resource in plant.view().estopped {
+        plant.estop(&resource, false);
+        info!(resource, "an e-stop pressed when the plant died: released");
     }
     moves.into_iter().filter(|m| !m.stopped).collect()
 }
