@@ -26,6 +26,7 @@ pub mod gantt;
 pub mod manifest;
 pub mod metrics;
 pub mod scenario;
+mod shuttles;
 pub mod usage;
 
 use bound::{Bound, CellModel};

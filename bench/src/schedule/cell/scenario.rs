@@ -233,6 +233,8 @@ impl CellScenario {
                 bail!(at(format!("events[{i}].at_s: at least 0")));
             }
         }
+        super::shuttles::check(&scenario.cell, &scenario.events)
+            .map_err(|e| anyhow::anyhow!(at(e.to_string())))?;
         Ok(scenario)
     }
 
@@ -305,6 +307,35 @@ mod tests {
             let said = shuttle(bad);
             assert!(said.contains("events[0].shuttle"), "{bad}: {said}");
         }
+        // Ten shuttles, eight homes: three out at once deadlock the cell.
+        let out = |name: &str, at: u32, back: &str| {
+            format!("[[events]]\nkind = \"shuttle_out\"\nat_s = {at}\nshuttle = \"{name}\"\n{back}")
+        };
+        let three = write(&format!(
+            "[[releases]]\nproduct = \"b\"\n{}{}{}",
+            out("monorail/p1", 1, ""),
+            out("monorail/p2", 2, "back_s = 100\n"),
+            out("monorail/p3", 50, "")
+        ));
+        assert!(
+            three.contains("3 of monorail's 10 shuttles are out, leaving 7 for the cell's 8 homes"),
+            "{three}"
+        );
+        assert!(three.contains("take out at most 2 at once"), "{three}");
+        // The second is back before the third goes out: never more than two out.
+        let path = dir.path().join("s.toml");
+        std::fs::write(
+            &path,
+            format!(
+                "name = \"s\"\ncell = {:?}\n[[releases]]\nproduct = \"b\"\n{}{}{}",
+                cell.display().to_string(),
+                out("monorail/p1", 1, ""),
+                out("monorail/p2", 2, "back_s = 10\n"),
+                out("monorail/p3", 50, "")
+            ),
+        )
+        .unwrap();
+        CellScenario::load(&path).unwrap();
         let unknown = write("[[releases]]\nproduct = \"b\"\nwhen = 3\n");
         assert!(unknown.contains("when"), "{unknown}");
         let scale = write("time_scale = 0\n[[releases]]\nproduct = \"b\"\n");
