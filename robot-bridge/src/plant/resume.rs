@@ -192,6 +192,8 @@ pub fn resume_controllers(
             "the memory has a fence for a controller that is not fenced now: forgotten"
         );
     }
+    // Every ended move untold is settled above, or its controller is not fenced now.
+    plant.forget_untold();
     // An e-stop played on the control port is released when its time is up, by a
     // timer that died with the plant; every controller comes back ready.
     for resource in plant.view().estopped {

@@ -194,6 +194,12 @@ impl Plant {
             .remove(&(transporter.to_string(), step.to_string()));
     }
 
+    /// Forgets every ended move still untold: a plant started again has settled their
+    /// steps (or their controller is not fenced any more), and nobody will tell them.
+    pub fn forget_untold(&mut self) {
+        self.arrived_steps.clear();
+    }
+
     /// Whether `transporter`'s move of step `step` has ended in the plant, untold.
     pub fn arrived_untold(&self, transporter: &str, step: &str) -> bool {
         self.arrived_steps
