@@ -158,6 +158,16 @@ fn a_killed_plant_resumes_where_it_was() {
     assert_eq!(state["in_transit"], serde_json::json!([]), "{state:#}");
     let moves = PlantProcess::done_in_trace(dir.path(), "move");
     assert_eq!(moves["conveyor1"], 2, "each move traced once: {moves:?}");
+    // A grant is written before it is sent: killed straight after one, with nothing
+    // else changed in the plant, the plant started again never grants that epoch again.
+    plant.kill_and_restart(dir.path());
+    let mut link = ControllerLink::connect(&plant.controllers["conveyor1"]);
+    let granted = claim(&mut link);
+    assert!(granted > again, "epoch {granted} after {again}");
+    plant.kill_and_restart(dir.path());
+    let mut link = ControllerLink::connect(&plant.controllers["conveyor1"]);
+    let next = claim(&mut link);
+    assert!(next > granted, "epoch {granted} granted again ({next})");
     // --fresh forgets it all.
     plant.process.kill();
     let fresh = std::process::Command::new(bin("plant-sim"))

@@ -158,6 +158,11 @@ fn location(values: &Values, field: &str) -> Result<Option<LocationId>, String> 
 }
 
 impl Physics for ControllerPhysics {
+    fn epoch_granted(&self) {
+        // The plant's memory keeps the fence: written before the grant is sent.
+        (self.on_change)(&self.plant());
+    }
+
     fn begin(&self, action: &str, values: &Values) -> Result<Option<Duration>, String> {
         let part = values.get("info.part");
         let mut plant = self.plant();

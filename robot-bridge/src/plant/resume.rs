@@ -4,8 +4,10 @@
 //! The state file holds, beside where everything is, the plant's **memory**: its whole
 //! physical state ([`PlantMemory`]) and each fenced controller's fence ([`FenceMemory`]:
 //! its last epoch and its latest steps' states). It is rewritten (a new file renamed
-//! over the old) after every change of the plant, and after a fenced station's action
-//! ends, before its reply goes out, so that a step told done is remembered done.
+//! over the old) after every change of the plant, after a fenced station's action
+//! ends, before its reply goes out, so that a step told done is remembered done, and
+//! when a fence grants an epoch, before the grant is sent, so that no epoch is granted
+//! twice.
 //!
 //! Started again on the same state file, the plant resumes from the memory: its clock
 //! goes on from the plant time it had (the world stood still while it was dead), every

@@ -22,6 +22,7 @@ use crate::dialect::Values;
 /// | `begin(action, values)` | the command arrives | whether it can run, and how long it takes |
 /// | `held(values)` | its time is up, and again every 50 ms while held | whether it is held up |
 /// | `end(values, done)` | it ends (`true`) or is aborted (`false`) | whether its end is told |
+/// | `epoch_granted()` | the fence grants a claim, before the grant is sent | |
 pub trait Physics: Send + Sync {
     /// Whether the action the command `values` begins can run, physically, and how long
     /// it takes (None: as the simulator's own settings say). Err: the physical reason it
@@ -38,6 +39,11 @@ pub trait Physics: Send + Sync {
     /// end (`false`: aborted). Returns whether the controller says so
     /// ([`Report::Unsaid`]: a pallet that stopped reporting arrives without a word).
     fn end(&self, values: &Values, done: bool) -> Report;
+
+    /// The controller's fence granted an epoch: a physics that keeps the fence in its
+    /// memory (the plant's) writes it now, before the grant is sent, so that a
+    /// controller started again never grants that epoch twice.
+    fn epoch_granted(&self) {}
 }
 
 /// Whether the controller tells of an action's end.

@@ -42,6 +42,9 @@ impl Session<'_> {
             if rule == fence.granted {
                 // The epoch is on disk before anyone holds it.
                 super::super::write_count_file(self.config, self.stats);
+                if let Some(physics) = &self.config.physics {
+                    physics.0.epoch_granted();
+                }
             }
             writer.reply(rule, &answer).await?;
         }
