@@ -262,7 +262,7 @@ impl Physics for ControllerPhysics {
             resource: self.resource.clone(),
             action: moving.action,
             part: Some(part.to_string()),
-            carrier: moving.carrier.clone(),
+            carrier: moving.carrier,
             begin_ms: moving.begin_ms,
             end_ms: self.clock.now_ms(),
             done,

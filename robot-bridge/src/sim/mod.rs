@@ -165,8 +165,8 @@ impl SimStats {
         self.executed.load(Ordering::SeqCst)
     }
 
-    /// An `action` executed away from any session (a move the plant simulator resumed
-    /// after its death and ended): counted as a session counts one.
+    /// An `action` executed (answered with its success result, or ended with nobody
+    /// to tell: by a session, or by the plant simulator for a move it resumed).
     pub(crate) fn count_executed(&self, action: &str) {
         self.executed.fetch_add(1, Ordering::SeqCst);
         *self

@@ -3,7 +3,6 @@
 //! ([`Acting`]), each ended on its own, and actions that complete after their connection
 //! is gone.
 
-use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
@@ -149,14 +148,7 @@ impl Session<'_> {
         let action = acting.values.get("action").unwrap_or("").to_string();
         let id = acting.values.get("id").unwrap_or("-");
         info!(%id, %action, "the connection is gone: the action completes unanswered");
-        self.stats.executed.fetch_add(1, Ordering::SeqCst);
-        *self
-            .stats
-            .by_action
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(action)
-            .or_default() += 1;
+        self.stats.count_executed(&action);
         self.count_file.update();
     }
 
@@ -224,14 +216,7 @@ impl Session<'_> {
             return Ok(());
         };
         let stats = self.stats;
-        stats.executed.fetch_add(1, Ordering::SeqCst);
-        let action = values.get("action").unwrap_or("").to_string();
-        *stats
-            .by_action
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(action)
-            .or_default() += 1;
+        stats.count_executed(values.get("action").unwrap_or(""));
         let mut answer = values.clone();
         answer.set("result", result.into());
         // Settled before the plant is told, as in `complete_one`.
