@@ -97,6 +97,27 @@ pub enum Commands {
         #[command(flatten)]
         client: ClientArgs,
     },
+    /// Take a conveyor's carrier (a pallet or shuttle) out of service, or put it back
+    /// (operators only). A part rides its carrier from entry to exit, so the conveyor
+    /// lets a part in (grants it a home at its buffers) only while fewer parts are in
+    /// the cell than carriers in service: taken out without a word, a missing carrier
+    /// can stop the cell. Say it when you take the carrier off the track (the plant
+    /// simulator's `retire`) and when you put it back. Prints the carriers in service.
+    Carrier {
+        /// The conveyor, e.g. conveyor1.
+        resource: String,
+        /// The carrier as the conveyor numbers them, p1 to p<pallets> (or
+        /// conveyor1/p3).
+        carrier: String,
+        /// Taken out of service.
+        #[arg(long, conflicts_with = "back", required_unless_present = "back")]
+        out: bool,
+        /// Back in service.
+        #[arg(long)]
+        back: bool,
+        #[command(flatten)]
+        client: ClientArgs,
+    },
     /// Manage the cell's users (one file per cell, read by the dashboard and `cell
     /// opcua`): add, passwd, role, remove, list. Every change is recorded in audit.jsonl
     /// beside the file. See docs/opcua.md, "Users".

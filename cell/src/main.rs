@@ -24,6 +24,7 @@ fn main() -> ExitCode {
             | Commands::Submit { .. }
             | Commands::Cancel { .. }
             | Commands::Part { .. }
+            | Commands::Carrier { .. }
             | Commands::Packml { .. }
     ) {
         // A client command piped into `head` or `grep -q` stops quietly when the reader
@@ -109,6 +110,13 @@ async fn run(args: Args) -> Result<bool> {
         Commands::Submit(args) => cli::orders::submit(args).await,
         Commands::Cancel { order, client } => cli::orders::cancel(&order, &client).await,
         Commands::Part { order, at, client } => cli::orders::part(&order, at, &client).await,
+        Commands::Carrier {
+            resource,
+            carrier,
+            back,
+            client,
+            ..
+        } => cli::orders::carrier(&resource, &carrier, back, &client).await,
         Commands::Packml(args) => cli::packml::run(args).await,
         Commands::Layout { json, client } => cli::status::layout(json, &client).await,
         Commands::Status { client } => cli::status::status(&client).await,

@@ -100,6 +100,13 @@ impl CellKeys {
         format!("{}/resource/{resource}/packml", self.prefix())
     }
 
+    /// `holarchy/<cell>/resource/<name>/carriers`: an operator's word on a conveyor's
+    /// carriers, one taken out of service or put back (a [`crate::carrier::CarrierWord`]
+    /// in, a [`crate::carrier::CarrierReply`] out); operators only in a secure cell.
+    pub fn carriers(&self, resource: &str) -> String {
+        format!("{}/resource/{resource}/carriers", self.prefix())
+    }
+
     /// `holarchy/<cell>/offer/<service_type>/<name>`: one resource's offer of a service type.
     pub fn offer(&self, service_type: &str, resource: &str) -> String {
         format!("{}/offer/{service_type}/{resource}", self.prefix())

@@ -5,6 +5,7 @@
 //! (see [`service_json_schema`]); a test fails when that file is stale.
 
 pub mod advice;
+pub mod carrier;
 pub mod fence;
 pub mod held;
 pub mod id;
@@ -22,6 +23,7 @@ pub mod time_scale;
 pub mod vocabulary;
 
 pub use advice::{Advice, AdviceRequest, ForecastStep, RouteStep, ADVICE_VERSION};
+pub use carrier::{carrier_name, CarrierReply, CarrierWord};
 pub use fence::{FenceReport, FenceRole};
 pub use held::{HeldReply, HeldRequest, MAX_HELD_ASKED};
 pub use id::{validate_name, HolonId, HolonKind};

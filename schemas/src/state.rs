@@ -173,6 +173,11 @@ pub struct ResourceSnapshot {
     /// location's parts, in the order they were reserved.
     #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
     pub places: std::collections::BTreeMap<String, Vec<String>>,
+    /// A conveyor's carriers taken out of service by an operator (`cell carrier`), by
+    /// name (`p3`); it grants homes only while fewer are held than carriers are in
+    /// service (docs/material-flow.md, "Carriers out of service").
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub carriers_out: Vec<String>,
     /// The machine the holon's process runs on (its hostname).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub host: Option<String>,
@@ -218,6 +223,7 @@ impl ResourceSnapshot {
             handing_over: false,
             packml: None,
             places: Default::default(),
+            carriers_out: Vec::new(),
             host: None,
             epoch: None,
             version: None,

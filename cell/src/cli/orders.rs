@@ -113,6 +113,34 @@ pub async fn part(order: &str, at: String, client: &ClientArgs) -> Result<bool> 
     Ok(true)
 }
 
+/// `cell carrier RESOURCE CARRIER --out|--back`: a conveyor's carrier taken out of
+/// service or put back.
+pub async fn carrier(
+    resource: &str,
+    carrier: &str,
+    in_service: bool,
+    client: &ClientArgs,
+) -> Result<bool> {
+    let keys = client.keys()?;
+    schemas::HolonId::resource(resource)?;
+    let session = client.session(OPERATOR).await?;
+    let by = client.who_asks();
+    let told = cell::client::carrier_word::tell(
+        &session,
+        &keys,
+        resource,
+        carrier,
+        in_service,
+        &by,
+        client.timeout(),
+    )
+    .await;
+    close(session).await;
+    let reply = told?;
+    println!("{resource}: {}", reply.detail);
+    Ok(true)
+}
+
 pub async fn cancel(order: &str, client: &ClientArgs) -> Result<bool> {
     let keys = client.keys()?;
     schemas::HolonId::order(order)?;

@@ -5,11 +5,11 @@
 //!
 //! | role | may declare (queryable, token, publication) | may query / subscribe |
 //! |---|---|---|
-//! | `resource.<r>` | `resource/<r>/{service,state,packml,outcome,layout,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `host/order-node/*/held` (orders' presence), `resource/*/layout` (a transporter's moves), `alive/**` (twins, requesters' presence) |
+//! | `resource.<r>` | `resource/<r>/{service,state,packml,carriers,outcome,layout,debug/crash,fence/*}`, `offer/*/<r>`, `alive/resource/<r>` | `order/*/inbox` (results), `host/order-node/*/held` (orders' presence), `resource/*/layout` (a transporter's moves), `alive/**` (twins, requesters' presence) |
 //! | `product.<p>` | `product/<p>/{plan,state}`, `alive/product/<p>` | `alive/**` (twins) |
 //! | `order-node.<n>` | `orders/submit`, `order/<n>-*/{inbox,state,cancel,part}`, `alive/order/<n>-*` (order-nodes of earlier releases), `host/order-node/<n>{,/fence/*,/orders,/held}` | `resource/*/{service,outcome,state}`, `offer/**`, `product/*/plan`, `staff/*/advice`, states, liveliness |
 //! | `staff.<s>` | `staff/<s>/{advice,state}`, `alive/staff/<s>` | states, plans, liveliness (it advises; it books nothing) |
-//! | `operator.<o>` | nothing | `orders/submit`, `order/*/{cancel,part}` (a lost part's place), `resource/*/packml` (PackML commands), states, plans, liveliness |
+//! | `operator.<o>` | nothing | `orders/submit`, `order/*/{cancel,part}` (a lost part's place), `resource/*/packml` (PackML commands), `resource/*/carriers` (a conveyor's carrier out or back), states, plans, liveliness |
 //! | `observer.<o>` | nothing | states, plans, the layout (`resource/*/layout`), liveliness |
 //! | `router.<h>` | everything (routers forward for others; trusted) | everything |
 //! | `etcd.<h>` | nothing (an etcd member, not a zenoh client: not even listed) | nothing |
@@ -63,6 +63,8 @@ fn grants(role: Role, name: &str) -> Vec<Rule> {
                 "order/*/cancel".to_string(),
                 "order/*/part".to_string(),
                 "resource/*/packml".to_string(),
+                // A conveyor's carrier out of service or back.
+                "resource/*/carriers".to_string(),
             ]);
             keys
         })],
@@ -112,6 +114,8 @@ fn resource(name: &str) -> Vec<Rule> {
                 format!("resource/{name}/service"),
                 format!("resource/{name}/state"),
                 format!("resource/{name}/packml"),
+                // A conveyor's: an operator's word on its carriers.
+                format!("resource/{name}/carriers"),
                 // What became of a conversation, asked by the order that booked it.
                 format!("resource/{name}/outcome"),
                 // Its part of the cell's layout.

@@ -396,6 +396,18 @@ async fn carry_out(
                     warn!(%holon, "a PackML answer without a question is dropped (a bug: only requests are answered)")
                 }
             },
+            AgendaAction::CarrierAnswer(answer) => match question.take() {
+                Some(question) => match answer {
+                    Ok(reply) => {
+                        let payload = serde_json::to_vec(&reply).expect("a reply serializes");
+                        question.answer_bytes(holon, "carriers", payload).await;
+                    }
+                    Err((code, why)) => question.reject(holon, code, why).await,
+                },
+                None => {
+                    warn!(%holon, "an answer on a carrier without a question is dropped (a bug: only words are answered)")
+                }
+            },
             AgendaAction::Deliver(result) => {
                 // A new result is not acknowledged yet: nothing comes back for the agenda.
                 let acknowledged = deliver(links, delivery, DeliveryEvent::Result(result));

@@ -3,6 +3,7 @@
 //! It declares the holon's queryables (`resource/<name>/service`, one
 //! `offer/<type>/<name>` per service type while the resource takes work,
 //! `resource/<name>/state`, `resource/<name>/packml` (PackML commands),
+//! `resource/<name>/carriers` (a conveyor's: an operator's word on its carriers),
 //! `resource/<name>/outcome` (what became of a conversation, answered by
 //! [`super::outcome`] in a task of its own), and `resource/<name>/debug/crash` with
 //! `--allow-fault-injection`), decodes and checks every request, and hands each agenda
@@ -76,6 +77,8 @@ enum Endpoint {
     Offer(String),
     State,
     Packml,
+    /// A conveyor's: an operator's word on its carriers.
+    Carriers,
     Outcome,
     /// The resource's part of the cell's layout (only with `[layout]`).
     Layout,
@@ -91,6 +94,7 @@ impl Endpoint {
             Endpoint::Offer(service_type) => config.keys.offer(service_type, name),
             Endpoint::State => config.keys.state(&config.holon),
             Endpoint::Packml => config.keys.packml(name),
+            Endpoint::Carriers => config.keys.carriers(name),
             Endpoint::Outcome => config.keys.outcome(name),
             Endpoint::Layout => config.keys.layout(name),
             Endpoint::Crash => config.keys.debug_crash(name),
@@ -129,6 +133,13 @@ impl Queryables {
         ];
         if config.layout.is_some() {
             endpoints.push(Endpoint::Layout);
+        }
+        let conveyor = config.layout.as_ref().and_then(|p| p.transporter.as_ref());
+        if matches!(
+            conveyor,
+            Some(schemas::layout::TransporterSpec::Conveyor(_))
+        ) {
+            endpoints.push(Endpoint::Carriers);
         }
         if config.allow_fault_injection {
             endpoints.push(Endpoint::Crash);
@@ -387,7 +398,11 @@ async fn answer(links: &Arc<Links>, arrival: Arrival) -> Option<AgendaMessage> {
     let holon = &links.config.holon;
     let work = matches!(
         endpoint,
-        Endpoint::Service | Endpoint::Offer(_) | Endpoint::Packml | Endpoint::Outcome
+        Endpoint::Service
+            | Endpoint::Offer(_)
+            | Endpoint::Packml
+            | Endpoint::Carriers
+            | Endpoint::Outcome
     );
     if work && !links.views.fence.borrow().serves() {
         // A fenced resource stepping down: the holder of the controller answers; this
@@ -437,6 +452,29 @@ async fn answer(links: &Arc<Links>, arrival: Arrival) -> Option<AgendaMessage> {
                 Err(e) => {
                     question
                         .reject(holon, schemas::ErrorCode::Malformed, e.to_string())
+                        .await;
+                    None
+                }
+            };
+        }
+        Endpoint::Carriers => {
+            let by = question
+                .requested_by()
+                .unwrap_or_else(|| "(not said)".to_string());
+            return match serde_json::from_slice::<schemas::CarrierWord>(&question.payload()) {
+                Ok(word) => {
+                    info!(%holon, carrier = %word.carrier, in_service = word.in_service, %by, "an operator's word on a carrier");
+                    Some(AgendaMessage {
+                        event: AgendaEvent::CarrierWord { word, by },
+                        question: Some(question),
+                    })
+                }
+                Err(e) => {
+                    let why = format!(
+                        "not a word on a carrier (`{{\"carrier\": \"p3\", \"in_service\": false}}`): {e}"
+                    );
+                    question
+                        .reject(holon, schemas::ErrorCode::Malformed, why)
                         .await;
                     None
                 }

@@ -30,6 +30,13 @@ impl Question {
         self.query.key_expr().as_str()
     }
 
+    /// Who asks, as the query's attachment says ([`schemas::requested_by`]).
+    pub fn requested_by(&self) -> Option<String> {
+        self.query
+            .attachment()
+            .and_then(|a| schemas::requested_by(&a.to_bytes()))
+    }
+
     /// The request's bytes (empty when it has none).
     pub fn payload(&self) -> Vec<u8> {
         self.query

@@ -120,6 +120,9 @@ pub struct Published {
     pub length: usize,
     /// The places held at its locations, in all (docs/material-flow.md).
     pub held: usize,
+    /// A conveyor's carriers out of service: one put back is room for a part waiting
+    /// for a home (docs/material-flow.md, "Carriers out of service").
+    pub carriers_out: usize,
     /// It could take orders' work.
     pub ready: bool,
 }
@@ -325,14 +328,18 @@ fn read_state(previous: Option<Published>, snapshot: &ResourceSnapshot) -> (Stat
             .then(|| snapshot.agenda.first().map(|b| b.conversation_id.clone()))
             .flatten(),
         became_ready: ready && !before.ready,
-        // A booking gone from the agenda, or a place released at a location: either
-        // may be what a waiting order needs.
+        // A booking gone from the agenda, a place released at a location, or a
+        // carrier back in service: each may be what a waiting order needs.
         places_freed: before.length.saturating_sub(snapshot.agenda.len())
-            + before.held.saturating_sub(held),
+            + before.held.saturating_sub(held)
+            + before
+                .carriers_out
+                .saturating_sub(snapshot.carriers_out.len()),
     };
     let now = Published {
         length: snapshot.agenda.len(),
         held,
+        carriers_out: snapshot.carriers_out.len(),
         ready,
     };
     (news, now)

@@ -99,6 +99,7 @@ use serde_json::{Map, Value};
 use crate::catalog::{Parameters, ServiceCatalog};
 use crate::machine::packml::PackmlUnit;
 
+mod carriers;
 mod jobs;
 mod leaving;
 mod packml;
@@ -109,6 +110,7 @@ mod requests;
 mod snapshot;
 mod travel;
 
+pub use carriers::Carriers;
 pub use packml::{packml_hint, PackmlSettings};
 pub use places::{PlaceHold, Places};
 pub use record::{AgendaRecord, AgendaRecordRef};
@@ -257,6 +259,12 @@ pub enum AgendaEvent {
     RequesterGone { requester: HolonId },
     /// An operator's PackML command or unit mode change (`resource/<name>/packml`).
     Packml(PackmlRequest),
+    /// An operator's word on a conveyor's carrier (`resource/<name>/carriers`): taken
+    /// out of service or put back ([`carriers`]); `by` is who says it.
+    CarrierWord {
+        word: schemas::CarrierWord,
+        by: String,
+    },
     /// A second has passed: bookings held too long are handed back.
     Tick,
     /// The cell's layout as it stands (a transporter's: it times its moves by it and
@@ -275,6 +283,8 @@ pub enum AgendaAction {
     Deliver(Service),
     /// Answer the PackML request being handled.
     PackmlReply(PackmlReply),
+    /// Answer the word on a carrier being handled, or refuse it with why.
+    CarrierAnswer(Result<schemas::CarrierReply, (schemas::ErrorCode, String)>),
     /// Have the execution component abort the running step (PackML Abort): the
     /// controller is told to stop now.
     Abort,
@@ -323,6 +333,8 @@ pub struct AgendaMachine {
     layout: Option<Arc<schemas::layout::CellLayout>>,
     /// Its own locations and the places held at them ([`places`]).
     places: Places,
+    /// A conveyor's carriers and those out of service ([`carriers`]).
+    carriers: Carriers,
 }
 
 impl AgendaMachine {
@@ -346,6 +358,7 @@ impl AgendaMachine {
             controller: ControllerStatus::Disconnected,
             layout: None,
             places: Places::default(),
+            carriers: Carriers::default(),
         }
     }
 
@@ -355,12 +368,23 @@ impl AgendaMachine {
         let held = std::mem::take(&mut self.places.held);
         self.places = Places::of(part);
         self.places.restore(held);
+        let pallets = match part.and_then(|p| p.transporter.as_ref()) {
+            Some(schemas::layout::TransporterSpec::Conveyor(c)) => c.pallets,
+            _ => 0,
+        };
+        let out = std::mem::take(&mut self.carriers.out);
+        self.carriers = Carriers::new(pallets, out);
         self
     }
 
     /// The places held at its locations.
     pub fn places(&self) -> &Places {
         &self.places
+    }
+
+    /// Its carriers, if it is a conveyor, and those out of service.
+    pub fn carriers(&self) -> &Carriers {
+        &self.carriers
     }
 
     /// The same agenda with the holon's PackML settings: a unit restored from the
@@ -428,6 +452,7 @@ impl AgendaMachine {
         }
         manager.undelivered = record.undelivered;
         manager.places.restore(record.places);
+        manager.carriers.out = record.carriers_out;
         if let Some(unit) = record.packml {
             manager.packml = unit.restored();
             manager.packml_restored = true;
@@ -569,6 +594,7 @@ impl AgendaMachine {
                 self.controller_now(status, said.as_deref(), now)
             }
             AgendaEvent::Packml(request) => self.packml_request(request, now),
+            AgendaEvent::CarrierWord { word, by } => self.carrier_word(&word, &by),
             AgendaEvent::Tick => self.tick(now),
             AgendaEvent::Layout(layout) => {
                 self.layout = Some(layout);

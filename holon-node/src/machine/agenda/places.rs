@@ -10,12 +10,13 @@
 //! | | `info.location` is not one of this resource's locations, or `info.part` is missing | refused `invalid_info` |
 //! | | the part holds a place there already | true again (no second place) |
 //! | | every place there is held | refused `no_place`, naming who holds them |
+//! | | a buffer of a conveyor with no carrier in service left for one more home ([`super::carriers`]) | refused `no_place`, saying so |
 //! | | otherwise | true; the place is held for the part |
 //! | `booking_cancel` (no booking of the conversation) | the conversation holds a place | true; released |
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
-use schemas::layout::{LayoutPart, LocationId};
+use schemas::layout::{LayoutPart, LocationId, LocationRole};
 use schemas::{info_key, HolonId, HolonKind, Reason, Service};
 
 use super::{AgendaAction, AgendaMachine};
@@ -38,6 +39,8 @@ pub struct PlaceHold {
 pub struct Places {
     /// Each of its own locations and how many parts it holds at once.
     capacity: BTreeMap<LocationId, u32>,
+    /// Those of its locations that are buffers: a place held there is a part's home.
+    buffers: BTreeSet<LocationId>,
     /// The places held, by location.
     pub(super) held: BTreeMap<LocationId, Vec<PlaceHold>>,
 }
@@ -53,10 +56,29 @@ impl Places {
                     .collect()
             })
             .unwrap_or_default();
+        let buffers = part
+            .map(|p| {
+                p.locations
+                    .iter()
+                    .filter(|l| l.role == LocationRole::Buffer)
+                    .map(|l| l.id.clone())
+                    .collect()
+            })
+            .unwrap_or_default();
         Places {
             capacity,
+            buffers,
             held: BTreeMap::new(),
         }
+    }
+
+    /// How many homes are held: places at its buffers.
+    pub fn homes_held(&self) -> usize {
+        self.buffers
+            .iter()
+            .filter_map(|b| self.held.get(b))
+            .map(Vec::len)
+            .sum()
     }
 
     /// The places held, by location (for the journal and the snapshot).
@@ -106,6 +128,20 @@ impl AgendaMachine {
             );
             return self.refuse(request, Reason::NoPlace, Some(detail));
         }
+        if self.places.buffers.contains(&location)
+            && !self.carriers.room_for_home(self.places.homes_held())
+        {
+            let detail = format!(
+                "no carrier left for one more part: {} of {}'s carriers in service ({} out: {}), {} homes held",
+                self.carriers.in_service(),
+                self.holon.name(),
+                self.carriers.out().len(),
+                self.carriers.out().iter().cloned().collect::<Vec<_>>().join(", "),
+                self.places.homes_held()
+            );
+            return self.refuse(request, Reason::NoPlace, Some(detail));
+        }
+        let holds = self.places.held.entry(location.clone()).or_default();
         holds.push(PlaceHold {
             part: part.to_string(),
             requester: request.requester.clone(),

@@ -2,7 +2,7 @@
 //! owned ([`AgendaRecord`], read back when the journal is opened) or borrowed
 //! ([`AgendaRecordRef`], what a write serialises, in the same form).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use schemas::layout::LocationId;
 use schemas::Service;
@@ -30,6 +30,10 @@ pub struct AgendaRecord {
     /// The places held at its locations (absent from journals written before them).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub places: BTreeMap<LocationId, Vec<PlaceHold>>,
+    /// A conveyor's carriers out of service (absent when none is, and from journals
+    /// written before them).
+    #[serde(default, skip_serializing_if = "BTreeSet::is_empty")]
+    pub carriers_out: BTreeSet<String>,
 }
 
 /// The record borrowed from the agenda manager: written as an [`AgendaRecord`] is,
@@ -44,6 +48,8 @@ pub struct AgendaRecordRef<'a> {
     pub packml: &'a PackmlUnit,
     #[serde(skip_serializing_if = "BTreeMap::is_empty")]
     pub places: &'a BTreeMap<LocationId, Vec<PlaceHold>>,
+    #[serde(skip_serializing_if = "BTreeSet::is_empty")]
+    pub carriers_out: &'a BTreeSet<String>,
 }
 
 impl AgendaMachine {
@@ -56,6 +62,7 @@ impl AgendaMachine {
             undelivered: self.undelivered.clone(),
             packml: Some(self.packml.clone()),
             places: self.places.held().clone(),
+            carriers_out: self.carriers.out().clone(),
         }
     }
 
@@ -68,6 +75,7 @@ impl AgendaMachine {
             undelivered: &self.undelivered,
             packml: &self.packml,
             places: self.places.held(),
+            carriers_out: self.carriers.out(),
         }
     }
 
@@ -79,6 +87,7 @@ impl AgendaMachine {
             && self.undelivered == other.undelivered
             && self.packml == other.packml
             && self.places.held() == other.places.held()
+            && self.carriers.out() == other.carriers.out()
     }
 
     /// Whether this is the record it keeps, compared in place.
@@ -89,6 +98,7 @@ impl AgendaMachine {
             && self.undelivered == record.undelivered
             && record.packml.as_ref() == Some(&self.packml)
             && self.places.held() == &record.places
+            && self.carriers.out() == &record.carriers_out
     }
 }
 

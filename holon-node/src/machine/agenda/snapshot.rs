@@ -49,6 +49,7 @@ impl AgendaMachine {
                     (location.to_string(), parts)
                 })
                 .collect(),
+            carriers_out: self.carriers.out().iter().cloned().collect(),
             // Host, epoch, version, time scale, `v` and `at` are stamped when the view
             // is read (`Views::snapshot`).
             ..ResourceSnapshot::blank(self.holon.clone())

@@ -9,6 +9,7 @@ fn published(length: usize, ready: bool) -> Option<Published> {
     Some(Published {
         length,
         held: 0,
+        carriers_out: 0,
         ready,
     })
 }
@@ -258,6 +259,19 @@ fn a_snapshot_gives_the_turn_readiness_and_freed_places() {
         "a republished turn is told again: {again:?}"
     );
     assert_eq!(model.version(), version, "nothing orders read changed");
+}
+
+/// A carrier put back in service is room for a part waiting for a home, as a place
+/// released is (docs/material-flow.md, "Carriers out of service").
+#[test]
+fn a_carrier_back_in_service_is_a_place_freed() {
+    let mut free = snapshot("free", "ready", &[]);
+    free.carriers_out = vec!["p3".into(), "p4".into()];
+    let (news, now) = read_state(published(0, true), &free);
+    assert_eq!(news.places_freed, 0, "a carrier taken out frees nothing");
+    free.carriers_out = vec!["p4".into()];
+    let (news, _) = read_state(Some(now), &free);
+    assert_eq!(news.places_freed, 1, "p3 is back");
 }
 
 #[test]

@@ -5,6 +5,7 @@ use schemas::MessageType;
 use serde_json::json;
 
 mod at_once;
+mod carriers;
 mod epoch;
 mod on_turn;
 mod packml;
