@@ -106,6 +106,17 @@ async fn fewer_pallets_than_homes_lets_in_only_as_many_parts_as_pallets_and_ever
         "{status:#}"
     );
 
+    let listed = std::process::Command::new(bin("cell"))
+        .args(["status", "--cell", flow.cell.keys.cell()])
+        .args(["--connect", &flow.cell.endpoint, "--timeout-ms", "5000"])
+        .output()
+        .unwrap();
+    assert!(
+        said(&listed).contains("resource/conveyor1: carriers out of service: p3, p4"),
+        "{}",
+        said(&listed)
+    );
+
     let orders = flow.cell.submit("aba", 6).await.unwrap();
     // While they run, never more parts in the cell than pallets in service.
     let deadline = tokio::time::Instant::now() + Duration::from_secs(180);

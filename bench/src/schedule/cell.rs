@@ -26,7 +26,6 @@ pub mod gantt;
 pub mod manifest;
 pub mod metrics;
 pub mod scenario;
-mod shuttles;
 pub mod usage;
 
 use bound::{Bound, CellModel};
@@ -478,12 +477,14 @@ async fn drive(
                 if answer != "ok" {
                     bail!("the plant refused to take {shuttle} out: {answer}");
                 }
+                carrier(copy, &shuttle, "--out")?;
             }
             Happening::ShuttleBack { shuttle } => {
                 let answer = plant.command(&format!("restore {shuttle}")).await?;
                 if answer != "ok" {
                     bail!("the plant refused to put {shuttle} back: {answer}");
                 }
+                carrier(copy, &shuttle, "--back")?;
             }
             Happening::Event(Event::HotAdd { station, .. }) => {
                 cell.hot_add(&station, &copy.endpoint)?
@@ -498,6 +499,28 @@ async fn drive(
     released.extend(submitted(scenario, submitting)?);
     let endings = wait_ended(&session, &keys, &released, scenario).await?;
     Ok((released, endings, started.elapsed()))
+}
+
+/// Tells the conveyor that `shuttle` (`monorail/p3`) is out of service or back
+/// (`word`: `--out`, `--back`), as the operator who took it off the track would (`cell
+/// carrier`): the conveyor then lets in only as many parts as shuttles are in service.
+fn carrier(copy: &CellCopy, shuttle: &str, word: &str) -> Result<()> {
+    let (conveyor, _) = shuttle
+        .split_once('/')
+        .ok_or_else(|| anyhow::anyhow!("{shuttle}: not CONVEYOR/PALLET"))?;
+    let output = Command::new(bin("cell"))
+        .args(["carrier", conveyor, shuttle, word])
+        .args(["--cell", &copy.cell, "--connect", &copy.endpoint])
+        .stdin(Stdio::null())
+        .output()?;
+    if !output.status.success() {
+        bail!(
+            "cell carrier {conveyor} {shuttle} {word} refused: {}{}",
+            String::from_utf8_lossy(&output.stdout),
+            String::from_utf8_lossy(&output.stderr)
+        );
+    }
+    Ok(())
 }
 
 /// Commands `station`'s PackML unit as its operator would (`cell packml`), asked

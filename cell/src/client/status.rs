@@ -323,6 +323,20 @@ pub fn render(cell: &str, rows: &[HolonStatus]) -> String {
                 row.holon
             ));
         }
+        let carriers_out: Vec<&str> = row
+            .snapshot
+            .as_ref()
+            .and_then(|s| s.get("carriers_out"))
+            .and_then(|c| c.as_array())
+            .map(|c| c.iter().filter_map(|v| v.as_str()).collect())
+            .unwrap_or_default();
+        if !carriers_out.is_empty() {
+            out.push_str(&format!(
+                "~ {}: carriers out of service: {} (it lets in only as many parts as carriers are in service; `cell carrier ... --back`)\n",
+                row.holon,
+                carriers_out.join(", ")
+            ));
+        }
     }
     out
 }

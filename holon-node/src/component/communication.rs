@@ -463,7 +463,7 @@ async fn answer(links: &Arc<Links>, arrival: Arrival) -> Option<AgendaMessage> {
                 .unwrap_or_else(|| "(not said)".to_string());
             return match serde_json::from_slice::<schemas::CarrierWord>(&question.payload()) {
                 Ok(word) => {
-                    info!(%holon, carrier = %word.carrier, in_service = word.in_service, %by, "an operator's word on a carrier");
+                    debug!(%holon, carrier = %word.carrier, in_service = word.in_service, %by, "an operator's word on a carrier");
                     Some(AgendaMessage {
                         event: AgendaEvent::CarrierWord { word, by },
                         question: Some(question),

@@ -7,9 +7,16 @@
 //!   one), from the cell's entry to its first station and from its last to the exit:
 //!   the cheapest such path over every choice of stations, plus the job's release.
 //! - **A station set's bound**: for every set K of stations, the work of every step
-//!   that only stations of K can do (each at its fastest on K), shared evenly over K
-//!   and started at the first release: no schedule finishes that work sooner. K = {M1}
-//!   is the loading unit's load and unload of every job.
+//!   that only stations of K can do (each at its fastest on K), shared evenly over K,
+//!   after the earliest any of those steps can begin and before the least any of them
+//!   leaves to do: no schedule finishes that work sooner. A step's **head** is the least
+//!   time from its job's release to its start (the steps before it, each at its
+//!   fastest, and the least travel between them, from the entry); its **tail** the
+//!   least time from its end to the job's exit (the steps after it and the travel,
+//!   to the exit). So the set's bound is the least head of its steps, plus their work
+//!   shared over K, plus the least tail: the machines of K can begin none of that work
+//!   before the least head, and whichever step of it ends last still has its job's
+//!   tail to go. K = {M1} is the loading unit's load and unload of every job.
 //! - The bound is the larger of the longest job's and the busiest set's.
 //!
 //! Processing times are the plant's (`plant.toml`: a controller's `action_ms`, else
@@ -58,6 +65,10 @@ pub struct Bound {
     /// The busiest station set's bound, and that set.
     pub stations_ms: u64,
     pub busiest: Vec<String>,
+    /// The busiest set's least head and least tail (in `stations_ms`): before its work
+    /// can begin, and after it has ended.
+    pub busiest_head_ms: u64,
+    pub busiest_tail_ms: u64,
 }
 
 impl CellModel {
@@ -189,48 +200,151 @@ impl CellModel {
             }
             job_ms = job_ms.max(released + each[product]);
         }
-        let (stations_ms, busiest) = self.busiest_set(jobs);
+        let busiest = self.busiest_set(jobs)?;
         Ok(Bound {
-            makespan_ms: job_ms.max(stations_ms),
+            makespan_ms: job_ms.max(busiest.bound_ms),
             job_ms,
-            stations_ms,
-            busiest,
+            stations_ms: busiest.bound_ms,
+            busiest: busiest.stations,
+            busiest_head_ms: busiest.head_ms,
+            busiest_tail_ms: busiest.tail_ms,
         })
     }
 
-    /// The station set whose share of the work it alone can do is the largest.
-    fn busiest_set(&self, jobs: &[(String, u64)]) -> (u64, Vec<String>) {
-        let first_release = jobs.iter().map(|(_, r)| *r).min().unwrap_or(0);
-        // Every step of every job: the set of stations able to do it, and its work.
-        let mut steps: Vec<(BTreeSet<usize>, BTreeMap<usize, u64>)> = Vec::new();
-        for (product, _) in jobs {
-            for service in self.products.get(product).into_iter().flatten() {
+    /// For each step of a job of `product`, its head (the least time from the job's
+    /// release until the step can begin) and its tail (the least time from its end to
+    /// the job's exit).
+    fn heads_and_tails(&self, product: &str) -> Result<Vec<(u64, u64)>> {
+        let steps = self
+            .products
+            .get(product)
+            .ok_or_else(|| anyhow!("unknown product {product}"))?;
+        let able = |service: &str| -> Result<Vec<(&str, u64)>> {
+            let able: Vec<(&str, u64)> = self
+                .stations
+                .iter()
+                .filter_map(|s| s.services.get(service).map(|t| (s.stopper.as_str(), *t)))
+                .collect();
+            if able.is_empty() {
+                bail!("{product}: no station offers {service}");
+            }
+            Ok(able)
+        };
+        // Forward: per station the job may be at, the least time to have done the
+        // steps so far there.
+        let mut heads = Vec::with_capacity(steps.len());
+        let mut done: Vec<(&str, u64)> = vec![(self.entry.as_str(), 0)];
+        for service in steps {
+            let arrivals: Vec<(&str, u64, u64)> = able(service)?
+                .into_iter()
+                .map(|(stopper, took)| {
+                    let arrive = done
+                        .iter()
+                        .map(|(at, t)| t + self.travel(at, stopper))
+                        .min()
+                        .unwrap_or(0);
+                    (stopper, arrive, took)
+                })
+                .collect();
+            heads.push(arrivals.iter().map(|(_, a, _)| *a).min().unwrap_or(0));
+            done = arrivals
+                .into_iter()
+                .map(|(stopper, arrive, took)| (stopper, arrive + took))
+                .collect();
+        }
+        // Backward: per station the job may be at, the least time from arriving there
+        // (the step's work included) to the exit.
+        let mut tails = vec![0; steps.len()];
+        let mut ahead: Vec<(&str, u64)> = vec![(self.exit.as_str(), 0)];
+        for (k, service) in steps.iter().enumerate().rev() {
+            let rests: Vec<(&str, u64, u64)> = able(service)?
+                .into_iter()
+                .map(|(stopper, took)| {
+                    let rest = ahead
+                        .iter()
+                        .map(|(at, t)| self.travel(stopper, at) + t)
+                        .min()
+                        .unwrap_or(0);
+                    (stopper, rest, took)
+                })
+                .collect();
+            tails[k] = rests.iter().map(|(_, r, _)| *r).min().unwrap_or(0);
+            ahead = rests
+                .into_iter()
+                .map(|(stopper, rest, took)| (stopper, rest + took))
+                .collect();
+        }
+        Ok(heads.into_iter().zip(tails).collect())
+    }
+
+    /// The station set whose bound (its steps' least head, the work only it can do
+    /// shared over it, its steps' least tail) is the largest.
+    fn busiest_set(&self, jobs: &[(String, u64)]) -> Result<BusiestSet> {
+        // Every step of every job: the stations able to do it, its work on each, its
+        // head (from the first release) and its tail.
+        struct Step {
+            able: BTreeSet<usize>,
+            fastest: u64,
+            head: u64,
+            tail: u64,
+        }
+        let mut steps: Vec<Step> = Vec::new();
+        let mut each = BTreeMap::new();
+        for (product, released) in jobs {
+            if !each.contains_key(product) {
+                each.insert(product.clone(), self.heads_and_tails(product)?);
+            }
+            for (service, (head, tail)) in self.products[product].iter().zip(&each[product]) {
                 let able: BTreeMap<usize, u64> = self
                     .stations
                     .iter()
                     .enumerate()
                     .filter_map(|(i, s)| s.services.get(service).map(|t| (i, *t)))
                     .collect();
-                steps.push((able.keys().copied().collect(), able));
+                steps.push(Step {
+                    able: able.keys().copied().collect(),
+                    fastest: able.values().copied().min().unwrap_or(0),
+                    head: released + head,
+                    tail: *tail,
+                });
             }
         }
         let n = self.stations.len().min(16);
-        let mut best = (0, Vec::new());
+        let mut best = BusiestSet::default();
         for mask in 1u32..(1 << n) {
             let set: BTreeSet<usize> = (0..n).filter(|i| mask & (1 << i) != 0).collect();
-            let work: u64 = steps
+            let only: Vec<&Step> = steps
                 .iter()
-                .filter(|(able, _)| !able.is_empty() && able.is_subset(&set))
-                .map(|(_, took)| took.values().copied().min().unwrap_or(0))
-                .sum();
-            let share = first_release + work / set.len() as u64;
-            if share > best.0 {
-                let names = set.iter().map(|i| self.stations[*i].name.clone()).collect();
-                best = (share, names);
+                .filter(|s| !s.able.is_empty() && s.able.is_subset(&set))
+                .collect();
+            let Some(head_ms) = only.iter().map(|s| s.head).min() else {
+                continue;
+            };
+            let tail_ms = only.iter().map(|s| s.tail).min().unwrap_or(0);
+            let work: u64 = only.iter().map(|s| s.fastest).sum();
+            let bound_ms = head_ms + work / set.len() as u64 + tail_ms;
+            if bound_ms > best.bound_ms {
+                best = BusiestSet {
+                    bound_ms,
+                    stations: set.iter().map(|i| self.stations[*i].name.clone()).collect(),
+                    head_ms,
+                    tail_ms,
+                };
             }
         }
-        best
+        Ok(best)
     }
+}
+
+/// The station set with the largest bound.
+#[derive(Debug, Default)]
+struct BusiestSet {
+    /// Its bound, plant ms from the first release.
+    bound_ms: u64,
+    stations: Vec<String>,
+    /// Its steps' least head and least tail.
+    head_ms: u64,
+    tail_ms: u64,
 }
 
 /// The conveyor of the layout (its holon and spec) and its entry's and exit's stoppers.
@@ -298,9 +412,25 @@ mod tests {
             .map(|p| (p.to_string(), 0))
             .to_vec();
         let bound = aip().bound(&jobs).unwrap();
-        // 39 assembly operations of 20 s, shared by M2, M3 and M4.
-        assert_eq!(bound.stations_ms, 39 * 20_000 / 3);
-        assert_eq!(bound.busiest, ["m2", "m3", "m4"]);
+        // The 25 axis and r_comp operations of 20 s, which only M2 and M3 do, shared by
+        // the two (250 s); none can begin before a part is loaded at M1 and taken on to
+        // M2 (0.6 s to M1, load 10 s, 4.83 s on); and after the last of them the least
+        // a job still has to do is E's or T's l_comp on M4 (2.32 s there, 20 s), the
+        // inspection on M5 (4.83 s, 5 s), the unload at M1 (16.05 s round, 10 s) and
+        // the exit (0.6 s).
+        assert_eq!(bound.busiest, ["m2", "m3"]);
+        assert_eq!(bound.busiest_head_ms, 600 + 10_000 + 4_830);
+        assert_eq!(
+            bound.busiest_tail_ms,
+            2_320 + 20_000 + 4_830 + 5_000 + 16_050 + 10_000 + 600
+        );
+        assert_eq!(
+            bound.stations_ms,
+            bound.busiest_head_ms + 25 * 20_000 / 2 + bound.busiest_tail_ms
+        );
         assert_eq!(bound.makespan_ms, bound.stations_ms.max(bound.job_ms));
+        // Beside it, the work alone: the 39 assembly operations shared by M2, M3 and
+        // M4 (260 s), the bound before heads and tails were counted.
+        assert!(bound.stations_ms > 39 * 20_000 / 3);
     }
 }
