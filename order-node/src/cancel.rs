@@ -70,7 +70,7 @@ pub async fn answer_cancels(
     operator_cancel: &CancellationToken,
 ) {
     while let Some(ask) = asks.recv().await {
-        let answer = record(ctx, progress);
+        let answer = record(ctx, progress).await;
         if answer.as_ref().is_ok_and(|reply| reply.cancelled) {
             operator_cancel.cancel();
         }
@@ -81,7 +81,10 @@ pub async fn answer_cancels(
 }
 
 /// Records the cancel (once) and says what happens next.
-fn record(ctx: &OrderContext, progress: &Progress) -> Result<CancelReply, (ErrorCode, String)> {
+async fn record(
+    ctx: &OrderContext,
+    progress: &Progress,
+) -> Result<CancelReply, (ErrorCode, String)> {
     let (name, ended, requested) = {
         let p = progress.get();
         (
@@ -96,6 +99,7 @@ fn record(ctx: &OrderContext, progress: &Progress) -> Result<CancelReply, (Error
     if !requested {
         // Written first: on a journal error nothing changed and the cancel is refused.
         ctx.commit(progress, |p| p.cancel_requested = true)
+            .await
             .map_err(|e| {
                 (
                     ErrorCode::Internal,

@@ -37,6 +37,9 @@ pub struct OrderContext {
     pub idle: Arc<std::sync::atomic::AtomicUsize>,
     /// The journal (SQLite or etcd); `None`: orders are kept in memory only.
     pub journal: Option<Arc<OrderJournal>>,
+    /// Permits for orders waiting on a journal commit with a thread of their own (see
+    /// [`JOURNAL_WAITERS`]).
+    pub journal_waiters: tokio::sync::Semaphore,
     /// Set while journal writes fail (logged once per fault, not per order).
     pub journal_failing: AtomicBool,
     /// Bookings asked and not answered yet, per resource (see [`BookingsInFlight`]).
@@ -57,6 +60,15 @@ pub struct OrderContext {
 /// The cell's layout, followed once an order asks for it.
 #[derive(Default)]
 pub struct CellLayoutFollowing(tokio::sync::OnceCell<holon::layout::Follower>);
+
+/// How many orders wait on a journal commit at once with a thread of their own. A
+/// commit blocks its caller (an fsync, etcd's answer) and each order task that waits
+/// on one takes a thread from the runtime's blocking pool (`block_in_place`): with 200
+/// parts in flight the node grew to about 210 threads (docs/benchmarks.md, "The
+/// order-node's memory under moving parts, profiled"). The rest wait for a permit
+/// without a thread; the writers holding one still share a commit (the journal's
+/// group commit).
+pub const JOURNAL_WAITERS: usize = 8;
 
 /// The journal kind of order records.
 pub const ORDER_RECORD: &str = "order";
@@ -81,6 +93,7 @@ impl OrderContext {
             rounds: tokio::sync::Semaphore::new(MAX_CONCURRENT_ROUNDS),
             idle: Default::default(),
             journal,
+            journal_waiters: tokio::sync::Semaphore::new(JOURNAL_WAITERS),
             journal_failing: Default::default(),
             bookings_in_flight: Default::default(),
             advice_pause: Default::default(),
@@ -158,11 +171,23 @@ impl OrderContext {
     /// Applies `change` to an order's progress once it is written: when the journal
     /// cannot write, the progress in memory stays the last one written (a restarted
     /// order task resumes from there, and an unacknowledged result comes again).
-    pub fn commit(
+    ///
+    /// It waits for a permit to wait on the journal ([`JOURNAL_WAITERS`]) before it
+    /// reads the progress: from there to the write nothing awaits, as before.
+    pub async fn commit(
         &self,
         progress: &Progress,
         change: impl FnOnce(&mut OrderProgress),
     ) -> Result<(), OrderError> {
+        let _waiting = match &self.journal {
+            Some(_) => Some(
+                self.journal_waiters
+                    .acquire()
+                    .await
+                    .expect("the permits are never closed"),
+            ),
+            None => None,
+        };
         let mut next = progress.get().clone();
         change(&mut next);
         if next.status.is_final() && next.finished_at.is_none() {

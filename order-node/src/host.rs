@@ -664,7 +664,7 @@ async fn fail(host: &mut Host, name: &str) {
         ORDER_RESTARTS.max_restarts, ORDER_RESTARTS.period
     );
     error!(order = %name, reason = %why, "order failed");
-    if let Err(e) = host.context.commit(&progress, |p| p.fail(why)) {
+    if let Err(e) = host.context.commit(&progress, |p| p.fail(why)).await {
         // Not recorded: the order resumes after a restart of the node, as before.
         error!(order = %name, error = %e, "cannot record that the order failed; it stays unfinished in the journal");
     }
@@ -742,6 +742,7 @@ mod tests {
                 rounds: tokio::sync::Semaphore::new(1),
                 idle: Default::default(),
                 journal,
+                journal_waiters: tokio::sync::Semaphore::new(crate::context::JOURNAL_WAITERS),
                 journal_failing: Default::default(),
                 bookings_in_flight: Default::default(),
                 advice_pause: Default::default(),
@@ -847,6 +848,7 @@ mod tests {
         running(&mut host, 2);
         host.context
             .commit(&done, |p| p.fail("no plan".into()))
+            .await
             .unwrap();
         let (states_before, cancel_before) = (states(&host), cancel_reply(&host, "n1-1").await);
         let progress_before = host.progress("n1-1").unwrap().unwrap();
@@ -917,6 +919,7 @@ mod tests {
             if n <= 3 {
                 host.context
                     .commit(&progress, |p| p.fail("no plan".into()))
+                    .await
                     .unwrap();
                 host.retire(&format!("n1-{n}"));
             }
@@ -970,8 +973,9 @@ mod tests {
                 p.cancel();
                 p.finished_at = Some(schemas::unix_ms() - 10_000);
             })
+            .await
             .unwrap();
-        host.context.commit(&recent, |p| p.cancel()).unwrap();
+        host.context.commit(&recent, |p| p.cancel()).await.unwrap();
         host.retire("n1-1");
         host.retire("n1-2");
         assert!(host.orders.is_empty());
@@ -1038,7 +1042,7 @@ mod tests {
     async fn without_a_journal_finished_orders_stay_in_memory() {
         let mut host = host(None).await;
         let done = running(&mut host, 1);
-        host.context.commit(&done, |p| p.cancel()).unwrap();
+        host.context.commit(&done, |p| p.cancel()).await.unwrap();
         let before = states(&host);
         host.retire("n1-1");
         assert!(host.orders.contains_key("n1-1"));

@@ -150,7 +150,7 @@ impl OrderTask<'_> {
             biased;
             _ = operator_cancel.cancelled(), if !planned => {
                 info!(holon = %self.holon, "cancelled while waiting for its plan");
-                self.ctx.commit(self.progress, |p| p.cancel())?;
+                self.ctx.commit(self.progress, |p| p.cancel()).await?;
                 self.publish().await;
                 return Ok(());
             }
@@ -181,7 +181,8 @@ impl OrderTask<'_> {
                     material::Arranged::Cancelled => continue,
                     material::Arranged::NoStation => {
                         self.ctx
-                            .commit(self.progress, |p| p.record(StepOutcome::NoResource))?;
+                            .commit(self.progress, |p| p.record(StepOutcome::NoResource))
+                            .await?;
                         self.publish().await;
                         continue;
                     }
@@ -213,10 +214,12 @@ impl OrderTask<'_> {
         }
         let product = self.progress.get().product.clone();
         let plan = requests::fetch_plan(&self.ctx, &product).await;
-        self.ctx.commit(self.progress, |p| match plan {
-            Some(plan) => p.set_plan(plan),
-            None => p.fail(format!("no plan for product {product:?}")),
-        })?;
+        self.ctx
+            .commit(self.progress, |p| match plan {
+                Some(plan) => p.set_plan(plan),
+                None => p.fail(format!("no plan for product {product:?}")),
+            })
+            .await?;
         self.publish().await;
         Ok(())
     }
@@ -259,12 +262,14 @@ impl OrderTask<'_> {
             return Ok(false);
         }
         info!(%holon, %conversation_id, outcome = %outcome, "step attempt ended");
-        self.ctx.commit(self.progress, |p| {
-            p.record(outcome);
-            if finishing {
-                p.cancel();
-            }
-        })?;
+        self.ctx
+            .commit(self.progress, |p| {
+                p.record(outcome);
+                if finishing {
+                    p.cancel();
+                }
+            })
+            .await?;
         // Recorded: now the result may be acknowledged.
         if let Some(report) = report {
             report.acknowledge().await;
@@ -328,7 +333,7 @@ impl OrderTask<'_> {
     ) -> Result<Option<AttemptEvent>, OrderError> {
         Ok(match action {
             AttemptAction::Record(phase) => {
-                self.record(phase)?;
+                self.record(phase).await?;
                 None
             }
             AttemptAction::Publish => {
@@ -403,17 +408,20 @@ impl OrderTask<'_> {
     }
 
     /// Records the attempt's new phase.
-    fn record(&mut self, phase: Phase) -> Result<(), OrderError> {
+    async fn record(&mut self, phase: Phase) -> Result<(), OrderError> {
         if self.leg == Leg::Move {
             // A move's phase is the part's; its transporter is one the order worked with.
-            return self.ctx.commit(self.progress, |p| {
-                if let Some(resource) = phase.resource() {
-                    p.worked_with.insert(resource.clone());
-                }
-                if let Some(part) = &mut p.part {
-                    part.move_phase(phase);
-                }
-            });
+            return self
+                .ctx
+                .commit(self.progress, |p| {
+                    if let Some(resource) = phase.resource() {
+                        p.worked_with.insert(resource.clone());
+                    }
+                    if let Some(part) = &mut p.part {
+                        part.move_phase(phase);
+                    }
+                })
+                .await;
         }
         // A booking made on advice counts once, when it is recorded.
         let on_advice = matches!(&phase, Phase::Booked(p) | Phase::Started(p) if self.advised.as_ref() == Some(p));
@@ -427,15 +435,17 @@ impl OrderTask<'_> {
             .resource()
             .filter(|resource| self.ctx.presence.fenced(resource))
             .cloned();
-        self.ctx.commit(self.progress, |p| {
-            if on_advice {
-                p.advised += 1;
-            }
-            if let Some(resource) = fenced {
-                p.fenced.insert(resource);
-            }
-            p.set_phase(phase)
-        })
+        self.ctx
+            .commit(self.progress, |p| {
+                if on_advice {
+                    p.advised += 1;
+                }
+                if let Some(resource) = fenced {
+                    p.fenced.insert(resource);
+                }
+                p.set_phase(phase)
+            })
+            .await
     }
 
     /// A proposal round, with the staff's advice asked together: the offers ranked.
@@ -511,7 +521,8 @@ impl OrderTask<'_> {
         // On etcd a start is journalled at this node's epoch before it is sent: a
         // deposed holder's write is refused, and it sends nothing.
         if let Some(epoch) = ctx.epoch() {
-            ctx.commit(self.progress, |p| p.start_epoch = Some(epoch))?;
+            ctx.commit(self.progress, |p| p.start_epoch = Some(epoch))
+                .await?;
         }
         let request = self.request(MessageType::Start, step, conversation_id);
         let answer = requests::ask(ctx, &ctx.keys.service(provider.name()), &request).await;
@@ -592,7 +603,7 @@ impl OrderTask<'_> {
                 }
             }
         }
-        ctx.commit(self.progress, |p| p.cancel())?;
+        ctx.commit(self.progress, |p| p.cancel()).await?;
         info!(%holon, "order cancelled by an operator");
         Ok(())
     }

@@ -95,7 +95,7 @@ impl OrderTask<'_> {
             }
             let part = self.part();
             if operator_cancel.is_cancelled() {
-                self.ctx.commit(self.progress, |p| p.cancel())?;
+                self.ctx.commit(self.progress, |p| p.cancel()).await?;
                 return Ok(Arranged::Cancelled);
             }
             let Some(layout) = self.ctx.layout().await else {
@@ -139,7 +139,7 @@ impl OrderTask<'_> {
                         // No turn yet: the part waits on at its port, or goes home.
                         if !self.keeps_waiting_at_port(port_until).await {
                             port_wait = None;
-                            self.go_home(at_port.expect("waiting at a port"), &part)?;
+                            self.go_home(at_port.expect("waiting at a port"), &part).await?;
                         }
                         continue;
                     }
@@ -173,7 +173,7 @@ impl OrderTask<'_> {
                     continue;
                 }
                 port_wait = None;
-                self.go_home(here, &part)?;
+                self.go_home(here, &part).await?;
                 continue;
             }
             if Instant::now() >= give_up && ranked.is_empty() {
@@ -193,13 +193,15 @@ impl OrderTask<'_> {
             let Some(here) = part.place.location().cloned() else {
                 // Outside, or shipped: its places go, and the order ends.
                 let held: Vec<_> = part.held.into_iter().collect();
-                self.ctx.commit(self.progress, |p| {
-                    if let Some(part) = &mut p.part {
-                        part.held.clear();
-                        part.home = None;
-                    }
-                    p.part_left();
-                })?;
+                self.ctx
+                    .commit(self.progress, |p| {
+                        if let Some(part) = &mut p.part {
+                            part.held.clear();
+                            part.home = None;
+                        }
+                        p.part_left();
+                    })
+                    .await?;
                 self.release(held).await;
                 return Ok(());
             };
@@ -218,11 +220,13 @@ impl OrderTask<'_> {
                 self.pause(PLACE_RETRY * 4).await;
                 continue;
             };
-            self.ctx.commit(self.progress, |p| {
-                if let Some(part) = &mut p.part {
-                    part.begin_move(&p.holon, here, exit, MoveGoal::Exit);
-                }
-            })?;
+            self.ctx
+                .commit(self.progress, |p| {
+                    if let Some(part) = &mut p.part {
+                        part.begin_move(&p.holon, here, exit, MoveGoal::Exit);
+                    }
+                })
+                .await?;
         }
     }
 
@@ -294,11 +298,13 @@ impl OrderTask<'_> {
                 if self.reserve(&port).await? {
                     info!(holon = %self.holon, %station, %port, %from, "a place at the station is reserved: the part moves there");
                     let from = from.clone();
-                    self.ctx.commit(self.progress, |p| {
-                        if let Some(part) = &mut p.part {
-                            part.begin_move(&p.holon, from, port, MoveGoal::Station);
-                        }
-                    })?;
+                    self.ctx
+                        .commit(self.progress, |p| {
+                            if let Some(part) = &mut p.part {
+                                part.begin_move(&p.holon, from, port, MoveGoal::Station);
+                            }
+                        })
+                        .await?;
                     return Ok(true);
                 }
             }
@@ -310,11 +316,13 @@ impl OrderTask<'_> {
     /// journalled as held before it is asked, so that a restart releases it if unused.
     async fn reserve(&mut self, location: &LocationId) -> Result<bool, OrderError> {
         let conversation = PartProgress::place_conversation(&self.holon, location);
-        self.ctx.commit(self.progress, |p| {
-            if let Some(part) = &mut p.part {
-                part.held.insert(location.clone(), conversation.clone());
-            }
-        })?;
+        self.ctx
+            .commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    part.held.insert(location.clone(), conversation.clone());
+                }
+            })
+            .await?;
         let request = self.place_request(MessageType::BookingReq, location, &conversation);
         let key = self.ctx.keys.service(location.holon());
         let answer = requests::ask(&self.ctx, &key, &request).await;
@@ -325,11 +333,13 @@ impl OrderTask<'_> {
         if why != Some(Reason::NoPlace) {
             info!(holon = %self.holon, %location, reason = why.as_ref().map_or("no answer", |r| r.as_str()), "a place could not be reserved");
         }
-        self.ctx.commit(self.progress, |p| {
-            if let Some(part) = &mut p.part {
-                part.held.remove(location);
-            }
-        })?;
+        self.ctx
+            .commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    part.held.remove(location);
+                }
+            })
+            .await?;
         if answer.is_none() {
             // It may have been reserved with the answer lost: released when it answers.
             self.release(vec![(location.clone(), conversation)]).await;
@@ -403,11 +413,13 @@ impl OrderTask<'_> {
         let end = move_end(&outcome, may_have_begun);
         info!(holon = %self.holon, conversation_id = %moving.conversation_id, from = %moving.from, to = %moving.to, outcome = %outcome, "move ended");
         let mut released = Vec::new();
-        self.ctx.commit(self.progress, |p| {
-            if let Some(part) = &mut p.part {
-                released = part.end_move(end, transporter);
-            }
-        })?;
+        self.ctx
+            .commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    released = part.end_move(end, transporter);
+                }
+            })
+            .await?;
         if let Some(report) = report {
             report.acknowledge().await;
         }
@@ -426,11 +438,13 @@ impl OrderTask<'_> {
     /// acknowledged), so that it does not wait in the order's inbox.
     async fn find_lost(&mut self, moving: &Move) -> Result<(), OrderError> {
         let Some(transporter) = moving.phase.resource().cloned() else {
-            self.ctx.commit(self.progress, |p| {
-                if let Some(part) = &mut p.part {
-                    part.found(false);
-                }
-            })?;
+            self.ctx
+                .commit(self.progress, |p| {
+                    if let Some(part) = &mut p.part {
+                        part.found(false);
+                    }
+                })
+                .await?;
             return Ok(());
         };
         loop {
@@ -473,11 +487,13 @@ impl OrderTask<'_> {
     /// The lost part is found: at its move's destination (`arrived`) or its origin.
     async fn lost_part_found(&mut self, arrived: bool) -> Result<(), OrderError> {
         let mut released = Vec::new();
-        self.ctx.commit(self.progress, |p| {
-            if let Some(part) = &mut p.part {
-                released = part.found(arrived);
-            }
-        })?;
+        self.ctx
+            .commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    released = part.found(arrived);
+                }
+            })
+            .await?;
         self.publish().await;
         self.release(released).await;
         Ok(())
@@ -524,11 +540,14 @@ impl OrderTask<'_> {
             return Ok(false);
         }
         let mut released = Vec::new();
-        let recorded = self.ctx.commit(self.progress, |p| {
-            if let Some(part) = &mut p.part {
-                released = part.found_by_operator(&word.location, &word.by, unix_ms());
-            }
-        });
+        let recorded = self
+            .ctx
+            .commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    released = part.found_by_operator(&word.location, &word.by, unix_ms());
+                }
+            })
+            .await;
         if let Err(e) = recorded {
             let why = format!("{name}: cannot record the word: {e}");
             if word.reply.send(Err((ErrorCode::Internal, why))).is_err() {

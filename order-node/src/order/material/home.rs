@@ -56,11 +56,13 @@ impl OrderTask<'_> {
             .collect();
         for buffer in buffers {
             if self.reserve(&buffer).await? {
-                self.ctx.commit(self.progress, |p| {
-                    if let Some(part) = &mut p.part {
-                        part.home = Some(buffer.clone());
-                    }
-                })?;
+                self.ctx
+                    .commit(self.progress, |p| {
+                        if let Some(part) = &mut p.part {
+                            part.home = Some(buffer.clone());
+                        }
+                    })
+                    .await?;
                 info!(holon = %self.holon, home = %buffer, "the part has a home in the cell");
                 return Ok(true);
             }

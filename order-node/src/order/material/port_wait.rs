@@ -58,18 +58,20 @@ impl OrderTask<'_> {
     }
 
     /// The part, at the port `here`, goes back to its home.
-    pub(super) fn go_home(
+    pub(super) async fn go_home(
         &mut self,
         here: LocationId,
         part: &PartProgress,
     ) -> Result<(), OrderError> {
         let home = part.home.clone().expect("a part at a port has a home");
         info!(holon = %self.holon, from = %here, %home, "no station has a place for the part, or other parts wait for one: it goes back to its home");
-        self.ctx.commit(self.progress, |p| {
-            if let Some(part) = &mut p.part {
-                part.begin_move(&p.holon, here, home, MoveGoal::Home);
-            }
-        })?;
+        self.ctx
+            .commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    part.begin_move(&p.holon, here, home, MoveGoal::Home);
+                }
+            })
+            .await?;
         Ok(())
     }
 }
