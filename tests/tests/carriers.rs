@@ -117,6 +117,44 @@ async fn fewer_pallets_than_homes_lets_in_only_as_many_parts_as_pallets_and_ever
         said(&listed)
     );
 
+    // The operator's page says so on the conveyor's loop (in Chromium, where there is
+    // one).
+    match webdriver::browser_available() {
+        Ok(()) => {
+            let (_dashboard, address) = start_dashboard(
+                flow.dir.path(),
+                flow.cell.keys.cell(),
+                &flow.cell.endpoint,
+                &[],
+            );
+            let browser = webdriver::Browser::start(&flow.dir.path().join("profile")).unwrap();
+            browser.goto(&format!("http://{address}/")).unwrap();
+            let label = "[data-carriers=\"conveyor1\"]";
+            browser
+                .wait_for(label, Duration::from_secs(20))
+                .unwrap_or_else(|e| panic!("no conveyor drawn on the page: {e}"));
+            let deadline = tokio::time::Instant::now() + Duration::from_secs(20);
+            loop {
+                // Found again each time: the page draws the layout anew on each change.
+                let text = match browser.find(label) {
+                    Ok(Some(element)) => browser.text(&element).unwrap_or_default(),
+                    _ => String::new(),
+                };
+                if text == "conveyor1: 2 of 4 pallets in service (p3, p4 out)" {
+                    break;
+                }
+                assert!(
+                    tokio::time::Instant::now() < deadline,
+                    "the page's conveyor: {text:?}"
+                );
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+        }
+        Err(why) => {
+            println!("SKIPPED (the page's part of this test): it needs Chromium ({why})")
+        }
+    }
+
     let orders = flow.cell.submit("aba", 6).await.unwrap();
     // While they run, never more parts in the cell than pallets in service.
     let deadline = tokio::time::Instant::now() + Duration::from_secs(180);
