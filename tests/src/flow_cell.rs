@@ -284,11 +284,7 @@ impl FlowCell {
                 "{location} still holds parts: {truth:#}"
             );
         }
-        assert_eq!(
-            truth["free_pallets"]["conveyor1"].as_array().unwrap().len(),
-            3,
-            "{truth:#}"
-        );
+        assert_eq!(free_pallets(&truth, "conveyor1"), 3, "{truth:#}");
         for resource in self.resources.keys() {
             let status = self.cell.status(resource).await.unwrap();
             assert!(

@@ -138,11 +138,23 @@ impl PlantProcess {
         answer.trim_end().to_string()
     }
 
+    /// The plant's action counts (its control port's `counts`), per controller.
+    pub fn counts(&self) -> serde_json::Value {
+        serde_json::from_str(&self.command("counts")).expect("the plant's counts are JSON")
+    }
+
     /// Where everything is, as the plant's state file says.
     pub fn state(&self) -> serde_json::Value {
         let bytes = std::fs::read(&self.state_file).expect("the plant's state file");
         serde_json::from_slice(&bytes).expect("the plant's state is JSON")
     }
+}
+
+/// How many of `conveyor`'s pallets are free in the plant's state `truth`.
+pub fn free_pallets(truth: &serde_json::Value, conveyor: &str) -> usize {
+    truth["free_pallets"][conveyor]
+        .as_array()
+        .map_or(0, Vec::len)
 }
 
 /// One connection to a controller of the plant, speaking holarchy-xml as a holon does

@@ -471,11 +471,7 @@ async fn the_control_agrees_with_the_plant(
             "the plant still has parts at {location}: {truth:#}"
         );
     }
-    assert_eq!(
-        truth["free_pallets"]["conveyor1"].as_array().unwrap().len(),
-        4,
-        "{truth:#}"
-    );
+    assert_eq!(free_pallets(truth, "conveyor1"), 4, "{truth:#}");
     for resource in ["conveyor1", "robot1", "robot2", "inspect1"] {
         let status = cell.status(resource).await.unwrap();
         assert!(

@@ -78,11 +78,7 @@ async fn parts_ride_pallets_and_are_worked_on_only_where_they_are() {
     }
     let mut inbox = cell.inbox("o-1", 0).await.unwrap();
     let state = plant.state();
-    assert_eq!(
-        state["free_pallets"]["conveyor1"].as_array().unwrap().len(),
-        2,
-        "{state:#}"
-    );
+    assert_eq!(free_pallets(&state, "conveyor1"), 2, "{state:#}");
 
     // Nothing at robot1's port: a pick there fails, in the plant's words.
     let failed = job(
@@ -149,11 +145,7 @@ async fn parts_ride_pallets_and_are_worked_on_only_where_they_are() {
     assert_eq!(shipped.message_type, MessageType::Done, "{shipped:?}");
     let state = plant.state();
     assert_eq!(state["shipped"], 1, "{state:#}");
-    assert_eq!(
-        state["free_pallets"]["conveyor1"].as_array().unwrap().len(),
-        2,
-        "{state:#}"
-    );
+    assert_eq!(free_pallets(&state, "conveyor1"), 2, "{state:#}");
     assert!(
         state["locations"]["robot1.port"]
             .as_array()
