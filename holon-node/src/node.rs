@@ -117,6 +117,8 @@ impl Wiring {
                 agenda: agenda_mail.sender.clone(),
                 views: views.clone(),
                 faults: faults.clone(),
+                session: session.clone(),
+                departed_timeout: config.delivery.attempt_timeout,
             }),
             agenda_manager: Arc::new(agenda_manager::Links {
                 holon: holon.clone(),

@@ -9,8 +9,9 @@
 //!   are ranked;
 //! - [`presence`]: which resources are alive and whose turn it is on each;
 //!   [`station_line`]: parts in the cell take turns to look for a station place;
-//! - [`inbox`]: where results reach the running orders, and which orders the node holds
-//!   (a resource keeps an order's bookings while its node holds it);
+//! - [`inbox`]: where results (and moves' departures) reach the running orders, and
+//!   which orders the node holds (a resource keeps an order's bookings while its node
+//!   holds it);
 //! - [`context`]: what the orders of a node share; [`journal`]: their store (SQLite,
 //!   or etcd for a node with a standby, [`standby`], which says where it stands,
 //!   [`fence_report`]);

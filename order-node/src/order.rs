@@ -76,6 +76,7 @@ pub async fn run(
         leg: Leg::Work,
         work_at: None,
         part_words,
+        early_departure: None,
         ctx,
         progress: &progress,
         holon: holon.clone(),
@@ -134,6 +135,10 @@ struct OrderTask<'a> {
     work_at: Option<HolonId>,
     /// Operators' words on where the part is, taken while it is lost.
     part_words: mpsc::Receiver<WordAsk>,
+    /// A move's `departed` that came while its start on its turn was not seen yet: it
+    /// says the move began (the attempt records it started), and is applied once it is
+    /// ([`OrderTask::await_outcome`]); acknowledged at the move's end at the latest.
+    early_departure: Option<ResultReport>,
 }
 
 impl OrderTask<'_> {
@@ -381,7 +386,7 @@ impl OrderTask<'_> {
                 let pause = if started { pause } else { jittered(pause) };
                 match self
                     .await_outcome(&provider, conversation_id, pause, started, may_run)
-                    .await
+                    .await?
                 {
                     Watched::Elapsed => Some(AttemptEvent::Watched(None)),
                     Watched::Began => Some(AttemptEvent::Began),

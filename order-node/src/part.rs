@@ -7,12 +7,22 @@
 //! | event | part | next |
 //! |---|---|---|
 //! | a move begins (its phase recorded `started`) | at `from` | in transit on the transporter from `from` to `to` |
-//! | the move is done | in transit | at `to` (shipped at an exit); the place at `from` released unless it is the part's home |
+//! | the transporter says the move has left `from` (`departed`, this move's conversation, its transporter) | in transit | in transit; the place at `from` released unless it is the part's home (or not held) |
+//! | the move is done | in transit | at `to` (shipped at an exit); the place at `from` released unless it is the part's home (or released at departure) |
 //! | the move ended unattempted (refused, lost before it began, `not_begun`, no transporter) | at `from` | at `from` (the place reserved at `to` released) |
 //! | the move failed, or its transporter vanished while it may have run | in transit | lost: in transit on the transporter, last seen at `from`, until it or an operator says |
 //! | the transporter says the lost move was done / never reached the controller | lost | at `to` / at `from` |
 //! | an operator says the lost part is at `to` / at `from` (recorded with who said it) | lost | at `to` / at `from` |
 //! | the order's end is decided while the part is in the cell | at a location | the end waits; the part leaves by an exit first |
+//!
+//! A departure releases the origin's place at most once: it is taken off `held`, so a
+//! second `departed` or the move's `done` finds nothing more to release there
+//! (docs/material-flow.md, "Departure"). A `departed` for another move, from another
+//! transporter, or before the move's start is recorded changes nothing (the place is
+//! then released at `done`, as when the transporter never says it departed). The
+//! released reservation is kept with the move ([`Move::departed`]) until it ends, so
+//! that an order-node restarted between journalling the departure and sending its
+//! `booking_cancel` sends it again ([`PartProgress::released_at_departure`]).
 
 use std::collections::BTreeMap;
 
@@ -46,6 +56,11 @@ pub struct Move {
     pub goal: MoveGoal,
     /// Where its attempt stands with a transporter.
     pub phase: Phase,
+    /// The reservation's conversation of the place at `from` released when the
+    /// transporter said the move had left it (`departed`); `None` while it has not said
+    /// so, or when nothing was released then (the part's home, a place not held).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub departed: Option<String>,
 }
 
 /// An order's part.
@@ -123,6 +138,7 @@ impl PartProgress {
             to,
             goal,
             phase: Phase::Proposing,
+            departed: None,
         });
     }
 
@@ -139,6 +155,47 @@ impl PartProgress {
             };
         }
         moving.phase = phase;
+    }
+
+    /// The move's transporter says the move `conversation_id` has left its origin: the
+    /// place held at `from` is released, unless it is the part's home or not held (any
+    /// more). Returns it (the location with its reservation's conversation), taken off
+    /// `held`, or `None` when nothing is to be released: a second `departed`, one for
+    /// another move or from another transporter than the one the part rides, or one
+    /// before the move's start is recorded (the place is then released at `done`).
+    pub fn departed(
+        &mut self,
+        conversation_id: &str,
+        transporter: &HolonId,
+    ) -> Option<(LocationId, String)> {
+        let moving = self.moving.as_mut()?;
+        if moving.conversation_id != conversation_id {
+            return None;
+        }
+        match &self.place {
+            PartPlace::InTransit {
+                transporter: riding,
+                from,
+                ..
+            } if riding == transporter && from == &moving.from => {}
+            _ => return None,
+        }
+        if self.home.as_ref() == Some(&moving.from) {
+            return None;
+        }
+        let released = self.held.remove_entry(&moving.from)?;
+        moving.departed = Some(released.1.clone());
+        Some(released)
+    }
+
+    /// The place released when the move under way departed (its location and
+    /// reservation's conversation), if it was: a restarted order-node sends its
+    /// `booking_cancel` again, as the crash may have come between the journal and the
+    /// cancel (a second cancel of a released place is answered `not_booked`, harmless).
+    pub fn released_at_departure(&self) -> Option<(LocationId, String)> {
+        let moving = self.moving.as_ref()?;
+        let conversation = moving.departed.clone()?;
+        Some((moving.from.clone(), conversation))
     }
 
     /// The move ended: where the part is, and the places to release (each location
@@ -161,6 +218,8 @@ impl PartProgress {
                 // move's end is learnt (restarted mid-move), and the part has left.
                 let exit = moving.goal == MoveGoal::Exit;
                 let mut released = Vec::new();
+                // Not held any more when the move's departure released it: nothing
+                // released twice.
                 if self.home.as_ref() != Some(&moving.from) {
                     released.extend(release(&mut self.held, &moving.from));
                 }

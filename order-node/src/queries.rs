@@ -441,12 +441,28 @@ async fn part_word(host: &Host, query: Query) {
 }
 
 /// Acknowledges a result sent to a finished order of this node (it was recorded, or
-/// belongs to an attempt the order abandoned); anything else is left to the order.
+/// belongs to an attempt the order abandoned); anything else is left to the order. A
+/// transporter's `departed` for an order that is not running is acknowledged and
+/// ignored, whatever the order: it is never a result, and never sent again (the place
+/// it would have released is released at the move's `done`).
 async fn acknowledge_finished(host: &Host, query: Query) {
     let key = query.key_expr().as_str().to_string();
     let Some(name) = crate::inbox::order_name(&key).map(str::to_string) else {
         return;
     };
+    if let Some(departed) = query
+        .payload()
+        .and_then(|p| schemas::Service::from_json(&p.to_bytes()).ok())
+        .filter(|m| m.message_type == schemas::MessageType::Departed)
+    {
+        info!(order = %name, conversation_id = %departed.conversation_id, message_type = %departed.message_type, "a departure for an order that is not running acknowledged and ignored");
+        let mut ack = departed;
+        ack.result = Some(true);
+        if let Err(e) = query.reply(query.key_expr().clone(), ack.to_json()).await {
+            warn!(order = %name, error = %e, "cannot acknowledge a departure (not sent again: nothing is lost)");
+        }
+        return;
+    }
     if host.forgotten(&name) {
         // Finished longer ago than the retention: its outcome was settled then, and
         // this is a late copy (a resource that was away for long). Acknowledged, so the

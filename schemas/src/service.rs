@@ -58,6 +58,10 @@ pub enum MessageType {
     Failed,
     /// Asks a resource for its state; the reply's `info` holds the snapshot.
     Status,
+    /// A transporter's move has left its origin (its controller said so): sent once to
+    /// `reply_to`, acknowledged there but never repeated; the order may then release
+    /// the place it held at the move's `from` (docs/material-flow.md, "Departure").
+    Departed,
 }
 
 impl MessageType {
@@ -71,6 +75,7 @@ impl MessageType {
             MessageType::Done => "done",
             MessageType::Failed => "failed",
             MessageType::Status => "status",
+            MessageType::Departed => "departed",
         }
     }
 }

@@ -11,6 +11,11 @@
 //! `unavailable` and finished jobs to the agenda manager; after every event it
 //! republishes its view (the controller and the step in progress) when that changed.
 //!
+//! A move's `departed` (the controller said the move has left its origin) goes to the
+//! job's requester once, from a task of its own bounded by the delivery's attempt
+//! timeout: the controller's events never wait on the requester; one that is not
+//! acknowledged is only logged (the requester releases the origin at `done` instead).
+//!
 //! A command and its reply cross no queue between tasks. It waits for room in the
 //! agenda manager's mailbox (the agenda manager never waits on it): no cycle of waits.
 
@@ -19,16 +24,17 @@ use std::sync::Arc;
 
 use holon::ChildError;
 use robot_bridge::client::{ControllerEvent, ControllerRequest, Owner, StepId};
-use schemas::HolonId;
+use schemas::{HolonId, MessageType, Service};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info};
+use tracing::{debug, info, warn};
 
-use crate::component::agenda_manager::AgendaMessage;
+use crate::component::agenda_manager::{courier, AgendaMessage};
 use crate::component::interfacing;
 use crate::fault_injection::Faults;
 use crate::handover::{Handover, Mailbox};
 use crate::machine::agenda::AgendaEvent;
+use crate::machine::delivery::AttemptOutcome;
 use crate::machine::execution::lanes::Executions;
 use crate::machine::execution::{ExecutionAction, ExecutionEvent, ExecutionRequest};
 use crate::views::{ExecutionView, RunningView, Views};
@@ -48,6 +54,11 @@ pub struct Links {
     pub views: Arc<Views>,
     /// Its faults (and the interfacing module's) to inject on request.
     pub faults: Arc<Faults>,
+    /// Where a move's `departed` is sent from.
+    pub session: zenoh::Session,
+    /// How long a `departed` waits for its acknowledgement (the results' attempt
+    /// timeout, `[delivery] attempt_timeout_ms`).
+    pub departed_timeout: std::time::Duration,
 }
 
 pub async fn run(links: Arc<Links>, token: CancellationToken) -> Result<(), ChildError> {
@@ -181,9 +192,45 @@ impl Driver<'_> {
                     outcome,
                 });
             }
+            ExecutionAction::Departed {
+                conversation_id,
+                requester,
+                service_type,
+                reply_to,
+            } => self.tell_departed(Service {
+                v: schemas::SERVICE_VERSION,
+                message_type: MessageType::Departed,
+                service_type,
+                conversation_id,
+                requester,
+                provider: Some(holon.clone()),
+                reply_to: Some(reply_to),
+                result: None,
+                reason: None,
+                info: Default::default(),
+            }),
             // The view is republished after every event (see `handle`).
             ExecutionAction::StateChanged => {}
         }
+    }
+
+    /// Sends `departed` to its requester once, from a task of its own (see the module's
+    /// doc): the outcome is logged, nothing waits for it.
+    fn tell_departed(&self, message: Service) {
+        let holon = self.links.holon.clone();
+        let session = self.links.session.clone();
+        let timeout = self.links.departed_timeout;
+        info!(%holon, component = "execution", conversation_id = %message.conversation_id, message_type = %message.message_type, "the move has left its origin: its requester is told");
+        tokio::spawn(async move {
+            match courier::attempt(&session, &message, timeout).await {
+                AttemptOutcome::Acknowledged => {
+                    debug!(%holon, conversation_id = %message.conversation_id, "departed acknowledged")
+                }
+                other => {
+                    warn!(%holon, conversation_id = %message.conversation_id, outcome = ?other, "departed not acknowledged: the requester releases the move's origin at its done instead")
+                }
+            }
+        });
     }
 
     /// The step id of lane `lane`'s step in progress, for a fenced resource:

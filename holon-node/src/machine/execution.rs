@@ -33,6 +33,7 @@
 //! | step n, unsettled | the controller cannot tell (no fence, refused) | finished: failed `controller_disconnected` | `ready` (or `init`) |
 //! | step n | controller `fault` / `estop` | finished: failed `controller_fault`; unavailable | `init` |
 //! | step n | abort (PackML Abort) | the controller is told to abort | step n, aborting |
+//! | step n | the controller says its command's move has left its origin (`departed`) | departed: the job's requester is told (once per time the controller says it) | step n |
 //! | step n, aborting | reply with a result the last step expects | finished: done (it completed before the abort took) | `ready` (or `init`) |
 //! | step n, aborting | any other reply, a command failure, the controller not ready | finished: failed `aborted` | `ready` (or `init`) |
 //! | `init`, `ready` | abort | nothing (no step runs) | same |
@@ -52,7 +53,7 @@ use std::sync::Arc;
 use robot_bridge::client::{
     CommandFailure, ControllerEvent, ControllerStatus, FenceError, StepStatus,
 };
-use schemas::{Reason, RobotCommand};
+use schemas::{HolonId, Reason, RobotCommand};
 use serde_json::{Map, Value};
 
 use crate::catalog::ServiceCatalog;
@@ -93,6 +94,19 @@ pub enum ExecutionAction {
     /// Tell the agenda manager: cannot execute (controller away, fault or estop), with
     /// what the controller said of it in its own words, if anything.
     Unavailable(ControllerStatus, Option<String>),
+    /// Tell the job's requester that its move has left its origin (the controller said
+    /// `departed`): sent once, not journalled, not repeated (docs/material-flow.md,
+    /// "Departure").
+    Departed {
+        /// The job's conversation.
+        conversation_id: String,
+        /// Who booked the job.
+        requester: HolonId,
+        /// The job's service, e.g. `transport`.
+        service_type: String,
+        /// The requester's inbox (where `done` goes).
+        reply_to: String,
+    },
     /// Tell the agenda manager how the job ended.
     Finished {
         conversation_id: String,
@@ -240,6 +254,7 @@ impl ExecutionMachine {
             ExecutionEvent::Controller(ControllerEvent::StepStatus { step, status }) => {
                 self.settled(step.as_str(), status)
             }
+            ExecutionEvent::Controller(ControllerEvent::Departed { id }) => self.departed(id),
             ExecutionEvent::Controller(ControllerEvent::CommandFailed { id, failure }) => {
                 if !self.is_waiting_for(id) {
                     return vec![];
@@ -300,6 +315,26 @@ impl ExecutionMachine {
                     ExecutionAction::AbortController,
                     ExecutionAction::StateChanged,
                 ]
+            }
+            _ => vec![],
+        }
+    }
+
+    /// The controller says command `id`'s move has left its origin: the job's requester
+    /// is told, if the running step waits for that command and the job has an inbox
+    /// (an operator's job has none). The step goes on.
+    fn departed(&mut self, id: u64) -> Vec<ExecutionAction> {
+        match &self.state {
+            ExecutionState::Running { job, .. } if self.is_waiting_for(id) => {
+                if job.reply_to.is_empty() {
+                    return vec![];
+                }
+                vec![ExecutionAction::Departed {
+                    conversation_id: job.conversation_id.clone(),
+                    requester: job.requester.clone(),
+                    service_type: job.service_type.clone(),
+                    reply_to: job.reply_to.clone(),
+                }]
             }
             _ => vec![],
         }

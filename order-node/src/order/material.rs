@@ -32,10 +32,11 @@ use schemas::{
 use serde_json::{Map, Value};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 use super::{Leg, OrderTask};
 use crate::context::{jittered, OrderError, IDLE_POLL};
+use crate::inbox::{Judged, ResultReport};
 use crate::part::{Move, MoveEnd, MoveGoal, PartProgress, TRANSPORT_SERVICE};
 use crate::part_word::WordAsk;
 use crate::progress::{Phase, StepOutcome};
@@ -394,14 +395,29 @@ impl OrderTask<'_> {
     }
 
     /// Runs the move under way to its end: booked on a transporter by contract net and
-    /// followed as a step is; its end recorded for the part, the places it left released.
+    /// followed as a step is (its transporter's `departed` releasing the place at its
+    /// origin on the way: [`Self::move_departed`]); its end recorded for the part, the
+    /// places it left released.
     async fn run_move(&mut self, moving: Move) -> Result<(), OrderError> {
+        if let Some(place) = self.part().released_at_departure() {
+            // Resumed (a restarted order-node): the departure was journalled, its
+            // `booking_cancel` may not have been sent before the crash. Sent again (a
+            // released place is answered `not_booked`): released, never held for good.
+            info!(holon = %self.holon, conversation_id = %moving.conversation_id, location = %place.0, "resumed a move that had departed: its origin's place is released again");
+            self.release(vec![place]).await;
+        }
         let step = transport_step(&self.holon, &moving);
         self.leg = Leg::Move;
         let attempt = self
             .attempt(&step, &moving.conversation_id, moving.phase.clone())
             .await;
         self.leg = Leg::Work;
+        if let Some(early) = self.early_departure.take() {
+            // A departure whose move's start was never recorded after all: nothing of it
+            // to apply (the move's end releases the origin's place, if at all).
+            info!(holon = %self.holon, conversation_id = %early.message.conversation_id, message_type = %early.message.message_type, "a departure left unapplied at the move's end: acknowledged");
+            early.acknowledge().await;
+        }
         let (outcome, report) = attempt?;
         let last_phase = self.part().moving.map(|m| m.phase).unwrap_or_default();
         let transporter = last_phase.resource().cloned();
@@ -428,6 +444,44 @@ impl OrderTask<'_> {
         if matches!(outcome, StepOutcome::NoResource | StepOutcome::Lost { .. }) {
             self.pause(PLACE_RETRY).await;
         }
+        Ok(())
+    }
+
+    /// The move's transporter (`transporter`, the one its attempt booked) says the move
+    /// has left its origin (docs/material-flow.md, "Departure"): the part's change is
+    /// journalled first, the report acknowledged, then the place at the origin released
+    /// as at the move's end ([`Self::release`]). A departure that releases nothing (a
+    /// second one, from the part's home, before the move's start is recorded) is only
+    /// acknowledged. The move goes on: its `done` or `failed` ends it.
+    pub(super) async fn move_departed(
+        &mut self,
+        transporter: &HolonId,
+        report: ResultReport,
+    ) -> Result<(), OrderError> {
+        let conversation_id = report.message.conversation_id.clone();
+        let message_type = report.message.message_type;
+        if self
+            .part()
+            .departed(&conversation_id, transporter)
+            .is_none()
+        {
+            debug!(holon = %self.holon, %conversation_id, %message_type, %transporter, "the move departed: no place held at its origin to release (its home, a location held by none, released already, or its start not recorded yet)");
+            report.acknowledge().await;
+            return Ok(());
+        }
+        let mut released = None;
+        self.ctx
+            .commit(self.progress, |p| {
+                if let Some(part) = &mut p.part {
+                    released = part.departed(&conversation_id, transporter);
+                }
+            })
+            .await?;
+        // Recorded: the transporter's report may be acknowledged.
+        report.acknowledge().await;
+        info!(holon = %self.holon, %conversation_id, %message_type, %transporter, location = %released.as_ref().map_or("", |(l, _)| l.as_str()), "the move departed: the place at its origin is released");
+        self.publish().await;
+        self.release(released.into_iter().collect()).await;
         Ok(())
     }
 
@@ -463,7 +517,18 @@ impl OrderTask<'_> {
                 Some(report) = self.inbox.reports.recv() => {
                     let worked_with = self.progress.get().worked_with.clone();
                     let judged = crate::inbox::judge(report, &transporter, &worked_with, &moving.conversation_id).await;
-                    let Some((outcome, report)) = judged else { continue };
+                    let (outcome, report) = match judged {
+                        Some(Judged::Ended(outcome, report)) => (outcome, report),
+                        Some(Judged::Departed(report)) => {
+                            // Its result said where it was not: a departure says no
+                            // more of where it is now. The origin's place is released
+                            // once the part is found at the destination.
+                            info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, message_type = %report.message.message_type, "a departure of the lost part's move: acknowledged and ignored");
+                            report.acknowledge().await;
+                            continue;
+                        }
+                        None => continue,
+                    };
                     let arrived = match move_end(&outcome, true) {
                         MoveEnd::Done => Some(true),
                         MoveEnd::Unattempted => Some(false),

@@ -1,15 +1,19 @@
 //! Watching a step (or a move) for its result: the inbox, its provider's presence, its
-//! turn on the provider's agenda and a new holder of a fenced provider, for a pause.
+//! turn on the provider's agenda and a new holder of a fenced provider, for a pause. A
+//! move's `departed` on the way releases the place at its origin and the watch goes on
+//! (docs/material-flow.md, "Departure"); it never ends an attempt.
 
 use std::time::Duration;
 
 use schemas::HolonId;
 use tokio::sync::broadcast;
 use tokio::time::Instant;
+use tracing::info;
 
-use super::OrderTask;
-use crate::inbox::ResultReport;
-use crate::progress::StepOutcome;
+use super::{Leg, OrderTask};
+use crate::context::OrderError;
+use crate::inbox::{Judged, ResultReport};
+use crate::progress::{Phase, StepOutcome};
 
 /// How a watch for a result ended.
 pub(super) enum Watched {
@@ -26,6 +30,13 @@ pub(super) enum Watched {
 }
 
 impl OrderTask<'_> {
+    /// Whether the part's move is booked on `provider`, its start not recorded.
+    fn move_booked_on(&self, provider: &HolonId) -> bool {
+        let progress = self.progress.get();
+        let moving = progress.part.as_ref().and_then(|p| p.moving.as_ref());
+        moving.is_some_and(|m| matches!(&m.phase, Phase::Booked(p) if p == provider))
+    }
+
     /// Pauses `pause`, watching the inbox (results of this conversation) and the
     /// provider's presence. A provider that vanishes while the step `may_run` (started,
     /// or booked to start on its turn) gets `vanished_grace` to come back and report
@@ -34,6 +45,9 @@ impl OrderTask<'_> {
     /// free with this conversation first; once `started`, when the provider comes back
     /// after it was gone, or a holder of a higher epoch than when the watch began
     /// publishes its state (it may not know the step: the order asks).
+    /// A move's `departed` from its transporter releases the place at the move's origin
+    /// (journalled first) and the watch goes on; a step's is acknowledged and ignored:
+    /// a departure never ends an attempt. Errs only when the journal cannot record.
     pub(super) async fn await_outcome(
         &mut self,
         provider: &HolonId,
@@ -41,7 +55,13 @@ impl OrderTask<'_> {
         pause: Duration,
         started: bool,
         may_run: bool,
-    ) -> Watched {
+    ) -> Result<Watched, OrderError> {
+        if started {
+            if let Some(report) = self.early_departure.take() {
+                // The departure that said the move began: its start is recorded now.
+                self.move_departed(provider, report).await?;
+            }
+        }
         let ctx = self.ctx.clone();
         let worked_with = self.progress.get().worked_with.clone();
         let until = Instant::now() + pause;
@@ -111,28 +131,48 @@ impl OrderTask<'_> {
                 Some(gone) => gone,
             };
             tokio::select! {
-                news = &mut turn => return match news {
+                news = &mut turn => return Ok(match news {
                     crate::presence::TurnNews::Turn => Watched::Elapsed,
                     crate::presence::TurnNews::Began => Watched::Began,
-                },
-                () = &mut new_holder => return Watched::CameBack,
+                }),
+                () = &mut new_holder => return Ok(Watched::CameBack),
                 _ = tokio::time::sleep_until(deadline) => {
                     if gone_until.is_some_and(|g| Instant::now() >= g) {
-                        return lost("the resource vanished");
+                        return Ok(lost("the resource vanished"));
                     }
-                    return Watched::Elapsed;
+                    return Ok(Watched::Elapsed);
                 }
                 report = self.inbox.reports.recv() => {
-                    let Some(report) = report else { return lost("inbox closed") };
-                    if let Some((outcome, report)) = crate::inbox::judge(report, provider, &worked_with, conversation_id).await {
-                        return Watched::Ended(outcome, Some(Box::new(report)));
+                    let Some(report) = report else { return Ok(lost("inbox closed")) };
+                    match crate::inbox::judge(report, provider, &worked_with, conversation_id).await {
+                        Some(Judged::Ended(outcome, report)) => {
+                            return Ok(Watched::Ended(outcome, Some(Box::new(report))));
+                        }
+                        Some(Judged::Departed(report)) if self.leg == Leg::Move => {
+                            if !started && self.move_booked_on(provider) {
+                                // Booked to start on its turn, and its start not seen
+                                // yet: the departure says it began. Applied once the
+                                // start is recorded (the part in transit).
+                                info!(holon = %self.holon, %conversation_id, message_type = %report.message.message_type, "the move departed before its start was seen: it began");
+                                if let Some(earlier) = self.early_departure.replace(report) {
+                                    earlier.acknowledge().await;
+                                }
+                                return Ok(Watched::Began);
+                            }
+                            self.move_departed(provider, report).await?;
+                        }
+                        Some(Judged::Departed(report)) => {
+                            info!(holon = %self.holon, %conversation_id, message_type = %report.message.message_type, "a departure for a step that moves nothing: acknowledged and ignored");
+                            report.acknowledge().await;
+                        }
+                        None => {}
                     }
                 }
                 change = self.changes.recv() => match change {
                     Ok((holon, alive)) if &holon == provider => {
                         // A started step's provider back after being away: ask it.
                         if alive && started && away {
-                            return Watched::CameBack;
+                            return Ok(Watched::CameBack);
                         }
                         away = !alive;
                         gone_until = gone(alive);
@@ -143,7 +183,7 @@ impl OrderTask<'_> {
                             gone_until = gone(ctx.presence.is_alive(provider));
                         }
                     }
-                    Err(broadcast::error::RecvError::Closed) => return Watched::Elapsed,
+                    Err(broadcast::error::RecvError::Closed) => return Ok(Watched::Elapsed),
                 },
             }
         }

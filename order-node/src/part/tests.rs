@@ -198,3 +198,167 @@ fn an_operators_word_places_a_lost_part_at_one_end_of_its_move_and_is_kept() {
     assert_eq!(part.place.location(), Some(&id("conveyor1.buffer")));
     assert_eq!(part.found[0].by, "lee");
 }
+
+/// A part at `robot1.port` (held), its home `conveyor1.buffer` (held), a place held at
+/// `robot2.port`, and its move from the first port to the second begun.
+fn moving_between_ports() -> PartProgress {
+    let mut part = PartProgress {
+        place: PartPlace::At {
+            location: id("robot1.port"),
+        },
+        home: Some(id("conveyor1.buffer")),
+        ..PartProgress::default()
+    };
+    for place in ["conveyor1.buffer", "robot1.port", "robot2.port"] {
+        part.held.insert(id(place), format!("o-1/place/{place}"));
+    }
+    part.begin_move(
+        &order(),
+        id("robot1.port"),
+        id("robot2.port"),
+        MoveGoal::Station,
+    );
+    part
+}
+
+#[test]
+fn a_departed_move_releases_the_port_it_left_once_and_its_done_nothing_more() {
+    let mut part = moving_between_ports();
+    part.move_phase(Phase::Started(conveyor()));
+    let released = part.departed("o-1/m1/1", &conveyor());
+    assert_eq!(
+        released,
+        Some((id("robot1.port"), "o-1/place/robot1.port".to_string()))
+    );
+    assert!(
+        matches!(part.place, PartPlace::InTransit { .. }),
+        "still in transit: {part:?}"
+    );
+    assert!(!part.held.contains_key(&id("robot1.port")));
+    assert_eq!(
+        part.released_at_departure(),
+        Some((id("robot1.port"), "o-1/place/robot1.port".to_string())),
+        "kept with the move, for a restarted order-node to send its cancel again"
+    );
+
+    // Idempotent: a second departure releases nothing.
+    assert_eq!(part.departed("o-1/m1/1", &conveyor()), None);
+
+    // Survives the journal: a restarted order-node sees the same.
+    let journalled: PartProgress =
+        serde_json::from_value(serde_json::to_value(&part).unwrap()).unwrap();
+    assert_eq!(journalled, part);
+    assert_eq!(
+        journalled.clone().departed("o-1/m1/1", &conveyor()),
+        None,
+        "released already"
+    );
+
+    // Its done puts the part at the destination and releases nothing more.
+    let released = part.end_move(MoveEnd::Done, Some(conveyor()));
+    assert!(released.is_empty(), "released once: {released:?}");
+    assert_eq!(part.place.location(), Some(&id("robot2.port")));
+    assert_eq!(part.released_at_departure(), None, "the move is over");
+    let mut held: Vec<_> = part.held.keys().map(|l| l.to_string()).collect();
+    held.sort();
+    assert_eq!(held, ["conveyor1.buffer", "robot2.port"]);
+}
+
+#[test]
+fn a_move_that_never_says_it_departed_releases_its_origin_at_done() {
+    let mut part = moving_between_ports();
+    part.move_phase(Phase::Started(conveyor()));
+    assert_eq!(part.released_at_departure(), None);
+    let released = part.end_move(MoveEnd::Done, Some(conveyor()));
+    assert_eq!(
+        released,
+        [(id("robot1.port"), "o-1/place/robot1.port".to_string())]
+    );
+}
+
+#[test]
+fn a_departure_never_releases_the_home() {
+    let mut part = PartProgress {
+        place: PartPlace::At {
+            location: id("conveyor1.buffer"),
+        },
+        home: Some(id("conveyor1.buffer")),
+        ..PartProgress::default()
+    };
+    part.held
+        .insert(id("conveyor1.buffer"), "o-1/place/conveyor1.buffer".into());
+    part.held
+        .insert(id("robot1.port"), "o-1/place/robot1.port".into());
+    part.begin_move(
+        &order(),
+        id("conveyor1.buffer"),
+        id("robot1.port"),
+        MoveGoal::Station,
+    );
+    part.move_phase(Phase::Started(conveyor()));
+    assert_eq!(part.departed("o-1/m1/1", &conveyor()), None);
+    assert_eq!(part.held.len(), 2, "both kept: {:?}", part.held);
+    assert_eq!(part.released_at_departure(), None);
+    let released = part.end_move(MoveEnd::Done, Some(conveyor()));
+    assert!(released.is_empty(), "the home stays held: {released:?}");
+}
+
+#[test]
+fn a_departure_of_another_move_or_transporter_or_before_the_start_releases_nothing() {
+    let mut part = moving_between_ports();
+    let untouched = part.clone();
+    // Booked, its start not recorded yet: the place is released at done.
+    part.move_phase(Phase::Booked(conveyor()));
+    assert_eq!(part.departed("o-1/m1/1", &conveyor()), None);
+    part.move_phase(Phase::Started(conveyor()));
+    assert_eq!(part.departed("o-1/m0/1", &conveyor()), None, "another move");
+    let other = HolonId::resource("mover1").unwrap();
+    assert_eq!(
+        part.departed("o-1/m1/1", &other),
+        None,
+        "another transporter"
+    );
+    assert_eq!(part.held, untouched.held);
+    assert_eq!(part.moving.as_ref().unwrap().departed, None);
+
+    // No move under way.
+    let mut still = untouched.clone();
+    still.moving = None;
+    assert_eq!(still.departed("o-1/m1/1", &conveyor()), None);
+}
+
+#[test]
+fn a_departed_move_that_then_fails_is_lost_and_found_without_a_second_release() {
+    let mut part = moving_between_ports();
+    part.move_phase(Phase::Started(conveyor()));
+    assert!(part.departed("o-1/m1/1", &conveyor()).is_some());
+    let released = part.end_move(
+        MoveEnd::Unknown {
+            why: "fault".into(),
+        },
+        Some(conveyor()),
+    );
+    assert!(released.is_empty());
+    assert!(
+        part.released_at_departure().is_some(),
+        "kept with the lost move"
+    );
+    // Found at its destination: the origin was released at departure already.
+    let released = part.found(true);
+    assert!(released.is_empty(), "{released:?}");
+    assert_eq!(part.place.location(), Some(&id("robot2.port")));
+}
+
+#[test]
+fn a_journalled_move_of_before_departures_reads_as_not_departed() {
+    let mut part = moving_between_ports();
+    part.move_phase(Phase::Started(conveyor()));
+    let mut value = serde_json::to_value(&part).unwrap();
+    assert!(
+        value["moving"].get("departed").is_none(),
+        "not written while it has not departed: {value}"
+    );
+    value["moving"].as_object_mut().unwrap().remove("departed");
+    let read: PartProgress = serde_json::from_value(value).unwrap();
+    assert_eq!(read, part);
+}

@@ -59,6 +59,8 @@ struct Exchange {
     /// Whether an answer naming its id has come since its message was last sent (an
     /// answer without an id goes to the oldest exchange without one).
     echoed: bool,
+    /// Whether the controller has said its move left its origin (reported once).
+    departed: bool,
 }
 
 impl Exchange {
@@ -307,6 +309,7 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             deadline: Instant::now() + self.config.command_timeout,
             aborted: false,
             echoed: false,
+            departed: false,
         });
         Ok(())
     }

@@ -158,6 +158,12 @@ pub enum ControllerEvent {
         id: u64,
         failure: CommandFailure,
     },
+    /// The controller says the move of command `id` has left its origin (a reply of
+    /// outcome `departed`, docs/dialects.md): the command goes on, and ends with its
+    /// own reply as any other.
+    Departed {
+        id: u64,
+    },
     /// The answer to a [`ControllerRequest::StepStatus`].
     StepStatus {
         step: StepId,

@@ -214,6 +214,10 @@ pub enum Outcome {
     Running,
     /// The step is done, with `result`.
     Done,
+    /// A transporter's move has left its origin (the pallet is off the station's port,
+    /// on the track): the command goes on, and still ends with a reply of its own. Said
+    /// at most once per command, never alone in an element's `expect`.
+    Departed,
     /// The action failed, with `message`.
     Failed,
     /// The controller refused the command (nothing was done), with `message`.

@@ -514,8 +514,8 @@ fn a_bad_fence_names_the_field_and_the_problem() {
         ),
         (
             shipped.replace(
-                "expect = [\"stale_epoch\", \"error\", \"result\"]",
-                "expect = [\"error\", \"result\"]",
+                "expect = [\"stale_epoch\", \"error\", \"departed\", \"result\"]",
+                "expect = [\"error\", \"departed\", \"result\"]",
             ),
             "fence.stale",
         ),
@@ -684,3 +684,5 @@ fn with_ids_an_element_needs_one_answer_with_the_id() {
         "{err}"
     );
 }
+
+mod departed;

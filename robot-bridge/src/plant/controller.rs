@@ -5,7 +5,9 @@
 //! (`info.part`, `info.from`, `info.to`: holarchy-xml's `PART`, `FROM` and `TO`): the
 //! plant checks the move and begins it; the simulator waits the move's unobstructed
 //! travel, then asks [`Physics::held`] until the part has arrived in the plant (its
-//! pallet may wait on the way: a full port, a full or jammed track, an e-stop). A
+//! pallet may wait on the way: a full port, a full or jammed track, an e-stop); while it
+//! waits, it asks [`Physics::departed`] until the part's pallet has left the move's
+//! origin (a transfer's move never says so: no pallet leaves). A
 //! station's controller works on the part at its port (`info.part` where the command
 //! names it, else whichever is there). A command naming no part is not in the material
 //! flow: the plant lets it run as robot-sim would.
@@ -94,6 +96,19 @@ impl ControllerPhysics {
 
     fn plant(&self) -> std::sync::MutexGuard<'_, Plant> {
         self.plant.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// The plant, advanced to now (what happened logged and told).
+    fn advanced(&self) -> std::sync::MutexGuard<'_, Plant> {
+        let mut plant = self.plant();
+        // A wall ms of slack: the simulator times the move from the command's receipt, a
+        // moment before the plant began it (its ms may have ticked in between).
+        let happened = plant.advance(self.clock.now_ms() + self.clock.one_wall_ms());
+        log_happenings(&happened);
+        if !happened.is_empty() {
+            (self.on_change)(&plant);
+        }
+        plant
     }
 
     fn moving(&self) -> std::sync::MutexGuard<'_, BTreeMap<String, Moving>> {
@@ -215,14 +230,7 @@ impl Physics for ControllerPhysics {
         if !self.moving().contains_key(part) {
             return false;
         }
-        let mut plant = self.plant();
-        // A wall ms of slack: the simulator times the move from the command's receipt, a
-        // moment before the plant began it (its ms may have ticked in between).
-        let happened = plant.advance(self.clock.now_ms() + self.clock.one_wall_ms());
-        log_happenings(&happened);
-        if !happened.is_empty() {
-            (self.on_change)(&plant);
-        }
+        let plant = self.advanced();
         match plant.on_its_way(part, &self.resource) {
             Some(why) => {
                 debug!(resource = %self.resource, part, %why, "the move is held up");
@@ -230,6 +238,22 @@ impl Physics for ControllerPhysics {
             }
             None => false,
         }
+    }
+
+    fn departed(&self, values: &Values) -> bool {
+        let Some(part) = values.get("info.part") else {
+            return false;
+        };
+        let Some(on_pallet) = self.moving().get(part).map(|m| m.carrier.is_some()) else {
+            return false;
+        };
+        let plant = self.advanced();
+        if plant.left_origin(part) {
+            debug!(resource = %self.resource, part, "the move left its origin");
+            return true;
+        }
+        // Ended in the plant already: a pallet that arrived has left its origin.
+        on_pallet && plant.on_its_way(part, &self.resource).is_none()
     }
 
     fn end(&self, values: &Values, done: bool) -> Report {

@@ -21,6 +21,7 @@ use crate::dialect::Values;
 /// |---|---|---|
 /// | `begin(action, values)` | the command arrives | whether it can run, and how long it takes |
 /// | `held(values)` | its time is up, and again every 50 ms while held | whether it is held up |
+/// | `departed(values)` | every 50 ms while under way, until it says yes (only where the dialect has a `departed` reply for it) | whether its move has left its origin |
 /// | `end(values, done)` | it ends (`true`) or is aborted (`false`) | whether its end is told |
 /// | `epoch_granted()` | the fence grants a claim, before the grant is sent | |
 pub trait Physics: Send + Sync {
@@ -32,6 +33,13 @@ pub trait Physics: Send + Sync {
     /// Whether the action the command `values` began is held up (a jammed track under a
     /// move): it does not end while it is; asked again shortly.
     fn held(&self, _values: &Values) -> bool {
+        false
+    }
+
+    /// Whether the move the command `values` began has left its origin (the pallet is
+    /// off the origin's port, on the track): the controller says so once, with the
+    /// dialect's `departed` reply, and the move goes on to its end.
+    fn departed(&self, _values: &Values) -> bool {
         false
     }
 

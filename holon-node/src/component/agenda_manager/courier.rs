@@ -58,8 +58,13 @@ impl Courier {
     }
 }
 
-/// One delivery attempt to the message's `reply_to`.
-async fn attempt(session: &zenoh::Session, message: &Service, timeout: Duration) -> AttemptOutcome {
+/// One delivery attempt to the message's `reply_to` (also a move's one `departed`,
+/// [`crate::component::execution`]).
+pub(crate) async fn attempt(
+    session: &zenoh::Session,
+    message: &Service,
+    timeout: Duration,
+) -> AttemptOutcome {
     let Some(key) = message.reply_to.as_deref() else {
         return AttemptOutcome::Refused("no reply_to".into());
     };

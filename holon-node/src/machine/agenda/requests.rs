@@ -103,6 +103,7 @@ impl AgendaMachine {
             MessageType::Proposal
             | MessageType::Done
             | MessageType::Failed
+            | MessageType::Departed
             | MessageType::Status => self.refuse(&request, Reason::UnknownService, None),
         }
     }

@@ -11,7 +11,7 @@
 //! | start | the first `ready` lane; none (all run, or the controller is not ready): the first lane, which refuses it (`busy` / `unavailable`) | as that lane's |
 //! | abort | every lane (those running tell the controller; the dialect's abort stops all it runs) | one `AbortController` |
 //! | controller status | every lane (they share the controller) | each distinct action once: one `Ready`, one `Unavailable`, every `Finished` |
-//! | reply / command failure, id `n` | the lane whose step waits for command `n`; none: nobody (late) | as that lane's |
+//! | reply / command failure / departed, id `n` | the lane whose step waits for command `n`; none: nobody (late) | as that lane's |
 //! | step status of `<conversation>#<i>` | the lane running that step; none: nobody | as that lane's |
 
 use std::sync::Arc;
@@ -96,7 +96,9 @@ impl Executions {
             ExecutionEvent::Abort => self.every_lane(ExecutionEvent::Abort),
             ExecutionEvent::Controller(ControllerEvent::Status(..)) => self.every_lane(event),
             ExecutionEvent::Controller(
-                ControllerEvent::Reply { id, .. } | ControllerEvent::CommandFailed { id, .. },
+                ControllerEvent::Reply { id, .. }
+                | ControllerEvent::CommandFailed { id, .. }
+                | ControllerEvent::Departed { id },
             ) => match self.lanes.iter().position(|l| l.is_waiting_for(id)) {
                 Some(lane) => tagged(lane, self.lanes[lane].handle(event)),
                 None => vec![],

@@ -599,3 +599,42 @@ mod fenced {
         failed_with(&e.handle(lost(pick.id)), "controller_disconnected");
     }
 }
+
+fn departed(id: u64) -> ExecutionEvent {
+    ExecutionEvent::Controller(ControllerEvent::Departed { id })
+}
+
+#[test]
+fn a_departed_move_tells_its_requester_and_the_step_goes_on() {
+    let mut e = ready_execution();
+    let pick = command(&e.handle(ExecutionEvent::Start(job("pick_n_place"))));
+    // Another command's departure (late, or a lane's) says nothing.
+    assert_eq!(e.handle(departed(pick.id + 7)), vec![]);
+    assert_eq!(
+        e.handle(departed(pick.id)),
+        vec![ExecutionAction::Departed {
+            conversation_id: "c1".into(),
+            requester: HolonId::order("o-1").unwrap(),
+            service_type: "pick_n_place".into(),
+            reply_to: "holarchy/t/order/o-1/inbox".into(),
+        }]
+    );
+    // The step still waits for its reply, and ends with it as ever.
+    assert!(e.is_waiting_for(pick.id));
+    assert_eq!(e.current_step().as_deref(), Some("pick"));
+    let place = command(&e.handle(reply(pick.id, "picking_done")));
+    assert_eq!(place.action, "place");
+    // Once its step has ended, a repeat of the old command's departure says nothing.
+    assert_eq!(e.handle(departed(pick.id)), vec![]);
+}
+
+#[test]
+fn an_operators_job_has_nobody_to_tell_of_a_departure() {
+    let mut e = ready_execution();
+    let mut operators = job("pick_n_place");
+    operators.reply_to = String::new();
+    operators.operator = Some("ada".into());
+    let pick = command(&e.handle(ExecutionEvent::Start(operators)));
+    assert_eq!(e.handle(departed(pick.id)), vec![]);
+    assert!(e.is_waiting_for(pick.id));
+}

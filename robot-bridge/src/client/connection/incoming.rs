@@ -83,7 +83,8 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         if keepalive_answered {
             return Ok(());
         }
-        // A late answer to a command already failed is shaped like an answer: ignored.
+        // A late answer to a command already failed (or a departure of one no longer in
+        // flight) is shaped like an answer: ignored.
         for (i, reply) in self.dialect.replies.iter().enumerate() {
             if matches!(
                 reply.outcome,
@@ -185,6 +186,16 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         let now = Instant::now();
         let exchange = &mut self.exchanges[i];
         let id = exchange.command.id;
+        if rule.outcome == Outcome::Departed {
+            // Not an answer: the command stays in flight as it was (on a one-in-flight
+            // wire its request still awaits its answer), its deadline unchanged.
+            if std::mem::replace(&mut exchange.departed, true) {
+                debug!(id, reply = %rule.name, "the controller says again the move left its origin; told once");
+                return Ok(());
+            }
+            debug!(id, reply = %rule.name, "the move left its origin");
+            return self.report(ControllerEvent::Departed { id }).await;
+        }
         if self.awaiting == Some(Awaiting::Command(id)) {
             self.awaiting = None;
         }
@@ -250,7 +261,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
                 })
                 .await
             }
-            Outcome::Status | Outcome::Ignore | Outcome::Fence => Ok(()),
+            Outcome::Departed | Outcome::Status | Outcome::Ignore | Outcome::Fence => Ok(()),
         }
     }
 }

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use super::super::file::{Correlation, ElementSection, Outcome};
 use super::super::messages::{captures, invalid, templates_of};
-use super::super::{DialectError, Element, Sending};
+use super::super::{DialectError, Element, Reply, Sending};
 use super::Named;
 
 /// The sequence's elements, one of them starting the action.
@@ -72,6 +72,13 @@ fn element(i: usize, e: &ElementSection, named: &Named<'_>) -> Result<Element, D
     }
     let expect = expected_answers(&at, &e.expect, named)?;
     let outcomes: Vec<Outcome> = expect.iter().map(|&r| named.replies[r].outcome).collect();
+    if outcomes.iter().all(|&o| o == Outcome::Departed) {
+        return Err(invalid(
+            origin,
+            format!("{at}.expect"),
+            "a `departed` reply does not end the element: expect another answer too",
+        ));
+    }
     if let Sending::Poll(_) = sending {
         if !outcomes.contains(&Outcome::Running) {
             return Err(invalid(
@@ -168,22 +175,36 @@ pub(super) fn check_correlation(
                 "correlation = \"id\": every command of the sequence carries {id}",
             ));
         }
-        let with_id = element.expect.iter().any(|&r| {
-            let r = &named.replies[r];
-            r.body
-                .as_ref()
-                .map(|b| captures(b, r.regex.as_ref()))
-                .unwrap_or_default()
-                .iter()
-                .any(|n| n == "id")
-        });
-        if !with_id {
+        let mut answers = element.expect.iter().map(|&r| &named.replies[r]);
+        if !answers
+            .clone()
+            .any(|r| r.outcome != Outcome::Departed && carries_id(r))
+        {
             return Err(invalid(
                 named.origin,
                 format!("command {:?}", c.name),
                 "correlation = \"id\": at least one answer of each element of the sequence carries {id} (an answer without it answers the oldest step not yet answered with its id)",
             ));
         }
+        // A departure names its command: it is no answer of the oldest step.
+        if let Some(r) = answers.find(|r| r.outcome == Outcome::Departed && !carries_id(r)) {
+            return Err(invalid(
+                named.origin,
+                format!("reply {:?}", r.name),
+                "correlation = \"id\": a `departed` reply carries {id}, the command whose move left",
+            ));
+        }
     }
     Ok(())
+}
+
+/// Whether `reply` reads the command's `{id}` (from its text, or its regex's groups).
+fn carries_id(reply: &Reply) -> bool {
+    reply
+        .body
+        .as_ref()
+        .map(|b| captures(b, reply.regex.as_ref()))
+        .unwrap_or_default()
+        .iter()
+        .any(|n| n == "id")
 }

@@ -546,6 +546,23 @@ impl Plant {
         })
     }
 
+    /// Whether `part`'s move has left its origin: its pallet is no longer docked at the
+    /// move's `from` (it rides the loop, or docks at the destination). False while the
+    /// pallet is docked there (waiting to leave, or stopped by an abort), while the part
+    /// waits for a pallet, for a transfer's move (no pallet leaves), and for a part not
+    /// in transit.
+    pub fn left_origin(&self, part: &str) -> bool {
+        let Some(transit) = self.transit.get(part).filter(|t| !t.awaits_pallet) else {
+            return false;
+        };
+        transit
+            .load
+            .carrier
+            .as_deref()
+            .and_then(|p| self.pallets.get(p))
+            .is_some_and(|p| p.place != Place::Docked(transit.from.clone()))
+    }
+
     /// The pallet `part` rides, if it rides one.
     pub fn carrier_of(&self, part: &str) -> Option<String> {
         if let Some(t) = self.transit.get(part) {

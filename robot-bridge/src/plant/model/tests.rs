@@ -246,6 +246,40 @@ fn a_pallet_leaves_only_onto_a_track_with_room_and_passes_a_stopper_only_so() {
 }
 
 #[test]
+fn a_move_has_left_its_origin_once_its_pallet_is_off_the_origins_port() {
+    // Tracks of one: the second pallet waits docked at the loading point.
+    let mut plant = plant_of(2, 1, 0);
+    let (load, r1, r2) = (id("conveyor1.load"), id("robot1.port"), id("robot2.port"));
+    plant.begin_move("conveyor1", "o-1", &load, &r2).unwrap();
+    plant.begin_move("conveyor1", "o-2", &load, &r1).unwrap();
+    // No pallet is free: the third part waits at the loading point for one.
+    plant.begin_move("conveyor1", "o-3", &load, &r1).unwrap();
+    plant.advance(1);
+    assert!(plant.left_origin("o-1"), "{:?}", plant.view());
+    let p2 = plant.carrier_of("o-2").unwrap();
+    assert_eq!(plant.view().pallets[&p2].at, "docked");
+    assert!(!plant.left_origin("o-2"), "docked, waiting to leave");
+    assert!(!plant.left_origin("o-3"), "waiting for a pallet");
+    assert!(!plant.left_origin("o-9"), "unknown");
+    plant.advance(999);
+    assert!(!plant.left_origin("o-2"));
+    // At 1000 the first passes s1, and the second leaves onto the track to s1.
+    plant.advance(1000);
+    assert_eq!(plant.view().pallets[&p2].at, "track");
+    assert!(plant.left_origin("o-2"));
+    assert!(plant.on_its_way("o-2", "conveyor1").is_some());
+    // Arrived: the move is over, nothing is leaving any more.
+    plant.advance(2000);
+    assert_eq!(plant.where_is("o-2"), "at robot1.port");
+    assert!(!plant.left_origin("o-2"));
+    // A transfer's move leaves on no pallet.
+    let shelf = id("shelf1.shelf");
+    plant.begin_move("mover2", "o-2", &r1, &shelf).unwrap();
+    assert!(plant.on_its_way("o-2", "mover2").is_some());
+    assert!(!plant.left_origin("o-2"));
+}
+
+#[test]
 fn a_jammed_track_holds_the_pallets_and_a_silent_pallet_goes_unreported() {
     let mut plant = plant();
     let (load, r1, r2) = (id("conveyor1.load"), id("robot1.port"), id("robot2.port"));

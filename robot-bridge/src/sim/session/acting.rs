@@ -30,10 +30,19 @@ pub(super) struct Acting {
     pub(super) values: Values,
     /// (Fenced) its step id, recorded as running until it ends.
     pub(super) step: Option<String>,
+    /// When to look again whether its move has left its origin, to say so with the
+    /// element's `departed` reply; None: not looked for (said already, or the dialect
+    /// has no such reply here, or there is no plant to ask).
+    pub(super) departure: Option<std::time::Instant>,
 }
 
 /// How soon an action held up in the plant is looked at again.
 pub(super) const HELD_RECHECK: Duration = Duration::from_millis(50);
+
+/// How soon a move not yet off its origin is looked at again for its departure: the
+/// order frees the origin's place when told, so a late word keeps a station's port
+/// held (at 20x, 10 ms of wall time is 0.2 s of the plant's).
+pub(super) const DEPARTURE_RECHECK: Duration = Duration::from_millis(10);
 
 /// Waits until `done` (an action's end) to within about a tenth of a millisecond.
 /// tokio's timer rounds a sleep up to its next millisecond tick (a 20 ms action took
@@ -88,9 +97,48 @@ impl Session<'_> {
         Ok(Some(takes))
     }
 
-    /// When the first action under way is due to end (None: none is under way).
+    /// When the first action under way is due to end, or to be looked at for its
+    /// departure (None: none is under way).
     pub(super) fn next_end(&self) -> Option<std::time::Instant> {
-        self.acting.iter().map(|a| a.until).min()
+        self.acting
+            .iter()
+            .map(|a| a.departure.map_or(a.until, |at| at.min(a.until)))
+            .min()
+    }
+
+    /// When an action begun now by `element` is first looked at for its departure:
+    /// None where nothing would say it (no plant, or no `departed` reply in `element`).
+    pub(super) fn first_departure_look(&self, element: &Element) -> Option<std::time::Instant> {
+        let said =
+            self.config.physics.is_some() && self.rule(element, &[Outcome::Departed]).is_some();
+        said.then(|| std::time::Instant::now() + DEPARTURE_RECHECK)
+    }
+
+    /// Looks whether `acting`'s move has left its origin: if the plant says so, its
+    /// `departed` reply (its id), once; if not, looked at again shortly.
+    async fn look_departed(
+        &self,
+        acting: &mut Acting,
+        writer: &mut Writer<'_>,
+    ) -> Result<(), SimError> {
+        let (Some(physics), Some(rule)) = (
+            &self.config.physics,
+            self.rule(&acting.element, &[Outcome::Departed]),
+        ) else {
+            acting.departure = None;
+            return Ok(());
+        };
+        if !physics.0.departed(&acting.values) {
+            acting.departure = Some(std::time::Instant::now() + DEPARTURE_RECHECK);
+            return Ok(());
+        }
+        acting.departure = None;
+        info!(
+            id = acting.values.get("id").unwrap_or("-"),
+            part = acting.values.get("info.part").unwrap_or("-"),
+            "the move left its origin"
+        );
+        writer.reply(rule, &acting.values).await
     }
 
     /// Whether another action may begin: fewer than `actions_at_once` are under way.
@@ -152,10 +200,25 @@ impl Session<'_> {
         self.count_file.update();
     }
 
-    /// The first action under way is due: it ends ([`Session::end_or_keep`]).
+    /// An action under way is due: each one due to be looked at for its departure is
+    /// ([`Session::look_departed`]); the first whose time is up ends
+    /// ([`Session::end_or_keep`]).
     pub(super) async fn end_action(&mut self, writer: &mut Writer<'_>) -> Result<(), SimError> {
+        let now = std::time::Instant::now();
+        let mut acting = std::mem::take(&mut self.acting);
+        let mut looked = Ok(());
+        for a in acting.iter_mut() {
+            if a.departure.is_some_and(|at| at <= now) {
+                looked = self.look_departed(a, writer).await;
+                if looked.is_err() {
+                    break;
+                }
+            }
+        }
+        self.acting = acting;
+        looked?;
         let first = (0..self.acting.len()).min_by_key(|&i| self.acting[i].until);
-        if let Some(first) = first {
+        if let Some(first) = first.filter(|&i| self.acting[i].until <= now) {
             let acting = self.acting.remove(first);
             self.end_or_keep(acting, writer).await?;
         }
@@ -169,6 +232,10 @@ impl Session<'_> {
         mut acting: Acting,
         writer: &mut Writer<'_>,
     ) -> Result<(), SimError> {
+        if acting.departure.is_some() {
+            // A move that left before its end is said to have left first.
+            self.look_departed(&mut acting, writer).await?;
+        }
         if self.held(&acting) {
             acting.until = std::time::Instant::now() + HELD_RECHECK;
             self.acting.push(acting);

@@ -1,0 +1,177 @@
+//! A conveyor's controller says when a move has left its origin (holarchy-xml's
+//! `ROBOT_DEPARTED`), before the move's own reply: the controller client, against the
+//! plant simulator over TCP, reports [`ControllerEvent::Departed`] and then the
+//! command's [`ControllerEvent::Reply`]. A pallet that cannot leave (the track after its
+//! stopper jammed) is not said to have left until it does. A departure naming no
+//! command in flight is ignored, not a protocol error.
+
+use std::path::Path;
+use std::time::Duration;
+
+use robot_bridge::client::{ControllerEvent, ControllerRequest};
+use schemas::{RobotCommand, TimeScale};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+mod common;
+use common::plant::{control, control_line, start_plant};
+use common::{reply, Harness};
+
+/// conveyor1: a loop of 2000 mm at 1000 mm/s, its loading point at 0 mm and a buffer at
+/// 1000 mm (a move between them rides about a second), two pallets.
+const CONVEYOR: &str = r#"
+name = "conveyor1"
+
+[[layout.locations]]
+name = "load"
+role = "entry_exit"
+capacity = 2
+dock = "conveyor1.load"
+
+[[layout.locations]]
+name = "buffer"
+role = "buffer"
+capacity = 3
+dock = "conveyor1.buf"
+
+[layout.conveyor]
+length_mm = 2000
+speed_mm_s = 1000
+pallets = 2
+stoppers = [{ name = "load", at_mm = 0 }, { name = "buf", at_mm = 1000 }]
+"#;
+
+fn plant_file(dir: &Path) -> std::path::PathBuf {
+    std::fs::write(dir.join("conveyor1.toml"), CONVEYOR).unwrap();
+    let path = dir.join("plant.toml");
+    std::fs::write(
+        &path,
+        "layout = [\"conveyor1.toml\"]\n\n[[controller]]\nresource = \"conveyor1\"\nlisten = \"127.0.0.1:0\"\n",
+    )
+    .unwrap();
+    path
+}
+
+/// Asks the client to move `part` from the loading point to the buffer, as command `id`.
+async fn move_to_buffer(h: &Harness, id: u64, part: &str) {
+    let info = [
+        ("part", part),
+        ("from", "conveyor1.load"),
+        ("to", "conveyor1.buffer"),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), serde_json::Value::from(v)))
+    .collect();
+    let command = RobotCommand {
+        id,
+        action: "move".into(),
+        pos: None,
+        program: None,
+        info,
+    };
+    h.commands
+        .send(ControllerRequest::Command(command))
+        .await
+        .unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_conveyor_move_is_said_departed_before_its_reply() {
+    let dir = tempfile::tempdir().unwrap();
+    let plant = start_plant(&plant_file(dir.path()), TimeScale::REAL).await;
+    let mut h = Harness::start(
+        plant.address("conveyor1").to_string(),
+        Duration::from_secs(10),
+    );
+    h.wait_ready().await;
+    move_to_buffer(&h, 1, "p-1").await;
+    assert_eq!(h.answer().await, ControllerEvent::Departed { id: 1 });
+    // Said when the pallet left, not at the end: the part is still on its way.
+    let view = control(&plant.control, "where").await;
+    assert_eq!(view["in_transit"].as_array().unwrap().len(), 1, "{view:#}");
+    assert_eq!(h.answer().await, reply(1, "arrived"));
+    h.stop().await;
+    plant.shutdown.cancel();
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn a_pallet_that_cannot_leave_is_not_said_departed_until_it_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let plant = start_plant(&plant_file(dir.path()), TimeScale::REAL).await;
+    // The track from the loading point to the buffer is jammed: no pallet enters it.
+    assert_eq!(
+        control_line(&plant.control, "jam conveyor1.buf").await,
+        "ok"
+    );
+    let mut h = Harness::start(
+        plant.address("conveyor1").to_string(),
+        Duration::from_secs(10),
+    );
+    h.wait_ready().await;
+    move_to_buffer(&h, 1, "p-1").await;
+    // Longer than the whole move would take: still docked at the loading point.
+    let quiet = tokio::time::timeout(Duration::from_millis(1500), h.answer()).await;
+    assert!(quiet.is_err(), "{quiet:?}");
+    let view = control(&plant.control, "where").await;
+    let pallet = view["in_transit"][0]["load"]["carrier"].as_str().unwrap();
+    assert_eq!(view["pallets"][pallet]["at"], "docked", "{view:#}");
+    assert_eq!(
+        control_line(&plant.control, "clear conveyor1.buf").await,
+        "ok"
+    );
+    assert_eq!(h.answer().await, ControllerEvent::Departed { id: 1 });
+    assert_eq!(h.answer().await, reply(1, "arrived"));
+    h.stop().await;
+    plant.shutdown.cancel();
+}
+
+/// A controller that says a departure of a command it was never sent, then answers the
+/// command it was: the client goes on as if the stray message had not come.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_departure_of_no_command_in_flight_is_ignored() {
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    let controller = tokio::spawn(async move {
+        let (mut link, _) = listener.accept().await.unwrap();
+        link.write_all(b"<ROBOT_STATUS><STATE>ready</STATE></ROBOT_STATUS>")
+            .await
+            .unwrap();
+        let mut received = Vec::new();
+        while !received.ends_with(b"</ROBOT_CMD>") {
+            let mut buffer = [0u8; 1024];
+            let n = link.read(&mut buffer).await.unwrap();
+            assert!(n > 0, "the client closed");
+            received.extend_from_slice(&buffer[..n]);
+        }
+        link.write_all(
+            b"<ROBOT_DEPARTED><ID>99</ID></ROBOT_DEPARTED>\
+              <ROBOT_DEPARTED><ID>1</ID></ROBOT_DEPARTED>\
+              <ROBOT_DEPARTED><ID>1</ID></ROBOT_DEPARTED>\
+              <ROBOT_REPLY><ID>1</ID><RESULT>arrived</RESULT></ROBOT_REPLY>\
+              <ROBOT_DEPARTED><ID>1</ID></ROBOT_DEPARTED>",
+        )
+        .await
+        .unwrap();
+        // Held open until the client stops (a protocol error would have it close
+        // sooner: a disconnect the test would see).
+        let mut rest = [0u8; 64];
+        if let Err(e) = link.read(&mut rest).await {
+            eprintln!("the link: {e}");
+        }
+        received
+    });
+    let mut h = Harness::start(address, Duration::from_secs(10));
+    h.wait_ready().await;
+    move_to_buffer(&h, 1, "p-1").await;
+    // Told once, however often the controller says it; the strays go unreported.
+    assert_eq!(h.answer().await, ControllerEvent::Departed { id: 1 });
+    assert_eq!(h.answer().await, reply(1, "arrived"));
+    let more = tokio::time::timeout(Duration::from_millis(300), h.next()).await;
+    assert!(more.is_err(), "nothing more, no disconnect: {more:?}");
+    h.stop().await;
+    let received = controller.await.unwrap();
+    assert!(
+        String::from_utf8_lossy(&received).contains("<ID>1</ID>"),
+        "{}",
+        String::from_utf8_lossy(&received)
+    );
+}
