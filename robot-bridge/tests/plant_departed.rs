@@ -13,42 +13,11 @@ use schemas::{RobotCommand, TimeScale};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 mod common;
-use common::plant::{control, control_line, start_plant};
+use common::plant::{control, control_line, loop_conveyor, one_conveyor_plant, start_plant};
 use common::{reply, Harness};
 
-/// conveyor1: a loop of 2000 mm at 1000 mm/s, its loading point at 0 mm and a buffer at
-/// 1000 mm (a move between them rides about a second), two pallets.
-const CONVEYOR: &str = r#"
-name = "conveyor1"
-
-[[layout.locations]]
-name = "load"
-role = "entry_exit"
-capacity = 2
-dock = "conveyor1.load"
-
-[[layout.locations]]
-name = "buffer"
-role = "buffer"
-capacity = 3
-dock = "conveyor1.buf"
-
-[layout.conveyor]
-length_mm = 2000
-speed_mm_s = 1000
-pallets = 2
-stoppers = [{ name = "load", at_mm = 0 }, { name = "buf", at_mm = 1000 }]
-"#;
-
 fn plant_file(dir: &Path) -> std::path::PathBuf {
-    std::fs::write(dir.join("conveyor1.toml"), CONVEYOR).unwrap();
-    let path = dir.join("plant.toml");
-    std::fs::write(
-        &path,
-        "layout = [\"conveyor1.toml\"]\n\n[[controller]]\nresource = \"conveyor1\"\nlisten = \"127.0.0.1:0\"\n",
-    )
-    .unwrap();
-    path
+    one_conveyor_plant(dir, &loop_conveyor(2), "")
 }
 
 /// Asks the client to move `part` from the loading point to the buffer, as command `id`.

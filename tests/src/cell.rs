@@ -293,6 +293,21 @@ impl Inbox {
             .ok_or_else(|| anyhow!("inbox closed"))
     }
 
+    /// The next result (`done` / `failed`), with the `departed` delivered before it (a
+    /// move's word that it left its origin, acknowledged like a result), each within
+    /// `WAIT`.
+    pub async fn next_result(&mut self) -> Result<(Service, Vec<Service>)> {
+        let mut departed = Vec::new();
+        loop {
+            let message = self.next().await?;
+            if message.message_type == MessageType::Departed {
+                departed.push(message);
+            } else {
+                return Ok((message, departed));
+            }
+        }
+    }
+
     /// Whether anything arrives within `quiet`.
     pub async fn silent_for(&mut self, quiet: Duration) -> bool {
         tokio::time::timeout(quiet, self.received.recv())

@@ -55,6 +55,47 @@ stoppers = [
 ]
 "#;
 
+/// A slow loop: the buffer at 0.25 m, the first station's stopper (`sa`) 0.5 m further
+/// on, the second's (`sb`) 1.5 m, at 0.5 m/s (CONVEYOR's loop otherwise).
+pub fn slow_loop() -> String {
+    let text = CONVEYOR
+        .replace("speed_mm_s = 4000", "speed_mm_s = 500")
+        .replace(
+            "{ name = \"b\", at_mm = 500 }",
+            "{ name = \"b\", at_mm = 250 }",
+        )
+        .replace(
+            "{ name = \"sa\", at_mm = 1000 }",
+            "{ name = \"sa\", at_mm = 750 }",
+        )
+        .replace(
+            "{ name = \"sb\", at_mm = 1500 }",
+            "{ name = \"sb\", at_mm = 1750 }",
+        );
+    assert!(text.contains("at_mm = 1750") && text.contains("speed_mm_s = 500"));
+    text
+}
+
+/// `conveyor` (conveyor1's config text) and [`PLANT`], both running `n` moves at once:
+/// the holon's `[controller] jobs_at_once`, its plant controller's `actions_at_once`.
+pub fn moving_at_once(conveyor: &str, n: usize) -> (String, String) {
+    let conveyor = conveyor.replace(
+        "connect_timeout_ms = 500",
+        &format!("connect_timeout_ms = 500\njobs_at_once = {n}"),
+    );
+    assert!(conveyor.contains(&format!("jobs_at_once = {n}")));
+    // The plant's conveyor1 is its first controller.
+    let plant = PLANT.replacen(
+        "listen = \"127.0.0.1:0\"",
+        &format!("listen = \"127.0.0.1:0\"\nactions_at_once = {n}"),
+        1,
+    );
+    assert!(plant.contains(&format!(
+        "conveyor1\"\nlisten = \"127.0.0.1:0\"\nactions_at_once = {n}"
+    )));
+    (conveyor, plant)
+}
+
 pub const PLANT: &str = r#"
 layout = ["conveyor1.toml", "station_a.toml", "station_b.toml"]
 

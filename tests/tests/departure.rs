@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use holarchy_tests::{FlowCell, CONVEYOR, PLANT};
+use holarchy_tests::{moving_at_once, slow_loop, FlowCell};
 
 /// One ended action of the plant's trace.
 #[derive(Debug, Clone)]
@@ -76,35 +76,14 @@ fn hand_overs(records: &[Record], station: &str) -> Vec<(bool, String)> {
 }
 
 /// Four parts, each drilled on station_a (one port), then milled on station_b, then
-/// out. A slow loop: the way from station_a's stopper to station_b's takes 1.5 s, from
+/// out. A slow loop: the way from station_a's stopper to station_b's takes 2 s, from
 /// the buffer to station_a 1 s; the conveyor runs three moves at once. The next part's
-/// move in to station_a begins while the last part still rides away from it; each order still finishes with its step done
-/// once, and the plant ends empty. Were the port released at the move's end, as before,
+/// move in to station_a begins while the last part still rides away from it; each
+/// order still finishes with each step done once, and the plant ends empty. Were the port released at the move's end, as before,
 /// no move in could begin before the move away had ended.
 #[tokio::test(flavor = "multi_thread")]
 async fn the_next_part_rides_in_while_the_last_rides_away() {
-    let conveyor = CONVEYOR
-        .replace("speed_mm_s = 4000", "speed_mm_s = 500")
-        .replace(
-            "{ name = \"b\", at_mm = 500 }",
-            "{ name = \"b\", at_mm = 250 }",
-        )
-        .replace(
-            "{ name = \"sa\", at_mm = 1000 }",
-            "{ name = \"sa\", at_mm = 750 }",
-        )
-        .replace(
-            "connect_timeout_ms = 500",
-            "connect_timeout_ms = 500\njobs_at_once = 3",
-        );
-    assert!(conveyor.contains("speed_mm_s = 500") && conveyor.contains("jobs_at_once = 3"));
-    assert!(conveyor.contains("at_mm = 750"));
-    let plant = PLANT.replacen(
-        "listen = \"127.0.0.1:0\"",
-        "listen = \"127.0.0.1:0\"\nactions_at_once = 3",
-        1,
-    );
-    assert!(plant.contains("conveyor1\"\nlisten = \"127.0.0.1:0\"\nactions_at_once = 3"));
+    let (conveyor, plant) = moving_at_once(&slow_loop(), 3);
     let flow = FlowCell::start_on("t-departure", &conveyor, &plant).await;
     let orders = flow.cell.submit("ab", 4).await.unwrap();
     flow.wait_ended(&orders, Duration::from_secs(120)).await;

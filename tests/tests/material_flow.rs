@@ -313,27 +313,6 @@ async fn a_lost_part_waits_for_an_operators_word_and_goes_on_from_there() {
     );
 }
 
-/// A slow loop: the buffer at 0.25 m, `station_near`'s stopper 0.5 m further on,
-/// `station_far`'s 1.5 m, at 0.5 m/s (CONVEYOR's loop otherwise).
-fn slow_loop() -> String {
-    let text = CONVEYOR
-        .replace("speed_mm_s = 4000", "speed_mm_s = 500")
-        .replace(
-            "{ name = \"b\", at_mm = 500 }",
-            "{ name = \"b\", at_mm = 250 }",
-        )
-        .replace(
-            "{ name = \"sa\", at_mm = 1000 }",
-            "{ name = \"sa\", at_mm = 750 }",
-        )
-        .replace(
-            "{ name = \"sb\", at_mm = 1500 }",
-            "{ name = \"sb\", at_mm = 1750 }",
-        );
-    assert!(text.contains("at_mm = 1750") && text.contains("speed_mm_s = 500"));
-    text
-}
-
 const NEAR_AND_FAR: &str = r#"
 layout = ["conveyor1.toml", "station_near.toml", "station_far.toml"]
 
@@ -423,18 +402,7 @@ async fn the_staff_counts_the_travel_and_sends_the_part_to_the_near_station() {
 #[tokio::test(flavor = "multi_thread")]
 async fn the_conveyor_moves_several_pallets_at_once() {
     // A slow loop (a lap takes 4 s), so that moves last long enough to overlap.
-    let conveyor = slow_loop().replace(
-        "connect_timeout_ms = 500",
-        "connect_timeout_ms = 500\njobs_at_once = 3",
-    );
-    assert!(conveyor.contains("jobs_at_once = 3"));
-    // The plant's conveyor1 (its first controller) runs as many.
-    let plant = PLANT.replacen(
-        "listen = \"127.0.0.1:0\"",
-        "listen = \"127.0.0.1:0\"\nactions_at_once = 3",
-        1,
-    );
-    assert!(plant.contains("conveyor1\"\nlisten = \"127.0.0.1:0\"\nactions_at_once = 3"));
+    let (conveyor, plant) = moving_at_once(&slow_loop(), 3);
     let flow = FlowCell::start_on("t-flow-at-once", &conveyor, &plant).await;
     let mut orders = Vec::new();
     for product in ["ab", "ba", "ab", "ba", "ab", "ba"] {

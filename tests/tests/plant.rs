@@ -30,7 +30,20 @@ async fn job(
         let answer = cell.service(resource, &request).await.unwrap();
         assert_eq!(answer.result, Some(true), "{kind:?} refused: {answer:?}");
     }
-    inbox.next().await.unwrap()
+    let (result, departed) = inbox.next_result().await.unwrap();
+    // A move done on a pallet said once, before its result, that it left its origin
+    // (one that failed on the way may have); a station's step never says so.
+    let said = departed.len();
+    match (service_type, result.message_type) {
+        ("transport", MessageType::Done) => assert_eq!(said, 1, "{departed:?} before {result:?}"),
+        ("transport", _) => assert!(said <= 1, "{departed:?} before {result:?}"),
+        _ => assert_eq!(said, 0, "{departed:?} before {result:?}"),
+    }
+    for word in &departed {
+        assert_eq!(word.conversation_id, conversation, "{word:?}");
+        assert_eq!(word.provider, Some(HolonId::resource(resource).unwrap()));
+    }
+    result
 }
 
 fn poses() -> serde_json::Value {
@@ -403,10 +416,12 @@ async fn a_jammed_track_holds_a_move_and_a_silent_pallet_arrives_unreported() {
     let state: serde_json::Value = serde_json::from_str(&plant.command("where")).unwrap();
     assert_eq!(state["in_transit"][0]["load"]["part"], "p-1", "{state:#}");
     assert_eq!(state["jammed"][0], "conveyor1.s1", "{state:#}");
-    // Cleared: it goes on and arrives.
+    // Cleared: it leaves (said only now: the jam kept its pallet docked, the order's
+    // place at the loading point held), goes on and arrives.
     assert_eq!(plant.command("clear conveyor1.s1"), "ok");
-    let done = inbox.next().await.unwrap();
+    let (done, departed) = inbox.next_result().await.unwrap();
     assert_eq!(done.message_type, MessageType::Done, "{done:?}");
+    assert_eq!(departed.len(), 1, "{departed:?}");
     // The conveyor's e-stop, pressed for 1.5 s: its holon hears estop at once (on
     // the connection it has), then ready again.
     assert!(plant

@@ -1,11 +1,54 @@
-//! What the plant's tests share: its control port's commands.
+//! What the plant's tests share: a conveyor loop's plant file, and its control port's
+//! commands.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use robot_bridge::plant::PlantSim;
 use schemas::TimeScale;
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio_util::sync::CancellationToken;
+
+/// conveyor1: a loop of 2000 mm at 1000 mm/s, its loading point at 0 mm and a buffer at
+/// 1000 mm (a move between them rides about a second), with `pallets` pallets.
+pub fn loop_conveyor(pallets: u32) -> String {
+    format!(
+        r#"
+name = "conveyor1"
+
+[[layout.locations]]
+name = "load"
+role = "entry_exit"
+capacity = 2
+dock = "conveyor1.load"
+
+[[layout.locations]]
+name = "buffer"
+role = "buffer"
+capacity = 3
+dock = "conveyor1.buf"
+
+[layout.conveyor]
+length_mm = 2000
+speed_mm_s = 1000
+pallets = {pallets}
+stoppers = [{{ name = "load", at_mm = 0 }}, {{ name = "buf", at_mm = 1000 }}]
+"#
+    )
+}
+
+/// Writes `conveyor` as DIR/conveyor1.toml and a plant file of it alone, its one
+/// controller's section ending with `controller_lines` (each ending with a newline);
+/// returns the plant file's path.
+pub fn one_conveyor_plant(dir: &Path, conveyor: &str, controller_lines: &str) -> PathBuf {
+    std::fs::write(dir.join("conveyor1.toml"), conveyor).unwrap();
+    let path = dir.join("plant.toml");
+    std::fs::write(
+        &path,
+        format!("layout = [\"conveyor1.toml\"]\n\n[[controller]]\nresource = \"conveyor1\"\nlisten = \"127.0.0.1:0\"\n{controller_lines}"),
+    )
+    .unwrap();
+    path
+}
 
 /// A plant running in this test, with its control port.
 pub struct RunningPlant {
