@@ -7,7 +7,8 @@
 //! | event | part | next |
 //! |---|---|---|
 //! | a move begins (its phase recorded `started`) | at `from` | in transit on the transporter from `from` to `to` |
-//! | the transporter says the move has left `from` (`departed`, this move's conversation, its transporter) | in transit | in transit; the place at `from` released unless it is the part's home (or not held) |
+//! | the transporter says the move has left `from` (`departed`, this move's conversation, its transporter) | in transit | in transit, the move marked left; the place at `from` released unless it is the part's home (or not held) |
+//! | a move marked left ends unattempted (its controller refused it after all), or its transporter says it never reached the controller | in transit / lost | lost (the order's decision, `order/material.rs`): the part left `from`, only an operator can say it is there |
 //! | the move is done | in transit | at `to` (shipped at an exit); the place at `from` released unless it is the part's home (or released at departure) |
 //! | the move ended unattempted (refused, lost before it began, `not_begun`, no transporter) | at `from` | at `from` (the place reserved at `to` released) |
 //! | the move failed, or its transporter vanished while it may have run | in transit | lost: in transit on the transporter, last seen at `from`, until it or an operator says |
@@ -61,6 +62,12 @@ pub struct Move {
     /// so, or when nothing was released then (the part's home, a place not held).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub departed: Option<String>,
+    /// Whether its transporter said the move had left `from` (`departed`), whether or
+    /// not a place was released then: from then on the part is not at `from` on the
+    /// transporter's word alone (a refusal or "never reached" after it leaves the part
+    /// lost, for an operator to say where it is).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub left: bool,
 }
 
 /// An order's part.
@@ -139,6 +146,7 @@ impl PartProgress {
             goal,
             phase: Phase::Proposing,
             departed: None,
+            left: false,
         });
     }
 
@@ -180,12 +188,18 @@ impl PartProgress {
             } if riding == transporter && from == &moving.from => {}
             _ => return None,
         }
+        moving.left = true;
         if self.home.as_ref() == Some(&moving.from) {
             return None;
         }
         let released = self.held.remove_entry(&moving.from)?;
         moving.departed = Some(released.1.clone());
         Some(released)
+    }
+
+    /// Whether the move under way has left its origin, on its transporter's word.
+    pub fn has_left(&self) -> bool {
+        self.moving.as_ref().is_some_and(|m| m.left)
     }
 
     /// The place released when the move under way departed (its location and

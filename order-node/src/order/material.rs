@@ -426,7 +426,17 @@ impl OrderTask<'_> {
             Phase::Booked(_) => self.ctx.settings.start_on_turn,
             Phase::Proposing | Phase::Booking(_) => false,
         };
-        let end = move_end(&outcome, may_have_begun);
+        let end = match move_end(&outcome, may_have_begun) {
+            // Its transporter said the part had left its origin: a refusal now does not
+            // put it back there (its place may be another part's already).
+            MoveEnd::Unattempted if self.part().has_left() => MoveEnd::Unknown {
+                why: format!(
+                    "its transporter said the part had left {}, then ended the move: {outcome}",
+                    moving.from
+                ),
+            },
+            end => end,
+        };
         info!(holon = %self.holon, conversation_id = %moving.conversation_id, from = %moving.from, to = %moving.to, outcome = %outcome, "move ended");
         let mut released = Vec::new();
         self.ctx
@@ -460,11 +470,11 @@ impl OrderTask<'_> {
     ) -> Result<(), OrderError> {
         let conversation_id = report.message.conversation_id.clone();
         let message_type = report.message.message_type;
-        if self
-            .part()
-            .departed(&conversation_id, transporter)
-            .is_none()
-        {
+        // Nothing to record unless it releases a place or marks the move left.
+        let mut probe = self.part();
+        let had_left = probe.has_left();
+        let releases = probe.departed(&conversation_id, transporter).is_some();
+        if !releases && (had_left || !probe.has_left()) {
             debug!(holon = %self.holon, %conversation_id, %message_type, %transporter, "the move departed: no place held at its origin to release (its home, a location held by none, released already, or its start not recorded yet)");
             report.acknowledge().await;
             return Ok(());
@@ -479,7 +489,14 @@ impl OrderTask<'_> {
             .await?;
         // Recorded: the transporter's report may be acknowledged.
         report.acknowledge().await;
-        info!(holon = %self.holon, %conversation_id, %message_type, %transporter, location = %released.as_ref().map_or("", |(l, _)| l.as_str()), "the move departed: the place at its origin is released");
+        match &released {
+            Some((location, _)) => {
+                info!(holon = %self.holon, %conversation_id, %message_type, %transporter, %location, "the move departed: the place at its origin is released")
+            }
+            None => {
+                debug!(holon = %self.holon, %conversation_id, %message_type, %transporter, "the move departed: no place held at its origin (its home)")
+            }
+        }
         self.publish().await;
         self.release(released.into_iter().collect()).await;
         Ok(())
@@ -501,10 +518,22 @@ impl OrderTask<'_> {
                 .await?;
             return Ok(());
         };
+        // A part whose move left its origin is not put back there on the transporter's
+        // word ("never reached" contradicts its `departed`): only an operator's.
+        let left = self.part().has_left();
+        let mut contradiction_logged = false;
         loop {
-            if let Some(arrived) = self.ask_transporter(&transporter, moving).await {
-                info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, arrived, "the transporter said where the lost part is");
-                return self.lost_part_found(arrived).await;
+            match self.ask_transporter(&transporter, moving).await {
+                Some(false) if left && !contradiction_logged => {
+                    warn!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, from = %moving.from, "the transporter says the lost move never reached its controller, but it said the part had left its origin: the part stays lost until an operator says where it is");
+                    contradiction_logged = true;
+                }
+                Some(false) if left => {}
+                Some(arrived) => {
+                    info!(holon = %self.holon, %transporter, conversation_id = %moving.conversation_id, arrived, "the transporter said where the lost part is");
+                    return self.lost_part_found(arrived).await;
+                }
+                None => {}
             }
             tokio::select! {
                 _ = tokio::time::sleep(jittered(LOST_ASK_EVERY)) => {}
@@ -531,6 +560,7 @@ impl OrderTask<'_> {
                     };
                     let arrived = match move_end(&outcome, true) {
                         MoveEnd::Done => Some(true),
+                        MoveEnd::Unattempted if left => None,
                         MoveEnd::Unattempted => Some(false),
                         MoveEnd::Unknown { .. } => None,
                     };

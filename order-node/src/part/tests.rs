@@ -296,9 +296,13 @@ fn a_departure_never_releases_the_home() {
         MoveGoal::Station,
     );
     part.move_phase(Phase::Started(conveyor()));
+    assert!(!part.has_left());
     assert_eq!(part.departed("o-1/m1/1", &conveyor()), None);
     assert_eq!(part.held.len(), 2, "both kept: {:?}", part.held);
     assert_eq!(part.released_at_departure(), None);
+    // Marked left all the same (recorded by the order): a refusal after it does not
+    // put the part back at its home.
+    assert!(part.has_left());
     let released = part.end_move(MoveEnd::Done, Some(conveyor()));
     assert!(released.is_empty(), "the home stays held: {released:?}");
 }
@@ -320,6 +324,7 @@ fn a_departure_of_another_move_or_transporter_or_before_the_start_releases_nothi
     );
     assert_eq!(part.held, untouched.held);
     assert_eq!(part.moving.as_ref().unwrap().departed, None);
+    assert!(!part.has_left(), "not this move's word: {part:?}");
 
     // No move under way.
     let mut still = untouched.clone();
@@ -358,6 +363,7 @@ fn a_journalled_move_of_before_departures_reads_as_not_departed() {
         value["moving"].get("departed").is_none(),
         "not written while it has not departed: {value}"
     );
+    assert!(value["moving"].get("left").is_none(), "{value}");
     value["moving"].as_object_mut().unwrap().remove("departed");
     let read: PartProgress = serde_json::from_value(value).unwrap();
     assert_eq!(read, part);

@@ -13,7 +13,7 @@
 //! | N | the dialect's abort, or a fence message | answers it now |
 //! | N | any other message | keeps it (deferred); kept ones are answered in order as soon as fewer than N are under way, as on a controller that runs N commands at a time |
 //! | any | an action's time is up | its own `done` reply (its id), or, held up in the plant, looks again in 50 ms |
-//! | any | 50 ms have passed, a move under way whose departure the dialect can say | asks the plant whether it left its origin: if so, its own `departed` reply (its id), once |
+//! | any | 10 ms have passed, a move under way (its command names `info.from`) whose departure the dialect can say | asks the plant whether it left its origin: if so, its own `departed` reply (its id), once |
 //! | any | the abort | each action it names (all, where it names none) stops: its own `failed` reply, `aborted` |
 //! | any | the connection ends, is cut, or its lease is lost | each action goes on unanswered to its own end and settles its own step |
 
@@ -533,6 +533,7 @@ impl Session<'_> {
                     .await?;
             } else {
                 // It ends (or is aborted) while the connection goes on reading.
+                let departure = self.first_departure_look(element, &values);
                 self.acting.push(Acting {
                     until: received + takes,
                     element: element.clone(),
@@ -540,7 +541,7 @@ impl Session<'_> {
                     result,
                     values,
                     step,
-                    departure: self.first_departure_look(element),
+                    departure,
                 });
             }
         }

@@ -80,6 +80,13 @@ fn element(i: usize, e: &ElementSection, named: &Named<'_>) -> Result<Element, D
         ));
     }
     if let Sending::Poll(_) = sending {
+        if outcomes.contains(&Outcome::Departed) {
+            return Err(invalid(
+                origin,
+                format!("{at}.expect"),
+                "a poll cannot expect a `departed` reply: the command's own element says it",
+            ));
+        }
         if !outcomes.contains(&Outcome::Running) {
             return Err(invalid(
                 origin,

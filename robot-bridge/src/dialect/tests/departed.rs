@@ -120,3 +120,25 @@ fn a_file_with_a_departed_reply_still_refuses_what_is_wrong() {
     let err = error_of(&abort);
     assert!(err.contains("abort.expect"), "{err}");
 }
+
+#[test]
+fn a_poll_is_not_answered_by_a_departure() {
+    // ur-dashboard polls programState until the program has stopped: a departure
+    // among a poll's answers would leave the poll waiting for ever.
+    let ur = SHIPPED
+        .iter()
+        .find(|(n, _)| *n == "ur-dashboard")
+        .unwrap()
+        .1;
+    let expect = "expect = [\"running\", \"stopped\", \"paused\"]";
+    assert!(ur.contains(expect));
+    let err = error_of(&with_departed(ur, expect, "LEFT"));
+    assert!(
+        err.contains("a poll cannot expect a `departed` reply"),
+        "{err}"
+    );
+    // On the element that sends the command it is taken.
+    let expect = "expect = [\"playing\", \"play_failed\"]";
+    assert!(ur.contains(expect));
+    Dialect::from_toml(&with_departed(ur, expect, "LEFT"), "ur.toml").unwrap();
+}

@@ -106,11 +106,17 @@ impl Session<'_> {
             .min()
     }
 
-    /// When an action begun now by `element` is first looked at for its departure:
-    /// None where nothing would say it (no plant, or no `departed` reply in `element`).
-    pub(super) fn first_departure_look(&self, element: &Element) -> Option<std::time::Instant> {
-        let said =
-            self.config.physics.is_some() && self.rule(element, &[Outcome::Departed]).is_some();
+    /// When an action begun now by `element` with `values` is first looked at for its
+    /// departure: None where nothing would say it (no plant, no `departed` reply in
+    /// `element`, or not a move: its command names no origin, `info.from`).
+    pub(super) fn first_departure_look(
+        &self,
+        element: &Element,
+        values: &Values,
+    ) -> Option<std::time::Instant> {
+        let said = self.config.physics.is_some()
+            && values.get("info.from").is_some()
+            && self.rule(element, &[Outcome::Departed]).is_some();
         said.then(|| std::time::Instant::now() + DEPARTURE_RECHECK)
     }
 
