@@ -111,8 +111,9 @@ fn a_move_that_may_have_run_leaves_the_part_lost_until_its_transporter_says() {
     assert!(part.moving.is_none());
 }
 
-#[test]
-fn a_move_that_never_began_releases_the_place_reserved_for_it() {
+/// A part at its home `conveyor1.buffer`, the places `held` held for it, its move from
+/// home to `robot1.port` begun.
+fn moving_from_home(held: &[&str]) -> PartProgress {
     let mut part = PartProgress {
         place: PartPlace::At {
             location: id("conveyor1.buffer"),
@@ -120,14 +121,21 @@ fn a_move_that_never_began_releases_the_place_reserved_for_it() {
         home: Some(id("conveyor1.buffer")),
         ..PartProgress::default()
     };
-    part.held
-        .insert(id("robot1.port"), "o-1/place/robot1.port".into());
+    for place in held {
+        part.held.insert(id(place), format!("o-1/place/{place}"));
+    }
     part.begin_move(
         &order(),
         id("conveyor1.buffer"),
         id("robot1.port"),
         MoveGoal::Station,
     );
+    part
+}
+
+#[test]
+fn a_move_that_never_began_releases_the_place_reserved_for_it() {
+    let mut part = moving_from_home(&["robot1.port"]);
     let released = part.end_move(MoveEnd::Unattempted, None);
     assert_eq!(
         released,
@@ -278,23 +286,7 @@ fn a_move_that_never_says_it_departed_releases_its_origin_at_done() {
 
 #[test]
 fn a_departure_never_releases_the_home() {
-    let mut part = PartProgress {
-        place: PartPlace::At {
-            location: id("conveyor1.buffer"),
-        },
-        home: Some(id("conveyor1.buffer")),
-        ..PartProgress::default()
-    };
-    part.held
-        .insert(id("conveyor1.buffer"), "o-1/place/conveyor1.buffer".into());
-    part.held
-        .insert(id("robot1.port"), "o-1/place/robot1.port".into());
-    part.begin_move(
-        &order(),
-        id("conveyor1.buffer"),
-        id("robot1.port"),
-        MoveGoal::Station,
-    );
+    let mut part = moving_from_home(&["conveyor1.buffer", "robot1.port"]);
     part.move_phase(Phase::Started(conveyor()));
     assert!(!part.has_left());
     assert_eq!(part.departed("o-1/m1/1", &conveyor()), None);
