@@ -75,6 +75,7 @@ pub async fn run(
         advised: None,
         leg: Leg::Work,
         work_at: None,
+        proposed_at: None,
         part_words,
         early_departure: None,
         ctx,
@@ -133,6 +134,10 @@ struct OrderTask<'a> {
     /// For a plan that moves parts: the station whose port holds the part, the only
     /// one the step is booked on.
     work_at: Option<HolonId>,
+    /// The station that proposed for the step in the round that found the part at its
+    /// port, just before the step's attempt: its first booking asks that station
+    /// without another round (taken by the first [`OrderTask::ask_proposals`]).
+    proposed_at: Option<HolonId>,
     /// Operators' words on where the part is, taken while it is lost.
     part_words: mpsc::Receiver<WordAsk>,
     /// A move's `departed` that came while its start on its turn was not seen yet: it
@@ -177,6 +182,7 @@ impl OrderTask<'_> {
                     .or_insert_with(|| self.holon.name().into());
             }
             self.work_at = None;
+            self.proposed_at = None;
             if self.progress.get().part.is_some() {
                 match self
                     .arrange(&step, &conversation_id, operator_cancel)
@@ -455,8 +461,33 @@ impl OrderTask<'_> {
 
     /// A proposal round, with the staff's advice asked together: the offers ranked.
     async fn ask_proposals(&mut self, step: &PlanStep, conversation_id: &str) -> AttemptEvent {
-        let ask = self.request(MessageType::ProposalReq, step, conversation_id);
         self.appearances = self.ctx.presence.appearances();
+        // No round where it could change nothing (docs/material-flow.md, "A move's
+        // conversations"): a move that one transporter alone can make, a step whose
+        // station proposed a moment ago (a refusal there leads to a round).
+        let asked_already = match self.leg {
+            Leg::Move => {
+                let moving = self
+                    .progress
+                    .get()
+                    .part
+                    .as_ref()
+                    .and_then(|p| p.moving.clone());
+                match moving {
+                    Some(m) => self.sole_transporter(&m.from, &m.to).await,
+                    None => None,
+                }
+            }
+            Leg::Work => self
+                .proposed_at
+                .take()
+                .filter(|s| self.work_at.as_ref() == Some(s)),
+        };
+        if let Some(only) = asked_already {
+            self.in_flight = None;
+            return AttemptEvent::Proposals(vec![only]);
+        }
+        let ask = self.request(MessageType::ProposalReq, step, conversation_id);
         // A move is not the staff's to advise; a step of a part at a station is
         // worked there.
         let work = self.leg == Leg::Work && self.work_at.is_none();

@@ -145,8 +145,10 @@ impl OrderTask<'_> {
             let ranked = self.station_round(step, conversation_id, &layout).await;
             if let Some(here) = &at_port {
                 let station = HolonId::resource(here.holon()).ok();
-                if station.as_ref().is_some_and(|s| ranked.contains(s)) {
-                    return Ok(Arranged::At(station.expect("checked")));
+                if let Some(station) = station.filter(|s| ranked.contains(s)) {
+                    // It proposed just now: the step's booking asks it without a round.
+                    self.proposed_at = Some(station.clone());
+                    return Ok(Arranged::At(station));
                 }
             }
             let placed = if waited || ticket.turn_now().await {
@@ -216,14 +218,31 @@ impl OrderTask<'_> {
                 self.pause(PLACE_RETRY * 4).await;
                 continue;
             };
-            self.ctx
-                .commit(self.progress, |p| {
-                    if let Some(part) = &mut p.part {
-                        part.begin_move(&p.holon, here, exit, MoveGoal::Exit);
-                    }
-                })
-                .await?;
+            self.begin_move(here, exit, MoveGoal::Exit).await?;
         }
+    }
+
+    /// Records the part's move from `from` to `to` as begun. When one transporter
+    /// alone can make it ([`Self::sole_transporter`]), its booking is recorded as
+    /// being asked in the same write: the move's attempt asks it at once, without a
+    /// round and without a write of its own before the booking.
+    async fn begin_move(
+        &mut self,
+        from: LocationId,
+        to: LocationId,
+        goal: MoveGoal,
+    ) -> Result<(), OrderError> {
+        let sole = self.sole_transporter(&from, &to).await;
+        self.ctx
+            .commit(self.progress, |p| {
+                let Some(part) = &mut p.part else { return };
+                part.begin_move(&p.holon, from, to, goal);
+                if let Some(transporter) = sole {
+                    part.move_phase(Phase::Booking(transporter.clone()));
+                    p.worked_with.insert(transporter);
+                }
+            })
+            .await
     }
 
     /// Runs the move under way to its end, if there is one (or, with the part lost,
@@ -293,13 +312,7 @@ impl OrderTask<'_> {
                 }
                 if self.reserve(&port).await? {
                     info!(holon = %self.holon, %station, %port, %from, "a place at the station is reserved: the part moves there");
-                    let from = from.clone();
-                    self.ctx
-                        .commit(self.progress, |p| {
-                            if let Some(part) = &mut p.part {
-                                part.begin_move(&p.holon, from, port, MoveGoal::Station);
-                            }
-                        })
+                    self.begin_move(from.clone(), port, MoveGoal::Station)
                         .await?;
                     return Ok(true);
                 }
@@ -495,6 +508,25 @@ impl OrderTask<'_> {
         self.publish().await;
         self.release(released.into_iter().collect()).await;
         Ok(())
+    }
+
+    /// The one transporter that can move a part from `from` to `to`, if the layout names only
+    /// one and it is alive: its booking is asked without a proposal round, which could
+    /// only have ranked it first (an avoided one too). A refusal waits and asks it
+    /// again, as after a round; with none, or several, or the one gone, a round decides.
+    pub(super) async fn sole_transporter(
+        &self,
+        from: &LocationId,
+        to: &LocationId,
+    ) -> Option<HolonId> {
+        let layout = self.ctx.layout().await?;
+        let mut transporters = layout.routes(from, to).into_iter().map(|r| r.transporter);
+        let only = transporters.next()?;
+        if transporters.any(|other| other != only) {
+            return None;
+        }
+        let only = HolonId::resource(&only).ok()?;
+        self.ctx.presence.is_alive(&only).then_some(only)
     }
 
     /// Waits `pause` (jittered), or until a resource appears or a place frees up.
