@@ -250,6 +250,10 @@ impl OrderTask<'_> {
         let mut finishing = false;
         let (outcome, report) = {
             let phase = progress.get().phase.clone();
+            if phase != Phase::Proposing {
+                // Resumed past its round (a restart): the station's word is not fresh.
+                self.proposed_at = None;
+            }
             let attempt = self.attempt(step, conversation_id, phase);
             tokio::pin!(attempt);
             loop {
@@ -462,30 +466,19 @@ impl OrderTask<'_> {
     /// A proposal round, with the staff's advice asked together: the offers ranked.
     async fn ask_proposals(&mut self, step: &PlanStep, conversation_id: &str) -> AttemptEvent {
         self.appearances = self.ctx.presence.appearances();
-        // No round where it could change nothing (docs/material-flow.md, "A move's
-        // conversations"): a move that one transporter alone can make, a step whose
-        // station proposed a moment ago (a refusal there leads to a round).
-        let asked_already = match self.leg {
-            Leg::Move => {
-                let moving = self
-                    .progress
-                    .get()
-                    .part
-                    .as_ref()
-                    .and_then(|p| p.moving.clone());
-                match moving {
-                    Some(m) => self.sole_transporter(&m.from, &m.to).await,
-                    None => None,
-                }
-            }
+        // The station that found the part at its port a moment ago proposed then: its
+        // step's first booking asks it without another round (docs/material-flow.md,
+        // "A move's conversations"); a refusal leads to a round.
+        let proposed = match self.leg {
             Leg::Work => self
                 .proposed_at
                 .take()
                 .filter(|s| self.work_at.as_ref() == Some(s)),
+            Leg::Move => None,
         };
-        if let Some(only) = asked_already {
+        if let Some(station) = proposed {
             self.in_flight = None;
-            return AttemptEvent::Proposals(vec![only]);
+            return AttemptEvent::Proposals(vec![station]);
         }
         let ask = self.request(MessageType::ProposalReq, step, conversation_id);
         // A move is not the staff's to advise; a step of a part at a station is

@@ -222,24 +222,17 @@ impl OrderTask<'_> {
         }
     }
 
-    /// Records the part's move from `from` to `to` as begun. When one transporter
-    /// alone can make it ([`Self::sole_transporter`]), its booking is recorded as
-    /// being asked in the same write: the move's attempt asks it at once, without a
-    /// round and without a write of its own before the booking.
-    async fn begin_move(
+    /// Records the part's move from `from` to `to` as begun: its attempt books it next.
+    pub(super) async fn begin_move(
         &mut self,
         from: LocationId,
         to: LocationId,
         goal: MoveGoal,
     ) -> Result<(), OrderError> {
-        let sole = self.sole_transporter(&from, &to).await;
         self.ctx
             .commit(self.progress, |p| {
-                let Some(part) = &mut p.part else { return };
-                part.begin_move(&p.holon, from, to, goal);
-                if let Some(transporter) = sole {
-                    part.move_phase(Phase::Booking(transporter.clone()));
-                    p.worked_with.insert(transporter);
+                if let Some(part) = &mut p.part {
+                    part.begin_move(&p.holon, from, to, goal);
                 }
             })
             .await
@@ -508,25 +501,6 @@ impl OrderTask<'_> {
         self.publish().await;
         self.release(released.into_iter().collect()).await;
         Ok(())
-    }
-
-    /// The one transporter that can move a part from `from` to `to`, if the layout names only
-    /// one and it is alive: its booking is asked without a proposal round, which could
-    /// only have ranked it first (an avoided one too). A refusal waits and asks it
-    /// again, as after a round; with none, or several, or the one gone, a round decides.
-    pub(super) async fn sole_transporter(
-        &self,
-        from: &LocationId,
-        to: &LocationId,
-    ) -> Option<HolonId> {
-        let layout = self.ctx.layout().await?;
-        let mut transporters = layout.routes(from, to).into_iter().map(|r| r.transporter);
-        let only = transporters.next()?;
-        if transporters.any(|other| other != only) {
-            return None;
-        }
-        let only = HolonId::resource(&only).ok()?;
-        self.ctx.presence.is_alive(&only).then_some(only)
     }
 
     /// Waits `pause` (jittered), or until a resource appears or a place frees up.

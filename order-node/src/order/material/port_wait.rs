@@ -65,13 +65,6 @@ impl OrderTask<'_> {
     ) -> Result<(), OrderError> {
         let home = part.home.clone().expect("a part at a port has a home");
         info!(holon = %self.holon, from = %here, %home, "no station has a place for the part, or other parts wait for one: it goes back to its home");
-        self.ctx
-            .commit(self.progress, |p| {
-                if let Some(part) = &mut p.part {
-                    part.begin_move(&p.holon, here, home, MoveGoal::Home);
-                }
-            })
-            .await?;
-        Ok(())
+        self.begin_move(here, home, MoveGoal::Home).await
     }
 }
