@@ -13,7 +13,7 @@
 //! | the move ended unattempted (refused, lost before it began, `not_begun`, no transporter) | at `from` | at `from` (the place reserved at `to` released) |
 //! | the move failed, or its transporter vanished while it may have run | in transit | lost: in transit on the transporter, last seen at `from`, until it or an operator says |
 //! | the transporter says the lost move was done / never reached the controller | lost | at `to` / at `from` |
-//! | an operator says the lost part is at `to` / at `from` (recorded with who said it) | lost | at `to` / at `from` |
+//! | an operator says the lost part is at `to` / at `from` (recorded with who said it; at a `from` released at departure, only once the order's task has reserved it again: [`PartProgress::needs_origin_again`]) | lost | at `to` / at `from` |
 //! | the order's end is decided while the part is in the cell | at a location | the end waits; the part leaves by an exit first |
 //!
 //! A departure releases the origin's place at most once: it is taken off `held`, so a
@@ -290,6 +290,18 @@ impl PartProgress {
             _ => None,
         };
         self.end_move(end, transporter)
+    }
+
+    /// Whether an operator's word that the lost part is at `location` needs its place
+    /// there reserved again before it is recorded: `location` is the lost move's origin,
+    /// whose place was released when the transporter said the move had left it
+    /// (docs/material-flow.md, "Departure"), and the part holds none there now. (Its
+    /// home is never released that way; a place reserved again since is held.)
+    pub fn needs_origin_again(&self, location: &LocationId) -> bool {
+        let (PartPlace::Lost { from, .. }, Some(moving)) = (&self.place, &self.moving) else {
+            return false;
+        };
+        location == from && moving.departed.is_some() && !self.held.contains_key(from)
     }
 
     /// An operator said where the lost part is: `location`, the lost move's origin or

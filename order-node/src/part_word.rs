@@ -13,7 +13,10 @@
 //! nothing changes), then sends a [`WordAsk`] to the order's task and waits (bounded).
 //! The task, which alone writes the order's progress and is waiting for its lost part,
 //! records where the part is and who said so in the journal (the order's audit trail,
-//! `part_found`), answers, and goes on from there.
+//! `part_found`), answers, and goes on from there. A word that the part is back at the
+//! origin of a move that had departed (its place there released) is taken only once
+//! the task has reserved that place again; refused `unavailable` when it cannot be, and
+//! nothing changes.
 
 use std::time::Duration;
 

@@ -335,6 +335,15 @@ impl FlowCell {
         }
     }
 
+    /// `cell part ORDER --at LOCATION` as an operator runs it: its output.
+    pub fn say_part_at(&self, order: &str, at: &str) -> std::process::Output {
+        std::process::Command::new(bin("cell"))
+            .args(["part", order, "--at", at, "--cell", self.cell.keys.cell()])
+            .args(["--connect", &self.cell.endpoint, "--timeout-ms", "5000"])
+            .output()
+            .unwrap()
+    }
+
     /// Counts the order-node's log lines containing `what`.
     pub fn count_in_orders_log(&self, what: &str) -> usize {
         let log =

@@ -8,7 +8,7 @@
 use std::collections::BTreeMap;
 use std::time::Duration;
 
-use holarchy_tests::{moving_at_once, slow_loop, FlowCell};
+use holarchy_tests::{moving_at_once, slow_loop, FlowCell, CONVEYOR, PLANT};
 
 /// One ended action of the plant's trace.
 #[derive(Debug, Clone)]
@@ -111,6 +111,145 @@ async fn the_next_part_rides_in_while_the_last_rides_away() {
         hand_overs.iter().any(|(early, _)| *early),
         "no part rode in to station_a before the last had arrived where it went: {hand_overs:#?}"
     );
+    assert_eq!(
+        flow.count_in_orders_log("\"ERROR\""),
+        0,
+        "the order-node logged errors"
+    );
+}
+
+/// The part at `location` in the plant, with its pallet, if one is there.
+fn at_rest(truth: &serde_json::Value, location: &str) -> Option<(String, String)> {
+    let load = truth["locations"][location].as_array()?.first()?;
+    Some((
+        load["part"].as_str()?.to_string(),
+        load["carrier"].as_str()?.to_string(),
+    ))
+}
+
+/// A part lost after its move away had left station_a's port (its pallet stops
+/// reporting once at the port: the move departs, arrives unsaid and times out). The
+/// port's place was released at the departure, and the next part now holds it and is
+/// worked there (8 s a part). An operator's word that the lost part is back at that
+/// port is refused (`invalid`, naming the part that holds the place) and changes
+/// nothing: two parts are never taken to be at a port of one place. The true word (at
+/// the move's destination) is recorded; both orders finish, each step once, the plant
+/// empty. Before, the first word was recorded and the order went on from a port whose
+/// place was another part's; and the second part, whose move's turn came while the
+/// conveyor reconnected after the silent move's timeout, was taken to be lost too.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_word_that_a_departed_part_is_back_at_a_port_taken_since_is_refused() {
+    let conveyor = CONVEYOR.replace("command_timeout_ms = 10000", "command_timeout_ms = 2000");
+    let slow_a = "resource = \"station_a\"\nlisten = \"127.0.0.1:0\"\ndelay_ms = 4000";
+    let plant = PLANT.replace(
+        "resource = \"station_a\"\nlisten = \"127.0.0.1:0\"\ndelay_ms = 150",
+        slow_a,
+    );
+    assert!(plant.contains(slow_a));
+    let flow = FlowCell::start_on("t-departed-word", &conveyor, &plant).await;
+    let orders = flow.cell.submit("ab", 2).await.unwrap();
+
+    // The first part at station_a's port, its move there recorded done by its order
+    // (not only docked in the plant: its arrival must be said): its pallet stops
+    // reporting.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    let (first, pallet) = loop {
+        if let Some((part, pallet)) = at_rest(&flow.plant.state(), "station_a.port") {
+            let state = flow.cell.order_state(&part).await.unwrap_or_default();
+            if state["part"]["state"] == "at" && state["part"]["location"] == "station_a.port" {
+                break (part, pallet);
+            }
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "no part reached station_a"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    assert_eq!(flow.plant.command(&format!("silence {pallet}")), "ok");
+    let second = orders.iter().find(|o| **o != first).unwrap().clone();
+
+    // Lost leaving the port, and the second part at the port in its place.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    let lost = loop {
+        let state = flow.cell.order_state(&first).await;
+        let truth = flow.plant.state();
+        let next_at_port = at_rest(&truth, "station_a.port").is_some_and(|(p, _)| p == second);
+        if let Some(state) = state.filter(|s| s["part"]["state"] == "lost") {
+            if next_at_port {
+                break state;
+            }
+        }
+        assert!(
+            tokio::time::Instant::now() < deadline,
+            "{first} was not lost leaving station_a with {second} there next: {:#}\n{first}: {:#}\n{second}: {:#}",
+            truth,
+            flow.cell.order_state(&first).await.unwrap_or_default(),
+            flow.cell.order_state(&second).await.unwrap_or_default(),
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    assert_eq!(lost["part"]["from"], "station_a.port", "{lost:#}");
+    assert_eq!(lost["part"]["to"], "station_b.port", "{lost:#}");
+
+    let refused = flow.say_part_at(&first, "station_a.port");
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success(), "{stderr}");
+    assert!(
+        stderr.contains("had left station_a.port")
+            && stderr.contains(&format!("held for {second}"))
+            && stderr.contains("nothing changed"),
+        "{stderr}"
+    );
+    let still = flow.cell.order_state(&first).await.unwrap();
+    assert_eq!(still["part"], lost["part"], "{still:#}");
+    assert!(still.get("part_found").is_none(), "{still:#}");
+    let station_a = flow.cell.status("station_a").await.unwrap();
+    let holders: Vec<&str> = station_a["places"]["station_a.port"]
+        .as_array()
+        .unwrap_or_else(|| panic!("station_a holds no place: {station_a:#}"))
+        .iter()
+        .filter_map(|part| part.as_str())
+        .collect();
+    assert_eq!(holders, [second.as_str()], "{station_a:#}");
+
+    // The true word: the part arrived where it went.
+    assert_eq!(flow.plant.command(&format!("report {pallet}")), "ok");
+    let said = flow.say_part_at(&first, "station_b.port");
+    assert!(
+        said.status.success(),
+        "{}",
+        String::from_utf8_lossy(&said.stderr)
+    );
+    assert!(
+        String::from_utf8_lossy(&said.stdout).contains("recorded: its part is at station_b.port"),
+        "{}",
+        String::from_utf8_lossy(&said.stdout)
+    );
+    flow.wait_ended(&orders, Duration::from_secs(120)).await;
+    flow.assert_all_done_and_plant_empty(&orders).await;
+    let worked = trace(&flow)
+        .into_iter()
+        .filter(|r| r.resource == "station_a")
+        .fold(BTreeMap::<String, usize>::new(), |mut n, r| {
+            *n.entry(r.part).or_default() += 1;
+            n
+        });
+    assert_eq!(
+        worked,
+        BTreeMap::from([(first.clone(), 2), (second.clone(), 2)]),
+        "each part's one step at station_a: a pick and a place"
+    );
+    // The second part's first move was booked once the first had departed, to start on
+    // its turn after the silent move; that move's timeout made the conveyor reconnect,
+    // and the second move's turn came while its controller was not ready: refused
+    // without reaching it, so the part stayed where it was and was not lost.
+    assert!(
+        flow.count_in_orders_log("unavailable (the controller is not ready)") >= 1,
+        "the second move's turn did not come while the conveyor reconnected"
+    );
+    let second_state = flow.cell.order_state(&second).await.unwrap();
+    assert!(second_state.get("part_found").is_none(), "{second_state:#}");
     assert_eq!(
         flow.count_in_orders_log("\"ERROR\""),
         0,

@@ -181,15 +181,6 @@ fn say_where_on_the_page(flow: &FlowCell, order: &str, at: &str) -> &'static str
     "dashboard "
 }
 
-/// `cell part ORDER --at LOCATION` as an operator runs it: its output.
-fn say_where(flow: &FlowCell, order: &str, at: &str) -> std::process::Output {
-    std::process::Command::new(bin("cell"))
-        .args(["part", order, "--at", at, "--cell", flow.cell.keys.cell()])
-        .args(["--connect", &flow.cell.endpoint, "--timeout-ms", "5000"])
-        .output()
-        .unwrap()
-}
-
 /// A part whose pallet stops reporting is lost: its move ended in the plant, but the
 /// conveyor's controller never said so, the step timed out, and the conveyor cannot say
 /// where the part is. The order holds ("in transit on X, last seen at Y") until an
@@ -248,7 +239,7 @@ async fn a_lost_part_waits_for_an_operators_word_and_goes_on_from_there() {
         .into_iter()
         .find(|l| *l != from && *l != to)
         .unwrap();
-    let refused = say_where(&flow, order, elsewhere);
+    let refused = flow.say_part_at(order, elsewhere);
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(!refused.status.success(), "{stderr}");
     assert!(
@@ -269,7 +260,7 @@ async fn a_lost_part_waits_for_an_operators_word_and_goes_on_from_there() {
         Ok(()) => say_where_on_the_page(&flow, order, &at),
         Err(why) => {
             println!("SKIPPED (the page's part of this test): it needs Chromium ({why})");
-            let said = say_where(&flow, order, &at);
+            let said = flow.say_part_at(order, &at);
             let stdout = String::from_utf8_lossy(&said.stdout);
             assert!(
                 said.status.success(),
@@ -284,7 +275,7 @@ async fn a_lost_part_waits_for_an_operators_word_and_goes_on_from_there() {
         }
     };
     // Said again: the part is no longer lost, and the refusal says where it is.
-    let again = say_where(&flow, order, &at);
+    let again = flow.say_part_at(order, &at);
     let stderr = String::from_utf8_lossy(&again.stderr);
     assert!(!again.status.success(), "{stderr}");
     assert!(stderr.contains("its part is not lost"), "{stderr}");

@@ -1,7 +1,8 @@
 //! `cell part ORDER --at LOCATION`: an operator's word on where an order's lost part is
 //! (docs/material-flow.md, section 2). The order records it with who said it, in its
-//! journal, and goes on from there; a word on a part that is not lost, or on a location
-//! that is neither end of its lost move, is refused and changes nothing.
+//! journal, and goes on from there; a word on a part that is not lost, on a location
+//! that is neither end of its lost move, or on the origin of a move that had departed
+//! whose place is another part's now, is refused and changes nothing.
 
 use std::time::Duration;
 

@@ -317,6 +317,15 @@ impl OrderTask<'_> {
     /// Reserves a place for the part at `location` (at the resource that states it):
     /// journalled as held before it is asked, so that a restart releases it if unused.
     async fn reserve(&mut self, location: &LocationId) -> Result<bool, OrderError> {
+        Ok(self.reserve_or_why(location).await?.is_ok())
+    }
+
+    /// [`Self::reserve`], saying why a place was not reserved: its resource's reason
+    /// (none when it did not answer) and its words.
+    pub(super) async fn reserve_or_why(
+        &mut self,
+        location: &LocationId,
+    ) -> Result<Result<(), (Option<Reason>, String)>, OrderError> {
         let conversation = PartProgress::place_conversation(&self.holon, location);
         self.ctx
             .commit(self.progress, |p| {
@@ -329,12 +338,22 @@ impl OrderTask<'_> {
         let key = self.ctx.keys.service(location.holon());
         let answer = requests::ask(&self.ctx, &key, &request).await;
         if answer.as_ref().is_some_and(|a| a.result == Some(true)) {
-            return Ok(true);
+            return Ok(Ok(()));
         }
         let why = answer.as_ref().and_then(|a| a.reason.clone());
         if why != Some(Reason::NoPlace) {
             info!(holon = %self.holon, %location, reason = why.as_ref().map_or("no answer", |r| r.as_str()), "a place could not be reserved");
         }
+        let told = match &answer {
+            None => format!("{} did not answer", location.holon()),
+            Some(refusal) => {
+                let reason = why.as_ref().map_or("refused", |r| r.as_str());
+                match refusal.info.get("detail").and_then(|d| d.as_str()) {
+                    Some(detail) => format!("{reason}: {detail}"),
+                    None => reason.to_string(),
+                }
+            }
+        };
         self.ctx
             .commit(self.progress, |p| {
                 if let Some(part) = &mut p.part {
@@ -346,7 +365,7 @@ impl OrderTask<'_> {
             // It may have been reserved with the answer lost: released when it answers.
             self.release(vec![(location.clone(), conversation)]).await;
         }
-        Ok(false)
+        Ok(Err((why, told)))
     }
 
     /// Releases places (each location with its reservation's conversation); one whose
@@ -536,9 +555,12 @@ fn service_step(service_type: &str, info: Map<String, Value>) -> PlanStep {
 /// What a move's outcome means for the part. A failure the transporter's controller
 /// answered at once (it refused the move: `controller_error`, a refused start, info it
 /// could not use) moved nothing, nor did one the controller never began (`not_begun`:
-/// its fenced controller says it never had the move); any other (a fault or an abort
-/// on the way, a lost connection, no result in time, the transporter gone while it may
-/// have run) may have moved it: the part is lost until the transporter says.
+/// its fenced controller says it never had the move), nor one the transporter never
+/// sent to its controller (`unavailable`: its controller was not ready when the move's
+/// turn came; `busy`: another job still ran; `withdrawn`: it shut down before the
+/// move's turn); any other (a fault or an abort on the way, a lost connection, no
+/// result in time, the transporter gone while it may have run) may have moved it: the
+/// part is lost until the transporter says.
 fn move_end(outcome: &StepOutcome, may_have_begun: bool) -> MoveEnd {
     match outcome {
         StepOutcome::Done { .. } => MoveEnd::Done,
@@ -546,9 +568,15 @@ fn move_end(outcome: &StepOutcome, may_have_begun: bool) -> MoveEnd {
         StepOutcome::Lost { why, .. } if may_have_begun => MoveEnd::Unknown { why: why.clone() },
         StepOutcome::Lost { .. } => MoveEnd::Unattempted,
         StepOutcome::Failed { reason, detail, .. } => {
-            let refused = reason == Reason::ControllerError.as_str()
-                || reason == Reason::NotBegun.as_str()
-                || reason == Reason::InvalidInfo.as_str()
+            let never_ran = [
+                Reason::ControllerError,
+                Reason::NotBegun,
+                Reason::InvalidInfo,
+                Reason::Unavailable,
+                Reason::Busy,
+                Reason::Withdrawn,
+            ];
+            let refused = never_ran.iter().any(|r| reason == r.as_str())
                 || reason.starts_with("start refused");
             if refused {
                 MoveEnd::Unattempted

@@ -347,6 +347,61 @@ fn a_departed_move_that_then_fails_is_lost_and_found_without_a_second_release() 
 }
 
 #[test]
+fn an_operators_word_on_a_departed_part_at_its_origin_needs_the_origin_reserved_again() {
+    let lost_after_departing = || {
+        let mut part = moving_between_ports();
+        part.move_phase(Phase::Started(conveyor()));
+        assert!(part.departed("o-1/m1/1", &conveyor()).is_some());
+        part.end_move(
+            MoveEnd::Unknown {
+                why: "fault".into(),
+            },
+            Some(conveyor()),
+        );
+        part
+    };
+    let mut part = lost_after_departing();
+    assert!(part.needs_origin_again(&id("robot1.port")));
+    assert!(
+        !part.needs_origin_again(&id("robot2.port")),
+        "its place at the destination is held"
+    );
+    // Reserved again (the order's task journals it before it asks): held, not asked again.
+    part.held
+        .insert(id("robot1.port"), "o-1/place/robot1.port".into());
+    assert!(!part.needs_origin_again(&id("robot1.port")));
+    // Then found there: the origin kept, the destination released.
+    let released = part.found_by_operator(&id("robot1.port"), "kim", 7);
+    assert_eq!(
+        released,
+        vec![(id("robot2.port"), "o-1/place/robot2.port".to_string())]
+    );
+    assert!(part.held.contains_key(&id("robot1.port")), "{part:?}");
+
+    // A word on a lost move that never departed: its origin is still held.
+    let mut never_left = moving_between_ports();
+    never_left.move_phase(Phase::Started(conveyor()));
+    never_left.end_move(
+        MoveEnd::Unknown {
+            why: "fault".into(),
+        },
+        Some(conveyor()),
+    );
+    assert!(!never_left.needs_origin_again(&id("robot1.port")));
+    // Nor a part that is not lost.
+    assert!(!moving_between_ports().needs_origin_again(&id("robot1.port")));
+    // Found at its destination after the origin was reserved again: released there.
+    let mut part = lost_after_departing();
+    part.held
+        .insert(id("robot1.port"), "o-1/place/robot1.port".into());
+    let released = part.found(true);
+    assert_eq!(
+        released,
+        vec![(id("robot1.port"), "o-1/place/robot1.port".to_string())]
+    );
+}
+
+#[test]
 fn a_journalled_move_of_before_departures_reads_as_not_departed() {
     let mut part = moving_between_ports();
     part.move_phase(Phase::Started(conveyor()));

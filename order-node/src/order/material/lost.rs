@@ -6,7 +6,8 @@
 
 use std::time::Duration;
 
-use schemas::{unix_ms, ErrorCode, HolonId, PartWordReply};
+use schemas::layout::LocationId;
+use schemas::{unix_ms, ErrorCode, HolonId, PartWordReply, Reason};
 use tracing::{info, warn};
 
 use super::super::OrderTask;
@@ -153,6 +154,23 @@ impl OrderTask<'_> {
             }
             return Ok(false);
         }
+        let refused = match self.hold_origin_again(&word.location, moving).await {
+            Ok(Ok(())) => None,
+            Ok(Err(refused)) => Some(refused),
+            Err(e) => {
+                let why = format!("{name}: cannot record the word: {e}");
+                if word.reply.send(Err((ErrorCode::Internal, why))).is_err() {
+                    info!(holon = %self.holon, "the word's asker left before it heard the word was not recorded");
+                }
+                return Err(e);
+            }
+        };
+        if let Some(refused) = refused {
+            if word.reply.send(Err(refused)).is_err() {
+                info!(holon = %self.holon, "a refused word on the part was not answered: its asker has left");
+            }
+            return Ok(false);
+        }
         let mut released = Vec::new();
         let recorded = self
             .ctx
@@ -182,5 +200,44 @@ impl OrderTask<'_> {
         self.publish().await;
         self.release(released).await;
         Ok(true)
+    }
+
+    /// Before an operator's word that the lost part is at `location` is recorded: when
+    /// that is the origin of a move that had departed (its place there released then,
+    /// [`crate::part::PartProgress::needs_origin_again`]), the place is reserved again,
+    /// or the word is refused (nothing changes): another part's place, `invalid` (the
+    /// order as it stands; asked again once the place is free, it is taken); its
+    /// resource not answering, `unavailable` (ask again). Two parts are never taken to
+    /// be at a port of one place (docs/material-flow.md, "Departure").
+    async fn hold_origin_again(
+        &mut self,
+        location: &LocationId,
+        moving: &Move,
+    ) -> Result<Result<(), (ErrorCode, String)>, OrderError> {
+        if !self.part().needs_origin_again(location) {
+            return Ok(Ok(()));
+        }
+        let (reason, why) = match self.reserve_or_why(location).await? {
+            Ok(()) => {
+                info!(holon = %self.holon, %location, conversation_id = %moving.conversation_id, "the lost part's origin, released at its departure, is reserved again for an operator's word");
+                return Ok(Ok(()));
+            }
+            Err(refusal) => refusal,
+        };
+        info!(holon = %self.holon, %location, conversation_id = %moving.conversation_id, %why, "an operator's word that the lost part is back at its origin refused: its place there is not to be had");
+        let code = if reason == Some(Reason::NoPlace) {
+            ErrorCode::Invalid
+        } else {
+            ErrorCode::Unavailable
+        };
+        let refused = format!(
+            "{name}: its move had left {from}, whose place was released then and cannot be \
+             reserved again ({why}); put the part at {to}, where its place is held, and say \
+             so, or ask again once {from} is free; nothing changed",
+            name = self.holon.name(),
+            from = moving.from,
+            to = moving.to,
+        );
+        Ok(Err((code, refused)))
     }
 }
