@@ -212,8 +212,7 @@ pub enum Judged {
 /// | `done` / `failed` | another conversation, from any other | refused `not_booked` |
 /// | `done` / `failed` | this conversation, from another provider | refused `not_booked` |
 /// | `done` | this attempt's | [`StepOutcome::Done`] with its results |
-/// | `failed` | this attempt's, reason `withdrawn` | [`StepOutcome::Lost`] |
-/// | `failed` | this attempt's | [`StepOutcome::Failed`] with its reason and detail |
+/// | `failed` | this attempt's | [`StepOutcome::Failed`] with its reason and detail (one that never reached the controller, `withdrawn` say, is booked again, not counted: [`crate::progress`]) |
 /// | anything else | | refused `wrong_key` ([`Inboxes::route`] lets no other through) |
 #[derive(Debug, Clone, PartialEq)]
 pub enum Verdict {
@@ -300,10 +299,6 @@ pub fn verdict(
                 .and_then(|r| r.as_object())
                 .cloned()
                 .unwrap_or_default(),
-        },
-        _ if message.reason.as_ref() == Some(&Reason::Withdrawn) => StepOutcome::Lost {
-            provider: from,
-            why: Reason::Withdrawn.to_string(),
         },
         _ => StepOutcome::Failed {
             provider: from,
@@ -444,7 +439,7 @@ mod tests {
         failed.reason = Some(Reason::Withdrawn);
         assert!(matches!(
             verdict(&failed, &conveyor(), &booked(), "o-1/m1/1"),
-            Verdict::Ended(StepOutcome::Lost { .. })
+            Verdict::Ended(StepOutcome::Failed { reason, .. }) if reason == "withdrawn"
         ));
         // A duplicate of an earlier conversation from a booked resource: ignored;
         // from one never booked, or from another than the attempt's: refused.

@@ -5,7 +5,7 @@ use std::collections::BTreeSet;
 
 use schemas::{
     unix_ms, AttemptEnd, AttemptRecord, HolonId, OnReject, OrderSnapshot, OrderStatus, Plan,
-    MAX_ATTEMPT_HISTORY,
+    Reason, MAX_ATTEMPT_HISTORY,
 };
 use serde_json::{Map, Value};
 
@@ -396,6 +396,15 @@ impl OrderProgress {
                     self.advance();
                 }
             }
+            StepOutcome::Failed { reason, .. }
+                if Reason::from_word(&reason).never_reached_controller() =>
+            {
+                // Nothing of it ran (its turn came while the controller reconnected,
+                // the resource was stopped or handed it back): booked again, as a lost
+                // booking is, not counted against the step.
+                self.rebooks += 1;
+                self.next_attempt();
+            }
             StepOutcome::Failed {
                 provider,
                 reason,
@@ -447,6 +456,13 @@ impl OrderProgress {
                     AttemptEnd::Done
                 };
                 (end, Some(provider.clone()))
+            }
+            // Booked again, not counted (see `record`): an attempt lost, as the
+            // operator reads the trail, in the resource's words.
+            StepOutcome::Failed {
+                provider, reason, ..
+            } if Reason::from_word(reason).never_reached_controller() => {
+                (AttemptEnd::Lost, Some(provider.clone()))
             }
             StepOutcome::Failed { provider, .. } => (AttemptEnd::Failed, Some(provider.clone())),
             StepOutcome::Lost { provider, .. } => (AttemptEnd::Lost, Some(provider.clone())),

@@ -161,9 +161,49 @@ words! {
     }
 }
 
+impl Reason {
+    /// Whether a step whose result is `failed` for this reason never reached its
+    /// controller, so that nothing of it ran and it may be booked again at no risk (a
+    /// part it would have moved is where it was): `not_begun` (its fenced controller
+    /// says it never had it), `unavailable` (its turn came while the controller was not
+    /// ready: it was never sent), `busy` (another job still ran), `withdrawn` (the
+    /// resource handed the booking back before it began). Not a refusal's meaning: a
+    /// `booking_req` refused `unavailable` is another answer.
+    pub fn never_reached_controller(&self) -> bool {
+        matches!(
+            self,
+            Reason::NotBegun | Reason::Unavailable | Reason::Busy | Reason::Withdrawn
+        )
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_failure_that_never_reached_the_controller_is_named_by_its_reason() {
+        for never in ["not_begun", "unavailable", "busy", "withdrawn"] {
+            assert!(
+                Reason::from_word(never).never_reached_controller(),
+                "{never}"
+            );
+        }
+        for may_have_run in [
+            "controller_error",
+            "controller_disconnected",
+            "controller_timeout",
+            "controller_fault",
+            "interrupted",
+            "aborted",
+            "gripper jammed",
+        ] {
+            assert!(
+                !Reason::from_word(may_have_run).never_reached_controller(),
+                "{may_have_run}"
+            );
+        }
+    }
 
     #[test]
     fn the_words_on_the_wire_are_the_old_strings_and_unknown_ones_are_kept() {

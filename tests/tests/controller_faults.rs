@@ -264,3 +264,81 @@ async fn a_controller_that_breaks_every_connection_is_reconnected_to_with_a_back
         .unwrap();
     assert_eq!(state["controller"], "disconnected", "{state}");
 }
+
+/// Orders wait on robot1's agenda when its connection breaks mid-job (`--reset-after
+/// 2`: the second job's first command is cut): that job fails `controller_disconnected`
+/// (it was sent: it may have run), and the next booking's turn comes while the
+/// controller reconnects, so robot1 fails it `unavailable` without sending it. The
+/// order-node allows one failed attempt a step: the job that was sent fails its order,
+/// the one that never reached the controller is booked again and done, as is every
+/// other. Before, the unsent one counted as a failure and failed its order too.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_booking_whose_turn_comes_while_the_controller_reconnects_is_booked_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-f-turn-unready").await.unwrap();
+    let robot = cell
+        .resource(dir.path(), "robot1")
+        .sim_flags(&["--delay-ms", "300", "--reset-after", "2"])
+        .start()
+        .await
+        .unwrap();
+    let config = dir.path().join("orders1.toml");
+    let text = std::fs::read_to_string(demo_config("orders1.toml")).unwrap();
+    std::fs::write(
+        &config,
+        text.replace("max_attempts = 3", "max_attempts = 1"),
+    )
+    .unwrap();
+    let (_product, _orders) = cell
+        .start_part_and_orders(dir.path(), &config, &dir.path().join("orders-data"))
+        .await
+        .unwrap();
+    let orders = cell.submit("part", 3).await.unwrap();
+    let mut ended = Vec::new();
+    for order in &orders {
+        cell.wait_order(order, "ended", |s| {
+            s.is_some_and(|s| s["status"] != "running")
+        })
+        .await
+        .unwrap();
+        ended.push(cell.order_state(order).await.unwrap());
+    }
+    let failed: Vec<&serde_json::Value> =
+        ended.iter().filter(|s| s["status"] == "failed").collect();
+    assert_eq!(
+        failed.len(),
+        1,
+        "only the job that was sent fails: {ended:#?}"
+    );
+    assert!(
+        failed[0]["reason"]
+            .as_str()
+            .is_some_and(|r| r.contains("controller_disconnected")),
+        "{ended:#?}"
+    );
+    let rebooked: Vec<&serde_json::Value> = ended
+        .iter()
+        .filter(|s| s["status"] == "done")
+        .filter(|s| {
+            s["attempts"].as_array().unwrap().iter().any(|a| {
+                a["detail"]
+                    .as_str()
+                    .is_some_and(|d| d.contains("unavailable (the controller is not ready)"))
+            })
+        })
+        .collect();
+    assert_eq!(
+        rebooked.len(),
+        1,
+        "one turn came while robot1 reconnected: {ended:#?}"
+    );
+    assert_eq!(rebooked[0]["failed_attempts"], 0, "{:#}", rebooked[0]);
+    assert_eq!(rebooked[0]["rebooks"], 1, "{:#}", rebooked[0]);
+    assert_eq!(
+        ended.iter().filter(|s| s["status"] == "done").count(),
+        2,
+        "{ended:#?}"
+    );
+    // Two jobs done; the cut one's place never ran.
+    assert_eq!(robot.sim.executed("place"), 2);
+}

@@ -2,8 +2,8 @@
 //! real binary) and queries on `resource/<name>/packml`. Hold keeps the bookings and
 //! lets the running step finish; Stop hands them back; a refused command changes
 //! nothing; the mode changes only where PackML allows; Abort stops the controller
-//! mid-step; orders go to the other robot while one is held; a held robot comes back
-//! Held after kill -9.
+//! mid-step; orders go to the other robot while one is held; bookings a stop hands
+//! back are booked again, not failed; a held robot comes back Held after kill -9.
 
 use std::time::Duration;
 
@@ -328,6 +328,63 @@ async fn while_robot1_is_held_the_orders_go_to_robot2() {
     assert!(robot2.sim.executed("pick") >= 6);
     accepted(&cell, &["robot1", "unhold"]).await;
     cell.wait_packml("robot1", 6).await.unwrap();
+}
+
+/// An operator stops the only robot while orders wait on its agenda: their bookings are
+/// handed back (`failed` `withdrawn`, nothing of them ran), and the orders book again
+/// once it is started, each finishing with no failed attempt. The order-node allows one
+/// failed attempt a step, so one handed-back booking counted as a failure would fail
+/// its order.
+#[tokio::test(flavor = "multi_thread")]
+async fn bookings_a_stopped_robot_hands_back_are_booked_again_not_failed() {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-packml-handed-back").await.unwrap();
+    let robot = cell
+        .resource(dir.path(), "robot1")
+        .sim_flags(&["--delay-ms", "700"])
+        .start()
+        .await
+        .unwrap();
+    let config = dir.path().join("orders1.toml");
+    let text = std::fs::read_to_string(demo_config("orders1.toml")).unwrap();
+    std::fs::write(
+        &config,
+        text.replace("max_attempts = 3", "max_attempts = 1"),
+    )
+    .unwrap();
+    let (_product, _orders) = cell
+        .start_part_and_orders(dir.path(), &config, &dir.path().join("orders-data"))
+        .await
+        .unwrap();
+    let orders = cell.submit("part", 3).await.unwrap();
+    // One runs, the others wait their turn on the agenda.
+    cell.wait_state("robot1", "one job running, two waiting", |s| {
+        s["current"].is_object() && s["agenda"].as_array().is_some_and(|a| a.len() >= 2)
+    })
+    .await
+    .unwrap();
+    // Held, the running job finishes; stopped, the waiting bookings are handed back.
+    accepted(&cell, &["robot1", "hold"]).await;
+    cell.wait_packml("robot1", 11).await.unwrap();
+    accepted(&cell, &["robot1", "stop"]).await;
+    cell.wait_packml("robot1", 2).await.unwrap();
+    let handed_back = robot.sim.executed("pick");
+    accepted(&cell, &["robot1", "reset"]).await;
+    accepted(&cell, &["robot1", "start"]).await;
+    cell.wait_packml("robot1", 6).await.unwrap();
+    wait_done(&cell, &orders).await;
+
+    let mut rebooked = 0;
+    for order in &orders {
+        let state = cell.order_state(order).await.unwrap();
+        assert_eq!(state["failed_attempts"], 0, "{state:#}");
+        rebooked += state["rebooks"].as_u64().unwrap();
+    }
+    assert!(
+        rebooked >= 1,
+        "no booking was handed back (picks before the stop: {handed_back})"
+    );
+    assert_eq!(robot.sim.executed("pick"), 3, "each order's step once");
 }
 
 async fn wait_done(cell: &Cell, orders: &[String]) {

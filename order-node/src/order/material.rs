@@ -568,15 +568,10 @@ fn move_end(outcome: &StepOutcome, may_have_begun: bool) -> MoveEnd {
         StepOutcome::Lost { why, .. } if may_have_begun => MoveEnd::Unknown { why: why.clone() },
         StepOutcome::Lost { .. } => MoveEnd::Unattempted,
         StepOutcome::Failed { reason, detail, .. } => {
-            let never_ran = [
-                Reason::ControllerError,
-                Reason::NotBegun,
-                Reason::InvalidInfo,
-                Reason::Unavailable,
-                Reason::Busy,
-                Reason::Withdrawn,
-            ];
-            let refused = never_ran.iter().any(|r| reason == r.as_str())
+            let said = Reason::from_word(reason);
+            let refused = said.never_reached_controller()
+                || said == Reason::ControllerError
+                || said == Reason::InvalidInfo
                 || reason.starts_with("start refused");
             if refused {
                 MoveEnd::Unattempted

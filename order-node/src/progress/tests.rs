@@ -241,6 +241,29 @@ fn lost_bookings_rebook_without_counting_as_failures() {
 }
 
 #[test]
+fn failures_that_never_reached_the_controller_rebook_without_counting() {
+    // max_attempts is 2 here: four of these would have failed the order twice over.
+    let mut o = order();
+    for reason in ["unavailable", "busy", "withdrawn", "not_begun"] {
+        o.record(StepOutcome::Failed {
+            provider: robot("robot1"),
+            reason: reason.into(),
+            detail: Some("the controller is not ready".into()),
+        });
+        assert_eq!(o.status, OrderStatus::Running, "{reason}");
+    }
+    assert_eq!((o.rebooks, o.failures, o.failed_attempts), (4, 0, 0));
+    assert!(o.avoid.is_empty(), "nothing of it ran there: not avoided");
+    assert_eq!(o.conversation_id(), "n1-1/1/5");
+    // Each is in the audit trail as the resource said it.
+    assert_eq!(o.history[0].end, AttemptEnd::Lost);
+    assert_eq!(
+        o.history[0].detail,
+        "failed on resource/robot1: unavailable (the controller is not ready)"
+    );
+}
+
+#[test]
 fn no_resource_fails_the_order() {
     let mut o = order();
     o.record(StepOutcome::NoResource);
