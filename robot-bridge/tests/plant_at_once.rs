@@ -7,11 +7,14 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
+use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerRequest, ControllerStatus};
 use robot_bridge::plant::PlantError;
+use schemas::RobotCommand;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 mod common;
 use common::plant::{control, control_line, loop_conveyor, one_conveyor_plant, start_plant};
+use common::{reply, Harness};
 
 /// The longest wait for anything.
 const WAIT: Duration = Duration::from_secs(10);
@@ -185,6 +188,102 @@ async fn a_cut_leaves_each_move_under_way_to_end_in_the_plant() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     shutdown.cancel();
+}
+
+/// The client's command moving `part` from the loading point to the buffer.
+fn move_to_buffer(id: u64, part: &str) -> ControllerRequest {
+    let info = [
+        ("part", part),
+        ("from", "conveyor1.load"),
+        ("to", "conveyor1.buffer"),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), serde_json::Value::from(v)))
+    .collect();
+    ControllerRequest::Command(RobotCommand {
+        id,
+        action: "move".into(),
+        pos: None,
+        program: None,
+        info,
+    })
+}
+
+/// Two moves at once through the controller client, the first one's pallet silent (its
+/// move ends in the plant unsaid): the first times out alone, while the controller
+/// answers the second, and the second arrives on the same connection. A pallet that
+/// stops reporting is that pallet's trouble: the connection is kept, and the other
+/// moves on it are not failed with it (a reset would fail every one of them
+/// `controller_disconnected`, and an unfenced transporter's order would take each
+/// part to be lost).
+#[tokio::test(flavor = "multi_thread")]
+async fn a_silent_pallets_timeout_fails_its_move_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let plant = start_plant(&plant_file(dir.path(), 2), schemas::TimeScale::REAL).await;
+    // A move takes about 1 s (1 m at 1 m/s); its command times out after 1.5 s.
+    let mut h = Harness::start(
+        plant.address("conveyor1").to_string(),
+        Duration::from_millis(1500),
+    );
+    h.wait_ready().await;
+    h.commands.send(move_to_buffer(1, "p-1")).await.unwrap();
+    assert_eq!(h.answer().await, ControllerEvent::Departed { id: 1 });
+    let view = control(&plant.control, "where").await;
+    let pallet = view["in_transit"][0]["load"]["carrier"]
+        .as_str()
+        .unwrap_or_else(|| panic!("p-1 rides no pallet: {view:#}"))
+        .to_string();
+    assert_eq!(
+        control_line(&plant.control, &format!("silence {pallet}")).await,
+        "ok"
+    );
+    // The second begins 0.6 s after the first: it departs before the first times
+    // out, and arrives after.
+    tokio::time::sleep(Duration::from_millis(600)).await;
+    h.commands.send(move_to_buffer(2, "p-2")).await.unwrap();
+    let mut events = Vec::new();
+    loop {
+        let event = h.next().await;
+        events.push(event.clone());
+        if matches!(event, ControllerEvent::Reply { id: 2, .. }) {
+            break;
+        }
+        assert!(
+            !matches!(event, ControllerEvent::CommandFailed { id: 2, .. }),
+            "the second move failed with the first: {events:?}"
+        );
+    }
+    let answers: Vec<&ControllerEvent> = events
+        .iter()
+        .filter(|e| !matches!(e, ControllerEvent::Status(..)))
+        .collect();
+    assert_eq!(
+        answers,
+        [
+            &ControllerEvent::Departed { id: 2 },
+            &ControllerEvent::CommandFailed {
+                id: 1,
+                failure: CommandFailure::Timeout(Duration::from_millis(1500)),
+            },
+            &reply(2, "arrived"),
+        ],
+        "{events:?}"
+    );
+    assert!(
+        !events.contains(&ControllerEvent::Status(
+            ControllerStatus::Disconnected,
+            None
+        )),
+        "the connection was reset: {events:?}"
+    );
+    let view = control(&plant.control, "where").await;
+    assert_eq!(
+        parts_in(&view, "conveyor1.buffer"),
+        ["p-1", "p-2"],
+        "{view:#}"
+    );
+    h.stop().await;
+    plant.shutdown.cancel();
 }
 
 #[test]

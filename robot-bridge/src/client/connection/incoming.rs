@@ -184,6 +184,7 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         };
         let rule = &self.dialect.replies[reply];
         let now = Instant::now();
+        self.last_answer = Some(now);
         let exchange = &mut self.exchanges[i];
         let id = exchange.command.id;
         if rule.outcome == Outcome::Departed {
