@@ -52,8 +52,12 @@ struct Exchange {
     sent: bool,
     /// When a poll is due again.
     poll_at: Option<Instant>,
-    /// When the command came.
-    came: Instant,
+    /// Whether the controller has answered another command on this connection since
+    /// this one came (any answer matched to a command in flight, a departure
+    /// included): with ids, a command that times out while the controller answers
+    /// others is that command's trouble (a pallet that stopped reporting), not the
+    /// link's.
+    others_answered: bool,
     /// When the step must have ended.
     deadline: Instant,
     /// Whether an abort has been asked while it was in flight.
@@ -103,11 +107,6 @@ pub(super) struct Connection<'a, 'o, O> {
     next_status_poll: Option<Instant>,
     /// When the link was last used (for the keep-alive).
     last_traffic: Instant,
-    /// When the controller last answered a command on this connection (any answer
-    /// matched to a command in flight, a departure included): with ids, a command that
-    /// times out while the controller answers others since it came is that command's
-    /// trouble (a pallet that stopped reporting), not the link's.
-    last_answer: Option<Instant>,
     /// Status messages repeating the last one, since the last change.
     repeats: u64,
     /// Polled state: whether a status answer has been read since the connection began
@@ -151,7 +150,6 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
                 .map(|_| now + config.connect_timeout),
             next_status_poll: matches!(dialect.status, Status::Polled { .. }).then_some(now),
             last_traffic: now,
-            last_answer: None,
             repeats: 0,
             state_fresh: false,
             poll_outstanding: false,
@@ -307,7 +305,6 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
                 }
             }
         }
-        let now = Instant::now();
         self.exchanges.push_back(Exchange {
             command,
             values,
@@ -315,8 +312,8 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
             element: 0,
             sent: false,
             poll_at: None,
-            came: now,
-            deadline: now + self.config.command_timeout,
+            others_answered: false,
+            deadline: Instant::now() + self.config.command_timeout,
             aborted: false,
             echoed: false,
             departed: false,
@@ -519,12 +516,12 @@ impl<'a, 'o, O: Owner> Connection<'a, 'o, O> {
         // With ids, the controller's answers to other commands since this one came show
         // the link and the controller serve: only this command failed, the rest go on
         // (its late answer, if any, names an id in flight no more and is ignored). On a
-        // one-in-flight wire, or with nothing answered since, the link is suspect.
+        // one-in-flight wire, or with no other command answered since, the link is suspect.
         let mut link_serves = !self.one_in_flight();
         for id in expired {
             if let Some(i) = self.exchanges.iter().position(|e| e.command.id == id) {
                 if let Some(mut exchange) = self.exchanges.remove(i) {
-                    link_serves &= self.last_answer.is_some_and(|at| at > exchange.came);
+                    link_serves &= exchange.others_answered;
                     self.remember(&mut exchange);
                 }
             }

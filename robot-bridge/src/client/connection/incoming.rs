@@ -184,7 +184,9 @@ impl<O: super::Owner> Connection<'_, '_, O> {
         };
         let rule = &self.dialect.replies[reply];
         let now = Instant::now();
-        self.last_answer = Some(now);
+        for (j, other) in self.exchanges.iter_mut().enumerate() {
+            other.others_answered |= j != i;
+        }
         let exchange = &mut self.exchanges[i];
         let id = exchange.command.id;
         if rule.outcome == Outcome::Departed {
