@@ -7,13 +7,14 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerRequest, ControllerStatus};
+use robot_bridge::client::{CommandFailure, ControllerEvent, ControllerStatus};
 use robot_bridge::plant::PlantError;
-use schemas::RobotCommand;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 mod common;
-use common::plant::{control, control_line, loop_conveyor, one_conveyor_plant, start_plant};
+use common::plant::{
+    control, control_line, loop_conveyor, move_to_buffer, one_conveyor_plant, start_plant,
+};
 use common::{reply, Harness};
 
 /// The longest wait for anything.
@@ -188,25 +189,6 @@ async fn a_cut_leaves_each_move_under_way_to_end_in_the_plant() {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
     shutdown.cancel();
-}
-
-/// The client's command moving `part` from the loading point to the buffer.
-fn move_to_buffer(id: u64, part: &str) -> ControllerRequest {
-    let info = [
-        ("part", part),
-        ("from", "conveyor1.load"),
-        ("to", "conveyor1.buffer"),
-    ]
-    .into_iter()
-    .map(|(k, v)| (k.to_string(), serde_json::Value::from(v)))
-    .collect();
-    ControllerRequest::Command(RobotCommand {
-        id,
-        action: "move".into(),
-        pos: None,
-        program: None,
-        info,
-    })
 }
 
 /// Two moves at once through the controller client, the first one's pallet silent (its

@@ -8,39 +8,18 @@
 use std::path::Path;
 use std::time::Duration;
 
-use robot_bridge::client::{ControllerEvent, ControllerRequest};
-use schemas::{RobotCommand, TimeScale};
+use robot_bridge::client::ControllerEvent;
+use schemas::TimeScale;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 mod common;
-use common::plant::{control, control_line, loop_conveyor, one_conveyor_plant, start_plant};
+use common::plant::{
+    control, control_line, loop_conveyor, move_to_buffer, one_conveyor_plant, start_plant,
+};
 use common::{reply, Harness};
 
 fn plant_file(dir: &Path) -> std::path::PathBuf {
     one_conveyor_plant(dir, &loop_conveyor(2), "")
-}
-
-/// Asks the client to move `part` from the loading point to the buffer, as command `id`.
-async fn move_to_buffer(h: &Harness, id: u64, part: &str) {
-    let info = [
-        ("part", part),
-        ("from", "conveyor1.load"),
-        ("to", "conveyor1.buffer"),
-    ]
-    .into_iter()
-    .map(|(k, v)| (k.to_string(), serde_json::Value::from(v)))
-    .collect();
-    let command = RobotCommand {
-        id,
-        action: "move".into(),
-        pos: None,
-        program: None,
-        info,
-    };
-    h.commands
-        .send(ControllerRequest::Command(command))
-        .await
-        .unwrap();
 }
 
 #[tokio::test(flavor = "multi_thread")]
@@ -52,7 +31,7 @@ async fn a_conveyor_move_is_said_departed_before_its_reply() {
         Duration::from_secs(10),
     );
     h.wait_ready().await;
-    move_to_buffer(&h, 1, "p-1").await;
+    h.commands.send(move_to_buffer(1, "p-1")).await.unwrap();
     assert_eq!(h.answer().await, ControllerEvent::Departed { id: 1 });
     // Said when the pallet left, not at the end: the part is still on its way.
     let view = control(&plant.control, "where").await;
@@ -76,7 +55,7 @@ async fn a_pallet_that_cannot_leave_is_not_said_departed_until_it_does() {
         Duration::from_secs(10),
     );
     h.wait_ready().await;
-    move_to_buffer(&h, 1, "p-1").await;
+    h.commands.send(move_to_buffer(1, "p-1")).await.unwrap();
     // Longer than the whole move would take: still docked at the loading point.
     let quiet = tokio::time::timeout(Duration::from_millis(1500), h.answer()).await;
     assert!(quiet.is_err(), "{quiet:?}");
@@ -130,7 +109,7 @@ async fn a_departure_of_no_command_in_flight_is_ignored() {
     });
     let mut h = Harness::start(address, Duration::from_secs(10));
     h.wait_ready().await;
-    move_to_buffer(&h, 1, "p-1").await;
+    h.commands.send(move_to_buffer(1, "p-1")).await.unwrap();
     // Told once, however often the controller says it; the strays go unreported.
     assert_eq!(h.answer().await, ControllerEvent::Departed { id: 1 });
     assert_eq!(h.answer().await, reply(1, "arrived"));

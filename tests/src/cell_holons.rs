@@ -134,6 +134,29 @@ impl Cell {
         Ok((product, orders))
     }
 
+    /// [`Self::start_part_and_orders`] with the demo's order-node allowing
+    /// `max_attempts` failed attempts a step (`orders.max_attempts`), its journal in
+    /// DIR/orders-data.
+    pub async fn start_part_and_demo_orders(
+        &self,
+        dir: &Path,
+        max_attempts: u32,
+    ) -> Result<(Process, Process)> {
+        let config = dir.join("orders1.toml");
+        let text = std::fs::read_to_string(crate::demo_config("orders1.toml"))?;
+        let text = text.replace(
+            "max_attempts = 3",
+            &format!("max_attempts = {max_attempts}"),
+        );
+        anyhow::ensure!(
+            text.contains(&format!("max_attempts = {max_attempts}")),
+            "the demo's orders1.toml sets no max_attempts"
+        );
+        std::fs::write(&config, text)?;
+        self.start_part_and_orders(dir, &config, &dir.join("orders-data"))
+            .await
+    }
+
     /// Starts the resource holon of `config` (its name is the file's stem) on this
     /// cell, driving the controller at `controller`, and waits until it is alive and
     /// free (its controller ready).

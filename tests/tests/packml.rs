@@ -345,15 +345,8 @@ async fn bookings_a_stopped_robot_hands_back_are_booked_again_not_failed() {
         .start()
         .await
         .unwrap();
-    let config = dir.path().join("orders1.toml");
-    let text = std::fs::read_to_string(demo_config("orders1.toml")).unwrap();
-    std::fs::write(
-        &config,
-        text.replace("max_attempts = 3", "max_attempts = 1"),
-    )
-    .unwrap();
     let (_product, _orders) = cell
-        .start_part_and_orders(dir.path(), &config, &dir.path().join("orders-data"))
+        .start_part_and_demo_orders(dir.path(), 1)
         .await
         .unwrap();
     let orders = cell.submit("part", 3).await.unwrap();

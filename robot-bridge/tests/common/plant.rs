@@ -1,10 +1,11 @@
-//! What the plant's tests share: a conveyor loop's plant file, and its control port's
-//! commands.
+//! What the plant's tests share: a conveyor loop's plant file, its control port's
+//! commands, and a client's move on it.
 
 use std::path::{Path, PathBuf};
 
+use robot_bridge::client::ControllerRequest;
 use robot_bridge::plant::PlantSim;
-use schemas::TimeScale;
+use schemas::{RobotCommand, TimeScale};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 use tokio_util::sync::CancellationToken;
 
@@ -107,4 +108,23 @@ pub async fn control_line(address: &str, line: &str) -> String {
     let mut answer = String::new();
     BufReader::new(stream).read_line(&mut answer).await.unwrap();
     answer.trim_end().to_string()
+}
+
+/// The client's command `id` moving `part` from the loading point to the buffer.
+pub fn move_to_buffer(id: u64, part: &str) -> ControllerRequest {
+    let info = [
+        ("part", part),
+        ("from", "conveyor1.load"),
+        ("to", "conveyor1.buffer"),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), serde_json::Value::from(v)))
+    .collect();
+    ControllerRequest::Command(RobotCommand {
+        id,
+        action: "move".into(),
+        pos: None,
+        program: None,
+        info,
+    })
 }
