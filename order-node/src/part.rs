@@ -85,6 +85,11 @@ pub struct PartProgress {
     pub moving: Option<Move>,
     /// Moves begun so far: each one's conversation is numbered by it.
     pub moves: u32,
+    /// Places reserved so far: each reservation's conversation is numbered by it, so
+    /// that a late `booking_cancel` of an earlier reservation of a location never
+    /// releases a later one.
+    #[serde(default)]
+    pub reservations: u32,
     /// The order's end, decided while the part was in the cell: recorded once the part
     /// has left it.
     pub leaving: Option<(OrderStatus, Option<String>)>,
@@ -102,6 +107,7 @@ impl Default for PartProgress {
             held: BTreeMap::new(),
             moving: None,
             moves: 0,
+            reservations: 0,
             leaving: None,
             found: Vec::new(),
         }
@@ -126,8 +132,9 @@ impl PartProgress {
     }
 
     /// The reservation's conversation for a place at `location`.
-    pub fn place_conversation(order: &HolonId, location: &LocationId) -> String {
-        format!("{}/place/{location}", order.name())
+    pub fn place_conversation(&mut self, order: &HolonId, location: &LocationId) -> String {
+        self.reservations += 1;
+        format!("{}/place/{location}/{}", order.name(), self.reservations)
     }
 
     /// A move of the part begins to be booked.
@@ -295,13 +302,16 @@ impl PartProgress {
     /// Whether an operator's word that the lost part is at `location` needs its place
     /// there reserved again before it is recorded: `location` is the lost move's origin,
     /// whose place was released when the transporter said the move had left it
-    /// (docs/material-flow.md, "Departure"), and the part holds none there now. (Its
-    /// home is never released that way; a place reserved again since is held.)
+    /// (docs/material-flow.md, "Departure"). Asked even when `held` has it again: a
+    /// reservation journalled before it was asked may not have been granted (the
+    /// process died, or its refusal's removal failed), and asking again is harmless
+    /// (a part that holds the place is answered true again). Its home is never
+    /// released that way.
     pub fn needs_origin_again(&self, location: &LocationId) -> bool {
         let (PartPlace::Lost { from, .. }, Some(moving)) = (&self.place, &self.moving) else {
             return false;
         };
-        location == from && moving.departed.is_some() && !self.held.contains_key(from)
+        location == from && moving.departed.is_some()
     }
 
     /// An operator said where the lost part is: `location`, the lost move's origin or

@@ -21,7 +21,11 @@ pub enum StepOutcome {
         provider: HolonId,
         results: Map<String, Value>,
     },
-    /// The resource reported `failed` (it may have moved the part: counts as a failure).
+    /// The resource reported `failed`: it may have moved the part, and counts as a
+    /// failure, unless its reason says the job never reached the controller
+    /// (`withdrawn`, `unavailable`, `busy`, `not_begun`:
+    /// [`schemas::Reason::never_reached_controller`]), which is booked again as a lost
+    /// booking is.
     /// `detail`: what the resource said of it beyond the reason (a `failed` message's
     /// `info.detail`, an outcome's `detail`): the controller's own words, where it had
     /// any (`pick failed: overtravel axis 3`).
@@ -31,8 +35,7 @@ pub enum StepOutcome {
         detail: Option<String>,
     },
     /// The booking ended without the step being attempted to completion: the resource
-    /// handed the booking back (`withdrawn`), vanished, or lost the booking. Book
-    /// elsewhere; does not count as a failure.
+    /// vanished, or lost the booking. Book elsewhere; does not count as a failure.
     Lost { provider: HolonId, why: String },
     /// No resource could be booked within the allowed time.
     NoResource,
@@ -41,7 +44,7 @@ pub enum StepOutcome {
 }
 
 /// As an operator reads it in a log: `done by resource/robot1 (pick=picking_done ...)`,
-/// `failed on resource/robot2: controller_error`, `lost resource/robot1: withdrawn`, ...
+/// `failed on resource/robot2: controller_error`, `lost resource/robot1: vanished`, ...
 impl std::fmt::Display for StepOutcome {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
@@ -396,13 +399,14 @@ impl OrderProgress {
                     self.advance();
                 }
             }
-            StepOutcome::Failed { reason, .. }
-                if Reason::from_word(&reason).never_reached_controller() =>
-            {
+            StepOutcome::Failed {
+                provider, reason, ..
+            } if Reason::from_word(&reason).never_reached_controller() => {
                 // Nothing of it ran (its turn came while the controller reconnected,
                 // the resource was stopped or handed it back): booked again, as a lost
-                // booking is, not counted against the step.
+                // booking is, not counted against the step; others preferred.
                 self.rebooks += 1;
+                self.avoid.insert(provider.clone());
                 self.next_attempt();
             }
             StepOutcome::Failed {

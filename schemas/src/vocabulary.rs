@@ -168,7 +168,11 @@ impl Reason {
     /// says it never had it), `unavailable` (its turn came while the controller was not
     /// ready: it was never sent), `busy` (another job still ran), `withdrawn` (the
     /// resource handed the booking back before it began). Not a refusal's meaning: a
-    /// `booking_req` refused `unavailable` is another answer.
+    /// `booking_req` refused `unavailable` is another answer. Whoever sends these
+    /// words must be sure: `not_begun` only for a job's first step (a later step's
+    /// unknown state is `controller_disconnected`), `unavailable` and `busy` only from
+    /// a holder that cannot have begun the job (a fenced resource, whose controller an
+    /// earlier holder may have driven, says `controller_disconnected` instead).
     pub fn never_reached_controller(&self) -> bool {
         matches!(
             self,

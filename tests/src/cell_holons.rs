@@ -194,6 +194,7 @@ impl Cell {
             name: name.to_string(),
             sim_flags: Vec::new(),
             command_timeout_ms: 5000,
+            reconnect_interval_ms: None,
             config_extra: String::new(),
             node_flags: Vec::new(),
             dialect: None,

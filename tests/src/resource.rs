@@ -16,6 +16,8 @@ pub struct ResourceBuilder<'a> {
     pub(crate) name: String,
     pub(crate) sim_flags: Vec<String>,
     pub(crate) command_timeout_ms: u64,
+    /// The first pause before reconnecting to the controller (`None`: the tests' 100 ms).
+    pub(crate) reconnect_interval_ms: Option<u64>,
     pub(crate) config_extra: String,
     pub(crate) node_flags: Vec<String>,
     /// The controller dialect of both the simulator and the holon (None: the default).
@@ -31,6 +33,14 @@ impl ResourceBuilder<'_> {
 
     pub fn command_timeout_ms(mut self, timeout: u64) -> Self {
         self.command_timeout_ms = timeout;
+        self
+    }
+
+    /// The first pause before the holon reconnects to its controller
+    /// (`controller.reconnect_interval_ms`): a test that needs something to happen
+    /// while the controller is away makes it long.
+    pub fn reconnect_interval_ms(mut self, pause: u64) -> Self {
+        self.reconnect_interval_ms = Some(pause);
         self
     }
 
@@ -67,6 +77,19 @@ impl ResourceBuilder<'_> {
             &sim_flags,
         )?;
         let config = resource_config(&self.dir, &self.name, self.command_timeout_ms)?;
+        if let Some(pause) = self.reconnect_interval_ms {
+            let text = fs::read_to_string(&config)?;
+            let changed = text.replacen(
+                "reconnect_interval_ms = 100\n",
+                &format!("reconnect_interval_ms = {pause}\n"),
+                1,
+            );
+            anyhow::ensure!(
+                changed != text || pause == 100,
+                "no reconnect_interval_ms to set"
+            );
+            fs::write(&config, changed)?;
+        }
         if let Some(dialect) = &self.dialect {
             let text = fs::read_to_string(&config)?.replacen(
                 "[controller]\n",

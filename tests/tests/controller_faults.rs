@@ -279,6 +279,8 @@ async fn a_booking_whose_turn_comes_while_the_controller_reconnects_is_booked_ag
     let robot = cell
         .resource(dir.path(), "robot1")
         .sim_flags(&["--delay-ms", "300", "--reset-after", "2"])
+        // Away long enough that the next turn surely comes while it reconnects.
+        .reconnect_interval_ms(1000)
         .start()
         .await
         .unwrap();

@@ -139,7 +139,15 @@ fn at_rest(truth: &serde_json::Value, location: &str) -> Option<(String, String)
 /// conveyor reconnected after the silent move's timeout, was taken to be lost too.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_word_that_a_departed_part_is_back_at_a_port_taken_since_is_refused() {
-    let conveyor = CONVEYOR.replace("command_timeout_ms = 10000", "command_timeout_ms = 2000");
+    // Its controller away for 1 s after the silent move's timeout: the next move's
+    // turn surely comes while it reconnects.
+    let conveyor = CONVEYOR
+        .replace("command_timeout_ms = 10000", "command_timeout_ms = 2000")
+        .replace(
+            "reconnect_interval_ms = 100",
+            "reconnect_interval_ms = 1000",
+        );
+    assert!(conveyor.contains("reconnect_interval_ms = 1000"));
     let slow_a = "resource = \"station_a\"\nlisten = \"127.0.0.1:0\"\ndelay_ms = 4000";
     let plant = PLANT.replace(
         "resource = \"station_a\"\nlisten = \"127.0.0.1:0\"\ndelay_ms = 150",

@@ -12,10 +12,10 @@
 //! |---|---|---|---|
 //! | `init` | controller `ready` | ready | `ready` |
 //! | `init` | controller not ready (disconnected, `fault`, `estop`), a change | unavailable with the status | `init` |
-//! | `init` | start | finished: failed `unavailable` | `init` |
+//! | `init` | start | finished: failed `unavailable` (fenced: `controller_disconnected`, as an earlier holder may have begun it) | `init` |
 //! | `ready` | start | command of step 1 | step 1 |
 //! | `ready` | controller not ready | unavailable | `init` |
-//! | step n | start (another job) | that job finished: failed `busy` | step n |
+//! | step n | start (another job) | that job finished: failed `busy` (fenced: `controller_disconnected`) | step n |
 //! | step n | reply to its command with a result the step expects, steps left | command of step n+1 | step n+1 |
 //! | step n | the same, last step | finished: done with every step's result | `ready` (or `init`) |
 //! | step n | reply `error` | finished: failed `controller_error` | `ready` (or `init`) |
@@ -357,7 +357,15 @@ impl ExecutionMachine {
         if !matches!(self.state, ExecutionState::Ready) {
             // The agenda manager only starts a ready execution; a race with a controller
             // status change ends here.
+            // Not sent: `busy` and `unavailable` tell the order nothing of it ran
+            // (`Reason::never_reached_controller`). A fenced resource's job may have
+            // been begun by an earlier holder of the controller (a standby took over,
+            // an order booked the same conversation again): not said, it may have run.
             let (why, detail) = match self.state {
+                _ if self.fenced => (
+                    Reason::ControllerDisconnected,
+                    "the controller is not ready for it, and an earlier holder of this fenced controller may have begun it",
+                ),
                 ExecutionState::Running { .. } => (Reason::Busy, "another job is running"),
                 _ => (Reason::Unavailable, "the controller is not ready"),
             };

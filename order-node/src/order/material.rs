@@ -326,10 +326,12 @@ impl OrderTask<'_> {
         &mut self,
         location: &LocationId,
     ) -> Result<Result<(), (Option<Reason>, String)>, OrderError> {
-        let conversation = PartProgress::place_conversation(&self.holon, location);
+        let mut conversation = String::new();
+        let holon = &self.holon;
         self.ctx
             .commit(self.progress, |p| {
                 if let Some(part) = &mut p.part {
+                    conversation = part.place_conversation(holon, location);
                     part.held.insert(location.clone(), conversation.clone());
                 }
             })

@@ -366,10 +366,11 @@ fn an_operators_word_on_a_departed_part_at_its_origin_needs_the_origin_reserved_
         !part.needs_origin_again(&id("robot2.port")),
         "its place at the destination is held"
     );
-    // Reserved again (the order's task journals it before it asks): held, not asked again.
+    // Reserved again (the order's task journals it before it asks): asked again all the
+    // same, as the journal cannot tell whether it was granted.
     part.held
         .insert(id("robot1.port"), "o-1/place/robot1.port".into());
-    assert!(!part.needs_origin_again(&id("robot1.port")));
+    assert!(part.needs_origin_again(&id("robot1.port")));
     // Then found there: the origin kept, the destination released.
     let released = part.found_by_operator(&id("robot1.port"), "kim", 7);
     assert_eq!(
@@ -414,4 +415,25 @@ fn a_journalled_move_of_before_departures_reads_as_not_departed() {
     value["moving"].as_object_mut().unwrap().remove("departed");
     let read: PartProgress = serde_json::from_value(value).unwrap();
     assert_eq!(read, part);
+}
+
+#[test]
+fn each_reservation_has_a_conversation_of_its_own() {
+    let mut part = PartProgress::default();
+    let first = part.place_conversation(&order(), &id("robot1.port"));
+    let again = part.place_conversation(&order(), &id("robot1.port"));
+    assert_ne!(
+        first, again,
+        "a late cancel of the first must not release the second"
+    );
+    let value = serde_json::to_value(&part).unwrap();
+    let read: PartProgress = serde_json::from_value(value.clone()).unwrap();
+    assert_eq!(read.reservations, 2, "journalled with the part");
+    let mut old = value;
+    old.as_object_mut().unwrap().remove("reservations");
+    let read: PartProgress = serde_json::from_value(old).unwrap();
+    assert_eq!(
+        read.reservations, 0,
+        "a journal of before reads as none yet"
+    );
 }

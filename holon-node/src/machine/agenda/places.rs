@@ -8,7 +8,7 @@
 //! |---|---|---|
 //! | `booking_req` `place` | the requester is a resource | refused `not_a_requester` |
 //! | | `info.location` is not one of this resource's locations, or `info.part` is missing | refused `invalid_info` |
-//! | | the part holds a place there already | true again (no second place) |
+//! | | the part holds a place there already | true again (no second place); held now under this request's conversation, so that a late `booking_cancel` of an earlier one releases nothing |
 //! | | every place there is held | refused `no_place`, naming who holds them |
 //! | | a buffer of a conveyor with no carrier in service left for one more home ([`super::carriers`]) | refused `no_place`, saying so |
 //! | | otherwise | true; the place is held for the part |
@@ -117,8 +117,16 @@ impl AgendaMachine {
         };
         let capacity = self.places.capacity[&location] as usize;
         let holds = self.places.held.entry(location.clone()).or_default();
-        if holds.iter().any(|h| h.part == part) {
-            return vec![AgendaAction::Reply(request.accepted(&self.holon))];
+        if let Some(hold) = holds.iter_mut().find(|h| h.part == part) {
+            let mut actions = vec![AgendaAction::Reply(request.accepted(&self.holon))];
+            if hold.conversation_id != request.conversation_id {
+                // Reserved again (its order's newer reservation): a cancel of the
+                // earlier one, late, finds nothing to release.
+                hold.conversation_id = request.conversation_id.clone();
+                hold.requester = request.requester.clone();
+                actions.push(AgendaAction::StateChanged);
+            }
+            return actions;
         }
         if holds.len() >= capacity {
             let holders: Vec<&str> = holds.iter().map(|h| h.part.as_str()).collect();

@@ -225,10 +225,11 @@ impl OrderTask<'_> {
             Err(refusal) => refusal,
         };
         info!(holon = %self.holon, %location, conversation_id = %moving.conversation_id, %why, "an operator's word that the lost part is back at its origin refused: its place there is not to be had");
-        let code = if reason == Some(Reason::NoPlace) {
-            ErrorCode::Invalid
-        } else {
-            ErrorCode::Unavailable
+        // Its resource's silence, or its controller not ready: not now, ask again.
+        // Any other refusal (another part's place) stands as the cell is.
+        let code = match reason {
+            None | Some(Reason::Unavailable) => ErrorCode::Unavailable,
+            Some(_) => ErrorCode::Invalid,
         };
         let refused = format!(
             "{name}: its move had left {from}, whose place was released then and cannot be \

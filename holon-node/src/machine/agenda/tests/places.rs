@@ -97,6 +97,33 @@ fn a_place_is_held_for_one_part_until_its_requester_releases_it() {
     ));
 }
 
+/// A part reserves a place again under a newer conversation while its earlier
+/// reservation's cancel is still on its way (its resource had not answered it): the
+/// hold is the newer one's, and the late cancel releases nothing.
+#[test]
+fn a_late_cancel_of_an_earlier_reservation_does_not_release_a_newer_one() {
+    let mut m = station();
+    let first = place(MessageType::BookingReq, "o-1", "robot1.port");
+    assert_accepted(&m.handle(AgendaEvent::Request(first.clone()), unix_ms()));
+    let mut newer = first.clone();
+    newer.conversation_id = "o-1/place/robot1.port/7".into();
+    let again = m.handle(AgendaEvent::Request(newer.clone()), unix_ms());
+    assert_accepted(&again);
+    assert!(
+        again.contains(&AgendaAction::StateChanged),
+        "re-keyed, journalled: {again:?}"
+    );
+    let mut late = first.clone();
+    late.message_type = MessageType::BookingCancel;
+    let late_cancel = m.handle(AgendaEvent::Request(late), unix_ms());
+    assert_refused(&late_cancel, "not_booked");
+    assert_eq!(m.snapshot().places["robot1.port"], ["o-1"], "still held");
+    let mut cancel = newer;
+    cancel.message_type = MessageType::BookingCancel;
+    assert_accepted(&m.handle(AgendaEvent::Request(cancel), unix_ms()));
+    assert!(m.snapshot().places.is_empty());
+}
+
 #[test]
 fn a_place_elsewhere_or_without_its_part_is_refused_saying_which_places_there_are() {
     let mut m = station();
