@@ -43,6 +43,14 @@ pub enum StepOutcome {
     Cancelled,
 }
 
+impl StepOutcome {
+    /// Whether the resource said the step failed before its job reached the controller
+    /// ([`schemas::Reason::never_reached_controller`]): nothing of it ran.
+    pub fn never_reached_controller(&self) -> bool {
+        matches!(self, StepOutcome::Failed { reason, .. } if Reason::from_word(reason).never_reached_controller())
+    }
+}
+
 /// As an operator reads it in a log: `done by resource/robot1 (pick=picking_done ...)`,
 /// `failed on resource/robot2: controller_error`, `lost resource/robot1: vanished`, ...
 impl std::fmt::Display for StepOutcome {
@@ -399,9 +407,7 @@ impl OrderProgress {
                     self.advance();
                 }
             }
-            StepOutcome::Failed {
-                provider, reason, ..
-            } if Reason::from_word(&reason).never_reached_controller() => {
+            StepOutcome::Failed { ref provider, .. } if outcome.never_reached_controller() => {
                 // Nothing of it ran (its turn came while the controller reconnected,
                 // the resource was stopped or handed it back): booked again, as a lost
                 // booking is, not counted against the step; others preferred.
@@ -463,9 +469,7 @@ impl OrderProgress {
             }
             // Booked again, not counted (see `record`): an attempt lost, as the
             // operator reads the trail, in the resource's words.
-            StepOutcome::Failed {
-                provider, reason, ..
-            } if Reason::from_word(reason).never_reached_controller() => {
+            StepOutcome::Failed { provider, .. } if outcome.never_reached_controller() => {
                 (AttemptEnd::Lost, Some(provider.clone()))
             }
             StepOutcome::Failed { provider, .. } => (AttemptEnd::Failed, Some(provider.clone())),

@@ -571,7 +571,7 @@ fn move_end(outcome: &StepOutcome, may_have_begun: bool) -> MoveEnd {
         StepOutcome::Lost { .. } => MoveEnd::Unattempted,
         StepOutcome::Failed { reason, detail, .. } => {
             let said = Reason::from_word(reason);
-            let refused = said.never_reached_controller()
+            let refused = outcome.never_reached_controller()
                 || said == Reason::ControllerError
                 || said == Reason::InvalidInfo
                 || reason.starts_with("start refused");
