@@ -31,6 +31,9 @@ pub struct StationLine {
     /// The task's mailbox. Unbounded so that a ticket dropped with its order's task
     /// leaves the line synchronously; an order has at most one request in it.
     requests: mpsc::UnboundedSender<Request>,
+    /// Moves each time a part joins a service's line: a part waiting at a port for
+    /// its next station looks again whether a part now waits for the station it holds.
+    joined: watch::Receiver<u64>,
 }
 
 /// What the task is asked.
@@ -46,8 +49,17 @@ impl StationLine {
     /// `freed` and `appeared` move when places free up and resources appear.
     pub fn start(freed: watch::Receiver<u64>, appeared: watch::Receiver<u64>) -> StationLine {
         let (requests, mailbox) = mpsc::unbounded_channel();
-        tokio::spawn(run(mailbox, freed, appeared));
-        StationLine { requests }
+        let (joins, joined) = watch::channel(0);
+        tokio::spawn(run(mailbox, freed, appeared, joins));
+        StationLine { requests, joined }
+    }
+
+    /// News of parts joining a line, seen from now: it changes each time a part joins
+    /// the line for a station of some service.
+    pub fn joins(&self) -> watch::Receiver<u64> {
+        let mut joins = self.joined.clone();
+        joins.mark_unchanged();
+        joins
     }
 
     /// A ticket for `order`'s part, which looks for a place at a station of `service`
@@ -158,6 +170,7 @@ async fn run(
     mut mailbox: mpsc::UnboundedReceiver<Request>,
     mut freed: watch::Receiver<u64>,
     mut appeared: watch::Receiver<u64>,
+    joins: watch::Sender<u64>,
 ) {
     let mut lines = Lines::default();
     // Where each waiting order's answer goes.
@@ -185,7 +198,14 @@ async fn run(
             Ok(()) = appeared.changed() => Event::Room,
             _ = fallback.tick(), if lines.any_waiting() => Event::Room,
         };
+        let joining = match &event {
+            Event::Wait { order, service, .. } => !lines.in_line_for(order, service),
+            _ => false,
+        };
         let mut actions = lines.handle(event);
+        if joining {
+            joins.send_modify(|n| *n += 1);
+        }
         while let Some(action) = actions.pop() {
             let (order, turn) = match action {
                 Action::Turn(order) => (order, true),

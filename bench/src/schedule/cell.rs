@@ -22,6 +22,7 @@ use schemas::{CellKeys, HolonId, HolonKind};
 use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
 
 pub mod bound;
+pub mod critical_path;
 pub mod gantt;
 pub mod manifest;
 pub mod metrics;
@@ -29,6 +30,7 @@ pub mod scenario;
 pub mod usage;
 
 use bound::{Bound, CellModel};
+use critical_path::CriticalPath;
 use manifest::CellCopy;
 use metrics::{CellFigures, Endings, Released};
 use scenario::{CellScenario, Event, Happening};
@@ -79,6 +81,8 @@ pub struct CellRun {
     pub processes: Vec<ProcessUsage>,
     /// How its orders ended.
     pub endings: Endings,
+    /// Its critical path and the control's plant time on it.
+    pub critical_path: Option<CriticalPath>,
 }
 
 /// What a run of cell scenarios is asked (`bench schedule` on a cell).
@@ -202,6 +206,25 @@ fn print_row(run: &CellRun) {
         run.wall_s,
         processes.join(", ")
     );
+    if let Some(path) = &run.critical_path {
+        let longest = path.longest.as_ref().map_or(String::new(), |w| {
+            format!(
+                "; the longest {} before {}'s {} of {} at {}",
+                s(w.ms),
+                w.resource,
+                w.action,
+                w.part,
+                s(w.began_ms)
+            )
+        });
+        println!(
+            "    critical path: {} actions, {} ({:.1}% of the makespan) waiting on the control{}",
+            path.actions,
+            s(path.idle_ms),
+            path.idle_ms as f64 * 100.0 / f.makespan_ms.max(1) as f64,
+            longest
+        );
+    }
 }
 
 /// One run of the scenario in `mode`, in `dir`.
@@ -233,6 +256,7 @@ async fn run_once(
         .map(|r| (r.product.clone(), r.at_ms - start))
         .collect();
     let bound = model.bound(&jobs)?;
+    let critical_path = critical_path::critical_path(&trace, start, &model.transporter);
     std::fs::create_dir_all(charts)?;
     let gantt = charts.join(format!(
         "{}-{}-{}x.svg",
@@ -269,6 +293,7 @@ async fn run_once(
         gantt,
         processes,
         endings,
+        critical_path,
     })
 }
 

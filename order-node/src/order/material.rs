@@ -85,6 +85,8 @@ impl OrderTask<'_> {
         let mut home_wait = None;
         // The port the part waits at for its next station, and until when at most.
         let mut port_wait: Option<(LocationId, Instant)> = None;
+        // A part that joins a line may want the station whose port this part holds.
+        let mut joins = self.ctx.line.joins();
         loop {
             if self.end_move_under_way().await? {
                 continue;
@@ -124,7 +126,10 @@ impl OrderTask<'_> {
                     match port_until {
                         Some(until) => {
                             let next = Instant::now() + PORT_RECHECK;
-                            tokio::time::sleep_until(until.min(next)).await
+                            tokio::select! {
+                                _ = tokio::time::sleep_until(until.min(next)) => {}
+                                Ok(()) = joins.changed() => {}
+                            }
                         }
                         None => std::future::pending().await,
                     }

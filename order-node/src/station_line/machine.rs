@@ -6,8 +6,11 @@
 //! | state of the service's line | event | actions, next state |
 //! |---|---|---|
 //! | idle, nobody ahead waits | `Wait` of a part new to the line | `Turn` to it (a sweep that began with it) |
+//! | idle | `Wait` (blocking) of a part that missed a room | `Turn` to it (a sweep that began with it) |
+//! | sweeping, past its place | `Wait` (blocking) of a part that missed a room | swept again from the first once this sweep ends |
 //! | anything else | `Wait { now_only }` | `NotNow` to it; it keeps its place |
 //! | anything else | `Wait` (blocking) | it waits for a sweep to reach it |
+//! | any | `Room` | every part in line not waiting for its turn (away, or looking) missed it |
 //! | idle, parts wait | `Room` | `Turn` to the first waiting: a sweep begins |
 //! | sweeping, past the newcomer's place | `Wait` of a part new to the line, of a higher priority | swept again from the first once this sweep ends |
 //! | sweeping | `Room` | swept again from the first once this sweep ends |
@@ -18,9 +21,16 @@
 //! one; a part that has just finished a step at a station's port and finds parts ahead
 //! of it waiting goes home rather than take the place they wait for
 //! (docs/material-flow.md, "Orders arrange their moves").
+//!
+//! A room is news only to the parts waiting when it comes. A part in line that was not
+//! waiting (riding home, or looking already, or between a look and its next wait)
+//! *missed* it, and looks as soon as it waits again if no sweep is under way: the parts
+//! that waited have looked since. Without that, a part that reached its home just after
+//! the place it went home for freed waited for the next room anywhere in the cell, or
+//! the fallback's sweep (seconds of wall time, a minute of plant time at 20x).
 
 use std::cmp::Reverse;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 use schemas::HolonId;
 use tokio::time::Instant;
@@ -76,6 +86,9 @@ struct Line {
     sweep: Option<Place>,
     /// A room came during the sweep: sweep again from the oldest when it ends.
     again: bool,
+    /// The parts in line that were not waiting for their turn when a room came (away,
+    /// or looking): each looks as soon as it waits again, unless a sweep reaches it.
+    missed: BTreeSet<Place>,
 }
 
 /// Every service's line on a node.
@@ -101,6 +114,11 @@ impl Lines {
     /// Whether nobody stands in line.
     pub fn is_empty(&self) -> bool {
         self.of.is_empty()
+    }
+
+    /// Whether `order`'s part stands in the line for a station of `service`.
+    pub fn in_line_for(&self, order: &HolonId, service: &str) -> bool {
+        self.of.get(order).is_some_and(|(s, _)| s == service)
     }
 
     /// How many parts other than `order`'s stand in line for a station of `service`.
@@ -154,25 +172,26 @@ impl Lines {
             return actions;
         }
         let idle = line.holder.is_none() && line.sweep.is_none();
-        let oldest = line
-            .waiting
-            .keys()
-            .next()
-            .is_none_or(|first| *first > place);
+        let oldest = line.waiting.range(..place.clone()).next().is_none();
+        let missed = line.missed.contains(&place);
         line.waiting.insert(place.clone(), !now_only);
-        // A newcomer of a higher priority than the part a sweep under way has reached
-        // has the line swept again from its head once this sweep ends.
-        if new && line.sweep.as_ref().is_some_and(|at| place < *at) {
+        let passed = line.sweep.as_ref().is_some_and(|at| place < *at);
+        if idle && ((new && oldest) || (missed && (oldest || !now_only))) {
+            actions.push(line.give(place));
+            return actions;
+        }
+        if now_only {
+            // It keeps its place (and what it missed) and goes home.
+            actions.push(Action::NotNow(order));
+            return actions;
+        }
+        // A newcomer of a higher priority than the part a sweep under way has reached,
+        // or a part that missed a room the sweep has passed it by, has the line swept
+        // again from its head once this sweep ends.
+        if passed && (new || missed) {
             line.again = true;
         }
-        if new && idle && oldest {
-            line.waiting.insert(place.clone(), false);
-            line.holder = Some(place.clone());
-            line.sweep = Some(place);
-            actions.push(Action::Turn(order));
-        } else if now_only {
-            actions.push(Action::NotNow(order));
-        }
+        line.missed.remove(&place);
         // Else it waits: a sweep under way reaches it if it has not passed it yet (a
         // newcomer is the youngest of its priority); a part it passed (it looked and
         // found no place) waits for the next room, which is news it could use.
@@ -182,6 +201,7 @@ impl Lines {
     fn room(&mut self) -> Vec<Action> {
         let mut actions = Vec::new();
         for line in self.lines.values_mut() {
+            line.note_missed();
             if line.holder.is_some() || line.sweep.is_some() {
                 line.again = true;
             } else if let Some(next) = line.next_after(None) {
@@ -218,6 +238,7 @@ impl Lines {
             .get_mut(&service)
             .expect("an order's line exists");
         line.waiting.remove(&place);
+        line.missed.remove(&place);
         let mut actions = Vec::new();
         if line.holder.as_ref() == Some(&place) {
             line.holder = None;
@@ -240,8 +261,21 @@ impl Line {
             .next()
     }
 
-    /// Gives the turn to `place`'s part.
+    /// Every part in line that does not wait for its turn now (away, or looking: the
+    /// holder) misses the room that has just come.
+    fn note_missed(&mut self) {
+        let not_waiting: Vec<Place> = self
+            .waiting
+            .iter()
+            .filter(|(_, waits)| !**waits)
+            .map(|(place, _)| place.clone())
+            .collect();
+        self.missed.extend(not_waiting);
+    }
+
+    /// Gives the turn to `place`'s part: it looks now, so it has missed nothing.
     fn give(&mut self, place: Place) -> Action {
+        self.missed.remove(&place);
         self.waiting.insert(place.clone(), false);
         self.holder = Some(place.clone());
         self.sweep = Some(place.clone());
@@ -448,5 +482,73 @@ mod tests {
         );
         assert!(lines.any_waiting());
         assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
+    }
+
+    #[test]
+    fn a_part_back_at_its_home_looks_at_once_for_a_room_that_came_while_it_rode() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        // Worked at a port, it looks, finds no place and rides home.
+        assert_eq!(wait(&mut lines, 1, t0, true), vec![Action::Turn(order(1))]);
+        assert_eq!(tried(&mut lines, 1, false), vec![]);
+        // The place it wanted frees while it rides: nobody waits for a turn.
+        assert_eq!(lines.handle(Event::Room), vec![]);
+        // Home, it waits: the room is news to it.
+        assert_eq!(wait(&mut lines, 1, t0, false), vec![Action::Turn(order(1))]);
+        // Looked at, the news is spent: it waits for the next room.
+        assert_eq!(tried(&mut lines, 1, false), vec![]);
+        assert_eq!(wait(&mut lines, 1, t0, false), vec![]);
+    }
+
+    #[test]
+    fn a_room_that_comes_while_a_part_looks_is_looked_at_again() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        assert_eq!(wait(&mut lines, 1, t0, false), vec![Action::Turn(order(1))]);
+        // A place frees while it looks (it may have asked that station before).
+        assert_eq!(lines.handle(Event::Room), vec![]);
+        // Its look ends before it waits again: the sweep again finds nobody waiting.
+        assert_eq!(tried(&mut lines, 1, false), vec![]);
+        assert_eq!(wait(&mut lines, 1, t0, false), vec![Action::Turn(order(1))]);
+    }
+
+    #[test]
+    fn a_part_that_missed_a_room_a_sweep_has_passed_has_the_line_swept_again() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        // 1, the oldest, looked and rides home; 2 waits.
+        assert_eq!(wait(&mut lines, 1, t0, true), vec![Action::Turn(order(1))]);
+        assert_eq!(tried(&mut lines, 1, false), vec![]);
+        wait(&mut lines, 2, t0 + Duration::from_secs(1), false);
+        // A room: 2 looks; 1, away, missed it.
+        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(2))]);
+        // 1 is home while 2 looks: the sweep is past it, and 1 does not ask to jump it.
+        assert_eq!(wait(&mut lines, 1, t0, false), vec![]);
+        // When 2's look ends, the line is swept again from 1.
+        assert_eq!(tried(&mut lines, 2, false), vec![Action::Turn(order(1))]);
+    }
+
+    #[test]
+    fn a_part_off_a_port_that_missed_a_room_still_waits_behind_older_parts() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        looked_and_waits(&mut lines, 1, t0);
+        // 2 looked once at a port and went on with its work there.
+        let t1 = t0 + Duration::from_secs(1);
+        assert_eq!(
+            wait(&mut lines, 2, t1, true),
+            vec![Action::NotNow(order(2))]
+        );
+        // A room: 1 looks and finds nothing; 2 missed it.
+        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(1))]);
+        assert_eq!(tried(&mut lines, 1, false), vec![]);
+        wait(&mut lines, 1, t0, false);
+        // 2, worked, asks at once: 1 waits ahead of it, so it goes home...
+        assert_eq!(
+            wait(&mut lines, 2, t1, true),
+            vec![Action::NotNow(order(2))]
+        );
+        // ...and once home it looks, since it missed the room 1 has looked at.
+        assert_eq!(wait(&mut lines, 2, t1, false), vec![Action::Turn(order(2))]);
     }
 }
