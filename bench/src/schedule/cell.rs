@@ -217,11 +217,14 @@ fn print_row(run: &CellRun) {
                 s(w.began_ms)
             )
         });
+        let share = |ms: u64| ms as f64 * 100.0 / f.makespan_ms.max(1) as f64;
         println!(
-            "    critical path: {} actions, {} ({:.1}% of the makespan) waiting on the control{}",
+            "    critical path: {} actions, {} ({:.1}% of the makespan) waiting on the control, {} ({:.2}%) of it its latency{}",
             path.actions,
             s(path.idle_ms),
-            path.idle_ms as f64 * 100.0 / f.makespan_ms.max(1) as f64,
+            share(path.idle_ms),
+            s(path.latency_ms),
+            share(path.latency_ms),
             longest
         );
     }
@@ -256,7 +259,8 @@ async fn run_once(
         .map(|r| (r.product.clone(), r.at_ms - start))
         .collect();
     let bound = model.bound(&jobs)?;
-    let critical_path = critical_path::critical_path(&trace, start, &model.transporter);
+    let critical_path =
+        critical_path::critical_path(&trace, start, &model.transporter, scenario.time_scale);
     std::fs::create_dir_all(charts)?;
     let gantt = charts.join(format!(
         "{}-{}-{}x.svg",

@@ -5,7 +5,7 @@
 //!
 //! | state of the service's line | event | actions, next state |
 //! |---|---|---|
-//! | idle, nobody ahead waits | `Wait` of a part new to the line | `Turn` to it (a sweep that began with it) |
+//! | idle, nobody ahead waits (parts ahead that are away do not count) | `Wait` of a part new to the line | `Turn` to it (a sweep that began with it) |
 //! | idle | `Wait` (blocking) of a part that missed a room | `Turn` to it (a sweep that began with it) |
 //! | sweeping, past its place | `Wait` (blocking) of a part that missed a room | swept again from the first once this sweep ends |
 //! | anything else | `Wait { now_only }` | `NotNow` to it; it keeps its place |
@@ -172,7 +172,9 @@ impl Lines {
             return actions;
         }
         let idle = line.holder.is_none() && line.sweep.is_none();
-        let oldest = line.waiting.range(..place.clone()).next().is_none();
+        // Parts ahead that are away (riding home, looking elsewhere) do not hold a
+        // newcomer back: each looks when it waits again.
+        let oldest = !line.waiting.range(..place.clone()).any(|(_, waits)| *waits);
         let missed = line.missed.contains(&place);
         line.waiting.insert(place.clone(), !now_only);
         let passed = line.sweep.as_ref().is_some_and(|at| place < *at);
@@ -516,12 +518,16 @@ mod tests {
     fn a_part_that_missed_a_room_a_sweep_has_passed_has_the_line_swept_again() {
         let t0 = Instant::now();
         let mut lines = Lines::default();
-        // 1, the oldest, looked and rides home; 2 waits.
+        // 1, the oldest, looked and rides home; 2 comes and looks at once (nobody
+        // ahead of it waits).
         assert_eq!(wait(&mut lines, 1, t0, true), vec![Action::Turn(order(1))]);
         assert_eq!(tried(&mut lines, 1, false), vec![]);
-        wait(&mut lines, 2, t0 + Duration::from_secs(1), false);
-        // A room: 2 looks; 1, away, missed it.
-        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(2))]);
+        assert_eq!(
+            wait(&mut lines, 2, t0 + Duration::from_secs(1), false),
+            vec![Action::Turn(order(2))]
+        );
+        // A room while 2 looks: 1, away, missed it.
+        assert_eq!(lines.handle(Event::Room), vec![]);
         // 1 is home while 2 looks: the sweep is past it, and 1 does not ask to jump it.
         assert_eq!(wait(&mut lines, 1, t0, false), vec![]);
         // When 2's look ends, the line is swept again from 1.
@@ -550,5 +556,20 @@ mod tests {
         );
         // ...and once home it looks, since it missed the room 1 has looked at.
         assert_eq!(wait(&mut lines, 2, t1, false), vec![Action::Turn(order(2))]);
+    }
+
+    #[test]
+    fn a_newcomer_looks_at_once_when_the_parts_ahead_are_away() {
+        let t0 = Instant::now();
+        let mut lines = Lines::default();
+        // 1 looked at a port, found no place and rides home.
+        assert_eq!(wait(&mut lines, 1, t0, true), vec![Action::Turn(order(1))]);
+        assert_eq!(tried(&mut lines, 1, false), vec![]);
+        // 2, just worked at a port, asks at once: nobody ahead waits.
+        let t1 = t0 + Duration::from_secs(1);
+        assert_eq!(wait(&mut lines, 2, t1, true), vec![Action::Turn(order(2))]);
+        assert_eq!(tried(&mut lines, 2, true), vec![]);
+        // 1, home, waits for the next room.
+        assert_eq!(wait(&mut lines, 1, t0, false), vec![]);
     }
 }

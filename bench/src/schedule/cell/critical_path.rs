@@ -21,6 +21,12 @@ use std::collections::BTreeMap;
 
 use robot_bridge::plant::trace::TraceRecord;
 
+/// A wait on the critical path shorter than this much wall time is the control's
+/// latency (messages, rounds, bookings: a few ms each); a longer one is the control's
+/// choice (a part waiting at its port, bounded by its move home's plant time) or a
+/// timer of its own.
+pub const LATENCY_WALL_MS: u64 = 250;
+
 /// The critical path of a run.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct CriticalPath {
@@ -28,6 +34,9 @@ pub struct CriticalPath {
     pub actions: usize,
     /// Its plant time between the links, and before the first: the control's.
     pub idle_ms: u64,
+    /// The part of `idle_ms` in waits shorter than [`LATENCY_WALL_MS`] of wall time:
+    /// the control's latency, which grows with the time scale.
+    pub latency_ms: u64,
     /// The longest of those waits.
     pub longest: Option<Wait>,
 }
@@ -45,13 +54,16 @@ pub struct Wait {
     pub began_ms: u64,
 }
 
-/// The critical path of `trace` from `start_ms` (the first release); `transporter` is
-/// the resource whose actions are moves. None for a trace without a part's action.
+/// The critical path of `trace` from `start_ms` (the first release), run at `scale`;
+/// `transporter` is the resource whose actions are moves. None for a trace without a
+/// part's action.
 pub fn critical_path(
     trace: &[TraceRecord],
     start_ms: u64,
     transporter: &str,
+    scale: u32,
 ) -> Option<CriticalPath> {
+    let latency_below = LATENCY_WALL_MS * u64::from(scale.max(1));
     let actions: Vec<&TraceRecord> = trace
         .iter()
         .filter(|r| r.part.is_some() && r.begin_ms >= start_ms)
@@ -61,6 +73,7 @@ pub fn critical_path(
     let mut path = CriticalPath {
         actions: 0,
         idle_ms: 0,
+        latency_ms: 0,
         longest: None,
     };
     let mut at = last;
@@ -76,6 +89,9 @@ pub fn critical_path(
         let ready = waited.map_or(start_ms, |(ready, _)| ready);
         let idle = action.begin_ms.saturating_sub(ready);
         path.idle_ms += idle;
+        if idle < latency_below {
+            path.latency_ms += idle;
+        }
         if idle > 0 && path.longest.as_ref().is_none_or(|w| idle > w.ms) {
             path.longest = Some(Wait {
                 ms: idle,
@@ -155,19 +171,8 @@ fn needs(actions: &[&TraceRecord], transporter: &str) -> Vec<Vec<(u64, usize)>> 
 
 #[cfg(test)]
 mod tests {
+    use super::super::metrics::tests::record;
     use super::*;
-
-    fn record(resource: &str, part: &str, begin_ms: u64, end_ms: u64) -> TraceRecord {
-        TraceRecord {
-            resource: resource.into(),
-            action: if resource == "belt" { "move" } else { "work" }.into(),
-            part: Some(part.into()),
-            carrier: None,
-            begin_ms,
-            end_ms,
-            done: true,
-        }
-    }
 
     #[test]
     fn the_path_follows_what_each_action_waited_for_and_counts_the_control_between() {
@@ -183,12 +188,13 @@ mod tests {
             record("m1", "b", 3_510, 6_000),
             record("belt", "b", 6_040, 7_000),
         ];
-        let path = critical_path(&trace, 0, "belt").unwrap();
+        let path = critical_path(&trace, 0, "belt", 1).unwrap();
         // b's exit, b at m1, b's move in (after a's departure), a's move away, a at m1,
         // a's move in.
         assert_eq!(path.actions, 6);
-        // 40 + 10 + 30 + 50 + 20 + 100 from the release.
-        assert_eq!(path.idle_ms, 250);
+        // 40 + 10 + 30 + 50 + 20 + 100 from the release, each a latency at 1x (under
+        // 250 ms of wall time).
+        assert_eq!((path.idle_ms, path.latency_ms), (250, 250));
         let longest = path.longest.unwrap();
         assert_eq!((longest.ms, longest.part.as_str()), (100, "a"));
     }
@@ -203,13 +209,23 @@ mod tests {
             record("m1", "a", 100, 1_100),
             record("m1", "b", 1_150, 2_150),
         ];
-        let path = critical_path(&trace, 0, "belt").unwrap();
+        let path = critical_path(&trace, 0, "belt", 1).unwrap();
         assert_eq!(path.actions, 3);
         assert_eq!(path.idle_ms, 50);
     }
 
     #[test]
+    fn a_wait_is_latency_below_a_quarter_second_of_wall_time() {
+        let trace = vec![record("belt", "a", 0, 100), record("m1", "a", 3_100, 4_000)];
+        // 3 s of plant time before m1: a choice at 1x, latency at 20x (150 ms of wall).
+        let real = critical_path(&trace, 0, "belt", 1).unwrap();
+        assert_eq!((real.idle_ms, real.latency_ms), (3_000, 0));
+        let scaled = critical_path(&trace, 0, "belt", 20).unwrap();
+        assert_eq!((scaled.idle_ms, scaled.latency_ms), (3_000, 3_000));
+    }
+
+    #[test]
     fn no_part_no_path() {
-        assert_eq!(critical_path(&[], 0, "belt"), None);
+        assert_eq!(critical_path(&[], 0, "belt", 1), None);
     }
 }

@@ -164,10 +164,11 @@ pub fn figures(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn record(resource: &str, part: &str, begin_ms: u64, end_ms: u64) -> TraceRecord {
+    /// A trace record of `part` at `resource` (tests of the figures read from traces).
+    pub(crate) fn record(resource: &str, part: &str, begin_ms: u64, end_ms: u64) -> TraceRecord {
         TraceRecord {
             resource: resource.into(),
             action: "x".into(),
