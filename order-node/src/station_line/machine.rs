@@ -518,20 +518,21 @@ mod tests {
     fn a_part_that_missed_a_room_a_sweep_has_passed_has_the_line_swept_again() {
         let t0 = Instant::now();
         let mut lines = Lines::default();
-        // 1, the oldest, looked and rides home; 2 comes and looks at once (nobody
-        // ahead of it waits).
+        // 1, the oldest, looked at a port and rides home; 2 and 3 wait at home.
         assert_eq!(wait(&mut lines, 1, t0, true), vec![Action::Turn(order(1))]);
         assert_eq!(tried(&mut lines, 1, false), vec![]);
+        looked_and_waits(&mut lines, 2, t0 + Duration::from_secs(1));
         assert_eq!(
-            wait(&mut lines, 2, t0 + Duration::from_secs(1), false),
-            vec![Action::Turn(order(2))]
+            wait(&mut lines, 3, t0 + Duration::from_secs(2), false),
+            vec![]
         );
-        // A room while 2 looks: 1, away, missed it.
-        assert_eq!(lines.handle(Event::Room), vec![]);
-        // 1 is home while 2 looks: the sweep is past it, and 1 does not ask to jump it.
+        // A room: the sweep gives 2 and then 3 the turn; 1, away, missed it.
+        assert_eq!(lines.handle(Event::Room), vec![Action::Turn(order(2))]);
+        assert_eq!(tried(&mut lines, 2, false), vec![Action::Turn(order(3))]);
+        // 1 is home while 3 looks: the sweep is past it, and 1 does not jump it.
         assert_eq!(wait(&mut lines, 1, t0, false), vec![]);
-        // When 2's look ends, the line is swept again from 1.
-        assert_eq!(tried(&mut lines, 2, false), vec![Action::Turn(order(1))]);
+        // When 3's look ends, the line is swept again from 1.
+        assert_eq!(tried(&mut lines, 3, false), vec![Action::Turn(order(1))]);
     }
 
     #[test]
