@@ -26,6 +26,7 @@ pub mod critical_path;
 pub mod gantt;
 pub mod manifest;
 pub mod metrics;
+pub mod report;
 pub mod scenario;
 pub mod usage;
 
@@ -33,6 +34,7 @@ use bound::{Bound, CellModel};
 use critical_path::CriticalPath;
 use manifest::CellCopy;
 use metrics::{CellFigures, Endings, Released};
+use report::{print_header, print_row};
 use scenario::{CellScenario, Event, Happening};
 use usage::{ProcessUsage, Sampler};
 
@@ -147,87 +149,6 @@ pub async fn run(
         println!("the runs' files kept in {}", work.keep().display());
     }
     Ok(runs)
-}
-
-/// The table's header.
-fn print_header() {
-    println!(
-        "{:<14} {:<13} {:>5} {:>10} {:>9} {:>7} {:>10} {:>10} {:>10} {:>8}  utilisation",
-        "scenario",
-        "mode",
-        "scale",
-        "makespan",
-        "bound",
-        "gap",
-        "mean flow",
-        "rush flow",
-        "tardiness",
-        "shuttles"
-    );
-}
-
-fn print_row(run: &CellRun) {
-    let s = |ms: u64| format!("{:.1}s", ms as f64 / 1000.0);
-    let f = &run.figures;
-    let utilisation: Vec<String> = f
-        .utilisation
-        .iter()
-        .map(|(station, u)| format!("{station} {:.0}%", u * 100.0))
-        .collect();
-    println!(
-        "{:<14} {:<13} {:>5} {:>10} {:>9} {:>6.1}% {:>10} {:>10} {:>10} {:>7.0}%  {}",
-        run.scenario,
-        run.mode.as_str(),
-        run.time_scale,
-        s(f.makespan_ms),
-        s(run.bound.makespan_ms),
-        run.gap * 100.0,
-        s(f.mean_flow_ms),
-        f.rush_mean_flow_ms.map_or("-".into(), s),
-        s(f.mean_tardiness_ms),
-        f.shuttle_utilisation * 100.0,
-        utilisation.join(" ")
-    );
-    let processes: Vec<String> = run
-        .processes
-        .iter()
-        .map(|p| {
-            format!(
-                "{} {:.1}s/{:.0}MiB",
-                p.name,
-                p.cpu_s,
-                p.peak_rss_kib as f64 / 1024.0
-            )
-        })
-        .collect();
-    println!(
-        "    orders: {}; wall {:.1}s; CPU time / peak resident memory: {}",
-        run.endings.summary(),
-        run.wall_s,
-        processes.join(", ")
-    );
-    if let Some(path) = &run.critical_path {
-        let longest = path.longest.as_ref().map_or(String::new(), |w| {
-            format!(
-                "; the longest {} before {}'s {} of {} at {}",
-                s(w.ms),
-                w.resource,
-                w.action,
-                w.part,
-                s(w.began_ms)
-            )
-        });
-        let share = |ms: u64| ms as f64 * 100.0 / f.makespan_ms.max(1) as f64;
-        println!(
-            "    critical path: {} actions, {} ({:.1}% of the makespan) waiting on the control, {} ({:.2}%) of it its latency{}",
-            path.actions,
-            s(path.idle_ms),
-            share(path.idle_ms),
-            s(path.latency_ms),
-            share(path.latency_ms),
-            longest
-        );
-    }
 }
 
 /// One run of the scenario in `mode`, in `dir`.
