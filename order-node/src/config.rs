@@ -223,8 +223,9 @@ pub struct OrderSettings {
     /// proposals (the round usually takes longer); `ZERO`: never asks.
     pub advice_timeout: Duration,
     /// A part at a station's port whose next station has no place yet may wait there
-    /// rather than go home, for at most the time its move home would take, while no
-    /// part of this node waits for the service it was just worked for
+    /// rather than go home, while no part of this node waits for a service of the
+    /// station it holds: for the time its move home would take, and on while a
+    /// station of its next service works, up to four times that
     /// (docs/material-flow.md, "Orders arrange their moves"). False: it goes home at
     /// once.
     pub wait_at_port: bool,

@@ -5,10 +5,14 @@ use std::path::PathBuf;
 use std::process::Command;
 use std::sync::OnceLock;
 
-/// The directory holding the workspace's binaries (`target/debug` next to the tests).
+/// The directory holding the workspace's binaries (`target/debug` next to the tests,
+/// or `HOLARCHY_BIN_DIR`). Absolute: a child started in another directory (the bench
+/// starts `cell up` in its copy of a cell) finds them too, where a relative
+/// `HOLARCHY_BIN_DIR` would no longer resolve.
 pub fn bin_dir() -> PathBuf {
     if let Some(dir) = std::env::var_os("HOLARCHY_BIN_DIR") {
-        return PathBuf::from(dir);
+        let dir = PathBuf::from(dir);
+        return std::path::absolute(&dir).unwrap_or(dir);
     }
     let exe = std::env::current_exe().expect("current exe");
     // A test: target/<profile>/deps/<test>; a binary (bench): target/<profile>/<bin>.

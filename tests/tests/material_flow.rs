@@ -509,6 +509,52 @@ async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
     );
 }
 
+/// A part whose next station works longer than its move home would take waits at its
+/// port on while that station works, rather than ride home once its move home's time
+/// is up and back when the station frees (docs/material-flow.md, "Orders arrange their
+/// moves"): as above, with a mill of 16 s against a move home of 6 s (the second part waits about 11 s). Until 2026-11-28
+/// the second part went home after 6 s, and station_b stood idle through its lap.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_part_waits_at_its_port_while_its_next_station_works() {
+    let conveyor = CONVEYOR.replace("speed_mm_s = 4000", "speed_mm_s = 250");
+    assert!(conveyor.contains("speed_mm_s = 250"));
+    let plant = PLANT
+        .replacen("delay_ms = 150", "delay_ms = 200", 1)
+        .replacen("delay_ms = 150", "delay_ms = 16000", 1);
+    assert!(plant.contains("delay_ms = 200") && plant.contains("delay_ms = 16000"));
+    let stations = [
+        ("station_a", "drill", "sa", 400),
+        ("station_b", "mill", "sb", 16000),
+    ];
+    let flow = FlowCell::start_with(
+        "t-flow-port-wait-works",
+        &conveyor,
+        &plant,
+        &stations,
+        &[("ab", "drill mill")],
+    )
+    .await;
+    let orders = flow.cell.submit("ab", 2).await.unwrap();
+    flow.wait_ended(&orders, Duration::from_secs(180)).await;
+    flow.assert_all_done_and_plant_empty(&orders).await;
+    let waited = flow.count_in_orders_log("it waits at its port");
+    let home = flow.count_in_orders_log("it goes back to its home");
+    eprintln!("parts that waited at their port: {waited}; parts sent home: {home}");
+    assert!(
+        waited >= 1,
+        "no part waited at its port for station_b (parts sent home: {home})"
+    );
+    assert_eq!(
+        home, 0,
+        "a part rode home while station_b worked the part before it"
+    );
+    assert_eq!(
+        flow.count_in_orders_log("\"ERROR\""),
+        0,
+        "the order-node logged errors"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn a_part_that_fails_its_inspection_is_recovered_and_inspected_again() {
     // (With one of the conveyor's three pallets taken out meanwhile.)

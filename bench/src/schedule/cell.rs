@@ -239,13 +239,14 @@ struct Running {
 impl Running {
     fn start(copy: &CellCopy, scale: u32) -> Result<Running> {
         let log = std::fs::File::create(copy.dir.join("cell-up.log"))?;
-        let up = Command::new(bin("cell"))
+        let cell = bin("cell");
+        let up = Command::new(&cell)
             .args(["up", ".", "--time-scale", &scale.to_string()])
             .current_dir(&copy.dir)
             .stdout(log.try_clone()?)
             .stderr(log)
             .spawn()
-            .context("cannot start cell up")?;
+            .with_context(|| format!("cannot start {} up", cell.display()))?;
         let sampler = Sampler::start(up.id(), copy.dir.join("cell-up.log"));
         Ok(Running {
             up,

@@ -7,9 +7,9 @@
 //! - else reserves a place at a proposing station's port and books the move there
 //!   (both or neither: a move that cannot be booked releases the place);
 //! - else, when no station has a place for it and the part is at a station's port,
-//!   waits there for at most the time its move home would take, while no other part
-//!   of the node waits for the service it was just worked for
-//!   (`orders.wait_at_port`); then takes it back to its home (the buffer place it
+//!   waits there while no other part of the node waits for a service of the station
+//!   it holds, for a bounded time (`orders.wait_at_port`, [`port_wait`]); then takes
+//!   it back to its home (the buffer place it
 //!   holds from its entry until it leaves): so a part waits for a place for long only
 //!   where it blocks no station, and finite ports cannot deadlock the cell;
 //! - else waits for a place to free up, or a station to appear, in line with the other
@@ -42,7 +42,7 @@ use crate::requests;
 mod home;
 mod lost;
 mod port_wait;
-use port_wait::PORT_RECHECK;
+use port_wait::PortWait;
 
 /// How long an order waits before asking again for a station place, a home or a
 /// transporter that none had (a place freed or a resource appearing wakes it sooner).
@@ -84,7 +84,7 @@ impl OrderTask<'_> {
         // The part's place among those waiting outside for a home, while it waits.
         let mut home_wait = None;
         // The port the part waits at for its next station, and until when at most.
-        let mut port_wait: Option<(LocationId, Instant)> = None;
+        let mut port_wait: Option<PortWait> = None;
         // A part that joins a line may want the station whose port this part holds.
         let mut joins = self.ctx.line.joins();
         loop {
@@ -116,18 +116,20 @@ impl OrderTask<'_> {
                 .location()
                 .filter(|l| is_port(&layout, l))
                 .cloned();
-            let port_until = port_wait
+            if port_wait
                 .as_ref()
-                .filter(|(at, _)| Some(at) == at_port.as_ref())
-                .map(|(_, until)| *until);
-            let waited = ticket.in_line() && (at_port.is_none() || port_until.is_some());
+                .is_some_and(|wait| Some(&wait.at) != at_port.as_ref())
+            {
+                port_wait = None;
+            }
+            let waited = ticket.in_line() && (at_port.is_none() || port_wait.is_some());
             if waited {
+                let next_check = port_wait.as_ref().map(PortWait::next_check);
                 let recheck = async {
-                    match port_until {
-                        Some(until) => {
-                            let next = Instant::now() + PORT_RECHECK;
+                    match next_check {
+                        Some(wake) => {
                             tokio::select! {
-                                _ = tokio::time::sleep_until(until.min(next)) => {}
+                                _ = tokio::time::sleep_until(wake) => {}
                                 Ok(()) = joins.changed() => {}
                             }
                         }
@@ -138,7 +140,8 @@ impl OrderTask<'_> {
                     _ = ticket.turn() => {}
                     _ = recheck => {
                         // No turn yet: the part waits on at its port, or goes home.
-                        if !self.keeps_waiting_at_port(port_until).await {
+                        let wait = port_wait.as_mut().expect("waiting at a port");
+                        if !self.keeps_waiting_at_port(wait, &step.service_type).await {
                             port_wait = None;
                             self.go_home(at_port.expect("waiting at a port"), &part).await?;
                         }
@@ -166,14 +169,18 @@ impl OrderTask<'_> {
             if placed {
                 continue;
             } else if let Some(here) = at_port {
-                if port_until.is_none() {
-                    if let Some(until) = self.port_wait_until(&layout, &here, &part).await {
-                        info!(holon = %self.holon, at = %here, most = ?until.duration_since(Instant::now()), "no station has a place for the part yet, and no part waits for this one: it waits at its port");
-                        port_wait = Some((here, until));
-                        continue;
+                match port_wait.as_mut() {
+                    None => {
+                        if let Some(wait) = self.port_wait(&layout, &here, &part).await {
+                            port_wait = Some(wait);
+                            continue;
+                        }
                     }
-                } else if self.keeps_waiting_at_port(port_until).await {
-                    continue;
+                    Some(wait) => {
+                        if self.keeps_waiting_at_port(wait, &step.service_type).await {
+                            continue;
+                        }
+                    }
                 }
                 port_wait = None;
                 self.go_home(here, &part).await?;

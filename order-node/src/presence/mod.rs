@@ -28,6 +28,8 @@ pub struct PresenceView {
     pub alive: HashSet<HolonId>,
     /// Each resource's queue as it last published it.
     pub queues: HashMap<HolonId, PublishedQueue>,
+    /// The services each resource offers, as it last published.
+    pub services: HashMap<HolonId, Vec<String>>,
     /// The staff holons alive (advisors), by name.
     pub staff: BTreeSet<HolonId>,
     /// The resources whose last state said they are being handed over to a successor
@@ -78,6 +80,24 @@ impl Presence {
             .queues
             .get(resource)
             .map(|queue| queue.ahead_of(priority))
+    }
+
+    /// The services `resource` offers, as it last published (none if it never did).
+    pub fn services_of(&self, resource: &HolonId) -> Vec<String> {
+        let view = self.view.borrow();
+        view.services.get(resource).cloned().unwrap_or_default()
+    }
+
+    /// Whether a resource alive other than `except` that offers `service` runs a job,
+    /// as it last published: it will free a place for the service when that job ends.
+    pub fn working_for(&self, service: &str, except: &HolonId) -> bool {
+        let view = self.view.borrow();
+        view.services.iter().any(|(resource, services)| {
+            resource != except
+                && view.alive.contains(resource)
+                && services.iter().any(|s| s == service)
+                && view.queues.get(resource).is_some_and(|q| q.running)
+        })
     }
 
     /// The staff holon to ask for advice, if one is alive (the first by name).

@@ -137,6 +137,8 @@ pub struct PresenceModel {
     /// Each resource's queue as it last published it: fresher than a proposal heard
     /// during a round.
     queues: HashMap<HolonId, PublishedQueue>,
+    /// The services each resource offers, as it last published.
+    services: HashMap<HolonId, Vec<String>>,
     /// The staff holons alive (advisors), by name.
     staff: BTreeSet<HolonId>,
     /// The resources whose last state said they are being handed over to a successor
@@ -178,6 +180,11 @@ impl PresenceModel {
     /// Each resource's queue, as it last published it.
     pub fn queues(&self) -> &HashMap<HolonId, PublishedQueue> {
         &self.queues
+    }
+
+    /// The services each resource offers, as it last published.
+    pub fn services(&self) -> &HashMap<HolonId, Vec<String>> {
+        &self.services
     }
 
     /// The staff holons alive, by name.
@@ -244,6 +251,11 @@ impl PresenceModel {
         };
         if self.queues.get(resource) != Some(&queue) {
             self.queues.insert(resource.clone(), queue);
+            self.version += 1;
+        }
+        if self.services.get(resource) != Some(&snapshot.services) {
+            self.services
+                .insert(resource.clone(), snapshot.services.clone());
             self.version += 1;
         }
         let handing_over_changed = if snapshot.handing_over {

@@ -280,6 +280,7 @@ impl Owner {
         self.view.send_replace(Arc::new(PresenceView {
             alive: self.model.alive().clone(),
             queues: self.model.queues().clone(),
+            services: self.model.services().clone(),
             staff: self.model.staff().clone(),
             handing_over: self.model.handing_over().clone(),
             turns: self

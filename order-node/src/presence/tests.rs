@@ -67,6 +67,33 @@ async fn orders_read_what_the_task_heard() {
     let news = tokio::time::timeout(Duration::from_secs(5), &mut turn).await;
     assert_eq!(news.unwrap(), TurnNews::Turn);
     assert_eq!(presence.queue(&robot, 0), Some(2));
+    // What it offers, and whether it works for a part waiting at another's port.
+    assert_eq!(
+        presence.services_of(&robot),
+        vec!["pick_n_place".to_string()]
+    );
+    let other = HolonId::resource("robot2").unwrap();
+    assert!(!presence.working_for("pick_n_place", &other), "free");
+    let mut working =
+        super::model::tests::snapshot_of(&robot, "busy", "ready", &["c/1/1", "d/1/1"]);
+    working.current = Some(schemas::CurrentJobView {
+        requester: HolonId::order("o-2").unwrap(),
+        conversation_id: "e/1/1".into(),
+        service_type: "pick_n_place".into(),
+        step: None,
+        program: None,
+        started_at: None,
+    });
+    session
+        .put(&state_key, serde_json::to_vec(&working).unwrap())
+        .await
+        .unwrap();
+    until(&presence, |p| p.working_for("pick_n_place", &other)).await;
+    assert!(
+        !presence.working_for("pick_n_place", &robot),
+        "not the asker's own"
+    );
+    assert!(!presence.working_for("inspect", &other), "not offered");
 
     // A freed place wakes one waiting order.
     let mut appearances = presence.appearances();
