@@ -446,39 +446,28 @@ async fn the_conveyor_moves_several_pallets_at_once() {
     );
 }
 
-/// A part whose next station is still busy when its step ends waits at its port for
-/// that station (`orders.wait_at_port`, on by default) rather than ride the loop to
-/// its home and back, while no other part waits for the station it is at: here the
-/// second of two parts drills on station_a while the first mills on station_b (a slow
-/// mill: 6 s), and takes station_b once the first has left, without going home. Its
-/// move home would take 6 s, more than three times what it waits. (The first frees
-/// station_b's port as its pallet departs, docs/material-flow.md "Departure": the mill
-/// must outlast the second part's ride in and drilling, about 4.5 s after the first
-/// reached station_b, since the conveyor moves one pallet at a time.)
-#[tokio::test(flavor = "multi_thread")]
-async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
-    // 250 mm/s: from station_a's stopper to the buffer's (1500 mm) 6 s, station_a to
-    // station_b 2 s, station_b to the exit 2 s.
+/// Two parts of a product that drills on station_a then mills on station_b, on a slow
+/// conveyor (250 mm/s: from station_a's stopper to the buffer's, 1500 mm, 6 s; station_a
+/// to station_b 2 s; station_b to the exit 2 s), the mill taking `mill_ms`: every order
+/// done, the plant empty, no error logged; how many parts waited at their port, and
+/// how many were sent home (each line of the order-node's log about ports and homes is
+/// printed when no part waited or one went home).
+async fn two_parts_drill_then_mill(name: &str, mill_ms: u64) -> (usize, usize) {
     let conveyor = CONVEYOR.replace("speed_mm_s = 4000", "speed_mm_s = 250");
     assert!(conveyor.contains("speed_mm_s = 250"));
+    let mill = format!("delay_ms = {mill_ms}");
     let plant = PLANT
         .replacen("delay_ms = 150", "delay_ms = 200", 1)
-        .replacen("delay_ms = 150", "delay_ms = 3000", 1);
-    assert!(plant.contains("delay_ms = 200") && plant.contains("delay_ms = 3000"));
+        .replacen("delay_ms = 150", &mill, 1);
+    assert!(plant.contains("delay_ms = 200") && plant.contains(&mill));
     let stations = [
         ("station_a", "drill", "sa", 400),
-        ("station_b", "mill", "sb", 6000),
+        ("station_b", "mill", "sb", 2 * mill_ms),
     ];
-    let flow = FlowCell::start_with(
-        "t-flow-port-wait",
-        &conveyor,
-        &plant,
-        &stations,
-        &[("ab", "drill mill")],
-    )
-    .await;
+    let flow =
+        FlowCell::start_with(name, &conveyor, &plant, &stations, &[("ab", "drill mill")]).await;
     let orders = flow.cell.submit("ab", 2).await.unwrap();
-    flow.wait_ended(&orders, Duration::from_secs(120)).await;
+    flow.wait_ended(&orders, Duration::from_secs(180)).await;
     flow.assert_all_done_and_plant_empty(&orders).await;
     let waited = flow.count_in_orders_log("it waits at its port");
     let home = flow.count_in_orders_log("it goes back to its home");
@@ -494,6 +483,26 @@ async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
             eprintln!("{line}");
         }
     }
+    assert_eq!(
+        flow.count_in_orders_log("\"ERROR\""),
+        0,
+        "the order-node logged errors"
+    );
+    (waited, home)
+}
+
+/// A part whose next station is still busy when its step ends waits at its port for
+/// that station (`orders.wait_at_port`, on by default) rather than ride the loop to
+/// its home and back, while no other part waits for the station it is at: here the
+/// second of two parts drills on station_a while the first mills on station_b (a slow
+/// mill: 3 s), and takes station_b once the first has left, without going home. Its
+/// move home would take 6 s, more than three times what it waits. (The first frees
+/// station_b's port as its pallet departs, docs/material-flow.md "Departure": the mill
+/// must outlast the second part's ride in and drilling, about 4.5 s after the first
+/// reached station_b, since the conveyor moves one pallet at a time.)
+#[tokio::test(flavor = "multi_thread")]
+async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
+    let (waited, home) = two_parts_drill_then_mill("t-flow-port-wait", 3000).await;
     assert!(
         waited >= 1,
         "no part waited at its port for station_b (parts sent home: {home})"
@@ -502,44 +511,17 @@ async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
         home, 0,
         "a part rode home while station_b was about to free"
     );
-    assert_eq!(
-        flow.count_in_orders_log("\"ERROR\""),
-        0,
-        "the order-node logged errors"
-    );
 }
 
 /// A part whose next station works longer than its move home would take waits at its
 /// port on while that station works, rather than ride home once its move home's time
 /// is up and back when the station frees (docs/material-flow.md, "Orders arrange their
-/// moves"): as above, with a mill of 16 s against a move home of 6 s (the second part waits about 11 s). Until 2026-11-28
-/// the second part went home after 6 s, and station_b stood idle through its lap.
+/// moves"): as above, with a mill of 16 s against a move home of 6 s (the second part
+/// waits about 11 s). Until 2026-11-28 the second part went home after 6 s, and
+/// station_b stood idle through its lap.
 #[tokio::test(flavor = "multi_thread")]
 async fn a_part_waits_at_its_port_while_its_next_station_works() {
-    let conveyor = CONVEYOR.replace("speed_mm_s = 4000", "speed_mm_s = 250");
-    assert!(conveyor.contains("speed_mm_s = 250"));
-    let plant = PLANT
-        .replacen("delay_ms = 150", "delay_ms = 200", 1)
-        .replacen("delay_ms = 150", "delay_ms = 16000", 1);
-    assert!(plant.contains("delay_ms = 200") && plant.contains("delay_ms = 16000"));
-    let stations = [
-        ("station_a", "drill", "sa", 400),
-        ("station_b", "mill", "sb", 16000),
-    ];
-    let flow = FlowCell::start_with(
-        "t-flow-port-wait-works",
-        &conveyor,
-        &plant,
-        &stations,
-        &[("ab", "drill mill")],
-    )
-    .await;
-    let orders = flow.cell.submit("ab", 2).await.unwrap();
-    flow.wait_ended(&orders, Duration::from_secs(180)).await;
-    flow.assert_all_done_and_plant_empty(&orders).await;
-    let waited = flow.count_in_orders_log("it waits at its port");
-    let home = flow.count_in_orders_log("it goes back to its home");
-    eprintln!("parts that waited at their port: {waited}; parts sent home: {home}");
+    let (waited, home) = two_parts_drill_then_mill("t-flow-port-wait-works", 16000).await;
     assert!(
         waited >= 1,
         "no part waited at its port for station_b (parts sent home: {home})"
@@ -547,11 +529,6 @@ async fn a_part_waits_at_its_port_while_its_next_station_works() {
     assert_eq!(
         home, 0,
         "a part rode home while station_b worked the part before it"
-    );
-    assert_eq!(
-        flow.count_in_orders_log("\"ERROR\""),
-        0,
-        "the order-node logged errors"
     );
 }
 
