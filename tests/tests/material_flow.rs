@@ -513,25 +513,6 @@ async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
     );
 }
 
-/// A part whose next station works longer than its move home would take waits at its
-/// port on while that station works, rather than ride home once its move home's time
-/// is up and back when the station frees (docs/material-flow.md, "Orders arrange their
-/// moves"): as above, with a mill of 16 s against a move home of 6 s (the second part
-/// waits about 11 s). Until 2026-11-28 the second part went home after 6 s, and
-/// station_b stood idle through its lap.
-#[tokio::test(flavor = "multi_thread")]
-async fn a_part_waits_at_its_port_while_its_next_station_works() {
-    let (waited, home) = two_parts_drill_then_mill("t-flow-port-wait-works", 16000).await;
-    assert!(
-        waited >= 1,
-        "no part waited at its port for station_b (parts sent home: {home})"
-    );
-    assert_eq!(
-        home, 0,
-        "a part rode home while station_b worked the part before it"
-    );
-}
-
 #[tokio::test(flavor = "multi_thread")]
 async fn a_part_that_fails_its_inspection_is_recovered_and_inspected_again() {
     // (With one of the conveyor's three pallets taken out meanwhile.)
