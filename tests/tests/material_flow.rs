@@ -447,14 +447,17 @@ async fn the_conveyor_moves_several_pallets_at_once() {
 }
 
 /// Two parts of a product that drills on station_a then mills on station_b, on a slow
-/// conveyor (250 mm/s: from station_a's stopper to the buffer's, 1500 mm, 6 s; station_a
-/// to station_b 2 s; station_b to the exit 2 s), the mill taking `mill_ms`: every order
-/// done, the plant empty, no error logged; how many parts waited at their port, and
-/// how many were sent home (each line of the order-node's log about ports and homes is
-/// printed when no part waited or one went home).
-async fn two_parts_drill_then_mill(name: &str, mill_ms: u64) -> (usize, usize) {
-    let conveyor = CONVEYOR.replace("speed_mm_s = 4000", "speed_mm_s = 250");
-    assert!(conveyor.contains("speed_mm_s = 250"));
+/// conveyor running at `speed_mm_s` (at 250 mm/s: from station_a's stopper to the
+/// buffer's, 1500 mm, 6 s; station_a to station_b 2 s; station_b to the exit 2 s), the
+/// mill's pick and place taking `mill_ms` each (within the stations' 10 s command
+/// timeout): every order done,
+/// the plant empty, no error logged; how many parts waited at their port, and how many
+/// were sent home (each line of the order-node's log about ports and homes is printed
+/// when no part waited or one went home).
+async fn two_parts_drill_then_mill(name: &str, speed_mm_s: u64, mill_ms: u64) -> (usize, usize) {
+    let speed = format!("speed_mm_s = {speed_mm_s}");
+    let conveyor = CONVEYOR.replace("speed_mm_s = 4000", &speed);
+    assert!(conveyor.contains(&speed));
     let mill = format!("delay_ms = {mill_ms}");
     let plant = PLANT
         .replacen("delay_ms = 150", "delay_ms = 200", 1)
@@ -495,14 +498,15 @@ async fn two_parts_drill_then_mill(name: &str, mill_ms: u64) -> (usize, usize) {
 /// that station (`orders.wait_at_port`, on by default) rather than ride the loop to
 /// its home and back, while no other part waits for the station it is at: here the
 /// second of two parts drills on station_a while the first mills on station_b (a slow
-/// mill: 3 s), and takes station_b once the first has left, without going home. Its
-/// move home would take 6 s, more than three times what it waits. (The first frees
+/// mill: 6 s, a pick and a place of 3 s each), and takes station_b once the first has
+/// left, without going home. Its move home would take 6 s, more than three times what
+/// it waits. (The first frees
 /// station_b's port as its pallet departs, docs/material-flow.md "Departure": the mill
 /// must outlast the second part's ride in and drilling, about 4.5 s after the first
 /// reached station_b, since the conveyor moves one pallet at a time.)
 #[tokio::test(flavor = "multi_thread")]
 async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
-    let (waited, home) = two_parts_drill_then_mill("t-flow-port-wait", 3000).await;
+    let (waited, home) = two_parts_drill_then_mill("t-flow-port-wait", 250, 3000).await;
     assert!(
         waited >= 1,
         "no part waited at its port for station_b (parts sent home: {home})"
@@ -510,6 +514,27 @@ async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
     assert_eq!(
         home, 0,
         "a part rode home while station_b was about to free"
+    );
+}
+
+/// A part whose next station works longer than its move home would take waits at its
+/// port on while that station works, rather than ride home once its move home's time
+/// is up and back when the station frees (docs/material-flow.md, "Orders arrange their
+/// moves"): as above on a conveyor of 500 mm/s (a move home of 3 s), with a mill of
+/// 9 s (a pick and a place of 4.5 s each), so the second part waits about 6.5 s, more
+/// than its move home and less than the wait's cap of four moves home. Until
+/// 2026-11-28 the second part went home after 3 s, and station_b stood idle through
+/// its lap.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_part_waits_at_its_port_while_its_next_station_works() {
+    let (waited, home) = two_parts_drill_then_mill("t-flow-port-wait-works", 500, 4500).await;
+    assert!(
+        waited >= 1,
+        "no part waited at its port for station_b (parts sent home: {home})"
+    );
+    assert_eq!(
+        home, 0,
+        "a part rode home while station_b worked the part before it"
     );
 }
 
