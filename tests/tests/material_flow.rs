@@ -500,21 +500,14 @@ async fn two_parts_drill_then_mill(name: &str, speed_mm_s: u64, mill_ms: u64) ->
 /// second of two parts drills on station_a while the first mills on station_b (a slow
 /// mill: 6 s, a pick and a place of 3 s each), and takes station_b once the first has
 /// left, without going home. Its move home would take 6 s, more than three times what
-/// it waits. (The first frees
-/// station_b's port as its pallet departs, docs/material-flow.md "Departure": the mill
-/// must outlast the second part's ride in and drilling, about 4.5 s after the first
-/// reached station_b, since the conveyor moves one pallet at a time.)
+/// it waits. (The first frees station_b's port as its pallet departs,
+/// docs/material-flow.md "Departure": the mill must outlast the second part's ride in
+/// and drilling, about 4.5 s after the first reached station_b, since the conveyor
+/// moves one pallet at a time.)
 #[tokio::test(flavor = "multi_thread")]
 async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
     let (waited, home) = two_parts_drill_then_mill("t-flow-port-wait", 250, 3000).await;
-    assert!(
-        waited >= 1,
-        "no part waited at its port for station_b (parts sent home: {home})"
-    );
-    assert_eq!(
-        home, 0,
-        "a part rode home while station_b was about to free"
-    );
+    assert_a_part_waited_for_station_b(waited, home, "was about to free");
 }
 
 /// A part whose next station works longer than its move home would take waits at its
@@ -528,14 +521,17 @@ async fn a_part_waits_at_its_port_for_a_station_about_to_free() {
 #[tokio::test(flavor = "multi_thread")]
 async fn a_part_waits_at_its_port_while_its_next_station_works() {
     let (waited, home) = two_parts_drill_then_mill("t-flow-port-wait-works", 500, 4500).await;
+    assert_a_part_waited_for_station_b(waited, home, "worked the part before it");
+}
+
+/// A part waited at its port for station_b, and none rode home while station_b
+/// `was_doing` what the test says.
+fn assert_a_part_waited_for_station_b(waited: usize, home: usize, was_doing: &str) {
     assert!(
         waited >= 1,
         "no part waited at its port for station_b (parts sent home: {home})"
     );
-    assert_eq!(
-        home, 0,
-        "a part rode home while station_b worked the part before it"
-    );
+    assert_eq!(home, 0, "a part rode home while station_b {was_doing}");
 }
 
 #[tokio::test(flavor = "multi_thread")]
