@@ -219,11 +219,14 @@ def main():
                       help="every move's time times this (1: the cell as shipped)")
     args.add_argument("--seconds", type=float, default=300, help="the solver's time")
     args.add_argument("--workers", type=int, default=2, help="the solver's threads")
+    args.add_argument("--seed", type=int, default=0,
+                      help="the solver's random seed (searches differ by it)")
     args = args.parse_args()
     model = Model(args.cell, args.travel)
     solver = cp_model.CpSolver()
     solver.parameters.max_time_in_seconds = args.seconds
     solver.parameters.num_workers = args.workers
+    solver.parameters.random_seed = args.seed
     status = solver.Solve(model.m)
     if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
         raise SystemExit(f"no schedule found: {solver.StatusName(status)}")
@@ -234,7 +237,7 @@ def main():
           f"(the solver's own bound {solver.BestObjectiveBound() / TICKS_PER_S:.1f} s)")
     for product, (ops, start, at) in model.parts.items():
         print(product, " ".join(
-            f"{op}@{next(s for s, c in at[i].items() if solver.Value(c))}:{solver.Value(start[i]) / TICKS_PER_S:.0f}"
+            f"{op}@{next(s for s, c in at[i].items() if solver.Value(c))}:{solver.Value(start[i]) / TICKS_PER_S:.1f}"
             for i, op in enumerate(ops)))
 
 
