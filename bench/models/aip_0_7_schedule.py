@@ -14,18 +14,23 @@ The cell, as deploy/cells/aip-primeca ships it:
 - the monorail (monorail.toml): a one-way loop of 16,865 mm at 500 mm/s, the stoppers'
   places along it, 1 s to leave a station's spur and 1 s to dock: a move from a to b takes
   the distance one way round at speed plus 2 s, which the runs' traces match within 0.1 s;
-- a station's port has one place, held from the start of the move in to 1 s after the
-  move away begins (docs/material-flow.md, "Reservations" and "Departure"); steps on the
-  same station follow one another without a move;
+- a station's port has one place, held from the start of the move in until the move
+  away begins (docs/material-flow.md, "Reservations" and "Departure"); steps on the same
+  station follow one another without a move (the part does not leave and come back);
 - a part done at a station may wait at its port (holding it) or ride home to the buffer
-  (which always has its place) and on from there later.
+  (which always has its place) and on from there later. It may wait at its port as long
+  as it likes: our control bounds that wait and yields the port to a part that wants it
+  (docs/material-flow.md, "Orders arrange their moves"), a rule of the control, not of
+  the cell.
 Neither the ten shuttles nor the loop's queues are counted (seven parts, ten shuttles).
 
 Three cells are modelled (--cell):
 - `as-shipped`: the above;
 - `waiting-place`: each station also has one waiting place in front of its port: a part
   may ride there (holding it from the start of that move) and move in within 2 s once
-  the port frees (docs/scheduling.md, "The next lever");
+  the port frees (docs/scheduling.md, "The next lever"); the model lets a part ride
+  there only from the station before, not from home, so it gives this cell less than
+  the design would;
 - `free-waiting`: a part may wait anywhere just short of a station without holding
   anything and move in within 1 s (the dock): not a cell anyone can build, a relaxation
   that bounds what waiting places of any number could give.
@@ -44,6 +49,7 @@ Run it (from the repository's root):
 """
 
 import argparse
+import math
 
 from ortools.sat.python import cp_model
 
@@ -75,8 +81,10 @@ HORIZON = 900 * TICKS_PER_S
 # Moving in from a waiting place, and from just short of a station (free-waiting).
 WAITING_PLACE_MOVE_IN_S = 2.0
 FREE_WAITING_MOVE_IN_S = DOCK_S
-# What a port stays held after the move away begins.
-DEPARTURE_S = 1.0
+# What a port stays held after the move away begins: the plant frees it as the pallet
+# leaves it, when the move begins (the next track counts the second back onto the loop),
+# and the monorail reports the departure at once (docs/material-flow.md, "Departure").
+DEPARTURE_S = 0.0
 
 
 def move_s(a, b, travel):
@@ -87,7 +95,8 @@ def move_s(a, b, travel):
 
 
 def ticks(seconds):
-    return int(round(seconds * TICKS_PER_S))
+    """Seconds in ticks, rounded up: no move or step is made shorter than the plant's."""
+    return math.ceil(seconds * TICKS_PER_S - 1e-9)
 
 
 def lower_bound_s(travel):
