@@ -5,15 +5,16 @@ A reference for docs/scheduling.md ("How short can aip-0-7 be?"), not part of th
 with the cell's own figures, so that a gap to the lower bound can be split into what the
 cell allows and what the control loses. It is an offline model: no holon, no plant.
 
-The cell, as deploy/cells/aip-primeca ships it:
-- the operations and their times (plant.toml; the benchmark's table as the emulator has
-  it) and the stations able to do each (m1.toml ... m5.toml; M6 and M7 take no part in
-  scenario 0);
-- the seven products' steps (b.toml ... p.toml), each loaded at M1, inspected at M5 and
-  unloaded at M1;
+The cell, as deploy/cells/aip-primeca ships it, read from its files (`read_cell`):
+- the stations the cell starts (cell.toml; M7 is away in scenario 0), their services and
+  how long each takes (each action the controller's delay_ms in plant.toml: the
+  benchmark's table as the emulator has it);
+- the steps of the products the scenario releases (b.toml ... p.toml), each loaded at
+  M1, inspected at M5 and unloaded at M1;
 - the monorail (monorail.toml): a one-way loop of 16,865 mm at 500 mm/s, the stoppers'
-  places along it, 1 s to leave a station's spur and 1 s to dock: a move from a to b takes
-  the distance one way round at speed plus 2 s, which the runs' traces match within 0.1 s;
+  places along it and where each station, the entry, the exit and the buffer dock, 1 s
+  to leave a station's spur and 1 s to dock: a move from a to b takes the distance one
+  way round at speed plus 2 s, which the runs' traces match within 0.1 s;
 - a station's port has one place, held from the start of the move in until the move
   away begins (docs/material-flow.md, "Reservations" and "Departure"); steps on the same
   station follow one another without a move (the part does not leave and come back);
@@ -38,6 +39,8 @@ Three cells are modelled (--cell):
 --travel F multiplies every move's time (1: the cell as shipped); the bench's lower bound
 for the same travel is printed beside it (its busiest set, {M2, M3}: the least head,
 their 250 s of work shared by two, the least tail; docs/scheduling.md, "The lower bound").
+That bound is written out for aip-0-7's busiest set, not derived from the files: a
+change to the cell's stations or products needs it written again (or the bench's own).
 
 The solver (CP-SAT, Google OR-Tools) returns the best schedule it found within its time
 (--seconds): a makespan no control can beat on the modelled cell only when it reports
@@ -50,32 +53,74 @@ Run it (from the repository's root):
 
 import argparse
 import math
+import pathlib
+import tomllib
 
 from ortools.sat.python import cp_model
 
-# The loop: each stopper's place along it (mm), its length and its pallets' speed.
-LOOP_MM = 16865
-SPEED_MM_S = 500
-DOCK_S = 1.0
-STOPPER_MM = {"in": 0, "m1": 300, "out": 600, "buf": 900,
-              "m2": 2715, "m3": 5565, "m4": 6725, "m5": 9140}
-STATIONS = ["m1", "m2", "m3", "m4", "m5"]
-# How long an operation takes (s), and where it can be done.
-DURATION_S = {"load": 10, "unload": 10, "inspection": 5, "axis": 20, "r_comp": 20,
-              "l_comp": 20, "i_comp": 20, "screw_comp": 20}
-ABLE = {"load": ["m1"], "unload": ["m1"], "inspection": ["m5"],
-        "axis": ["m2", "m3"], "r_comp": ["m2", "m3"], "l_comp": ["m2", "m4"],
-        "i_comp": ["m4"], "screw_comp": ["m3", "m4"]}
-# The products' steps between their load and their inspection.
-PRODUCTS = {
-    "B": "axis axis axis r_comp r_comp i_comp screw_comp",
-    "E": "axis axis axis r_comp r_comp l_comp",
-    "L": "axis axis axis i_comp i_comp screw_comp screw_comp",
-    "T": "axis axis r_comp l_comp",
-    "A": "axis axis axis r_comp l_comp i_comp screw_comp",
-    "I": "axis axis i_comp screw_comp",
-    "P": "axis axis r_comp l_comp",
-}
+REPO = pathlib.Path(__file__).resolve().parents[2]
+SCENARIO = REPO / "deploy/scenarios/aip-0-7.toml"
+
+
+def read_toml(path):
+    with open(path, "rb") as f:
+        return tomllib.load(f)
+
+
+def read_cell(scenario_path):
+    """The cell's figures, from its own files: the loop (stoppers' places, length, speed,
+    docking; where the entry, exit and buffer dock), each station the cell starts (its
+    stopper, its services and how long each takes on its controller in plant.toml), and
+    the steps of each product the scenario releases."""
+    scenario = read_toml(scenario_path)
+    cell_dir = (scenario_path.parent / scenario["cell"]).resolve()
+    plant = read_toml(cell_dir / "plant.toml")
+    delay_ms = {c["resource"]: c.get("delay_ms", 0) for c in plant["controller"]}
+    if any("action_ms" in c for c in plant["controller"]):
+        raise SystemExit("plant.toml times some actions apart (action_ms): not modelled")
+    configs = {}
+    for process in read_toml(cell_dir / "cell.toml")["process"]:
+        args = process.get("args", [])
+        if "--config" in args:
+            configs[process["name"]] = read_toml(cell_dir / args[args.index("--config") + 1])
+    stopper_mm, duration_s, able, docks = {}, {}, {}, {}
+    for name, config in configs.items():
+        layout = config.get("layout", {})
+        if "conveyor" in layout:
+            loop = layout["conveyor"]
+            stopper_mm = {st["name"]: st["at_mm"] for st in loop["stoppers"]}
+            loop_mm, speed, dock_s = loop["length_mm"], loop["speed_mm_s"], loop.get("dock_ms", 0) / 1000
+            for location in layout.get("locations", []):
+                docks[location["role"]] = location["dock"].split(".")[1]
+        elif "services" in config:
+            port = next(loc for loc in layout["locations"] if loc["role"] == "port")
+            docks[name] = port["dock"].split(".")[1]
+            for service, spec in config["services"].items():
+                duration_s[service] = len(spec["steps"]) * delay_ms[name] / 1000
+                able.setdefault(service, []).append(name)
+    products = {}
+    for release in scenario["releases"]:
+        if release.get("count", 1) != 1 or release.get("at_s", 0) != 0:
+            raise SystemExit("the model takes one order of each product, released at 0")
+        steps = read_toml(cell_dir / f"{release['product']}.toml")["steps"]
+        products[release["product"].upper()] = [step["service_type"] for step in steps]
+    return dict(stopper_mm=stopper_mm, loop_mm=loop_mm, speed_mm_s=speed, dock_s=dock_s,
+                duration_s=duration_s, able=able, docks=docks, products=products)
+
+
+CELL = read_cell(SCENARIO)
+# The loop: each place's stopper along it (mm; stations by name, the entry, exit and
+# buffer by their roles), its length and its pallets' speed.
+LOOP_MM = CELL["loop_mm"]
+SPEED_MM_S = CELL["speed_mm_s"]
+DOCK_S = CELL["dock_s"]
+STOPPER_MM = {place: CELL["stopper_mm"][stopper] for place, stopper in CELL["docks"].items()}
+STATIONS = sorted(s for s in CELL["docks"] if s not in ("entry", "exit", "buffer"))
+# How long each service takes (s), and the stations that offer it.
+DURATION_S = CELL["duration_s"]
+ABLE = CELL["able"]
+# Each product's steps, load to unload.
+PRODUCTS = CELL["products"]
 TICKS_PER_S = 10
 HORIZON = 900 * TICKS_PER_S
 # Moving in from a waiting place, and from just short of a station (free-waiting).
@@ -104,9 +149,9 @@ def lower_bound_s(travel):
     {M2, M3}, from the least head (entry to M1, load, on to M2; travel without docking) and
     their work shared by two, to the least tail (l_comp on M4, inspection, unload, exit)."""
     run = lambda a, b: ((STOPPER_MM[b] - STOPPER_MM[a]) % LOOP_MM) / SPEED_MM_S * travel
-    head = run("in", "m1") + 10 + run("m1", "m2")
+    head = run("entry", "m1") + 10 + run("m1", "m2")
     work = 25 * 20 / 2
-    tail = run("m3", "m4") + 20 + run("m4", "m5") + 5 + run("m5", "m1") + 10 + run("m1", "out")
+    tail = run("m3", "m4") + 20 + run("m4", "m5") + 5 + run("m5", "m1") + 10 + run("m1", "exit")
     return head + work + tail
 
 
@@ -124,7 +169,7 @@ class Model:
         # Each product's operations, their starts and their stations' choice literals.
         self.parts = {}
         for product, steps in PRODUCTS.items():
-            self.add_part(product, ["load"] + steps.split() + ["inspection", "unload"])
+            self.add_part(product, steps)
         for intervals in list(self.port.values()) + list(self.waiting_place.values()):
             self.m.AddNoOverlap(intervals)
         self.m.Minimize(self.makespan)
@@ -156,12 +201,12 @@ class Model:
         # leaves op i's station (its port is held 1 s more).
         move_in, leave = [None] * n, [None] * n
         move_in[0] = self.var()
-        m.Add(start[0] >= move_in[0] + ticks(move_s("in", "m1", self.travel)))
+        m.Add(start[0] >= move_in[0] + ticks(move_s("entry", "m1", self.travel)))
         for i in range(1, n):
             leave[i - 1] = self.leave_and_move(start, end, at, stays, move_in, i)
         leave[n - 1] = self.var()
         m.Add(leave[n - 1] >= end[n - 1])
-        m.Add(self.makespan >= leave[n - 1] + ticks(move_s("m1", "out", self.travel)))
+        m.Add(self.makespan >= leave[n - 1] + ticks(move_s("m1", "exit", self.travel)))
         for i in range(n):
             for s, chosen in at[i].items():
                 held_from, held_to = self.var(), self.var()
@@ -202,9 +247,9 @@ class Model:
                     continue
                 m.Add(start[i] >= leave + ticks(move_s(a, b, self.travel))).OnlyEnforceIf(
                     [from_a, to_b] + straight)
-                m.Add(move_in[i] >= leave + ticks(move_s(a, "buf", self.travel))).OnlyEnforceIf(
+                m.Add(move_in[i] >= leave + ticks(move_s(a, "buffer", self.travel))).OnlyEnforceIf(
                     [from_a, to_b, home])
-                m.Add(start[i] >= move_in[i] + ticks(move_s("buf", b, self.travel))).OnlyEnforceIf(
+                m.Add(start[i] >= move_in[i] + ticks(move_s("buffer", b, self.travel))).OnlyEnforceIf(
                     [from_a, to_b, home])
                 if self.cell == "as-shipped":
                     continue

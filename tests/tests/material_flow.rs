@@ -450,10 +450,9 @@ async fn the_conveyor_moves_several_pallets_at_once() {
 /// conveyor running at `speed_mm_s` (at 250 mm/s: from station_a's stopper to the
 /// buffer's, 1500 mm, 6 s; station_a to station_b 2 s; station_b to the exit 2 s), the
 /// mill's pick and place taking `mill_ms` each (within the stations' 10 s command
-/// timeout): every order done,
-/// the plant empty, no error logged; how many parts waited at their port, and how many
-/// were sent home (each line of the order-node's log about ports and homes is printed
-/// when no part waited or one went home).
+/// timeout): every order done, the plant empty, no error logged; how many parts waited
+/// at their port, and how many were sent home (each line of the order-node's log about
+/// ports and homes is printed when no part waited or one went home).
 async fn two_parts_drill_then_mill(name: &str, speed_mm_s: u64, mill_ms: u64) -> (usize, usize) {
     let speed = format!("speed_mm_s = {speed_mm_s}");
     let conveyor = CONVEYOR.replace("speed_mm_s = 4000", &speed);
