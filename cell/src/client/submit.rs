@@ -25,12 +25,6 @@ pub async fn submit(
     else {
         return Err(AskError::NoAnswer(key));
     };
-    match reply.result() {
-        Ok(sample) => serde_json::from_slice::<SubmitReply>(&sample.payload().to_bytes())
-            .map(|reply| reply.orders)
-            .map_err(|e| failed(&e)),
-        Err(err) => Err(AskError::refusal(
-            &err.payload().try_to_string().unwrap_or_default(),
-        )),
-    }
+    crate::client::ask::answer_of::<SubmitReply>(Some(reply), || key.clone())
+        .map(|reply| reply.orders)
 }

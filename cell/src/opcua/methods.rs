@@ -268,9 +268,13 @@ impl CellNodes {
         )
         .await
         {
+            Ok(Some(reply)) if crate::client::ask::timed_out(&reply) => {
+                warn!(%who, %product, "the order-node did not answer the work order in time (BadTimeout): its orders may have been made all the same; cell orders lists them");
+                return Err(StatusCode::BadTimeout);
+            }
             Ok(Some(reply)) => reply,
             Ok(None) => {
-                warn!(%who, %product, "no order-node answered the work order (BadTimeout); no order was made");
+                warn!(%who, %product, "no order-node was reached with the work order (BadTimeout); no order was made");
                 return Err(StatusCode::BadTimeout);
             }
             Err(e) => {
