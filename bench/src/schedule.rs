@@ -558,6 +558,7 @@ fn submit_as_they_arrive(
                 priority: if arrival.rush { rush_priority } else { 0 },
                 due: None,
                 queue: false,
+                submit_id: None,
             };
             let at = Instant::now();
             let names = holarchy_tests::submit_on(&session, &keys, &work).await?;

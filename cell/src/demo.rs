@@ -424,6 +424,7 @@ async fn operate(cell: &mut Cell, options: &DemoOptions) -> Result<Report> {
         priority: 0,
         due: None,
         queue: false,
+        submit_id: None,
     };
     let ids = crate::client::submit::submit(&cell.session, &cell.keys, &work, "cell demo", STARTUP)
         .await?;

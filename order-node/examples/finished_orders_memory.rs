@@ -180,6 +180,7 @@ durability = "process_crash"
             priority: 0,
             due: None,
             queue: true,
+            submit_id: None,
         };
         let replies = session
             .get(keys.orders_submit())

@@ -36,6 +36,7 @@ use crate::journal::OrderJournalError;
 use crate::order;
 use crate::part_word::{WordAnswer, WordAsk};
 use crate::progress::OrderProgress;
+use crate::submits::{Submits, Submitted, SUBMIT_RECORD};
 
 /// An order task may fail and be restarted at most this often (the project's one
 /// restart policy, [`holon::restart`]: order tasks are transient children); past it the
@@ -125,6 +126,9 @@ pub struct Host {
     /// sweep deletes them there (about 20 bytes each: two numbers in a map). An order
     /// is in `orders` or here, never in both.
     pub finished: Finished,
+    /// The named work orders it made ([`crate::submits`]), remembered as long as
+    /// finished orders are.
+    pub submits: Submits,
     /// The number of the next order (journalled before the orders are created).
     pub next: u64,
 }
@@ -141,12 +145,13 @@ impl Hosted {
 }
 
 impl Host {
-    /// The orders of a node that holds none in memory yet: `finished` (in the journal)
-    /// and the number of the next order as recovered.
+    /// The orders of a node that holds none in memory yet: `finished` (in the journal),
+    /// the named work orders it made and the number of the next order as recovered.
     pub fn new(
         config: OrderNodeConfig,
         context: Arc<OrderContext>,
         finished: Finished,
+        submits: Submits,
         next: u64,
     ) -> Host {
         Host {
@@ -154,6 +159,7 @@ impl Host {
             context,
             orders: BTreeMap::new(),
             finished,
+            submits,
             next,
         }
     }
@@ -170,6 +176,15 @@ impl Host {
         let next = first + work.count as u64;
         // Used up even when the write below fails: a number is never given twice.
         self.next = next;
+        let named = work.submit_id.as_ref().map(|id| {
+            let made = Submitted {
+                product: work.product.clone(),
+                count: work.count,
+                first,
+                at: schemas::unix_ms(),
+            };
+            (id.clone(), made)
+        });
         let created: Vec<(String, OrderProgress)> = (first..next)
             .map(|n| {
                 let name = format!("{}-{n}", self.config.name);
@@ -180,8 +195,8 @@ impl Host {
                 (name, progress)
             })
             .collect();
-        // The next number and every new order in one commit: all of the work order is
-        // written, or none of it (and the submit is refused).
+        // The next number, every new order and the work order's name in one commit:
+        // all of the work order is written, or none of it (and the submit is refused).
         if let Some(journal) = &self.context.journal {
             let next = serde_json::to_value(next).expect("a number serializes");
             let orders = created.iter().map(|(name, progress)| {
@@ -191,14 +206,22 @@ impl Host {
                     serde_json::to_value(progress).expect("progress serializes"),
                 )
             });
+            let name = named.as_ref().map(|(id, made)| {
+                let made = serde_json::to_value(made).expect("a work order's name serializes");
+                (SUBMIT_RECORD, id.as_str(), made)
+            });
             let records: Vec<(&str, &str, serde_json::Value)> =
                 std::iter::once((NEXT_RECORD.0, NEXT_RECORD.1, next))
                     .chain(orders)
+                    .chain(name)
                     .collect();
             holon::journal::blocking(|| {
                 journal.put_all(records.iter().map(|(k, i, v)| (*k, *i, v)))
             })
             .map_err(|e| e.to_string())?;
+        }
+        if let Some((id, made)) = named {
+            self.submits.insert(id, made);
         }
         let mut names = Vec::new();
         for (name, progress) in created {
@@ -413,55 +436,6 @@ impl Host {
         number < self.next && !self.orders.contains_key(name) && !self.in_journal(name)
     }
 
-    /// Forgets the orders that finished more than `keep` ago (at most
-    /// [`FORGET_AT_ONCE`]): out of the journal first, in one commit, then out of memory
-    /// (and out of [`Host::finished`]). When the delete fails they stay until the next
-    /// sweep. Returns how many went.
-    pub fn forget_finished(&mut self, keep: Duration) -> usize {
-        let now = schemas::unix_ms();
-        let keep_ms = keep.as_millis() as u64;
-        let expired_at = |at: u64| now.saturating_sub(at) > keep_ms;
-        let mut expired: Vec<String> = self
-            .orders
-            .iter()
-            .filter(|(_, hosted)| {
-                let p = hosted.progress.borrow();
-                p.status.is_final() && p.finished_at.is_some_and(expired_at)
-            })
-            .map(|(name, _)| name.clone())
-            .take(FORGET_AT_ONCE)
-            .collect();
-        let in_journal: Vec<u64> = self
-            .finished
-            .iter()
-            .filter(|(_, ended)| expired_at(ended.at))
-            .map(|(number, _)| *number)
-            .take(FORGET_AT_ONCE - expired.len())
-            .collect();
-        expired.extend(
-            in_journal
-                .iter()
-                .map(|number| format!("{}-{number}", self.config.name)),
-        );
-        if expired.is_empty() {
-            return 0;
-        }
-        if let Some(journal) = &self.context.journal {
-            if let Err(e) = holon::journal::blocking(|| journal.delete(ORDER_RECORD, &expired)) {
-                warn!(node = %self.config.name, orders = expired.len(), error = %e, "cannot remove finished orders from the journal; tried again at the next sweep");
-                return 0;
-            }
-        }
-        for name in &expired {
-            self.orders.remove(name);
-        }
-        for number in &in_journal {
-            self.finished.remove(number);
-        }
-        info!(node = %self.config.name, orders = expired.len(), ?keep, "finished orders left the journal");
-        expired.len()
-    }
-
     /// Unfinished orders hosted here.
     pub fn unfinished(&self) -> usize {
         self.orders
@@ -672,5 +646,6 @@ async fn fail(host: &mut Host, name: &str) {
     host.retire(name);
 }
 
+mod retention;
 #[cfg(test)]
 mod tests;

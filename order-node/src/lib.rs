@@ -16,7 +16,8 @@
 //!   or etcd for a node with a standby, [`standby`], which says where it stands,
 //!   [`fence_report`]);
 //! - [`host`]: the orders a node hosts and their tasks; [`listing`]: a page of them;
-//!   [`queries`]: its endpoints;
+//!   [`queries`]: its endpoints; [`submits`]: the work orders it made by their
+//!   submitter's name, so that asking again is safe;
 //!   [`node`]: the process, and [`error`]: why it stops with an error.
 
 pub mod advice_pause;
@@ -44,3 +45,4 @@ pub mod recovery;
 pub mod requests;
 pub mod standby;
 pub mod station_line;
+pub mod submits;

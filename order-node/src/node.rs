@@ -17,7 +17,7 @@ use tracing::{error, info, warn};
 
 use crate::config::OrderNodeConfig;
 use crate::context::OrderContext;
-use crate::host::{task_ended, Finished, Host, Tasks};
+use crate::host::{task_ended, Host, Tasks};
 use crate::journal::OrderJournal;
 use crate::presence::Presence;
 use crate::queries::{answer, Endpoints, NodeQuery, QUERY_QUEUE};
@@ -63,6 +63,7 @@ pub fn parse_submit(text: &str) -> Result<WorkOrder, OrderNodeError> {
         // Given at start-up, before the cell may be complete: the orders wait for
         // their plan.
         queue: true,
+        submit_id: None,
     };
     work.validate().map_err(|e| invalid(&e.to_string()))?;
     Ok(work)
@@ -145,7 +146,15 @@ impl Behaviour for OrderNode<'_> {
     /// declares the node's queryables.
     async fn start(&mut self, start: Start<Grant>) -> Result<Hosting, OrderNodeError> {
         let config = self.config;
-        let (journal, (recovered, finished, next)) = match start.grant {
+        let (
+            journal,
+            Recovered {
+                hosted: recovered,
+                finished,
+                submits,
+                next,
+            },
+        ) = match start.grant {
             Some((journal, recovered)) => (Some(journal), recovered),
             None => open_journal(config)?,
         };
@@ -154,7 +163,7 @@ impl Behaviour for OrderNode<'_> {
             .clone()
             .expect("presence is followed once opened");
         let context = OrderContext::new(start.session.clone(), config, presence, journal);
-        let host = Host::new(config.clone(), Arc::new(context), finished, next);
+        let host = Host::new(config.clone(), Arc::new(context), finished, submits, next);
         let (queue, queries) = mpsc::channel(QUERY_QUEUE);
         let endpoints = Endpoints::declare(&start.session, &host, queue)
             .await
@@ -372,7 +381,13 @@ fn open_journal(
 ) -> Result<(Option<Arc<OrderJournal>>, Recovered), OrderNodeError> {
     let Some(dir) = &config.data_dir else {
         warn!(node = %config.name, "no data directory: orders are not durable (use --data-dir)");
-        return Ok((None, (Vec::new(), Finished::new(), 1)));
+        return Ok((
+            None,
+            Recovered {
+                next: 1,
+                ..Recovered::default()
+            },
+        ));
     };
     // A successor opens the journal its predecessor is closing.
     let patience = match config.take_over {

@@ -314,6 +314,26 @@ async fn submit(host: &mut Host, query: Query, tasks: &mut Tasks, cancel: &Cance
             .await;
         }
     };
+    // A named work order the node made already is answered with its orders, whatever
+    // has changed since (its product gone, the quotas reached): asking again is safe.
+    if let Some(id) = &work.submit_id {
+        if let Some(made) = host.submits.get(id) {
+            if made.is_repeated_by(&work) {
+                let orders = made.orders(&host.config.name);
+                info!(node = %host.config.name, submit_id = %id, product = %work.product, count = work.count, by = requested_by(&query).as_deref().unwrap_or("(not said)"), "work order asked again: answered with the orders made under its name, none made");
+                return reply_orders(host, &query, orders).await;
+            }
+            let why = format!(
+                "submit_id {id:?} was given to a work order of {} {} (orders from {}); a name is not reused for other work",
+                made.count,
+                made.product,
+                made.orders(&host.config.name)[0]
+            );
+            warn!(node = %host.config.name, submit_id = %id, "work order refused: {why}");
+            let refusal = ErrorReply::new(schemas::ErrorCode::Invalid, why);
+            return refuse_work(host, &query, refusal).await;
+        }
+    }
     if !work.queue {
         if let Some(why) = product_missing(host, &work.product).await {
             warn!(node = %host.config.name, product = %work.product, "work order refused: {why}");
@@ -363,10 +383,15 @@ async fn submit(host: &mut Host, query: Query, tasks: &mut Tasks, cancel: &Cance
             return refuse_work(host, &query, refusal).await;
         }
     };
-    info!(node = %host.config.name, product = %work.product, orders = ?orders, by = by.as_deref().unwrap_or("(not said)"), "work order accepted");
+    info!(node = %host.config.name, product = %work.product, orders = ?orders, submit_id = work.submit_id.as_deref().unwrap_or("(none)"), by = by.as_deref().unwrap_or("(not said)"), "work order accepted");
+    reply_orders(host, &query, orders).await;
+}
+
+/// Answers a work order with its orders' names.
+async fn reply_orders(host: &Host, query: &Query, orders: Vec<String>) {
     let reply = serde_json::to_vec(&SubmitReply { orders }).expect("serializes");
     if let Err(e) = query.reply(query.key_expr().clone(), reply).await {
-        warn!(node = %host.config.name, error = %e, "cannot answer the work order");
+        warn!(node = %host.config.name, error = %e, "cannot answer the work order; the submitter times out (the orders are made: asked again under its submit_id, it gets them)");
     }
 }
 

@@ -1,6 +1,7 @@
 //! What an order-node's journal holds, as a node that starts serving on it needs it:
-//! the orders to host, the finished orders that stay in the journal, and the number of
-//! the next order ([`Recovered`]).
+//! the orders to host, the finished orders that stay in the journal, the named work
+//! orders it made ([`crate::submits`]), and the number of the next order
+//! ([`Recovered`]).
 //!
 //! A node on SQLite, or one that won its leader key on etcd without a copy, reads its
 //! journal once ([`recover`]). A standby on etcd keeps a [`Recovery`] hot instead: it
@@ -16,11 +17,21 @@ use crate::context::ORDER_RECORD;
 use crate::host::{order_number, Ended, Finished, NEXT_RECORD};
 use crate::journal::{OrderJournal, OrderJournalError};
 use crate::progress::OrderProgress;
+use crate::submits::{Submits, Submitted, SUBMIT_RECORD};
 
-/// What the journal holds at start-up: the orders to host (the unfinished ones, and
-/// finished ones whose end was not recorded), the finished orders that stay in the
-/// journal, and the number of the next order.
-pub type Recovered = (Vec<(String, OrderProgress)>, Finished, u64);
+/// What the journal holds at start-up.
+#[derive(Debug, Default)]
+pub struct Recovered {
+    /// The orders to host: the unfinished ones, and finished ones whose end was not
+    /// recorded.
+    pub hosted: Vec<(String, OrderProgress)>,
+    /// The finished orders that stay in the journal.
+    pub finished: Finished,
+    /// The named work orders it made.
+    pub submits: Submits,
+    /// The number of the next order.
+    pub next: u64,
+}
 
 /// The journal of node `node` as a starting node needs it, built one record at a time.
 #[derive(Debug, Default)]
@@ -32,6 +43,8 @@ pub struct Recovery {
     hosted: BTreeMap<String, OrderProgress>,
     /// The finished orders left in the journal: number → when it finished (Unix ms).
     finished: Finished,
+    /// The named work orders it made.
+    submits: Submits,
     /// The number of the next order, once the journal recorded one.
     next: Option<u64>,
     /// The first record that could not be read, with why: a node that wins with it
@@ -80,6 +93,11 @@ impl Recovery {
                     Ok(progress) => self.order(id.to_string(), progress),
                     Err(e) => self.unreadable(key, e),
                 }
+            } else if kind == SUBMIT_RECORD {
+                match serde_json::from_slice::<Submitted>(value) {
+                    Ok(made) => self.submits.insert(id.to_string(), made),
+                    Err(e) => self.unreadable(key, e),
+                }
             } else if (kind, id) == NEXT_RECORD {
                 match serde_json::from_slice::<u64>(value) {
                     Ok(next) => self.next = Some(next),
@@ -100,6 +118,7 @@ impl Recovery {
     /// show removals, so a standby forgets them by the same rule.
     pub fn forget_finished_before(&mut self, before: u64) {
         self.finished.retain(|_, ended| ended.at >= before);
+        self.submits.forget_before(before);
     }
 
     /// The first record that could not be read, if any.
@@ -114,11 +133,12 @@ impl Recovery {
 
     /// What a node starts serving with.
     pub fn into_recovered(self) -> Recovered {
-        (
-            self.hosted.into_iter().collect(),
-            self.finished,
-            self.next.unwrap_or(1),
-        )
+        Recovered {
+            hosted: self.hosted.into_iter().collect(),
+            finished: self.finished,
+            submits: self.submits,
+            next: self.next.unwrap_or(1),
+        }
     }
 }
 
@@ -128,6 +148,7 @@ pub fn recover(journal: &OrderJournal, node: &str) -> Result<Recovered, OrderJou
     journal.for_each::<OrderProgress>(ORDER_RECORD, |name, progress| {
         recovery.order(name, progress)
     })?;
+    journal.for_each::<Submitted>(SUBMIT_RECORD, |id, made| recovery.submits.insert(id, made))?;
     let next = journal.get::<u64>(NEXT_RECORD.0, NEXT_RECORD.1)?;
     recovery.next = next;
     Ok(recovery.into_recovered())
@@ -171,11 +192,11 @@ mod tests {
         assert_eq!(recovery.counts(), (1, 1));
         recovery.forget_finished_before(at + 1);
         assert_eq!(recovery.counts(), (1, 0));
-        let (hosted, finished, next) = recovery.into_recovered();
-        assert_eq!(hosted.len(), 1);
-        assert_eq!(hosted[0].0, "n1-2");
-        assert!(finished.is_empty());
-        assert_eq!(next, 3);
+        let recovered = recovery.into_recovered();
+        assert_eq!(recovered.hosted.len(), 1);
+        assert_eq!(recovered.hosted[0].0, "n1-2");
+        assert!(recovered.finished.is_empty());
+        assert_eq!(recovered.next, 3);
     }
 
     #[test]
@@ -194,7 +215,7 @@ mod tests {
         );
         assert_eq!(recovery.counts(), (1, 0));
         // No next number recorded yet: the first order is 1.
-        assert_eq!(recovery.into_recovered().2, 1);
+        assert_eq!(recovery.into_recovered().next, 1);
     }
 
     #[test]
@@ -210,5 +231,24 @@ mod tests {
         recovery.order("n1-1".into(), old);
         recovery.order("n2-1".into(), other);
         assert_eq!(recovery.counts(), (2, 0));
+    }
+
+    #[test]
+    fn a_followed_journal_keeps_the_named_work_orders_as_long_as_finished_orders() {
+        let made = |at: u64| Submitted {
+            product: "breaker".into(),
+            count: 2,
+            first: 1,
+            at,
+        };
+        let mut recovery = Recovery::new("n1");
+        recovery.apply(&[
+            record("submit/mes-1", &made(1_000)),
+            record("submit/mes-2", &made(2_000)),
+        ]);
+        recovery.forget_finished_before(1_500);
+        let recovered = recovery.into_recovered();
+        assert!(recovered.submits.get("mes-1").is_none());
+        assert_eq!(recovered.submits.get("mes-2"), Some(&made(2_000)));
     }
 }

@@ -213,7 +213,7 @@ async fn stand_by(
     }));
     let read = match catch_up(&client, &etcd.prefix, copy).await {
         Ok((recovered, changes)) => {
-            info!(%node, epoch, key = %leader.key(), changes, hosted = recovered.0.len(), finished = recovered.1.len(), "won the order-node's leader key at epoch {epoch}: serving with the orders it followed, {changes} records read at the takeover");
+            info!(%node, epoch, key = %leader.key(), changes, hosted = recovered.hosted.len(), finished = recovered.finished.len(), submits = recovered.submits.len(), "won the order-node's leader key at epoch {epoch}: serving with the orders it followed, {changes} records read at the takeover");
             Ok(recovered)
         }
         Err(why) => {

@@ -137,6 +137,14 @@ pub struct WorkOrder {
     /// `unknown_product`, since a misspelt product would otherwise fail only later.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub queue: bool,
+    /// A name the submitter gives the work order (optional; 1 to 64 of a-z, 0-9, '_'
+    /// and '-', e.g. an MES's work-order number), so that asking again is safe: an
+    /// order-node that already made a work order of this name answers with the orders
+    /// it made then and makes none, and refuses `invalid` one of another product or
+    /// count. Remembered with its orders (through a restart or a standby's takeover)
+    /// as long as finished orders are kept.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub submit_id: Option<String>,
 }
 
 fn one() -> u32 {
@@ -149,6 +157,9 @@ pub const MAX_ORDERS_PER_SUBMIT: u32 = 10_000;
 impl WorkOrder {
     pub fn validate(&self) -> Result<(), SchemaError> {
         validate_name("product", &self.product)?;
+        if let Some(id) = &self.submit_id {
+            validate_name("submit_id", id)?;
+        }
         if self.count == 0 || self.count > MAX_ORDERS_PER_SUBMIT {
             return Err(SchemaError::InvalidField {
                 field: "count",
@@ -411,5 +422,15 @@ mod tests {
             serde_json::from_value(json!({"product": "breaker", "count": 0})).unwrap();
         assert!(zero.validate().is_err());
         assert!(serde_json::from_value::<WorkOrder>(json!({"product": "b", "count": -1})).is_err());
+        // A name, when given, is a name; none is written when there is none.
+        let named: WorkOrder =
+            serde_json::from_value(json!({"product": "b", "submit_id": "mes-4711"})).unwrap();
+        named.validate().unwrap();
+        for bad in ["", "MES 4711", &"x".repeat(65)] {
+            let work: WorkOrder =
+                serde_json::from_value(json!({"product": "b", "submit_id": bad})).unwrap();
+            assert!(work.validate().is_err(), "{bad:?}");
+        }
+        assert!(!serde_json::to_string(&order).unwrap().contains("submit_id"));
     }
 }

@@ -280,6 +280,7 @@ impl Cell {
             priority: 0,
             due: None,
             queue: false,
+            submit_id: None,
         })
         .await
     }

@@ -121,6 +121,7 @@ async fn a_twin_order_node_is_refused() {
             priority: 0,
             due: None,
             queue: true,
+            submit_id: None,
         })
         .await
         .unwrap();

@@ -1,6 +1,6 @@
 //! The order-node's journal keeps finished orders only for `journal.keep_finished_ms`:
 //! they leave the journal and `cell orders`, and a restarted node does not bring them
-//! back.
+//! back. A named work order (`submit_id`) is made once, asked again or not.
 
 use std::time::Duration;
 
@@ -57,6 +57,7 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
             priority: 0,
             due: None,
             queue: true,
+            submit_id: Some("retained-1".into()),
         })
         .await
         .unwrap();
@@ -139,4 +140,112 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
     .unwrap();
     let left: Vec<(String, serde_json::Value)> = journal.list("order").unwrap();
     assert!(left.is_empty(), "{left:?}");
+    // Their work order's name left with them.
+    let names: Vec<(String, serde_json::Value)> = journal.list("submit").unwrap();
+    assert!(names.is_empty(), "{names:?}");
+}
+
+/// `cell submit --submit-id NAME` run again makes no more orders: the node answers
+/// with those it made under the name, also after a kill -9 and a restart on its
+/// journal; the name given to other work is refused and changes nothing.
+#[tokio::test(flavor = "multi_thread")]
+async fn a_named_work_order_submitted_again_makes_its_orders_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let cell = Cell::open("t-named").await.unwrap();
+    let data = dir.path().join("data");
+    let data_arg = data.to_str().unwrap().to_string();
+    let config = config(dir.path(), 3_600_000);
+    let node = |dir: &std::path::Path| {
+        start_holon(
+            dir,
+            "order-node",
+            &config,
+            "orders1",
+            &cell,
+            &["--data-dir", &data_arg],
+        )
+        .unwrap()
+    };
+    let submit = |extra: &[&str]| {
+        let output = std::process::Command::new(bin("cell"))
+            .args(["submit", "nothing", "--queue", "--cell", "t-named"])
+            .args(["--connect", &cell.endpoint])
+            .args(extra)
+            .output()
+            .unwrap();
+        let said = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+        (
+            output.status.success(),
+            said(&output.stdout)
+                .split_whitespace()
+                .map(String::from)
+                .collect::<Vec<_>>(),
+            said(&output.stderr),
+        )
+    };
+    // The node's orders, as `cell orders --all` lists them.
+    let orders = || {
+        let output = std::process::Command::new(bin("cell"))
+            .args(["orders", "--all", "--cell", "t-named"])
+            .args(["--connect", &cell.endpoint])
+            .output()
+            .unwrap();
+        let listed = String::from_utf8_lossy(&output.stdout).into_owned();
+        let names: Vec<String> = listed
+            .lines()
+            .filter_map(|l| l.split_whitespace().next())
+            .filter(|w| w.starts_with("orders1-"))
+            .map(String::from)
+            .collect();
+        (names, listed)
+    };
+    let mut first = node(dir.path());
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
+
+    let (ok, made, said) = submit(&["--count", "2", "--submit-id", "mes-4711"]);
+    assert!(ok, "{said}");
+    assert_eq!(made, ["orders1-1", "orders1-2"]);
+    let again = submit(&["--count", "2", "--submit-id", "mes-4711"]);
+    assert_eq!((again.0, &again.1), (true, &made), "{}", again.2);
+    // The name given to other work: refused, nothing made.
+    let other = submit(&["--count", "3", "--submit-id", "mes-4711"]);
+    assert!(!other.0, "{:?}", other.1);
+    assert!(
+        other.2.contains("invalid") && other.2.contains("mes-4711"),
+        "{}",
+        other.2
+    );
+    let (listed, table) = orders();
+    assert_eq!(listed, ["orders1-1", "orders1-2"], "{table}");
+
+    // Killed, restarted on its journal: the name is still known.
+    first.signal(Signal::SIGKILL).unwrap();
+    first.wait_exit(Duration::from_secs(20)).unwrap();
+    let second_dir = dir.path().join("second");
+    std::fs::create_dir_all(&second_dir).unwrap();
+    let mut second = node(&second_dir);
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
+    let after = submit(&["--count", "2", "--submit-id", "mes-4711"]);
+    assert_eq!((after.0, &after.1), (true, &made), "{}", after.2);
+    // Another name, and none, make new orders.
+    let new = submit(&["--submit-id", "mes-4712"]);
+    assert_eq!(
+        (new.0, &new.1[..]),
+        (true, &["orders1-3".to_string()][..]),
+        "{}",
+        new.2
+    );
+    let unnamed = submit(&[]);
+    assert_eq!(unnamed.1, ["orders1-4"], "{}", unnamed.2);
+    let (listed, table) = orders();
+    assert_eq!(listed.len(), 4, "{table}");
+    // A malformed name: refused by the tool before anything is asked.
+    let bad = submit(&["--submit-id", "MES 4711"]);
+    assert!(!bad.0 && bad.2.contains("submit_id"), "{}", bad.2);
+    second.signal(Signal::SIGTERM).unwrap();
+    assert!(second.wait_exit(Duration::from_secs(20)).unwrap().success());
 }

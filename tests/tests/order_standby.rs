@@ -246,7 +246,16 @@ async fn run(root: &Path, cluster: &EtcdCluster) -> Result<()> {
     );
 
     // Orders acknowledged by the primary: each was on a majority of etcd's disks first.
-    let submitted = cell.submit("part", ORDERS).await?;
+    // Named by their submitter, so that asking again is safe.
+    let named = schemas::WorkOrder {
+        product: "part".into(),
+        count: ORDERS,
+        priority: 0,
+        due: None,
+        queue: false,
+        submit_id: Some("mes-1".into()),
+    };
+    let submitted = cell.submit_work(named.clone()).await?;
     assert_eq!(submitted.len(), ORDERS as usize);
     let first = submitted[0].clone();
     cell.wait_order(&first, "done", |s| s.is_some_and(|s| s["status"] == "done"))
@@ -305,6 +314,9 @@ async fn run(root: &Path, cluster: &EtcdCluster) -> Result<()> {
         })
         .await?;
     }
+    // The work order asked again under its name: the standby knows it from the journal
+    // it followed, answers with the primary's orders and makes none.
+    assert_eq!(cell.submit_work(named).await?, submitted);
     // The numbering went on where the primary left it.
     let next = cell.submit("part", 1).await?;
     assert_eq!(next, [format!("orders1-{}", ORDERS + 1)]);

@@ -76,6 +76,7 @@ async fn rush_orders_go_first_and_a_passed_booking_is_not_passed_again() {
             priority: -10,
             due: None,
             queue: false,
+            submit_id: None,
         })
         .await
         .unwrap()

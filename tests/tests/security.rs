@@ -438,6 +438,7 @@ async fn the_secure_cell_obeys_only_its_own_identities_by_role() {
         priority: 0,
         due: None,
         queue: false,
+        submit_id: None,
     })
     .unwrap();
     // Denied, so unanswered (robot2's service answered the probe above; the order-node

@@ -46,6 +46,12 @@ pub struct SubmitArgs {
     /// orders wait for the plan (refused `unknown_product` otherwise).
     #[arg(long)]
     pub queue: bool,
+    /// A name for this work order (1 to 64 of a-z, 0-9, '_' and '-', e.g. an MES's
+    /// work-order number), so that submitting it again is safe: the order-node answers
+    /// with the orders it made under this name and makes none (a name given to another
+    /// product or count is refused).
+    #[arg(long, value_name = "NAME")]
+    pub submit_id: Option<String>,
     #[command(flatten)]
     pub client: ClientArgs,
 }
@@ -87,6 +93,7 @@ pub async fn submit(args: SubmitArgs) -> Result<bool> {
             .due_in
             .map(|d| schemas::unix_ms() + d.as_millis() as u64),
         queue: args.queue,
+        submit_id: args.submit_id,
     };
     work.validate()?;
     let session = client.session(OPERATOR).await?;

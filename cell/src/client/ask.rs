@@ -185,7 +185,11 @@ mod tests {
             matches!(outcome, Err(AskError::TimedOut(ref key)) if key == "t/slow"),
             "{outcome:?}"
         );
-        assert_eq!(asked.load(Ordering::SeqCst), 1, "asked again after a timeout");
+        assert_eq!(
+            asked.load(Ordering::SeqCst),
+            1,
+            "asked again after a timeout"
+        );
         held.lock().unwrap().clear();
         session.close().await.unwrap();
     }
@@ -208,7 +212,13 @@ mod tests {
         assert!(!reply.as_ref().is_some_and(timed_out));
         let outcome = answer_of::<serde_json::Value>(reply, || "t/refusing".into());
         assert!(
-            matches!(outcome, Err(AskError::Refused { code: schemas::ErrorCode::Quota, .. })),
+            matches!(
+                outcome,
+                Err(AskError::Refused {
+                    code: schemas::ErrorCode::Quota,
+                    ..
+                })
+            ),
             "{outcome:?}"
         );
         let reply = until_answered(&session, "t/nobody", None, "", Duration::from_millis(500))

@@ -187,6 +187,7 @@ pub async fn submit(
             .due_in_s
             .map(|s| schemas::unix_ms().saturating_add(s.saturating_mul(1000))),
         queue: form.queue,
+        submit_id: None,
     };
     if let Err(e) = work.validate() {
         return act.refuse(StatusCode::BAD_REQUEST, e.to_string());

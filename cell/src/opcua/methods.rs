@@ -256,6 +256,7 @@ impl CellNodes {
             priority: *priority,
             due: None,
             queue: false,
+            submit_id: None,
         };
         let key = self.keys.orders_submit();
         let payload = serde_json::to_vec(&work).map_err(|_| StatusCode::BadInternalError)?;

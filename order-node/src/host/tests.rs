@@ -73,6 +73,7 @@ async fn host(dir: Option<&Path>) -> Host {
             layout: Default::default(),
         }),
         Finished::new(),
+        Default::default(),
         1,
     )
 }
@@ -212,8 +213,11 @@ async fn a_finished_order_leaves_memory_and_is_answered_from_the_journal() {
     // After a restart (the journal reopened), the same answers.
     drop(host);
     let mut host = self::host(Some(&dir.0)).await;
-    let (recovered, finished, _) =
-        crate::recovery::recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
+    let crate::recovery::Recovered {
+        hosted: recovered,
+        finished,
+        ..
+    } = crate::recovery::recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
     assert_eq!(
         recovered.len(),
         1,
@@ -346,8 +350,11 @@ async fn an_old_journal_opens_and_answers() {
     }
     let mut host = host(Some(&dir.0)).await;
     host.next = 2;
-    let (recovered, finished, _) =
-        crate::recovery::recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
+    let crate::recovery::Recovered {
+        hosted: recovered,
+        finished,
+        ..
+    } = crate::recovery::recover(host.context.journal.as_ref().unwrap(), "n1").unwrap();
     assert!(finished.is_empty(), "its end was not recorded: read whole");
     let mut tasks = Tasks::default();
     host.resume(recovered, &[], &mut tasks, &CancellationToken::new());
