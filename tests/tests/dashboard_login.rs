@@ -231,8 +231,13 @@ async fn in_a_browser_each_role_does_what_it_may_and_the_audit_trail_names_them(
         .unwrap();
     let (count, _) = browser.wait_for("#count", within).unwrap();
     browser.type_into(&count, "1").unwrap();
-    let (submit, _) = browser.wait_for("#submit button", within).unwrap();
-    browser.click(&submit).unwrap();
+    browser.wait_for("#submit button", within).unwrap();
+    // Sent twice before any answer (a double click): one work order, one order.
+    browser
+        .execute(
+            "const f = document.getElementById('submit'); f.requestSubmit(); f.requestSubmit();",
+        )
+        .unwrap();
     let (said, _) = browser.wait_for("#submitted", within).unwrap();
     let started = Instant::now();
     let order = loop {
@@ -249,6 +254,12 @@ async fn in_a_browser_each_role_does_what_it_may_and_the_audit_trail_names_them(
                 .any(|o| o["holon"] == format!("order/{order}") && o["status"] == "done")
         })
     });
+    let listed = eyes.call("GET", "/api/orders", "").json();
+    assert_eq!(
+        listed.as_array().map(Vec::len),
+        Some(1),
+        "the form sent twice made orders twice: {listed}"
+    );
     // The order-node's log names who asked.
     let log = std::fs::read_to_string(cell.dir.join("logs/orders1.log")).unwrap();
     assert!(

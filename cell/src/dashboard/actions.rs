@@ -162,6 +162,11 @@ pub struct SubmitForm {
     /// Due this many seconds from now (optional).
     #[serde(default)]
     due_in_s: Option<u64>,
+    /// A name for the work order (optional, `WorkOrder::submit_id`): posted again
+    /// under it (a double click, a retry), the same orders and no more. The page
+    /// gives one to each work order filled in.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    submit_id: Option<String>,
 }
 
 fn one() -> u32 {
@@ -187,7 +192,7 @@ pub async fn submit(
             .due_in_s
             .map(|s| schemas::unix_ms().saturating_add(s.saturating_mul(1000))),
         queue: form.queue,
-        submit_id: None,
+        submit_id: form.submit_id,
     };
     if let Err(e) = work.validate() {
         return act.refuse(StatusCode::BAD_REQUEST, e.to_string());
