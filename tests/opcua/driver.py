@@ -16,7 +16,7 @@ Commands:
     read RES PATH                   -> {"value": ...}  PATH e.g. Status.StateCurrent
     readcell PATH                   -> {"value": ...}  e.g. OrdersDone, Security.LoginsRefused
     call RES METHOD [INT]           -> {"status": "Good" | "Bad..."}
-    submit PRODUCT COUNT PRIORITY   -> {"status": ..., "orders": [...]}  (PRODUCT may hold \n)
+    submit PRODUCT COUNT PRIORITY [SUBMIT_ID] -> {"status": ..., "orders": [...]}  (PRODUCT may hold \n)
     subscribe RES PATH              -> {"status": "Good"} (publishing interval 20 ms)
     changes                         -> {"values": [...], "latency_ms": [...]} since start
                                        (latency: SourceTimestamp to receipt, initial values left out)
@@ -131,12 +131,15 @@ async def main():
                     node = await objects.get_child([f"{idx}:Cell"])
                     # \n and the like in the product name are sent as the characters.
                     product = rest[0].encode().decode("unicode_escape")
-                    orders = await node.call_method(
-                        f"{idx}:SubmitWorkOrder",
+                    arguments = [
                         ua.Variant(product, ua.VariantType.String),
                         ua.Variant(int(rest[1]), ua.VariantType.Int32),
                         ua.Variant(int(rest[2]), ua.VariantType.Int32),
-                    )
+                    ]
+                    # An optional fourth word: the work order's submitId.
+                    if len(rest) > 3:
+                        arguments.append(ua.Variant(rest[3], ua.VariantType.String))
+                    orders = await node.call_method(f"{idx}:SubmitWorkOrder", *arguments)
                     out = {"status": "Good", "orders": orders}
                 elif command == "subscribe":
                     path = [f"{idx}:PackMLObjects", f"{idx}:{rest[0]}"] + [f"{idx}:{p}" for p in rest[1].split(".")]

@@ -196,6 +196,15 @@ async fn a_foreign_client_watches_and_commands_the_cell_over_opcua() {
         ua.ask("submit nothing-such 1 0").await["status"],
         "BadInvalidArgument"
     );
+    assert_eq!(
+        ua.ask("submit part 1 0 Not-A-Name").await["status"],
+        "BadInvalidArgument"
+    );
+    // A named work order called again (an MES that retries after BadTimeout): the
+    // orders made the first time, none made.
+    let named = orders_of(&ua.ask("submit part 2 0 mes-77").await, 2);
+    assert_eq!(orders_of(&ua.ask("submit part 2 0 mes-77").await, 2), named);
+    wait_done(&cell, &named).await;
     // The figures are the order-nodes' counts, asked every second: read until they
     // caught up.
     let deadline = tokio::time::Instant::now() + Duration::from_secs(10);
@@ -203,12 +212,12 @@ async fn a_foreign_client_watches_and_commands_the_cell_over_opcua() {
         let done = ua.ask("readcell OrdersDone").await["value"]
             .as_i64()
             .unwrap();
-        if done >= 15 {
+        if done >= 17 {
             break;
         }
         assert!(
             tokio::time::Instant::now() < deadline,
-            "OrdersDone {done}, never 15"
+            "OrdersDone {done}, never 17"
         );
         tokio::time::sleep(Duration::from_millis(200)).await;
     }

@@ -9,7 +9,8 @@
 //!   Start() ... Reset(), SetUnitMode(Int32)   PackMLObjects.<resource>.Hold
 //! Objects/Cell                                Cell
 //!   OrdersRunning, OrdersDone, OrdersFailed   Cell.OrdersRunning
-//!   SubmitWorkOrder(String, Int32, Int32)     Cell.SubmitWorkOrder
+//!   SubmitWorkOrder(String, Int32, Int32[,    Cell.SubmitWorkOrder
+//!                   String])
 //!   Security/LoginsRefused, LoginsInCheck,    Cell.Security.LoginsRefused
 //!            SessionsActivated, SessionsWaiting
 //! ```
@@ -210,6 +211,12 @@ pub fn add_static(space: &mut AddressSpace, ns: u16) {
                 DataTypeId::Int32,
                 false,
                 "-1000 to 1000, higher first",
+            ),
+            argument(
+                "submitId",
+                DataTypeId::String,
+                false,
+                "optional: a name for the work order ('' or left out: none); called again under it, the orders made then, none made",
             ),
         ],
         &[argument(

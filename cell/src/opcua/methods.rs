@@ -238,26 +238,37 @@ impl CellNodes {
         }
     }
 
+    /// `SubmitWorkOrder(product, count, priority[, submitId])`: the fourth argument is
+    /// optional (clients of the three-argument method call it as before); `''` is none.
     async fn submit(&self, who: &str, arguments: &[Variant]) -> Outcome {
-        let [Variant::String(product), Variant::Int32(count), Variant::Int32(priority)] = arguments
+        let ([Variant::String(product), Variant::Int32(count), Variant::Int32(priority)]
+        | [Variant::String(product), Variant::Int32(count), Variant::Int32(priority), Variant::String(_)]) =
+            arguments
         else {
-            warn!(%who, "SubmitWorkOrder wants (String, Int32, Int32) (BadTypeMismatch)");
+            warn!(%who, "SubmitWorkOrder wants (String, Int32, Int32[, String]) (BadTypeMismatch)");
             return Err(StatusCode::BadTypeMismatch);
         };
+        let submit_id = match arguments.get(3) {
+            Some(Variant::String(id)) if !id.is_empty() => Some(id.as_ref().to_string()),
+            _ => None,
+        };
         let product = product.as_ref().to_string();
-        if product.is_empty() || !(1..=10_000).contains(count) || !(-1000..=1000).contains(priority)
-        {
-            warn!(%who, %product, count, priority, "SubmitWorkOrder: a product, count 1 to 10000 and priority -1000 to 1000 (BadInvalidArgument)");
-            return Err(StatusCode::BadInvalidArgument);
-        }
         let work = WorkOrder {
             product: product.clone(),
-            count: *count as u32,
+            count: (*count).max(0) as u32,
             priority: *priority,
             due: None,
             queue: false,
-            submit_id: None,
+            submit_id,
         };
+        if product.is_empty()
+            || !(1..=10_000).contains(count)
+            || !(-1000..=1000).contains(priority)
+            || work.validate().is_err()
+        {
+            warn!(%who, %product, count, priority, "SubmitWorkOrder: a product, count 1 to 10000, priority -1000 to 1000 and a submitId of 1 to 64 of a-z, 0-9, '_', '-' (BadInvalidArgument)");
+            return Err(StatusCode::BadInvalidArgument);
+        }
         let key = self.keys.orders_submit();
         let payload = serde_json::to_vec(&work).map_err(|_| StatusCode::BadInternalError)?;
         let reply = match crate::client::ask::until_answered(
