@@ -27,6 +27,28 @@ keep_finished_ms = {keep_finished_ms}
     path
 }
 
+/// Ends the node `old` with `signal` (SIGTERM: a clean exit), starts it again with
+/// `start` in a directory of its own under `dir`, on the same journal, and waits until
+/// it is there.
+async fn restart(
+    cell: &Cell,
+    mut old: Process,
+    signal: Signal,
+    dir: &std::path::Path,
+    start: impl Fn(&std::path::Path) -> Process,
+) -> Process {
+    old.signal(signal).unwrap();
+    let exit = old.wait_exit(Duration::from_secs(20)).unwrap();
+    assert!(signal != Signal::SIGTERM || exit.success(), "{exit:?}");
+    let second = dir.join("second");
+    std::fs::create_dir_all(&second).unwrap();
+    let new = start(&second);
+    cell.wait_token(&cell.keys.host("order-node", "orders1"))
+        .await
+        .unwrap();
+    new
+}
+
 #[tokio::test(flavor = "multi_thread")]
 async fn finished_orders_leave_the_journal_after_the_retention() {
     let dir = tempfile::tempdir().unwrap();
@@ -44,7 +66,7 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
         )
         .unwrap()
     };
-    let mut first = node(dir.path());
+    let first = node(dir.path());
     cell.wait_token(&cell.keys.host("order-node", "orders1"))
         .await
         .unwrap();
@@ -119,14 +141,7 @@ async fn finished_orders_leave_the_journal_after_the_retention() {
     assert!(refused.contains("unknown_order"), "{refused}");
 
     // A restarted node does not bring them back.
-    first.signal(Signal::SIGTERM).unwrap();
-    assert!(first.wait_exit(Duration::from_secs(20)).unwrap().success());
-    let second_dir = dir.path().join("second");
-    std::fs::create_dir_all(&second_dir).unwrap();
-    let mut second = node(&second_dir);
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await
-        .unwrap();
+    let mut second = restart(&cell, first, Signal::SIGTERM, dir.path(), node).await;
     for order in &failing {
         assert_eq!(cell.order_state(order).await, None, "{order} came back");
     }
@@ -199,7 +214,7 @@ async fn a_named_work_order_submitted_again_makes_its_orders_once() {
             .collect();
         (names, listed)
     };
-    let mut first = node(dir.path());
+    let first = node(dir.path());
     cell.wait_token(&cell.keys.host("order-node", "orders1"))
         .await
         .unwrap();
@@ -221,14 +236,7 @@ async fn a_named_work_order_submitted_again_makes_its_orders_once() {
     assert_eq!(listed, ["orders1-1", "orders1-2"], "{table}");
 
     // Killed, restarted on its journal: the name is still known.
-    first.signal(Signal::SIGKILL).unwrap();
-    first.wait_exit(Duration::from_secs(20)).unwrap();
-    let second_dir = dir.path().join("second");
-    std::fs::create_dir_all(&second_dir).unwrap();
-    let mut second = node(&second_dir);
-    cell.wait_token(&cell.keys.host("order-node", "orders1"))
-        .await
-        .unwrap();
+    let mut second = restart(&cell, first, Signal::SIGKILL, dir.path(), node).await;
     let after = submit(&["--count", "2", "--submit-id", "mes-4711"]);
     assert_eq!((after.0, &after.1), (true, &made), "{}", after.2);
     // Another name, and none, make new orders.
