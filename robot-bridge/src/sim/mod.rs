@@ -168,13 +168,12 @@ impl SimStats {
     /// An `action` executed (answered with its success result, or ended with nobody
     /// to tell: by a session, or by the plant simulator for a move it resumed).
     pub(crate) fn count_executed(&self, action: &str) {
+        // Both under the lock the count file's snapshot takes ([`SimStats::to_json`]),
+        // so that in it `executed` and `by_action` always agree (a write between the two
+        // once showed one command executed and no pick).
+        let mut by_action = self.by_action.lock().unwrap_or_else(|e| e.into_inner());
+        *by_action.entry(action.to_string()).or_default() += 1;
         self.executed.fetch_add(1, Ordering::SeqCst);
-        *self
-            .by_action
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .entry(action.to_string())
-            .or_default() += 1;
     }
 
     /// Actions stopped by the dialect's abort while under way (not executed).
@@ -297,14 +296,19 @@ impl SimStats {
     }
 
     fn plain_json(&self) -> String {
-        let by_action: Vec<String> = self
-            .by_action()
-            .iter()
-            .map(|(k, v)| format!("\"{k}\":{v}"))
-            .collect();
+        // `executed` read with `by_action`, under its lock: they agree (see
+        // `count_executed`).
+        let (executed, by_action) = {
+            let by_action = self.by_action.lock().unwrap_or_else(|e| e.into_inner());
+            let listed: Vec<String> = by_action
+                .iter()
+                .map(|(k, v)| format!("\"{k}\":{v}"))
+                .collect();
+            (self.executed(), listed)
+        };
         format!(
             "{{\"executed\":{},\"received\":{},\"aborted\":{},\"refused_while_stopped\":{},\"connections\":{},\"changeovers\":{},\"by_action\":{{{}}}}}",
-            self.executed(),
+            executed,
             self.received(),
             self.aborted(),
             self.refused_while_stopped(),
