@@ -261,11 +261,9 @@ impl CellNodes {
             queue: false,
             submit_id,
         };
-        if product.is_empty()
-            || !(1..=10_000).contains(count)
-            || !(-1000..=1000).contains(priority)
-            || work.validate().is_err()
-        {
+        // The work order's own rules (a product name, count 1 to 10000, priority -1000
+        // to 1000, a submitId that is a name), as the order-node checks them.
+        if work.validate().is_err() {
             warn!(%who, %product, count, priority, "SubmitWorkOrder: a product, count 1 to 10000, priority -1000 to 1000 and a submitId of 1 to 64 of a-z, 0-9, '_', '-' (BadInvalidArgument)");
             return Err(StatusCode::BadInvalidArgument);
         }
