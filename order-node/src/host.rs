@@ -187,7 +187,7 @@ impl Host {
         });
         let created: Vec<(String, OrderProgress)> = (first..next)
             .map(|n| {
-                let name = format!("{}-{n}", self.config.name);
+                let name = order_name_of(&self.config.name, n);
                 let holon = HolonId::order(&name).expect("node names are validated");
                 let progress =
                     OrderProgress::new(holon, &work.product, self.config.orders.max_attempts)
@@ -519,7 +519,7 @@ impl Host {
         let wanted: Vec<String> = self
             .finished
             .keys()
-            .map(|number| format!("{}-{number}", self.config.name))
+            .map(|number| order_name_of(&self.config.name, *number))
             .filter(|name| {
                 HolonId::order(name).is_ok_and(|holon| {
                     KeyExpr::try_from(self.config.keys.state(&holon))
@@ -547,6 +547,11 @@ impl Host {
     }
 }
 
+/// The name node `node` gives its order of `number`: `<node>-<number>`.
+pub fn order_name_of(node: &str, number: u64) -> String {
+    format!("{node}-{number}")
+}
+
 /// The number of `name` if it is the name node `node` gives its order of that number
 /// (`<node>-<n>`).
 pub fn order_number(node: &str, name: &str) -> Option<u64> {
@@ -555,7 +560,7 @@ pub fn order_number(node: &str, name: &str) -> Option<u64> {
         .strip_prefix('-')?
         .parse::<u64>()
         .ok()?;
-    (format!("{node}-{number}") == name).then_some(number)
+    (order_name_of(node, number) == name).then_some(number)
 }
 
 /// An order task ended: done (the order ended), waiting for the journal (resumed after

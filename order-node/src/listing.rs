@@ -149,7 +149,7 @@ impl Host {
         let names: Vec<String> = candidates
             .iter()
             .filter(|(_, source)| matches!(source, Source::Journal))
-            .map(|(number, _)| format!("{}-{number}", self.config.name))
+            .map(|(number, _)| crate::host::order_name_of(&self.config.name, *number))
             .collect();
         let mut read: BTreeMap<String, OrderProgress> = match self.read_finished(&names) {
             Ok(read) => read.into_iter().collect(),
@@ -167,7 +167,7 @@ impl Host {
             let snapshot = match source {
                 Source::Memory(progress) => Some(progress.borrow().snapshot()),
                 Source::Journal => read
-                    .remove(&format!("{}-{number}", self.config.name))
+                    .remove(&crate::host::order_name_of(&self.config.name, number))
                     .map(|progress| progress.snapshot()),
             };
             match snapshot {

@@ -33,7 +33,7 @@ impl Submitted {
     /// The names of the orders it made on node `node`.
     pub fn orders(&self, node: &str) -> Vec<String> {
         (self.first..self.first + u64::from(self.count))
-            .map(|n| format!("{node}-{n}"))
+            .map(|n| crate::host::order_name_of(node, n))
             .collect()
     }
 

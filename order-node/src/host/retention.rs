@@ -39,7 +39,7 @@ impl Host {
         expired.extend(
             in_journal
                 .iter()
-                .map(|number| format!("{}-{number}", self.config.name)),
+                .map(|number| super::order_name_of(&self.config.name, *number)),
         );
         if expired.is_empty() {
             return 0;
